@@ -1,0 +1,84 @@
+"""Input checks used at the public boundary of the library.
+
+Every public function validates shapes, finiteness and ranges with these helpers so that a bad
+input fails early with a message that names the argument and the problem, instead of producing a
+silently wrong answer deep inside a solver.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+
+__all__ = [
+    "as_array",
+    "check_finite",
+    "check_positive",
+    "check_nonnegative",
+    "check_shape",
+]
+
+
+def check_finite(name: str, a: np.ndarray) -> np.ndarray:
+    """Raise ``ValueError`` if ``a`` holds NaN or inf, naming the first bad index."""
+    if not np.all(np.isfinite(a)):
+        bad = np.argwhere(~np.isfinite(a))
+        first = tuple(int(i) for i in bad[0]) if a.ndim else ()
+        raise ValueError(
+            f"{name} contains {len(bad)} non-finite value(s) (NaN or inf); first at index {first}"
+        )
+    return a
+
+
+def check_shape(name: str, a: np.ndarray, shape: Sequence[int | None]) -> np.ndarray:
+    """Raise ``ValueError`` unless ``a.shape`` matches ``shape`` (``None`` matches any size)."""
+    if a.ndim != len(shape) or any(s is not None and s != d for s, d in zip(shape, a.shape)):
+        want = "[" + ", ".join("*" if s is None else str(s) for s in shape) + "]"
+        raise ValueError(f"{name} must have shape {want}, got {list(a.shape)}")
+    return a
+
+
+def as_array(
+    name: str,
+    a: object,
+    shape: Sequence[int | None] | None = None,
+    *,
+    ndim: int | None = None,
+    dtype: type = np.float64,
+    finite: bool = True,
+) -> np.ndarray:
+    """Convert ``a`` to a numpy array of ``dtype`` and check it.
+
+    :param name: the argument name used in error messages.
+    :param shape: expected shape, ``None`` entries match any size.
+    :param ndim: expected number of dimensions (alternative to ``shape``).
+    :param finite: reject NaN and inf.
+    """
+    try:
+        arr = np.asarray(a, dtype=dtype)
+    except (TypeError, ValueError) as err:
+        raise ValueError(f"{name} must be numeric array-like: {err}") from None
+    if shape is not None:
+        check_shape(name, arr, shape)
+    if ndim is not None and arr.ndim != ndim:
+        raise ValueError(f"{name} must be {ndim}-dimensional, got shape {list(arr.shape)}")
+    if finite:
+        check_finite(name, arr)
+    return arr
+
+
+def check_positive(name: str, value: float) -> float:
+    """Raise ``ValueError`` unless ``value`` is a finite number > 0."""
+    v = float(value)
+    if not np.isfinite(v) or v <= 0:
+        raise ValueError(f"{name} must be a finite number > 0, got {value!r}")
+    return v
+
+
+def check_nonnegative(name: str, value: float) -> float:
+    """Raise ``ValueError`` unless ``value`` is a finite number >= 0."""
+    v = float(value)
+    if not np.isfinite(v) or v < 0:
+        raise ValueError(f"{name} must be a finite number >= 0, got {value!r}")
+    return v

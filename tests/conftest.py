@@ -1,0 +1,4 @@
+import os
+
+# Headless rendering must be chosen before mujoco is imported anywhere.
+os.environ.setdefault("MUJOCO_GL", "egl")
