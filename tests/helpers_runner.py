@@ -1,0 +1,27 @@
+"""Module-level run functions for the runner tests (workers must be able to import them)."""
+
+import os
+
+import numpy as np
+
+
+def noisy_mean(config: dict, seed: int) -> dict:
+    rng = np.random.default_rng(seed)
+    x = rng.normal(config["mu"], 1.0, size=config.get("n", 100))
+    log = config.get("log_dir")
+    if log:  # count executions, to check that resumed sweeps do not redo work
+        with open(os.path.join(log, f"{config['mu']}_{seed}_{os.getpid()}"), "a") as fh:
+            fh.write("x")
+    return {"mean": float(x.mean()), "first": x[:3]}
+
+
+def fail_on_odd(config: dict, seed: int) -> dict:
+    if seed % 2:
+        raise RuntimeError(f"odd seed {seed}")
+    return {"seed": seed}
+
+
+def torch_threads(config: dict, seed: int) -> dict:
+    import torch
+
+    return {"threads": torch.get_num_threads()}
