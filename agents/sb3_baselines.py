@@ -1,0 +1,409 @@
+"""Stable-Baselines3 model-free baselines (SAC, TD3, PPO) on exactly the agent's task.
+
+The benchmark (``scripts/benchmark_sb3.py``) asks how many real environment steps, and how much
+wall time, a model-free agent needs to *solve* the reach task compared with the Algorithm-1
+agent of Bagge Carlson et al. (arXiv:1806.09919). To make the comparison mean something the
+baselines use everything the agent uses:
+
+- the same env id and keyword arguments (preset), hence the same episode length and the same
+  reward ``r = -cost`` (the env's ``(x - x_goal)^T Q (x - x_goal) + a^T R a``);
+- the same fixed evaluation targets and reset seeds, through the same function
+  (:func:`agents.evaluation.evaluate_policy_cost`) with the DETERMINISTIC policy;
+- the same "solved" threshold (``solved_ratio`` x the true-model MPC oracle's cost on those
+  targets), checked every ``eval_every`` env steps by :class:`CostEvalCallback`, which stops
+  training at the first solved evaluation.
+
+Hyperparameters (:func:`default_hyperparams`): Stable-Baselines3 defaults, with the
+rl-baselines3-zoo MuJoCo changes that are not about the budget: TD3 explores with Gaussian
+action noise of std 0.1 (SB3's TD3 has no exploration noise by default) and PPO normalizes
+observations and rewards (``VecNormalize``), as the zoo does for every MuJoCo env. The zoo's
+``learning_starts=10000`` for SAC and TD3 is NOT used: it would put a floor of 10 000 random
+steps under "steps to solve" that says nothing about learning, and would flatter the
+model-based agent.
+
+Wall time is counted EXCLUDING evaluation time (model construction, data collection and
+gradient steps only); the time including evaluation is reported next to it.
+
+The small statistics helpers at the end (:func:`censored_median`, :func:`best_of`) handle
+runs that did not solve within their budget: such a run's steps-to-solve is only known to be
+``>= budget``, and every summary built from it is reported as a lower bound.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Sequence
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+from stable_baselines3 import PPO, SAC, TD3
+from stable_baselines3.common.base_class import BaseAlgorithm
+from stable_baselines3.common.callbacks import BaseCallback
+from stable_baselines3.common.monitor import Monitor
+from stable_baselines3.common.noise import NormalActionNoise
+from stable_baselines3.common.vec_env import DummyVecEnv, VecEnv, VecNormalize
+
+from mbtsr.validation import as_array, check_positive
+
+__all__ = [
+    "ALGOS",
+    "CostEvalCallback",
+    "best_of",
+    "censored_median",
+    "default_hyperparams",
+    "make_sb3_model",
+    "make_training_env",
+    "train_sb3",
+]
+
+ALGOS: dict[str, type[BaseAlgorithm]] = {"sac": SAC, "td3": TD3, "ppo": PPO}
+
+#: evaluation function: (policy_fn(obs) -> action, env, targets [k, 2], seed) -> mean cost
+EvaluateFn = Callable[[Callable[[np.ndarray], np.ndarray], gym.Env, np.ndarray, int], float]
+
+
+def default_hyperparams(algo: str) -> dict[str, Any]:
+    """The hyperparameters the benchmark uses for ``algo`` (JSON-serializable).
+
+    SB3 defaults (SAC: lr 3e-4, batch 256, [256, 256], learning_starts 100, train_freq 1,
+    gamma 0.99; TD3: lr 1e-3, batch 256, [400, 300], policy_delay 2, learning_starts 100;
+    PPO: n_steps 2048, batch 64, 10 epochs, lr 3e-4, gae 0.95, gamma 0.99, [64, 64]) with the
+    rl-baselines3-zoo MuJoCo changes that are not about the budget: TD3 explores with Gaussian
+    action noise of std 0.1 (``action_noise_std``; SB3's TD3 has none by default) and PPO
+    normalizes observations and rewards (``normalize``, a ``VecNormalize`` wrapper). The zoo's
+    ``learning_starts=10000`` (SAC, TD3) is not used (see the module docstring).
+    """
+    _check_algo(algo)
+    return {"td3": {"action_noise_std": 0.1}, "ppo": {"normalize": True}}.get(algo, {})
+
+
+def make_training_env(
+    env_id: str, env_kwargs: dict[str, Any] | None = None, normalize: bool = False,
+    gamma: float = 0.99,
+) -> VecEnv:
+    """One ``Monitor``-ed env in a ``DummyVecEnv`` (faster than subprocesses on 2 cores),
+    wrapped in ``VecNormalize`` (observations and rewards, discount ``gamma``) if
+    ``normalize``."""
+    kwargs = dict(env_kwargs or {})
+    venv: VecEnv = DummyVecEnv([lambda: Monitor(gym.make(env_id, **kwargs))])
+    if normalize:
+        venv = VecNormalize(venv, norm_obs=True, norm_reward=True, gamma=gamma)
+    return venv
+
+
+def make_sb3_model(
+    algo: str,
+    env: gym.Env | VecEnv,
+    seed: int,
+    hyperparams: dict[str, Any] | None = None,
+    tensorboard_log: str | None = None,
+) -> BaseAlgorithm:
+    """Build an SB3 model with an ``MlpPolicy`` on ``env`` (CPU, seeded).
+
+    :param hyperparams: keyword arguments of the SB3 class, plus two keys of this module:
+        ``action_noise_std`` (sac/td3) adds ``NormalActionNoise`` with that std on every action
+        dimension; ``normalize`` is consumed by :func:`make_training_env` and ignored here.
+        ``None``: :func:`default_hyperparams`.
+    """
+    _check_algo(algo)
+    kwargs = dict(default_hyperparams(algo) if hyperparams is None else hyperparams)
+    kwargs.pop("normalize", None)
+    noise_std = kwargs.pop("action_noise_std", None)
+    if noise_std is not None:
+        if algo == "ppo":
+            raise ValueError("hyperparams: action_noise_std is for sac/td3, not ppo")
+        check_positive("hyperparams['action_noise_std']", noise_std)
+        m = env.action_space.shape[0]
+        kwargs["action_noise"] = NormalActionNoise(np.zeros(m), float(noise_std) * np.ones(m))
+    if "policy_kwargs" in kwargs and "net_arch" in kwargs["policy_kwargs"]:
+        kwargs["policy_kwargs"] = dict(kwargs["policy_kwargs"])
+        net_arch = kwargs["policy_kwargs"]["net_arch"]
+        if isinstance(net_arch, (list, tuple)):
+            kwargs["policy_kwargs"]["net_arch"] = list(net_arch)
+    try:
+        return ALGOS[algo](
+            "MlpPolicy", env, seed=int(seed), device="cpu", tensorboard_log=tensorboard_log,
+            verbose=0, **kwargs,
+        )
+    except TypeError as err:
+        raise ValueError(f"hyperparams for {algo} are not accepted by SB3: {err}") from None
+
+
+class CostEvalCallback(BaseCallback):
+    """Evaluate the deterministic policy every ``eval_every`` env steps; stop when solved.
+
+    The evaluation cost is the mean episode cost (= minus the mean undiscounted return) of the
+    deterministic policy on the fixed ``eval_targets``, in a separate raw env (when training
+    uses ``VecNormalize`` the policy sees observations normalized with the current running
+    statistics; the cost is always the env's own). Evaluations happen at the start of a
+    rollout, i.e. after the gradient updates on all data so far: for SAC/TD3 (``train_freq=1``)
+    every step boundary, for PPO after every ``n_steps`` rollout and its update. The first
+    evaluation is at step 0 (the untrained policy), the last at the end of training. At the
+    first evaluation with ``cost <= threshold`` training stops (one more env step is taken,
+    because SB3 can only be stopped from ``on_step``).
+
+    After training:
+
+    - ``curve``: ``[(env_steps, eval_cost), ...]``;
+    - ``train_wall``: wall seconds since ``t_start`` EXCLUDING evaluation, at each curve point;
+    - ``steps_to_solve`` / ``wall_to_solve`` (excl. evaluation) / ``wall_to_solve_incl_eval``
+      (``None`` when not solved);
+    - ``eval_seconds``: total time spent evaluating.
+
+    :param eval_env: a separate env instance used only for evaluation.
+    :param eval_targets: ``[k, 2]`` goal joint angles, one per evaluation episode.
+    :param eval_every: evaluation period in env steps.
+    :param threshold: the solved threshold on the mean cost (``None``: never stop early).
+    :param eval_seed: evaluation episode ``i`` resets with ``eval_seed + i`` (as the agent's).
+    :param evaluate: ``(policy_fn, env, targets, seed) -> mean cost``; default
+        :func:`agents.evaluation.evaluate_policy_cost`.
+    :param t_start: ``time.perf_counter()`` value that wall times are measured from
+        (default: the start of training).
+    """
+
+    def __init__(
+        self,
+        eval_env: gym.Env,
+        eval_targets: np.ndarray,
+        eval_every: int,
+        threshold: float | None,
+        eval_seed: int,
+        evaluate: EvaluateFn | None = None,
+        t_start: float | None = None,
+        verbose: int = 0,
+    ):
+        super().__init__(verbose)
+        if evaluate is None:
+            from agents.evaluation import evaluate_policy_cost as evaluate
+        self.eval_env = eval_env
+        self.eval_targets = eval_targets
+        self.eval_every = int(eval_every)
+        self.threshold = threshold
+        self.eval_seed = int(eval_seed)
+        self.evaluate = evaluate
+        self.t_start = t_start
+        self.curve: list[tuple[int, float]] = []
+        self.train_wall: list[float] = []
+        self.eval_seconds = 0.0
+        self.steps_to_solve: int | None = None
+        self.wall_to_solve: float | None = None
+        self.wall_to_solve_incl_eval: float | None = None
+        self._next_eval = 0
+
+    def policy_action(self, obs: np.ndarray) -> np.ndarray:
+        """The deterministic action of the current policy for one raw observation ``obs: [d]``
+        (normalized first if the training env is a ``VecNormalize``)."""
+        vec_normalize = self.model.get_vec_normalize_env()
+        if vec_normalize is not None:
+            obs = vec_normalize.normalize_obs(np.asarray(obs))
+        action, _ = self.model.predict(obs, deterministic=True)
+        return action
+
+    def evaluate_now(self) -> bool:
+        """Evaluate at the current step (once per step); return ``True`` if solved."""
+        if self.curve and self.curve[-1][0] == self.num_timesteps:
+            return self.steps_to_solve is not None
+        t0 = time.perf_counter()
+        train_wall = t0 - self.t_start - self.eval_seconds
+        cost = float(self.evaluate(self.policy_action, self.eval_env, self.eval_targets,
+                                   self.eval_seed))
+        self.eval_seconds += time.perf_counter() - t0
+        self.curve.append((int(self.num_timesteps), cost))
+        self.train_wall.append(train_wall)
+        self.logger.record("eval/cost", cost)
+        self.logger.record("eval/train_wall_seconds", train_wall)
+        solved = self.threshold is not None and cost <= self.threshold
+        if solved and self.steps_to_solve is None:
+            self.steps_to_solve = int(self.num_timesteps)
+            self.wall_to_solve = train_wall
+            self.wall_to_solve_incl_eval = time.perf_counter() - self.t_start
+        if self.verbose:
+            print(f"[{type(self.model).__name__}] step {self.num_timesteps}: eval cost {cost:.4g}"
+                  f" (threshold {self.threshold})")
+        return solved
+
+    def _on_training_start(self) -> None:
+        if self.t_start is None:
+            self.t_start = time.perf_counter()
+        self._maybe_evaluate()
+
+    def _on_rollout_start(self) -> None:
+        self.num_timesteps = self.model.num_timesteps
+        self._maybe_evaluate()
+
+    def _maybe_evaluate(self) -> None:
+        if self.steps_to_solve is None and self.num_timesteps >= self._next_eval:
+            self.evaluate_now()
+            while self._next_eval <= self.num_timesteps:
+                self._next_eval += self.eval_every
+
+    def _on_step(self) -> bool:
+        return self.steps_to_solve is None
+
+    def _on_training_end(self) -> None:
+        if self.steps_to_solve is None:
+            self.num_timesteps = self.model.num_timesteps
+            self.evaluate_now()
+
+
+def train_sb3(
+    algo: str,
+    env_id: str,
+    budget_steps: int,
+    seed: int,
+    eval_every: int,
+    eval_targets: np.ndarray | Sequence[Sequence[float]],
+    threshold: float | None,
+    hyperparams: dict[str, Any] | None = None,
+    tensorboard_log: str | None = None,
+    progress_bar: bool = False,
+    *,
+    env_kwargs: dict[str, Any] | None = None,
+    eval_seed: int = 0,
+    evaluate: EvaluateFn | None = None,
+    tb_log_name: str | None = None,
+    return_model: bool = False,
+) -> dict[str, Any]:
+    """Train an SB3 agent on ``env_id`` until solved or out of budget; return its record.
+
+    :param algo: ``"sac"``, ``"td3"`` or ``"ppo"``.
+    :param env_id: registered Gymnasium id, e.g. ``"mbtsr/TwoLinkArm-v0"``.
+    :param budget_steps: maximum env steps (PPO rounds up to whole rollouts of ``n_steps``).
+    :param seed: seed of the SB3 model and of the training env's resets.
+    :param eval_every: evaluation period in env steps.
+    :param eval_targets: ``[k, 2]`` fixed evaluation targets (the agent's).
+    :param threshold: solved threshold on the mean evaluation cost; ``None`` trains the whole
+        budget.
+    :param hyperparams: SB3 keyword arguments (see :func:`make_sb3_model`); ``None``: the
+        documented :func:`default_hyperparams`.
+    :param tensorboard_log: TensorBoard folder (``None``: no logs).
+    :param progress_bar: SB3's progress bar (needs tqdm and rich).
+    :param env_kwargs: keyword arguments of ``gym.make`` (e.g. ``{"preset": "default"}``), used
+        for both the training and the evaluation env.
+    :param eval_seed: evaluation episode ``i`` resets with ``eval_seed + i``.
+    :param evaluate: evaluation function, default
+        :func:`agents.evaluation.evaluate_policy_cost`.
+    :param return_model: also return the trained model under ``"model"`` (not serializable;
+        for tests and notebooks).
+    :return: a JSON-serializable dict: ``curve`` ``[[env_steps, eval_cost], ...]``,
+        ``curve_train_wall`` (seconds, excl. evaluation, per curve point), ``solved``,
+        ``steps_to_solve`` (``None`` if not solved), ``wall_seconds_to_solve`` (excl.
+        evaluation), ``wall_seconds_to_solve_incl_eval``, ``env_steps`` (total),
+        ``train_wall_seconds`` / ``eval_wall_seconds`` / ``total_wall_seconds``,
+        ``hyperparams`` and the arguments.
+    """
+    _check_algo(algo)
+    budget_steps = _check_int("budget_steps", budget_steps, 1)
+    eval_every = _check_int("eval_every", eval_every, 1)
+    seed = _check_int("seed", seed, 0)
+    eval_seed = _check_int("eval_seed", eval_seed, 0)
+    targets = as_array("eval_targets", eval_targets, (None, None))
+    if targets.shape[0] < 1:
+        raise ValueError("eval_targets must hold at least one target, got shape [0, *]")
+    if threshold is not None:
+        threshold = check_positive("threshold", threshold)
+    if hyperparams is not None and not isinstance(hyperparams, dict):
+        raise ValueError(f"hyperparams must be a dict or None, got {type(hyperparams).__name__}")
+    hp = dict(default_hyperparams(algo) if hyperparams is None else hyperparams)
+    env_kwargs = dict(env_kwargs or {})
+
+    t_start = time.perf_counter()
+    train_env = make_training_env(env_id, env_kwargs, bool(hp.get("normalize", False)),
+                                  float(hp.get("gamma", 0.99)))
+    eval_env = gym.make(env_id, **env_kwargs)
+    try:
+        model = make_sb3_model(algo, train_env, seed, hp, tensorboard_log)
+        callback = CostEvalCallback(eval_env, targets, eval_every, threshold, eval_seed,
+                                    evaluate=evaluate, t_start=t_start)
+        model.learn(total_timesteps=budget_steps, callback=callback, progress_bar=progress_bar,
+                    tb_log_name=tb_log_name or f"{algo}_seed{seed}")
+        total = time.perf_counter() - t_start
+    finally:
+        train_env.close()
+        eval_env.close()
+    record = {
+        "algo": algo,
+        "env_id": env_id,
+        "env_kwargs": env_kwargs,
+        "seed": seed,
+        "budget_steps": budget_steps,
+        "eval_every": eval_every,
+        "eval_seed": eval_seed,
+        "n_eval_targets": int(targets.shape[0]),
+        "threshold": threshold,
+        "hyperparams": hp,
+        "curve": [[s, c] for s, c in callback.curve],
+        "curve_train_wall": callback.train_wall,
+        "solved": callback.steps_to_solve is not None,
+        "steps_to_solve": callback.steps_to_solve,
+        "wall_seconds_to_solve": callback.wall_to_solve,
+        "wall_seconds_to_solve_incl_eval": callback.wall_to_solve_incl_eval,
+        "env_steps": int(model.num_timesteps),
+        "train_wall_seconds": total - callback.eval_seconds,
+        "eval_wall_seconds": callback.eval_seconds,
+        "total_wall_seconds": total,
+        "wall_time_note": "wall_seconds_to_solve excludes evaluation time",
+    }
+    if return_model:
+        record["model"] = model
+    return record
+
+
+# ---------------------------------------------------------------------------------------------
+# Summaries of censored data: a run that did not solve within its budget has steps-to-solve
+# (and wall-to-solve) only bounded from below.
+# ---------------------------------------------------------------------------------------------
+
+
+def censored_median(values: Sequence[float], is_lower_bound: Sequence[bool]) -> tuple[float, bool]:
+    """Median of values of which some are only lower bounds.
+
+    The median is nondecreasing in every value, so the median of the values with each censored
+    one replaced by its lower bound is a lower bound of the true median. It is exact when no
+    censored value can move it: when the median with every censored value set to ``+inf`` (the
+    other extreme) is the same number.
+
+    :param values: ``[k]`` exact values or lower bounds.
+    :param is_lower_bound: ``[k]`` which entries are lower bounds.
+    :return: ``(median, median_is_lower_bound)``.
+    """
+    v = as_array("values", values, (None,))
+    lb = np.asarray(is_lower_bound, dtype=bool)
+    if lb.shape != v.shape:
+        raise ValueError(f"is_lower_bound must have shape {list(v.shape)}, got {list(lb.shape)}")
+    k = v.shape[0]
+    if k == 0:
+        raise ValueError("values must hold at least one value")
+    med = float(np.median(v))
+    # the true values: exact entries fixed, censored ones anywhere in [bound, inf)
+    upper = float(np.median(np.where(lb, np.inf, v)))
+    return med, not (upper == med)
+
+
+def best_of(medians: dict[str, tuple[float, bool]]) -> tuple[str, float, bool]:
+    """The method with the smallest median when some medians are lower bounds.
+
+    The smallest true median is at least ``min_m median_m``. It is exact when that minimum is
+    attained by an exact median ``e``: every other true median is at least its reported value,
+    which is ``>= e``. When it is attained by a lower bound only, it stays a lower bound.
+
+    :param medians: ``{method: (median, is_lower_bound)}``.
+    :return: ``(method, value, is_lower_bound)``.
+    """
+    if not medians:
+        raise ValueError("medians must name at least one method")
+    name = min(medians, key=lambda n: (medians[n][0], medians[n][1]))
+    value, is_lb = medians[name]
+    return name, float(value), bool(is_lb)
+
+
+def _check_algo(algo: str) -> None:
+    if algo not in ALGOS:
+        raise ValueError(f"algo must be one of {sorted(ALGOS)}, got {algo!r}")
+
+
+def _check_int(name: str, value: Any, low: int) -> int:
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < low:
+        raise ValueError(f"{name} must be an integer >= {low}, got {value!r}")
+    return int(value)
