@@ -1,0 +1,487 @@
+"""``mbtsr/TwoLinkArm-v0``: a two-link arm in a vertical plane reaching a target configuration.
+
+## Description
+A planar two-link arm (shoulder and elbow hinges) swings in the vertical x-z plane under gravity,
+with viscous and Coulomb (dry) joint friction and torque-limited motors, simulated by MuJoCo
+(``envs/assets/two_link_arm.xml``). Each episode draws a target joint configuration; the task is
+to bring the arm there and hold it. It is the robot benchmark of Bagge Carlson et al.,
+"Tangent-Space Regularization for Neural-Network Models of Dynamical Systems" (section 5), with a
+reach task on top so that a controller can be scored.
+
+``q = 0`` is the arm hanging straight down (the stable equilibrium); a positive angle turns a link
+towards +x (to the right in the ``side`` camera); ``q2`` is relative to link 1.
+
+## Physical state, action space
+- physical state ``x = [q1, q2, q1dot, q2dot]`` (rad, rad/s), ``n = 4``; ``info["state"]``.
+- action ``a`` in ``Box(-1, 1, (2,), float32)``: normalized joint torques,
+  ``tau = torque_limit * a`` (``env.unwrapped.torque_limit``, N m). Actions outside the box are
+  clipped (``np.clip``) before they are applied and costed; an action of the wrong shape or with
+  NaN/inf raises ``ValueError``.
+
+## Observation space
+``Box(-inf, inf, (6,), float64)``: ``[q1, q2, q1dot, q2dot, target_q1, target_q2]``. Angles are
+not wrapped (there is no joint-limit constraint, see below).
+
+## Rewards
+``reward_t = -( (x_{t+1} - x_goal)^T Q (x_{t+1} - x_goal) + a_t^T R a_t )`` with
+``x_goal = [target_q1, target_q2, 0, 0]``, the state *after* the step and the clipped normalized
+action. Defaults (``env.unwrapped.cost_Q`` ``[4, 4]``, ``cost_R`` ``[2, 2]``)::
+
+    Q = diag(1, 1, 0.01, 0.01)      R = diag(0.01, 0.01)
+
+so a 1 rad angle error costs 1 per step, 1 rad/s of speed 0.01 and a saturated motor 0.01.
+``info`` carries ``cost_state`` and ``cost_action``. Override with ``cost_Q=..., cost_R=...``
+(diagonal, nonnegative).
+
+## Starting state
+At rest hanging down plus seeded noise: ``q, qdot ~ U(-init_noise, init_noise)`` (default
+0.05 rad, rad/s). The target is drawn first, ``U(-target_limit, target_limit)^2`` (default
+``pi/2``). ``reset(options={"target": [q1, q2], "state": x0})`` sets either exactly; the random
+draws still happen, so the other one is the same as without the option. A target with
+``|q_i| >= joint_limit`` raises ``ValueError``.
+
+## Joint limits
+``joint_limit = 0.9 pi`` (the original code rejected trajectories with ``|q| >= 0.9 pi``). It is
+NOT a MuJoCo constraint (that would make the dynamics non-smooth); it bounds the targets and is
+the default rejection threshold of ``envs.collect.collect_trajectories``.
+
+## Episode end
+No termination; truncation after ``episode_steps`` (default 100 steps = 2 s).
+
+## Simulation
+Euler integrator (MuJoCo's, which treats joint damping implicitly; ``mjd_transitionFD`` refuses
+RK4), ``timestep = 0.002`` s x ``frame_skip = 10`` = ``dt = 0.02`` s per env step (a short
+substep keeps Euler accurate and the friction constraint sharp; 10 substeps also amortize the
+Python cost of a step). Dry friction is MuJoCo's ``frictionloss`` with ``solreffriction``
+timeconst ``2 * timestep``. Contacts and solver warmstart are disabled, so a step is a pure
+function of ``(x, a)``.
+
+## Presets (``preset=``), all constants in ``envs.two_link_arm_model.PRESETS``
+| constant | ``"default"`` (a plausible real arm) | ``"paper"`` (the original code's robot) |
+|---|---|---|
+| link mass m1, m2 [kg] | 1.2, 0.6 (uniform rods) | 0.2, 0.2 (point masses at link ends) |
+| link length l1, l2 [m] | 0.30, 0.25 | 1, 1 |
+| centre of mass r1, r2 [m] | 0.15, 0.125 | 1, 1 |
+| inertia about COM [kg m^2] | m l^2/12: 0.009, 0.003125 | 1e-9 (MuJoCo needs > 0) |
+| armature [kg m^2] | 0.01, 0.005 | 0 |
+| viscous damping [N m s/rad] | 0.2, 0.1 | 2, 2 |
+| Coulomb friction [N m] | 0.2, 0.1 | 0.1, 0.1 |
+| torque limit [N m] | 8, 3 | 3, 3 |
+| gravity [m/s^2] | 9.81 | 1.82 |
+| excitation std (normalized) | 0.15 | 1/3 (= 1 N m as in the paper) |
+
+The paper preset has no inertia typo: ``M11 = (m1+m2) l1^2 + m2 l2^2 + 2 m2 l1 l2 cos q2``.
+Unknown preset -> ``ValueError`` listing the valid ones.
+
+## Arguments
+``gymnasium.make("mbtsr/TwoLinkArm-v0", preset="default", episode_steps=100, render_mode=None,
+dt=None, params=None, target_limit=pi/2, joint_limit=0.9*pi, init_noise=0.05, cost_Q=None,
+cost_R=None, width=320, height=240)``. ``dt`` overrides the control period (``timestep = dt /
+frame_skip``; ``dt <= 0`` -> ``ValueError``); ``params`` overrides any
+:class:`~envs.two_link_arm_model.ArmParams` field, e.g. ``{"link_mass": (2.0, 1.0)}``.
+
+## Model access (on ``env.unwrapped``)
+- ``linearize(x, u) -> (A [4, 4], B [4, 2])``: Jacobians of ONE env step w.r.t. the physical
+  state and the normalized action, chaining ``mujoco.mjd_transitionFD`` (centred) over the
+  ``frame_skip`` substeps: ``A = A_k ... A_1``, ``B = sum_j A_k ... A_{j+1} B_j``. For hinge joints
+  MuJoCo's tangent-space state ``[dq, dqdot]`` is ``[q, qdot]``. Runs on a scratch ``MjData``.
+  At ``|u_i| = 1`` MuJoCo differences one-sidedly inside the control range; beyond it ``B`` is 0.
+- ``linearize_trajectory(X [T, 4], U [T, 2]) -> (A [T, 4, 4], B [T, 4, 2])``.
+- ``dynamics_model()`` -> :class:`MujocoArmDynamics` (the true model, ``DynamicsModel`` protocol).
+- ``analytic_model()`` -> :class:`envs.two_link_arm_model.TwoLinkArmCasadi` (CasADi twin).
+
+## Rendering
+``render_mode="rgb_array"`` only (a ``"human"`` window aborts a headless process); ``import envs``
+sets ``MUJOCO_GL=egl`` unless already set. The target is drawn as a red sphere at the fingertip
+position of the target configuration.
+
+## Version history
+- v0: initial version.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from pathlib import Path
+
+import mujoco
+import numpy as np
+from gymnasium import spaces, utils
+from gymnasium.envs.mujoco.mujoco_env import MujocoEnv
+from mujoco import rollout
+
+from envs.two_link_arm_model import ArmParams, TwoLinkArmCasadi, arm_params
+from mbtsr.dynamics import check_step_inputs
+from mbtsr.validation import as_array, check_nonnegative, check_positive
+
+__all__ = [
+    "ASSET_PATH",
+    "EXCITATION_STD",
+    "MujocoArmDynamics",
+    "TwoLinkArmEnv",
+    "build_model",
+    "step_jacobians",
+]
+
+ASSET_PATH = Path(__file__).resolve().parent / "assets" / "two_link_arm.xml"
+
+#: Std of the normalized excitation input per preset, used by envs.collect as the default
+#: input scale: the arm moves substantially, leaves the joint limits rarely and the input
+#: saturates rarely (|a| > 1 at ~3 sigma or beyond).
+EXCITATION_STD = {"default": 0.15, "paper": 1.0 / 3.0}
+
+FD_EPS = 1e-6  # mjd_transitionFD perturbation (centred differences)
+
+
+def build_model(p: ArmParams, path: str | Path = ASSET_PATH) -> mujoco.MjModel:
+    """Compile the arm's XML with every physical constant taken from ``p`` (via ``MjSpec``)."""
+    spec = mujoco.MjSpec.from_file(str(path))
+    spec.option.timestep = p.timestep
+    spec.option.gravity = [0.0, 0.0, -p.gravity]
+    reach = sum(p.link_length)
+    radius = 0.035 * reach
+    for i, (link, joint) in enumerate((("link1", "shoulder"), ("link2", "elbow"))):
+        body = spec.body(link)
+        body.mass = p.link_mass[i]
+        body.ipos = [0.0, 0.0, -p.com_distance[i]]
+        inertia = p.com_inertia[i]
+        body.inertia = [inertia, inertia, 0.01 * inertia]  # rod-like; only Iyy acts (planar)
+        jnt = spec.joint(joint)
+        jnt.damping = [p.damping[i], 0.0, 0.0]
+        jnt.frictionloss = p.frictionloss[i]
+        jnt.armature = p.armature[i]
+        jnt.solref_friction = [2.0 * p.timestep, 1.0]
+        geom = spec.geom(link)
+        geom.fromto = [0.0, 0.0, 0.0, 0.0, 0.0, -p.link_length[i]]
+        geom.size = [radius, 0.0, 0.0]
+        spec.actuator(joint).gear = [p.torque_limit[i], 0.0, 0.0, 0.0, 0.0, 0.0]
+    spec.body("link2").pos = [0.0, 0.0, -p.link_length[0]]
+    spec.site("fingertip").pos = [0.0, 0.0, -p.link_length[1]]
+    spec.geom("base").size = [radius * 1.5, 0.0, 0.0]
+    spec.geom("target").size = [radius * 1.25, 0.0, 0.0]
+    spec.camera("side").pos = [0.0, -2.55 * reach, 0.0]  # fovy 45 deg: sees +-1.05 reach
+    spec.geom("backdrop").pos = [0.0, 0.4 * reach, 0.0]
+    spec.geom("backdrop").size = [4.0 * reach, 4.0 * reach, 0.1]
+    return spec.compile()
+
+
+def fingertip_position(q: np.ndarray, p: ArmParams) -> np.ndarray:
+    """Fingertip in world coordinates ``[x, y, z]`` for joint angles ``q: [2]``."""
+    l1, l2 = p.link_length
+    return np.array(
+        [
+            l1 * math.sin(q[0]) + l2 * math.sin(q[0] + q[1]),
+            0.0,
+            -(l1 * math.cos(q[0]) + l2 * math.cos(q[0] + q[1])),
+        ]
+    )
+
+
+def step_jacobians(
+    model: mujoco.MjModel,
+    scratch: mujoco.MjData,
+    x: np.ndarray,
+    u: np.ndarray,
+    frame_skip: int,
+    out_a: np.ndarray | None = None,
+    out_b: np.ndarray | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Jacobians of ``frame_skip`` MuJoCo substeps with the control held constant.
+
+    Chains ``mjd_transitionFD`` (centred, eps 1e-6) along the substeps:
+    ``A = A_k ... A_1``, ``B = sum_j A_k ... A_{j+1} B_j``.
+
+    :param scratch: an ``MjData`` of ``model`` that may be overwritten.
+    :param x: ``[2 nv]`` state ``[qpos, qvel]`` (hinge joints only).
+    :param u: ``[nu]`` control.
+    :return: ``A: [2 nv, 2 nv]``, ``B: [2 nv, nu]``.
+    """
+    nv, nu = model.nv, model.nu
+    a_env = np.eye(2 * nv) if out_a is None else out_a
+    b_env = np.zeros((2 * nv, nu)) if out_b is None else out_b
+    a_env[:] = np.eye(2 * nv)
+    b_env[:] = 0.0
+    a_k = np.empty((2 * nv, 2 * nv))
+    b_k = np.empty((2 * nv, nu))
+    scratch.time = 0.0
+    scratch.qpos[:] = x[:nv]
+    scratch.qvel[:] = x[nv:]
+    scratch.ctrl[:] = u
+    for _ in range(frame_skip):
+        mujoco.mjd_transitionFD(model, scratch, FD_EPS, True, a_k, b_k, None, None)
+        np.matmul(a_k, a_env, out=a_env)
+        b_env[:] = a_k @ b_env + b_k
+        mujoco.mj_step(model, scratch)
+    return a_env, b_env
+
+
+class MujocoArmDynamics:
+    """The true MuJoCo arm as a :class:`mbtsr.dynamics.DynamicsModel`.
+
+    ``step`` runs ``frame_skip`` substeps for each row with ``mujoco.rollout`` (one C call for
+    the whole batch); ``jacobians`` chains ``mjd_transitionFD`` (see :func:`step_jacobians`).
+    Actions are normalized and clamped to [-1, 1] by MuJoCo (``ctrlrange``), as in the env.
+
+    :param model: the env's compiled ``MjModel`` (shared, not copied).
+    :param frame_skip: substeps per step.
+    """
+
+    state_dim = 4
+    action_dim = 2
+
+    def __init__(self, model: mujoco.MjModel, frame_skip: int) -> None:
+        self.model = model
+        self.frame_skip = int(frame_skip)
+        self.dt = model.opt.timestep * self.frame_skip
+        self._data = mujoco.MjData(model)
+        self._spec = mujoco.mjtState.mjSTATE_FULLPHYSICS
+        self._nstate = mujoco.mj_stateSize(model, self._spec)  # [time, qpos, qvel]
+
+    def step(self, x: np.ndarray, u: np.ndarray, t: int | None = None) -> np.ndarray:
+        """Next state, batched: ``x: [..., 4]``, ``u: [..., 2]`` -> ``[..., 4]``."""
+        x, u = check_step_inputs(x, u, 4, 2)
+        batch = x.shape[:-1]
+        xs = x.reshape(-1, 4)
+        state0 = np.zeros((xs.shape[0], self._nstate))
+        state0[:, 1:5] = xs
+        control = np.repeat(u.reshape(-1, 1, 2), self.frame_skip, axis=1)
+        states, _ = rollout.rollout(self.model, self._data, state0, control)
+        return states[:, -1, 1:5].reshape(*batch, 4)
+
+    def jacobians(self, x: np.ndarray, u: np.ndarray, t: int = 0) -> tuple[np.ndarray, np.ndarray]:
+        """``x: [T, 4]``, ``u: [T, 2]`` -> ``A: [T, 4, 4]``, ``B: [T, 4, 2]``."""
+        x = as_array("x", x, (None, 4))
+        u = as_array("u", u, (x.shape[0], 2))
+        a_all = np.empty((x.shape[0], 4, 4))
+        b_all = np.empty((x.shape[0], 4, 2))
+        for k in range(x.shape[0]):  # mjd_transitionFD has no batched form
+            step_jacobians(self.model, self._data, x[k], u[k], self.frame_skip, a_all[k], b_all[k])
+        return a_all, b_all
+
+
+def _diag_weights(name: str, value: object, size: int) -> np.ndarray:
+    """A ``[size, size]`` diagonal nonnegative cost matrix from a vector or a diagonal matrix."""
+    arr = as_array(name, value)
+    if arr.shape == (size, size):
+        if np.any(arr != np.diag(np.diag(arr))):
+            raise ValueError(f"{name} must be diagonal, got {arr.tolist()}")
+        arr = np.diag(arr)
+    if arr.shape != (size,):
+        raise ValueError(f"{name} must be [{size}] or [{size}, {size}], got {list(arr.shape)}")
+    if np.any(arr < 0):
+        raise ValueError(f"{name} must be nonnegative, got {arr.tolist()}")
+    return np.diag(arr)
+
+
+class TwoLinkArmEnv(MujocoEnv, utils.EzPickle):
+    """Two-link arm reach task; the module docstring is the manual.
+
+    :param preset: ``"default"`` or ``"paper"``.
+    :param episode_steps: steps before truncation (>= 1).
+    :param render_mode: ``None`` or ``"rgb_array"``.
+    :param dt: control period override [s] (``None``: 0.02).
+    :param params: overrides of :class:`~envs.two_link_arm_model.ArmParams` fields.
+    :param target_limit: random targets are ``U(-target_limit, target_limit)`` per joint [rad].
+    :param joint_limit: targets must satisfy ``|q| < joint_limit`` [rad].
+    :param init_noise: half-width of the uniform start-state noise [rad, rad/s].
+    :param cost_Q: ``[4]`` or diagonal ``[4, 4]`` state weights.
+    :param cost_R: ``[2]`` or diagonal ``[2, 2]`` action weights.
+    :param width: rendered image width [px].
+    :param height: rendered image height [px].
+    """
+
+    metadata = {"render_modes": ["rgb_array"], "render_fps": 50}
+
+    def __init__(
+        self,
+        preset: str = "default",
+        episode_steps: int = 100,
+        render_mode: str | None = None,
+        *,
+        dt: float | None = None,
+        params: Mapping | None = None,
+        target_limit: float = 0.5 * math.pi,
+        joint_limit: float = 0.9 * math.pi,
+        init_noise: float = 0.05,
+        cost_Q: object = (1.0, 1.0, 0.01, 0.01),  # noqa: N803 - the paper's symbol
+        cost_R: object = (0.01, 0.01),  # noqa: N803
+        width: int = 320,
+        height: int = 240,
+    ) -> None:
+        utils.EzPickle.__init__(
+            self,
+            preset,
+            episode_steps,
+            render_mode,
+            dt=dt,
+            params=params,
+            target_limit=target_limit,
+            joint_limit=joint_limit,
+            init_noise=init_noise,
+            cost_Q=cost_Q,
+            cost_R=cost_R,
+            width=width,
+            height=height,
+        )
+        if render_mode not in (None, *self.metadata["render_modes"]):
+            raise ValueError(
+                f"render_mode must be None or one of {self.metadata['render_modes']}, "
+                f"got {render_mode!r}"
+            )
+        if int(episode_steps) != episode_steps or episode_steps < 1:
+            raise ValueError(f"episode_steps must be an integer >= 1, got {episode_steps!r}")
+        self.params = arm_params(preset, dt=dt, **dict(params or {}))
+        self.preset = preset
+        self.episode_steps = int(episode_steps)
+        self.joint_limit = check_positive("joint_limit", joint_limit)
+        self.target_limit = check_nonnegative("target_limit", target_limit)
+        if self.target_limit >= self.joint_limit:
+            raise ValueError(
+                f"target_limit must be < joint_limit={self.joint_limit}, got {target_limit!r}"
+            )
+        self.init_noise = check_nonnegative("init_noise", init_noise)
+        self.cost_Q = _diag_weights("cost_Q", cost_Q, 4)
+        self.cost_R = _diag_weights("cost_R", cost_R, 2)
+        self.torque_limit = np.array(self.params.torque_limit)
+        self.excitation_std = EXCITATION_STD.get(preset, EXCITATION_STD["default"])
+        self.metadata = {**type(self).metadata, "render_fps": int(round(1.0 / self.params.dt))}
+
+        MujocoEnv.__init__(
+            self,
+            str(ASSET_PATH),
+            self.params.frame_skip,
+            observation_space=spaces.Box(-np.inf, np.inf, shape=(6,), dtype=np.float64),
+            render_mode=render_mode,
+            width=width,
+            height=height,
+            camera_name="side",
+        )
+        self._q_diag = np.diag(self.cost_Q).copy()
+        self._r_diag = np.diag(self.cost_R).copy()
+        self._scratch = mujoco.MjData(self.model)
+        self._target = np.zeros(2)
+        self._goal = np.zeros(4)
+        self._t = 0
+        self._analytic: TwoLinkArmCasadi | None = None
+
+    # --- MujocoEnv hooks -------------------------------------------------------------------
+
+    def _initialize_simulation(self) -> tuple[mujoco.MjModel, mujoco.MjData]:
+        model = build_model(self.params, self.fullpath)
+        model.vis.global_.offwidth = max(model.vis.global_.offwidth, self.width)
+        model.vis.global_.offheight = max(model.vis.global_.offheight, self.height)
+        return model, mujoco.MjData(model)
+
+    # --- the Gymnasium API -------------------------------------------------------------------
+
+    def _state(self) -> np.ndarray:
+        return np.concatenate((self.data.qpos, self.data.qvel))
+
+    def _obs(self, x: np.ndarray) -> np.ndarray:
+        return np.concatenate((x, self._target))
+
+    def _check_target(self, target: object) -> np.ndarray:
+        target = as_array("options['target']", target, (2,))
+        if np.any(np.abs(target) >= self.joint_limit):
+            raise ValueError(
+                f"options['target'] must satisfy |q| < joint_limit={self.joint_limit:.4f} rad, "
+                f"got {target.tolist()}"
+            )
+        return target
+
+    def reset(self, *, seed: int | None = None, options: dict | None = None):
+        """Reset; ``options`` may hold ``"target"`` ``[2]`` and/or ``"state"`` ``[4]``."""
+        super(MujocoEnv, self).reset(seed=seed)  # gymnasium.Env.reset: seeds np_random
+        options = dict(options or {})
+        unknown = set(options) - {"target", "state"}
+        if unknown:
+            raise ValueError(f"unknown reset option(s) {sorted(unknown)}; valid: target, state")
+        # draw both, always, so that setting one does not shift the other's random numbers
+        target = self.np_random.uniform(-self.target_limit, self.target_limit, size=2)
+        x0 = self.np_random.uniform(-self.init_noise, self.init_noise, size=4)
+        if "target" in options:
+            target = self._check_target(options["target"])
+        if "state" in options:
+            x0 = as_array("options['state']", options["state"], (4,))
+        mujoco.mj_resetData(self.model, self.data)
+        self.data.qpos[:] = x0[:2]
+        self.data.qvel[:] = x0[2:]
+        self._target = np.array(target, dtype=np.float64)
+        self._goal = np.concatenate((self._target, np.zeros(2)))
+        self.data.mocap_pos[0] = fingertip_position(self._target, self.params)
+        mujoco.mj_forward(self.model, self.data)
+        self._t = 0
+        x = self._state()
+        return self._obs(x), {"state": x, "target": self._target.copy()}
+
+    def step(self, action):
+        """Apply the normalized torque ``action`` ``[2]`` for ``dt`` seconds."""
+        a = np.asarray(action, dtype=np.float64)
+        if a.shape != (2,):
+            raise ValueError(f"action must have shape (2,), got {a.shape}")
+        if not np.isfinite(a).all():
+            raise ValueError(f"action must be finite, got {a.tolist()}")
+        a = np.clip(a, -1.0, 1.0)
+        self.data.ctrl[:] = a
+        mujoco.mj_step(self.model, self.data, nstep=self.frame_skip)
+        self._t += 1
+        x = self._state()
+        err = x - self._goal
+        cost_state = float(self._q_diag @ (err * err))
+        cost_action = float(self._r_diag @ (a * a))
+        info = {
+            "state": x,
+            "target": self._target.copy(),
+            "cost_state": cost_state,
+            "cost_action": cost_action,
+        }
+        truncated = self._t >= self.episode_steps
+        return self._obs(x), -(cost_state + cost_action), False, truncated, info
+
+    def reset_model(self) -> np.ndarray:  # required by MujocoEnv; reset() does the work
+        return self._obs(self._state())
+
+    # --- model access ----------------------------------------------------------------------
+
+    @property
+    def target(self) -> np.ndarray:
+        """The current episode's target joint angles ``[2]``."""
+        return self._target.copy()
+
+    def linearize(self, x: object, u: object) -> tuple[np.ndarray, np.ndarray]:
+        """Jacobians of one env step at ``(x [4], u [2])``: ``A [4, 4]``, ``B [4, 2]``.
+
+        Chains ``mjd_transitionFD`` over the substeps on a scratch ``MjData``; the env's own
+        simulation state is untouched.
+        """
+        x = as_array("x", x, (4,))
+        u = as_array("u", u, (2,))
+        return step_jacobians(self.model, self._scratch, x, u, self.frame_skip)
+
+    def linearize_trajectory(self, X: object, U: object) -> tuple[np.ndarray, np.ndarray]:  # noqa: N803
+        """:meth:`linearize` along a trajectory.
+
+        :param X: ``[T, 4]`` states.
+        :param U: ``[T, 2]`` normalized actions.
+        :return: ``A: [T, 4, 4]``, ``B: [T, 4, 2]``.
+        """
+        X = as_array("X", X, (None, 4))  # noqa: N806
+        U = as_array("U", U, (X.shape[0], 2))  # noqa: N806
+        a_all = np.empty((X.shape[0], 4, 4))
+        b_all = np.empty((X.shape[0], 4, 2))
+        for k in range(X.shape[0]):  # mjd_transitionFD has no batched form
+            step_jacobians(
+                self.model, self._scratch, X[k], U[k], self.frame_skip, a_all[k], b_all[k]
+            )
+        return a_all, b_all
+
+    def dynamics_model(self) -> MujocoArmDynamics:
+        """The true MuJoCo model behind this env, as a ``DynamicsModel``."""
+        return MujocoArmDynamics(self.model, self.frame_skip)
+
+    def analytic_model(self) -> TwoLinkArmCasadi:
+        """The analytic CasADi twin of this env's arm (built once, then cached)."""
+        if self._analytic is None:
+            self._analytic = TwoLinkArmCasadi(self.params)
+        return self._analytic

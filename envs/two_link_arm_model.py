@@ -1,0 +1,337 @@
+"""Physical constants of the two-link arm and its analytic CasADi twin.
+
+The arm swings in a vertical plane; ``q = 0`` is hanging straight down. With ``s1 = sin q1``,
+``c2 = cos q2``, ``s12 = sin(q1 + q2)`` and per link ``i``: mass ``m_i``, length ``l_i``, distance
+``r_i`` from the joint to the link's centre of mass and inertia ``I_i`` about that centre, the
+equations of motion are (Spong, Hutchinson & Vidyasagar, *Robot Modeling and Control*, ch. 7)::
+
+    M(q) qdd + c(q, qd) + g(q) = tau - D qd - fc * tanh(qd / v_s)
+
+    M11 = I1 + m1 r1^2 + I2 + m2 (l1^2 + r2^2 + 2 l1 r2 c2) + a1
+    M12 = I2 + m2 (r2^2 + l1 r2 c2)
+    M22 = I2 + m2 r2^2 + a2                       (a_i: motor armature, reflected rotor inertia)
+    c   = h [-(2 qd1 qd2 + qd2^2), qd1^2],  h = m2 l1 r2 sin q2
+    g   = gravity * [(m1 r1 + m2 l1) s1 + m2 r2 s12, m2 r2 s12]
+    tau = torque_limit * a                        (a: the normalized action in [-1, 1]^2)
+
+With point masses at the link ends (``r_i = l_i``, ``I_i = 0``, no armature) this is the robot of
+the paper's original code *without* its inertia typo: ``M11 = (m1+m2) l1^2 + m2 l2^2 +
+2 m2 l1 l2 c2``.
+
+**Coulomb friction.** MuJoCo models dry friction (joint ``frictionloss``) as a soft constraint
+solved together with the acceleration: away from zero velocity it is exactly ``-fc sign(qd)``;
+near zero velocity it acts like soft stiction. The analytic model uses the smooth approximation
+``fc * tanh(qd / v_s)`` with ``v_s = friction_velocity`` (0.01 rad/s, the original code's
+``tanh(100 v)``).
+
+**Time stepping** replicates MuJoCo's Euler integrator over the ``frame_skip`` substeps of one
+env step (substep ``h = timestep``): joint damping is treated implicitly, everything else
+explicitly, ``(M + h D) qdd = tau - c - g - D qd - fc tanh(qd / v_s)``, then ``qd+ = qd + h qdd``
+and ``q+ = q + h qd+`` (semi-implicit position update). The explicit tanh is stable for both
+presets (its slope ``fc / v_s`` times ``h`` and the largest inverse inertia stays below 1).
+
+**Agreement with the MuJoCo env** (tested in ``tests/test_two_link_arm.py``, numbers in
+``docs/environments.md``): when both joints keep ``|qd| >= 0.2`` rad/s through all substeps of a
+step (MuJoCo's friction is then exactly ``-fc sign(qd)`` and ``tanh`` equals ``sign`` to 1e-8),
+one-step states agree to 1e-7 and Jacobians to 1e-4 of their largest entry. Near zero velocity the
+two friction models differ by at most ``fc`` per joint and substep in the direction of the
+stiction; the one-step error is then bounded by ``dt * ||(M + h D)^-1|| * 2 fc``.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass, fields, replace
+
+import casadi as ca
+import numpy as np
+
+from mbtsr.dynamics import check_step_inputs
+from mbtsr.validation import as_array
+
+__all__ = [
+    "ArmParams",
+    "PRESETS",
+    "TwoLinkArmCasadi",
+    "arm_params",
+    "mass_matrix",
+    "bias_torque",
+    "continuous_dynamics",
+    "euler_substep",
+]
+
+
+@dataclass(frozen=True)
+class ArmParams:
+    """Physical constants of the two-link arm, SI units; pairs are ``(link 1, link 2)``.
+
+    :param link_mass: ``m_i`` [kg].
+    :param link_length: ``l_i`` [m] (joint to joint / to the fingertip).
+    :param com_distance: ``r_i`` [m], joint to the link's centre of mass.
+    :param com_inertia: ``I_i`` [kg m^2] about the centre of mass, around the joint axis. MuJoCo
+        needs it > 0; the paper preset uses 1e-9 for its point masses (the twin includes it too).
+    :param armature: reflected rotor inertia added to the joint [kg m^2].
+    :param damping: viscous friction ``D`` [N m s/rad] (MuJoCo joint ``damping``).
+    :param frictionloss: Coulomb friction ``fc`` [N m] (MuJoCo joint ``frictionloss``).
+    :param torque_limit: torque at normalized action +-1 [N m] (actuator ``gear``).
+    :param gravity: gravitational acceleration [m/s^2].
+    :param timestep: MuJoCo substep [s].
+    :param frame_skip: substeps per env step; the control period is ``timestep * frame_skip``.
+    :param friction_velocity: ``v_s`` [rad/s] of the analytic model's ``tanh`` friction.
+    """
+
+    link_mass: tuple[float, float]
+    link_length: tuple[float, float]
+    com_distance: tuple[float, float]
+    com_inertia: tuple[float, float]
+    armature: tuple[float, float]
+    damping: tuple[float, float]
+    frictionloss: tuple[float, float]
+    torque_limit: tuple[float, float]
+    gravity: float
+    timestep: float = 0.002
+    frame_skip: int = 10
+    friction_velocity: float = 0.01
+
+    @property
+    def dt(self) -> float:
+        """Control period [s] = ``timestep * frame_skip``."""
+        return self.timestep * self.frame_skip
+
+    def to_dict(self) -> dict:
+        """JSON-friendly dict of all constants."""
+        return {k: list(v) if isinstance(v, tuple) else v for k, v in asdict(self).items()}
+
+
+def _rod(mass: float, length: float) -> float:
+    """Inertia of a uniform rod about its centre, perpendicular to it: ``m l^2 / 12``."""
+    return mass * length**2 / 12.0
+
+
+PRESETS: dict[str, ArmParams] = {
+    # A plausible small real arm: aluminium-tube links modelled as uniform rods, geared motors
+    # (armature, viscous and dry friction of a few % of the torque limit), real gravity. The
+    # shoulder can hold the stretched-out arm horizontally (needs 4.27 N m of 8 N m).
+    "default": ArmParams(
+        link_mass=(1.2, 0.6),
+        link_length=(0.30, 0.25),
+        com_distance=(0.15, 0.125),
+        com_inertia=(_rod(1.2, 0.30), _rod(0.6, 0.25)),
+        armature=(0.05, 0.02),
+        damping=(0.2, 0.1),
+        frictionloss=(0.2, 0.1),
+        torque_limit=(8.0, 3.0),
+        gravity=9.81,
+    ),
+    # The robot of the paper's original code (original_implementation.md section 3): point
+    # masses 0.2 kg at the ends of 1 m links, viscous 2, Coulomb 0.1, g = 1.82, dt = 0.02,
+    # without the code's M11 typo. Torque limit 3 N m: the paper's excitation (std ~1 N m) fits
+    # within +-3 sigma.
+    "paper": ArmParams(
+        link_mass=(0.2, 0.2),
+        link_length=(1.0, 1.0),
+        com_distance=(1.0, 1.0),
+        com_inertia=(1e-9, 1e-9),
+        armature=(0.0, 0.0),
+        damping=(2.0, 2.0),
+        frictionloss=(0.1, 0.1),
+        torque_limit=(3.0, 3.0),
+        gravity=1.82,
+    ),
+}
+
+
+def _check_pair(name: str, value: object, *, positive: bool) -> tuple[float, float]:
+    arr = as_array(name, value, (2,))
+    if positive and np.any(arr <= 0):
+        raise ValueError(f"{name} must be > 0 for both links, got {arr.tolist()}")
+    if not positive and np.any(arr < 0):
+        raise ValueError(f"{name} must be >= 0 for both links, got {arr.tolist()}")
+    return (float(arr[0]), float(arr[1]))
+
+
+def validate_params(p: ArmParams) -> ArmParams:
+    """Return ``p`` with pairs as float tuples, or raise ``ValueError`` naming the bad field."""
+    pairs = {
+        "link_mass": True,
+        "link_length": True,
+        "com_distance": True,
+        "com_inertia": True,
+        "armature": False,
+        "damping": False,
+        "frictionloss": False,
+        "torque_limit": True,
+    }
+    clean = {k: _check_pair(k, getattr(p, k), positive=pos) for k, pos in pairs.items()}
+    gravity = float(p.gravity)
+    if not math.isfinite(gravity) or gravity < 0:
+        raise ValueError(f"gravity must be a finite number >= 0, got {p.gravity!r}")
+    timestep = float(p.timestep)
+    if not math.isfinite(timestep) or timestep <= 0:
+        raise ValueError(f"timestep must be a finite number > 0, got {p.timestep!r}")
+    if int(p.frame_skip) != p.frame_skip or p.frame_skip < 1:
+        raise ValueError(f"frame_skip must be an integer >= 1, got {p.frame_skip!r}")
+    v_s = float(p.friction_velocity)
+    if not math.isfinite(v_s) or v_s <= 0:
+        raise ValueError(f"friction_velocity must be a finite number > 0, got {v_s!r}")
+    return replace(
+        p,
+        **clean,
+        gravity=gravity,
+        timestep=timestep,
+        frame_skip=int(p.frame_skip),
+        friction_velocity=v_s,
+    )
+
+
+def arm_params(preset: str = "default", *, dt: float | None = None, **overrides) -> ArmParams:
+    """The constants of a preset, with optional overrides.
+
+    :param preset: ``"default"`` (a plausible real arm) or ``"paper"`` (the original code's robot).
+    :param dt: control period [s]; sets ``timestep = dt / frame_skip``. ``None`` keeps 0.02 s.
+    :param overrides: any :class:`ArmParams` field, e.g. ``link_mass=(1.0, 0.5)``.
+    """
+    if preset not in PRESETS:
+        raise ValueError(f"unknown preset {preset!r}; valid presets: {sorted(PRESETS)}")
+    valid = {f.name for f in fields(ArmParams)}
+    unknown = set(overrides) - valid
+    if unknown:
+        raise ValueError(f"unknown arm parameter(s) {sorted(unknown)}; valid: {sorted(valid)}")
+    p = replace(PRESETS[preset], **overrides)
+    if dt is not None:
+        dt = float(dt)
+        if not math.isfinite(dt) or dt <= 0:
+            raise ValueError(f"dt must be a finite number > 0, got {dt!r}")
+        p = replace(p, timestep=dt / int(p.frame_skip))
+    return validate_params(p)
+
+
+# --- the equations of motion, written with CasADi operations (work on SX, MX and floats) ---
+
+
+def mass_matrix(q: ca.SX, p: ArmParams) -> ca.SX:
+    """Joint-space inertia ``M(q)``: ``q: [2]`` -> ``[2, 2]``."""
+    (m1, m2), (l1, _), (r1, r2) = p.link_mass, p.link_length, p.com_distance
+    (i1, i2), (a1, a2) = p.com_inertia, p.armature
+    c2 = ca.cos(q[1])
+    m11 = i1 + m1 * r1**2 + i2 + m2 * (l1**2 + r2**2 + 2 * l1 * r2 * c2) + a1
+    m12 = i2 + m2 * (r2**2 + l1 * r2 * c2)
+    m22 = i2 + m2 * r2**2 + a2
+    return ca.vertcat(ca.horzcat(m11, m12), ca.horzcat(m12, m22))
+
+
+def bias_torque(q: ca.SX, qd: ca.SX, p: ArmParams) -> ca.SX:
+    """Coriolis/centrifugal plus gravity torque ``c(q, qd) + g(q)``: -> ``[2]``."""
+    (m1, m2), (l1, _), (r1, r2) = p.link_mass, p.link_length, p.com_distance
+    h = m2 * l1 * r2 * ca.sin(q[1])
+    coriolis = ca.vertcat(-h * (2 * qd[0] * qd[1] + qd[1] ** 2), h * qd[0] ** 2)
+    s12 = ca.sin(q[0] + q[1])
+    gravity = p.gravity * ca.vertcat(
+        (m1 * r1 + m2 * l1) * ca.sin(q[0]) + m2 * r2 * s12, m2 * r2 * s12
+    )
+    return coriolis + gravity
+
+
+def friction_torque(qd: ca.SX, p: ArmParams) -> ca.SX:
+    """Viscous plus smoothed Coulomb friction ``D qd + fc tanh(qd / v_s)``: -> ``[2]``."""
+    damping = ca.DM(p.damping)
+    fc = ca.DM(p.frictionloss)
+    return damping * qd + fc * ca.tanh(qd / p.friction_velocity)
+
+
+def continuous_dynamics(x: ca.SX, a: ca.SX, p: ArmParams) -> ca.SX:
+    """``xdot = [qd, M^-1 (tau - c - g - friction)]``: ``x: [4]``, ``a: [2]`` -> ``[4]``."""
+    q, qd = x[:2], x[2:]
+    tau = ca.DM(p.torque_limit) * a
+    qdd = ca.solve(mass_matrix(q, p), tau - bias_torque(q, qd, p) - friction_torque(qd, p))
+    return ca.vertcat(qd, qdd)
+
+
+def euler_substep(x: ca.SX, a: ca.SX, p: ArmParams) -> ca.SX:
+    """One MuJoCo-Euler substep of length ``p.timestep``: ``x: [4]``, ``a: [2]`` -> ``[4]``.
+
+    Joint damping is implicit, everything else explicit, then a semi-implicit position update::
+
+        (M + h D) qdd = tau - c - g - D qd - fc tanh(qd / v_s)
+        qd+ = qd + h qdd,   q+ = q + h qd+
+    """
+    h = p.timestep
+    q, qd = x[:2], x[2:]
+    tau = ca.DM(p.torque_limit) * a
+    force = tau - bias_torque(q, qd, p) - friction_torque(qd, p)
+    qdd = ca.solve(mass_matrix(q, p) + h * ca.diag(ca.DM(p.damping)), force)
+    qd_next = qd + h * qdd
+    q_next = q + h * qd_next
+    return ca.vertcat(q_next, qd_next)
+
+
+class TwoLinkArmCasadi:
+    """Analytic CasADi twin of ``mbtsr/TwoLinkArm-v0``; implements ``mbtsr.dynamics.DynamicsModel``.
+
+    Actions are the env's normalized actions (torque / torque_limit); they are *not* clipped
+    here, so that optimizers see a smooth model: keep ``|a| <= 1`` (as the env does) for the
+    two to agree.
+
+    :param params: the arm's constants (``arm_params(preset)``).
+
+    Attributes: ``casadi_step`` ``F(x[4], a[2]) -> x_next[4]`` (one env step, ``frame_skip``
+    substeps), ``casadi_continuous`` ``f(x[4], a[2]) -> xdot[4]``, ``casadi_jacobians``
+    ``J(x, a) -> (A[4,4], B[4,2])``, ``state_dim = 4``, ``action_dim = 2``, ``dt``, ``params``.
+    """
+
+    state_dim = 4
+    action_dim = 2
+
+    def __init__(self, params: ArmParams) -> None:
+        self.params = validate_params(params)
+        self.dt = self.params.dt
+        x = ca.SX.sym("x", 4)
+        a = ca.SX.sym("a", 2)
+        x_next = x
+        for _ in range(self.params.frame_skip):
+            x_next = euler_substep(x_next, a, self.params)
+        self.casadi_continuous = ca.Function(
+            "arm_xdot", [x, a], [continuous_dynamics(x, a, self.params)], ["x", "a"], ["xdot"]
+        )
+        self.casadi_step = ca.Function("arm_step", [x, a], [x_next], ["x", "a"], ["x_next"])
+        self.casadi_jacobians = ca.Function(
+            "arm_step_jacobians",
+            [x, a],
+            [ca.jacobian(x_next, x), ca.jacobian(x_next, a)],
+            ["x", "a"],
+            ["A", "B"],
+        )
+        self._maps: dict[tuple[str, int], ca.Function] = {}
+
+    def _mapped(self, which: str, n: int) -> ca.Function:
+        key = (which, n)
+        if key not in self._maps:
+            if len(self._maps) > 16:
+                self._maps.clear()
+            base = self.casadi_step if which == "step" else self.casadi_jacobians
+            self._maps[key] = base.map(n)
+        return self._maps[key]
+
+    def step(self, x: np.ndarray, u: np.ndarray, t: int | None = None) -> np.ndarray:
+        """Next state in one mapped call: ``x: [..., 4]``, ``u: [..., 2]`` -> ``[..., 4]``."""
+        x, u = check_step_inputs(x, u, 4, 2)
+        batch = x.shape[:-1]
+        xs, us = x.reshape(-1, 4), u.reshape(-1, 2)
+        out = np.asarray(self._mapped("step", xs.shape[0])(xs.T, us.T))
+        return out.T.reshape(*batch, 4)
+
+    def jacobians(self, x: np.ndarray, u: np.ndarray, t: int = 0) -> tuple[np.ndarray, np.ndarray]:
+        """Exact (symbolic) Jacobians of one env step along a trajectory, one mapped call.
+
+        :param x: ``[T, 4]`` states.
+        :param u: ``[T, 2]`` normalized actions.
+        :return: ``A: [T, 4, 4]``, ``B: [T, 4, 2]``.
+        """
+        x = as_array("x", x, (None, 4))
+        u = as_array("u", u, (x.shape[0], 2))
+        n_t = x.shape[0]
+        a_flat, b_flat = self._mapped("jac", n_t)(x.T, u.T)
+        # mapped outputs are horizontally concatenated blocks [A_0 A_1 ...]
+        a_jac = np.asarray(a_flat).reshape(4, n_t, 4).transpose(1, 0, 2)
+        b_jac = np.asarray(b_flat).reshape(4, n_t, 2).transpose(1, 0, 2)
+        return a_jac, b_jac
