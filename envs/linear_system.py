@@ -1,0 +1,172 @@
+"""``mbtsr/LinearSystem-v0``: the paper's random stable discrete-time linear system.
+
+## Description
+``x_{t+1} = A x_t + B u_t`` with ``(A, B)`` from :func:`random_stable_system`, the paper's
+Algorithm 2 (Bagge Carlson et al., "Tangent-Space Regularization for Neural-Network Models of
+Dynamical Systems", section 5.1), as in the original code (original_implementation.md section 4)::
+
+    A0 ~ N(0, 1)^{n x n};  Ac = A0 - A0^T - dt I  (skew minus a little: eigenvalues i w - dt)
+    A = expm(dt Ac)        (so every eigenvalue has modulus exp(-dt^2), ~0.9996 at dt = 0.02)
+    B = dt * N(0, 1)^{n x m}
+
+The system is the same for the same ``system_seed`` (default 1, the paper's); the true Jacobian
+is ``[A B]`` everywhere.
+
+## Spaces
+- observation = physical state ``x``: ``Box(-inf, inf, (n,), float64)``; ``info["state"]``.
+- action ``u``: ``Box(-action_bound, action_bound, (m,), float64)``, default bound 50 (the
+  paper's input, a 5-tap average of ``10 N(0, 1)``, has std 4.47, so 50 is > 11 sigma). Actions
+  outside the box are clipped; wrong shape or NaN/inf raises ``ValueError``.
+
+## Reward
+``reward_t = -(x_{t+1}^T x_{t+1} + r u_t^T u_t)`` with ``r = control_cost`` (default 1e-3): the
+regulation problem to 0; ``env.unwrapped.cost_Q = I_n``, ``cost_R = r I_m``.
+
+## Starting state
+``x_0 ~ N(0, I_n)`` from the reset seed (the original code's ``randn(nx)``);
+``reset(options={"state": x0})`` sets it exactly.
+
+## Episode end
+No termination; truncation after ``episode_steps`` (default 200, the paper's trajectory length).
+
+## Arguments
+``gymnasium.make("mbtsr/LinearSystem-v0", n=10, m=10, dt=0.02, system_seed=1,
+episode_steps=200, action_bound=50.0, control_cost=1e-3)``; ``dt <= 0`` -> ``ValueError``.
+
+## Model access (on ``env.unwrapped``)
+``A`` ``[n, n]``, ``B`` ``[n, m]``, ``linearize(x, u) -> (A, B)``,
+``linearize_trajectory(X [T, n], U [T, m]) -> (A [T, n, n], B [T, n, m])``,
+``dynamics_model() -> mbtsr.dynamics.LinearDynamics(A, B)``.
+
+## Version history
+- v0: initial version.
+"""
+
+from __future__ import annotations
+
+import gymnasium as gym
+import numpy as np
+import scipy.linalg
+from gymnasium import spaces
+
+from mbtsr.dynamics import LinearDynamics
+from mbtsr.validation import as_array, check_nonnegative, check_positive
+
+__all__ = ["LinearSystemEnv", "random_stable_system"]
+
+
+def _check_dim(name: str, value: object) -> int:
+    if isinstance(value, bool) or not isinstance(value, int | np.integer) or value < 1:
+        raise ValueError(f"{name} must be an integer >= 1, got {value!r}")
+    return int(value)
+
+
+def random_stable_system(
+    n: int = 10,
+    m: int = 10,
+    dt: float = 0.02,
+    seed: int | np.random.Generator | None = 1,
+) -> tuple[np.ndarray, np.ndarray]:
+    """The paper's random, "slightly" stable discrete-time system (Algorithm 2).
+
+    :param n: state dimension.
+    :param m: input dimension.
+    :param dt: sample time [s] (> 0); the eigenvalues of ``A`` have modulus ``exp(-dt^2)``.
+    :param seed: int or ``numpy.random.Generator``; ``A0`` is drawn before ``B``.
+    :return: ``A: [n, n]``, ``B: [n, m]``.
+    """
+    n, m = _check_dim("n", n), _check_dim("m", m)
+    dt = check_positive("dt", dt)
+    rng = np.random.default_rng(seed)
+    a0 = rng.standard_normal((n, n))
+    a_cont = a0 - a0.T - dt * np.eye(n)
+    a_disc = scipy.linalg.expm(dt * a_cont)
+    b_disc = dt * rng.standard_normal((n, m))
+    return a_disc, b_disc
+
+
+class LinearSystemEnv(gym.Env):
+    """Random stable linear system; the module docstring is the manual.
+
+    :param n: state dimension.
+    :param m: input dimension.
+    :param dt: sample time [s].
+    :param system_seed: seed of ``(A, B)`` (independent of the reset seed).
+    :param episode_steps: steps before truncation.
+    :param action_bound: symmetric action bound (> 0).
+    :param control_cost: ``r`` in the reward (>= 0).
+    """
+
+    metadata = {"render_modes": []}
+
+    def __init__(
+        self,
+        n: int = 10,
+        m: int = 10,
+        dt: float = 0.02,
+        system_seed: int = 1,
+        episode_steps: int = 200,
+        action_bound: float = 50.0,
+        control_cost: float = 1e-3,
+    ) -> None:
+        self.A, self.B = random_stable_system(n, m, dt, system_seed)
+        self.n, self.m = self.B.shape
+        self.dt = float(dt)
+        self.system_seed = system_seed
+        self.episode_steps = _check_dim("episode_steps", episode_steps)
+        self.action_bound = check_positive("action_bound", action_bound)
+        self.control_cost = check_nonnegative("control_cost", control_cost)
+        self.cost_Q = np.eye(self.n)
+        self.cost_R = self.control_cost * np.eye(self.m)
+        # the paper's linear-system input: 5-tap moving average of 10 N(0, 1) (std 4.47)
+        self.excitation_kwargs = {"filtered_gaussian": {"window": 5, "scale": 10.0}}
+        self.observation_space = spaces.Box(-np.inf, np.inf, shape=(self.n,), dtype=np.float64)
+        self.action_space = spaces.Box(
+            -self.action_bound, self.action_bound, shape=(self.m,), dtype=np.float64
+        )
+        self._x = np.zeros(self.n)
+        self._t = 0
+
+    def reset(self, *, seed: int | None = None, options: dict | None = None):
+        """Reset to ``x0 ~ N(0, I)`` or ``options["state"]``."""
+        super().reset(seed=seed)
+        options = dict(options or {})
+        unknown = set(options) - {"state"}
+        if unknown:
+            raise ValueError(f"unknown reset option(s) {sorted(unknown)}; valid: state")
+        x0 = self.np_random.standard_normal(self.n)
+        if "state" in options:
+            x0 = as_array("options['state']", options["state"], (self.n,))
+        self._x = np.array(x0, dtype=np.float64)
+        self._t = 0
+        return self._x.copy(), {"state": self._x.copy()}
+
+    def step(self, action):
+        """``x <- A x + B clip(u)``."""
+        u = np.asarray(action, dtype=np.float64)
+        if u.shape != (self.m,):
+            raise ValueError(f"action must have shape ({self.m},), got {u.shape}")
+        if not np.isfinite(u).all():
+            raise ValueError(f"action must be finite, got {u.tolist()}")
+        u = np.clip(u, -self.action_bound, self.action_bound)
+        self._x = self.A @ self._x + self.B @ u
+        self._t += 1
+        cost_state = float(self._x @ self._x)
+        cost_action = float(self.control_cost * (u @ u))
+        info = {"state": self._x.copy(), "cost_state": cost_state, "cost_action": cost_action}
+        truncated = self._t >= self.episode_steps
+        return self._x.copy(), -(cost_state + cost_action), False, truncated, info
+
+    def linearize(self, x: object, u: object) -> tuple[np.ndarray, np.ndarray]:
+        """``(A, B)`` (copies) at any ``x: [n]``, ``u: [m]`` (validated)."""
+        as_array("x", x, (self.n,))
+        as_array("u", u, (self.m,))
+        return self.A.copy(), self.B.copy()
+
+    def linearize_trajectory(self, X: object, U: object) -> tuple[np.ndarray, np.ndarray]:  # noqa: N803
+        """``X: [T, n]``, ``U: [T, m]`` -> ``A: [T, n, n]``, ``B: [T, n, m]``."""
+        return self.dynamics_model().jacobians(X, U)
+
+    def dynamics_model(self) -> LinearDynamics:
+        """The true model as :class:`mbtsr.dynamics.LinearDynamics`."""
+        return LinearDynamics(self.A, self.B)
