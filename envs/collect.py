@@ -1,0 +1,215 @@
+"""Collect open-loop excitation trajectories from a Gymnasium env.
+
+``collect_trajectories`` resets the env, drives it open-loop with an excitation signal
+(:mod:`mbtsr.excitation` or your own) and records ``Trajectory(x [T+1, n], u [T, m])`` with the
+physical state from ``info["state"]`` (the observation if the env has no such key) and the actions
+actually applied (clipped into the action space). Optionally it rejects and redraws trajectories
+that leave the joint limits, as the paper's original code did (``|q| >= 0.9 pi``).
+
+Randomness: one ``numpy`` generator seeded with ``seed`` draws, per attempt, the env's reset seed
+and the input's seed, so the same ``seed`` gives bit-identical trajectories, and trajectory ``i``
+does not depend on how the inputs of trajectory ``i-1`` looked beyond the number of rejections.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Mapping
+
+import gymnasium as gym
+import numpy as np
+
+from mbtsr.excitation import filtered_gaussian, multisine
+from mbtsr.trajectory import Trajectory
+
+__all__ = ["collect_trajectories", "default_input_kwargs", "rollout_open_loop"]
+
+InputFn = Callable[..., np.ndarray]
+_BUILTIN: dict[str, InputFn] = {"filtered_gaussian": filtered_gaussian, "multisine": multisine}
+
+
+def default_input_kwargs(env: gym.Env, input: str) -> dict:  # noqa: A002 - the public name
+    """Default excitation settings for ``env``.
+
+    If the env defines ``excitation_std`` (the two-link arm does, per preset, in normalized
+    action units: the arm moves substantially without the input saturating constantly), the
+    built-in signals are scaled to that std: ``filtered_gaussian(window=100, scale=std*10)``
+    (the paper's 100-tap average), ``multisine(amplitude=std / sqrt(n_sines / 2))``. Otherwise
+    the signal's own defaults apply (for the linear system: ``filtered_gaussian(window=5,
+    scale=10)``, the paper's input, via ``excitation_kwargs`` on the env).
+    """
+    base = env.unwrapped
+    own = getattr(base, "excitation_kwargs", None)
+    if isinstance(own, Mapping) and input in own:
+        return dict(own[input])
+    std = getattr(base, "excitation_std", None)
+    if std is None:
+        return {}
+    if input == "filtered_gaussian":
+        return {"window": 100, "scale": float(std) * math.sqrt(100)}
+    if input == "multisine":
+        return {"n_sines": 5, "amplitude": float(std) / math.sqrt(5 / 2)}
+    return {}
+
+
+def _state_of(obs: np.ndarray, info: Mapping) -> np.ndarray:
+    return np.array(info["state"] if "state" in info else obs, dtype=np.float64).ravel()
+
+
+def rollout_open_loop(
+    env: gym.Env,
+    u: np.ndarray,
+    *,
+    seed: int | None = None,
+    reset_options: Mapping | None = None,
+    abort: Callable[[np.ndarray], bool] | None = None,
+) -> tuple[np.ndarray, np.ndarray, dict] | None:
+    """Reset ``env`` and apply ``u: [T, m]`` (clipped into the action space) open loop.
+
+    :param abort: called with each new state; a true result stops the rollout early.
+    :return: ``(x [T+1, n], u_applied [T, m], reset_info)``, or ``None`` if aborted.
+    :raises ValueError: if the env terminates or truncates before ``T`` steps.
+    """
+    low, high = env.action_space.low, env.action_space.high
+    u_applied = np.clip(u, low, high).astype(np.float64)
+    obs, info = env.reset(seed=seed, options=dict(reset_options) if reset_options else None)
+    x0 = _state_of(obs, info)
+    if abort is not None and abort(x0):
+        return None
+    x = np.empty((u.shape[0] + 1, x0.shape[0]))
+    x[0] = x0
+    action_dtype = env.action_space.dtype
+    for t in range(u.shape[0]):
+        # the env receives exactly u_applied[t] (float32 spaces: the float32 value of it)
+        obs, _, terminated, truncated, step_info = env.step(u_applied[t].astype(action_dtype))
+        x[t + 1] = _state_of(obs, step_info)
+        if abort is not None and abort(x[t + 1]):
+            return None
+        if (terminated or truncated) and t + 1 < u.shape[0]:
+            raise ValueError(
+                f"the env ended the episode after {t + 1} steps but T={u.shape[0]} were "
+                "requested; make the env with a longer episode (e.g. episode_steps=T)"
+            )
+    if action_dtype != np.float64:
+        u_applied = u_applied.astype(action_dtype).astype(np.float64)
+    return x, u_applied, dict(info)
+
+
+def collect_trajectories(
+    env: gym.Env,
+    n_traj: int,
+    T: int,  # noqa: N803 - the paper's symbol
+    *,
+    input: str | InputFn = "filtered_gaussian",  # noqa: A002 - the public name
+    input_kwargs: Mapping | None = None,
+    seed: int = 0,
+    reject_abs_q: float | None = None,
+    max_attempts: int | None = None,
+    reset_options: Mapping | None = None,
+) -> list[Trajectory]:
+    """Collect ``n_traj`` open-loop excitation trajectories of ``T`` steps.
+
+    :param env: a Gymnasium env (made with ``gymnasium.make`` or bare); episodes must last at
+        least ``T`` steps (for the arm: ``episode_steps >= T``).
+    :param n_traj: number of trajectories to return (>= 1).
+    :param T: transitions per trajectory (>= 1).
+    :param input: ``"filtered_gaussian"``, ``"multisine"`` or a callable
+        ``input(T, m, rng, **input_kwargs) -> [T, m]`` with ``rng`` a ``numpy.random.Generator``.
+    :param input_kwargs: keyword arguments of the input; ``None`` uses
+        :func:`default_input_kwargs` (scaled to the env's ``excitation_std``).
+    :param seed: master seed; same seed, same trajectories (bit for bit).
+    :param reject_abs_q: if set, redraw trajectories in which any joint angle (the first
+        ``model.nq`` state entries of a MuJoCo env) reaches ``|q| >= reject_abs_q`` (the paper:
+        ``0.9 * pi``).
+    :param max_attempts: give up (``RuntimeError``) after this many rollouts; default
+        ``20 * n_traj``.
+    :param reset_options: passed to ``env.reset(options=...)`` (e.g. ``{"state": x0}``).
+    :return: list of :class:`~mbtsr.trajectory.Trajectory` with ``dt`` set from the env and
+        ``meta = {"reset_seed", "input_seed", "attempt", "target"?, "input"}``.
+    """
+    if isinstance(n_traj, bool) or not isinstance(n_traj, int | np.integer) or n_traj < 1:
+        raise ValueError(f"n_traj must be an integer >= 1, got {n_traj!r}")
+    if isinstance(T, bool) or not isinstance(T, int | np.integer) or T < 1:
+        raise ValueError(f"T must be an integer >= 1, got {T!r}")
+    if not isinstance(env.action_space, gym.spaces.Box) or len(env.action_space.shape) != 1:
+        raise ValueError(f"env.action_space must be a 1-D Box, got {env.action_space}")
+    base = env.unwrapped
+    episode_steps = getattr(base, "episode_steps", None)
+    if episode_steps is not None and episode_steps < T:
+        raise ValueError(
+            f"T={T} exceeds the env's episode_steps={episode_steps}; make the env with "
+            f"episode_steps >= {T}"
+        )
+    m = env.action_space.shape[0]
+    if isinstance(input, str):
+        if input not in _BUILTIN:
+            raise ValueError(
+                f"input must be one of {sorted(_BUILTIN)} or a callable, got {input!r}"
+            )
+        kwargs = default_input_kwargs(env, input) if input_kwargs is None else dict(input_kwargs)
+        signal = _BUILTIN[input]
+
+        def draw(rng: np.random.Generator) -> np.ndarray:
+            return signal(T, m, seed=rng, **kwargs)
+
+        input_name = input
+    elif callable(input):
+        kwargs = dict(input_kwargs or {})
+
+        def draw(rng: np.random.Generator) -> np.ndarray:
+            return input(T, m, rng, **kwargs)
+
+        input_name = getattr(input, "__name__", "callable")
+    else:
+        raise ValueError(f"input must be a string or a callable, got {type(input).__name__}")
+
+    abort = None
+    if reject_abs_q is not None:
+        limit = float(reject_abs_q)
+        if not math.isfinite(limit) or limit <= 0:
+            raise ValueError(f"reject_abs_q must be a finite number > 0, got {reject_abs_q!r}")
+        model = getattr(base, "model", None)
+        if model is None or not hasattr(model, "nq"):
+            raise ValueError(
+                "reject_abs_q needs a MuJoCo env (joint angles = first model.nq states)"
+            )
+        nq = int(model.nq)
+
+        def abort(x: np.ndarray) -> bool:
+            return bool(np.any(np.abs(x[:nq]) >= limit))
+
+    max_attempts = 20 * n_traj if max_attempts is None else int(max_attempts)
+    if max_attempts < n_traj:
+        raise ValueError(f"max_attempts must be >= n_traj={n_traj}, got {max_attempts}")
+    dt = getattr(base, "dt", None)
+    master = np.random.default_rng(seed)
+    trajs: list[Trajectory] = []
+    for attempt in range(max_attempts):
+        reset_seed, input_seed = (int(s) for s in master.integers(0, 2**31 - 1, size=2))
+        u = np.asarray(draw(np.random.default_rng(input_seed)), dtype=np.float64)
+        if u.shape != (T, m):
+            raise ValueError(f"input must return shape ({T}, {m}), got {u.shape}")
+        if not np.all(np.isfinite(u)):
+            raise ValueError("input returned non-finite values")
+        result = rollout_open_loop(
+            env, u, seed=reset_seed, reset_options=reset_options, abort=abort
+        )
+        if result is None:
+            continue
+        x, u_applied, info = result
+        meta = {
+            "reset_seed": reset_seed,
+            "input_seed": input_seed,
+            "attempt": attempt,
+            "input": input_name,
+            "seed": seed,
+        }
+        if "target" in info:
+            meta["target"] = np.asarray(info["target"]).tolist()
+        trajs.append(Trajectory(x, u_applied, dt=None if dt is None else float(dt), meta=meta))
+        if len(trajs) == n_traj:
+            return trajs
+    raise RuntimeError(
+        f"only {len(trajs)} of {n_traj} trajectories stayed within |q| < {reject_abs_q} in "
+        f"{max_attempts} attempts; lower the input scale or raise max_attempts"
+    )

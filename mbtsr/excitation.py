@@ -1,0 +1,131 @@
+"""Excitation input signals for system identification (pure numpy).
+
+Two signals, as in the paper's experiments and its original code:
+
+- :func:`filtered_gaussian`: a causal moving average of white Gaussian noise (the paper's
+  "low-pass filtered random input"; the original robot data used a 100-tap average of
+  ``10 * N(0, 1)``, the linear-system data a 5-tap average).
+- :func:`multisine`: a sum of sinusoids with frequencies drawn from a log-spaced grid (the
+  original code's later robot input).
+
+Both return time-major ``[T, m]`` arrays and take a ``seed`` (int, ``SeedSequence`` or
+``numpy.random.Generator``): the same seed gives the same signal, bit for bit.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+__all__ = ["filtered_gaussian", "multisine", "filtered_gaussian_std", "multisine_std"]
+
+SeedLike = int | np.random.SeedSequence | np.random.Generator | None
+
+
+def _check_int(name: str, value: object, minimum: int) -> int:
+    if isinstance(value, bool) or not isinstance(value, int | np.integer) or value < minimum:
+        raise ValueError(f"{name} must be an integer >= {minimum}, got {value!r}")
+    return int(value)
+
+
+def _check_float(name: str, value: object, *, positive: bool = True) -> float:
+    try:
+        v = float(value)  # type: ignore[arg-type]
+    except (TypeError, ValueError):
+        raise ValueError(f"{name} must be a number, got {value!r}") from None
+    if not math.isfinite(v) or (v <= 0 if positive else v < 0):
+        raise ValueError(
+            f"{name} must be a finite number {'>' if positive else '>='} 0, got {value!r}"
+        )
+    return v
+
+
+def filtered_gaussian_std(window: int, scale: float) -> float:
+    """Steady-state std of :func:`filtered_gaussian`: ``scale / sqrt(window)``."""
+    return scale / math.sqrt(window)
+
+
+def filtered_gaussian(
+    T: int,  # noqa: N803 - the paper's symbol
+    m: int,
+    *,
+    window: int = 100,
+    scale: float = 10.0,
+    seed: SeedLike = None,
+) -> np.ndarray:
+    """Low-pass filtered Gaussian input: a causal moving average of ``scale * N(0, 1)``.
+
+    ``u[t] = (1 / window) * sum_{k=0}^{window-1} e[t - k]``, ``e ~ scale * N(0, I_m)``, with a
+    zero initial filter state (``e[t] = 0`` for ``t < 0``), like the original code's
+    ``filt(ones(w), [w], e)``. After the first ``window - 1`` samples (the ramp-up) each channel
+    is stationary with std ``scale / sqrt(window)`` (:func:`filtered_gaussian_std`); the paper's
+    robot input (``window=100, scale=10``) has std 1, its linear-system input (``window=5``) 4.47.
+
+    :param T: number of samples (>= 1).
+    :param m: number of input channels (>= 1).
+    :param window: moving-average length in samples (>= 1).
+    :param scale: std of the white noise before averaging (> 0).
+    :param seed: int, ``SeedSequence`` or ``Generator``.
+    :return: ``u: [T, m]``.
+    """
+    T, m = _check_int("T", T, 1), _check_int("m", m, 1)  # noqa: N806
+    window = _check_int("window", window, 1)
+    scale = _check_float("scale", scale)
+    rng = np.random.default_rng(seed)
+    white = scale * rng.standard_normal((T, m))
+    # causal moving average with zero initial state: differences of a cumulative sum
+    csum = np.cumsum(np.vstack([np.zeros((1, m)), white]), axis=0)  # csum[k] = sum_{i<k} e[i]
+    start = np.maximum(np.arange(T) + 1 - window, 0)
+    return (csum[1:] - csum[start]) / window
+
+
+def multisine_std(n_sines: int, amplitude: float) -> float:
+    """Std of :func:`multisine` over long windows: ``amplitude * sqrt(n_sines / 2)``."""
+    return amplitude * math.sqrt(n_sines / 2)
+
+
+def multisine(
+    T: int,  # noqa: N803 - the paper's symbol
+    m: int,
+    *,
+    n_sines: int = 5,
+    f_min: float = 1e-3,
+    f_max: float = 10**-1.5,
+    n_grid: int = 50,
+    amplitude: float = 1.0,
+    seed: SeedLike = None,
+) -> np.ndarray:
+    """Sum of ``n_sines`` sinusoids per channel with random frequencies and phases.
+
+    ``u[t, j] = amplitude * sum_i sin(2 pi f_ij t + phi_ij)``: per channel the ``f_ij`` are drawn
+    without replacement from ``n_grid`` log-spaced frequencies in ``[f_min, f_max]`` (cycles per
+    sample, as in the original code: 1e-3 .. 10^-1.5) and ``phi_ij ~ U[0, 2 pi)``. Over windows
+    longer than the slowest period the std is ``amplitude * sqrt(n_sines / 2)``
+    (:func:`multisine_std`); the peak is at most ``n_sines * amplitude``.
+
+    :param T: number of samples (>= 1).
+    :param m: number of input channels (>= 1).
+    :param n_sines: sinusoids per channel, ``1 <= n_sines <= n_grid``.
+    :param f_min: lowest grid frequency, cycles/sample (> 0).
+    :param f_max: highest grid frequency, cycles/sample, ``f_min <= f_max <= 0.5`` (Nyquist).
+    :param n_grid: number of grid frequencies.
+    :param amplitude: amplitude of each sinusoid (> 0).
+    :param seed: int, ``SeedSequence`` or ``Generator``.
+    :return: ``u: [T, m]``.
+    """
+    T, m = _check_int("T", T, 1), _check_int("m", m, 1)  # noqa: N806
+    n_grid = _check_int("n_grid", n_grid, 1)
+    n_sines = _check_int("n_sines", n_sines, 1)
+    if n_sines > n_grid:
+        raise ValueError(f"n_sines must be <= n_grid={n_grid}, got {n_sines}")
+    f_min, f_max = _check_float("f_min", f_min), _check_float("f_max", f_max)
+    if not f_min <= f_max <= 0.5:
+        raise ValueError(f"need 0 < f_min <= f_max <= 0.5, got f_min={f_min}, f_max={f_max}")
+    amplitude = _check_float("amplitude", amplitude)
+    rng = np.random.default_rng(seed)
+    grid = np.logspace(math.log10(f_min), math.log10(f_max), n_grid)
+    freqs = np.stack([rng.choice(grid, size=n_sines, replace=False) for _ in range(m)])  # [m, k]
+    phases = rng.uniform(0.0, 2 * math.pi, size=(m, n_sines))
+    t = np.arange(T, dtype=np.float64)[:, None, None]  # [T, 1, 1]
+    return amplitude * np.sin(2 * math.pi * freqs[None] * t + phases[None]).sum(axis=2)
