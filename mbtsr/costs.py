@@ -1,0 +1,502 @@
+"""CasADi-assisted trajectory costs for iLQR, MPC and the IPOPT reference.
+
+The user writes a stage cost ``l(x, u, t)`` and a terminal cost ``l_T(x)`` with CasADi symbols;
+this module derives ``l_x, l_u, l_xx, l_uu, l_ux`` symbolically once and evaluates them along a
+whole trajectory in ONE call of a mapped CasADi function (``Function.map``), optionally
+JIT-compiled. The same symbolic functions are used by :func:`mbtsr.ipopt_reference.solve_ipopt`,
+so iLQR and IPOPT optimise exactly the same objective::
+
+    J(X, U) = sum_{t=0}^{T-1} l(x_t, u_t, t0 + t) + l_T(x_T)        X: [T+1, n], U: [T, m]
+
+Time-indexed data (a reference trajectory, time-varying weights) enters through an optional
+parameter table ``params: [N_ref, p]``: the stage function then takes a fourth input ``p`` and
+receives row ``min(t, N_ref - 1)`` at absolute time ``t`` (the last row is held beyond the end
+of the table, so a receding-horizon controller can look past the end of a reference). The
+terminal function may take ``p`` as its second input and receives the row at time ``t0 + T``.
+
+Layout trick: numpy arrays are handed to CasADi without copies through ``Function.buffer``. A
+C-ordered numpy ``[N, n]`` array has the memory layout of a column-major CasADi ``[n, N]``
+matrix, so time-major trajectories map onto ``Function.map(N)`` inputs directly.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import casadi as ca
+import numpy as np
+
+from mbtsr.validation import as_array
+
+__all__ = ["CasadiCost", "QuadraticCost", "CostDerivatives", "quadratic_cost", "smooth_norm"]
+
+_JIT_OPTIONS = {"jit": True, "compiler": "shell", "jit_options": {"flags": ["-O2"]}}
+
+
+def smooth_norm(v, eps: float):
+    """Smooth approximation of the Euclidean norm: ``sqrt(v^T v + eps^2) - eps``.
+
+    Equal to 0 at ``v = 0``, differentiable everywhere, and ``||v|| - eps <= smooth_norm(v) <=
+    ||v||``; quadratic (``v^T v / (2 eps)``) near 0 and linear far away (the "pseudo-Huber"
+    shape used for reaching costs in Tassa, Mansard, Todorov 2014).
+
+    :param v: a CasADi ``SX``/``MX``/``DM`` column or a numpy vector ``[k]``.
+    :param eps: smoothing radius > 0.
+    :return: a CasADi scalar expression for symbolic input, else a float.
+    """
+    if not np.isfinite(eps) or eps <= 0:
+        raise ValueError(f"eps must be a finite number > 0, got {eps!r}")
+    if isinstance(v, (ca.SX, ca.MX, ca.DM)):
+        return ca.sqrt(ca.dot(v, v) + eps**2) - eps
+    v = as_array("v", v, ndim=1)
+    return float(np.sqrt(v @ v + eps**2) - eps)
+
+
+@dataclass(frozen=True)
+class CostDerivatives:
+    """First and second derivatives of the cost along a trajectory.
+
+    ``lx: [T+1, n]`` (last row: terminal), ``lu: [T, m]``, ``lxx: [T+1, n, n]``,
+    ``luu: [T, m, m]``, ``lux: [T, m, n]`` (``d^2 l / du dx``).
+    """
+
+    lx: np.ndarray
+    lu: np.ndarray
+    lxx: np.ndarray
+    luu: np.ndarray
+    lux: np.ndarray
+
+    def __iter__(self):
+        return iter((self.lx, self.lu, self.lxx, self.luu, self.lux))
+
+
+class _BufferedFunction:
+    """A CasADi function called through ``Function.buffer`` on numpy arrays (no copies).
+
+    Inputs and outputs are C-contiguous float64 numpy arrays whose memory layout equals the
+    column-major CasADi matrices, e.g. numpy ``[N, n]`` <-> CasADi ``[n, N]``.
+    """
+
+    def __init__(self, fn: ca.Function, out_shapes: list[tuple[int, ...]]) -> None:
+        self.fn = fn
+        self.buffer, self.trigger = fn.buffer()
+        self.out_shapes = out_shapes
+
+    def __call__(self, *args: np.ndarray) -> list[np.ndarray]:
+        # the arrays must stay alive until trigger() returns; they are locals of this frame
+        outs = [np.empty(s) for s in self.out_shapes]
+        for i, a in enumerate(args):
+            self.buffer.set_arg(i, memoryview(a))
+        for i, o in enumerate(outs):
+            self.buffer.set_res(i, memoryview(o))
+        self.trigger()
+        return outs
+
+
+class CasadiCost:
+    """A trajectory cost defined by CasADi functions, with derivatives from CasADi AD.
+
+    ``J = sum_t l(x_t, u_t, t) + l_T(x_T)`` with ``t`` the absolute time index.
+
+    Build it from ``casadi.Function`` objects (this constructor) or from symbolic expressions
+    (:meth:`from_expressions`). Derivative and value functions are generated lazily per
+    trajectory length and cached.
+
+    :param stage: ``casadi.Function`` ``(x[n], u[m], t[1]) -> l`` or, with ``params``,
+        ``(x[n], u[m], t[1], p[p]) -> l`` (scalar output).
+    :param terminal: ``casadi.Function`` ``(x[n]) -> l_T`` or ``(x[n], p[p]) -> l_T``.
+    :param n: state dimension.
+    :param m: input dimension.
+    :param params: optional ``[N_ref, p]`` time-indexed parameter table (e.g. a reference
+        trajectory); row ``min(t, N_ref - 1)`` is passed at time ``t``.
+    :param jit: JIT-compile the stage/terminal derivative functions with the system C compiler
+        (CasADi ``"shell"`` compiler; a one-off compile of a fraction of a second).
+    """
+
+    def __init__(
+        self,
+        stage: ca.Function,
+        terminal: ca.Function,
+        n: int,
+        m: int,
+        *,
+        params: np.ndarray | None = None,
+        jit: bool = False,
+    ) -> None:
+        if not isinstance(stage, ca.Function):
+            raise TypeError(f"stage must be a casadi.Function, got {type(stage).__name__}")
+        if not isinstance(terminal, ca.Function):
+            raise TypeError(f"terminal must be a casadi.Function, got {type(terminal).__name__}")
+        n, m = int(n), int(m)
+        if n < 1 or m < 1:
+            raise ValueError(f"n and m must be >= 1, got n={n}, m={m}")
+        if params is None:
+            p_dim, table = 0, np.zeros((1, 0))
+        else:
+            table = as_array("params", params, ndim=2)
+            if table.shape[0] < 1:
+                raise ValueError("params must have at least one row, got shape [0, *]")
+            p_dim = table.shape[1]
+        _check_function("stage", stage, [(n, 1), (m, 1), (1, 1)], p_dim)
+        _check_function("terminal", terminal, [(n, 1)], p_dim)
+        if params is not None and stage.n_in() == 3 and terminal.n_in() == 1:
+            raise ValueError("params given, but neither stage nor terminal takes a parameter input")
+        self.n, self.m, self.param_dim = n, m, p_dim
+        self.params = None if params is None else np.ascontiguousarray(table)
+        self._table = np.ascontiguousarray(table)
+        self.jit = bool(jit)
+        # normalised signatures: stage(x, u, t, p), terminal(x, p); SX symbols when the user's
+        # functions can be evaluated on SX (fast scalar graphs), MX otherwise
+        for sym in (ca.SX, ca.MX):
+            x, u = sym.sym("x", n), sym.sym("u", m)
+            t, p = sym.sym("t"), sym.sym("p", p_dim)
+            try:
+                l_expr, lT_expr = _call(stage, [x, u, t, p]), _call(terminal, [x, p])
+                break
+            except RuntimeError:
+                if sym is ca.MX:
+                    raise
+        self.stage = ca.Function("stage", [x, u, t, p], [l_expr], ["x", "u", "t", "p"], ["l"])
+        self.terminal = ca.Function("terminal", [x, p], [lT_expr], ["x", "p"], ["lT"])
+        opts = _JIT_OPTIONS if self.jit else {}
+        l, lT = self.stage(x, u, t, p), self.terminal(x, p)
+        lx, lu = ca.gradient(l, x), ca.gradient(l, u)
+        # outputs are stored transposed where it matters so that the column-major CasADi
+        # block [rows, cols] lands in numpy as [..., rows, cols] (see _BufferedFunction)
+        self._stage_derivs = ca.Function(
+            "stage_derivs",
+            [x, u, t, p],
+            [
+                ca.densify(lx),
+                ca.densify(lu),
+                ca.densify(ca.jacobian(lx, x)).T,
+                ca.densify(ca.jacobian(lu, u)).T,
+                ca.densify(ca.jacobian(lu, x)).T,
+            ],
+            opts,
+        )
+        lTx = ca.gradient(lT, x)
+        self._terminal_derivs = ca.Function(
+            "terminal_derivs", [x, p], [ca.densify(lTx), ca.densify(ca.jacobian(lTx, x)).T], opts
+        )
+        self._stage_value = ca.Function("stage_value", [x, u, t, p], [ca.densify(l)], opts)
+        self._terminal_value = ca.Function("terminal_value", [x, p], [ca.densify(lT)], opts)
+        self._derivs_cache: dict[int, _BufferedFunction] = {}
+        self._values_cache: dict[tuple[int, int], _BufferedFunction] = {}
+
+    # ------------------------------------------------------------------ construction helpers
+    @classmethod
+    def from_expressions(
+        cls,
+        x: ca.SX | ca.MX,
+        u: ca.SX | ca.MX,
+        stage_expr: ca.SX | ca.MX,
+        terminal_expr: ca.SX | ca.MX,
+        *,
+        t: ca.SX | ca.MX | None = None,
+        p: ca.SX | ca.MX | None = None,
+        params: np.ndarray | None = None,
+        jit: bool = False,
+    ) -> CasadiCost:
+        """Build a cost from symbolic expressions.
+
+        :param x: ``[n, 1]`` state symbol; ``u``: ``[m, 1]`` input symbol.
+        :param stage_expr: scalar expression of ``x, u`` (and optionally ``t``, ``p``).
+        :param terminal_expr: scalar expression of ``x`` (and optionally ``p``).
+        :param t: scalar time symbol used in ``stage_expr`` (absolute time index).
+        :param p: ``[p, 1]`` parameter symbol; requires ``params: [N_ref, p]``.
+
+        Example (a smooth distance-to-target reaching cost)::
+
+            x, u = ca.SX.sym("x", 4), ca.SX.sym("u", 2)
+            cost = CasadiCost.from_expressions(
+                x, u, smooth_norm(x[:2] - goal, 0.05) + 1e-2 * ca.sumsqr(u),
+                10 * ca.sumsqr(x - x_goal))
+        """
+        sym = type(x)
+        if not isinstance(x, (ca.SX, ca.MX)) or not isinstance(u, sym):
+            raise TypeError("x and u must be CasADi symbols of the same type (SX or MX)")
+        if x.shape[1] != 1 or u.shape[1] != 1:
+            raise ValueError(f"x and u must be column symbols, got {x.shape} and {u.shape}")
+        t = sym.sym("t") if t is None else t
+        if (p is None) != (params is None):
+            raise ValueError("p (the parameter symbol) and params (its table) go together")
+        p = sym.sym("p", 0) if p is None else p
+        stage = ca.Function("stage", [x, u, t, p], [stage_expr])
+        terminal = ca.Function("terminal", [x, p], [terminal_expr])
+        return cls(stage, terminal, x.shape[0], u.shape[0], params=params, jit=jit)
+
+    # ------------------------------------------------------------------ parameters
+    def params_at(self, t: np.ndarray) -> np.ndarray:
+        """Parameter rows for absolute times ``t: [N]`` -> ``[N, p]`` (last row held)."""
+        idx = np.minimum(np.asarray(t, dtype=np.int64), self._table.shape[0] - 1)
+        return self._table[idx]
+
+    def stage_expr(self, x, u, t: int):
+        """Symbolic stage cost at the integer time ``t`` (parameters substituted)."""
+        return self.stage(x, u, float(t), self.params_at(np.array([t]))[0])
+
+    def terminal_expr(self, x, t: int):
+        """Symbolic terminal cost at the integer time ``t`` (parameters substituted)."""
+        return self.terminal(x, self.params_at(np.array([t]))[0])
+
+    # ------------------------------------------------------------------ evaluation
+    def stage_values(self, X: np.ndarray, U: np.ndarray, t0: int = 0) -> np.ndarray:
+        """Stage costs ``l(x_t, u_t, t0 + t)``.
+
+        :param X: ``[..., T, n]`` states (leading dims are a batch).
+        :param U: ``[..., T, m]`` inputs.
+        :return: ``[..., T]``.
+        """
+        X, U = self._check_xu(X, U, len_x_extra=0)
+        t0 = _check_t0(t0)
+        batch, T = X.shape[:-2], X.shape[-2]
+        B = int(np.prod(batch, dtype=np.int64))
+        ls, _ = self._values(
+            X.reshape(B * T, self.n),
+            U.reshape(B * T, self.m),
+            np.tile(np.arange(t0, t0 + T), B),
+            np.zeros((0, self.n)),
+            t0 + T,
+        )
+        return ls.reshape(*batch, T)
+
+    def terminal_values(self, X: np.ndarray, t: int) -> np.ndarray:
+        """Terminal cost ``l_T(x)`` at absolute time ``t``: ``X: [..., n]`` -> ``[...]``."""
+        X = as_array("X", X)
+        if X.ndim < 1 or X.shape[-1] != self.n:
+            raise ValueError(f"X must have last dimension n={self.n}, got {list(X.shape)}")
+        t = _check_t0(t, "t")
+        batch = X.shape[:-1]
+        B = int(np.prod(batch, dtype=np.int64))
+        _, lT = self._values(
+            np.zeros((0, self.n)), np.zeros((0, self.m)), np.zeros(0), X.reshape(B, self.n), t
+        )
+        return lT.reshape(batch)
+
+    def total(self, X: np.ndarray, U: np.ndarray, t0: int = 0) -> float | np.ndarray:
+        """Trajectory cost ``J = sum_t l(x_t, u_t, t0+t) + l_T(x_T)``.
+
+        :param X: ``[..., T+1, n]`` states; ``U``: ``[..., T, m]`` inputs.
+        :return: a float, or ``[...]`` for batched input.
+        """
+        X, U = self._check_xu(X, U, len_x_extra=1)
+        J = self.total_unchecked(X, U, _check_t0(t0))
+        return float(J) if J.ndim == 0 else J
+
+    def total_unchecked(self, X: np.ndarray, U: np.ndarray, t0: int) -> np.ndarray:
+        """:meth:`total` without input validation (the solver's hot path). ``-> [...]``."""
+        batch, T = U.shape[:-2], U.shape[-2]
+        B = int(np.prod(batch, dtype=np.int64))
+        Xf = np.ascontiguousarray(X, dtype=np.float64).reshape(B, T + 1, self.n)
+        ls, lT = self._values(
+            Xf[:, :-1].reshape(B * T, self.n),
+            np.ascontiguousarray(U, dtype=np.float64).reshape(B * T, self.m),
+            np.tile(np.arange(t0, t0 + T), B),
+            Xf[:, -1],
+            t0 + T,
+        )
+        return (ls.reshape(B, T).sum(axis=1) + lT).reshape(batch)
+
+    def derivatives(self, X: np.ndarray, U: np.ndarray, t0: int = 0) -> CostDerivatives:
+        """Cost derivatives along a trajectory, in one mapped CasADi call.
+
+        :param X: ``[T+1, n]`` states; ``U``: ``[T, m]`` inputs; ``t0``: time of ``X[0]``.
+        :return: :class:`CostDerivatives` ``(lx [T+1,n], lu [T,m], lxx [T+1,n,n], luu [T,m,m],
+            lux [T,m,n])`` (unpacks as a 5-tuple).
+        """
+        X, U = self._check_xu(X, U, len_x_extra=1)
+        if X.ndim != 2:
+            raise ValueError(f"X must be [T+1, n] (no batch), got {list(X.shape)}")
+        return self.derivatives_unchecked(X, U, _check_t0(t0))
+
+    def derivatives_unchecked(self, X: np.ndarray, U: np.ndarray, t0: int) -> CostDerivatives:
+        """:meth:`derivatives` without input validation (the solver's hot path)."""
+        T = U.shape[0]
+        fn = self._derivs_cache.get(T)
+        if fn is None:
+            fn = self._build_derivs(T)
+            self._derivs_cache[T] = fn
+        times = np.arange(t0, t0 + T + 1)
+        P = np.ascontiguousarray(self.params_at(times))
+        X = np.ascontiguousarray(X, dtype=np.float64)
+        lx, lu, lxx, luu, lux, lxT, lxxT = fn(
+            X[:-1],
+            np.ascontiguousarray(U, dtype=np.float64),
+            times[:-1].astype(np.float64),
+            P[:-1],
+            X[-1],
+            P[-1],
+        )
+        return CostDerivatives(
+            lx=np.concatenate([lx, lxT[None]]),
+            lu=lu,
+            lxx=np.concatenate([lxx, lxxT[None]]),
+            luu=luu,
+            lux=lux,
+        )
+
+    # ------------------------------------------------------------------ internals
+    def _check_xu(self, X, U, len_x_extra: int) -> tuple[np.ndarray, np.ndarray]:
+        X, U = as_array("X", X), as_array("U", U)
+        if X.ndim < 2 or X.shape[-1] != self.n:
+            raise ValueError(f"X must be [..., T, n] with n={self.n}, got {list(X.shape)}")
+        if U.ndim < 2 or U.shape[-1] != self.m:
+            raise ValueError(f"U must be [..., T, m] with m={self.m}, got {list(U.shape)}")
+        if X.shape[:-2] != U.shape[:-2] or X.shape[-2] != U.shape[-2] + len_x_extra:
+            want = "T+1" if len_x_extra else "T"
+            raise ValueError(
+                f"X must be [..., {want}, n] for U [..., T, m]: got X {list(X.shape)} and "
+                f"U {list(U.shape)}"
+            )
+        if U.shape[-2] < 1 and len_x_extra == 1:
+            raise ValueError("U must hold at least one time step (T >= 1)")
+        return X, U
+
+    def _values(self, Xs, Us, ts, XT, tT: int) -> tuple[np.ndarray, np.ndarray]:
+        """Stage values for the rows of ``Xs [N, n], Us [N, m]`` at times ``ts [N]`` and
+        terminal values for the rows of ``XT [NT, n]`` at time ``tT``; one CasADi call."""
+        N, NT = Xs.shape[0], XT.shape[0]
+        fn = self._values_cache.get((N, NT))
+        if fn is None:
+            fn = self._build_values(N, NT)
+            self._values_cache[(N, NT)] = fn
+        P = np.ascontiguousarray(self.params_at(ts)) if N else np.zeros((0, self.param_dim))
+        PT = np.ascontiguousarray(
+            np.broadcast_to(self.params_at(np.array([tT]))[0], (NT, self.param_dim))
+        )
+        ls, lT = fn(
+            np.ascontiguousarray(Xs),
+            np.ascontiguousarray(Us),
+            np.asarray(ts, dtype=np.float64),
+            P,
+            np.ascontiguousarray(XT),
+            PT,
+        )
+        return ls, lT
+
+    def _build_values(self, N: int, NT: int) -> _BufferedFunction:
+        n, m, p = self.n, self.m, self.param_dim
+        Xs, Us = ca.MX.sym("X", n, N), ca.MX.sym("U", m, N)
+        ts, Ps = ca.MX.sym("t", 1, N), ca.MX.sym("P", p, N)
+        XT, PT = ca.MX.sym("XT", n, NT), ca.MX.sym("PT", p, NT)
+        ls = self._stage_value.map(N)(Xs, Us, ts, Ps) if N else ca.MX(1, 0)
+        lT = self._terminal_value.map(NT)(XT, PT) if NT else ca.MX(1, 0)
+        fn = ca.Function(f"values_{N}_{NT}", [Xs, Us, ts, Ps, XT, PT], [ls, lT])
+        return _BufferedFunction(fn, [(N,), (NT,)])
+
+    def _build_derivs(self, T: int) -> _BufferedFunction:
+        n, m, p = self.n, self.m, self.param_dim
+        Xs, Us = ca.MX.sym("X", n, T), ca.MX.sym("U", m, T)
+        ts, Ps = ca.MX.sym("t", 1, T), ca.MX.sym("P", p, T)
+        xT, pT = ca.MX.sym("xT", n), ca.MX.sym("pT", p)
+        stage = self._stage_derivs.map(T)(Xs, Us, ts, Ps)
+        term = self._terminal_derivs(xT, pT)
+        fn = ca.Function(f"derivs_{T}", [Xs, Us, ts, Ps, xT, pT], [*stage, *term])
+        shapes = [(T, n), (T, m), (T, n, n), (T, m, m), (T, m, n), (n,), (n, n)]
+        return _BufferedFunction(fn, shapes)
+
+
+class QuadraticCost(CasadiCost):
+    """Quadratic tracking cost (see :func:`quadratic_cost`); keeps its matrices as attributes
+    ``Q, R, Qf [n,n]``, ``x_goal [N, n]``, ``u_ref [N, m]``."""
+
+    Q: np.ndarray
+    R: np.ndarray
+    Qf: np.ndarray
+    x_goal: np.ndarray
+    u_ref: np.ndarray
+
+
+def quadratic_cost(
+    Q: np.ndarray,
+    R: np.ndarray,
+    x_goal: np.ndarray,
+    u_ref: np.ndarray | None = None,
+    Qf: np.ndarray | None = None,
+    *,
+    jit: bool = False,
+) -> QuadraticCost:
+    """Quadratic tracking cost, the reach task's objective (negated env reward)::
+
+        l(x, u, t) = (x - x_goal_t)^T Q (x - x_goal_t) + (u - u_ref_t)^T R (u - u_ref_t)
+        l_T(x)     = (x - x_goal_T)^T Qf (x - x_goal_T)
+
+    No factor 1/2, so ``-l`` equals the arm env's reward ``-((x-x_g)^T Q (x-x_g) + a^T R a)``.
+
+    :param Q: ``[n, n]`` symmetric positive semi-definite state weight.
+    :param R: ``[m, m]`` symmetric positive semi-definite input weight.
+    :param x_goal: ``[n]`` constant goal or ``[N, n]`` time-indexed reference (row ``t`` at
+        absolute time ``t``; the last row is held after the end).
+    :param u_ref: ``None`` (zero), ``[m]`` or ``[N', m]`` input reference.
+    :param Qf: ``[n, n]`` terminal weight; defaults to ``Q``.
+    :param jit: JIT-compile the derivative functions (see :class:`CasadiCost`).
+    """
+    Q = _check_psd("Q", Q)
+    n = Q.shape[0]
+    R = _check_psd("R", R)
+    m = R.shape[0]
+    Qf = Q if Qf is None else _check_psd("Qf", Qf)
+    if Qf.shape != (n, n):
+        raise ValueError(f"Qf must have shape [{n}, {n}] like Q, got {list(Qf.shape)}")
+    xg = as_array("x_goal", x_goal)
+    if xg.ndim == 1:
+        xg = xg[None]
+    if xg.ndim != 2 or xg.shape[1] != n or xg.shape[0] < 1:
+        raise ValueError(f"x_goal must be [{n}] or [N, {n}] (n from Q), got {list(xg.shape)}")
+    ur = np.zeros((1, m)) if u_ref is None else as_array("u_ref", u_ref)
+    if ur.ndim == 1:
+        ur = ur[None]
+    if ur.ndim != 2 or ur.shape[1] != m or ur.shape[0] < 1:
+        raise ValueError(f"u_ref must be [{m}] or [N, {m}] (m from R), got {list(ur.shape)}")
+    N = max(xg.shape[0], ur.shape[0])
+    xg = np.concatenate([xg, np.repeat(xg[-1:], N - xg.shape[0], axis=0)])
+    ur = np.concatenate([ur, np.repeat(ur[-1:], N - ur.shape[0], axis=0)])
+
+    x, u, t, p = ca.SX.sym("x", n), ca.SX.sym("u", m), ca.SX.sym("t"), ca.SX.sym("p", n + m)
+    ex, eu = x - p[:n], u - p[n:]
+    stage = ca.Function(
+        "quadratic_stage", [x, u, t, p], [ca.bilin(ca.DM(Q), ex, ex) + ca.bilin(ca.DM(R), eu, eu)]
+    )
+    terminal = ca.Function("quadratic_terminal", [x, p], [ca.bilin(ca.DM(Qf), ex, ex)])
+    cost = QuadraticCost(stage, terminal, n, m, params=np.hstack([xg, ur]), jit=jit)
+    cost.Q, cost.R, cost.Qf, cost.x_goal, cost.u_ref = Q, R, Qf, xg, ur
+    return cost
+
+
+# ---------------------------------------------------------------------- helpers
+def _check_psd(name: str, M: np.ndarray) -> np.ndarray:
+    M = as_array(name, M, ndim=2)
+    if M.shape[0] != M.shape[1] or M.shape[0] < 1:
+        raise ValueError(f"{name} must be a square [k, k] matrix, got {list(M.shape)}")
+    if not np.allclose(M, M.T, rtol=1e-10, atol=1e-12):
+        raise ValueError(f"{name} must be symmetric")
+    if np.linalg.eigvalsh(M).min() < -1e-10 * max(1.0, np.abs(M).max()):
+        raise ValueError(f"{name} must be positive semi-definite")
+    return M
+
+
+def _check_function(name: str, fn: ca.Function, shapes: list[tuple[int, int]], p_dim: int) -> None:
+    k = len(shapes)
+    if fn.n_in() not in (k, k + 1):
+        raise ValueError(f"{name} must take {k} inputs (or {k + 1} with p), takes {fn.n_in()}")
+    if fn.n_in() == k + 1:
+        shapes = [*shapes, (p_dim, 1)]
+    for i, s in enumerate(shapes):
+        got = fn.size_in(i)
+        if tuple(got) != s:
+            what = "p (set by params)" if i == k else f"input {i}"
+            raise ValueError(f"{name} {what} must have shape {list(s)}, got {list(got)}")
+    if fn.n_out() < 1 or tuple(fn.size_out(0)) != (1, 1):
+        raise ValueError(f"{name} must return a scalar as its first output")
+
+
+def _call(fn: ca.Function, args: list) -> ca.SX:
+    """Call ``fn`` with as many of ``args`` as it takes (p is the optional last one)."""
+    return fn(*args[: fn.n_in()])
+
+
+def _check_t0(t0: int, name: str = "t0") -> int:
+    if isinstance(t0, bool) or not isinstance(t0, (int, np.integer)) or t0 < 0:
+        raise ValueError(f"{name} must be an integer time index >= 0, got {t0!r}")
+    return int(t0)
