@@ -1,0 +1,665 @@
+"""Iterative LQR with box control limits (control-limited DDP) on any dynamics model.
+
+Solves ::
+
+    min_U  J(X, U) = sum_{t=0}^{T-1} l(x_t, u_t, t0 + t) + l_T(x_T)
+    s.t.   x_{t+1} = f(x_t, u_t),  x_0 given,  u_min <= u_t <= u_max
+
+for any ``f`` with the :class:`mbtsr.dynamics.DynamicsModel` protocol (the true MuJoCo arm, the
+analytic CasADi arm, an LTV model, a learned ensemble) and a :class:`mbtsr.costs.CasadiCost`.
+
+The algorithm is the control-limited DDP of Tassa, Mansard and Todorov, "Control-Limited
+Differential Dynamic Programming", ICRA 2014, with the defaults of the paper authors' iLQG
+implementation (DifferentialDynamicProgramming.jl): first-order dynamics (iLQR: no second
+derivatives of ``f``), Levenberg-Marquardt regularisation with the adaptive schedule, a box-QP
+(projected Newton) for the feed-forward term with clamped feedback rows zeroed, and a
+backtracking line search on the ratio of actual to expected improvement.
+
+Implementation notes
+--------------------
+* One batched ``dynamics.jacobians(X[:-1], U, t0)`` call and one mapped cost-derivative call per
+  iteration in which the trajectory changed (a rejected step reuses them).
+* The backward pass works with the augmented quadratic ``z = [1; dx; du]``: per time step
+  ``M_t = L_t + F_t^T V_{t+1} F_t`` with ``F_t = [[1, 0, 0], [0, A_t, B_t]]`` gives all Q-function
+  terms at once, one LAPACK ``dposv`` gives ``[k_t, K_t] = -Quu_reg^-1 [Qu, Qux_reg]`` and the
+  PD check, and ``V_t = G_t^T M_t G_t`` with ``G_t = [[I], [k_t, K_t]]`` is the value update
+  (the unregularised ``Quu, Qux`` enter it, as in Tassa et al.).
+* The forward pass rolls out ALL line-search step sizes as one batch (``T`` batched ``step``
+  calls per iteration, not ``T x n_alpha``) and accepts the largest acceptable step.
+* A rollout that produces NaN/inf or a state beyond ``max_state_norm`` is rejected; the solver
+  then raises the regularisation and keeps the best (current) iterate, so the returned controls
+  are always finite and within the bounds.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Mapping
+from dataclasses import dataclass, field, fields
+
+import numpy as np
+from scipy.linalg import lapack
+
+from mbtsr.costs import CasadiCost
+from mbtsr.validation import as_array
+
+__all__ = ["ILQROptions", "ILQRResult", "ilqr", "check_control_bounds"]
+
+
+@dataclass(frozen=True)
+class ILQROptions:
+    """Solver settings; defaults are those of the paper authors' iLQG (Tassa et al. 2014).
+
+    :param max_iter: iteration cap (every iteration counts, accepted or not).
+    :param tol_fun: converged when an accepted step lowers the cost by less than this (absolute).
+    :param tol_fun_rel: also converged when an accepted step lowers the cost by less than
+        ``tol_fun_rel * |J|`` (relative; 0 disables it, the authors' behaviour). Useful on
+        models with stiff, nearly non-smooth parts (e.g. tanh friction), where iLQR reaches
+        the optimum to ~0.1 % in tens of iterations and then creeps with tiny steps.
+    :param tol_grad: converged when ``mean_t max_j |k_tj| / (|u_tj| + 1) < tol_grad`` while
+        ``lambda < 1e-5``.
+    :param lambda_init: initial Levenberg-Marquardt regularisation (0 gives a pure Newton step,
+        e.g. the exact LQR solution in one iteration on a linear-quadratic problem).
+    :param lambda_factor: growth factor of the adaptive schedule.
+    :param lambda_max: give up (status ``"failed"``) when lambda exceeds this.
+    :param lambda_min: lambda never drops below this after a decrease.
+    :param alphas: line-search step sizes, largest first (all rolled out in one batch).
+    :param reg_type: 1 adds ``lambda I`` to ``Quu``; 2 adds ``lambda I`` to ``V'xx`` (state
+        regularisation, ``Quu + lambda B^T B``, ``Qux + lambda B^T A``).
+    :param reduce_ratio_min: accept a step when actual / expected improvement exceeds this.
+    :param max_state_norm: a rollout whose ``max |x|`` exceeds this counts as diverged.
+    :param boxqp_*: projected-Newton box-QP settings (Tassa et al.'s ``boxQP`` defaults).
+    """
+
+    max_iter: int = 500
+    tol_fun: float = 1e-7
+    tol_fun_rel: float = 0.0
+    tol_grad: float = 1e-4
+    lambda_init: float = 1.0
+    lambda_factor: float = 1.6
+    lambda_max: float = 1e10
+    lambda_min: float = 1e-6
+    alphas: tuple[float, ...] = tuple(float(a) for a in 10.0 ** np.linspace(0.0, -3.0, 11))
+    reg_type: int = 1
+    reduce_ratio_min: float = 0.0
+    max_state_norm: float = 1e8
+    boxqp_max_iter: int = 100
+    boxqp_min_grad: float = 1e-8
+    boxqp_min_rel_improve: float = 1e-8
+    boxqp_step_dec: float = 0.6
+    boxqp_min_step: float = 1e-22
+    boxqp_armijo: float = 0.1
+
+    def __post_init__(self) -> None:
+        if int(self.max_iter) != self.max_iter or self.max_iter < 1:
+            raise ValueError(f"max_iter must be an integer >= 1, got {self.max_iter!r}")
+        for name in ("tol_fun", "tol_fun_rel", "tol_grad", "lambda_init", "reduce_ratio_min"):
+            v = getattr(self, name)
+            if not np.isfinite(v) or v < 0:
+                raise ValueError(f"{name} must be a finite number >= 0, got {v!r}")
+        for name in ("lambda_max", "lambda_min", "max_state_norm", "boxqp_min_step"):
+            v = getattr(self, name)
+            if not v > 0:
+                raise ValueError(f"{name} must be > 0, got {v!r}")
+        if not self.lambda_factor > 1:
+            raise ValueError(f"lambda_factor must be > 1, got {self.lambda_factor!r}")
+        a = np.asarray(self.alphas, dtype=float)
+        if a.ndim != 1 or a.size < 1 or not np.all((a > 0) & (a <= 1)):
+            raise ValueError(f"alphas must be a non-empty sequence in (0, 1], got {self.alphas!r}")
+        if self.reg_type not in (1, 2):
+            raise ValueError(f"reg_type must be 1 or 2, got {self.reg_type!r}")
+        if not 0 < self.boxqp_step_dec < 1 or not 0 < self.boxqp_armijo < 1:
+            raise ValueError("boxqp_step_dec and boxqp_armijo must lie in (0, 1)")
+
+
+@dataclass(frozen=True)
+class ILQRResult:
+    """Outcome of :func:`ilqr`.
+
+    :param X: ``[T+1, n]`` state trajectory of the returned controls (under the model).
+    :param U: ``[T, m]`` controls, always finite and within the bounds.
+    :param K: ``[T, m, n]`` feedback gains of the last backward pass (rows of clamped controls
+        are 0); the local policy is ``u_t = U_t + K_t (x_t - X_t)``, clipped to the bounds.
+    :param k: ``[T, m]`` feed-forward step of the last backward pass (about 0 at convergence).
+    :param cost: ``J(X, U)`` (``inf`` if no finite rollout was found).
+    :param trace: one dict per iteration: ``iteration, cost, lambda, alpha, expected, actual,
+        grad_norm, accepted, time`` (seconds spent in that iteration).
+    :param status: ``"converged"``, ``"max_iter"`` or ``"failed"``.
+    :param iterations: number of iterations run.
+    :param message: why the solver stopped.
+    :param lam: the final regularisation (useful to warm-start a next solve).
+    :param timings: total seconds per phase: ``jacobians, cost_derivatives, backward, forward,
+        line_search_cost, total``.
+    """
+
+    X: np.ndarray
+    U: np.ndarray
+    K: np.ndarray
+    k: np.ndarray
+    cost: float
+    trace: list[dict] = field(repr=False)
+    status: str
+    iterations: int
+    message: str
+    lam: float = 1.0
+    timings: dict = field(default_factory=dict, repr=False)
+
+
+def check_control_bounds(u_min: object, u_max: object, m: int) -> tuple[np.ndarray, np.ndarray]:
+    """Validate box bounds: ``None`` (unbounded), a scalar or an ``[m]`` array each.
+
+    :return: ``(lower [m], upper [m])`` with ``-inf`` / ``inf`` for missing bounds.
+    """
+    out = []
+    for name, b, fill in (("u_min", u_min, -np.inf), ("u_max", u_max, np.inf)):
+        if b is None:
+            out.append(np.full(m, fill))
+            continue
+        arr = as_array(name, b, finite=False)
+        if arr.ndim == 0:
+            arr = np.full(m, float(arr))
+        if arr.shape != (m,):
+            raise ValueError(f"{name} must be a scalar or have shape [{m}], got {list(arr.shape)}")
+        if np.any(np.isnan(arr)):
+            raise ValueError(f"{name} contains NaN")
+        out.append(arr.copy())
+    lower, upper = out
+    if np.any(lower > upper):
+        i = int(np.argmax(lower > upper))
+        raise ValueError(
+            f"u_min must be <= u_max elementwise; at index {i}: u_min={lower[i]} > u_max={upper[i]}"
+        )
+    return lower, upper
+
+
+def ilqr(
+    cost: CasadiCost,
+    dynamics,
+    x0: np.ndarray,
+    U0: np.ndarray,
+    *,
+    u_min: np.ndarray | float | None = None,
+    u_max: np.ndarray | float | None = None,
+    options: ILQROptions | None = None,
+    t0: int = 0,
+) -> ILQRResult:
+    """Optimise a control sequence with control-limited iLQR (Tassa et al. 2014).
+
+    :param cost: a :class:`mbtsr.costs.CasadiCost` with ``n, m`` matching the model.
+    :param dynamics: any model with ``step(x[..., n], u[..., m], t)`` (batched) and
+        ``jacobians(x[T, n], u[T, m], t0) -> (A [T, n, n], B [T, n, m])``.
+    :param x0: ``[n]`` initial state.
+    :param U0: ``[T, m]`` initial control sequence (clipped to the bounds).
+    :param u_min: ``[m]`` (or scalar) lower control bound; ``None`` = unbounded.
+    :param u_max: ``[m]`` (or scalar) upper control bound; ``None`` = unbounded.
+    :param options: :class:`ILQROptions` (or a dict of its fields).
+    :param t0: absolute time index of ``x0`` (passed to the cost and to time-varying models).
+    :return: :class:`ILQRResult`.
+    """
+    opts = _as_options(options)
+    if not isinstance(cost, CasadiCost):
+        raise TypeError(f"cost must be a mbtsr.costs.CasadiCost, got {type(cost).__name__}")
+    n, m = cost.n, cost.m
+    for attr, want in (("state_dim", n), ("action_dim", m)):
+        got = getattr(dynamics, attr, want)
+        if got != want:
+            raise ValueError(f"dynamics.{attr}={got} does not match the cost's dimension {want}")
+    x0 = as_array("x0", x0, (n,))
+    U0 = as_array("U0", U0, (None, m))
+    if U0.shape[0] < 1:
+        raise ValueError("U0 must hold at least one time step (T >= 1)")
+    if isinstance(t0, bool) or not isinstance(t0, (int, np.integer)) or t0 < 0:
+        raise ValueError(f"t0 must be an integer time index >= 0, got {t0!r}")
+    t0 = int(t0)
+    lower, upper = check_control_bounds(u_min, u_max, m)
+    has_limits = bool(np.any(np.isfinite(lower)) or np.any(np.isfinite(upper)))
+    alphas = np.asarray(opts.alphas, dtype=float)
+    T = U0.shape[0]
+    timings = dict.fromkeys(
+        ("jacobians", "cost_derivatives", "backward", "forward", "line_search_cost"), 0.0
+    )
+    t_start = time.perf_counter()
+
+    # ---- initial rollout: U0, else scaled copies alpha * U0 (largest first)
+    U = np.clip(U0, lower, upper)
+    X, alive = _rollout(dynamics, x0, U[None], t0, opts.max_state_norm)
+    if not alive[0]:
+        cands = np.clip(alphas[:, None, None] * U0[None], lower, upper)
+        Xc, alive = _rollout(dynamics, x0, cands, t0, opts.max_state_norm)
+        if not alive.any():
+            zeros_K, zeros_k = np.zeros((T, m, n)), np.zeros((T, m))
+            return ILQRResult(
+                X=_nan_after_divergence(dynamics, x0, U, t0, opts.max_state_norm),
+                U=U,
+                K=zeros_K,
+                k=zeros_k,
+                cost=float("inf"),
+                trace=[],
+                status="failed",
+                iterations=0,
+                lam=opts.lambda_init,
+                message="initial rollout diverged (non-finite or |x| > max_state_norm) for "
+                "every scaled copy alpha * U0",
+                timings={**timings, "total": time.perf_counter() - t_start},
+            )
+        i = int(np.argmax(alive))
+        X, U = Xc[i], cands[i]
+    else:
+        X = X[0]
+    J = float(cost.total_unchecked(X, U, t0))
+
+    lam, dlam = float(opts.lambda_init), 1.0
+    f = opts.lambda_factor
+    K, k = np.zeros((T, m, n)), np.zeros((T, m))
+    trace: list[dict] = []
+    status, message = "", ""
+    need_derivs = True
+    it = 0
+    problem = None
+    while it < opts.max_iter:
+        it += 1
+        t_it = time.perf_counter()
+        if need_derivs:
+            tic = time.perf_counter()
+            A, B = dynamics.jacobians(X[:-1], U, t0)
+            A, B = np.asarray(A, dtype=float), np.asarray(B, dtype=float)
+            if A.shape != (T, n, n) or B.shape != (T, n, m):
+                raise ValueError(
+                    f"dynamics.jacobians returned A {list(A.shape)}, B {list(B.shape)}; "
+                    f"expected [{T}, {n}, {n}] and [{T}, {n}, {m}]"
+                )
+            timings["jacobians"] += time.perf_counter() - tic
+            tic = time.perf_counter()
+            derivs = cost.derivatives_unchecked(X, U, t0)
+            timings["cost_derivatives"] += time.perf_counter() - tic
+            finite = (
+                np.isfinite(A).all()
+                and np.isfinite(B).all()
+                and all(np.isfinite(d).all() for d in derivs)
+            )
+            if not finite:
+                status = "failed"
+                message = "non-finite Jacobians or cost derivatives at the current trajectory"
+                break
+            problem = _LQProblem.build(A, B, derivs, U, lower, upper, opts.reg_type)
+            need_derivs = False
+
+        # ---- backward pass, raising lambda until every Quu_reg is positive definite
+        tic = time.perf_counter()
+        while True:
+            bp = _backward_pass(problem, lam, has_limits, opts)
+            if bp is not None:
+                break
+            dlam = max(dlam * f, f)
+            lam = max(lam * dlam, opts.lambda_min)
+            if lam > opts.lambda_max:
+                break
+        timings["backward"] += time.perf_counter() - tic
+        if bp is None:
+            status = "failed"
+            message = "backward pass not positive definite up to lambda_max"
+            break
+        k, K, dV1, dV2 = bp
+        grad_norm = float(np.mean(np.max(np.abs(k) / (np.abs(U) + 1.0), axis=1)))
+        if grad_norm < opts.tol_grad and lam < 1e-5:
+            dlam = min(dlam / f, 1.0 / f)
+            lam = max(lam * dlam, opts.lambda_min) if lam > 0 else lam
+            trace.append(_trace(it, J, lam, np.nan, 0.0, 0.0, grad_norm, False, t_it))
+            status, message = "converged", "gradient norm below tol_grad"
+            break
+
+        # ---- forward pass: all step sizes in one batched rollout
+        tic = time.perf_counter()
+        Xn, Un, alive = _rollout_policy(
+            dynamics, x0, X, U, k, K, alphas, lower, upper, t0, opts.max_state_norm
+        )
+        timings["forward"] += time.perf_counter() - tic
+        tic = time.perf_counter()
+        Jn = np.full(len(alphas), np.inf)
+        if alive.any():
+            Jn[alive] = cost.total_unchecked(Xn[alive], Un[alive], t0)
+        timings["line_search_cost"] += time.perf_counter() - tic
+        expected = -alphas * (dV1 + alphas * dV2)
+        actual = J - Jn
+        with np.errstate(invalid="ignore", divide="ignore"):
+            ratio = np.where(expected > 0, actual / expected, np.sign(actual))
+        ok = alive & np.isfinite(Jn) & (ratio > opts.reduce_ratio_min)
+        if ok.any():
+            i = int(np.argmax(ok))
+            dcost = float(actual[i])
+            X, U, J = Xn[i], Un[i], float(Jn[i])
+            need_derivs = True
+            dlam = min(dlam / f, 1.0 / f)
+            lam = max(lam * dlam, opts.lambda_min)
+            trace.append(_trace(it, J, lam, alphas[i], expected[i], dcost, grad_norm, True, t_it))
+            if dcost < opts.tol_fun:
+                status, message = "converged", "cost change below tol_fun"
+                break
+            if dcost < opts.tol_fun_rel * abs(J):
+                status, message = "converged", "relative cost change below tol_fun_rel"
+                break
+        else:
+            dlam = max(dlam * f, f)
+            lam = max(lam * dlam, opts.lambda_min)
+            a0 = float(actual[0]) if np.isfinite(actual[0]) else float("nan")
+            trace.append(_trace(it, J, lam, np.nan, expected[0], a0, grad_norm, False, t_it))
+            if alive[0] and expected[0] < opts.tol_fun and abs(actual[0]) < opts.tol_fun:
+                status = "converged"
+                message = "expected and actual cost change of the full step below tol_fun"
+                break
+            if lam > opts.lambda_max:
+                status = "failed"
+                message = "line search found no improving step up to lambda_max"
+                break
+    if not status:
+        status, message = "max_iter", f"reached max_iter={opts.max_iter}"
+    timings["total"] = time.perf_counter() - t_start
+    return ILQRResult(
+        X=X,
+        U=U,
+        K=K,
+        k=k,
+        cost=J,
+        trace=trace,
+        status=status,
+        iterations=it,
+        message=message,
+        lam=lam,
+        timings=timings,
+    )
+
+
+# ----------------------------------------------------------------------------- internals
+def _as_options(options) -> ILQROptions:
+    if options is None:
+        return ILQROptions()
+    if isinstance(options, ILQROptions):
+        return options
+    if isinstance(options, Mapping):
+        unknown = set(options) - {f.name for f in fields(ILQROptions)}
+        if unknown:
+            raise ValueError(f"unknown ILQROptions field(s): {sorted(unknown)}")
+        return ILQROptions(**options)
+    raise TypeError(f"options must be an ILQROptions or a dict, got {type(options).__name__}")
+
+
+def _trace(it, J, lam, alpha, expected, actual, grad_norm, accepted, t_it) -> dict:
+    return {
+        "iteration": it,
+        "cost": float(J),
+        "lambda": float(lam),
+        "alpha": float(alpha),
+        "expected": float(expected),
+        "actual": float(actual),
+        "grad_norm": float(grad_norm),
+        "accepted": bool(accepted),
+        "time": time.perf_counter() - t_it,
+    }
+
+
+@dataclass
+class _LQProblem:
+    """The local LQ problem around a nominal trajectory in augmented form (see module doc).
+
+    ``FT: [T, 1+n+m, 1+n]`` = ``F_t^T``; ``L: [T, 1+n+m, 1+n+m]`` stage cost quadratics;
+    ``VT: [1+n, 1+n]`` terminal value; ``lo, hi: [T, m]`` bounds on ``du``;
+    ``BB: [T, m, m]``, ``BA: [T, m, 1+n]`` for state regularisation (reg_type 2).
+    """
+
+    FT: np.ndarray
+    L: np.ndarray
+    VT: np.ndarray
+    lo: np.ndarray
+    hi: np.ndarray
+    reg_type: int
+    BB: np.ndarray | None
+    BA: np.ndarray | None
+
+    @classmethod
+    def build(cls, A, B, derivs, U, lower, upper, reg_type) -> _LQProblem:
+        T, n, m = B.shape
+        nz = 1 + n
+        lx, lu, lxx, luu, lux = derivs
+        F = np.zeros((T, nz, nz + m))
+        F[:, 0, 0] = 1.0
+        F[:, 1:, 1:nz] = A
+        F[:, 1:, nz:] = B
+        L = np.zeros((T, nz + m, nz + m))
+        L[:, 0, 1:nz] = lx[:-1]
+        L[:, 1:nz, 0] = lx[:-1]
+        L[:, 0, nz:] = lu
+        L[:, nz:, 0] = lu
+        L[:, 1:nz, 1:nz] = lxx[:-1]
+        L[:, nz:, nz:] = luu
+        L[:, nz:, 1:nz] = lux
+        L[:, 1:nz, nz:] = lux.transpose(0, 2, 1)
+        VT = np.zeros((nz, nz))
+        VT[0, 1:] = lx[-1]
+        VT[1:, 0] = lx[-1]
+        VT[1:, 1:] = lxx[-1]
+        BB = BA = None
+        if reg_type == 2:
+            Bt = B.transpose(0, 2, 1)
+            BB = Bt @ B
+            BA = np.zeros((T, m, nz))
+            BA[:, :, 1:] = Bt @ A
+        return cls(
+            FT=np.ascontiguousarray(F.transpose(0, 2, 1)),
+            L=L,
+            VT=VT,
+            lo=lower[None] - U,
+            hi=upper[None] - U,
+            reg_type=reg_type,
+            BB=BB,
+            BA=BA,
+        )
+
+
+def _backward_pass(p: _LQProblem, lam: float, has_limits: bool, opts: ILQROptions):
+    """Riccati-like recursion over t = T-1..0 on the augmented quadratic.
+
+    :return: ``(k [T, m], K [T, m, n], dV1, dV2)`` or ``None`` if some regularised ``Quu`` is
+        not positive definite (or the recursion produced non-finite numbers).
+    """
+    T, nzm, nz = p.FT.shape
+    m = nzm - nz
+    kK = np.zeros((T, m, nz))  # [k_t, K_t] stacked
+    Ms = np.empty((T, nzm, nzm))
+    G = np.zeros((nzm, nz))
+    G[:nz, :nz] = np.eye(nz)
+    lam_I = lam * np.eye(m)
+    V = p.VT
+    k_warm = np.zeros(m)
+    dposv = lapack.dposv
+    # bounds as Python lists: comparing m floats in Python is ~10x cheaper than numpy calls
+    lo_list, hi_list = (p.lo.tolist(), p.hi.tolist()) if has_limits else (None, None)
+    for t in range(T - 1, -1, -1):
+        FT = p.FT[t]
+        M = p.L[t] + FT @ V @ FT.T
+        Ms[t] = M
+        if p.reg_type == 1:
+            H = M[nz:, nz:] + lam_I
+            rhs = M[nz:, :nz]
+        else:
+            H = M[nz:, nz:] + lam * p.BB[t]
+            rhs = M[nz:, :nz] + lam * p.BA[t]
+        _, sol, info = dposv(H, rhs)
+        if info != 0:
+            return None
+        gains = -sol
+        if has_limits and _outside(gains[:, 0].tolist(), lo_list[t], hi_list[t]):
+            kt, free, ok = _active_set_guess(H, rhs[:, 0], gains[:, 0], p.lo[t], p.hi[t])
+            if not ok:
+                kt, free, ok = _box_qp(H, rhs[:, 0], p.lo[t], p.hi[t], k_warm, opts)
+            if not ok:
+                return None
+            gains = np.zeros((m, nz))
+            gains[:, 0] = kt
+            if free.any():
+                _, solf, info = dposv(H[free][:, free], rhs[free, 1:])
+                if info != 0:
+                    return None
+                gains[free, 1:] = -solf
+        kK[t] = gains
+        k_warm = gains[:, 0]
+        G[nz:] = gains
+        V = G.T @ M @ G
+        V = 0.5 * (V + V.T)
+    k, K = kK[:, :, 0], kK[:, :, 1:]
+    if not (np.isfinite(kK).all() and np.isfinite(V).all()):
+        return None
+    Qu, Quu = Ms[:, nz:, 0], Ms[:, nz:, nz:]
+    dV1 = float(np.einsum("ti,ti->", k, Qu))
+    dV2 = 0.5 * float(np.einsum("ti,tij,tj->", k, Quu, k))
+    return np.ascontiguousarray(k), np.ascontiguousarray(K), dV1, dV2
+
+
+def _outside(k: list, lo: list, hi: list) -> bool:
+    """Whether any ``k_j`` lies outside ``[lo_j, hi_j]`` (NaN counts as outside)."""
+    for a, b, c in zip(k, lo, hi):
+        if not b <= a <= c:
+            return True
+    return False
+
+
+def _active_set_guess(H, g, x_free, lower, upper):
+    """Cheap first try at the box-QP ``min 0.5 x^T H x + g^T x, lower <= x <= upper``.
+
+    Clamp the dimensions where the unconstrained minimiser ``x_free`` leaves the box, re-solve
+    for the others and accept if the KKT conditions hold (free part inside the box, gradient
+    pointing out of the box on clamped dimensions). For small ``m`` this is usually right and
+    costs one small solve; otherwise :func:`_box_qp` runs.
+
+    :return: ``(x [m], free [m] bool, ok)``.
+    """
+    x = np.minimum(np.maximum(x_free, lower), upper)
+    free = x == x_free
+    if free.any():
+        clamped = ~free
+        _, sol, info = lapack.dposv(H[free][:, free], g[free] + H[free][:, clamped] @ x[clamped])
+        if info != 0:
+            return x, free, False
+        x[free] = -sol
+        if not ((x[free] >= lower[free]).all() and (x[free] <= upper[free]).all()):
+            return x, free, False
+    grad = g + H @ x
+    at_lo, at_hi = ~free & (x <= lower), ~free & (x >= upper)
+    ok = bool((grad[at_lo] >= 0).all() and (grad[at_hi] <= 0).all())
+    return x, free, ok
+
+
+def _box_qp(H, g, lower, upper, x0, opts: ILQROptions):
+    """Projected-Newton solution of ``min 0.5 x^T H x + g^T x`` s.t. ``lower <= x <= upper``.
+
+    Bertsekas' projected Newton as used by Tassa et al. 2014 (``boxQP``), warm-started at
+    ``x0``. ``H: [m, m]`` positive definite on the free set, ``g, lower, upper, x0: [m]``.
+
+    :return: ``(x [m], free [m] bool, ok)``; ``free`` marks the unclamped dimensions at the
+        solution; ``ok`` is False if the free Hessian block is not positive definite.
+    """
+    x = np.clip(x0, lower, upper)
+    value = x @ g + 0.5 * x @ H @ x
+    dposv = lapack.dposv
+    for it in range(opts.boxqp_max_iter):
+        grad = g + H @ x
+        clamped = ((x <= lower) & (grad > 0)) | ((x >= upper) & (grad < 0))
+        free = ~clamped
+        if clamped.all():
+            break
+        if np.linalg.norm(grad[free]) < opts.boxqp_min_grad:
+            break
+        grad_clamped = g + H @ (x * clamped)
+        _, sol, info = dposv(H[free][:, free], grad_clamped[free])
+        if info != 0:
+            return x, free, False
+        search = np.zeros_like(x)
+        search[free] = -sol - x[free]
+        sdotg = search @ grad
+        if sdotg >= 0:  # no descent direction left: at the optimum up to round-off
+            break
+        step = 1.0
+        xc = np.clip(x + step * search, lower, upper)
+        vc = xc @ g + 0.5 * xc @ H @ xc
+        while (vc - value) / (step * sdotg) < opts.boxqp_armijo:
+            step *= opts.boxqp_step_dec
+            if step < opts.boxqp_min_step:
+                break
+            xc = np.clip(x + step * search, lower, upper)
+            vc = xc @ g + 0.5 * xc @ H @ xc
+        improvement = value - vc
+        x, value = xc, vc
+        if it > 0 and improvement < opts.boxqp_min_rel_improve * abs(value):
+            break
+    grad = g + H @ x
+    clamped = ((x <= lower) & (grad > 0)) | ((x >= upper) & (grad < 0))
+    return x, ~clamped, True
+
+
+def _rollout(dynamics, x0, U, t0, max_norm):
+    """Open-loop batched rollout. ``U: [B, T, m]`` -> ``(X [B, T+1, n], alive [B])``.
+
+    Diverged rows (non-finite or ``|x| > max_norm``) are marked dead and then fed ``x0`` so
+    that the model never sees non-finite input.
+    """
+    Bsz, T, _ = U.shape
+    X = np.empty((Bsz, T + 1, x0.shape[0]))
+    X[:, 0] = x0
+    alive = np.ones(Bsz, dtype=bool)
+    for t in range(T):
+        with np.errstate(all="ignore"):
+            xn = np.asarray(dynamics.step(X[:, t], U[:, t], t0 + t), dtype=float)
+            if not np.abs(xn).max() <= max_norm:
+                bad = ~(np.abs(xn).max(axis=-1) <= max_norm)
+                alive &= ~bad
+                xn = np.where(bad[:, None], x0, xn)
+        X[:, t + 1] = xn
+    return X, alive
+
+
+def _nan_after_divergence(dynamics, x0, U, t0, max_norm):
+    """Rollout of ``U [T, m]`` with NaN from the first diverged state on (for reporting)."""
+    X = np.full((U.shape[0] + 1, x0.shape[0]), np.nan)
+    X[0] = x0
+    for t in range(U.shape[0]):
+        with np.errstate(all="ignore"):
+            xn = np.asarray(dynamics.step(X[t], U[t], t0 + t), dtype=float)
+        if not np.abs(xn).max() <= max_norm:
+            break
+        X[t + 1] = xn
+    return X
+
+
+def _rollout_policy(dynamics, x0, X, U, k, K, alphas, lower, upper, t0, max_norm):
+    """Closed-loop rollouts for all step sizes at once.
+
+    ``u_t = clip(U_t + alpha k_t + K_t (x_t - X_t))``; ``X: [T+1, n]``, ``U, k: [T, m]``,
+    ``K: [T, m, n]``, ``alphas: [A]`` -> ``(Xn [A, T+1, n], Un [A, T, m], alive [A])``.
+    A row that turns non-finite is marked dead and continues from the nominal state (so the
+    model never sees NaN); rows exceeding ``max_norm`` are marked dead at the end.
+    """
+    T = U.shape[0]
+    nA = alphas.shape[0]
+    Xn = np.empty((nA, T + 1, X.shape[1]))
+    Un = np.empty((nA, T, U.shape[1]))
+    Xn[:, 0] = x0
+    feedforward = U[None] + alphas[:, None, None] * k[None]  # [A, T, m]
+    KT = K.transpose(0, 2, 1)
+    alive = np.ones(nA, dtype=bool)
+    clip = bool(np.isfinite(lower).any() or np.isfinite(upper).any())
+    step = dynamics.step
+    with np.errstate(all="ignore"):
+        for t in range(T):
+            u = feedforward[:, t] + (Xn[:, t] - X[t]) @ KT[t]
+            if clip:
+                np.maximum(u, lower, out=u)
+                np.minimum(u, upper, out=u)
+            Un[:, t] = u
+            xn = np.asarray(step(Xn[:, t], u, t0 + t), dtype=float)
+            if not math.isfinite(xn.sum()):
+                bad = ~np.isfinite(xn).all(axis=-1)
+                alive &= ~bad
+                xn = np.where(bad[:, None], X[t + 1], xn)
+            Xn[:, t + 1] = xn
+        alive &= np.abs(Xn).max(axis=(1, 2)) <= max_norm
+    return Xn, Un, alive
