@@ -1,0 +1,181 @@
+"""Tests of mbtsr.mpc: the receding-horizon controller against finite-horizon LQR, its warm
+start and time handling, and reach-and-hold on the MuJoCo arm with the true model."""
+
+from __future__ import annotations
+
+import gymnasium as gym
+import numpy as np
+import pytest
+
+import envs  # noqa: F401  (registers the envs)
+import mbtsr.mpc as mpc_module
+from mbtsr.costs import quadratic_cost
+from mbtsr.dynamics import LinearDynamics
+from mbtsr.ilqr import ILQROptions
+from mbtsr.mpc import MPC, MPCOptions, run_mpc_episode
+
+N_X, N_U = 3, 2
+
+
+def _system():
+    A = np.array([[1.0, 0.1, 0.0], [0.0, 1.0, 0.1], [0.05, 0.0, 0.98]])
+    B = np.array([[0.0, 0.0], [0.1, 0.0], [0.0, 0.1]])
+    return A, B
+
+
+def _first_lqr_control(A, B, Q, R, Qf, x, H):
+    P = Qf
+    for _ in range(H):
+        K = -np.linalg.solve(R + B.T @ P @ B, B.T @ P @ A)
+        P = Q + A.T @ P @ (A + B @ K)
+    return K @ x  # K of the first stage after H backward steps
+
+
+def test_mpc_action_is_the_first_control_of_finite_horizon_lqr():
+    A, B = _system()
+    Q, R, Qf = np.eye(N_X), 0.1 * np.eye(N_U), 2 * np.eye(N_X)
+    opts = MPCOptions(iterations_per_step=3, ilqr=ILQROptions(lambda_init=0.0))
+    mpc = MPC(
+        quadratic_cost(Q, R, np.zeros(N_X), Qf=Qf), LinearDynamics(A, B), horizon=15, options=opts
+    )
+    x = np.array([1.0, -0.5, 0.7])
+    for t in range(5):
+        a = mpc.act(x, t)
+        np.testing.assert_allclose(a, _first_lqr_control(A, B, Q, R, Qf, x, 15), atol=1e-9)
+        x = A @ x + B @ a
+    assert len(mpc.compute_times) == 5 and all(c > 0 for c in mpc.compute_times)
+    mpc.reset()
+    assert mpc.compute_times == [] and mpc.plan is None
+
+
+def test_warm_start_shifts_the_previous_plan_and_passes_absolute_time(monkeypatch):
+    calls = []
+    real_ilqr = mpc_module.ilqr
+
+    def spy(cost, dynamics, x0, U0, **kw):
+        calls.append({"U0": U0.copy(), "t0": kw["t0"], "max_iter": kw["options"].max_iter})
+        return real_ilqr(cost, dynamics, x0, U0, **kw)
+
+    monkeypatch.setattr(mpc_module, "ilqr", spy)
+    A, B = _system()
+    ref = np.tile(np.array([0.5, 0.0, 0.0]), (40, 1))
+    ref[20:, 0] = -0.5
+    mpc = MPC(
+        quadratic_cost(np.eye(N_X), 0.1 * np.eye(N_U), ref),
+        LinearDynamics(A, B),
+        horizon=10,
+        u_min=-1.0,
+        u_max=1.0,
+        options=MPCOptions(iterations_per_step=2, first_step_iterations=7),
+    )
+    x = np.zeros(N_X)
+    mpc.act(x, 3)
+    plan = mpc.plan.copy()
+    mpc.act(x, 4)  # one step later: the plan shifted by one, last control repeated
+    np.testing.assert_array_equal(calls[1]["U0"], np.vstack([plan[1:], plan[-1:]]))
+    plan = mpc.plan.copy()
+    mpc.act(x, 6)  # two steps later
+    np.testing.assert_array_equal(calls[2]["U0"], np.vstack([plan[2:], plan[-1:], plan[-1:]]))
+    mpc.act(x, 2)  # going back in time: cold start
+    np.testing.assert_array_equal(calls[3]["U0"], np.zeros((10, N_U)))
+    assert [c["t0"] for c in calls] == [3, 4, 6, 2]
+    assert [c["max_iter"] for c in calls] == [7, 2, 2, 7]
+
+
+def test_run_mpc_episode_on_the_linear_system_env_equals_receding_horizon_lqr():
+    env = gym.make("mbtsr/LinearSystem-v0", n=4, m=2, episode_steps=40, control_cost=0.1)
+    u = env.unwrapped
+    cost = quadratic_cost(u.cost_Q, u.cost_R, np.zeros(4))
+    H = 20
+    mpc = MPC(
+        cost,
+        u.dynamics_model(),
+        horizon=H,
+        u_min=-u.action_space.high,
+        u_max=u.action_space.high,
+        options=MPCOptions(iterations_per_step=2, ilqr=ILQROptions(lambda_init=0.0)),
+    )
+    out = run_mpc_episode(env, mpc, seed=3)
+    x, a = out["states"], out["actions"]
+    assert x.shape == (41, 4) and a.shape == (40, 2)
+    assert out["rewards"].shape == (40,) and out["compute_times"].shape == (40,)
+    assert out["truncated"] and out["steps"] == 40
+    # the rewards are the env's: -(x'Qx + u'Ru) on the state after the step
+    np.testing.assert_allclose(
+        out["rewards"], -(np.sum(x[1:] ** 2, 1) + u.cost_R[0, 0] * np.sum(a**2, 1))
+    )
+    assert np.all(np.abs(a) < u.action_space.high)  # limits inactive: pure LQR
+    for t in range(40):
+        want = _first_lqr_control(u.A, u.B, u.cost_Q, u.cost_R, u.cost_Q, x[t], H)
+        np.testing.assert_allclose(a[t], want, rtol=1e-7, atol=1e-7)
+    assert np.linalg.norm(x[-1]) < np.linalg.norm(x[0])
+
+
+def _reach_and_hold(seed, target, horizon, steps, iterations):
+    env = gym.make("mbtsr/TwoLinkArm-v0", episode_steps=steps)
+    arm = env.unwrapped
+    goal = np.r_[target, 0.0, 0.0]
+    cost = quadratic_cost(arm.cost_Q, arm.cost_R, goal)
+    mpc = MPC(
+        cost,
+        arm.dynamics_model(),
+        horizon=horizon,
+        u_min=-1.0,
+        u_max=1.0,
+        options=MPCOptions(iterations_per_step=iterations, first_step_iterations=30),
+    )
+    out = run_mpc_episode(env, mpc, seed=seed, options={"target": target})
+    assert np.all(np.abs(out["actions"]) <= 1.0)
+    return out["states"] - goal
+
+
+# Bound: at the end the joint angles are within 0.03 rad of the target and the speeds below
+# 0.1 rad/s, and the angles stay within 0.03 rad over the last 15 steps (holding under gravity
+# and Coulomb friction; the cost's action weight leaves a few mrad of static offset).
+Q_TOL, QD_TOL = 0.03, 0.1
+
+
+def test_mpc_with_true_mujoco_model_reaches_and_holds_a_target():
+    err = _reach_and_hold(seed=0, target=np.array([0.9, -0.7]), horizon=20, steps=50, iterations=2)
+    assert np.abs(err[0, :2]).max() > 0.5  # it had somewhere to go
+    assert np.abs(err[-1, :2]).max() < Q_TOL and np.abs(err[-1, 2:]).max() < QD_TOL
+    assert np.abs(err[-15:, :2]).max() < Q_TOL
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("seed", range(5))
+def test_mpc_with_true_mujoco_model_reaches_and_holds_random_targets(seed):
+    rng = np.random.default_rng(100 + seed)
+    target = rng.uniform(-1.4, 1.4, 2)
+    err = _reach_and_hold(seed=seed, target=target, horizon=50, steps=100, iterations=3)
+    assert np.abs(err[-1, :2]).max() < Q_TOL and np.abs(err[-1, 2:]).max() < QD_TOL
+    assert np.abs(err[-15:, :2]).max() < Q_TOL
+
+
+@pytest.mark.parametrize(
+    "kwargs, exc, match",
+    [
+        ({"horizon": 0}, ValueError, "horizon must be"),
+        ({"u_min": 1.0, "u_max": -1.0}, ValueError, "u_min must be <= u_max"),
+        ({"U_init": np.zeros((4, N_U))}, ValueError, r"U_init must have shape \[5, 2\]"),
+        ({"options": ILQROptions()}, TypeError, "options must be an MPCOptions"),
+    ],
+)
+def test_bad_construction_arguments(kwargs, exc, match):
+    A, B = _system()
+    args = {"horizon": 5} | kwargs
+    with pytest.raises(exc, match=match):
+        MPC(quadratic_cost(np.eye(N_X), np.eye(N_U), np.zeros(N_X)), LinearDynamics(A, B), **args)
+
+
+def test_bad_act_arguments():
+    A, B = _system()
+    mpc = MPC(quadratic_cost(np.eye(N_X), np.eye(N_U), np.zeros(N_X)), LinearDynamics(A, B), 5)
+    with pytest.raises(ValueError, match=r"x must have shape \[3\]"):
+        mpc.act(np.zeros(2))
+    with pytest.raises(ValueError, match="x contains"):
+        mpc.act(np.array([0.0, np.nan, 0.0]))
+    with pytest.raises(ValueError, match="t must be"):
+        mpc.act(np.zeros(3), -1)
+    with pytest.raises(ValueError, match="iterations_per_step"):
+        MPCOptions(iterations_per_step=0)
