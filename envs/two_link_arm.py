@@ -63,7 +63,7 @@ function of ``(x, a)``.
 | link length l1, l2 [m] | 0.30, 0.25 | 1, 1 |
 | centre of mass r1, r2 [m] | 0.15, 0.125 | 1, 1 |
 | inertia about COM [kg m^2] | m l^2/12: 0.009, 0.003125 | 1e-9 (MuJoCo needs > 0) |
-| armature [kg m^2] | 0.01, 0.005 | 0 |
+| armature [kg m^2] | 0.05, 0.02 (geared motors) | 0 |
 | viscous damping [N m s/rad] | 0.2, 0.1 | 2, 2 |
 | Coulomb friction [N m] | 0.2, 0.1 | 0.1, 0.1 |
 | torque limit [N m] | 8, 3 | 3, 3 |
