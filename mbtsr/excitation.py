@@ -8,8 +8,8 @@ Two signals, as in the paper's experiments and its original code:
 - :func:`multisine`: a sum of sinusoids with frequencies drawn from a log-spaced grid (the
   original code's later robot input).
 
-Both return time-major ``[T, m]`` arrays and take a ``seed`` (int, ``SeedSequence`` or
-``numpy.random.Generator``): the same seed gives the same signal, bit for bit.
+Both return time-major ``[T, m]`` arrays and require a keyword ``seed`` (int, ``SeedSequence``
+or ``numpy.random.Generator``): the same seed gives the same signal, bit for bit.
 """
 
 from __future__ import annotations
@@ -20,7 +20,7 @@ import numpy as np
 
 __all__ = ["filtered_gaussian", "multisine", "filtered_gaussian_std", "multisine_std"]
 
-SeedLike = int | np.random.SeedSequence | np.random.Generator | None
+SeedLike = int | np.random.SeedSequence | np.random.Generator
 
 
 def _check_int(name: str, value: object, minimum: int) -> int:
@@ -52,7 +52,7 @@ def filtered_gaussian(
     *,
     window: int = 100,
     scale: float = 10.0,
-    seed: SeedLike = None,
+    seed: SeedLike,
 ) -> np.ndarray:
     """Low-pass filtered Gaussian input: a causal moving average of ``scale * N(0, 1)``.
 
@@ -94,7 +94,7 @@ def multisine(
     f_max: float = 10**-1.5,
     n_grid: int = 50,
     amplitude: float = 1.0,
-    seed: SeedLike = None,
+    seed: SeedLike,
 ) -> np.ndarray:
     """Sum of ``n_sines`` sinusoids per channel with random frequencies and phases.
 
