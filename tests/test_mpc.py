@@ -129,17 +129,25 @@ def _reach_and_hold(seed, target, horizon, steps, iterations):
     return out["states"] - goal
 
 
-# Bound: at the end the joint angles are within 0.03 rad of the target and the speeds below
-# 0.1 rad/s, and the angles stay within 0.03 rad over the last 15 steps (holding under gravity
-# and Coulomb friction; the cost's action weight leaves a few mrad of static offset).
-Q_TOL, QD_TOL = 0.03, 0.1
+# Bound ("reaches and holds"): the joint angles are within Q_TOL = 0.03 rad of the target at
+# the end and during the last 15 steps (the cost's action weight leaves a static offset of a few
+# mrad against gravity); the speeds are below QD_TOL = 0.2 rad/s at the end and 0.05 rad/s on
+# average over the last 15 steps. Near zero speed MuJoCo's Coulomb friction (a soft stiction
+# constraint) makes the speeds chatter by up to ~0.15 rad/s for single steps while the angles
+# stay put to a few mrad.
+Q_TOL, QD_TOL, QD_MEAN_TOL = 0.03, 0.2, 0.05
+
+
+def _assert_reached_and_held(err):
+    assert np.abs(err[-1, :2]).max() < Q_TOL and np.abs(err[-1, 2:]).max() < QD_TOL
+    assert np.abs(err[-15:, :2]).max() < Q_TOL
+    assert np.abs(err[-15:, 2:]).mean() < QD_MEAN_TOL
 
 
 def test_mpc_with_true_mujoco_model_reaches_and_holds_a_target():
     err = _reach_and_hold(seed=0, target=np.array([0.9, -0.7]), horizon=20, steps=50, iterations=2)
     assert np.abs(err[0, :2]).max() > 0.5  # it had somewhere to go
-    assert np.abs(err[-1, :2]).max() < Q_TOL and np.abs(err[-1, 2:]).max() < QD_TOL
-    assert np.abs(err[-15:, :2]).max() < Q_TOL
+    _assert_reached_and_held(err)
 
 
 @pytest.mark.slow
@@ -148,8 +156,8 @@ def test_mpc_with_true_mujoco_model_reaches_and_holds_random_targets(seed):
     rng = np.random.default_rng(100 + seed)
     target = rng.uniform(-1.4, 1.4, 2)
     err = _reach_and_hold(seed=seed, target=target, horizon=50, steps=100, iterations=3)
-    assert np.abs(err[-1, :2]).max() < Q_TOL and np.abs(err[-1, 2:]).max() < QD_TOL
-    assert np.abs(err[-15:, :2]).max() < Q_TOL
+    assert np.abs(err[0, :2]).max() > 0.2
+    _assert_reached_and_held(err)
 
 
 @pytest.mark.parametrize(

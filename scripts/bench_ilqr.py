@@ -1,0 +1,302 @@
+"""Benchmark iLQR and MPC on the two-link arm reach task, against IPOPT.
+
+Measures, in one run:
+1. ms per iLQR iteration at horizons T (default 100 and 200) with (a) the true MuJoCo model
+   (``env.dynamics_model()``: mujoco.rollout steps, mjd_transitionFD Jacobians), (b) the analytic
+   CasADi model, (c) a 4-member NN ensemble (``--ensemble PATH`` or a randomly initialised
+   ``DynamicsEnsemble``), with the time per phase (Jacobians, cost derivatives, backward pass,
+   forward pass, line-search costs);
+2. on the analytic model (the one IPOPT uses): iterations to converge, final cost / IPOPT's cost,
+   wall time / IPOPT's wall time, for the default tolerances and for ``tol_fun_rel = 1e-4``, and
+   the time until iLQR's cost is within 1 % of IPOPT's;
+3. the MPC real-time factor (control period 0.02 s / compute time per MPC step) at horizon 50
+   for the three models, and the final reach error.
+
+Targets (issue 5): <= 10 ms per iteration at T = 200 with ensemble Jacobians; cost within 1 % of
+IPOPT at >= 5x less wall time; MPC real-time factor >= 1. Numbers are noisy on a shared machine:
+every timing is the best of ``--repeats`` runs and the load average is recorded.
+
+Usage: ``python scripts/bench_ilqr.py --json results/bench_ilqr.json``
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import os
+import platform
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import gymnasium as gym
+import numpy as np
+import torch
+
+import envs  # noqa: F401  (registers mbtsr/TwoLinkArm-v0)
+from mbtsr.costs import quadratic_cost
+from mbtsr.ilqr import ILQROptions, ilqr
+from mbtsr.ipopt_reference import solve_ipopt
+from mbtsr.mpc import MPC, MPCOptions, run_mpc_episode
+
+
+@dataclass(frozen=True)
+class Args:
+    preset: str = "default"
+    """arm preset"""
+    horizons: str = "100,200"
+    """comma-separated iLQR horizons"""
+    timing_iterations: int = 15
+    """iLQR iterations per timing run (tolerances off)"""
+    repeats: int = 3
+    """timing runs; the best (least disturbed by other processes) is reported"""
+    n_problems: int = 3
+    """start/target pairs for the IPOPT comparison"""
+    mpc_horizon: int = 50
+    """MPC horizon"""
+    mpc_steps: int = 100
+    """control steps per MPC episode"""
+    mpc_iterations: int = 2
+    """iLQR iterations per MPC step (warm-started)"""
+    ensemble: str = ""
+    """path of a saved ensemble (mbtsr.ensemble.save_model); empty: random 4-member ensemble"""
+    seed: int = 0
+    """seed of the start/target pairs and of the random ensemble"""
+    threads: int = 1
+    """torch threads"""
+    json: str | None = None
+    """write the results to this JSON file"""
+
+
+def parse_args() -> Args:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    for f in dataclasses.fields(Args):
+        parser.add_argument(
+            "--" + f.name.replace("_", "-"),
+            type=str if f.name in ("json", "ensemble", "horizons") else type(f.default),
+            default=f.default,
+        )
+    return Args(**vars(parser.parse_args()))
+
+
+def load_ensemble(path: str, seed: int):
+    """The ensemble under test, or None if mbtsr.ensemble is not available."""
+    try:
+        from mbtsr.ensemble import DynamicsEnsemble, EnsembleConfig, load_model
+    except ImportError as err:  # pragma: no cover - only before the model issue lands
+        return None, f"not available: {err}"
+    if path:
+        return load_model(path), f"loaded from {path}"
+    return DynamicsEnsemble(EnsembleConfig(4, 2, seed=seed)), "random init, 4 members (paper)"
+
+
+def time_ilqr(cost, model, x0, T, iterations, repeats):
+    """Best-of-``repeats`` ms per iteration with tolerances off (fixed iteration count)."""
+    opts = ILQROptions(max_iter=iterations, tol_fun=0.0, tol_grad=0.0)
+    ilqr(cost, model, x0, np.zeros((T, 2)), u_min=-1.0, u_max=1.0, options=opts)  # warm-up
+    best = None
+    for _ in range(repeats):
+        res = ilqr(cost, model, x0, np.zeros((T, 2)), u_min=-1.0, u_max=1.0, options=opts)
+        per_iter = res.timings["total"] / res.iterations * 1e3
+        if best is None or per_iter < best["ms_per_iteration"]:
+            n_jac = 1 + sum(tr["accepted"] for tr in res.trace[:-1])
+            best = {
+                "ms_per_iteration": per_iter,
+                "iterations": res.iterations,
+                "accepted": int(sum(tr["accepted"] for tr in res.trace)),
+                "status": res.status,
+                "ms_per_phase_per_iteration": {
+                    k: v / res.iterations * 1e3 for k, v in res.timings.items() if k != "total"
+                },
+                "ms_per_jacobian_call": res.timings["jacobians"] / n_jac * 1e3,
+            }
+    return best
+
+
+def solve_ilqr_timed(cost, model, x0, T, options):
+    tic = time.perf_counter()
+    res = ilqr(cost, model, x0, np.zeros((T, 2)), u_min=-1.0, u_max=1.0, options=options)
+    return res, time.perf_counter() - tic
+
+
+def time_to_within(res, wall, threshold):
+    """Seconds until the iLQR trace first reaches ``cost <= threshold`` (None if never)."""
+    setup = wall - sum(tr["time"] for tr in res.trace)
+    elapsed = setup
+    for tr in res.trace:
+        elapsed += tr["time"]
+        if tr["cost"] <= threshold:
+            return elapsed
+    return None
+
+
+if __name__ == "__main__":
+    args = parse_args()
+    torch.set_num_threads(args.threads)
+    horizons = [int(h) for h in args.horizons.split(",")]
+    load_start = os.getloadavg()
+    t_start = time.perf_counter()
+
+    # ---- the task: the arm env's own reach cost, a few start/target pairs
+    env = gym.make("mbtsr/TwoLinkArm-v0", preset=args.preset, episode_steps=args.mpc_steps)
+    arm = env.unwrapped
+    rng = np.random.default_rng(args.seed)
+    problems = [
+        (np.r_[rng.uniform(-0.3, 0.3, 2), 0.0, 0.0], rng.uniform(-1.3, 1.3, 2))
+        for _ in range(args.n_problems)
+    ]
+    ensemble, ensemble_note = load_ensemble(args.ensemble, args.seed)
+    models = {"true_mujoco": arm.dynamics_model(), "analytic_casadi": arm.analytic_model()}
+    if ensemble is not None:
+        models["ensemble"] = ensemble
+
+    def make_cost(target):
+        return quadratic_cost(arm.cost_Q, arm.cost_R, np.r_[target, 0.0, 0.0])
+
+    # ---- 1. ms per iteration
+    timing = {}
+    x0, target = problems[0]
+    for name, model in models.items():
+        timing[name] = {}
+        for T in horizons:
+            timing[name][f"T={T}"] = time_ilqr(
+                make_cost(target), model, x0, T, args.timing_iterations, args.repeats
+            )
+            print(f"{name:16s} T={T}: {timing[name][f'T={T}']['ms_per_iteration']:.2f} ms/iter")
+    if ensemble is None:
+        timing["ensemble"] = ensemble_note
+
+    # ---- 2. convergence and cost vs IPOPT (analytic model; true model for iterations)
+    comparison = {}
+    for T in horizons:
+        rows = []
+        for i, (x0, target) in enumerate(problems):
+            cost = make_cost(target)
+            ref = solve_ipopt(arm.analytic_model().casadi_step, cost, x0, T, -1.0, 1.0)
+            row = {
+                "problem": i,
+                "x0": x0.tolist(),
+                "target": target.tolist(),
+                "ipopt": {
+                    "cost": ref.cost,
+                    "wall_time_s": ref.wall_time,
+                    "build_time_s": ref.build_time,
+                    "iterations": ref.iterations,
+                    "status": ref.status,
+                },
+            }
+            for label, opts in (
+                ("ilqr_default", ILQROptions()),
+                ("ilqr_rel_1e-4", ILQROptions(tol_fun_rel=1e-4)),
+            ):
+                best = None
+                for _ in range(args.repeats):
+                    res, wall = solve_ilqr_timed(cost, models["analytic_casadi"], x0, T, opts)
+                    if best is None or wall < best[1]:
+                        best = (res, wall)
+                res, wall = best
+                t1 = time_to_within(res, wall, 1.01 * ref.cost)
+                row[label] = {
+                    "cost": res.cost,
+                    "cost_over_ipopt": res.cost / ref.cost,
+                    "wall_time_s": wall,
+                    "wall_over_ipopt": wall / ref.wall_time,
+                    "iterations": res.iterations,
+                    "status": res.status,
+                    "time_to_1pct_of_ipopt_s": t1,
+                    "time_to_1pct_over_ipopt": None if t1 is None else t1 / ref.wall_time,
+                    "all_controls_within_limits": bool(np.all(np.abs(res.U) <= 1.0)),
+                }
+            res, wall = solve_ilqr_timed(
+                cost, models["true_mujoco"], x0, T, ILQROptions(tol_fun_rel=1e-4)
+            )
+            row["ilqr_rel_1e-4_true_mujoco"] = {
+                "cost_under_mujoco": res.cost,
+                "cost_over_ipopt_analytic": res.cost / ref.cost,
+                "wall_time_s": wall,
+                "iterations": res.iterations,
+                "status": res.status,
+            }
+            rows.append(row)
+            print(
+                f"T={T} problem {i}: ipopt {ref.cost:.4f} ({ref.wall_time:.3f} s), "
+                f"ilqr default {row['ilqr_default']['cost_over_ipopt']:.5f} x cost, "
+                f"{row['ilqr_default']['wall_over_ipopt']:.2f} x time; rel1e-4 "
+                f"{row['ilqr_rel_1e-4']['cost_over_ipopt']:.5f} x cost, "
+                f"{row['ilqr_rel_1e-4']['wall_over_ipopt']:.2f} x time"
+            )
+
+        def median(key, field, rows=rows):
+            vals = [r[key][field] for r in rows if r[key][field] is not None]
+            return float(np.median(vals)) if vals else None
+
+        comparison[f"T={T}"] = {
+            "problems": rows,
+            "median": {
+                label: {
+                    f: median(label, f)
+                    for f in (
+                        "cost_over_ipopt",
+                        "wall_over_ipopt",
+                        "iterations",
+                        "time_to_1pct_over_ipopt",
+                    )
+                }
+                for label in ("ilqr_default", "ilqr_rel_1e-4")
+            },
+        }
+
+    # ---- 3. MPC real-time factor at the MPC horizon
+    mpc_results = {}
+    x0, target = problems[0]
+    for name, model in models.items():
+        mpc = MPC(
+            make_cost(target),
+            model,
+            horizon=args.mpc_horizon,
+            u_min=-1.0,
+            u_max=1.0,
+            options=MPCOptions(iterations_per_step=args.mpc_iterations, first_step_iterations=30),
+        )
+        out = run_mpc_episode(env, mpc, seed=args.seed, options={"target": target, "state": x0})
+        ct = out["compute_times"]
+        err = out["states"][-1] - np.r_[target, 0.0, 0.0]
+        mpc_results[name] = {
+            "real_time_factor_mean": arm.dt / float(ct[1:].mean()),
+            "real_time_factor_median": arm.dt / float(np.median(ct[1:])),
+            "real_time_factor_incl_first_step": arm.dt / float(ct.mean()),
+            "ms_per_step_mean": float(ct[1:].mean() * 1e3),
+            "ms_first_step": float(ct[0] * 1e3),
+            "final_angle_error_rad": float(np.abs(err[:2]).max()),
+            "final_speed_rad_s": float(np.abs(err[2:]).max()),
+            "episode_cost": -out["total_reward"],
+        }
+        print(f"MPC {name}: RTF {mpc_results[name]['real_time_factor_mean']:.2f}")
+
+    results = {
+        "args": dataclasses.asdict(args),
+        "ensemble": ensemble_note,
+        "control_period_s": arm.dt,
+        "ms_per_iteration": timing,
+        "vs_ipopt_analytic_model": comparison,
+        "mpc": mpc_results,
+        "targets": {
+            "ms_per_iteration_T200_ensemble_max": 10.0,
+            "cost_over_ipopt_max": 1.01,
+            "wall_over_ipopt_max": 0.2,
+            "mpc_real_time_factor_min": 1.0,
+        },
+        "machine": {
+            "platform": platform.platform(),
+            "cpu_count": os.cpu_count(),
+            "load_average_start": load_start,
+            "load_average_end": os.getloadavg(),
+            "torch_threads": torch.get_num_threads(),
+        },
+        "total_time_s": time.perf_counter() - t_start,
+    }
+    if args.json:
+        Path(args.json).parent.mkdir(parents=True, exist_ok=True)
+        Path(args.json).write_text(json.dumps(results, indent=2))
+        print(f"wrote {args.json}")
