@@ -386,10 +386,11 @@ def _band(G: np.ndarray, lam2: float, ridge0: float = 0.0) -> np.ndarray:
 
 def _reverse_band(ab: np.ndarray) -> np.ndarray:
     """Band storage of ``J H J`` with ``J`` the full index reversal."""
-    out = np.zeros_like(ab)
+    out = np.empty_like(ab)
     L = ab.shape[1]
     for k in range(ab.shape[0]):
         out[k, : L - k] = ab[k, : L - k][::-1]
+        out[k, L - k :] = 0.0
     return out
 
 
@@ -446,7 +447,8 @@ _LIMIT = 1e14
 @dataclass(frozen=True)
 class _L2Solution:
     theta: np.ndarray  # [T, p, n]
-    cb: np.ndarray | None  # banded Cholesky factor of H (None in the lam -> inf limit)
+    ab: np.ndarray | None  # band storage of H (None in the lam -> inf limit)
+    cb: np.ndarray | None  # its banded Cholesky factor
     rss: np.ndarray  # [n]
     penalty: np.ndarray  # [n] lam^2 ||D theta||^2 (+ ridge0 ||theta_0||^2)
     logdet: float | None
@@ -472,7 +474,7 @@ def _solve_l2(prob: _Problem, lam: float, ridge0: float = 0.0) -> _L2Solution:
         Gsum_inv, theta_bar = None, np.zeros((p, n))
     s2 = float(np.trace(Gsum)) / (T * p)
     if Gsum_inv is not None and lam2 >= _LIMIT * s2 and ridge0 == 0.0:
-        theta, cb, logdet = np.broadcast_to(theta_bar, (T, p, n)).copy(), None, None
+        theta, ab, cb, logdet = np.broadcast_to(theta_bar, (T, p, n)).copy(), None, None, None
     else:
         ab = _band(prob.G, lam2, ridge0)
         try:
@@ -489,7 +491,7 @@ def _solve_l2(prob: _Problem, lam: float, ridge0: float = 0.0) -> _L2Solution:
     dth = np.diff(theta, axis=0)
     penalty = np.zeros(n) if cb is None else lam2 * np.einsum("tpi,tpi->i", dth, dth)
     penalty = penalty + ridge0 * np.einsum("pi,pi->i", theta[0], theta[0])
-    return _L2Solution(theta, cb, rss, penalty, logdet, Gsum_inv)
+    return _L2Solution(theta, ab, cb, rss, penalty, logdet, Gsum_inv)
 
 
 def _marginal_blocks(prob: _Problem, sol: _L2Solution, lam: float, ridge0: float) -> np.ndarray:
@@ -501,10 +503,9 @@ def _marginal_blocks(prob: _Problem, sol: _L2Solution, lam: float, ridge0: float
     lam2 = lam * lam
     if sol.cb is None:  # lam -> inf: every block of H^{-1} tends to (sum_t G_t)^{-1}
         return np.broadcast_to(sol.Gsum_inv, (T, p, p)).copy()
-    ab = _band(prob.G, lam2, ridge0)
     forward = _diag_blocks_of_LLt(sol.cb, T, p)
     try:
-        cb_rev = _cholesky(_reverse_band(ab))
+        cb_rev = _cholesky(_reverse_band(sol.ab))
     except _NotPositiveDefinite as err:  # pragma: no cover - H already factored forward
         raise ValueError(_singular_message(prob, lam, err.index)) from None
     backward = _diag_blocks_of_LLt(cb_rev, T, p)[::-1, ::-1, ::-1]
