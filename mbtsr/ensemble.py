@@ -278,8 +278,17 @@ class EnsembleConfig:
 # The batched network math, written once for torch (float32, differentiable) and numpy (float64)
 # --------------------------------------------------------------------------------------------
 
+def _torch_affine(h: torch.Tensor, W: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """``h @ W + b`` per member in one op: ``h: [B, i]`` (shared) or ``[K, B, i]``."""
+    if h.dim() == 2:
+        h = h.expand(W.shape[0], -1, -1)
+    return torch.baddbmm(b, h, W)
+
+
 _TORCH_OPS = SimpleNamespace(
     xp=torch,
+    affine=_torch_affine,
+    split=lambda z, sizes: z.split(sizes, 0),
     act=lambda name: ACTIVATIONS[name][0],
     sum_last=lambda a: a.sum(-1, keepdim=True),
     sum_m2=lambda a: a.sum(-2, keepdim=True),
@@ -289,6 +298,8 @@ _TORCH_OPS = SimpleNamespace(
 )
 _NUMPY_OPS = SimpleNamespace(
     xp=np,
+    affine=lambda h, W, b: h @ W + b,
+    split=lambda z, sizes: np.split(z, np.cumsum(sizes)[:-1], 0),
     act=lambda name: ACTIVATIONS[name][1],
     sum_last=lambda a: a.sum(-1, keepdims=True),
     sum_m2=lambda a: a.sum(-2, keepdims=True),
@@ -309,12 +320,13 @@ def _activate(z, runs, ops, jac_rows: int):
         if not jac_rows:
             return a, None
         return a, ACTIVATIONS[name][2](z[:, :jac_rows], a[:, :jac_rows], ops.xp)
-    vals = [ops.act(name)(z[i:j]) for name, i, j in runs]
+    zs = ops.split(z, [j - i for _, i, j in runs])  # one op (and one backward) for all runs
+    vals = [ops.act(name)(zr) for (name, _, _), zr in zip(runs, zs)]
     a = ops.cat(vals, 0)
     if not jac_rows:
         return a, None
-    ders = [ACTIVATIONS[name][2](z[i:j, :jac_rows], v[:, :jac_rows], ops.xp)
-            for (name, i, j), v in zip(runs, vals)]
+    ders = [ACTIVATIONS[name][2](zr[:, :jac_rows], v[:, :jac_rows], ops.xp)
+            for (name, _, _), zr, v in zip(runs, zs, vals)]
     return a, ops.cat(ders, 0)
 
 
@@ -439,7 +451,7 @@ def _group_forward(p, g, xn, ops, jac_rows=0, dropout_masks=None):
     fast_jacobian = g.depth == 1 and not g.layer_norm
     h, J = xn, None
     for layer, (W, b) in enumerate(zip(W_hidden, b_hidden)):
-        z = h @ W + b
+        z = ops.affine(h, W, b)
         if g.layer_norm:
             gain, bias = p[f"ln_gain{layer + 1}"], p[f"ln_bias{layer + 1}"]
             z_ln, zhat, inv_std = _layer_norm(z, gain, bias, mask, p["width"], ops)
@@ -467,7 +479,7 @@ def _group_forward(p, g, xn, ops, jac_rows=0, dropout_masks=None):
             sel = p.get("ln_select")
             Jz = Jz_ln if sel is None else sel[..., None] * Jz_ln + (1.0 - sel[..., None]) * Jz
         J = d[..., None] * Jz
-    y = h @ Wo + p["bo"]
+    y = ops.affine(h, Wo, p["bo"])
     if jac_rows and not fast_jacobian:
         J = ops.T(Wo)[:, None] @ J
     return y, J
@@ -663,16 +675,17 @@ class DynamicsEnsemble(nn.Module):
             )
         return torch.cat([x, u], -1)
 
-    def stacked_forward(self, xu: torch.Tensor, jac_rows: int = 0):
+    def stacked_forward(self, xu: torch.Tensor, jac_rows: int = 0, *, normalized: bool = False):
         """Internal training entry point, members in *stacked* order (see ``stacked_order``).
 
-        :param xu: ``[B, n+m]`` raw inputs (float32).
+        :param xu: ``[B, n+m]`` raw inputs (float32), or normalized ones if ``normalized``
+            (see :meth:`normalize_inputs`).
         :param jac_rows: also return full-map Jacobians (raw units, skip included) of the first
             ``jac_rows`` points.
         :return: ``(y_norm [K, B, n], J [K, jac_rows, n, n+m] or None)`` where ``y_norm`` is the
             normalized network output, comparable to :meth:`normalized_residual` targets.
         """
-        xn = (xu - self.in_mean) / self.in_std
+        xn = xu if normalized else self.normalize_inputs(xu)
         ys, Js = [], []
         for g in self.groups:
             masks = None
@@ -692,6 +705,10 @@ class DynamicsEnsemble(nn.Module):
     def stacked_order(self) -> list[int]:
         """``stacked_order[i]`` is the config index of the i-th member in stacked order."""
         return list(self._stacked_order)
+
+    def normalize_inputs(self, xu: torch.Tensor) -> torch.Tensor:
+        """``([x, u] - in_mean) / in_std`` for ``xu: [..., n+m]``."""
+        return (xu - self.in_mean) / self.in_std
 
     def normalized_residual(self, xu: torch.Tensor, x_next: torch.Tensor) -> torch.Tensor:
         """Training target of the network: ``(x+ - s(x, u) - out_mean) / out_std``, ``[B, n]``."""

@@ -1,0 +1,208 @@
+"""The paper's evaluation metrics (Bagge Carlson et al., Sec. "Evaluation").
+
+They take any :class:`mbtsr.dynamics.DynamicsModel` (for the ensemble: the ensemble mean) and
+trajectories; all arithmetic is float64.
+
+* :func:`prediction_rms`: one-step prediction error ``x_{t+1} - f(x_t, u_t)``;
+* :func:`simulation_rms`: free-run simulation from the known ``x_0`` driven by the recorded
+  inputs, with a divergence count;
+* :func:`jacobian_error`: the paper's eq. (jacerr),
+  ``sqrt(1/T sum_t ||J_t - mean_E Jhat_t||_F^2)``;
+* :func:`jacobian_rms_per_entry`: the original code's variant (``eval_jac``), the same error as an
+  RMS over the ``n (n+m)`` entries: ``jacobian_error / sqrt(n (n+m))``;
+* :func:`jacobian_eigenvalues`: eigenvalues of the state Jacobian ``A_t`` at given points.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+
+from mbtsr.dynamics import DynamicsModel, rollout
+from mbtsr.trajectory import Trajectory
+from mbtsr.validation import as_array, check_positive
+
+__all__ = [
+    "prediction_rms",
+    "simulation_rms",
+    "jacobian_error",
+    "jacobian_rms_per_entry",
+    "jacobian_eigenvalues",
+]
+
+
+def _trajectories(trajs: object) -> list[Trajectory]:
+    if isinstance(trajs, Trajectory):
+        return [trajs]
+    if not isinstance(trajs, Sequence) or len(trajs) == 0:
+        raise ValueError("trajs must be a Trajectory or a non-empty list of Trajectory")
+    for i, tr in enumerate(trajs):
+        if not isinstance(tr, Trajectory):
+            raise ValueError(f"trajs[{i}] must be a Trajectory, got {type(tr).__name__}")
+    return list(trajs)
+
+
+def _check_model_dims(model: DynamicsModel, trajs: list[Trajectory]) -> None:
+    n, m = getattr(model, "state_dim", None), getattr(model, "action_dim", None)
+    if n is None or m is None or not hasattr(model, "step"):
+        raise ValueError("model must implement the DynamicsModel protocol (step, state_dim, "
+                         "action_dim)")
+    for i, tr in enumerate(trajs):
+        if (tr.n, tr.m) != (n, m):
+            raise ValueError(f"trajs[{i}] has (n, m) = ({tr.n}, {tr.m}), the model ({n}, {m})")
+
+
+def _rms(err: np.ndarray, per_dimension: bool) -> float | np.ndarray:
+    """RMS of ``err: [..., n]`` over all leading axes (and over n unless ``per_dimension``)."""
+    with np.errstate(over="ignore", invalid="ignore"):
+        sq = np.where(np.isfinite(err), err * err, np.inf)
+        if per_dimension:
+            return np.sqrt(sq.reshape(-1, err.shape[-1]).mean(0))
+        return float(np.sqrt(sq.mean()))
+
+
+def prediction_rms(
+    model: DynamicsModel, trajs: Trajectory | Sequence[Trajectory], *, per_dimension: bool = False
+) -> float | np.ndarray:
+    """One-step prediction RMS over all transitions of ``trajs``.
+
+    ``sqrt(mean_{traj, t, i} (x_{t+1,i} - f(x_t, u_t)_i)^2)``, with ``f = model.step`` called once
+    per trajectory on all its transitions (``t=None``: for time-invariant models).
+
+    :param model: a dynamics model (an ensemble is evaluated by its mean).
+    :param trajs: trajectories (``x: [T+1, n]``, ``u: [T, m]``).
+    :param per_dimension: return the RMS per state dimension ``[n]`` (the original's ``rms``)
+        instead of one number.
+    :return: float, or ``[n]``; ``inf`` if a prediction is not finite.
+    """
+    trajs = _trajectories(trajs)
+    _check_model_dims(model, trajs)
+    err = [tr.x[1:] - np.asarray(model.step(tr.x[:-1], tr.u), dtype=float) for tr in trajs]
+    return _rms(np.concatenate(err), per_dimension)
+
+
+def simulation_rms(
+    model: DynamicsModel,
+    trajs: Trajectory | Sequence[Trajectory],
+    *,
+    divergence_threshold: float = 100.0,
+    per_dimension: bool = False,
+) -> tuple[float | np.ndarray, int]:
+    """Simulation RMS: free run from the recorded ``x_0`` driven by the recorded inputs.
+
+    Aligned trajectories (same ``T``) are simulated together as one batch. The error is taken
+    over the simulated states ``t = 1..T``. A simulation counts as *diverged* if it becomes
+    non-finite or if some state leaves the truth by more than ``divergence_threshold`` times that
+    state dimension's std over time in the recorded trajectory (std 0 counts as 1).
+
+    :param divergence_threshold: ``> 0``, in units of the per-dimension std (default 100).
+    :param per_dimension: return the RMS per state dimension ``[n]``.
+    :return: ``(rms, n_diverged)``. ``rms`` pools all trajectories, diverged ones included, and
+        is ``inf`` when a simulation blew up to non-finite values.
+    """
+    trajs = _trajectories(trajs)
+    _check_model_dims(model, trajs)
+    thr = check_positive("divergence_threshold", divergence_threshold)
+    errs, n_diverged = [], 0
+    for T in sorted({tr.T for tr in trajs}):
+        group = [tr for tr in trajs if tr.T == T]
+        X = np.stack([tr.x for tr in group], 1)  # [T+1, N, n]
+        U = np.stack([tr.u for tr in group], 1)  # [T, N, m]
+        sim = rollout(model, X[0], U)
+        err = sim[1:] - X[1:]  # [T, N, n]
+        scale = X.std(0)
+        scale = np.where(scale > 0, scale, 1.0)
+        with np.errstate(invalid="ignore", over="ignore"):
+            far = np.abs(err) / scale > thr
+        bad = ~np.isfinite(err) | far
+        n_diverged += int(np.any(bad, axis=(0, 2)).sum())
+        errs.append(err.reshape(-1, err.shape[-1]))
+    return _rms(np.concatenate(errs), per_dimension), n_diverged
+
+
+def _as_jacobian(name: str, J: object, allow_members: bool) -> np.ndarray:
+    """``[T, n, n+m]`` (or ``[K, T, n, n+m]``) from an array or an ``(A, B)`` pair."""
+    if isinstance(J, tuple):
+        if len(J) != 2:
+            raise ValueError(f"{name} as a tuple must be (A, B)")
+        A = as_array(f"{name}[0] (A)", J[0])
+        B = as_array(f"{name}[1] (B)", J[1])
+        if A.ndim != B.ndim or A.shape[:-1] != B.shape[:-1] or A.shape[-1] != A.shape[-2]:
+            raise ValueError(
+                f"{name}: A must be [..., n, n] and B [..., n, m] with the same leading shape, "
+                f"got {list(A.shape)} and {list(B.shape)}"
+            )
+        J = np.concatenate([A, B], -1)
+    else:
+        J = as_array(name, J)
+    allowed = (3, 4) if allow_members else (3,)
+    if J.ndim not in allowed or J.shape[-1] <= J.shape[-2]:
+        want = "[T, n, n+m]" + (" or [K, T, n, n+m]" if allow_members else "")
+        raise ValueError(f"{name} must be {want} (m >= 1), got shape {list(J.shape)}")
+    return J
+
+
+def jacobian_error(J_true: object, J_hat: object) -> float:
+    """The paper's Jacobian error, eq. (jacerr)::
+
+        sqrt( 1/T sum_t || J_t - 1/|E| sum_E Jhat_t ||_F^2 )
+
+    :param J_true: ``[T, n, n+m]`` true Jacobians ``[A_t B_t]`` or a pair ``(A [T, n, n],
+        B [T, n, m])``.
+    :param J_hat: model Jacobians at the same points: per member ``[K, T, n, n+m]`` (averaged over
+        the ensemble here), already averaged ``[T, n, n+m]``, or an ``(A, B)`` pair of either.
+    :return: the error (float64).
+    """
+    J = _as_jacobian("J_true", J_true, allow_members=False)
+    Jh = _as_jacobian("J_hat", J_hat, allow_members=True)
+    if Jh.ndim == 4:
+        Jh = Jh.mean(0)
+    if Jh.shape != J.shape:
+        raise ValueError(f"J_hat must match J_true's shape {list(J.shape)}, got {list(Jh.shape)}")
+    D = J - Jh
+    return float(np.sqrt(np.mean(np.sum(D * D, axis=(-1, -2)))))
+
+
+def jacobian_rms_per_entry(J_true: object, J_hat: object) -> float:
+    """The original code's Jacobian error (``eval_jac``): RMS over points and entries::
+
+        sqrt( mean_t mean_{i,j} (J_t - mean_E Jhat_t)_{ij}^2 ) = jacobian_error / sqrt(n (n+m))
+
+    Arguments as :func:`jacobian_error`. (The original evaluated every third validation point;
+    pick the points you pass accordingly.)
+    """
+    J = _as_jacobian("J_true", J_true, allow_members=False)
+    return jacobian_error(J, J_hat) / float(np.sqrt(J.shape[-1] * J.shape[-2]))
+
+
+def jacobian_eigenvalues(
+    model_or_A: DynamicsModel | np.ndarray,
+    x: np.ndarray | None = None,
+    u: np.ndarray | None = None,
+) -> np.ndarray:
+    """Eigenvalues of the state Jacobian ``A_t = df/dx`` at the given points.
+
+    :param model_or_A: a dynamics model (then ``x: [T, n]`` and ``u: [T, m]`` give the points and
+        ``model.jacobians`` the ensemble-mean ``A_t``), or the matrices ``A: [T, n, n]`` (or one
+        ``[n, n]``) themselves.
+    :return: ``[T, n]`` complex eigenvalues, each row sorted by decreasing modulus, then by angle.
+    """
+    if isinstance(model_or_A, np.ndarray | list | tuple):
+        if x is not None or u is not None:
+            raise ValueError("x and u are only used with a model, not with matrices A")
+        A = as_array("A", model_or_A)
+        if A.ndim == 2:
+            A = A[None]
+    else:
+        if not hasattr(model_or_A, "jacobians"):
+            raise ValueError("model_or_A must be a DynamicsModel or an array A [T, n, n]")
+        if x is None or u is None:
+            raise ValueError("x [T, n] and u [T, m] are needed to evaluate a model's Jacobians")
+        A, _ = model_or_A.jacobians(x, u)
+        A = as_array("A (model Jacobian)", A)
+    if A.ndim != 3 or A.shape[1] != A.shape[2]:
+        raise ValueError(f"A must be [T, n, n], got shape {list(A.shape)}")
+    ev = np.linalg.eigvals(A)
+    order = np.lexsort((np.angle(ev), np.round(-np.abs(ev), 10)), axis=-1)  # conjugates tie
+    return np.take_along_axis(ev, order, -1)
