@@ -1,0 +1,721 @@
+"""Shared code of the paper-reproduction scripts (``scripts/exp_*.py``).
+
+Bagge Carlson, Johansson and Robertsson, "Tangent-Space Regularization for Neural-Network Models
+of Dynamical Systems" (arXiv:1806.09919). Every experiment script reads top to bottom:
+
+1. parse a dataclass of arguments from the command line (:func:`parse_args`);
+2. run the Monte-Carlo sweep through :func:`mbtsr.runner.run_sweep` (one JSON per run, resumable);
+3. a separate report step that reads the per-run JSON only and redraws figures and a summary
+   (``--report-only`` repeats just this step).
+
+This module holds what the scripts share: the command-line plumbing, data generation for the
+random linear systems (paper Algorithm 2, original code section 4) and for the two-link robot,
+the nominal model and training settings (paper Sec. "Nominal model"), the metric bundle, and the
+plotting helpers.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import math
+import os
+import sys
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+if str(REPO) not in sys.path:  # the scripts are run from anywhere; the repo holds envs/
+    sys.path.insert(0, str(REPO))
+
+# ------------------------------------------------------------------------------------------------
+# command line
+
+
+def _field_type(f: dataclasses.Field) -> type:
+    t = f.type if isinstance(f.type, str) else getattr(f.type, "__name__", str(f.type))
+    return {"int": int, "float": float, "str": str, "bool": bool}[t]
+
+
+def parse_args(args_cls: type, argv: Sequence[str] | None = None):
+    """Build an argparse parser from the fields of the dataclass ``args_cls`` and parse ``argv``.
+
+    Booleans become ``--flag/--no-flag``. If ``--quick`` is given, the class attribute
+    ``QUICK`` (a dict of field overrides) replaces every field the user did not set explicitly.
+    """
+    parser = argparse.ArgumentParser(description=(args_cls.__doc__ or "").strip())
+    for f in dataclasses.fields(args_cls):
+        flag = "--" + f.name.replace("_", "-")
+        kind = _field_type(f)
+        help_text = f.metadata.get("help", "")
+        if kind is bool:
+            parser.add_argument(flag, action=argparse.BooleanOptionalAction, default=None,
+                                help=f"{help_text} (default: {f.default})")
+        else:
+            parser.add_argument(flag, type=kind, default=None, metavar=f.name.upper(),
+                                help=f"{help_text} (default: {f.default})")
+    ns = vars(parser.parse_args(argv))
+    given = {k: v for k, v in ns.items() if v is not None}
+    values = {}
+    if given.get("quick"):
+        values.update(getattr(args_cls, "QUICK", {}))
+    values.update(given)
+    args = args_cls(**values)
+    _check_common(args)
+    return args
+
+
+def _check_common(args) -> None:
+    if getattr(args, "mc", 1) < 1:
+        raise ValueError(f"--mc must be >= 1, got {args.mc}")
+    if getattr(args, "workers", 1) < 1:
+        raise ValueError(f"--workers must be >= 1, got {args.workers}")
+    if getattr(args, "backend", "process") not in ("process", "serial", "ray"):
+        raise ValueError(f"--backend must be process, serial or ray, got {args.backend!r}")
+
+
+def output_dirs(args, experiment: str) -> tuple[Path, Path]:
+    """``(out, figures)``: results folder and figure folder of a run.
+
+    Defaults: full runs write ``docs/results/<experiment>`` and ``docs/figures``; ``--quick``
+    runs write ``runs/quick/<experiment>`` (git-ignored) and its ``figures`` sub-folder.
+    """
+    if args.out:
+        out = Path(args.out)
+    elif args.quick:
+        out = REPO / "runs" / "quick" / experiment
+    else:
+        out = REPO / "docs" / "results" / experiment
+    if args.figures:
+        figures = Path(args.figures)
+    elif args.quick or args.out:
+        figures = out / "figures"
+    else:
+        figures = REPO / "docs" / "figures"
+    out.mkdir(parents=True, exist_ok=True)
+    figures.mkdir(parents=True, exist_ok=True)
+    return out, figures
+
+
+def write_json(path: str | os.PathLike, obj) -> None:
+    """Write ``obj`` as indented JSON (numpy values converted)."""
+    from mbtsr.runner import write_json_atomic
+
+    write_json_atomic(path, obj)
+
+
+def command_line() -> str:
+    """The command that regenerates a result, as typed from the repository root."""
+    script = Path(sys.argv[0])
+    try:
+        script = script.resolve().relative_to(REPO)
+    except ValueError:
+        pass
+    return " ".join(["python", str(script), *sys.argv[1:]])
+
+
+def run_experiment(
+    args,
+    experiment: str,
+    run_fn: Callable[[dict, int], dict],
+    configs: dict[str, dict],
+    report_fn: Callable[[list[dict], Path, Path, object], dict],
+) -> dict:
+    """Sweep ``run_fn`` over ``configs`` x ``range(args.mc)`` (unless ``--report-only``), then
+    report from the stored JSON alone. Returns the summary written to ``<out>/summary.json``."""
+    from mbtsr.runner import load_results, run_sweep
+
+    out, figures = output_dirs(args, experiment)
+    if not args.report_only:
+        write_json(out / "args.json", {"args": dataclasses.asdict(args),
+                                       "command": command_line()})
+        t0 = time.perf_counter()
+        run_sweep(run_fn, configs, range(args.mc), out, backend=args.backend,
+                  workers=args.workers, progress=not args.quick)
+        print(f"[{experiment}] sweep finished in {time.perf_counter() - t0:.1f} s")
+    records = [r for r in load_results(out) if r["name"] in configs or args.report_only]
+    if not records:
+        raise SystemExit(f"no finished runs in {out}/runs; run without --report-only first")
+    summary = report_fn(records, out, figures, args)
+    summary = {"experiment": experiment, "n_records": len(records), **summary}
+    write_json(out / "summary.json", summary)
+    if getattr(args, "json", ""):
+        write_json(args.json, summary)
+    return summary
+
+
+# ------------------------------------------------------------------------------------------------
+# small numerical helpers
+
+
+def seed_sequence(seed: int, *tags: int) -> np.random.Generator:
+    """An independent generator for (seed, tags...), e.g. ``seed_sequence(seed, 1, k)``."""
+    return np.random.default_rng(np.random.SeedSequence([int(seed), *map(int, tags)]))
+
+
+def child_seed(seed: int, *tags: int) -> int:
+    """A 31-bit integer seed derived from (seed, tags...) (for APIs that take an int)."""
+    return int(np.random.SeedSequence([int(seed), *map(int, tags)]).generate_state(1)[0] >> 1)
+
+
+def finite_or_none(v: float) -> float | None:
+    v = float(v)
+    return v if math.isfinite(v) else None
+
+
+def rounded(a, digits: int = 5) -> list:
+    """A nested list of floats rounded to ``digits`` significant-ish decimals (small JSON)."""
+    return np.round(np.asarray(a, dtype=float), digits).tolist()
+
+
+def values(records: list[dict], name: str, key: str) -> np.ndarray:
+    """``[runs]`` array of ``result[key]`` for the records of config ``name`` (None -> nan)."""
+    out = [r["result"].get(key) for r in records if r["name"] == name]
+    return np.array([np.nan if v is None else v for v in out], dtype=float)
+
+
+def spread(v: np.ndarray) -> dict:
+    """Median, inter-quartile range, mean, std and count of the finite values."""
+    v = np.asarray(v, dtype=float)
+    f = v[np.isfinite(v)]
+    if f.size == 0:
+        return {"n": 0, "n_nonfinite": int(v.size)}
+    q1, med, q3 = np.percentile(f, [25, 50, 75])
+    return {"n": int(f.size), "n_nonfinite": int(v.size - f.size), "median": float(med),
+            "q1": float(q1), "q3": float(q3), "mean": float(f.mean()),
+            "std": float(f.std(ddof=1)) if f.size > 1 else 0.0}
+
+
+def paired_comparison(a: np.ndarray, b: np.ndarray) -> dict:
+    """Compare paired samples ``a`` (e.g. a variant) and ``b`` (e.g. the nominal model).
+
+    Returns the median of ``a - b``, the fraction of pairs with ``a < b`` and the two-sided
+    Wilcoxon signed-rank p-value (pairs with a non-finite member are dropped).
+    """
+    from scipy.stats import wilcoxon
+
+    a, b = np.asarray(a, float), np.asarray(b, float)
+    ok = np.isfinite(a) & np.isfinite(b)
+    d = a[ok] - b[ok]
+    res = {"n_pairs": int(ok.sum()), "median_diff": float(np.median(d)) if d.size else None,
+           "frac_lower": float(np.mean(d < 0)) if d.size else None, "p_value": None}
+    if d.size >= 5 and np.any(d != 0):
+        res["p_value"] = float(wilcoxon(d).pvalue)
+    return res
+
+
+# ------------------------------------------------------------------------------------------------
+# plotting
+
+
+def pyplot():
+    """matplotlib.pyplot on the Agg backend (headless)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def save_figure(fig, path: Path) -> None:
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    pyplot().close(fig)
+
+
+def violins(ax, groups: dict[str, np.ndarray], *, ylabel: str, title: str = "",
+            annotate: dict[str, str] | None = None) -> None:
+    """One violin per group (finite values only) with the median marked and the points jittered.
+
+    :param annotate: optional text per group placed above its violin (e.g. a diverged count).
+    """
+    names = list(groups)
+    data = [np.asarray(groups[k], float) for k in names]
+    finite = [d[np.isfinite(d)] for d in data]
+    pos = np.arange(1, len(names) + 1)
+    ok = [i for i, d in enumerate(finite) if d.size >= 2 and np.ptp(d) > 0]
+    if ok:
+        parts = ax.violinplot([finite[i] for i in ok], positions=pos[ok], showmedians=True,
+                              showextrema=False, widths=0.8)
+        for body in parts["bodies"]:
+            body.set_alpha(0.45)
+    rng = np.random.default_rng(0)
+    for i, d in enumerate(finite):
+        if d.size:
+            ax.plot(pos[i] + rng.uniform(-0.08, 0.08, d.size), d, ".", ms=3, color="k",
+                    alpha=0.6)
+    ax.set_xticks(pos, names, rotation=30, ha="right")
+    ax.set_ylabel(ylabel)
+    if title:
+        ax.set_title(title)
+    if annotate:
+        lo, hi = ax.get_ylim()
+        for i, k in enumerate(names):
+            if k in annotate:
+                ax.text(pos[i], hi, annotate[k], ha="center", va="bottom", fontsize=8)
+
+
+def eigen_scatter(ax, learned: np.ndarray, true: np.ndarray | None, title: str) -> None:
+    """Scatter learned eigenvalues (blue) and true ones (red) in the complex plane with the unit
+    circle, like the paper's eigenvalue figures."""
+    th = np.linspace(0, 2 * np.pi, 400)
+    ax.plot(np.cos(th), np.sin(th), "k-", lw=0.6)
+    learned = np.asarray(learned).ravel()
+    ax.plot(learned.real, learned.imag, ".", ms=2, color="tab:blue", alpha=0.35,
+            label="learned")
+    if true is not None:
+        true = np.asarray(true).ravel()
+        ax.plot(true.real, true.imag, "o", ms=4, mfc="none", color="tab:red", label="true")
+    pts = learned[np.isfinite(learned)]
+    if pts.size:  # zoom on the bulk of the learned eigenvalues (1st-99th pct) and all true ones
+        lo_re, hi_re = np.percentile(pts.real, [1, 99])
+        hi_im = np.percentile(np.abs(pts.imag), 99)
+        if true is not None:
+            lo_re, hi_re = min(lo_re, true.real.min()), max(hi_re, true.real.max())
+            hi_im = max(hi_im, np.abs(true.imag).max())
+        lo_re, hi_re = min(lo_re, 0.9), max(hi_re, 1.05)
+        half = 1.1 * max((hi_re - lo_re) / 2, hi_im, 0.05)
+        mid = (lo_re + hi_re) / 2
+        ax.set_xlim(mid - half, mid + half)
+        ax.set_ylim(-half, half)
+    ax.set_aspect("equal")
+    ax.set_xlabel("Re")
+    ax.set_ylabel("Im")
+    ax.set_title(title, fontsize=9)
+
+
+def complex_from_pairs(pairs) -> np.ndarray:
+    """Inverse of :func:`complex_to_pairs`: ``[..., 2]`` floats -> complex ``[...]``."""
+    a = np.asarray(pairs, dtype=float)
+    return a[..., 0] + 1j * a[..., 1]
+
+
+def complex_to_pairs(z: np.ndarray, digits: int = 4) -> list:
+    """Complex ``[...]`` -> nested list ``[..., 2]`` of (real, imag), rounded (JSON-friendly)."""
+    z = np.asarray(z)
+    return rounded(np.stack([z.real, z.imag], axis=-1), digits)
+
+
+# ------------------------------------------------------------------------------------------------
+# data: random stable linear systems (paper Algorithm 2; original code section 4)
+
+
+@dataclass(frozen=True)
+class LinearData:
+    """Data of the random-linear-system experiments.
+
+    Follows the original code (``linear_sys.jl``): n = m = 10, dt = 0.02, trajectories of
+    T = 200 steps from ``x0 ~ N(0, I)`` driven by a causal 5-tap moving average of
+    ``10 N(0, 1)`` (steady-state std 10/sqrt(5) = 4.47), measurement noise 0.01 on the training
+    states only. Differences: the original left the last state of every trajectory at 0 (a
+    bug); here it is simulated unless ``last_state_zero`` reinstates the bug in the training
+    data (to test whether it explains the original's numbers). Validation uses ``n_val``
+    noise-free trajectories (original: 41, subsampled), Jacobians and eigenvalues are evaluated
+    at every ``eval_stride``-th validation point (original: 3).
+    """
+
+    n: int = 10
+    m: int = 10
+    dt: float = 0.02
+    T: int = 200
+    input_window: int = 5
+    input_scale: float = 10.0
+    noise_std: float = 0.01
+    n_train: int = 3
+    n_val: int = 10
+    n_sim: int = 3
+    eval_stride: int = 3
+    last_state_zero: bool = False
+
+
+def simulate_linear(A: np.ndarray, B: np.ndarray, x0: np.ndarray, u: np.ndarray) -> np.ndarray:
+    """``x_{t+1} = A x_t + B u_t``. ``x0: [n]``, ``u: [T, m]`` -> ``x: [T+1, n]``."""
+    x = np.empty((u.shape[0] + 1, A.shape[0]))
+    x[0] = x0
+    Bu = u @ B.T
+    for t in range(u.shape[0]):
+        x[t + 1] = A @ x[t] + Bu[t]
+    return x
+
+
+def linear_dataset(cfg: LinearData, seed: int) -> dict:
+    """A random stable system (seeded by ``seed``) and its train / validation / simulation sets.
+
+    :return: ``{"A": [n, n], "B": [n, m], "train": [Trajectory], "val": [...], "sim": [...]}``;
+        only the training states carry measurement noise.
+    """
+    from envs.linear_system import random_stable_system
+    from mbtsr.excitation import filtered_gaussian
+    from mbtsr.trajectory import Trajectory
+
+    A, B = random_stable_system(n=cfg.n, m=cfg.m, dt=cfg.dt, seed=child_seed(seed, 0))
+
+    def trajectory(split: int, k: int, noise_std: float) -> Trajectory:
+        rng = seed_sequence(seed, split, k)
+        u = filtered_gaussian(cfg.T, cfg.m, window=cfg.input_window, scale=cfg.input_scale,
+                              seed=child_seed(seed, split, k, 1))
+        x = simulate_linear(A, B, rng.standard_normal(cfg.n), u)
+        if cfg.last_state_zero and split == 1:
+            x[-1] = 0.0  # the original generate_data never filled the last state
+        x = x + noise_std * rng.standard_normal(x.shape)
+        return Trajectory(x, u, dt=cfg.dt)
+
+    return {
+        "A": A,
+        "B": B,
+        "train": [trajectory(1, k, cfg.noise_std) for k in range(cfg.n_train)],
+        "val": [trajectory(2, k, 0.0) for k in range(cfg.n_val)],
+        "sim": [trajectory(3, k, 0.0) for k in range(cfg.n_sim)],
+    }
+
+
+# ------------------------------------------------------------------------------------------------
+# data: the two-link robot (paper Sec. "Robot task"; original code section 3)
+
+
+@dataclass(frozen=True)
+class RobotData:
+    """Data of the robot experiments, on ``mbtsr/TwoLinkArm-v0`` with ``preset="paper"``.
+
+    Follows the original code at arXiv v1 (``two_link_sys.jl``@v1, the paper's "low-pass filtered
+    random input"): trajectories of 4 s at dt = 0.02 s (T = 200), inputs a causal 100-tap moving
+    average of white Gaussian noise (torque std about 1 N m), trajectories redrawn while
+    ``|q| >= 0.9 pi``, measurement noise 0.01 on the training states, 3 training trajectories.
+    Differences: the start state is the env's (at rest hanging down plus small noise; original
+    ``[-0.4, 0, 0, 0]``); the robot has no inertia typo (see ``envs/two_link_arm.py``);
+    validation uses ``n_val`` noise-free trajectories (original 41), Jacobians are evaluated at
+    every ``eval_stride``-th validation point.
+
+    ``dt`` other than 0.02 is the sample-rate deviation (paper appendix B): the SAME continuous-
+    time experiment (duration, input signal on the 0.02 s grid, held) sampled at another rate,
+    so T = duration / dt.
+    """
+
+    duration: float = 4.0
+    dt: float = 0.02
+    noise_std: float = 0.01
+    n_train: int = 3
+    n_val: int = 10
+    n_sim: int = 3
+    eval_stride: int = 3
+
+    @property
+    def T(self) -> int:  # noqa: N802 - the paper's symbol
+        return int(round(self.duration / self.dt))
+
+
+NOMINAL_DT = 0.02
+
+
+def held_filtered_gaussian(T: int, m: int, rng: np.random.Generator, *, dt: float,
+                           scale: float, window: int = 100) -> np.ndarray:
+    """The paper's filtered Gaussian input generated on the nominal 0.02 s grid and held
+    (zero-order) on a grid of period ``dt``: ``[T, m]``."""
+    from mbtsr.excitation import filtered_gaussian
+
+    n_nominal = int(np.ceil(T * dt / NOMINAL_DT - 1e-9)) + 1
+    u = filtered_gaussian(n_nominal, m, window=window, scale=scale, seed=rng)
+    idx = np.floor(np.arange(T) * dt / NOMINAL_DT + 1e-9).astype(int)
+    return u[idx]
+
+
+def robot_env(cfg: RobotData):
+    """The paper-preset arm with episodes as long as one trajectory."""
+    import envs  # noqa: F401 - registers the envs
+    from envs.two_link_arm import TwoLinkArmEnv
+
+    return TwoLinkArmEnv(preset="paper", episode_steps=cfg.T, dt=cfg.dt)
+
+
+def robot_dataset(cfg: RobotData, seed: int) -> dict:
+    """Train / validation / simulation trajectories of the paper arm for MC run ``seed``.
+
+    :return: ``{"env": env, "train": [...], "val": [...], "sim": [...]}``.
+    """
+    from envs.collect import collect_trajectories
+    from mbtsr.trajectory import Trajectory
+
+    env = robot_env(cfg)
+    scale = 10.0 * env.excitation_std  # 100-tap average: std = scale / 10 (about 1 N m)
+
+    def collect(split: int, count: int, noise_std: float) -> list:
+        trajs = collect_trajectories(
+            env, count, cfg.T, input=held_filtered_gaussian,
+            input_kwargs={"dt": cfg.dt, "scale": scale}, seed=child_seed(seed, split),
+            reject_abs_q=0.9 * np.pi)
+        rng = seed_sequence(seed, split, 99)
+        return [Trajectory(tr.x + noise_std * rng.standard_normal(tr.x.shape), tr.u, dt=tr.dt)
+                for tr in trajs]
+
+    return {
+        "env": env,
+        "train": collect(1, cfg.n_train, cfg.noise_std),
+        "val": collect(2, cfg.n_val, 0.0),
+        "sim": collect(3, cfg.n_sim, 0.0),
+    }
+
+
+# ------------------------------------------------------------------------------------------------
+# nominal model and training (paper Sec. "Nominal model")
+
+NOMINAL_ACTIVATIONS = ("elu", "sigmoid", "tanh", "swish")
+ALL_ACTIVATIONS = ("elu", "sigmoid", "tanh", "swish", "relu", "leaky_relu")
+
+#: Epochs of the nominal model (paper): 1000 for g, 2000 for f; "the network was trained for
+#: half the number of epochs" with sampled Jacobian propagation.
+NOMINAL_EPOCHS = {"g": 1000, "f": 2000}
+
+
+def nominal_epochs(formulation: str, method: str, scale: float = 1.0) -> int:
+    """The paper's epoch count for ``formulation`` and ``method``, times ``scale`` (>= 1)."""
+    epochs = NOMINAL_EPOCHS[formulation] * (0.5 if method == "sampled" else 1.0)
+    return max(1, int(round(epochs * scale)))
+
+
+def regularization(method: str, *, sigma: float = 0.1, n_copies: int = 1,
+                   exact_weight: float = 1.0, smooth_weight: float = 0.01,
+                   ltv_lambda: float | str | None = None):
+    """The :class:`mbtsr.training.RegularizationConfig` of a method name.
+
+    ``"none"``; ``"sampled"`` (the paper's sampled Jacobian propagation: one perturbed copy per
+    trajectory and epoch, sigma 0.1 of the per-dimension std); ``"exact"`` (exact matching of the
+    model Jacobian to the LTV Jacobian, ``exact_weight * sum_t ||J - J_LTV||_F^2``);
+    ``"smooth"`` (the exact penalty of paper eq. (reg), ``smooth_weight * sum_t ||J_{t+1} -
+    J_t||_F^2``, the original's later "AD jacprop").
+
+    :param ltv_lambda: ``None`` keeps the library default (the original's R2/R1 = 1000, i.e.
+        lambda = 31.6), ``"auto"`` picks it per trajectory by marginal likelihood.
+    """
+    from mbtsr.training import RegularizationConfig
+
+    extra = {}
+    if ltv_lambda == "auto":
+        extra["ltv_lambda"] = None
+    elif ltv_lambda is not None:
+        extra["ltv_lambda"] = float(ltv_lambda)
+    if method == "none":
+        return RegularizationConfig(**extra)
+    if method == "sampled":
+        return RegularizationConfig.paper(sigma=sigma, n_copies=n_copies, **extra)
+    if method == "exact":
+        return RegularizationConfig(exact_weight=exact_weight, **extra)
+    if method == "smooth":
+        return RegularizationConfig(smooth_weight=smooth_weight, **extra)
+    raise ValueError(f"method must be none, sampled, exact or smooth, got {method!r}")
+
+
+def build_ensemble(n: int, m: int, *, formulation: str = "g",
+                   activations: Sequence[str] = NOMINAL_ACTIVATIONS, width: int = 20,
+                   depth: int = 1, dropout: float = 0.0, layer_norm: bool = False,
+                   repeat: int = 1, seed: int = 0):
+    """The paper's nominal ensemble (4 x 20 units, elu/sigmoid/tanh/swish) or a deviation of it.
+
+    :param repeat: every activation ``repeat`` times (ensemble size x3 deviation: 3).
+    """
+    from mbtsr.ensemble import DynamicsEnsemble, EnsembleConfig, MemberSpec
+
+    members = tuple(MemberSpec(a, width, depth, dropout, layer_norm)
+                    for _ in range(repeat) for a in activations)
+    return DynamicsEnsemble(EnsembleConfig(n, m, members=members, formulation=formulation,
+                                           seed=int(seed)))
+
+
+def train(model, trajs, *, epochs: int, method: str, seed: int, lr: float = 0.01,
+          weight_decay: float = 0.0, optimizer_state=None, reg_kwargs: dict | None = None):
+    """One :func:`mbtsr.training.train_ensemble` call with the experiments' settings
+    (Adam, one trajectory per step as the original code, coupled L2 weight decay)."""
+    from mbtsr.training import TrainConfig, train_ensemble
+
+    cfg = TrainConfig(epochs=int(epochs), lr=lr, weight_decay=weight_decay, seed=int(seed),
+                      progress=False)
+    return train_ensemble(model, trajs, cfg, regularization(method, **(reg_kwargs or {})),
+                          optimizer_state=optimizer_state)
+
+
+# ------------------------------------------------------------------------------------------------
+# the metric bundle (paper Sec. "Evaluation")
+
+
+def evaluation_points(trajs, stride: int) -> tuple[np.ndarray, np.ndarray]:
+    """Every ``stride``-th ``(x_t, u_t)`` of the trajectories: ``([P, n], [P, m])``."""
+    X = np.concatenate([tr.x[:-1][::stride] for tr in trajs])
+    U = np.concatenate([tr.u[::stride] for tr in trajs])
+    return X, U
+
+
+def eigenvalue_matching_error(ev_hat: np.ndarray, ev_true: np.ndarray) -> float:
+    """The original code's eigenvalue error (``eval_jac2``): at each point
+    ``sum_i min_j |l_i - l*_j|^2 + sum_j min_i |l_i - l*_j|^2``, then sqrt of the mean over
+    points. ``ev_hat: [P, n]``, ``ev_true: [n]`` or ``[P, n]``."""
+    ev_true = np.broadcast_to(ev_true, ev_hat.shape)
+    d = np.abs(ev_hat[:, :, None] - ev_true[:, None, :]) ** 2  # [P, n, n]
+    per_point = d.min(2).sum(1) + d.min(1).sum(1)
+    return float(np.sqrt(per_point.mean()))
+
+
+def evaluate(model, val, sim, X: np.ndarray, U: np.ndarray, A_true: np.ndarray,
+             B_true: np.ndarray) -> dict:
+    """Prediction, simulation and Jacobian metrics of ``model``.
+
+    :param val: validation trajectories (one-step prediction RMS, all transitions).
+    :param sim: trajectories simulated from their ``x_0`` with their inputs (simulation RMS per
+        trajectory, averaged as the original's ``simaverage``; divergence counted).
+    :param X: ``[P, n]``, ``U: [P, m]`` points where the Jacobians are compared.
+    :param A_true: ``[P, n, n]``, ``B_true: [P, n, m]`` true Jacobians there.
+    :return: ``pred_rms, sim_rms`` (mean over ``sim``; inf if one blew up), ``sim_rms_finite``
+        (mean over the non-diverged ones), ``sim_diverged`` (count), ``jac_err`` (paper eq.
+        (jacerr)), ``jac_rms_entry`` (original's per-entry RMS), ``log10`` versions.
+    """
+    from mbtsr.metrics import jacobian_error, jacobian_rms_per_entry, prediction_rms, simulation_rms
+
+    pred = prediction_rms(model, val)
+    sims = [simulation_rms(model, tr) for tr in sim]
+    sim_rms = np.array([s[0] for s in sims], dtype=float)
+    diverged = np.array([s[1] > 0 for s in sims])
+    A_hat, B_hat = model.member_jacobians(X, U)
+    J_true = (A_true, B_true)
+    jac = jacobian_error(J_true, (A_hat, B_hat))
+    with np.errstate(divide="ignore"):
+        return {
+            "pred_rms": finite_or_none(pred),
+            "log10_pred_rms": finite_or_none(np.log10(pred)),
+            "sim_rms": finite_or_none(sim_rms.mean()),
+            "log10_sim_rms": finite_or_none(np.log10(sim_rms.mean())),
+            "sim_rms_each": [finite_or_none(v) for v in sim_rms],
+            "sim_diverged": int(diverged.sum()),
+            "n_sim": len(sim),
+            "jac_err": finite_or_none(jac),
+            "jac_rms_entry": finite_or_none(jacobian_rms_per_entry(J_true, (A_hat, B_hat))),
+        }
+
+
+def eigen_summary(ev_hat: np.ndarray, ev_true: np.ndarray | None, n_store: int) -> dict:
+    """Scalar summaries of learned state-Jacobian eigenvalues ``ev_hat: [P, n]`` (complex) and the
+    first ``n_store`` points' eigenvalues for the figures."""
+    out = {
+        "eig_mean_abs": float(np.abs(ev_hat).mean()),
+        "eig_mean_dist_to_1": float(np.abs(ev_hat - 1.0).mean()),
+        "eig_max_abs": float(np.abs(ev_hat).max()),
+        "eig_learned": complex_to_pairs(ev_hat[:n_store]),
+    }
+    if ev_true is not None:
+        out["eig_match_err"] = eigenvalue_matching_error(ev_hat, ev_true)
+        out["eig_true"] = complex_to_pairs(ev_true)
+        out["eig_true_mean_abs"] = float(np.abs(ev_true).mean())
+        out["eig_true_mean_dist_to_1"] = float(np.abs(ev_true - 1.0).mean())
+    return out
+
+
+# ------------------------------------------------------------------------------------------------
+# Monte-Carlo run functions (module level, so that the process pool's workers can import them)
+
+
+def run_linear(config: dict, seed: int) -> dict:
+    """One Monte-Carlo run on a random stable linear system (``exp_linear``,
+    ``exp_weight_decay``).
+
+    ``config``: ``data`` (:class:`LinearData` fields), ``formulation``, ``method``, ``reg``
+    (keyword arguments of :func:`regularization`), ``rounds``, ``epochs_per_round``, ``lr``,
+    ``weight_decay``, ``incremental`` (round r trains on trajectories 1..r, warm-started, as
+    the original README experiment; otherwise every round on all trajectories), ``n_eig_store``.
+    All configs of one seed share the system, the data and the initial weights.
+    """
+    from mbtsr.metrics import jacobian_eigenvalues
+
+    t0 = time.perf_counter()
+    cfg = LinearData(**config["data"])
+    d = linear_dataset(cfg, seed)
+    X, U = evaluation_points(d["val"], cfg.eval_stride)
+    A_true = np.broadcast_to(d["A"], (len(X), cfg.n, cfg.n))
+    B_true = np.broadcast_to(d["B"], (len(X), cfg.n, cfg.m))
+    model = build_ensemble(cfg.n, cfg.m, formulation=config["formulation"],
+                           seed=child_seed(seed, 10))
+    rounds, state = [], None
+    for r in range(config["rounds"]):
+        trajs = d["train"][: r + 1] if config["incremental"] else d["train"]
+        hist = train(model, trajs, epochs=config["epochs_per_round"], method=config["method"],
+                     seed=child_seed(seed, 20, r), lr=config["lr"],
+                     weight_decay=config["weight_decay"], optimizer_state=state,
+                     reg_kwargs=config["reg"])
+        state = hist.optimizer_state
+        metrics = evaluate(model, d["val"], d["sim"], X, U, A_true, B_true)
+        rounds.append({k: metrics[k] for k in ("jac_rms_entry", "jac_err", "pred_rms",
+                                               "sim_rms")}
+                      | {"train_loss": finite_or_none(hist.train_loss[-1])})
+    result = dict(metrics)
+    ev_hat = jacobian_eigenvalues(model, X, U)
+    result.update(eigen_summary(ev_hat, np.linalg.eigvals(d["A"]), config["n_eig_store"]))
+    result["rounds"] = rounds
+    result["train_loss"] = rounds[-1]["train_loss"]
+    result["wall"] = time.perf_counter() - t0
+    return result
+
+
+def run_robot(config: dict, seed: int) -> dict:
+    """One Monte-Carlo run on the paper's two-link robot (``exp_robot``, ``exp_deviations``).
+
+    ``config``: ``data`` (:class:`RobotData` fields), ``formulation``, ``method``, ``reg``
+    (keyword arguments of :func:`regularization`), ``epochs``, ``lr``, ``model`` (keyword
+    arguments of :func:`build_ensemble` other than dims/formulation/seed).
+    All configs of one seed share the data (for equal ``data``) and the weight-init seed.
+    """
+    from mbtsr.metrics import jacobian_eigenvalues
+
+    t0 = time.perf_counter()
+    cfg = RobotData(**config["data"])
+    d = robot_dataset(cfg, seed)
+    env = d["env"]
+    X, U = evaluation_points(d["val"], cfg.eval_stride)
+    A_true, B_true = env.linearize_trajectory(X, U)
+    model = build_ensemble(4, 2, formulation=config["formulation"], seed=child_seed(seed, 10),
+                           **config.get("model", {}))
+    t1 = time.perf_counter()
+    hist = train(model, d["train"], epochs=config["epochs"], method=config["method"],
+                 seed=child_seed(seed, 20), lr=config["lr"], reg_kwargs=config["reg"])
+    train_time = time.perf_counter() - t1
+    result = evaluate(model, d["val"], d["sim"], X, U, A_true, B_true)
+    ev_hat = jacobian_eigenvalues(model, X, U)
+    ev_true = np.linalg.eigvals(A_true)
+    result["eig_match_err"] = eigenvalue_matching_error(ev_hat, ev_true)
+    result["train_loss"] = finite_or_none(hist.train_loss[-1])
+    result["train_time"] = train_time
+    result["wall"] = time.perf_counter() - t0
+    return result
+
+
+def run_activations(config: dict, seed: int) -> dict:
+    """One Monte-Carlo run of the activation-function comparison (paper appendix A).
+
+    One network per activation, all trained in ONE batched ensemble (members share no weights
+    and Adam is per-parameter, so this equals separate training; the batch order is shared),
+    formulation ``config["formulation"]``, no regularization. Training is split at the
+    ``checkpoints`` (epochs; Adam state carried over) and each member's one-step prediction
+    RMS on the validation trajectories is recorded there.
+    """
+    t0 = time.perf_counter()
+    cfg = RobotData(**config["data"])
+    d = robot_dataset(cfg, seed)
+    acts = list(config["activations"])
+    model = build_ensemble(4, 2, formulation=config["formulation"], activations=acts,
+                           width=config["width"], seed=child_seed(seed, 10))
+    Xv = np.concatenate([tr.x[:-1] for tr in d["val"]])
+    Uv = np.concatenate([tr.u for tr in d["val"]])
+    Yv = np.concatenate([tr.x[1:] for tr in d["val"]])
+    pred = {a: [] for a in acts}
+    done, state = 0, None
+    for c in config["checkpoints"]:
+        hist = train(model, d["train"], epochs=c - done, method="none",
+                     seed=child_seed(seed, 20, c), lr=config["lr"], optimizer_state=state)
+        state, done = hist.optimizer_state, c
+        P = model.member_predictions(Xv, Uv)  # [K, N, n]
+        with np.errstate(over="ignore", invalid="ignore"):
+            rms = np.sqrt(np.mean((P - Yv) ** 2, axis=(1, 2)))
+        for a, v in zip(acts, rms):
+            pred[a].append(finite_or_none(v))
+    return {"pred_rms": pred, "checkpoints": list(config["checkpoints"]),
+            "wall": time.perf_counter() - t0}
