@@ -1,0 +1,251 @@
+"""Configuration of the Algorithm-1 agent: one frozen dataclass, validated on construction.
+
+The defaults are the configuration that is measured in ``docs/ablation.md`` on
+``mbtsr/TwoLinkArm-v0``; where the paper fixes a value it is used (sampled Jacobian propagation
+with perturbations of 0.1 x the per-dimension standard deviation, one perturbed copy resampled
+every epoch, the ``g`` formulation ``x+ = x + g(x, u)``, an ensemble of small tanh networks).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+from dataclasses import dataclass, fields
+from typing import Any
+
+__all__ = ["AgentConfig", "REGULARIZATIONS", "FORMULATIONS", "EXCITATIONS"]
+
+REGULARIZATIONS = ("sampled", "exact", "smooth", "none")
+FORMULATIONS = ("g", "f")
+EXCITATIONS = ("filtered_gaussian", "multisine")
+
+
+@dataclass(frozen=True)
+class AgentConfig:
+    """Everything that decides what :class:`agents.jacprop_agent.JacPropAgent` does.
+
+    Data collection (Algorithm 1, "sample rollout trajectory"):
+
+    :param n_excitation_episodes: number of first episodes driven by an excitation signal
+        instead of the planner (the model is untrained then).
+    :param excitation: ``"filtered_gaussian"`` (low-pass filtered Gaussian noise, the paper's
+        robot input) or ``"multisine"``.
+    :param excitation_scale: excitation amplitude as a fraction of the action half-range.
+    :param excitation_window: moving-average window (steps) of the filtered Gaussian input.
+    :param exploration_std: std of Gaussian noise added to planned actions during training
+        rollouts, as a fraction of the action half-range (0 disables it).
+    :param episode_steps: steps per rollout; ``None`` uses the env's ``TimeLimit``.
+
+    Model (Objective 1 / 2 of the paper):
+
+    :param formulation: ``"g"`` (``x+ = x + g(x,u)``, Objective 2) or ``"f"`` (``x+ = f(x,u)``).
+    :param ensemble_size: number of ensemble members (their mean is the model).
+    :param hidden_width: hidden units per layer of each member (paper: 20).
+    :param hidden_layers: hidden layers per member, 1 (paper) or 2.
+    :param activations: member ``k`` uses ``activations[k % len(activations)]``; the default is
+        the paper's nominal ensemble (elu, sigmoid, tanh, swish).
+
+    Model update (Algorithm 1, "fit f to tau_i and the perturbed tau_i"), warm-started:
+
+    :param epochs_per_episode: training epochs after each new episode (on ALL data so far).
+    :param lr: Adam step size; the Adam state is carried across episodes.
+    :param batch_size: minibatch size (``0``: full batch).
+    :param weight_decay: L2 weight decay.
+    :param regularization: ``"sampled"`` (sampled Jacobian propagation: LTV-labelled perturbed
+        points, Section 3 of the paper), ``"exact"`` (the penalty it approximates,
+        ``sum_t ||J_model(t) - [A_t B_t]_LTV||_F^2``, by double backprop), ``"smooth"`` (the
+        LTV-free penalty ``sum_t ||J_model(t+1) - J_model(t)||_F^2`` of Eq. (reg)) or
+        ``"none"``. See :mod:`mbtsr.training` for the exact objective.
+    :param jacprop_weight: weight of the perturbed points (``sampled``) in the loss.
+    :param jacobian_penalty: weight of the Jacobian penalty (``exact`` / ``smooth``).
+    :param perturbation_sigma: perturbation std as a fraction of the per-dimension data std.
+    :param n_perturbed_copies: perturbed copies of every point, resampled every epoch.
+    :param ltv_lambda: smoothness weight of the LTV fit (Algorithm 1, "fit LTV model"), a
+        positive number or ``"auto"`` (:func:`mbtsr.ltv.select_lambda` on every trajectory).
+
+    Planning (Algorithm 1, "optimize controller"): MPC = iLQR re-solved every step on the
+    learned model, warm-started with the shifted previous plan.
+
+    :param horizon: MPC horizon (steps).
+    :param ilqr_iterations: iLQR iterations per MPC step (the first step of an episode gets
+        ``first_plan_iterations``).
+    :param first_plan_iterations: iLQR iterations for the full plan at the start of an episode.
+    :param terminal_weight: terminal cost = ``terminal_weight`` x stage cost at zero action.
+
+    Evaluation ("solved" = mean cost over ``eval_episodes`` episodes with fixed random targets
+    within ``solved_ratio`` x the cost of MPC with the TRUE model on the same targets):
+
+    :param eval_every: evaluate every this many episodes after the excitation phase (0: never).
+    :param eval_episodes: evaluation episodes (fixed targets/seeds, see ``eval_seed``).
+    :param eval_seed: seed of the evaluation targets and resets.
+    :param solved_ratio: the solved threshold relative to the oracle.
+    :param stop_when_solved: stop ``learn`` at the first solved evaluation.
+    :param eval_early_exit: stop an evaluation as soon as the summed cost exceeds
+        ``solved_ratio`` x the oracle's summed cost (exact for costs >= 0: such an evaluation
+        cannot be solved); its ``eval_cost`` is then not logged and ``cost_ratio`` is a lower
+        bound (see ``eval_episodes_run``).
+    :param oracle_cache_dir: folder where the oracle's evaluation costs are memoised across runs
+        (``None``: recompute in every run).
+
+    Bookkeeping:
+
+    :param seed: master seed; every random draw of a run derives from it.
+    :param run_dir: folder for the CSV log, TensorBoard, checkpoint and exports (``None``: none).
+    :param checkpoint: write a checkpoint after every episode (needs ``run_dir``).
+    :param tensorboard: write TensorBoard scalars (needs ``run_dir``).
+    :param video: save a video of every ``video_every``-th episode (env must render rgb_array).
+    :param video_every: see ``video``.
+    :param jacobian_error: log the Jacobian error against ``env.unwrapped.linearize_trajectory``
+        when the env provides it.
+    :param progress: show a progress bar in ``learn``.
+    :param torch_threads: ``torch.set_num_threads`` value applied by ``learn`` (0: leave as is).
+    """
+
+    # data collection
+    n_excitation_episodes: int = 2
+    excitation: str = "filtered_gaussian"
+    excitation_scale: float = 0.6
+    excitation_window: int = 8
+    exploration_std: float = 0.1
+    episode_steps: int | None = None
+    # model
+    formulation: str = "g"
+    ensemble_size: int = 4
+    hidden_width: int = 20
+    hidden_layers: int = 1
+    activations: tuple[str, ...] = ("elu", "sigmoid", "tanh", "swish")
+    # model update
+    epochs_per_episode: int = 150
+    lr: float = 3e-3
+    batch_size: int = 256
+    weight_decay: float = 0.0
+    regularization: str = "sampled"
+    jacprop_weight: float = 1.0
+    jacobian_penalty: float = 0.01
+    perturbation_sigma: float = 0.1
+    n_perturbed_copies: int = 1
+    ltv_lambda: float | str = "auto"
+    # planning
+    horizon: int = 30
+    ilqr_iterations: int = 2
+    first_plan_iterations: int = 20
+    terminal_weight: float = 1.0
+    # evaluation
+    eval_every: int = 1
+    eval_episodes: int = 10
+    eval_seed: int = 1000
+    solved_ratio: float = 1.2
+    stop_when_solved: bool = False
+    eval_early_exit: bool = True
+    oracle_cache_dir: str | None = None
+    # bookkeeping
+    seed: int = 0
+    run_dir: str | None = None
+    checkpoint: bool = True
+    tensorboard: bool = True
+    video: bool = False
+    video_every: int = 5
+    jacobian_error: bool = True
+    progress: bool = True
+    torch_threads: int = 0
+
+    def __post_init__(self) -> None:
+        if isinstance(self.activations, str):
+            object.__setattr__(self, "activations", (self.activations,))
+        object.__setattr__(self, "activations", tuple(self.activations))
+        _int_at_least(self, "n_excitation_episodes", 1)
+        _choice(self, "excitation", EXCITATIONS)
+        _float_range(self, "excitation_scale", 0.0, 1.0, low_open=True)
+        _int_at_least(self, "excitation_window", 1)
+        _float_range(self, "exploration_std", 0.0, math.inf)
+        if self.episode_steps is not None:
+            _int_at_least(self, "episode_steps", 2)
+        _choice(self, "formulation", FORMULATIONS)
+        _int_at_least(self, "ensemble_size", 1)
+        _int_at_least(self, "hidden_width", 1)
+        if self.hidden_layers not in (1, 2) or isinstance(self.hidden_layers, bool):
+            raise ValueError(f"hidden_layers must be 1 or 2, got {self.hidden_layers!r}")
+        from mbtsr.ensemble import ACTIVATIONS
+
+        if len(self.activations) == 0 or any(a not in ACTIVATIONS for a in self.activations):
+            raise ValueError(
+                f"activations must be a non-empty tuple of names from {sorted(ACTIVATIONS)}, "
+                f"got {self.activations!r}"
+            )
+        _int_at_least(self, "epochs_per_episode", 1)
+        _float_range(self, "lr", 0.0, math.inf, low_open=True)
+        _int_at_least(self, "batch_size", 0)
+        _float_range(self, "weight_decay", 0.0, math.inf)
+        _choice(self, "regularization", REGULARIZATIONS)
+        _float_range(self, "jacprop_weight", 0.0, math.inf)
+        _float_range(self, "jacobian_penalty", 0.0, math.inf)
+        _float_range(self, "perturbation_sigma", 0.0, math.inf, low_open=True)
+        _int_at_least(self, "n_perturbed_copies", 1)
+        if isinstance(self.ltv_lambda, str):
+            if self.ltv_lambda != "auto":
+                raise ValueError(f"ltv_lambda must be > 0 or 'auto', got {self.ltv_lambda!r}")
+        else:
+            _float_range(self, "ltv_lambda", 0.0, math.inf, low_open=True)
+        _int_at_least(self, "horizon", 2)
+        _int_at_least(self, "ilqr_iterations", 1)
+        _int_at_least(self, "first_plan_iterations", 1)
+        _float_range(self, "terminal_weight", 0.0, math.inf)
+        _int_at_least(self, "eval_every", 0)
+        _int_at_least(self, "eval_episodes", 1)
+        _int_at_least(self, "eval_seed", 0)
+        _float_range(self, "solved_ratio", 1.0, math.inf)
+        _int_at_least(self, "seed", 0)
+        _int_at_least(self, "video_every", 1)
+        _int_at_least(self, "torch_threads", 0)
+        if self.run_dir is not None and not isinstance(self.run_dir, str):
+            object.__setattr__(self, "run_dir", str(self.run_dir))
+
+    # ---- (de)serialisation: the resolved config is saved as JSON next to the results ----
+    def to_dict(self) -> dict[str, Any]:
+        """A JSON-friendly dict of all fields."""
+        d = dataclasses.asdict(self)
+        d["activations"] = list(self.activations)
+        return d
+
+    def to_json(self) -> str:
+        return json.dumps(self.to_dict(), indent=2, sort_keys=True)
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> AgentConfig:
+        """Inverse of :meth:`to_dict`; unknown keys are an error (naming them)."""
+        known = {f.name for f in fields(cls)}
+        unknown = sorted(set(d) - known)
+        if unknown:
+            raise ValueError(f"unknown AgentConfig field(s): {unknown}")
+        d = dict(d)
+        if "activations" in d:
+            d["activations"] = tuple(d["activations"])
+        return cls(**d)
+
+    def replace(self, **changes: Any) -> AgentConfig:
+        """A copy with ``changes`` applied (validated again)."""
+        return dataclasses.replace(self, **changes)
+
+
+def _int_at_least(cfg: AgentConfig, name: str, low: int) -> None:
+    v = getattr(cfg, name)
+    if isinstance(v, bool) or not isinstance(v, int) or v < low:
+        raise ValueError(f"{name} must be an integer >= {low}, got {v!r}")
+
+
+def _float_range(
+    cfg: AgentConfig, name: str, low: float, high: float, *, low_open: bool = False
+) -> None:
+    v = getattr(cfg, name)
+    if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+        raise ValueError(f"{name} must be a finite number, got {v!r}")
+    if (v <= low if low_open else v < low) or v > high:
+        lo = "(" if low_open else "["
+        raise ValueError(f"{name} must be in {lo}{low}, {high}], got {v!r}")
+
+
+def _choice(cfg: AgentConfig, name: str, options: tuple[str, ...]) -> None:
+    v = getattr(cfg, name)
+    if v not in options:
+        raise ValueError(f"{name} must be one of {options}, got {v!r}")

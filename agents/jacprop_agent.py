@@ -1,0 +1,761 @@
+"""The Algorithm-1 agent: episodic model learning with tangent-space regularization and iLQR.
+
+Bagge Carlson, Johansson and Robertsson, "Tangent-Space Regularization for Neural-Network Models
+of Dynamical Systems" (arXiv:1806.09919), Algorithm 1, run in an episodic loop. Every episode:
+
+(a) **rollout** in the real env: the first ``n_excitation_episodes`` with a low-pass filtered
+    Gaussian (or multisine) excitation, then MPC (iLQR re-solved every step) on the learned
+    model plus Gaussian exploration noise;
+(b) **LTV fit** ``l_i`` to the new trajectory (:func:`mbtsr.ltv.fit_ltv`, smoothness weight
+    fixed or chosen by :func:`mbtsr.ltv.select_lambda`);
+(c) **perturbed trajectories** ``x~ = x + eps_x, u~ = u + eps_u`` labelled by ``l_i``
+    (resampled every epoch inside :func:`mbtsr.training.train_ensemble`);
+(d) **model update**: the ensemble is trained further (warm start: weights and Adam state
+    carried over) on ALL data so far, with the chosen regularization (``sampled`` Jacobian
+    propagation, the ``exact`` Jacobian-smoothness penalty, or ``none``);
+(e) **planning**: the next rollout is optimised by iLQR on the learned model's Jacobians
+    (full-horizon plan at the first step, then receding horizon).
+
+The surface follows Stable-Baselines3: :meth:`JacPropAgent.learn`, :meth:`~JacPropAgent.predict`,
+:meth:`~JacPropAgent.save`, :meth:`JacPropAgent.load`. After every episode the agent writes an
+atomic checkpoint (data, model, Adam state, RNG states, config, log) from which
+:meth:`JacPropAgent.load` + :meth:`~JacPropAgent.learn` continue bit-identically.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import sys
+import time
+import warnings
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+import torch
+
+from agents.checkpoint import (
+    atomic_write_text,
+    load_checkpoint,
+    numpy_rng_state,
+    save_checkpoint,
+    set_numpy_rng_state,
+)
+from agents.config import AgentConfig
+from agents.episode_log import TIMING_COLUMNS, EpisodeLog
+from agents.evaluation import (
+    EpisodeRecord,
+    cached_costs,
+    code_fingerprint,
+    evaluate_policy_costs,
+    evaluation_targets,
+    oracle_policy,
+    run_episode,
+)
+from agents.planner import MPCPolicy, PlannerCosts
+from agents.task import (
+    EnvSpec,
+    ObservationCost,
+    QuadraticTargetCost,
+    StateMap,
+    default_task_for_env,
+    env_spec,
+)
+from mbtsr.ensemble import DynamicsEnsemble, EnsembleConfig, MemberSpec, save_model
+from mbtsr.ltv import fit_ltv, select_lambda
+from mbtsr.trajectory import Trajectory, save_trajectories
+
+__all__ = ["JacPropAgent"]
+
+CostFn = Callable[[Any, Any], Any]
+
+
+class JacPropAgent:
+    """Model-based agent of the paper's Algorithm 1 (learned NN ensemble + iLQR MPC).
+
+    :param env: a Gymnasium env with 1-D ``Box`` observation and action spaces, a bounded action
+        space and a ``TimeLimit`` (or ``config.episode_steps``).
+    :param config: :class:`agents.config.AgentConfig`.
+    :param cost_fn: stage cost ``cost_fn(obs, action) -> scalar`` written with CasADi
+        operations (see :mod:`agents.task`). ``None``: the env's own quadratic cost
+        (``env.unwrapped.cost_Q/cost_R``, as ``mbtsr/TwoLinkArm-v0`` provides).
+    :param state_fn: ``obs -> model state`` (numpy); with ``obs_fn``.
+    :param obs_fn: ``(state, obs_ref) -> obs`` (CasADi-compatible), the inverse map used to
+        evaluate ``cost_fn`` on predicted states.
+    :raises ValueError: at construction for non-Box spaces, an unbounded action space, a cost
+        or maps that do not fit the env's dimensions, a bad config.
+    """
+
+    def __init__(
+        self,
+        env: gym.Env,
+        config: AgentConfig | None = None,
+        cost_fn: CostFn | None = None,
+        state_fn: Callable[[np.ndarray], np.ndarray] | None = None,
+        obs_fn: CostFn | None = None,
+    ) -> None:
+        config = AgentConfig() if config is None else config
+        if not isinstance(config, AgentConfig):
+            raise TypeError(f"config must be an AgentConfig, got {type(config).__name__}")
+        spec = env_spec(env, config.episode_steps)
+        if config.video and getattr(env, "render_mode", None) != "rgb_array":
+            raise ValueError(
+                "config.video needs an env created with render_mode='rgb_array', got "
+                f"render_mode={getattr(env, 'render_mode', None)!r}"
+            )
+        if config.checkpoint and config.run_dir is None:
+            config = config.replace(checkpoint=False)
+        self._setup(env, config, spec, cost_fn, state_fn, obs_fn)
+
+    # ------------------------------------------------------------------ construction
+    def _setup(
+        self,
+        env: gym.Env | None,
+        config: AgentConfig,
+        spec: EnvSpec,
+        cost_fn: CostFn | None,
+        state_fn: Callable | None,
+        obs_fn: CostFn | None,
+        *,
+        saved_task: dict | None = None,
+    ) -> None:
+        self.env = env
+        self.config = config
+        self.spec = spec
+        self.env_id = getattr(getattr(env, "spec", None), "id", None) if env is not None else None
+        # the task: cost on (obs, action) and the obs <-> model-state maps
+        if cost_fn is None and saved_task is not None and saved_task.get("cost") is not None:
+            cost_fn = QuadraticTargetCost.from_dict(saved_task["cost"])
+            if state_fn is None and saved_task.get("state_map") is not None:
+                state_map = StateMap.from_dict(saved_task["state_map"])
+            else:
+                state_map = StateMap(state_fn, obs_fn)
+        elif cost_fn is None:
+            default = default_task_for_env(env) if env is not None else None
+            if default is None:
+                where = "the saved agent" if env is None else f"env {self.env_id or env!r}"
+                raise ValueError(
+                    f"cost_fn is required: {where} has no built-in cost (env.unwrapped.cost_Q "
+                    "and cost_R); pass cost_fn(obs, action) written with casadi operations"
+                )
+            cost_fn, default_map = default
+            state_map = default_map if state_fn is None else StateMap(state_fn, obs_fn)
+        else:
+            state_map = StateMap(state_fn, obs_fn)
+        self.cost_fn = cost_fn
+        self.state_map = state_map
+        probe = np.zeros(spec.obs_dim)
+        if env is not None:
+            probe = np.clip(probe, env.observation_space.low, env.observation_space.high)
+        try:
+            s = self.state_map.state(probe)
+        except Exception as err:
+            raise ValueError(f"state_fn failed on an observation [{spec.obs_dim}]: {err}") from None
+        if s.ndim != 1 or s.size < 1:
+            raise ValueError(f"state_fn(obs) must return a 1-D state, got shape {list(s.shape)}")
+        self.state_dim = int(s.size)
+        self.task_cost = ObservationCost(cost_fn, state_map, spec, self.state_dim)
+        self.planner_costs = PlannerCosts(self.task_cost, config.terminal_weight)
+        # the model: an ensemble of small networks, Objective 1 (f) or 2 (g)
+        members = tuple(
+            MemberSpec(
+                activation=config.activations[k % len(config.activations)],
+                width=config.hidden_width,
+                depth=config.hidden_layers,
+            )
+            for k in range(config.ensemble_size)
+        )
+        self.ensemble_config = EnsembleConfig(
+            state_dim=self.state_dim,
+            action_dim=spec.act_dim,
+            members=members,
+            formulation=config.formulation,
+            normalize=True,
+            seed=config.seed,
+        )
+        self.model = DynamicsEnsemble(self.ensemble_config)
+        self.policy = MPCPolicy(
+            self.model,
+            self.planner_costs,
+            spec,
+            horizon=config.horizon,
+            iterations=config.ilqr_iterations,
+            first_plan_iterations=config.first_plan_iterations,
+        )
+        self.has_linearize = env is not None and (
+            hasattr(env.unwrapped, "linearize_trajectory") or hasattr(env.unwrapped, "linearize")
+        )
+        # the learning state (all of it goes into the checkpoint)
+        self.rng = np.random.default_rng(config.seed)
+        self.trajectories: list[Trajectory] = []
+        self.ltv_lambdas: list[float] = []
+        self.ltv_models: list = []
+        self.optimizer_state: dict | None = None
+        self.episodes_done = 0
+        self.env_steps = 0
+        self.logger_rows: list[dict[str, Any]] = []
+        self.eval_targets: list[np.ndarray] | None = None
+        self.oracle_costs: np.ndarray | None = None
+        self._eval_env: gym.Env | None = None
+        self._log: EpisodeLog | None = None
+
+    # ------------------------------------------------------------------ public surface
+    def learn(
+        self,
+        episodes: int,
+        callback: Callable[[dict[str, Any]], bool | None] | None = None,
+        progress_bar: bool = True,
+    ) -> JacPropAgent:
+        """Run ``episodes`` more episodes of Algorithm 1 (rollout, LTV fit, perturbed data,
+        regularised warm-started model update, planning), logging and checkpointing after each.
+
+        :param episodes: number of episodes to run now (a loaded agent continues its count).
+        :param callback: called after every episode with ``{"agent", "row"}``; returning
+            ``False`` stops learning (as in Stable-Baselines3).
+        :param progress_bar: show a tqdm progress bar.
+        :return: ``self``.
+        """
+        if isinstance(episodes, bool) or not isinstance(episodes, int | np.integer) or episodes < 0:
+            raise ValueError(f"episodes must be an integer >= 0, got {episodes!r}")
+        if self.env is None:
+            raise ValueError("this agent was loaded without an env; load(path, env=...) to learn")
+        if self.config.torch_threads:
+            torch.set_num_threads(self.config.torch_threads)
+        if self.config.run_dir is not None and self._log is None:
+            self._log = EpisodeLog(
+                self.config.run_dir, tensorboard=self.config.tensorboard, rows=self.logger_rows
+            )
+        bar = None
+        if progress_bar and episodes > 0:
+            from tqdm.auto import tqdm
+
+            bar = tqdm(total=episodes, desc="JacProp agent", unit="episode")
+        try:
+            for _ in range(int(episodes)):
+                row = self._episode()
+                self.logger_rows.append(row)
+                self.episodes_done += 1
+                if self.config.checkpoint:
+                    self._write_checkpoint()
+                if self._log is not None:
+                    self._log.append(row)
+                if bar is not None:
+                    bar.update(1)
+                    bar.set_postfix(cost=f"{row['episode_cost']:.3g}",
+                                    ratio=_fmt(row.get("cost_ratio")))
+                if callback is not None and callback({"agent": self, "row": row}) is False:
+                    break
+                if self.config.stop_when_solved and row.get("solved"):
+                    break
+        finally:
+            if bar is not None:
+                bar.close()
+            if self._log is not None:
+                self._log.close()
+                self._log = None
+        return self
+
+    def predict(
+        self,
+        observation: np.ndarray,
+        state: np.ndarray | None = None,
+        episode_start: np.ndarray | bool | None = None,
+        deterministic: bool = True,
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Action of the MPC controller on the learned model (Algorithm 1, step (e)).
+
+        :param observation: ``[obs_dim]`` one observation.
+        :param state: ``[H, m]`` warm-start plan returned by the previous call (``None`` at an
+            episode start: a cold full-horizon iLQR plan).
+        :param episode_start: ``True`` forces a cold start.
+        :param deterministic: kept for SB3 compatibility (MPC is deterministic; exploration
+            noise is only added in :meth:`learn`).
+        :return: ``(action [m], next_state [H, m])``.
+        """
+        return self.policy.predict(observation, state, episode_start, deterministic)
+
+    def save(self, path: str | Path) -> Path:
+        """Save everything needed to continue learning or to act (one atomic file)."""
+        path = Path(path)
+        save_checkpoint(path, self._payload())
+        return path
+
+    @classmethod
+    def load(
+        cls,
+        path: str | Path,
+        env: gym.Env | None = None,
+        cost_fn: CostFn | None = None,
+        state_fn: Callable | None = None,
+        obs_fn: CostFn | None = None,
+        *,
+        run_dir: str | None = None,
+    ) -> JacPropAgent:
+        """Restore an agent saved by :meth:`save` (or a run's ``checkpoint.pt``).
+
+        :param path: the file (or a run folder holding ``checkpoint.pt``).
+        :param env: the env to continue learning in (``None``: act only, via :meth:`predict`).
+            Its spaces must match the saved ones.
+        :param cost_fn: needed again if the agent was built with a custom ``cost_fn``
+            (functions are not serialised; the built-in env cost is).
+        :param run_dir: where :meth:`learn` writes from now on (default: the saved config's).
+        """
+        path = Path(path)
+        if path.is_dir():
+            path = path / "checkpoint.pt"
+        payload = load_checkpoint(path)
+        cfg = json.loads(payload["agent_config"])
+        if run_dir is not None:
+            cfg["run_dir"] = str(run_dir)
+        config = AgentConfig.from_dict(cfg)
+        spec = EnvSpec.from_dict(json.loads(payload["env_spec"]))
+        if env is not None:
+            got = env_spec(env, config.episode_steps)
+            if (got.obs_dim, got.act_dim) != (spec.obs_dim, spec.act_dim) or not (
+                np.array_equal(got.u_min, spec.u_min) and np.array_equal(got.u_max, spec.u_max)
+            ):
+                raise ValueError(
+                    f"env does not match the saved agent: obs_dim/act_dim/bounds "
+                    f"{(got.obs_dim, got.act_dim, got.u_min, got.u_max)} vs "
+                    f"{(spec.obs_dim, spec.act_dim, spec.u_min, spec.u_max)}"
+                )
+        task = json.loads(payload["task"])
+        if task.get("cost") is None and cost_fn is None and (
+            env is None or default_task_for_env(env) is None
+        ):
+            raise ValueError("the agent was built with a custom cost_fn: pass cost_fn= to load")
+        agent = cls.__new__(cls)
+        agent._setup(env, config, spec, cost_fn, state_fn, obs_fn, saved_task=task)
+        agent._restore(payload)
+        return agent
+
+    # ------------------------------------------------------------------ one episode
+    def _episode(self) -> dict[str, Any]:
+        cfg, spec = self.config, self.spec
+        ep = self.episodes_done
+        t_start = time.perf_counter()
+        # every random draw of this episode derives from the agent's generator
+        reset_seed, signal_seed, perturb_seed, train_seed = (
+            int(s) for s in self.rng.integers(0, 2**31 - 1, size=4)
+        )
+        excitation = ep < cfg.n_excitation_episodes
+        T = spec.episode_steps
+        render = cfg.video and cfg.run_dir is not None and ep % cfg.video_every == 0
+
+        # (a) rollout in the real env --------------------------------------------------------
+        if excitation:
+            U_exc = self._excitation_signal(T, signal_seed)
+
+            def act(obs: np.ndarray, t: int) -> np.ndarray:
+                return U_exc[t]
+        else:
+            half = 0.5 * (spec.u_max - spec.u_min)
+            noise = (
+                cfg.exploration_std * half
+                * np.random.default_rng(signal_seed).standard_normal((T, spec.act_dim))
+            )
+            plan: dict[str, Any] = {"U": None}
+
+            def act(obs: np.ndarray, t: int) -> np.ndarray:
+                a, plan["U"] = self.policy.predict(obs, plan["U"], episode_start=t == 0)
+                return a + noise[t]
+
+        rec = run_episode(self.env, act, seed=reset_seed, max_steps=T, render=render)
+        time_rollout = time.perf_counter() - t_start - rec.time_policy
+        traj = Trajectory(
+            self.state_map.state(rec.obs), rec.actions, spec.dt,
+            meta={"episode": ep, "seed": reset_seed},
+        )
+        self.env_steps += traj.T
+        if render:
+            self._save_video(rec.frames, ep)
+
+        # model quality on the NEW data, before the update (generalisation) -------------------
+        one_step, jac = self._model_errors(traj)
+
+        # (b) LTV model of the new trajectory ------------------------------------------------
+        tic = time.perf_counter()
+        lam = math.nan
+        if cfg.regularization in ("sampled", "exact"):
+            lam = self._ltv_lambda(traj)
+            self.ltv_models.append(fit_ltv(traj, lam))
+        self.ltv_lambdas.append(lam)
+        self.trajectories.append(traj)
+        time_ltv = time.perf_counter() - tic
+
+        # (c) + (d) regularised warm-started update on all data --------------------------------
+        tic = time.perf_counter()
+        history = self._train(train_seed, perturb_seed)
+        time_training = time.perf_counter() - tic
+
+        # evaluation: the MPC policy on the updated model vs the oracle ------------------------
+        tic = time.perf_counter()
+        eval_cost = oracle = ratio = None
+        n_eval = 0
+        solved = False
+        if self._should_evaluate(ep):
+            eval_cost, oracle, ratio, n_eval = self._evaluate()
+            solved = bool(eval_cost is not None and ratio is not None and ratio <= cfg.solved_ratio)
+        time_eval = time.perf_counter() - tic
+
+        return {
+            "episode": ep,
+            "phase": "excitation" if excitation else "mpc",
+            "env_steps": self.env_steps,
+            "episode_cost": rec.cost,
+            "model_cost": float(np.sum(self.task_cost.on_observations(rec.obs[:-1], rec.actions))),
+            "one_step_rms": one_step,
+            "jacobian_error": jac,
+            "train_loss": _last(getattr(history, "train_loss", None)),
+            "val_loss": _last(getattr(history, "val_loss", None)),
+            "ltv_lambda": lam,
+            "eval_cost": eval_cost,
+            "oracle_cost": oracle,
+            "cost_ratio": ratio,
+            "eval_episodes_run": n_eval,
+            "solved": solved,
+            "time_rollout": time_rollout,
+            "time_planning": rec.time_policy,
+            "time_ltv": time_ltv,
+            "time_training": time_training,
+            "time_eval": time_eval,
+            "time_total": time.perf_counter() - t_start,
+        }
+
+    def _excitation_signal(self, T: int, seed: int) -> np.ndarray:
+        """``[T, m]`` excitation in env units: a unit-std signal (by its stationary std)
+        scaled to ``excitation_scale`` x the half-range around the middle of the action box."""
+        from mbtsr import excitation
+
+        cfg, spec = self.config, self.spec
+        if cfg.excitation == "filtered_gaussian":
+            sig = excitation.filtered_gaussian(
+                T, spec.act_dim, window=cfg.excitation_window, scale=1.0, seed=seed
+            ) / excitation.filtered_gaussian_std(cfg.excitation_window, 1.0)
+        else:
+            sig = excitation.multisine(T, spec.act_dim, seed=seed) / excitation.multisine_std(
+                5, 1.0
+            )
+        mid, half = 0.5 * (spec.u_max + spec.u_min), 0.5 * (spec.u_max - spec.u_min)
+        return np.clip(mid + half * cfg.excitation_scale * sig, spec.u_min, spec.u_max)
+
+    def _ltv_lambda(self, traj: Trajectory) -> float:
+        if self.config.ltv_lambda != "auto":
+            return float(self.config.ltv_lambda)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)  # a boundary optimum is fine here
+            lam, _ = select_lambda(traj)
+        return float(lam)
+
+    def _train(self, train_seed: int, perturb_seed: int):
+        from mbtsr.training import train_ensemble
+
+        tcfg, reg = self._train_configs(train_seed, perturb_seed)
+        history = train_ensemble(
+            self.model,
+            self.trajectories,
+            tcfg,
+            reg,
+            ltv_models=self.ltv_models if self.ltv_models else None,
+            optimizer_state=self.optimizer_state,
+        )
+        self.optimizer_state = history.optimizer_state
+        return history
+
+    def _train_configs(self, train_seed: int = 0, perturb_seed: int = 0):
+        from mbtsr.training import RegularizationConfig, TrainConfig
+
+        cfg = self.config
+        tcfg = TrainConfig(
+            epochs=cfg.epochs_per_episode,
+            lr=cfg.lr,
+            batch="trajectory" if cfg.batch_size == 0 else cfg.batch_size,
+            weight_decay=cfg.weight_decay,
+            seed=train_seed,
+            progress=False,
+        )
+        weights = {
+            "sampled": {"sampled_weight": cfg.jacprop_weight},
+            "exact": {"exact_weight": cfg.jacobian_penalty},
+            "smooth": {"smooth_weight": cfg.jacobian_penalty},
+            "none": {},
+        }[cfg.regularization]
+        reg = RegularizationConfig(
+            sigma=cfg.perturbation_sigma, n_copies=cfg.n_perturbed_copies, **weights
+        )
+        return tcfg, reg
+
+    def _model_errors(self, traj: Trajectory) -> tuple[float, float]:
+        """One-step RMS of the ensemble mean on the new trajectory and the paper's Jacobian
+        error (eq. jacerr) against ``env.unwrapped.linearize_trajectory`` (NaN before the model
+        has seen data, or without ``linearize``)."""
+        from mbtsr.metrics import jacobian_error, prediction_rms
+
+        if not self.model.is_normalized:
+            return math.nan, math.nan
+        one_step = float(prediction_rms(self.model, traj))
+        jac = math.nan
+        if self.config.jacobian_error and self.has_linearize:
+            x, u = traj.inputs
+            true = self.env.unwrapped
+            if hasattr(true, "linearize_trajectory"):
+                J_true = true.linearize_trajectory(x, u)
+            else:
+                pairs = [true.linearize(xt, ut) for xt, ut in zip(x, u)]
+                J_true = (np.stack([p[0] for p in pairs]), np.stack([p[1] for p in pairs]))
+            jac = float(jacobian_error(J_true, self.model.jacobians(x, u)))
+        return one_step, jac
+
+    # ------------------------------------------------------------------ evaluation
+    def _should_evaluate(self, ep: int) -> bool:
+        cfg = self.config
+        if cfg.eval_every == 0 or ep < cfg.n_excitation_episodes - 1:
+            return False
+        return (ep - (cfg.n_excitation_episodes - 1)) % cfg.eval_every == 0
+
+    def _eval_env_instance(self) -> gym.Env:
+        if self._eval_env is None:
+            spec = getattr(self.env, "spec", None)
+            if spec is None:
+                raise ValueError("evaluation needs an env made by gym.make (env.spec is None)")
+            self._eval_env = gym.make(spec)
+        return self._eval_env
+
+    def evaluation_problem(self, i: int) -> tuple[np.ndarray | None, int]:
+        """``(target or None, reset seed)`` of evaluation episode ``i``."""
+        self._ensure_eval_targets()
+        target = None if self.eval_targets is None else self.eval_targets[i]
+        return target, self.config.eval_seed + i
+
+    def _ensure_eval_targets(self) -> None:
+        if self.eval_targets is not None:
+            return
+        env = self._eval_env_instance()
+        _, info = env.reset(seed=self.config.eval_seed)
+        if "target" in info:
+            self.eval_targets = evaluation_targets(
+                self.config.eval_episodes, self.config.eval_seed, env
+            )
+
+    def _evaluate(self) -> tuple[float | None, float | None, float | None, int]:
+        """Evaluate :meth:`predict` on the fixed evaluation episodes.
+
+        :return: ``(mean cost or None if stopped early, oracle mean or None, cost ratio or
+            None, episodes run)``; the ratio is ``sum(agent) / sum(oracle)`` over the oracle's
+            episodes, a lower bound when the evaluation stopped early.
+        """
+        cfg = self.config
+        env = self._eval_env_instance()
+        self._ensure_eval_targets()
+        kwargs: dict[str, Any] = {"max_steps": self.spec.episode_steps}
+        if self.eval_targets is None:
+            kwargs["n_episodes"] = cfg.eval_episodes
+        oracle = self._oracle_costs(env, kwargs)
+        stop_above = None
+        if oracle is not None and cfg.eval_early_exit and np.all(oracle >= 0):
+            stop_above = cfg.solved_ratio * float(np.sum(oracle))
+        costs = evaluate_policy_costs(
+            self, env, self.eval_targets, cfg.eval_seed, stop_above=stop_above, **kwargs
+        )
+        complete = len(costs) == cfg.eval_episodes
+        mean = float(np.mean(costs)) if complete else None
+        if oracle is None:
+            return mean, None, None, len(costs)
+        total = float(np.sum(oracle))
+        ratio = float(np.sum(costs)) / total if total > 0 else math.inf
+        return mean, float(np.mean(oracle)), ratio, len(costs)
+
+    def _oracle_costs(self, env: gym.Env, kwargs: dict[str, Any]) -> np.ndarray | None:
+        """Per-episode costs of MPC with the TRUE model (computed once, then kept)."""
+        if self.oracle_costs is not None or not hasattr(env.unwrapped, "dynamics_model"):
+            return self.oracle_costs
+        cfg = self.config
+
+        def compute() -> np.ndarray:
+            policy = oracle_policy(
+                env,
+                cfg.horizon,
+                iterations=cfg.ilqr_iterations,
+                first_plan_iterations=cfg.first_plan_iterations,
+                terminal_weight=cfg.terminal_weight,
+                cost_fn=self.cost_fn,
+                state_map=self.state_map,
+            )
+            return evaluate_policy_costs(policy, env, self.eval_targets, cfg.eval_seed, **kwargs)
+
+        cache_dir = cfg.oracle_cache_dir
+        if not (isinstance(self.cost_fn, QuadraticTargetCost) and self.state_map.serializable):
+            cache_dir = None  # user functions cannot be part of a cache key
+        import agents.evaluation
+        import agents.planner
+        import agents.task
+        import mbtsr.costs
+        import mbtsr.ilqr
+
+        spec = env.spec
+        key = {
+            "version": 1,
+            "code": code_fingerprint(
+                agents.evaluation, agents.planner, agents.task, mbtsr.costs, mbtsr.ilqr,
+                packages=[sys.modules[type(env.unwrapped).__module__]],
+            ),
+            "env_id": spec.id,
+            "env_kwargs": spec.kwargs,
+            "targets": self.eval_targets,
+            "eval_seed": cfg.eval_seed,
+            "eval_episodes": cfg.eval_episodes,
+            "episode_steps": self.spec.episode_steps,
+            "horizon": cfg.horizon,
+            "iterations": cfg.ilqr_iterations,
+            "first_plan_iterations": cfg.first_plan_iterations,
+            "terminal_weight": cfg.terminal_weight,
+            "cost": self.cost_fn.to_dict() if cache_dir is not None else None,
+        }
+        self.oracle_costs = cached_costs(cache_dir, key, compute)
+        return self.oracle_costs
+
+    @property
+    def oracle_mean(self) -> float | None:
+        return None if self.oracle_costs is None else float(np.mean(self.oracle_costs))
+
+    def rollout_policy(
+        self, env: gym.Env | None = None, *, seed: int = 0, options: dict | None = None
+    ) -> EpisodeRecord:
+        """One episode of :meth:`predict` (no exploration noise) in ``env``."""
+        env = self.env if env is None else env
+        plan: dict[str, Any] = {"U": None}
+
+        def act(obs: np.ndarray, t: int) -> np.ndarray:
+            a, plan["U"] = self.predict(obs, plan["U"], episode_start=t == 0)
+            return a
+
+        return run_episode(env, act, seed=seed, options=options, max_steps=self.spec.episode_steps)
+
+    def summary(self) -> dict[str, Any]:
+        """Benchmark numbers of the run so far: episodes/env steps to the first solved
+        evaluation, the last cost ratio to the oracle, wall seconds per phase."""
+        rows = self.logger_rows
+        solved = [r for r in rows if r.get("solved")]
+        evals = [r for r in rows if r.get("cost_ratio") is not None]
+        phases = {c[len("time_"):]: float(sum(r[c] for r in rows)) for c in TIMING_COLUMNS}
+        return {
+            "env_id": self.env_id,
+            "episodes_done": self.episodes_done,
+            "env_steps": self.env_steps,
+            "episodes_to_solve": solved[0]["episode"] + 1 if solved else None,
+            "env_steps_to_solve": solved[0]["env_steps"] if solved else None,
+            "final_cost_ratio": evals[-1]["cost_ratio"] if evals else None,
+            "best_cost_ratio": min(r["cost_ratio"] for r in evals) if evals else None,
+            "final_eval_cost": evals[-1]["eval_cost"] if evals else None,
+            "oracle_cost": self.oracle_mean,
+            "solved_ratio": self.config.solved_ratio,
+            "wall_seconds_per_phase": phases,
+            "config": self.config.to_dict(),
+        }
+
+    def resolved_config(self) -> dict[str, Any]:
+        """The agent config and the component configs it resolves to (for ``config.json``)."""
+        tcfg, reg = self._train_configs()
+        import dataclasses
+
+        return {
+            "agent": self.config.to_dict(),
+            "ensemble": json.loads(self.ensemble_config.to_json()),
+            "training": {k: v for k, v in dataclasses.asdict(tcfg).items() if k != "seed"},
+            "regularization": dataclasses.asdict(reg),
+            "env_spec": self.spec.to_dict(),
+        }
+
+    # ------------------------------------------------------------------ checkpointing
+    def _payload(self) -> dict[str, Any]:
+        task: dict[str, Any] = {"cost": None, "state_map": None}
+        if isinstance(self.cost_fn, QuadraticTargetCost):
+            task["cost"] = self.cost_fn.to_dict()
+        if self.state_map.serializable:
+            task["state_map"] = self.state_map.to_dict()
+        return {
+            "agent_config": json.dumps(self.config.to_dict()),
+            "env_spec": json.dumps(self.spec.to_dict()),
+            "task": json.dumps(task),
+            "ensemble_config": self.ensemble_config.to_json(),
+            "model_state": {k: v.detach().clone() for k, v in self.model.state_dict().items()},
+            "optimizer_state": self.optimizer_state,
+            "trajectories": [
+                {"x": t.x, "u": t.u, "meta": json.dumps(t.meta)} for t in self.trajectories
+            ],
+            "ltv_lambdas": list(self.ltv_lambdas),
+            "episodes_done": self.episodes_done,
+            "env_steps": self.env_steps,
+            "rng": numpy_rng_state(self.rng),
+            "torch_rng": torch.get_rng_state(),
+            "log": json.dumps(self.logger_rows),
+            "eval_targets": None if self.eval_targets is None else [
+                np.asarray(t) for t in self.eval_targets
+            ],
+            "oracle_costs": None if self.oracle_costs is None else np.asarray(self.oracle_costs),
+        }
+
+    def _restore(self, p: dict[str, Any]) -> None:
+        self.model.load_state_dict(p["model_state"])
+        self.model.invalidate_cache()
+        self.optimizer_state = p["optimizer_state"]
+        self.trajectories = [
+            Trajectory(d["x"].numpy(), d["u"].numpy(), self.spec.dt, meta=json.loads(d["meta"]))
+            for d in p["trajectories"]
+        ]
+        self.ltv_lambdas = [float(v) for v in p["ltv_lambdas"]]
+        # LTV fits are deterministic functions of (data, lambda): refit instead of storing
+        self.ltv_models = [
+            fit_ltv(t, lam)
+            for t, lam in zip(self.trajectories, self.ltv_lambdas)
+            if not math.isnan(lam)
+        ]
+        self.episodes_done = int(p["episodes_done"])
+        self.env_steps = int(p["env_steps"])
+        set_numpy_rng_state(self.rng, p["rng"])
+        torch.set_rng_state(p["torch_rng"])
+        self.logger_rows = json.loads(p["log"])
+        self.eval_targets = None if p["eval_targets"] is None else [
+            t.numpy() for t in p["eval_targets"]
+        ]
+        self.oracle_costs = None if p["oracle_costs"] is None else p["oracle_costs"].numpy()
+
+    def _write_checkpoint(self) -> None:
+        run_dir = Path(self.config.run_dir)
+        run_dir.mkdir(parents=True, exist_ok=True)
+        # the checkpoint is the source of truth; the exports below are conveniences
+        self.save(run_dir / "checkpoint.pt")
+        tmp = run_dir / ".model.pt.tmp"
+        save_model(self.model, tmp)
+        tmp.replace(run_dir / "model.pt")
+        save_trajectories(run_dir / "data.npz", self.trajectories)
+        atomic_write_text(run_dir / "summary.json", json.dumps(self.summary(), indent=2))
+
+    def _save_video(self, frames: list, ep: int) -> None:
+        if not frames:
+            return
+        path = Path(self.config.run_dir) / "videos" / f"episode_{ep:04d}.mp4"
+        path.parent.mkdir(parents=True, exist_ok=True)
+        try:
+            from envs.rendering import save_video
+        except ImportError:  # pragma: no cover - fall back to imageio directly
+            import imageio.v2 as imageio
+
+            fps = int(round(1.0 / self.spec.dt)) if self.spec.dt else 30
+            imageio.mimsave(path, frames, fps=fps)
+            return
+        save_video(frames, path)
+
+
+def _last(values: Any) -> float | None:
+    if values is None:
+        return None
+    values = list(values)
+    return float(values[-1]) if values else None
+
+
+def _fmt(v: Any) -> str:
+    return "-" if v is None else f"{float(v):.3g}"
