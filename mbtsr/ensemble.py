@@ -760,6 +760,8 @@ class DynamicsEnsemble(nn.Module):
         w = spec.width
         out = {}
         for name, p in g.named_parameters():
+            if name.startswith("ln_") and not spec.layer_norm:
+                continue  # the group has layer-norm parameters, this member does not use them
             t = p.grad if grad else p.data
             if t is None:
                 out[name] = None

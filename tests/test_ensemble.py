@@ -1,0 +1,428 @@
+"""Tests of mbtsr.ensemble against independent computations.
+
+References: central finite differences of the float64 prediction path, torch autograd
+(``torch.autograd.functional.jacobian``) of the float32 path, and a plain per-member torch MLP
+written here from ``nn.functional`` primitives (one module per member, a Python loop).
+"""
+
+from fractions import Fraction
+
+import numpy as np
+import pytest
+import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from torch.nn import functional as F  # noqa: N812
+
+from mbtsr import DynamicsModel, Trajectory
+from mbtsr.ensemble import (
+    ACTIVATIONS,
+    FORMULATIONS,
+    DynamicsEnsemble,
+    EnsembleConfig,
+    MemberSpec,
+    load_model,
+    save_model,
+)
+
+torch.set_num_threads(1)
+
+N_STATE, N_INPUT = 3, 2
+
+
+def formulation_kwargs(formulation, n=N_STATE, m=N_INPUT, seed=0):
+    rng = np.random.default_rng(seed)
+    if formulation == "nominal":
+        return {"A0": rng.normal(size=(n, n)), "B0": rng.normal(size=(n, m))}
+    if formulation == "scaled":
+        return {"tau": tuple(rng.uniform(0.5, 1.2, size=n))}
+    return {}
+
+
+def random_trajectory(T, n, m, seed, scale_x=3.0, scale_u=2.0):
+    rng = np.random.default_rng(seed)
+    x = rng.normal(size=(T + 1, n)) * scale_x + 1.0
+    return Trajectory(x, rng.normal(size=(T, m)) * scale_u)
+
+
+def make_model(members, formulation="g", seed=0, perturb=0.3, normalize=True, **kw):
+    """An ensemble with data-set normalization and randomised biases/gains (so no derivative is
+    trivially zero or one)."""
+    kw = {**formulation_kwargs(formulation), **kw}
+    cfg = EnsembleConfig(N_STATE, N_INPUT, members=tuple(members), formulation=formulation,
+                         normalize=normalize, seed=seed, **kw)
+    model = DynamicsEnsemble(cfg)
+    model.set_normalization([random_trajectory(30, N_STATE, N_INPUT, seed + 1)])
+    gen = torch.Generator().manual_seed(seed + 2)
+    with torch.no_grad():
+        for p in model.parameters():
+            p.add_(perturb * torch.randn(p.shape, generator=gen))
+    return model
+
+
+def finite_difference_jacobians(model, x, u, eps=1e-6):
+    """Central differences of every member's float64 prediction: ``[K, T, n, n+m]``."""
+    n = x.shape[1]
+    cols = []
+    for j in range(n + u.shape[1]):
+        e = np.zeros(n + u.shape[1])
+        e[j] = eps
+        plus = model.member_predictions(x + e[:n], u + e[n:])
+        minus = model.member_predictions(x - e[:n], u - e[n:])
+        cols.append((plus - minus) / (2 * eps))
+    return np.stack(cols, -1)
+
+
+def sample_points(T=6, seed=3):
+    rng = np.random.default_rng(seed)
+    return rng.normal(size=(T, N_STATE)) * 3 + 1, rng.normal(size=(T, N_INPUT)) * 2
+
+
+MIXED_MEMBERS = (
+    MemberSpec("elu", 5, 2, layer_norm=True),
+    MemberSpec("tanh", 8, 1),
+    MemberSpec("relu", 3, 2),
+    MemberSpec("leaky_relu", 6, 1, layer_norm=True),
+    MemberSpec("swish", 7, 2, dropout=0.3),
+    MemberSpec("sigmoid", 4, 1),
+    MemberSpec("elu", 8, 1),
+)
+
+
+# ------------------------------------------------------------------------------------------
+# Jacobians
+# ------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("formulation", FORMULATIONS)
+@pytest.mark.parametrize("activation", sorted(ACTIVATIONS))
+def test_jacobians_match_finite_differences(formulation, activation):
+    members = [MemberSpec(activation, 7, 1), MemberSpec(activation, 4, 2)]
+    model = make_model(members, formulation)
+    x, u = sample_points()
+    A, B = model.member_jacobians(x, u)
+    J = np.concatenate([A, B], -1)
+    J_fd = finite_difference_jacobians(model, x, u)
+    assert J.shape == (2, len(x), N_STATE, N_STATE + N_INPUT)
+    np.testing.assert_allclose(J, J_fd, rtol=1e-6, atol=1e-7)
+    # ensemble mean = mean of members, and = finite differences of the mean prediction (step)
+    A_mean, B_mean = model.jacobians(x, u)
+    np.testing.assert_allclose(np.concatenate([A_mean, B_mean], -1), J_fd.mean(0), atol=1e-7)
+    # differentiable torch path (float32) agrees with the float64 finite differences
+    J_torch = model.member_jacobians_torch(torch.tensor(x), torch.tensor(u)).detach().numpy()
+    np.testing.assert_allclose(J_torch, J_fd, rtol=1e-4, atol=1e-4 * np.abs(J_fd).max())
+
+
+@pytest.mark.parametrize("formulation", FORMULATIONS)
+def test_mixed_architecture_jacobians_match_autograd_and_finite_differences(formulation):
+    """Padded widths, depth 1 and 2 groups, layer norm on some members, dropout (inactive in
+    evaluation): closed form vs finite differences (float64) and torch autograd (float32)."""
+    model = make_model(MIXED_MEMBERS, formulation)
+    x, u = sample_points(T=5)
+    A, B = model.member_jacobians(x, u)
+    J = np.concatenate([A, B], -1)
+    np.testing.assert_allclose(J, finite_difference_jacobians(model, x, u), rtol=1e-6, atol=1e-7)
+    xu = torch.tensor(np.concatenate([x, u], 1), dtype=torch.float32)
+    J_auto = torch.stack([
+        torch.autograd.functional.jacobian(lambda p: model.forward_torch(p[None])[:, 0], xu[i])
+        for i in range(len(xu))
+    ], 1).numpy()
+    np.testing.assert_allclose(J, J_auto, rtol=1e-4, atol=1e-4 * np.abs(J).max())
+
+
+@pytest.mark.parametrize("formulation", ["g", "nominal", "scaled"])
+def test_skip_formulations_add_their_linear_part_to_the_network_jacobian(formulation):
+    """With identical weights (same seed, no normalization) the f model is the bare network, so
+    g's state Jacobian is I + dNN/dx (paper eq. (jacshift)), nominal's A0 + dNN/dx and B0 +
+    dNN/du, scaled's diag(tau) + dNN/dx."""
+    kw = formulation_kwargs(formulation)
+    f_model = make_model(MIXED_MEMBERS, "f", normalize=False)
+    other = make_model(MIXED_MEMBERS, formulation, normalize=False, **{})
+    other.load_state_dict(f_model.state_dict() | {"skip_J": other.skip_J})
+    x, u = sample_points()
+    A_f, B_f = f_model.member_jacobians(x, u)
+    A_o, B_o = other.member_jacobians(x, u)
+    expected_A = {"g": np.eye(N_STATE), "nominal": kw.get("A0"),
+                  "scaled": np.diag(kw.get("tau", (0,) * N_STATE))}[formulation]
+    expected_B = kw["B0"] if formulation == "nominal" else np.zeros((N_STATE, N_INPUT))
+    np.testing.assert_allclose(A_o - A_f, np.broadcast_to(expected_A, A_f.shape), atol=1e-12)
+    np.testing.assert_allclose(B_o - B_f, np.broadcast_to(expected_B, B_f.shape), atol=1e-12)
+    # and the predictions differ by exactly the skip part
+    skip = x @ expected_A.T + u @ expected_B.T
+    np.testing.assert_allclose(other.member_predictions(x, u) - f_model.member_predictions(x, u),
+                               np.broadcast_to(skip, (len(MIXED_MEMBERS), *skip.shape)),
+                               atol=1e-12)
+
+
+# ------------------------------------------------------------------------------------------
+# batched ensemble == members one by one (outputs and gradients)
+# ------------------------------------------------------------------------------------------
+
+
+def reference_member_forward(params, spec, xu, model):
+    """Plain per-member MLP from functional primitives, with the model's normalization and skip."""
+    act = {
+        "elu": F.elu,
+        "sigmoid": torch.sigmoid,
+        "tanh": torch.tanh,
+        "swish": lambda z: z * torch.sigmoid(z),
+        "relu": F.relu,
+        "leaky_relu": lambda z: F.leaky_relu(z, 0.01),
+    }[spec.activation]
+    h = (xu - model.in_mean) / model.in_std
+    layers = [("W1", "b1")] + ([("W2", "b2")] if spec.depth == 2 else [])
+    for i, (w, b) in enumerate(layers, start=1):
+        z = F.linear(h, params[w].T, params[b][0])
+        if spec.layer_norm:
+            z = F.layer_norm(z, (spec.width,), params[f"ln_gain{i}"][0], params[f"ln_bias{i}"][0],
+                             eps=1e-5)
+        h = act(z)
+    y = F.linear(h, params["Wo"].T, params["bo"][0])
+    return xu @ model.skip_J.T + model.out_mean + model.out_std * y
+
+
+@pytest.mark.parametrize("members", [MIXED_MEMBERS, EnsembleConfig(1, 1).members])
+def test_batched_ensemble_equals_members_one_by_one(members):
+    model = make_model(members, "g")
+    rng = np.random.default_rng(7)
+    xu = torch.tensor(np.concatenate(sample_points(T=40, seed=8), 1), dtype=torch.float32)
+    target = torch.tensor(rng.normal(size=(40, N_STATE)), dtype=torch.float32)
+
+    # batched: one forward for all members, one backward of the summed member losses
+    model.zero_grad()
+    pred = model.forward_torch(xu)
+    ((pred - target) ** 2).sum(-1).mean(-1).sum().backward()
+
+    for k, spec in enumerate(members):
+        ref_params = {name: p.detach().clone().requires_grad_(True)
+                      for name, p in model.member_parameters(k).items()}
+        ref = reference_member_forward(ref_params, spec, xu, model)
+        torch.testing.assert_close(pred[k], ref, rtol=1e-5, atol=1e-5)
+        ((ref - target) ** 2).sum(-1).mean().backward()
+        grads = model.member_parameters(k, grad=True)
+        for name, p in ref_params.items():
+            torch.testing.assert_close(grads[name], p.grad, rtol=1e-4, atol=1e-5,
+                                       msg=f"member {k} ({spec.activation}) gradient of {name}")
+
+
+def test_dropout_is_active_only_in_training_mode_and_seeded():
+    model = make_model([MemberSpec("tanh", 16, 1, dropout=0.5)] * 2, "g")
+    xu = torch.tensor(np.concatenate(sample_points(T=10), 1), dtype=torch.float32)
+    eval_out = model.forward_torch(xu)
+    torch.testing.assert_close(eval_out, model.forward_torch(xu))  # deterministic in eval
+    model.train()
+    outs = []
+    for _ in range(2):
+        model.dropout_generator = torch.Generator().manual_seed(5)
+        outs.append(model.forward_torch(xu))
+    model.eval()
+    torch.testing.assert_close(outs[0], outs[1])  # same seed, same masks
+    assert not torch.allclose(outs[0], eval_out)
+
+
+# ------------------------------------------------------------------------------------------
+# protocol surface, normalization, caching
+# ------------------------------------------------------------------------------------------
+
+
+def test_protocol_surface_and_shapes():
+    model = make_model(EnsembleConfig(1, 1).members, "g")
+    assert isinstance(model, DynamicsModel)
+    assert (model.state_dim, model.action_dim, model.n_members) == (N_STATE, N_INPUT, 4)
+    x, u = sample_points(T=6)
+    mean, std = model.predict(x, u)
+    members = model.member_predictions(x, u)
+    np.testing.assert_allclose(mean, members.mean(0), atol=1e-12)
+    np.testing.assert_allclose(std, members.std(0), atol=1e-12)
+    np.testing.assert_allclose(model.step(x, u), mean, atol=1e-12)
+    assert model.step(x[0], u[0]).shape == (N_STATE,)
+    torch_pred = model.forward_torch(torch.tensor(x), torch.tensor(u)).detach().numpy()
+    np.testing.assert_allclose(torch_pred, members, rtol=1e-5, atol=1e-5)
+
+
+@settings(max_examples=25, deadline=None)
+@given(lead=st.lists(st.integers(1, 4), min_size=0, max_size=3), seed=st.integers(0, 1000))
+def test_step_is_batched_over_any_leading_dimensions(lead, seed):
+    model = _HYPOTHESIS_MODEL
+    rng = np.random.default_rng(seed)
+    x = rng.normal(size=(*lead, N_STATE)) * 3
+    u = rng.normal(size=(*lead, N_INPUT))
+    out = model.step(x, u)
+    assert out.shape == (*lead, N_STATE)
+    rows = model.step(x.reshape(-1, N_STATE), u.reshape(-1, N_INPUT))
+    np.testing.assert_allclose(out.reshape(-1, N_STATE), rows, rtol=1e-12, atol=1e-12)
+    one = model.step(x.reshape(-1, N_STATE)[0], u.reshape(-1, N_INPUT)[0])
+    np.testing.assert_allclose(one, rows[0], rtol=1e-12, atol=1e-12)
+
+
+_HYPOTHESIS_MODEL = make_model(MIXED_MEMBERS, "g")
+
+
+def test_single_member_has_zero_spread():
+    model = make_model([MemberSpec("tanh", 5)], "f")
+    _, std = model.predict(*sample_points())
+    np.testing.assert_array_equal(std, 0.0)
+
+
+def test_set_normalization_uses_input_and_residual_statistics():
+    trajs = [random_trajectory(20, N_STATE, N_INPUT, s) for s in (1, 2)]
+    kw = formulation_kwargs("nominal")
+    model = DynamicsEnsemble(EnsembleConfig(N_STATE, N_INPUT, formulation="nominal", **kw))
+    assert not model.is_normalized
+    model.set_normalization(trajs)
+    assert model.is_normalized
+    xu = np.concatenate([np.concatenate([t.x[:-1], t.u], 1) for t in trajs])
+    resid = np.concatenate([t.x[1:] for t in trajs]) - xu @ np.concatenate(
+        [kw["A0"], kw["B0"]], 1).T
+    np.testing.assert_allclose(model.in_mean.numpy(), xu.mean(0), rtol=1e-6)
+    np.testing.assert_allclose(model.in_std.numpy(), xu.std(0), rtol=1e-6)
+    np.testing.assert_allclose(model.out_mean.numpy(), resid.mean(0), rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(model.out_std.numpy(), resid.std(0), rtol=1e-6)
+    # a constant input dimension is not rescaled (std floor)
+    const = Trajectory(np.ones((5, N_STATE)), np.zeros((4, N_INPUT)))
+    model.set_normalization([const])
+    np.testing.assert_array_equal(model.in_std.numpy(), 1.0)
+    # normalize=False keeps the identity statistics (the original code's raw data)
+    raw = DynamicsEnsemble(EnsembleConfig(N_STATE, N_INPUT, normalize=False))
+    raw.set_normalization(trajs)
+    assert raw.is_normalized
+    np.testing.assert_array_equal(raw.in_std.numpy(), 1.0)
+    np.testing.assert_array_equal(raw.out_mean.numpy(), 0.0)
+
+
+def test_numpy_cache_follows_in_place_parameter_updates():
+    model = make_model(EnsembleConfig(1, 1).members, "g")
+    x, u = sample_points()
+    before = model.step(x, u)
+    with torch.no_grad():
+        model.groups[0].bo.add_(1.0)  # as an optimizer step would
+    after = model.step(x, u)
+    np.testing.assert_allclose(after - before, np.broadcast_to(model.out_std.numpy(), after.shape),
+                               rtol=1e-6)
+
+
+def test_same_seed_same_weights_different_seed_different_weights():
+    a, b, c = (DynamicsEnsemble(EnsembleConfig(N_STATE, N_INPUT, seed=s)) for s in (4, 4, 5))
+    for (na, pa), (_, pb), (_, pc) in zip(a.named_parameters(), b.named_parameters(),
+                                          c.named_parameters()):
+        torch.testing.assert_close(pa, pb, rtol=0, atol=0)
+        if na.endswith("W1"):
+            assert not torch.equal(pa, pc)
+    # glorot-uniform weights within +-sqrt(6 / (fan_in + fan_out)), zero biases
+    w1 = a.member_parameters(0)["W1"]
+    assert float(w1.abs().max()) <= np.sqrt(6 / (N_STATE + N_INPUT + 20))
+    assert float(a.member_parameters(0)["b1"].abs().max()) == 0.0
+
+
+def test_paper_nominal_default():
+    cfg = EnsembleConfig(4, 2)
+    assert [s.activation for s in cfg.members] == ["elu", "sigmoid", "tanh", "swish"]
+    assert all(s.width == 20 and s.depth == 1 for s in cfg.members)
+    assert cfg.formulation == "g"
+
+
+# ------------------------------------------------------------------------------------------
+# save / load
+# ------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("formulation", FORMULATIONS)
+def test_save_load_round_trip_is_identical(tmp_path, formulation):
+    model = make_model(MIXED_MEMBERS, formulation)
+    path = tmp_path / "model.pt"
+    save_model(model, path)
+    loaded = load_model(path)
+    assert loaded.config == model.config
+    assert loaded.is_normalized
+    x, u = sample_points()
+    np.testing.assert_array_equal(loaded.member_predictions(x, u), model.member_predictions(x, u))
+    for a, b in zip(loaded.member_jacobians(x, u), model.member_jacobians(x, u)):
+        np.testing.assert_array_equal(a, b)
+    assert not loaded.training
+
+
+def test_load_refuses_foreign_files(tmp_path):
+    path = tmp_path / "other.pt"
+    torch.save({"weights": torch.zeros(3)}, path)
+    with pytest.raises(ValueError, match="not a saved"):
+        load_model(path)
+
+    # an arbitrary pickled object (here a stdlib class outside torch's allow-list) is refused
+    torch.save({"format": "mbtsr.DynamicsEnsemble", "obj": Fraction(1, 3)}, path)
+    with pytest.raises(Exception, match="(?i)weights_only|unpickl|global"):
+        load_model(path)
+
+
+# ------------------------------------------------------------------------------------------
+# bad input
+# ------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    "kwargs, match",
+    [
+        ({"activation": "gelu"}, "activation"),
+        ({"width": 0}, "width"),
+        ({"width": 2.5}, "width"),
+        ({"depth": 3}, "depth"),
+        ({"dropout": 1.0}, "dropout"),
+        ({"dropout": -0.1}, "dropout"),
+        ({"dropout": float("nan")}, "dropout"),
+        ({"layer_norm": "yes"}, "layer_norm"),
+    ],
+)
+def test_member_spec_rejects_bad_values(kwargs, match):
+    with pytest.raises(ValueError, match=match):
+        MemberSpec(**kwargs)
+
+
+@pytest.mark.parametrize(
+    "kwargs, match",
+    [
+        ({"state_dim": 0}, "state_dim"),
+        ({"action_dim": -1}, "action_dim"),
+        ({"formulation": "h"}, "formulation"),
+        ({"formulation": "nominal"}, "A0"),
+        ({"formulation": "nominal", "A0": np.eye(2), "B0": np.zeros((3, 2))}, "A0"),
+        ({"formulation": "nominal", "A0": np.eye(3), "B0": np.full((3, 2), np.nan)}, "B0"),
+        ({"A0": np.eye(3), "B0": np.zeros((3, 2))}, "nominal"),
+        ({"formulation": "scaled", "tau": (1.0, 2.0)}, "tau"),
+        ({"formulation": "scaled", "tau": float("inf")}, "tau"),
+        ({"members": ()}, "members"),
+        ({"members": ("tanh",)}, "MemberSpec"),
+        ({"normalize": 1}, "normalize"),
+    ],
+)
+def test_ensemble_config_rejects_bad_values(kwargs, match):
+    base = {"state_dim": 3, "action_dim": 2}
+    with pytest.raises(ValueError, match=match):
+        EnsembleConfig(**{**base, **kwargs})
+
+
+def test_model_methods_reject_bad_inputs():
+    model = make_model(EnsembleConfig(1, 1).members, "g")
+    x, u = sample_points()
+    with pytest.raises(ValueError, match="x must have last dimension"):
+        model.step(x[:, :2], u)
+    with pytest.raises(ValueError, match="u must have last dimension"):
+        model.step(x, u[:, :1])
+    with pytest.raises(ValueError, match="batch"):
+        model.step(x, u[:3])
+    bad = x.copy()
+    bad[2, 1] = np.nan
+    with pytest.raises(ValueError, match="non-finite"):
+        model.step(bad, u)
+    with pytest.raises(ValueError, match="non-finite"):
+        model.jacobians(x, np.where(u > 0, np.inf, u))
+    with pytest.raises(ValueError, match="u must have shape"):
+        model.jacobians(x, u[:-1])
+    with pytest.raises(ValueError, match="x must have shape"):
+        model.member_jacobians(x[None], u)
+    with pytest.raises(ValueError, match="last dimension"):
+        model.forward_torch(torch.zeros(4, 3))
+    with pytest.raises(ValueError, match=r"\(n, m\)"):
+        model.set_normalization([random_trajectory(5, 2, 2, 0)])
+    with pytest.raises(ValueError, match="Trajectory"):
+        model.set_normalization([(x, u)])
+    with pytest.raises(ValueError, match="k must be"):
+        model.member_parameters(9)
