@@ -255,9 +255,12 @@ def violins(ax, groups: dict[str, np.ndarray], *, ylabel: str, title: str = "",
         ax.set_title(title)
     if annotate:
         lo, hi = ax.get_ylim()
+        ax.set_ylim(lo, hi + 0.12 * (hi - lo))  # room for the labels inside the axes
+        trans = ax.get_xaxis_transform()  # x in data, y in axes coordinates
         for i, k in enumerate(names):
             if k in annotate:
-                ax.text(pos[i], hi, annotate[k], ha="center", va="bottom", fontsize=8)
+                ax.text(pos[i], 0.98, annotate[k], ha="center", va="top", fontsize=8,
+                        transform=trans)
 
 
 def eigen_scatter(ax, learned: np.ndarray, true: np.ndarray | None, title: str) -> None:
