@@ -1,0 +1,348 @@
+"""Tests of mbtsr.training: real torch training on small random stable linear systems.
+
+Linear systems follow the paper's Algorithm 2 (A0 ~ N(0, 1), A = A0 - A0^T - dt I,
+Ad = expm(dt A), B = dt randn) and data the original code's recipe (a causal 5-tap moving
+average of 10 N(0, 1) inputs, measurement noise 0.01 on the training states), built here with
+numpy so the tests do not depend on ``envs``. References are independent: the objective's terms
+are recomputed from the float64 prediction/Jacobian path, and an optimizer step is recomputed
+with Adam's closed-form first step.
+"""
+
+import numpy as np
+import pytest
+import torch
+from scipy.linalg import expm
+
+from mbtsr import Trajectory
+from mbtsr.ensemble import DynamicsEnsemble, EnsembleConfig, MemberSpec
+from mbtsr.ltv import fit_ltv
+from mbtsr.metrics import jacobian_error, prediction_rms
+from mbtsr.training import RegularizationConfig, TrainConfig, TrainHistory, train_ensemble
+
+torch.set_num_threads(1)
+
+
+def random_stable_system(n, m, dt, seed):
+    rng = np.random.default_rng(seed)
+    A0 = rng.normal(size=(n, n))
+    A = A0 - A0.T - dt * np.eye(n)
+    return expm(dt * A), dt * rng.normal(size=(n, m))
+
+
+def linear_trajectory(A, B, T, seed, noise=0.01):
+    rng = np.random.default_rng(seed)
+    n, m = B.shape
+    w = 10 * rng.normal(size=(T + 4, m))
+    u = np.stack([w[t : t + 5].mean(0) for t in range(T)])  # causal 5-tap moving average
+    x = np.zeros((T + 1, n))
+    x[0] = rng.normal(size=n)
+    for t in range(T):
+        x[t + 1] = A @ x[t] + B @ u[t]
+    return Trajectory(x + noise * rng.normal(size=x.shape), u)
+
+
+QUIET = {"progress": False}
+
+
+def small_model(n=3, m=2, seed=0, **kw):
+    members = kw.pop("members", (MemberSpec("tanh", 8), MemberSpec("elu", 6, 2)))
+    return DynamicsEnsemble(EnsembleConfig(n, m, members=members, seed=seed, **kw))
+
+
+# ------------------------------------------------------------------------------------------
+# the paper's claim on a random stable linear system
+# ------------------------------------------------------------------------------------------
+
+
+def test_tangent_space_regularization_lowers_jacobian_error_on_linear_system():
+    """Few short noisy trajectories and long training: the unregularized nominal ensemble
+    overfits; sampled Jacobian propagation (paper settings: one copy, sigma 0.1, weight 1) and the
+    exact penalty (weight 1) both give a lower paper Jacobian error (eq. (jacerr)) along a held-out
+    noise-free trajectory. Measured: none 0.0351, sampled 0.0301, exact 0.0166 (also seeds 1-4:
+    sampled/none 0.75-0.86, exact/none 0.22-0.47)."""
+    n, m, dt = 4, 2, 0.02
+    A, B = random_stable_system(n, m, dt, seed=0)
+    train = [linear_trajectory(A, B, 100, seed=s) for s in (0, 1)]
+    val = linear_trajectory(A, B, 200, seed=50, noise=0.0)
+    J_true = np.broadcast_to(np.concatenate([A, B], 1), (val.T, n, n + m))
+    errors, histories = {}, {}
+    for name, reg in [
+        ("none", RegularizationConfig()),
+        ("sampled", RegularizationConfig.paper()),
+        ("exact", RegularizationConfig(exact_weight=1.0)),
+    ]:
+        model = DynamicsEnsemble(EnsembleConfig(n, m, seed=0))  # the paper's nominal g ensemble
+        histories[name] = train_ensemble(model, train, TrainConfig(epochs=1000, **QUIET), reg)
+        errors[name] = jacobian_error(J_true, model.member_jacobians(val.x[:-1], val.u))
+    print("Jacobian errors:", {k: round(v, 4) for k, v in errors.items()})
+    assert errors["sampled"] < 0.95 * errors["none"]
+    assert errors["exact"] < 0.75 * errors["none"]
+    # the LTV models used as regularizers are better than the unregularized network
+    ltv = histories["exact"].ltv_models[0]
+    assert jacobian_error(J_true[: ltv.T], (ltv.A, ltv.B)) < errors["none"]
+    # the regularized models fit the training data less closely (paper Sec. "Randomized
+    # linear system": the unregularized model reaches a lower training error)
+    assert histories["none"].train_loss[-1] < histories["exact"].train_loss[-1]
+
+
+def test_training_learns_the_linear_system():
+    n, m, dt = 3, 2, 0.05
+    A, B = random_stable_system(n, m, dt, seed=3)
+    train = [linear_trajectory(A, B, 100, seed=s, noise=0.0) for s in (0, 1, 2)]
+    val = [linear_trajectory(A, B, 100, seed=9, noise=0.0)]
+    model = small_model(n, m)
+    before = prediction_rms(model, val)
+    hist = train_ensemble(model, train, TrainConfig(epochs=300, **QUIET), validation=val)
+    after = prediction_rms(model, val)
+    hold = np.sqrt(np.mean((val[0].x[1:] - val[0].x[:-1]) ** 2))  # "x+ = x" predictor
+    assert after < 0.1 * hold and after < 0.1 * before
+    assert hist.val_loss[-1] < 0.05 * hist.val_loss[0]
+    assert hist.train_loss.shape == hist.val_loss.shape == (300,)
+    assert hist.steps == 300 * 3
+
+
+# ------------------------------------------------------------------------------------------
+# the objective's terms, recomputed independently
+# ------------------------------------------------------------------------------------------
+
+
+def normalized_sq_error(model, x, u, x_next):
+    """Mean over members and points of ||(pred - x+) / out_std||^2 (float64 path)."""
+    pred = model.member_predictions(x, u)
+    return float(np.mean(np.sum(((pred - x_next) / model.out_std.numpy()) ** 2, -1)))
+
+
+@pytest.mark.parametrize("batch", ["trajectory", "all"])
+def test_recorded_losses_and_penalties_match_independent_computation(batch):
+    """One optimizer step with a negligible step size, so every recorded term is the value at the
+    initial weights; recomputed from the float64 predictions and Jacobians. Two trajectories:
+    the smoothness pairs must not cross the trajectory boundary."""
+    n, m = 3, 2
+    A, B = random_stable_system(n, m, 0.1, seed=1)
+    trajs = [linear_trajectory(A, B, 30, seed=s, noise=0.05) for s in (0, 1)]
+    ltv = [fit_ltv(tr, 3.0) for tr in trajs]
+    model = small_model(n, m)
+    model.set_normalization(trajs)
+    reg = RegularizationConfig(sampled_weight=1.0, sigma=0.3, n_copies=2, exact_weight=0.5,
+                               smooth_weight=2.0)
+    cfg = TrainConfig(epochs=1, lr=1e-12, batch="trajectory" if batch == "trajectory" else 60,
+                      shuffle=False, seed=11, **QUIET)
+
+    data = np.mean([normalized_sq_error(model, tr.x[:-1], tr.u, tr.x[1:]) for tr in trajs])
+    exact, smooth = [], []
+    for tr, lm in zip(trajs, ltv):
+        Ah, Bh = model.member_jacobians(tr.x[:-1], tr.u)
+        J = np.concatenate([Ah, Bh], -1)  # [K, T, n, n+m]
+        J_ltv = np.concatenate([lm.A, lm.B], -1)
+        exact.append(np.mean(np.sum((J - J_ltv) ** 2, axis=(1, 2, 3))))
+        smooth.append(np.mean(np.sum((J[:, 1:] - J[:, :-1]) ** 2, axis=(1, 2, 3))))
+    rng = np.random.default_rng(11)  # the same stream train_ensemble draws the copies from
+    copies = [lm.sample_perturbed(tr.x, tr.u, sigma=0.3, n_copies=2, seed=rng)
+              for lm, tr in zip(ltv, trajs)]
+    sampled = [normalized_sq_error(model, xt, ut, xnt) for xt, ut, xnt in copies]
+
+    hist = train_ensemble(model, trajs, cfg, reg, ltv_models=ltv)
+    assert hist.steps == (2 if batch == "trajectory" else 1)
+    np.testing.assert_allclose(hist.train_loss[0], data, rtol=1e-4)
+    np.testing.assert_allclose(hist.penalties["exact"][0], np.mean(exact), rtol=1e-4)
+    np.testing.assert_allclose(hist.penalties["smooth"][0], np.mean(smooth), rtol=1e-4)
+    np.testing.assert_allclose(hist.penalties["sampled"][0], np.mean(sampled), rtol=1e-4)
+
+
+@pytest.mark.parametrize("decoupled", [False, True])
+def test_one_step_equals_closed_form_adam_with_weight_decay_on_weights_only(decoupled):
+    """Adam's first step is ``p - lr * g / (|g| + eps)`` (bias corrections cancel). Coupled L2
+    adds ``wd * W`` to the gradient of weight matrices; decoupled (AdamW) shrinks ``W`` by
+    ``lr * wd * W`` first. Biases are never decayed. The gradient is taken here by autograd of
+    the objective written from the public forward pass."""
+    n, m = 3, 2
+    A, B = random_stable_system(n, m, 0.1, seed=2)
+    tr = linear_trajectory(A, B, 25, seed=0)
+    model = small_model(n, m, members=(MemberSpec("sigmoid", 5), MemberSpec("swish", 4, 2)))
+    model.set_normalization([tr])
+    with torch.no_grad():  # nonzero biases, so decaying them would show
+        for p in model.parameters():
+            p.add_(0.1 * torch.randn(p.shape, generator=torch.Generator().manual_seed(3)))
+    lr, wd, eps = 1e-3, 0.7, 1.0  # a large eps makes the step depend on the gradient size
+
+    start = {k: v.detach().clone() for k, v in model.named_parameters()}
+    xu = torch.tensor(np.concatenate(tr.inputs, 1), dtype=torch.float32)
+    target = torch.tensor(tr.targets, dtype=torch.float32)
+    pred = model.forward_torch(xu)
+    loss = (((pred - target) / model.out_std) ** 2).sum(-1).mean(-1).sum()
+    grads = dict(zip(start, torch.autograd.grad(loss, list(model.parameters()))))
+
+    train_ensemble(model, [tr], TrainConfig(epochs=1, lr=lr, weight_decay=wd,
+                                            decoupled_weight_decay=decoupled, adam_eps=eps,
+                                            **QUIET))
+    for name, p in model.named_parameters():
+        is_weight = name.rsplit(".", 1)[-1] in ("W1", "W2", "Wo")
+        g, p0 = grads[name], start[name]
+        if is_weight and not decoupled:
+            g = g + wd * p0
+        expected = p0 - lr * g / (g.abs() + eps)
+        if is_weight and decoupled:
+            expected = expected - lr * wd * p0
+        torch.testing.assert_close(p.detach(), expected, rtol=1e-5, atol=1e-6, msg=name)
+
+
+def test_validation_loss_matches_independent_computation():
+    n, m = 3, 2
+    A, B = random_stable_system(n, m, 0.1, seed=4)
+    train = [linear_trajectory(A, B, 40, seed=s) for s in (0, 1)]
+    val = [linear_trajectory(A, B, 30, seed=s, noise=0.0) for s in (5, 6)]
+    model = small_model(n, m)
+    hist = train_ensemble(model, train, TrainConfig(epochs=5, **QUIET), validation=val)
+    x = np.concatenate([v.x[:-1] for v in val])
+    u = np.concatenate([v.u for v in val])
+    x_next = np.concatenate([v.x[1:] for v in val])
+    np.testing.assert_allclose(hist.val_loss[-1], normalized_sq_error(model, x, u, x_next),
+                               rtol=1e-4)
+
+
+# ------------------------------------------------------------------------------------------
+# warm start, resume, reproducibility
+# ------------------------------------------------------------------------------------------
+
+
+def test_resuming_with_optimizer_state_equals_continuous_training():
+    n, m = 3, 2
+    A, B = random_stable_system(n, m, 0.1, seed=5)
+    trajs = [linear_trajectory(A, B, 30, seed=s) for s in (0, 1)]
+    cfg = dict(batch="trajectory", shuffle=False, **QUIET)
+    a = small_model(n, m)
+    train_ensemble(a, trajs, TrainConfig(epochs=20, **cfg))
+    b = small_model(n, m)
+    h1 = train_ensemble(b, trajs, TrainConfig(epochs=12, **cfg))
+    train_ensemble(b, trajs, TrainConfig(epochs=8, **cfg), optimizer_state=h1.optimizer_state)
+    for (name, pa), (_, pb) in zip(a.named_parameters(), b.named_parameters()):
+        torch.testing.assert_close(pa, pb, rtol=1e-6, atol=1e-7, msg=name)
+    # without the optimizer state the run differs (Adam restarts)
+    c = small_model(n, m)
+    train_ensemble(c, trajs, TrainConfig(epochs=12, **cfg))
+    train_ensemble(c, trajs, TrainConfig(epochs=8, **cfg))
+    assert not torch.allclose(a.groups[0].W1, c.groups[0].W1, atol=1e-6)
+
+
+def test_warm_start_on_grown_data_keeps_normalization():
+    n, m = 3, 2
+    A, B = random_stable_system(n, m, 0.1, seed=6)
+    t1, t2 = (linear_trajectory(A, B, 30, seed=s) for s in (0, 1))
+    model = small_model(n, m)
+    h1 = train_ensemble(model, [t1], TrainConfig(epochs=3, **QUIET), RegularizationConfig.paper())
+    stats = model.in_mean.clone()
+    h2 = train_ensemble(model, [t1, t2], TrainConfig(epochs=3, **QUIET),
+                        RegularizationConfig.paper(), optimizer_state=h1.optimizer_state)
+    torch.testing.assert_close(model.in_mean, stats, rtol=0, atol=0)
+    assert h2.steps == 6 and len(h2.ltv_models) == 2
+    assert h2.optimizer_state["state"][0]["step"] == 3 + 6
+
+
+def test_same_seed_same_result_with_every_random_component():
+    n, m = 3, 2
+    A, B = random_stable_system(n, m, 0.1, seed=7)
+    trajs = [linear_trajectory(A, B, 30, seed=s) for s in (0, 1)]
+    members = (MemberSpec("tanh", 8, dropout=0.2), MemberSpec("relu", 6, 2))
+    reg = RegularizationConfig(sampled_weight=1.0, n_copies=2, smooth_weight=0.1)
+
+    def run(seed):
+        model = small_model(n, m, members=members)
+        train_ensemble(model, trajs, TrainConfig(epochs=4, batch=16, seed=seed, **QUIET), reg)
+        return model.groups[0].W1.detach().clone()
+
+    torch.testing.assert_close(run(1), run(1), rtol=0, atol=0)
+    assert not torch.equal(run(1), run(2))
+
+
+def test_explicit_ltv_models_equal_fitted_ones():
+    n, m = 3, 2
+    A, B = random_stable_system(n, m, 0.1, seed=8)
+    trajs = [linear_trajectory(A, B, 30, seed=s) for s in (0, 1)]
+    reg = RegularizationConfig.paper(exact_weight=0.1, ltv_lambda=5.0)
+    a, b = small_model(n, m), small_model(n, m)
+    ha = train_ensemble(a, trajs, TrainConfig(epochs=3, **QUIET), reg)
+    train_ensemble(b, trajs, TrainConfig(epochs=3, **QUIET), reg,
+                   ltv_models=[fit_ltv(tr, 5.0) for tr in trajs])
+    torch.testing.assert_close(a.groups[0].W1, b.groups[0].W1, rtol=0, atol=0)
+    assert isinstance(ha, TrainHistory) and set(ha.penalties) == {"sampled", "exact"}
+
+
+def test_progress_bar_and_zero_epochs(capsys):
+    n, m = 3, 2
+    A, B = random_stable_system(n, m, 0.1, seed=9)
+    tr = linear_trajectory(A, B, 20, seed=0)
+    model = small_model(n, m)
+    hist = train_ensemble(model, [tr], TrainConfig(epochs=2, progress=True))
+    assert "train_ensemble" in capsys.readouterr().err
+    hist = train_ensemble(model, [tr], TrainConfig(epochs=0, **QUIET))
+    assert hist.steps == 0 and hist.train_loss.shape == (0,)
+
+
+# ------------------------------------------------------------------------------------------
+# bad input
+# ------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    "kwargs, match",
+    [
+        ({"epochs": -1}, "epochs"),
+        ({"epochs": 2.5}, "epochs"),
+        ({"lr": 0.0}, "lr"),
+        ({"lr": float("nan")}, "lr"),
+        ({"batch": "episode"}, "batch"),
+        ({"batch": 0}, "batch"),
+        ({"weight_decay": -1e-3}, "weight_decay"),
+        ({"betas": (0.9, 1.0)}, "betas"),
+        ({"adam_eps": 0.0}, "adam_eps"),
+        ({"seed": "a"}, "seed"),
+    ],
+)
+def test_train_config_rejects_bad_values(kwargs, match):
+    with pytest.raises(ValueError, match=match):
+        TrainConfig(**kwargs)
+
+
+@pytest.mark.parametrize(
+    "kwargs, match",
+    [
+        ({"sampled_weight": -1.0}, "sampled_weight"),
+        ({"exact_weight": float("nan")}, "exact_weight"),
+        ({"smooth_weight": -0.1}, "smooth_weight"),
+        ({"sigma": -0.1}, "sigma"),
+        ({"n_copies": 0}, "n_copies"),
+        ({"ltv_lambda": -2.0}, "ltv_lambda"),
+    ],
+)
+def test_regularization_config_rejects_bad_values(kwargs, match):
+    with pytest.raises(ValueError, match=match):
+        RegularizationConfig(**kwargs)
+
+
+def test_train_ensemble_rejects_bad_inputs():
+    n, m = 3, 2
+    A, B = random_stable_system(n, m, 0.1, seed=10)
+    tr = linear_trajectory(A, B, 20, seed=0)
+    model = small_model(n, m)
+    cfg = TrainConfig(epochs=1, **QUIET)
+    with pytest.raises(ValueError, match="non-empty"):
+        train_ensemble(model, [], cfg)
+    with pytest.raises(ValueError, match="Trajectory"):
+        train_ensemble(model, [(tr.x, tr.u)], cfg)
+    with pytest.raises(ValueError, match=r"\(n, m\)"):
+        train_ensemble(model, [Trajectory(np.zeros((5, 2)), np.zeros((4, 2)))], cfg)
+    with pytest.raises(ValueError, match="validation"):
+        train_ensemble(model, [tr], cfg, validation=[tr.x])
+    with pytest.raises(ValueError, match="non-finite"):
+        Trajectory(np.where(tr.x > 1, np.nan, tr.x), tr.u)  # NaN data never reach training
+    with pytest.raises(ValueError, match="one LTV model per training trajectory"):
+        train_ensemble(model, [tr], cfg, RegularizationConfig.paper(), ltv_models=[])
+    short = fit_ltv(Trajectory(tr.x[:11], tr.u[:10]), 1.0)
+    with pytest.raises(ValueError, match="needs at least"):
+        train_ensemble(model, [tr], cfg, RegularizationConfig.paper(), ltv_models=[short])
+    with pytest.raises(ValueError, match="optimizer_state"):
+        train_ensemble(model, [tr], cfg, optimizer_state={"state": {}, "param_groups": []})
+    with pytest.raises(ValueError, match="config must be a TrainConfig"):
+        train_ensemble(model, [tr], {"epochs": 1})
+    with pytest.raises(ValueError, match="model must be a DynamicsEnsemble"):
+        train_ensemble(torch.nn.Linear(2, 2), [tr], cfg)
