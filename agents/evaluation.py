@@ -109,8 +109,11 @@ def run_episode(
     while max_steps is None or t < max_steps:
         tic = time.perf_counter()
         a = np.clip(np.asarray(act(obs_list[-1], t), dtype=float), low, high)
+        # record exactly what the env receives (the action space's dtype, e.g. float32)
+        a_env = a.astype(env.action_space.dtype)
+        a = a_env.astype(float)
         tac = time.perf_counter()
-        obs, reward, terminated, truncated, info = env.step(a.astype(env.action_space.dtype))
+        obs, reward, terminated, truncated, info = env.step(a_env)
         t_env += time.perf_counter() - tac
         t_policy += tac - tic
         obs_list.append(np.asarray(obs, dtype=float))

@@ -338,9 +338,11 @@ class JacPropAgent:
         ep = self.episodes_done
         t_start = time.perf_counter()
         # every random draw of this episode derives from the agent's generator
-        reset_seed, signal_seed, perturb_seed, train_seed = (
+        reset_seed, signal_seed, train_seed, torch_seed = (
             int(s) for s in self.rng.integers(0, 2**31 - 1, size=4)
         )
+        # anything that draws from torch's global generator is reproducible per episode
+        torch.manual_seed(torch_seed)
         excitation = ep < cfg.n_excitation_episodes
         T = spec.episode_steps
         render = cfg.video and cfg.run_dir is not None and ep % cfg.video_every == 0
@@ -388,7 +390,7 @@ class JacPropAgent:
 
         # (c) + (d) regularised warm-started update on all data --------------------------------
         tic = time.perf_counter()
-        history = self._train(train_seed, perturb_seed)
+        history = self._train(train_seed)
         time_training = time.perf_counter() - tic
 
         # evaluation: the MPC policy on the updated model vs the oracle ------------------------
@@ -450,10 +452,10 @@ class JacPropAgent:
             lam, _ = select_lambda(traj)
         return float(lam)
 
-    def _train(self, train_seed: int, perturb_seed: int):
+    def _train(self, train_seed: int):
         from mbtsr.training import train_ensemble
 
-        tcfg, reg = self._train_configs(train_seed, perturb_seed)
+        tcfg, reg = self._train_configs(train_seed)
         history = train_ensemble(
             self.model,
             self.trajectories,
@@ -465,7 +467,9 @@ class JacPropAgent:
         self.optimizer_state = history.optimizer_state
         return history
 
-    def _train_configs(self, train_seed: int = 0, perturb_seed: int = 0):
+    def _train_configs(self, train_seed: int = 0):
+        """The :class:`~mbtsr.training.TrainConfig` (its seed drives batch order and the
+        perturbation draws) and :class:`~mbtsr.training.RegularizationConfig` of an update."""
         from mbtsr.training import RegularizationConfig, TrainConfig
 
         cfg = self.config

@@ -98,7 +98,8 @@ def parse(argv: list[str] | None = None):
     """``(args, agent_overrides)``: the script's Args and the AgentConfig fields the user set."""
     from agents.config import AgentConfig
 
-    ns = {k: v for k, v in vars(build_parser().parse_args(argv)).items() if v is not None}
+    parser = build_parser()
+    ns = {k: v for k, v in vars(parser.parse_args(argv)).items() if v is not None}
     script = {f.name for f in dataclasses.fields(Args)}
     args = Args(**{k: v for k, v in ns.items() if k in script})
     overrides = {**SCRIPT_AGENT_DEFAULTS,
@@ -108,7 +109,12 @@ def parse(argv: list[str] | None = None):
             overrides[k] = None
     if "activations" in overrides:
         overrides["activations"] = tuple(overrides["activations"])
-    AgentConfig(**overrides)  # fail fast with the config's own message on a bad flag
+    try:
+        AgentConfig(**overrides)  # fail fast with the config's own message on a bad flag
+    except (TypeError, ValueError) as err:
+        parser.error(str(err))
+    if args.episodes < 1:
+        parser.error(f"--episodes must be >= 1, got {args.episodes}")
     return args, overrides
 
 
@@ -122,30 +128,28 @@ def main(argv: list[str] | None = None) -> dict:
 
     # 1. arguments --------------------------------------------------------------------------
     args, overrides = parse(argv)
-    if args.episodes < 1:
-        raise SystemExit(f"--episodes must be >= 1, got {args.episodes}")
     cfg_preview = AgentConfig(**overrides)
     run_dir = Path(args.run_dir or (
         REPO / "runs" / "train_agent" /
         f"{args.env_id.replace('/', '_')}_{cfg_preview.regularization}_"
         f"{cfg_preview.formulation}_seed{cfg_preview.seed}"))
     checkpoint = run_dir / "checkpoint.pt"
+    if args.resume and not checkpoint.is_file():
+        raise SystemExit(f"--resume: no checkpoint at {checkpoint}")
+    if not args.resume and checkpoint.exists():
+        raise SystemExit(
+            f"{checkpoint} exists: pass --resume to continue it or choose another --run-dir"
+        )
 
     # 2. the env and the agent (fresh, or restored from the checkpoint) ----------------------
     env, _ = make_env(args.env_id, render_mode="rgb_array") if cfg_preview.video else \
         make_env(args.env_id)
     if args.resume:
-        if not checkpoint.is_file():
-            raise SystemExit(f"--resume: no checkpoint at {checkpoint}")
         agent = JacPropAgent.load(checkpoint, env=env, run_dir=str(run_dir))
         if overrides:
             print(f"--resume: the checkpoint's config is used; ignoring {sorted(overrides)}")
         print(f"resuming {run_dir} after episode {agent.episodes_done}")
     else:
-        if checkpoint.exists():
-            raise SystemExit(
-                f"{checkpoint} exists: pass --resume to continue it or choose another --run-dir"
-            )
         agent = JacPropAgent(env, AgentConfig(**{**overrides, "run_dir": str(run_dir)}))
     atomic_write_text(run_dir / "config.json", json.dumps(
         {"script": dataclasses.asdict(args), "command": " ".join(sys.argv),

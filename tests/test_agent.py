@@ -1,0 +1,462 @@
+"""Tests of the Algorithm-1 agent (agents/): config, task/cost compilation, checkpoints, the
+per-episode log, the evaluation protocol, tiny real learning runs on the two-link arm and on
+Gymnasium's Pendulum-v1, save/load, and (slow) actually solving the arm.
+
+Everything runs for real: MuJoCo, CasADi, torch training, iLQR. Budgets are tiny so that the
+default (non-slow) tests of this file take well under a minute on 2 cores.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+import os
+
+import casadi as ca
+import gymnasium as gym
+import numpy as np
+import pytest
+import torch
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+import envs  # noqa: F401  (registers mbtsr/TwoLinkArm-v0)
+from agents.checkpoint import (
+    atomic_write_bytes,
+    load_checkpoint,
+    numpy_rng_state,
+    save_checkpoint,
+    set_numpy_rng_state,
+)
+from agents.config import AgentConfig
+from agents.episode_log import LOG_COLUMNS, EpisodeLog
+from agents.evaluation import (
+    evaluate_policy_costs,
+    evaluation_targets,
+    oracle_policy,
+    run_episode,
+    solved_threshold,
+)
+from agents.jacprop_agent import JacPropAgent
+from agents.planner import PlannerCosts
+from agents.task import ObservationCost, default_task_for_env, env_spec
+from mbtsr.ensemble import load_model
+from mbtsr.metrics import prediction_rms
+from mbtsr.trajectory import Trajectory, load_trajectories
+
+ARM = "mbtsr/TwoLinkArm-v0"
+
+torch.set_num_threads(1)
+
+
+def tiny_config(**overrides) -> AgentConfig:
+    """A configuration that runs an episode in about a second."""
+    base = dict(
+        n_excitation_episodes=1,
+        episode_steps=30,
+        ensemble_size=2,
+        hidden_width=16,
+        epochs_per_episode=30,
+        batch_size=64,
+        horizon=8,
+        ilqr_iterations=1,
+        first_plan_iterations=5,
+        eval_every=0,
+        progress=False,
+        tensorboard=False,
+        torch_threads=1,
+        ltv_lambda=2.0,
+    )
+    base.update(overrides)
+    return AgentConfig(**base)
+
+
+def pendulum_cost(obs, action):
+    """Pendulum-v1 swing-up cost on the observation [cos th, sin th, th_dot]."""
+    return 2.0 * (1.0 - obs[0]) + 0.1 * obs[2] ** 2 + 0.001 * ca.sumsqr(action)
+
+
+def heldout_trajectories(env_id: str, state_fn, seeds, T: int, scale: float) -> list[Trajectory]:
+    """Excitation trajectories from resets the agent never sees (for model-error checks)."""
+    env = gym.make(env_id)
+    out = []
+    for s in seeds:
+        rng = np.random.default_rng(s)
+        low, high = env.action_space.low, env.action_space.high
+        U = np.clip(scale * (high - low) / 2 * rng.standard_normal((T, low.size)), low, high)
+        rec = run_episode(env, lambda o, t, U=U: U[t], seed=s, max_steps=T)
+        out.append(Trajectory(state_fn(rec.obs), rec.actions))
+    env.close()
+    return out
+
+
+# ---------------------------------------------------------------------------------- config
+INT_FIELDS = {
+    "n_excitation_episodes": 1, "ensemble_size": 1, "hidden_width": 1, "epochs_per_episode": 1,
+    "horizon": 2, "ilqr_iterations": 1, "first_plan_iterations": 1, "eval_episodes": 1,
+    "n_perturbed_copies": 1, "excitation_window": 1, "video_every": 1, "batch_size": 0,
+    "eval_every": 0, "seed": 0, "eval_seed": 0, "torch_threads": 0,
+}
+
+
+@settings(max_examples=40, deadline=None)
+@given(field=st.sampled_from(sorted(INT_FIELDS)), delta=st.integers(1, 10**6))
+def test_config_rejects_integers_below_their_minimum(field, delta):
+    with pytest.raises(ValueError, match=field):
+        AgentConfig(**{field: INT_FIELDS[field] - delta})
+
+
+@settings(max_examples=30, deadline=None)
+@given(
+    field=st.sampled_from(["lr", "perturbation_sigma", "excitation_scale", "solved_ratio",
+                           "exploration_std", "weight_decay", "terminal_weight"]),
+    value=st.one_of(st.just(math.nan), st.just(math.inf), st.floats(-1e6, -1e-9)),
+)
+def test_config_rejects_bad_floats(field, value):
+    with pytest.raises(ValueError, match=field):
+        AgentConfig(**{field: value})
+
+
+@pytest.mark.parametrize(
+    "field, value",
+    [("regularization", "jacprop"), ("formulation", "h"), ("excitation", "chirp"),
+     ("ltv_lambda", "best"), ("ltv_lambda", 0.0), ("hidden_layers", 3),
+     ("activations", ("tanh", "nope")), ("activations", ()), ("excitation_scale", 1.5),
+     ("solved_ratio", 0.9)],
+)
+def test_config_rejects_bad_choices(field, value):
+    with pytest.raises(ValueError, match=field):
+        AgentConfig(**{field: value})
+
+
+def test_config_round_trips_through_json_and_rejects_unknown_keys():
+    cfg = AgentConfig(regularization="exact", activations=("tanh",), ltv_lambda=3.0, seed=7)
+    again = AgentConfig.from_dict(json.loads(cfg.to_json()))
+    assert again == cfg
+    with pytest.raises(ValueError, match="unknown AgentConfig field"):
+        AgentConfig.from_dict({**cfg.to_dict(), "nonsense": 1})
+
+
+# ---------------------------------------------------------------------- construction errors
+class _UnboundedActionEnv(gym.Env):
+    observation_space = gym.spaces.Box(-1.0, 1.0, (2,))
+    action_space = gym.spaces.Box(-np.inf, np.inf, (1,))
+
+    def reset(self, *, seed=None, options=None):
+        return np.zeros(2, dtype=np.float32), {}
+
+    def step(self, action):
+        return np.zeros(2, dtype=np.float32), 0.0, False, False, {}
+
+
+def test_construction_rejects_non_box_spaces_and_unbounded_actions():
+    with pytest.raises(ValueError, match="action_space must be a gymnasium.spaces.Box"):
+        JacPropAgent(gym.make("CartPole-v1"), tiny_config(),
+                     cost_fn=lambda o, a: ca.sumsqr(o))
+    with pytest.raises(ValueError, match="observation_space must be a gymnasium.spaces.Box"):
+        JacPropAgent(gym.make("FrozenLake-v1"), tiny_config(), cost_fn=lambda o, a: o)
+    with pytest.raises(ValueError, match="bounded"):
+        JacPropAgent(_UnboundedActionEnv(), tiny_config(episode_steps=10),
+                     cost_fn=lambda o, a: ca.sumsqr(o))
+    with pytest.raises(TypeError, match="gymnasium.Env"):
+        JacPropAgent("Pendulum-v1", tiny_config(), cost_fn=pendulum_cost)
+    with pytest.raises(TypeError, match="AgentConfig"):
+        JacPropAgent(gym.make("Pendulum-v1"), {"horizon": 5}, cost_fn=pendulum_cost)
+
+
+@pytest.mark.parametrize(
+    "cost_fn, message",
+    [
+        (lambda o, a: o[5] ** 2 + ca.sumsqr(a), "cost_fn.*dimension 3"),  # obs has 3 entries
+        (lambda o, a: ca.mtimes(ca.DM.eye(4), o), "cost_fn.*dimension 3"),  # 4x4 weight
+        (lambda o, a: ca.sumsqr(o) + a[1], "cost_fn.*action of dimension 1"),
+        (lambda o, a: o * 2.0, "scalar"),
+        (lambda o, a: 3.0, "does not depend"),
+        ("not callable", "callable"),
+    ],
+)
+def test_construction_rejects_costs_that_do_not_fit_the_env(cost_fn, message):
+    with pytest.raises((ValueError, TypeError), match=message):
+        JacPropAgent(gym.make("Pendulum-v1"), tiny_config(), cost_fn=cost_fn)
+
+
+def test_construction_rejects_missing_cost_bad_maps_and_video_without_rgb():
+    env = gym.make("Pendulum-v1")
+    with pytest.raises(ValueError, match="cost_fn is required"):
+        JacPropAgent(env, tiny_config())
+    with pytest.raises(ValueError, match="without obs_fn"):
+        JacPropAgent(env, tiny_config(), cost_fn=pendulum_cost,
+                     state_fn=lambda o: np.arctan2(o[..., 1], o[..., 0])[..., None])
+    with pytest.raises(ValueError, match="obs_fn"):
+        JacPropAgent(env, tiny_config(), cost_fn=pendulum_cost,
+                     state_fn=lambda o: o[..., :2], obs_fn=lambda s, ref: s)  # 2 != 3 entries
+    with pytest.raises(ValueError, match="rgb_array"):
+        JacPropAgent(gym.make(ARM), tiny_config(video=True, run_dir="/tmp/unused"))
+
+
+# ------------------------------------------------------------------------- task and costs
+def test_arm_default_cost_equals_minus_the_env_reward():
+    """The built-in cost c(obs_{t+1}, a_t) reproduces the env's own reward exactly."""
+    env = gym.make(ARM)
+    cost_fn, state_map = default_task_for_env(env)
+    spec = env_spec(env)
+    task = ObservationCost(cost_fn, state_map, spec, state_dim=4)
+    rng = np.random.default_rng(0)
+    U = rng.uniform(-1.0, 1.0, (50, 2))
+    rec = run_episode(env, lambda o, t: U[t], seed=3, max_steps=50)
+    np.testing.assert_allclose(task.on_observations(rec.obs[1:], rec.actions), -rec.rewards,
+                               rtol=1e-12, atol=1e-12)
+    np.testing.assert_array_equal(state_map.state(rec.obs), rec.states)
+
+
+@settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(data=st.data())
+def test_planner_cost_matches_numpy_formula_and_depends_only_on_the_target(data):
+    env = gym.make(ARM)
+    cost_fn, state_map = default_task_for_env(env)
+    task = ObservationCost(cost_fn, state_map, env_spec(env), state_dim=4)
+    costs = PlannerCosts(task, terminal_weight=2.0)
+    np.testing.assert_array_equal(costs.context_index, [4, 5])
+    f = st.floats(-3.0, 3.0)
+    x = np.array(data.draw(st.lists(f, min_size=4, max_size=4)))
+    u = np.array(data.draw(st.lists(st.floats(-1, 1), min_size=2, max_size=2)))
+    ref = np.array(data.draw(st.lists(f, min_size=6, max_size=6)))
+    Q, R = env.unwrapped.cost_Q, env.unwrapped.cost_R
+    e = x - np.r_[ref[4:], 0.0, 0.0]
+    c = costs(ref)
+    assert c.stage_values(x[None], u[None])[0] == pytest.approx(e @ Q @ e + u @ R @ u, rel=1e-12)
+    assert c.terminal_values(x, 0) == pytest.approx(2.0 * e @ Q @ e, rel=1e-12)
+    ref2 = ref.copy()
+    ref2[:4] += 1.0  # the state part of the reference does not matter: same cached cost
+    assert costs(ref2) is c
+
+
+# ------------------------------------------------------------------------------ checkpoints
+def test_checkpoint_round_trip_restores_rng_streams_and_arrays(tmp_path):
+    rng = np.random.default_rng(123)
+    rng.standard_normal(5)
+    torch_state = torch.get_rng_state()
+    payload = {"rng": numpy_rng_state(rng), "torch_rng": torch_state,
+               "x": np.arange(6.0).reshape(2, 3), "nested": {"l": [1, 2.5, "s"], "n": None}}
+    save_checkpoint(tmp_path / "c.pt", payload)
+    expected = rng.standard_normal(4)
+    loaded = load_checkpoint(tmp_path / "c.pt")
+    other = set_numpy_rng_state(np.random.default_rng(0), loaded["rng"])
+    np.testing.assert_array_equal(other.standard_normal(4), expected)
+    np.testing.assert_array_equal(loaded["x"].numpy(), payload["x"])
+    assert torch.equal(loaded["torch_rng"], torch_state)
+    assert loaded["nested"] == payload["nested"]
+
+
+def test_atomic_write_keeps_the_old_file_when_the_rename_fails(tmp_path, monkeypatch):
+    path = tmp_path / "f.bin"
+    atomic_write_bytes(path, b"old")
+
+    def boom(src, dst):
+        raise OSError("simulated crash before the rename")
+
+    monkeypatch.setattr(os, "replace", boom)
+    with pytest.raises(OSError):
+        atomic_write_bytes(path, b"new")
+    assert path.read_bytes() == b"old"
+
+
+def test_load_checkpoint_rejects_other_files(tmp_path):
+    torch.save({"weights": torch.zeros(2)}, tmp_path / "other.pt")
+    with pytest.raises(ValueError, match="not an agent checkpoint"):
+        load_checkpoint(tmp_path / "other.pt")
+    with pytest.raises(FileNotFoundError):
+        load_checkpoint(tmp_path / "missing.pt")
+
+
+def test_episode_log_writes_exact_csv_and_rewrites_it_on_resume(tmp_path):
+    rows = [{"episode": i, "phase": "mpc", "episode_cost": 1.0 / 3.0 + i, "solved": i == 1}
+            for i in range(3)]
+    log = EpisodeLog(tmp_path, rows=[])
+    for r in rows:
+        log.append(r)
+    with open(tmp_path / "episodes.csv") as fh:
+        read = list(csv.DictReader(fh))
+    assert list(read[0]) == list(LOG_COLUMNS)
+    assert [float(r["episode_cost"]) for r in read] == [r["episode_cost"] for r in rows]
+    assert [r["solved"] for r in read] == ["0", "1", "0"]
+    EpisodeLog(tmp_path, rows=rows[:2])  # a resumed run restored two rows
+    with open(tmp_path / "episodes.csv") as fh:
+        assert len(list(csv.DictReader(fh))) == 2
+    with pytest.raises(ValueError, match="unknown log column"):
+        log.append({"episode": 3, "bogus": 1.0})
+
+
+# ------------------------------------------------------------------------------- evaluation
+def test_evaluation_targets_are_the_envs_own_draws_and_validated():
+    targets = evaluation_targets(3, seed=5)
+    env = gym.make(ARM)
+    for i, t in enumerate(targets):
+        _, info = env.reset(seed=5 + i)
+        np.testing.assert_array_equal(t, info["target"])
+    np.testing.assert_array_equal(np.asarray(evaluation_targets(3, seed=5)), np.asarray(targets))
+    for bad in (0, -1, 2.5, True):
+        with pytest.raises(ValueError, match="n must be"):
+            evaluation_targets(bad, seed=0)
+    with pytest.raises(ValueError, match="seed"):
+        evaluation_targets(2, seed=-1)
+
+
+def test_evaluate_policy_costs_matches_a_hand_loop_and_stops_early():
+    env = gym.make(ARM, episode_steps=20)
+    targets = [np.array([0.3, -0.2]), np.array([-0.5, 0.4]), np.array([0.1, 0.1])]
+    policy = lambda obs: np.array([0.2, -0.1])  # noqa: E731
+    costs = evaluate_policy_costs(policy, env, targets, seed=11)
+    for i, tgt in enumerate(targets):
+        env.reset(seed=11 + i, options={"target": tgt})
+        total, done = 0.0, False
+        while not done:
+            _, r, term, trunc, _ = env.step(np.array([0.2, -0.1], dtype=np.float32))
+            total -= r
+            done = term or trunc
+        assert costs[i] == pytest.approx(total, rel=1e-12)
+    part = evaluate_policy_costs(policy, env, targets, seed=11, stop_above=costs[0] * 0.5)
+    assert len(part) == 1 and part[0] == costs[0]
+    with pytest.raises(ValueError, match="oracle"):
+        solved_threshold(-1.0)
+    assert solved_threshold(10.0) == pytest.approx(12.0)
+
+
+def test_oracle_mpc_with_the_true_model_reaches_the_target():
+    env = gym.make(ARM, episode_steps=40)
+    target = np.array([0.6, -0.4])
+    policy = oracle_policy(env, horizon=15, iterations=2, first_plan_iterations=15)
+    oracle = evaluate_policy_costs(policy, env, [target], seed=0)[0]
+    idle = evaluate_policy_costs(lambda o: np.zeros(2), env, [target], seed=0)[0]
+    rec_state = {"U": None}
+
+    def act(obs, t):
+        a, rec_state["U"] = policy.predict(obs, rec_state["U"], episode_start=t == 0)
+        return a
+
+    rec = run_episode(env, act, seed=0, options={"target": target})
+    assert np.abs(rec.states[-1, :2] - target).max() < 0.05
+    assert oracle < 0.25 * idle
+
+
+# ----------------------------------------------------------------- learning: the arm (tiny)
+@pytest.fixture(scope="module")
+def arm_run(tmp_path_factory):
+    """Three tiny episodes on the arm with TensorBoard, checkpoints and a 2-episode evaluation;
+    the model error on held-out data is recorded after the first and the last episode."""
+    run_dir = tmp_path_factory.mktemp("arm_run")
+    env = gym.make(ARM, episode_steps=30)
+    cfg = tiny_config(run_dir=str(run_dir), tensorboard=True, eval_every=1, eval_episodes=2,
+                      seed=3)
+    agent = JacPropAgent(env, cfg)
+    heldout = heldout_trajectories(ARM, lambda o: o[:, :4], [901, 902], 30, 0.3)
+    agent.learn(1, progress_bar=False)
+    err_first = prediction_rms(agent.model, heldout)
+    agent.learn(2, progress_bar=False)
+    err_last = prediction_rms(agent.model, heldout)
+    return agent, run_dir, err_first, err_last
+
+
+def test_tiny_arm_run_writes_the_logs_and_files(arm_run):
+    agent, run_dir, _, _ = arm_run
+    with open(run_dir / "episodes.csv") as fh:
+        rows = list(csv.DictReader(fh))
+    assert [int(r["episode"]) for r in rows] == [0, 1, 2]
+    assert [r["phase"] for r in rows] == ["excitation", "mpc", "mpc"]
+    assert [int(r["env_steps"]) for r in rows] == [30, 60, 90]
+    for r in rows[1:]:  # the model has seen data: errors on the NEW trajectory are logged
+        assert 0 < float(r["one_step_rms"]) < math.inf
+        assert 0 < float(r["jacobian_error"]) < math.inf
+        assert int(r["eval_episodes_run"]) >= 1 and float(r["cost_ratio"]) > 0
+    for c in ("time_rollout", "time_planning", "time_ltv", "time_training", "time_total"):
+        assert all(float(r[c]) >= 0 for r in rows)
+    assert float(rows[1]["time_planning"]) > 0  # the MPC phase plans
+    assert any(f.name.startswith("events.out.tfevents") for f in (run_dir / "tb").iterdir())
+    data = load_trajectories(run_dir / "data.npz")
+    assert len(data) == 3 and all(d.x.shape == (31, 4) for d in data)
+    model = load_model(run_dir / "model.pt")
+    x, u = data[0].inputs
+    np.testing.assert_array_equal(model.step(x, u), agent.model.step(x, u))
+    summary = json.loads((run_dir / "summary.json").read_text())
+    assert summary["episodes_done"] == 3 and summary["oracle_cost"] > 0
+    assert set(summary["wall_seconds_per_phase"]) >= {"rollout", "ltv", "training", "planning"}
+
+
+def test_tiny_arm_run_improves_the_model_on_heldout_data(arm_run):
+    _, _, err_first, err_last = arm_run
+    assert err_last < 0.8 * err_first
+
+
+def test_save_load_round_trip_gives_identical_predictions(arm_run, tmp_path):
+    agent, _, _, _ = arm_run
+    path = agent.save(tmp_path / "agent.pt")
+    loaded = JacPropAgent.load(path)  # no env: act only
+    obs = np.array([0.1, -0.2, 0.3, 0.0, 0.5, -0.4])
+    a1, s1 = agent.predict(obs, episode_start=True)
+    a2, s2 = loaded.predict(obs, episode_start=True)
+    np.testing.assert_array_equal(a1, a2)
+    np.testing.assert_array_equal(s1, s2)
+    b1, _ = agent.predict(obs + 0.01, s1)
+    b2, _ = loaded.predict(obs + 0.01, s2)
+    np.testing.assert_array_equal(b1, b2)
+    assert loaded.episodes_done == 3 and len(loaded.trajectories) == 3
+    assert json.dumps(loaded.logger_rows) == json.dumps(agent.logger_rows)  # NaN-safe
+    with pytest.raises(ValueError, match="loaded without an env"):
+        loaded.learn(1)
+    with pytest.raises(ValueError, match="does not match"):
+        JacPropAgent.load(path, env=gym.make("Pendulum-v1"))
+
+
+@settings(max_examples=20, deadline=None,
+          suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(shape=st.sampled_from([(5,), (7,), (2, 6), ()]))
+def test_predict_rejects_observations_of_the_wrong_shape(arm_run, shape):
+    agent = arm_run[0]
+    with pytest.raises(ValueError, match="observation"):
+        agent.predict(np.zeros(shape))
+
+
+def test_predict_rejects_a_foreign_warm_start(arm_run):
+    agent = arm_run[0]
+    with pytest.raises(ValueError, match="state"):
+        agent.predict(np.zeros(6), state=np.zeros((3, 2)))
+
+
+# --------------------------------------------------------- learning: Pendulum-v1 (own env)
+def test_tiny_pendulum_run_with_a_user_cost(tmp_path):
+    """The README's "use your own environment" example on gymnasium's Pendulum-v1."""
+    env = gym.make("Pendulum-v1")
+    cfg = tiny_config(run_dir=str(tmp_path), episode_steps=40, epochs_per_episode=40, seed=1)
+    agent = JacPropAgent(env, cfg, cost_fn=pendulum_cost)
+    assert agent.state_dim == 3 and agent.spec.u_max[0] == 2.0
+    heldout = heldout_trajectories("Pendulum-v1", lambda o: o, [501, 502], 40, 0.5)
+    agent.learn(1, progress_bar=False)
+    err_first = prediction_rms(agent.model, heldout)
+    agent.learn(2, progress_bar=False)
+    err_last = prediction_rms(agent.model, heldout)
+    assert err_last < 0.8 * err_first
+    rows = agent.logger_rows
+    assert [r["phase"] for r in rows] == ["excitation", "mpc", "mpc"]
+    assert math.isnan(rows[1]["jacobian_error"])  # Pendulum offers no linearize
+    assert all(math.isfinite(r["episode_cost"]) and r["env_steps"] == 40 * (i + 1)
+               for i, r in enumerate(rows))
+    action, _ = agent.predict(env.reset(seed=0)[0])
+    assert action.shape == (1,) and -2.0 <= action[0] <= 2.0
+    with pytest.raises(ValueError, match="custom cost_fn"):
+        JacPropAgent.load(tmp_path / "checkpoint.pt", env=env)
+    again = JacPropAgent.load(tmp_path / "checkpoint.pt", env=env, cost_fn=pendulum_cost)
+    np.testing.assert_array_equal(again.predict(np.array([1.0, 0.0, 0.0]))[0],
+                                  agent.predict(np.array([1.0, 0.0, 0.0]))[0])
+
+
+# --------------------------------------------------------------------------- slow: solving
+@pytest.mark.slow
+def test_default_agent_solves_the_arm_within_30_episodes(tmp_path):
+    env = gym.make(ARM)
+    agent = JacPropAgent(env, AgentConfig(run_dir=str(tmp_path), stop_when_solved=True,
+                                          progress=False, torch_threads=1))
+    agent.learn(30, progress_bar=False)
+    summary = agent.summary()
+    assert summary["episodes_to_solve"] is not None, summary
+    assert summary["final_cost_ratio"] <= 1.2

@@ -1,0 +1,159 @@
+"""Exact resume after SIGKILL: a run of ``scripts/train_agent.py`` that is killed (twice, at
+different moments) and resumed with ``--resume`` ends bit-identical to an uninterrupted run with
+the same seed: the same per-episode log (all non-timing columns), the same data, the same model
+weights, the same Adam state and the same RNG state.
+
+Real subprocesses, a real ``SIGKILL``; a tiny configuration so that the whole test takes
+seconds; torch single-threaded for determinism.
+"""
+
+from __future__ import annotations
+
+import csv
+import importlib.util
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from agents.checkpoint import load_checkpoint
+from agents.episode_log import TIMING_COLUMNS
+from mbtsr.trajectory import load_trajectories
+
+REPO = Path(__file__).resolve().parents[1]
+SCRIPT = REPO / "scripts" / "train_agent.py"
+EPISODES = 5
+TINY = [
+    "--episodes", str(EPISODES), "--seed", "4", "--episode-steps", "25",
+    "--n-excitation-episodes", "1", "--epochs-per-episode", "20", "--batch-size", "32",
+    "--ensemble-size", "2", "--hidden-width", "12", "--horizon", "6", "--ilqr-iterations", "1",
+    "--first-plan-iterations", "4", "--ltv-lambda", "auto", "--eval-every", "2",
+    "--eval-episodes", "1", "--no-eval-early-exit", "--no-stop-when-solved",
+    "--oracle-cache-dir", "none", "--torch-threads", "1", "--no-progress", "--no-plots",
+    "--no-summary-table", "--no-tensorboard",
+]
+
+
+def _env() -> dict:
+    return {**os.environ, "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1", "MUJOCO_GL": "egl",
+            "PYTHONHASHSEED": "0"}
+
+
+def _start(run_dir: Path, *extra: str) -> subprocess.Popen:
+    return subprocess.Popen(
+        [sys.executable, str(SCRIPT), "--run-dir", str(run_dir), *TINY, *extra],
+        cwd=REPO, env=_env(), stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+    )
+
+
+def _episodes_in_checkpoint(run_dir: Path) -> int:
+    try:
+        return int(load_checkpoint(run_dir / "checkpoint.pt")["episodes_done"])
+    except (FileNotFoundError, ValueError, RuntimeError, EOFError):
+        return 0
+
+
+def _kill_after(proc: subprocess.Popen, run_dir: Path, episodes: int, delay: float) -> int:
+    """SIGKILL ``proc`` ``delay`` seconds after its checkpoint holds ``episodes`` episodes;
+    return the number of episodes in the checkpoint right after the kill."""
+    deadline = time.monotonic() + 120
+    while _episodes_in_checkpoint(run_dir) < episodes:
+        assert proc.poll() is None, proc.stderr.read().decode()[-2000:]
+        assert time.monotonic() < deadline, "the run made no progress"
+        time.sleep(0.02)
+    time.sleep(delay)
+    os.kill(proc.pid, signal.SIGKILL)
+    assert proc.wait(30) == -signal.SIGKILL
+    return _episodes_in_checkpoint(run_dir)
+
+
+def _finish(proc: subprocess.Popen) -> None:
+    _, err = proc.communicate(timeout=240)
+    assert proc.returncode == 0, err.decode()[-3000:]
+
+
+def _rows(run_dir: Path) -> list[dict]:
+    with open(run_dir / "episodes.csv") as fh:
+        return [{k: v for k, v in r.items() if k not in TIMING_COLUMNS}
+                for r in csv.DictReader(fh)]
+
+
+def _assert_same_tree(a, b, where: str = "") -> None:
+    if isinstance(a, torch.Tensor):
+        assert isinstance(b, torch.Tensor) and a.dtype == b.dtype, where
+        assert torch.equal(a, b), f"tensors differ at {where}"
+    elif isinstance(a, dict):
+        assert set(a) == set(b), where
+        for k in a:
+            _assert_same_tree(a[k], b[k], f"{where}/{k}")
+    elif isinstance(a, (list, tuple)):
+        assert len(a) == len(b), where
+        for i, (x, y) in enumerate(zip(a, b)):
+            _assert_same_tree(x, y, f"{where}[{i}]")
+    else:
+        assert a == b, f"{where}: {a!r} != {b!r}"
+
+
+def test_sigkill_and_resume_is_bit_identical_to_an_uninterrupted_run(tmp_path):
+    straight, killed = tmp_path / "straight", tmp_path / "killed"
+    uninterrupted = _start(straight)
+    interrupted = _start(killed)
+    # kill 1: in the middle of episode 3 (0.3 s after episode 2's checkpoint)
+    done = _kill_after(interrupted, killed, 2, delay=0.3)
+    assert 2 <= done < EPISODES
+    # kill 2: right after the resumed run's next checkpoint, possibly while it is still writing
+    # the CSV and exports that follow the checkpoint
+    resumed = _start(killed, "--resume")
+    done2 = _kill_after(resumed, killed, done + 1, delay=0.0)
+    assert done < done2 < EPISODES
+    _finish(_start(killed, "--resume"))
+    _finish(uninterrupted)
+
+    assert _rows(killed) == _rows(straight)
+    assert len(_rows(straight)) == EPISODES
+    a, b = load_checkpoint(straight / "checkpoint.pt"), load_checkpoint(killed / "checkpoint.pt")
+    for key in ("model_state", "optimizer_state", "trajectories", "ltv_lambdas", "rng",
+                "torch_rng", "episodes_done", "env_steps", "oracle_costs", "eval_targets"):
+        _assert_same_tree(a[key], b[key], key)
+    pairs = zip(load_trajectories(straight / "data.npz"), load_trajectories(killed / "data.npz"),
+                strict=True)
+    for x, y in pairs:
+        np.testing.assert_array_equal(x.x, y.x)
+        np.testing.assert_array_equal(x.u, y.u)
+    wa = torch.load(straight / "model.pt", weights_only=True)["state_dict"]
+    wb = torch.load(killed / "model.pt", weights_only=True)["state_dict"]
+    _assert_same_tree(wa, wb, "model.pt")
+
+
+def _script():
+    spec = importlib.util.spec_from_file_location("train_agent_script", SCRIPT)
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module  # dataclasses look their module up
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_resume_without_a_checkpoint_and_restart_over_one_fail_clearly(tmp_path):
+    script = _script()
+    with pytest.raises(SystemExit, match="no checkpoint"):
+        script.main(["--run-dir", str(tmp_path / "none"), "--resume"])
+    (tmp_path / "run").mkdir()
+    (tmp_path / "run" / "checkpoint.pt").write_bytes(b"")
+    with pytest.raises(SystemExit, match="--resume"):
+        script.main(["--run-dir", str(tmp_path / "run")])
+
+
+@pytest.mark.parametrize("flag", [["--episodes", "0"], ["--horizon", "1"],
+                                  ["--regularization", "magic"], ["--ltv-lambda", "-1"]])
+def test_script_rejects_bad_arguments(flag, capsys):
+    with pytest.raises(SystemExit) as exc:
+        _script().parse(flag)
+    assert exc.value.code == 2
+    name = flag[0].lstrip("-").replace("-", "_")
+    assert name in capsys.readouterr().err
