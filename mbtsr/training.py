@@ -233,7 +233,11 @@ def _optimizer(model: DynamicsEnsemble, config: TrainConfig) -> torch.optim.Opti
         {"params": others, "weight_decay": 0.0},
     ]
     cls = torch.optim.AdamW if config.decoupled_weight_decay else torch.optim.Adam
-    return cls(groups, lr=config.lr, betas=config.betas, eps=config.adam_eps, foreach=True)
+    kw = {"lr": config.lr, "betas": config.betas, "eps": config.adam_eps}
+    try:  # one fused kernel per group: the cheapest update at these sizes (CPU, torch >= 2.4)
+        return cls(groups, fused=True, **kw)
+    except (RuntimeError, TypeError):  # pragma: no cover - older torch
+        return cls(groups, foreach=True, **kw)
 
 
 def _squared_norm(a: torch.Tensor, dims: tuple[int, ...]) -> torch.Tensor:
@@ -362,9 +366,11 @@ def train_ensemble(
                          if config.shuffle else range(len(trajs)))
                 batches = [slice(int(starts[i]), int(starts[i + 1])) for i in order]
             else:
-                perm = (torch.randperm(N, generator=batch_gen) if config.shuffle
-                        else torch.arange(N))
-                batches = list(torch.split(perm, int(config.batch)))
+                size = int(config.batch)
+                if config.shuffle:
+                    batches = list(torch.split(torch.randperm(N, generator=batch_gen), size))
+                else:  # contiguous ranges index by views, without gathering
+                    batches = [slice(a, min(a + size, N)) for a in range(0, N, size)]
             data_sum = 0.0
             pen_sum = dict.fromkeys(active, 0.0)
             for idx in batches:
