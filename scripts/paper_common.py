@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import json
 import math
 import os
 import sys
@@ -133,10 +134,20 @@ def run_experiment(
     if not args.report_only:
         write_json(out / "args.json", {"args": dataclasses.asdict(args),
                                        "command": command_line()})
+        n_before = len(load_results(out))
         t0 = time.perf_counter()
-        run_sweep(run_fn, configs, range(args.mc), out, backend=args.backend,
-                  workers=args.workers, progress=not args.quick)
-        print(f"[{experiment}] sweep finished in {time.perf_counter() - t0:.1f} s")
+        recs = run_sweep(run_fn, configs, range(args.mc), out, backend=args.backend,
+                         workers=args.workers, progress=not args.quick)
+        wall = time.perf_counter() - t0
+        print(f"[{experiment}] sweep finished in {wall:.1f} s")
+        log_path = out / "sweeps.json"  # wall time of every (resumed) sweep
+        log = json.loads(log_path.read_text()) if log_path.exists() else []
+        log.append({"started": time.strftime("%Y-%m-%dT%H:%M:%S", time.localtime(time.time()
+                                                                                  - wall)),
+                    "wall_s": round(wall, 1), "runs_finished_before": n_before,
+                    "runs_finished_after": len(recs), "workers": args.workers,
+                    "backend": args.backend, "load_avg_1min": round(os.getloadavg()[0], 2)})
+        write_json(log_path, log)
     records = [r for r in load_results(out) if r["name"] in configs or args.report_only]
     if not records:
         raise SystemExit(f"no finished runs in {out}/runs; run without --report-only first")
@@ -630,7 +641,7 @@ def run_linear(config: dict, seed: int) -> dict:
     """
     from mbtsr.metrics import jacobian_eigenvalues
 
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     cfg = LinearData(**config["data"])
     d = linear_dataset(cfg, seed)
     X, U = evaluation_points(d["val"], cfg.eval_stride)
@@ -656,6 +667,7 @@ def run_linear(config: dict, seed: int) -> dict:
     result["rounds"] = rounds
     result["train_loss"] = rounds[-1]["train_loss"]
     result["wall"] = time.perf_counter() - t0
+    result["cpu_time"] = time.process_time() - c0
     return result
 
 
@@ -669,7 +681,7 @@ def run_robot(config: dict, seed: int) -> dict:
     """
     from mbtsr.metrics import jacobian_eigenvalues
 
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     cfg = RobotData(**config["data"])
     d = robot_dataset(cfg, seed)
     env = d["env"]
@@ -688,6 +700,7 @@ def run_robot(config: dict, seed: int) -> dict:
     result["train_loss"] = finite_or_none(hist.train_loss[-1])
     result["train_time"] = train_time
     result["wall"] = time.perf_counter() - t0
+    result["cpu_time"] = time.process_time() - c0
     return result
 
 
@@ -700,7 +713,7 @@ def run_activations(config: dict, seed: int) -> dict:
     ``checkpoints`` (epochs; Adam state carried over) and each member's one-step prediction
     RMS on the validation trajectories is recorded there.
     """
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     cfg = RobotData(**config["data"])
     d = robot_dataset(cfg, seed)
     acts = list(config["activations"])
@@ -721,4 +734,4 @@ def run_activations(config: dict, seed: int) -> dict:
         for a, v in zip(acts, rms):
             pred[a].append(finite_or_none(v))
     return {"pred_rms": pred, "checkpoints": list(config["checkpoints"]),
-            "wall": time.perf_counter() - t0}
+            "wall": time.perf_counter() - t0, "cpu_time": time.process_time() - c0}

@@ -1,0 +1,245 @@
+"""Smoke and behaviour tests of the paper-reproduction scripts (``scripts/exp_*.py``).
+
+Every ``--quick`` mode runs for real (real MuJoCo, real training, tiny budgets) into a temporary
+folder; the tests check the per-run JSON records, the figures and the summary, and that the
+report step redraws everything from the stored JSON alone (without rerunning anything). The
+shared helpers of ``scripts/paper_common.py`` are checked against independent computations.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import runpy
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+REPO = Path(__file__).resolve().parents[1]
+SCRIPTS = REPO / "scripts"
+sys.path.insert(0, str(SCRIPTS))
+
+import paper_common as pc  # noqa: E402
+
+#: script -> (number of configs in --quick, figures it draws, numeric result keys to check)
+QUICK = {
+    "exp_linear.py": (4, ["linear_eigenvalues.png", "linear_errors.png", "linear_rounds.png"],
+                      ["jac_err", "jac_rms_entry", "pred_rms", "sim_rms", "eig_match_err"]),
+    "exp_weight_decay.py": (4, ["weight_decay_eigenvalues.png", "weight_decay_errors.png"],
+                            ["eig_mean_abs", "eig_mean_dist_to_1", "eig_match_err"]),
+    "exp_robot.py": (4, ["robot_errors.png"], ["pred_rms", "jac_err", "jac_rms_entry"]),
+    "exp_activations.py": (1, ["activations.png"], []),
+    "exp_deviations.py": (4, ["deviations.png"], ["pred_rms", "jac_err"]),
+}
+
+
+def run_script(script: str, *argv: str) -> None:
+    """Run ``scripts/<script>`` as ``__main__`` in this process (shares the imports)."""
+    old = sys.argv
+    sys.argv = [str(SCRIPTS / script), *argv]
+    try:
+        runpy.run_path(str(SCRIPTS / script), run_name="__main__")
+    finally:
+        sys.argv = old
+
+
+def snapshot(folder: Path) -> dict[str, int]:
+    return {p.name: p.stat().st_mtime_ns for p in sorted(folder.glob("*.json"))}
+
+
+@pytest.mark.parametrize("script", list(QUICK))
+def test_quick_mode_writes_runs_figures_and_redraws_from_json(script, tmp_path, capsys):
+    n_configs, figures, keys = QUICK[script]
+    out = tmp_path / "out"
+    run_script(script, "--quick", "--out", str(out), "--backend", "serial")
+
+    runs = sorted((out / "runs").glob("*.json"))
+    assert len(runs) == n_configs * 2  # --quick: 2 Monte-Carlo seeds per config
+    assert not (out / "errors").exists() or not list((out / "errors").iterdir())
+    for path in runs:
+        rec = json.loads(path.read_text())
+        assert rec["status"] == "ok" and rec["seed"] in (0, 1)
+        for k in keys:
+            v = rec["result"][k]
+            assert v is not None and math.isfinite(v) and v >= 0, (path.name, k, v)
+    for fig in figures:
+        assert (out / "figures" / fig).stat().st_size > 5000
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["n_records"] == len(runs)
+    assert json.loads((out / "args.json").read_text())["args"]["quick"] is True
+
+    # the report step alone: redraws figures and summary from the JSON, reruns nothing
+    before = snapshot(out / "runs")
+    for fig in figures:
+        (out / "figures" / fig).unlink()
+    (out / "summary.json").unlink()
+    run_script(script, "--quick", "--out", str(out), "--report-only")
+    assert snapshot(out / "runs") == before
+    for fig in figures:
+        assert (out / "figures" / fig).stat().st_size > 5000
+    assert json.loads((out / "summary.json").read_text()) == summary
+    assert len(json.loads((out / "sweeps.json").read_text())) == 1  # no second sweep
+
+    if script != "exp_activations.py":  # the cheapest one checks resuming
+        return
+    # a second full invocation resumes: nothing is recomputed
+    run_script(script, "--quick", "--out", str(out), "--backend", "serial")
+    assert snapshot(out / "runs") == before
+    log = json.loads((out / "sweeps.json").read_text())
+    assert log[-1]["runs_finished_before"] == log[-1]["runs_finished_after"] == len(runs)
+
+
+def test_cli_with_process_pool(tmp_path):
+    """The real command line with the forkserver process pool (module-level run functions)."""
+    out = tmp_path / "lin"
+    proc = subprocess.run(
+        [sys.executable, str(SCRIPTS / "exp_linear.py"), "--quick", "--mc", "1", "--rounds",
+         "1", "--out", str(out), "--backend", "process", "--workers", "2"],
+        capture_output=True, text=True, timeout=300, cwd=tmp_path,
+        env={**os.environ, "OMP_NUM_THREADS": "1"})
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    recs = [json.loads(p.read_text()) for p in (out / "runs").glob("*.json")]
+    assert sorted(r["name"] for r in recs) == ["exact", "none", "sampled", "smooth"]
+    # all methods of a seed share the system and the initial weights: same true eigenvalues
+    true = {json.dumps(r["result"]["eig_true"]) for r in recs}
+    assert len(true) == 1
+
+
+def test_report_only_without_runs_fails_clearly(tmp_path):
+    with pytest.raises(SystemExit, match="no finished runs"):
+        run_script("exp_robot.py", "--quick", "--out", str(tmp_path), "--report-only")
+
+
+# ------------------------------------------------------------------------------------------------
+# paper_common helpers against independent computations
+
+
+def test_linear_dataset_follows_algorithm_2_and_the_recursion():
+    cfg = pc.LinearData(n_val=2, n_sim=1, n_train=2)
+    d = pc.linear_dataset(cfg, seed=3)
+    A, B = d["A"], d["B"]
+    # Algorithm 2: expm of a shifted skew matrix -> every |eigenvalue| = exp(-dt^2)
+    np.testing.assert_allclose(np.abs(np.linalg.eigvals(A)), np.exp(-cfg.dt**2), rtol=1e-10)
+    for tr in d["val"] + d["sim"]:  # noise-free: exact linear recursion
+        np.testing.assert_allclose(tr.x[1:], tr.x[:-1] @ A.T + tr.u @ B.T, atol=1e-10)
+    for tr in d["train"]:  # training states carry N(0, 0.01^2) noise
+        resid = tr.x[1:] - tr.x[:-1] @ A.T - tr.u @ B.T
+        assert 0.005 < resid.std() < 0.03
+    # the input: 5-tap moving average of 10 N(0,1), steady-state std 10/sqrt(5)
+    u = np.concatenate([tr.u[10:] for tr in d["train"] + d["val"]])
+    assert abs(u.std() / (10 / np.sqrt(5)) - 1) < 0.15
+    # same seed, same data; the bug flag only touches the last training state
+    d2 = pc.linear_dataset(pc.LinearData(n_val=2, n_sim=1, n_train=2, last_state_zero=True), 3)
+    np.testing.assert_array_equal(d2["val"][0].x, d["val"][0].x)
+    np.testing.assert_array_equal(d2["train"][0].x[:-1], d["train"][0].x[:-1])
+    assert np.abs(d2["train"][0].x[-1]).max() < 0.1 < np.abs(d["train"][0].x[-1]).max()
+
+
+def test_held_input_resamples_the_nominal_signal():
+    from mbtsr.excitation import filtered_gaussian
+
+    base = filtered_gaussian(41, 2, window=100, scale=3.0, seed=np.random.default_rng(5))
+    same = pc.held_filtered_gaussian(40, 2, np.random.default_rng(5), dt=0.02, scale=3.0)
+    np.testing.assert_array_equal(same, base[:40])
+    fast = pc.held_filtered_gaussian(200, 2, np.random.default_rng(5), dt=0.004, scale=3.0)
+    np.testing.assert_array_equal(fast, np.repeat(base[:40], 5, axis=0))
+    slow = pc.held_filtered_gaussian(8, 2, np.random.default_rng(5), dt=0.1, scale=3.0)
+    np.testing.assert_array_equal(slow, base[:40:5])
+
+
+def test_robot_data_covers_the_same_experiment_at_other_sample_rates():
+    from envs.collect import rollout_open_loop
+
+    nominal = pc.robot_dataset(pc.RobotData(n_train=1, n_val=1, n_sim=1), seed=2)
+    slow = pc.robot_dataset(pc.RobotData(n_train=1, n_val=1, n_sim=1, dt=0.1), seed=2)
+    x0, tr = nominal["val"][0].x, slow["val"][0]
+    assert x0.shape == (201, 4) and tr.x.shape == (41, 4)
+    np.testing.assert_array_equal(tr.x[0], x0[0])  # same start state
+    np.testing.assert_array_equal(tr.u, nominal["val"][0].u[::5])  # same signal, subsampled
+    # the same continuous-time system: replaying the 0.1-s held input at the nominal rate
+    # gives the 0.1-s samples (up to the Euler substep size, 0.002 vs 0.01 s)
+    env = pc.robot_env(pc.RobotData())
+    x, _, _ = rollout_open_loop(env, np.repeat(tr.u, 5, axis=0), reset_options={"state": tr.x[0]})
+    assert np.abs(x[::5] - tr.x).max() < 0.01 * np.abs(tr.x).max()
+    assert np.all(np.abs(x0[:, :2]) < 0.9 * np.pi)
+
+
+def test_evaluate_is_zero_for_the_true_model():
+    """The metric bundle on the true linear model: zero errors, no divergence."""
+    from mbtsr.dynamics import LinearDynamics
+
+    d = pc.linear_dataset(pc.LinearData(n_val=2, n_sim=2, n_train=1), seed=0)
+
+    class Exact(LinearDynamics):
+        def member_jacobians(self, x, u):
+            A, B = self.jacobians(x, u)
+            return A[None], B[None]
+
+    X, U = pc.evaluation_points(d["val"], 3)
+    A = np.broadcast_to(d["A"], (len(X), 10, 10))
+    B = np.broadcast_to(d["B"], (len(X), 10, 10))
+    m = pc.evaluate(Exact(d["A"], d["B"]), d["val"], d["sim"], X, U, A, B)
+    assert m["pred_rms"] < 1e-12 and m["sim_rms"] < 1e-10 and m["jac_err"] == 0.0
+    assert m["sim_diverged"] == 0
+    wrong = pc.evaluate(Exact(d["A"] * 0.9, d["B"]), d["val"], d["sim"], X, U, A, B)
+    # the Jacobian error of a uniformly scaled A is exactly 0.1 ||A||_F
+    assert wrong["jac_err"] == pytest.approx(0.1 * np.linalg.norm(d["A"]), rel=1e-12)
+    assert wrong["jac_rms_entry"] == pytest.approx(wrong["jac_err"] / np.sqrt(200), rel=1e-12)
+
+
+complex_lists = st.lists(st.complex_numbers(max_magnitude=3, allow_nan=False,
+                                            allow_infinity=False), min_size=1, max_size=6)
+
+
+@settings(max_examples=50, deadline=None)
+@given(complex_lists, st.randoms(use_true_random=False))
+def test_eigenvalue_matching_error_properties(ev, rnd):
+    ev = np.array(ev)
+    perm = ev.copy()
+    rnd.shuffle(perm)
+    assert pc.eigenvalue_matching_error(ev[None], perm) == 0.0  # order does not matter
+    shifted = ev + 0.5
+    e = pc.eigenvalue_matching_error(shifted[None], ev)
+    e_sym = pc.eigenvalue_matching_error(ev[None], shifted)
+    assert e == pytest.approx(e_sym)  # symmetric
+    assert e <= np.sqrt(2 * len(ev)) * 0.5 + 1e-12  # each term <= |shift|^2
+
+
+@settings(max_examples=20, deadline=None)
+@given(st.lists(st.floats(-5, 5), min_size=6, max_size=30), st.floats(0.01, 3))
+def test_paired_comparison_detects_a_constant_shift(base, shift):
+    b = np.array(base)
+    worse = pc.paired_comparison(b + shift, b)
+    assert worse["median_diff"] == pytest.approx(shift)
+    assert worse["frac_lower"] == 0.0
+    better = pc.paired_comparison(b - shift, b)
+    assert better["median_diff"] == pytest.approx(-shift) and better["frac_lower"] == 1.0
+    assert better["p_value"] < 0.05  # >= 6 pairs, all in one direction
+
+
+def test_parse_args_quick_overrides_only_unset_fields():
+    import exp_robot
+
+    args = pc.parse_args(exp_robot.Args, ["--quick", "--mc", "3"])
+    assert args.mc == 3 and args.epoch_scale == exp_robot.Args.QUICK["epoch_scale"]
+    full = pc.parse_args(exp_robot.Args, [])
+    assert full.mc == 35 and full.epoch_scale == 1.0 and not full.quick
+    for bad in (["--mc", "0"], ["--workers", "0"], ["--backend", "threads"]):
+        with pytest.raises(ValueError, match=bad[0].strip("-")):
+            pc.parse_args(exp_robot.Args, bad)
+
+
+def test_unknown_method_and_deviation_are_rejected():
+    import exp_deviations
+
+    with pytest.raises(ValueError, match="method"):
+        pc.regularization("dropout")
+    args = pc.parse_args(exp_deviations.Args, ["--deviations", "nominal,bogus"])
+    with pytest.raises(ValueError, match="bogus"):
+        exp_deviations.make_configs(args)
