@@ -63,6 +63,12 @@ class AgentConfig:
     :param n_perturbed_copies: perturbed copies of every point, resampled every epoch.
     :param ltv_lambda: smoothness weight of the LTV fit (Algorithm 1, "fit LTV model"), a
         positive number or ``"auto"`` (:func:`mbtsr.ltv.select_lambda` on every trajectory).
+    :param ltv_prior: once the model has seen data, fuse each new LTV fit with the ensemble's
+        Jacobians as a Gaussian prior (mean: ensemble mean, variance: ensemble variance +
+        ``ltv_prior``; :func:`mbtsr.ltv.fuse_prior`), as the original code's "jacprop with
+        prior" did. MPC rollouts excite the system little, and an LTV fit to one of them alone
+        has wild Jacobians in the unexcited directions; the prior keeps the model's Jacobians
+        there. ``0`` disables it.
 
     Planning (Algorithm 1, "optimize controller"): MPC = iLQR re-solved every step on the
     learned model, warm-started with the shifted previous plan.
@@ -105,7 +111,7 @@ class AgentConfig:
     # data collection
     n_excitation_episodes: int = 2
     excitation: str = "filtered_gaussian"
-    excitation_scale: float = 0.6
+    excitation_scale: float = 0.3
     excitation_window: int = 8
     exploration_std: float = 0.1
     episode_steps: int | None = None
@@ -126,6 +132,7 @@ class AgentConfig:
     perturbation_sigma: float = 0.1
     n_perturbed_copies: int = 1
     ltv_lambda: float | str = "auto"
+    ltv_prior: float = 0.01
     # planning
     horizon: int = 30
     ilqr_iterations: int = 2
@@ -187,6 +194,7 @@ class AgentConfig:
                 raise ValueError(f"ltv_lambda must be > 0 or 'auto', got {self.ltv_lambda!r}")
         else:
             _float_range(self, "ltv_lambda", 0.0, math.inf, low_open=True)
+        _float_range(self, "ltv_prior", 0.0, math.inf)
         _int_at_least(self, "horizon", 2)
         _int_at_least(self, "ilqr_iterations", 1)
         _int_at_least(self, "first_plan_iterations", 1)

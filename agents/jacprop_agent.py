@@ -65,7 +65,7 @@ from agents.task import (
     env_spec,
 )
 from mbtsr.ensemble import DynamicsEnsemble, EnsembleConfig, MemberSpec, save_model
-from mbtsr.ltv import fit_ltv, select_lambda
+from mbtsr.ltv import LTVModel, fit_ltv, fuse_prior, select_lambda
 from mbtsr.trajectory import Trajectory, save_trajectories
 
 __all__ = ["JacPropAgent"]
@@ -383,7 +383,7 @@ class JacPropAgent:
         lam = math.nan
         if cfg.regularization in ("sampled", "exact"):
             lam = self._ltv_lambda(traj)
-            self.ltv_models.append(fit_ltv(traj, lam))
+            self.ltv_models.append(self._fit_ltv(traj, lam))
         self.ltv_lambdas.append(lam)
         self.trajectories.append(traj)
         time_ltv = time.perf_counter() - tic
@@ -443,6 +443,19 @@ class JacPropAgent:
             )
         mid, half = 0.5 * (spec.u_max + spec.u_min), 0.5 * (spec.u_max - spec.u_min)
         return np.clip(mid + half * cfg.excitation_scale * sig, spec.u_min, spec.u_max)
+
+    def _fit_ltv(self, traj: Trajectory, lam: float) -> LTVModel:
+        """LTV fit of one trajectory, fused with the ensemble's Jacobians as a prior once the
+        ensemble has been trained (see ``AgentConfig.ltv_prior``)."""
+        ltv = fit_ltv(traj, lam)
+        if self.config.ltv_prior > 0 and self.model.is_normalized:
+            x, u = traj.inputs
+            A, B = self.model.member_jacobians(x, u)  # [K, T, n, n], [K, T, n, m]
+            J = np.concatenate([A, B], axis=-1)
+            n = self.state_dim
+            mean, var = J.mean(0), J.var(0) + self.config.ltv_prior
+            ltv = fuse_prior(ltv, mean[..., :n], mean[..., n:], var)
+        return ltv
 
     def _ltv_lambda(self, traj: Trajectory) -> float:
         if self.config.ltv_lambda != "auto":
@@ -552,11 +565,7 @@ class JacPropAgent:
             episodes, a lower bound when the evaluation stopped early.
         """
         cfg = self.config
-        env = self._eval_env_instance()
-        self._ensure_eval_targets()
-        kwargs: dict[str, Any] = {"max_steps": self.spec.episode_steps}
-        if self.eval_targets is None:
-            kwargs["n_episodes"] = cfg.eval_episodes
+        env, kwargs = self._eval_setup()
         oracle = self._oracle_costs(env, kwargs)
         stop_above = None
         if oracle is not None and cfg.eval_early_exit and np.all(oracle >= 0):
@@ -620,6 +629,21 @@ class JacPropAgent:
         }
         self.oracle_costs = cached_costs(cache_dir, key, compute)
         return self.oracle_costs
+
+    def compute_oracle(self) -> float | None:
+        """Compute (or fetch from ``oracle_cache_dir``) the oracle's evaluation costs now;
+        return their mean (``None`` if the env offers no true model)."""
+        env, kwargs = self._eval_setup()
+        self._oracle_costs(env, kwargs)
+        return self.oracle_mean
+
+    def _eval_setup(self) -> tuple[gym.Env, dict[str, Any]]:
+        env = self._eval_env_instance()
+        self._ensure_eval_targets()
+        kwargs: dict[str, Any] = {"max_steps": self.spec.episode_steps}
+        if self.eval_targets is None:
+            kwargs["n_episodes"] = self.config.eval_episodes
+        return env, kwargs
 
     @property
     def oracle_mean(self) -> float | None:
@@ -691,6 +715,13 @@ class JacPropAgent:
                 {"x": t.x, "u": t.u, "meta": json.dumps(t.meta)} for t in self.trajectories
             ],
             "ltv_lambdas": list(self.ltv_lambdas),
+            # stored, not refitted: a fit fused with the model prior depends on the model of
+            # its episode
+            "ltv_models": [
+                {"A": m.A, "B": m.B, "c": m.c, "cov": m.cov, "lam": m.lam,
+                 "noise_var": m.noise_var}
+                for m in self.ltv_models
+            ],
             "episodes_done": self.episodes_done,
             "env_steps": self.env_steps,
             "rng": numpy_rng_state(self.rng),
@@ -711,11 +742,12 @@ class JacPropAgent:
             for d in p["trajectories"]
         ]
         self.ltv_lambdas = [float(v) for v in p["ltv_lambdas"]]
-        # LTV fits are deterministic functions of (data, lambda): refit instead of storing
         self.ltv_models = [
-            fit_ltv(t, lam)
-            for t, lam in zip(self.trajectories, self.ltv_lambdas)
-            if not math.isnan(lam)
+            LTVModel(
+                d["A"].numpy(), d["B"].numpy(), None if d["c"] is None else d["c"].numpy(),
+                d["cov"].numpy(), lam=float(d["lam"]), noise_var=float(d["noise_var"]),
+            )
+            for d in p["ltv_models"]
         ]
         self.episodes_done = int(p["episodes_done"])
         self.env_steps = int(p["env_steps"])
