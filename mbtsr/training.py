@@ -313,6 +313,9 @@ def train_ensemble(
             xu_val = model.normalize_inputs(xu_val_raw)
             target_val = model.normalized_residual(
                 xu_val_raw, torch.as_tensor(val_data[1], dtype=torch.float32))
+    # per-trajectory perturbation scales (std over time, as sample_perturbed's default),
+    # computed once instead of every epoch
+    scales = [(tr.x[:-1].std(0), tr.u.std(0)) for tr in trajs]
     J_ltv = None
     if reg.exact:
         J_ltv = torch.as_tensor(np.concatenate([
@@ -352,7 +355,8 @@ def train_ensemble(
             xu_pert = target_pert = None
             if reg.sampled:
                 copies = [lm.sample_perturbed(tr.x, tr.u, sigma=reg.sigma, n_copies=reg.n_copies,
-                                              seed=rng) for lm, tr in zip(ltv_models, trajs)]
+                                              seed=rng, std_x=sx, std_u=su)
+                          for lm, tr, (sx, su) in zip(ltv_models, trajs, scales)]
                 xt = np.concatenate([c[0] for c in copies], 1)  # [C, N, n]
                 ut = np.concatenate([c[1] for c in copies], 1)
                 xnt = np.concatenate([c[2] for c in copies], 1)
