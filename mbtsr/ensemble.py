@@ -869,43 +869,40 @@ class DynamicsEnsemble(nn.Module):
         skip_J = self._skip_J
         K_total = self.n_members
         ys, Js = [], []
-        y_sum = np.zeros((B, n))
-        J_sum = np.zeros((B, n * n_in)) if jacobians else None
-        with np.errstate(over="ignore", under="ignore"):
-            for st in states:
-                if st.wide:
-                    shape = (st.W1T_wide.shape[0], B)
-                    zT = np.matmul(st.W1T_wide, xu.T, out=self._work("z", shape))  # [K*W, B]
-                    zT += st.b1T_wide
-                    hT = self._work("h", shape)
-                    dhT = self._work("dh", shape) if jacobians else None
-                    tmp = self._work("tmp", shape)
-                    for act, a, b in st.runs:
-                        act(zT[a:b], hT[a:b], None if dhT is None else dhT[a:b], tmp[a:b])
-                    if members:
-                        hk = hT.reshape(st.K, st.W, B)
-                        ys.append((st.WoT_f @ hk).transpose(0, 2, 1) + st.bo_f[:, None, :])
-                        if jacobians:
-                            dk = dhT.reshape(st.K, st.W, B)
-                            Js.append((st.MT @ dk).transpose(0, 2, 1).reshape(st.K, B, n, n_in))
-                    else:
-                        y_sum += (st.WoT_mean @ hT).T
-                        y_sum += st.bo_mean
-                        if jacobians:
-                            J_sum += dhT.T @ st.M_wide
-                    continue
-                xn = (xu - st.in_mean) / st.in_std
-                y, J = _group_forward(st.p, st.group, xn, _NUMPY_OPS, B if jacobians else 0)
-                y = st.out_mean + st.out_std * y
-                if jacobians:
-                    J = st.out_std[:, None] * J / st.in_std
+        y_sum = J_sum = 0.0  # ensemble-mean contributions of the groups
+        for st in states:
+            if st.wide:
+                shape = (st.W1T_wide.shape[0], B)
+                zT = np.matmul(st.W1T_wide, xu.T, out=self._work("z", shape))  # [K*W, B]
+                zT += st.b1T_wide
+                hT = self._work("h", shape)
+                dhT = self._work("dh", shape) if jacobians else None
+                tmp = self._work("tmp", shape)
+                for act, a, b in st.runs:
+                    act(zT[a:b], hT[a:b], None if dhT is None else dhT[a:b], tmp[a:b])
                 if members:
-                    ys.append(y)
-                    Js.append(J)
-                else:
-                    y_sum += y.sum(0) / K_total
+                    hk = hT.reshape(st.K, st.W, B)
+                    ys.append((st.WoT_f @ hk).transpose(0, 2, 1) + st.bo_f[:, None, :])
                     if jacobians:
-                        J_sum += J.sum(0).reshape(B, -1) / K_total
+                        dk = dhT.reshape(st.K, st.W, B)
+                        Js.append((st.MT @ dk).transpose(0, 2, 1).reshape(st.K, B, n, n_in))
+                else:
+                    y_sum = y_sum + (st.WoT_mean @ hT).T + st.bo_mean
+                    if jacobians:
+                        J_sum = J_sum + dhT.T @ st.M_wide
+                continue
+            xn = (xu - st.in_mean) / st.in_std
+            y, J = _group_forward(st.p, st.group, xn, _NUMPY_OPS, B if jacobians else 0)
+            y = st.out_mean + st.out_std * y
+            if jacobians:
+                J = st.out_std[:, None] * J / st.in_std
+            if members:
+                ys.append(y)
+                Js.append(J)
+            else:
+                y_sum = y_sum + y.sum(0) / K_total
+                if jacobians:
+                    J_sum = J_sum + J.sum(0).reshape(B, -1) / K_total
         skip = xu @ skip_J.T
         if not members:
             x_next = skip + y_sum
@@ -922,11 +919,27 @@ class DynamicsEnsemble(nn.Module):
             J = None if J is None else J[perm]
         return x_next, J
 
+    def _stacked_inputs(self, x: object, u: object) -> tuple[np.ndarray, tuple[int, ...]]:
+        """Validated ``[x, u]`` as ``[B, n+m]`` float64 and the leading (batch) shape.
+
+        One finiteness check on the concatenation (the hot path of iLQR rollouts); on failure the
+        full per-argument check names the culprit."""
+        n, m = self.state_dim, self.action_dim
+        xa = np.asarray(x, dtype=np.float64) if not isinstance(x, np.ndarray) else x
+        ua = np.asarray(u, dtype=np.float64) if not isinstance(u, np.ndarray) else u
+        if (xa.ndim < 1 or ua.ndim < 1 or xa.shape[-1] != n or ua.shape[-1] != m
+                or xa.shape[:-1] != ua.shape[:-1] or xa.dtype.kind not in "fiub"
+                or ua.dtype.kind not in "fiub"):
+            check_step_inputs(x, u, n, m)  # raises the precise message
+            raise ValueError(f"x and u must be numeric arrays [..., {n}] and [..., {m}]")
+        xu = np.concatenate([xa, ua], -1, dtype=np.float64).reshape(-1, n + m)
+        if not np.isfinite(xu).all():
+            check_step_inputs(x, u, n, m)  # names x or u and the first bad index
+        return xu, xa.shape[:-1]
+
     def member_predictions(self, x: np.ndarray, u: np.ndarray) -> np.ndarray:
         """Next state of every member: ``x: [..., n]``, ``u: [..., m]`` -> ``[K, ..., n]``."""
-        x, u = check_step_inputs(x, u, self.state_dim, self.action_dim)
-        lead = x.shape[:-1]
-        xu = np.concatenate([x, u], -1).reshape(-1, self.state_dim + self.action_dim)
+        xu, lead = self._stacked_inputs(x, u)
         nxt, _ = self._numpy_eval(xu, members=True, jacobians=False)
         return nxt.reshape(self.n_members, *lead, self.state_dim)
 
@@ -934,9 +947,7 @@ class DynamicsEnsemble(nn.Module):
         """Ensemble-mean next state: ``x: [..., n]``, ``u: [..., m]`` -> ``[..., n]`` (float64).
 
         ``t`` is ignored (the model is time-invariant)."""
-        x, u = check_step_inputs(x, u, self.state_dim, self.action_dim)
-        lead = x.shape[:-1]
-        xu = np.concatenate([x, u], -1).reshape(-1, self.state_dim + self.action_dim)
+        xu, lead = self._stacked_inputs(x, u)
         nxt, _ = self._numpy_eval(xu, members=False, jacobians=False)
         return nxt.reshape(*lead, self.state_dim)
 
