@@ -771,19 +771,18 @@ class JacPropAgent:
         atomic_write_text(run_dir / "summary.json", json.dumps(self.summary(), indent=2))
 
     def _save_video(self, frames: list, ep: int) -> None:
+        """``videos/episode_XXXX.mp4`` (``.gif`` when no ffmpeg is available)."""
         if not frames:
             return
-        path = Path(self.config.run_dir) / "videos" / f"episode_{ep:04d}.mp4"
-        path.parent.mkdir(parents=True, exist_ok=True)
-        try:
-            from envs.rendering import save_video
-        except ImportError:  # pragma: no cover - fall back to imageio directly
-            import imageio.v2 as imageio
+        from envs.rendering import save_video
 
-            fps = int(round(1.0 / self.spec.dt)) if self.spec.dt else 30
-            imageio.mimsave(path, frames, fps=fps)
-            return
-        save_video(frames, path)
+        folder = Path(self.config.run_dir) / "videos"
+        folder.mkdir(parents=True, exist_ok=True)
+        fps = 1.0 / self.spec.dt if self.spec.dt else 30.0
+        try:
+            save_video(frames, folder / f"episode_{ep:04d}.mp4", fps=fps)
+        except ValueError:  # no imageio-ffmpeg
+            save_video(frames, folder / f"episode_{ep:04d}.gif", fps=fps)
 
 
 def _last(values: Any) -> float | None:

@@ -423,6 +423,16 @@ def test_predict_rejects_a_foreign_warm_start(arm_run):
         agent.predict(np.zeros(6), state=np.zeros((3, 2)))
 
 
+def test_video_of_an_episode_is_written(tmp_path):
+    env = gym.make(ARM, episode_steps=8, render_mode="rgb_array", width=64, height=48)
+    agent = JacPropAgent(env, tiny_config(run_dir=str(tmp_path), video=True, video_every=1,
+                                          episode_steps=8, epochs_per_episode=2))
+    agent.learn(1, progress_bar=False)
+    videos = list((tmp_path / "videos").iterdir())
+    assert len(videos) == 1 and videos[0].stem == "episode_0000"
+    assert videos[0].stat().st_size > 0
+
+
 # --------------------------------------------------------- learning: Pendulum-v1 (own env)
 def test_tiny_pendulum_run_with_a_user_cost(tmp_path):
     """The README's "use your own environment" example on gymnasium's Pendulum-v1."""
