@@ -66,10 +66,9 @@ from pathlib import Path  # noqa: E402
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
 from torch import nn  # noqa: E402
-from torch.nn import functional as F  # noqa: E402, N812
 
 from mbtsr import Trajectory  # noqa: E402
-from mbtsr.ensemble import DynamicsEnsemble, EnsembleConfig, MemberSpec  # noqa: E402
+from mbtsr.ensemble import ACTIVATIONS, DynamicsEnsemble, EnsembleConfig, MemberSpec  # noqa: E402
 from mbtsr.ltv import fit_ltv  # noqa: E402
 from mbtsr.metrics import jacobian_error, prediction_rms  # noqa: E402
 from mbtsr.training import RegularizationConfig, TrainConfig, train_ensemble  # noqa: E402
@@ -183,7 +182,9 @@ results: dict = {"config": dataclasses.asdict(args), "load_before": os.getloadav
 # ---------------------------------------------------------------------------------------------
 # 1. batched K = 1, 4, 8 vs K separate modules in a loop (full batch of 1000, one step/epoch)
 # ---------------------------------------------------------------------------------------------
-ACT = {"elu": F.elu, "sigmoid": torch.sigmoid, "tanh": torch.tanh, "swish": F.silu}
+# the same activation kernels as the ensemble (its tanh is 2 sigmoid(2z) - 1, faster than
+# torch.tanh on these CPUs), so the comparison isolates the batching
+ACT = {name: ACTIVATIONS[name][0] for name in PAPER}
 
 
 class Member(nn.Module):
@@ -255,6 +256,19 @@ epoch_ms["batched_K4_all_elu"] = median_ms(same_activation_epochs(args.epochs), 
                                            args.epochs, key="batched_K4_all_elu")
 results["epoch_ms_full_batch_1000"] = epoch_ms
 results["epoch_cpu_ms_full_batch_1000"] = {k: CPU_MS[k] for k in epoch_ms}
+
+# the same K scaling in the paper's training regime: 3 trajectories x 200, one step each
+nominal_k = {}
+for K in (1, 4, 8):
+    model = ensemble(members_of(K))
+    cfg = TrainConfig(epochs=args.epochs, **quiet)
+    train_ensemble(model, robot_train, TrainConfig(epochs=3, **quiet))
+    nominal_k[f"batched_K{K}"] = median_ms(
+        lambda model=model, cfg=cfg: train_ensemble(model, robot_train, cfg), args.repeats,
+        args.epochs, key=f"nominal_K{K}")
+results["epoch_ms_nominal_3x200"] = nominal_k
+results["epoch_cpu_ms_nominal_3x200"] = {k: CPU_MS[f"nominal_{k[-2:]}"] for k in nominal_k}
+print(f"nominal setting: {nominal_k}", file=sys.stderr)
 
 # ---------------------------------------------------------------------------------------------
 # 2. Jacobians and the protocol surface at iLQR sizes
@@ -335,6 +349,10 @@ results["nominal_robot_training"] = robot
 # targets and output
 # ---------------------------------------------------------------------------------------------
 cpu = results["epoch_cpu_ms_full_batch_1000"]
+results["diagnostics"] = {
+    "nominal_3x200_batched_K4_over_K1": nominal_k["batched_K4"] / nominal_k["batched_K1"],
+    "full_batch_K4_all_elu_over_K1": epoch_ms["batched_K4_all_elu"] / epoch_ms["batched_K1"],
+}
 results["targets"] = {
     "batched_K4_over_K1": {"value": epoch_ms["batched_K4"] / epoch_ms["batched_K1"],
                            "cpu_time_value": cpu["batched_K4"] / cpu["batched_K1"],
@@ -342,7 +360,9 @@ results["targets"] = {
     "loop_K8_over_batched_K8": {"value": epoch_ms["loop_K8"] / epoch_ms["batched_K8"],
                                 "cpu_time_value": cpu["loop_K8"] / cpu["batched_K8"],
                                 "min": 2.0},
-    "nominal_robot_training_seconds": {"value": robot["sampled"]["seconds"], "max": 10.0},
+    "nominal_robot_training_seconds": {"value": robot["sampled"]["seconds"],
+                                       "cpu_time_value": robot["sampled"]["cpu_seconds"],
+                                       "max": 10.0},
 }
 for t in results["targets"].values():
     t["met"] = bool(t["value"] <= t["max"]) if "max" in t else bool(t["value"] >= t["min"])

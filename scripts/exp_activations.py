@@ -43,7 +43,7 @@ class Args:
     """Activation functions: log prediction error after 20 / 500 / 1500 epochs."""
 
     quick: bool = field(default=False, metadata={"help": "tiny smoke-test run"})
-    mc: int = field(default=100, metadata={"help": "Monte-Carlo runs (paper: 200)"})
+    mc: int = field(default=200, metadata={"help": "Monte-Carlo runs (paper: 200)"})
     out: str = field(default="", metadata={"help": "results folder"})
     figures: str = field(default="", metadata={"help": "figure folder"})
     workers: int = field(default=2, metadata={"help": "parallel worker processes"})

@@ -65,7 +65,7 @@ class Args:
     """Deviations from the nominal model: direction of change of the errors (paper app. B)."""
 
     quick: bool = field(default=False, metadata={"help": "tiny smoke-test run"})
-    mc: int = field(default=8, metadata={"help": "Monte-Carlo runs per deviation"})
+    mc: int = field(default=16, metadata={"help": "Monte-Carlo runs per deviation"})
     out: str = field(default="", metadata={"help": "results folder"})
     figures: str = field(default="", metadata={"help": "figure folder"})
     workers: int = field(default=2, metadata={"help": "parallel worker processes"})
@@ -135,7 +135,9 @@ def report(records: list[dict], out, figures, args: Args) -> dict:
                 continue
             row[f] = {k: spread(metric(records, name, k)) for k in METRICS}
             row[f]["diverged"] = int(values(records, name, "sim_diverged").sum())
-            row[f]["train_time"] = spread(values(records, name, "train_time"))
+            for k in ("train_time", "cpu_time", "train_pred_rms", "pred_rms", "sim_rms",
+                      "jac_err"):
+                row[f][k] = spread(values(records, name, k))
             if d != "nominal":
                 row[f"{f}_vs_nominal"] = {
                     k: paired_comparison(metric(records, name, k),
@@ -144,7 +146,7 @@ def report(records: list[dict], out, figures, args: Args) -> dict:
         if all(f"{f}_{d}" in present for f in ("f", "g")):
             row["g_vs_f"] = {k: paired_comparison(metric(records, f"g_{d}", k),
                                                   metric(records, f"f_{d}", k))
-                             for k in METRICS}
+                             for k in (*METRICS, "train_pred_rms")}
         table[d] = row
 
     # the table as markdown (also pasted into docs/RESULTS.md)

@@ -24,6 +24,7 @@ import numpy as np
 from paper_common import (
     LinearData,
     complex_from_pairs,
+    eigen_limits,
     eigen_scatter,
     paired_comparison,
     parse_args,
@@ -92,14 +93,37 @@ def report(records: list[dict], out, figures, args: Args) -> dict:
     methods = [n for n in METHODS if n in names]
 
     # Fig. 1 (paper Fig. jacpropeig): eigenvalues of the learned A at validation points, first
-    # MC run (one random system), learned (blue) vs true (red)
+    # MC run (one random system), learned (blue) vs true (red); bottom row: offset of each
+    # learned eigenvalue from the nearest true one (the spread is too small to see on top)
     first = min(r["seed"] for r in records)
-    fig, axes = plt.subplots(1, len(methods), figsize=(3.3 * len(methods), 3.4), squeeze=False)
-    for ax, name in zip(axes[0], methods):
-        rec = next(r for r in records if r["name"] == name and r["seed"] == first)
-        eigen_scatter(ax, complex_from_pairs(rec["result"]["eig_learned"]),
-                      complex_from_pairs(rec["result"]["eig_true"]),
-                      f"{LABELS[name]}\neig. error {rec['result']['eig_match_err']:.3f}")
+    shown = {n: next(r["result"] for r in records if r["name"] == n and r["seed"] == first)
+             for n in names}
+    learned = {n: complex_from_pairs(res["eig_learned"]) for n, res in shown.items()}
+    true = complex_from_pairs(shown[names[0]]["eig_true"])
+    limits = eigen_limits(list(learned.values()), true)
+    offsets = {n: (ev.ravel() - true[np.argmin(np.abs(ev.ravel()[:, None] - true[None]), 1)])
+               for n, ev in learned.items()}
+    # one offset scale for the clean-data methods and one for the original-bug variants
+    half = {}
+    for bug in (False, True):
+        group = [offsets[n] for n in names if n.endswith("_bug") == bug]
+        if group:
+            half[bug] = 1.1 * max(np.percentile(np.abs(np.concatenate(group)), 99), 1e-4)
+    fig, axes = plt.subplots(2, len(names), figsize=(3.1 * len(names), 6.4), squeeze=False)
+    for j, name in enumerate(names):
+        eigen_scatter(axes[0, j], learned[name], true,
+                      f"{LABELS[name]}\neig. error {shown[name]['eig_match_err']:.3f}",
+                      limits=limits)
+        ax = axes[1, j]
+        ax.plot(offsets[name].real, offsets[name].imag, ".", ms=2, alpha=0.4)
+        ax.plot([0], [0], "o", ms=4, mfc="none", color="tab:red")
+        h = half[name.endswith("_bug")]
+        ax.set_xlim(-h, h)
+        ax.set_ylim(-h, h)
+        ax.set_aspect("equal")
+        ax.set_xlabel("Re (learned - nearest true)")
+        ax.set_ylabel("Im")
+        ax.tick_params(labelsize=7)
     save_figure(fig, figures / "linear_eigenvalues.png")
 
     # Fig. 2: error distributions over the MC runs
@@ -139,7 +163,8 @@ def report(records: list[dict], out, figures, args: Args) -> dict:
     save_figure(fig, figures / "linear_rounds.png")
 
     keys = ("jac_err", "jac_rms_entry", "eig_match_err", "pred_rms", "log10_pred_rms",
-            "sim_rms", "log10_sim_rms", "sim_diverged", "train_loss", "wall")
+            "sim_rms", "log10_sim_rms", "sim_diverged", "train_loss", "train_pred_rms", "wall",
+            "cpu_time")
     summary = {"configs": {n: {k: spread(values(records, n, k)) for k in keys} for n in names}}
     for n in names:
         per_round = [[rd["jac_rms_entry"] for rd in r["result"]["rounds"]]

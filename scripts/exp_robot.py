@@ -96,7 +96,8 @@ def report(records: list[dict], out, figures, args: Args) -> dict:
     save_figure(fig, figures / "robot_errors.png")
 
     keys = ("pred_rms", "log10_pred_rms", "sim_rms", "log10_sim_rms", "sim_diverged", "jac_err",
-            "jac_rms_entry", "eig_match_err", "train_loss", "train_time", "wall")
+            "jac_rms_entry", "eig_match_err", "train_loss", "train_pred_rms", "train_time", "wall",
+            "cpu_time")
     summary = {"configs": {n: {k: spread(values(records, n, k)) for k in keys} for n in names}}
     for n in names:
         summary["configs"][n]["diverged_simulations"] = int(

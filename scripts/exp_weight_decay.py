@@ -25,6 +25,7 @@ import numpy as np
 from paper_common import (
     LinearData,
     complex_from_pairs,
+    eigen_limits,
     eigen_scatter,
     paired_comparison,
     parse_args,
@@ -87,19 +88,22 @@ def report(records: list[dict], out, figures, args: Args) -> dict:
 
     # Fig. (paper Fig. wd): rows no / strong weight decay, columns f / g; first MC run's system
     first = min(r["seed"] for r in records)
-    fig, axes = plt.subplots(2, 2, figsize=(7.5, 7.5))
-    for i, wd in enumerate((wd_lo, wd_hi)):
-        for j, f in enumerate(("f", "g")):
-            rec = next((r for r in records if r["name"] == config_name(f, wd)
-                        and r["seed"] == first), None)
-            if rec is None:
-                axes[i, j].set_visible(False)
-                continue
-            res = rec["result"]
-            eigen_scatter(axes[i, j], complex_from_pairs(res["eig_learned"]),
-                          complex_from_pairs(res["eig_true"]),
-                          f"{f}, weight decay {wd:g}: mean|l| {res['eig_mean_abs']:.3f}, "
-                          f"mean|l-1| {res['eig_mean_dist_to_1']:.3f}")
+    panels = {(i, j): next((r["result"] for r in records if r["seed"] == first
+                            and r["name"] == config_name(f, wd)), None)
+              for i, wd in enumerate((wd_lo, wd_hi)) for j, f in enumerate(("f", "g"))}
+    shown = [p for p in panels.values() if p is not None]
+    limits = eigen_limits([complex_from_pairs(p["eig_learned"]) for p in shown],
+                          complex_from_pairs(shown[0]["eig_true"]))  # one scale for all
+    fig, axes = plt.subplots(2, 2, figsize=(8, 8.4))
+    for (i, j), res in panels.items():
+        if res is None:
+            axes[i, j].set_visible(False)
+            continue
+        f, wd = ("f", "g")[j], (wd_lo, wd_hi)[i]
+        eigen_scatter(axes[i, j], complex_from_pairs(res["eig_learned"]),
+                      complex_from_pairs(res["eig_true"]),
+                      f"{f}, weight decay {wd:g}\nmean |l| {res['eig_mean_abs']:.3f}, "
+                      f"mean |l-1| {res['eig_mean_dist_to_1']:.3f}", limits=limits)
     save_figure(fig, figures / "weight_decay_eigenvalues.png")
 
     fig, axes = plt.subplots(1, 4, figsize=(15, 3.8))
@@ -117,7 +121,7 @@ def report(records: list[dict], out, figures, args: Args) -> dict:
 
     keys = ("eig_mean_abs", "eig_mean_dist_to_1", "eig_max_abs", "eig_match_err", "jac_err",
             "jac_rms_entry", "log10_pred_rms", "log10_sim_rms", "sim_diverged", "train_loss",
-            "wall")
+            "train_pred_rms", "wall", "cpu_time")
     summary = {"configs": {n: {k: spread(values(records, n, k)) for k in keys} for n in names}}
     summary["true_eig_mean_abs"] = float(true_abs)
     summary["true_eig_mean_dist_to_1"] = float(np.nanmean(
@@ -134,7 +138,8 @@ def report(records: list[dict], out, figures, args: Args) -> dict:
     comp["g_vs_f_no_decay"] = {
         k: paired_comparison(values(records, config_name("g", wd_lo), k),
                              values(records, config_name("f", wd_lo), k))
-        for k in ("eig_match_err", "jac_err", "log10_pred_rms", "log10_sim_rms", "train_loss")}
+        for k in ("eig_match_err", "jac_err", "log10_pred_rms", "log10_sim_rms",
+                  "train_pred_rms")}
     summary["comparisons"] = comp
     summary["figures"] = ["weight_decay_eigenvalues.png", "weight_decay_errors.png"]
     return summary

@@ -274,10 +274,32 @@ def violins(ax, groups: dict[str, np.ndarray], *, ylabel: str, title: str = "",
                         transform=trans)
 
 
-def eigen_scatter(ax, learned: np.ndarray, true: np.ndarray | None, title: str) -> None:
+def eigen_limits(learned: Sequence[np.ndarray], true: np.ndarray | None = None,
+                 pct: float = 99.0) -> tuple[float, float, float]:
+    """Square axis limits ``(re_min, re_max, im_max)`` around the bulk of the learned eigenvalues
+    (``100 - pct`` .. ``pct`` percentile), all true ones and the point 1."""
+    pts = np.concatenate([np.asarray(z).ravel() for z in learned])
+    pts = pts[np.isfinite(pts)]
+    lo_re, hi_re, hi_im = 0.9, 1.05, 0.05
+    if pts.size:
+        lo_re, hi_re = np.percentile(pts.real, [100 - pct, pct])
+        hi_im = np.percentile(np.abs(pts.imag), pct)
+    if true is not None:
+        true = np.asarray(true).ravel()
+        lo_re, hi_re = min(lo_re, true.real.min()), max(hi_re, true.real.max())
+        hi_im = max(hi_im, np.abs(true.imag).max())
+    lo_re, hi_re = min(lo_re, 0.9), max(hi_re, 1.05)
+    half = 1.1 * max((hi_re - lo_re) / 2, hi_im, 0.05)
+    mid = (lo_re + hi_re) / 2
+    return mid - half, mid + half, half
+
+
+def eigen_scatter(ax, learned: np.ndarray, true: np.ndarray | None, title: str,
+                  limits: tuple[float, float, float] | None = None) -> None:
     """Scatter learned eigenvalues (blue) and true ones (red) in the complex plane with the unit
-    circle, like the paper's eigenvalue figures."""
-    th = np.linspace(0, 2 * np.pi, 400)
+    circle, like the paper's eigenvalue figures. ``limits`` as :func:`eigen_limits` (default:
+    from these eigenvalues)."""
+    th = np.linspace(0, 2 * np.pi, 2000)
     ax.plot(np.cos(th), np.sin(th), "k-", lw=0.6)
     learned = np.asarray(learned).ravel()
     ax.plot(learned.real, learned.imag, ".", ms=2, color="tab:blue", alpha=0.35,
@@ -285,18 +307,9 @@ def eigen_scatter(ax, learned: np.ndarray, true: np.ndarray | None, title: str) 
     if true is not None:
         true = np.asarray(true).ravel()
         ax.plot(true.real, true.imag, "o", ms=4, mfc="none", color="tab:red", label="true")
-    pts = learned[np.isfinite(learned)]
-    if pts.size:  # zoom on the bulk of the learned eigenvalues (1st-99th pct) and all true ones
-        lo_re, hi_re = np.percentile(pts.real, [1, 99])
-        hi_im = np.percentile(np.abs(pts.imag), 99)
-        if true is not None:
-            lo_re, hi_re = min(lo_re, true.real.min()), max(hi_re, true.real.max())
-            hi_im = max(hi_im, np.abs(true.imag).max())
-        lo_re, hi_re = min(lo_re, 0.9), max(hi_re, 1.05)
-        half = 1.1 * max((hi_re - lo_re) / 2, hi_im, 0.05)
-        mid = (lo_re + hi_re) / 2
-        ax.set_xlim(mid - half, mid + half)
-        ax.set_ylim(-half, half)
+    lo, hi, half = limits if limits is not None else eigen_limits([learned], true)
+    ax.set_xlim(lo, hi)
+    ax.set_ylim(-half, half)
     ax.set_aspect("equal")
     ax.set_xlabel("Re")
     ax.set_ylabel("Im")
@@ -639,7 +652,7 @@ def run_linear(config: dict, seed: int) -> dict:
     the original README experiment; otherwise every round on all trajectories), ``n_eig_store``.
     All configs of one seed share the system, the data and the initial weights.
     """
-    from mbtsr.metrics import jacobian_eigenvalues
+    from mbtsr.metrics import jacobian_eigenvalues, prediction_rms
 
     t0, c0 = time.perf_counter(), time.process_time()
     cfg = LinearData(**config["data"])
@@ -662,6 +675,7 @@ def run_linear(config: dict, seed: int) -> dict:
                                                "sim_rms")}
                       | {"train_loss": finite_or_none(hist.train_loss[-1])})
     result = dict(metrics)
+    result["train_pred_rms"] = finite_or_none(prediction_rms(model, d["train"]))
     ev_hat = jacobian_eigenvalues(model, X, U)
     result.update(eigen_summary(ev_hat, np.linalg.eigvals(d["A"]), config["n_eig_store"]))
     result["rounds"] = rounds
@@ -679,7 +693,7 @@ def run_robot(config: dict, seed: int) -> dict:
     arguments of :func:`build_ensemble` other than dims/formulation/seed).
     All configs of one seed share the data (for equal ``data``) and the weight-init seed.
     """
-    from mbtsr.metrics import jacobian_eigenvalues
+    from mbtsr.metrics import jacobian_eigenvalues, prediction_rms
 
     t0, c0 = time.perf_counter(), time.process_time()
     cfg = RobotData(**config["data"])
@@ -694,6 +708,7 @@ def run_robot(config: dict, seed: int) -> dict:
                  seed=child_seed(seed, 20), lr=config["lr"], reg_kwargs=config["reg"])
     train_time = time.perf_counter() - t1
     result = evaluate(model, d["val"], d["sim"], X, U, A_true, B_true)
+    result["train_pred_rms"] = finite_or_none(prediction_rms(model, d["train"]))
     ev_hat = jacobian_eigenvalues(model, X, U)
     ev_true = np.linalg.eigvals(A_true)
     result["eig_match_err"] = eigenvalue_matching_error(ev_hat, ev_true)
