@@ -426,3 +426,20 @@ def test_model_methods_reject_bad_inputs():
         model.set_normalization([(x, u)])
     with pytest.raises(ValueError, match="k must be"):
         model.member_parameters(9)
+
+
+@settings(max_examples=40, deadline=None)
+@given(
+    width=st.integers(-3, 40),
+    depth=st.integers(-1, 4),
+    dropout=st.floats(-1.0, 2.0) | st.just(float("nan")),
+    activation=st.sampled_from(sorted(ACTIVATIONS) + ["gelu", "ELU", ""]),
+)
+def test_member_spec_accepts_exactly_the_valid_values(width, depth, dropout, activation):
+    valid = (width >= 1 and depth in (1, 2) and 0 <= dropout < 1 and activation in ACTIVATIONS)
+    if valid:
+        spec = MemberSpec(activation, width, depth, dropout)
+        assert (spec.width, spec.depth) == (width, depth)
+    else:
+        with pytest.raises(ValueError):
+            MemberSpec(activation, width, depth, dropout)

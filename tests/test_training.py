@@ -11,6 +11,8 @@ with Adam's closed-form first step.
 import numpy as np
 import pytest
 import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from scipy.linalg import expm
 
 from mbtsr import Trajectory
@@ -346,3 +348,16 @@ def test_train_ensemble_rejects_bad_inputs():
         train_ensemble(model, [tr], {"epochs": 1})
     with pytest.raises(ValueError, match="model must be a DynamicsEnsemble"):
         train_ensemble(torch.nn.Linear(2, 2), [tr], cfg)
+
+
+@settings(max_examples=40, deadline=None)
+@given(
+    name=st.sampled_from(["sampled_weight", "exact_weight", "smooth_weight", "sigma"]),
+    value=st.floats(allow_nan=True, allow_infinity=True),
+)
+def test_regularization_weights_must_be_finite_and_nonnegative(name, value):
+    if np.isfinite(value) and value >= 0:
+        assert getattr(RegularizationConfig(**{name: value}), name) == value
+    else:
+        with pytest.raises(ValueError, match=name):
+            RegularizationConfig(**{name: value})
