@@ -274,6 +274,35 @@ def test_box_qp_matches_bounded_least_squares(seed, m, scale):
         assert value(x_guess) <= value(ref) + 1e-9 * max(1.0, abs(value(ref)))
 
 
+@settings(max_examples=25, deadline=None)
+@given(
+    seed=st.integers(0, 10_000),
+    lower=st.lists(st.floats(-2.0, 0.0), min_size=2, max_size=2),
+    width=st.lists(st.floats(0.0, 2.0), min_size=2, max_size=2),
+    scale=st.floats(0.0, 5.0),
+)
+def test_returned_controls_always_respect_the_box(seed, lower, width, scale):
+    """Any box (including zero-width ones) and start: finite controls inside the box, a cost no
+    worse than the initial guess's."""
+    A, B = _stable_system(seed % 50)
+    lower = np.asarray(lower)
+    upper = lower + np.asarray(width)
+    rng = np.random.default_rng(seed)
+    x0 = scale * rng.standard_normal(N_X)
+    U0 = rng.uniform(-3, 3, (15, N_U))
+    cost = quadratic_cost(np.eye(N_X), 0.1 * np.eye(N_U), np.zeros(N_X))
+    model = LinearDynamics(A, B)
+    res = ilqr(cost, model, x0, U0, u_min=lower, u_max=upper, options={"max_iter": 50})
+    assert np.isfinite(res.U).all()
+    assert np.all(res.U >= lower) and np.all(res.U <= upper)
+    U_clipped = np.clip(U0, lower, upper)
+    X0 = np.vstack([x0, np.zeros((15, N_X))])
+    for t in range(15):
+        X0[t + 1] = A @ X0[t] + B @ U_clipped[t]
+    assert res.cost <= cost.total(X0, U_clipped) + 1e-12
+    assert res.status != "failed"
+
+
 # ---------------------------------------------------------------------- batching
 def test_one_batched_rollout_and_one_jacobian_call_per_iteration():
     model = CountingModel(CasadiModel(pendulum_step()))
