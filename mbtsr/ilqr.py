@@ -402,12 +402,13 @@ def _trace(it, J, lam, alpha, expected, actual, grad_norm, accepted, t_it) -> di
 class _LQProblem:
     """The local LQ problem around a nominal trajectory in augmented form (see module doc).
 
-    ``FT: [T, 1+n+m, 1+n]`` = ``F_t^T``; ``L: [T, 1+n+m, 1+n+m]`` stage cost quadratics;
+    ``F: [T, 1+n, 1+n+m]`` and ``FT`` = ``F_t^T``; ``L: [T, 1+n+m, 1+n+m]`` stage cost quadratics;
     ``VT: [1+n, 1+n]`` terminal value; ``lo, hi: [T, m]`` bounds on ``du``;
     ``BB: [T, m, m]``, ``BA: [T, m, 1+n]`` for state regularisation (reg_type 2).
     """
 
     FT: np.ndarray
+    F: np.ndarray
     L: np.ndarray
     VT: np.ndarray
     lo: np.ndarray
@@ -446,6 +447,7 @@ class _LQProblem:
             BA[:, :, 1:] = Bt @ A
         return cls(
             FT=np.ascontiguousarray(F.transpose(0, 2, 1)),
+            F=F,
             L=L,
             VT=VT,
             lo=lower[None] - U,
@@ -474,10 +476,12 @@ def _backward_pass(p: _LQProblem, lam: float, has_limits: bool, opts: ILQROption
     dposv = lapack.dposv
     # bounds as Python lists: comparing m floats in Python is ~10x cheaper than numpy calls
     lo_list, hi_list = (p.lo.tolist(), p.hi.tolist()) if has_limits else (None, None)
+    FT_all, F_all, L_all = p.FT, p.F, p.L
+    matmul = np.matmul
     for t in range(T - 1, -1, -1):
-        FT = p.FT[t]
-        M = p.L[t] + FT @ V @ FT.T
-        Ms[t] = M
+        M = Ms[t]
+        matmul(FT_all[t] @ V, F_all[t], out=M)
+        M += L_all[t]
         if p.reg_type == 1:
             H = M[nz:, nz:] + lam_I
             rhs = M[nz:, :nz]
