@@ -392,7 +392,7 @@ def train_ensemble(
                 y, J = model.stacked_forward(inputs, jac_rows=jac_rows, normalized=True)
                 # sum over members of (mean over points of the squared error norm)
                 loss = _sum_squared(y[:, :B], target[idx]) / B
-                data_sum += float(loss.detach()) / K
+                data_sum += float(loss.detach()) / K * B
                 if reg.sampled:
                     tp = target_pert[:, idx].reshape(-1, n)
                     pen = _sum_squared(y[:, inputs.shape[0] - tp.shape[0]:], tp) / tp.shape[0]
@@ -418,7 +418,7 @@ def train_ensemble(
                 loss.backward()
                 optimizer.step()
                 steps += 1
-            train_loss[epoch] = data_sum / len(batches)
+            train_loss[epoch] = data_sum / N
             if not np.isfinite(train_loss[epoch]):
                 raise FloatingPointError(
                     f"training diverged at epoch {epoch} (non-finite loss); lower lr or check "
