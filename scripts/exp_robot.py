@@ -39,8 +39,11 @@ from paper_common import (
 
 EXPERIMENT = "robot"
 METHODS = ("none", "sampled", "exact", "smooth")
-LABELS = {"none": "none", "sampled": "sampled JacProp", "exact": "exact (LTV match)",
-          "smooth": "exact (smoothness)"}
+#: epoch controls: the paper halves the epochs with sampled JacProp; these two configs separate
+#: the effect of JacProp from the effect of the epoch count
+CONTROLS = {"none_half": ("none", 0.5), "sampled_full": ("sampled", 2.0)}
+LABELS = {"none": "none", "sampled": "sampled JacProp", "exact": "exact LTV match",
+          "smooth": "exact smoothness", "none_half": "none", "sampled_full": "sampled JacProp"}
 
 
 @dataclass
@@ -63,28 +66,36 @@ class Args:
     exact_weight: float = field(default=0.01, metadata={"help": "weight of the LTV match"})
     smooth_weight: float = field(default=0.01, metadata={
         "help": "weight of the smoothness penalty (original two-link AD script: 0.01)"})
+    epoch_controls: bool = field(default=True, metadata={
+        "help": "also run none with half and sampled with full epochs"})
 
-    QUICK = {"mc": 2, "epoch_scale": 0.01, "n_val": 2}
+    QUICK = {"mc": 2, "epoch_scale": 0.01, "n_val": 2, "epoch_controls": False}
 
 
 def make_configs(args: Args) -> dict[str, dict]:
     data = dataclasses.asdict(RobotData(n_val=args.n_val))
     reg = {"none": {}, "sampled": {}, "exact": {"exact_weight": args.exact_weight},
            "smooth": {"smooth_weight": args.smooth_weight}}
-    return {m: {"data": data, "formulation": args.formulation, "method": m, "reg": reg[m],
-                "epochs": nominal_epochs(args.formulation, m, args.epoch_scale),
-                "lr": args.lr, "model": {}}
-            for m in METHODS}
+    configs = {m: {"data": data, "formulation": args.formulation, "method": m, "reg": reg[m],
+                   "epochs": nominal_epochs(args.formulation, m, args.epoch_scale),
+                   "lr": args.lr, "model": {}}
+               for m in METHODS}
+    if args.epoch_controls:
+        for name, (m, factor) in CONTROLS.items():
+            epochs = nominal_epochs(args.formulation, m, args.epoch_scale * factor)
+            configs[name] = {**configs[m], "epochs": epochs}
+    return configs
 
 
 def report(records: list[dict], out, figures, args: Args) -> dict:
     plt = pyplot()
-    names = [m for m in METHODS if any(r["name"] == m for r in records)]
+    names = [m for m in LABELS if any(r["name"] == m for r in records)]
     n_runs = {n: sum(r["name"] == n for r in records) for n in names}
-    groups = {f"{LABELS[n]}": n for n in names}
+    epochs = {r["name"]: r["config"]["epochs"] for r in records}
+    groups = {f"{LABELS[n]} ({epochs[n]} ep.)": n for n in names}
     div = {k: f"diverged {int(values(records, n, 'sim_diverged').sum())}"
            for k, n in groups.items()}
-    fig, axes = plt.subplots(1, 3, figsize=(14, 4.2))
+    fig, axes = plt.subplots(1, 3, figsize=(3 * (1.2 + 0.9 * len(names)), 4.6))
     violins(axes[0], {k: values(records, n, "log10_pred_rms") for k, n in groups.items()},
             ylabel="log10 one-step prediction RMS", title="prediction (validation)")
     violins(axes[1], {k: values(records, n, "log10_sim_rms") for k, n in groups.items()},
@@ -105,10 +116,17 @@ def report(records: list[dict], out, figures, args: Args) -> dict:
         summary["configs"][n]["runs_with_divergence"] = int(
             (values(records, n, "sim_diverged") > 0).sum())
         summary["configs"][n]["n_simulations"] = int(values(records, n, "n_sim").sum())
+    compare = ("log10_pred_rms", "log10_sim_rms", "jac_err", "train_pred_rms")
     summary["vs_none"] = {
         n: {k: paired_comparison(values(records, n, k), values(records, "none", k))
-            for k in ("log10_pred_rms", "log10_sim_rms", "jac_err", "train_loss")}
+            for k in compare}
         for n in names if n != "none"}
+    # same epoch count: JacProp's effect without the halved-epochs confound
+    for a, b in (("sampled", "none_half"), ("sampled_full", "none")):
+        if a in names and b in names:
+            summary[f"{a}_vs_{b}"] = {
+                k: paired_comparison(values(records, a, k), values(records, b, k))
+                for k in compare}
     summary["figures"] = ["robot_errors.png"]
     return summary
 
