@@ -532,25 +532,43 @@ def _active_set_guess(H, g, x_free, lower, upper):
 
     Clamp the dimensions where the unconstrained minimiser ``x_free`` leaves the box, re-solve
     for the others and accept if the KKT conditions hold (free part inside the box, gradient
-    pointing out of the box on clamped dimensions). For small ``m`` this is usually right and
-    costs one small solve; otherwise :func:`_box_qp` runs.
+    pointing out of the box on clamped dimensions). For small ``m`` this is usually right; it
+    runs on Python floats (``m`` is 1-4 here, where numpy's per-call overhead dominates) with
+    one LAPACK solve if more than one dimension stays free. Otherwise :func:`_box_qp` runs.
 
     :return: ``(x [m], free [m] bool, ok)``.
     """
-    x = np.minimum(np.maximum(x_free, lower), upper)
-    free = x == x_free
-    if free.any():
-        clamped = ~free
-        _, sol, info = lapack.dposv(H[free][:, free], g[free] + H[free][:, clamped] @ x[clamped])
-        if info != 0:
-            return x, free, False
-        x[free] = -sol
-        if not ((x[free] >= lower[free]).all() and (x[free] <= upper[free]).all()):
-            return x, free, False
-    grad = g + H @ x
-    at_lo, at_hi = ~free & (x <= lower), ~free & (x >= upper)
-    ok = bool((grad[at_lo] >= 0).all() and (grad[at_hi] <= 0).all())
-    return x, free, ok
+    Hl, gl = H.tolist(), g.tolist()
+    lo, hi = lower.tolist(), upper.tolist()
+    x = [min(max(a, b), c) for a, b, c in zip(x_free.tolist(), lo, hi)]
+    free = [a == b for a, b in zip(x, x_free.tolist())]
+    fi = [i for i, f in enumerate(free) if f]
+    ci = [i for i, f in enumerate(free) if not f]
+    if fi:
+        rhs = [gl[i] + sum(Hl[i][j] * x[j] for j in ci) for i in fi]
+        if len(fi) == 1:
+            h = Hl[fi[0]][fi[0]]
+            if not h > 0:
+                return np.array(x), np.array(free), False
+            sol = [rhs[0] / h]
+        else:
+            _, sol_arr, info = lapack.dposv(H[np.ix_(fi, fi)], np.array(rhs))
+            if info != 0:
+                return np.array(x), np.array(free), False
+            sol = sol_arr.tolist()
+        for i, v in zip(fi, sol):
+            x[i] = -v
+            if not lo[i] <= x[i] <= hi[i]:
+                return np.array(x), np.array(free), False
+    ok = True
+    for i in ci:
+        if lo[i] == hi[i]:  # a fixed dimension is clamped whatever its gradient
+            continue
+        grad = gl[i] + sum(Hl[i][j] * x[j] for j in range(len(x)))
+        if (x[i] <= lo[i] and grad < 0) or (x[i] >= hi[i] and grad > 0):
+            ok = False
+            break
+    return np.array(x), np.array(free), ok
 
 
 def _box_qp(H, g, lower, upper, x0, opts: ILQROptions):
