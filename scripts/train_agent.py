@@ -40,6 +40,7 @@ class Args:
     env_id: str = "mbtsr/TwoLinkArm-v0"
     episodes: int = 10  # total training episodes of the run (a resumed run counts the done ones)
     run_dir: str = ""  # default: runs/train_agent/<env>_<regularization>_<formulation>_seed<seed>
+    # (a fresh default run that finds a finished one there adds a suffix _1, _2, ...)
     resume: bool = False  # continue from <run_dir>/checkpoint.pt
     json: str = ""  # write the benchmark JSON here
     plots: bool = True  # learning curve and final-reach PNGs
@@ -132,6 +133,10 @@ def main(argv: list[str] | None = None) -> dict:
         REPO / "runs" / "train_agent" /
         f"{args.env_id.replace('/', '_')}_{cfg_preview.regularization}_"
         f"{cfg_preview.formulation}_seed{cfg_preview.seed}"))
+    if not args.run_dir and not args.resume:  # a fresh default run never clobbers an old one
+        base, k = run_dir, 1
+        while (run_dir / "checkpoint.pt").exists():
+            run_dir, k = base.with_name(f"{base.name}_{k}"), k + 1
     checkpoint = run_dir / "checkpoint.pt"
     if args.resume and not checkpoint.is_file():
         raise SystemExit(f"--resume: no checkpoint at {checkpoint}")
