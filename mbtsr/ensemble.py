@@ -42,9 +42,11 @@ protocol (``step``, ``predict``, ``jacobians``).
 from __future__ import annotations
 
 import json
+import math
 import os
 from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, field
+from operator import attrgetter
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -53,6 +55,7 @@ import torch
 from scipy.special import expit
 from torch import nn
 from torch.nn import functional as F  # noqa: N812
+from torch.optim.optimizer import register_optimizer_step_post_hook
 
 from mbtsr.dynamics import check_step_inputs
 from mbtsr.trajectory import Trajectory
@@ -71,6 +74,17 @@ __all__ = [
 FORMULATIONS = ("f", "g", "nominal", "scaled")
 LEAKY_RELU_SLOPE = 0.01
 LAYER_NORM_EPS = 1e-5
+_VERSION = attrgetter("_version")
+_OPTIMIZER_STEPS = [0]  # steps of any torch optimizer so far: part of the numpy cache key, because
+# fused optimizers (``torch.optim.Adam(fused=True)``, used by training) update parameters in place
+# WITHOUT bumping their version counters (measured, torch 2.13)
+
+
+def _count_optimizer_step(optimizer, args, kwargs) -> None:
+    _OPTIMIZER_STEPS[0] += 1
+
+
+register_optimizer_step_post_hook(_count_optimizer_step)
 STD_FLOOR = 1e-8  # a dimension with a smaller std (e.g. a constant input) is not rescaled
 
 
@@ -404,6 +418,72 @@ _NP_INPLACE = {
 }
 
 
+# Value-only activations of the ensemble-mean ``step`` fast path (:meth:`DynamicsEnsemble.step`):
+# ``f(z, h)`` writes into ``h`` in place. Sigmoid, swish and tanh all go through numpy's vectorized
+# tanh (scipy's ``expit`` is a scalar loop, ~5x slower on small batches), with the affine parts
+# folded into the weights (see :func:`_fast_activation_plan`), so the three share ONE op:
+#     sigmoid(z) = 0.5 tanh(z/2) + 0.5,     swish(z) = z sigmoid(z) = z' tanh(z') + z',  z' = z/2.
+
+
+def _fast_elu(z, h):
+    np.minimum(z, 0.0, out=h)
+    np.expm1(h, out=h)
+    np.maximum(h, z, out=h)  # expm1(z) >= z for z <= 0, and 0 < z for z > 0
+
+
+def _fast_tanh(z, h):
+    np.tanh(z, out=h)
+
+
+def _fast_times(z, h):
+    h *= z  # swish rows: z' tanh(z'), h already holds tanh(z')
+
+
+def _fast_relu(z, h):
+    np.maximum(z, 0.0, out=h)
+
+
+def _fast_leaky_relu(z, h):
+    np.multiply(z, LEAKY_RELU_SLOPE, out=h)
+    np.maximum(z, h, out=h)
+
+
+_FAST_VALUE = {
+    "elu": _fast_elu,
+    "relu": _fast_relu,
+    "leaky_relu": _fast_leaky_relu,
+    "sigmoid": _fast_tanh,
+    "swish": _fast_tanh,
+    "tanh": _fast_tanh,
+}
+
+
+def _fast_activation_plan(runs, W: int, H: int) -> tuple[list, np.ndarray, np.ndarray, np.ndarray]:
+    """Ops of the hidden activations of member ``runs`` (``(name, first, stop)`` member ranges;
+    member k owns hidden rows ``k*W .. (k+1)*W`` of ``H``).
+
+    :return: ``(ops, half, sigmoid, swish)``: ``ops`` a list of ``(f, first_row, stop_row)``
+        (consecutive tanh-family rows merged into one op), and ``[H]`` boolean row masks: ``half``
+        rows whose pre-activation weights are halved (sigmoid, swish: exact), ``sigmoid`` and
+        ``swish`` rows whose affine remainder the output weights must absorb.
+    """
+    ops: list[tuple[Callable, int, int]] = []
+    swish_ops: list[tuple[Callable, int, int]] = []
+    sigmoid, swish = np.zeros(H, bool), np.zeros(H, bool)
+    for name, a, b in runs:
+        f, first, stop = _FAST_VALUE[name], a * W, b * W
+        if f is _fast_tanh and ops and ops[-1][0] is _fast_tanh and ops[-1][2] == first:
+            ops[-1] = (f, ops[-1][1], stop)
+        else:
+            ops.append((f, first, stop))
+        if name == "sigmoid":
+            sigmoid[first:stop] = True
+        elif name == "swish":
+            swish[first:stop] = True
+            swish_ops.append((_fast_times, first, stop))
+    return ops + swish_ops, sigmoid | swish, sigmoid, swish
+
+
 def _layer_norm(z, gain, bias, mask, width, ops):
     """Masked layer norm over the hidden axis.
 
@@ -624,6 +704,7 @@ class DynamicsEnsemble(nn.Module):
         self._np_cache: tuple | None = None
         self._watched: list | None = None
         self._workspace: dict[str, np.ndarray] = {}
+        self._step_buffers: dict[int, tuple[np.ndarray, np.ndarray]] = {}
         self.eval()
 
     # ---------------------------------------------------------------- basic properties
@@ -818,10 +899,22 @@ class DynamicsEnsemble(nn.Module):
         ensemble mean as ``h @ Wo_vertical`` and the mean Jacobian as ``act'(z) @ M`` with
         ``M[(k, w), (o, i)] = out_std[o] Wo[k, w, o] W1[k, i, w] / in_std[i] / K``.
         """
-        tensors = self._watched_tensors()
-        key = tuple(t._version for t in tensors)
-        if self._np_cache is not None and self._np_cache[0] == key:
-            return self._np_cache[1]
+        return self._numpy_cached()[0]
+
+    def _numpy_cached(self) -> tuple[list, SimpleNamespace | None]:
+        """``(states, mean_plan)``: the cached float64 weights of :meth:`_numpy_state` and the
+        plan of the ensemble-mean fast path of :meth:`step` (None when not applicable).
+
+        The cache key is the number of torch optimizer steps taken so far (a global step hook:
+        fused optimizers do not bump version counters) and the in-place version counters
+        (``Tensor._version``) of every parameter and normalization buffer, so optimizer steps,
+        ``copy_``, ``load_state_dict`` etc. invalidate it without any explicit call (~1 us per
+        check). Only writes that bypass autograd's version counting (``.data`` assignment,
+        writes through ``.numpy()`` views) need :meth:`invalidate_cache`."""
+        key = (_OPTIMIZER_STEPS[0], *map(_VERSION, self._watched_tensors()))
+        cache = self._np_cache
+        if cache is not None and cache[0] == key:
+            return cache[1], cache[2]
         in_mean, in_std, out_mean, out_std = (
             getattr(self, k).detach().double().numpy().copy()
             for k in ("in_mean", "in_std", "out_mean", "out_std")
@@ -854,8 +947,37 @@ class DynamicsEnsemble(nn.Module):
                 st.runs = [(_NP_INPLACE[name], a * W, b * W) for name, a, b in g.runs]
                 st.W, st.wide = W, True
             states.append(st)
-        self._np_cache = (key, states)
-        return states
+        mean_plan = None
+        if len(states) == 1 and states[0].wide:
+            mean_plan = self._mean_step_plan(states[0])
+        self._np_cache = (key, states, mean_plan)
+        return states, mean_plan
+
+    def _mean_step_plan(self, st: SimpleNamespace) -> SimpleNamespace:
+        """Folded weights of the ensemble-mean :meth:`step` for a single wide group of H hidden
+        units (``H = K*W``).
+
+        One buffer ``G = [h; 1; x^T; u^T]: [H+1+n+m, B]`` holds everything:
+        ``z = W_in @ G[H:]`` with ``W_in = [b1T_wide, W1T_wide]: [H, 1+n+m]``, ``h = act(z)`` in
+        place, and ``x+ = G^T @ W_out`` with ``W_out = [WoT_mean^T; bo_mean; skip_J^T]:
+        [H+1+n+m, n]``: the biases and the skip part ride along in the two matrix products.
+        Sigmoid and swish rows run as tanh of ``z' = z/2`` (rows of ``W_in`` halved); the
+        affine remainders ``0.5 t + 0.5`` (sigmoid) and ``+ z'`` (swish) are linear in ``G``
+        and folded into ``W_out`` (rows of the hidden units and of ``[1, x, u]``).
+        """
+        H = st.W1T_wide.shape[0]
+        ops, half, sigmoid, swish = _fast_activation_plan(st.group.runs, st.W, H)
+        W_in = np.concatenate([st.b1T_wide, st.W1T_wide], 1)  # [H, 1+n+m]
+        W_in[half] *= 0.5
+        Wo = st.WoT_mean.T  # [H, n]
+        W_out = np.concatenate([Wo, st.bo_mean[None], self._skip_J.T], 0)
+        W_out[:H][sigmoid] *= 0.5  # Wo (0.5 t + 0.5) = (0.5 Wo) t + 0.5 Wo
+        W_out[H] += 0.5 * Wo[sigmoid].sum(0)
+        W_out[H:] += W_in[swish].T @ Wo[swish]  # Wo (z' t + z') = Wo z' t + (Wo W_in') G_in
+        return SimpleNamespace(
+            W_in=np.ascontiguousarray(W_in), W_out=np.ascontiguousarray(W_out), ops=ops, H=H,
+            n=self.state_dim, m=self.action_dim,
+        )
 
     def _numpy_eval(self, xu: np.ndarray, *, members: bool, jacobians: bool):
         """float64 evaluation at ``xu: [B, n+m]``.
@@ -946,10 +1068,50 @@ class DynamicsEnsemble(nn.Module):
     def step(self, x: np.ndarray, u: np.ndarray, t: int | None = None) -> np.ndarray:
         """Ensemble-mean next state: ``x: [..., n]``, ``u: [..., m]`` -> ``[..., n]`` (float64).
 
-        ``t`` is ignored (the model is time-invariant)."""
-        xu, lead = self._stacked_inputs(x, u)
-        nxt, _ = self._numpy_eval(xu, members=False, jacobians=False)
-        return nxt.reshape(*lead, self.state_dim)
+        ``t`` is ignored (the model is time-invariant). The hot path of iLQR rollouts: for an
+        ensemble of one depth-1 group without layer norm (the paper's) it runs two matrix
+        products with folded biases and in-place activations on reused buffers (see
+        :meth:`_mean_step_plan`); it agrees with :meth:`member_predictions` averaged to ~1e-15.
+        """
+        cache = self._np_cache  # inline cache check: this is the hot path of iLQR rollouts
+        if cache is None or cache[0] != (_OPTIMIZER_STEPS[0], *map(_VERSION, self._watched)):
+            cache = (None, *self._numpy_cached())
+        plan = cache[2]
+        if plan is None:
+            xu, lead = self._stacked_inputs(x, u)
+            nxt, _ = self._numpy_eval(xu, members=False, jacobians=False)
+            return nxt.reshape(*lead, self.state_dim)
+        n, m, H = plan.n, plan.m, plan.H
+        xa = x if isinstance(x, np.ndarray) else np.asarray(x, dtype=np.float64)
+        ua = u if isinstance(u, np.ndarray) else np.asarray(u, dtype=np.float64)
+        lead = xa.shape[:-1]
+        if (xa.shape[-1:] != (n,) or ua.shape[-1:] != (m,) or lead != ua.shape[:-1]
+                or xa.dtype.kind not in "fiub" or ua.dtype.kind not in "fiub"):
+            check_step_inputs(x, u, n, m)  # raises the precise message
+            raise ValueError(f"x and u must be numeric arrays [..., {n}] and [..., {m}]")
+        B = xa.size // n
+        bufs = self._step_buffers.get(B) or self._mean_step_buffers(B, plan)
+        G, z = bufs
+        G[H + 1:H + 1 + n] = xa.reshape(B, n).T
+        G[H + 1 + n:] = ua.reshape(B, m).T
+        G_in = G[H:]  # [1+n+m, B]: ones, x^T, u^T
+        if not math.isfinite(G_in.sum()):  # any NaN/inf (or an overflowing sum: checked anew)
+            check_step_inputs(x, u, n, m)  # names x or u and the first bad index
+        np.dot(plan.W_in, G_in, out=z)  # [H, B]
+        for act, a, b in plan.ops:
+            act(z[a:b], G[a:b])
+        return np.dot(G.T, plan.W_out).reshape(*lead, n)  # a fresh array (callers keep it)
+
+    def _mean_step_buffers(self, B: int, plan: SimpleNamespace) -> tuple[np.ndarray, np.ndarray]:
+        """The reused buffers of :meth:`step` for batch size ``B``: ``G [H+1+n+m, B]`` with the
+        constant ones row written once, and the pre-activations ``z [H, B]``. A few batch sizes
+        are kept (iLQR alternates 1 and the line-search batch)."""
+        if len(self._step_buffers) >= 8:
+            self._step_buffers.clear()
+        G = np.empty((plan.H + 1 + plan.n + plan.m, B))
+        G[plan.H] = 1.0
+        bufs = self._step_buffers[B] = (G, np.empty((plan.H, B)))
+        return bufs
 
     def predict(self, x: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Ensemble mean and spread (population std over members, ``ddof=0``) of the next state.

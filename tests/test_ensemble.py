@@ -443,3 +443,95 @@ def test_member_spec_accepts_exactly_the_valid_values(width, depth, dropout, act
     else:
         with pytest.raises(ValueError):
             MemberSpec(activation, width, depth, dropout)
+
+
+# ---------------------------------------------------------------- the ensemble-mean step fast path
+
+WIDE_MEMBERS = (  # depth 1, no layer norm, padded widths: the folded fast path of ``step``
+    MemberSpec("elu", 5),
+    MemberSpec("tanh", 8),
+    MemberSpec("relu", 3),
+    MemberSpec("swish", 7),
+    MemberSpec("sigmoid", 4),
+    MemberSpec("elu", 8),
+    MemberSpec("leaky_relu", 6),
+)
+
+
+def _normwise_close(a, b, tol):
+    """max |a - b| <= tol * max |b| (rounding-level agreement of differently ordered sums)."""
+    assert a.shape == b.shape
+    assert np.max(np.abs(a - b)) <= tol * max(np.max(np.abs(b)), 1e-300)
+
+
+@pytest.mark.parametrize("formulation", FORMULATIONS)
+@pytest.mark.parametrize(
+    "members",
+    [[MemberSpec(a, 6) for a in ACTIVATIONS],  # every activation, one wide group
+     WIDE_MEMBERS,
+     [MemberSpec("swish", 7), MemberSpec("sigmoid", 3), MemberSpec("swish", 5)],  # padded
+     [MemberSpec(a, 4) for a in ACTIVATIONS] + [MemberSpec("tanh", 4, depth=2)]],  # generic path
+    ids=["all-activations", "wide-padded", "padded-swish-sigmoid", "two-depths"],
+)
+def test_step_agrees_with_the_per_member_path(formulation, members):
+    """``step`` (folded fast path: tanh-based sigmoid/swish, biases and skip inside the matrix
+    products) equals the mean of the per-member float64 predictions to rounding."""
+    model = make_model(members, formulation, perturb=0.5)
+    assert (model._numpy_cached()[1] is None) == any(s.depth == 2 for s in members)
+    rng = np.random.default_rng(7)
+    for lead in [(11,), (), (3, 4), (0,)]:
+        x = rng.normal(size=(*lead, N_STATE)) * 3 + 1
+        u = rng.normal(size=(*lead, N_INPUT)) * 2
+        out = model.step(x, u)
+        assert out.shape == (*lead, N_STATE) and out.dtype == np.float64
+        if out.size:
+            _normwise_close(out, model.member_predictions(x, u).mean(0), 1e-14)
+
+
+def test_step_saturating_inputs_no_warnings_and_exact_limits():
+    """Huge pre-activations saturate every activation without overflow warnings; sigmoid and
+    swish then reach their limits (sigmoid -> 0/1, swish -> 0/z) like scipy's expit."""
+    model = make_model([MemberSpec(a, 5) for a in ACTIVATIONS], "f", perturb=0.5)
+    x, u = sample_points(T=8)
+    scale = np.array([1e3, 1e6, 1e12])[:, None, None]
+    with np.errstate(all="raise"):
+        out = model.step(x[None] * scale, u[None] * scale)  # the fast path raises on a warning
+    assert np.isfinite(out).all()
+    _normwise_close(out, model.member_predictions(x[None] * scale, u[None] * scale).mean(0),
+                    1e-14)
+
+
+def test_step_returns_a_fresh_array():
+    model = make_model(WIDE_MEMBERS, "g")
+    x, u = sample_points(T=5)
+    first = model.step(x, u)
+    kept = first.copy()
+    second = model.step(x + 1.0, u)
+    np.testing.assert_array_equal(first, kept)  # not a view of a reused buffer
+    assert not np.shares_memory(first, second)
+
+
+@pytest.mark.parametrize("make_optimizer", [
+    lambda params: torch.optim.SGD(params, lr=0.1),
+    lambda params: torch.optim.Adam(params, lr=0.05, fused=True),  # no version-counter bump
+    lambda params: torch.optim.Adam(params, lr=0.05, foreach=True),
+], ids=["sgd", "adam-fused", "adam-foreach"])
+def test_step_cache_follows_optimizer_steps_and_load_state_dict(make_optimizer):
+    """No explicit invalidation: an optimizer step on the weights (in place) and
+    ``load_state_dict`` both change what ``step`` computes, matching a freshly built model."""
+    model = make_model(WIDE_MEMBERS, "g")
+    x, u = sample_points(T=7)
+    before = model.step(x, u)
+    opt = make_optimizer(model.parameters())
+    loss = model.forward_torch(torch.tensor(x), torch.tensor(u)).square().sum()
+    loss.backward()
+    opt.step()
+    after = model.step(x, u)
+    assert np.max(np.abs(after - before)) > 1e-3
+    fresh = DynamicsEnsemble(model.config)
+    fresh.load_state_dict(model.state_dict())
+    _normwise_close(after, fresh.step(x, u), 1e-14)
+    _normwise_close(after, model.member_predictions(x, u).mean(0), 1e-14)
+    other = make_model(WIDE_MEMBERS, "g", seed=5)
+    fresh.load_state_dict(other.state_dict())  # copies in place into the same tensors
+    _normwise_close(fresh.step(x, u), other.member_predictions(x, u).mean(0), 1e-14)
