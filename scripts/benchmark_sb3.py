@@ -422,8 +422,9 @@ def plot_curves(summary: dict, oracle: float, solved_ratio: float, path: Path) -
             x, y = zip(*pts)
             ax.plot(x, y, "-", color=COLORS[name], lw=1.2, alpha=0.8, marker="." if
                     len(pts) < 40 else None, label=s["label"] if i == 0 else None)
-            if run["solved"]:
-                ax.plot(x[-1], y[-1], "*", color=COLORS[name], ms=10)
+            if run["solved"]:  # the agents' stars overlap: draw the first one larger
+                ax.plot(x[-1], y[-1], "*", color=COLORS[name], mec="k", mew=0.5,
+                        ms=16 if name == "jacprop" else 10, zorder=3)
     ax.axhline(solved_ratio, color="k", ls="--", lw=1, label=f"solved ({solved_ratio} x oracle)")
     ax.set_xscale("log")
     ax.set_yscale("log")
@@ -511,11 +512,14 @@ def write_markdown(report: dict, path: Path, figure: Path) -> None:
         "## Setup",
         "",
         f"- Machine: {report['machine']['cpu_count']} CPU cores, {report['machine']['platform']}; "
-        f"{a['workers']} workers ({a['backend']} backend), one torch thread each; code at git "
-        f"{report['machine']['git']}. Other jobs shared the machine, so wall times are noisy.",
+        f"{a['workers']} workers ({a['backend']} backend), one torch thread each; report "
+        f"generated at git {report['machine']['git']}. Other jobs shared the machine, so wall "
+        "times are noisy.",
         "- Wall time to solve EXCLUDES evaluation time (model construction, data collection, "
         "gradient steps / model fitting and planning count; the evaluation episodes and the "
-        "agent's oracle computation do not). Times including evaluation are in the JSON.",
+        "agent's oracle computation do not). Times including evaluation are in the JSON. The "
+        "first run in each worker process also pays the process cold start (first torch/SB3 "
+        "calls: up to ~10 s under load), which shows in the agent's seconds-scale times.",
         "- Steps to solve are resolved to the evaluation period: the agent after every "
         f"episode ({_agent_excitation(s)}), SAC/TD3 every {a['eval_every_sac']}/"
         f"{a['eval_every_td3']} steps, PPO every {a['eval_every_ppo']} steps.",
@@ -528,8 +532,11 @@ def write_markdown(report: dict, path: Path, figure: Path) -> None:
         "- Agent: `AgentConfig` defaults with overrides "
         f"`{json.dumps(_agent_summary(s).get('agent_config_overrides', {}))}`; `none` differs "
         "only in `regularization`.",
-        f"- Total benchmark wall time: {report['benchmark_wall_seconds'] / 60:.1f} min "
-        "(this invocation; resumed runs are not re-timed).",
+        f"- Compute: the runs took {report['run_seconds_total'] / 3600:.2f} h of wall time in "
+        f"total (sum over runs, {a['workers']} in parallel), the oracle "
+        f"{report['oracle_seconds']:.0f} s; runs finished between {report['runs_finished'][0]} "
+        f"and {report['runs_finished'][1]}. This invocation took "
+        f"{report['benchmark_wall_seconds'] / 60:.1f} min (finished runs are loaded, not rerun).",
         "",
         "Raw numbers, learning curves and per-run records: the JSON written by `--json` and "
         "the per-run files under `--out-dir`.",
@@ -537,6 +544,17 @@ def write_markdown(report: dict, path: Path, figure: Path) -> None:
     ]
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text("\n".join(lines))
+
+
+def _finish_times(sweep_dir: Path, records: list[dict]) -> list[str]:
+    """First and last finish time (UTC, from the per-run files) of ``records``."""
+    from datetime import datetime, timezone
+
+    stamps = sorted(os.path.getmtime(sweep_dir / "runs" / f"{r['run_id']}.json") for r in records)
+    if not stamps:
+        return ["-", "-"]
+    fmt = "%Y-%m-%d %H:%M UTC"
+    return [datetime.fromtimestamp(t, timezone.utc).strftime(fmt) for t in (stamps[0], stamps[-1])]
 
 
 def _git_revision() -> str:
@@ -581,6 +599,7 @@ def main(argv: list[str] | None = None) -> dict:
     from mbtsr.runner import load_results, run_sweep, write_json_atomic
 
     t_start = time.perf_counter()
+    git_revision = _git_revision()
     args = parse_args(argv)
     torch.set_num_threads(1)
     out_dir = Path(args.out_dir or ("runs/benchmark_sb3_quick" if args.quick
@@ -659,11 +678,14 @@ def main(argv: list[str] | None = None) -> dict:
         "eval_targets": targets,
         "machine": {"cpu_count": os.cpu_count(), "platform": platform.platform(),
                     "python": platform.python_version(), "torch": torch.__version__,
-                    "git": _git_revision()},
+                    "git": git_revision},
         "wall_time_note": "wall seconds to solve exclude evaluation time",
         "methods": summary,
         "comparison": compare(summary),
         "n_failed_runs": sum(s["n_failed"] for s in summary.values()),
+        "oracle_seconds": oracle_rec["result"]["oracle_seconds"],
+        "run_seconds_total": sum(r["wall_time"] for r in records),
+        "runs_finished": _finish_times(out_dir / "sweep", records),
         "benchmark_wall_seconds": time.perf_counter() - t_start,
     }
     write_json_atomic(args.json, report)
