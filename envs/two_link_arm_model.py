@@ -305,6 +305,7 @@ class TwoLinkArmCasadi:
             ["A", "B"],
         )
         self._maps: dict[tuple[str, int], ca.Function] = {}
+        self._buffers: dict[tuple[str, int], tuple] = {}
 
     def _mapped(self, which: str, n: int) -> ca.Function:
         key = (which, n)
@@ -315,13 +316,48 @@ class TwoLinkArmCasadi:
             self._maps[key] = base.map(n)
         return self._maps[key]
 
+    def _buffer(self, which: str, n: int) -> tuple:
+        """Zero-copy evaluation of the ``n``-fold map of ``casadi_step`` (``which="step"``) or
+        ``casadi_jacobians`` (``"jac"``) through ``Function.buffer`` (cached per batch size).
+
+        :return: ``(function_buffer, evaluate, x_in [n, 4], u_in [n, 2], function)``: the
+            inputs are bound once (CasADi reads the column-major ``[4, n]``/``[2, n]`` matrices,
+            i.e. exactly these C-ordered arrays); outputs are bound per call with ``set_res``.
+        """
+        key = (which, n)
+        entry = self._buffers.get(key)
+        if entry is None:
+            if len(self._buffers) > 16:
+                self._buffers.clear()
+            fn = self._mapped(which, n)
+            buf, evaluate = fn.buffer()
+            x_in, u_in = np.zeros((n, 4)), np.zeros((n, 2))
+            buf.set_arg(0, memoryview(x_in))
+            buf.set_arg(1, memoryview(u_in))
+            entry = self._buffers[key] = (buf, evaluate, x_in, u_in, fn)
+        return entry
+
     def step(self, x: np.ndarray, u: np.ndarray, t: int | None = None) -> np.ndarray:
         """Next state in one mapped call: ``x: [..., 4]``, ``u: [..., 2]`` -> ``[..., 4]``."""
-        x, u = check_step_inputs(x, u, 4, 2)
+        if not (isinstance(x, np.ndarray) and isinstance(u, np.ndarray)
+                and x.dtype.kind in "fiub" and u.dtype.kind in "fiub"):
+            x, u = check_step_inputs(x, u, 4, 2)  # converts (and checks) anything else
         batch = x.shape[:-1]
-        xs, us = x.reshape(-1, 4), u.reshape(-1, 2)
-        out = np.asarray(self._mapped("step", xs.shape[0])(xs.T, us.T))
-        return out.T.reshape(*batch, 4)
+        if x.shape[-1:] != (4,) or u.shape[-1:] != (2,) or batch != u.shape[:-1]:
+            check_step_inputs(x, u, 4, 2)  # raises the precise message
+            raise ValueError("x and u must be arrays [..., 4] and [..., 2]")
+        n_b = x.size // 4
+        if n_b == 0:
+            return np.empty((*batch, 4))
+        buf, evaluate, x_in, u_in, _ = self._buffer("step", n_b)
+        x_in[...] = x.reshape(n_b, 4)
+        u_in[...] = u.reshape(n_b, 2)
+        if not math.isfinite(x_in.sum() + u_in.sum()):  # NaN/inf (or an overflowing sum)
+            check_step_inputs(x, u, 4, 2)  # names x or u and the first bad index
+        out = np.empty((n_b, 4))  # column-major [4, n_b] = C-ordered [n_b, 4]; a fresh array
+        buf.set_res(0, memoryview(out))
+        evaluate()
+        return out.reshape(*batch, 4)
 
     def jacobians(self, x: np.ndarray, u: np.ndarray, t: int = 0) -> tuple[np.ndarray, np.ndarray]:
         """Exact (symbolic) Jacobians of one env step along a trajectory, one mapped call.
@@ -333,8 +369,13 @@ class TwoLinkArmCasadi:
         x = as_array("x", x, (None, 4))
         u = as_array("u", u, (x.shape[0], 2))
         n_t = x.shape[0]
-        a_flat, b_flat = self._mapped("jac", n_t)(x.T, u.T)
-        # mapped outputs are horizontally concatenated blocks [A_0 A_1 ...]
-        a_jac = np.asarray(a_flat).reshape(4, n_t, 4).transpose(1, 0, 2)
-        b_jac = np.asarray(b_flat).reshape(4, n_t, 2).transpose(1, 0, 2)
-        return a_jac, b_jac
+        buf, evaluate, x_in, u_in, _ = self._buffer("jac", n_t)
+        x_in[...] = x
+        u_in[...] = u
+        # mapped outputs are horizontally concatenated blocks [A_0 A_1 ...] ([4, 4 T] and
+        # [4, 2 T], column-major): C-ordered that is [T, 4 (column j), 4 (row i)], A_t transposed
+        a_t, b_t = np.empty((n_t, 4, 4)), np.empty((n_t, 2, 4))
+        buf.set_res(0, memoryview(a_t))
+        buf.set_res(1, memoryview(b_t))
+        evaluate()
+        return a_t.transpose(0, 2, 1), b_t.transpose(0, 2, 1)

@@ -411,6 +411,44 @@ def test_analytic_jacobians_match_finite_differences_of_the_casadi_step():
     assert np.array(twin.casadi_step(xs[0], us[0])).shape == (4, 1)
 
 
+
+def test_buffered_step_and_jacobians_equal_plain_casadi_calls_bit_for_bit():
+    """``step``/``jacobians`` evaluate through cached zero-copy ``Function.buffer`` objects (one
+    per batch size); they must equal plain per-point calls of ``casadi_step`` and
+    ``casadi_jacobians`` exactly, return fresh arrays, and survive changing batch sizes."""
+    twin = TwoLinkArmCasadi(arm_params("default"))
+    rng = np.random.default_rng(4)
+    for n in (11, 1, 3, 11, 1):  # revisit cached buffers after other sizes
+        xs = random_states(rng, n, (0.0, 2.0))
+        us = rng.uniform(-1, 1, (n, 2))
+        ref = np.stack([np.array(twin.casadi_step(xs[k], us[k]))[:, 0] for k in range(n)])
+        out = twin.step(xs, us)
+        np.testing.assert_array_equal(out, ref)
+        kept = out.copy()
+        twin.step(xs + 0.1, us)  # must not overwrite the earlier result
+        np.testing.assert_array_equal(out, kept)
+        a_jac, b_jac = twin.jacobians(xs, us)
+        for k in range(n):
+            a_ref, b_ref = twin.casadi_jacobians(xs[k], us[k])
+            np.testing.assert_array_equal(a_jac[k], np.array(a_ref))
+            np.testing.assert_array_equal(b_jac[k], np.array(b_ref))
+    # strided views, lists and integer/float32 dtypes are read like float64 copies
+    X = random_states(rng, 12, (0.0, 2.0)).reshape(3, 4, 4)
+    U = rng.uniform(-1, 1, (3, 4, 2))
+    np.testing.assert_array_equal(twin.step(X[:, 1], U[:, 1]),
+                                  twin.step(X[:, 1].copy(), U[:, 1].copy()))
+    np.testing.assert_array_equal(twin.step(X, U).reshape(-1, 4),
+                                  twin.step(X.reshape(-1, 4), U.reshape(-1, 2)))
+    np.testing.assert_array_equal(twin.step(X[0, 0].tolist(), U[0, 0].tolist()),
+                                  twin.step(X[0, 0], U[0, 0]))
+    xi, ui = np.array([1, 0, 0, 0]), np.array([0.5, -0.25], dtype=np.float32)
+    np.testing.assert_array_equal(twin.step(xi, ui), twin.step(xi.astype(float),
+                                                               ui.astype(float)))
+    assert twin.step(np.zeros((0, 4)), np.zeros((0, 2))).shape == (0, 4)
+    with pytest.raises(ValueError, match="u contains 1 non-finite"):
+        twin.step(X[0], np.where(U[0] == U[0, 2, 1], np.inf, U[0]))
+
+
 # --- bad input ------------------------------------------------------------------------------
 
 
