@@ -177,12 +177,17 @@ def report(records: list[dict], out, figures, args: Args) -> dict:
     ypos = np.arange(len(others))
     for ax, k in zip(np.atleast_1d(axes), METRICS):
         for i, f in enumerate(forms):
-            med = [table[d].get(f"{f}_vs_nominal", {}).get(k, {}).get("median_diff") for d in
-                   others]
-            med = np.array([np.nan if v is None else v for v in med], dtype=float)
-            ax.barh(ypos + (i - 0.5 * (len(forms) - 1)) * 0.38, med, height=0.36, label=f)
+            comps = [table[d].get(f"{f}_vs_nominal", {}).get(k, {}) for d in others]
+            med = np.array([np.nan if c.get("median_diff") is None else c["median_diff"]
+                            for c in comps], dtype=float)
+            bars = ax.barh(ypos + (i - 0.5 * (len(forms) - 1)) * 0.38, med, height=0.36,
+                           label=f, color=f"C{i}")
+            for bar, c in zip(bars, comps):  # faint: not significant at alpha
+                if direction(c, alpha) == "~":
+                    bar.set_alpha(0.3)
         ax.axvline(0, color="k", lw=0.8)
-        ax.set_title(f"{METRIC_LABELS[k]}: median paired change of log10 error", fontsize=9)
+        ax.set_title(f"{METRIC_LABELS[k]}: median paired change of log10 error\n"
+                     f"(faint: not significant, Wilcoxon p >= {alpha:g})", fontsize=9)
         ax.set_xlabel("< better | worse >")
     np.atleast_1d(axes)[0].set_yticks(ypos, [DEVIATIONS[d][0] for d in others])
     np.atleast_1d(axes)[0].invert_yaxis()
