@@ -119,6 +119,22 @@ def command_line() -> str:
     return " ".join(["python", str(script), *sys.argv[1:]])
 
 
+def library_version() -> dict:
+    """The git commit of the checkout and whether ``mbtsr/`` or ``envs/`` differ from it (the
+    results depend on the library code, so every sweep records it)."""
+    import subprocess
+
+    def git(*cmd: str) -> str:
+        try:
+            return subprocess.run(["git", *cmd], cwd=REPO, capture_output=True, text=True,
+                                  timeout=10).stdout.strip()
+        except (OSError, subprocess.SubprocessError):
+            return ""
+
+    return {"commit": git("rev-parse", "HEAD"),
+            "library_dirty": bool(git("status", "--porcelain", "--", "mbtsr", "envs"))}
+
+
 def run_experiment(
     args,
     experiment: str,
@@ -135,6 +151,7 @@ def run_experiment(
         write_json(out / "args.json", {"args": dataclasses.asdict(args),
                                        "command": command_line()})
         n_before = len(load_results(out))
+        library_at_start = library_version()
         t0 = time.perf_counter()
         recs = run_sweep(run_fn, configs, range(args.mc), out, backend=args.backend,
                          workers=args.workers, progress=not args.quick)
@@ -146,7 +163,8 @@ def run_experiment(
                                                                                   - wall)),
                     "wall_s": round(wall, 1), "runs_finished_before": n_before,
                     "runs_finished_after": len(recs), "workers": args.workers,
-                    "backend": args.backend, "load_avg_1min": round(os.getloadavg()[0], 2)})
+                    "backend": args.backend, "load_avg_1min": round(os.getloadavg()[0], 2),
+                    "library_at_start": library_at_start, "library_at_end": library_version()})
         write_json(log_path, log)
     records = [r for r in load_results(out) if r["name"] in configs or args.report_only]
     if not records:
