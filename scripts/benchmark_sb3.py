@@ -483,6 +483,14 @@ def write_markdown(report: dict, path: Path, figure: Path) -> None:
             f"{'-' if fr is None else f'{fr:.3g}'} |")
     lines += ["", "`>= B`: not solved within the budget; the budget (or the time spent on it) is "
               "a lower bound, and so is any median or ratio it enters.", ""]
+    for name in AGENT_METHODS:
+        runs = s.get(name, {}).get("runs", [])
+        if runs and all(r["solved"] and r["curve"] and len(r["curve"]) == 1 for r in runs):
+            lines += [f"Note: {LABELS[name]} solved at its FIRST evaluation in every run, so "
+                      f"{runs[0]['curve'][0][0]} env steps is also the smallest number this "
+                      "configuration can report (evaluations start after the excitation "
+                      "episodes); its true need may be lower, and its ratios below are then "
+                      "conservative.", ""]
     if "best_sb3_steps_to_solve" in cmp:
         b, w = cmp["best_sb3_steps_to_solve"], cmp["best_sb3_wall_seconds_to_solve"]
         lines += [
