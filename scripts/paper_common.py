@@ -335,15 +335,21 @@ def eigen_scatter(ax, learned: np.ndarray, true: np.ndarray | None, title: str,
 
 
 def complex_from_pairs(pairs) -> np.ndarray:
-    """Inverse of :func:`complex_to_pairs`: ``[..., 2]`` floats -> complex ``[...]``."""
-    a = np.asarray(pairs, dtype=float)
+    """Inverse of :func:`complex_to_pairs`: the stored form (or a nested ``[..., 2]`` list of
+    (real, imag)) -> complex array ``[...]``."""
+    if isinstance(pairs, dict):
+        a = np.array(pairs["re_im"].split(), dtype=float).reshape(*pairs["shape"], 2)
+    else:
+        a = np.asarray(pairs, dtype=float)
     return a[..., 0] + 1j * a[..., 1]
 
 
-def complex_to_pairs(z: np.ndarray, digits: int = 4) -> list:
-    """Complex ``[...]`` -> nested list ``[..., 2]`` of (real, imag), rounded (JSON-friendly)."""
+def complex_to_pairs(z: np.ndarray, digits: int = 4) -> dict:
+    """Complex ``[...]`` -> ``{"shape": [...], "re_im": "re im re im ..."}`` with ``digits``
+    decimals: one JSON string instead of one line per number keeps the per-run files small."""
     z = np.asarray(z)
-    return rounded(np.stack([z.real, z.imag], axis=-1), digits)
+    flat = np.stack([z.real, z.imag], axis=-1).ravel()
+    return {"shape": list(z.shape), "re_im": " ".join(f"{v:.{digits}f}" for v in flat)}
 
 
 # ------------------------------------------------------------------------------------------------

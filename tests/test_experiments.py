@@ -223,6 +223,16 @@ def test_paired_comparison_detects_a_constant_shift(base, shift):
     assert better["p_value"] < 0.05  # >= 6 pairs, all in one direction
 
 
+@settings(max_examples=25, deadline=None)
+@given(st.lists(complex_lists, min_size=1, max_size=4).filter(
+    lambda rows: len({len(r) for r in rows}) == 1))
+def test_stored_eigenvalues_round_trip(rows):
+    z = np.array(rows)
+    back = pc.complex_from_pairs(json.loads(json.dumps(pc.complex_to_pairs(z, digits=6))))
+    assert back.shape == z.shape
+    np.testing.assert_allclose(back, z, atol=1e-6)
+
+
 def test_parse_args_quick_overrides_only_unset_fields():
     import exp_robot
 
