@@ -28,7 +28,7 @@ from mbtsr.trajectory import load_trajectories
 
 REPO = Path(__file__).resolve().parents[1]
 SCRIPT = REPO / "scripts" / "train_agent.py"
-EPISODES = 5
+EPISODES = 8
 TINY = [
     "--episodes", str(EPISODES), "--seed", "4", "--episode-steps", "25",
     "--n-excitation-episodes", "1", "--epochs-per-episode", "20", "--batch-size", "32",
@@ -104,8 +104,9 @@ def test_sigkill_and_resume_is_bit_identical_to_an_uninterrupted_run(tmp_path):
     straight, killed = tmp_path / "straight", tmp_path / "killed"
     uninterrupted = _start(straight)
     interrupted = _start(killed)
-    # kill 1: in the middle of episode 3 (0.3 s after episode 2's checkpoint)
-    done = _kill_after(interrupted, killed, 2, delay=0.3)
+    # kill 1: in episode 3 (0.05 s after episode 2's checkpoint; on a quiet machine an episode
+    # of this tiny run takes about a tenth of a second, so EPISODES leaves room for both kills)
+    done = _kill_after(interrupted, killed, 2, delay=0.05)
     assert 2 <= done < EPISODES
     # kill 2: right after the resumed run's next checkpoint, possibly while it is still writing
     # the CSV and exports that follow the checkpoint
