@@ -24,6 +24,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from paper_common import (
     ALL_ACTIVATIONS,
+    ExperimentArgs,
     RobotData,
     paired_comparison,
     parse_args,
@@ -39,17 +40,10 @@ EXPERIMENT = "activations"
 
 
 @dataclass
-class Args:
+class Args(ExperimentArgs):
     """Activation functions: log prediction error after 20 / 500 / 1500 epochs."""
 
-    quick: bool = field(default=False, metadata={"help": "tiny smoke-test run"})
     mc: int = field(default=200, metadata={"help": "Monte-Carlo runs (paper: 200)"})
-    out: str = field(default="", metadata={"help": "results folder"})
-    figures: str = field(default="", metadata={"help": "figure folder"})
-    workers: int = field(default=2, metadata={"help": "parallel worker processes"})
-    backend: str = field(default="process", metadata={"help": "process, serial or ray"})
-    report_only: bool = field(default=False, metadata={"help": "only redraw from JSON"})
-    json: str = field(default="", metadata={"help": "also write the summary JSON here"})
     formulation: str = field(default="g", metadata={"help": "f or g"})
     checkpoints: str = field(default="20,500,1500", metadata={
         "help": "comma-separated epochs at which the error is recorded"})

@@ -28,6 +28,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from paper_common import (
     NOMINAL_ACTIVATIONS,
+    ExperimentArgs,
     RobotData,
     nominal_epochs,
     paired_comparison,
@@ -61,17 +62,10 @@ DEVIATIONS = {
 
 
 @dataclass
-class Args:
+class Args(ExperimentArgs):
     """Deviations from the nominal model: direction of change of the errors (paper app. B)."""
 
-    quick: bool = field(default=False, metadata={"help": "tiny smoke-test run"})
     mc: int = field(default=16, metadata={"help": "Monte-Carlo runs per deviation"})
-    out: str = field(default="", metadata={"help": "results folder"})
-    figures: str = field(default="", metadata={"help": "figure folder"})
-    workers: int = field(default=2, metadata={"help": "parallel worker processes"})
-    backend: str = field(default="process", metadata={"help": "process, serial or ray"})
-    report_only: bool = field(default=False, metadata={"help": "only redraw from JSON"})
-    json: str = field(default="", metadata={"help": "also write the summary JSON here"})
     deviations: str = field(default=",".join(DEVIATIONS), metadata={
         "help": "comma-separated deviations to run (nominal is always included)"})
     formulations: str = field(default="f,g", metadata={"help": "comma-separated formulations"})

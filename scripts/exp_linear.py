@@ -22,6 +22,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from paper_common import (
+    ExperimentArgs,
     LinearData,
     complex_from_pairs,
     eigen_limits,
@@ -47,18 +48,11 @@ ORIGINAL = {"none": [0.147, 0.082, 0.074], "sampled": [0.058, 0.040, 0.041]}
 
 
 @dataclass
-class Args:
+class Args(ExperimentArgs):
     """Random stable linear systems: eigenvalues and errors without/with tangent-space
     regularization (paper Fig. jacpropeig)."""
 
-    quick: bool = field(default=False, metadata={"help": "tiny smoke-test run"})
     mc: int = field(default=20, metadata={"help": "Monte-Carlo runs (random systems)"})
-    out: str = field(default="", metadata={"help": "results folder"})
-    figures: str = field(default="", metadata={"help": "figure folder"})
-    workers: int = field(default=2, metadata={"help": "parallel worker processes"})
-    backend: str = field(default="process", metadata={"help": "process, serial or ray"})
-    report_only: bool = field(default=False, metadata={"help": "only redraw from JSON"})
-    json: str = field(default="", metadata={"help": "also write the summary JSON here"})
     rounds: int = field(default=3, metadata={"help": "training rounds (one trajectory each)"})
     epochs_per_round: int = field(default=200, metadata={"help": "epochs per round"})
     lr: float = field(default=0.01, metadata={"help": "Adam step size"})

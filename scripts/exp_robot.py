@@ -24,6 +24,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from paper_common import (
+    ExperimentArgs,
     RobotData,
     nominal_epochs,
     paired_comparison,
@@ -47,17 +48,10 @@ LABELS = {"none": "none", "sampled": "sampled JacProp", "exact": "exact LTV matc
 
 
 @dataclass
-class Args:
+class Args(ExperimentArgs):
     """Robot arm: errors over Monte-Carlo runs for no / sampled / exact regularization."""
 
-    quick: bool = field(default=False, metadata={"help": "tiny smoke-test run"})
     mc: int = field(default=35, metadata={"help": "Monte-Carlo runs (paper: 35)"})
-    out: str = field(default="", metadata={"help": "results folder"})
-    figures: str = field(default="", metadata={"help": "figure folder"})
-    workers: int = field(default=2, metadata={"help": "parallel worker processes"})
-    backend: str = field(default="process", metadata={"help": "process, serial or ray"})
-    report_only: bool = field(default=False, metadata={"help": "only redraw from JSON"})
-    json: str = field(default="", metadata={"help": "also write the summary JSON here"})
     formulation: str = field(default="g", metadata={"help": "f or g"})
     epoch_scale: float = field(default=1.0, metadata={
         "help": "multiplies the paper's epochs (g: 1000, 500 with sampled JacProp)"})

@@ -23,6 +23,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from paper_common import (
+    ExperimentArgs,
     LinearData,
     complex_from_pairs,
     eigen_limits,
@@ -42,17 +43,10 @@ EXPERIMENT = "weight_decay"
 
 
 @dataclass
-class Args:
+class Args(ExperimentArgs):
     """Weight decay x formulation (f, g) on random linear systems (paper Fig. wd)."""
 
-    quick: bool = field(default=False, metadata={"help": "tiny smoke-test run"})
     mc: int = field(default=20, metadata={"help": "Monte-Carlo runs (random systems)"})
-    out: str = field(default="", metadata={"help": "results folder"})
-    figures: str = field(default="", metadata={"help": "figure folder"})
-    workers: int = field(default=2, metadata={"help": "parallel worker processes"})
-    backend: str = field(default="process", metadata={"help": "process, serial or ray"})
-    report_only: bool = field(default=False, metadata={"help": "only redraw from JSON"})
-    json: str = field(default="", metadata={"help": "also write the summary JSON here"})
     rounds: int = field(default=3, metadata={"help": "training rounds (one trajectory each)"})
     epochs_per_round: int = field(default=200, metadata={"help": "epochs per round"})
     lr: float = field(default=0.01, metadata={"help": "Adam step size"})

@@ -24,7 +24,7 @@ import os
 import sys
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -35,6 +35,21 @@ if str(REPO) not in sys.path:  # the scripts are run from anywhere; the repo hol
 
 # ------------------------------------------------------------------------------------------------
 # command line
+
+
+@dataclass
+class ExperimentArgs:
+    """The command-line fields every experiment script shares; a script's ``Args`` subclasses
+    this, redefines ``mc`` with its own default and adds its own fields."""
+
+    quick: bool = field(default=False, metadata={"help": "tiny smoke-test run"})
+    mc: int = field(default=1, metadata={"help": "Monte-Carlo runs"})
+    out: str = field(default="", metadata={"help": "results folder"})
+    figures: str = field(default="", metadata={"help": "figure folder"})
+    workers: int = field(default=2, metadata={"help": "parallel worker processes"})
+    backend: str = field(default="process", metadata={"help": "process, serial or ray"})
+    report_only: bool = field(default=False, metadata={"help": "only redraw from JSON"})
+    json: str = field(default="", metadata={"help": "also write the summary JSON here"})
 
 
 def _field_type(f: dataclasses.Field) -> type:
