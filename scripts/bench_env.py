@@ -8,7 +8,7 @@ Measures, in one process on the same compiled model:
 4. ``linearize`` calls/s, ``linearize_trajectory`` over T=100, the CasADi twin's mapped
    Jacobians over T=100, and the raw ``mjd_transitionFD`` call cost.
 
-Usage: ``python scripts/bench_env.py --json results/bench_env.json``
+Usage: ``python scripts/bench_env.py --json runs/bench_env.json``
 """
 
 from __future__ import annotations

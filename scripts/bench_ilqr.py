@@ -16,7 +16,7 @@ Targets (issue 5): <= 10 ms per iteration at T = 200 with ensemble Jacobians; co
 IPOPT at >= 5x less wall time; MPC real-time factor >= 1. Numbers are noisy on a shared machine:
 every timing is the best of ``--repeats`` runs and the load average is recorded.
 
-Usage: ``python scripts/bench_ilqr.py --json results/bench_ilqr.json``
+Usage: ``python scripts/bench_ilqr.py --json runs/bench_ilqr.json``
 """
 
 from __future__ import annotations

@@ -14,7 +14,7 @@ plan in the env open loop, and (3) with the plan's feedback gains ``u = U_t + K_
 ``-sum(rewards)`` of the env) and saves ``ilqr_with_model_<model>.png`` (planned vs executed joint
 angles, speeds, actions and cumulative costs) and a JSON summary into ``--out``.
 
-Usage: ``python scripts/ilqr_with_model.py --model true --seed 0 --out results/ilqr``
+Usage: ``python scripts/ilqr_with_model.py --model true --seed 0 --out runs/ilqr``
 """
 
 from __future__ import annotations
@@ -61,7 +61,7 @@ class Args:
     """excitation rollouts for --model ltv"""
     ltv_lam: float = 10.0
     """LTV smoothness weight lambda for --model ltv"""
-    out: str = "results/ilqr_with_model"
+    out: str = "runs/ilqr_with_model"
     """output directory"""
 
 
