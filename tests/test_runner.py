@@ -4,6 +4,7 @@ import signal
 import subprocess
 import sys
 import textwrap
+import threading
 import time
 from pathlib import Path
 
@@ -188,3 +189,78 @@ def test_pool_workers_exit_when_the_driver_is_killed(tmp_path):
 def test_unpicklable_run_function_is_refused(tmp_path):
     with pytest.raises(ValueError, match="fn must be a module-level function"):
         run_sweep(lambda c, s: {}, {"a": {}}, [0, 1], tmp_path, workers=2, progress=False)
+
+
+def test_ray_matches_pool_run_for_run(tmp_path, monkeypatch):
+    """A real local Ray instance: the same records as the pool for 8 runs with one raising and
+    one SIGKILLed worker; the Ray temp folder is removed; with nothing left Ray is not started."""
+    ray = pytest.importorskip("ray", reason="the [ray] extra is not installed")
+    import tempfile
+
+    cfg = {"x": {"raise_seed": 2, "kill_seed": 5}}
+    before = set(Path(tempfile.gettempdir()).glob("mbtsr-ray-*"))
+    recs = run_sweep(raise_or_die, cfg, range(8), tmp_path / "ray", backend="ray", workers=2,
+                     progress=False)
+    assert not ray.is_initialized()
+    assert set(Path(tempfile.gettempdir()).glob("mbtsr-ray-*")) == before
+    on_ray = _check_raise_and_kill(recs, tmp_path / "ray")
+    pool = run_sweep(raise_or_die, cfg, range(8), tmp_path / "pool", backend="process",
+                     workers=2, progress=False)
+    assert on_ray == {r["seed"]: r["result"] for r in pool}
+    # every run finished: Ray is not started at all
+    run_sweep(raise_or_die, {"x": {}}, [0, 1], tmp_path / "ok", backend="serial",
+              progress=False)
+    monkeypatch.setattr(ray, "init", lambda *a, **k: pytest.fail("ray.init was called"))
+    assert len(run_sweep(raise_or_die, {"x": {}}, [0, 1], tmp_path / "ok", backend="ray",
+                         progress=False)) == 2
+
+
+@pytest.mark.slow  # starts a Ray head node (about 20 s on a busy 2-core machine)
+def test_ray_existing_cluster_and_resume(tmp_path):
+    """``address=`` joins a cluster started with ``ray start --head``; resuming reruns only
+    the failed runs and leaves the cluster running."""
+    pytest.importorskip("ray", reason="the [ray] extra is not installed")
+    import shutil
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    temp = Path(tempfile_dir := __import__("tempfile").mkdtemp(prefix="mbtsr-rayhead-"))
+    ray_bin = str(Path(sys.executable).with_name("ray"))
+    head = subprocess.Popen(
+        [ray_bin, "start", "--head", "--block", f"--port={port}", "--num-cpus=2",
+         "--include-dashboard=false", f"--temp-dir={temp}", "--disable-usage-stats"],
+        start_new_session=True, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+        env={**os.environ, "RAY_AUTH_MODE": "disabled"})  # as the driver's default
+    try:
+        for line in head.stdout:  # wait until the head is up
+            if "Ray runtime started" in line:
+                break
+        assert head.poll() is None, "ray start --head failed"
+        threading.Thread(target=head.stdout.read, daemon=True).start()  # drain
+        address = f"127.0.0.1:{port}"
+        cfg = {"x": {"raise_seed": 2}}
+        t0 = time.perf_counter()
+        recs = run_sweep(raise_or_die, cfg, range(4), tmp_path, backend="ray",
+                         address=address, progress=False)
+        print(f"first sweep on the cluster: {time.perf_counter() - t0:.1f} s")
+        assert [r["seed"] for r in recs] == [0, 1, 3]
+        mtimes = {p.name: p.stat().st_mtime_ns for p in (tmp_path / "runs").glob("*")}
+        again = run_sweep(raise_or_die, cfg, range(4), tmp_path, backend="ray",
+                          address=address, progress=False)
+        assert again == recs
+        assert mtimes == {p.name: p.stat().st_mtime_ns for p in (tmp_path / "runs").glob("*")}
+        assert head.poll() is None  # the cluster is the user's: still up
+    finally:
+        os.killpg(head.pid, signal.SIGTERM)  # the head's session: the processes it started
+        try:
+            head.wait(60)
+        except subprocess.TimeoutExpired:
+            pass
+        time.sleep(3)
+        try:
+            os.killpg(head.pid, signal.SIGKILL)
+        except ProcessLookupError:
+            pass
+        shutil.rmtree(tempfile_dir, ignore_errors=True)
