@@ -21,6 +21,7 @@ import numpy as np
 
 from mbtsr.excitation import filtered_gaussian, multisine
 from mbtsr.trajectory import Trajectory
+from mbtsr.validation import as_array
 
 __all__ = ["collect_trajectories", "default_input_kwargs", "rollout_open_loop"]
 
@@ -71,6 +72,7 @@ def rollout_open_loop(
     :raises ValueError: if the env terminates or truncates before ``T`` steps.
     """
     low, high = env.action_space.low, env.action_space.high
+    u = as_array("u", u, (None, int(np.prod(env.action_space.shape))))
     u_applied = np.clip(u, low, high).astype(np.float64)
     obs, info = env.reset(seed=seed, options=dict(reset_options) if reset_options else None)
     x0 = _state_of(obs, info)
@@ -85,6 +87,9 @@ def rollout_open_loop(
         x[t + 1] = _state_of(obs, step_info)
         if abort is not None and abort(x[t + 1]):
             return None
+        if step_info.get("unstable"):
+            raise ValueError(f"the simulation became unstable during the open-loop rollout: "
+                             f"{step_info.get('instability', '')}")
         if (terminated or truncated) and t + 1 < u.shape[0]:
             raise ValueError(
                 f"the env ended the episode after {t + 1} steps but T={u.shape[0]} were "

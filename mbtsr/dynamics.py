@@ -105,6 +105,9 @@ def rollout(model: DynamicsModel, x0: np.ndarray, u: np.ndarray, t0: int = 0) ->
     u = as_array("u", u)
     if u.ndim < 2:
         raise ValueError(f"u must be [T, ..., m], got shape {list(u.shape)}")
+    n = getattr(model, "state_dim", None)
+    if n is not None and (x0.ndim < 1 or x0.shape[-1] != n):
+        raise ValueError(f"x0 must be [..., n] with n={n}, got shape {list(x0.shape)}")
     out = np.empty((u.shape[0] + 1, *x0.shape))
     out[0] = x0
     for k in range(u.shape[0]):

@@ -29,6 +29,7 @@ from agents.checkpoint import (
     load_checkpoint,
     save_checkpoint,
 )
+from envs.collect import rollout_open_loop
 from envs.rendering import save_video
 from envs.two_link_arm import MAX_DT, VELOCITY_LIMIT, TwoLinkArmEnv
 from mbtsr import ltv
@@ -41,7 +42,7 @@ from mbtsr.ilqr import ilqr
 from mbtsr.metrics import jacobian_error, prediction_rms
 from mbtsr.runner import summarize
 from mbtsr.training import RegularizationConfig, TrainConfig, train_ensemble
-from mbtsr.trajectory import Trajectory
+from mbtsr.trajectory import Trajectory, save_trajectories, stack_trajectories
 from mbtsr.validation import as_array
 
 torch.set_num_threads(1)
@@ -162,6 +163,17 @@ CASES = [
     ("arm width 0", lambda: TwoLinkArmEnv(width=0, height=0), ValueError, "width"),
     ("arm cost_Q NaN", lambda: TwoLinkArmEnv(cost_Q=[NAN, 1, 1, 1]), ValueError, "cost_Q"),
     ("arm cost_R negative", lambda: TwoLinkArmEnv(cost_R=[-1, 1]), ValueError, "cost_R"),
+    ("stack_trajectories empty", lambda: stack_trajectories([]), ValueError, "^trajs"),
+    ("save_trajectories empty", lambda: save_trajectories("/tmp/never.npz", []), ValueError,
+     "^trajs"),
+    ("rollout x0 shape", lambda: rollout(LinearDynamics(A2, B2), np.zeros(3), U_OK),
+     ValueError, "^x0 "),
+    ("ilqr dynamics None", lambda: ilqr(_cost(), None, np.zeros(2), np.zeros((5, 1))),
+     TypeError, "^dynamics"),
+    ("rollout_open_loop u complex", lambda: rollout_open_loop(
+        gym.make("mbtsr/TwoLinkArm-v0"), np.zeros((3, 2)) + 1j), ValueError, "^u must be real"),
+    ("rollout_open_loop u shape", lambda: rollout_open_loop(
+        gym.make("mbtsr/TwoLinkArm-v0"), np.zeros((3, 3))), ValueError, "^u must"),
     ("save_video 0x0", lambda: save_video([np.zeros((0, 0, 3), np.uint8)], "/tmp/x.gif"),
      ValueError, "frames"),
     ("summarize strings", lambda: summarize(["a"]), ValueError, "values"),
