@@ -19,11 +19,13 @@ Implementation notes
 --------------------
 * One batched ``dynamics.jacobians(X[:-1], U, t0)`` call and one mapped cost-derivative call per
   iteration in which the trajectory changed (a rejected step reuses them).
-* The backward pass works with the augmented quadratic ``z = [1; dx; du]``: per time step
-  ``M_t = L_t + F_t^T V_{t+1} F_t`` with ``F_t = [[1, 0, 0], [0, A_t, B_t]]`` gives all Q-function
-  terms at once, one LAPACK ``dposv`` gives ``[k_t, K_t] = -Quu_reg^-1 [Qu, Qux_reg]`` and the
-  PD check, and ``V_t = G_t^T M_t G_t`` with ``G_t = [[I], [k_t, K_t]]`` is the value update
-  (the unregularised ``Quu, Qux`` enter it, as in Tassa et al.).
+* The backward pass is ONE compiled call per pass (:func:`mbtsr._lqr_kernels.backward_pass`,
+  numba): the Riccati recursion, the box QP and the PD checks run without Python per time step.
+  The numpy recursion :func:`_backward_pass` below (augmented quadratic ``z = [1; dx; du]``:
+  ``M_t = L_t + F_t^T V_{t+1} F_t`` with ``F_t = [[1, 0, 0], [0, A_t, B_t]]``, one LAPACK
+  ``dposv`` for ``[k_t, K_t] = -Quu_reg^-1 [Qu, Qux_reg]``, ``V_t = G_t^T M_t G_t`` with
+  ``G_t = [[I], [k_t, K_t]]``; the unregularised ``Quu, Qux`` enter the value update, as in
+  Tassa et al.) is the reference the tests compare the kernel against.
 * The forward pass rolls out ALL line-search step sizes as one batch (``T`` batched ``step``
   calls per iteration, not ``T x n_alpha``) and accepts the largest acceptable step.
 * A rollout that produces NaN/inf or a state beyond ``max_state_norm`` is rejected; the solver
@@ -41,6 +43,7 @@ from dataclasses import dataclass, field, fields
 import numpy as np
 from scipy.linalg import lapack
 
+from mbtsr import _lqr_kernels
 from mbtsr.costs import CasadiCost
 from mbtsr.validation import as_array
 
@@ -215,6 +218,7 @@ def ilqr(
     lower, upper = check_control_bounds(u_min, u_max, m)
     has_limits = bool(np.any(np.isfinite(lower)) or np.any(np.isfinite(upper)))
     alphas = np.asarray(opts.alphas, dtype=float)
+    boxqp_prm = _boxqp_params(opts)
     T = U0.shape[0]
     timings = dict.fromkeys(
         ("jacobians", "cost_derivatives", "backward", "forward", "line_search_cost"), 0.0
@@ -282,15 +286,22 @@ def ilqr(
                 status = "failed"
                 message = "non-finite Jacobians or cost derivatives at the current trajectory"
                 break
-            problem = _LQProblem.build(A, B, derivs, U, lower, upper, opts.reg_type)
+            problem = (  # C-contiguous float64: one compiled signature of the kernel
+                *(np.ascontiguousarray(a, dtype=float) for a in (A, B, *derivs)),
+                lower - U,
+                upper - U,
+            )
             need_derivs = False
 
         # ---- backward pass, raising lambda until every Quu_reg is positive definite
         tic = time.perf_counter()
         while True:
-            bp = _backward_pass(problem, lam, has_limits, opts)
-            if bp is not None:
+            ok, *bp = _lqr_kernels.backward_pass(
+                *problem, float(lam), opts.reg_type, has_limits, boxqp_prm
+            )
+            if ok:
                 break
+            bp = None
             dlam = max(dlam * f, f)
             lam = max(lam * dlam, opts.lambda_min)
             if lam > opts.lambda_max:
@@ -382,6 +393,18 @@ def _as_options(options) -> ILQROptions:
             raise ValueError(f"unknown ILQROptions field(s): {sorted(unknown)}")
         return ILQROptions(**options)
     raise TypeError(f"options must be an ILQROptions or a dict, got {type(options).__name__}")
+
+
+def _boxqp_params(opts: ILQROptions) -> tuple[float, ...]:
+    """Box-QP settings as the float tuple of :data:`mbtsr._lqr_kernels.BOXQP_DEFAULTS`."""
+    return (
+        float(opts.boxqp_max_iter),
+        float(opts.boxqp_min_grad),
+        float(opts.boxqp_min_rel_improve),
+        float(opts.boxqp_step_dec),
+        float(opts.boxqp_min_step),
+        float(opts.boxqp_armijo),
+    )
 
 
 def _trace(it, J, lam, alpha, expected, actual, grad_norm, accepted, t_it) -> dict:
