@@ -228,6 +228,15 @@ class MujocoDynamics:
             check_step_inputs(x, u, n, m)  # names x or u
         return self._rollout_final(xs, us).reshape(*batch, n)
 
+    def _step(self, x: np.ndarray, u: np.ndarray, t: int | None = None) -> np.ndarray:
+        """:meth:`step` without input checks (for solvers that validated once): float64
+        ``x: [..., n]``, ``u: [..., m]`` with equal batch dims, finite."""
+        n = self.state_dim
+        batch = x.shape[:-1]
+        return self._rollout_final(
+            x.reshape(-1, n), u.reshape(-1, self.action_dim)
+        ).reshape(*batch, n)
+
     def jacobians(self, x: np.ndarray, u: np.ndarray, t: int = 0) -> tuple[np.ndarray, np.ndarray]:
         """``A_t = d step / dx``, ``B_t = d step / du``: ``x: [T, n]``, ``u: [T, m]`` ->
         ``([T, n, n], [T, n, m])``."""

@@ -26,8 +26,11 @@ Implementation notes
   ``dposv`` for ``[k_t, K_t] = -Quu_reg^-1 [Qu, Qux_reg]``, ``V_t = G_t^T M_t G_t`` with
   ``G_t = [[I], [k_t, K_t]]``; the unregularised ``Quu, Qux`` enter the value update, as in
   Tassa et al.) is the reference the tests compare the kernel against.
-* The forward pass rolls out ALL line-search step sizes as one batch (``T`` batched ``step``
-  calls per iteration, not ``T x n_alpha``) and accepts the largest acceptable step.
+* The forward pass rolls out the full step first and, only if it is rejected, all smaller
+  line-search step sizes as one batch (``T`` batched ``step`` calls, not ``T x n_alpha``); it
+  accepts the largest acceptable step. Near convergence (and in warm-started MPC) the full step
+  is nearly always accepted, so a model whose cost grows with the batch (MuJoCo) pays for one
+  rollout instead of ``n_alpha``.
 * A rollout that produces NaN/inf or a state beyond ``max_state_norm`` is rejected; the solver
   then raises the regularisation and keeps the best (current) iterate, so the returned controls
   are always finite and within the bounds.
@@ -320,22 +323,34 @@ def ilqr(
             status, message = "converged", "gradient norm below tol_grad"
             break
 
-        # ---- forward pass: all step sizes in one batched rollout
-        tic = time.perf_counter()
-        Xn, Un, alive = _rollout_policy(
-            dynamics, x0, X, U, k, K, alphas, lower, upper, t0, opts.max_state_norm
-        )
-        timings["forward"] += time.perf_counter() - tic
-        tic = time.perf_counter()
-        Jn = np.full(len(alphas), np.inf)
-        if alive.any():
-            Jn[alive] = cost.total_unchecked(Xn[alive], Un[alive], t0)
-        timings["line_search_cost"] += time.perf_counter() - tic
+        # ---- forward pass: the full step alone first (usually accepted), then all smaller
+        # step sizes in one batched rollout; the accepted step is the same as when all are
+        # rolled out at once (the largest acceptable one)
         expected = -alphas * (dV1 + alphas * dV2)
-        actual = J - Jn
-        with np.errstate(invalid="ignore", divide="ignore"):
-            ratio = np.where(expected > 0, actual / expected, np.sign(actual))
-        ok = alive & np.isfinite(Jn) & (ratio > opts.reduce_ratio_min)
+        Xn = np.empty((len(alphas), T + 1, n))
+        Un = np.empty((len(alphas), T, m))
+        alive = np.zeros(len(alphas), dtype=bool)
+        Jn = np.full(len(alphas), np.inf)
+        for chunk in (slice(0, 1), slice(1, len(alphas))):
+            if chunk.start >= len(alphas):
+                break
+            tic = time.perf_counter()
+            Xn[chunk], Un[chunk], alive[chunk] = _rollout_policy(
+                dynamics, x0, X, U, k, K, alphas[chunk], lower, upper, t0, opts.max_state_norm
+            )
+            timings["forward"] += time.perf_counter() - tic
+            tic = time.perf_counter()
+            live = np.zeros(len(alphas), dtype=bool)
+            live[chunk] = alive[chunk]
+            if live.any():
+                Jn[live] = cost.total_unchecked(Xn[live], Un[live], t0)
+            timings["line_search_cost"] += time.perf_counter() - tic
+            actual = J - Jn
+            with np.errstate(invalid="ignore", divide="ignore"):
+                ratio = np.where(expected > 0, actual / expected, np.sign(actual))
+            ok = alive & np.isfinite(Jn) & (ratio > opts.reduce_ratio_min)
+            if ok.any():
+                break
         if ok.any():
             i = int(np.argmax(ok))
             dcost = float(actual[i])
