@@ -411,3 +411,63 @@ def backward_pass(A, B, lx, lu, lxx, luu, lux, lo, hi, lam, reg_type, has_limits
             if not np.isfinite(Vxx[i, j]):
                 return False, k, K, 0.0, 0.0
     return True, k, K, dV1, dV2
+
+
+@njit(cache=True)
+def rollout_policy_affine(A, B, c, x0, X, U, k, K, alphas, lower, upper, max_norm):
+    """Closed-loop rollouts of an affine model for all step sizes, in one compiled call.
+
+    Model ``x_{t+1} = A_t x_t + B_t u_t + c_t`` with ``A: [TA, n, n]``, ``B: [TA, n, m]``,
+    ``c: [TA, n]`` (``TA = 1``: time-invariant, else ``TA >= T``: row ``t``). Policy
+    ``u_t = clip(U_t + alpha k_t + K_t (x_t - X_t), lower, upper)``; ``X: [T+1, n]``,
+    ``U, k: [T, m]``, ``K: [T, m, n]``, ``alphas: [N]``, ``lower, upper: [m]``.
+    Same semantics as ``mbtsr.ilqr._rollout_policy``: a row that turns non-finite is dead and
+    continues from the nominal state; rows exceeding ``max_norm`` are dead at the end.
+
+    :return: ``(Xn [N, T+1, n], Un [N, T, m], alive [N])``.
+    """
+    T, m = U.shape
+    n = x0.shape[0]
+    TA = A.shape[0]
+    N = alphas.shape[0]
+    Xn = np.empty((N, T + 1, n))
+    Un = np.empty((N, T, m))
+    alive = np.ones(N, dtype=np.bool_)
+    dx = np.empty(n)
+    for a in range(N):
+        alpha = alphas[a]
+        for i in range(n):
+            Xn[a, 0, i] = x0[i]
+        biggest = 0.0
+        for t in range(T):
+            s = t if TA > 1 else 0
+            for i in range(n):
+                dx[i] = Xn[a, t, i] - X[t, i]
+            for j in range(m):
+                v = U[t, j] + alpha * k[t, j]
+                for i in range(n):
+                    v += K[t, j, i] * dx[i]
+                v = min(max(v, lower[j]), upper[j])
+                Un[a, t, j] = v
+            finite = True
+            for i in range(n):
+                v = c[s, i]
+                for j in range(n):
+                    v += A[s, i, j] * Xn[a, t, j]
+                for j in range(m):
+                    v += B[s, i, j] * Un[a, t, j]
+                Xn[a, t + 1, i] = v
+                if not np.isfinite(v):
+                    finite = False
+            if not finite:
+                alive[a] = False
+                for i in range(n):
+                    Xn[a, t + 1, i] = X[t + 1, i]
+            for i in range(n):
+                biggest = max(biggest, abs(Xn[a, t + 1, i]))
+        if not biggest <= max_norm:
+            alive[a] = False
+        for i in range(n):
+            if not abs(x0[i]) <= max_norm:
+                alive[a] = False
+    return Xn, Un, alive

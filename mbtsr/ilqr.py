@@ -48,6 +48,7 @@ from scipy.linalg import lapack
 
 from mbtsr import _lqr_kernels
 from mbtsr.costs import CasadiCost
+from mbtsr.dynamics import LinearDynamics
 from mbtsr.validation import as_array
 
 __all__ = ["ILQROptions", "ILQRResult", "ilqr", "check_control_bounds"]
@@ -697,7 +698,17 @@ def _rollout_policy(dynamics, x0, X, U, k, K, alphas, lower, upper, t0, max_norm
     ``K: [T, m, n]``, ``alphas: [A]`` -> ``(Xn [A, T+1, n], Un [A, T, m], alive [A])``.
     A row that turns non-finite is marked dead and continues from the nominal state (so the
     model never sees NaN); rows exceeding ``max_norm`` are marked dead at the end.
+    An affine model (:class:`mbtsr.dynamics.LinearDynamics`) is rolled out in one compiled call
+    (:func:`mbtsr._lqr_kernels.rollout_policy_affine`, same semantics).
     """
+    if type(dynamics) is LinearDynamics:
+        A, B, c = (
+            np.ascontiguousarray(a, dtype=float)[None]
+            for a in (dynamics.A, dynamics.B, dynamics.c)
+        )
+        return _lqr_kernels.rollout_policy_affine(
+            A, B, c, x0, X, U, k, K, alphas, lower, upper, float(max_norm)
+        )
     T = U.shape[0]
     nA = alphas.shape[0]
     Xn = np.empty((nA, T + 1, X.shape[1]))

@@ -4,6 +4,7 @@
   both regularisation types, with and without box limits (tight tolerance);
 - the exact LQ solution of a dense quadratic program (first iteration, lambda = 0, no limits);
 - the box QP against scipy's bounded-variable least squares (BVLS);
+- the compiled affine closed-loop rollout against the generic (model.step) rollout;
 - the compile cache: a fresh process loads the kernel without recompiling.
 """
 
@@ -20,7 +21,8 @@ from hypothesis import strategies as st
 from scipy.optimize import lsq_linear
 
 from mbtsr import _lqr_kernels as kernels
-from mbtsr.ilqr import ILQROptions, _backward_pass, _box_qp, _LQProblem
+from mbtsr.dynamics import LinearDynamics
+from mbtsr.ilqr import ILQROptions, _backward_pass, _box_qp, _LQProblem, _rollout_policy
 
 PRM = kernels.BOXQP_DEFAULTS
 
@@ -177,3 +179,38 @@ def test_compile_cache_is_used_by_a_fresh_process():
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     wall = time.perf_counter() - tic
     assert float(out.stdout.strip()) < 3.0, (out.stdout, wall)  # cold compile: ~7 s here
+
+
+class _GenericLinear:
+    """The same affine model as LinearDynamics, but not one (takes the generic rollout path)."""
+
+    def __init__(self, lin: LinearDynamics) -> None:
+        self.lin, self.state_dim, self.action_dim = lin, lin.state_dim, lin.action_dim
+
+    def step(self, x, u, t=None):
+        return self.lin.step(x, u, t)
+
+
+@pytest.mark.parametrize("kill_some", [False, True])
+def test_affine_rollout_kernel_matches_generic_rollout(kill_some):
+    rng = np.random.default_rng(5)
+    n, m, T = 4, 2, 30
+    lin = LinearDynamics(np.eye(n) + 0.1 * rng.standard_normal((n, n)),
+                         rng.standard_normal((n, m)), 0.01 * rng.standard_normal(n))
+    x0 = rng.standard_normal(n)
+    X = rng.standard_normal((T + 1, n))
+    U = rng.uniform(-1, 1, (T, m))
+    k = rng.standard_normal((T, m))
+    K = 0.3 * rng.standard_normal((T, m, n))
+    alphas = np.array(ILQROptions().alphas)
+    lower, upper = np.array([-1.0, -np.inf]), np.array([0.5, np.inf])
+    max_norm = 1e8
+    if kill_some:  # a norm bound between the rows' peaks: some rows die, some live
+        Xn, _, _ = _rollout_policy(lin, x0, X, U, k, K, alphas, lower, upper, 0, max_norm)
+        max_norm = float(np.median(np.abs(Xn).max(axis=(1, 2))))
+    fast = _rollout_policy(lin, x0, X, U, k, K, alphas, lower, upper, 0, max_norm)
+    ref = _rollout_policy(_GenericLinear(lin), x0, X, U, k, K, alphas, lower, upper, 0, max_norm)
+    for a, b in zip(fast, ref):
+        np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-12)
+    if kill_some:
+        assert 0 < ref[2].sum() < len(alphas)
