@@ -39,6 +39,8 @@ import torch
 
 from agents.checkpoint import (
     atomic_write_text,
+    check_same,
+    env_fingerprint,
     load_checkpoint,
     numpy_rng_state,
     save_checkpoint,
@@ -322,6 +324,9 @@ class JacPropAgent:
                     f"{(got.obs_dim, got.act_dim, got.u_min, got.u_max)} vs "
                     f"{(spec.obs_dim, spec.act_dim, spec.u_min, spec.u_max)}"
                 )
+        if env is not None and payload.get("env_fingerprint"):
+            check_same(json.loads(payload["env_fingerprint"]), env_fingerprint(env),
+                       what="env", path=path)
         task = json.loads(payload["task"])
         if task.get("cost") is None and cost_fn is None and (
             env is None or default_task_for_env(env) is None
@@ -707,6 +712,7 @@ class JacPropAgent:
         return {
             "agent_config": json.dumps(self.config.to_dict()),
             "env_spec": json.dumps(self.spec.to_dict()),
+            "env_fingerprint": None if self.env is None else json.dumps(env_fingerprint(self.env)),
             "task": json.dumps(task),
             "ensemble_config": self.ensemble_config.to_json(),
             "model_state": {k: v.detach().clone() for k, v in self.model.state_dict().items()},
