@@ -29,7 +29,7 @@ from __future__ import annotations
 
 import copy
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -257,6 +257,7 @@ def train_ensemble(
     validation: Sequence[Trajectory] | None = None,
     ltv_models: Sequence | None = None,
     optimizer_state: dict | None = None,
+    callback: Callable[[int, DynamicsEnsemble], None] | None = None,
 ) -> TrainHistory:
     """Fit all members of ``model`` to ``trajs`` (in place) with optional tangent-space
     regularization (see the module docstring for the objective).
@@ -274,6 +275,9 @@ def train_ensemble(
         ``B [>=T, n, m]``, ``sample_perturbed``); fitted with :func:`mbtsr.ltv.fit_ltv` if None
         and a regularizer needs them.
     :param optimizer_state: an Adam ``state_dict`` from a previous call.
+    :param callback: optional diagnostic ``callback(epoch, model)`` called after every epoch
+        with the model in evaluation mode (e.g. to log Jacobian errors during training; off by
+        default). It must not change the weights; it draws no random numbers of the training.
     :return: :class:`TrainHistory`.
     """
     t_start = time.perf_counter()
@@ -283,6 +287,8 @@ def train_ensemble(
         raise ValueError(f"config must be a TrainConfig, got {type(config).__name__}")
     if not isinstance(reg, RegularizationConfig):
         raise ValueError(f"reg must be a RegularizationConfig, got {type(reg).__name__}")
+    if callback is not None and not callable(callback):
+        raise ValueError(f"callback must be callable or None, got {type(callback).__name__}")
     trajs = _as_trajectory_list("trajs", trajs)
     n, m = model.state_dim, model.action_dim
     xu_np, x_next_np = _pool_transitions(trajs, n, m)  # validates dims and finiteness
@@ -430,6 +436,11 @@ def train_ensemble(
                 with torch.no_grad():
                     yv, _ = model.stacked_forward(xu_val, normalized=True)
                     val_loss[epoch] = float(_squared_norm(yv - target_val, (-1,)).mean())
+                model.train()
+            if callback is not None:
+                model.eval()
+                with torch.no_grad():
+                    callback(epoch, model)
                 model.train()
             if config.progress and (epoch % 10 == 0 or epoch == E - 1):
                 post = {"loss": f"{train_loss[epoch]:.3g}"}
