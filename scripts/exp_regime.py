@@ -3,8 +3,8 @@ two-link arm's Jacobian error, and why not elsewhere?
 
 Grid (issue 16): training trajectories {1, 3, 10} x epochs {1000, 5000} x excitation window
 {short (10 taps), paper (100 taps)} x Coulomb friction {on, off}; methods none / sampled
-JacProp on every cell, and on the label cells (default: paper window, both frictions for the
-oracle, friction on for the others) the exact LTV-matching penalty and two label variants:
+JacProp on every cell, and on the label cells (default: paper window, friction on, 3 trajectories,
+both epoch counts) the exact LTV-matching penalty and two label variants:
 ``oracle`` (the perturbed copies labelled with the TRUE Jacobians, an upper bound of what
 sampled JacProp can give) and ``prior`` (LTV labels fused with the network as a prior after
 half the epochs, the original's ``useprior``). Every method of a cell takes the same number of
@@ -59,10 +59,10 @@ class Args(ExperimentArgs):
     epochs: str = field(default="1000,5000", metadata={"help": "epochs (= optimizer steps)"})
     windows: str = field(default="short,paper", metadata={"help": "excitation windows"})
     frictions: str = field(default="on,off", metadata={"help": "Coulomb friction on/off"})
-    oracle_cells: str = field(default="paper", metadata={
-        "help": "windows whose cells also run the oracle labels (both frictions)"})
     label_cells: str = field(default="paper-on", metadata={
-        "help": "window-friction cells that also run exact and prior"})
+        "help": "window-friction cells that also run oracle, exact and prior"})
+    label_n_trains: str = field(default="3", metadata={
+        "help": "training-trajectory counts of the label cells"})
     activations: str = field(default="tanh", metadata={
         "help": "ensemble members (comma list; paper: elu,sigmoid,tanh,swish)"})
     width: int = field(default=20, metadata={"help": "hidden units per member"})
@@ -78,7 +78,7 @@ class Args(ExperimentArgs):
     n_val: int = field(default=10, metadata={"help": "validation trajectories"})
 
     QUICK = {"mc": 2, "n_trains": "1,2", "epochs": "3,6", "duration": 1.0, "n_val": 2,
-             "n_log": 2}
+             "n_log": 2, "label_n_trains": "2"}
 
 
 def _ints(s: str) -> list[int]:
@@ -105,12 +105,11 @@ def make_configs(args: Args) -> dict[str, dict[str, dict]]:
             data = dataclasses.asdict(RegimeData(
                 window=window, friction=friction, duration=args.duration,
                 n_train_max=max(n_trains), n_val=args.n_val))
-            methods = {"main": ["none", "sampled"], "labels": []}
-            if window in _strs(args.oracle_cells):
-                methods["labels"].append("oracle")
-            if (window, "on" if friction else "off") in label_cells:
-                methods["labels"] += ["exact", "prior"]
+            label = (window, "on" if friction else "off") in label_cells
             for n in n_trains:
+                methods = {"main": ["none", "sampled"],
+                           "labels": ["oracle", "exact", "prior"]
+                           if label and n in _ints(args.label_n_trains) else []}
                 for e in epochs:
                     for part, ms in methods.items():
                         for m in ms:
@@ -127,22 +126,18 @@ def make_configs(args: Args) -> dict[str, dict[str, dict]]:
 
 def run(args: Args, out: Path) -> list[dict]:
     """The sweep, seed by seed (so that an interrupted sweep leaves every cell with the same
-    number of seeds), first the none/sampled grid for all seeds, then the label variants."""
+    number of seeds, give or take the cells of the last seed)."""
     from mbtsr.runner import load_results, run_sweep
 
     configs = make_configs(args)
     write_json(out / "args.json", {"args": dataclasses.asdict(args), "command": command_line()})
     n_before = len(load_results(out))
     start, t0, c0 = library_version(), time.perf_counter(), time.process_time()
-    for part in ("main", "labels"):
-        if not configs[part]:
-            continue
-        for seed in range(args.mc):
-            run_sweep(run_regime, configs[part], [seed], out, backend=args.backend,
-                      workers=args.workers, progress=False)
-            if not args.quick:
-                print(f"[regime] {part} seed {seed} done, {time.perf_counter() - t0:.0f} s",
-                      flush=True)
+    for seed in range(args.mc):
+        run_sweep(run_regime, {**configs["main"], **configs["labels"]}, [seed], out,
+                  backend=args.backend, workers=args.workers, progress=False)
+        if not args.quick:
+            print(f"[regime] seed {seed} done, {time.perf_counter() - t0:.0f} s", flush=True)
     recs = load_results(out)
     log_path = out / "sweeps.json"
     log = json.loads(log_path.read_text()) if log_path.exists() else []

@@ -545,7 +545,7 @@ def nominal_epochs(formulation: str, method: str, scale: float = 1.0) -> int:
 
 def regularization(method: str, *, sigma: float = 0.1, n_copies: int = 1,
                    exact_weight: float = 1.0, smooth_weight: float = 0.01,
-                   ltv_lambda: float | str | None = None):
+                   ltv_lambda: float | str | None = None, copies_batch: str = "shared"):
     """The :class:`mbtsr.training.RegularizationConfig` of a method name.
 
     ``"none"``; ``"sampled"`` (the paper's sampled Jacobian propagation: one perturbed copy per
@@ -556,6 +556,8 @@ def regularization(method: str, *, sigma: float = 0.1, n_copies: int = 1,
 
     :param ltv_lambda: ``None`` keeps the library default (the original's R2/R1 = 1000, i.e.
         lambda = 31.6), ``"auto"`` picks it per trajectory by marginal likelihood.
+    :param copies_batch: ``"shared"`` (copies in their trajectory's batch) or ``"own"`` (one
+        optimizer step per copy, the original code's batching).
     """
     from mbtsr.training import RegularizationConfig
 
@@ -567,7 +569,8 @@ def regularization(method: str, *, sigma: float = 0.1, n_copies: int = 1,
     if method == "none":
         return RegularizationConfig(**extra)
     if method == "sampled":
-        return RegularizationConfig.paper(sigma=sigma, n_copies=n_copies, **extra)
+        return RegularizationConfig.paper(sigma=sigma, n_copies=n_copies,
+                                          copies_batch=copies_batch, **extra)
     if method == "exact":
         return RegularizationConfig(exact_weight=exact_weight, **extra)
     if method == "smooth":
@@ -752,6 +755,7 @@ def run_robot(config: dict, seed: int) -> dict:
     ev_true = np.linalg.eigvals(A_true)
     result["eig_match_err"] = eigenvalue_matching_error(ev_hat, ev_true)
     result["train_loss"] = finite_or_none(hist.train_loss[-1])
+    result["steps"] = int(hist.steps)
     result["train_time"] = train_time
     result["wall"] = time.perf_counter() - t0
     result["cpu_time"] = time.process_time() - c0
@@ -1024,3 +1028,44 @@ def run_regime(config: dict, seed: int) -> dict:
     result["wall"] = time.perf_counter() - t0
     result["cpu_time"] = time.process_time() - c0
     return result
+
+
+def robot_truth_diagnostics(cfg: RobotData, seed: int, still_speed: float = 0.05) -> dict:
+    """What caps the robot's Jacobian error, for MC run ``seed`` of ``exp_robot`` (no training):
+
+    - ``const_train`` / ``const_eval``: eq. (jacerr) of a constant matrix, the mean true
+      Jacobian over the training points (a constant a model could learn) / over the evaluation
+      points themselves (the best constant in that norm);
+    - ``twin``: the analytic CasADi twin (friction ``fc tanh(qd / 0.01)``) against MuJoCo's
+      Jacobian, all points and split into moving / near-zero-velocity points;
+    - ``ltv_{pos,vel}``: the LTV labels' error (lambda of the library default) at the training
+      points per row group (position rows 0-1, velocity rows 2-3), ``frac_still``.
+    """
+    from mbtsr.ltv import fit_ltv
+    from mbtsr.training import ORIGINAL_LTV_LAMBDA
+
+    d = robot_dataset(cfg, seed)
+    env = d["env"]
+    X, U = evaluation_points(d["val"], cfg.eval_stride)
+    A, B = env.linearize_trajectory(X, U)
+    J = np.concatenate([A, B], -1)
+    train_jac = [env.linearize_trajectory(tr.x[:-1], tr.u) for tr in d["train"]]
+    J_train = np.concatenate([np.concatenate([a, b], -1) for a, b in train_jac])
+    twin = env.analytic_model()
+    A_tw, B_tw = twin.jacobians(X, U)
+    still = (np.abs(X[:, 2:4]) < still_speed).any(1)
+
+    def err(dJ: np.ndarray) -> float:
+        return float(np.sqrt((dJ ** 2).sum((-1, -2)).mean()))
+
+    dtw = np.concatenate([A_tw, B_tw], -1) - J
+    out = {"const_train": err(J - J_train.mean(0)), "const_eval": err(J - J.mean(0)),
+           "twin": err(dtw), "twin_moving": err(dtw[~still]), "twin_still": err(dtw[still]),
+           "frac_still": float(still.mean())}
+    lab = []
+    for tr, (a, b) in zip(d["train"], train_jac):
+        lm = fit_ltv(tr, ORIGINAL_LTV_LAMBDA)
+        lab.append(np.concatenate([lm.A[:tr.T], lm.B[:tr.T]], -1) - np.concatenate([a, b], -1))
+    lab = np.concatenate(lab)
+    out["ltv_pos"], out["ltv_vel"] = err(lab[:, :2]), err(lab[:, 2:])
+    return out
