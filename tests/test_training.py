@@ -464,3 +464,26 @@ def test_callback_sees_every_epoch_in_eval_mode_and_changes_nothing():
     np.testing.assert_array_equal(h1.step_loss, h2.step_loss)
     with pytest.raises(ValueError, match="callback"):
         train_ensemble(twin, trajs, cfg, reg, ltv_models=ltv, callback=3)
+
+
+def test_fast_copy_sampling_equals_the_ltv_models_own_sampling():
+    """train_ensemble draws the copies of an ``LTVModel`` without per-call validation; a wrapper
+    that only has ``A``, ``B`` and ``sample_perturbed`` takes the public method. Both must give
+    bit-identical training (same draws, same arithmetic)."""
+
+    class Wrapped:
+        def __init__(self, lm):
+            self.lm, self.A, self.B = lm, lm.A, lm.B
+
+        def sample_perturbed(self, *a, **kw):
+            return self.lm.sample_perturbed(*a, **kw)
+
+    trajs, ltv, model = _copies_setup()
+    _, _, twin = _copies_setup()
+    cfg = TrainConfig(epochs=3, seed=4, **QUIET)
+    reg = RegularizationConfig.paper(n_copies=2, sigma=0.3)
+    h1 = train_ensemble(model, trajs, cfg, reg, ltv_models=ltv)
+    h2 = train_ensemble(twin, trajs, cfg, reg, ltv_models=[Wrapped(lm) for lm in ltv])
+    np.testing.assert_array_equal(h1.step_loss, h2.step_loss)
+    np.testing.assert_array_equal(model.member_predictions(trajs[0].x[:-1], trajs[0].u),
+                                  twin.member_predictions(trajs[0].x[:-1], trajs[0].u))
