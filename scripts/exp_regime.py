@@ -77,7 +77,7 @@ class Args(ExperimentArgs):
     duration: float = field(default=4.0, metadata={"help": "trajectory length [s]"})
     n_val: int = field(default=10, metadata={"help": "validation trajectories"})
 
-    QUICK = {"mc": 2, "n_trains": "1,2", "epochs": "3,6", "duration": 1.0, "n_val": 2,
+    QUICK = {"mc": 2, "n_trains": "2", "epochs": "3,6", "duration": 1.0, "n_val": 2,
              "n_log": 2, "label_n_trains": "2"}
 
 
