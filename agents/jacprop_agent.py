@@ -72,6 +72,11 @@ __all__ = ["JacPropAgent"]
 
 CostFn = Callable[[Any, Any], Any]
 
+#: bytes an LTV fit may use for its posterior covariance (longer episodes are fitted in segments)
+LTV_MEMORY_BUDGET = 256e6
+#: construction refuses LTV regularization when even a 2-step fit would need more than this
+LTV_MEMORY_MAX = 2e9
+
 
 class JacPropAgent:
     """Model-based agent of the paper's Algorithm 1 (learned NN ensemble + iLQR MPC).
@@ -147,16 +152,19 @@ class JacPropAgent:
             state_map = StateMap(state_fn, obs_fn)
         self.cost_fn = cost_fn
         self.state_map = state_map
-        probe = np.zeros(spec.obs_dim)
-        if env is not None:
-            probe = np.clip(probe, env.observation_space.low, env.observation_space.high)
-        try:
-            s = self.state_map.state(probe)
-        except Exception as err:
-            raise ValueError(f"state_fn failed on an observation [{spec.obs_dim}]: {err}") from None
-        if s.ndim != 1 or s.size < 1:
-            raise ValueError(f"state_fn(obs) must return a 1-D state, got shape {list(s.shape)}")
+        s = self._check_state_fn(env, spec)
         self.state_dim = int(s.size)
+        p = self.state_dim + spec.act_dim
+        if config.regularization in ("sampled", "exact") and 8 * 4 * 2 * self.state_dim * p**2 > (
+            LTV_MEMORY_MAX
+        ):
+            raise ValueError(
+                f"regularization={config.regularization!r} fits LTV models whose covariance holds "
+                f"n (n+m)^2 = {self.state_dim * p**2:.3g} numbers per time step for this model "
+                f"state (n={self.state_dim}, m={spec.act_dim}), more than this machine should "
+                "hold; pass a smaller model state with state_fn/obs_fn, or choose "
+                "AgentConfig(regularization='smooth') or 'none'"
+            )
         self.task_cost = ObservationCost(cost_fn, state_map, spec, self.state_dim)
         self.planner_costs = PlannerCosts(self.task_cost, config.terminal_weight)
         # the model: an ensemble of small networks, Objective 1 (f) or 2 (g)
@@ -201,6 +209,42 @@ class JacPropAgent:
         self.oracle_costs: np.ndarray | None = None
         self._eval_env: gym.Env | None = None
         self._log: EpisodeLog | None = None
+
+    def _check_state_fn(self, env: gym.Env | None, spec: EnvSpec) -> np.ndarray:
+        """Call the state map on one observation and on a batch of three (it is called on
+        whole episodes ``[T+1, obs_dim]`` during :meth:`learn`) and check that the batch gives
+        the rows of the single calls. :return: the state of the first probe ``[n]``."""
+        rng = np.random.default_rng(0)
+        probe = rng.uniform(-1.0, 1.0, (3, spec.obs_dim))
+        if env is not None:
+            probe = np.clip(probe, env.observation_space.low, env.observation_space.high)
+        try:
+            single = [self.state_map.state(o) for o in probe]
+        except Exception as err:
+            raise ValueError(
+                f"state_fn failed on one observation [{spec.obs_dim}]: {type(err).__name__}: {err}"
+            ) from None
+        s = single[0]
+        if s.ndim != 1 or s.size < 1:
+            raise ValueError(f"state_fn(obs) must return a 1-D state, got shape {list(s.shape)}")
+        try:
+            batch = self.state_map.state(probe)
+        except Exception as err:
+            raise ValueError(
+                "state_fn must also accept a batch of observations [B, obs_dim] and return "
+                f"[B, n] (it is applied to whole episodes); it failed on [3, {spec.obs_dim}]: "
+                f"{type(err).__name__}: {err}"
+            ) from None
+        if batch.shape != (3, s.size) or not np.allclose(batch, np.stack(single), equal_nan=True):
+            raise ValueError(
+                "state_fn must map a batch of observations [B, obs_dim] row by row to "
+                f"[B, n={s.size}] (it is applied to whole episodes); for a batch of 3 it "
+                f"returned shape {list(batch.shape)}"
+                + ("" if batch.shape != (3, s.size) else " with rows that differ from "
+                   "state_fn applied to each observation")
+                + " -- use obs[..., i] indexing (numpy) instead of obs[i]"
+            )
+        return s
 
     # ------------------------------------------------------------------ public surface
     def learn(
@@ -323,12 +367,25 @@ class JacPropAgent:
                     f"{(spec.obs_dim, spec.act_dim, spec.u_min, spec.u_max)}"
                 )
         task = json.loads(payload["task"])
+        saved_n = json.loads(payload["ensemble_config"])["state_dim"]
+        if task.get("state_map") is None and state_fn is None:
+            raise ValueError(
+                f"the agent was saved with a custom state_fn/obs_fn (model state of dimension "
+                f"{saved_n}); functions are not saved: pass the same state_fn= and obs_fn= to "
+                "load"
+            )
         if task.get("cost") is None and cost_fn is None and (
             env is None or default_task_for_env(env) is None
         ):
             raise ValueError("the agent was built with a custom cost_fn: pass cost_fn= to load")
         agent = cls.__new__(cls)
         agent._setup(env, config, spec, cost_fn, state_fn, obs_fn, saved_task=task)
+        if agent.state_dim != saved_n:
+            raise ValueError(
+                f"state_fn gives a model state of dimension {agent.state_dim}, but the saved "
+                f"agent's model was trained on dimension {saved_n}: pass the state_fn/obs_fn it "
+                "was built with"
+            )
         agent._restore(payload)
         return agent
 
@@ -381,9 +438,10 @@ class JacPropAgent:
         # (b) LTV model of the new trajectory ------------------------------------------------
         tic = time.perf_counter()
         lam = math.nan
+        ltv_note = ""
         if cfg.regularization in ("sampled", "exact"):
-            lam = self._ltv_lambda(traj)
-            self.ltv_models.append(self._fit_ltv(traj, lam))
+            ltv, lam, ltv_note = self._ltv_for(traj)
+            self.ltv_models.append(ltv)
         self.ltv_lambdas.append(lam)
         self.trajectories.append(traj)
         time_ltv = time.perf_counter() - tic
@@ -414,6 +472,7 @@ class JacPropAgent:
             "train_loss": _last(getattr(history, "train_loss", None)),
             "val_loss": _last(getattr(history, "val_loss", None)),
             "ltv_lambda": lam,
+            "ltv_fallback": ltv_note,
             "eval_cost": eval_cost,
             "oracle_cost": oracle,
             "cost_ratio": ratio,
@@ -444,26 +503,135 @@ class JacPropAgent:
         mid, half = 0.5 * (spec.u_max + spec.u_min), 0.5 * (spec.u_max - spec.u_min)
         return np.clip(mid + half * cfg.excitation_scale * sig, spec.u_min, spec.u_max)
 
-    def _fit_ltv(self, traj: Trajectory, lam: float) -> LTVModel:
-        """LTV fit of one trajectory, fused with the ensemble's Jacobians as a prior once the
-        ensemble has been trained (see ``AgentConfig.ltv_prior``)."""
-        ltv = fit_ltv(traj, lam)
-        if self.config.ltv_prior > 0 and self.model.is_normalized:
+    def _ltv_for(self, traj: Trajectory) -> tuple[LTVModel, float, str]:
+        """The LTV model ``l_i`` of a new trajectory, with documented fallbacks instead of an
+        error when the data cannot support the fit (see ``docs/agent.md``, "LTV fallbacks"):
+
+        1. ``ltv_lambda="auto"`` needs more transitions than regressors (``T > n + m``); a
+           shorter episode (early termination) reuses the median of the earlier selections,
+           or the regressor scale for the very first episode.
+        2. Regressors that do not span their space (observation coordinates that are constant
+           within the episode, such as a goal position, or an unexcited input) make the
+           smooth fit singular: it is repeated with a weak Gaussian prior on the first
+           Jacobian (``fit_ltv(..., P0=...)``, 1e-6 of the data's scale), which fixes the
+           unidentified directions at zero and leaves the identified ones unchanged.
+        3. A trajectory of one transition has no smoothness to exploit: it is labelled by the
+           model's own Jacobians once the model is trained, else by one time-invariant
+           ridge least-squares fit pooled over all episodes so far.
+
+        Every fallback is logged as a ``RuntimeWarning`` and in the episode's ``ltv_fallback``
+        column. :return: ``(model, lam, note)`` (``note`` empty when nothing fell back).
+        """
+        notes: list[str] = []
+        n, m = self.state_dim, self.spec.act_dim
+        lam = math.nan
+        ltv = None
+        if traj.T >= 2:
+            lam = self._ltv_lambda(traj, notes)
+            # the fit's posterior covariance holds T n (n+m)^2 numbers: long episodes of
+            # high-dimensional envs are fitted in consecutive segments that fit the memory
+            # budget (smoothness is then not enforced across segment boundaries)
+            seg = max(2, int(LTV_MEMORY_BUDGET // (8 * 4 * n * (n + m) ** 2)))
+            bounds = list(range(0, traj.T, seg))
+            if len(bounds) > 1 and traj.T - bounds[-1] < 2:
+                bounds.pop()
+            if len(bounds) > 1:
+                notes.append(f"{len(bounds)} segments of <= {seg} steps (memory)")
+            parts = []
+            for a, b in zip(bounds, bounds[1:] + [traj.T]):
+                part = self._fit_segment(
+                    Trajectory(traj.x[a : b + 1], traj.u[a:b], traj.dt), lam, notes)
+                if part is None:
+                    parts = None
+                    break
+                parts.append(part)
+            if parts is not None:
+                ltv = _light_ltv(np.concatenate([p_[0] for p_ in parts]),
+                                 np.concatenate([p_[1] for p_ in parts]), lam)
+        if ltv is None:
+            if self.model.is_normalized:
+                x, u = traj.inputs
+                A, B = self.model.member_jacobians(x, u)
+                ltv = _light_ltv(A.mean(0), B.mean(0), lam)
+                notes.append(f"episode of {traj.T} transition(s): labelled by the model's "
+                             "Jacobians")
+            else:
+                ltv = _pooled_linear_fit(self.trajectories + [traj], traj.T, n, m)
+                notes.append(f"episode of {traj.T} transition(s): time-invariant least-squares "
+                             "fit pooled over all episodes")
+        return self._warn_fallback(ltv, lam, list(dict.fromkeys(notes)))
+
+    def _fit_segment(
+        self, traj: Trajectory, lam: float, notes: list[str]
+    ) -> tuple[np.ndarray, np.ndarray] | None:
+        """``(A [T, n, n], B [T, n, m])`` of the smooth LTV fit of ``traj`` (weak prior on the
+        first Jacobian if the regressors are degenerate), fused with the model's Jacobians
+        (``AgentConfig.ltv_prior``); ``None`` if even the weak prior cannot make it solvable."""
+        n = self.state_dim
+        try:
+            ltv = fit_ltv(traj, lam)
+        except ValueError:
+            x, u = traj.inputs
+            phi = np.concatenate([x, u], axis=1)
+            scale = float(np.mean(np.sum(phi**2, axis=1))) * traj.T + lam**2 + 1e-12
+            try:
+                ltv = fit_ltv(traj, lam, P0=1.0 / (1e-6 * scale))
+            except ValueError:
+                return None
+            notes.append("degenerate regressors (constant or unexcited observation/action "
+                         "dimensions): weak prior on the first Jacobian")
+        q = n + self.spec.act_dim
+        if self.config.ltv_prior > 0 and self.model.is_normalized and n * q**3 > 1e7:
+            notes.append("model prior (ltv_prior) skipped: n (n+m)^3 too large for the fusion")
+        elif self.config.ltv_prior > 0 and self.model.is_normalized:
             x, u = traj.inputs
             A, B = self.model.member_jacobians(x, u)  # [K, T, n, n], [K, T, n, m]
             J = np.concatenate([A, B], axis=-1)
-            n = self.state_dim
             mean, var = J.mean(0), J.var(0) + self.config.ltv_prior
             ltv = fuse_prior(ltv, mean[..., :n], mean[..., n:], var)
-        return ltv
+        return np.asarray(ltv.A), np.asarray(ltv.B)
 
-    def _ltv_lambda(self, traj: Trajectory) -> float:
+    def _warn_fallback(
+        self, ltv: LTVModel, lam: float, notes: list[str]
+    ) -> tuple[LTVModel, float, str]:
+        note = "; ".join(notes)
+        if note:
+            warnings.warn(
+                f"episode {self.episodes_done}: LTV fit fallback: {note}", RuntimeWarning,
+                stacklevel=3,
+            )
+        return ltv, lam, note
+
+    def _ltv_lambda(self, traj: Trajectory, notes: list[str] | None = None) -> float:
+        """``AgentConfig.ltv_lambda``, or its automatic choice (see :meth:`_ltv_for`)."""
         if self.config.ltv_lambda != "auto":
             return float(self.config.ltv_lambda)
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", RuntimeWarning)  # a boundary optimum is fine here
-            lam, _ = select_lambda(traj)
-        return float(lam)
+        # constant state coordinates (a goal in the observation) carry no information on the
+        # smoothness and make the criterion singular: select on the varying ones
+        varying = np.ptp(traj.x, axis=0) > 1e-9 * (1.0 + np.abs(traj.x).max(axis=0))
+        sub = traj if varying.all() or not varying.any() else Trajectory(
+            traj.x[:, varying], traj.u, traj.dt)
+        try:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", RuntimeWarning)  # a boundary optimum is fine
+                lam, _ = select_lambda(sub)
+            return float(lam)
+        except ValueError as err:
+            reason = ("too few transitions" if "more measurements" in str(err)
+                      else "degenerate regressors")
+            earlier = [v for v in self.ltv_lambdas if math.isfinite(v)]
+            if earlier:
+                lam = float(np.median(earlier))
+                what = "the median of the earlier selections"
+            else:
+                x, u = traj.inputs
+                phi = np.concatenate([x, u], axis=1)
+                lam = float(np.sqrt(np.mean(np.sum(phi**2, axis=1)) / phi.shape[1])) or 1.0
+                what = "the regressor scale"
+            if notes is not None:
+                notes.append(f"ltv_lambda='auto' cannot be selected ({reason}, {traj.T} "
+                             f"transitions): using {what} ({lam:.3g})")
+            return lam
 
     def _train(self, train_seed: int):
         from mbtsr.training import train_ensemble
@@ -718,8 +886,7 @@ class JacPropAgent:
             # stored, not refitted: a fit fused with the model prior depends on the model of
             # its episode
             "ltv_models": [
-                {"A": m.A, "B": m.B, "c": m.c, "cov": m.cov, "lam": m.lam,
-                 "noise_var": m.noise_var}
+                {"A": m.A, "B": m.B, "lam": m.lam}
                 for m in self.ltv_models
             ],
             "episodes_done": self.episodes_done,
@@ -743,10 +910,7 @@ class JacPropAgent:
         ]
         self.ltv_lambdas = [float(v) for v in p["ltv_lambdas"]]
         self.ltv_models = [
-            LTVModel(
-                d["A"].numpy(), d["B"].numpy(), None if d["c"] is None else d["c"].numpy(),
-                d["cov"].numpy(), lam=float(d["lam"]), noise_var=float(d["noise_var"]),
-            )
+            _light_ltv(d["A"].numpy(), d["B"].numpy(), float(d["lam"]))
             for d in p["ltv_models"]
         ]
         self.episodes_done = int(p["episodes_done"])
@@ -783,6 +947,29 @@ class JacPropAgent:
             save_video(frames, folder / f"episode_{ep:04d}.mp4", fps=fps)
         except ValueError:  # no imageio-ffmpeg
             save_video(frames, folder / f"episode_{ep:04d}.gif", fps=fps)
+
+
+def _light_ltv(A: np.ndarray, B: np.ndarray, lam: float = math.nan) -> LTVModel:
+    """An LTV model that keeps ``A``, ``B`` only (what the perturbed data need); its ``cov`` is
+    a zero-memory view of zeros (the posterior covariance is used once, for the prior fusion,
+    and would cost ``T n (n+m)^2`` numbers per episode to keep)."""
+    T, n, m = B.shape
+    cov = np.broadcast_to(np.zeros((), dtype=float), (T, n, n + m, n + m))
+    return LTVModel(A, B, None, cov, lam=0.0 if not math.isfinite(lam) else lam)
+
+
+def _pooled_linear_fit(trajs: list[Trajectory], T: int, n: int, m: int) -> LTVModel:
+    """``x+ = A x + B u`` by ridge least squares over all transitions of ``trajs`` (ridge 1e-6 of
+    the regressor scale), repeated over ``T`` steps, with the residual covariance."""
+    phi = np.concatenate([np.concatenate([t.x[:-1], t.u], axis=1) for t in trajs])
+    y = np.concatenate([t.x[1:] for t in trajs])
+    G = phi.T @ phi
+    ridge = 1e-6 * (np.trace(G) / G.shape[0] + 1e-12)
+    H = G + ridge * np.eye(n + m)
+    K = np.linalg.solve(H, phi.T @ y).T  # [n, n+m]
+    return _light_ltv(
+        np.broadcast_to(K[:, :n], (T, n, n)).copy(), np.broadcast_to(K[:, n:], (T, n, m)).copy()
+    )
 
 
 def _last(values: Any) -> float | None:

@@ -470,3 +470,45 @@ def test_default_agent_solves_the_arm_within_30_episodes(tmp_path):
     summary = agent.summary()
     assert summary["episodes_to_solve"] is not None, summary
     assert summary["final_cost_ratio"] <= 1.2
+
+
+# --------------------------------------------------------------------------- user maps
+def _pendulum_angle_state(obs):
+    """obs [..., 3] -> [..., 2] = (angle, velocity), written for batches."""
+    obs = np.asarray(obs)
+    return np.stack([np.arctan2(obs[..., 1], obs[..., 0]), obs[..., 2]], axis=-1)
+
+
+def _pendulum_obs_of_state(s, ref):
+    return ca.vertcat(ca.cos(s[0]), ca.sin(s[0]), s[1])
+
+
+def test_state_fn_is_checked_on_a_batch_at_construction():
+    env = gym.make("Pendulum-v1")
+
+    def per_observation(obs):  # obs[0] of a batch is a row, not the cosine
+        return np.array([np.arctan2(obs[1], obs[0]), obs[2]])
+
+    with pytest.raises(ValueError, match=r"state_fn must .*batch of observations \[B, obs_dim\]"):
+        JacPropAgent(env, tiny_config(), cost_fn=pendulum_cost, state_fn=per_observation,
+                     obs_fn=_pendulum_obs_of_state)
+    agent = JacPropAgent(env, tiny_config(), cost_fn=pendulum_cost,
+                         state_fn=_pendulum_angle_state, obs_fn=_pendulum_obs_of_state)
+    assert agent.state_dim == 2
+
+
+def test_load_explains_a_missing_state_fn(tmp_path):
+    env = gym.make("Pendulum-v1")
+    agent = JacPropAgent(env, tiny_config(episode_steps=10), cost_fn=pendulum_cost,
+                         state_fn=_pendulum_angle_state, obs_fn=_pendulum_obs_of_state)
+    agent.learn(1, progress_bar=False)
+    path = agent.save(tmp_path / "a.pt")
+    with pytest.raises(ValueError, match="custom state_fn/obs_fn.*pass the same state_fn="):
+        JacPropAgent.load(path, env=env, cost_fn=pendulum_cost)
+    with pytest.raises(ValueError, match="dimension 3.*trained on dimension 2"):
+        JacPropAgent.load(path, env=env, cost_fn=pendulum_cost, state_fn=lambda o: np.asarray(o),
+                          obs_fn=lambda s, r: s)
+    again = JacPropAgent.load(path, env=env, cost_fn=pendulum_cost,
+                              state_fn=_pendulum_angle_state, obs_fn=_pendulum_obs_of_state)
+    obs = np.array([0.0, 1.0, 0.5])
+    np.testing.assert_array_equal(again.predict(obs)[0], agent.predict(obs)[0])
