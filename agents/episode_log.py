@@ -34,6 +34,8 @@ LOG_COLUMNS: tuple[str, ...] = (
     "ltv_lambda",
     "ltv_fallback",
     "eval_cost",
+    "eval_return",
+    "eval_returns",
     "oracle_cost",
     "cost_ratio",
     "solved",
@@ -93,7 +95,7 @@ class EpisodeLog:
         if self._writer is not None:
             step = int(row["episode"])
             for key, value in row.items():
-                if key in ("episode", "phase") or value is None or isinstance(value, str):
+                if key in ("episode", "phase") or value is None or isinstance(value, str | list):
                     continue
                 v = float(value)
                 if math.isfinite(v):

@@ -90,6 +90,10 @@ class JacPropAgent:
     :param state_fn: ``obs -> model state`` (numpy); with ``obs_fn``.
     :param obs_fn: ``(state, obs_ref) -> obs`` (CasADi-compatible), the inverse map used to
         evaluate ``cost_fn`` on predicted states.
+    :param terminal_cost_fn: ``obs -> scalar`` (CasADi), the cost of a plan's last predicted
+        observation (x ``config.terminal_weight``; default: the stage cost at zero action).
+    :param termination_fn: ``obs [..., obs_dim] -> bool [...]`` (numpy): where the env would
+        terminate; the CEM planner adds no cost after a predicted termination.
     :raises ValueError: at construction for non-Box spaces, an unbounded action space, a cost
         or maps that do not fit the env's dimensions, a bad config.
     """
@@ -101,6 +105,9 @@ class JacPropAgent:
         cost_fn: CostFn | None = None,
         state_fn: Callable[[np.ndarray], np.ndarray] | None = None,
         obs_fn: CostFn | None = None,
+        *,
+        terminal_cost_fn: Callable[[Any], Any] | None = None,
+        termination_fn: Callable[[np.ndarray], np.ndarray] | None = None,
     ) -> None:
         config = AgentConfig() if config is None else config
         if not isinstance(config, AgentConfig):
@@ -113,7 +120,8 @@ class JacPropAgent:
             )
         if config.checkpoint and config.run_dir is None:
             config = config.replace(checkpoint=False)
-        self._setup(env, config, spec, cost_fn, state_fn, obs_fn)
+        self._setup(env, config, spec, cost_fn, state_fn, obs_fn,
+                    terminal_cost_fn=terminal_cost_fn, termination_fn=termination_fn)
 
     # ------------------------------------------------------------------ construction
     def _setup(
@@ -126,6 +134,8 @@ class JacPropAgent:
         obs_fn: CostFn | None,
         *,
         saved_task: dict | None = None,
+        terminal_cost_fn: Callable[[Any], Any] | None = None,
+        termination_fn: Callable[[np.ndarray], np.ndarray] | None = None,
     ) -> None:
         self.env = env
         self.config = config
@@ -165,7 +175,10 @@ class JacPropAgent:
                 "hold; pass a smaller model state with state_fn/obs_fn, or choose "
                 "AgentConfig(regularization='smooth') or 'none'"
             )
-        self.task_cost = ObservationCost(cost_fn, state_map, spec, self.state_dim)
+        self.task_cost = ObservationCost(
+            cost_fn, state_map, spec, self.state_dim, terminal_cost_fn=terminal_cost_fn)
+        self.terminal_cost_fn = terminal_cost_fn
+        self.termination_fn = _checked_termination_fn(termination_fn, env, spec)
         self.planner_costs = PlannerCosts(self.task_cost, config.terminal_weight)
         # the model: an ensemble of small networks, Objective 1 (f) or 2 (g)
         members = tuple(
@@ -249,21 +262,36 @@ class JacPropAgent:
     # ------------------------------------------------------------------ public surface
     def learn(
         self,
-        episodes: int,
+        episodes: int | None = None,
         callback: Callable[[dict[str, Any]], bool | None] | None = None,
         progress_bar: bool = True,
+        *,
+        total_env_steps: int | None = None,
     ) -> JacPropAgent:
-        """Run ``episodes`` more episodes of Algorithm 1 (rollout, LTV fit, perturbed data,
-        regularised warm-started model update, planning), logging and checkpointing after each.
+        """Run Algorithm 1 (rollout, LTV fit, perturbed data, regularised warm-started model
+        update, planning) for a budget of episodes or env steps, logging and checkpointing
+        after every episode.
 
         :param episodes: number of episodes to run now (a loaded agent continues its count).
         :param callback: called after every episode with ``{"agent", "row"}``; returning
             ``False`` stops learning (as in Stable-Baselines3).
         :param progress_bar: show a tqdm progress bar.
+        :param total_env_steps: budget of env steps for this call (as SB3's
+            ``learn(total_timesteps)``); the last episode is cut short (truncated) so that the
+            budget is exact. With ``episodes`` too, whichever is reached first stops.
         :return: ``self``.
         """
-        if isinstance(episodes, bool) or not isinstance(episodes, int | np.integer) or episodes < 0:
+        if episodes is None and total_env_steps is None:
+            raise ValueError("give episodes or total_env_steps")
+        if episodes is not None and (
+            isinstance(episodes, bool) or not isinstance(episodes, int | np.integer) or episodes < 0
+        ):
             raise ValueError(f"episodes must be an integer >= 0, got {episodes!r}")
+        if total_env_steps is not None and (
+            isinstance(total_env_steps, bool)
+            or not isinstance(total_env_steps, int | np.integer) or total_env_steps < 0
+        ):
+            raise ValueError(f"total_env_steps must be an integer >= 0, got {total_env_steps!r}")
         if self.env is None:
             raise ValueError("this agent was loaded without an env; load(path, env=...) to learn")
         if self.config.torch_threads:
@@ -273,13 +301,23 @@ class JacPropAgent:
                 self.config.run_dir, tensorboard=self.config.tensorboard, rows=self.logger_rows
             )
         bar = None
-        if progress_bar and episodes > 0:
+        step_end = None if total_env_steps is None else self.env_steps + int(total_env_steps)
+        if progress_bar and (episodes or total_env_steps):
             from tqdm.auto import tqdm
 
-            bar = tqdm(total=episodes, desc="JacProp agent", unit="episode")
+            if episodes is not None:
+                bar = tqdm(total=episodes, desc="JacProp agent", unit="episode")
+            else:
+                bar = tqdm(total=total_env_steps, desc="JacProp agent", unit="step")
         try:
-            for _ in range(int(episodes)):
-                row = self._episode()
+            done = 0
+            while (episodes is None or done < episodes) and (
+                step_end is None or self.env_steps < step_end
+            ):
+                done += 1
+                before = self.env_steps
+                cap = None if step_end is None else step_end - self.env_steps
+                row = self._episode(max_steps=cap)
                 self.logger_rows.append(row)
                 self.episodes_done += 1
                 if self.config.checkpoint:
@@ -287,7 +325,7 @@ class JacPropAgent:
                 if self._log is not None:
                     self._log.append(row)
                 if bar is not None:
-                    bar.update(1)
+                    bar.update(1 if episodes is not None else self.env_steps - before)
                     bar.set_postfix(cost=f"{row['episode_cost']:.3g}",
                                     ratio=_fmt(row.get("cost_ratio")))
                 if callback is not None and callback({"agent": self, "row": row}) is False:
@@ -337,6 +375,8 @@ class JacPropAgent:
         obs_fn: CostFn | None = None,
         *,
         run_dir: str | None = None,
+        terminal_cost_fn: Callable[[Any], Any] | None = None,
+        termination_fn: Callable[[np.ndarray], np.ndarray] | None = None,
     ) -> JacPropAgent:
         """Restore an agent saved by :meth:`save` (or a run's ``checkpoint.pt``).
 
@@ -345,7 +385,9 @@ class JacPropAgent:
             Its spaces must match the saved ones.
         :param cost_fn: needed again if the agent was built with a custom ``cost_fn``
             (functions are not serialised; the built-in env cost is).
+        :param state_fn: with ``obs_fn``, needed again if the agent was built with them.
         :param run_dir: where :meth:`learn` writes from now on (default: the saved config's).
+        :param terminal_cost_fn: / ``termination_fn``: as at construction (not serialised).
         """
         path = Path(path)
         if path.is_dir():
@@ -379,7 +421,8 @@ class JacPropAgent:
         ):
             raise ValueError("the agent was built with a custom cost_fn: pass cost_fn= to load")
         agent = cls.__new__(cls)
-        agent._setup(env, config, spec, cost_fn, state_fn, obs_fn, saved_task=task)
+        agent._setup(env, config, spec, cost_fn, state_fn, obs_fn, saved_task=task,
+                     terminal_cost_fn=terminal_cost_fn, termination_fn=termination_fn)
         if agent.state_dim != saved_n:
             raise ValueError(
                 f"state_fn gives a model state of dimension {agent.state_dim}, but the saved "
@@ -390,7 +433,7 @@ class JacPropAgent:
         return agent
 
     # ------------------------------------------------------------------ one episode
-    def _episode(self) -> dict[str, Any]:
+    def _episode(self, max_steps: int | None = None) -> dict[str, Any]:
         cfg, spec = self.config, self.spec
         ep = self.episodes_done
         t_start = time.perf_counter()
@@ -401,7 +444,7 @@ class JacPropAgent:
         # anything that draws from torch's global generator is reproducible per episode
         torch.manual_seed(torch_seed)
         excitation = ep < cfg.n_excitation_episodes
-        T = spec.episode_steps
+        T = spec.episode_steps if max_steps is None else min(spec.episode_steps, max_steps)
         render = cfg.video and cfg.run_dir is not None and ep % cfg.video_every == 0
 
         # (a) rollout in the real env --------------------------------------------------------
@@ -453,12 +496,11 @@ class JacPropAgent:
 
         # evaluation: the MPC policy on the updated model vs the oracle ------------------------
         tic = time.perf_counter()
-        eval_cost = oracle = ratio = None
-        n_eval = 0
-        solved = False
+        ev: dict[str, Any] = {"eval_cost": None, "eval_return": None, "eval_returns": None,
+                              "oracle_cost": None, "cost_ratio": None, "eval_episodes_run": 0,
+                              "solved": False}
         if self._should_evaluate(ep):
-            eval_cost, oracle, ratio, n_eval = self._evaluate()
-            solved = bool(eval_cost is not None and ratio is not None and ratio <= cfg.solved_ratio)
+            ev = self._evaluate()
         time_eval = time.perf_counter() - tic
 
         return {
@@ -473,11 +515,7 @@ class JacPropAgent:
             "val_loss": _last(getattr(history, "val_loss", None)),
             "ltv_lambda": lam,
             "ltv_fallback": ltv_note,
-            "eval_cost": eval_cost,
-            "oracle_cost": oracle,
-            "cost_ratio": ratio,
-            "eval_episodes_run": n_eval,
-            "solved": solved,
+            **ev,
             "time_rollout": time_rollout,
             "time_planning": rec.time_policy,
             "time_ltv": time_ltv,
@@ -725,16 +763,17 @@ class JacPropAgent:
                 self.config.eval_episodes, self.config.eval_seed, env
             )
 
-    def _evaluate(self) -> tuple[float | None, float | None, float | None, int]:
+    def _evaluate(self) -> dict[str, Any]:
         """Evaluate :meth:`predict` on the fixed evaluation episodes.
 
-        :return: ``(mean cost or None if stopped early, oracle mean or None, cost ratio or
-            None, episodes run)``; the ratio is ``sum(agent) / sum(oracle)`` over the oracle's
-            episodes, a lower bound when the evaluation stopped early.
+        :return: the log fields ``eval_cost`` (mean cost, ``None`` if stopped early),
+            ``eval_return`` (mean return) and ``eval_returns`` (per episode), ``oracle_cost``,
+            ``cost_ratio`` (``sum(agent) / sum(oracle)`` over the oracle's episodes, a lower
+            bound when the evaluation stopped early), ``eval_episodes_run`` and ``solved``.
         """
         cfg = self.config
         env, kwargs = self._eval_setup()
-        oracle = self._oracle_costs(env, kwargs)
+        oracle = None if cfg.solved_return is not None else self._oracle_costs(env, kwargs)
         stop_above = None
         if oracle is not None and cfg.eval_early_exit and np.all(oracle >= 0):
             stop_above = cfg.solved_ratio * float(np.sum(oracle))
@@ -742,12 +781,26 @@ class JacPropAgent:
             self, env, self.eval_targets, cfg.eval_seed, stop_above=stop_above, **kwargs
         )
         complete = len(costs) == cfg.eval_episodes
-        mean = float(np.mean(costs)) if complete else None
+        returns = [float(-c) for c in costs]
+        out: dict[str, Any] = {
+            "eval_cost": float(np.mean(costs)) if complete else None,
+            "eval_return": float(np.mean(returns)) if complete else None,
+            "eval_returns": returns,
+            "oracle_cost": None,
+            "cost_ratio": None,
+            "eval_episodes_run": len(costs),
+            "solved": False,
+        }
+        if cfg.solved_return is not None:
+            out["solved"] = bool(complete and out["eval_return"] >= cfg.solved_return)
+            return out
         if oracle is None:
-            return mean, None, None, len(costs)
+            return out
         total = float(np.sum(oracle))
         ratio = float(np.sum(costs)) / total if total > 0 else math.inf
-        return mean, float(np.mean(oracle)), ratio, len(costs)
+        out.update(oracle_cost=float(np.mean(oracle)), cost_ratio=ratio,
+                   solved=bool(complete and ratio <= cfg.solved_ratio))
+        return out
 
     def _oracle_costs(self, env: gym.Env, kwargs: dict[str, Any]) -> np.ndarray | None:
         """Per-episode costs of MPC with the TRUE model (computed once, then kept)."""
@@ -836,6 +889,7 @@ class JacPropAgent:
         rows = self.logger_rows
         solved = [r for r in rows if r.get("solved")]
         evals = [r for r in rows if r.get("cost_ratio") is not None]
+        rets = [r for r in rows if r.get("eval_return") is not None]
         phases = {c[len("time_"):]: float(sum(r[c] for r in rows)) for c in TIMING_COLUMNS}
         return {
             "env_id": self.env_id,
@@ -846,6 +900,19 @@ class JacPropAgent:
             "final_cost_ratio": evals[-1]["cost_ratio"] if evals else None,
             "best_cost_ratio": min(r["cost_ratio"] for r in evals) if evals else None,
             "final_eval_cost": evals[-1]["eval_cost"] if evals else None,
+            "final_eval_return": rets[-1]["eval_return"] if rets else None,
+            "final_eval_returns": rets[-1]["eval_returns"] if rets else None,
+            "best_eval_return": max(r["eval_return"] for r in rets) if rets else None,
+            "eval_curve": [
+                {"episode": r["episode"], "env_steps": r["env_steps"],
+                 "eval_return": r.get("eval_return"), "eval_returns": r.get("eval_returns"),
+                 "cost_ratio": r.get("cost_ratio")}
+                for r in rows if r.get("eval_returns") is not None
+            ],
+            "solved_return": self.config.solved_return,
+            "solved_criterion": (
+                "mean_return" if self.config.solved_return is not None
+                else "oracle_ratio" if self.oracle_costs is not None else None),
             "oracle_cost": self.oracle_mean,
             "solved_ratio": self.config.solved_ratio,
             "wall_seconds_per_phase": phases,
@@ -947,6 +1014,31 @@ class JacPropAgent:
             save_video(frames, folder / f"episode_{ep:04d}.mp4", fps=fps)
         except ValueError:  # no imageio-ffmpeg
             save_video(frames, folder / f"episode_{ep:04d}.gif", fps=fps)
+
+
+def _checked_termination_fn(
+    fn: Callable[[np.ndarray], np.ndarray] | None, env: gym.Env | None, spec: EnvSpec
+) -> Callable[[np.ndarray], np.ndarray] | None:
+    """Check ``termination_fn`` on a batch of observations ``[2, 3, obs_dim] -> bool [2, 3]``."""
+    if fn is None:
+        return None
+    if not callable(fn):
+        raise TypeError(f"termination_fn must be callable obs -> bool, got {fn!r}")
+    probe = np.random.default_rng(0).uniform(-1.0, 1.0, (2, 3, spec.obs_dim))
+    if env is not None:
+        probe = np.clip(probe, env.observation_space.low, env.observation_space.high)
+    try:
+        out = np.asarray(fn(probe))
+    except Exception as err:
+        raise ValueError(
+            f"termination_fn must accept a batch of observations [..., obs_dim={spec.obs_dim}]; "
+            f"it failed on [2, 3, {spec.obs_dim}]: {type(err).__name__}: {err}"
+        ) from None
+    if out.shape != (2, 3):
+        raise ValueError(
+            f"termination_fn(obs [..., obs_dim]) must return one bool per observation [...]; for "
+            f"[2, 3, {spec.obs_dim}] it returned shape {list(out.shape)}")
+    return fn
 
 
 def _light_ltv(A: np.ndarray, B: np.ndarray, lam: float = math.nan) -> LTVModel:

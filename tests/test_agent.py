@@ -512,3 +512,73 @@ def test_load_explains_a_missing_state_fn(tmp_path):
                               state_fn=_pendulum_angle_state, obs_fn=_pendulum_obs_of_state)
     obs = np.array([0.0, 1.0, 0.5])
     np.testing.assert_array_equal(again.predict(obs)[0], agent.predict(obs)[0])
+
+
+# --------------------------------------------------------------------------- the user's task
+def test_learn_with_an_env_step_budget_cuts_the_last_episode():
+    env = gym.make("Pendulum-v1")
+    agent = JacPropAgent(env, tiny_config(episode_steps=20), cost_fn=pendulum_cost)
+    agent.learn(total_env_steps=45, progress_bar=False)
+    assert [t.T for t in agent.trajectories] == [20, 20, 5]
+    assert agent.env_steps == 45 == agent.logger_rows[-1]["env_steps"]
+    agent.learn(1, progress_bar=False, total_env_steps=100)  # the episode count stops first
+    assert agent.env_steps == 65
+    with pytest.raises(ValueError, match="total_env_steps"):
+        agent.learn(total_env_steps=-1)
+    with pytest.raises(ValueError, match="give episodes or total_env_steps"):
+        agent.learn()
+
+
+def test_solved_return_decides_from_the_envs_own_rewards():
+    """Returns per evaluation episode equal an independent replay of the deterministic policy;
+    the success criterion is the mean return against ``solved_return``."""
+    env = gym.make("Pendulum-v1")
+    cfg = tiny_config(episode_steps=15, eval_every=1, eval_episodes=2, eval_seed=7)
+    easy = JacPropAgent(env, cfg.replace(solved_return=-1e9), cost_fn=pendulum_cost)
+    easy.learn(2, progress_bar=False)
+    row = easy.logger_rows[0]
+    assert row["solved"] and len(row["eval_returns"]) == 2
+    assert row["eval_return"] == pytest.approx(np.mean(row["eval_returns"]))
+    summary = easy.summary()
+    assert summary["episodes_to_solve"] == 1 and summary["env_steps_to_solve"] == 15
+    assert summary["solved_criterion"] == "mean_return"
+    # independent replay of the final policy on the evaluation episodes
+    eval_env = gym.make("Pendulum-v1")
+    replay = [float(np.sum(easy.rollout_policy(eval_env, seed=7 + i).rewards)) for i in range(2)]
+    np.testing.assert_allclose(easy.logger_rows[-1]["eval_returns"], replay, rtol=1e-12)
+    hard = JacPropAgent(env, cfg.replace(solved_return=0.0), cost_fn=pendulum_cost)
+    hard.learn(2, progress_bar=False)  # Pendulum's rewards are <= 0 and not all 0
+    assert not any(r["solved"] for r in hard.logger_rows)
+    assert hard.summary()["episodes_to_solve"] is None
+
+
+def test_terminal_cost_is_the_users_function_of_the_predicted_observation():
+    env = gym.make("Pendulum-v1")
+
+    def terminal(obs):
+        return 5.0 * (1.0 - obs[0]) + obs[2] ** 2
+
+    agent = JacPropAgent(env, tiny_config(terminal_weight=2.0), cost_fn=pendulum_cost,
+                         state_fn=_pendulum_angle_state, obs_fn=_pendulum_obs_of_state,
+                         terminal_cost_fn=terminal)
+    rng = np.random.default_rng(0)
+    for _ in range(5):
+        s = rng.normal(size=2)
+        ref = rng.normal(size=3)
+        expected = 5.0 * (1.0 - np.cos(s[0])) + s[1] ** 2
+        assert float(agent.task_cost.terminal(s, ref)) == pytest.approx(expected, rel=1e-12)
+    with pytest.raises(ValueError, match="terminal_cost_fn must return a scalar"):
+        JacPropAgent(env, tiny_config(), cost_fn=pendulum_cost, terminal_cost_fn=lambda o: o)
+
+
+def test_termination_fn_is_checked_on_a_batch():
+    env = gym.make("Pendulum-v1")
+    with pytest.raises(ValueError, match="termination_fn must accept a batch"):
+        JacPropAgent(env, tiny_config(), cost_fn=pendulum_cost,
+                     termination_fn=lambda obs: bool(obs[0] > 0))
+    with pytest.raises(ValueError, match="termination_fn.*one bool per observation"):
+        JacPropAgent(env, tiny_config(), cost_fn=pendulum_cost,
+                     termination_fn=lambda obs: obs[..., 0, 0] > 0)
+    agent = JacPropAgent(env, tiny_config(), cost_fn=pendulum_cost,
+                         termination_fn=lambda obs: np.abs(obs[..., 2]) > 7.9)
+    assert agent.termination_fn is not None
