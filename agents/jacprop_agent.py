@@ -198,14 +198,18 @@ class JacPropAgent:
             seed=config.seed,
         )
         self.model = DynamicsEnsemble(self.ensemble_config)
-        self.policy = MPCPolicy(
+        policy_cls = MPCPolicy if config.planner == "ilqr" else CEMPolicy
+        self.policy = policy_cls(
             self.model,
             self.planner_costs,
             spec,
             horizon=config.horizon,
-            iterations=config.ilqr_iterations,
+            iterations=config.ilqr_iterations if config.planner == "ilqr" else
+            config.cem_iterations,
             first_plan_iterations=config.first_plan_iterations,
         )
+        if config.planner == "cem":
+            self.policy.configure(config, self.termination_fn)
         self.has_linearize = env is not None and (
             hasattr(env.unwrapped, "linearize_trajectory") or hasattr(env.unwrapped, "linearize")
         )
@@ -1014,6 +1018,52 @@ class JacPropAgent:
             save_video(frames, folder / f"episode_{ep:04d}.mp4", fps=fps)
         except ValueError:  # no imageio-ffmpeg
             save_video(frames, folder / f"episode_{ep:04d}.gif", fps=fps)
+
+
+class CEMPolicy(MPCPolicy):
+    """The same receding-horizon MPC with :func:`mbtsr.cem.cem` instead of iLQR (forward
+    predictions of the model only). ``predict`` stays a pure function of its arguments: every
+    solve uses the seed ``AgentConfig.seed``."""
+
+    def configure(self, config: AgentConfig, termination_fn: Callable | None) -> None:
+        import casadi as ca
+
+        self.cem_options = {
+            "samples": config.cem_samples, "elites": config.cem_elites, "seed": config.seed,
+        }
+        self.termination_fn = termination_fn
+        tc = self.costs.task_cost
+        s, p = ca.SX.sym("s", tc.state_dim), ca.SX.sym("p", tc.spec.obs_dim)
+        self._obs_of_state = ca.Function("obs_of_state", [s, p], [
+            ca.SX(self.state_map.observation(s, p))])
+
+    def _terminated(self, obs_ref: np.ndarray) -> Callable[[np.ndarray], np.ndarray] | None:
+        if self.termination_fn is None:
+            return None
+        fn = self.termination_fn
+
+        def terminated(X: np.ndarray) -> np.ndarray:
+            flat = X.reshape(-1, X.shape[-1])
+            obs = np.asarray(self._obs_of_state.map(flat.shape[0])(
+                flat.T, np.repeat(obs_ref[:, None], flat.shape[0], axis=1))).T
+            return np.asarray(fn(obs), dtype=bool).reshape(X.shape[:-1])
+
+        return terminated
+
+    def plan(self, obs: np.ndarray, U0: np.ndarray | None = None) -> tuple[np.ndarray, Any]:
+        from mbtsr.cem import cem
+
+        s = self.state_map.state(obs)
+        cold = U0 is None
+        U0 = self.initial_plan() if cold else U0
+        iters = self.first_plan_iterations if cold else self.iterations
+        res = cem(
+            self.costs(obs), self.model, s, U0, u_min=self.spec.u_min, u_max=self.spec.u_max,
+            options={**self.cem_options, "iterations": iters},
+            terminated=self._terminated(np.asarray(obs, dtype=float)),
+        )
+        self.last_result = res
+        return np.asarray(res.U, dtype=float), res
 
 
 def _checked_termination_fn(

@@ -582,3 +582,28 @@ def test_termination_fn_is_checked_on_a_batch():
     agent = JacPropAgent(env, tiny_config(), cost_fn=pendulum_cost,
                          termination_fn=lambda obs: np.abs(obs[..., 2]) > 7.9)
     assert agent.termination_fn is not None
+
+
+def test_cem_planner_runs_the_same_mpc_and_respects_the_termination_fn():
+    """planner='cem' plans with forward predictions only; a termination predicted at every
+    state leaves only the first stage cost in every plan's cost."""
+    env = gym.make("Pendulum-v1")
+    cfg = tiny_config(planner="cem", cem_samples=16, cem_elites=4, cem_iterations=1,
+                      episode_steps=12)
+    agent = JacPropAgent(env, cfg, cost_fn=pendulum_cost)
+    agent.learn(2, progress_bar=False)
+    assert agent.logger_rows[-1]["phase"] == "mpc"
+    obs = env.reset(seed=0)[0]
+    a1, plan = agent.predict(obs)
+    a2, _ = agent.predict(obs)
+    np.testing.assert_array_equal(a1, a2)  # seeded: predict is a pure function
+    assert plan.shape == (cfg.horizon, 1) and -2.0 <= a1[0] <= 2.0
+    assert agent.policy.last_result.status in ("converged", "max_iter")
+    ended = JacPropAgent(env, cfg, cost_fn=pendulum_cost,
+                         termination_fn=lambda o: np.ones(o.shape[:-1], dtype=bool))
+    ended.model = agent.model
+    ended.policy.model = agent.model
+    ended.predict(obs)
+    res = ended.policy.last_result
+    first_stage = float(agent.task_cost.stage(agent.state_map.state(obs), res.U[0], obs))
+    assert res.cost == pytest.approx(first_stage, rel=1e-9)
