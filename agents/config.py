@@ -62,6 +62,10 @@ class AgentConfig:
     :param jacobian_penalty: weight of the Jacobian penalty (``exact`` / ``smooth``).
     :param perturbation_sigma: perturbation std as a fraction of the per-dimension data std.
     :param n_perturbed_copies: perturbed copies of every point, resampled every epoch.
+    :param renormalize: before every update, recompute the model's input/output normalization
+        from ALL data so far (:meth:`mbtsr.ensemble.DynamicsEnsemble.refit_normalization`,
+        which keeps the represented function), instead of freezing the statistics of the
+        first episode. ``False``: the first episode's statistics are kept (the old behaviour).
     :param ltv_lambda: smoothness weight of the LTV fit (Algorithm 1, "fit LTV model"), a
         positive number or ``"auto"`` (:func:`mbtsr.ltv.select_lambda` on every trajectory).
     :param ltv_prior: once the model has seen data, fuse each new LTV fit with the ensemble's
@@ -146,6 +150,7 @@ class AgentConfig:
     jacobian_penalty: float = 0.01
     perturbation_sigma: float = 0.1
     n_perturbed_copies: int = 1
+    renormalize: bool = True
     ltv_lambda: float | str = "auto"
     ltv_prior: float = 0.01
     # planning

@@ -679,6 +679,8 @@ class JacPropAgent:
         from mbtsr.training import train_ensemble
 
         tcfg, reg = self._train_configs(train_seed)
+        if self.config.renormalize:
+            self.model.refit_normalization(self.trajectories)
         history = train_ensemble(
             self.model,
             self.trajectories,

@@ -607,3 +607,28 @@ def test_cem_planner_runs_the_same_mpc_and_respects_the_termination_fn():
     res = ended.policy.last_result
     first_stage = float(agent.task_cost.stage(agent.state_map.state(obs), res.U[0], obs))
     assert res.cost == pytest.approx(first_stage, rel=1e-9)
+
+
+def test_refit_normalization_keeps_the_function_and_follows_the_data():
+    """The ensemble's statistics move to the new data while predictions and Jacobians stay
+    those of the old parameterization (float32 rounding)."""
+    env = gym.make("Pendulum-v1")
+    agent = JacPropAgent(env, tiny_config(episode_steps=20, renormalize=False),
+                         cost_fn=pendulum_cost)
+    agent.learn(1, progress_bar=False)
+    model = agent.model
+    more = heldout_trajectories("Pendulum-v1", lambda o: o, [7, 8], 30, 1.0)
+    x = np.concatenate([t.x[:-1] for t in more])
+    u = np.concatenate([t.u for t in more])
+    before = model.step(x, u)
+    A0, B0 = model.jacobians(x, u)
+    old_std = model.in_std.clone()
+    model.refit_normalization(agent.trajectories + more)
+    xu = np.concatenate([np.concatenate([t.x[:-1], t.u], 1) for t in agent.trajectories + more])
+    np.testing.assert_allclose(model.in_std.numpy(), xu.std(0), rtol=1e-5)
+    assert not torch.allclose(old_std, model.in_std)
+    scale = np.abs(before).max()
+    np.testing.assert_allclose(model.step(x, u), before, atol=2e-5 * scale)
+    A1, B1 = model.jacobians(x, u)
+    np.testing.assert_allclose(A1, A0, atol=1e-4 * np.abs(A0).max())
+    np.testing.assert_allclose(B1, B0, atol=1e-4 * np.abs(B0).max())
