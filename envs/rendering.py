@@ -14,6 +14,8 @@ from pathlib import Path
 import gymnasium as gym
 import numpy as np
 
+from mbtsr.io import atomic_write
+
 __all__ = ["render_episode", "save_png_strip", "save_video"]
 
 
@@ -58,12 +60,6 @@ def _check_frames(frames: Sequence[np.ndarray]) -> list[np.ndarray]:
     return [f.astype(np.uint8) for f in out]
 
 
-def _atomic_write(path: Path, write) -> None:
-    tmp = path.with_name(path.name + ".tmp" + path.suffix)
-    write(tmp)
-    os.replace(tmp, path)
-
-
 def save_video(frames: Sequence[np.ndarray], path: str | os.PathLike, fps: float = 50) -> Path:
     """Write ``frames`` to ``path`` as an H.264 ``.mp4`` (imageio-ffmpeg) or a ``.gif`` (Pillow).
 
@@ -89,7 +85,7 @@ def save_video(frames: Sequence[np.ndarray], path: str | os.PathLike, fps: float
     if suffix == ".mp4":
         exe = _ffmpeg_exe()
         if exe is not None:
-            _atomic_write(path, lambda p: _write_mp4(frames, p, fps))
+            atomic_write(path, lambda p: _write_mp4(frames, p, fps))
             return path
         warnings.warn(
             "ffmpeg not found (pip install imageio-ffmpeg): writing a GIF instead of "
@@ -101,7 +97,7 @@ def save_video(frames: Sequence[np.ndarray], path: str | os.PathLike, fps: float
     import imageio.v2 as imageio
 
     # GIF stores frame durations in ms (10 ms resolution)
-    _atomic_write(path, lambda p: imageio.mimsave(p, frames, duration=1000.0 / fps, loop=0))
+    atomic_write(path, lambda p: imageio.mimsave(p, frames, duration=1000.0 / fps, loop=0))
     return path
 
 
@@ -148,5 +144,5 @@ def save_png_strip(frames: Sequence[np.ndarray], path: str | os.PathLike, n: int
     idx = np.unique(np.linspace(0, len(frames) - 1, min(n, len(frames))).round().astype(int))
     strip = np.concatenate([frames[i] for i in idx], axis=1)
     path = Path(path)
-    _atomic_write(path, lambda p: imageio.imwrite(p, strip, format="png"))
+    atomic_write(path, lambda p: imageio.imwrite(p, strip, format="png"))
     return path

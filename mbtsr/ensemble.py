@@ -58,6 +58,7 @@ from torch.nn import functional as F  # noqa: N812
 from torch.optim.optimizer import register_optimizer_step_post_hook
 
 from mbtsr.dynamics import check_step_inputs
+from mbtsr.io import atomic_write
 from mbtsr.trajectory import Trajectory
 from mbtsr.validation import as_array
 
@@ -1185,9 +1186,7 @@ def save_model(model: DynamicsEnsemble, path: str | os.PathLike) -> None:
         "config": model.config.to_json(),
         "state_dict": {k: v.detach().clone() for k, v in model.state_dict().items()},
     }
-    tmp = path.with_name(path.name + ".tmp")
-    torch.save(payload, tmp)
-    os.replace(tmp, path)
+    atomic_write(path, lambda p: torch.save(payload, p))
 
 
 def load_model(path: str | os.PathLike) -> DynamicsEnsemble:

@@ -38,7 +38,7 @@ def test_mp4_round_trip_keeps_frame_count_size_fps_and_colours(tmp_path):
     assert len(back) == len(frames)
     for f, g in zip(frames, back):  # lossy codec: flat colours survive to a few levels
         np.testing.assert_allclose(g.mean(axis=(0, 1)), f[0, 0], atol=6)
-    assert not list(tmp_path.glob("*.tmp*"))  # the atomic write left no temp file
+    assert [p.name for p in tmp_path.iterdir()] == ["episode.mp4"]  # no temp file left
 
 
 def test_mp4_pads_odd_sizes_and_drops_alpha(tmp_path):
