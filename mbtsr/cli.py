@@ -20,11 +20,11 @@ import io
 import os
 import re
 import sys
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import NoReturn, TypeVar
+from typing import Any, NoReturn, TypeVar
 
-__all__ = ["parse", "fail", "check_output_path"]
+__all__ = ["check_output_path", "fail", "main", "parse", "usage_error"]
 
 T = TypeVar("T")
 _BOX = re.compile(r"[\u2500-\u257f]")  # rich's box-drawing characters
@@ -122,3 +122,30 @@ def parse(
             except ValueError as e:
                 fail(str(e), prog)
     return config
+
+
+def main(
+    config_type: type[T],
+    run: Callable[[T], Any],
+    *,
+    outputs: Sequence[str] = (),
+    folders: Sequence[str] = (),
+    args: Sequence[str] | None = None,
+) -> Any:
+    """A script's whole body: ``run(parse(config_type, ...))``; a ``ValueError`` that ``run``
+    raises before its first output (bad combinations of options) also ends in one line, exit 2.
+    """
+    config = parse(config_type, args=args, outputs=outputs, folders=folders)
+    try:
+        return run(config)
+    except _UsageError as e:
+        fail(str(e))
+
+
+class _UsageError(ValueError):
+    """Raised by an experiment for an invalid combination of options (see :func:`usage_error`)."""
+
+
+def usage_error(message: str) -> _UsageError:
+    """``raise usage_error("...")`` in ``run``: reported by :func:`main` as a CLI error."""
+    return _UsageError(message)
