@@ -24,7 +24,7 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any, NoReturn, TypeVar
 
-__all__ = ["check_output_path", "fail", "main", "parse", "usage_error"]
+__all__ = ["check_output_path", "fail", "main", "parse"]
 
 T = TypeVar("T")
 _BOX = re.compile(r"[\u2500-\u257f]")  # rich's box-drawing characters
@@ -132,20 +132,17 @@ def main(
     folders: Sequence[str] = (),
     args: Sequence[str] | None = None,
 ) -> Any:
-    """A script's whole body: ``run(parse(config_type, ...))``; a ``ValueError`` that ``run``
-    raises before its first output (bad combinations of options) also ends in one line, exit 2.
+    """A script's whole body: ``run(parse(config_type, ...))``.
+
+    The library validates its inputs at its public boundary and names the argument in a
+    ``ValueError``/``TypeError``; when ``run`` raises one, that is a bad option value too, so it
+    ends the same way as a parse error: one line, exit code 2 (``MBTSR_TRACEBACK=1`` re-raises
+    it with the traceback, for debugging).
     """
     config = parse(config_type, args=args, outputs=outputs, folders=folders)
     try:
         return run(config)
-    except _UsageError as e:
-        fail(str(e))
-
-
-class _UsageError(ValueError):
-    """Raised by an experiment for an invalid combination of options (see :func:`usage_error`)."""
-
-
-def usage_error(message: str) -> _UsageError:
-    """``raise usage_error("...")`` in ``run``: reported by :func:`main` as a CLI error."""
-    return _UsageError(message)
+    except (ValueError, TypeError) as e:
+        if os.environ.get("MBTSR_TRACEBACK"):
+            raise
+        fail(f"{type(e).__name__}: {' '.join(str(e).split())} (MBTSR_TRACEBACK=1 shows where)")
