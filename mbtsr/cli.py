@@ -90,7 +90,7 @@ def parse(
 
     :param args: the arguments (default ``sys.argv[1:]``).
     :param description: the ``--help`` text above the options (default: the class docstring).
-    :param outputs: dotted field names holding output FILE paths (``None`` values are skipped),
+    :param outputs: dotted field names holding output FILE paths (``None``/empty values are skipped),
         checked with :func:`check_output_path` before returning.
     :param folders: the same for output FOLDERS.
     :return: the config. ``--help`` prints and exits 0; any error exits 2 after one line.
@@ -115,7 +115,7 @@ def parse(
             value = config
             for part in dotted.split("."):
                 value = getattr(value, part)
-            if value is None:
+            if value is None or value == "":  # not given
                 continue
             try:
                 check_output_path(value, name="--" + dotted.replace("_", "-"), folder=is_folder)
