@@ -77,7 +77,7 @@ class Args:
     docs: str = "docs/benchmark.md"
     """markdown report; the figure goes next to it (--quick: under runs/benchmark_sb3_quick)"""
     quick: bool = False
-    """CI smoke test: tiny budgets, 1 seed; options left at their defaults take the QUICK values"""
+    """CI smoke test: tiny budgets, 1 seed (options not given take the QUICK values)"""
     backend: Literal["process", "serial", "ray"] = "process"
     """mbtsr.runner backend"""
     workers: int = 2
@@ -127,8 +127,10 @@ class Args:
         _validate(self)
 
 
-#: what --quick changes (tiny budgets; nothing is expected to solve)
+#: what --quick changes (tiny budgets; nothing is expected to solve); options given on the
+#: command line win (``mbtsr.cli.parse(presets=...)``)
 QUICK = {
+    "quick": True,
     "seeds": 1,
     "eval_episodes": 2,
     "budget_agent": 2,
@@ -138,6 +140,8 @@ QUICK = {
     "eval_every_sac": 100,
     "eval_every_td3": 100,
     "eval_every_ppo": 64,
+    "json": "runs/benchmark_sb3_quick/benchmark.json",  # never over the real report by default
+    "docs": "runs/benchmark_sb3_quick/benchmark.md",
 }
 QUICK_AGENT = {"epochs_per_episode": 10, "horizon": 10, "first_plan_iterations": 5,
                "ensemble_size": 2, "ltv_lambda": 1.0}
@@ -146,19 +150,6 @@ QUICK_SB3 = {
     "td3": {"learning_starts": 50, "batch_size": 32, "action_noise_std": 0.1},
     "ppo": {"n_steps": 64, "batch_size": 32, "n_epochs": 2, "normalize": True},
 }
-
-
-def with_quick(args: Args) -> Args:
-    """``--quick``: every option still at its default takes its :data:`QUICK` value, and the
-    outputs go under ``runs/benchmark_sb3_quick`` (never over the real report by default)."""
-    if not args.quick:
-        return args
-    default = Args()
-    changes = {k: v for k, v in QUICK.items() if getattr(args, k) == getattr(default, k)}
-    for name in ("json", "docs"):
-        if getattr(args, name) == getattr(default, name):
-            changes[name] = f"runs/benchmark_sb3_quick/{Path(getattr(default, name)).name}"
-    return dataclasses.replace(args, **changes)
 
 
 def _validate(args: Args) -> None:
@@ -623,7 +614,6 @@ def run(args: Args) -> dict:
 
     t_start = time.perf_counter()
     git_revision = _git_revision()
-    args = with_quick(args)
     torch.set_num_threads(1)
     out_dir = Path(args.out_dir or ("runs/benchmark_sb3_quick" if args.quick
                                     else "runs/benchmark_sb3"))

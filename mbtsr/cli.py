@@ -16,11 +16,12 @@ does any work.
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import io
 import os
 import re
 import sys
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any, NoReturn, TypeVar
 
@@ -85,23 +86,33 @@ def parse(
     prog: str | None = None,
     outputs: Sequence[str] = (),
     folders: Sequence[str] = (),
+    presets: Mapping[str, Mapping[str, Any]] | None = None,
 ) -> T:
     """Parse the command line into ``config_type`` (a dataclass) with tyro.
 
     :param args: the arguments (default ``sys.argv[1:]``).
+    :param presets: ``{flag: {field: value}}``: when ``flag`` (e.g. ``"--quick"``) is on the
+        command line, these values replace the defaults, so every option the user does not give
+        takes the preset's value (and the ``--help`` shows them).
     :param description: the ``--help`` text above the options (default: the class docstring).
-    :param outputs: dotted field names holding output FILE paths (``None``/empty values are skipped),
-        checked with :func:`check_output_path` before returning.
+    :param outputs: dotted field names holding output FILE paths (``None``/empty values are
+        skipped), checked with :func:`check_output_path` before returning.
     :param folders: the same for output FOLDERS.
     :return: the config. ``--help`` prints and exits 0; any error exits 2 after one line.
     """
     import tyro
 
     prog = prog or Path(sys.argv[0]).name
+    argv = list(sys.argv[1:] if args is None else args)
+    default = None
+    for flag, values in (presets or {}).items():
+        if flag in argv:
+            default = dataclasses.replace(default or config_type(), **values)
     err = io.StringIO()
     try:
         with contextlib.redirect_stderr(err):
-            config = tyro.cli(config_type, args=args, description=description, prog=prog)
+            config = tyro.cli(config_type, args=argv, description=description, prog=prog,
+                              default=default)
     except SystemExit as exit_:
         if exit_.code in (0, None):
             sys.stderr.write(err.getvalue())
@@ -130,6 +141,7 @@ def main(
     *,
     outputs: Sequence[str] = (),
     folders: Sequence[str] = (),
+    presets: Mapping[str, Mapping[str, Any]] | None = None,
     args: Sequence[str] | None = None,
 ) -> Any:
     """A script's whole body: ``run(parse(config_type, ...))``.
@@ -139,7 +151,7 @@ def main(
     ends the same way as a parse error: one line, exit code 2 (``MBTSR_TRACEBACK=1`` re-raises
     it with the traceback, for debugging).
     """
-    config = parse(config_type, args=args, outputs=outputs, folders=folders)
+    config = parse(config_type, args=args, outputs=outputs, folders=folders, presets=presets)
     try:
         return run(config)
     except (ValueError, TypeError) as e:

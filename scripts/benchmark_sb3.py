@@ -8,8 +8,8 @@ experiments.benchmark_sb3: the protocol, budgets and outputs are in its docstrin
 
 import _bootstrap  # noqa: F401
 
-from experiments.benchmark_sb3 import Args, run
+from experiments.benchmark_sb3 import QUICK, Args, run
 from mbtsr.cli import main
 
 if __name__ == "__main__":
-    main(Args, run, outputs=("json", "docs"), folders=("out_dir",))
+    main(Args, run, outputs=("json", "docs"), folders=("out_dir",), presets={"--quick": QUICK})

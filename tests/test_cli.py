@@ -151,3 +151,23 @@ def test_a_real_script_fails_in_one_line_without_traceback():
         assert proc.returncode == 2
         assert proc.stderr.count("\n") == 1 and "Traceback" not in proc.stderr, proc.stderr
         assert proc.stderr.startswith("bench_ltv.py: error: ")
+
+
+@dataclass(frozen=True)
+class Sweep:
+    """A toy sweep."""
+
+    quick: bool = False
+    """smoke test"""
+    seeds: int = 5
+    """seeds"""
+    model: Model = field(default_factory=Model)
+    """the model"""
+
+
+def test_a_preset_flag_changes_the_defaults_but_not_the_given_options():
+    presets = {"--quick": {"quick": True, "seeds": 1, "model": Model(hidden_width=2)}}
+    assert parse(Sweep, args=[], presets=presets) == Sweep()
+    assert parse(Sweep, args=["--quick"], presets=presets) == Sweep(True, 1, Model(2))
+    got = parse(Sweep, args=["--quick", "--seeds", "3"], presets=presets)
+    assert got == Sweep(True, 3, Model(2))
