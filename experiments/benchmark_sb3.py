@@ -182,27 +182,40 @@ def methods_of(args: Args) -> list[str]:
 # ------------------------------------------------------------------------------------------
 
 
-def run_oracle(config: dict, seed: int) -> dict:
-    """The evaluation targets and the true-model MPC oracle's cost on them (seed = eval_seed)."""
+def agent_fields(config: dict, seed: int, env) -> dict:
+    """The AgentConfig fields of an agent run (and of the oracle probe, which shares them)."""
+    fields = dict(config["agent_config"])
+    if fields.get("episode_steps") is None and getattr(env.spec, "max_episode_steps", None) is None:
+        fields["episode_steps"] = int(env.unwrapped.episode_steps)
+    fields.update(seed=seed, eval_every=1, eval_episodes=config["eval_episodes"],
+                  eval_seed=config["eval_seed"], solved_ratio=config["solved_ratio"],
+                  stop_when_solved=True, eval_early_exit=False, progress=False, checkpoint=False,
+                  oracle_cache_dir=config.get("oracle_cache_dir"),
+                  run_dir=config.get("run_dir") and f"{config['run_dir']}/seed{seed}",
+                  tensorboard=bool(config.get("run_dir")))
+    return fields
+
+
+def compute_oracle(config: dict) -> dict:
+    """The evaluation targets and the true-model MPC oracle's costs on them, computed by an agent
+    with the benchmark's settings through its own cache (``oracle_cache_dir``), so the
+    benchmark and every agent run share one cached oracle."""
     import gymnasium as gym
     import numpy as np
 
     import envs  # noqa: F401  (registers the ids)
-    from agents.evaluation import evaluation_targets, oracle_cost
+    from agents.config import AgentConfig
+    from agents.jacprop_agent import JacPropAgent
 
     env = gym.make(config["env_id"], **config["env_kwargs"])
-    try:
-        targets = evaluation_targets(config["eval_episodes"], seed, env)
-        t0 = time.perf_counter()
-        costs = oracle_cost(env, targets, config["horizon"], seed=seed,
-                            iterations=config["iterations"],
-                            first_plan_iterations=config["first_plan_iterations"],
-                            terminal_weight=config["terminal_weight"], return_costs=True)
-        seconds = time.perf_counter() - t0
-    finally:
-        env.close()
-    return {"targets": np.asarray(targets).tolist(), "oracle_costs": np.asarray(costs).tolist(),
-            "oracle_cost": float(np.mean(costs)), "oracle_seconds": seconds}
+    fields = {**agent_fields(config, 0, env), "run_dir": None, "tensorboard": False}
+    probe = JacPropAgent(env, AgentConfig(**fields))
+    t0 = time.perf_counter()
+    cost = probe.compute_oracle()
+    seconds = time.perf_counter() - t0
+    env.close()
+    return {"targets": np.asarray(probe.eval_targets).tolist(), "oracle_cost": cost,
+            "oracle_seconds": seconds}
 
 
 def run_case(config: dict, seed: int) -> dict:
@@ -232,16 +245,7 @@ def run_agent(config: dict, seed: int) -> dict:
 
     t_start = time.perf_counter()
     env = gym.make(config["env_id"], **config["env_kwargs"])
-    fields = dict(config["agent_config"])
-    if fields.get("episode_steps") is None and getattr(env.spec, "max_episode_steps", None) is None:
-        fields["episode_steps"] = int(env.unwrapped.episode_steps)
-    fields.update(seed=seed, eval_every=1, eval_episodes=config["eval_episodes"],
-                  eval_seed=config["eval_seed"], solved_ratio=config["solved_ratio"],
-                  stop_when_solved=True, eval_early_exit=False, progress=False, checkpoint=False,
-                  oracle_cache_dir=config.get("oracle_cache_dir"),
-                  run_dir=config.get("run_dir") and f"{config['run_dir']}/seed{seed}",
-                  tensorboard=bool(config.get("run_dir")))
-    agent = JacPropAgent(env, AgentConfig(**fields))
+    agent = JacPropAgent(env, AgentConfig(**agent_fields(config, seed, env)))
     curve, train_wall, eval_seconds = [], [], [0.0]
     solve: dict[str, Any] = {}
 
@@ -607,7 +611,6 @@ def run(args: Args) -> dict:
     """Oracle, sweep (resumable), summaries; writes the JSON, the figure and the markdown."""
     import torch
 
-    from agents.config import AgentConfig
     from agents.sb3_baselines import default_hyperparams
     from mbtsr.io import write_json_atomic
     from mbtsr.runner import load_results, run_sweep
@@ -624,25 +627,17 @@ def run(args: Args) -> dict:
     env_kwargs = {"preset": args.preset}
     command = "python scripts/benchmark_sb3.py " + shlex.join(sys.argv[1:])
 
-    # 1. the agent's configuration (its planner settings also define the oracle) -------------
+    # 1. evaluation targets and the oracle: an agent's, through the cache the runs share ------
     agent_overrides = {**(QUICK_AGENT if args.quick else {}), **json.loads(args.agent_config)}
-    agent_cfg = AgentConfig(**{k: tuple(v) if isinstance(v, list) else v
-                               for k, v in agent_overrides.items()})
-
-    # 2. evaluation targets and the oracle (one cached run) ----------------------------------
-    oracle_cfg = {"env_id": args.env_id, "env_kwargs": env_kwargs,
-                  "eval_episodes": args.eval_episodes, "horizon": agent_cfg.horizon,
-                  "iterations": agent_cfg.ilqr_iterations,
-                  "first_plan_iterations": agent_cfg.first_plan_iterations,
-                  "terminal_weight": agent_cfg.terminal_weight}
-    (oracle_rec,) = run_sweep(run_oracle, {"oracle": oracle_cfg}, [args.eval_seed],
-                              out_dir / "oracle", backend="serial", progress=False,
-                              raise_on_error=True)
-    oracle = oracle_rec["result"]["oracle_cost"]
+    agent_base = {"env_id": args.env_id, "env_kwargs": env_kwargs, "eval_seed": args.eval_seed,
+                  "eval_episodes": args.eval_episodes, "solved_ratio": args.solved_ratio,
+                  "oracle_cache_dir": str(out_dir / "oracle_cache")}
+    oracle_rec = compute_oracle({**agent_base, "agent_config": agent_overrides})
+    oracle = oracle_rec["oracle_cost"]
     threshold = args.solved_ratio * oracle
-    targets = oracle_rec["result"]["targets"]
+    targets = oracle_rec["targets"]
     print(f"oracle cost {oracle:.4g} on {len(targets)} targets "
-          f"({oracle_rec['result']['oracle_seconds']:.1f} s); solved threshold {threshold:.4g}")
+          f"({oracle_rec['oracle_seconds']:.1f} s); solved threshold {threshold:.4g}")
 
     # 3. one config per method ------------------------------------------------------------------
     sb3_override = json.loads(args.sb3_hyperparams)
@@ -657,12 +652,9 @@ def run(args: Args) -> dict:
                           "hyperparams": hp, "progress_bar": args.sb3_progress_bar,
                           "tensorboard_log": str(out_dir / "tb") if args.tensorboard else None}
         else:
-            configs[m] = {**base, "budget_episodes": args.budget_agent,
-                          "eval_episodes": args.eval_episodes,
-                          "solved_ratio": args.solved_ratio,
+            configs[m] = {**base, **agent_base, "budget_episodes": args.budget_agent,
                           "agent_config": {**agent_overrides, "regularization": AGENT_METHODS[m]},
-                          "run_dir": str(out_dir / "agent" / m) if args.tensorboard else None,
-                          "oracle_cache_dir": str(out_dir / "oracle_cache")}
+                          "run_dir": str(out_dir / "agent" / m) if args.tensorboard else None}
 
     # 4. the sweep (per-run JSON, resumable) ----------------------------------------------------
     if args.report_only:  # finished runs of exactly these configs and seeds
@@ -695,7 +687,7 @@ def run(args: Args) -> dict:
         "methods": summary,
         "comparison": compare(summary),
         "n_failed_runs": sum(s["n_failed"] for s in summary.values()),
-        "oracle_seconds": oracle_rec["result"]["oracle_seconds"],
+        "oracle_seconds": oracle_rec["oracle_seconds"],
         "run_seconds_total": sum(r["wall_time"] for r in records),
         "runs_finished": _finish_times(out_dir / "sweep", records),
         "benchmark_wall_seconds": time.perf_counter() - t_start,
