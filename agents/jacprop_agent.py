@@ -1007,9 +1007,7 @@ class JacPropAgent:
         run_dir.mkdir(parents=True, exist_ok=True)
         # the checkpoint is the source of truth; the exports below are conveniences
         self.save(run_dir / "checkpoint.pt")
-        tmp = run_dir / ".model.pt.tmp"
-        save_model(self.model, tmp)
-        tmp.replace(run_dir / "model.pt")
+        save_model(self.model, run_dir / "model.pt")  # atomic
         save_trajectories(run_dir / "data.npz", self.trajectories)
         atomic_write_text(run_dir / "summary.json", json.dumps(self.summary(), indent=2))
 
