@@ -31,11 +31,10 @@ import torch
 
 from mbtsr.fileformat import (
     CheckpointError,
-    atomic_write_bytes,
-    remove_stale_temp_files,
     torch_load_verified,
     torch_save_verified,
 )
+from mbtsr.io import atomic_write_bytes, atomic_write_text, remove_stale_temp_files
 
 __all__ = [
     "CheckpointError",
@@ -55,11 +54,6 @@ __all__ = [
 #: bumped when the payload layout changes incompatibly (2: checksummed file with a header)
 CHECKPOINT_FORMAT = 2
 _KIND = "agent-checkpoint"
-
-
-def atomic_write_text(path: str | os.PathLike, text: str) -> Path:
-    """:func:`atomic_write_bytes` for UTF-8 text."""
-    return atomic_write_bytes(path, text.encode("utf-8"))
 
 
 def atomic_torch_save(obj: Any, path: str | os.PathLike) -> Path:

@@ -749,6 +749,37 @@ class DynamicsEnsemble(nn.Module):
         self.normalization_set.fill_(1)
         self.invalidate_cache()
 
+    def refit_normalization(self, trajs: Trajectory | Sequence[Trajectory]) -> None:
+        """Recompute the statistics from ``trajs`` (as :meth:`set_normalization`) WITHOUT
+        changing the function the ensemble represents: the first layer and the output layer
+        of every member absorb the change (``W1' = diag(s'/s) W1``,
+        ``b1' = b1 + ((m' - m) / s) W1``, ``Wo' = Wo o_s / o_s'``,
+        ``bo' = (bo o_s + o_m - o_m') / o_s'``), computed in float64. Predictions agree to
+        float32 rounding; the training that follows then works in the scales of all data so
+        far instead of those of the first episode. Adam's moment estimates are not rescaled.
+        Unset statistics are simply set.
+
+        :param trajs: a :class:`~mbtsr.trajectory.Trajectory` or a list of them.
+        """
+        if not self.is_normalized or not self.config.normalize:
+            self.set_normalization(trajs)
+            return
+        names = ("in_mean", "in_std", "out_mean", "out_std")
+        old = {k: getattr(self, k).detach().double().clone() for k in names}
+        self.set_normalization(trajs)
+        new = {k: getattr(self, k).detach().double() for k in names}
+        with torch.no_grad():
+            for g in self.groups:
+                W1 = g.W1.detach().double()  # [K, in, W]
+                shift = ((new["in_mean"] - old["in_mean"]) / old["in_std"])  # [in]
+                g.b1.copy_(g.b1.double() + torch.einsum("i,kiw->kw", shift, W1)[:, None])
+                g.W1.copy_(W1 * (new["in_std"] / old["in_std"])[None, :, None])
+                g.Wo.copy_(g.Wo.double() * (old["out_std"] / new["out_std"])[None, None, :])
+                g.bo.copy_((g.bo.double() * old["out_std"] + old["out_mean"] - new["out_mean"])
+                           / new["out_std"])
+                g._arrays = None
+        self.invalidate_cache()
+
     # ---------------------------------------------------------------- torch surface
     def _xu_torch(self, x, u) -> torch.Tensor:
         n, m = self.state_dim, self.action_dim

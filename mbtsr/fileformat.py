@@ -9,8 +9,8 @@ of another kind (a model where a checkpoint is expected) and a format version th
 not read, and raises :class:`CheckpointError` naming the file and what to do, instead of a raw
 ``torch``/``zipfile`` error or, worse, silently loading damaged numbers.
 
-Writes are atomic: the bytes go to ``.<name>.<pid>.tmp`` in the same folder, are flushed and
-``fsync``-ed, then ``os.replace``-d over the target, and the folder entry is ``fsync``-ed. A
+Writes are atomic (:func:`mbtsr.io.atomic_write`): the bytes go to a temporary file in the same
+folder, are flushed and ``fsync``-ed, then ``os.replace``-d over the target. A
 ``SIGKILL`` or a full disk at any moment leaves either the old complete file or the new one,
 plus possibly the temporary file, which :func:`remove_stale_temp_files` deletes at the next
 start (only if the process that wrote it is gone).
@@ -24,6 +24,8 @@ import os
 import re
 from pathlib import Path
 from typing import Any
+
+from mbtsr.io import atomic_write_bytes, remove_stale_temp_files
 
 __all__ = [
     "CheckpointError",
@@ -45,80 +47,6 @@ _MAX_HEADER = 256
 
 class CheckpointError(ValueError):
     """A saved file is damaged, of another kind or version, or does not fit what loads it."""
-
-
-def _fsync_dir(directory: Path) -> None:
-    """Persist a directory entry (the rename) on POSIX; a no-op where unsupported."""
-    try:
-        fd = os.open(directory, os.O_RDONLY)
-    except OSError:  # pragma: no cover - e.g. Windows
-        return
-    try:
-        os.fsync(fd)
-    except OSError:  # pragma: no cover
-        pass
-    finally:
-        os.close(fd)
-
-
-def _temp_path(path: Path) -> Path:
-    return path.with_name(f".{path.name}.{os.getpid()}.tmp")
-
-
-def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> Path:
-    """Write ``data`` to ``path`` atomically (temp file, fsync, ``os.replace``, fsync dir).
-
-    On any error (a full disk, ...) the temporary file is removed and the old ``path`` is kept.
-    """
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = _temp_path(path)
-    try:
-        with open(tmp, "wb") as fh:
-            fh.write(data)
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
-    _fsync_dir(path.parent)
-    return path
-
-
-def _pid_alive(pid: int) -> bool:
-    if pid == os.getpid():
-        return True
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:  # someone else's live process
-        return True
-    return True
-
-
-def remove_stale_temp_files(path: str | os.PathLike) -> list[Path]:
-    """Delete ``.<name>.<pid>.tmp`` files next to ``path`` left by a writer that died.
-
-    A temporary file whose writer process is still alive (a concurrent save) is kept.
-
-    :return: the removed files.
-    """
-    path = Path(path)
-    removed = []
-    if not path.parent.is_dir():
-        return removed
-    pattern = re.compile(rf"^\.{re.escape(path.name)}\.(\d+)\.tmp$")
-    for cand in path.parent.iterdir():
-        m = pattern.match(cand.name)
-        if m and not _pid_alive(int(m.group(1))):
-            try:
-                cand.unlink()
-                removed.append(cand)
-            except OSError:  # pragma: no cover - raced with another cleaner
-                pass
-    return removed
 
 
 def write_verified(path: str | os.PathLike, payload: bytes, *, kind: str, version: int) -> Path:

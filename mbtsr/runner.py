@@ -52,6 +52,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from mbtsr.io import json_default, write_json_atomic
+
 __all__ = ["RunSpec", "load_results", "run_sweep", "summarize", "write_json_atomic"]
 
 RunFunction = Callable[[dict, int], dict]
@@ -69,25 +71,6 @@ class RunSpec:
     @property
     def run_id(self) -> str:
         return f"{self.name}__seed{self.seed}"
-
-
-def write_json_atomic(path: str | os.PathLike, obj: Any) -> None:
-    """Write ``obj`` as JSON to ``path`` atomically (temporary file, fsync, rename)."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    with open(tmp, "w") as fh:
-        json.dump(obj, fh, indent=1, default=_json_default)
-        fh.flush()
-        os.fsync(fh.fileno())
-    os.replace(tmp, path)
-
-
-def _json_default(o: Any) -> Any:
-    # numpy scalars and arrays without importing numpy here
-    if hasattr(o, "tolist"):
-        return o.tolist()
-    raise TypeError(f"result value of type {type(o).__name__} is not JSON-serializable")
 
 
 def _normalize_configs(configs: Mapping[str, dict] | Iterable[dict]) -> dict[str, dict]:
@@ -109,14 +92,14 @@ def _normalize_configs(configs: Mapping[str, dict] | Iterable[dict]) -> dict[str
         if not isinstance(c, Mapping):
             raise ValueError(f"config {name!r} must be a dict, got {type(c).__name__}")
         try:
-            json.dumps(dict(c), default=_json_default)
+            json.dumps(dict(c), default=json_default)
         except TypeError as err:
             raise ValueError(f"config {name!r} must be JSON-serializable: {err}") from None
     return {k: dict(v) for k, v in named.items()}
 
 
 def _canonical(obj: Any) -> str:
-    return json.dumps(obj, sort_keys=True, default=_json_default)
+    return json.dumps(obj, sort_keys=True, default=json_default)
 
 
 def _set_single_thread() -> None:
@@ -153,7 +136,7 @@ def _execute(fn: RunFunction, spec: RunSpec, single_thread: bool) -> dict:
         if not isinstance(result, Mapping):
             raise TypeError(f"run function must return a dict, got {type(result).__name__}")
         # plain JSON types from here on: what is returned equals what a resumed sweep loads
-        result = json.loads(json.dumps(result, default=_json_default))
+        result = json.loads(json.dumps(result, default=json_default))
         status, error = "ok", None
     except (Exception, SystemExit):  # noqa: BLE001 - a failed run is recorded, the sweep goes on
         result, status, error = None, "error", traceback.format_exc()

@@ -128,7 +128,7 @@ def test_sigkill_and_resume_is_bit_identical_to_an_uninterrupted_run(tmp_path):
     for x, y in pairs:
         np.testing.assert_array_equal(x.x, y.x)
         np.testing.assert_array_equal(x.u, y.u)
-    wa = load_model(straight / "model.pt").state_dict()  # checksummed files
+    wa = load_model(straight / "model.pt").state_dict()
     wb = load_model(killed / "model.pt").state_dict()
     _assert_same_tree(wa, wb, "model.pt")
 
