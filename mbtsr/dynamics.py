@@ -191,8 +191,8 @@ def _rollout(
     with np.errstate(all="ignore"):
         for t in range(T):
             xn = np.asarray(step(x, U[:, t], t0 + t), dtype=np.float64).reshape(Bsz, n)
-            if not np.abs(xn).max() <= max_norm:  # NaN compares false
-                bad = ~(np.abs(xn).max(axis=-1) <= max_norm)
+            if not np.abs(xn).max() < max_norm:  # NaN compares false; inf >= max_norm=inf
+                bad = ~(np.abs(xn).max(axis=-1) < max_norm)
                 alive &= ~bad
             if not alive.all():
                 X[:, t + 1] = np.where(alive[:, None], xn, np.nan)

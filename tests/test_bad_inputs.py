@@ -37,8 +37,8 @@ from mbtsr.costs import quadratic_cost
 from mbtsr.dynamics import LinearDynamics, rollout
 from mbtsr.ensemble import DynamicsEnsemble, EnsembleConfig, MemberSpec, load_model, save_model
 from mbtsr.excitation import filtered_gaussian, multisine
-from mbtsr.fileformat import remove_stale_temp_files
 from mbtsr.ilqr import ilqr
+from mbtsr.io import remove_stale_temp_files, temp_path
 from mbtsr.metrics import jacobian_error, prediction_rms
 from mbtsr.runner import summarize
 from mbtsr.training import RegularizationConfig, TrainConfig, train_ensemble
@@ -317,13 +317,14 @@ def test_model_file_bitflip_and_round_trip(tmp_path):
 
 def test_stale_temp_files_are_removed_at_the_next_start(tmp_path):
     path = tmp_path / "checkpoint.pt"
-    dead = tmp_path / ".checkpoint.pt.999999999.tmp"  # no such pid
-    alive = tmp_path / f".checkpoint.pt.{os.getppid()}.tmp"  # a live writer: kept
-    other = tmp_path / ".model.pt.999999999.tmp"
-    for p in (dead, alive, other):
+    dead = temp_path(path, 999999999)  # no such pid
+    dead_old = tmp_path / ".checkpoint.pt.999999998.tmp"  # the name earlier versions used
+    alive = temp_path(path, os.getppid())  # a live writer: kept
+    other = temp_path(tmp_path / "model.pt", 999999999)
+    for p in (dead, dead_old, alive, other):
         p.write_bytes(b"partial")
     save_checkpoint(path, {"a": 1})
-    assert not dead.exists() and alive.exists() and other.exists()
+    assert not dead.exists() and not dead_old.exists() and alive.exists() and other.exists()
     dead.write_bytes(b"partial")
     load_checkpoint(path)
     assert not dead.exists()
