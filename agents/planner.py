@@ -20,6 +20,7 @@ from agents.task import EnvSpec, ObservationCost
 from mbtsr.costs import CasadiCost
 from mbtsr.dynamics import DynamicsModel
 from mbtsr.ilqr import ilqr
+from mbtsr.validation import as_array, check_finite
 
 __all__ = ["MPCPolicy", "PlannerCosts"]
 
@@ -151,11 +152,12 @@ class MPCPolicy:
         :param deterministic: unused (MPC is deterministic); kept for SB3 compatibility.
         :return: ``(action [m], next_state [H, m])``.
         """
-        obs = np.asarray(observation, dtype=float)
+        obs = as_array("observation", observation, finite=False)  # refuses complex values
         if obs.shape != (self.spec.obs_dim,):
             raise ValueError(
                 f"observation must have shape ({self.spec.obs_dim},), got {list(obs.shape)}"
             )
+        check_finite("observation", obs)
         if episode_start is not None and bool(np.any(episode_start)):
             state = None
         if state is not None:
