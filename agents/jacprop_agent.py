@@ -52,10 +52,11 @@ from agents.evaluation import (
     code_fingerprint,
     evaluate_policy_costs,
     evaluation_targets,
+    mpc_policy,
     oracle_policy,
+    planner_cost,
     run_episode,
 )
-from agents.planner import MPCPolicy, PlannerCosts
 from agents.task import (
     EnvSpec,
     ObservationCost,
@@ -158,7 +159,7 @@ class JacPropAgent:
             raise ValueError(f"state_fn(obs) must return a 1-D state, got shape {list(s.shape)}")
         self.state_dim = int(s.size)
         self.task_cost = ObservationCost(cost_fn, state_map, spec, self.state_dim)
-        self.planner_costs = PlannerCosts(self.task_cost, config.terminal_weight)
+        self.planner_cost = planner_cost(self.task_cost, config.terminal_weight)
         # the model: an ensemble of small networks, Objective 1 (f) or 2 (g)
         members = tuple(
             MemberSpec(
@@ -177,14 +178,7 @@ class JacPropAgent:
             seed=config.seed,
         )
         self.model = DynamicsEnsemble(self.ensemble_config)
-        self.policy = MPCPolicy(
-            self.model,
-            self.planner_costs,
-            spec,
-            horizon=config.horizon,
-            iterations=config.ilqr_iterations,
-            first_plan_iterations=config.first_plan_iterations,
-        )
+        self._freeze()
         self.has_linearize = env is not None and (
             hasattr(env.unwrapped, "linearize_trajectory") or hasattr(env.unwrapped, "linearize")
         )
@@ -201,6 +195,20 @@ class JacPropAgent:
         self.oracle_costs: np.ndarray | None = None
         self._eval_env: gym.Env | None = None
         self._log: EpisodeLog | None = None
+
+    def _freeze(self) -> None:
+        """Train -> freeze -> plan: the controller plans with an immutable float64 copy of the
+        ensemble, taken after each training round (and at construction / load)."""
+        cfg = self.config
+        self.planning_model = self.model.freeze()
+        self.policy = mpc_policy(
+            self.planning_model,
+            self.task_cost,
+            horizon=cfg.horizon,
+            iterations=cfg.ilqr_iterations,
+            first_plan_iterations=cfg.first_plan_iterations,
+            cost=self.planner_cost,
+        )
 
     # ------------------------------------------------------------------ public surface
     def learn(
@@ -391,6 +399,7 @@ class JacPropAgent:
         # (c) + (d) regularised warm-started update on all data --------------------------------
         tic = time.perf_counter()
         history = self._train(train_seed)
+        self._freeze()
         time_training = time.perf_counter() - tic
 
         # evaluation: the MPC policy on the updated model vs the oracle ------------------------
@@ -603,16 +612,16 @@ class JacPropAgent:
         if not (isinstance(self.cost_fn, QuadraticTargetCost) and self.state_map.serializable):
             cache_dir = None  # user functions cannot be part of a cache key
         import agents.evaluation
-        import agents.planner
         import agents.task
         import mbtsr.costs
         import mbtsr.ilqr
+        import mbtsr.mpc
 
         spec = env.spec
         key = {
             "version": 1,
             "code": code_fingerprint(
-                agents.evaluation, agents.planner, agents.task, mbtsr.costs, mbtsr.ilqr,
+                agents.evaluation, agents.task, mbtsr.costs, mbtsr.ilqr, mbtsr.mpc,
                 packages=[sys.modules[type(env.unwrapped).__module__]],
             ),
             "env_id": spec.id,
@@ -735,7 +744,7 @@ class JacPropAgent:
 
     def _restore(self, p: dict[str, Any]) -> None:
         self.model.load_state_dict(p["model_state"])
-        self.model.invalidate_cache()
+        self._freeze()
         self.optimizer_state = p["optimizer_state"]
         self.trajectories = [
             Trajectory(d["x"].numpy(), d["u"].numpy(), self.spec.dt, meta=json.loads(d["meta"]))

@@ -38,7 +38,8 @@ import envs  # noqa: F401  (registers mbtsr/TwoLinkArm-v0)
 from mbtsr.costs import quadratic_cost
 from mbtsr.ilqr import ILQROptions, ilqr
 from mbtsr.ipopt_reference import solve_ipopt
-from mbtsr.mpc import MPC, MPCOptions, run_mpc_episode
+from mbtsr.mpc import MPC, MPCOptions
+from mbtsr.rollout import run_episode
 
 
 @dataclass(frozen=True)
@@ -161,7 +162,7 @@ if __name__ == "__main__":
     ensemble, ensemble_note = load_ensemble(args.ensemble, args.seed)
     models = {"true_mujoco": arm.dynamics_model(), "analytic_casadi": arm.analytic_model()}
     if ensemble is not None:
-        models["ensemble"] = ensemble
+        models["ensemble"] = ensemble.freeze()  # train -> freeze -> plan
 
     def make_cost(target):
         return quadratic_cost(arm.cost_Q, arm.cost_R, np.r_[target, 0.0, 0.0])
@@ -267,6 +268,7 @@ if __name__ == "__main__":
     x0, target = problems[0]
     for name, model in models.items():
         mpc = MPC(
+            ilqr,
             make_cost(target),
             model,
             horizon=args.mpc_horizon,
@@ -274,9 +276,10 @@ if __name__ == "__main__":
             u_max=1.0,
             options=MPCOptions(iterations_per_step=args.mpc_iterations, first_step_iterations=30),
         )
-        out = run_mpc_episode(env, mpc, seed=args.seed, options={"target": target, "state": x0})
-        ct = out["compute_times"]
-        err = out["states"][-1] - np.r_[target, 0.0, 0.0]
+        out = run_episode(env, mpc, seed=args.seed, options={"target": target, "state": x0},
+                          observe=lambda obs, info: info["state"])
+        ct = np.asarray(mpc.compute_times)
+        err = out.states[-1] - np.r_[target, 0.0, 0.0]
         mpc_results[name] = {
             "real_time_factor_mean": arm.dt / float(ct[1:].mean()),
             "real_time_factor_median": arm.dt / float(np.median(ct[1:])),
@@ -285,7 +288,7 @@ if __name__ == "__main__":
             "ms_first_step": float(ct[0] * 1e3),
             "final_angle_error_rad": float(np.abs(err[:2]).max()),
             "final_speed_rad_s": float(np.abs(err[2:]).max()),
-            "episode_cost": -out["total_reward"],
+            "episode_cost": out.cost,
         }
         print(f"MPC {name}: RTF {mpc_results[name]['real_time_factor_mean']:.2f}")
 

@@ -35,11 +35,11 @@ from agents.evaluation import (
     evaluate_policy_costs,
     evaluation_targets,
     oracle_policy,
+    planner_cost,
     run_episode,
     solved_threshold,
 )
 from agents.jacprop_agent import JacPropAgent
-from agents.planner import PlannerCosts
 from agents.task import ObservationCost, default_task_for_env, env_spec
 from mbtsr.ensemble import load_model
 from mbtsr.metrics import prediction_rms
@@ -216,20 +216,19 @@ def test_planner_cost_matches_numpy_formula_and_depends_only_on_the_target(data)
     env = gym.make(ARM)
     cost_fn, state_map = default_task_for_env(env)
     task = ObservationCost(cost_fn, state_map, env_spec(env), state_dim=4)
-    costs = PlannerCosts(task, terminal_weight=2.0)
-    np.testing.assert_array_equal(costs.context_index, [4, 5])
+    cost = planner_cost(task, terminal_weight=2.0)  # one compiled cost, the reference a param
     f = st.floats(-3.0, 3.0)
     x = np.array(data.draw(st.lists(f, min_size=4, max_size=4)))
     u = np.array(data.draw(st.lists(st.floats(-1, 1), min_size=2, max_size=2)))
     ref = np.array(data.draw(st.lists(f, min_size=6, max_size=6)))
     Q, R = env.unwrapped.cost_Q, env.unwrapped.cost_R
     e = x - np.r_[ref[4:], 0.0, 0.0]
-    c = costs(ref)
-    assert c.stage_values(x[None], u[None])[0] == pytest.approx(e @ Q @ e + u @ R @ u, rel=1e-12)
-    assert c.terminal_values(x, 0) == pytest.approx(2.0 * e @ Q @ e, rel=1e-12)
+    stage = cost.stage_values(x[None], u[None], 0, ref)[0]
+    assert stage == pytest.approx(e @ Q @ e + u @ R @ u, rel=1e-12)
+    assert cost.terminal_values(x, 0, ref) == pytest.approx(2.0 * e @ Q @ e, rel=1e-12)
     ref2 = ref.copy()
-    ref2[:4] += 1.0  # the state part of the reference does not matter: same cached cost
-    assert costs(ref2) is c
+    ref2[:4] += 1.0  # the state part of the reference does not matter
+    assert cost.stage_values(x[None], u[None], 0, ref2)[0] == stage
 
 
 # ------------------------------------------------------------------------------ checkpoints
