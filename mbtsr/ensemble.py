@@ -715,8 +715,21 @@ class DynamicsEnsemble(nn.Module):
     def freeze(self) -> FrozenEnsemble:
         """An immutable float64 copy for planning (:class:`FrozenEnsemble`): weights copied
         now, normalization folded in, no autograd. Freeze after each training round and plan
-        (iLQR, MPC, CEM) with the frozen copy; the ensemble itself keeps training."""
+        (iLQR, MPC, CEM) with the frozen copy; the ensemble itself keeps training.
+
+        :raises ValueError: naming the tensor, if a weight or normalization statistic is NaN/inf
+            (a diverged training run) or a normalization std is not positive.
+        """
         with torch.no_grad():
+            for name, t in (*self.named_parameters(), *self.named_buffers()):
+                if t.is_floating_point() and not bool(torch.isfinite(t).all()):
+                    bad = int((~torch.isfinite(t)).sum())
+                    raise ValueError(
+                        f"cannot freeze: {name} contains {bad} non-finite value(s) (NaN or inf)"
+                    )
+            for name in ("in_std", "out_std"):
+                if not bool((getattr(self, name) > 0).all()):
+                    raise ValueError(f"cannot freeze: {name} must be > 0")
             return FrozenEnsemble(self)
 
     # Convenience for one-off numpy evaluation (metrics, tests): each call freezes a fresh copy

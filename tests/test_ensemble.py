@@ -615,3 +615,20 @@ def test_planning_code_refuses_the_trainable_model():
     res = ilqr(cost, model.freeze(), np.zeros(N_STATE), np.zeros((4, N_INPUT)),
                options={"max_iter": 3})
     assert np.isfinite(res.U).all()
+
+
+@pytest.mark.parametrize(
+    "corrupt, match",
+    [
+        (lambda m: m.groups[0].W1.data.__setitem__((0, 1, 2), float("nan")),
+         r"groups.0.W1 contains 1 non-finite"),
+        (lambda m: m.out_mean.__setitem__(0, float("inf")), "out_mean contains 1 non-finite"),
+        (lambda m: m.in_std.__setitem__(1, 0.0), "in_std must be > 0"),
+    ],
+)
+def test_freeze_names_a_non_finite_or_invalid_tensor(corrupt, match):
+    model = make_model(WIDE_MEMBERS, "g")
+    with torch.no_grad():
+        corrupt(model)
+    with pytest.raises(ValueError, match=match):
+        model.freeze()
