@@ -632,3 +632,15 @@ def test_freeze_names_a_non_finite_or_invalid_tensor(corrupt, match):
         corrupt(model)
     with pytest.raises(ValueError, match=match):
         model.freeze()
+
+
+def test_rollout_of_the_trainable_model_simulates_one_frozen_copy():
+    from mbtsr.dynamics import rollout
+
+    model = make_model(WIDE_MEMBERS, "g")
+    x, u = sample_points(T=6)
+    frozen = model.freeze()
+    want = [x[0]]
+    for t in range(6):
+        want.append(frozen.step(want[-1], u[t]))
+    np.testing.assert_array_equal(rollout(model, x[0], u), np.array(want))
