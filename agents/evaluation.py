@@ -141,11 +141,17 @@ class MPCPolicy:
                     f"state must be the [H={self.mpc.horizon}, m={self.spec.act_dim}] plan "
                     f"returned by predict, got {list(state.shape)}"
                 )
-        res = self.mpc.solve(self.state_map.state(obs), 0, params=obs, warm_start=state)
+        res = self.mpc.solve(self.state_map.state(obs), 0, params=obs, warm_start=state,
+                             **self._solve_kwargs(obs))
         self.last_result = res
         U = np.asarray(res.U, dtype=float)
         action = np.clip(U[0], self.spec.u_min, self.spec.u_max)
         return action, np.concatenate([U[1:], U[-1:]], axis=0)
+
+    def _solve_kwargs(self, obs: np.ndarray) -> dict[str, Any]:
+        """Extra keyword arguments of the optimizer for this observation (none here; the CEM
+        policy passes its predicted-termination function)."""
+        return {}
 
 
 def mpc_policy(

@@ -19,13 +19,18 @@ Implementation notes
 --------------------
 * One batched ``dynamics.jacobians(X[:-1], U, t0)`` call and one mapped cost-derivative call per
   iteration in which the trajectory changed (a rejected step reuses them).
-* The backward pass works with the augmented quadratic ``z = [1; dx; du]``: per time step
-  ``M_t = L_t + F_t^T V_{t+1} F_t`` with ``F_t = [[1, 0, 0], [0, A_t, B_t]]`` gives all Q-function
-  terms at once, one LAPACK ``dposv`` gives ``[k_t, K_t] = -Quu_reg^-1 [Qu, Qux_reg]`` and the
-  PD check, and ``V_t = G_t^T M_t G_t`` with ``G_t = [[I], [k_t, K_t]]`` is the value update
-  (the unregularised ``Quu, Qux`` enter it, as in Tassa et al.).
-* The forward pass rolls out ALL line-search step sizes as one batch (``T`` batched ``step``
-  calls per iteration, not ``T x n_alpha``) and accepts the largest acceptable step.
+* The backward pass is ONE compiled call per pass (:func:`mbtsr._lqr_kernels.backward_pass`,
+  numba): the Riccati recursion, the box QP and the PD checks run without Python per time step.
+  The numpy recursion :func:`_backward_pass` below (augmented quadratic ``z = [1; dx; du]``:
+  ``M_t = L_t + F_t^T V_{t+1} F_t`` with ``F_t = [[1, 0, 0], [0, A_t, B_t]]``, one LAPACK
+  ``dposv`` for ``[k_t, K_t] = -Quu_reg^-1 [Qu, Qux_reg]``, ``V_t = G_t^T M_t G_t`` with
+  ``G_t = [[I], [k_t, K_t]]``; the unregularised ``Quu, Qux`` enter the value update, as in
+  Tassa et al.) is the reference the tests compare the kernel against.
+* The forward pass rolls out the full step first and, only if it is rejected, all smaller
+  line-search step sizes as one batch (``T`` batched ``step`` calls, not ``T x n_alpha``); it
+  accepts the largest acceptable step. Near convergence (and in warm-started MPC) the full step
+  is nearly always accepted, so a model whose cost grows with the batch (MuJoCo) pays for one
+  rollout instead of ``n_alpha``.
 * A rollout that produces NaN/inf or a state beyond ``max_state_norm`` is rejected; the solver
   then raises the regularisation and keeps the best (current) iterate, so the returned controls
   are always finite and within the bounds.
@@ -41,8 +46,9 @@ from dataclasses import dataclass, field, fields
 import numpy as np
 from scipy.linalg import lapack
 
+from mbtsr import _lqr_kernels
 from mbtsr.costs import CasadiCost
-from mbtsr.dynamics import _rollout, check_planning_model, raw_step
+from mbtsr.dynamics import LinearDynamics, _rollout, check_planning_model, raw_step
 from mbtsr.validation import as_array
 
 __all__ = ["ILQROptions", "ILQRResult", "ilqr", "check_control_bounds"]
@@ -224,6 +230,7 @@ def ilqr(
     lower, upper = check_control_bounds(u_min, u_max, m)
     has_limits = bool(np.any(np.isfinite(lower)) or np.any(np.isfinite(upper)))
     alphas = np.asarray(opts.alphas, dtype=float)
+    boxqp_prm = _boxqp_params(opts)
     T = U0.shape[0]
     timings = dict.fromkeys(
         ("jacobians", "cost_derivatives", "backward", "forward", "line_search_cost"), 0.0
@@ -293,15 +300,22 @@ def ilqr(
                 status = "failed"
                 message = "non-finite Jacobians or cost derivatives at the current trajectory"
                 break
-            problem = _LQProblem.build(A, B, derivs, U, lower, upper, opts.reg_type)
+            problem = (  # C-contiguous float64: one compiled signature of the kernel
+                *(np.ascontiguousarray(a, dtype=float) for a in (A, B, *derivs)),
+                lower - U,
+                upper - U,
+            )
             need_derivs = False
 
         # ---- backward pass, raising lambda until every Quu_reg is positive definite
         tic = time.perf_counter()
         while True:
-            bp = _backward_pass(problem, lam, has_limits, opts)
-            if bp is not None:
+            ok, *bp = _lqr_kernels.backward_pass(
+                *problem, float(lam), opts.reg_type, has_limits, boxqp_prm
+            )
+            if ok:
                 break
+            bp = None
             dlam = max(dlam * f, f)
             lam = max(lam * dlam, opts.lambda_min)
             if lam > opts.lambda_max:
@@ -320,22 +334,34 @@ def ilqr(
             status, message = "converged", "gradient norm below tol_grad"
             break
 
-        # ---- forward pass: all step sizes in one batched rollout
-        tic = time.perf_counter()
-        Xn, Un, alive = _rollout_policy(
-            dynamics, x0, X, U, k, K, alphas, lower, upper, t0, opts.max_state_norm
-        )
-        timings["forward"] += time.perf_counter() - tic
-        tic = time.perf_counter()
-        Jn = np.full(len(alphas), np.inf)
-        if alive.any():
-            Jn[alive] = cost._total(Xn[alive], Un[alive], t0, table)
-        timings["line_search_cost"] += time.perf_counter() - tic
+        # ---- forward pass: the full step alone first (usually accepted), then all smaller
+        # step sizes in one batched rollout; the accepted step is the same as when all are
+        # rolled out at once (the largest acceptable one)
         expected = -alphas * (dV1 + alphas * dV2)
-        actual = J - Jn
-        with np.errstate(invalid="ignore", divide="ignore"):
-            ratio = np.where(expected > 0, actual / expected, np.sign(actual))
-        ok = alive & np.isfinite(Jn) & (ratio > opts.reduce_ratio_min)
+        Xn = np.empty((len(alphas), T + 1, n))
+        Un = np.empty((len(alphas), T, m))
+        alive = np.zeros(len(alphas), dtype=bool)
+        Jn = np.full(len(alphas), np.inf)
+        for chunk in (slice(0, 1), slice(1, len(alphas))):
+            if chunk.start >= len(alphas):
+                break
+            tic = time.perf_counter()
+            Xn[chunk], Un[chunk], alive[chunk] = _rollout_policy(
+                dynamics, x0, X, U, k, K, alphas[chunk], lower, upper, t0, opts.max_state_norm
+            )
+            timings["forward"] += time.perf_counter() - tic
+            tic = time.perf_counter()
+            live = np.zeros(len(alphas), dtype=bool)
+            live[chunk] = alive[chunk]
+            if live.any():
+                Jn[live] = cost._total(Xn[live], Un[live], t0, table)
+            timings["line_search_cost"] += time.perf_counter() - tic
+            actual = J - Jn
+            with np.errstate(invalid="ignore", divide="ignore"):
+                ratio = np.where(expected > 0, actual / expected, np.sign(actual))
+            ok = alive & np.isfinite(Jn) & (ratio > opts.reduce_ratio_min)
+            if ok.any():
+                break
         if ok.any():
             i = int(np.argmax(ok))
             dcost = float(actual[i])
@@ -393,6 +419,18 @@ def _as_options(options) -> ILQROptions:
             raise ValueError(f"unknown ILQROptions field(s): {sorted(unknown)}")
         return ILQROptions(**options)
     raise TypeError(f"options must be an ILQROptions or a dict, got {type(options).__name__}")
+
+
+def _boxqp_params(opts: ILQROptions) -> tuple[float, ...]:
+    """Box-QP settings as the float tuple of :data:`mbtsr._lqr_kernels.BOXQP_DEFAULTS`."""
+    return (
+        float(opts.boxqp_max_iter),
+        float(opts.boxqp_min_grad),
+        float(opts.boxqp_min_rel_improve),
+        float(opts.boxqp_step_dec),
+        float(opts.boxqp_min_step),
+        float(opts.boxqp_armijo),
+    )
 
 
 def _trace(it, J, lam, alpha, expected, actual, grad_norm, accepted, t_it) -> dict:
@@ -636,7 +674,17 @@ def _rollout_policy(dynamics, x0, X, U, k, K, alphas, lower, upper, t0, max_norm
     ``K: [T, m, n]``, ``alphas: [A]`` -> ``(Xn [A, T+1, n], Un [A, T, m], alive [A])``.
     A row that turns non-finite is marked dead and continues from the nominal state (so the
     model never sees NaN); rows exceeding ``max_norm`` are marked dead at the end.
+    An affine model (:class:`mbtsr.dynamics.LinearDynamics`) is rolled out in one compiled call
+    (:func:`mbtsr._lqr_kernels.rollout_policy_affine`, same semantics).
     """
+    if type(dynamics) is LinearDynamics:
+        A, B, c = (
+            np.ascontiguousarray(a, dtype=float)[None]
+            for a in (dynamics.A, dynamics.B, dynamics.c)
+        )
+        return _lqr_kernels.rollout_policy_affine(
+            A, B, c, x0, X, U, k, K, alphas, lower, upper, float(max_norm)
+        )
     T = U.shape[0]
     nA = alphas.shape[0]
     Xn = np.empty((nA, T + 1, X.shape[1]))

@@ -52,10 +52,10 @@ class MPCOptions:
     :param iterations_per_step: optimizer iterations per control step when warm-started.
     :param first_step_iterations: iterations of a cold start (first step, after
         :meth:`MPC.reset`, or when the warm start is unusable).
-    :param optimizer_options: options of the optimizer (for iLQR an
-        :class:`mbtsr.ilqr.ILQROptions` or a dict of its fields); its ``max_iter`` is
-        overridden by the two counts above. ``None``: for iLQR ``ILQROptions(tol_fun_rel=1e-6)``,
-        for other optimizers their defaults.
+    :param optimizer_options: options of the optimizer (an :class:`mbtsr.ilqr.ILQROptions`,
+        a :class:`mbtsr.cem.CEMOptions` or a dict of their fields); the iteration cap
+        (``max_iter`` / ``iterations``) is overridden by the two counts above. ``None``: for
+        iLQR ``ILQROptions(tol_fun_rel=1e-6)``, for other optimizers their defaults.
     :param warm_start_lambda: (iLQR) start each solve from the previous solve's regularisation,
         capped at ``lambda_init`` (instead of ``lambda_init`` every time).
     """
@@ -131,10 +131,7 @@ class MPC:
             middle[bounded] = 0.5 * (self.u_min[bounded] + self.u_max[bounded])
             U_init = np.tile(middle, (self.horizon, 1))
         self.U_init = np.clip(as_array("U_init", U_init, (self.horizon, m)), self.u_min, self.u_max)
-        base = self.options.optimizer_options
-        if base is None and optimizer is ilqr:
-            base = ILQROptions(tol_fun_rel=1e-6)
-        self._base_options = base
+        self._base_options = _resolve_options(optimizer, self.options.optimizer_options)
         self.reset()
 
     def reset(self) -> None:
@@ -147,9 +144,14 @@ class MPC:
         self._lam: float | None = None
 
     def _options(self, iterations: int, lam: float | None) -> Any:
-        """The optimizer's options with ``max_iter`` (and iLQR's ``lambda_init``) set."""
+        """The optimizer's options with its iteration cap (iLQR ``max_iter``, CEM
+        ``iterations``) and iLQR's ``lambda_init`` set."""
         base = self._base_options
-        extra: dict[str, Any] = {"max_iter": int(iterations)}
+        key = "max_iter"
+        if dataclasses.is_dataclass(base):
+            names = {f.name for f in dataclasses.fields(base)}
+            key = "max_iter" if "max_iter" in names else "iterations"
+        extra: dict[str, Any] = {key: int(iterations)}
         if lam is not None:
             init = base.get("lambda_init") if isinstance(base, Mapping) else getattr(
                 base, "lambda_init", None)
@@ -167,11 +169,14 @@ class MPC:
         *,
         params: np.ndarray | None = None,
         warm_start: np.ndarray | None = None,
+        **optimizer_kwargs: Any,
     ) -> Any:
         """One solve from state ``x`` at time ``t`` (no controller state is read or written).
 
         :param warm_start: ``[H, m]`` plan to start from (``options.iterations_per_step``
             iterations); ``None``: a cold start from ``U_init`` (``first_step_iterations``).
+        :param optimizer_kwargs: extra keyword arguments of the optimizer (e.g. CEM's
+            ``terminated``).
         :return: the optimizer's result.
         """
         x = as_array("x", x, (self.cost.n,))
@@ -182,13 +187,13 @@ class MPC:
             U0 = np.clip(as_array("warm_start", warm_start, (self.horizon, self.cost.m)),
                          self.u_min, self.u_max)
             iterations = self.options.iterations_per_step
-        return self._solve(x, t, params, U0, iterations, None)
+        return self._solve(x, t, params, U0, iterations, None, optimizer_kwargs)
 
-    def _solve(self, x, t, params, U0, iterations, lam) -> Any:
+    def _solve(self, x, t, params, U0, iterations, lam, kwargs=None) -> Any:
         return self.optimizer(
             self.cost, self.model, x, U0, u_min=self.u_min, u_max=self.u_max,
             params=self.params if params is None else params, t0=t,
-            options=self._options(iterations, lam),
+            options=self._options(iterations, lam), **(kwargs or {}),
         )
 
     def act(self, x: np.ndarray, t: int = 0, params: np.ndarray | None = None) -> np.ndarray:
@@ -219,6 +224,22 @@ class MPC:
         return action
 
     __call__ = act
+
+
+def _resolve_options(optimizer: Callable[..., Any], options: Any) -> Any:
+    """The optimizer's base options: iLQR's and CEM's as their options dataclasses (a dict is
+    checked here, once), other optimizers' as given (``None``: a dict)."""
+    if optimizer is ilqr:
+        if options is None:
+            return ILQROptions(tol_fun_rel=1e-6)
+        return ILQROptions(**options) if isinstance(options, Mapping) else options
+    from mbtsr import cem as cem_module  # the sibling solver; imported lazily
+
+    if optimizer is cem_module.cem:
+        if options is None:
+            return cem_module.CEMOptions()
+        return cem_module.CEMOptions(**options) if isinstance(options, Mapping) else options
+    return {} if options is None else options
 
 
 def _check_t(t: object) -> int:
