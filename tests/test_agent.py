@@ -600,8 +600,8 @@ def test_cem_planner_runs_the_same_mpc_and_respects_the_termination_fn():
     assert agent.policy.last_result.status in ("converged", "max_iter")
     ended = JacPropAgent(env, cfg, cost_fn=pendulum_cost,
                          termination_fn=lambda o: np.ones(o.shape[:-1], dtype=bool))
-    ended.model = agent.model
-    ended.policy.model = agent.model
+    ended.model.load_state_dict(agent.model.state_dict())
+    ended._freeze()  # train -> freeze -> plan, as learn() does after its training round
     ended.predict(obs)
     res = ended.policy.last_result
     first_stage = float(agent.task_cost.stage(agent.state_map.state(obs), res.U[0], obs))
