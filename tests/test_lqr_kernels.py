@@ -5,6 +5,7 @@
 - the exact LQ solution of a dense quadratic program (first iteration, lambda = 0, no limits);
 - the box QP against scipy's bounded-variable least squares (BVLS);
 - the compiled affine closed-loop rollout against the generic (model.step) rollout;
+- the chunked line search (``linear_batch_cost`` models) against the all-at-once one;
 - the compile cache: a fresh process loads the kernel without recompiling.
 """
 
@@ -21,8 +22,9 @@ from hypothesis import strategies as st
 from scipy.optimize import lsq_linear
 
 from mbtsr import _lqr_kernels as kernels
+from mbtsr.costs import quadratic_cost
 from mbtsr.dynamics import LinearDynamics
-from mbtsr.ilqr import ILQROptions, _backward_pass, _box_qp, _LQProblem, _rollout_policy
+from mbtsr.ilqr import ILQROptions, _backward_pass, _box_qp, _LQProblem, _rollout_policy, ilqr
 
 PRM = kernels.BOXQP_DEFAULTS
 
@@ -214,3 +216,50 @@ def test_affine_rollout_kernel_matches_generic_rollout(kill_some):
         np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-12)
     if kill_some:
         assert 0 < ref[2].sum() < len(alphas)
+
+
+class _Recording:
+    """A nonlinear model (damped pendulum, 2 states, 1 input) recording its batch sizes."""
+
+    state_dim, action_dim = 2, 1
+
+    def __init__(self, linear_batch_cost: bool) -> None:
+        self.linear_batch_cost = linear_batch_cost
+        self.batches: list[int] = []
+
+    def step(self, x, u, t=None):
+        x, u = np.asarray(x, dtype=float), np.asarray(u, dtype=float)
+        self.batches.append(x.reshape(-1, 2).shape[0])
+        th, om = x[..., 0], x[..., 1]
+        om_next = om + 0.05 * (-9.81 * np.sin(th) - 0.1 * om + 2.0 * u[..., 0])
+        return np.stack([th + 0.05 * om_next, om_next], axis=-1)
+
+    def jacobians(self, x, u, t=0):
+        th = x[:, 0]
+        T = x.shape[0]
+        A = np.zeros((T, 2, 2))
+        A[:, 1, 0] = -0.05 * 9.81 * np.cos(th)
+        A[:, 1, 1] = 1 - 0.005
+        A[:, 0, 0] = 1 + 0.05 * A[:, 1, 0]
+        A[:, 0, 1] = 0.05 * A[:, 1, 1]
+        B = np.zeros((T, 2, 1))
+        B[:, 1, 0] = 0.1
+        B[:, 0, 0] = 0.05 * 0.1
+        return A, B
+
+
+def test_chunked_line_search_accepts_the_same_steps():
+    """``linear_batch_cost`` models get the step sizes in chunks 3, 4, rest; same iterates."""
+    cost = quadratic_cost(np.diag([10.0, 0.1]), 0.01 * np.eye(1), np.array([2.5, 0.0]))
+    T = 40
+    runs = {}
+    for flag in (False, True):
+        model = _Recording(flag)
+        runs[flag] = (ilqr(cost, model, np.zeros(2), np.zeros((T, 1)), u_min=-1, u_max=1), model)
+    (a, _), (b, chunked) = runs[False], runs[True]
+    np.testing.assert_array_equal(a.U, b.U)
+    assert [tr["alpha"] for tr in a.trace] == [tr["alpha"] for tr in b.trace]
+    sizes = set(chunked.batches[T:])  # after the initial rollout
+    assert sizes <= {3, 4} and 3 in sizes
+    assert len(chunked.batches) < len(runs[False][1].batches) * 3  # not one call per step size
+    assert sum(chunked.batches) < sum(runs[False][1].batches)  # fewer simulated steps
