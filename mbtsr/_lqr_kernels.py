@@ -471,3 +471,22 @@ def rollout_policy_affine(A, B, c, x0, X, U, k, K, alphas, lower, upper, max_nor
             if not abs(x0[i]) <= max_norm:
                 alive[a] = False
     return Xn, Un, alive
+
+
+@njit(cache=True)
+def policy_controls(Xn, X, ff, K, t, lower, upper, Un):
+    """``Un[:, t] = clip(ff[:, t] + K_t (Xn[:, t] - X_t), lower, upper)`` for all rows.
+
+    ``Xn: [N, T+1, n]``, ``X: [T+1, n]``, ``ff: [N, T, m]`` (``U + alpha k``), ``K: [T, m, n]``,
+    ``lower, upper: [m]``, ``Un: [N, T, m]`` (written). One call per time step of the generic
+    closed-loop rollout, instead of six numpy calls.
+    """
+    N = Xn.shape[0]
+    n = X.shape[1]
+    m = K.shape[1]
+    for a in range(N):
+        for j in range(m):
+            v = ff[a, t, j]
+            for i in range(n):
+                v += K[t, j, i] * (Xn[a, t, i] - X[t, i])
+            Un[a, t, j] = min(max(v, lower[j]), upper[j])

@@ -724,17 +724,13 @@ def _rollout_policy(dynamics, x0, X, U, k, K, alphas, lower, upper, t0, max_norm
     Un = np.empty((nA, T, U.shape[1]))
     Xn[:, 0] = x0
     feedforward = U[None] + alphas[:, None, None] * k[None]  # [A, T, m]
-    KT = K.transpose(0, 2, 1)
     alive = np.ones(nA, dtype=bool)
-    clip = bool(np.isfinite(lower).any() or np.isfinite(upper).any())
-    step = dynamics.step
+    step = getattr(dynamics, "_step", None) or dynamics.step
+    policy = _lqr_kernels.policy_controls
     with np.errstate(all="ignore"):
         for t in range(T):
-            u = feedforward[:, t] + (Xn[:, t] - X[t]) @ KT[t]
-            if clip:
-                np.maximum(u, lower, out=u)
-                np.minimum(u, upper, out=u)
-            Un[:, t] = u
+            policy(Xn, X, feedforward, K, t, lower, upper, Un)
+            u = Un[:, t]
             xn = np.asarray(step(Xn[:, t], u, t0 + t), dtype=float)
             if not math.isfinite(xn.sum()):
                 bad = ~np.isfinite(xn).all(axis=-1)

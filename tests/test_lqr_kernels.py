@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import subprocess
 import sys
-import time
 
 import numpy as np
 import pytest
@@ -166,21 +165,24 @@ def test_box_qp_matches_scipy_bvls(seed):
 
 
 def test_compile_cache_is_used_by_a_fresh_process():
-    """After the first compile, a new process loads the kernel in well under a second."""
+    """After the first compile, a new process loads the kernel from numba's cache (no compile).
+
+    The first-ever compile takes ~7 s on a quiet 2-core machine (``scripts/bench_ilqr.py``
+    measures it in a fresh process with an empty cache); CI pays it once per run.
+    """
     A, B, derivs, U = random_problem(5, 2, 1, seed=0)
     kernels.backward_pass(A, B, *derivs, -1 - U, 1 - U, 0.1, 1, True, PRM)  # compile/cache
     code = (
-        "import time, numpy as np; t = time.perf_counter();"
-        "from mbtsr import _lqr_kernels as k;"
-        "z = np.zeros; ok = k.backward_pass(z((3, 2, 2)) + np.eye(2), z((3, 2, 1)) + 1,"
+        "import numpy as np; from mbtsr import _lqr_kernels as k; z = np.zeros;"
+        "ok = k.backward_pass(z((3, 2, 2)) + np.eye(2), z((3, 2, 1)) + 1,"
         " z((4, 2)), z((3, 1)), z((4, 2, 2)) + np.eye(2), z((3, 1, 1)) + 1, z((3, 1, 2)),"
         " z((3, 1)) - 1, z((3, 1)) + 1, 0.1, 1, True, k.BOXQP_DEFAULTS)[0];"
-        "assert ok; print(time.perf_counter() - t)"
+        "s = k.backward_pass.stats; assert ok;"
+        "print(sum(s.cache_hits.values()), sum(s.cache_misses.values()))"
     )
-    tic = time.perf_counter()
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
-    wall = time.perf_counter() - tic
-    assert float(out.stdout.strip()) < 3.0, (out.stdout, wall)  # cold compile: ~7 s here
+    hits, misses = (int(v) for v in out.stdout.split())
+    assert hits == 1 and misses == 0, out.stdout
 
 
 class _GenericLinear:
