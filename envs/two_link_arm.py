@@ -46,7 +46,12 @@ NOT a MuJoCo constraint (that would make the dynamics non-smooth); it bounds the
 the default rejection threshold of ``envs.collect.collect_trajectories``.
 
 ## Episode end
-No termination; truncation after ``episode_steps`` (default 100 steps = 2 s).
+No termination; truncation after ``episode_steps`` (default 100 steps = 2 s), or earlier when the
+simulation diverges: if MuJoCo reports an instability during a step (``mjWARN_BADQACC``,
+``BADQPOS`` or ``BADQVEL``; MuJoCo then resets the arm to rest) or a joint speed exceeds
+``VELOCITY_LIMIT`` (1e3 rad/s), the step returns ``truncated=True`` with ``info["unstable"] =
+True`` and the reason in ``info["instability"]``; that step's observation is not a physical
+successor state (do not learn from it). ``info["unstable"]`` is ``False`` on every other step.
 
 ## Simulation
 Euler integrator (MuJoCo's, which treats joint damping implicitly; ``mjd_transitionFD`` refuses
@@ -77,7 +82,8 @@ Unknown preset -> ``ValueError`` listing the valid ones.
 ``gymnasium.make("mbtsr/TwoLinkArm-v0", preset="default", episode_steps=100, render_mode=None,
 dt=None, params=None, target_limit=pi/2, joint_limit=0.9*pi, init_noise=0.05, cost_Q=None,
 cost_R=None, width=320, height=240)``. ``dt`` overrides the control period (``timestep = dt /
-frame_skip``; ``dt <= 0`` -> ``ValueError``); ``params`` overrides any
+frame_skip``; ``dt <= 0`` or ``dt > MAX_DT = 0.1`` s -> ``ValueError``: the Euler substeps
+get too coarse, and at 0.5 s the default arm diverges); ``params`` overrides any
 :class:`~envs.two_link_arm_model.ArmParams` field, e.g. ``{"link_mass": (2.0, 1.0)}``.
 
 ## Model access (on ``env.unwrapped``)
@@ -121,7 +127,9 @@ from mbtsr.validation import as_array, check_nonnegative, check_positive
 __all__ = [
     "ASSET_PATH",
     "EXCITATION_STD",
+    "MAX_DT",
     "TwoLinkArmEnv",
+    "VELOCITY_LIMIT",
     "build_model",
 ]
 
@@ -133,6 +141,18 @@ ASSET_PATH = Path(__file__).resolve().parent / "assets" / "two_link_arm.xml"
 EXCITATION_STD = {"default": 0.15, "paper": 1.0 / 3.0}
 
 FD_EPS = 1e-6  # mjd_transitionFD perturbation (centred differences)
+
+#: Largest control period accepted [s] (5 x the default 0.02 s): with 10 Euler substeps the
+#: default arm diverges under random torques at dt = 0.5 s, and already at dt = 0.3 s its
+#: trajectories are too coarse for the reach task.
+MAX_DT = 0.1
+#: A joint speed above this [rad/s] means the simulation diverged (the real arms stay < 50).
+VELOCITY_LIMIT = 1e3
+_INSTABILITY_WARNINGS = (
+    mujoco.mjtWarning.mjWARN_BADQACC,
+    mujoco.mjtWarning.mjWARN_BADQPOS,
+    mujoco.mjtWarning.mjWARN_BADQVEL,
+)
 
 
 def build_model(p: ArmParams, path: str | Path = ASSET_PATH) -> mujoco.MjModel:
@@ -250,6 +270,11 @@ class TwoLinkArmEnv(MujocoEnv, utils.EzPickle):
             )
         if int(episode_steps) != episode_steps or episode_steps < 1:
             raise ValueError(f"episode_steps must be an integer >= 1, got {episode_steps!r}")
+        if dt is not None and not check_positive("dt", dt) <= MAX_DT:
+            raise ValueError(
+                f"dt must be <= MAX_DT={MAX_DT} s (10 Euler substeps per step; larger periods "
+                f"make the simulation inaccurate or unstable), got {dt!r}"
+            )
         self.params = arm_params(preset, dt=dt, **dict(params or {}))
         self.preset = preset
         self.episode_steps = int(episode_steps)
@@ -335,14 +360,21 @@ class TwoLinkArmEnv(MujocoEnv, utils.EzPickle):
         x = self._state()
         return self._obs(x), {"state": x, "target": self._target.copy()}
 
+    def _instability_warnings(self) -> int:
+        w = self.data.warning
+        return sum(int(w[k].number) for k in _INSTABILITY_WARNINGS)
+
     def step(self, action):
-        """Apply the normalized torque ``action`` ``[2]`` for ``dt`` seconds."""
-        a = np.asarray(action, dtype=np.float64)
-        if a.shape != (2,):
-            raise ValueError(f"action must have shape (2,), got {a.shape}")
-        if not np.isfinite(a).all():
-            raise ValueError(f"action must be finite, got {a.tolist()}")
+        """Apply the normalized torque ``action`` ``[2]`` for ``dt`` seconds.
+
+        If the simulation diverges during the step (a MuJoCo instability warning, after which
+        MuJoCo resets the arm, or a joint speed above ``VELOCITY_LIMIT``) the step returns
+        ``truncated=True`` and ``info["unstable"] = True`` with the reason in
+        ``info["instability"]``; the observation is then not a physical successor state.
+        """
+        a = as_array("action", action, (2,))
         a = np.clip(a, -1.0, 1.0)
+        warnings_before = self._instability_warnings()
         self.data.ctrl[:] = a
         mujoco.mj_step(self.model, self.data, nstep=self.frame_skip)
         self._t += 1
@@ -355,8 +387,20 @@ class TwoLinkArmEnv(MujocoEnv, utils.EzPickle):
             "target": self._target.copy(),
             "cost_state": cost_state,
             "cost_action": cost_action,
+            "unstable": False,
         }
         truncated = self._t >= self.episode_steps
+        reason = None
+        if self._instability_warnings() > warnings_before:
+            reason = ("MuJoCo reported NaN/inf or huge accelerations or velocities and reset the "
+                      "arm (the simulation is unstable)")
+        elif not np.all(np.abs(x[2:]) <= VELOCITY_LIMIT):
+            reason = f"a joint speed exceeds VELOCITY_LIMIT={VELOCITY_LIMIT:g} rad/s"
+        if reason is not None:
+            info["unstable"] = True
+            info["instability"] = (f"step {self._t} at dt={self.dt:g} s: {reason}; reduce dt "
+                                   "or the torque limit")
+            truncated = True
         return self._obs(x), -(cost_state + cost_action), False, truncated, info
 
     def _get_obs(self) -> np.ndarray:  # the MujocoEnv convention (used by envs.mujoco_model)

@@ -50,7 +50,7 @@ from scipy.linalg import lapack
 
 from mbtsr import _lqr_kernels
 from mbtsr.costs import CasadiCost
-from mbtsr.dynamics import LinearDynamics
+from mbtsr.dynamics import LinearDynamics, _rollout, check_planning_model, raw_step
 from mbtsr.validation import as_array
 
 __all__ = ["ILQROptions", "ILQRResult", "ilqr", "check_control_bounds"]
@@ -190,30 +190,38 @@ def ilqr(
     *,
     u_min: np.ndarray | float | None = None,
     u_max: np.ndarray | float | None = None,
-    options: ILQROptions | None = None,
+    params: np.ndarray | None = None,
     t0: int = 0,
+    options: ILQROptions | None = None,
 ) -> ILQRResult:
     """Optimise a control sequence with control-limited iLQR (Tassa et al. 2014).
 
+    The signature every optimizer of :class:`mbtsr.mpc.MPC` shares. All inputs are validated
+    here, once; the iterations call the cost's and the model's unchecked kernels.
+
     :param cost: a :class:`mbtsr.costs.CasadiCost` with ``n, m`` matching the model.
-    :param dynamics: any model with ``step(x[..., n], u[..., m], t)`` (batched) and
-        ``jacobians(x[T, n], u[T, m], t0) -> (A [T, n, n], B [T, n, m])``.
+    :param dynamics: a planning model (``model.freeze()`` of a learned ensemble, or a true /
+        analytic / linear / LTV model): ``step(x[..., n], u[..., m], t)`` (batched) and
+        ``jacobians(x[T, n], u[T, m], t0) -> (A [T, n, n], B [T, n, m])``; its optional
+        ``_step`` (the same map without input checks) is used inside the loop.
     :param x0: ``[n]`` initial state.
     :param U0: ``[T, m]`` initial control sequence (clipped to the bounds).
     :param u_min: ``[m]`` (or scalar) lower control bound; ``None`` = unbounded.
     :param u_max: ``[m]`` (or scalar) upper control bound; ``None`` = unbounded.
-    :param options: :class:`ILQROptions` (or a dict of its fields).
+    :param params: cost parameters, ``[p]`` or ``[N_ref, p]`` (a target, a reference; see
+        :mod:`mbtsr.costs`); ``None``: the cost's defaults.
     :param t0: absolute time index of ``x0`` (passed to the cost and to time-varying models).
-    :return: :class:`ILQRResult`.
+    :param options: :class:`ILQROptions` (or a dict of its fields).
+    :return: :class:`ILQRResult`. Its ``U`` is always finite and inside the bounds: a solve that
+        meets NaN/inf (model, Jacobians, cost) stops with status ``"failed"`` and the best
+        finite iterate.
     """
     opts = _as_options(options)
     if not isinstance(cost, CasadiCost):
         raise TypeError(f"cost must be a mbtsr.costs.CasadiCost, got {type(cost).__name__}")
     n, m = cost.n, cost.m
-    for attr, want in (("state_dim", n), ("action_dim", m)):
-        got = getattr(dynamics, attr, want)
-        if got != want:
-            raise ValueError(f"dynamics.{attr}={got} does not match the cost's dimension {want}")
+    check_planning_model(dynamics, n, m)
+    table = cost.check_params(params)
     x0 = as_array("x0", x0, (n,))
     U0 = as_array("U0", U0, (None, m))
     if U0.shape[0] < 1:
@@ -241,7 +249,7 @@ def ilqr(
         if not alive.any():
             zeros_K, zeros_k = np.zeros((T, m, n)), np.zeros((T, m))
             return ILQRResult(
-                X=_nan_after_divergence(dynamics, x0, U, t0, opts.max_state_norm),
+                X=X[0],  # NaN from the first diverged state on
                 U=U,
                 K=zeros_K,
                 k=zeros_k,
@@ -258,7 +266,7 @@ def ilqr(
         X, U = Xc[i], cands[i]
     else:
         X = X[0]
-    J = float(cost.total_unchecked(X, U, t0))
+    J = float(cost._total(X, U, t0, table))
 
     lam, dlam = float(opts.lambda_init), 1.0
     f = opts.lambda_factor
@@ -268,7 +276,9 @@ def ilqr(
     need_derivs = True
     it = 0
     problem = None
-    while it < opts.max_iter:
+    if not math.isfinite(J):
+        status, message = "failed", "the cost of the initial trajectory is not finite"
+    while not status and it < opts.max_iter:
         it += 1
         t_it = time.perf_counter()
         if need_derivs:
@@ -282,7 +292,7 @@ def ilqr(
                 )
             timings["jacobians"] += time.perf_counter() - tic
             tic = time.perf_counter()
-            derivs = cost.derivatives_unchecked(X, U, t0)
+            derivs = cost._derivatives(X, U, t0, table)
             timings["cost_derivatives"] += time.perf_counter() - tic
             finite = (
                 np.isfinite(A).all()
@@ -345,7 +355,7 @@ def ilqr(
             live = np.zeros(len(alphas), dtype=bool)
             live[chunk] = alive[chunk]
             if live.any():
-                Jn[live] = cost.total_unchecked(Xn[live], Un[live], t0)
+                Jn[live] = cost._total(Xn[live], Un[live], t0, table)
             timings["line_search_cost"] += time.perf_counter() - tic
             actual = J - Jn
             with np.errstate(invalid="ignore", divide="ignore"):
@@ -666,40 +676,6 @@ def _box_qp(H, g, lower, upper, x0, opts: ILQROptions):
     return x, ~clamped, True
 
 
-def _rollout(dynamics, x0, U, t0, max_norm):
-    """Open-loop batched rollout. ``U: [B, T, m]`` -> ``(X [B, T+1, n], alive [B])``.
-
-    Diverged rows (non-finite or ``|x| > max_norm``) are marked dead and then fed ``x0`` so
-    that the model never sees non-finite input.
-    """
-    Bsz, T, _ = U.shape
-    X = np.empty((Bsz, T + 1, x0.shape[0]))
-    X[:, 0] = x0
-    alive = np.ones(Bsz, dtype=bool)
-    for t in range(T):
-        with np.errstate(all="ignore"):
-            xn = np.asarray(dynamics.step(X[:, t], U[:, t], t0 + t), dtype=float)
-            if not np.abs(xn).max() <= max_norm:
-                bad = ~(np.abs(xn).max(axis=-1) <= max_norm)
-                alive &= ~bad
-                xn = np.where(bad[:, None], x0, xn)
-        X[:, t + 1] = xn
-    return X, alive
-
-
-def _nan_after_divergence(dynamics, x0, U, t0, max_norm):
-    """Rollout of ``U [T, m]`` with NaN from the first diverged state on (for reporting)."""
-    X = np.full((U.shape[0] + 1, x0.shape[0]), np.nan)
-    X[0] = x0
-    for t in range(U.shape[0]):
-        with np.errstate(all="ignore"):
-            xn = np.asarray(dynamics.step(X[t], U[t], t0 + t), dtype=float)
-        if not np.abs(xn).max() <= max_norm:
-            break
-        X[t + 1] = xn
-    return X
-
-
 def _rollout_policy(dynamics, x0, X, U, k, K, alphas, lower, upper, t0, max_norm):
     """Closed-loop rollouts for all step sizes at once.
 
@@ -725,7 +701,7 @@ def _rollout_policy(dynamics, x0, X, U, k, K, alphas, lower, upper, t0, max_norm
     Xn[:, 0] = x0
     feedforward = U[None] + alphas[:, None, None] * k[None]  # [A, T, m]
     alive = np.ones(nA, dtype=bool)
-    step = getattr(dynamics, "_step", None) or dynamics.step
+    step = raw_step(dynamics)
     policy = _lqr_kernels.policy_controls
     with np.errstate(all="ignore"):
         for t in range(T):
