@@ -32,7 +32,8 @@ Implementation notes
   ``linear_batch_cost = True``) gets the step sizes in chunks of 3, 4 and the rest, largest
   first, stopping at the first chunk with an acceptable step: the same accepted step for
   about half the simulation (measured in MPC on the arm: the accepted step is usually the
-  2nd-5th).
+  2nd-5th). So does an affine model (:class:`mbtsr.dynamics.LinearDynamics`, rolled out in one
+  compiled call), whose line search is dominated by the cost of the rollouts.
 * A rollout that produces NaN/inf or a state beyond ``max_state_norm`` is rejected; the solver
   then raises the regularisation and keeps the best (current) iterate, so the returned controls
   are always finite and within the bounds.
@@ -233,7 +234,10 @@ def ilqr(
     has_limits = bool(np.any(np.isfinite(lower)) or np.any(np.isfinite(upper)))
     alphas = np.asarray(opts.alphas, dtype=float)
     boxqp_prm = _boxqp_params(opts)
-    chunks = _line_search_chunks(len(alphas), bool(getattr(dynamics, "linear_batch_cost", False)))
+    chunks = _line_search_chunks(  # affine models: the line-search costs dominate, chunk them
+        len(alphas),
+        type(dynamics) is LinearDynamics or bool(getattr(dynamics, "linear_batch_cost", False)),
+    )
     T = U0.shape[0]
     timings = dict.fromkeys(
         ("jacobians", "cost_derivatives", "backward", "forward", "line_search_cost"), 0.0

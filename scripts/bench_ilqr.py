@@ -186,15 +186,18 @@ def peer_comparison(args, problems) -> dict:
             out["pinocchio_vs_twin_max_accel_error"] = peers_mod.check_pinocchio_matches_twin(
                 prob.params
             )
-        croc = peers_mod.solve_crocoddyl(prob, repeats=args.repeats)
+        croc = peers_mod.solve_crocoddyl(prob, repeats=args.repeats + 1)  # first: warm-up
         best = None
+        solve_ilqr_timed(  # warm-up: builds the cost's mapped functions, loads numba's cache
+            prob.cost, prob.model, prob.x0, prob.T, ILQROptions(), prob.u_min, prob.u_max
+        )
         for _ in range(args.repeats):
             cpu = time.process_time()
             res, wall = solve_ilqr_timed(
                 prob.cost, prob.model, prob.x0, prob.T, ILQROptions(), prob.u_min, prob.u_max
             )
             cpu = time.process_time() - cpu
-            if best is None or wall < best[1]:
+            if best is None or cpu < best[2]:  # least disturbed by the other processes
                 best = (res, wall, cpu)
         res, wall, cpu = best
         ms_iter = wall / max(res.iterations, 1) * 1e3

@@ -84,7 +84,7 @@ def box_lq_problem(T: int = 200) -> Problem:
     return Problem(
         name="box_lq",
         model=LinearDynamics(A, B),
-        cost=quadratic_cost(Q, R, goal, Qf=Qf),
+        cost=quadratic_cost(Q, R, goal, Qf=Qf, jit=True),
         x0=np.array([2.0, 0.0, -1.5, 1.0]),
         T=T,
         u_min=np.full(2, -1.0),
@@ -264,7 +264,7 @@ def solve_crocoddyl(p: Problem, maxiter: int = 500, repeats: int = 1) -> dict:
         tic, cpu = time.perf_counter(), time.process_time()
         converged = solver.solve(xs, us, maxiter, False)
         wall, cpu = time.perf_counter() - tic, time.process_time() - cpu
-        if best is None or wall < best[1]:
+        if best is None or cpu < best[3]:  # least disturbed by the other processes
             best = (solver, wall, converged, cpu)
     solver, wall, converged, cpu = best
     U = np.array(solver.us) / scale
