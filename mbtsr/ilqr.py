@@ -29,7 +29,7 @@ Implementation notes
 * The forward pass rolls out ALL line-search step sizes as one batch (``T`` batched ``step``
   calls per iteration, not ``T x n_alpha``) and accepts the largest acceptable step. A model
   whose step cost grows linearly with the batch (a simulator; it says so with
-  ``linear_batch_cost = True``) gets the step sizes in chunks of 3, 4 and the rest, largest
+  ``linear_batch_cost = True``) gets the step sizes in chunks of 2, 2, 3 and the rest, largest
   first, stopping at the first chunk with an acceptable step: the same accepted step for
   about half the simulation (measured in MPC on the arm: the accepted step is usually the
   2nd-5th). So does an affine model (:class:`mbtsr.dynamics.LinearDynamics`, rolled out in one
@@ -427,10 +427,10 @@ def _as_options(options) -> ILQROptions:
 
 
 def _line_search_chunks(n_alpha: int, linear_batch_cost: bool) -> list[slice]:
-    """Step-size chunks of the forward pass: all at once, or 3, 4, rest for simulators."""
+    """Step-size chunks of the forward pass: all at once, or 2, 2, 3, rest for simulators."""
     if not linear_batch_cost:
         return [slice(0, n_alpha)]
-    edges = [e for e in (0, 3, 7) if e < n_alpha] + [n_alpha]
+    edges = [e for e in (0, 2, 4, 7) if e < n_alpha] + [n_alpha]
     return [slice(a, b) for a, b in zip(edges[:-1], edges[1:])]
 
 
