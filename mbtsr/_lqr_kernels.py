@@ -26,8 +26,7 @@ Why numba and not CasADi-generated code: the box QP has data-dependent control f
 controls are clamped, projected-Newton iterations with a backtracking line search, a fallback
 from the active-set guess), which numba compiles from the same Python as the numpy reference,
 while a CasADi expression graph would have to unroll every branch with ``if_else`` for a fixed
-worst-case iteration count. The arithmetic per time step is a few hundred flops for ``n = 4,
-m = 2``, so either compiled form is bound by memory traffic, not by the generator.
+worst-case iteration count. (A CasADi-generated version was not built or measured.)
 
 Compilation: ``numba.njit(cache=True)``; the first call in a fresh environment compiles (a few
 seconds, measured in ``tests/test_lqr_kernels.py``), later processes load the cache from
