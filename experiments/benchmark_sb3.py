@@ -80,6 +80,9 @@ class Args:
     """CI smoke test: tiny budgets, 1 seed (options not given take the QUICK values)"""
     backend: Literal["process", "serial", "ray"] = "process"
     """mbtsr.runner backend"""
+    address: str = ""
+    """Ray only: address of an existing cluster (``auto``, ``host:6379``); empty: a private local
+    Ray instance for the sweep (docs/troubleshooting.md)"""
     workers: int = 2
     """parallel runs"""
     seeds: int = 3
@@ -662,7 +665,7 @@ def run(args: Args) -> dict:
                    and r["seed"] in seeds and r["config"] == configs[r["name"]]]
     else:
         records = run_sweep(run_case, configs, seeds, out_dir / "sweep", backend=args.backend,
-                            workers=args.workers, progress=True)
+                            workers=args.workers, progress=True, address=args.address or None)
 
     # 5. summaries, ratios, outputs --------------------------------------------------------------
     summary = {m: summarize_method(m, [r for r in records if r["name"] == m], configs[m],

@@ -159,3 +159,25 @@ def test_script_rejects_bad_arguments(flag, capsys):
     assert exc.value.code == 2
     name = flag[0].lstrip("-").replace("-", "_")
     assert name in capsys.readouterr().err
+
+
+def test_resume_on_a_damaged_checkpoint_or_a_changed_flag_is_one_line(tmp_path):
+    """--resume names the damaged file, or the config field that differs; no traceback."""
+    script = _script()
+    run = tmp_path / "run"
+    tiny = [a if a != str(EPISODES) else "1" for a in TINY] + ["--eval-every", "0"]
+    script.main(["--run-dir", str(run), *tiny])
+    good = (run / "checkpoint.pt").read_bytes()
+    with pytest.raises(SystemExit, match=r"--resume: .*differs in 'horizon' \(checkpoint: 6, "
+                                         r"now: 7\)"):
+        script.main(["--run-dir", str(run), "--resume", *tiny, "--horizon", "7"])
+    damaged = bytearray(good)
+    damaged[-10] ^= 4
+    (run / "checkpoint.pt").write_bytes(bytes(damaged))
+    with pytest.raises(SystemExit, match=f"--resume: {run / 'checkpoint.pt'} is corrupted"):
+        script.main(["--run-dir", str(run), "--resume", *tiny])
+    (run / "checkpoint.pt").write_bytes(good[: len(good) // 3])
+    with pytest.raises(SystemExit, match="is truncated"):
+        script.main(["--run-dir", str(run), "--resume", *tiny])
+    (run / "checkpoint.pt").write_bytes(good)  # intact again: resumes (nothing left to do)
+    assert script.main(["--run-dir", str(run), "--resume", *tiny])["episodes_done"] == 1
