@@ -74,6 +74,9 @@ class Args(ExperimentArgs):
     still_speed: float = field(default=0.05, metadata={
         "help": "joint speed [rad/s] below which a point counts as near-zero velocity"})
     n_log: int = field(default=5, metadata={"help": "training-point Jacobian checkpoints"})
+    paper_protocol: bool = field(default=True, metadata={
+        "help": "also run the paper cell with the paper's protocol (4-member nominal ensemble, "
+                "one step per trajectory) for none, sampled and oracle labels"})
     duration: float = field(default=4.0, metadata={"help": "trajectory length [s]"})
     n_val: int = field(default=10, metadata={"help": "validation trajectories"})
 
@@ -99,7 +102,7 @@ def make_configs(args: Args) -> dict[str, dict[str, dict]]:
     n_trains, epochs = _ints(args.n_trains), _ints(args.epochs)
     frictions = [{"on": True, "off": False}[f] for f in _strs(args.frictions)]
     label_cells = {tuple(c.split("-")) for c in _strs(args.label_cells)}
-    out: dict[str, dict[str, dict]] = {"main": {}, "labels": {}}
+    out: dict[str, dict[str, dict]] = {"main": {}, "labels": {}, "paper_protocol": {}}
     for window in _strs(args.windows):
         for friction in frictions:
             data = dataclasses.asdict(RegimeData(
@@ -121,6 +124,17 @@ def make_configs(args: Args) -> dict[str, dict[str, dict]]:
                                 "model": {"activations": _strs(args.activations),
                                           "width": args.width},
                                 "still_speed": args.still_speed, "n_log": args.n_log}
+            if args.paper_protocol and label:
+                for m in ("none", "sampled", "oracle"):
+                    n = _ints(args.label_n_trains)[0]
+                    e = min(epochs)
+                    name = cell_name(m, n, e, window, friction)
+                    out["paper_protocol"][f"paperprotocol.{name}"] = {
+                        "data": data, "n_train": n, "epochs": e, "method": m,
+                        "exact_weight": args.exact_weight, "prior_scale": args.prior_scale,
+                        "lr": args.lr, "batch": "trajectory", "model": {},
+                        "still_speed": args.still_speed, "n_log": args.n_log,
+                        "paper_protocol": True}
     return out
 
 
@@ -134,7 +148,8 @@ def run(args: Args, out: Path) -> list[dict]:
     n_before = len(load_results(out))
     start, t0, c0 = library_version(), time.perf_counter(), time.process_time()
     for seed in range(args.mc):
-        run_sweep(run_regime, {**configs["main"], **configs["labels"]}, [seed], out,
+        run_sweep(run_regime, {**configs["main"], **configs["labels"],
+                               **configs["paper_protocol"]}, [seed], out,
                   backend=args.backend, workers=args.workers, progress=False)
         if not args.quick:
             print(f"[regime] seed {seed} done, {time.perf_counter() - t0:.0f} s", flush=True)
@@ -226,11 +241,51 @@ def regime_map(ax, records, method: str, title: str) -> None:
     return im
 
 
+def diagnostics_figure(records: list[dict], path: Path) -> None:
+    """The network's own Jacobian error at the training points during training (median over
+    seeds; none = solid, sampled = dotted) against the error of the LTV labels (dashed), per row
+    group, for each window x friction family at its middle trajectory count and longest run."""
+    plt = pyplot()
+    cells = _cells(records)
+    if not cells:
+        return
+    n_mid = sorted({c[2] for c in cells})[len({c[2] for c in cells}) // 2]
+    e_max = max(c[3] for c in cells)
+    fams = sorted({(c[0], c[1]) for c in cells}, key=lambda k: (k[0] != "short", not k[1]))
+    fig, axes = plt.subplots(1, 2, figsize=(10, 3.8), layout="constrained")
+    colors = plt.rcParams["axes.prop_cycle"].by_key()["color"]
+    for i, (w, f) in enumerate(fams):
+        cell, color = (w, f, n_mid, e_max), colors[i % len(colors)]
+        label = f"{w} window, {'friction' if f else 'no friction'}"
+        for j, rows in enumerate(("pos", "vel")):
+            for method, style in (("none", "-"), ("sampled", ":")):
+                logs = [r["result"]["net_train_jac"] for r in records
+                        if r["config"]["method"] == method and (
+                            r["config"]["data"]["window"], r["config"]["data"]["friction"],
+                            r["config"]["n_train"], r["config"]["epochs"]) == cell]
+                if logs:
+                    ep = logs[0]["epoch"]
+                    med = np.median(np.array([lg[rows] for lg in logs]), 0)
+                    axes[j].plot(ep, med, style, color=color,
+                                 label=f"{label}: network, {method}" if j == 0 else None)
+            lab = _median(records, "sampled", cell, f"label_jac_{rows}")
+            if lab is not None:
+                axes[j].axhline(lab, ls="--", color=color, lw=1,
+                                label=f"{label}: LTV labels" if j == 0 else None)
+    for j, rows in enumerate(("position rows (q)", "velocity rows (qdot)")):
+        axes[j].set_xlabel("epoch")
+        axes[j].set_ylabel("Jacobian error at the training points")
+        axes[j].set_title(f"{rows}, {n_mid} trajectories", fontsize=9)
+    fig.legend(loc="outside right center", fontsize=6)
+    save_figure(fig, path)
+
+
 def report(records: list[dict], out: Path, figures: Path, args: Args) -> dict:
     plt = pyplot()
     methods = [m for m in ("sampled", "oracle", "exact", "prior")
                if any(r["config"]["method"] == m for r in records)]
-    fig, axes = plt.subplots(len(methods), 1, figsize=(8.5, 2.6 * len(methods)), squeeze=False)
+    fig, axes = plt.subplots(len(methods), 1, figsize=(8.5, 2.6 * len(methods)), squeeze=False,
+                             layout="constrained")
     im = None
     for ax, m in zip(axes[:, 0], methods):
         im = regime_map(ax, records, m, f"{METHOD_LABELS[m]} vs none: median change of the "
@@ -238,6 +293,8 @@ def report(records: list[dict], out: Path, figures: Path, args: Args) -> dict:
     if im is not None:
         fig.colorbar(im, ax=axes[:, 0].tolist(), shrink=0.6, label="Jacobian error change [%]")
     save_figure(fig, figures / "regime_map.png")
+
+    diagnostics_figure(records, figures / "regime_diagnostics.png")
 
     cells = _cells(records)
     table = {}
@@ -258,7 +315,7 @@ def report(records: list[dict], out: Path, figures: Path, args: Args) -> dict:
         table[_cell_label(cell)] = row
     cpu = sum(r["result"].get("cpu_time", 0.0) for r in records)
     summary = {"cells": table, "n_runs": len(records), "cpu_s_runs": cpu,
-               "figures": ["regime_map.png"]}
+               "figures": ["regime_map.png", "regime_diagnostics.png"]}
     (out / "table.md").write_text(markdown_table(records, methods))
     return summary
 
@@ -290,6 +347,44 @@ def markdown_table(records: list[dict], methods: list[str]) -> str:
     return "\n".join(lines) + "\n"
 
 
+PROTOCOL_KEYS = ("jac_err", "jac_pos", "jac_vel", "jac_moving_all", "jac_still_all",
+                 "frac_still", "label_jac_pos", "label_jac_vel", "log10_pred_rms",
+                 "log10_sim_rms", "steps")
+
+
+def paper_protocol_summary(records: list[dict]) -> dict:
+    """The paper cell under the paper's protocol: medians per method, the network's own
+    training-point error per row group at the end, and the paired change vs none."""
+    cell = next((c for c in _cells(records)), None)
+    out = {"cell": _cell_label(cell), "methods": {}}
+    for m in ("none", "sampled", "oracle"):
+        row = {k: _median(records, m, cell, k) for k in PROTOCOL_KEYS}
+        fin = [r["result"]["net_train_jac"] for r in records if r["config"]["method"] == m]
+        if fin:
+            row["net_train_pos"] = float(np.median([f["pos"][-1] for f in fin]))
+            row["net_train_vel"] = float(np.median([f["vel"][-1] for f in fin]))
+        if m != "none":
+            row["vs_none"] = paired_relative(records, m, cell)
+        out["methods"][m] = row
+    return out
+
+
+def paper_protocol_table(s: dict) -> str:
+    lines = [f"Paper protocol at the paper cell ({s['cell']}; 4-member nominal ensemble, one "
+             "optimizer step per trajectory, equal steps):", "",
+             "| method | Jacobian error (pos / vel rows) | network at train pts pos / vel | "
+             "labels pos / vel | change vs none, wins |", "|---|---|---|---|---|"]
+    for m, r in s["methods"].items():
+        vs = r.get("vs_none")
+        lines.append(
+            f"| {m} | {_fmt(r['jac_err'])} ({_fmt(r['jac_pos'])} / {_fmt(r['jac_vel'])}) | "
+            f"{_fmt(r.get('net_train_pos'))} / {_fmt(r.get('net_train_vel'))} | "
+            f"{_fmt(r['label_jac_pos'])} / {_fmt(r['label_jac_vel'])} | "
+            + ("-" if not vs else f"{vs['median_pct']:+.0f} % [{vs['q1_pct']:+.0f}, "
+               f"{vs['q3_pct']:+.0f}], {vs['wins']}/{vs['total']}") + " |")
+    return "\n".join(lines) + "\n"
+
+
 def main(args: Args) -> dict:
     from mbtsr.runner import load_results
 
@@ -299,7 +394,13 @@ def main(args: Args) -> dict:
     records = [r for r in load_results(out) if r.get("status") == "ok"]
     if not records:
         raise SystemExit(f"no finished runs in {out}")
+    protocol = [r for r in records if r["config"].get("paper_protocol")]
+    records = [r for r in records if not r["config"].get("paper_protocol")]
     summary = report(records, out, figures, args)
+    if protocol:
+        summary["paper_protocol"] = paper_protocol_summary(protocol)
+        with open(out / "table.md", "a") as fh:
+            fh.write("\n" + paper_protocol_table(summary["paper_protocol"]))
     write_json(out / "summary.json", summary)
     if args.json:
         write_json(args.json, summary)
