@@ -140,19 +140,25 @@ def make_configs(args: Args) -> dict[str, dict[str, dict]]:
 
 def run(args: Args, out: Path) -> list[dict]:
     """The sweep, seed by seed (so that an interrupted sweep leaves every cell with the same
-    number of seeds, give or take the cells of the last seed)."""
+    number of seeds, give or take the cells of the last seed), the shortest runs first."""
     from mbtsr.runner import load_results, run_sweep
 
     configs = make_configs(args)
     write_json(out / "args.json", {"args": dataclasses.asdict(args), "command": command_line()})
     n_before = len(load_results(out))
     start, t0, c0 = library_version(), time.perf_counter(), time.process_time()
-    for seed in range(args.mc):
-        run_sweep(run_regime, {**configs["main"], **configs["labels"],
-                               **configs["paper_protocol"]}, [seed], out,
-                  backend=args.backend, workers=args.workers, progress=False)
-        if not args.quick:
-            print(f"[regime] seed {seed} done, {time.perf_counter() - t0:.0f} s", flush=True)
+    every = {**configs["main"], **configs["labels"], **configs["paper_protocol"]}
+    shortest = min(c["epochs"] for c in every.values())
+    # first the cheap shortest-run cells for every seed, then everything seed by seed: on a busy
+    # machine an interrupted sweep still has the whole short-run map at full seed count
+    for part, todo in (("short runs", {k: c for k, c in every.items()
+                                       if c["epochs"] == shortest}), ("all", every)):
+        for seed in range(args.mc):
+            run_sweep(run_regime, todo, [seed], out, backend=args.backend,
+                      workers=args.workers, progress=False)
+            if not args.quick:
+                print(f"[regime] {part}: seed {seed} done, {time.perf_counter() - t0:.0f} s",
+                      flush=True)
     recs = load_results(out)
     log_path = out / "sweeps.json"
     log = json.loads(log_path.read_text()) if log_path.exists() else []
