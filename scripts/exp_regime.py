@@ -306,6 +306,8 @@ def report(records: list[dict], out: Path, figures: Path, args: Args) -> dict:
     table = {}
     for cell in cells:
         row = {"none_" + k: _median(records, "none", cell, k) for k in DIAG_KEYS}
+        row["none_net_train_pos"] = _final_train_err(records, cell, "pos")
+        row["none_net_train_vel"] = _final_train_err(records, cell, "vel")
         for m in methods:
             s = paired_relative(records, m, cell)
             if s is not None:
@@ -330,10 +332,22 @@ def _fmt(v, digits=2) -> str:
     return "-" if v is None else f"{v:.{digits}f}"
 
 
+def _final_train_err(records: list[dict], cell: tuple, rows: str,
+                     method: str = "none") -> float | None:
+    """Median over seeds of the network's own Jacobian error at the training points at the
+    end of training (``rows``: "pos" or "vel")."""
+    w, f, n, e = cell
+    v = [r["result"]["net_train_jac"][rows][-1] for r in records
+         if r["config"]["method"] == method and r["config"]["data"]["window"] == w
+         and r["config"]["data"]["friction"] == f and r["config"]["n_train"] == n
+         and r["config"]["epochs"] == e]
+    return float(np.median(v)) if v else None
+
+
 def markdown_table(records: list[dict], methods: list[str]) -> str:
     """One row per cell: none's Jacobian error and its diagnostics, each method's change."""
     head = ["cell", "none: Jacobian error (pos / vel rows; moving / still pts)", "still pts",
-            "LTV labels pos / vel (train pts)"]
+            "none's network / LTV labels at the train pts, pos rows; vel rows"]
     head += [f"{m}: change, wins" for m in methods]
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for cell in _cells(records):
@@ -343,7 +357,10 @@ def markdown_table(records: list[dict], methods: list[str]) -> str:
                f"{_fmt(md('none', 'jac_vel'))}; {_fmt(md('none', 'jac_moving_all'))} / "
                f"{_fmt(md('none', 'jac_still_all'))})",
                f"{100 * (md('none', 'frac_still') or 0):.0f} %",
-               f"{_fmt(md('sampled', 'label_jac_pos'))} / {_fmt(md('sampled', 'label_jac_vel'))}"]
+               f"{_fmt(_final_train_err(records, cell, 'pos'))} / "
+               f"{_fmt(md('sampled', 'label_jac_pos'))}; "
+               f"{_fmt(_final_train_err(records, cell, 'vel'))} / "
+               f"{_fmt(md('sampled', 'label_jac_vel'))}"]
         for m in methods:
             s = paired_relative(records, m, cell)
             row.append("-" if s is None else
