@@ -14,9 +14,10 @@ import math
 from dataclasses import dataclass, fields
 from typing import Any
 
-__all__ = ["AgentConfig", "REGULARIZATIONS", "FORMULATIONS", "EXCITATIONS"]
+__all__ = ["AgentConfig", "REGULARIZATIONS", "FORMULATIONS", "EXCITATIONS", "PLANNERS"]
 
 REGULARIZATIONS = ("sampled", "exact", "smooth", "none")
+PLANNERS = ("ilqr", "cem")
 FORMULATIONS = ("g", "f")
 EXCITATIONS = ("filtered_gaussian", "multisine")
 
@@ -61,6 +62,10 @@ class AgentConfig:
     :param jacobian_penalty: weight of the Jacobian penalty (``exact`` / ``smooth``).
     :param perturbation_sigma: perturbation std as a fraction of the per-dimension data std.
     :param n_perturbed_copies: perturbed copies of every point, resampled every epoch.
+    :param renormalize: before every update, recompute the model's input/output normalization
+        from ALL data so far (:meth:`mbtsr.ensemble.DynamicsEnsemble.refit_normalization`,
+        which keeps the represented function), instead of freezing the statistics of the
+        first episode. ``False``: the first episode's statistics are kept (the old behaviour).
     :param ltv_lambda: smoothness weight of the LTV fit (Algorithm 1, "fit LTV model"), a
         positive number or ``"auto"`` (:func:`mbtsr.ltv.select_lambda` on every trajectory).
     :param ltv_prior: once the model has seen data, fuse each new LTV fit with the ensemble's
@@ -70,17 +75,31 @@ class AgentConfig:
         has wild Jacobians in the unexcited directions; the prior keeps the model's Jacobians
         there. ``0`` disables it.
 
-    Planning (Algorithm 1, "optimize controller"): MPC = iLQR re-solved every step on the
-    learned model, warm-started with the shifted previous plan.
+    Planning (Algorithm 1, "optimize controller"): MPC = the planner re-solved every step on
+    the learned model, warm-started with the shifted previous plan.
 
+    :param planner: ``"ilqr"`` (iLQR on the model's Jacobians, the paper's controller) or
+        ``"cem"`` (the cross-entropy method of PETS, :func:`mbtsr.cem.cem`: forward predictions
+        only, never the model's Jacobians; the control for the paper's argument).
+    :param cem_samples: CEM action sequences sampled per iteration.
+    :param cem_elites: CEM elite sequences that refit the sampling distribution.
+    :param cem_iterations: CEM iterations per MPC step (the first step of an episode gets
+        ``first_plan_iterations``).
     :param horizon: MPC horizon (steps).
     :param ilqr_iterations: iLQR iterations per MPC step (the first step of an episode gets
         ``first_plan_iterations``).
     :param first_plan_iterations: iLQR iterations for the full plan at the start of an episode.
-    :param terminal_weight: terminal cost = ``terminal_weight`` x stage cost at zero action.
+    :param terminal_weight: the planner's terminal cost is ``terminal_weight`` x the user's
+        ``terminal_cost_fn(obs)`` (default: the stage cost at zero action).
 
-    Evaluation ("solved" = mean cost over ``eval_episodes`` episodes with fixed random targets
-    within ``solved_ratio`` x the cost of MPC with the TRUE model on the same targets):
+    Evaluation: the deterministic MPC policy (no exploration noise) on ``eval_episodes`` fixed
+    episodes; logged as returns (sum of the env's rewards, per episode and their mean). The run
+    is "solved" at the first evaluation whose mean return is ``>= solved_return`` when that is
+    given (any env), else whose mean cost is within ``solved_ratio`` x the cost of MPC with the
+    TRUE model on the same episodes (envs that offer a true model, e.g. the arm):
+
+    :param solved_return: success threshold on the mean evaluation return (``None``: the
+        oracle-ratio criterion, or no "solved" decision for envs without a true model).
 
     :param eval_every: evaluate every this many episodes after the excitation phase (0: never).
     :param eval_episodes: evaluation episodes (fixed targets/seeds, see ``eval_seed``).
@@ -131,9 +150,14 @@ class AgentConfig:
     jacobian_penalty: float = 0.01
     perturbation_sigma: float = 0.1
     n_perturbed_copies: int = 1
+    renormalize: bool = True
     ltv_lambda: float | str = "auto"
     ltv_prior: float = 0.01
     # planning
+    planner: str = "ilqr"
+    cem_samples: int = 200
+    cem_elites: int = 20
+    cem_iterations: int = 3
     horizon: int = 30
     ilqr_iterations: int = 2
     first_plan_iterations: int = 20
@@ -143,6 +167,7 @@ class AgentConfig:
     eval_episodes: int = 10
     eval_seed: int = 1000
     solved_ratio: float = 1.2
+    solved_return: float | None = None
     stop_when_solved: bool = False
     eval_early_exit: bool = True
     oracle_cache_dir: str | None = None
@@ -195,6 +220,13 @@ class AgentConfig:
         else:
             _float_range(self, "ltv_lambda", 0.0, math.inf, low_open=True)
         _float_range(self, "ltv_prior", 0.0, math.inf)
+        _choice(self, "planner", PLANNERS)
+        _int_at_least(self, "cem_samples", 2)
+        _int_at_least(self, "cem_elites", 1)
+        if self.cem_elites > self.cem_samples:
+            raise ValueError(
+                f"cem_elites must be <= cem_samples, got {self.cem_elites} > {self.cem_samples}")
+        _int_at_least(self, "cem_iterations", 1)
         _int_at_least(self, "horizon", 2)
         _int_at_least(self, "ilqr_iterations", 1)
         _int_at_least(self, "first_plan_iterations", 1)
@@ -203,6 +235,8 @@ class AgentConfig:
         _int_at_least(self, "eval_episodes", 1)
         _int_at_least(self, "eval_seed", 0)
         _float_range(self, "solved_ratio", 1.0, math.inf)
+        if self.solved_return is not None:
+            _float_range(self, "solved_return", -math.inf, math.inf)
         _int_at_least(self, "seed", 0)
         _int_at_least(self, "video_every", 1)
         _int_at_least(self, "torch_threads", 0)

@@ -32,7 +32,10 @@ LOG_COLUMNS: tuple[str, ...] = (
     "train_loss",
     "val_loss",
     "ltv_lambda",
+    "ltv_fallback",
     "eval_cost",
+    "eval_return",
+    "eval_returns",
     "oracle_cost",
     "cost_ratio",
     "solved",
@@ -92,7 +95,7 @@ class EpisodeLog:
         if self._writer is not None:
             step = int(row["episode"])
             for key, value in row.items():
-                if key in ("episode", "phase") or value is None:
+                if key in ("episode", "phase") or value is None or isinstance(value, str | list):
                     continue
                 v = float(value)
                 if math.isfinite(v):

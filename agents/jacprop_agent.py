@@ -39,6 +39,8 @@ import torch
 
 from agents.checkpoint import (
     atomic_write_text,
+    check_same,
+    env_fingerprint,
     load_checkpoint,
     numpy_rng_state,
     save_checkpoint,
@@ -72,6 +74,11 @@ __all__ = ["JacPropAgent"]
 
 CostFn = Callable[[Any, Any], Any]
 
+#: bytes an LTV fit may use for its posterior covariance (longer episodes are fitted in segments)
+LTV_MEMORY_BUDGET = 256e6
+#: construction refuses LTV regularization when even a 2-step fit would need more than this
+LTV_MEMORY_MAX = 2e9
+
 
 class JacPropAgent:
     """Model-based agent of the paper's Algorithm 1 (learned NN ensemble + iLQR MPC).
@@ -85,6 +92,10 @@ class JacPropAgent:
     :param state_fn: ``obs -> model state`` (numpy); with ``obs_fn``.
     :param obs_fn: ``(state, obs_ref) -> obs`` (CasADi-compatible), the inverse map used to
         evaluate ``cost_fn`` on predicted states.
+    :param terminal_cost_fn: ``obs -> scalar`` (CasADi), the cost of a plan's last predicted
+        observation (x ``config.terminal_weight``; default: the stage cost at zero action).
+    :param termination_fn: ``obs [..., obs_dim] -> bool [...]`` (numpy): where the env would
+        terminate; the CEM planner adds no cost after a predicted termination.
     :raises ValueError: at construction for non-Box spaces, an unbounded action space, a cost
         or maps that do not fit the env's dimensions, a bad config.
     """
@@ -96,6 +107,9 @@ class JacPropAgent:
         cost_fn: CostFn | None = None,
         state_fn: Callable[[np.ndarray], np.ndarray] | None = None,
         obs_fn: CostFn | None = None,
+        *,
+        terminal_cost_fn: Callable[[Any], Any] | None = None,
+        termination_fn: Callable[[np.ndarray], np.ndarray] | None = None,
     ) -> None:
         config = AgentConfig() if config is None else config
         if not isinstance(config, AgentConfig):
@@ -108,7 +122,8 @@ class JacPropAgent:
             )
         if config.checkpoint and config.run_dir is None:
             config = config.replace(checkpoint=False)
-        self._setup(env, config, spec, cost_fn, state_fn, obs_fn)
+        self._setup(env, config, spec, cost_fn, state_fn, obs_fn,
+                    terminal_cost_fn=terminal_cost_fn, termination_fn=termination_fn)
 
     # ------------------------------------------------------------------ construction
     def _setup(
@@ -121,6 +136,8 @@ class JacPropAgent:
         obs_fn: CostFn | None,
         *,
         saved_task: dict | None = None,
+        terminal_cost_fn: Callable[[Any], Any] | None = None,
+        termination_fn: Callable[[np.ndarray], np.ndarray] | None = None,
     ) -> None:
         self.env = env
         self.config = config
@@ -147,17 +164,23 @@ class JacPropAgent:
             state_map = StateMap(state_fn, obs_fn)
         self.cost_fn = cost_fn
         self.state_map = state_map
-        probe = np.zeros(spec.obs_dim)
-        if env is not None:
-            probe = np.clip(probe, env.observation_space.low, env.observation_space.high)
-        try:
-            s = self.state_map.state(probe)
-        except Exception as err:
-            raise ValueError(f"state_fn failed on an observation [{spec.obs_dim}]: {err}") from None
-        if s.ndim != 1 or s.size < 1:
-            raise ValueError(f"state_fn(obs) must return a 1-D state, got shape {list(s.shape)}")
+        s = self._check_state_fn(env, spec)
         self.state_dim = int(s.size)
-        self.task_cost = ObservationCost(cost_fn, state_map, spec, self.state_dim)
+        p = self.state_dim + spec.act_dim
+        if config.regularization in ("sampled", "exact") and 8 * 4 * 2 * self.state_dim * p**2 > (
+            LTV_MEMORY_MAX
+        ):
+            raise ValueError(
+                f"regularization={config.regularization!r} fits LTV models whose covariance holds "
+                f"n (n+m)^2 = {self.state_dim * p**2:.3g} numbers per time step for this model "
+                f"state (n={self.state_dim}, m={spec.act_dim}), more than this machine should "
+                "hold; pass a smaller model state with state_fn/obs_fn, or choose "
+                "AgentConfig(regularization='smooth') or 'none'"
+            )
+        self.task_cost = ObservationCost(
+            cost_fn, state_map, spec, self.state_dim, terminal_cost_fn=terminal_cost_fn)
+        self.terminal_cost_fn = terminal_cost_fn
+        self.termination_fn = _checked_termination_fn(termination_fn, env, spec)
         self.planner_costs = PlannerCosts(self.task_cost, config.terminal_weight)
         # the model: an ensemble of small networks, Objective 1 (f) or 2 (g)
         members = tuple(
@@ -177,14 +200,18 @@ class JacPropAgent:
             seed=config.seed,
         )
         self.model = DynamicsEnsemble(self.ensemble_config)
-        self.policy = MPCPolicy(
+        policy_cls = MPCPolicy if config.planner == "ilqr" else CEMPolicy
+        self.policy = policy_cls(
             self.model,
             self.planner_costs,
             spec,
             horizon=config.horizon,
-            iterations=config.ilqr_iterations,
+            iterations=config.ilqr_iterations if config.planner == "ilqr" else
+            config.cem_iterations,
             first_plan_iterations=config.first_plan_iterations,
         )
+        if config.planner == "cem":
+            self.policy.configure(config, self.termination_fn)
         self.has_linearize = env is not None and (
             hasattr(env.unwrapped, "linearize_trajectory") or hasattr(env.unwrapped, "linearize")
         )
@@ -202,24 +229,75 @@ class JacPropAgent:
         self._eval_env: gym.Env | None = None
         self._log: EpisodeLog | None = None
 
+    def _check_state_fn(self, env: gym.Env | None, spec: EnvSpec) -> np.ndarray:
+        """Call the state map on one observation and on a batch of three (it is called on
+        whole episodes ``[T+1, obs_dim]`` during :meth:`learn`) and check that the batch gives
+        the rows of the single calls. :return: the state of the first probe ``[n]``."""
+        rng = np.random.default_rng(0)
+        probe = rng.uniform(-1.0, 1.0, (3, spec.obs_dim))
+        if env is not None:
+            probe = np.clip(probe, env.observation_space.low, env.observation_space.high)
+        try:
+            single = [self.state_map.state(o) for o in probe]
+        except Exception as err:
+            raise ValueError(
+                f"state_fn failed on one observation [{spec.obs_dim}]: {type(err).__name__}: {err}"
+            ) from None
+        s = single[0]
+        if s.ndim != 1 or s.size < 1:
+            raise ValueError(f"state_fn(obs) must return a 1-D state, got shape {list(s.shape)}")
+        try:
+            batch = self.state_map.state(probe)
+        except Exception as err:
+            raise ValueError(
+                "state_fn must also accept a batch of observations [B, obs_dim] and return "
+                f"[B, n] (it is applied to whole episodes); it failed on [3, {spec.obs_dim}]: "
+                f"{type(err).__name__}: {err}"
+            ) from None
+        if batch.shape != (3, s.size) or not np.allclose(batch, np.stack(single), equal_nan=True):
+            raise ValueError(
+                "state_fn must map a batch of observations [B, obs_dim] row by row to "
+                f"[B, n={s.size}] (it is applied to whole episodes); for a batch of 3 it "
+                f"returned shape {list(batch.shape)}"
+                + ("" if batch.shape != (3, s.size) else " with rows that differ from "
+                   "state_fn applied to each observation")
+                + " -- use obs[..., i] indexing (numpy) instead of obs[i]"
+            )
+        return s
+
     # ------------------------------------------------------------------ public surface
     def learn(
         self,
-        episodes: int,
+        episodes: int | None = None,
         callback: Callable[[dict[str, Any]], bool | None] | None = None,
         progress_bar: bool = True,
+        *,
+        total_env_steps: int | None = None,
     ) -> JacPropAgent:
-        """Run ``episodes`` more episodes of Algorithm 1 (rollout, LTV fit, perturbed data,
-        regularised warm-started model update, planning), logging and checkpointing after each.
+        """Run Algorithm 1 (rollout, LTV fit, perturbed data, regularised warm-started model
+        update, planning) for a budget of episodes or env steps, logging and checkpointing
+        after every episode.
 
         :param episodes: number of episodes to run now (a loaded agent continues its count).
         :param callback: called after every episode with ``{"agent", "row"}``; returning
             ``False`` stops learning (as in Stable-Baselines3).
         :param progress_bar: show a tqdm progress bar.
+        :param total_env_steps: budget of env steps for this call (as SB3's
+            ``learn(total_timesteps)``); the last episode is cut short (truncated) so that the
+            budget is exact. With ``episodes`` too, whichever is reached first stops.
         :return: ``self``.
         """
-        if isinstance(episodes, bool) or not isinstance(episodes, int | np.integer) or episodes < 0:
+        if episodes is None and total_env_steps is None:
+            raise ValueError("give episodes or total_env_steps")
+        if episodes is not None and (
+            isinstance(episodes, bool) or not isinstance(episodes, int | np.integer) or episodes < 0
+        ):
             raise ValueError(f"episodes must be an integer >= 0, got {episodes!r}")
+        if total_env_steps is not None and (
+            isinstance(total_env_steps, bool)
+            or not isinstance(total_env_steps, int | np.integer) or total_env_steps < 0
+        ):
+            raise ValueError(f"total_env_steps must be an integer >= 0, got {total_env_steps!r}")
         if self.env is None:
             raise ValueError("this agent was loaded without an env; load(path, env=...) to learn")
         if self.config.torch_threads:
@@ -229,13 +307,23 @@ class JacPropAgent:
                 self.config.run_dir, tensorboard=self.config.tensorboard, rows=self.logger_rows
             )
         bar = None
-        if progress_bar and episodes > 0:
+        step_end = None if total_env_steps is None else self.env_steps + int(total_env_steps)
+        if progress_bar and (episodes or total_env_steps):
             from tqdm.auto import tqdm
 
-            bar = tqdm(total=episodes, desc="JacProp agent", unit="episode")
+            if episodes is not None:
+                bar = tqdm(total=episodes, desc="JacProp agent", unit="episode")
+            else:
+                bar = tqdm(total=total_env_steps, desc="JacProp agent", unit="step")
         try:
-            for _ in range(int(episodes)):
-                row = self._episode()
+            done = 0
+            while (episodes is None or done < episodes) and (
+                step_end is None or self.env_steps < step_end
+            ):
+                done += 1
+                before = self.env_steps
+                cap = None if step_end is None else step_end - self.env_steps
+                row = self._episode(max_steps=cap)
                 self.logger_rows.append(row)
                 self.episodes_done += 1
                 if self.config.checkpoint:
@@ -243,7 +331,7 @@ class JacPropAgent:
                 if self._log is not None:
                     self._log.append(row)
                 if bar is not None:
-                    bar.update(1)
+                    bar.update(1 if episodes is not None else self.env_steps - before)
                     bar.set_postfix(cost=f"{row['episode_cost']:.3g}",
                                     ratio=_fmt(row.get("cost_ratio")))
                 if callback is not None and callback({"agent": self, "row": row}) is False:
@@ -293,6 +381,8 @@ class JacPropAgent:
         obs_fn: CostFn | None = None,
         *,
         run_dir: str | None = None,
+        terminal_cost_fn: Callable[[Any], Any] | None = None,
+        termination_fn: Callable[[np.ndarray], np.ndarray] | None = None,
     ) -> JacPropAgent:
         """Restore an agent saved by :meth:`save` (or a run's ``checkpoint.pt``).
 
@@ -301,7 +391,9 @@ class JacPropAgent:
             Its spaces must match the saved ones.
         :param cost_fn: needed again if the agent was built with a custom ``cost_fn``
             (functions are not serialised; the built-in env cost is).
+        :param state_fn: with ``obs_fn``, needed again if the agent was built with them.
         :param run_dir: where :meth:`learn` writes from now on (default: the saved config's).
+        :param terminal_cost_fn: / ``termination_fn``: as at construction (not serialised).
         """
         path = Path(path)
         if path.is_dir():
@@ -322,18 +414,35 @@ class JacPropAgent:
                     f"{(got.obs_dim, got.act_dim, got.u_min, got.u_max)} vs "
                     f"{(spec.obs_dim, spec.act_dim, spec.u_min, spec.u_max)}"
                 )
+        if env is not None and payload.get("env_fingerprint"):
+            check_same(json.loads(payload["env_fingerprint"]), env_fingerprint(env),
+                       what="env", path=path)
         task = json.loads(payload["task"])
+        saved_n = json.loads(payload["ensemble_config"])["state_dim"]
+        if task.get("state_map") is None and state_fn is None:
+            raise ValueError(
+                f"the agent was saved with a custom state_fn/obs_fn (model state of dimension "
+                f"{saved_n}); functions are not saved: pass the same state_fn= and obs_fn= to "
+                "load"
+            )
         if task.get("cost") is None and cost_fn is None and (
             env is None or default_task_for_env(env) is None
         ):
             raise ValueError("the agent was built with a custom cost_fn: pass cost_fn= to load")
         agent = cls.__new__(cls)
-        agent._setup(env, config, spec, cost_fn, state_fn, obs_fn, saved_task=task)
+        agent._setup(env, config, spec, cost_fn, state_fn, obs_fn, saved_task=task,
+                     terminal_cost_fn=terminal_cost_fn, termination_fn=termination_fn)
+        if agent.state_dim != saved_n:
+            raise ValueError(
+                f"state_fn gives a model state of dimension {agent.state_dim}, but the saved "
+                f"agent's model was trained on dimension {saved_n}: pass the state_fn/obs_fn it "
+                "was built with"
+            )
         agent._restore(payload)
         return agent
 
     # ------------------------------------------------------------------ one episode
-    def _episode(self) -> dict[str, Any]:
+    def _episode(self, max_steps: int | None = None) -> dict[str, Any]:
         cfg, spec = self.config, self.spec
         ep = self.episodes_done
         t_start = time.perf_counter()
@@ -344,7 +453,7 @@ class JacPropAgent:
         # anything that draws from torch's global generator is reproducible per episode
         torch.manual_seed(torch_seed)
         excitation = ep < cfg.n_excitation_episodes
-        T = spec.episode_steps
+        T = spec.episode_steps if max_steps is None else min(spec.episode_steps, max_steps)
         render = cfg.video and cfg.run_dir is not None and ep % cfg.video_every == 0
 
         # (a) rollout in the real env --------------------------------------------------------
@@ -381,9 +490,10 @@ class JacPropAgent:
         # (b) LTV model of the new trajectory ------------------------------------------------
         tic = time.perf_counter()
         lam = math.nan
+        ltv_note = ""
         if cfg.regularization in ("sampled", "exact"):
-            lam = self._ltv_lambda(traj)
-            self.ltv_models.append(self._fit_ltv(traj, lam))
+            ltv, lam, ltv_note = self._ltv_for(traj)
+            self.ltv_models.append(ltv)
         self.ltv_lambdas.append(lam)
         self.trajectories.append(traj)
         time_ltv = time.perf_counter() - tic
@@ -395,12 +505,11 @@ class JacPropAgent:
 
         # evaluation: the MPC policy on the updated model vs the oracle ------------------------
         tic = time.perf_counter()
-        eval_cost = oracle = ratio = None
-        n_eval = 0
-        solved = False
+        ev: dict[str, Any] = {"eval_cost": None, "eval_return": None, "eval_returns": None,
+                              "oracle_cost": None, "cost_ratio": None, "eval_episodes_run": 0,
+                              "solved": False}
         if self._should_evaluate(ep):
-            eval_cost, oracle, ratio, n_eval = self._evaluate()
-            solved = bool(eval_cost is not None and ratio is not None and ratio <= cfg.solved_ratio)
+            ev = self._evaluate()
         time_eval = time.perf_counter() - tic
 
         return {
@@ -414,11 +523,8 @@ class JacPropAgent:
             "train_loss": _last(getattr(history, "train_loss", None)),
             "val_loss": _last(getattr(history, "val_loss", None)),
             "ltv_lambda": lam,
-            "eval_cost": eval_cost,
-            "oracle_cost": oracle,
-            "cost_ratio": ratio,
-            "eval_episodes_run": n_eval,
-            "solved": solved,
+            "ltv_fallback": ltv_note,
+            **ev,
             "time_rollout": time_rollout,
             "time_planning": rec.time_policy,
             "time_ltv": time_ltv,
@@ -444,31 +550,142 @@ class JacPropAgent:
         mid, half = 0.5 * (spec.u_max + spec.u_min), 0.5 * (spec.u_max - spec.u_min)
         return np.clip(mid + half * cfg.excitation_scale * sig, spec.u_min, spec.u_max)
 
-    def _fit_ltv(self, traj: Trajectory, lam: float) -> LTVModel:
-        """LTV fit of one trajectory, fused with the ensemble's Jacobians as a prior once the
-        ensemble has been trained (see ``AgentConfig.ltv_prior``)."""
-        ltv = fit_ltv(traj, lam)
-        if self.config.ltv_prior > 0 and self.model.is_normalized:
+    def _ltv_for(self, traj: Trajectory) -> tuple[LTVModel, float, str]:
+        """The LTV model ``l_i`` of a new trajectory, with documented fallbacks instead of an
+        error when the data cannot support the fit (see ``docs/agent.md``, "LTV fallbacks"):
+
+        1. ``ltv_lambda="auto"`` needs more transitions than regressors (``T > n + m``); a
+           shorter episode (early termination) reuses the median of the earlier selections,
+           or the regressor scale for the very first episode.
+        2. Regressors that do not span their space (observation coordinates that are constant
+           within the episode, such as a goal position, or an unexcited input) make the
+           smooth fit singular: it is repeated with a weak Gaussian prior on the first
+           Jacobian (``fit_ltv(..., P0=...)``, 1e-6 of the data's scale), which fixes the
+           unidentified directions at zero and leaves the identified ones unchanged.
+        3. A trajectory of one transition has no smoothness to exploit: it is labelled by the
+           model's own Jacobians once the model is trained, else by one time-invariant
+           ridge least-squares fit pooled over all episodes so far.
+
+        Every fallback is logged as a ``RuntimeWarning`` and in the episode's ``ltv_fallback``
+        column. :return: ``(model, lam, note)`` (``note`` empty when nothing fell back).
+        """
+        notes: list[str] = []
+        n, m = self.state_dim, self.spec.act_dim
+        lam = math.nan
+        ltv = None
+        if traj.T >= 2:
+            lam = self._ltv_lambda(traj, notes)
+            # the fit's posterior covariance holds T n (n+m)^2 numbers: long episodes of
+            # high-dimensional envs are fitted in consecutive segments that fit the memory
+            # budget (smoothness is then not enforced across segment boundaries)
+            seg = max(2, int(LTV_MEMORY_BUDGET // (8 * 4 * n * (n + m) ** 2)))
+            bounds = list(range(0, traj.T, seg))
+            if len(bounds) > 1 and traj.T - bounds[-1] < 2:
+                bounds.pop()
+            if len(bounds) > 1:
+                notes.append(f"{len(bounds)} segments of <= {seg} steps (memory)")
+            parts = []
+            for a, b in zip(bounds, bounds[1:] + [traj.T]):
+                part = self._fit_segment(
+                    Trajectory(traj.x[a : b + 1], traj.u[a:b], traj.dt), lam, notes)
+                if part is None:
+                    parts = None
+                    break
+                parts.append(part)
+            if parts is not None:
+                ltv = _light_ltv(np.concatenate([p_[0] for p_ in parts]),
+                                 np.concatenate([p_[1] for p_ in parts]), lam)
+        if ltv is None:
+            if self.model.is_normalized:
+                x, u = traj.inputs
+                A, B = self.model.member_jacobians(x, u)
+                ltv = _light_ltv(A.mean(0), B.mean(0), lam)
+                notes.append(f"episode of {traj.T} transition(s): labelled by the model's "
+                             "Jacobians")
+            else:
+                ltv = _pooled_linear_fit(self.trajectories + [traj], traj.T, n, m)
+                notes.append(f"episode of {traj.T} transition(s): time-invariant least-squares "
+                             "fit pooled over all episodes")
+        return self._warn_fallback(ltv, lam, list(dict.fromkeys(notes)))
+
+    def _fit_segment(
+        self, traj: Trajectory, lam: float, notes: list[str]
+    ) -> tuple[np.ndarray, np.ndarray] | None:
+        """``(A [T, n, n], B [T, n, m])`` of the smooth LTV fit of ``traj`` (weak prior on the
+        first Jacobian if the regressors are degenerate), fused with the model's Jacobians
+        (``AgentConfig.ltv_prior``); ``None`` if even the weak prior cannot make it solvable."""
+        n = self.state_dim
+        try:
+            ltv = fit_ltv(traj, lam)
+        except ValueError:
+            x, u = traj.inputs
+            phi = np.concatenate([x, u], axis=1)
+            scale = float(np.mean(np.sum(phi**2, axis=1))) * traj.T + lam**2 + 1e-12
+            try:
+                ltv = fit_ltv(traj, lam, P0=1.0 / (1e-6 * scale))
+            except ValueError:
+                return None
+            notes.append("degenerate regressors (constant or unexcited observation/action "
+                         "dimensions): weak prior on the first Jacobian")
+        q = n + self.spec.act_dim
+        if self.config.ltv_prior > 0 and self.model.is_normalized and n * q**3 > 1e7:
+            notes.append("model prior (ltv_prior) skipped: n (n+m)^3 too large for the fusion")
+        elif self.config.ltv_prior > 0 and self.model.is_normalized:
             x, u = traj.inputs
             A, B = self.model.member_jacobians(x, u)  # [K, T, n, n], [K, T, n, m]
             J = np.concatenate([A, B], axis=-1)
-            n = self.state_dim
             mean, var = J.mean(0), J.var(0) + self.config.ltv_prior
             ltv = fuse_prior(ltv, mean[..., :n], mean[..., n:], var)
-        return ltv
+        return np.asarray(ltv.A), np.asarray(ltv.B)
 
-    def _ltv_lambda(self, traj: Trajectory) -> float:
+    def _warn_fallback(
+        self, ltv: LTVModel, lam: float, notes: list[str]
+    ) -> tuple[LTVModel, float, str]:
+        note = "; ".join(notes)
+        if note:
+            warnings.warn(
+                f"episode {self.episodes_done}: LTV fit fallback: {note}", RuntimeWarning,
+                stacklevel=3,
+            )
+        return ltv, lam, note
+
+    def _ltv_lambda(self, traj: Trajectory, notes: list[str] | None = None) -> float:
+        """``AgentConfig.ltv_lambda``, or its automatic choice (see :meth:`_ltv_for`)."""
         if self.config.ltv_lambda != "auto":
             return float(self.config.ltv_lambda)
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", RuntimeWarning)  # a boundary optimum is fine here
-            lam, _ = select_lambda(traj)
-        return float(lam)
+        # constant state coordinates (a goal in the observation) carry no information on the
+        # smoothness and make the criterion singular: select on the varying ones
+        varying = np.ptp(traj.x, axis=0) > 1e-9 * (1.0 + np.abs(traj.x).max(axis=0))
+        sub = traj if varying.all() or not varying.any() else Trajectory(
+            traj.x[:, varying], traj.u, traj.dt)
+        try:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", RuntimeWarning)  # a boundary optimum is fine
+                lam, _ = select_lambda(sub)
+            return float(lam)
+        except ValueError as err:
+            reason = ("too few transitions" if "more measurements" in str(err)
+                      else "degenerate regressors")
+            earlier = [v for v in self.ltv_lambdas if math.isfinite(v)]
+            if earlier:
+                lam = float(np.median(earlier))
+                what = "the median of the earlier selections"
+            else:
+                x, u = traj.inputs
+                phi = np.concatenate([x, u], axis=1)
+                lam = float(np.sqrt(np.mean(np.sum(phi**2, axis=1)) / phi.shape[1])) or 1.0
+                what = "the regressor scale"
+            if notes is not None:
+                notes.append(f"ltv_lambda='auto' cannot be selected ({reason}, {traj.T} "
+                             f"transitions): using {what} ({lam:.3g})")
+            return lam
 
     def _train(self, train_seed: int):
         from mbtsr.training import train_ensemble
 
         tcfg, reg = self._train_configs(train_seed)
+        if self.config.renormalize:
+            self.model.refit_normalization(self.trajectories)
         history = train_ensemble(
             self.model,
             self.trajectories,
@@ -557,16 +774,17 @@ class JacPropAgent:
                 self.config.eval_episodes, self.config.eval_seed, env
             )
 
-    def _evaluate(self) -> tuple[float | None, float | None, float | None, int]:
+    def _evaluate(self) -> dict[str, Any]:
         """Evaluate :meth:`predict` on the fixed evaluation episodes.
 
-        :return: ``(mean cost or None if stopped early, oracle mean or None, cost ratio or
-            None, episodes run)``; the ratio is ``sum(agent) / sum(oracle)`` over the oracle's
-            episodes, a lower bound when the evaluation stopped early.
+        :return: the log fields ``eval_cost`` (mean cost, ``None`` if stopped early),
+            ``eval_return`` (mean return) and ``eval_returns`` (per episode), ``oracle_cost``,
+            ``cost_ratio`` (``sum(agent) / sum(oracle)`` over the oracle's episodes, a lower
+            bound when the evaluation stopped early), ``eval_episodes_run`` and ``solved``.
         """
         cfg = self.config
         env, kwargs = self._eval_setup()
-        oracle = self._oracle_costs(env, kwargs)
+        oracle = None if cfg.solved_return is not None else self._oracle_costs(env, kwargs)
         stop_above = None
         if oracle is not None and cfg.eval_early_exit and np.all(oracle >= 0):
             stop_above = cfg.solved_ratio * float(np.sum(oracle))
@@ -574,12 +792,26 @@ class JacPropAgent:
             self, env, self.eval_targets, cfg.eval_seed, stop_above=stop_above, **kwargs
         )
         complete = len(costs) == cfg.eval_episodes
-        mean = float(np.mean(costs)) if complete else None
+        returns = [float(-c) for c in costs]
+        out: dict[str, Any] = {
+            "eval_cost": float(np.mean(costs)) if complete else None,
+            "eval_return": float(np.mean(returns)) if complete else None,
+            "eval_returns": returns,
+            "oracle_cost": None,
+            "cost_ratio": None,
+            "eval_episodes_run": len(costs),
+            "solved": False,
+        }
+        if cfg.solved_return is not None:
+            out["solved"] = bool(complete and out["eval_return"] >= cfg.solved_return)
+            return out
         if oracle is None:
-            return mean, None, None, len(costs)
+            return out
         total = float(np.sum(oracle))
         ratio = float(np.sum(costs)) / total if total > 0 else math.inf
-        return mean, float(np.mean(oracle)), ratio, len(costs)
+        out.update(oracle_cost=float(np.mean(oracle)), cost_ratio=ratio,
+                   solved=bool(complete and ratio <= cfg.solved_ratio))
+        return out
 
     def _oracle_costs(self, env: gym.Env, kwargs: dict[str, Any]) -> np.ndarray | None:
         """Per-episode costs of MPC with the TRUE model (computed once, then kept)."""
@@ -668,6 +900,7 @@ class JacPropAgent:
         rows = self.logger_rows
         solved = [r for r in rows if r.get("solved")]
         evals = [r for r in rows if r.get("cost_ratio") is not None]
+        rets = [r for r in rows if r.get("eval_return") is not None]
         phases = {c[len("time_"):]: float(sum(r[c] for r in rows)) for c in TIMING_COLUMNS}
         return {
             "env_id": self.env_id,
@@ -678,6 +911,19 @@ class JacPropAgent:
             "final_cost_ratio": evals[-1]["cost_ratio"] if evals else None,
             "best_cost_ratio": min(r["cost_ratio"] for r in evals) if evals else None,
             "final_eval_cost": evals[-1]["eval_cost"] if evals else None,
+            "final_eval_return": rets[-1]["eval_return"] if rets else None,
+            "final_eval_returns": rets[-1]["eval_returns"] if rets else None,
+            "best_eval_return": max(r["eval_return"] for r in rets) if rets else None,
+            "eval_curve": [
+                {"episode": r["episode"], "env_steps": r["env_steps"],
+                 "eval_return": r.get("eval_return"), "eval_returns": r.get("eval_returns"),
+                 "cost_ratio": r.get("cost_ratio")}
+                for r in rows if r.get("eval_returns") is not None
+            ],
+            "solved_return": self.config.solved_return,
+            "solved_criterion": (
+                "mean_return" if self.config.solved_return is not None
+                else "oracle_ratio" if self.oracle_costs is not None else None),
             "oracle_cost": self.oracle_mean,
             "solved_ratio": self.config.solved_ratio,
             "wall_seconds_per_phase": phases,
@@ -707,6 +953,7 @@ class JacPropAgent:
         return {
             "agent_config": json.dumps(self.config.to_dict()),
             "env_spec": json.dumps(self.spec.to_dict()),
+            "env_fingerprint": None if self.env is None else json.dumps(env_fingerprint(self.env)),
             "task": json.dumps(task),
             "ensemble_config": self.ensemble_config.to_json(),
             "model_state": {k: v.detach().clone() for k, v in self.model.state_dict().items()},
@@ -718,8 +965,7 @@ class JacPropAgent:
             # stored, not refitted: a fit fused with the model prior depends on the model of
             # its episode
             "ltv_models": [
-                {"A": m.A, "B": m.B, "c": m.c, "cov": m.cov, "lam": m.lam,
-                 "noise_var": m.noise_var}
+                {"A": m.A, "B": m.B, "lam": m.lam}
                 for m in self.ltv_models
             ],
             "episodes_done": self.episodes_done,
@@ -743,10 +989,7 @@ class JacPropAgent:
         ]
         self.ltv_lambdas = [float(v) for v in p["ltv_lambdas"]]
         self.ltv_models = [
-            LTVModel(
-                d["A"].numpy(), d["B"].numpy(), None if d["c"] is None else d["c"].numpy(),
-                d["cov"].numpy(), lam=float(d["lam"]), noise_var=float(d["noise_var"]),
-            )
+            _light_ltv(d["A"].numpy(), d["B"].numpy(), float(d["lam"]))
             for d in p["ltv_models"]
         ]
         self.episodes_done = int(p["episodes_done"])
@@ -764,9 +1007,7 @@ class JacPropAgent:
         run_dir.mkdir(parents=True, exist_ok=True)
         # the checkpoint is the source of truth; the exports below are conveniences
         self.save(run_dir / "checkpoint.pt")
-        tmp = run_dir / ".model.pt.tmp"
-        save_model(self.model, tmp)
-        tmp.replace(run_dir / "model.pt")
+        save_model(self.model, run_dir / "model.pt")  # atomic
         save_trajectories(run_dir / "data.npz", self.trajectories)
         atomic_write_text(run_dir / "summary.json", json.dumps(self.summary(), indent=2))
 
@@ -783,6 +1024,100 @@ class JacPropAgent:
             save_video(frames, folder / f"episode_{ep:04d}.mp4", fps=fps)
         except ValueError:  # no imageio-ffmpeg
             save_video(frames, folder / f"episode_{ep:04d}.gif", fps=fps)
+
+
+class CEMPolicy(MPCPolicy):
+    """The same receding-horizon MPC with :func:`mbtsr.cem.cem` instead of iLQR (forward
+    predictions of the model only). ``predict`` stays a pure function of its arguments: every
+    solve uses the seed ``AgentConfig.seed``."""
+
+    def configure(self, config: AgentConfig, termination_fn: Callable | None) -> None:
+        import casadi as ca
+
+        self.cem_options = {
+            "samples": config.cem_samples, "elites": config.cem_elites, "seed": config.seed,
+        }
+        self.termination_fn = termination_fn
+        tc = self.costs.task_cost
+        s, p = ca.SX.sym("s", tc.state_dim), ca.SX.sym("p", tc.spec.obs_dim)
+        self._obs_of_state = ca.Function("obs_of_state", [s, p], [
+            ca.SX(self.state_map.observation(s, p))])
+
+    def _terminated(self, obs_ref: np.ndarray) -> Callable[[np.ndarray], np.ndarray] | None:
+        if self.termination_fn is None:
+            return None
+        fn = self.termination_fn
+
+        def terminated(X: np.ndarray) -> np.ndarray:
+            flat = X.reshape(-1, X.shape[-1])
+            obs = np.asarray(self._obs_of_state.map(flat.shape[0])(
+                flat.T, np.repeat(obs_ref[:, None], flat.shape[0], axis=1))).T
+            return np.asarray(fn(obs), dtype=bool).reshape(X.shape[:-1])
+
+        return terminated
+
+    def plan(self, obs: np.ndarray, U0: np.ndarray | None = None) -> tuple[np.ndarray, Any]:
+        from mbtsr.cem import cem
+
+        s = self.state_map.state(obs)
+        cold = U0 is None
+        U0 = self.initial_plan() if cold else U0
+        iters = self.first_plan_iterations if cold else self.iterations
+        res = cem(
+            self.costs(obs), self.model, s, U0, u_min=self.spec.u_min, u_max=self.spec.u_max,
+            options={**self.cem_options, "iterations": iters},
+            terminated=self._terminated(np.asarray(obs, dtype=float)),
+        )
+        self.last_result = res
+        return np.asarray(res.U, dtype=float), res
+
+
+def _checked_termination_fn(
+    fn: Callable[[np.ndarray], np.ndarray] | None, env: gym.Env | None, spec: EnvSpec
+) -> Callable[[np.ndarray], np.ndarray] | None:
+    """Check ``termination_fn`` on a batch of observations ``[2, 3, obs_dim] -> bool [2, 3]``."""
+    if fn is None:
+        return None
+    if not callable(fn):
+        raise TypeError(f"termination_fn must be callable obs -> bool, got {fn!r}")
+    probe = np.random.default_rng(0).uniform(-1.0, 1.0, (2, 3, spec.obs_dim))
+    if env is not None:
+        probe = np.clip(probe, env.observation_space.low, env.observation_space.high)
+    try:
+        out = np.asarray(fn(probe))
+    except Exception as err:
+        raise ValueError(
+            f"termination_fn must accept a batch of observations [..., obs_dim={spec.obs_dim}]; "
+            f"it failed on [2, 3, {spec.obs_dim}]: {type(err).__name__}: {err}"
+        ) from None
+    if out.shape != (2, 3):
+        raise ValueError(
+            f"termination_fn(obs [..., obs_dim]) must return one bool per observation [...]; for "
+            f"[2, 3, {spec.obs_dim}] it returned shape {list(out.shape)}")
+    return fn
+
+
+def _light_ltv(A: np.ndarray, B: np.ndarray, lam: float = math.nan) -> LTVModel:
+    """An LTV model that keeps ``A``, ``B`` only (what the perturbed data need); its ``cov`` is
+    a zero-memory view of zeros (the posterior covariance is used once, for the prior fusion,
+    and would cost ``T n (n+m)^2`` numbers per episode to keep)."""
+    T, n, m = B.shape
+    cov = np.broadcast_to(np.zeros((), dtype=float), (T, n, n + m, n + m))
+    return LTVModel(A, B, None, cov, lam=0.0 if not math.isfinite(lam) else lam)
+
+
+def _pooled_linear_fit(trajs: list[Trajectory], T: int, n: int, m: int) -> LTVModel:
+    """``x+ = A x + B u`` by ridge least squares over all transitions of ``trajs`` (ridge 1e-6 of
+    the regressor scale), repeated over ``T`` steps, with the residual covariance."""
+    phi = np.concatenate([np.concatenate([t.x[:-1], t.u], axis=1) for t in trajs])
+    y = np.concatenate([t.x[1:] for t in trajs])
+    G = phi.T @ phi
+    ridge = 1e-6 * (np.trace(G) / G.shape[0] + 1e-12)
+    H = G + ridge * np.eye(n + m)
+    K = np.linalg.solve(H, phi.T @ y).T  # [n, n+m]
+    return _light_ltv(
+        np.broadcast_to(K[:, :n], (T, n, n)).copy(), np.broadcast_to(K[:, n:], (T, n, m)).copy()
+    )
 
 
 def _last(values: Any) -> float | None:

@@ -6,11 +6,22 @@ The user describes the control task on the env's own terms:
   ``obs: [obs_dim]`` and an action ``action: [act_dim]`` (env units). It is called once with
   CasADi ``SX`` column vectors to build the planner's cost, so write it with ``casadi``
   operations (``obs[0]``, ``ca.sumsqr``, ``ca.cos``, ``ca.mtimes`` ...).
+* optionally ``terminal_cost_fn(obs) -> scalar`` (CasADi-compatible): the cost of the last
+  predicted observation of a plan (default: the stage cost at zero action), scaled by
+  ``AgentConfig.terminal_weight``.
 * optionally ``state_fn(obs) -> state`` (numpy) and ``obs_fn(state, obs_ref) -> obs``
   (CasADi-compatible): the model learns the dynamics of ``state``, and the cost of a predicted
   state is ``cost_fn(obs_fn(state, obs_ref), action)``, where ``obs_ref`` is the current real
   observation (it supplies parts of the observation the model does not predict, such as a
   target). Without them the model state is the observation itself.
+  **Contract:** ``state_fn`` is applied to whole episodes, so it must map a batch
+  ``obs [B, obs_dim] -> state [B, n]`` row by row as well as one ``obs [obs_dim] -> [n]``
+  (write it with ``obs[..., i]``); ``obs_fn`` is called once on CasADi symbols
+  ``state [n]``, ``obs_ref [obs_dim]`` and must return ``[obs_dim]``. Both are checked at
+  construction (on one observation and on a batch of three).
+* optionally ``termination_fn(obs) -> bool`` (numpy, batched ``[..., obs_dim] -> [...]``):
+  predicted observations where the env would terminate; the CEM planner stops accumulating cost
+  after a predicted termination (as PETS does), see :func:`mbtsr.cem.cem`.
 
 Everything is checked at construction: non-Box spaces, unbounded actions, a cost that fails on
 or does not return a scalar for the given dimensions, maps that return the wrong sizes.
@@ -237,6 +248,7 @@ class ObservationCost:
         state_map: StateMap,
         spec: EnvSpec,
         state_dim: int,
+        terminal_cost_fn: Callable[[Any], Any] | None = None,
     ) -> None:
         if not callable(cost_fn):
             raise TypeError(f"cost_fn must be callable (obs, action) -> cost, got {cost_fn!r}")
@@ -266,10 +278,28 @@ class ObservationCost:
         # p: the reference observation, which supplies what the model does not predict
         p = o
         self.stage = ca.Function("cost_state", [s, a, p], [c_state])
-        # terminal cost: the stage cost at zero action
-        self.terminal = ca.Function(
-            "cost_state_terminal", [s, p], [ca.substitute(c_state, a, ca.DM.zeros(spec.act_dim))]
-        )
+        # terminal cost: the user's terminal_cost_fn(obs), else the stage cost at zero action
+        self.terminal_cost_fn = terminal_cost_fn
+        if terminal_cost_fn is None:
+            c_term = ca.substitute(c_state, a, ca.DM.zeros(spec.act_dim))
+        else:
+            if not callable(terminal_cost_fn):
+                raise TypeError(
+                    f"terminal_cost_fn must be callable obs -> cost, got {terminal_cost_fn!r}")
+            try:
+                c_term_obs = ca.SX(terminal_cost_fn(o))
+            except Exception as err:
+                raise ValueError(
+                    f"terminal_cost_fn(obs) failed on a symbolic observation of dimension "
+                    f"{spec.obs_dim} (write it with casadi operations): "
+                    f"{type(err).__name__}: {err}"
+                ) from None
+            if c_term_obs.shape != (1, 1):
+                raise ValueError(
+                    f"terminal_cost_fn must return a scalar, got shape {c_term_obs.shape}")
+            self.terminal_obs_function = ca.Function("terminal_obs", [o], [c_term_obs])
+            c_term = ca.substitute(c_term_obs, o, o_of_s)
+        self.terminal = ca.Function("cost_state_terminal", [s, p], [c_term])
 
     def on_observations(self, obs: np.ndarray, actions: np.ndarray) -> np.ndarray:
         """Per-step cost of a recorded episode: ``obs: [T, obs_dim]``, ``actions: [T, m]``

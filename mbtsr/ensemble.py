@@ -47,7 +47,6 @@ import os
 from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, field
 from operator import attrgetter
-from pathlib import Path
 from types import SimpleNamespace
 
 import numpy as np
@@ -58,6 +57,7 @@ from torch.nn import functional as F  # noqa: N812
 from torch.optim.optimizer import register_optimizer_step_post_hook
 
 from mbtsr.dynamics import check_step_inputs
+from mbtsr.fileformat import CheckpointError, torch_load_verified, torch_save_verified
 from mbtsr.trajectory import Trajectory
 from mbtsr.validation import as_array
 
@@ -743,6 +743,37 @@ class DynamicsEnsemble(nn.Module):
         self.normalization_set.fill_(1)
         self.invalidate_cache()
 
+    def refit_normalization(self, trajs: Trajectory | Sequence[Trajectory]) -> None:
+        """Recompute the statistics from ``trajs`` (as :meth:`set_normalization`) WITHOUT
+        changing the function the ensemble represents: the first layer and the output layer
+        of every member absorb the change (``W1' = diag(s'/s) W1``,
+        ``b1' = b1 + ((m' - m) / s) W1``, ``Wo' = Wo o_s / o_s'``,
+        ``bo' = (bo o_s + o_m - o_m') / o_s'``), computed in float64. Predictions agree to
+        float32 rounding; the training that follows then works in the scales of all data so
+        far instead of those of the first episode. Adam's moment estimates are not rescaled.
+        Unset statistics are simply set.
+
+        :param trajs: a :class:`~mbtsr.trajectory.Trajectory` or a list of them.
+        """
+        if not self.is_normalized or not self.config.normalize:
+            self.set_normalization(trajs)
+            return
+        names = ("in_mean", "in_std", "out_mean", "out_std")
+        old = {k: getattr(self, k).detach().double().clone() for k in names}
+        self.set_normalization(trajs)
+        new = {k: getattr(self, k).detach().double() for k in names}
+        with torch.no_grad():
+            for g in self.groups:
+                W1 = g.W1.detach().double()  # [K, in, W]
+                shift = ((new["in_mean"] - old["in_mean"]) / old["in_std"])  # [in]
+                g.b1.copy_(g.b1.double() + torch.einsum("i,kiw->kw", shift, W1)[:, None])
+                g.W1.copy_(W1 * (new["in_std"] / old["in_std"])[None, :, None])
+                g.Wo.copy_(g.Wo.double() * (old["out_std"] / new["out_std"])[None, None, :])
+                g.bo.copy_((g.bo.double() * old["out_std"] + old["out_mean"] - new["out_mean"])
+                           / new["out_std"])
+                g._arrays = None
+        self.invalidate_cache()
+
     # ---------------------------------------------------------------- torch surface
     def _xu_torch(self, x, u) -> torch.Tensor:
         n, m = self.state_dim, self.action_dim
@@ -1167,37 +1198,44 @@ def _pool_transitions(trajs, n: int, m: int) -> tuple[np.ndarray, np.ndarray]:
 # --------------------------------------------------------------------------------------------
 
 _FORMAT = "mbtsr.DynamicsEnsemble"
-_FORMAT_VERSION = 1
+_FORMAT_VERSION = 2  # 2: checksummed file (mbtsr.fileformat)
 
 
 def save_model(model: DynamicsEnsemble, path: str | os.PathLike) -> None:
     """Save weights, normalization statistics and config (as JSON text) with ``torch.save``.
 
-    Written atomically (temporary file, then rename). Load with :func:`load_model`, which uses
-    ``torch.load(weights_only=True)``: no arbitrary objects are unpickled.
+    Written atomically with a format version and a content checksum
+    (:func:`mbtsr.fileformat.torch_save_verified`). Load with :func:`load_model`, which checks
+    both and uses ``torch.load(weights_only=True)``: no arbitrary objects are unpickled.
     """
     if not isinstance(model, DynamicsEnsemble):
         raise ValueError(f"model must be a DynamicsEnsemble, got {type(model).__name__}")
-    path = Path(path)
     payload = {
         "format": _FORMAT,
         "version": _FORMAT_VERSION,
         "config": model.config.to_json(),
         "state_dict": {k: v.detach().clone() for k, v in model.state_dict().items()},
     }
-    tmp = path.with_name(path.name + ".tmp")
-    torch.save(payload, tmp)
-    os.replace(tmp, path)
+    torch_save_verified(payload, path, kind=_FORMAT, version=_FORMAT_VERSION)
 
 
 def load_model(path: str | os.PathLike) -> DynamicsEnsemble:
-    """Load a model written by :func:`save_model` (``weights_only=True``; returns eval mode)."""
-    payload = torch.load(Path(path), map_location="cpu", weights_only=True)
+    """Load a model written by :func:`save_model` (checksum verified, ``weights_only=True``;
+    returns eval mode).
+
+    :raises CheckpointError: truncated, corrupted, another format, or weights that do not fit
+        the saved config.
+    """
+    payload, _ = torch_load_verified(path, kind=_FORMAT, versions=(_FORMAT_VERSION,),
+                                     what=f"a saved {_FORMAT}")
     if not isinstance(payload, dict) or payload.get("format") != _FORMAT:
-        raise ValueError(f"{path} is not a saved {_FORMAT}")
-    if payload.get("version") != _FORMAT_VERSION:
-        raise ValueError(f"{path}: unsupported format version {payload.get('version')!r}")
-    model = DynamicsEnsemble(EnsembleConfig.from_json(payload["config"]))
-    model.load_state_dict(payload["state_dict"])
+        raise CheckpointError(f"{path} is not a saved {_FORMAT}")
+    try:
+        model = DynamicsEnsemble(EnsembleConfig.from_json(payload["config"]))
+        model.load_state_dict(payload["state_dict"])
+    except (KeyError, TypeError, ValueError, RuntimeError) as err:
+        raise CheckpointError(
+            f"{path}: the saved weights do not fit the saved config ({type(err).__name__}: "
+            f"{str(err).splitlines()[0]})") from None
     model.invalidate_cache()
     return model.eval()

@@ -470,3 +470,165 @@ def test_default_agent_solves_the_arm_within_30_episodes(tmp_path):
     summary = agent.summary()
     assert summary["episodes_to_solve"] is not None, summary
     assert summary["final_cost_ratio"] <= 1.2
+
+
+# --------------------------------------------------------------------------- user maps
+def _pendulum_angle_state(obs):
+    """obs [..., 3] -> [..., 2] = (angle, velocity), written for batches."""
+    obs = np.asarray(obs)
+    return np.stack([np.arctan2(obs[..., 1], obs[..., 0]), obs[..., 2]], axis=-1)
+
+
+def _pendulum_obs_of_state(s, ref):
+    return ca.vertcat(ca.cos(s[0]), ca.sin(s[0]), s[1])
+
+
+def test_state_fn_is_checked_on_a_batch_at_construction():
+    env = gym.make("Pendulum-v1")
+
+    def per_observation(obs):  # obs[0] of a batch is a row, not the cosine
+        return np.array([np.arctan2(obs[1], obs[0]), obs[2]])
+
+    with pytest.raises(ValueError, match=r"state_fn must .*batch of observations \[B, obs_dim\]"):
+        JacPropAgent(env, tiny_config(), cost_fn=pendulum_cost, state_fn=per_observation,
+                     obs_fn=_pendulum_obs_of_state)
+    agent = JacPropAgent(env, tiny_config(), cost_fn=pendulum_cost,
+                         state_fn=_pendulum_angle_state, obs_fn=_pendulum_obs_of_state)
+    assert agent.state_dim == 2
+
+
+def test_load_explains_a_missing_state_fn(tmp_path):
+    env = gym.make("Pendulum-v1")
+    agent = JacPropAgent(env, tiny_config(episode_steps=10), cost_fn=pendulum_cost,
+                         state_fn=_pendulum_angle_state, obs_fn=_pendulum_obs_of_state)
+    agent.learn(1, progress_bar=False)
+    path = agent.save(tmp_path / "a.pt")
+    with pytest.raises(ValueError, match="custom state_fn/obs_fn.*pass the same state_fn="):
+        JacPropAgent.load(path, env=env, cost_fn=pendulum_cost)
+    with pytest.raises(ValueError, match="dimension 3.*trained on dimension 2"):
+        JacPropAgent.load(path, env=env, cost_fn=pendulum_cost, state_fn=lambda o: np.asarray(o),
+                          obs_fn=lambda s, r: s)
+    again = JacPropAgent.load(path, env=env, cost_fn=pendulum_cost,
+                              state_fn=_pendulum_angle_state, obs_fn=_pendulum_obs_of_state)
+    obs = np.array([0.0, 1.0, 0.5])
+    np.testing.assert_array_equal(again.predict(obs)[0], agent.predict(obs)[0])
+
+
+# --------------------------------------------------------------------------- the user's task
+def test_learn_with_an_env_step_budget_cuts_the_last_episode():
+    env = gym.make("Pendulum-v1")
+    agent = JacPropAgent(env, tiny_config(episode_steps=20), cost_fn=pendulum_cost)
+    agent.learn(total_env_steps=45, progress_bar=False)
+    assert [t.T for t in agent.trajectories] == [20, 20, 5]
+    assert agent.env_steps == 45 == agent.logger_rows[-1]["env_steps"]
+    agent.learn(1, progress_bar=False, total_env_steps=100)  # the episode count stops first
+    assert agent.env_steps == 65
+    with pytest.raises(ValueError, match="total_env_steps"):
+        agent.learn(total_env_steps=-1)
+    with pytest.raises(ValueError, match="give episodes or total_env_steps"):
+        agent.learn()
+
+
+def test_solved_return_decides_from_the_envs_own_rewards():
+    """Returns per evaluation episode equal an independent replay of the deterministic policy;
+    the success criterion is the mean return against ``solved_return``."""
+    env = gym.make("Pendulum-v1")
+    cfg = tiny_config(episode_steps=15, eval_every=1, eval_episodes=2, eval_seed=7)
+    easy = JacPropAgent(env, cfg.replace(solved_return=-1e9), cost_fn=pendulum_cost)
+    easy.learn(2, progress_bar=False)
+    row = easy.logger_rows[0]
+    assert row["solved"] and len(row["eval_returns"]) == 2
+    assert row["eval_return"] == pytest.approx(np.mean(row["eval_returns"]))
+    summary = easy.summary()
+    assert summary["episodes_to_solve"] == 1 and summary["env_steps_to_solve"] == 15
+    assert summary["solved_criterion"] == "mean_return"
+    # independent replay of the final policy on the evaluation episodes
+    eval_env = gym.make("Pendulum-v1")
+    replay = [float(np.sum(easy.rollout_policy(eval_env, seed=7 + i).rewards)) for i in range(2)]
+    np.testing.assert_allclose(easy.logger_rows[-1]["eval_returns"], replay, rtol=1e-12)
+    hard = JacPropAgent(env, cfg.replace(solved_return=0.0), cost_fn=pendulum_cost)
+    hard.learn(2, progress_bar=False)  # Pendulum's rewards are <= 0 and not all 0
+    assert not any(r["solved"] for r in hard.logger_rows)
+    assert hard.summary()["episodes_to_solve"] is None
+
+
+def test_terminal_cost_is_the_users_function_of_the_predicted_observation():
+    env = gym.make("Pendulum-v1")
+
+    def terminal(obs):
+        return 5.0 * (1.0 - obs[0]) + obs[2] ** 2
+
+    agent = JacPropAgent(env, tiny_config(terminal_weight=2.0), cost_fn=pendulum_cost,
+                         state_fn=_pendulum_angle_state, obs_fn=_pendulum_obs_of_state,
+                         terminal_cost_fn=terminal)
+    rng = np.random.default_rng(0)
+    for _ in range(5):
+        s = rng.normal(size=2)
+        ref = rng.normal(size=3)
+        expected = 5.0 * (1.0 - np.cos(s[0])) + s[1] ** 2
+        assert float(agent.task_cost.terminal(s, ref)) == pytest.approx(expected, rel=1e-12)
+    with pytest.raises(ValueError, match="terminal_cost_fn must return a scalar"):
+        JacPropAgent(env, tiny_config(), cost_fn=pendulum_cost, terminal_cost_fn=lambda o: o)
+
+
+def test_termination_fn_is_checked_on_a_batch():
+    env = gym.make("Pendulum-v1")
+    with pytest.raises(ValueError, match="termination_fn must accept a batch"):
+        JacPropAgent(env, tiny_config(), cost_fn=pendulum_cost,
+                     termination_fn=lambda obs: bool(obs[0] > 0))
+    with pytest.raises(ValueError, match="termination_fn.*one bool per observation"):
+        JacPropAgent(env, tiny_config(), cost_fn=pendulum_cost,
+                     termination_fn=lambda obs: obs[..., 0, 0] > 0)
+    agent = JacPropAgent(env, tiny_config(), cost_fn=pendulum_cost,
+                         termination_fn=lambda obs: np.abs(obs[..., 2]) > 7.9)
+    assert agent.termination_fn is not None
+
+
+def test_cem_planner_runs_the_same_mpc_and_respects_the_termination_fn():
+    """planner='cem' plans with forward predictions only; a termination predicted at every
+    state leaves only the first stage cost in every plan's cost."""
+    env = gym.make("Pendulum-v1")
+    cfg = tiny_config(planner="cem", cem_samples=16, cem_elites=4, cem_iterations=1,
+                      episode_steps=12)
+    agent = JacPropAgent(env, cfg, cost_fn=pendulum_cost)
+    agent.learn(2, progress_bar=False)
+    assert agent.logger_rows[-1]["phase"] == "mpc"
+    obs = env.reset(seed=0)[0]
+    a1, plan = agent.predict(obs)
+    a2, _ = agent.predict(obs)
+    np.testing.assert_array_equal(a1, a2)  # seeded: predict is a pure function
+    assert plan.shape == (cfg.horizon, 1) and -2.0 <= a1[0] <= 2.0
+    assert agent.policy.last_result.status in ("converged", "max_iter")
+    ended = JacPropAgent(env, cfg, cost_fn=pendulum_cost,
+                         termination_fn=lambda o: np.ones(o.shape[:-1], dtype=bool))
+    ended.model = agent.model
+    ended.policy.model = agent.model
+    ended.predict(obs)
+    res = ended.policy.last_result
+    first_stage = float(agent.task_cost.stage(agent.state_map.state(obs), res.U[0], obs))
+    assert res.cost == pytest.approx(first_stage, rel=1e-9)
+
+
+def test_refit_normalization_keeps_the_function_and_follows_the_data():
+    """The ensemble's statistics move to the new data while predictions and Jacobians stay
+    those of the old parameterization (float32 rounding)."""
+    env = gym.make("Pendulum-v1")
+    agent = JacPropAgent(env, tiny_config(episode_steps=20, renormalize=False),
+                         cost_fn=pendulum_cost)
+    agent.learn(1, progress_bar=False)
+    model = agent.model
+    more = heldout_trajectories("Pendulum-v1", lambda o: o, [7, 8], 30, 1.0)
+    x = np.concatenate([t.x[:-1] for t in more])
+    u = np.concatenate([t.u for t in more])
+    before = model.step(x, u)
+    A0, B0 = model.jacobians(x, u)
+    old_std = model.in_std.clone()
+    model.refit_normalization(agent.trajectories + more)
+    xu = np.concatenate([np.concatenate([t.x[:-1], t.u], 1) for t in agent.trajectories + more])
+    np.testing.assert_allclose(model.in_std.numpy(), xu.std(0), rtol=1e-5)
+    assert not torch.allclose(old_std, model.in_std)
+    scale = np.abs(before).max()
+    np.testing.assert_allclose(model.step(x, u), before, atol=2e-5 * scale)
+    A1, B1 = model.jacobians(x, u)
+    np.testing.assert_allclose(A1, A0, atol=1e-4 * np.abs(A0).max())
+    np.testing.assert_allclose(B1, B0, atol=1e-4 * np.abs(B0).max())

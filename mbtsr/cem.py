@@ -1,0 +1,290 @@
+"""Cross-entropy method (CEM) trajectory optimisation, the sampling planner of PETS.
+
+Chua et al., "Deep Reinforcement Learning in a Handful of Trials using Probabilistic Dynamics
+Models" (NeurIPS 2018) plan with CEM on a learned ensemble: sample action sequences from a
+Gaussian, roll every sample through the model's forward predictions, refit the Gaussian to the
+lowest-cost ("elite") samples, repeat. It never uses the model's Jacobians, which makes it the
+control for the paper's argument: iLQR consumes the learned Jacobians, CEM does not.
+
+:func:`cem` has the optimiser signature every planner in mbtsr shares (``docs/interfaces``)::
+
+    result = cem(cost, model, x0[n], U0[T, m], u_min=..., u_max=..., params=None, t0=0,
+                 options=None)
+
+and returns ``X [T+1, n]``, ``U [T, m]`` (finite, inside the bounds), ``cost``, ``status``,
+``iterations`` like :func:`mbtsr.ilqr.ilqr`. Same seed, same result. Per iteration:
+
+1. ``U_s = clip(mu + sigma * eps_s)``, ``eps ~ N(0, I)``, ``s < samples``; the current mean
+   and the best sequence found so far are always candidates (so a warm start is never lost
+   and the returned cost never increases over iterations);
+2. ``X_s`` = the batched forward rollout ``model.step(X[:, t], U_s[:, t], t0 + t)``; a
+   non-finite or diverged rollout costs ``inf``;
+3. ``J_s = sum_t l(x_t, u_t) + l_T(x_T)``; with ``terminated`` the stage costs after the first
+   predicted termination are dropped (the episode would have ended), plus an optional
+   ``termination_cost``;
+4. ``mu <- (1 - a) mu_elite + a mu``, ``sigma <- (1 - a) sigma_elite + a sigma`` over the
+   ``elites`` lowest costs (``a = smoothing``).
+
+It stops at ``iterations`` or when ``max sigma < tol_std`` (status ``"converged"``).
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field, fields
+from typing import Any
+
+import numpy as np
+
+from mbtsr.validation import as_array
+
+__all__ = ["CEMOptions", "CEMResult", "cem"]
+
+
+@dataclass(frozen=True)
+class CEMOptions:
+    """Settings of :func:`cem`.
+
+    :param samples: action sequences sampled per iteration (PETS: 400-500).
+    :param elites: lowest-cost samples that refit the Gaussian (PETS: 40-50).
+    :param iterations: iteration cap (PETS: 5).
+    :param init_std: initial per-dimension std as a fraction of the half-range of the bounds.
+    :param smoothing: weight ``a`` of the previous mean/std in the update (PETS: 0.1).
+    :param tol_std: converged when every std is below this fraction of the half-range.
+    :param seed: seed of the samples (an int; same seed, same result).
+    :param max_state_norm: a rollout whose ``max |x|`` exceeds this costs ``inf``.
+    :param termination_cost: cost added once at a predicted termination (see ``terminated``).
+    """
+
+    samples: int = 200
+    elites: int = 20
+    iterations: int = 5
+    init_std: float = 0.5
+    smoothing: float = 0.1
+    tol_std: float = 1e-3
+    seed: int = 0
+    max_state_norm: float = 1e8
+    termination_cost: float = 0.0
+
+    def __post_init__(self) -> None:
+        for name in ("samples", "elites", "iterations"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, int | np.integer) or v < 1:
+                raise ValueError(f"options.{name} must be an integer >= 1, got {v!r}")
+        if self.samples < 2:
+            raise ValueError(f"options.samples must be >= 2, got {self.samples}")
+        if self.elites > self.samples:
+            raise ValueError(
+                f"options.elites must be <= options.samples, got {self.elites} > {self.samples}")
+        for name, lo, hi in (("init_std", 0.0, np.inf), ("smoothing", 0.0, 1.0),
+                             ("tol_std", 0.0, np.inf), ("max_state_norm", 0.0, np.inf)):
+            v = getattr(self, name)
+            if not isinstance(v, int | float) or not np.isfinite(v) or v < lo or v > hi:
+                raise ValueError(f"options.{name} must be a finite number in [{lo}, {hi}], "
+                                 f"got {v!r}")
+        if isinstance(self.seed, bool) or not isinstance(self.seed, int | np.integer) or (
+            self.seed < 0
+        ):
+            raise ValueError(f"options.seed must be an integer >= 0, got {self.seed!r}")
+        if not np.isfinite(self.termination_cost):
+            raise ValueError("options.termination_cost must be finite")
+
+
+@dataclass(frozen=True)
+class CEMResult:
+    """Outcome of :func:`cem`.
+
+    :param X: ``[T+1, n]`` model rollout of ``U``.
+    :param U: ``[T, m]`` the best sequence found (finite, inside the bounds).
+    :param cost: its cost (``inf`` if every rollout diverged).
+    :param status: ``"converged"`` (std below ``tol_std``), ``"max_iter"`` or ``"failed"``
+        (no finite rollout).
+    :param iterations: iterations run.
+    :param trace: per iteration ``{"iteration", "best_cost", "elite_mean_cost", "max_std",
+        "time"}``.
+    :param message: why it stopped.
+    :param std: ``[T, m]`` the final sampling std.
+    :param timings: seconds in ``rollout``, ``cost`` and ``total``.
+    """
+
+    X: np.ndarray
+    U: np.ndarray
+    cost: float
+    status: str
+    iterations: int
+    trace: list[dict] = field(repr=False, default_factory=list)
+    message: str = ""
+    std: np.ndarray | None = field(repr=False, default=None)
+    timings: dict = field(repr=False, default_factory=dict)
+
+
+def _as_options(options: CEMOptions | dict | None) -> CEMOptions:
+    if options is None:
+        return CEMOptions()
+    if isinstance(options, CEMOptions):
+        return options
+    if isinstance(options, dict):
+        known = {f.name for f in fields(CEMOptions)}
+        unknown = sorted(set(options) - known)
+        if unknown:
+            raise ValueError(f"unknown CEM option(s) {unknown}; known: {sorted(known)}")
+        return CEMOptions(**options)
+    raise TypeError(f"options must be a CEMOptions, a dict or None, got {type(options).__name__}")
+
+
+def _bounds(u_min: Any, u_max: Any, m: int) -> tuple[np.ndarray, np.ndarray]:
+    lo = np.broadcast_to(as_array("u_min", u_min, finite=False), (m,)).astype(float)
+    hi = np.broadcast_to(as_array("u_max", u_max, finite=False), (m,)).astype(float)
+    if np.any(hi <= lo):
+        raise ValueError(f"u_max must be > u_min, got u_min={lo}, u_max={hi}")
+    return lo, hi
+
+
+def rollout_batch(
+    model: Any, x0: np.ndarray, U: np.ndarray, t0: int = 0, max_state_norm: float = np.inf
+) -> tuple[np.ndarray, np.ndarray]:
+    """Batched forward rollout: ``U [S, T, m]`` from ``x0 [n]`` -> ``(X [S, T+1, n], alive
+    [S])``; a rollout is dead once a state is non-finite or exceeds ``max_state_norm``."""
+    S, T, _ = U.shape
+    X = np.empty((S, T + 1, x0.shape[0]))
+    X[:, 0] = x0
+    alive = np.ones(S, dtype=bool)
+    with np.errstate(all="ignore"):
+        for t in range(T):
+            X[:, t + 1] = model.step(X[:, t], U[:, t], t0 + t)
+            bad = ~np.all(np.isfinite(X[:, t + 1]), axis=-1) | (
+                np.max(np.abs(X[:, t + 1]), axis=-1) > max_state_norm)
+            if bad.any():
+                alive &= ~bad
+                X[bad, t + 1] = X[bad, t]  # keep the rest of a dead rollout finite
+    return X, alive
+
+
+def _costs(
+    cost: Any, X: np.ndarray, U: np.ndarray, t0: int, params: Any,
+    terminated: Callable[[np.ndarray], np.ndarray] | None, termination_cost: float,
+) -> np.ndarray:
+    """``[S]`` trajectory costs (see the module docstring, step 3)."""
+    if terminated is None:
+        J = cost.total(X, U, t0) if params is None else cost.total(X, U, t0, params)
+        return np.asarray(J, dtype=float).reshape(X.shape[0])
+    if params is None:
+        stage = np.asarray(cost.stage_values(X[:, :-1], U, t0), dtype=float)
+        final = np.asarray(cost.terminal_values(X[:, -1], t0 + U.shape[1]), dtype=float)
+    else:
+        stage = np.asarray(cost.stage_values(X[:, :-1], U, t0, params), dtype=float)
+        final = np.asarray(cost.terminal_values(X[:, -1], t0 + U.shape[1], params), dtype=float)
+    done = np.asarray(terminated(X[:, 1:]), dtype=bool)  # [S, T]: x_{t+1} terminal
+    # stage t counts unless one of x_1..x_t was terminal (x_0 is the current state)
+    ended_before = np.concatenate([np.zeros((X.shape[0], 1), bool),
+                                   np.cumsum(done, axis=1)[:, :-1] > 0], axis=1)
+    J = np.where(ended_before, 0.0, stage).sum(axis=1)
+    ever = done.any(axis=1)
+    return J + np.where(ever, termination_cost, final)
+
+
+def cem(
+    cost: Any,
+    model: Any,
+    x0: np.ndarray,
+    U0: np.ndarray,
+    *,
+    u_min: np.ndarray | float,
+    u_max: np.ndarray | float,
+    params: Any = None,
+    t0: int = 0,
+    options: CEMOptions | dict | None = None,
+    terminated: Callable[[np.ndarray], np.ndarray] | None = None,
+) -> CEMResult:
+    """Minimise ``J(U) = sum_t l(x_t, u_t, t0+t) + l_T(x_T)`` over ``U`` in the box with CEM,
+    using only ``model.step`` (see the module docstring).
+
+    :param cost: an object with ``total(X [..., T+1, n], U [..., T, m], t0[, params]) ->
+        [...]`` (e.g. :class:`mbtsr.costs.CasadiCost`); with ``terminated`` also
+        ``stage_values`` and ``terminal_values``.
+    :param model: any model with batched ``step(x [..., n], u [..., m], t)``.
+    :param x0: ``[n]`` initial state.
+    :param U0: ``[T, m]`` initial mean of the sampling distribution (warm start), clipped.
+    :param u_min: ``[m]`` or scalar lower bound (finite: CEM samples inside the box).
+    :param u_max: ``[m]`` or scalar upper bound (finite).
+    :param params: passed to the cost when given.
+    :param t0: absolute time index of ``x0``.
+    :param options: :class:`CEMOptions` or a dict of its fields.
+    :param terminated: ``X [..., n] -> bool [...]``: predicted model states where the episode
+        ends; stage costs after the first one are dropped.
+    :return: :class:`CEMResult`.
+    """
+    opts = _as_options(options)
+    x0 = as_array("x0", x0, ndim=1)
+    n = x0.shape[0]
+    for attr in ("state_dim",):
+        got = getattr(model, attr, n)
+        if got != n:
+            raise ValueError(f"model.{attr}={got} does not match x0 of dimension {n}")
+    U0 = as_array("U0", U0, ndim=2)
+    T, m = U0.shape
+    if T < 1 or m < 1:
+        raise ValueError(f"U0 must be [T >= 1, m >= 1], got {list(U0.shape)}")
+    if getattr(model, "action_dim", m) != m:
+        raise ValueError(f"model.action_dim={model.action_dim} does not match U0's m={m}")
+    if isinstance(t0, bool) or not isinstance(t0, int | np.integer) or t0 < 0:
+        raise ValueError(f"t0 must be an integer time index >= 0, got {t0!r}")
+    lo, hi = _bounds(u_min, u_max, m)
+    if not (np.all(np.isfinite(lo)) and np.all(np.isfinite(hi))):
+        raise ValueError("cem needs finite u_min and u_max (it samples inside the box)")
+    half = 0.5 * (hi - lo)
+    rng = np.random.default_rng(int(opts.seed))
+    t_start = time.perf_counter()
+    timings = {"rollout": 0.0, "cost": 0.0}
+
+    mu = np.clip(U0, lo, hi)
+    std = np.broadcast_to(opts.init_std * half, (T, m)).copy()
+    best_U, best_J = mu.copy(), np.inf
+    trace: list[dict] = []
+    status, message = "max_iter", f"reached {opts.iterations} iterations"
+    it = 0
+    for it in range(1, opts.iterations + 1):
+        tic = time.perf_counter()
+        eps = rng.standard_normal((opts.samples, T, m))
+        cand = np.clip(mu[None] + std[None] * eps, lo, hi)
+        cand[0] = mu  # the current mean ...
+        if np.isfinite(best_J):
+            cand[1] = best_U  # ... and the best so far are always candidates
+        tr = time.perf_counter()
+        X, alive = rollout_batch(model, x0, cand, int(t0), opts.max_state_norm)
+        tc = time.perf_counter()
+        J = np.full(opts.samples, np.inf)
+        if alive.any():
+            J[alive] = _costs(cost, X[alive], cand[alive], int(t0), params, terminated,
+                              opts.termination_cost)
+        J[~np.isfinite(J)] = np.inf
+        timings["rollout"] += tc - tr
+        timings["cost"] += time.perf_counter() - tc
+        order = np.argsort(J, kind="stable")
+        if J[order[0]] < best_J:
+            best_J, best_U = float(J[order[0]]), cand[order[0]].copy()
+        elite = order[: opts.elites]
+        elite = elite[np.isfinite(J[elite])]
+        if elite.size > 0:
+            a = opts.smoothing
+            mu = (1 - a) * cand[elite].mean(0) + a * mu
+            std = (1 - a) * cand[elite].std(0) + a * std
+        trace.append({
+            "iteration": it,
+            "best_cost": best_J,
+            "elite_mean_cost": float(np.mean(J[elite])) if elite.size else np.inf,
+            "max_std": float(np.max(std / half)),
+            "time": time.perf_counter() - tic,
+        })
+        if np.max(std / half) < opts.tol_std:
+            status, message = "converged", f"sampling std below tol_std={opts.tol_std}"
+            break
+    if not np.isfinite(best_J):
+        status, message = "failed", "every sampled rollout diverged"
+    X_best, _ = rollout_batch(model, x0, best_U[None], int(t0), opts.max_state_norm)
+    timings["total"] = time.perf_counter() - t_start
+    return CEMResult(
+        X=X_best[0], U=best_U, cost=best_J, status=status, iterations=it, trace=trace,
+        message=message, std=std, timings=timings,
+    )

@@ -1,0 +1,128 @@
+"""Tests of mbtsr.cem against independent solutions: the finite-horizon Riccati optimum of a
+linear-quadratic problem, box constraints, seeding, termination masking, and the shared
+optimizer interface (same result fields as iLQR)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from mbtsr.cem import CEMOptions, cem
+from mbtsr.costs import quadratic_cost
+from mbtsr.dynamics import LinearDynamics
+from mbtsr.ilqr import ilqr
+
+DT = 0.1
+A = np.array([[1.0, DT], [0.0, 1.0]])
+B = np.array([[0.5 * DT**2], [DT]])
+Q = np.diag([1.0, 0.1])
+R = np.array([[0.01]])
+Qf = np.diag([10.0, 1.0])
+X0 = np.array([1.0, 0.0])
+
+
+def riccati_cost(T: int) -> float:
+    """Optimal cost x0^T P_0 x0 of sum_t x^T Q x + u^T R u + x_T^T Qf x_T (no bounds)."""
+    P = Qf
+    for _ in range(T):
+        K = np.linalg.solve(R + B.T @ P @ B, B.T @ P @ A)
+        P = Q + A.T @ P @ (A - B @ K)
+    return float(X0 @ P @ X0)
+
+
+def problem(T: int = 10):
+    return quadratic_cost(Q, R, np.zeros(2), Qf=Qf), LinearDynamics(A, B), np.zeros((T, 1))
+
+
+def test_cem_reaches_the_riccati_optimum_of_a_linear_quadratic_problem():
+    cost, model, U0 = problem(10)
+    res = cem(cost, model, X0, U0, u_min=-50.0, u_max=50.0,
+              options=CEMOptions(samples=400, elites=40, iterations=40, init_std=0.2))
+    optimum = riccati_cost(10)
+    assert res.cost >= optimum * (1 - 1e-12)  # nothing beats the optimum
+    assert res.cost <= 1.01 * optimum, (res.cost, optimum)
+    # the reported cost and states are those of the returned controls
+    assert res.cost == pytest.approx(cost.total(res.X, res.U), rel=1e-12)
+    np.testing.assert_allclose(res.X[1:], np.stack(
+        [A @ x + B @ u for x, u in zip(res.X[:-1], res.U)]), atol=1e-12)
+    assert res.status in ("converged", "max_iter") and res.iterations >= 1
+    # the best cost never increases over iterations
+    best = [r["best_cost"] for r in res.trace]
+    assert all(b2 <= b1 for b1, b2 in zip(best, best[1:]))
+
+
+def test_cem_agrees_with_ilqr_on_a_bounded_problem():
+    """With tight bounds both optimisers should find the same constrained optimum."""
+    cost, model, U0 = problem(10)
+    ref = ilqr(cost, model, X0, U0, u_min=-2.0, u_max=2.0)
+    res = cem(cost, model, X0, U0, u_min=-2.0, u_max=2.0,
+              options={"samples": 400, "elites": 40, "iterations": 40, "init_std": 0.3})
+    assert np.all(res.U >= -2.0) and np.all(res.U <= 2.0)
+    assert res.cost <= 1.01 * ref.cost
+
+
+@settings(max_examples=15, deadline=None)
+@given(lo=st.floats(-3.0, 0.5), width=st.floats(0.01, 4.0), seed=st.integers(0, 2**31 - 1))
+def test_cem_respects_asymmetric_bounds_and_is_seeded(lo, width, seed):
+    cost, model, _ = problem(6)
+    U0 = np.full((6, 1), 10.0)  # outside the box: clipped
+    opts = CEMOptions(samples=20, elites=4, iterations=3, seed=seed)
+    res = cem(cost, model, X0, U0, u_min=lo, u_max=lo + width, options=opts)
+    assert np.all(np.isfinite(res.U)) and np.all(np.isfinite(res.X))
+    assert np.all(res.U >= lo) and np.all(res.U <= lo + width)
+    again = cem(cost, model, X0, U0, u_min=lo, u_max=lo + width, options=opts)
+    np.testing.assert_array_equal(again.U, res.U)
+    assert again.cost == res.cost
+
+
+def test_different_seeds_sample_differently():
+    cost, model, U0 = problem(6)
+    a = cem(cost, model, X0, U0, u_min=-5, u_max=5, options={"iterations": 1, "seed": 1})
+    b = cem(cost, model, X0, U0, u_min=-5, u_max=5, options={"iterations": 1, "seed": 2})
+    assert not np.array_equal(a.U, b.U)
+
+
+def test_termination_drops_the_costs_after_the_predicted_end():
+    """x stays at 1 (A = I, B = 0); with every x_t, t >= 1 terminal only stage 0 counts."""
+    cost = quadratic_cost(np.eye(1), np.zeros((1, 1)), np.zeros(1), Qf=np.eye(1))
+    model = LinearDynamics(np.eye(1), np.zeros((1, 1)))
+    U0 = np.zeros((5, 1))
+    full = cem(cost, model, np.ones(1), U0, u_min=-1, u_max=1, options={"iterations": 1})
+    assert full.cost == pytest.approx(6.0)  # 5 stages + terminal
+    ended = cem(cost, model, np.ones(1), U0, u_min=-1, u_max=1,
+                options={"iterations": 1, "termination_cost": 0.5},
+                terminated=lambda X: np.ones(X.shape[:-1], dtype=bool))
+    assert ended.cost == pytest.approx(1.0 + 0.5)
+    never = cem(cost, model, np.ones(1), U0, u_min=-1, u_max=1, options={"iterations": 1},
+                terminated=lambda X: np.zeros(X.shape[:-1], dtype=bool))
+    assert never.cost == pytest.approx(6.0)
+
+
+def test_diverging_model_gives_failed_status_with_finite_controls():
+    cost, _, U0 = problem(5)
+    model = LinearDynamics(np.eye(2) * 1e9, B)
+    res = cem(cost, model, X0, U0, u_min=-1, u_max=1, options={"iterations": 2})
+    assert res.status == "failed" and res.cost == np.inf
+    assert np.all(np.isfinite(res.U)) and np.all(np.abs(res.U) <= 1)
+
+
+@pytest.mark.parametrize("bad, match", [
+    ({"samples": 1}, "samples"), ({"elites": 300}, "elites"), ({"smoothing": 2.0}, "smoothing"),
+    ({"seed": -1}, "seed"), ({"nope": 1}, "unknown CEM option"),
+])
+def test_bad_options_are_named(bad, match):
+    cost, model, U0 = problem(3)
+    with pytest.raises(ValueError, match=match):
+        cem(cost, model, X0, U0, u_min=-1, u_max=1, options=bad)
+
+
+def test_bad_inputs_are_named():
+    cost, model, U0 = problem(3)
+    with pytest.raises(ValueError, match="finite u_min"):
+        cem(cost, model, X0, U0, u_min=-np.inf, u_max=1)
+    with pytest.raises(ValueError, match="u_max must be > u_min"):
+        cem(cost, model, X0, U0, u_min=1, u_max=1)
+    with pytest.raises(ValueError, match="x0"):
+        cem(cost, model, np.array([np.nan, 0.0]), U0, u_min=-1, u_max=1)

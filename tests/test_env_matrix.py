@@ -1,0 +1,165 @@
+"""Smoke matrix: the agent on its defaults (only budgets made tiny) runs two episodes on every
+Gymnasium-shipped env with Box observation and action spaces that runs on this stack, and on
+wrapped envs that stress the data path (1-5 step episodes, asymmetric action bounds).
+
+Envs of Gymnasium 1.x with Box spaces that are NOT in the matrix, and why:
+
+* ``Humanoid-v5``, ``HumanoidStandup-v5`` (348-dim observation): the default
+  ``regularization="sampled"`` fits LTV models with ``n (n+m)^2 = 4.6e7`` covariance entries
+  per step; the agent refuses at construction with an error naming ``state_fn`` and
+  ``AgentConfig.regularization`` (tested below). With ``regularization="none"`` they run (slow).
+* ``*-v2``, ``*-v3``: moved to gymnasium-robotics (mujoco-py), not installed.
+* ``*-v4``: superseded by v5 (same models); ``Pusher-v4`` needs ``mujoco < 3``.
+* ``LunarLanderContinuous-v3``, ``BipedalWalker(Hardcore)-v3``: Box2D is not installed;
+  ``CarRacing-v3``: Box2D, and an image observation.
+
+The full matrix is ``slow``; the fast suite runs Reacher-v5 (goal constant within an episode in
+the observation), InvertedPendulum-v5 (terminates after a few steps under excitation),
+Pendulum-v1 (classic control, angle-like observation) and the wrapped envs.
+"""
+
+from __future__ import annotations
+
+import warnings
+
+import casadi as ca
+import gymnasium as gym
+import numpy as np
+import pytest
+import torch
+
+from agents.config import AgentConfig
+from agents.jacprop_agent import JacPropAgent
+
+torch.set_num_threads(1)
+
+MUJOCO_V5 = (
+    "Ant-v5", "HalfCheetah-v5", "Hopper-v5", "InvertedDoublePendulum-v5", "InvertedPendulum-v5",
+    "Pusher-v5", "Reacher-v5", "Swimmer-v5", "Walker2d-v5",
+)
+CLASSIC = ("Pendulum-v1", "MountainCarContinuous-v0")
+FAST = ("Reacher-v5", "InvertedPendulum-v5", "Pendulum-v1")
+CANNOT_RUN_ON_DEFAULTS = ("Humanoid-v5", "HumanoidStandup-v5")
+
+
+def smoke_config(**overrides) -> AgentConfig:
+    """The defaults with tiny budgets (one excitation episode, then one MPC episode)."""
+    base = dict(
+        n_excitation_episodes=1, ensemble_size=2, hidden_width=8, epochs_per_episode=3,
+        horizon=4, ilqr_iterations=1, first_plan_iterations=2, eval_every=0, progress=False,
+        tensorboard=False, torch_threads=1,
+    )
+    base.update(overrides)
+    return AgentConfig(**base)
+
+
+def generic_cost(obs, action):
+    """A quadratic cost on everything: the smoke test is about running, not solving."""
+    return 0.01 * ca.sumsqr(obs) + 0.01 * ca.sumsqr(action)
+
+
+def run_two_episodes(env: gym.Env, **overrides) -> JacPropAgent:
+    agent = JacPropAgent(env, smoke_config(**overrides), cost_fn=generic_cost)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # logged LTV fallbacks are expected
+        agent.learn(2, progress_bar=False)
+    return agent
+
+
+def check_run(agent: JacPropAgent, env: gym.Env) -> None:
+    rows = agent.logger_rows
+    assert [r["episode"] for r in rows] == [0, 1]
+    assert rows[-1]["env_steps"] == sum(t.T for t in agent.trajectories) == agent.env_steps
+    assert all(t.T >= 1 for t in agent.trajectories)
+    # the model was trained and predicts finite values on the data it saw
+    assert np.isfinite(rows[-1]["one_step_rms"])
+    assert len(agent.ltv_models) == 2
+    for ltv, traj in zip(agent.ltv_models, agent.trajectories):
+        assert ltv.A.shape[0] == traj.T and np.all(np.isfinite(ltv.A))
+        assert np.all(np.isfinite(ltv.B))
+    obs, _ = env.reset(seed=3)
+    a, plan = agent.predict(obs)
+    assert np.all(a >= env.action_space.low) and np.all(a <= env.action_space.high)
+    assert np.all(np.isfinite(plan))
+
+
+def _matrix_params():
+    for env_id in MUJOCO_V5 + CLASSIC:
+        marks = () if env_id in FAST else (pytest.mark.slow,)
+        yield pytest.param(env_id, marks=marks, id=env_id)
+
+
+@pytest.mark.parametrize("env_id", list(_matrix_params()))
+def test_two_episodes_on_defaults(env_id):
+    env = gym.make(env_id, max_episode_steps=20)  # time-limit truncation
+    try:
+        check_run(run_two_episodes(env), env)
+    finally:
+        env.close()
+
+
+def test_reacher_goal_in_observation_uses_a_documented_fallback():
+    """Reacher's target is constant within an episode and the z-coordinate of its fingertip
+    vector is always 0: the LTV fit falls back (weak prior) and says so in the log."""
+    env = gym.make("Reacher-v5", max_episode_steps=20)
+    agent = JacPropAgent(env, smoke_config(), cost_fn=generic_cost)
+    with pytest.warns(RuntimeWarning, match="degenerate regressors"):
+        agent.learn(1, progress_bar=False)
+    assert "degenerate regressors" in agent.logger_rows[0]["ltv_fallback"]
+    env.close()
+
+
+class TerminateAfter(gym.Wrapper):
+    """Terminates every episode after ``k`` steps (``terminated=True``)."""
+
+    def __init__(self, env: gym.Env, k: int) -> None:
+        super().__init__(env)
+        self.k, self.t = k, 0
+
+    def reset(self, **kwargs):
+        self.t = 0
+        return self.env.reset(**kwargs)
+
+    def step(self, action):
+        obs, r, term, trunc, info = self.env.step(action)
+        self.t += 1
+        return obs, r, term or self.t >= self.k, trunc, info
+
+
+@pytest.mark.parametrize("k", [1, 2, 3, 5])
+def test_episodes_that_terminate_after_k_steps(k):
+    env = TerminateAfter(gym.make("Pendulum-v1", max_episode_steps=20), k)
+    agent = run_two_episodes(env)
+    check_run(agent, env)
+    assert [t.T for t in agent.trajectories] == [k, k]
+    assert agent.logger_rows[-1]["env_steps"] == 2 * k
+    if k == 1:
+        assert "transition" in agent.logger_rows[0]["ltv_fallback"]
+
+
+def test_asymmetric_action_bounds():
+    env = gym.wrappers.RescaleAction(
+        gym.make("Pendulum-v1", max_episode_steps=20),
+        np.array([-0.5], np.float32), np.array([3.0], np.float32))
+    agent = run_two_episodes(env)
+    check_run(agent, env)
+    u = np.concatenate([t.u for t in agent.trajectories])
+    assert u.min() >= -0.5 and u.max() <= 3.0
+
+
+@pytest.mark.parametrize("env_id", CANNOT_RUN_ON_DEFAULTS)
+def test_high_dimensional_env_is_refused_with_a_message_naming_the_options(env_id):
+    env = gym.make(env_id)
+    with pytest.raises(ValueError, match="state_fn.*regularization='smooth'"):
+        JacPropAgent(env, smoke_config(), cost_fn=generic_cost)
+    env.close()
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("env_id", CANNOT_RUN_ON_DEFAULTS)
+def test_high_dimensional_env_runs_without_ltv(env_id):
+    env = gym.make(env_id, max_episode_steps=10)
+    agent = JacPropAgent(env, smoke_config(regularization="none"), cost_fn=generic_cost)
+    agent.learn(2, progress_bar=False)
+    assert agent.env_steps > 0 and np.isfinite(agent.logger_rows[-1]["one_step_rms"])
+    env.close()
