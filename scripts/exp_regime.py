@@ -223,6 +223,41 @@ DIAG_KEYS = ("jac_err", "jac_pos", "jac_vel", "jac_moving_all", "jac_still_all",
              "label_jac_pos", "label_jac_vel", "log10_pred_rms", "log10_sim_rms")
 
 
+def _cell_text(ax, j: int, i: int, s: dict) -> None:
+    ax.text(j, i, f"{s['median_pct']:+.0f}%\n{s['wins']}/{s['total']}", ha="center",
+            va="center", fontsize=7, color="white" if abs(s["median_pct"]) > 25 else "black")
+
+
+def variants_map(ax, records, protocol: list[dict]) -> None:
+    """Rows = methods, columns = the cells that ran the label variants (+ the paper cell under
+    the paper's protocol); colour and text as :func:`regime_map`."""
+    cells = [c for c in _cells(records)
+             if any(r["config"]["method"] == "oracle" for r in _cell_records(records, c))]
+    cols = [(records, c, f"{c[2]} tr., {c[3]} ep.\n1 member, full batch") for c in cells]
+    cols += [(protocol, c, f"{c[2]} tr., {c[3]} ep.\npaper protocol (4 members)")
+             for c in _cells(protocol)]
+    rows = ["sampled", "oracle", "exact", "prior"]
+    grid = np.full((len(rows), len(cols)), np.nan)
+    for j, (recs, c, _) in enumerate(cols):
+        for i, m in enumerate(rows):
+            s = paired_relative(recs, m, c)
+            if s is not None:
+                grid[i, j] = s["median_pct"]
+                _cell_text(ax, j, i, s)
+    ax.imshow(grid, cmap="RdBu_r", vmin=-40, vmax=40, aspect="auto")
+    ax.set_xticks(range(len(cols)), [t for _, _, t in cols], fontsize=7)
+    ax.set_yticks(range(len(rows)), [METHOD_LABELS[m] for m in rows], fontsize=7)
+    if cells:
+        ax.set_title(f"label variants vs none, {cells[0][0]} window, "
+                     f"{'friction' if cells[0][1] else 'no friction'}", fontsize=9)
+
+
+def _cell_records(records: list[dict], cell: tuple) -> list[dict]:
+    w, f, n, e = cell
+    return [r for r in records if (r["config"]["data"]["window"], r["config"]["data"]["friction"],
+                                   r["config"]["n_train"], r["config"]["epochs"]) == cell]
+
+
 def regime_map(ax, records, method: str, title: str) -> None:
     """Heat map: rows = excitation window x friction, columns = trajectories x epochs; colour =
     median relative change of the Jacobian error vs none, text = change and wins/total."""
@@ -236,8 +271,7 @@ def regime_map(ax, records, method: str, title: str) -> None:
             if s is None:
                 continue
             grid[i, j] = s["median_pct"]
-            ax.text(j, i, f"{s['median_pct']:+.0f}%\n{s['wins']}/{s['total']}", ha="center",
-                    va="center", fontsize=7)
+            _cell_text(ax, j, i, s)
     lim = 40.0
     im = ax.imshow(grid, cmap="RdBu_r", vmin=-lim, vmax=lim, aspect="auto")
     ax.set_xticks(range(len(cols)), [f"{n} tr.\n{e} ep." for n, e in cols], fontsize=7)
@@ -286,18 +320,17 @@ def diagnostics_figure(records: list[dict], path: Path) -> None:
     save_figure(fig, path)
 
 
-def report(records: list[dict], out: Path, figures: Path, args: Args) -> dict:
+def report(records: list[dict], out: Path, figures: Path, args: Args,
+           protocol: list[dict] | None = None) -> dict:
     plt = pyplot()
     methods = [m for m in ("sampled", "oracle", "exact", "prior")
                if any(r["config"]["method"] == m for r in records)]
-    fig, axes = plt.subplots(len(methods), 1, figsize=(8.5, 2.6 * len(methods)), squeeze=False,
-                             layout="constrained")
-    im = None
-    for ax, m in zip(axes[:, 0], methods):
-        im = regime_map(ax, records, m, f"{METHOD_LABELS[m]} vs none: median change of the "
-                                        "Jacobian error (text: change, runs better / runs)")
-    if im is not None:
-        fig.colorbar(im, ax=axes[:, 0].tolist(), shrink=0.6, label="Jacobian error change [%]")
+    fig, axes = plt.subplots(2, 1, figsize=(9, 7.5), layout="constrained",
+                             gridspec_kw={"height_ratios": [1.1, 1]})
+    im = regime_map(axes[0], records, "sampled", "sampled JacProp vs none: median change of "
+                    "the robot Jacobian error (text: change, runs better / runs)")
+    variants_map(axes[1], records, protocol or [])
+    fig.colorbar(im, ax=axes.tolist(), shrink=0.6, label="Jacobian error change vs none [%]")
     save_figure(fig, figures / "regime_map.png")
 
     diagnostics_figure(records, figures / "regime_diagnostics.png")
@@ -419,7 +452,7 @@ def main(args: Args) -> dict:
         raise SystemExit(f"no finished runs in {out}")
     protocol = [r for r in records if r["config"].get("paper_protocol")]
     records = [r for r in records if not r["config"].get("paper_protocol")]
-    summary = report(records, out, figures, args)
+    summary = report(records, out, figures, args, protocol)
     if protocol:
         summary["paper_protocol"] = paper_protocol_summary(protocol)
         with open(out / "table.md", "a") as fh:
