@@ -270,7 +270,8 @@ def pyplot():
 
 
 def save_figure(fig, path: Path) -> None:
-    fig.tight_layout()
+    if fig.get_layout_engine() is None:  # a figure made with layout="constrained" keeps it
+        fig.tight_layout()
     fig.savefig(path, dpi=110)
     pyplot().close(fig)
 
