@@ -85,6 +85,9 @@ class AgentConfig:
     :param cem_elites: CEM elite sequences that refit the sampling distribution.
     :param cem_iterations: CEM iterations per MPC step (the first step of an episode gets
         ``first_plan_iterations``).
+    :param replan_every: execute every plan open loop for this many steps before re-solving
+        (1: re-plan every step, the default; larger: the feedback-limited regime, where
+        feedback hides less of the model's error). The oracle uses the same setting.
     :param horizon: MPC horizon (steps).
     :param ilqr_iterations: iLQR iterations per MPC step (the first step of an episode gets
         ``first_plan_iterations``).
@@ -158,6 +161,7 @@ class AgentConfig:
     cem_samples: int = 200
     cem_elites: int = 20
     cem_iterations: int = 3
+    replan_every: int = 1
     horizon: int = 30
     ilqr_iterations: int = 2
     first_plan_iterations: int = 20
@@ -227,7 +231,11 @@ class AgentConfig:
             raise ValueError(
                 f"cem_elites must be <= cem_samples, got {self.cem_elites} > {self.cem_samples}")
         _int_at_least(self, "cem_iterations", 1)
+        _int_at_least(self, "replan_every", 1)
         _int_at_least(self, "horizon", 2)
+        if self.replan_every > self.horizon:
+            raise ValueError(f"replan_every must be <= horizon={self.horizon}, got "
+                             f"{self.replan_every}")
         _int_at_least(self, "ilqr_iterations", 1)
         _int_at_least(self, "first_plan_iterations", 1)
         _float_range(self, "terminal_weight", 0.0, math.inf)

@@ -210,6 +210,7 @@ class JacPropAgent:
         )
         if config.planner == "cem":
             self.policy.configure(config, self.termination_fn)
+        self.actor = ReplanEvery(self.policy, config.replan_every)
         self.has_linearize = env is not None and (
             hasattr(env.unwrapped, "linearize_trajectory") or hasattr(env.unwrapped, "linearize")
         )
@@ -355,13 +356,14 @@ class JacPropAgent:
 
         :param observation: ``[obs_dim]`` one observation.
         :param state: ``[H, m]`` warm-start plan returned by the previous call (``None`` at an
-            episode start: a cold full-horizon iLQR plan).
+            episode start: a cold full-horizon plan); ``[H+1, m]`` with
+            ``AgentConfig.replan_every > 1`` (the last row counts the steps since the plan).
         :param episode_start: ``True`` forces a cold start.
         :param deterministic: kept for SB3 compatibility (MPC is deterministic; exploration
             noise is only added in :meth:`learn`).
         :return: ``(action [m], next_state [H, m])``.
         """
-        return self.policy.predict(observation, state, episode_start, deterministic)
+        return self.actor.predict(observation, state, episode_start, deterministic)
 
     def save(self, path: str | Path) -> Path:
         """Save everything needed to continue learning or to act (one atomic file)."""
@@ -466,7 +468,7 @@ class JacPropAgent:
             plan: dict[str, Any] = {"U": None}
 
             def act(obs: np.ndarray, t: int) -> np.ndarray:
-                a, plan["U"] = self.policy.predict(obs, plan["U"], episode_start=t == 0)
+                a, plan["U"] = self.actor.predict(obs, plan["U"], episode_start=t == 0)
                 return a + noise[t]
 
         rec = run_episode(self.env, act, seed=reset_seed, max_steps=T, render=render)
@@ -815,7 +817,7 @@ class JacPropAgent:
         cfg = self.config
 
         def compute() -> np.ndarray:
-            policy = oracle_policy(
+            policy = ReplanEvery(oracle_policy(
                 env,
                 cfg.horizon,
                 iterations=cfg.ilqr_iterations,
@@ -823,7 +825,7 @@ class JacPropAgent:
                 terminal_weight=cfg.terminal_weight,
                 cost_fn=self.cost_fn,
                 state_map=self.state_map,
-            )
+            ), cfg.replan_every)
             return evaluate_policy_costs(policy, env, self.eval_targets, cfg.eval_seed, **kwargs)
 
         cache_dir = cfg.oracle_cache_dir
@@ -852,6 +854,7 @@ class JacPropAgent:
             "iterations": cfg.ilqr_iterations,
             "first_plan_iterations": cfg.first_plan_iterations,
             "terminal_weight": cfg.terminal_weight,
+            **({"replan_every": cfg.replan_every} if cfg.replan_every > 1 else {}),
             "cost": self.cost_fn.to_dict() if cache_dir is not None else None,
         }
         self.oracle_costs = cached_costs(cache_dir, key, compute)
@@ -1020,6 +1023,41 @@ class JacPropAgent:
             save_video(frames, folder / f"episode_{ep:04d}.mp4", fps=fps)
         except ValueError:  # no imageio-ffmpeg
             save_video(frames, folder / f"episode_{ep:04d}.gif", fps=fps)
+
+
+class ReplanEvery:
+    """Feedback-limited MPC: each plan of ``policy`` is executed open loop for ``k`` steps
+    before the next solve (warm-started with the rest of the plan). ``k = 1`` is ``policy``
+    itself. The SB3 ``state`` is the remaining plan ``[H, m]`` plus one row holding the number
+    of steps since the last solve."""
+
+    def __init__(self, policy: Any, k: int) -> None:
+        self.policy, self.k = policy, int(k)
+
+    def predict(
+        self,
+        observation: np.ndarray,
+        state: np.ndarray | None = None,
+        episode_start: np.ndarray | bool | None = None,
+        deterministic: bool = True,
+    ) -> tuple[np.ndarray, np.ndarray]:
+        if self.k == 1:
+            return self.policy.predict(observation, state, episode_start, deterministic)
+        if episode_start is not None and bool(np.any(episode_start)):
+            state = None
+        plan, age = None, 0
+        if state is not None:
+            state = np.asarray(state, dtype=float)
+            plan, age = state[:-1], int(state[-1, 0])
+        if plan is None or age >= self.k:
+            action, rest = self.policy.predict(observation, plan, plan is None, deterministic)
+            age = 1
+        else:
+            spec = self.policy.spec
+            action = np.clip(plan[0], spec.u_min, spec.u_max)
+            rest = np.concatenate([plan[1:], plan[-1:]], axis=0)
+            age += 1
+        return action, np.concatenate([rest, np.full((1, rest.shape[1]), float(age))], axis=0)
 
 
 class CEMPolicy(MPCPolicy):
