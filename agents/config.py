@@ -104,7 +104,10 @@ class AgentConfig:
     :param solved_return: success threshold on the mean evaluation return (``None``: the
         oracle-ratio criterion, or no "solved" decision for envs without a true model).
 
-    :param eval_every: evaluate every this many episodes after the excitation phase (0: never).
+    :param eval_every: evaluate every this many episodes from the last excitation episode on,
+        and after the last episode of every ``learn`` call (0: never). ``episodes_to_solve`` is
+        the episode of the first solved evaluation, so it is resolved to ``eval_every``
+        episodes (an upper bound on the first episode whose model would have passed).
     :param eval_episodes: evaluation episodes (fixed targets/seeds, see ``eval_seed``).
     :param eval_seed: seed of the evaluation targets and resets.
     :param solved_ratio: the solved threshold relative to the oracle.
@@ -167,8 +170,8 @@ class AgentConfig:
     first_plan_iterations: int = 20
     terminal_weight: float = 1.0
     # evaluation
-    eval_every: int = 1
-    eval_episodes: int = 10
+    eval_every: int = 4
+    eval_episodes: int = 3
     eval_seed: int = 1000
     solved_ratio: float = 1.2
     solved_return: float | None = None

@@ -314,6 +314,7 @@ class JacPropAgent:
                 bar = tqdm(total=episodes, desc="JacProp agent", unit="episode")
             else:
                 bar = tqdm(total=total_env_steps, desc="JacProp agent", unit="step")
+        spec_T = self.spec.episode_steps
         try:
             done = 0
             while (episodes is None or done < episodes) and (
@@ -322,7 +323,9 @@ class JacPropAgent:
                 done += 1
                 before = self.env_steps
                 cap = None if step_end is None else step_end - self.env_steps
-                row = self._episode(max_steps=cap)
+                last = (episodes is not None and done == episodes) or (
+                    step_end is not None and cap is not None and cap <= spec_T)
+                row = self._episode(max_steps=cap, last=last)
                 self.logger_rows.append(row)
                 self.episodes_done += 1
                 if self.config.checkpoint:
@@ -439,7 +442,7 @@ class JacPropAgent:
         return agent
 
     # ------------------------------------------------------------------ one episode
-    def _episode(self, max_steps: int | None = None) -> dict[str, Any]:
+    def _episode(self, max_steps: int | None = None, last: bool = False) -> dict[str, Any]:
         cfg, spec = self.config, self.spec
         ep = self.episodes_done
         t_start = time.perf_counter()
@@ -505,7 +508,7 @@ class JacPropAgent:
         ev: dict[str, Any] = {"eval_cost": None, "eval_return": None, "eval_returns": None,
                               "oracle_cost": None, "cost_ratio": None, "eval_episodes_run": 0,
                               "solved": False}
-        if self._should_evaluate(ep):
+        if self._should_evaluate(ep, last):
             ev = self._evaluate()
         time_eval = time.perf_counter() - tic
 
@@ -741,11 +744,13 @@ class JacPropAgent:
         return one_step, jac
 
     # ------------------------------------------------------------------ evaluation
-    def _should_evaluate(self, ep: int) -> bool:
+    def _should_evaluate(self, ep: int, last: bool = False) -> bool:
+        """Every ``eval_every``-th episode from the last excitation episode on, and the last
+        episode of every :meth:`learn` call (the final score)."""
         cfg = self.config
         if cfg.eval_every == 0 or ep < cfg.n_excitation_episodes - 1:
             return False
-        return (ep - (cfg.n_excitation_episodes - 1)) % cfg.eval_every == 0
+        return last or (ep - (cfg.n_excitation_episodes - 1)) % cfg.eval_every == 0
 
     def _eval_env_instance(self) -> gym.Env:
         if self._eval_env is None:
@@ -925,6 +930,8 @@ class JacPropAgent:
             "oracle_cost": self.oracle_mean,
             "solved_ratio": self.config.solved_ratio,
             "wall_seconds_per_phase": phases,
+            "eval_fraction_of_wall": (
+                phases["eval"] / phases["total"] if phases.get("total") else None),
             "config": self.config.to_dict(),
         }
 
