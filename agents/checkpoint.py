@@ -1,71 +1,59 @@
-"""Crash-safe checkpoint files for the agent.
+"""Crash-safe, checksummed checkpoint files for the agent.
 
-A checkpoint is ONE file written atomically: the payload goes to a temporary file in the same
-directory, is flushed and ``fsync``-ed, then ``os.replace``-d over the old checkpoint and the
-directory entry is ``fsync``-ed. A ``SIGKILL`` at any moment therefore leaves either the previous
-complete checkpoint or the new complete one, never a torn file.
+A checkpoint is ONE file written atomically (:func:`mbtsr.fileformat.atomic_write_bytes`): a
+``SIGKILL`` at any moment leaves either the previous complete checkpoint or the new complete one,
+never a torn file; the temporary file of an interrupted write is deleted at the next save or load.
+The file carries a format version and a SHA-256 of its content
+(:func:`mbtsr.fileformat.write_verified`), so a truncated or bit-flipped checkpoint, or one of
+another version, is refused with a :class:`~mbtsr.fileformat.CheckpointError` that names the file
+and says what to do, instead of loading damaged numbers.
 
 Everything is loaded without unpickling arbitrary objects: ``torch.load(weights_only=True)``
 (tensors, numbers, strings, lists, dicts), ``np.load(allow_pickle=False)`` and JSON.
+
+Resuming also checks that the run continues under the same conditions: :func:`env_fingerprint`
+is saved with the checkpoint and :func:`check_same` names the first field that differs (the
+env's ``dt``, a preset, the spaces, a config field).
 """
 
 from __future__ import annotations
 
 import io
 import json
+import math
 import os
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import torch
 
+from mbtsr.fileformat import (
+    CheckpointError,
+    torch_load_verified,
+    torch_save_verified,
+)
+from mbtsr.io import atomic_write_bytes, atomic_write_text, remove_stale_temp_files
+
 __all__ = [
+    "CheckpointError",
     "atomic_write_bytes",
     "atomic_write_text",
     "atomic_torch_save",
+    "check_same",
+    "env_fingerprint",
     "save_checkpoint",
     "load_checkpoint",
     "numpy_rng_state",
+    "remove_stale_temp_files",
     "set_numpy_rng_state",
     "CHECKPOINT_FORMAT",
 ]
 
-#: bumped when the payload layout changes incompatibly
-CHECKPOINT_FORMAT = 1
-
-
-def _fsync_dir(directory: Path) -> None:
-    """Persist a directory entry (the rename) on POSIX; a no-op where unsupported."""
-    try:
-        fd = os.open(directory, os.O_RDONLY)
-    except OSError:  # pragma: no cover - e.g. Windows
-        return
-    try:
-        os.fsync(fd)
-    except OSError:  # pragma: no cover
-        pass
-    finally:
-        os.close(fd)
-
-
-def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> Path:
-    """Write ``data`` to ``path`` atomically (temp file, fsync, ``os.replace``, fsync dir)."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    with open(tmp, "wb") as fh:
-        fh.write(data)
-        fh.flush()
-        os.fsync(fh.fileno())
-    os.replace(tmp, path)
-    _fsync_dir(path.parent)
-    return path
-
-
-def atomic_write_text(path: str | os.PathLike, text: str) -> Path:
-    """:func:`atomic_write_bytes` for UTF-8 text."""
-    return atomic_write_bytes(path, text.encode("utf-8"))
+#: bumped when the payload layout changes incompatibly (2: checksummed file with a header)
+CHECKPOINT_FORMAT = 2
+_KIND = "agent-checkpoint"
 
 
 def atomic_torch_save(obj: Any, path: str | os.PathLike) -> Path:
@@ -94,24 +82,90 @@ def set_numpy_rng_state(rng: np.random.Generator, state: str) -> np.random.Gener
 
 def save_checkpoint(path: str | os.PathLike, payload: dict[str, Any]) -> Path:
     """Atomically save a checkpoint ``payload`` (a dict of tensors, numbers, strings, lists,
-    dicts; numpy arrays are converted to tensors) to ``path``."""
+    dicts; numpy arrays are converted to tensors) to ``path``, with its format version and a
+    content checksum."""
     if not isinstance(payload, dict):
         raise TypeError(f"payload must be a dict, got {type(payload).__name__}")
-    return atomic_torch_save({"format": CHECKPOINT_FORMAT, **_to_torch(payload)}, path)
+    return torch_save_verified({"format": CHECKPOINT_FORMAT, **_to_torch(payload)}, path,
+                               kind=_KIND, version=CHECKPOINT_FORMAT)
 
 
 def load_checkpoint(path: str | os.PathLike) -> dict[str, Any]:
-    """Load a checkpoint written by :func:`save_checkpoint` with ``weights_only=True``."""
+    """Load a checkpoint written by :func:`save_checkpoint` (checksum verified, then
+    ``weights_only=True``). Stale temporary files of interrupted writes next to it are removed.
+
+    :raises FileNotFoundError: no file at ``path``.
+    :raises CheckpointError: truncated, corrupted, another format or not a checkpoint.
+    """
     path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"no checkpoint at {path}")
-    payload = torch.load(path, map_location="cpu", weights_only=True)
+    remove_stale_temp_files(path)
+    payload, _ = torch_load_verified(path, kind=_KIND, versions=(CHECKPOINT_FORMAT,),
+                                     what="an agent checkpoint")
     if not isinstance(payload, dict) or payload.get("format") != CHECKPOINT_FORMAT:
-        raise ValueError(
-            f"{path} is not an agent checkpoint of format {CHECKPOINT_FORMAT} "
-            f"(found format {payload.get('format') if isinstance(payload, dict) else None!r})"
-        )
+        raise CheckpointError(f"{path} is not an agent checkpoint of format {CHECKPOINT_FORMAT}")
     return payload
+
+
+def env_fingerprint(env: Any) -> dict[str, Any]:
+    """What must not change when a run resumes in ``env``: its id, its constructor arguments
+    (``dt``, a preset, ...), its time step and its observation and action spaces (JSON)."""
+    spec = getattr(env, "spec", None)
+    kwargs = {}
+    for k, v in (getattr(spec, "kwargs", None) or {}).items():
+        try:
+            kwargs[k] = json.loads(json.dumps(v))
+        except (TypeError, ValueError):
+            kwargs[k] = repr(v)
+    out: dict[str, Any] = {"id": getattr(spec, "id", None), "kwargs": kwargs}
+    dt = getattr(getattr(env, "unwrapped", env), "dt", None)
+    out["dt"] = float(dt) if isinstance(dt, int | float | np.floating) else None
+    for name in ("observation_space", "action_space"):
+        space = getattr(env, name, None)
+        out[name] = None if space is None else {
+            "type": type(space).__name__,
+            "shape": list(getattr(space, "shape", None) or []),
+            "low": np.asarray(getattr(space, "low", [])).tolist(),
+            "high": np.asarray(getattr(space, "high", [])).tolist(),
+        }
+    return json.loads(json.dumps(out, default=str))
+
+
+def _first_difference(saved: Any, now: Any, where: str) -> tuple[str, Any, Any] | None:
+    if isinstance(saved, Mapping) and isinstance(now, Mapping):
+        for k in sorted(set(saved) | set(now), key=str):
+            if k not in saved or k not in now:
+                return (f"{where}.{k}".lstrip("."), saved.get(k, "<absent>"),
+                        now.get(k, "<absent>"))
+            d = _first_difference(saved[k], now[k], f"{where}.{k}")
+            if d is not None:
+                return d
+        return None
+    if isinstance(saved, list | tuple) and isinstance(now, list | tuple):
+        if len(saved) != len(now):
+            return where.lstrip(".") or "value", saved, now
+        for i, (a, b) in enumerate(zip(saved, now)):
+            d = _first_difference(a, b, f"{where}[{i}]")
+            if d is not None:
+                return d
+        return None
+    if isinstance(saved, float) and isinstance(now, float) and math.isnan(saved):
+        return None if math.isnan(now) else (where.lstrip("."), saved, now)
+    return None if saved == now else (where.lstrip(".") or "value", saved, now)
+
+
+def check_same(saved: Mapping, now: Mapping, *, what: str, path: str | os.PathLike) -> None:
+    """Raise :class:`CheckpointError` naming the first field where ``now`` differs from
+    ``saved`` (nested dicts and lists are compared field by field).
+
+    :param what: what is compared, for the message ("env", "config").
+    :param path: the checkpoint, for the message.
+    """
+    d = _first_difference(dict(saved), dict(now), "")
+    if d is not None:
+        field, a, b = d
+        raise CheckpointError(
+            f"cannot resume {path}: the {what} differs in {field!r} (checkpoint: {a!r}, "
+            f"now: {b!r}); resume with the same {what} or start a new run")
 
 
 def _to_torch(obj: Any) -> Any:

@@ -39,6 +39,8 @@ import torch
 
 from agents.checkpoint import (
     atomic_write_text,
+    check_same,
+    env_fingerprint,
     load_checkpoint,
     numpy_rng_state,
     save_checkpoint,
@@ -417,6 +419,9 @@ class JacPropAgent:
                     f"{(got.obs_dim, got.act_dim, got.u_min, got.u_max)} vs "
                     f"{(spec.obs_dim, spec.act_dim, spec.u_min, spec.u_max)}"
                 )
+        if env is not None and payload.get("env_fingerprint"):
+            check_same(json.loads(payload["env_fingerprint"]), env_fingerprint(env),
+                       what="env", path=path)
         task = json.loads(payload["task"])
         saved_n = json.loads(payload["ensemble_config"])["state_dim"]
         if task.get("state_map") is None and state_fn is None:
@@ -958,6 +963,7 @@ class JacPropAgent:
         return {
             "agent_config": json.dumps(self.config.to_dict()),
             "env_spec": json.dumps(self.spec.to_dict()),
+            "env_fingerprint": None if self.env is None else json.dumps(env_fingerprint(self.env)),
             "task": json.dumps(task),
             "ensemble_config": self.ensemble_config.to_json(),
             "model_state": {k: v.detach().clone() for k, v in self.model.state_dict().items()},
@@ -1011,9 +1017,7 @@ class JacPropAgent:
         run_dir.mkdir(parents=True, exist_ok=True)
         # the checkpoint is the source of truth; the exports below are conveniences
         self.save(run_dir / "checkpoint.pt")
-        tmp = run_dir / ".model.pt.tmp"
-        save_model(self.model, tmp)
-        tmp.replace(run_dir / "model.pt")
+        save_model(self.model, run_dir / "model.pt")  # atomic
         save_trajectories(run_dir / "data.npz", self.trajectories)
         atomic_write_text(run_dir / "summary.json", json.dumps(self.summary(), indent=2))
 

@@ -7,11 +7,14 @@ Headless: make the env with ``render_mode="rgb_array"``; ``import envs`` selects
 from __future__ import annotations
 
 import os
+import warnings
 from collections.abc import Sequence
 from pathlib import Path
 
 import gymnasium as gym
 import numpy as np
+
+from mbtsr.io import atomic_write
 
 __all__ = ["render_episode", "save_png_strip", "save_video"]
 
@@ -57,38 +60,78 @@ def _check_frames(frames: Sequence[np.ndarray]) -> list[np.ndarray]:
     return [f.astype(np.uint8) for f in out]
 
 
-def _atomic_write(path: Path, write) -> None:
-    tmp = path.with_name(path.name + ".tmp" + path.suffix)
-    write(tmp)
-    os.replace(tmp, path)
-
-
 def save_video(frames: Sequence[np.ndarray], path: str | os.PathLike, fps: float = 50) -> Path:
-    """Write ``frames`` to ``path``: ``.gif`` (Pillow via imageio) or ``.mp4`` (needs ffmpeg).
+    """Write ``frames`` to ``path`` as an H.264 ``.mp4`` (imageio-ffmpeg) or a ``.gif`` (Pillow).
 
-    :raises ValueError: unknown extension, or ``.mp4`` without ``imageio-ffmpeg`` installed.
+    MP4 is the default format of the agent's episode videos: ``imageio-ffmpeg`` is a core
+    dependency and ships its own ffmpeg binary. Odd frame sizes are padded by one edge row/column
+    (H.264 with ``yuv420p`` needs even sizes); RGBA frames lose their alpha channel. GIF stays as
+    the fallback: when ``.mp4`` is asked for but ffmpeg cannot be found, the frames are written to
+    the same path with the suffix ``.gif`` and a warning says so.
+
+    :param frames: ``[H, W, 3|4]`` images, all the same shape.
+    :param path: ends in ``.mp4`` or ``.gif``; written atomically (temp file then rename).
+    :param fps: frames per second, > 0.
+    :return: the path actually written (``.gif`` after a fallback).
+    :raises ValueError: unknown extension, empty or mismatched frames, ``fps <= 0``.
     """
-    import imageio.v2 as imageio
-
     frames = _check_frames(frames)
     path = Path(path)
     suffix = path.suffix.lower()
-    if fps <= 0:
-        raise ValueError(f"fps must be > 0, got {fps!r}")
-    if suffix == ".gif":
-        # GIF stores frame durations in ms (10 ms resolution)
-        _atomic_write(path, lambda p: imageio.mimsave(p, frames, duration=1000.0 / fps, loop=0))
-    elif suffix == ".mp4":
-        try:
-            import imageio_ffmpeg  # noqa: F401
-        except ImportError:
-            raise ValueError(
-                "writing .mp4 needs imageio-ffmpeg (pip install imageio-ffmpeg); use .gif"
-            ) from None
-        _atomic_write(path, lambda p: imageio.mimsave(p, frames, fps=fps))
-    else:
+    if isinstance(fps, bool) or not np.isfinite(fps) or fps <= 0:
+        raise ValueError(f"fps must be a finite number > 0, got {fps!r}")
+    if suffix not in (".gif", ".mp4"):
         raise ValueError(f"path must end in .gif or .mp4, got {path.name!r}")
+    if suffix == ".mp4":
+        exe = _ffmpeg_exe()
+        if exe is not None:
+            atomic_write(path, lambda p: _write_mp4(frames, p, fps))
+            return path
+        warnings.warn(
+            "ffmpeg not found (pip install imageio-ffmpeg): writing a GIF instead of "
+            f"{path.name}",
+            RuntimeWarning,
+            stacklevel=2,
+        )
+        path = path.with_suffix(".gif")
+    import imageio.v2 as imageio
+
+    # GIF stores frame durations in ms (10 ms resolution)
+    atomic_write(path, lambda p: imageio.mimsave(p, frames, duration=1000.0 / fps, loop=0))
     return path
+
+
+def _ffmpeg_exe() -> str | None:
+    """Path of the ffmpeg binary imageio-ffmpeg uses, or None when there is none."""
+    try:
+        import imageio_ffmpeg
+
+        return imageio_ffmpeg.get_ffmpeg_exe()
+    except (ImportError, RuntimeError):
+        return None
+
+
+def _write_mp4(frames: list[np.ndarray], path: Path, fps: float) -> None:
+    import imageio_ffmpeg
+
+    h, w = frames[0].shape[:2]
+    pad = ((0, h % 2), (0, w % 2), (0, 0))
+    writer = imageio_ffmpeg.write_frames(
+        str(path),
+        (w + w % 2, h + h % 2),
+        fps=fps,
+        codec="libx264",
+        pix_fmt_in="rgb24",
+        pix_fmt_out="yuv420p",
+        macro_block_size=1,
+        ffmpeg_log_level="error",
+    )
+    writer.send(None)  # start the ffmpeg process
+    try:
+        for f in frames:
+            writer.send(np.ascontiguousarray(np.pad(f[..., :3], pad, mode="edge")))
+    finally:
+        writer.close()
 
 
 def save_png_strip(frames: Sequence[np.ndarray], path: str | os.PathLike, n: int = 6) -> Path:
@@ -101,5 +144,5 @@ def save_png_strip(frames: Sequence[np.ndarray], path: str | os.PathLike, n: int
     idx = np.unique(np.linspace(0, len(frames) - 1, min(n, len(frames))).round().astype(int))
     strip = np.concatenate([frames[i] for i in idx], axis=1)
     path = Path(path)
-    _atomic_write(path, lambda p: imageio.imwrite(p, strip, format="png"))
+    atomic_write(path, lambda p: imageio.imwrite(p, strip, format="png"))
     return path

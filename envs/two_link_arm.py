@@ -46,7 +46,12 @@ NOT a MuJoCo constraint (that would make the dynamics non-smooth); it bounds the
 the default rejection threshold of ``envs.collect.collect_trajectories``.
 
 ## Episode end
-No termination; truncation after ``episode_steps`` (default 100 steps = 2 s).
+No termination; truncation after ``episode_steps`` (default 100 steps = 2 s), or earlier when the
+simulation diverges: if MuJoCo reports an instability during a step (``mjWARN_BADQACC``,
+``BADQPOS`` or ``BADQVEL``; MuJoCo then resets the arm to rest) or a joint speed exceeds
+``VELOCITY_LIMIT`` (1e3 rad/s), the step returns ``truncated=True`` with ``info["unstable"] =
+True`` and the reason in ``info["instability"]``; that step's observation is not a physical
+successor state (do not learn from it). ``info["unstable"]`` is ``False`` on every other step.
 
 ## Simulation
 Euler integrator (MuJoCo's, which treats joint damping implicitly; ``mjd_transitionFD`` refuses
@@ -77,18 +82,23 @@ Unknown preset -> ``ValueError`` listing the valid ones.
 ``gymnasium.make("mbtsr/TwoLinkArm-v0", preset="default", episode_steps=100, render_mode=None,
 dt=None, params=None, target_limit=pi/2, joint_limit=0.9*pi, init_noise=0.05, cost_Q=None,
 cost_R=None, width=320, height=240)``. ``dt`` overrides the control period (``timestep = dt /
-frame_skip``; ``dt <= 0`` -> ``ValueError``); ``params`` overrides any
+frame_skip``; ``dt <= 0`` or ``dt > MAX_DT = 0.1`` s -> ``ValueError``: the Euler substeps
+get too coarse, and at 0.5 s the default arm diverges); ``params`` overrides any
 :class:`~envs.two_link_arm_model.ArmParams` field, e.g. ``{"link_mass": (2.0, 1.0)}``.
 
 ## Model access (on ``env.unwrapped``)
+- ``dynamics_model()`` -> :class:`envs.mujoco_model.MujocoDynamics` (the true model, the same
+  class as for any Gymnasium MuJoCo env; state ``[q, qdot]``, batched ``step``).
 - ``linearize(x, u) -> (A [4, 4], B [4, 2])``: Jacobians of ONE env step w.r.t. the physical
-  state and the normalized action, chaining ``mujoco.mjd_transitionFD`` (centred) over the
-  ``frame_skip`` substeps: ``A = A_k ... A_1``, ``B = sum_j A_k ... A_{j+1} B_j``. For hinge joints
-  MuJoCo's tangent-space state ``[dq, dqdot]`` is ``[q, qdot]``. Runs on a scratch ``MjData``.
-  At ``|u_i| = 1`` MuJoCo differences one-sidedly inside the control range; beyond it ``B`` is 0.
+  state and the normalized action, by that model's one route: ``mujoco.mjd_transitionFD``
+  (centred) chained over the ``frame_skip`` substeps, ``A = A_k ... A_1``,
+  ``B = sum_j A_k ... A_{j+1} B_j``. For hinge joints MuJoCo's tangent-space state
+  ``[dq, dqdot]`` is ``[q, qdot]``. At ``|u_i| = 1`` MuJoCo differences one-sidedly inside the
+  control range; beyond it ``B`` is 0.
 - ``linearize_trajectory(X [T, 4], U [T, 2]) -> (A [T, 4, 4], B [T, 4, 2])``.
-- ``dynamics_model()`` -> :class:`MujocoArmDynamics` (the true model, ``DynamicsModel`` protocol).
-- ``analytic_model()`` -> :class:`envs.two_link_arm_model.TwoLinkArmCasadi` (CasADi twin).
+- ``analytic_model()`` -> :class:`envs.two_link_arm_model.TwoLinkArmCasadi`: the analytic
+  alternative (CasADi, exact symbolic Jacobians; equal to MuJoCo's where both joints move,
+  smooth ``tanh`` friction near zero velocity).
 
 ## Rendering
 ``render_mode="rgb_array"`` only (a ``"human"`` window aborts a headless process); ``import envs``
@@ -109,19 +119,18 @@ import mujoco
 import numpy as np
 from gymnasium import spaces, utils
 from gymnasium.envs.mujoco.mujoco_env import MujocoEnv
-from mujoco import rollout
 
+from envs.mujoco_model import MujocoDynamics
 from envs.two_link_arm_model import ArmParams, TwoLinkArmCasadi, arm_params
-from mbtsr.dynamics import check_step_inputs
 from mbtsr.validation import as_array, check_nonnegative, check_positive
 
 __all__ = [
     "ASSET_PATH",
     "EXCITATION_STD",
-    "MujocoArmDynamics",
+    "MAX_DT",
     "TwoLinkArmEnv",
+    "VELOCITY_LIMIT",
     "build_model",
-    "step_jacobians",
 ]
 
 ASSET_PATH = Path(__file__).resolve().parent / "assets" / "two_link_arm.xml"
@@ -132,6 +141,18 @@ ASSET_PATH = Path(__file__).resolve().parent / "assets" / "two_link_arm.xml"
 EXCITATION_STD = {"default": 0.15, "paper": 1.0 / 3.0}
 
 FD_EPS = 1e-6  # mjd_transitionFD perturbation (centred differences)
+
+#: Largest control period accepted [s] (5 x the default 0.02 s): with 10 Euler substeps the
+#: default arm diverges under random torques at dt = 0.5 s, and already at dt = 0.3 s its
+#: trajectories are too coarse for the reach task.
+MAX_DT = 0.1
+#: A joint speed above this [rad/s] means the simulation diverged (the real arms stay < 50).
+VELOCITY_LIMIT = 1e3
+_INSTABILITY_WARNINGS = (
+    mujoco.mjtWarning.mjWARN_BADQACC,
+    mujoco.mjtWarning.mjWARN_BADQPOS,
+    mujoco.mjtWarning.mjWARN_BADQVEL,
+)
 
 
 def build_model(p: ArmParams, path: str | Path = ASSET_PATH) -> mujoco.MjModel:
@@ -176,88 +197,6 @@ def fingertip_position(q: np.ndarray, p: ArmParams) -> np.ndarray:
             -(l1 * math.cos(q[0]) + l2 * math.cos(q[0] + q[1])),
         ]
     )
-
-
-def step_jacobians(
-    model: mujoco.MjModel,
-    scratch: mujoco.MjData,
-    x: np.ndarray,
-    u: np.ndarray,
-    frame_skip: int,
-    out_a: np.ndarray | None = None,
-    out_b: np.ndarray | None = None,
-) -> tuple[np.ndarray, np.ndarray]:
-    """Jacobians of ``frame_skip`` MuJoCo substeps with the control held constant.
-
-    Chains ``mjd_transitionFD`` (centred, eps 1e-6) along the substeps:
-    ``A = A_k ... A_1``, ``B = sum_j A_k ... A_{j+1} B_j``.
-
-    :param scratch: an ``MjData`` of ``model`` that may be overwritten.
-    :param x: ``[2 nv]`` state ``[qpos, qvel]`` (hinge joints only).
-    :param u: ``[nu]`` control.
-    :return: ``A: [2 nv, 2 nv]``, ``B: [2 nv, nu]``.
-    """
-    nv, nu = model.nv, model.nu
-    a_env = np.eye(2 * nv) if out_a is None else out_a
-    b_env = np.zeros((2 * nv, nu)) if out_b is None else out_b
-    a_env[:] = np.eye(2 * nv)
-    b_env[:] = 0.0
-    a_k = np.empty((2 * nv, 2 * nv))
-    b_k = np.empty((2 * nv, nu))
-    scratch.time = 0.0
-    scratch.qpos[:] = x[:nv]
-    scratch.qvel[:] = x[nv:]
-    scratch.ctrl[:] = u
-    for _ in range(frame_skip):
-        mujoco.mjd_transitionFD(model, scratch, FD_EPS, True, a_k, b_k, None, None)
-        np.matmul(a_k, a_env, out=a_env)
-        b_env[:] = a_k @ b_env + b_k
-        mujoco.mj_step(model, scratch)
-    return a_env, b_env
-
-
-class MujocoArmDynamics:
-    """The true MuJoCo arm as a :class:`mbtsr.dynamics.DynamicsModel`.
-
-    ``step`` runs ``frame_skip`` substeps for each row with ``mujoco.rollout`` (one C call for
-    the whole batch); ``jacobians`` chains ``mjd_transitionFD`` (see :func:`step_jacobians`).
-    Actions are normalized and clamped to [-1, 1] by MuJoCo (``ctrlrange``), as in the env.
-
-    :param model: the env's compiled ``MjModel`` (shared, not copied).
-    :param frame_skip: substeps per step.
-    """
-
-    state_dim = 4
-    action_dim = 2
-
-    def __init__(self, model: mujoco.MjModel, frame_skip: int) -> None:
-        self.model = model
-        self.frame_skip = int(frame_skip)
-        self.dt = model.opt.timestep * self.frame_skip
-        self._data = mujoco.MjData(model)
-        self._spec = mujoco.mjtState.mjSTATE_FULLPHYSICS
-        self._nstate = mujoco.mj_stateSize(model, self._spec)  # [time, qpos, qvel]
-
-    def step(self, x: np.ndarray, u: np.ndarray, t: int | None = None) -> np.ndarray:
-        """Next state, batched: ``x: [..., 4]``, ``u: [..., 2]`` -> ``[..., 4]``."""
-        x, u = check_step_inputs(x, u, 4, 2)
-        batch = x.shape[:-1]
-        xs = x.reshape(-1, 4)
-        state0 = np.zeros((xs.shape[0], self._nstate))
-        state0[:, 1:5] = xs
-        control = np.repeat(u.reshape(-1, 1, 2), self.frame_skip, axis=1)
-        states, _ = rollout.rollout(self.model, self._data, state0, control)
-        return states[:, -1, 1:5].reshape(*batch, 4)
-
-    def jacobians(self, x: np.ndarray, u: np.ndarray, t: int = 0) -> tuple[np.ndarray, np.ndarray]:
-        """``x: [T, 4]``, ``u: [T, 2]`` -> ``A: [T, 4, 4]``, ``B: [T, 4, 2]``."""
-        x = as_array("x", x, (None, 4))
-        u = as_array("u", u, (x.shape[0], 2))
-        a_all = np.empty((x.shape[0], 4, 4))
-        b_all = np.empty((x.shape[0], 4, 2))
-        for k in range(x.shape[0]):  # mjd_transitionFD has no batched form
-            step_jacobians(self.model, self._data, x[k], u[k], self.frame_skip, a_all[k], b_all[k])
-        return a_all, b_all
 
 
 def _diag_weights(name: str, value: object, size: int) -> np.ndarray:
@@ -331,6 +270,11 @@ class TwoLinkArmEnv(MujocoEnv, utils.EzPickle):
             )
         if int(episode_steps) != episode_steps or episode_steps < 1:
             raise ValueError(f"episode_steps must be an integer >= 1, got {episode_steps!r}")
+        if dt is not None and not check_positive("dt", dt) <= MAX_DT:
+            raise ValueError(
+                f"dt must be <= MAX_DT={MAX_DT} s (10 Euler substeps per step; larger periods "
+                f"make the simulation inaccurate or unstable), got {dt!r}"
+            )
         self.params = arm_params(preset, dt=dt, **dict(params or {}))
         self.preset = preset
         self.episode_steps = int(episode_steps)
@@ -364,6 +308,7 @@ class TwoLinkArmEnv(MujocoEnv, utils.EzPickle):
         self._goal = np.zeros(4)
         self._t = 0
         self._analytic: TwoLinkArmCasadi | None = None
+        self._mujoco_model: MujocoDynamics | None = None
 
     # --- MujocoEnv hooks -------------------------------------------------------------------
 
@@ -415,14 +360,21 @@ class TwoLinkArmEnv(MujocoEnv, utils.EzPickle):
         x = self._state()
         return self._obs(x), {"state": x, "target": self._target.copy()}
 
+    def _instability_warnings(self) -> int:
+        w = self.data.warning
+        return sum(int(w[k].number) for k in _INSTABILITY_WARNINGS)
+
     def step(self, action):
-        """Apply the normalized torque ``action`` ``[2]`` for ``dt`` seconds."""
-        a = np.asarray(action, dtype=np.float64)
-        if a.shape != (2,):
-            raise ValueError(f"action must have shape (2,), got {a.shape}")
-        if not np.isfinite(a).all():
-            raise ValueError(f"action must be finite, got {a.tolist()}")
+        """Apply the normalized torque ``action`` ``[2]`` for ``dt`` seconds.
+
+        If the simulation diverges during the step (a MuJoCo instability warning, after which
+        MuJoCo resets the arm, or a joint speed above ``VELOCITY_LIMIT``) the step returns
+        ``truncated=True`` and ``info["unstable"] = True`` with the reason in
+        ``info["instability"]``; the observation is then not a physical successor state.
+        """
+        a = as_array("action", action, (2,))
         a = np.clip(a, -1.0, 1.0)
+        warnings_before = self._instability_warnings()
         self.data.ctrl[:] = a
         mujoco.mj_step(self.model, self.data, nstep=self.frame_skip)
         self._t += 1
@@ -435,9 +387,24 @@ class TwoLinkArmEnv(MujocoEnv, utils.EzPickle):
             "target": self._target.copy(),
             "cost_state": cost_state,
             "cost_action": cost_action,
+            "unstable": False,
         }
         truncated = self._t >= self.episode_steps
+        reason = None
+        if self._instability_warnings() > warnings_before:
+            reason = ("MuJoCo reported NaN/inf or huge accelerations or velocities and reset the "
+                      "arm (the simulation is unstable)")
+        elif not np.all(np.abs(x[2:]) <= VELOCITY_LIMIT):
+            reason = f"a joint speed exceeds VELOCITY_LIMIT={VELOCITY_LIMIT:g} rad/s"
+        if reason is not None:
+            info["unstable"] = True
+            info["instability"] = (f"step {self._t} at dt={self.dt:g} s: {reason}; reduce dt "
+                                   "or the torque limit")
+            truncated = True
         return self._obs(x), -(cost_state + cost_action), False, truncated, info
+
+    def _get_obs(self) -> np.ndarray:  # the MujocoEnv convention (used by envs.mujoco_model)
+        return self._obs(self._state())
 
     def reset_model(self) -> np.ndarray:  # required by MujocoEnv; reset() does the work
         return self._obs(self._state())
@@ -449,15 +416,22 @@ class TwoLinkArmEnv(MujocoEnv, utils.EzPickle):
         """The current episode's target joint angles ``[2]``."""
         return self._target.copy()
 
+    def _true_model(self) -> MujocoDynamics:
+        if self._mujoco_model is None:
+            self._mujoco_model = self.dynamics_model()
+        return self._mujoco_model
+
     def linearize(self, x: object, u: object) -> tuple[np.ndarray, np.ndarray]:
         """Jacobians of one env step at ``(x [4], u [2])``: ``A [4, 4]``, ``B [4, 2]``.
 
-        Chains ``mjd_transitionFD`` over the substeps on a scratch ``MjData``; the env's own
-        simulation state is untouched.
+        The one route to the true Jacobians, :meth:`envs.mujoco_model.MujocoDynamics.jacobians`
+        (``mjd_transitionFD`` chained over the substeps, on the model's own ``MjData``); the
+        env's simulation state is untouched.
         """
         x = as_array("x", x, (4,))
         u = as_array("u", u, (2,))
-        return step_jacobians(self.model, self._scratch, x, u, self.frame_skip)
+        A, B = self._true_model().jacobians(x[None], u[None])
+        return A[0], B[0]
 
     def linearize_trajectory(self, X: object, U: object) -> tuple[np.ndarray, np.ndarray]:  # noqa: N803
         """:meth:`linearize` along a trajectory.
@@ -468,17 +442,12 @@ class TwoLinkArmEnv(MujocoEnv, utils.EzPickle):
         """
         X = as_array("X", X, (None, 4))  # noqa: N806
         U = as_array("U", U, (X.shape[0], 2))  # noqa: N806
-        a_all = np.empty((X.shape[0], 4, 4))
-        b_all = np.empty((X.shape[0], 4, 2))
-        for k in range(X.shape[0]):  # mjd_transitionFD has no batched form
-            step_jacobians(
-                self.model, self._scratch, X[k], U[k], self.frame_skip, a_all[k], b_all[k]
-            )
-        return a_all, b_all
+        return self._true_model().jacobians(X, U)
 
-    def dynamics_model(self) -> MujocoArmDynamics:
-        """The true MuJoCo model behind this env, as a ``DynamicsModel``."""
-        return MujocoArmDynamics(self.model, self.frame_skip)
+    def dynamics_model(self) -> MujocoDynamics:
+        """The true MuJoCo model behind this env (:class:`envs.mujoco_model.MujocoDynamics`:
+        state ``[q, qdot]`` = the first 4 observation entries, ``mjd_transitionFD`` Jacobians)."""
+        return MujocoDynamics(self, jacobian_method="transition_fd", fd_eps=FD_EPS)
 
     def analytic_model(self) -> TwoLinkArmCasadi:
         """The analytic CasADi twin of this env's arm (built once, then cached)."""

@@ -346,14 +346,19 @@ class TwoLinkArmCasadi:
         if x.shape[-1:] != (4,) or u.shape[-1:] != (2,) or batch != u.shape[:-1]:
             check_step_inputs(x, u, 4, 2)  # raises the precise message
             raise ValueError("x and u must be arrays [..., 4] and [..., 2]")
+        if not math.isfinite(x.sum() + u.sum()):  # NaN/inf (or an overflowing sum)
+            check_step_inputs(x, u, 4, 2)  # names x or u and the first bad index
+        return self._step(x, u, t)
+
+    def _step(self, x: np.ndarray, u: np.ndarray, t: int | None = None) -> np.ndarray:
+        """:meth:`step` without input checks: ``x: [..., 4]``, ``u: [..., 2]`` (same batch)."""
+        batch = x.shape[:-1]
         n_b = x.size // 4
         if n_b == 0:
             return np.empty((*batch, 4))
         buf, evaluate, x_in, u_in, _ = self._buffer("step", n_b)
         x_in[...] = x.reshape(n_b, 4)
         u_in[...] = u.reshape(n_b, 2)
-        if not math.isfinite(x_in.sum() + u_in.sum()):  # NaN/inf (or an overflowing sum)
-            check_step_inputs(x, u, 4, 2)  # names x or u and the first bad index
         out = np.empty((n_b, 4))  # column-major [4, n_b] = C-ordered [n_b, 4]; a fresh array
         buf.set_res(0, memoryview(out))
         evaluate()

@@ -8,11 +8,20 @@ so iLQR and IPOPT optimise exactly the same objective::
 
     J(X, U) = sum_{t=0}^{T-1} l(x_t, u_t, t0 + t) + l_T(x_T)        X: [T+1, n], U: [T, m]
 
-Time-indexed data (a reference trajectory, time-varying weights) enters through an optional
-parameter table ``params: [N_ref, p]``: the stage function then takes a fourth input ``p`` and
-receives row ``min(t, N_ref - 1)`` at absolute time ``t`` (the last row is held beyond the end
-of the table, so a receding-horizon controller can look past the end of a reference). The
-terminal function may take ``p`` as its second input and receives the row at time ``t0 + T``.
+Parameters at call time (as in trajax, ``cost(x, u, t, params)``): a target, a reference
+trajectory or time-varying weights are a *parameter* ``p`` of ONE compiled cost, passed to every
+evaluation (``cost.total(X, U, t0, params)``, ``cost.derivatives(X, U, t0, params)``,
+``ilqr(..., params=...)``), never baked into a new CasADi function. ``params`` is a vector ``[p]``
+(the same at every time) or a table ``[N_ref, p]`` whose row ``min(t, N_ref - 1)`` is used at
+absolute time ``t`` (the last row is held beyond the end of the table, so a receding-horizon
+controller can look past the end of a reference). The stage function takes ``p`` as its fourth
+input, the terminal function as its second (each may ignore it); the terminal cost receives the
+row at time ``t0 + T``. A cost may carry default parameters (``quadratic_cost`` stores its goal
+there); ``params`` given at call time replace them.
+
+Validation happens once at the public boundary: the public methods check shapes and finiteness;
+the solver validates the parameters once (:meth:`CasadiCost.check_params`) and then calls the
+private kernels ``_total`` / ``_derivatives``, which check nothing.
 
 Layout trick: numpy arrays are handed to CasADi without copies through ``Function.buffer``. A
 C-ordered numpy ``[N, n]`` array has the memory layout of a column-major CasADi ``[n, N]``
@@ -83,8 +92,10 @@ class _BufferedFunction:
         self.out_shapes = out_shapes
 
     def __call__(self, *args: np.ndarray) -> list[np.ndarray]:
-        # the arrays must stay alive until trigger() returns; they are locals of this frame
-        outs = [np.empty(s) for s in self.out_shapes]
+        # the arrays must stay alive until trigger() returns; they are locals of this frame.
+        # zeros, not empty: CasADi does not write the structurally zero part of an output (e.g.
+        # the gradient of a terminal cost that does not depend on x)
+        outs = [np.zeros(s) for s in self.out_shapes]
         for i, a in enumerate(args):
             self.buffer.set_arg(i, memoryview(a))
         for i, o in enumerate(outs):
@@ -96,19 +107,20 @@ class _BufferedFunction:
 class CasadiCost:
     """A trajectory cost defined by CasADi functions, with derivatives from CasADi AD.
 
-    ``J = sum_t l(x_t, u_t, t) + l_T(x_T)`` with ``t`` the absolute time index.
+    ``J = sum_t l(x_t, u_t, t, p_t) + l_T(x_T, p_T)`` with ``t`` the absolute time index and
+    ``p_t`` the parameter row at time ``t`` (see the module docstring).
 
     Build it from ``casadi.Function`` objects (this constructor) or from symbolic expressions
     (:meth:`from_expressions`). Derivative and value functions are generated lazily per
-    trajectory length and cached.
+    trajectory length and cached; parameters never cause a rebuild.
 
-    :param stage: ``casadi.Function`` ``(x[n], u[m], t[1]) -> l`` or, with ``params``,
+    :param stage: ``casadi.Function`` ``(x[n], u[m], t[1]) -> l`` or
         ``(x[n], u[m], t[1], p[p]) -> l`` (scalar output).
     :param terminal: ``casadi.Function`` ``(x[n]) -> l_T`` or ``(x[n], p[p]) -> l_T``.
     :param n: state dimension.
     :param m: input dimension.
-    :param params: optional ``[N_ref, p]`` time-indexed parameter table (e.g. a reference
-        trajectory); row ``min(t, N_ref - 1)`` is passed at time ``t``.
+    :param params: optional default parameters, ``[p]`` or ``[N_ref, p]`` (used when a call
+        gives none). ``p`` is the size of the functions' parameter input.
     :param jit: JIT-compile the stage/terminal derivative functions with the system C compiler
         (CasADi ``"shell"`` compiler; a one-off compile of a fraction of a second).
     """
@@ -130,20 +142,17 @@ class CasadiCost:
         n, m = int(n), int(m)
         if n < 1 or m < 1:
             raise ValueError(f"n and m must be >= 1, got n={n}, m={m}")
-        if params is None:
-            p_dim, table = 0, np.zeros((1, 0))
-        else:
-            table = as_array("params", params, ndim=2)
-            if table.shape[0] < 1:
-                raise ValueError("params must have at least one row, got shape [0, *]")
-            p_dim = table.shape[1]
-        _check_function("stage", stage, [(n, 1), (m, 1), (1, 1)], p_dim)
-        _check_function("terminal", terminal, [(n, 1)], p_dim)
-        if params is not None and stage.n_in() == 3 and terminal.n_in() == 1:
+        p_stage = _check_function("stage", stage, [(n, 1), (m, 1), (1, 1)])
+        p_term = _check_function("terminal", terminal, [(n, 1)])
+        if p_stage is not None and p_term is not None and p_stage != p_term:
+            raise ValueError(
+                f"stage and terminal parameter inputs differ in size: {p_stage} and {p_term}"
+            )
+        p_dim = p_stage if p_stage is not None else (p_term or 0)
+        if params is not None and p_stage is None and p_term is None:
             raise ValueError("params given, but neither stage nor terminal takes a parameter input")
         self.n, self.m, self.param_dim = n, m, p_dim
-        self.params = None if params is None else np.ascontiguousarray(table)
-        self._table = np.ascontiguousarray(table)
+        self.params = None if params is None else self._as_table(params)
         self.jit = bool(jit)
         # normalised signatures: stage(x, u, t, p), terminal(x, p); SX symbols when the user's
         # functions can be evaluated on SX (fast scalar graphs), MX otherwise
@@ -204,14 +213,16 @@ class CasadiCost:
         :param stage_expr: scalar expression of ``x, u`` (and optionally ``t``, ``p``).
         :param terminal_expr: scalar expression of ``x`` (and optionally ``p``).
         :param t: scalar time symbol used in ``stage_expr`` (absolute time index).
-        :param p: ``[p, 1]`` parameter symbol; requires ``params: [N_ref, p]``.
+        :param p: ``[p, 1]`` parameter symbol (values are given at call time, or as the
+            default ``params``: ``[p]`` or ``[N_ref, p]``).
 
-        Example (a smooth distance-to-target reaching cost)::
+        Example (a reaching cost whose target is a parameter)::
 
-            x, u = ca.SX.sym("x", 4), ca.SX.sym("u", 2)
+            x, u, p = ca.SX.sym("x", 4), ca.SX.sym("u", 2), ca.SX.sym("p", 2)
             cost = CasadiCost.from_expressions(
-                x, u, smooth_norm(x[:2] - goal, 0.05) + 1e-2 * ca.sumsqr(u),
-                10 * ca.sumsqr(x - x_goal))
+                x, u, smooth_norm(x[:2] - p, 0.05) + 1e-2 * ca.sumsqr(u),
+                10 * ca.sumsqr(x[:2] - p), p=p)
+            cost.total(X, U, params=target)   # any target, same compiled functions
         """
         sym = type(x)
         if not isinstance(x, (ca.SX, ca.MX)) or not isinstance(u, sym):
@@ -219,30 +230,61 @@ class CasadiCost:
         if x.shape[1] != 1 or u.shape[1] != 1:
             raise ValueError(f"x and u must be column symbols, got {x.shape} and {u.shape}")
         t = sym.sym("t") if t is None else t
-        if (p is None) != (params is None):
-            raise ValueError("p (the parameter symbol) and params (its table) go together")
-        p = sym.sym("p", 0) if p is None else p
-        stage = ca.Function("stage", [x, u, t, p], [stage_expr])
-        terminal = ca.Function("terminal", [x, p], [terminal_expr])
+        if p is None and params is not None:
+            raise ValueError("params (default parameter values) need p, the parameter symbol")
+        if p is None:
+            stage = ca.Function("stage", [x, u, t], [stage_expr])
+            terminal = ca.Function("terminal", [x], [terminal_expr])
+        else:
+            stage = ca.Function("stage", [x, u, t, p], [stage_expr])
+            terminal = ca.Function("terminal", [x, p], [terminal_expr])
         return cls(stage, terminal, x.shape[0], u.shape[0], params=params, jit=jit)
 
     # ------------------------------------------------------------------ parameters
-    def params_at(self, t: np.ndarray) -> np.ndarray:
+    def check_params(self, params: np.ndarray | None = None) -> np.ndarray:
+        """Validate ``params`` (``[p]``, ``[N_ref, p]`` or ``None`` for the defaults) once and
+        return the parameter table ``[N_ref, p]`` the private kernels take."""
+        if params is None:
+            if self.params is not None:
+                return self.params
+            if self.param_dim:
+                raise ValueError(
+                    f"params is required: this cost takes a parameter vector of size "
+                    f"{self.param_dim} and has no default"
+                )
+            return np.zeros((1, 0))
+        if not self.param_dim:
+            raise ValueError("params given, but this cost takes no parameters")
+        return self._as_table(params)
+
+    def _as_table(self, params: object) -> np.ndarray:
+        table = as_array("params", params)
+        if table.ndim == 1:
+            table = table[None]
+        if table.ndim != 2 or table.shape[1] != self.param_dim or table.shape[0] < 1:
+            raise ValueError(
+                f"params must be [{self.param_dim}] or [N_ref, {self.param_dim}] with N_ref >= 1, "
+                f"got {list(np.shape(params))}"
+            )
+        return np.ascontiguousarray(table)
+
+    def params_at(self, t: np.ndarray, params: np.ndarray | None = None) -> np.ndarray:
         """Parameter rows for absolute times ``t: [N]`` -> ``[N, p]`` (last row held)."""
-        idx = np.minimum(np.asarray(t, dtype=np.int64), self._table.shape[0] - 1)
-        return self._table[idx]
+        return _rows(self.check_params(params), np.asarray(t, dtype=np.int64))
 
-    def stage_expr(self, x, u, t: int):
+    def stage_expr(self, x, u, t: int, params: np.ndarray | None = None):
         """Symbolic stage cost at the integer time ``t`` (parameters substituted)."""
-        return self.stage(x, u, float(t), self.params_at(np.array([t]))[0])
+        return self.stage(x, u, float(t), self.params_at(np.array([t]), params)[0])
 
-    def terminal_expr(self, x, t: int):
+    def terminal_expr(self, x, t: int, params: np.ndarray | None = None):
         """Symbolic terminal cost at the integer time ``t`` (parameters substituted)."""
-        return self.terminal(x, self.params_at(np.array([t]))[0])
+        return self.terminal(x, self.params_at(np.array([t]), params)[0])
 
-    # ------------------------------------------------------------------ evaluation
-    def stage_values(self, X: np.ndarray, U: np.ndarray, t0: int = 0) -> np.ndarray:
-        """Stage costs ``l(x_t, u_t, t0 + t)``.
+    # ------------------------------------------------------------------ evaluation (public)
+    def stage_values(
+        self, X: np.ndarray, U: np.ndarray, t0: int = 0, params: np.ndarray | None = None
+    ) -> np.ndarray:
+        """Stage costs ``l(x_t, u_t, t0 + t, p)``.
 
         :param X: ``[..., T, n]`` states (leading dims are a batch).
         :param U: ``[..., T, m]`` inputs.
@@ -250,6 +292,7 @@ class CasadiCost:
         """
         X, U = self._check_xu(X, U, len_x_extra=0)
         t0 = _check_t0(t0)
+        table = self.check_params(params)
         batch, T = X.shape[:-2], X.shape[-2]
         B = int(np.prod(batch, dtype=np.int64))
         ls, _ = self._values(
@@ -258,34 +301,59 @@ class CasadiCost:
             np.tile(np.arange(t0, t0 + T), B),
             np.zeros((0, self.n)),
             t0 + T,
+            table,
         )
         return ls.reshape(*batch, T)
 
-    def terminal_values(self, X: np.ndarray, t: int) -> np.ndarray:
-        """Terminal cost ``l_T(x)`` at absolute time ``t``: ``X: [..., n]`` -> ``[...]``."""
+    def terminal_values(
+        self, X: np.ndarray, t: int, params: np.ndarray | None = None
+    ) -> np.ndarray:
+        """Terminal cost ``l_T(x, p)`` at absolute time ``t``: ``X: [..., n]`` -> ``[...]``."""
         X = as_array("X", X)
         if X.ndim < 1 or X.shape[-1] != self.n:
             raise ValueError(f"X must have last dimension n={self.n}, got {list(X.shape)}")
         t = _check_t0(t, "t")
+        table = self.check_params(params)
         batch = X.shape[:-1]
         B = int(np.prod(batch, dtype=np.int64))
         _, lT = self._values(
-            np.zeros((0, self.n)), np.zeros((0, self.m)), np.zeros(0), X.reshape(B, self.n), t
+            np.zeros((0, self.n)), np.zeros((0, self.m)), np.zeros(0), X.reshape(B, self.n), t,
+            table,
         )
         return lT.reshape(batch)
 
-    def total(self, X: np.ndarray, U: np.ndarray, t0: int = 0) -> float | np.ndarray:
-        """Trajectory cost ``J = sum_t l(x_t, u_t, t0+t) + l_T(x_T)``.
+    def total(
+        self, X: np.ndarray, U: np.ndarray, t0: int = 0, params: np.ndarray | None = None
+    ) -> float | np.ndarray:
+        """Trajectory cost ``J = sum_t l(x_t, u_t, t0+t, p) + l_T(x_T, p)``.
 
         :param X: ``[..., T+1, n]`` states; ``U``: ``[..., T, m]`` inputs.
+        :param params: ``[p]`` or ``[N_ref, p]`` parameters (default: the cost's own).
         :return: a float, or ``[...]`` for batched input.
         """
         X, U = self._check_xu(X, U, len_x_extra=1)
-        J = self.total_unchecked(X, U, _check_t0(t0))
+        J = self._total(X, U, _check_t0(t0), self.check_params(params))
         return float(J) if J.ndim == 0 else J
 
-    def total_unchecked(self, X: np.ndarray, U: np.ndarray, t0: int) -> np.ndarray:
-        """:meth:`total` without input validation (the solver's hot path). ``-> [...]``."""
+    def derivatives(
+        self, X: np.ndarray, U: np.ndarray, t0: int = 0, params: np.ndarray | None = None
+    ) -> CostDerivatives:
+        """Cost derivatives along a trajectory, in one mapped CasADi call.
+
+        :param X: ``[T+1, n]`` states; ``U``: ``[T, m]`` inputs; ``t0``: time of ``X[0]``.
+        :param params: ``[p]`` or ``[N_ref, p]`` parameters (default: the cost's own).
+        :return: :class:`CostDerivatives` ``(lx [T+1,n], lu [T,m], lxx [T+1,n,n], luu [T,m,m],
+            lux [T,m,n])`` (unpacks as a 5-tuple).
+        """
+        X, U = self._check_xu(X, U, len_x_extra=1)
+        if X.ndim != 2:
+            raise ValueError(f"X must be [T+1, n] (no batch), got {list(X.shape)}")
+        return self._derivatives(X, U, _check_t0(t0), self.check_params(params))
+
+    # ------------------------------------------------------------------ kernels (no checks)
+    def _total(self, X: np.ndarray, U: np.ndarray, t0: int, table: np.ndarray) -> np.ndarray:
+        """:meth:`total` on validated float64 input and a :meth:`check_params` table.
+        ``X: [..., T+1, n]``, ``U: [..., T, m]`` -> ``[...]``."""
         batch, T = U.shape[:-2], U.shape[-2]
         B = int(np.prod(batch, dtype=np.int64))
         Xf = np.ascontiguousarray(X, dtype=np.float64).reshape(B, T + 1, self.n)
@@ -295,30 +363,21 @@ class CasadiCost:
             np.tile(np.arange(t0, t0 + T), B),
             Xf[:, -1],
             t0 + T,
+            table,
         )
         return (ls.reshape(B, T).sum(axis=1) + lT).reshape(batch)
 
-    def derivatives(self, X: np.ndarray, U: np.ndarray, t0: int = 0) -> CostDerivatives:
-        """Cost derivatives along a trajectory, in one mapped CasADi call.
-
-        :param X: ``[T+1, n]`` states; ``U``: ``[T, m]`` inputs; ``t0``: time of ``X[0]``.
-        :return: :class:`CostDerivatives` ``(lx [T+1,n], lu [T,m], lxx [T+1,n,n], luu [T,m,m],
-            lux [T,m,n])`` (unpacks as a 5-tuple).
-        """
-        X, U = self._check_xu(X, U, len_x_extra=1)
-        if X.ndim != 2:
-            raise ValueError(f"X must be [T+1, n] (no batch), got {list(X.shape)}")
-        return self.derivatives_unchecked(X, U, _check_t0(t0))
-
-    def derivatives_unchecked(self, X: np.ndarray, U: np.ndarray, t0: int) -> CostDerivatives:
-        """:meth:`derivatives` without input validation (the solver's hot path)."""
+    def _derivatives(
+        self, X: np.ndarray, U: np.ndarray, t0: int, table: np.ndarray
+    ) -> CostDerivatives:
+        """:meth:`derivatives` on validated float64 input and a :meth:`check_params` table."""
         T = U.shape[0]
         fn = self._derivs_cache.get(T)
         if fn is None:
             fn = self._build_derivs(T)
             self._derivs_cache[T] = fn
         times = np.arange(t0, t0 + T + 1)
-        P = np.ascontiguousarray(self.params_at(times))
+        P = np.ascontiguousarray(_rows(table, times))
         X = np.ascontiguousarray(X, dtype=np.float64)
         lx, lu, lxx, luu, lux, lxT, lxxT = fn(
             X[:-1],
@@ -353,7 +412,7 @@ class CasadiCost:
             raise ValueError("U must hold at least one time step (T >= 1)")
         return X, U
 
-    def _values(self, Xs, Us, ts, XT, tT: int) -> tuple[np.ndarray, np.ndarray]:
+    def _values(self, Xs, Us, ts, XT, tT: int, table) -> tuple[np.ndarray, np.ndarray]:
         """Stage values for the rows of ``Xs [N, n], Us [N, m]`` at times ``ts [N]`` and
         terminal values for the rows of ``XT [NT, n]`` at time ``tT``; one CasADi call."""
         N, NT = Xs.shape[0], XT.shape[0]
@@ -361,9 +420,9 @@ class CasadiCost:
         if fn is None:
             fn = self._build_values(N, NT)
             self._values_cache[(N, NT)] = fn
-        P = np.ascontiguousarray(self.params_at(ts)) if N else np.zeros((0, self.param_dim))
+        P = np.ascontiguousarray(_rows(table, ts)) if N else np.zeros((0, self.param_dim))
         PT = np.ascontiguousarray(
-            np.broadcast_to(self.params_at(np.array([tT]))[0], (NT, self.param_dim))
+            np.broadcast_to(_rows(table, np.array([tT]))[0], (NT, self.param_dim))
         )
         ls, lT = fn(
             np.ascontiguousarray(Xs),
@@ -399,7 +458,9 @@ class CasadiCost:
 
 class QuadraticCost(CasadiCost):
     """Quadratic tracking cost (see :func:`quadratic_cost`); keeps its matrices as attributes
-    ``Q, R, Qf [n,n]``, ``x_goal [N, n]``, ``u_ref [N, m]``."""
+    ``Q, R, Qf [n,n]`` and its default reference ``x_goal [N, n]``, ``u_ref [N, m]``. Its
+    parameter row is ``p_t = [x_goal_t, u_ref_t]`` (size ``n + m``): build one for a new
+    target with :meth:`reference` and pass it as ``params`` (no recompilation)."""
 
     Q: np.ndarray
     R: np.ndarray
@@ -407,38 +468,14 @@ class QuadraticCost(CasadiCost):
     x_goal: np.ndarray
     u_ref: np.ndarray
 
+    def reference(self, x_goal: np.ndarray, u_ref: np.ndarray | None = None) -> np.ndarray:
+        """The parameter table ``[N, n+m]`` of a goal ``[n]`` / reference ``[N, n]`` and an
+        input reference (``None``: zero, ``[m]`` or ``[N', m]``; the shorter is padded with its
+        last row)."""
+        return _reference_table(x_goal, u_ref, self.n, self.m)
 
-def quadratic_cost(
-    Q: np.ndarray,
-    R: np.ndarray,
-    x_goal: np.ndarray,
-    u_ref: np.ndarray | None = None,
-    Qf: np.ndarray | None = None,
-    *,
-    jit: bool = False,
-) -> QuadraticCost:
-    """Quadratic tracking cost, the reach task's objective (negated env reward)::
 
-        l(x, u, t) = (x - x_goal_t)^T Q (x - x_goal_t) + (u - u_ref_t)^T R (u - u_ref_t)
-        l_T(x)     = (x - x_goal_T)^T Qf (x - x_goal_T)
-
-    No factor 1/2, so ``-l`` equals the arm env's reward ``-((x-x_g)^T Q (x-x_g) + a^T R a)``.
-
-    :param Q: ``[n, n]`` symmetric positive semi-definite state weight.
-    :param R: ``[m, m]`` symmetric positive semi-definite input weight.
-    :param x_goal: ``[n]`` constant goal or ``[N, n]`` time-indexed reference (row ``t`` at
-        absolute time ``t``; the last row is held after the end).
-    :param u_ref: ``None`` (zero), ``[m]`` or ``[N', m]`` input reference.
-    :param Qf: ``[n, n]`` terminal weight; defaults to ``Q``.
-    :param jit: JIT-compile the derivative functions (see :class:`CasadiCost`).
-    """
-    Q = _check_psd("Q", Q)
-    n = Q.shape[0]
-    R = _check_psd("R", R)
-    m = R.shape[0]
-    Qf = Q if Qf is None else _check_psd("Qf", Qf)
-    if Qf.shape != (n, n):
-        raise ValueError(f"Qf must have shape [{n}, {n}] like Q, got {list(Qf.shape)}")
+def _reference_table(x_goal, u_ref, n: int, m: int) -> np.ndarray:
     xg = as_array("x_goal", x_goal)
     if xg.ndim == 1:
         xg = xg[None]
@@ -452,6 +489,43 @@ def quadratic_cost(
     N = max(xg.shape[0], ur.shape[0])
     xg = np.concatenate([xg, np.repeat(xg[-1:], N - xg.shape[0], axis=0)])
     ur = np.concatenate([ur, np.repeat(ur[-1:], N - ur.shape[0], axis=0)])
+    return np.hstack([xg, ur])
+
+
+def quadratic_cost(
+    Q: np.ndarray,
+    R: np.ndarray,
+    x_goal: np.ndarray | None = None,
+    u_ref: np.ndarray | None = None,
+    Qf: np.ndarray | None = None,
+    *,
+    jit: bool = False,
+) -> QuadraticCost:
+    """Quadratic tracking cost, the reach task's objective (negated env reward)::
+
+        l(x, u, t, p) = (x - x_goal_t)^T Q (x - x_goal_t) + (u - u_ref_t)^T R (u - u_ref_t)
+        l_T(x, p)     = (x - x_goal_T)^T Qf (x - x_goal_T)
+
+    with ``p_t = [x_goal_t, u_ref_t]``. No factor 1/2, so ``-l`` equals the arm env's reward
+    ``-((x-x_g)^T Q (x-x_g) + a^T R a)``.
+
+    :param Q: ``[n, n]`` symmetric positive semi-definite state weight.
+    :param R: ``[m, m]`` symmetric positive semi-definite input weight.
+    :param x_goal: default reference: ``[n]`` constant goal or ``[N, n]`` time-indexed
+        (row ``t`` at absolute time ``t``; the last row is held after the end); ``None``: zero.
+        Other goals are passed at call time: ``params=cost.reference(goal)``.
+    :param u_ref: ``None`` (zero), ``[m]`` or ``[N', m]`` default input reference.
+    :param Qf: ``[n, n]`` terminal weight; defaults to ``Q``.
+    :param jit: JIT-compile the derivative functions (see :class:`CasadiCost`).
+    """
+    Q = _check_psd("Q", Q)
+    n = Q.shape[0]
+    R = _check_psd("R", R)
+    m = R.shape[0]
+    Qf = Q if Qf is None else _check_psd("Qf", Qf)
+    if Qf.shape != (n, n):
+        raise ValueError(f"Qf must have shape [{n}, {n}] like Q, got {list(Qf.shape)}")
+    table = _reference_table(np.zeros(n) if x_goal is None else x_goal, u_ref, n, m)
 
     x, u, t, p = ca.SX.sym("x", n), ca.SX.sym("u", m), ca.SX.sym("t"), ca.SX.sym("p", n + m)
     ex, eu = x - p[:n], u - p[n:]
@@ -459,8 +533,9 @@ def quadratic_cost(
         "quadratic_stage", [x, u, t, p], [ca.bilin(ca.DM(Q), ex, ex) + ca.bilin(ca.DM(R), eu, eu)]
     )
     terminal = ca.Function("quadratic_terminal", [x, p], [ca.bilin(ca.DM(Qf), ex, ex)])
-    cost = QuadraticCost(stage, terminal, n, m, params=np.hstack([xg, ur]), jit=jit)
-    cost.Q, cost.R, cost.Qf, cost.x_goal, cost.u_ref = Q, R, Qf, xg, ur
+    cost = QuadraticCost(stage, terminal, n, m, params=table, jit=jit)
+    cost.Q, cost.R, cost.Qf = Q, R, Qf
+    cost.x_goal, cost.u_ref = table[:, :n].copy(), table[:, n:].copy()
     return cost
 
 
@@ -476,19 +551,31 @@ def _check_psd(name: str, M: np.ndarray) -> np.ndarray:
     return M
 
 
-def _check_function(name: str, fn: ca.Function, shapes: list[tuple[int, int]], p_dim: int) -> None:
+def _check_function(name: str, fn: ca.Function, shapes: list[tuple[int, int]]) -> int | None:
+    """Check the inputs of ``fn`` (``shapes``, then an optional ``[p, 1]`` parameter input) and
+    its scalar output; return ``p`` or ``None`` without a parameter input."""
     k = len(shapes)
     if fn.n_in() not in (k, k + 1):
         raise ValueError(f"{name} must take {k} inputs (or {k + 1} with p), takes {fn.n_in()}")
-    if fn.n_in() == k + 1:
-        shapes = [*shapes, (p_dim, 1)]
     for i, s in enumerate(shapes):
         got = fn.size_in(i)
         if tuple(got) != s:
-            what = "p (set by params)" if i == k else f"input {i}"
-            raise ValueError(f"{name} {what} must have shape {list(s)}, got {list(got)}")
+            raise ValueError(f"{name} input {i} must have shape {list(s)}, got {list(got)}")
     if fn.n_out() < 1 or tuple(fn.size_out(0)) != (1, 1):
         raise ValueError(f"{name} must return a scalar as its first output")
+    if fn.n_in() == k:
+        return None
+    rows, cols = fn.size_in(k)
+    if cols != 1 and rows * cols != 0:
+        raise ValueError(f"{name} parameter input p must be a column [p, 1], got {[rows, cols]}")
+    return int(rows * cols)
+
+
+def _rows(table: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """Rows ``min(t, N_ref - 1)`` of a parameter table ``[N_ref, p]`` -> ``[len(t), p]``."""
+    if table.shape[0] == 1:
+        return np.broadcast_to(table[0], (len(t), table.shape[1]))
+    return table[np.minimum(t, table.shape[0] - 1)]
 
 
 def _call(fn: ca.Function, args: list) -> ca.SX:

@@ -10,17 +10,33 @@ metrics and experiments never care what is behind it::
 ``t`` is the time index of the first row. Time-invariant models ignore it; time-varying models
 (an LTV model fitted along a trajectory) use it to pick ``A_t, B_t``. For ``step`` a batched call
 uses the same ``t`` for every row.
+
+Validation once, at the boundary: the public ``step`` checks its inputs. A model may also offer
+``_step(x, u, t)``, the same map on inputs already known to be float64 arrays of the right shape
+and finite; solvers check the model once (:func:`check_planning_model`) and their inner loops call
+:func:`raw_step` (``_step`` when present, else ``step``). A learned ensemble is planned through its
+frozen copy (``model.freeze()``): planning code refuses an object that still has ``freeze``.
+
+:func:`rollout` is the one model-rollout routine (solvers use its kernel ``_rollout``).
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import Protocol, runtime_checkable
 
 import numpy as np
 
 from mbtsr.validation import as_array
 
-__all__ = ["DynamicsModel", "LinearDynamics", "check_step_inputs", "rollout"]
+__all__ = [
+    "DynamicsModel",
+    "LinearDynamics",
+    "check_planning_model",
+    "check_step_inputs",
+    "raw_step",
+    "rollout",
+]
 
 
 @runtime_checkable
@@ -78,7 +94,12 @@ class LinearDynamics:
         self.state_dim, self.action_dim = n, B.shape[1]
 
     def step(self, x: np.ndarray, u: np.ndarray, t: int | None = None) -> np.ndarray:
+        """``A x + B u + c``: ``x: [..., n]``, ``u: [..., m]`` -> ``[..., n]`` (validated)."""
         x, u = check_step_inputs(x, u, self.state_dim, self.action_dim)
+        return self._step(x, u, t)
+
+    def _step(self, x: np.ndarray, u: np.ndarray, t: int | None = None) -> np.ndarray:
+        """:meth:`step` without input checks (solver loops, see the module docstring)."""
         return x @ self.A.T + u @ self.B.T + self.c
 
     def jacobians(
@@ -93,25 +114,89 @@ class LinearDynamics:
         )
 
 
+def check_planning_model(model: object, n: int, m: int) -> Callable:
+    """Check once that ``model`` can be planned through with states ``[n]`` and inputs ``[m]``.
+
+    :return: its step kernel (:func:`raw_step`).
+    :raises TypeError: for a trainable model (one with ``freeze``: plan with
+        ``model.freeze()``) or an object without ``step``/``jacobians``.
+    :raises ValueError: when ``state_dim``/``action_dim`` differ from ``n``/``m``.
+    """
+    if hasattr(model, "freeze"):
+        raise TypeError(
+            f"model is a trainable {type(model).__name__}: plan with its frozen copy, "
+            "model.freeze() (immutable, float64, no autograd)"
+        )
+    if not (callable(getattr(model, "step", None)) and callable(getattr(model, "jacobians", None))):
+        raise TypeError(
+            f"model must have step(x, u, t) and jacobians(x, u, t), got {type(model).__name__}"
+        )
+    for attr, want in (("state_dim", n), ("action_dim", m)):
+        got = getattr(model, attr, want)
+        if got != want:
+            raise ValueError(f"model.{attr}={got} does not match the cost's dimension {want}")
+    return raw_step(model)
+
+
+def raw_step(model: object) -> Callable:
+    """The step kernel of ``model``: ``model._step`` if it has one, else ``model.step``."""
+    return getattr(model, "_step", None) or model.step
+
+
 def rollout(model: DynamicsModel, x0: np.ndarray, u: np.ndarray, t0: int = 0) -> np.ndarray:
     """Simulate ``model`` from ``x0`` driven by ``u``.
 
     :param x0: ``[..., n]`` initial state(s); leading dims are a batch.
-    :param u: ``[T, ..., m]`` inputs (time first).
+    :param u: ``[T, ..., m]`` inputs (time first), batch dims equal to those of ``x0``.
     :return: ``[T+1, ..., n]`` states. Once a state becomes non-finite, later states stay NaN
         (a diverged simulation is reported, not hidden).
     """
     x0 = as_array("x0", x0)
     u = as_array("u", u)
-    if u.ndim < 2:
-        raise ValueError(f"u must be [T, ..., m], got shape {list(u.shape)}")
-    out = np.empty((u.shape[0] + 1, *x0.shape))
-    out[0] = x0
-    for k in range(u.shape[0]):
-        if not np.all(np.isfinite(out[k])):
-            out[k + 1 :] = np.nan
-            break
-        with np.errstate(all="ignore"):
-            nxt = np.asarray(model.step(out[k], u[k], t0 + k), dtype=float)
-        out[k + 1] = np.where(np.isfinite(nxt), nxt, np.nan)
-    return out
+    if u.ndim < 2 or x0.ndim < 1 or u.shape[1:-1] != x0.shape[:-1]:
+        raise ValueError(
+            f"u must be [T, ..., m] with the batch dims of x0 {list(x0.shape[:-1])}, got "
+            f"{list(u.shape)}"
+        )
+    n, m = x0.shape[-1], u.shape[-1]
+    for attr, want in (("state_dim", n), ("action_dim", m)):
+        got = getattr(model, attr, want)
+        if got != want:
+            raise ValueError(f"model.{attr}={got} does not match the data's dimension {want}")
+    if isinstance(t0, bool) or not isinstance(t0, (int, np.integer)) or t0 < 0:
+        raise ValueError(f"t0 must be an integer time index >= 0, got {t0!r}")
+    T, batch = u.shape[0], x0.shape[:-1]
+    U = np.moveaxis(u.reshape(T, -1, m), 0, 1)  # [B, T, m]
+    X, _ = _rollout(model, x0.reshape(-1, n), U, int(t0), np.inf)
+    return np.moveaxis(X, 0, 1).reshape(T + 1, *batch, n)
+
+
+def _rollout(
+    model: DynamicsModel, x0: np.ndarray, U: np.ndarray, t0: int, max_norm: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Batched open-loop rollout kernel (no input checks).
+
+    ``x0: [n]`` or ``[B, n]``, ``U: [B, T, m]`` -> ``(X [B, T+1, n], alive [B])``. A row whose
+    state turns non-finite or exceeds ``max_norm`` in absolute value is dead: its states are NaN
+    from then on, and the model is fed ``x0`` in its place (it never sees non-finite input).
+    """
+    step = raw_step(model)
+    Bsz, T, _ = U.shape
+    n = x0.shape[-1]
+    X = np.empty((Bsz, T + 1, n))
+    X[:, 0] = x0
+    x0b = np.broadcast_to(x0, (Bsz, n))
+    alive = np.ones(Bsz, dtype=bool)
+    x = X[:, 0].copy()
+    with np.errstate(all="ignore"):
+        for t in range(T):
+            xn = np.asarray(step(x, U[:, t], t0 + t), dtype=np.float64).reshape(Bsz, n)
+            if not np.abs(xn).max() <= max_norm:  # NaN compares false
+                bad = ~(np.abs(xn).max(axis=-1) <= max_norm)
+                alive &= ~bad
+            if not alive.all():
+                X[:, t + 1] = np.where(alive[:, None], xn, np.nan)
+                x = np.where(alive[:, None], xn, x0b)
+            else:
+                X[:, t + 1] = x = xn
+    return X, alive

@@ -47,7 +47,6 @@ import os
 from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, field
 from operator import attrgetter
-from pathlib import Path
 from types import SimpleNamespace
 
 import numpy as np
@@ -58,6 +57,7 @@ from torch.nn import functional as F  # noqa: N812
 from torch.optim.optimizer import register_optimizer_step_post_hook
 
 from mbtsr.dynamics import check_step_inputs
+from mbtsr.fileformat import CheckpointError, torch_load_verified, torch_save_verified
 from mbtsr.trajectory import Trajectory
 from mbtsr.validation import as_array
 
@@ -1198,37 +1198,44 @@ def _pool_transitions(trajs, n: int, m: int) -> tuple[np.ndarray, np.ndarray]:
 # --------------------------------------------------------------------------------------------
 
 _FORMAT = "mbtsr.DynamicsEnsemble"
-_FORMAT_VERSION = 1
+_FORMAT_VERSION = 2  # 2: checksummed file (mbtsr.fileformat)
 
 
 def save_model(model: DynamicsEnsemble, path: str | os.PathLike) -> None:
     """Save weights, normalization statistics and config (as JSON text) with ``torch.save``.
 
-    Written atomically (temporary file, then rename). Load with :func:`load_model`, which uses
-    ``torch.load(weights_only=True)``: no arbitrary objects are unpickled.
+    Written atomically with a format version and a content checksum
+    (:func:`mbtsr.fileformat.torch_save_verified`). Load with :func:`load_model`, which checks
+    both and uses ``torch.load(weights_only=True)``: no arbitrary objects are unpickled.
     """
     if not isinstance(model, DynamicsEnsemble):
         raise ValueError(f"model must be a DynamicsEnsemble, got {type(model).__name__}")
-    path = Path(path)
     payload = {
         "format": _FORMAT,
         "version": _FORMAT_VERSION,
         "config": model.config.to_json(),
         "state_dict": {k: v.detach().clone() for k, v in model.state_dict().items()},
     }
-    tmp = path.with_name(path.name + ".tmp")
-    torch.save(payload, tmp)
-    os.replace(tmp, path)
+    torch_save_verified(payload, path, kind=_FORMAT, version=_FORMAT_VERSION)
 
 
 def load_model(path: str | os.PathLike) -> DynamicsEnsemble:
-    """Load a model written by :func:`save_model` (``weights_only=True``; returns eval mode)."""
-    payload = torch.load(Path(path), map_location="cpu", weights_only=True)
+    """Load a model written by :func:`save_model` (checksum verified, ``weights_only=True``;
+    returns eval mode).
+
+    :raises CheckpointError: truncated, corrupted, another format, or weights that do not fit
+        the saved config.
+    """
+    payload, _ = torch_load_verified(path, kind=_FORMAT, versions=(_FORMAT_VERSION,),
+                                     what=f"a saved {_FORMAT}")
     if not isinstance(payload, dict) or payload.get("format") != _FORMAT:
-        raise ValueError(f"{path} is not a saved {_FORMAT}")
-    if payload.get("version") != _FORMAT_VERSION:
-        raise ValueError(f"{path}: unsupported format version {payload.get('version')!r}")
-    model = DynamicsEnsemble(EnsembleConfig.from_json(payload["config"]))
-    model.load_state_dict(payload["state_dict"])
+        raise CheckpointError(f"{path} is not a saved {_FORMAT}")
+    try:
+        model = DynamicsEnsemble(EnsembleConfig.from_json(payload["config"]))
+        model.load_state_dict(payload["state_dict"])
+    except (KeyError, TypeError, ValueError, RuntimeError) as err:
+        raise CheckpointError(
+            f"{path}: the saved weights do not fit the saved config ({type(err).__name__}: "
+            f"{str(err).splitlines()[0]})") from None
     model.invalidate_cache()
     return model.eval()

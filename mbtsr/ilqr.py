@@ -19,13 +19,18 @@ Implementation notes
 --------------------
 * One batched ``dynamics.jacobians(X[:-1], U, t0)`` call and one mapped cost-derivative call per
   iteration in which the trajectory changed (a rejected step reuses them).
-* The backward pass works with the augmented quadratic ``z = [1; dx; du]``: per time step
-  ``M_t = L_t + F_t^T V_{t+1} F_t`` with ``F_t = [[1, 0, 0], [0, A_t, B_t]]`` gives all Q-function
-  terms at once, one LAPACK ``dposv`` gives ``[k_t, K_t] = -Quu_reg^-1 [Qu, Qux_reg]`` and the
-  PD check, and ``V_t = G_t^T M_t G_t`` with ``G_t = [[I], [k_t, K_t]]`` is the value update
-  (the unregularised ``Quu, Qux`` enter it, as in Tassa et al.).
-* The forward pass rolls out ALL line-search step sizes as one batch (``T`` batched ``step``
-  calls per iteration, not ``T x n_alpha``) and accepts the largest acceptable step.
+* The backward pass is ONE compiled call per pass (:func:`mbtsr._lqr_kernels.backward_pass`,
+  numba): the Riccati recursion, the box QP and the PD checks run without Python per time step.
+  The numpy recursion :func:`_backward_pass` below (augmented quadratic ``z = [1; dx; du]``:
+  ``M_t = L_t + F_t^T V_{t+1} F_t`` with ``F_t = [[1, 0, 0], [0, A_t, B_t]]``, one LAPACK
+  ``dposv`` for ``[k_t, K_t] = -Quu_reg^-1 [Qu, Qux_reg]``, ``V_t = G_t^T M_t G_t`` with
+  ``G_t = [[I], [k_t, K_t]]``; the unregularised ``Quu, Qux`` enter the value update, as in
+  Tassa et al.) is the reference the tests compare the kernel against.
+* The forward pass rolls out the full step first and, only if it is rejected, all smaller
+  line-search step sizes as one batch (``T`` batched ``step`` calls, not ``T x n_alpha``); it
+  accepts the largest acceptable step. Near convergence (and in warm-started MPC) the full step
+  is nearly always accepted, so a model whose cost grows with the batch (MuJoCo) pays for one
+  rollout instead of ``n_alpha``.
 * A rollout that produces NaN/inf or a state beyond ``max_state_norm`` is rejected; the solver
   then raises the regularisation and keeps the best (current) iterate, so the returned controls
   are always finite and within the bounds.
@@ -41,7 +46,9 @@ from dataclasses import dataclass, field, fields
 import numpy as np
 from scipy.linalg import lapack
 
+from mbtsr import _lqr_kernels
 from mbtsr.costs import CasadiCost
+from mbtsr.dynamics import LinearDynamics, _rollout, check_planning_model, raw_step
 from mbtsr.validation import as_array
 
 __all__ = ["ILQROptions", "ILQRResult", "ilqr", "check_control_bounds"]
@@ -181,30 +188,38 @@ def ilqr(
     *,
     u_min: np.ndarray | float | None = None,
     u_max: np.ndarray | float | None = None,
-    options: ILQROptions | None = None,
+    params: np.ndarray | None = None,
     t0: int = 0,
+    options: ILQROptions | None = None,
 ) -> ILQRResult:
     """Optimise a control sequence with control-limited iLQR (Tassa et al. 2014).
 
+    The signature every optimizer of :class:`mbtsr.mpc.MPC` shares. All inputs are validated
+    here, once; the iterations call the cost's and the model's unchecked kernels.
+
     :param cost: a :class:`mbtsr.costs.CasadiCost` with ``n, m`` matching the model.
-    :param dynamics: any model with ``step(x[..., n], u[..., m], t)`` (batched) and
-        ``jacobians(x[T, n], u[T, m], t0) -> (A [T, n, n], B [T, n, m])``.
+    :param dynamics: a planning model (``model.freeze()`` of a learned ensemble, or a true /
+        analytic / linear / LTV model): ``step(x[..., n], u[..., m], t)`` (batched) and
+        ``jacobians(x[T, n], u[T, m], t0) -> (A [T, n, n], B [T, n, m])``; its optional
+        ``_step`` (the same map without input checks) is used inside the loop.
     :param x0: ``[n]`` initial state.
     :param U0: ``[T, m]`` initial control sequence (clipped to the bounds).
     :param u_min: ``[m]`` (or scalar) lower control bound; ``None`` = unbounded.
     :param u_max: ``[m]`` (or scalar) upper control bound; ``None`` = unbounded.
-    :param options: :class:`ILQROptions` (or a dict of its fields).
+    :param params: cost parameters, ``[p]`` or ``[N_ref, p]`` (a target, a reference; see
+        :mod:`mbtsr.costs`); ``None``: the cost's defaults.
     :param t0: absolute time index of ``x0`` (passed to the cost and to time-varying models).
-    :return: :class:`ILQRResult`.
+    :param options: :class:`ILQROptions` (or a dict of its fields).
+    :return: :class:`ILQRResult`. Its ``U`` is always finite and inside the bounds: a solve that
+        meets NaN/inf (model, Jacobians, cost) stops with status ``"failed"`` and the best
+        finite iterate.
     """
     opts = _as_options(options)
     if not isinstance(cost, CasadiCost):
         raise TypeError(f"cost must be a mbtsr.costs.CasadiCost, got {type(cost).__name__}")
     n, m = cost.n, cost.m
-    for attr, want in (("state_dim", n), ("action_dim", m)):
-        got = getattr(dynamics, attr, want)
-        if got != want:
-            raise ValueError(f"dynamics.{attr}={got} does not match the cost's dimension {want}")
+    check_planning_model(dynamics, n, m)
+    table = cost.check_params(params)
     x0 = as_array("x0", x0, (n,))
     U0 = as_array("U0", U0, (None, m))
     if U0.shape[0] < 1:
@@ -215,6 +230,7 @@ def ilqr(
     lower, upper = check_control_bounds(u_min, u_max, m)
     has_limits = bool(np.any(np.isfinite(lower)) or np.any(np.isfinite(upper)))
     alphas = np.asarray(opts.alphas, dtype=float)
+    boxqp_prm = _boxqp_params(opts)
     T = U0.shape[0]
     timings = dict.fromkeys(
         ("jacobians", "cost_derivatives", "backward", "forward", "line_search_cost"), 0.0
@@ -230,7 +246,7 @@ def ilqr(
         if not alive.any():
             zeros_K, zeros_k = np.zeros((T, m, n)), np.zeros((T, m))
             return ILQRResult(
-                X=_nan_after_divergence(dynamics, x0, U, t0, opts.max_state_norm),
+                X=X[0],  # NaN from the first diverged state on
                 U=U,
                 K=zeros_K,
                 k=zeros_k,
@@ -247,7 +263,7 @@ def ilqr(
         X, U = Xc[i], cands[i]
     else:
         X = X[0]
-    J = float(cost.total_unchecked(X, U, t0))
+    J = float(cost._total(X, U, t0, table))
 
     lam, dlam = float(opts.lambda_init), 1.0
     f = opts.lambda_factor
@@ -257,7 +273,9 @@ def ilqr(
     need_derivs = True
     it = 0
     problem = None
-    while it < opts.max_iter:
+    if not math.isfinite(J):
+        status, message = "failed", "the cost of the initial trajectory is not finite"
+    while not status and it < opts.max_iter:
         it += 1
         t_it = time.perf_counter()
         if need_derivs:
@@ -271,7 +289,7 @@ def ilqr(
                 )
             timings["jacobians"] += time.perf_counter() - tic
             tic = time.perf_counter()
-            derivs = cost.derivatives_unchecked(X, U, t0)
+            derivs = cost._derivatives(X, U, t0, table)
             timings["cost_derivatives"] += time.perf_counter() - tic
             finite = (
                 np.isfinite(A).all()
@@ -282,15 +300,22 @@ def ilqr(
                 status = "failed"
                 message = "non-finite Jacobians or cost derivatives at the current trajectory"
                 break
-            problem = _LQProblem.build(A, B, derivs, U, lower, upper, opts.reg_type)
+            problem = (  # C-contiguous float64: one compiled signature of the kernel
+                *(np.ascontiguousarray(a, dtype=float) for a in (A, B, *derivs)),
+                lower - U,
+                upper - U,
+            )
             need_derivs = False
 
         # ---- backward pass, raising lambda until every Quu_reg is positive definite
         tic = time.perf_counter()
         while True:
-            bp = _backward_pass(problem, lam, has_limits, opts)
-            if bp is not None:
+            ok, *bp = _lqr_kernels.backward_pass(
+                *problem, float(lam), opts.reg_type, has_limits, boxqp_prm
+            )
+            if ok:
                 break
+            bp = None
             dlam = max(dlam * f, f)
             lam = max(lam * dlam, opts.lambda_min)
             if lam > opts.lambda_max:
@@ -309,22 +334,34 @@ def ilqr(
             status, message = "converged", "gradient norm below tol_grad"
             break
 
-        # ---- forward pass: all step sizes in one batched rollout
-        tic = time.perf_counter()
-        Xn, Un, alive = _rollout_policy(
-            dynamics, x0, X, U, k, K, alphas, lower, upper, t0, opts.max_state_norm
-        )
-        timings["forward"] += time.perf_counter() - tic
-        tic = time.perf_counter()
-        Jn = np.full(len(alphas), np.inf)
-        if alive.any():
-            Jn[alive] = cost.total_unchecked(Xn[alive], Un[alive], t0)
-        timings["line_search_cost"] += time.perf_counter() - tic
+        # ---- forward pass: the full step alone first (usually accepted), then all smaller
+        # step sizes in one batched rollout; the accepted step is the same as when all are
+        # rolled out at once (the largest acceptable one)
         expected = -alphas * (dV1 + alphas * dV2)
-        actual = J - Jn
-        with np.errstate(invalid="ignore", divide="ignore"):
-            ratio = np.where(expected > 0, actual / expected, np.sign(actual))
-        ok = alive & np.isfinite(Jn) & (ratio > opts.reduce_ratio_min)
+        Xn = np.empty((len(alphas), T + 1, n))
+        Un = np.empty((len(alphas), T, m))
+        alive = np.zeros(len(alphas), dtype=bool)
+        Jn = np.full(len(alphas), np.inf)
+        for chunk in (slice(0, 1), slice(1, len(alphas))):
+            if chunk.start >= len(alphas):
+                break
+            tic = time.perf_counter()
+            Xn[chunk], Un[chunk], alive[chunk] = _rollout_policy(
+                dynamics, x0, X, U, k, K, alphas[chunk], lower, upper, t0, opts.max_state_norm
+            )
+            timings["forward"] += time.perf_counter() - tic
+            tic = time.perf_counter()
+            live = np.zeros(len(alphas), dtype=bool)
+            live[chunk] = alive[chunk]
+            if live.any():
+                Jn[live] = cost._total(Xn[live], Un[live], t0, table)
+            timings["line_search_cost"] += time.perf_counter() - tic
+            actual = J - Jn
+            with np.errstate(invalid="ignore", divide="ignore"):
+                ratio = np.where(expected > 0, actual / expected, np.sign(actual))
+            ok = alive & np.isfinite(Jn) & (ratio > opts.reduce_ratio_min)
+            if ok.any():
+                break
         if ok.any():
             i = int(np.argmax(ok))
             dcost = float(actual[i])
@@ -382,6 +419,18 @@ def _as_options(options) -> ILQROptions:
             raise ValueError(f"unknown ILQROptions field(s): {sorted(unknown)}")
         return ILQROptions(**options)
     raise TypeError(f"options must be an ILQROptions or a dict, got {type(options).__name__}")
+
+
+def _boxqp_params(opts: ILQROptions) -> tuple[float, ...]:
+    """Box-QP settings as the float tuple of :data:`mbtsr._lqr_kernels.BOXQP_DEFAULTS`."""
+    return (
+        float(opts.boxqp_max_iter),
+        float(opts.boxqp_min_grad),
+        float(opts.boxqp_min_rel_improve),
+        float(opts.boxqp_step_dec),
+        float(opts.boxqp_min_step),
+        float(opts.boxqp_armijo),
+    )
 
 
 def _trace(it, J, lam, alpha, expected, actual, grad_norm, accepted, t_it) -> dict:
@@ -618,40 +667,6 @@ def _box_qp(H, g, lower, upper, x0, opts: ILQROptions):
     return x, ~clamped, True
 
 
-def _rollout(dynamics, x0, U, t0, max_norm):
-    """Open-loop batched rollout. ``U: [B, T, m]`` -> ``(X [B, T+1, n], alive [B])``.
-
-    Diverged rows (non-finite or ``|x| > max_norm``) are marked dead and then fed ``x0`` so
-    that the model never sees non-finite input.
-    """
-    Bsz, T, _ = U.shape
-    X = np.empty((Bsz, T + 1, x0.shape[0]))
-    X[:, 0] = x0
-    alive = np.ones(Bsz, dtype=bool)
-    for t in range(T):
-        with np.errstate(all="ignore"):
-            xn = np.asarray(dynamics.step(X[:, t], U[:, t], t0 + t), dtype=float)
-            if not np.abs(xn).max() <= max_norm:
-                bad = ~(np.abs(xn).max(axis=-1) <= max_norm)
-                alive &= ~bad
-                xn = np.where(bad[:, None], x0, xn)
-        X[:, t + 1] = xn
-    return X, alive
-
-
-def _nan_after_divergence(dynamics, x0, U, t0, max_norm):
-    """Rollout of ``U [T, m]`` with NaN from the first diverged state on (for reporting)."""
-    X = np.full((U.shape[0] + 1, x0.shape[0]), np.nan)
-    X[0] = x0
-    for t in range(U.shape[0]):
-        with np.errstate(all="ignore"):
-            xn = np.asarray(dynamics.step(X[t], U[t], t0 + t), dtype=float)
-        if not np.abs(xn).max() <= max_norm:
-            break
-        X[t + 1] = xn
-    return X
-
-
 def _rollout_policy(dynamics, x0, X, U, k, K, alphas, lower, upper, t0, max_norm):
     """Closed-loop rollouts for all step sizes at once.
 
@@ -659,7 +674,17 @@ def _rollout_policy(dynamics, x0, X, U, k, K, alphas, lower, upper, t0, max_norm
     ``K: [T, m, n]``, ``alphas: [A]`` -> ``(Xn [A, T+1, n], Un [A, T, m], alive [A])``.
     A row that turns non-finite is marked dead and continues from the nominal state (so the
     model never sees NaN); rows exceeding ``max_norm`` are marked dead at the end.
+    An affine model (:class:`mbtsr.dynamics.LinearDynamics`) is rolled out in one compiled call
+    (:func:`mbtsr._lqr_kernels.rollout_policy_affine`, same semantics).
     """
+    if type(dynamics) is LinearDynamics:
+        A, B, c = (
+            np.ascontiguousarray(a, dtype=float)[None]
+            for a in (dynamics.A, dynamics.B, dynamics.c)
+        )
+        return _lqr_kernels.rollout_policy_affine(
+            A, B, c, x0, X, U, k, K, alphas, lower, upper, float(max_norm)
+        )
     T = U.shape[0]
     nA = alphas.shape[0]
     Xn = np.empty((nA, T + 1, X.shape[1]))
@@ -669,7 +694,7 @@ def _rollout_policy(dynamics, x0, X, U, k, K, alphas, lower, upper, t0, max_norm
     KT = K.transpose(0, 2, 1)
     alive = np.ones(nA, dtype=bool)
     clip = bool(np.isfinite(lower).any() or np.isfinite(upper).any())
-    step = dynamics.step
+    step = raw_step(dynamics)
     with np.errstate(all="ignore"):
         for t in range(T):
             u = feedforward[:, t] + (Xn[:, t] - X[t]) @ KT[t]

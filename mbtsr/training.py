@@ -21,15 +21,19 @@ Sampled Jacobian propagation (paper Alg. 1): one LTV model per training trajecto
 per :func:`train_ensemble` call (or passed in); every epoch ``n_copies`` fresh perturbed copies
 ``x~ = x + eps_x, u~ = u + eps_u, eps ~ N(0, (sigma * std over time)^2)`` of every trajectory are
 labelled ``x~+ = A_t x~ + B_t u~`` by that model (:meth:`mbtsr.ltv.LTVModel.sample_perturbed`).
-Perturbed copies join the batch of their original transitions (same optimizer step; the
-original code appended them as extra batches instead).
+Where the copies go is :attr:`RegularizationConfig.copies_batch`: ``"shared"`` (default) puts
+them in the batch of their original transitions (same optimizer step, so the optimizer steps per
+epoch equal the baseline's); ``"own"`` gives every copy of every batch its own optimizer step
+after the epoch's data batches, as the original code did (it chained the perturbed trajectories
+after the data as extra batches), so an epoch takes ``(1 + n_copies)`` times the baseline's
+steps. Compare methods with the baseline at equal optimizer steps (:attr:`TrainHistory.steps`).
 """
 
 from __future__ import annotations
 
 import copy
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -115,6 +119,11 @@ class RegularizationConfig:
         ratio, scale dependent); default ``sqrt(1000)``, the original's R2 = 1000 I, R1 = I.
         ``None`` picks it per trajectory with :func:`mbtsr.ltv.select_lambda`.
     :param ltv_affine: fit LTV models with an affine term ``c_t``.
+    :param copies_batch: ``"shared"``: the perturbed copies join the batch of their original
+        transitions (one optimizer step per batch, as the baseline); ``"own"``: each copy of
+        each batch is its own optimizer step after the epoch's data batches (the original
+        code's behaviour; ``1 + n_copies`` times the steps per epoch), its loss
+        ``sampled_weight * mean ||y(x~) - r~||^2`` alone.
     """
 
     sampled_weight: float = 0.0
@@ -124,10 +133,13 @@ class RegularizationConfig:
     smooth_weight: float = 0.0
     ltv_lambda: float | None = ORIGINAL_LTV_LAMBDA
     ltv_affine: bool = False
+    copies_batch: str = "shared"
 
     def __post_init__(self) -> None:
         for name in ("sampled_weight", "exact_weight", "smooth_weight", "sigma"):
             check_nonnegative(name, getattr(self, name))
+        if self.copies_batch not in ("shared", "own"):
+            raise ValueError(f"copies_batch must be 'shared' or 'own', got {self.copies_batch!r}")
         _check_int("n_copies", self.n_copies, 1)
         if self.ltv_lambda is not None:
             check_nonnegative("ltv_lambda", self.ltv_lambda)
@@ -168,6 +180,8 @@ class TrainHistory:
     :param optimizer_state: Adam's ``state_dict`` (a deep copy) to resume exactly.
     :param steps: optimizer steps taken.
     :param ltv_models: the LTV models used (one per training trajectory) or None.
+    :param step_loss: ``[steps]`` the objective minimized at each optimizer step (summed over
+        members, weights applied).
     """
 
     train_loss: np.ndarray
@@ -177,6 +191,7 @@ class TrainHistory:
     optimizer_state: dict | None = None
     steps: int = 0
     ltv_models: list | None = None
+    step_loss: np.ndarray = field(default_factory=lambda: np.zeros(0))
 
 
 def _as_trajectory_list(name: str, trajs: object) -> list[Trajectory]:
@@ -223,6 +238,28 @@ def _check_ltv_models(ltv_models: object, trajs: list[Trajectory]) -> list:
     return list(ltv_models)
 
 
+def _perturbed_copies(lm, tr: Trajectory, reg: RegularizationConfig, rng: np.random.Generator,
+                      sx: np.ndarray, su: np.ndarray) -> tuple:
+    """``lm.sample_perturbed(tr.x, tr.u, ...)`` with the per-trajectory scales ``sx, su``.
+
+    For :class:`mbtsr.ltv.LTVModel` (whose inputs were validated once, up front) the same
+    draws and the same arithmetic are done here without the per-call input validation, which
+    cost about a third of a training epoch with many short trajectories; any other model with
+    ``sample_perturbed`` is called as is.
+    """
+    from mbtsr.ltv import LTVModel
+
+    if type(lm) is not LTVModel:
+        return lm.sample_perturbed(tr.x, tr.u, sigma=reg.sigma, n_copies=reg.n_copies, seed=rng,
+                                   std_x=sx, std_u=su)
+    T, C = tr.T, reg.n_copies
+    x_t = tr.x[:T] + reg.sigma * sx * rng.standard_normal((C, T, tr.n))
+    u_t = tr.u + reg.sigma * su * rng.standard_normal((C, T, tr.m))
+    out = np.einsum("tij,...tj->...ti", lm.A[:T], x_t)
+    out += np.einsum("tij,...tj->...ti", lm.B[:T], u_t)
+    return x_t, u_t, (out + lm.c[:T] if lm.c is not None else out)
+
+
 def _optimizer(model: DynamicsEnsemble, config: TrainConfig) -> torch.optim.Optimizer:
     """Adam (coupled L2 on weights) or AdamW (decoupled), weight matrices decayed only."""
     weights, others = [], []
@@ -257,6 +294,7 @@ def train_ensemble(
     validation: Sequence[Trajectory] | None = None,
     ltv_models: Sequence | None = None,
     optimizer_state: dict | None = None,
+    callback: Callable[[int, DynamicsEnsemble], None] | None = None,
 ) -> TrainHistory:
     """Fit all members of ``model`` to ``trajs`` (in place) with optional tangent-space
     regularization (see the module docstring for the objective).
@@ -274,6 +312,9 @@ def train_ensemble(
         ``B [>=T, n, m]``, ``sample_perturbed``); fitted with :func:`mbtsr.ltv.fit_ltv` if None
         and a regularizer needs them.
     :param optimizer_state: an Adam ``state_dict`` from a previous call.
+    :param callback: optional diagnostic ``callback(epoch, model)`` called after every epoch
+        with the model in evaluation mode (e.g. to log Jacobian errors during training; off by
+        default). It must not change the weights; it draws no random numbers of the training.
     :return: :class:`TrainHistory`.
     """
     t_start = time.perf_counter()
@@ -283,6 +324,8 @@ def train_ensemble(
         raise ValueError(f"config must be a TrainConfig, got {type(config).__name__}")
     if not isinstance(reg, RegularizationConfig):
         raise ValueError(f"reg must be a RegularizationConfig, got {type(reg).__name__}")
+    if callback is not None and not callable(callback):
+        raise ValueError(f"callback must be callable or None, got {type(callback).__name__}")
     trajs = _as_trajectory_list("trajs", trajs)
     n, m = model.state_dim, model.action_dim
     xu_np, x_next_np = _pool_transitions(trajs, n, m)  # validates dims and finiteness
@@ -347,6 +390,7 @@ def train_ensemble(
     active = [k for k in ("sampled", "exact", "smooth") if getattr(reg, k)]
     penalties = {k: np.zeros(E) for k in active}
     steps = 0
+    step_loss: list[float] = []
     K = model.n_members
     model.train()
     bar = tqdm(range(E), desc="train_ensemble", disable=not config.progress, leave=False)
@@ -354,8 +398,7 @@ def train_ensemble(
         for epoch in bar:
             xu_pert = target_pert = None
             if reg.sampled:
-                copies = [lm.sample_perturbed(tr.x, tr.u, sigma=reg.sigma, n_copies=reg.n_copies,
-                                              seed=rng, std_x=sx, std_u=su)
+                copies = [_perturbed_copies(lm, tr, reg, rng, sx, su)
                           for lm, tr, (sx, su) in zip(ltv_models, trajs, scales)]
                 xt = np.concatenate([c[0] for c in copies], 1)  # [C, N, n]
                 ut = np.concatenate([c[1] for c in copies], 1)
@@ -377,6 +420,7 @@ def train_ensemble(
                     batches = [slice(a, min(a + size, N)) for a in range(0, N, size)]
             data_sum = 0.0
             pen_sum = dict.fromkeys(active, 0.0)
+            own_copies = xu_pert is not None and reg.copies_batch == "own"
             for idx in batches:
                 parts = [xu[idx]]
                 B = parts[0].shape[0]
@@ -386,14 +430,14 @@ def train_ensemble(
                     succ_valid = (nxt_i >= 0).nonzero().squeeze(-1)
                     parts.append(xu[nxt_i[succ_valid]])
                 jac_rows = sum(p.shape[0] for p in parts) if (reg.exact or reg.smooth) else 0
-                if xu_pert is not None:
+                if xu_pert is not None and not own_copies:
                     parts.append(xu_pert[:, idx].reshape(-1, n + m))
                 inputs = parts[0] if len(parts) == 1 else torch.cat(parts, 0)
                 y, J = model.stacked_forward(inputs, jac_rows=jac_rows, normalized=True)
                 # sum over members of (mean over points of the squared error norm)
                 loss = _sum_squared(y[:, :B], target[idx]) / B
                 data_sum += float(loss.detach()) / K * B
-                if reg.sampled:
+                if reg.sampled and not own_copies:
                     tp = target_pert[:, idx].reshape(-1, n)
                     pen = _sum_squared(y[:, inputs.shape[0] - tp.shape[0]:], tp) / tp.shape[0]
                     loss = loss + reg.sampled_weight * pen
@@ -417,7 +461,21 @@ def train_ensemble(
                 optimizer.zero_grad(set_to_none=True)
                 loss.backward()
                 optimizer.step()
+                step_loss.append(float(loss.detach()))
                 steps += 1
+            if own_copies:  # the original's extra batches: one step per copy of each batch
+                for idx in batches:
+                    for c in range(reg.n_copies):
+                        y, _ = model.stacked_forward(xu_pert[c, idx], normalized=True)
+                        tp = target_pert[c, idx]
+                        pen = _sum_squared(y, tp) / tp.shape[0]
+                        loss = reg.sampled_weight * pen
+                        pen_sum["sampled"] += float(pen.detach()) / K / reg.n_copies
+                        optimizer.zero_grad(set_to_none=True)
+                        loss.backward()
+                        optimizer.step()
+                        step_loss.append(float(loss.detach()))
+                        steps += 1
             train_loss[epoch] = data_sum / N
             if not np.isfinite(train_loss[epoch]):
                 raise FloatingPointError(
@@ -430,6 +488,11 @@ def train_ensemble(
                 with torch.no_grad():
                     yv, _ = model.stacked_forward(xu_val, normalized=True)
                     val_loss[epoch] = float(_squared_norm(yv - target_val, (-1,)).mean())
+                model.train()
+            if callback is not None:
+                model.eval()
+                with torch.no_grad():
+                    callback(epoch, model)
                 model.train()
             if config.progress and (epoch % 10 == 0 or epoch == E - 1):
                 post = {"loss": f"{train_loss[epoch]:.3g}"}
@@ -448,4 +511,5 @@ def train_ensemble(
         optimizer_state=copy.deepcopy(optimizer.state_dict()),
         steps=steps,
         ltv_models=ltv_models,
+        step_loss=np.asarray(step_loss),
     )

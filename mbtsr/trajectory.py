@@ -17,6 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
+from mbtsr.io import atomic_write
 from mbtsr.validation import as_array
 
 __all__ = ["Trajectory", "stack_trajectories", "save_trajectories", "load_trajectories"]
@@ -105,12 +106,11 @@ def save_trajectories(path: str | os.PathLike, trajs: Iterable[Trajectory]) -> N
         arrays[f"x{i}"] = t.x
         arrays[f"u{i}"] = t.u
         arrays[f"dt{i}"] = np.array(np.nan if t.dt is None else t.dt)
-    tmp = path.with_name(path.name + ".tmp")
-    with open(tmp, "wb") as fh:
-        np.savez(fh, **arrays)
-        fh.flush()
-        os.fsync(fh.fileno())
-    os.replace(tmp, path)
+    def write(tmp: Path) -> None:
+        with open(tmp, "wb") as fh:  # a file object: np.savez would append ".npz" to a name
+            np.savez(fh, **arrays)
+
+    atomic_write(path, write)
 
 
 def load_trajectories(path: str | os.PathLike) -> list[Trajectory]:

@@ -56,8 +56,13 @@ def as_array(
     :param finite: reject NaN and inf.
     """
     try:
-        arr = np.asarray(a, dtype=dtype)
+        raw = np.asarray(a)
+        if raw.dtype.kind == "c" and np.dtype(dtype).kind != "c":
+            raise ValueError(f"{name} must be real, got complex values (dtype {raw.dtype})")
+        arr = np.asarray(raw, dtype=dtype)
     except (TypeError, ValueError) as err:
+        if "must be real" in str(err):
+            raise
         raise ValueError(f"{name} must be numeric array-like: {err}") from None
     if shape is not None:
         check_shape(name, arr, shape)

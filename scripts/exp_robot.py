@@ -43,8 +43,12 @@ METHODS = ("none", "sampled", "exact", "smooth")
 #: epoch controls: the paper halves the epochs with sampled JacProp; these two configs separate
 #: the effect of JacProp from the effect of the epoch count
 CONTROLS = {"none_half": ("none", 0.5), "sampled_full": ("sampled", 2.0)}
+#: the original code's batching: each perturbed copy its own optimizer step, so sampled JacProp
+#: at the paper's half epochs takes exactly as many optimizer steps as none at full epochs
+OWN_BATCH = {"sampled_own": ("sampled", 1.0)}
 LABELS = {"none": "none", "sampled": "sampled JacProp", "exact": "exact LTV match",
-          "smooth": "exact smoothness", "none_half": "none", "sampled_full": "sampled JacProp"}
+          "smooth": "exact smoothness", "none_half": "none", "sampled_full": "sampled JacProp",
+          "sampled_own": "sampled, own batches"}
 
 
 @dataclass
@@ -62,8 +66,17 @@ class Args(ExperimentArgs):
         "help": "weight of the smoothness penalty (original two-link AD script: 0.01)"})
     epoch_controls: bool = field(default=True, metadata={
         "help": "also run none with half and sampled with full epochs"})
+    own_batch_control: bool = field(default=True, metadata={
+        "help": "also run sampled JacProp with the original's batching (copies in their own "
+                "optimizer steps: equal steps with none)"})
+    truth_diagnostics: bool = field(default=False, metadata={
+        "help": "only compute what caps the Jacobian error (constant matrix, analytic twin, "
+                "LTV labels per row group) over the MC seeds, into <out>/truth.json"})
+    still_speed: float = field(default=0.05, metadata={
+        "help": "joint speed [rad/s] below which a point counts as near-zero velocity"})
 
-    QUICK = {"mc": 2, "epoch_scale": 0.01, "n_val": 2, "epoch_controls": False}
+    QUICK = {"mc": 2, "epoch_scale": 0.01, "n_val": 2, "epoch_controls": False,
+             "own_batch_control": False}
 
 
 def make_configs(args: Args) -> dict[str, dict]:
@@ -78,6 +91,10 @@ def make_configs(args: Args) -> dict[str, dict]:
         for name, (m, factor) in CONTROLS.items():
             epochs = nominal_epochs(args.formulation, m, args.epoch_scale * factor)
             configs[name] = {**configs[m], "epochs": epochs}
+    if args.own_batch_control:
+        for name, (m, factor) in OWN_BATCH.items():
+            epochs = nominal_epochs(args.formulation, m, args.epoch_scale * factor)
+            configs[name] = {**configs[m], "epochs": epochs, "reg": {"copies_batch": "own"}}
     return configs
 
 
@@ -111,6 +128,10 @@ def report(records: list[dict], out, figures, args: Args) -> dict:
             (values(records, n, "sim_diverged") > 0).sum())
         summary["configs"][n]["n_simulations"] = int(values(records, n, "n_sim").sum())
     compare = ("log10_pred_rms", "log10_sim_rms", "jac_err", "train_pred_rms")
+    if "sampled_own" in names:  # the original's batching: equal optimizer steps with none
+        summary["sampled_own_vs_none"] = {
+            k: paired_comparison(values(records, "sampled_own", k), values(records, "none", k))
+            for k in compare}
     summary["vs_none"] = {
         n: {k: paired_comparison(values(records, n, k), values(records, "none", k))
             for k in compare}
@@ -125,12 +146,31 @@ def report(records: list[dict], out, figures, args: Args) -> dict:
     return summary
 
 
+def truth_diagnostics(args: Args) -> dict:
+    """:func:`paper_common.robot_truth_diagnostics` over seeds ``0..mc-1``, with the median and
+    quartiles of each quantity; written to ``<out>/truth.json``."""
+    from paper_common import output_dirs, robot_truth_diagnostics, write_json
+
+    out, _ = output_dirs(args, EXPERIMENT)
+    cfg = RobotData(n_val=args.n_val)
+    per_seed = [robot_truth_diagnostics(cfg, s, args.still_speed) for s in range(args.mc)]
+    keys = list(per_seed[0])
+    summary = {"per_seed": per_seed, "still_speed": args.still_speed,
+               "summary": {k: spread(np.array([p[k] for p in per_seed])) for k in keys}}
+    write_json(out / "truth.json", summary)
+    return summary
+
+
 def args_formulation(records: list[dict]) -> str:
     return ", ".join(sorted({r["config"]["formulation"] for r in records}))
 
 
 if __name__ == "__main__":
     args = parse_args(Args)
+    if args.truth_diagnostics:
+        for k, v in truth_diagnostics(args)["summary"].items():
+            print(f"{k:12s} median {v['median']:.3f} [{v['q1']:.3f}, {v['q3']:.3f}]")
+        raise SystemExit(0)
     configs = make_configs(args)
     summary = run_experiment(args, EXPERIMENT, run_robot, configs, report)
     for name, s in summary["configs"].items():

@@ -545,7 +545,7 @@ def nominal_epochs(formulation: str, method: str, scale: float = 1.0) -> int:
 
 def regularization(method: str, *, sigma: float = 0.1, n_copies: int = 1,
                    exact_weight: float = 1.0, smooth_weight: float = 0.01,
-                   ltv_lambda: float | str | None = None):
+                   ltv_lambda: float | str | None = None, copies_batch: str = "shared"):
     """The :class:`mbtsr.training.RegularizationConfig` of a method name.
 
     ``"none"``; ``"sampled"`` (the paper's sampled Jacobian propagation: one perturbed copy per
@@ -556,6 +556,8 @@ def regularization(method: str, *, sigma: float = 0.1, n_copies: int = 1,
 
     :param ltv_lambda: ``None`` keeps the library default (the original's R2/R1 = 1000, i.e.
         lambda = 31.6), ``"auto"`` picks it per trajectory by marginal likelihood.
+    :param copies_batch: ``"shared"`` (copies in their trajectory's batch) or ``"own"`` (one
+        optimizer step per copy, the original code's batching).
     """
     from mbtsr.training import RegularizationConfig
 
@@ -567,7 +569,8 @@ def regularization(method: str, *, sigma: float = 0.1, n_copies: int = 1,
     if method == "none":
         return RegularizationConfig(**extra)
     if method == "sampled":
-        return RegularizationConfig.paper(sigma=sigma, n_copies=n_copies, **extra)
+        return RegularizationConfig.paper(sigma=sigma, n_copies=n_copies,
+                                          copies_batch=copies_batch, **extra)
     if method == "exact":
         return RegularizationConfig(exact_weight=exact_weight, **extra)
     if method == "smooth":
@@ -752,6 +755,7 @@ def run_robot(config: dict, seed: int) -> dict:
     ev_true = np.linalg.eigvals(A_true)
     result["eig_match_err"] = eigenvalue_matching_error(ev_hat, ev_true)
     result["train_loss"] = finite_or_none(hist.train_loss[-1])
+    result["steps"] = int(hist.steps)
     result["train_time"] = train_time
     result["wall"] = time.perf_counter() - t0
     result["cpu_time"] = time.process_time() - c0
@@ -789,3 +793,279 @@ def run_activations(config: dict, seed: int) -> dict:
             pred[a].append(finite_or_none(v))
     return {"pred_rms": pred, "checkpoints": list(config["checkpoints"]),
             "wall": time.perf_counter() - t0, "cpu_time": time.process_time() - c0}
+
+
+# ------------------------------------------------------------------------------------------------
+# regime sweep of the robot Jacobian claim (``exp_regime``)
+
+#: moving-average lengths of the two excitation windows (samples at dt 0.02 s): the paper's
+#: 100 taps (2 s) and a short 10-tap window (0.2 s); the torque std is kept at the env's
+#: ``excitation_std`` in both (scale = excitation_std * sqrt(window))
+EXCITATION_WINDOWS = {"paper": 100, "short": 10}
+
+
+@dataclass(frozen=True)
+class RegimeData:
+    """Data of one regime-sweep cell family: the paper arm (``RobotData`` protocol) with a given
+    excitation window and with or without Coulomb friction (``frictionloss = (0, 0)``: the
+    friction-free truth; viscous friction kept). ``n_train_max`` trajectories are collected and
+    a cell uses the first ``n_train`` of them, so the cells of one seed share their data."""
+
+    window: str = "paper"
+    friction: bool = True
+    duration: float = 4.0
+    dt: float = 0.02
+    noise_std: float = 0.01
+    n_train_max: int = 10
+    n_val: int = 10
+    n_sim: int = 3
+    eval_stride: int = 3
+
+    @property
+    def T(self) -> int:  # noqa: N802 - the paper's symbol
+        return int(round(self.duration / self.dt))
+
+
+def regime_env(cfg: RegimeData):
+    """The paper-preset arm, friction on or off."""
+    import envs  # noqa: F401 - registers the envs
+    from envs.two_link_arm import TwoLinkArmEnv
+
+    params = None if cfg.friction else {"frictionloss": (0.0, 0.0)}
+    return TwoLinkArmEnv(preset="paper", episode_steps=cfg.T, dt=cfg.dt, params=params)
+
+
+_REGIME_CACHE: dict = {}
+
+
+def regime_dataset(cfg: RegimeData, seed: int) -> dict:
+    """Train / validation / simulation trajectories and the true Jacobians (MuJoCo finite
+    differences) at the evaluation points and at every training point, for MC run ``seed``.
+
+    Cached in-process (the cells of one seed share it; the sweep runs seed by seed).
+
+    :return: ``{"env", "train", "val", "sim", "X", "U", "A", "B", "A_train", "B_train"}`` with
+        ``A_train: [n_train_max, T, 4, 4]`` at the measured (noisy) training states.
+    """
+    from envs.collect import collect_trajectories
+    from mbtsr.trajectory import Trajectory
+
+    key = (cfg, int(seed))
+    if key in _REGIME_CACHE:
+        return _REGIME_CACHE[key]
+    env = regime_env(cfg)
+    window = EXCITATION_WINDOWS[cfg.window]
+    scale = math.sqrt(window) * env.excitation_std
+
+    def collect(split: int, count: int, noise_std: float) -> list:
+        trajs = collect_trajectories(
+            env, count, cfg.T, input=held_filtered_gaussian,
+            input_kwargs={"dt": cfg.dt, "scale": scale, "window": window},
+            seed=child_seed(seed, split), reject_abs_q=0.9 * np.pi)
+        rng = seed_sequence(seed, split, 99)
+        return [Trajectory(tr.x + noise_std * rng.standard_normal(tr.x.shape), tr.u, dt=tr.dt)
+                for tr in trajs]
+
+    d = {"env": env, "train": collect(1, cfg.n_train_max, cfg.noise_std),
+         "val": collect(2, cfg.n_val, 0.0), "sim": collect(3, cfg.n_sim, 0.0)}
+    d["X"], d["U"] = evaluation_points(d["val"], cfg.eval_stride)
+    d["A"], d["B"] = env.linearize_trajectory(d["X"], d["U"])
+    jac_train = [env.linearize_trajectory(tr.x[:-1], tr.u) for tr in d["train"]]
+    d["A_train"] = np.stack([a for a, _ in jac_train])
+    d["B_train"] = np.stack([b for _, b in jac_train])
+    if len(_REGIME_CACHE) >= 8:
+        _REGIME_CACHE.pop(next(iter(_REGIME_CACHE)))
+    _REGIME_CACHE[key] = d
+    return d
+
+
+def row_group_errors(A_true: np.ndarray, B_true: np.ndarray, A_hat: np.ndarray,
+                     B_hat: np.ndarray, mask: np.ndarray | None = None) -> dict:
+    """Paper eq. (jacerr) ``sqrt(mean_t ||J_t - Jhat_t||_F^2)`` over all rows and split into the
+    arm's position rows (q, rows 0-1) and velocity rows (qdot, rows 2-3), over the points in
+    ``mask`` (default all). ``A: [P, 4, 4]``, ``B: [P, 4, 2]``."""
+    dJ = np.concatenate([A_true - A_hat, B_true - B_hat], -1)  # [P, 4, 6]
+    if mask is not None:
+        dJ = dJ[mask]
+    if dJ.shape[0] == 0:
+        return {"all": None, "pos": None, "vel": None}
+    sq = dJ ** 2
+    return {"all": float(np.sqrt(sq.sum((1, 2)).mean())),
+            "pos": float(np.sqrt(sq[:, :2].sum((1, 2)).mean())),
+            "vel": float(np.sqrt(sq[:, 2:].sum((1, 2)).mean()))}
+
+
+def jacobian_diagnostics(X: np.ndarray, A_true: np.ndarray, B_true: np.ndarray,
+                         A_hat: np.ndarray, B_hat: np.ndarray, still_speed: float) -> dict:
+    """The Jacobian error split by point type and row group.
+
+    "still" points have a joint speed ``|qdot_i| < still_speed`` for some joint (there the
+    Coulomb friction's stiction makes the true Jacobian jump); "moving" points are the rest.
+    :return: ``jac_{all,pos,vel}`` and ``jac_{moving,still}_{all,pos,vel}``, ``frac_still``.
+    """
+    still = (np.abs(X[:, 2:4]) < still_speed).any(1)
+    out = {"frac_still": float(still.mean())}
+    for tag, mask in (("", None), ("moving_", ~still), ("still_", still)):
+        for k, v in row_group_errors(A_true, B_true, A_hat, B_hat, mask).items():
+            out[f"jac_{tag}{k}"] = v
+    return out
+
+
+def oracle_ltv_models(trajs, A_train: np.ndarray, B_train: np.ndarray) -> list:
+    """"LTV" models whose Jacobians are the TRUE ones at the training points, with the affine
+    term ``c_t = x_{t+1} - A_t x_t - B_t u_t`` (measured states), so the labels of the perturbed
+    copies are ``x_{t+1} + A_t dx + B_t du``: the oracle upper bound of sampled JacProp."""
+    from mbtsr.ltv import LTVModel
+
+    models = []
+    for tr, A, B in zip(trajs, A_train, B_train):
+        T = tr.T
+        A, B = A[:T], B[:T]
+        c = tr.x[1:] - np.einsum("tij,tj->ti", A, tr.x[:-1]) - np.einsum("tij,tj->ti", B, tr.u)
+        cov = np.broadcast_to(np.eye(tr.n + tr.m + 1), (T, tr.n, tr.n + tr.m + 1,
+                                                        tr.n + tr.m + 1))
+        models.append(LTVModel(A=A, B=B, c=c, cov=np.array(cov), lam=0.0))
+    return models
+
+
+def fused_ltv_models(ltv_models: list, model, trajs, prior_scale: float = 1.0) -> list:
+    """The LTV models fused with the network as a prior (the original's ``useprior``): per time
+    step a product of Gaussians (:func:`mbtsr.ltv.fuse_prior`) of the LTV posterior and a prior
+    centred on the network's ensemble-mean Jacobian at the trajectory points, with covariance
+    ``prior_scale`` x the LTV posterior covariance (1: equal confidence, i.e. the average of
+    the two Jacobians; the original's prior covariance, ensemble variance + 10 in raw units,
+    has no counterpart for a one-member ensemble)."""
+    from mbtsr.ltv import fuse_prior
+
+    out = []
+    for lm, tr in zip(ltv_models, trajs):
+        T = tr.T
+        A_p, B_p = model.jacobians(tr.x[:-1], tr.u)
+        cov = np.asarray(lm.cov)[:T] * prior_scale
+        out.append(fuse_prior(lm, A_p[:T], B_p[:T], cov))
+    return out
+
+
+REGIME_METHODS = ("none", "sampled", "exact", "oracle", "prior")
+
+
+def run_regime(config: dict, seed: int) -> dict:
+    """One Monte-Carlo run of the regime sweep (``exp_regime``).
+
+    ``config``: ``data`` (:class:`RegimeData` fields), ``n_train``, ``epochs``, ``method``
+    (``none``, ``sampled``, ``exact``, ``oracle`` = sampled JacProp with true-Jacobian labels,
+    ``prior`` = sampled JacProp whose LTV labels are fused with the network as a prior after
+    the first half of the epochs), ``exact_weight``, ``prior_scale``, ``lr``, ``batch``
+    (``"full"``: one optimizer step per epoch on all training transitions, or
+    ``"trajectory"``), ``model`` (:func:`build_ensemble` keyword arguments), ``still_speed``,
+    ``n_log`` (checkpoints of the training-point Jacobian error during training).
+    Every method of one cell takes the same number of optimizer steps.
+    """
+    from mbtsr.metrics import prediction_rms
+    from mbtsr.training import RegularizationConfig, TrainConfig, train_ensemble
+
+    t0, c0 = time.perf_counter(), time.process_time()
+    cfg = RegimeData(**config["data"])
+    d = regime_dataset(cfg, seed)
+    n_train, E, method = int(config["n_train"]), int(config["epochs"]), config["method"]
+    trajs = d["train"][:n_train]
+    A_tr = np.concatenate(list(d["A_train"][:n_train]))
+    B_tr = np.concatenate(list(d["B_train"][:n_train]))
+    X_tr = np.concatenate([tr.x[:-1] for tr in trajs])
+    U_tr = np.concatenate([tr.u for tr in trajs])
+    model = build_ensemble(4, 2, seed=child_seed(seed, 10), **config.get("model", {}))
+    batch = sum(tr.T for tr in trajs) if config["batch"] == "full" else "trajectory"
+    log_epochs = sorted({max(0, int(round(E * f)) - 1) for f in
+                         np.linspace(0, 1, int(config["n_log"]) + 1)[1:]})
+    log = {"epoch": [], "pos": [], "vel": []}
+
+    def callback(epoch: int, m) -> None:
+        if epoch + offset[0] in log_epochs:
+            A_h, B_h = m.jacobians(X_tr, U_tr)
+            e = row_group_errors(A_tr, B_tr, A_h, B_h)
+            log["epoch"].append(epoch + offset[0] + 1)
+            log["pos"].append(e["pos"])
+            log["vel"].append(e["vel"])
+
+    offset = [0]
+    ltv_models = None
+    if method == "oracle":
+        ltv_models = oracle_ltv_models(trajs, d["A_train"], d["B_train"])
+    reg = {"none": RegularizationConfig(), "exact": RegularizationConfig(
+        exact_weight=config["exact_weight"])}.get(method, RegularizationConfig.paper())
+    t1 = time.perf_counter()
+    phases = [E] if method != "prior" else [E // 2, E - E // 2]
+    state, label_models, steps, plain = None, ltv_models, 0, None
+    for p, epochs in enumerate(phases):
+        tc = TrainConfig(epochs=epochs, lr=config["lr"], batch=batch, seed=child_seed(seed, 20, p),
+                         progress=False)
+        if p == 1:
+            label_models = fused_ltv_models(label_models, model, trajs, config["prior_scale"])
+        hist = train_ensemble(model, trajs, tc, reg, ltv_models=label_models,
+                              optimizer_state=state, callback=callback)
+        state, offset[0], steps = hist.optimizer_state, offset[0] + epochs, steps + hist.steps
+        if p == 0:
+            label_models = plain = hist.ltv_models
+    train_time = time.perf_counter() - t1
+    result = evaluate(model, d["val"], d["sim"], d["X"], d["U"], d["A"], d["B"])
+    A_hat, B_hat = model.jacobians(d["X"], d["U"])
+    result.update(jacobian_diagnostics(d["X"], d["A"], d["B"], A_hat, B_hat,
+                                       config["still_speed"]))
+    result["train_pred_rms"] = finite_or_none(prediction_rms(model, trajs))
+    result["net_train_jac"] = log
+    if label_models is not None:  # error of the labels' Jacobians at the training points
+        A_l = np.concatenate([np.asarray(lm.A)[:tr.T] for lm, tr in zip(label_models, trajs)])
+        B_l = np.concatenate([np.asarray(lm.B)[:tr.T] for lm, tr in zip(label_models, trajs)])
+        e = row_group_errors(A_tr, B_tr, A_l, B_l)
+        result.update({"label_jac_pos": e["pos"], "label_jac_vel": e["vel"]})
+    if method == "prior":  # the plain LTV labels of the first half, for comparison
+        A_l = np.concatenate([np.asarray(lm.A)[:tr.T] for lm, tr in zip(plain, trajs)])
+        B_l = np.concatenate([np.asarray(lm.B)[:tr.T] for lm, tr in zip(plain, trajs)])
+        e = row_group_errors(A_tr, B_tr, A_l, B_l)
+        result.update({"ltv_jac_pos": e["pos"], "ltv_jac_vel": e["vel"]})
+    result["steps"] = steps
+    result["train_time"] = train_time
+    result["wall"] = time.perf_counter() - t0
+    result["cpu_time"] = time.process_time() - c0
+    return result
+
+
+def robot_truth_diagnostics(cfg: RobotData, seed: int, still_speed: float = 0.05) -> dict:
+    """What caps the robot's Jacobian error, for MC run ``seed`` of ``exp_robot`` (no training):
+
+    - ``const_train`` / ``const_eval``: eq. (jacerr) of a constant matrix, the mean true
+      Jacobian over the training points (a constant a model could learn) / over the evaluation
+      points themselves (the best constant in that norm);
+    - ``twin``: the analytic CasADi twin (friction ``fc tanh(qd / 0.01)``) against MuJoCo's
+      Jacobian, all points and split into moving / near-zero-velocity points;
+    - ``ltv_{pos,vel}``: the LTV labels' error (lambda of the library default) at the training
+      points per row group (position rows 0-1, velocity rows 2-3), ``frac_still``.
+    """
+    from mbtsr.ltv import fit_ltv
+    from mbtsr.training import ORIGINAL_LTV_LAMBDA
+
+    d = robot_dataset(cfg, seed)
+    env = d["env"]
+    X, U = evaluation_points(d["val"], cfg.eval_stride)
+    A, B = env.linearize_trajectory(X, U)
+    J = np.concatenate([A, B], -1)
+    train_jac = [env.linearize_trajectory(tr.x[:-1], tr.u) for tr in d["train"]]
+    J_train = np.concatenate([np.concatenate([a, b], -1) for a, b in train_jac])
+    twin = env.analytic_model()
+    A_tw, B_tw = twin.jacobians(X, U)
+    still = (np.abs(X[:, 2:4]) < still_speed).any(1)
+
+    def err(dJ: np.ndarray) -> float:
+        return float(np.sqrt((dJ ** 2).sum((-1, -2)).mean()))
+
+    dtw = np.concatenate([A_tw, B_tw], -1) - J
+    out = {"const_train": err(J - J_train.mean(0)), "const_eval": err(J - J.mean(0)),
+           "twin": err(dtw), "twin_moving": err(dtw[~still]), "twin_still": err(dtw[still]),
+           "frac_still": float(still.mean())}
+    lab = []
+    for tr, (a, b) in zip(d["train"], train_jac):
+        lm = fit_ltv(tr, ORIGINAL_LTV_LAMBDA)
+        lab.append(np.concatenate([lm.A[:tr.T], lm.B[:tr.T]], -1) - np.concatenate([a, b], -1))
+    lab = np.concatenate(lab)
+    out["ltv_pos"], out["ltv_vel"] = err(lab[:, :2]), err(lab[:, 2:])
+    return out

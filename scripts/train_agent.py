@@ -121,7 +121,7 @@ def parse(argv: list[str] | None = None):
 def main(argv: list[str] | None = None) -> dict:
     import numpy as np
 
-    from agents.checkpoint import atomic_write_text
+    from agents.checkpoint import CheckpointError, atomic_write_text, check_same
     from agents.config import AgentConfig
     from agents.evaluation import make_env
     from agents.jacprop_agent import JacPropAgent
@@ -149,9 +149,16 @@ def main(argv: list[str] | None = None) -> dict:
     env, _ = make_env(args.env_id, render_mode="rgb_array") if cfg_preview.video else \
         make_env(args.env_id)
     if args.resume:
-        agent = JacPropAgent.load(checkpoint, env=env, run_dir=str(run_dir))
-        if overrides:
-            print(f"--resume: the checkpoint's config is used; ignoring {sorted(overrides)}")
+        try:  # a damaged checkpoint, another env (dt, preset, ...) or a changed flag: one line
+            agent = JacPropAgent.load(checkpoint, env=env, run_dir=str(run_dir))
+            saved = agent.config.to_dict()
+            changed = {k: v for k, v in overrides.items()
+                       if k in saved and SCRIPT_AGENT_DEFAULTS.get(k, saved[k]) != v}
+            check_same(json.loads(json.dumps({k: saved[k] for k in changed}, default=str)),
+                       json.loads(json.dumps(changed, default=str)), what="config",
+                       path=checkpoint)
+        except CheckpointError as err:
+            raise SystemExit(f"--resume: {err}") from None
         print(f"resuming {run_dir} after episode {agent.episodes_done}")
     else:
         agent = JacPropAgent(env, AgentConfig(**{**overrides, "run_dir": str(run_dir)}))

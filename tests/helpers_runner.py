@@ -25,3 +25,24 @@ def torch_threads(config: dict, seed: int) -> dict:
     import torch
 
     return {"threads": torch.get_num_threads()}
+
+
+def raise_or_die(config: dict, seed: int) -> dict:
+    """Raises for ``config["raise_seed"]``, SIGKILLs its own worker for ``config["kill_seed"]``."""
+    if seed == config.get("raise_seed"):
+        raise ValueError(f"bad seed {seed}")
+    if seed == config.get("kill_seed"):
+        os.kill(os.getpid(), 9)
+    if seed == config.get("exit_seed"):
+        os._exit(3)
+    return noisy_mean({"mu": config.get("mu", 0.0), "n": 10}, seed)
+
+
+def sleep_forever(config: dict, seed: int) -> dict:
+    """Writes its pid to ``config["pid_dir"]`` and sleeps (for the orphan test)."""
+    import time
+
+    with open(os.path.join(config["pid_dir"], f"{seed}.pid"), "w") as fh:
+        fh.write(str(os.getpid()))
+    time.sleep(600)
+    return {}

@@ -24,6 +24,7 @@ import torch
 
 from agents.checkpoint import load_checkpoint
 from agents.episode_log import TIMING_COLUMNS
+from mbtsr.ensemble import load_model
 from mbtsr.trajectory import load_trajectories
 
 REPO = Path(__file__).resolve().parents[1]
@@ -127,8 +128,8 @@ def test_sigkill_and_resume_is_bit_identical_to_an_uninterrupted_run(tmp_path):
     for x, y in pairs:
         np.testing.assert_array_equal(x.x, y.x)
         np.testing.assert_array_equal(x.u, y.u)
-    wa = torch.load(straight / "model.pt", weights_only=True)["state_dict"]
-    wb = torch.load(killed / "model.pt", weights_only=True)["state_dict"]
+    wa = load_model(straight / "model.pt").state_dict()
+    wb = load_model(killed / "model.pt").state_dict()
     _assert_same_tree(wa, wb, "model.pt")
 
 

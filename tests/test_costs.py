@@ -272,3 +272,90 @@ def test_cost_evaluation_rejects_bad_arrays():
         cost.total(X, U, t0=-1)
     with pytest.raises(ValueError, match="eps must be"):
         smooth_norm(np.ones(2), 0.0)
+
+
+# ---------------------------------------------------------------------- parameters at call time
+def test_params_at_call_time_equal_a_cost_built_with_them_as_defaults():
+    """One compiled cost, any target: call-time params give the numbers of a cost whose
+    defaults are those params, for values, derivatives and the symbolic view."""
+    rng = np.random.default_rng(11)
+    Q, R = _random_psd(rng, N_X), _random_psd(rng, N_U)
+    one = quadratic_cost(Q, R)  # default goal 0
+    X, U = rng.standard_normal((2, 6, N_X)), rng.standard_normal((2, 5, N_U))
+    for _ in range(3):
+        goal = rng.standard_normal(N_X)
+        own = quadratic_cost(Q, R, goal)
+        p = one.reference(goal)
+        np.testing.assert_allclose(one.total(X, U, 2, p), own.total(X, U, 2), rtol=1e-13)
+        for a, b in zip(one.derivatives(X[0], U[0], 1, p), own.derivatives(X[0], U[0], 1)):
+            np.testing.assert_allclose(a, b, rtol=1e-13, atol=1e-13)
+        want = (X[0, :-1] - goal) @ Q
+        np.testing.assert_allclose(one.derivatives(X[0], U[0], 0, p).lx[:-1], 2 * want)
+    assert len(one._derivs_cache) == 1  # no new CasADi function per target
+
+
+def test_vector_params_equal_a_one_row_table_and_a_table_is_indexed_by_absolute_time():
+    rng = np.random.default_rng(12)
+    cost = _nonlinear_cost(rng.standard_normal((1, 2)))
+    X, U = rng.standard_normal((6, N_X)), rng.standard_normal((5, N_U))
+    p = rng.standard_normal(2)
+    assert cost.total(X, U, 0, p) == cost.total(X, U, 0, p[None])
+    table = rng.standard_normal((4, 2))
+    # stage values at t0=2 use rows 2, 3, 3, 3, 3 (last row held)
+    got = cost.stage_values(X[:-1], U, 2, table)
+    want = [cost.stage_values(X[k:k + 1], U[k:k + 1], 2 + k, table[min(2 + k, 3)])[0]
+            for k in range(5)]
+    np.testing.assert_allclose(got, want, rtol=1e-14)
+
+
+@pytest.mark.parametrize(
+    "params, match",
+    [
+        (np.zeros(3), r"params must be \[2\] or \[N_ref, 2\]"),
+        (np.zeros((0, 2)), "N_ref >= 1"),
+        (np.zeros((2, 2, 1)), "params must be"),
+        (np.array([0.0, np.inf]), "params contains 1 non-finite"),
+        ("abc", "params must be numeric"),
+    ],
+)
+def test_bad_params_are_named(params, match):
+    cost = _nonlinear_cost(np.zeros((1, 2)))
+    X, U = np.zeros((3, N_X)), np.zeros((2, N_U))
+    for call in (lambda: cost.total(X, U, 0, params), lambda: cost.derivatives(X, U, 0, params)):
+        with pytest.raises(ValueError, match=match):
+            call()
+
+
+def test_params_required_without_defaults_and_refused_without_a_parameter_input():
+    x, u, p = ca.SX.sym("x", 2), ca.SX.sym("u", 1), ca.SX.sym("p", 2)
+    cost = CasadiCost.from_expressions(x, u, ca.sumsqr(x - p), ca.sumsqr(x), p=p)
+    X, U = np.ones((3, 2)), np.ones((2, 1))
+    with pytest.raises(ValueError, match="params is required"):
+        cost.total(X, U)
+    assert cost.total(X, U, 0, np.ones(2)) == 0.0 + 2.0  # stages 0, terminal |x|^2 = 2
+    plain = CasadiCost.from_expressions(x, u, ca.sumsqr(x), ca.sumsqr(x))
+    with pytest.raises(ValueError, match="takes no parameters"):
+        plain.total(X, U, 0, np.ones(2))
+
+
+@pytest.mark.parametrize("constant", ["terminal", "stage_x", "stage_u"])
+def test_costs_independent_of_x_or_u_have_zero_not_uninitialised_derivatives(constant):
+    """A terminal cost constant in x (or a stage cost without x or u) has structurally zero
+    derivatives; they must come back as zeros (finite differences), not as np.empty memory."""
+    x, u = ca.SX.sym("x", 3), ca.SX.sym("u", 2)
+    stage = {"terminal": ca.sumsqr(x) + ca.sumsqr(u) * x[0], "stage_x": ca.sumsqr(u),
+             "stage_u": ca.sin(x[0]) * x[1]}[constant]
+    terminal = ca.DM(3.0) if constant == "terminal" else ca.sumsqr(x)
+    rng = np.random.default_rng(13)
+    X, U = rng.standard_normal((5, 3)), rng.standard_normal((4, 2))
+    cost = CasadiCost.from_expressions(x, u, stage, terminal)
+    want = _fd_derivatives(cost, X, U, 0)
+    shapes = [(4, 3), (4, 2), (4, 3, 3), (4, 2, 2), (4, 2, 3), (3,), (3, 3)]
+    for _ in range(5):
+        junk = [np.full(s, 7.0) for s in shapes]  # freed memory that np.empty would hand back
+        del junk
+        got = cost.derivatives(X, U)
+        for name, g, w in zip(("lx", "lu", "lxx", "luu", "lux"), got, want):
+            np.testing.assert_allclose(g, w, rtol=1e-5, atol=1e-6, err_msg=name)
+            # a constant's central difference is exactly 0: so must the derivative be
+            np.testing.assert_array_equal(g[w == 0.0], 0.0, err_msg=name)

@@ -24,6 +24,7 @@ from mbtsr.ensemble import (
     load_model,
     save_model,
 )
+from mbtsr.fileformat import torch_save_verified
 
 torch.set_num_threads(1)
 
@@ -347,8 +348,10 @@ def test_load_refuses_foreign_files(tmp_path):
     with pytest.raises(ValueError, match="not a saved"):
         load_model(path)
 
-    # an arbitrary pickled object (here a stdlib class outside torch's allow-list) is refused
-    torch.save({"format": "mbtsr.DynamicsEnsemble", "obj": Fraction(1, 3)}, path)
+    # an arbitrary pickled object (here a stdlib class outside torch's allow-list) is refused,
+    # even inside a file with a valid header and checksum
+    torch_save_verified({"format": "mbtsr.DynamicsEnsemble", "obj": Fraction(1, 3)}, path,
+                        kind="mbtsr.DynamicsEnsemble", version=2)
     with pytest.raises(Exception, match="(?i)weights_only|unpickl|global"):
         load_model(path)
 

@@ -253,3 +253,147 @@ def test_unknown_method_and_deviation_are_rejected():
     args = pc.parse_args(exp_deviations.Args, ["--deviations", "nominal,bogus"])
     with pytest.raises(ValueError, match="bogus"):
         exp_deviations.make_configs(args)
+
+
+# ------------------------------------------------------------------------------------------------
+# the regime sweep (exp_regime) and the claim evidence (exp_claims)
+
+
+def test_regime_quick_runs_every_method_at_equal_steps_and_redraws(tmp_path):
+    out = tmp_path / "regime"
+    run_script("exp_regime.py", "--quick", "--out", str(out), "--backend", "serial")
+    recs = [json.loads(p.read_text()) for p in sorted((out / "runs").glob("*.json"))]
+    # 2 windows x 2 frictions x 1 trajectory count x 2 epoch counts x (none, sampled) plus
+    # oracle / exact / prior on the paper-friction cells, 2 seeds each
+    assert len(recs) == 2 * (2 * 2 * 2 * 2 + 3 * 2)
+    cells: dict = {}
+    for r in recs:
+        assert r["status"] == "ok"
+        res, c = r["result"], r["config"]
+        for k in ("jac_err", "jac_pos", "jac_vel", "frac_still"):
+            assert res[k] is not None and math.isfinite(res[k]) and res[k] >= 0
+        # eq. (jacerr) splits into row groups: all^2 = pos^2 + vel^2
+        assert res["jac_err"] ** 2 == pytest.approx(res["jac_pos"] ** 2 + res["jac_vel"] ** 2)
+        assert res["net_train_jac"]["epoch"][-1] == c["epochs"]
+        if c["method"] != "none":
+            assert res["label_jac_vel"] >= 0
+        if c["method"] == "oracle":  # true-Jacobian labels have no Jacobian error
+            assert res["label_jac_pos"] == res["label_jac_vel"] == 0.0
+        key = (c["data"]["window"], c["data"]["friction"], c["n_train"], c["epochs"], r["seed"])
+        cells.setdefault(key, set()).add(res["steps"])
+    # every method of a cell took the same number of optimizer steps (= epochs, full batch)
+    assert all(len(s) == 1 and next(iter(s)) == k[3] for k, s in cells.items())
+    fig = out / "figures" / "regime_map.png"
+    assert fig.stat().st_size > 5000
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["n_runs"] == len(recs)
+    fig.unlink()
+    run_script("exp_regime.py", "--quick", "--out", str(out), "--report-only")
+    assert fig.stat().st_size > 5000
+    assert json.loads((out / "summary.json").read_text()) == summary
+    assert "sampled: change, wins" in (out / "table.md").read_text()
+
+
+def test_regime_paired_relative_change_and_wins():
+    import exp_regime as er
+
+    def rec(method, seed, v):
+        return {"config": {"method": method, "data": {"window": "paper", "friction": True},
+                           "n_train": 3, "epochs": 10}, "seed": seed, "result": {"jac_err": v}}
+
+    none = [1.0, 2.0, 4.0, 5.0]
+    samp = [0.9, 2.2, 3.0, 5.0]  # -10 %, +10 %, -25 %, 0 %
+    records = [rec("none", s, v) for s, v in enumerate(none)]
+    records += [rec("sampled", s, v) for s, v in enumerate(samp)]
+    s = er.paired_relative(records, "sampled", ("paper", True, 3, 10))
+    assert s["total"] == 4 and s["wins"] == 2
+    assert s["median_pct"] == pytest.approx(np.median([-10.0, 10.0, -25.0, 0.0]))
+
+
+def test_jacobian_diagnostics_split_is_consistent():
+    rng = np.random.default_rng(0)
+    P = 50
+    X = rng.normal(size=(P, 4)) * np.array([1, 1, 0.05, 0.05])
+    A, B = rng.normal(size=(P, 4, 4)), rng.normal(size=(P, 4, 2))
+    dA = np.zeros_like(A)
+    dA[:, 2:] = rng.normal(size=(P, 2, 4))  # error in the velocity rows only
+    d = pc.jacobian_diagnostics(X, A, B, A + dA, B, still_speed=0.05)
+    assert d["jac_pos"] == 0.0
+    assert d["jac_vel"] == pytest.approx(d["jac_all"])
+    f = d["frac_still"]
+    assert 0 < f < 1
+    assert d["jac_all"] ** 2 == pytest.approx(f * d["jac_still_all"] ** 2
+                                              + (1 - f) * d["jac_moving_all"] ** 2)
+    still = (np.abs(X[:, 2:]) < 0.05).any(1)
+    expect = np.sqrt((dA[still] ** 2).sum((1, 2)).mean())
+    assert d["jac_still_vel"] == pytest.approx(expect)
+
+
+def test_oracle_labels_are_the_first_order_expansion_around_the_measured_next_state():
+    from mbtsr.trajectory import Trajectory
+
+    rng = np.random.default_rng(1)
+    T = 12
+    tr = Trajectory(rng.normal(size=(T + 1, 4)), rng.normal(size=(T, 2)), dt=0.02)
+    A, B = rng.normal(size=(1, T, 4, 4)), rng.normal(size=(1, T, 4, 2))
+    (lm,) = pc.oracle_ltv_models([tr], A, B)
+    dx, du = 0.01 * rng.normal(size=(T, 4)), 0.01 * rng.normal(size=(T, 2))
+    got = lm.predict(tr.x[:-1] + dx, tr.u + du)
+    expect = tr.x[1:] + np.einsum("tij,tj->ti", A[0], dx) + np.einsum("tij,tj->ti", B[0], du)
+    np.testing.assert_allclose(got, expect, atol=1e-12)
+
+
+def test_fused_labels_with_equal_confidence_average_the_two_jacobians():
+    from mbtsr.ltv import fit_ltv
+    from mbtsr.trajectory import Trajectory
+
+    d = pc.regime_dataset(pc.RegimeData(duration=1.0, n_train_max=1, n_val=1, n_sim=1), 0)
+    tr = d["train"][0]
+    lm = fit_ltv(tr, 30.0)
+    model = pc.build_ensemble(4, 2, activations=("tanh",), seed=0)
+    model.set_normalization([tr])
+    (fused,) = pc.fused_ltv_models([lm], model, [Trajectory(tr.x, tr.u, dt=tr.dt)], 1.0)
+    A_net, B_net = model.jacobians(tr.x[:-1], tr.u)
+    np.testing.assert_allclose(fused.A, 0.5 * (lm.A + A_net), atol=1e-9)
+    np.testing.assert_allclose(fused.B, 0.5 * (lm.B + B_net), atol=1e-9)
+
+
+def test_friction_free_arm_matches_the_analytic_twin_even_at_rest():
+    """With Coulomb friction off, MuJoCo's step Jacobian and the analytic twin's (whose only
+    non-smooth part is the friction tanh) agree at zero joint speed too, where with friction on
+    they differ (stiction)."""
+    x = np.array([0.3, -0.5, 0.0, 0.0])
+    u = np.array([0.1, -0.2])
+    errs = {}
+    for friction in (True, False):
+        env = pc.regime_env(pc.RegimeData(friction=friction))
+        A, B = env.linearize(x, u)
+        A_tw, B_tw = env.analytic_model().jacobians(x[None], u[None])
+        errs[friction] = np.abs(np.concatenate([A - A_tw[0], B - B_tw[0]], 1)).max()
+    assert errs[False] < 1e-5
+    assert errs[True] > 100 * errs[False]
+
+
+def test_truth_diagnostics_best_constant_and_labels():
+    d = pc.robot_truth_diagnostics(pc.RobotData(duration=1.0, n_val=2), 0)
+    for k, v in d.items():
+        assert math.isfinite(v) and v >= 0, k
+    assert d["const_eval"] <= d["const_train"] + 1e-12  # the mean is the best constant
+    assert d["twin_moving"] < d["twin_still"]
+
+
+def test_claims_statistics_match_a_direct_computation(tmp_path):
+    import exp_claims
+
+    rng = np.random.default_rng(3)
+    a, b = rng.normal(size=9), rng.normal(size=9)
+    for name, vals in (("none", b), ("sampled", a)):
+        for s, v in enumerate(vals):
+            pc.write_json(tmp_path / "robot" / "runs" / f"{name}__seed{s}.json",
+                          {"name": name, "seed": s, "status": "ok", "result": {"jac_err": v}})
+    runs = exp_claims._load(tmp_path, "robot")
+    r = exp_claims.evaluate(exp_claims.Comparison(12, "robot", "sampled", "none", "jac_err"),
+                            runs)
+    assert r["total"] == 9 and r["wins"] == int((a < b).sum())
+    assert r["paired"]["median"] == pytest.approx(np.median(a - b))
+    assert r["a_stats"]["q1"] == pytest.approx(np.percentile(a, 25))

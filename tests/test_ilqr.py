@@ -11,7 +11,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.optimize import lsq_linear
 
-from mbtsr.costs import quadratic_cost
+from mbtsr.costs import CasadiCost, quadratic_cost
 from mbtsr.dynamics import LinearDynamics
 from mbtsr.ilqr import ILQROptions, _active_set_guess, _box_qp, ilqr
 from mbtsr.ipopt_reference import solve_ipopt
@@ -341,12 +341,17 @@ def test_one_batched_rollout_and_one_jacobian_call_per_iteration():
     T, iters = 30, 4
     opts = ILQROptions(max_iter=iters, tol_fun=0.0)
     res = ilqr(cost, model, np.zeros(2), np.zeros((T, 1)), options=opts)
-    n_forward = sum(1 for tr in res.trace if not np.isnan(tr["expected"]) or tr["accepted"])
     assert res.iterations == iters
-    # initial rollout (batch 1) + one rollout of all step sizes per iteration
-    assert len(model.step_batches) == T * (1 + n_forward)
-    assert model.step_batches[0] == (1,)
-    assert all(b == (len(opts.alphas),) for b in model.step_batches[T:])
+    # initial rollout (batch 1); per iteration the full step (batch 1), and if it is rejected
+    # one rollout of all smaller step sizes
+    expected = [(1,)]
+    for tr in res.trace:
+        if np.isnan(tr["expected"]) and not tr["accepted"]:
+            continue  # no forward pass (converged on the gradient)
+        expected.append((1,))
+        if not (tr["accepted"] and tr["alpha"] == opts.alphas[0]):
+            expected.append((len(opts.alphas) - 1,))
+    assert model.step_batches == [b for b in expected for _ in range(T)]
     n_accepted = sum(tr["accepted"] for tr in res.trace)
     assert len(model.jacobian_lengths) == 1 + min(n_accepted, iters - 1)
     assert all(n == T for n in model.jacobian_lengths)
@@ -490,6 +495,9 @@ def _problem():
         ({"t0": -1}, ValueError, "t0 must be an integer"),
         ({"options": {"max_iterations": 3}}, ValueError, "unknown ILQROptions"),
         ({"options": 3}, TypeError, "options must be"),
+        ({"params": np.zeros(5)}, ValueError, r"params must be \[6\] or \[N_ref, 6\]"),
+        ({"params": np.full(6, np.inf)}, ValueError, "params contains 6 non-finite"),
+        ({"u_min": "low"}, ValueError, "u_min must be numeric"),
     ],
 )
 def test_bad_input_raises_clear_errors(kwargs, exc, match):
@@ -523,3 +531,77 @@ def test_dimension_mismatch_between_cost_and_model():
 def test_invalid_options_are_rejected(field, value):
     with pytest.raises(ValueError, match=field):
         ILQROptions(**{field: value})
+
+
+def test_params_at_call_time_give_the_solution_of_a_cost_built_for_that_goal():
+    A, B = _stable_system(9)
+    model = LinearDynamics(A, B)
+    Q, R = np.eye(N_X), 0.1 * np.eye(N_U)
+    shared = quadratic_cost(Q, R)
+    x0, U0 = np.ones(N_X), np.zeros((15, N_U))
+    for goal in (np.full(N_X, 0.5), np.array([1.0, -1.0, 0.0, 0.2])):
+        a = ilqr(shared, model, x0, U0, params=shared.reference(goal), u_min=-1, u_max=1)
+        b = ilqr(quadratic_cost(Q, R, goal), model, x0, U0, u_min=-1, u_max=1)
+        np.testing.assert_array_equal(a.U, b.U)
+        assert a.cost == b.cost and a.status == b.status == "converged"
+
+
+def test_a_model_or_cost_that_turns_nan_mid_solve_ends_failed_with_the_best_finite_iterate():
+    """The model returns NaN once the state leaves a ball; the cost turns NaN beyond another.
+    The solve never returns a NaN control, and its cost is that of the returned iterate."""
+    A, B = _stable_system(10)
+    lin = LinearDynamics(A, B)
+
+    class NaNOutside:
+        state_dim, action_dim = N_X, N_U
+
+        def step(self, x, u, t=None):
+            out = lin.step(x, u)
+            out[np.abs(out).max(axis=-1) > 2.0] = np.nan
+            return out
+
+        def jacobians(self, x, u, t=0):
+            return lin.jacobians(x, u)
+
+    x, u = ca.SX.sym("x", N_X), ca.SX.sym("u", N_U)
+    nan_cost = CasadiCost.from_expressions(
+        x, u, ca.sumsqr(x - 3.0) + ca.sumsqr(u) + ca.sqrt(1.95 - x[0]), ca.sumsqr(x - 3.0)
+    )
+    for cost in (quadratic_cost(np.eye(N_X), 0.01 * np.eye(N_U), np.full(N_X, 3.0)), nan_cost):
+        res = ilqr(cost, NaNOutside(), np.ones(N_X), np.zeros((10, N_U)), u_min=-2, u_max=2,
+                   options={"max_iter": 40})
+        assert np.isfinite(res.U).all() and np.all(np.abs(res.U) <= 2.0)
+        assert np.isfinite(res.X).all()
+        assert res.cost == pytest.approx(cost.total(res.X, res.U), rel=1e-12)
+
+
+@settings(max_examples=25, deadline=None)
+@given(
+    st.integers(0, 2**16),
+    st.sampled_from(["nan_x0", "inf_U0", "short_x0", "bad_bounds", "bad_params", "ok"]),
+)
+def test_property_bad_input_is_named_good_input_gives_finite_bounded_controls(seed, case):
+    rng = np.random.default_rng(seed)
+    cost, model = _problem()
+    x0, U0 = rng.standard_normal(N_X), rng.standard_normal((6, N_U))
+    kw = {"u_min": -0.5, "u_max": 0.5, "options": {"max_iter": 5}}
+    i = int(rng.integers(N_X))
+    if case == "nan_x0":
+        x0[i] = np.nan
+        match = f"x0 contains 1 non-finite value.*first at index \\({i},\\)"
+    elif case == "inf_U0":
+        U0[i % 6, 1] = -np.inf
+        match = "U0 contains 1 non-finite"
+    elif case == "short_x0":
+        x0, match = x0[:-1], "x0 must have shape"
+    elif case == "bad_bounds":
+        kw["u_min"], match = 1.0, "u_min must be <= u_max"
+    elif case == "bad_params":
+        kw["params"], match = np.ones(N_X), "params must be"
+    if case != "ok":
+        with pytest.raises(ValueError, match=match):
+            ilqr(cost, model, x0, U0, **kw)
+        return
+    res = ilqr(cost, model, x0, U0, **kw)
+    assert np.isfinite(res.U).all() and np.all(np.abs(res.U) <= 0.5)
+    assert res.status in ("converged", "max_iter", "failed")

@@ -10,7 +10,6 @@
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import subprocess
 import sys
@@ -45,11 +44,9 @@ def _one_thread():
 
 
 def _load_script():
-    spec = importlib.util.spec_from_file_location("benchmark_sb3", SCRIPT)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules.setdefault("benchmark_sb3", module)  # dataclasses look their module up
-    spec.loader.exec_module(module)
-    return module
+    from experiments import benchmark_sb3
+
+    return benchmark_sb3
 
 
 class FixedResets(gym.Wrapper):

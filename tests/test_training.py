@@ -361,3 +361,129 @@ def test_regularization_weights_must_be_finite_and_nonnegative(name, value):
     else:
         with pytest.raises(ValueError, match=name):
             RegularizationConfig(**{name: value})
+
+
+# ------------------------------------------------------------------------------------------
+# where the perturbed copies go (RegularizationConfig.copies_batch), and the diagnostic callback
+# ------------------------------------------------------------------------------------------
+
+
+def _copies_setup():
+    n, m = 3, 2
+    A, B = random_stable_system(n, m, 0.1, seed=3)
+    trajs = [linear_trajectory(A, B, 30, seed=s, noise=0.05) for s in (0, 1)]
+    ltv = [fit_ltv(tr, 3.0) for tr in trajs]
+    model = small_model(n, m, seed=2)
+    model.set_normalization(trajs)
+    return trajs, ltv, model
+
+
+@pytest.mark.parametrize("n_copies", [1, 2])
+def test_own_copy_batches_take_the_originals_steps_and_losses(n_copies):
+    """``copies_batch="own"`` (the original code): per epoch first one step per trajectory on
+    its data, then one step per copy of each trajectory on the LTV-labelled copy alone. The
+    per-step objective is recomputed by an independent loop: a copy of the initial model,
+    torch's own Adam, the differentiable public forward pass and the same random stream."""
+    import copy as copy_module
+
+    trajs, ltv, model = _copies_setup()
+    ref = copy_module.deepcopy(model)
+    epochs, lr, seed, sigma, w = 3, 0.01, 7, 0.2, 0.7
+    reg = RegularizationConfig(sampled_weight=w, sigma=sigma, n_copies=n_copies,
+                               copies_batch="own")
+    cfg = TrainConfig(epochs=epochs, lr=lr, shuffle=False, seed=seed, **QUIET)
+    hist = train_ensemble(model, trajs, cfg, reg, ltv_models=ltv)
+    assert hist.steps == epochs * len(trajs) * (1 + n_copies)
+    assert hist.step_loss.shape == (hist.steps,)
+
+    opt = torch.optim.Adam(ref.parameters(), lr=lr)
+    out_std = ref.out_std.detach()
+    rng = np.random.default_rng(seed)
+
+    def objective(x, u, x_next):
+        pred = ref.forward_torch(torch.tensor(x, dtype=torch.float32),
+                                 torch.tensor(u, dtype=torch.float32))  # [K, T, n]
+        err = (pred - torch.tensor(x_next, dtype=torch.float32)) / out_std
+        return (err ** 2).sum(-1).mean(-1).sum()  # sum over members of the mean over points
+
+    losses = []
+    for _ in range(epochs):
+        copies = [lm.sample_perturbed(tr.x, tr.u, sigma=sigma, n_copies=n_copies, seed=rng)
+                  for lm, tr in zip(ltv, trajs)]
+        batches = [(tr.x[:-1], tr.u, tr.x[1:], 1.0) for tr in trajs]
+        batches += [(xt[c], ut[c], xnt[c], w) for xt, ut, xnt in copies for c in range(n_copies)]
+        for x, u, x_next, weight in batches:
+            loss = weight * objective(x, u, x_next)
+            opt.zero_grad()
+            loss.backward()
+            opt.step()
+            losses.append(float(loss.detach()))
+    np.testing.assert_allclose(hist.step_loss, losses, rtol=1e-4)
+    np.testing.assert_allclose(model.member_predictions(trajs[0].x[:-1], trajs[0].u),
+                               ref.member_predictions(trajs[0].x[:-1], trajs[0].u), rtol=1e-4,
+                               atol=1e-5)
+
+
+def test_shared_copy_batches_keep_the_baselines_step_count():
+    """Default ``"shared"``: copies join their trajectory's batch, so sampled JacProp takes as
+    many optimizer steps as no regularization; ``"own"`` takes ``1 + n_copies`` times as many."""
+    trajs, ltv, _ = _copies_setup()
+    steps = {}
+    for name, reg in [("none", RegularizationConfig()),
+                      ("shared", RegularizationConfig.paper(n_copies=2)),
+                      ("own", RegularizationConfig.paper(n_copies=2, copies_batch="own"))]:
+        _, _, model = _copies_setup()
+        for batch in ("trajectory", 25):
+            cfg = TrainConfig(epochs=2, batch=batch, seed=1, **QUIET)
+            steps[name, batch] = train_ensemble(model, trajs, cfg, reg, ltv_models=ltv).steps
+    assert steps["none", "trajectory"] == steps["shared", "trajectory"] == 4
+    assert steps["own", "trajectory"] == 3 * 4
+    assert steps["none", 25] == steps["shared", 25] == 2 * 3  # 60 transitions in batches of 25
+    assert steps["own", 25] == 3 * 6
+
+
+def test_copies_batch_is_validated():
+    with pytest.raises(ValueError, match="copies_batch"):
+        RegularizationConfig(copies_batch="separate")
+
+
+def test_callback_sees_every_epoch_in_eval_mode_and_changes_nothing():
+    trajs, ltv, model = _copies_setup()
+    _, _, twin = _copies_setup()
+    seen = []
+
+    def callback(epoch, m):
+        seen.append((epoch, m.training))
+        m.jacobians(trajs[0].x[:-1], trajs[0].u)  # a typical diagnostic
+
+    cfg = TrainConfig(epochs=4, seed=3, **QUIET)
+    reg = RegularizationConfig.paper()
+    h1 = train_ensemble(model, trajs, cfg, reg, ltv_models=ltv, callback=callback)
+    h2 = train_ensemble(twin, trajs, cfg, reg, ltv_models=ltv)
+    assert seen == [(e, False) for e in range(4)]
+    np.testing.assert_array_equal(h1.step_loss, h2.step_loss)
+    with pytest.raises(ValueError, match="callback"):
+        train_ensemble(twin, trajs, cfg, reg, ltv_models=ltv, callback=3)
+
+
+def test_fast_copy_sampling_equals_the_ltv_models_own_sampling():
+    """train_ensemble draws the copies of an ``LTVModel`` without per-call validation; a wrapper
+    that only has ``A``, ``B`` and ``sample_perturbed`` takes the public method. Both must give
+    bit-identical training (same draws, same arithmetic)."""
+
+    class Wrapped:
+        def __init__(self, lm):
+            self.lm, self.A, self.B = lm, lm.A, lm.B
+
+        def sample_perturbed(self, *a, **kw):
+            return self.lm.sample_perturbed(*a, **kw)
+
+    trajs, ltv, model = _copies_setup()
+    _, _, twin = _copies_setup()
+    cfg = TrainConfig(epochs=3, seed=4, **QUIET)
+    reg = RegularizationConfig.paper(n_copies=2, sigma=0.3)
+    h1 = train_ensemble(model, trajs, cfg, reg, ltv_models=ltv)
+    h2 = train_ensemble(twin, trajs, cfg, reg, ltv_models=[Wrapped(lm) for lm in ltv])
+    np.testing.assert_array_equal(h1.step_loss, h2.step_loss)
+    np.testing.assert_array_equal(model.member_predictions(trajs[0].x[:-1], trajs[0].u),
+                                  twin.member_predictions(trajs[0].x[:-1], trajs[0].u))

@@ -1,0 +1,328 @@
+"""The true dynamics of any Gymnasium MuJoCo env as a planning model.
+
+:class:`MujocoDynamics` turns a ``gymnasium.envs.mujoco.MujocoEnv`` (Reacher-v5,
+InvertedPendulum-v5, HalfCheetah-v5, ``mbtsr/TwoLinkArm-v0``, ...) into an object with the
+planning-model protocol of :mod:`mbtsr.dynamics`::
+
+    step(x[..., n], u[..., m], t=None) -> x_next[..., n]          # batched, one C call
+    jacobians(x[T, n], u[T, m], t=0) -> (A[T, n, n], B[T, n, m])    # one call per trajectory
+
+**State.** ``x = concat(qpos, qvel)``, ``n = nq + nv``; ``u`` is the env's action
+(``data.ctrl``, ``m = nu``), clamped by MuJoCo to ``ctrlrange`` as in the env. One ``step`` is one
+``env.step``: ``frame_skip`` substeps of the env's integrator with the control held. Everything
+else in MuJoCo's full physics state (mocap bodies, e.g. the arm's target marker; ``act`` must be
+empty) is taken from the env at construction and held fixed.
+
+**State and observation.** The observation is a function of the state that each env defines in
+its ``_get_obs`` (Reacher: ``[cos q, sin q, target, qvel, fingertip - target]``; the arm:
+``[x, target]``, i.e. the arm's physical state is the first 4 entries and equals ``x``).
+:meth:`MujocoDynamics.observation` evaluates that map for any ``x`` with the env's own code, and
+:func:`state_of` reads ``x`` from a live env. Where an observation holds body positions (Reacher's
+``fingertip - target``), ``env.step`` returns MuJoCo's kinematics from before the last substep
+while the map computes them at ``x`` (``mj_forward``); they differ by one substep's motion
+(about 2e-6 on Reacher).
+
+**Solver warm start.** ``step`` is a pure function of ``(x, u)``: every call starts MuJoCo's
+constraint solver cold. ``env.step`` warm-starts it from the previous step, which moves the
+result by the solver tolerance where constraints act (measured 1e-7 on Reacher-v5); with the
+env's ``qacc_warmstart`` zeroed the two agree bit for bit (tested).
+
+**Integrator.** The env's own (Reacher: RK4, the arm: Euler), or any MuJoCo integrator passed as
+``integrator=`` (on a private copy of the model; the env is never modified).
+
+**Jacobians** (``jacobian_method``):
+
+- ``"transition_fd"``: MuJoCo's ``mjd_transitionFD`` (centred differences inside the solver,
+  exact chain rule over the substeps: ``A = A_k ... A_1``, ``B = sum_j A_k ... A_{j+1} B_j``).
+  Needs an integrator other than RK4 (MuJoCo refuses RK4 there) and ``nq == nv`` (hinge/slide
+  joints, where MuJoCo's tangent space is ``[qpos, qvel]``). At ``|u_i| = 1`` MuJoCo differences
+  one-sidedly inside ``ctrlrange``.
+- ``"fd"``: centred differences of whole env steps, all ``2 (n + m) T`` perturbed steps in ONE
+  batched ``mujoco.rollout`` call (threaded with ``nthread > 1``). Works for every integrator,
+  including RK4. Perturbations follow the raw coordinates (``qpos`` as stored).
+- ``"auto"`` (default): ``"transition_fd"`` where it applies, else ``"fd"``.
+
+A model with the same ``step`` but other Jacobians (e.g. the arm's analytic twin, exact where
+it matches MuJoCo) is :class:`HybridDynamics`.
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+
+import mujoco
+import numpy as np
+from mujoco import rollout
+
+from mbtsr.dynamics import check_step_inputs
+from mbtsr.validation import as_array
+
+__all__ = ["HybridDynamics", "MujocoDynamics", "state_of", "transition_jacobians"]
+
+_INTEGRATORS = {
+    "euler": mujoco.mjtIntegrator.mjINT_EULER,
+    "rk4": mujoco.mjtIntegrator.mjINT_RK4,
+    "implicit": mujoco.mjtIntegrator.mjINT_IMPLICIT,
+    "implicitfast": mujoco.mjtIntegrator.mjINT_IMPLICITFAST,
+}
+_SPEC = mujoco.mjtState.mjSTATE_FULLPHYSICS
+
+
+def _unwrap(env):
+    base = getattr(env, "unwrapped", env)
+    if not (hasattr(base, "model") and hasattr(base, "data") and hasattr(base, "frame_skip")):
+        raise TypeError(
+            f"env must be a Gymnasium MujocoEnv (with model, data, frame_skip), got "
+            f"{type(base).__name__}"
+        )
+    return base
+
+
+def state_of(env) -> np.ndarray:
+    """The current state ``concat(qpos, qvel)`` ``[nq + nv]`` of a live MuJoCo env."""
+    base = _unwrap(env)
+    return np.concatenate((base.data.qpos, base.data.qvel))
+
+
+def transition_jacobians(
+    model: mujoco.MjModel,
+    scratch: mujoco.MjData,
+    x: np.ndarray,
+    u: np.ndarray,
+    frame_skip: int,
+    eps: float,
+    out_a: np.ndarray,
+    out_b: np.ndarray,
+) -> None:
+    """Jacobians of ``frame_skip`` substeps (control held) by chaining ``mjd_transitionFD``.
+
+    :param scratch: an ``MjData`` of ``model``, overwritten (its mocap etc. are kept).
+    :param x: ``[2 nv]`` state (``nq == nv``); ``u: [nu]``.
+    :param out_a: ``[2 nv, 2 nv]`` and ``out_b: [2 nv, nu]`` outputs, written in place.
+    """
+    nv, nu = model.nv, model.nu
+    a_k = np.empty((2 * nv, 2 * nv))
+    b_k = np.empty((2 * nv, nu))
+    out_a[:] = np.eye(2 * nv)
+    out_b[:] = 0.0
+    scratch.time = 0.0
+    scratch.qpos[:] = x[:nv]
+    scratch.qvel[:] = x[nv:]
+    scratch.qacc_warmstart[:] = 0.0
+    scratch.ctrl[:] = u
+    for _ in range(frame_skip):
+        mujoco.mjd_transitionFD(model, scratch, eps, True, a_k, b_k, None, None)
+        np.matmul(a_k, out_a, out=out_a)
+        out_b[:] = a_k @ out_b + b_k
+        mujoco.mj_step(model, scratch)
+
+
+class MujocoDynamics:
+    """True dynamics of a Gymnasium MuJoCo env (see the module doc).
+
+    :param env: a ``MujocoEnv`` (or a wrapper of one); its model is copied, not shared.
+    :param integrator: ``None`` (the env's), ``"euler"``, ``"rk4"``, ``"implicit"`` or
+        ``"implicitfast"``.
+    :param jacobian_method: ``"auto"``, ``"transition_fd"`` or ``"fd"``.
+    :param nthread: threads of ``mujoco.rollout`` for ``step`` and ``"fd"`` Jacobians.
+    :param fd_eps: finite-difference step (absolute, per coordinate).
+    """
+
+    def __init__(
+        self,
+        env,
+        *,
+        integrator: str | None = None,
+        jacobian_method: str = "auto",
+        nthread: int = 1,
+        fd_eps: float = 1e-6,
+    ) -> None:
+        base = _unwrap(env)
+        self.model = copy.deepcopy(base.model)
+        if integrator is not None:
+            if integrator not in _INTEGRATORS:
+                raise ValueError(
+                    f"integrator must be None or one of {sorted(_INTEGRATORS)}, got {integrator!r}"
+                )
+            self.model.opt.integrator = _INTEGRATORS[integrator]
+        if self.model.na:
+            raise ValueError(
+                f"env has {self.model.na} actuator activation state(s); MujocoDynamics supports "
+                "state = (qpos, qvel) only"
+            )
+        if int(nthread) != nthread or nthread < 1:
+            raise ValueError(f"nthread must be an integer >= 1, got {nthread!r}")
+        if not (math.isfinite(fd_eps) and fd_eps > 0):
+            raise ValueError(f"fd_eps must be a finite number > 0, got {fd_eps!r}")
+        self.frame_skip = int(base.frame_skip)
+        self.dt = float(self.model.opt.timestep) * self.frame_skip
+        self.nq, self.nv = self.model.nq, self.model.nv
+        self.state_dim = self.nq + self.nv
+        self.action_dim = self.model.nu
+        self.fd_eps = float(fd_eps)
+        self.nthread = int(nthread)
+        is_rk4 = self.model.opt.integrator == mujoco.mjtIntegrator.mjINT_RK4
+        transition_ok = not is_rk4 and self.nq == self.nv
+        if jacobian_method == "auto":
+            jacobian_method = "transition_fd" if transition_ok else "fd"
+        if jacobian_method not in ("transition_fd", "fd"):
+            raise ValueError(
+                f"jacobian_method must be 'auto', 'transition_fd' or 'fd', got {jacobian_method!r}"
+            )
+        if jacobian_method == "transition_fd" and not transition_ok:
+            raise ValueError(
+                "jacobian_method='transition_fd' needs a non-RK4 integrator and nq == nv "
+                f"(integrator {mujoco.mjtIntegrator(self.model.opt.integrator).name}, "
+                f"nq={self.nq}, nv={self.nv}); use 'fd'"
+            )
+        self.jacobian_method = jacobian_method
+        self._datas = [mujoco.MjData(self.model) for _ in range(self.nthread)]
+        # template full-physics state: the env's (mocap etc.), time 0
+        data = mujoco.MjData(self.model)
+        data.mocap_pos[:] = base.data.mocap_pos
+        data.mocap_quat[:] = base.data.mocap_quat
+        self._scratch = data
+        self._nstate = mujoco.mj_stateSize(self.model, _SPEC)
+        self._template = np.empty(self._nstate)
+        mujoco.mj_getState(self.model, data, self._template, _SPEC)
+        self._template[0] = 0.0
+        self._qpos0 = mujoco.mj_stateSize(self.model, mujoco.mjtState.mjSTATE_TIME)
+        self._runner = rollout.Rollout(nthread=self.nthread) if self.nthread > 1 else None
+
+    def set_mocap(self, pos: np.ndarray, quat: np.ndarray | None = None) -> None:
+        """Set the held mocap body poses (``[nmocap, 3]``, ``[nmocap, 4]``), e.g. a target."""
+        self._scratch.mocap_pos[:] = as_array("pos", pos, (self.model.nmocap, 3))
+        if quat is not None:
+            self._scratch.mocap_quat[:] = as_array("quat", quat, (self.model.nmocap, 4))
+        mujoco.mj_getState(self.model, self._scratch, self._template, _SPEC)
+        self._template[0] = 0.0
+
+    def _rollout_final(self, xs: np.ndarray, us: np.ndarray) -> np.ndarray:
+        """States after ``frame_skip`` substeps: ``xs: [N, n]``, ``us: [N, m]`` -> ``[N, n]``."""
+        state0 = np.empty((xs.shape[0], self._nstate))
+        state0[:] = self._template
+        state0[:, self._qpos0 : self._qpos0 + self.state_dim] = xs
+        control = us[:, None, :]
+        if self._runner is None:
+            states, _ = rollout.rollout(
+                self.model, self._datas[0], state0, control, nstep=self.frame_skip
+            )
+        else:
+            states, _ = self._runner.rollout(
+                self.model, self._datas, state0, control, nstep=self.frame_skip
+            )
+        return states[:, -1, self._qpos0 : self._qpos0 + self.state_dim]
+
+    def step(self, x: np.ndarray, u: np.ndarray, t: int | None = None) -> np.ndarray:
+        """Next state, batched: ``x: [..., n]``, ``u: [..., m]`` -> ``[..., n]``."""
+        n, m = self.state_dim, self.action_dim
+        if not (isinstance(x, np.ndarray) and isinstance(u, np.ndarray)
+                and x.shape[-1:] == (n,) and u.shape[-1:] == (m,)
+                and x.shape[:-1] == u.shape[:-1]):
+            x, u = check_step_inputs(x, u, n, m)
+        batch = x.shape[:-1]
+        xs = x.reshape(-1, n).astype(float, copy=False)
+        us = u.reshape(-1, m).astype(float, copy=False)
+        if not math.isfinite(xs.sum() + us.sum()):
+            check_step_inputs(x, u, n, m)  # names x or u
+        return self._rollout_final(xs, us).reshape(*batch, n)
+
+    def _step(self, x: np.ndarray, u: np.ndarray, t: int | None = None) -> np.ndarray:
+        """:meth:`step` without input checks (for solvers that validated once): float64
+        ``x: [..., n]``, ``u: [..., m]`` with equal batch dims, finite."""
+        n = self.state_dim
+        batch = x.shape[:-1]
+        return self._rollout_final(
+            x.reshape(-1, n), u.reshape(-1, self.action_dim)
+        ).reshape(*batch, n)
+
+    def jacobians(self, x: np.ndarray, u: np.ndarray, t: int = 0) -> tuple[np.ndarray, np.ndarray]:
+        """``A_t = d step / dx``, ``B_t = d step / du``: ``x: [T, n]``, ``u: [T, m]`` ->
+        ``([T, n, n], [T, n, m])``."""
+        n, m = self.state_dim, self.action_dim
+        x = as_array("x", x, (None, n))
+        u = as_array("u", u, (x.shape[0], m))
+        T = x.shape[0]
+        A, B = np.empty((T, n, n)), np.empty((T, n, m))
+        if self.jacobian_method == "transition_fd":
+            for k in range(T):  # mjd_transitionFD has no batched form
+                transition_jacobians(
+                    self.model, self._scratch, x[k], u[k], self.frame_skip, self.fd_eps, A[k], B[k]
+                )
+            return A, B
+        return self._fd_jacobians(x, u)
+
+    def _fd_jacobians(self, x: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Centred differences of whole steps, all perturbations in one batched rollout.
+
+        Controls are perturbed inside ``ctrlrange`` (one-sided at a bound), as MuJoCo does.
+        """
+        T, n = x.shape
+        m = u.shape[1]
+        eps = self.fd_eps
+        p = n + m
+        xs = np.repeat(x[:, None, :], 2 * p, axis=1)  # [T, 2p, n]
+        us = np.repeat(u[:, None, :], 2 * p, axis=1)  # [T, 2p, m]
+        idx = np.arange(n)
+        xs[:, idx, idx] += eps
+        xs[:, p + idx, idx] -= eps
+        # control steps, one-sided at a limited bound (the env clamps beyond it)
+        hi_step = np.full((T, m), eps)
+        lo_step = np.full((T, m), eps)
+        limited = self.model.actuator_ctrllimited.astype(bool)
+        if limited.any():
+            lo_c, hi_c = self.model.actuator_ctrlrange[:, 0], self.model.actuator_ctrlrange[:, 1]
+            uc = np.clip(u, lo_c, hi_c)
+            hi_step = np.where(limited & (uc + eps > hi_c), 0.0, hi_step)
+            lo_step = np.where(limited & (uc - eps < lo_c), 0.0, lo_step)
+            us = np.repeat(uc[:, None, :], 2 * p, axis=1)
+        jdx = np.arange(m)
+        us[:, n + jdx, jdx] += hi_step
+        us[:, p + n + jdx, jdx] -= lo_step
+        out = self._rollout_final(xs.reshape(-1, n), us.reshape(-1, m)).reshape(T, 2, p, n)
+        J = (out[:, 0] - out[:, 1]).transpose(0, 2, 1)  # [T, n, p]
+        J[:, :, :n] /= 2 * eps
+        J[:, :, n:] /= (hi_step + lo_step)[:, None, :]
+        return np.ascontiguousarray(J[:, :, :n]), np.ascontiguousarray(J[:, :, n:])
+
+    def observation(self, env, x: np.ndarray) -> np.ndarray:
+        """The env's observation at state ``x`` (``[n]`` or ``[N, n]``), by the env's own
+        ``_get_obs`` on a copy of its ``data`` (the env is not modified)."""
+        base = _unwrap(env)
+        x = as_array("x", x)
+        single = x.ndim == 1
+        xs = as_array("x", x.reshape(-1, x.shape[-1]), (None, self.state_dim))
+        saved = base.data
+        try:
+            base.data = copy.copy(saved)
+            obs = []
+            for row in xs:
+                base.data.qpos[:] = row[: self.nq]
+                base.data.qvel[:] = row[self.nq :]
+                mujoco.mj_forward(base.model, base.data)
+                obs.append(np.array(base._get_obs(), dtype=float))
+        finally:
+            base.data = saved
+        return obs[0] if single else np.stack(obs)
+
+
+class HybridDynamics:
+    """``step`` of one model, ``jacobians`` of another (same ``state_dim``/``action_dim``).
+
+    For MPC on the true MuJoCo arm: ``HybridDynamics(MujocoDynamics(env), arm.analytic_model())``
+    rolls out the true simulator and linearises with the analytic twin's exact Jacobians (equal
+    to MuJoCo's where both joints move, ``|qd| >= 0.2`` rad/s; they differ by the friction model
+    near zero velocity, see ``envs.two_link_arm_model``).
+    """
+
+    def __init__(self, step_model, jacobian_model) -> None:
+        for attr in ("state_dim", "action_dim"):
+            a, b = getattr(step_model, attr), getattr(jacobian_model, attr)
+            if a != b:
+                raise ValueError(f"{attr} differs: step model {a}, jacobian model {b}")
+        self.step_model, self.jacobian_model = step_model, jacobian_model
+        self.state_dim, self.action_dim = step_model.state_dim, step_model.action_dim
+        self.dt = getattr(step_model, "dt", None)
+        self.step = step_model.step
+        self.jacobians = jacobian_model.jacobians

@@ -1,0 +1,236 @@
+"""Benchmark of LTV identification (issue 3).
+
+For (n, m) in {(4, 2), (10, 10)} and T in {200, 1000, 5000}: the time of ``fit_ltv`` (banded
+Cholesky, covariances included) against a generic scipy solve of the same quadratic problem
+(the original's row-major parameter vector k_t = vec([A_t B_t]^T), the sparse least-squares
+matrix [I kron phi_t^T ; lam D kron I] assembled with scipy.sparse and its normal equations
+solved by ``scipy.sparse.linalg.spsolve``), their ratio, the agreement of the two solutions, and
+the fitted scaling exponent of the fit time in T. Then the TV solver's time and iterations at
+T = 1000 on a system with one jump, and ``select_lambda`` at T = 1000.
+
+Targets: T = 1000, n = 4, m = 2 in <= 10 ms; exponent <= 1.15; >= 5x faster than generic.
+
+    python scripts/bench_ltv.py --json runs/bench_ltv.json   # --help: the options
+"""
+
+from __future__ import annotations
+
+import os
+
+os.environ.setdefault("OMP_NUM_THREADS", "1")  # one core, like the generic solver
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+os.environ.setdefault("MKL_NUM_THREADS", "1")
+
+import dataclasses  # noqa: E402
+import json  # noqa: E402
+import platform  # noqa: E402
+import time  # noqa: E402
+
+import numpy as np  # noqa: E402
+import scipy  # noqa: E402
+import scipy.sparse as sp  # noqa: E402
+import scipy.sparse.linalg as spl  # noqa: E402
+
+from mbtsr.io import write_json_atomic  # noqa: E402
+from mbtsr.ltv import fit_ltv, fit_ltv_tv, select_lambda  # noqa: E402
+
+
+@dataclasses.dataclass
+class Args:
+    """Benchmark of LTV identification: fit_ltv vs a generic sparse solve, TV solver, lambda."""
+
+    sizes: str = "4x2,10x10"
+    """(n, m) pairs, comma separated"""
+    horizons: str = "200,1000,5000"
+    """values of T, comma separated"""
+    lam: float = 10.0
+    """L2 regularization weight"""
+    repeats: int = 7
+    """timed repeats of the fast fit (median reported)"""
+    generic_repeats: int = 3
+    """timed repeats of the generic sparse solve (median reported)"""
+    generic_max_unknowns: int = 2_000_000
+    """skip the generic solve above this many unknowns T n (n+m)"""
+    noise: float = 0.05
+    """measurement noise of the test data"""
+    tv_T: int = 1000
+    """horizon of the TV benchmark"""
+    seed: int = 0
+    """seed of the test systems and data"""
+    json: str | None = None
+    """write the results to this JSON file"""
+
+
+def stable_system(n: int, m: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """A random stable pair (A, B): orthogonal times 0.9, unit-scale B."""
+    Q, _ = np.linalg.qr(rng.normal(size=(n, n)))
+    return 0.9 * Q, rng.normal(size=(n, m)) / np.sqrt(m)
+
+
+def simulate(A, B, T, noise, rng):
+    """x: [T+1, n], u: [T, m] from x_{t+1} = A_t x_t + B_t u_t + e (A, B [T, ...] or fixed)."""
+    A = np.broadcast_to(A, (T, *A.shape[-2:]))
+    B = np.broadcast_to(B, (T, *B.shape[-2:]))
+    u = rng.normal(size=(T, B.shape[2]))
+    x = np.zeros((T + 1, A.shape[1]))
+    for t in range(T):
+        x[t + 1] = A[t] @ x[t] + B[t] @ u[t] + noise * rng.normal(size=A.shape[1])
+    return x, u
+
+
+def generic_sparse_solve(x: np.ndarray, u: np.ndarray, lam: float) -> tuple[np.ndarray, float]:
+    """Assemble and solve the same problem generically; returns (k [T, n, p], assembly seconds)."""
+    t0 = time.perf_counter()
+    T, n = u.shape[0], x.shape[1]
+    phi = np.concatenate([x[:-1], u], axis=1)
+    p = phi.shape[1]
+    # measurement rows: block t is I_n kron phi_t^T  (n rows, n p columns)
+    C = sp.block_diag([sp.kron(sp.eye(n), phi[t][None, :]) for t in range(T)], format="csr")
+    D = sp.diags([-np.ones(T - 1), np.ones(T - 1)], [0, 1], shape=(T - 1, T))
+    A_ls = sp.vstack([C, lam * sp.kron(D, sp.eye(n * p))]).tocsc()
+    b = np.concatenate([x[1:].reshape(-1), np.zeros((T - 1) * n * p)])
+    normal, rhs = (A_ls.T @ A_ls).tocsc(), A_ls.T @ b
+    t_assembly = time.perf_counter() - t0
+    k = spl.spsolve(normal, rhs)
+    return k.reshape(T, n, p), t_assembly
+
+
+def timings(fn, repeats: int) -> tuple[float, float]:
+    """(median, min) wall time of ``fn()`` over ``repeats`` calls."""
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - t0)
+    return float(np.median(times)), float(np.min(times))
+
+
+def run(args: Args) -> dict:
+    """Run the benchmark; print and return the results (and write ``args.json``)."""
+    rng = np.random.default_rng(args.seed)
+    sizes = [tuple(int(v) for v in s.split("x")) for s in args.sizes.split(",")]
+    horizons = [int(v) for v in args.horizons.split(",")]
+    results: dict = {
+        "config": dataclasses.asdict(args),
+        "machine": {"python": platform.python_version(), "numpy": np.__version__,
+                    "scipy": scipy.__version__, "cpu_count": os.cpu_count(),
+                    "threads": os.environ.get("OMP_NUM_THREADS")},
+        "l2": [],
+    }
+
+    # ---- L2 fit vs generic sparse solve ---------------------------------------------------
+    for n, m in sizes:
+        A, B = stable_system(n, m, rng)
+        for T in horizons:
+            x, u = simulate(A, B, T, args.noise, rng)
+            fit_ltv((x, u), args.lam)  # warm-up
+            t_fit, t_fit_min = timings(lambda x=x, u=u: fit_ltv((x, u), args.lam), args.repeats)
+            row = {"n": n, "m": m, "T": T, "fit_s": t_fit, "fit_min_s": t_fit_min}
+            unknowns = T * n * (n + m)
+            if unknowns <= args.generic_max_unknowns:
+                solve_times, assembly_times = [], []
+                for _ in range(args.generic_repeats):
+                    t0 = time.perf_counter()
+                    k_ref, t_asm = generic_sparse_solve(x, u, args.lam)
+                    total = time.perf_counter() - t0
+                    solve_times.append(total - t_asm)
+                    assembly_times.append(t_asm)
+                k_fast = fit_ltv((x, u), args.lam).params
+                row.update({
+                    "generic_solve_s": float(np.median(solve_times)),
+                    "generic_assembly_s": float(np.median(assembly_times)),
+                    "speedup_vs_solve": float(np.median(solve_times)) / t_fit,
+                    "speedup_vs_assembly_plus_solve": float(
+                        np.median(solve_times) + np.median(assembly_times)) / t_fit,
+                    "rel_diff": float(np.linalg.norm(k_fast - k_ref) / np.linalg.norm(k_ref)),
+                })
+            else:
+                row["generic_solve_s"] = None
+            results["l2"].append(row)
+            print(json.dumps(row))
+
+    # ---- scaling exponent in T (least-squares slope of log time vs log T) --------------------
+    results["exponent"] = {}
+    for n, m in sizes:
+        rows = [r for r in results["l2"] if (r["n"], r["m"]) == (n, m)]
+        slope = np.polyfit(np.log([r["T"] for r in rows]), np.log([r["fit_s"] for r in rows]), 1)
+        results["exponent"][f"{n}x{m}"] = float(slope[0])
+
+    # ---- TV fit at T = tv_T on a system with one jump ----------------------------------------
+    n, m, T = 4, 2, args.tv_T
+    A1, B1 = stable_system(n, m, rng)
+    A2, B2 = stable_system(n, m, rng)
+    t_jump = T // 2
+    before = (np.arange(T) < t_jump)[:, None, None]
+    A_tv, B_tv = np.where(before, A1, A2), np.where(before, B1, B2)
+    x, u = simulate(A_tv, B_tv, T, args.noise, rng)
+    # noise-level choice: lam ~ 2 sigma sqrt(T s^2 p n), s^2 the regressor power per entry
+    phi = np.concatenate([x[:-1], u], axis=1)
+    lam_tv = 2.0 * args.noise * np.sqrt(T * np.mean(phi**2) * (n + m) * n)
+    t0 = time.perf_counter()
+    tv = fit_ltv_tv((x, u), lam_tv)
+    t_tv = time.perf_counter() - t0
+    err = np.concatenate([tv.A - A_tv, tv.B - B_tv], axis=2)
+    results["tv"] = {
+        "n": n, "m": m, "T": T, "lam": float(lam_tv), "time_s": t_tv,
+        "iterations": tv.info["iterations"], "converged": tv.info["converged"],
+        "polished": tv.info["polished"], "kkt_ratio": tv.info["kkt_ratio"],
+        "true_change_point": t_jump, "change_points": tv.info["change_points"],
+        "jacobian_rms_error": float(np.sqrt(np.mean(np.sum(err**2, axis=(1, 2))))),
+    }
+    t0 = time.perf_counter()
+    tv_nopolish = fit_ltv_tv((x, u), lam_tv, polish=False, max_iter=20000)
+    results["tv_admm_only"] = {
+        "time_s": time.perf_counter() - t0,
+        "iterations": tv_nopolish.info["iterations"],
+        "converged": tv_nopolish.info["converged"],
+        "n_change_points": len(tv_nopolish.info["change_points"]),
+        "max_abs_diff_to_polished": float(np.abs(tv_nopolish.params - tv.params).max()),
+    }
+    print(json.dumps(results["tv"]))
+    print(json.dumps(results["tv_admm_only"]))
+
+    # ---- automatic lambda at T = 1000 on a smoothly varying system -----------------------------
+    (A1, B1), (A2, B2) = stable_system(4, 2, rng), stable_system(4, 2, rng)
+    w = (0.5 - 0.5 * np.cos(2 * np.pi * np.arange(1000) / 1000))[:, None, None]
+    A_s, B_s = (1 - w) * A1 + w * A2, (1 - w) * B1 + w * B2  # norms stay <= 0.9: stable
+    x, u = simulate(A_s, B_s, 1000, args.noise, rng)
+    for method in ("marginal_likelihood", "gcv"):
+        t0 = time.perf_counter()
+        lam_sel, curve = select_lambda((x, u), method=method)
+        elapsed = time.perf_counter() - t0
+        fit = fit_ltv((x, u), lam_sel)
+        err = np.concatenate([fit.A - A_s, fit.B - B_s], axis=2)
+        grid_err = []
+        for g in curve["lambdas"]:
+            fit_g = fit_ltv((x, u), g)
+            e = np.concatenate([fit_g.A - A_s, fit_g.B - B_s], axis=2)
+            grid_err.append(float(np.sqrt(np.mean(np.sum(e**2, axis=(1, 2))))))
+        results[f"select_lambda_{method}"] = {
+            "T": 1000, "n": 4, "m": 2, "time_s": elapsed, "lam": lam_sel,
+            "grid_points": len(curve["lambdas"]), "at_boundary": curve["at_boundary"],
+            "jacobian_rms_error": float(np.sqrt(np.mean(np.sum(err**2, axis=(1, 2))))),
+            "error_optimal_grid_lam": float(curve["lambdas"][int(np.argmin(grid_err))]),
+            "error_optimal_grid_error": float(min(grid_err)),
+        }
+        print(json.dumps(results[f"select_lambda_{method}"]))
+
+    # ---- targets --------------------------------------------------------------------------------
+    speedups = [r["speedup_vs_solve"] for r in results["l2"] if "speedup_vs_solve" in r]
+    results["targets"] = {
+        "exponent_max": {"value": max(results["exponent"].values()), "target": "<= 1.15",
+                         "met": max(results["exponent"].values()) <= 1.15},
+    }
+    if speedups:
+        results["targets"]["speedup_min"] = {"value": min(speedups), "target": ">= 5",
+                                             "met": min(speedups) >= 5}
+    ref = next((r for r in results["l2"] if (r["n"], r["m"], r["T"]) == (4, 2, 1000)), None)
+    if ref is not None:  # the 10 ms target is at T = 1000, n = 4, m = 2
+        results["targets"]["fit_4x2_T1000_ms"] = {
+            "value": 1e3 * ref["fit_s"], "min": 1e3 * ref["fit_min_s"], "target": "<= 10",
+            "met": ref["fit_s"] <= 0.010}
+    print(json.dumps(results["exponent"]))
+    print(json.dumps(results["targets"]))
+    if args.json:
+        write_json_atomic(args.json, results, indent=2)
+    return results

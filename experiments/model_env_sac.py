@@ -1,0 +1,95 @@
+"""SAC trained inside the learned model (``agents.model_env.ModelEnv``), evaluated in the real env.
+
+1. ``JacPropAgent`` learns an ensemble from ``model_episodes`` real episodes (the first
+   ``n_excitation_episodes`` excitation, then its own MPC);
+2. SB3 SAC trains for ``sac_steps`` steps inside ``ModelEnv.from_agent(agent)`` (no real steps);
+3. the SAC policy, a uniformly random policy and SAC trained in the real env (for the real steps
+   the model used, and for ``sac_steps`` real steps) are evaluated on the same real episodes.
+
+Usage: ``python scripts/model_env_sac.py --help``.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from typing import Literal
+
+import gymnasium as gym
+import numpy as np
+import torch
+
+import envs  # noqa: F401  (registers mbtsr/TwoLinkArm-v0)
+from agents import AgentConfig, JacPropAgent
+from agents.evaluation import evaluate_policy_costs, evaluation_targets
+from agents.model_env import ModelEnv
+from agents.sb3_baselines import make_sb3_model
+from mbtsr.io import write_json_atomic
+
+
+@dataclass(frozen=True)
+class Args:
+    """SAC in the learned model vs in the real env (mbtsr/TwoLinkArm-v0)."""
+
+    model_episodes: int = 6
+    """Real episodes the agent learns its model from."""
+    n_excitation_episodes: int = 2
+    """Of those, the first ones use the excitation signal (the rest the agent's MPC)."""
+    sac_steps: int = 5000
+    """SAC steps inside the model (and the budget of the 'same steps' real-env baseline)."""
+    member: Literal["mean", "step", "episode"] = "step"
+    """Model transition: ensemble mean, a random member per step, or one per episode."""
+    eval_episodes: int = 10
+    """Real evaluation episodes (the agent's fixed evaluation targets)."""
+    real_baselines: bool = True
+    """Also train SAC in the real env (for the model's real steps and for sac_steps)."""
+    seed: int = 0
+    """Seed of the agent, SAC, the ModelEnv and the random policy."""
+    json: str | None = "runs/model_env_sac.json"
+    """Where to write the results (None: do not write)."""
+
+
+def real_cost(policy, targets) -> list[float]:
+    return evaluate_policy_costs(policy, "mbtsr/TwoLinkArm-v0", targets, seed=1000).tolist()
+
+
+def sac(env: gym.Env, steps: int, seed: int):
+    model = make_sb3_model("sac", env, seed)
+    tic = time.perf_counter()
+    model.learn(steps)
+    return model, time.perf_counter() - tic
+
+
+def run(args: Args) -> dict:
+    """Learn the model, train SAC in it, evaluate everything in the real env."""
+    torch.set_num_threads(1)
+    targets = evaluation_targets(args.eval_episodes, seed=1000)
+    cfg = AgentConfig(seed=args.seed, n_excitation_episodes=args.n_excitation_episodes,
+                      eval_every=0, progress=False, tensorboard=False)
+    agent = JacPropAgent(gym.make("mbtsr/TwoLinkArm-v0"), cfg)
+    agent.learn(args.model_episodes, progress_bar=False)
+    menv = ModelEnv.from_agent(agent, member=args.member)
+    menv.reset(seed=args.seed)
+    sac_model, wall = sac(menv, args.sac_steps, args.seed)
+    rng = np.random.default_rng(args.seed)
+    out = {
+        "args": vars(args),
+        "real_steps_for_model": agent.env_steps,
+        "wall_seconds_sac_in_model": wall,
+        "cost": {
+            "sac_in_model": real_cost(sac_model, targets),
+            "random": real_cost(lambda obs: rng.uniform(-1, 1, 2), targets),
+            "agent_mpc": real_cost(agent, targets),
+        },
+    }
+    if args.real_baselines:
+        for name, steps in (("sac_real_same_real_steps", agent.env_steps),
+                            ("sac_real_same_steps", args.sac_steps)):
+            model, _ = sac(gym.make("mbtsr/TwoLinkArm-v0"), steps, args.seed)
+            out["cost"][name] = real_cost(model, targets)
+    for name, costs in out["cost"].items():
+        print(f"{name:>26}: mean real cost {np.mean(costs):9.2f}  (return {-np.mean(costs):.2f})")
+    if args.json:
+        write_json_atomic(args.json, out)
+    return out
+

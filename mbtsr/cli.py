@@ -1,0 +1,160 @@
+"""Command lines generated from config dataclasses (tyro), with one-line errors.
+
+Every script declares its options once, as a dataclass whose field docstrings are the help text,
+and calls :func:`parse`. tyro (rather than argparse builders, click or jsonargparse) because it
+reads the dataclasses the library already uses as they are (nested dataclasses become
+``--model.hidden-width``-style options, field docstrings become ``--help`` text, ``Literal``
+types become choices) and needs no decorators or schema beside them.
+
+On top of tyro, :func:`parse` makes every bad command line end the same way: ONE line
+``<prog>: error: <message> (see --help)`` on stderr and exit code 2, never a traceback, also when
+the dataclass's own validation (``__post_init__``) rejects a value; and it checks the output
+paths named in ``outputs`` (writable, not a folder where a file is expected) before the script
+does any work.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import io
+import os
+import re
+import sys
+from collections.abc import Callable, Mapping, Sequence
+from pathlib import Path
+from typing import Any, NoReturn, TypeVar
+
+__all__ = ["check_output_path", "fail", "main", "parse"]
+
+T = TypeVar("T")
+_BOX = re.compile(r"[\u2500-\u257f]")  # rich's box-drawing characters
+
+
+def fail(message: str, prog: str | None = None) -> NoReturn:
+    """Print ``<prog>: error: <message>`` on stderr and exit with code 2 (argparse's)."""
+    prog = prog or Path(sys.argv[0]).name
+    print(f"{prog}: error: {message}", file=sys.stderr)
+    raise SystemExit(2)
+
+
+def _one_line(rich_text: str) -> str:
+    """The message of a tyro error box: its first section, box art removed, lines joined."""
+    title, body = "", []
+    for line in rich_text.splitlines():
+        stripped = line.strip()
+        if stripped.startswith("\u256d"):  # the title row
+            title = _BOX.sub("", stripped).strip()
+            continue
+        content = _BOX.sub("", stripped).strip()
+        if not content:
+            if body and "\u2500" in stripped:  # a separator row ends the first section
+                break
+            continue
+        body.append(content)
+    return re.sub(r"\s+", " ", " ".join(body) or title or "invalid arguments")
+
+
+def check_output_path(path: str | os.PathLike, *, name: str, folder: bool = False) -> Path:
+    """Check that ``path`` can be written (as a file, or a folder with ``folder=True``).
+
+    The nearest existing ancestor must be a writable folder; an existing ``path`` must be of the
+    right kind. Nothing is created.
+
+    :raises ValueError: naming ``name`` and the reason.
+    """
+    p = Path(path)
+    if p.exists() and folder and not p.is_dir():
+        raise ValueError(f"{name}: {str(p)!r} exists and is not a folder")
+    if p.exists() and not folder and p.is_dir():
+        raise ValueError(f"{name}: {str(p)!r} is a folder, expected a file path")
+    target = p if (folder and p.exists()) else p.parent
+    while not target.exists():
+        target = target.parent
+    if not target.is_dir():
+        raise ValueError(f"{name}: {str(target)!r} is not a folder, cannot write {str(p)!r}")
+    if not os.access(target, os.W_OK | os.X_OK):
+        raise ValueError(f"{name}: cannot write in {str(target)!r}")
+    return p
+
+
+def parse(
+    config_type: type[T],
+    *,
+    args: Sequence[str] | None = None,
+    description: str | None = None,
+    prog: str | None = None,
+    outputs: Sequence[str] = (),
+    folders: Sequence[str] = (),
+    presets: Mapping[str, Mapping[str, Any]] | None = None,
+) -> T:
+    """Parse the command line into ``config_type`` (a dataclass) with tyro.
+
+    :param args: the arguments (default ``sys.argv[1:]``).
+    :param presets: ``{flag: {field: value}}``: when ``flag`` (e.g. ``"--quick"``) is on the
+        command line, these values replace the defaults, so every option the user does not give
+        takes the preset's value (and the ``--help`` shows them).
+    :param description: the ``--help`` text above the options (default: the class docstring).
+    :param outputs: dotted field names holding output FILE paths (``None``/empty values are
+        skipped), checked with :func:`check_output_path` before returning.
+    :param folders: the same for output FOLDERS.
+    :return: the config. ``--help`` prints and exits 0; any error exits 2 after one line.
+    """
+    import tyro
+
+    prog = prog or Path(sys.argv[0]).name
+    argv = list(sys.argv[1:] if args is None else args)
+    default = None
+    for flag, values in (presets or {}).items():
+        if flag in argv:
+            default = dataclasses.replace(default or config_type(), **values)
+    err = io.StringIO()
+    try:
+        with contextlib.redirect_stderr(err):
+            config = tyro.cli(config_type, args=argv, description=description, prog=prog,
+                              default=default)
+    except SystemExit as exit_:
+        if exit_.code in (0, None):
+            sys.stderr.write(err.getvalue())
+            raise
+        fail(_one_line(err.getvalue()) + " (see --help)", prog)
+    except (ValueError, TypeError) as e:  # the dataclass's own validation
+        fail(str(e).splitlines()[0] if str(e) else type(e).__name__, prog)
+    sys.stderr.write(err.getvalue())  # tyro's warnings, if any
+    for names, is_folder in ((outputs, False), (folders, True)):
+        for dotted in names:
+            value = config
+            for part in dotted.split("."):
+                value = getattr(value, part)
+            if value is None or value == "":  # not given
+                continue
+            try:
+                check_output_path(value, name="--" + dotted.replace("_", "-"), folder=is_folder)
+            except ValueError as e:
+                fail(str(e), prog)
+    return config
+
+
+def main(
+    config_type: type[T],
+    run: Callable[[T], Any],
+    *,
+    outputs: Sequence[str] = (),
+    folders: Sequence[str] = (),
+    presets: Mapping[str, Mapping[str, Any]] | None = None,
+    args: Sequence[str] | None = None,
+) -> Any:
+    """A script's whole body: ``run(parse(config_type, ...))``.
+
+    The library validates its inputs at its public boundary and names the argument in a
+    ``ValueError``/``TypeError``; when ``run`` raises one, that is a bad option value too, so it
+    ends the same way as a parse error: one line, exit code 2 (``MBTSR_TRACEBACK=1`` re-raises
+    it with the traceback, for debugging).
+    """
+    config = parse(config_type, args=args, outputs=outputs, folders=folders, presets=presets)
+    try:
+        return run(config)
+    except (ValueError, TypeError) as e:
+        if os.environ.get("MBTSR_TRACEBACK"):
+            raise
+        fail(f"{type(e).__name__}: {' '.join(str(e).split())} (MBTSR_TRACEBACK=1 shows where)")

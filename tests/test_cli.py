@@ -1,0 +1,173 @@
+"""Generated CLIs (mbtsr.cli over tyro): every config field in --help with its docstring, nested
+fields settable, bad arguments end in ONE line on stderr with exit code 2 (no traceback), output
+paths checked before any work."""
+
+from __future__ import annotations
+
+import dataclasses
+import importlib
+import subprocess
+import sys
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import pytest
+
+from mbtsr.cli import check_output_path, main, parse
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.append(str(REPO))  # experiments/ (until the editable install is refreshed)
+
+#: every experiments module behind a script in scripts/
+EXPERIMENTS = ["agent_ablation", "bench_env", "bench_ltv", "bench_models", "benchmark_sb3",
+               "collect_excitation", "model_env_sac"]
+
+
+@dataclass(frozen=True)
+class Model:
+    hidden_width: int = 20
+    """width of each hidden layer"""
+
+    def __post_init__(self) -> None:
+        if self.hidden_width < 1:
+            raise ValueError(f"hidden_width must be >= 1, got {self.hidden_width}")
+
+
+@dataclass(frozen=True)
+class Config:
+    """A toy config."""
+
+    seed: int = 0
+    """the seed"""
+    out: str | None = None
+    """output file"""
+    model: Model = field(default_factory=Model)
+    """the model"""
+
+
+def fields_of(cls, prefix: str = "") -> list[tuple[str, dataclasses.Field]]:
+    """Dotted names of every (nested) field, as tyro spells them on the command line."""
+    out = []
+    for f in dataclasses.fields(cls):
+        name = prefix + f.name.replace("_", "-")
+        if dataclasses.is_dataclass(f.type if not isinstance(f.type, str) else None):
+            out += fields_of(f.type, name + ".")
+        else:
+            out.append((name, f))
+    return out
+
+
+def help_text(cls, capsys) -> str:
+    with pytest.raises(SystemExit) as exit_:
+        parse(cls, args=["--help"], prog="x")
+    assert exit_.value.code == 0
+    return capsys.readouterr().out
+
+
+def errors(cls, args, capsys, **kw) -> str:
+    with pytest.raises(SystemExit) as exit_:
+        parse(cls, args=args, prog="x", **kw)
+    assert exit_.value.code == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and err.startswith("x: error: "), err
+    return err
+
+
+def test_nested_fields_are_settable_and_documented(capsys):
+    cfg = parse(Config, args=["--seed", "3", "--model.hidden-width", "64"])
+    assert cfg == Config(seed=3, model=Model(hidden_width=64))
+    text = " ".join(help_text(Config, capsys).split())
+    for flag in ("--seed", "--out", "--model.hidden-width"):
+        assert flag in text
+    for doc in ("the seed", "output file", "width of each hidden layer"):
+        assert doc in text
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--seed", "x"], "--seed"),
+    (["--bogus", "1"], "Unrecognized options: --bogus"),
+    (["--seed"], "--seed"),
+    (["--model.hidden-width", "0"], "hidden_width must be >= 1, got 0"),  # __post_init__
+])
+def test_bad_arguments_give_one_line_and_exit_2(args, message, capsys):
+    assert message in errors(Config, args, capsys)
+
+
+def test_output_paths_are_checked_before_any_work(tmp_path, capsys):
+    (tmp_path / "file").write_text("x")
+    out = {"outputs": ("out",)}
+    assert "is a folder" in errors(Config, ["--out", str(tmp_path)], capsys, **out)
+    assert "is not a folder" in errors(Config, ["--out", str(tmp_path / "file" / "o.json")],
+                                       capsys, **out)
+    ran = []
+    with pytest.raises(SystemExit):
+        main(Config, ran.append, outputs=("out",), args=["--out", str(tmp_path)])
+    assert ran == []  # run never started
+    assert check_output_path(tmp_path / "new" / "deeper" / "o.json", name="--out")
+    assert not (tmp_path / "new").exists()  # checking creates nothing
+
+
+def test_value_errors_of_the_run_are_one_line_too(capsys):
+    def run(cfg):
+        raise ValueError("episode_steps must be\nan integer >= 1, got 0")
+
+    with pytest.raises(SystemExit) as exit_:
+        main(Config, run, args=[])
+    assert exit_.value.code == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "ValueError: episode_steps must be an integer" in err
+
+
+@pytest.mark.parametrize("name", EXPERIMENTS)
+def test_every_script_help_lists_every_field_with_its_docstring(name, capsys):
+    module = importlib.import_module(f"experiments.{name}")
+    assert (REPO / "scripts" / f"{name}.py").exists()
+    text = " ".join(help_text(module.Args, capsys).split())
+    source = Path(module.__file__).read_text()
+    for flag, f in fields_of(module.Args):
+        assert f"--{flag}" in text, flag
+        # the docstring under the field is the help text (its first words, as tyro wraps lines)
+        after = source.split(f"    {f.name}:", 1)[1].split('"""')
+        assert len(after) > 2 and after[0].count("\n") == 1, f"{name}.{f.name} has no docstring"
+        assert " ".join(after[1].split()[:3]) in text, f.name
+
+
+#: scripts whose owners were still editing them when the CLIs were generated (converted later)
+NOT_YET = {"bench_ilqr.py", "ilqr_with_model.py", "train_agent.py", "paper_common.py",
+           "exp_activations.py", "exp_deviations.py", "exp_linear.py", "exp_robot.py",
+           "exp_weight_decay.py"}
+
+
+def test_no_script_builds_an_argparse_parser():
+    for path in [*(REPO / "scripts").glob("*.py"), *(REPO / "experiments").glob("*.py")]:
+        if path.name not in NOT_YET:
+            assert "argparse" not in path.read_text(), path
+
+
+def test_a_real_script_fails_in_one_line_without_traceback():
+    for args in (["--repeats", "many"], ["--json", "/"]):
+        proc = subprocess.run([sys.executable, str(REPO / "scripts" / "bench_ltv.py"), *args],
+                              capture_output=True, text=True, timeout=120)
+        assert proc.returncode == 2
+        assert proc.stderr.count("\n") == 1 and "Traceback" not in proc.stderr, proc.stderr
+        assert proc.stderr.startswith("bench_ltv.py: error: ")
+
+
+@dataclass(frozen=True)
+class Sweep:
+    """A toy sweep."""
+
+    quick: bool = False
+    """smoke test"""
+    seeds: int = 5
+    """seeds"""
+    model: Model = field(default_factory=Model)
+    """the model"""
+
+
+def test_a_preset_flag_changes_the_defaults_but_not_the_given_options():
+    presets = {"--quick": {"quick": True, "seeds": 1, "model": Model(hidden_width=2)}}
+    assert parse(Sweep, args=[], presets=presets) == Sweep()
+    assert parse(Sweep, args=["--quick"], presets=presets) == Sweep(True, 1, Model(2))
+    got = parse(Sweep, args=["--quick", "--seeds", "3"], presets=presets)
+    assert got == Sweep(True, 3, Model(2))
