@@ -23,7 +23,7 @@ model once ``envs/mujoco_model.py`` is wired in). Runs are scheduled seed-major 
 configuration gets seed 0 before any gets seed 1), and each finished run is appended to the JSON
 at once, so an interrupted suite reports what finished (``--resume`` skips finished runs)::
 
-    python scripts/bench_suite.py --json docs/results/bench_suite.json --seeds 0 1 2 3 4
+    python scripts/bench_suite.py --json docs/results/bench_suite.json --figures docs/figures
     python scripts/bench_suite.py --smoke --json runs/bench_suite_smoke.json   # CI, ~1 min
     python scripts/bench_suite.py --report-only --json docs/results/bench_suite.json
 """
@@ -78,19 +78,20 @@ def pendulum_terminated(obs):
 TASKS: dict[str, dict[str, Any]] = {
     "arm-far": {
         "env_id": "mbtsr/TwoLinkArm-v0", "make": {"target_limit": 0.85 * math.pi},
-        "solved_ratio": 1.05, "episodes": 12, "overrides": {},
+        "solved_ratio": 1.05, "episodes": 8, "overrides": {},
     },
     "arm-open-loop": {
-        "env_id": "mbtsr/TwoLinkArm-v0", "make": {}, "solved_ratio": 1.05, "episodes": 12,
+        "env_id": "mbtsr/TwoLinkArm-v0", "make": {}, "solved_ratio": 1.05, "episodes": 8,
         "overrides": {"replan_every": 10},
     },
     "reacher": {
-        "env_id": "Reacher-v5", "make": {}, "solved_return": -3.75, "total_env_steps": 1500,
+        "env_id": "Reacher-v5", "make": {}, "solved_return": -3.75, "total_env_steps": 1000,
         "cost": reacher_cost, "terminal": reacher_terminal, "overrides": {},
     },
     "inverted-pendulum": {
         "env_id": "InvertedPendulum-v5", "make": {"max_episode_steps": 200},
-        "solved_return": 190.0, "total_env_steps": 2000, "cost": pendulum_cost,
+        "solved_return": 190.0, "total_env_steps": 2000, "max_episodes": 15,
+        "cost": pendulum_cost,
         "termination": pendulum_terminated, "overrides": {},
     },
 }
@@ -145,12 +146,15 @@ def run_one(name: str, planner: str, reg: str, seed: int, *, smoke: bool,
         if "episodes" in task:
             agent.learn(2 if smoke else task["episodes"], progress_bar=False)
         else:
-            agent.learn(total_env_steps=300 if smoke else task["total_env_steps"],
+            agent.learn(task.get("max_episodes") if not smoke else None,
+                        total_env_steps=300 if smoke else task["total_env_steps"],
                         progress_bar=False)
     s = agent.summary()
     env.close()
+    # the env steps a run could spend (an unsolved run is reported as ">= budget"); a run
+    # stopped by max_episodes spent fewer steps than total_env_steps: its budget is what it spent
     budget = (agent.spec.episode_steps * (2 if smoke else task["episodes"])
-              if "episodes" in task else (300 if smoke else task["total_env_steps"]))
+              if "episodes" in task else agent.env_steps)
     score_key = "cost_ratio" if "solved_ratio" in task else "eval_return"
     curve = [{"env_steps": c["env_steps"], "score": c[score_key],
               "returns": c["eval_returns"]} for c in s["eval_curve"]]
@@ -186,7 +190,7 @@ def aggregate(runs: list[dict[str, Any]]) -> list[dict[str, Any]]:
                              == (name, planner, reg)), key=lambda r: r["seed"])
                 if not rs:
                     continue
-                budget = rs[0]["budget_env_steps"]
+                budget = min(r["budget_env_steps"] for r in rs)
                 finals = [r["final_score"] for r in rs if r["final_score"] is not None]
                 phases = {k: float(np.median([r["wall_seconds_per_phase"][k] for r in rs]))
                           for k in rs[0]["wall_seconds_per_phase"]}
