@@ -316,7 +316,6 @@ class JacPropAgent:
                 bar = tqdm(total=episodes, desc="JacProp agent", unit="episode")
             else:
                 bar = tqdm(total=total_env_steps, desc="JacProp agent", unit="step")
-        spec_T = self.spec.episode_steps
         try:
             done = 0
             while (episodes is None or done < episodes) and (
@@ -325,9 +324,16 @@ class JacPropAgent:
                 done += 1
                 before = self.env_steps
                 cap = None if step_end is None else step_end - self.env_steps
-                last = (episodes is not None and done == episodes) or (
-                    step_end is not None and cap is not None and cap <= spec_T)
-                row = self._episode(max_steps=cap, last=last)
+                row = self._episode(max_steps=cap)
+                ends = (episodes is not None and done >= episodes) or (
+                    step_end is not None and self.env_steps >= step_end)
+                if ends and row["eval_returns"] is None and self._should_evaluate(
+                        self.episodes_done, last=True):
+                    tic = time.perf_counter()  # the final score of this learn call
+                    row.update(self._evaluate())
+                    dt = time.perf_counter() - tic
+                    row["time_eval"] += dt
+                    row["time_total"] += dt
                 self.logger_rows.append(row)
                 self.episodes_done += 1
                 if self.config.checkpoint:
@@ -447,7 +453,7 @@ class JacPropAgent:
         return agent
 
     # ------------------------------------------------------------------ one episode
-    def _episode(self, max_steps: int | None = None, last: bool = False) -> dict[str, Any]:
+    def _episode(self, max_steps: int | None = None) -> dict[str, Any]:
         cfg, spec = self.config, self.spec
         ep = self.episodes_done
         t_start = time.perf_counter()
@@ -513,7 +519,7 @@ class JacPropAgent:
         ev: dict[str, Any] = {"eval_cost": None, "eval_return": None, "eval_returns": None,
                               "oracle_cost": None, "cost_ratio": None, "eval_episodes_run": 0,
                               "solved": False}
-        if self._should_evaluate(ep, last):
+        if self._should_evaluate(ep):
             ev = self._evaluate()
         time_eval = time.perf_counter() - tic
 

@@ -654,3 +654,14 @@ def test_replan_every_executes_each_plan_open_loop():
     for j, U in enumerate(solves):
         np.testing.assert_allclose(rec.actions[3 * j: 3 * j + 3],
                                    np.clip(U[:3], -2, 2).astype(np.float32), rtol=1e-6)
+
+
+def test_evaluation_schedule_every_k_episodes_and_at_the_end_of_learn():
+    env = gym.make("Pendulum-v1")
+    agent = JacPropAgent(env, tiny_config(episode_steps=10, eval_every=4, eval_episodes=1),
+                         cost_fn=pendulum_cost)
+    agent.learn(3, progress_bar=False)
+    assert [r["episode"] for r in agent.logger_rows if r["eval_returns"]] == [0, 2]
+    agent.learn(total_env_steps=25, progress_bar=False)  # episodes 3, 4, 5 (5 steps)
+    assert [r["episode"] for r in agent.logger_rows if r["eval_returns"]] == [0, 2, 4, 5]
+    assert agent.logger_rows[-1]["env_steps"] == 55
