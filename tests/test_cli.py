@@ -20,7 +20,7 @@ sys.path.append(str(REPO))  # experiments/ (until the editable install is refres
 
 #: every experiments module behind a script in scripts/
 EXPERIMENTS = ["agent_ablation", "bench_env", "bench_ltv", "bench_models", "benchmark_sb3",
-               "collect_excitation", "model_env_sac"]
+               "collect_excitation", "measure_renormalization", "model_env_sac"]
 
 
 @dataclass(frozen=True)
