@@ -12,7 +12,11 @@ import dataclasses
 import json
 import math
 from dataclasses import dataclass, fields
-from typing import Any
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:  # the library's configs, imported on use (torch is heavy for a CLI's --help)
+    from mbtsr.ensemble import EnsembleConfig
+    from mbtsr.training import RegularizationConfig, TrainConfig
 
 __all__ = ["AgentConfig", "REGULARIZATIONS", "FORMULATIONS", "EXCITATIONS", "PLANNERS"]
 
@@ -253,6 +257,44 @@ class AgentConfig:
         _int_at_least(self, "torch_threads", 0)
         if self.run_dir is not None and not isinstance(self.run_dir, str):
             object.__setattr__(self, "run_dir", str(self.run_dir))
+
+    # ---- the library's configs this one composes: the ONLY place its fields are mapped ----
+    def ensemble_config(self, state_dim: int, action_dim: int) -> EnsembleConfig:
+        """The :class:`mbtsr.ensemble.EnsembleConfig` of the agent's model (member ``k`` uses
+        ``activations[k % len(activations)]``; inputs and outputs normalized)."""
+        from mbtsr.ensemble import EnsembleConfig, MemberSpec
+
+        members = tuple(
+            MemberSpec(activation=self.activations[k % len(self.activations)],
+                       width=self.hidden_width, depth=self.hidden_layers)
+            for k in range(self.ensemble_size)
+        )
+        return EnsembleConfig(state_dim=state_dim, action_dim=action_dim, members=members,
+                              formulation=self.formulation, normalize=True, seed=self.seed)
+
+    def train_config(self, seed: int = 0) -> TrainConfig:
+        """The :class:`mbtsr.training.TrainConfig` of one model update (``seed`` drives the batch
+        order and the perturbation draws; ``batch_size=0`` is one batch per trajectory)."""
+        from mbtsr.training import TrainConfig
+
+        return TrainConfig(epochs=self.epochs_per_episode, lr=self.lr,
+                           batch="trajectory" if self.batch_size == 0 else self.batch_size,
+                           weight_decay=self.weight_decay, seed=seed, progress=False)
+
+    def regularization_config(self) -> RegularizationConfig:
+        """The :class:`mbtsr.training.RegularizationConfig` of ``regularization``: ``sampled``
+        weighs the perturbed copies by ``jacprop_weight``, ``exact``/``smooth`` their penalty by
+        ``jacobian_penalty``, ``none`` nothing."""
+        from mbtsr.training import RegularizationConfig
+
+        weights = {
+            "sampled": {"sampled_weight": self.jacprop_weight},
+            "exact": {"exact_weight": self.jacobian_penalty},
+            "smooth": {"smooth_weight": self.jacobian_penalty},
+            "none": {},
+        }[self.regularization]
+        return RegularizationConfig(sigma=self.perturbation_sigma,
+                                    n_copies=self.n_perturbed_copies, **weights)
 
     # ---- (de)serialisation: the resolved config is saved as JSON next to the results ----
     def to_dict(self) -> dict[str, Any]:

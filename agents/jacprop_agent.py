@@ -68,7 +68,7 @@ from agents.task import (
     default_task_for_env,
     env_spec,
 )
-from mbtsr.ensemble import DynamicsEnsemble, EnsembleConfig, MemberSpec, save_model
+from mbtsr.ensemble import DynamicsEnsemble, save_model
 from mbtsr.ltv import LTVModel, fit_ltv, fuse_prior, select_lambda
 from mbtsr.trajectory import Trajectory, save_trajectories
 
@@ -185,22 +185,7 @@ class JacPropAgent:
         self.termination_fn = _checked_termination_fn(termination_fn, env, spec)
         self.planner_cost = planner_cost(self.task_cost, config.terminal_weight)
         # the model: an ensemble of small networks, Objective 1 (f) or 2 (g)
-        members = tuple(
-            MemberSpec(
-                activation=config.activations[k % len(config.activations)],
-                width=config.hidden_width,
-                depth=config.hidden_layers,
-            )
-            for k in range(config.ensemble_size)
-        )
-        self.ensemble_config = EnsembleConfig(
-            state_dim=self.state_dim,
-            action_dim=spec.act_dim,
-            members=members,
-            formulation=config.formulation,
-            normalize=True,
-            seed=config.seed,
-        )
+        self.ensemble_config = config.ensemble_config(self.state_dim, spec.act_dim)
         self.model = DynamicsEnsemble(self.ensemble_config)
         self._freeze()
         self.has_linearize = env is not None and (
@@ -736,27 +721,7 @@ class JacPropAgent:
     def _train_configs(self, train_seed: int = 0):
         """The :class:`~mbtsr.training.TrainConfig` (its seed drives batch order and the
         perturbation draws) and :class:`~mbtsr.training.RegularizationConfig` of an update."""
-        from mbtsr.training import RegularizationConfig, TrainConfig
-
-        cfg = self.config
-        tcfg = TrainConfig(
-            epochs=cfg.epochs_per_episode,
-            lr=cfg.lr,
-            batch="trajectory" if cfg.batch_size == 0 else cfg.batch_size,
-            weight_decay=cfg.weight_decay,
-            seed=train_seed,
-            progress=False,
-        )
-        weights = {
-            "sampled": {"sampled_weight": cfg.jacprop_weight},
-            "exact": {"exact_weight": cfg.jacobian_penalty},
-            "smooth": {"smooth_weight": cfg.jacobian_penalty},
-            "none": {},
-        }[cfg.regularization]
-        reg = RegularizationConfig(
-            sigma=cfg.perturbation_sigma, n_copies=cfg.n_perturbed_copies, **weights
-        )
-        return tcfg, reg
+        return self.config.train_config(train_seed), self.config.regularization_config()
 
     def _model_errors(self, traj: Trajectory) -> tuple[float, float]:
         """One-step RMS of the ensemble mean on the new trajectory and the paper's Jacobian

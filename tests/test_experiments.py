@@ -233,7 +233,7 @@ def test_stored_eigenvalues_round_trip(rows):
     np.testing.assert_allclose(back, z, atol=1e-6)
 
 
-def test_parse_args_quick_overrides_only_unset_fields():
+def test_parse_args_quick_overrides_only_unset_fields(capsys):
     import exp_robot
 
     args = pc.parse_args(exp_robot.Args, ["--quick", "--mc", "3"])
@@ -241,8 +241,10 @@ def test_parse_args_quick_overrides_only_unset_fields():
     full = pc.parse_args(exp_robot.Args, [])
     assert full.mc == 35 and full.epoch_scale == 1.0 and not full.quick
     for bad in (["--mc", "0"], ["--workers", "0"], ["--backend", "threads"]):
-        with pytest.raises(ValueError, match=bad[0].strip("-")):
+        with pytest.raises(SystemExit) as exc:  # a bad option: one line, exit code 2
             pc.parse_args(exp_robot.Args, bad)
+        err = capsys.readouterr().err
+        assert exc.value.code == 2 and err.count("\n") == 1 and bad[0] in err
 
 
 def test_unknown_method_and_deviation_are_rejected():
