@@ -310,7 +310,7 @@ class TwoLinkArmEnv(MujocoEnv, utils.EzPickle):
         self._target = np.zeros(2)
         self._goal = np.zeros(4)
         self._t = 0
-        self._analytic: TwoLinkArmCasadi | None = None
+        self._analytic: dict[bool, TwoLinkArmCasadi] | None = None
         self._mujoco_model: MujocoDynamics | None = None
 
     # --- MujocoEnv hooks -------------------------------------------------------------------
@@ -452,8 +452,11 @@ class TwoLinkArmEnv(MujocoEnv, utils.EzPickle):
         state ``[q, qdot]`` = the first 4 observation entries, ``mjd_transitionFD`` Jacobians)."""
         return MujocoDynamics(self, jacobian_method="transition_fd", fd_eps=FD_EPS)
 
-    def analytic_model(self) -> TwoLinkArmCasadi:
-        """The analytic CasADi twin of this env's arm (built once, then cached)."""
+    def analytic_model(self, jit: bool = False) -> TwoLinkArmCasadi:
+        """The analytic CasADi twin of this env's arm (built once per ``jit`` value, cached);
+        ``jit=True`` compiles it to C for planning speed (see ``TwoLinkArmCasadi``)."""
         if self._analytic is None:
-            self._analytic = TwoLinkArmCasadi(self.params)
-        return self._analytic
+            self._analytic = {}
+        if bool(jit) not in self._analytic:
+            self._analytic[bool(jit)] = TwoLinkArmCasadi(self.params, jit=jit)
+        return self._analytic[bool(jit)]

@@ -17,7 +17,7 @@ first solved evaluation. A run that does not solve within its budget has steps-t
 ratio it enters. Wall seconds exclude evaluation time.
 
 Outputs: ``--json PATH`` (everything, including the learning curves), a learning-curve figure
-(log-scale env steps) and the markdown report ``--docs`` (default ``docs/benchmark.md``, the
+(log-scale env steps) and the markdown report ``--docs`` (default ``docs/benchmark_sb3.md``, the
 figure next to it as ``<stem>_curves.png``).
 
 Usage::
@@ -74,7 +74,7 @@ class Args:
     """the benchmark JSON (--quick: runs/benchmark_sb3_quick/benchmark.json)"""
     out_dir: str = ""
     """per-run JSON + TensorBoard; default runs/benchmark_sb3[_quick]"""
-    docs: str = "docs/benchmark.md"
+    docs: str = "docs/benchmark_sb3.md"
     """markdown report; the figure goes next to it (--quick: under runs/benchmark_sb3_quick)"""
     quick: bool = False
     """CI smoke test: tiny budgets, 1 seed (options not given take the QUICK values)"""

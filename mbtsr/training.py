@@ -547,7 +547,6 @@ def train_ensemble(
     finally:
         bar.close()
         model.eval()
-        model.invalidate_cache()
     return TrainHistory(
         train_loss=train_loss,
         val_loss=val_loss,
