@@ -73,7 +73,7 @@ def rollout_open_loop(
     :return: ``(x [T+1, n], u_applied [T, m], reset_info)``, or ``None`` if aborted.
     :raises ValueError: if the env terminates or truncates before ``T`` steps.
     """
-    u = as_array("u", u, ndim=2)
+    u = as_array("u", u, (None, int(np.prod(env.action_space.shape))))
     T = u.shape[0]
     rec = run_episode(
         env, lambda x, t: u[t], seed=seed, max_steps=T, observe=_state_of, stop=abort,
