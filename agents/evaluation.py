@@ -29,9 +29,9 @@ import numpy as np
 
 from agents.task import ObservationCost
 from mbtsr.costs import CasadiCost
+from mbtsr.episode import EpisodeRecord, as_policy, run_episode
 from mbtsr.ilqr import ILQROptions, ilqr
 from mbtsr.mpc import MPC, MPCOptions
-from mbtsr.rollout import EpisodeRecord, as_policy, run_episode
 from mbtsr.validation import as_array, check_finite
 
 __all__ = [
