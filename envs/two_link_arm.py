@@ -270,6 +270,9 @@ class TwoLinkArmEnv(MujocoEnv, utils.EzPickle):
             )
         if int(episode_steps) != episode_steps or episode_steps < 1:
             raise ValueError(f"episode_steps must be an integer >= 1, got {episode_steps!r}")
+        for name, size in (("width", width), ("height", height)):
+            if isinstance(size, bool) or int(size) != size or size < 1:
+                raise ValueError(f"{name} must be an integer >= 1 (pixels), got {size!r}")
         if dt is not None and not check_positive("dt", dt) <= MAX_DT:
             raise ValueError(
                 f"dt must be <= MAX_DT={MAX_DT} s (10 Euler substeps per step; larger periods "

@@ -52,7 +52,8 @@ from envs.mujoco_model import HybridDynamics, MujocoDynamics
 from mbtsr.costs import quadratic_cost
 from mbtsr.ilqr import ILQROptions, ilqr
 from mbtsr.ipopt_reference import solve_ipopt
-from mbtsr.mpc import MPC, MPCOptions, run_mpc_episode
+from mbtsr.mpc import MPC, MPCOptions
+from mbtsr.rollout import run_episode
 
 
 @dataclass(frozen=True)
@@ -258,8 +259,7 @@ def run(args: Args) -> dict:
         "analytic_casadi_jit": arm.analytic_model(jit=True),
     }
     if ensemble is not None:
-        # plan with the frozen (immutable float64) copy where the ensemble offers one
-        models["ensemble"] = ensemble.freeze() if hasattr(ensemble, "freeze") else ensemble
+        models["ensemble"] = ensemble.freeze()  # train -> freeze -> plan
 
     def make_cost(target):
         return quadratic_cost(arm.cost_Q, arm.cost_R, np.r_[target, 0.0, 0.0])
@@ -383,6 +383,7 @@ def run(args: Args) -> dict:
         if model is None:
             continue
         mpc = MPC(
+            ilqr,
             make_cost(target),
             model,
             horizon=args.mpc_horizon,
@@ -393,27 +394,27 @@ def run(args: Args) -> dict:
                 first_step_iterations=args.mpc_first_iterations,
             ),
         )
-        best = None
+        best, best_ct = None, None
         for _ in range(args.repeats):
             cpu = time.process_time()
-            out = run_mpc_episode(
-                env, mpc, seed=args.seed, options={"target": target, "state": x0}
-            )
-            out["cpu_s"] = time.process_time() - cpu  # incl. the env's own steps
-            if best is None or out["compute_times"][1:].mean() < best["compute_times"][1:].mean():
-                best = out
-        ct = best["compute_times"]
-        err = best["states"][-1] - np.r_[target, 0.0, 0.0]
+            out = run_episode(env, mpc, seed=args.seed, options={"target": target, "state": x0},
+                              observe=lambda obs, info: info["state"])
+            cpu_s = time.process_time() - cpu  # incl. the env's own steps
+            ct_run = np.asarray(mpc.compute_times)
+            if best is None or ct_run[1:].mean() < best_ct[1:].mean():
+                best, best_ct, best_cpu = out, ct_run, cpu_s
+        ct = best_ct
+        err = best.states[-1] - np.r_[target, 0.0, 0.0]
         mpc_results[name] = {
             "real_time_factor_mean": arm.dt / float(ct[1:].mean()),
             "real_time_factor_median": arm.dt / float(np.median(ct[1:])),
             "real_time_factor_incl_first_step": arm.dt / float(ct.mean()),
-            "real_time_factor_cpu_time_incl_first_step_and_env": arm.dt * len(ct) / best["cpu_s"],
+            "real_time_factor_cpu_time_incl_first_step_and_env": arm.dt * len(ct) / best_cpu,
             "ms_per_step_mean": float(ct[1:].mean() * 1e3),
             "ms_first_step": float(ct[0] * 1e3),
             "final_angle_error_rad": float(np.abs(err[:2]).max()),
             "final_speed_rad_s": float(np.abs(err[2:]).max()),
-            "episode_cost": -best["total_reward"],
+            "episode_cost": best.cost,
         }
         print(
             f"MPC {name}: RTF {mpc_results[name]['real_time_factor_mean']:.2f} (CPU-time RTF "
