@@ -12,7 +12,11 @@ import dataclasses
 import json
 import math
 from dataclasses import dataclass, fields
-from typing import Any
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:  # the library's configs, imported on use (torch is heavy for a CLI's --help)
+    from mbtsr.ensemble import EnsembleConfig
+    from mbtsr.training import RegularizationConfig, TrainConfig
 
 __all__ = ["AgentConfig", "REGULARIZATIONS", "FORMULATIONS", "EXCITATIONS", "PLANNERS"]
 
@@ -85,6 +89,9 @@ class AgentConfig:
     :param cem_elites: CEM elite sequences that refit the sampling distribution.
     :param cem_iterations: CEM iterations per MPC step (the first step of an episode gets
         ``first_plan_iterations``).
+    :param replan_every: execute every plan open loop for this many steps before re-solving
+        (1: re-plan every step, the default; larger: the feedback-limited regime, where
+        feedback hides less of the model's error). The oracle uses the same setting.
     :param horizon: MPC horizon (steps).
     :param ilqr_iterations: iLQR iterations per MPC step (the first step of an episode gets
         ``first_plan_iterations``).
@@ -101,7 +108,10 @@ class AgentConfig:
     :param solved_return: success threshold on the mean evaluation return (``None``: the
         oracle-ratio criterion, or no "solved" decision for envs without a true model).
 
-    :param eval_every: evaluate every this many episodes after the excitation phase (0: never).
+    :param eval_every: evaluate every this many episodes from the last excitation episode on,
+        and after the last episode of every ``learn`` call (0: never). ``episodes_to_solve`` is
+        the episode of the first solved evaluation, so it is resolved to ``eval_every``
+        episodes (an upper bound on the first episode whose model would have passed).
     :param eval_episodes: evaluation episodes (fixed targets/seeds, see ``eval_seed``).
     :param eval_seed: seed of the evaluation targets and resets.
     :param solved_ratio: the solved threshold relative to the oracle.
@@ -158,13 +168,14 @@ class AgentConfig:
     cem_samples: int = 200
     cem_elites: int = 20
     cem_iterations: int = 3
+    replan_every: int = 1
     horizon: int = 30
     ilqr_iterations: int = 2
     first_plan_iterations: int = 20
     terminal_weight: float = 1.0
     # evaluation
-    eval_every: int = 1
-    eval_episodes: int = 10
+    eval_every: int = 4
+    eval_episodes: int = 3
     eval_seed: int = 1000
     solved_ratio: float = 1.2
     solved_return: float | None = None
@@ -227,7 +238,11 @@ class AgentConfig:
             raise ValueError(
                 f"cem_elites must be <= cem_samples, got {self.cem_elites} > {self.cem_samples}")
         _int_at_least(self, "cem_iterations", 1)
+        _int_at_least(self, "replan_every", 1)
         _int_at_least(self, "horizon", 2)
+        if self.replan_every > self.horizon:
+            raise ValueError(f"replan_every must be <= horizon={self.horizon}, got "
+                             f"{self.replan_every}")
         _int_at_least(self, "ilqr_iterations", 1)
         _int_at_least(self, "first_plan_iterations", 1)
         _float_range(self, "terminal_weight", 0.0, math.inf)
@@ -242,6 +257,44 @@ class AgentConfig:
         _int_at_least(self, "torch_threads", 0)
         if self.run_dir is not None and not isinstance(self.run_dir, str):
             object.__setattr__(self, "run_dir", str(self.run_dir))
+
+    # ---- the library's configs this one composes: the ONLY place its fields are mapped ----
+    def ensemble_config(self, state_dim: int, action_dim: int) -> EnsembleConfig:
+        """The :class:`mbtsr.ensemble.EnsembleConfig` of the agent's model (member ``k`` uses
+        ``activations[k % len(activations)]``; inputs and outputs normalized)."""
+        from mbtsr.ensemble import EnsembleConfig, MemberSpec
+
+        members = tuple(
+            MemberSpec(activation=self.activations[k % len(self.activations)],
+                       width=self.hidden_width, depth=self.hidden_layers)
+            for k in range(self.ensemble_size)
+        )
+        return EnsembleConfig(state_dim=state_dim, action_dim=action_dim, members=members,
+                              formulation=self.formulation, normalize=True, seed=self.seed)
+
+    def train_config(self, seed: int = 0) -> TrainConfig:
+        """The :class:`mbtsr.training.TrainConfig` of one model update (``seed`` drives the batch
+        order and the perturbation draws; ``batch_size=0`` is one batch per trajectory)."""
+        from mbtsr.training import TrainConfig
+
+        return TrainConfig(epochs=self.epochs_per_episode, lr=self.lr,
+                           batch="trajectory" if self.batch_size == 0 else self.batch_size,
+                           weight_decay=self.weight_decay, seed=seed, progress=False)
+
+    def regularization_config(self) -> RegularizationConfig:
+        """The :class:`mbtsr.training.RegularizationConfig` of ``regularization``: ``sampled``
+        weighs the perturbed copies by ``jacprop_weight``, ``exact``/``smooth`` their penalty by
+        ``jacobian_penalty``, ``none`` nothing."""
+        from mbtsr.training import RegularizationConfig
+
+        weights = {
+            "sampled": {"sampled_weight": self.jacprop_weight},
+            "exact": {"exact_weight": self.jacobian_penalty},
+            "smooth": {"smooth_weight": self.jacobian_penalty},
+            "none": {},
+        }[self.regularization]
+        return RegularizationConfig(sigma=self.perturbation_sigma,
+                                    n_copies=self.n_perturbed_copies, **weights)
 
     # ---- (de)serialisation: the resolved config is saved as JSON next to the results ----
     def to_dict(self) -> dict[str, Any]:

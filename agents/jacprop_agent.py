@@ -68,7 +68,7 @@ from agents.task import (
     default_task_for_env,
     env_spec,
 )
-from mbtsr.ensemble import DynamicsEnsemble, EnsembleConfig, MemberSpec, save_model
+from mbtsr.ensemble import DynamicsEnsemble, save_model
 from mbtsr.ltv import LTVModel, fit_ltv, fuse_prior, select_lambda
 from mbtsr.trajectory import Trajectory, save_trajectories
 
@@ -185,22 +185,7 @@ class JacPropAgent:
         self.termination_fn = _checked_termination_fn(termination_fn, env, spec)
         self.planner_cost = planner_cost(self.task_cost, config.terminal_weight)
         # the model: an ensemble of small networks, Objective 1 (f) or 2 (g)
-        members = tuple(
-            MemberSpec(
-                activation=config.activations[k % len(config.activations)],
-                width=config.hidden_width,
-                depth=config.hidden_layers,
-            )
-            for k in range(config.ensemble_size)
-        )
-        self.ensemble_config = EnsembleConfig(
-            state_dim=self.state_dim,
-            action_dim=spec.act_dim,
-            members=members,
-            formulation=config.formulation,
-            normalize=True,
-            seed=config.seed,
-        )
+        self.ensemble_config = config.ensemble_config(self.state_dim, spec.act_dim)
         self.model = DynamicsEnsemble(self.ensemble_config)
         self._freeze()
         self.has_linearize = env is not None and (
@@ -235,6 +220,7 @@ class JacPropAgent:
                 first_plan_iterations=cfg.first_plan_iterations,
                 cost=self.planner_cost,
             )
+            self.actor = ReplanEvery(self.policy, cfg.replan_every)
             return
         from mbtsr.cem import cem
 
@@ -251,6 +237,7 @@ class JacPropAgent:
             },
         ).mpc
         self.policy = CEMPolicy(mpc, self.task_cost, self.termination_fn)
+        self.actor = ReplanEvery(self.policy, cfg.replan_every)
 
     def _check_state_fn(self, env: gym.Env | None, spec: EnvSpec) -> np.ndarray:
         """Call the state map on one observation and on a batch of three (it is called on
@@ -347,6 +334,15 @@ class JacPropAgent:
                 before = self.env_steps
                 cap = None if step_end is None else step_end - self.env_steps
                 row = self._episode(max_steps=cap)
+                ends = (episodes is not None and done >= episodes) or (
+                    step_end is not None and self.env_steps >= step_end)
+                if ends and row["eval_returns"] is None and self._should_evaluate(
+                        self.episodes_done, last=True):
+                    tic = time.perf_counter()  # the final score of this learn call
+                    row.update(self._evaluate())
+                    dt = time.perf_counter() - tic
+                    row["time_eval"] += dt
+                    row["time_total"] += dt
                 self.logger_rows.append(row)
                 self.episodes_done += 1
                 if self.config.checkpoint:
@@ -380,13 +376,14 @@ class JacPropAgent:
 
         :param observation: ``[obs_dim]`` one observation.
         :param state: ``[H, m]`` warm-start plan returned by the previous call (``None`` at an
-            episode start: a cold full-horizon iLQR plan).
+            episode start: a cold full-horizon plan); ``[H+1, m]`` with
+            ``AgentConfig.replan_every > 1`` (the last row counts the steps since the plan).
         :param episode_start: ``True`` forces a cold start.
         :param deterministic: kept for SB3 compatibility (MPC is deterministic; exploration
             noise is only added in :meth:`learn`).
         :return: ``(action [m], next_state [H, m])``.
         """
-        return self.policy.predict(observation, state, episode_start, deterministic)
+        return self.actor.predict(observation, state, episode_start, deterministic)
 
     def save(self, path: str | Path) -> Path:
         """Save everything needed to continue learning or to act (one atomic file)."""
@@ -494,7 +491,7 @@ class JacPropAgent:
             plan: dict[str, Any] = {"U": None}
 
             def act(obs: np.ndarray, t: int) -> np.ndarray:
-                a, plan["U"] = self.policy.predict(obs, plan["U"], episode_start=t == 0)
+                a, plan["U"] = self.actor.predict(obs, plan["U"], episode_start=t == 0)
                 return a + noise[t]
 
         rec = run_episode(self.env, act, seed=reset_seed, max_steps=T, render=render)
@@ -724,27 +721,7 @@ class JacPropAgent:
     def _train_configs(self, train_seed: int = 0):
         """The :class:`~mbtsr.training.TrainConfig` (its seed drives batch order and the
         perturbation draws) and :class:`~mbtsr.training.RegularizationConfig` of an update."""
-        from mbtsr.training import RegularizationConfig, TrainConfig
-
-        cfg = self.config
-        tcfg = TrainConfig(
-            epochs=cfg.epochs_per_episode,
-            lr=cfg.lr,
-            batch="trajectory" if cfg.batch_size == 0 else cfg.batch_size,
-            weight_decay=cfg.weight_decay,
-            seed=train_seed,
-            progress=False,
-        )
-        weights = {
-            "sampled": {"sampled_weight": cfg.jacprop_weight},
-            "exact": {"exact_weight": cfg.jacobian_penalty},
-            "smooth": {"smooth_weight": cfg.jacobian_penalty},
-            "none": {},
-        }[cfg.regularization]
-        reg = RegularizationConfig(
-            sigma=cfg.perturbation_sigma, n_copies=cfg.n_perturbed_copies, **weights
-        )
-        return tcfg, reg
+        return self.config.train_config(train_seed), self.config.regularization_config()
 
     def _model_errors(self, traj: Trajectory) -> tuple[float, float]:
         """One-step RMS of the ensemble mean on the new trajectory and the paper's Jacobian
@@ -768,11 +745,13 @@ class JacPropAgent:
         return one_step, jac
 
     # ------------------------------------------------------------------ evaluation
-    def _should_evaluate(self, ep: int) -> bool:
+    def _should_evaluate(self, ep: int, last: bool = False) -> bool:
+        """Every ``eval_every``-th episode from the last excitation episode on, and the last
+        episode of every :meth:`learn` call (the final score)."""
         cfg = self.config
         if cfg.eval_every == 0 or ep < cfg.n_excitation_episodes - 1:
             return False
-        return (ep - (cfg.n_excitation_episodes - 1)) % cfg.eval_every == 0
+        return last or (ep - (cfg.n_excitation_episodes - 1)) % cfg.eval_every == 0
 
     def _eval_env_instance(self) -> gym.Env:
         if self._eval_env is None:
@@ -844,7 +823,7 @@ class JacPropAgent:
         cfg = self.config
 
         def compute() -> np.ndarray:
-            policy = oracle_policy(
+            policy = ReplanEvery(oracle_policy(
                 env,
                 cfg.horizon,
                 iterations=cfg.ilqr_iterations,
@@ -852,7 +831,7 @@ class JacPropAgent:
                 terminal_weight=cfg.terminal_weight,
                 cost_fn=self.cost_fn,
                 state_map=self.state_map,
-            )
+            ), cfg.replan_every)
             return evaluate_policy_costs(policy, env, self.eval_targets, cfg.eval_seed, **kwargs)
 
         cache_dir = cfg.oracle_cache_dir
@@ -881,6 +860,7 @@ class JacPropAgent:
             "iterations": cfg.ilqr_iterations,
             "first_plan_iterations": cfg.first_plan_iterations,
             "terminal_weight": cfg.terminal_weight,
+            **({"replan_every": cfg.replan_every} if cfg.replan_every > 1 else {}),
             "cost": self.cost_fn.to_dict() if cache_dir is not None else None,
         }
         self.oracle_costs = cached_costs(cache_dir, key, compute)
@@ -951,6 +931,8 @@ class JacPropAgent:
             "oracle_cost": self.oracle_mean,
             "solved_ratio": self.config.solved_ratio,
             "wall_seconds_per_phase": phases,
+            "eval_fraction_of_wall": (
+                phases["eval"] / phases["total"] if phases.get("total") else None),
             "config": self.config.to_dict(),
         }
 
@@ -1048,6 +1030,41 @@ class JacPropAgent:
             save_video(frames, folder / f"episode_{ep:04d}.mp4", fps=fps)
         except ValueError:  # no imageio-ffmpeg
             save_video(frames, folder / f"episode_{ep:04d}.gif", fps=fps)
+
+
+class ReplanEvery:
+    """Feedback-limited MPC: each plan of ``policy`` is executed open loop for ``k`` steps
+    before the next solve (warm-started with the rest of the plan). ``k = 1`` is ``policy``
+    itself. The SB3 ``state`` is the remaining plan ``[H, m]`` plus one row holding the number
+    of steps since the last solve."""
+
+    def __init__(self, policy: Any, k: int) -> None:
+        self.policy, self.k = policy, int(k)
+
+    def predict(
+        self,
+        observation: np.ndarray,
+        state: np.ndarray | None = None,
+        episode_start: np.ndarray | bool | None = None,
+        deterministic: bool = True,
+    ) -> tuple[np.ndarray, np.ndarray]:
+        if self.k == 1:
+            return self.policy.predict(observation, state, episode_start, deterministic)
+        if episode_start is not None and bool(np.any(episode_start)):
+            state = None
+        plan, age = None, 0
+        if state is not None:
+            state = np.asarray(state, dtype=float)
+            plan, age = state[:-1], int(state[-1, 0])
+        if plan is None or age >= self.k:
+            action, rest = self.policy.predict(observation, plan, plan is None, deterministic)
+            age = 1
+        else:
+            spec = self.policy.spec
+            action = np.clip(plan[0], spec.u_min, spec.u_max)
+            rest = np.concatenate([plan[1:], plan[-1:]], axis=0)
+            age += 1
+        return action, np.concatenate([rest, np.full((1, rest.shape[1]), float(age))], axis=0)
 
 
 class CEMPolicy(MPCPolicy):

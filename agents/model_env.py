@@ -242,7 +242,8 @@ class ModelEnv(gym.Env):
         member: str = "mean",
     ) -> ModelEnv:
         """The model of a :class:`agents.jacprop_agent.JacPropAgent` with its task's cost and
-        state map, its env's spaces and episode length.
+        state map, its env's spaces and episode length, and the task's ``termination_fn`` (the
+        agent's ``obs -> bool``, applied to the next observation) unless one is given.
 
         Without ``start_obs``/``reset_fn`` the start observations come from the real env's own
         reset distribution (``agent.env.reset(seed=...)`` with a seed drawn from the ModelEnv's
@@ -261,6 +262,10 @@ class ModelEnv(gym.Env):
         act_space = gym.spaces.Box(spec.u_min.astype(np.float32), spec.u_max.astype(np.float32))
         if env is not None:
             act_space = env.action_space
+        task_done = getattr(agent, "termination_fn", None)  # obs [..., obs_dim] -> bool [...]
+        if termination_fn is None and task_done is not None:
+            def termination_fn(obs, action, next_obs):
+                return bool(np.asarray(task_done(next_obs)).reshape(()))
         frozen = agent.model.freeze() if hasattr(agent.model, "freeze") else agent.model
         cost = agent.task_cost.obs_function  # casadi Function (obs, a) -> cost
         state_map = agent.state_map

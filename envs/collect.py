@@ -81,6 +81,9 @@ def rollout_open_loop(
     )
     if rec.stopped:
         return None
+    if rec.info.get("unstable"):
+        raise ValueError(f"the simulation became unstable during the open-loop rollout: "
+                         f"{rec.info.get('instability', '')}")
     if rec.T < T:
         raise ValueError(
             f"the env ended the episode after {rec.T} steps but T={T} were "

@@ -49,10 +49,16 @@ def _check_frames(frames: Sequence[np.ndarray]) -> list[np.ndarray]:
         raise ValueError("frames is empty")
     out = [np.asarray(f) for f in frames]
     shape = out[0].shape
-    if len(shape) != 3 or shape[2] not in (3, 4):
-        raise ValueError(f"frames must be [H, W, 3|4] images, got shape {list(shape)}")
+    if len(shape) != 3 or shape[2] not in (3, 4) or shape[0] < 1 or shape[1] < 1:
+        raise ValueError(f"frames must be [H, W, 3|4] images with H, W >= 1, got shape "
+                         f"{list(shape)}")
     if any(f.shape != shape for f in out):
         raise ValueError("all frames must have the same shape")
+    for i, f in enumerate(out):
+        if f.dtype != np.uint8 and (f.dtype.kind not in "iuf" or not np.all(np.isfinite(f))
+                                    or f.min() < 0 or f.max() > 255):
+            raise ValueError(f"frames[{i}] must be uint8 or real values in [0, 255], got "
+                             f"dtype {f.dtype}")
     return [f.astype(np.uint8) for f in out]
 
 

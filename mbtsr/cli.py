@@ -25,7 +25,7 @@ from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any, NoReturn, TypeVar
 
-__all__ = ["check_output_path", "fail", "main", "parse"]
+__all__ = ["call", "check_output_path", "fail", "main", "parse"]
 
 T = TypeVar("T")
 _BOX = re.compile(r"[\u2500-\u257f]")  # rich's box-drawing characters
@@ -87,6 +87,7 @@ def parse(
     outputs: Sequence[str] = (),
     folders: Sequence[str] = (),
     presets: Mapping[str, Mapping[str, Any]] | None = None,
+    default: T | None = None,
 ) -> T:
     """Parse the command line into ``config_type`` (a dataclass) with tyro.
 
@@ -94,6 +95,7 @@ def parse(
     :param presets: ``{flag: {field: value}}``: when ``flag`` (e.g. ``"--quick"``) is on the
         command line, these values replace the defaults, so every option the user does not give
         takes the preset's value (and the ``--help`` shows them).
+    :param default: an instance whose values are the defaults (e.g. a saved run's config).
     :param description: the ``--help`` text above the options (default: the class docstring).
     :param outputs: dotted field names holding output FILE paths (``None``/empty values are
         skipped), checked with :func:`check_output_path` before returning.
@@ -104,7 +106,6 @@ def parse(
 
     prog = prog or Path(sys.argv[0]).name
     argv = list(sys.argv[1:] if args is None else args)
-    default = None
     for flag, values in (presets or {}).items():
         if flag in argv:
             default = dataclasses.replace(default or config_type(), **values)
@@ -135,6 +136,22 @@ def parse(
     return config
 
 
+def call(run: Callable[[T], Any], config: T) -> Any:
+    """``run(config)``, with the ``ValueError``/``TypeError`` it raises reported like a bad option.
+
+    The library validates its inputs at its public boundary and names the argument in the
+    exception, so such an error is a bad option value too: one line on stderr, exit code 2
+    (``MBTSR_TRACEBACK=1`` re-raises it with the traceback, for debugging).
+    """
+    try:
+        return run(config)
+    except (ValueError, TypeError) as e:
+        if os.environ.get("MBTSR_TRACEBACK"):
+            raise
+        kind = "" if type(e) is ValueError else f"{type(e).__name__}: "
+        fail(f"{kind}{' '.join(str(e).split())} (MBTSR_TRACEBACK=1 shows where)")
+
+
 def main(
     config_type: type[T],
     run: Callable[[T], Any],
@@ -144,17 +161,6 @@ def main(
     presets: Mapping[str, Mapping[str, Any]] | None = None,
     args: Sequence[str] | None = None,
 ) -> Any:
-    """A script's whole body: ``run(parse(config_type, ...))``.
-
-    The library validates its inputs at its public boundary and names the argument in a
-    ``ValueError``/``TypeError``; when ``run`` raises one, that is a bad option value too, so it
-    ends the same way as a parse error: one line, exit code 2 (``MBTSR_TRACEBACK=1`` re-raises
-    it with the traceback, for debugging).
-    """
+    """A script's whole body: :func:`call` ``(run, parse(config_type, ...))``."""
     config = parse(config_type, args=args, outputs=outputs, folders=folders, presets=presets)
-    try:
-        return run(config)
-    except (ValueError, TypeError) as e:
-        if os.environ.get("MBTSR_TRACEBACK"):
-            raise
-        fail(f"{type(e).__name__}: {' '.join(str(e).split())} (MBTSR_TRACEBACK=1 shows where)")
+    return call(run, config)

@@ -77,7 +77,11 @@ __all__ = [
 FORMULATIONS = ("f", "g", "nominal", "scaled")
 LEAKY_RELU_SLOPE = 0.01
 LAYER_NORM_EPS = 1e-5
-STD_FLOOR = 1e-8  # a dimension with a smaller std (e.g. a constant input) is not rescaled
+#: A dimension whose std is below REL_STD_FLOOR times its magnitude ``max |value|`` (for the
+#: residual targets: the magnitude of the next state) is constant up to float32 rounding (e.g. a
+#: constant input) and is not rescaled. Relative, so that data of any unit or scale normalize
+#: the same way (an absolute floor of 1e-8 left data scaled by 1e-6 unnormalized).
+REL_STD_FLOOR = 1e-6
 
 
 # --------------------------------------------------------------------------------------------
@@ -577,7 +581,8 @@ class DynamicsEnsemble(nn.Module):
 
         Inputs: per-dimension mean and (population) std of ``[x_t, u_t]``; outputs: the same for
         the residual targets ``x_{t+1} - s(x_t, u_t)``; all transitions pooled. A std below
-        ``STD_FLOOR`` is replaced by 1. With ``config.normalize=False`` the statistics stay
+        ``REL_STD_FLOOR`` times the dimension's magnitude (constant up to float32 rounding) is
+        replaced by 1. With ``config.normalize=False`` the statistics stay
         identity and the model is only marked as set.
 
         :param trajs: a :class:`~mbtsr.trajectory.Trajectory` or a list of them.
@@ -585,9 +590,10 @@ class DynamicsEnsemble(nn.Module):
         xu, x_next = _pool_transitions(trajs, self.state_dim, self.action_dim)
         if self.config.normalize:
             resid = x_next - xu @ self.config.skip_jacobian().T
-            for name, data in (("in", xu), ("out", resid)):
+            for name, data, raw in (("in", xu, xu), ("out", resid, x_next)):
                 mean, std = data.mean(0), data.std(0)
-                std = np.where(std < STD_FLOOR, 1.0, std)
+                scale = np.maximum(np.abs(raw).max(0), np.abs(data).max(0))
+                std = np.where((std <= REL_STD_FLOOR * scale) | (std == 0), 1.0, std)
                 getattr(self, f"{name}_mean").copy_(torch.as_tensor(mean))
                 getattr(self, f"{name}_std").copy_(torch.as_tensor(std))
         self.normalization_set.fill_(1)
@@ -1083,6 +1089,12 @@ class FrozenEnsemble:
         out = np.empty((B, n))
         _mean_step_kernel(x, u, plan.W_inT, plan.W_out, plan.code, out)
         return out.reshape(*lead, n)
+
+    @property
+    def linear_batch_cost(self) -> bool:
+        """True with the compiled rollouts (their cost grows with the number of step sizes,
+        so iLQR rolls the step sizes out in chunks, largest first; see :mod:`mbtsr.ilqr`)."""
+        return self._plan is not None
 
     def _rollout_policy(self, x0, X, U, k, K, alphas, lower, upper, max_norm):
         """iLQR's closed-loop line-search rollouts in one compiled call (see

@@ -1,85 +1,13 @@
-"""One-step prediction error on held-out data vs episodes, with and without re-normalization.
-
-Reacher-v5 keeps its goal in the observation (constant within an episode, different across
-episodes), so the input statistics of the first episode describe the goal coordinates badly.
-Runs the default agent (``renormalize=True``, statistics refitted from all data before every
-update) against ``renormalize=False`` (first episode's statistics frozen), same seeds::
+"""One-step prediction error on held-out data vs episodes, with and without re-normalization
+(experiments.measure_renormalization).
 
     python scripts/measure_renormalization.py --episodes 12 --seeds 0 1 2
 """
 
-from __future__ import annotations
+import _bootstrap  # noqa: F401
 
-import argparse
-import json
-import sys
-import time
-import warnings
-from pathlib import Path
-
-REPO = Path(__file__).resolve().parents[1]
-if str(REPO) not in sys.path:
-    sys.path.insert(0, str(REPO))
-
-import casadi as ca  # noqa: E402
-import gymnasium as gym  # noqa: E402
-import torch  # noqa: E402
-
-from agents.config import AgentConfig  # noqa: E402
-from agents.evaluation import run_episode  # noqa: E402
-from agents.jacprop_agent import JacPropAgent  # noqa: E402
-from mbtsr import excitation  # noqa: E402
-from mbtsr.metrics import prediction_rms  # noqa: E402
-from mbtsr.trajectory import Trajectory  # noqa: E402
-
-ENV = "Reacher-v5"
-
-
-def reacher_cost(obs, a):
-    """Distance of fingertip to target (obs[8:10]) plus effort: Reacher's own reward terms."""
-    return ca.sumsqr(obs[8:10]) + 0.1 * ca.sumsqr(a)
-
-
-def heldout(n: int, seed: int) -> list[Trajectory]:
-    env = gym.make(ENV)
-    out = []
-    for i in range(n):
-        sig = excitation.filtered_gaussian(50, 2, window=8, scale=1.0, seed=seed + i)
-        sig = 0.5 * sig / excitation.filtered_gaussian_std(8, 1.0)
-        rec = run_episode(env, lambda o, t, s=sig: s[t], seed=seed + i)
-        out.append(Trajectory(rec.obs, rec.actions, 0.02))
-    return out
-
-
-def main() -> None:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--episodes", type=int, default=12)
-    p.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
-    p.add_argument("--json", default=str(REPO / "docs" / "results" / "renormalization.json"))
-    a = p.parse_args()
-    torch.set_num_threads(1)
-    test = heldout(8, 10_000)
-    results = {"env": ENV, "episodes": a.episodes, "seeds": a.seeds, "runs": []}
-    for seed in a.seeds:
-        for renorm in (True, False):
-            env = gym.make(ENV)
-            cfg = AgentConfig(seed=seed, renormalize=renorm, eval_every=0, progress=False,
-                              tensorboard=False, torch_threads=1)
-            agent = JacPropAgent(env, cfg, cost_fn=reacher_cost)
-            errs, tic = [], time.perf_counter()
-            for _ in range(a.episodes):
-                with warnings.catch_warnings():
-                    warnings.simplefilter("ignore", RuntimeWarning)
-                    agent.learn(1, progress_bar=False)
-                errs.append(float(prediction_rms(agent.model, test)))
-            run = {"seed": seed, "renormalize": renorm, "heldout_one_step_rms": errs,
-                   "env_steps": [r["env_steps"] for r in agent.logger_rows],
-                   "wall": time.perf_counter() - tic}
-            results["runs"].append(run)
-            print(json.dumps({k: run[k] for k in ("seed", "renormalize", "wall")}),
-                  [f"{e:.4f}" for e in errs], flush=True)
-            Path(a.json).write_text(json.dumps(results, indent=2))
-
+from experiments.measure_renormalization import Args, run
+from mbtsr.cli import main
 
 if __name__ == "__main__":
-    main()
+    main(Args, run, outputs=("json",))

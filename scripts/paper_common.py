@@ -16,7 +16,6 @@ plotting helpers.
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import json
 import math
@@ -48,40 +47,27 @@ class ExperimentArgs:
     figures: str = field(default="", metadata={"help": "figure folder"})
     workers: int = field(default=2, metadata={"help": "parallel worker processes"})
     backend: str = field(default="process", metadata={"help": "process, serial or ray"})
+    address: str = field(default="", metadata={
+        "help": "Ray only: address of an existing cluster (auto, host:6379); empty: a local one"})
     report_only: bool = field(default=False, metadata={"help": "only redraw from JSON"})
     json: str = field(default="", metadata={"help": "also write the summary JSON here"})
 
 
-def _field_type(f: dataclasses.Field) -> type:
-    t = f.type if isinstance(f.type, str) else getattr(f.type, "__name__", str(f.type))
-    return {"int": int, "float": float, "str": str, "bool": bool}[t]
-
-
 def parse_args(args_cls: type, argv: Sequence[str] | None = None):
-    """Build an argparse parser from the fields of the dataclass ``args_cls`` and parse ``argv``.
-
-    Booleans become ``--flag/--no-flag``. If ``--quick`` is given, the class attribute
-    ``QUICK`` (a dict of field overrides) replaces every field the user did not set explicitly.
+    """The experiment's command line, generated from the dataclass ``args_cls`` by tyro
+    (:func:`mbtsr.cli.parse`): every field is a flag documented by its ``help`` metadata, booleans
+    are ``--flag/--no-flag``; with ``--quick`` the class attribute ``QUICK`` (field overrides)
+    supplies the defaults, so options given explicitly win. A bad option or value prints one line
+    and exits with code 2.
     """
-    parser = argparse.ArgumentParser(description=(args_cls.__doc__ or "").strip())
-    for f in dataclasses.fields(args_cls):
-        flag = "--" + f.name.replace("_", "-")
-        kind = _field_type(f)
-        help_text = f.metadata.get("help", "")
-        if kind is bool:
-            parser.add_argument(flag, action=argparse.BooleanOptionalAction, default=None,
-                                help=f"{help_text} (default: {f.default})")
-        else:
-            parser.add_argument(flag, type=kind, default=None, metavar=f.name.upper(),
-                                help=f"{help_text} (default: {f.default})")
-    ns = vars(parser.parse_args(argv))
-    given = {k: v for k, v in ns.items() if v is not None}
-    values = {}
-    if given.get("quick"):
-        values.update(getattr(args_cls, "QUICK", {}))
-    values.update(given)
-    args = args_cls(**values)
-    _check_common(args)
+    from mbtsr.cli import fail, parse
+
+    quick = {"quick": True, **getattr(args_cls, "QUICK", {})}
+    args = parse(args_cls, args=argv, presets={"--quick": quick})
+    try:
+        _check_common(args)
+    except ValueError as err:
+        fail(str(err))
     return args
 
 
@@ -169,7 +155,8 @@ def run_experiment(
         library_at_start = library_version()
         t0 = time.perf_counter()
         recs = run_sweep(run_fn, configs, range(args.mc), out, backend=args.backend,
-                         workers=args.workers, progress=not args.quick)
+                         workers=args.workers, progress=not args.quick,
+                         address=args.address or None)
         wall = time.perf_counter() - t0
         print(f"[{experiment}] sweep finished in {wall:.1f} s")
         log_path = out / "sweeps.json"  # wall time of every (resumed) sweep
@@ -267,7 +254,8 @@ def pyplot():
 
 
 def save_figure(fig, path: Path) -> None:
-    fig.tight_layout()
+    if fig.get_layout_engine() is None:  # a figure made with layout="constrained" keeps it
+        fig.tight_layout()
     fig.savefig(path, dpi=110)
     pyplot().close(fig)
 

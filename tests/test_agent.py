@@ -631,3 +631,36 @@ def test_refit_normalization_keeps_the_function_and_follows_the_data():
     A1, B1 = model.jacobians(x, u)
     np.testing.assert_allclose(A1, A0, atol=1e-4 * np.abs(A0).max())
     np.testing.assert_allclose(B1, B0, atol=1e-4 * np.abs(B0).max())
+
+
+def test_replan_every_executes_each_plan_open_loop():
+    """With replan_every=k the actions between solves are exactly the plan's next actions."""
+    env = gym.make("Pendulum-v1")
+    agent = JacPropAgent(env, tiny_config(episode_steps=12, replan_every=3),
+                         cost_fn=pendulum_cost)
+    agent.learn(1, progress_bar=False)
+    solves = []
+    original = agent.policy.plan
+
+    def counting_plan(obs, U0=None):
+        U, res = original(obs, U0)
+        solves.append(U.copy())
+        return U, res
+
+    agent.policy.plan = counting_plan
+    rec = agent.rollout_policy(env, seed=4)
+    assert len(solves) == 4  # steps 0, 3, 6, 9 of 12
+    for j, U in enumerate(solves):
+        np.testing.assert_allclose(rec.actions[3 * j: 3 * j + 3],
+                                   np.clip(U[:3], -2, 2).astype(np.float32), rtol=1e-6)
+
+
+def test_evaluation_schedule_every_k_episodes_and_at_the_end_of_learn():
+    env = gym.make("Pendulum-v1")
+    agent = JacPropAgent(env, tiny_config(episode_steps=10, eval_every=4, eval_episodes=1),
+                         cost_fn=pendulum_cost)
+    agent.learn(3, progress_bar=False)
+    assert [r["episode"] for r in agent.logger_rows if r["eval_returns"]] == [0, 2]
+    agent.learn(total_env_steps=25, progress_bar=False)  # episodes 3, 4, 5 (5 steps)
+    assert [r["episode"] for r in agent.logger_rows if r["eval_returns"]] == [0, 2, 4, 5]
+    assert agent.logger_rows[-1]["env_steps"] == 55

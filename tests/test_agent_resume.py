@@ -10,7 +10,7 @@ seconds; torch single-threaded for determinism.
 from __future__ import annotations
 
 import csv
-import importlib.util
+import json
 import os
 import signal
 import subprocess
@@ -128,27 +128,27 @@ def test_sigkill_and_resume_is_bit_identical_to_an_uninterrupted_run(tmp_path):
     for x, y in pairs:
         np.testing.assert_array_equal(x.x, y.x)
         np.testing.assert_array_equal(x.u, y.u)
-    wa = load_model(straight / "model.pt").state_dict()
+    wa = load_model(straight / "model.pt").state_dict()  # checksummed file format
     wb = load_model(killed / "model.pt").state_dict()
     _assert_same_tree(wa, wb, "model.pt")
 
 
 def _script():
-    spec = importlib.util.spec_from_file_location("train_agent_script", SCRIPT)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module  # dataclasses look their module up
-    spec.loader.exec_module(module)
-    return module
+    from experiments import train_agent  # the script's logic (scripts/train_agent.py calls it)
+
+    return train_agent
 
 
-def test_resume_without_a_checkpoint_and_restart_over_one_fail_clearly(tmp_path):
+def test_resume_without_a_checkpoint_and_restart_over_one_fail_clearly(tmp_path, capsys):
     script = _script()
-    with pytest.raises(SystemExit, match="no checkpoint"):
+    with pytest.raises(SystemExit) as exc:
         script.main(["--run-dir", str(tmp_path / "none"), "--resume"])
+    assert exc.value.code == 2 and "no checkpoint" in capsys.readouterr().err
     (tmp_path / "run").mkdir()
     (tmp_path / "run" / "checkpoint.pt").write_bytes(b"")
-    with pytest.raises(SystemExit, match="--resume"):
+    with pytest.raises(SystemExit) as exc:
         script.main(["--run-dir", str(tmp_path / "run")])
+    assert exc.value.code == 2 and "--resume" in capsys.readouterr().err
 
 
 @pytest.mark.parametrize("flag", [["--episodes", "0"], ["--horizon", "1"],
@@ -159,3 +159,44 @@ def test_script_rejects_bad_arguments(flag, capsys):
     assert exc.value.code == 2
     name = flag[0].lstrip("-").replace("-", "_")
     assert name in capsys.readouterr().err
+
+
+def test_resume_on_a_damaged_checkpoint_or_a_changed_flag_is_one_line(tmp_path, capsys):
+    """--resume names the damaged file, or the config field that differs; no traceback."""
+    script = _script()
+    run = tmp_path / "run"
+    tiny = [a if a != str(EPISODES) else "1" for a in TINY] + ["--eval-every", "0"]
+    script.main(["--run-dir", str(run), *tiny])
+    good = (run / "checkpoint.pt").read_bytes()
+    with pytest.raises(SystemExit) as exc:
+        script.main(["--run-dir", str(run), "--resume", *tiny, "--horizon", "7"])
+    err = capsys.readouterr().err
+    assert exc.value.code == 2 and err.count("\n") == 1 and "--horizon 7 differs" in err
+    damaged = bytearray(good)
+    damaged[-10] ^= 4
+    for data, what in ((bytes(damaged), "is corrupted"), (good[: len(good) // 3], "is truncated")):
+        (run / "checkpoint.pt").write_bytes(data)
+        with pytest.raises(SystemExit) as exc:
+            script.main(["--run-dir", str(run), "--resume", *tiny])
+        err = capsys.readouterr().err
+        assert exc.value.code == 2 and err.count("\n") == 1, err
+        assert f"{run / 'checkpoint.pt'} {what}" in err
+    (run / "checkpoint.pt").write_bytes(good)  # intact again: resumes (nothing left to do)
+    assert script.main(["--run-dir", str(run), "--resume", *tiny])["episodes_done"] == 1
+
+
+def test_resume_loads_the_saved_config_and_refuses_a_contradicting_flag(tmp_path, capsys):
+    script = _script()
+    run_dir = str(tmp_path / "run")
+    tiny = [*TINY[2:], "--episodes", "1", "--eval-every", "0"]  # one excitation episode
+    script.main(["--run-dir", run_dir, *tiny])
+    args = script.parse(["--run-dir", run_dir, "--resume", "--episodes", "2"])
+    assert args.agent.seed == 4 and args.agent.hidden_width == 12  # from the checkpoint
+    assert args.agent.run_dir == run_dir and args.episodes == 2
+    assert script.parse(["--run-dir", run_dir, "--resume", "--seed", "4"]).agent.seed == 4
+    with pytest.raises(SystemExit) as exc:
+        script.parse(["--run-dir", run_dir, "--resume", "--seed", "5"])
+    err = capsys.readouterr().err
+    assert exc.value.code == 2 and err.count("\n") == 1 and "--seed 5 differs" in err
+    saved = json.loads((tmp_path / "run" / "config.json").read_text())
+    assert saved["script"]["agent"]["seed"] == 4  # the whole config tree is saved with the run

@@ -195,3 +195,17 @@ def test_bad_arguments_are_named():
     menv.reset(seed=0)
     with pytest.raises(ValueError, match="action"):
         menv.step(np.array([np.nan]))
+
+
+def test_from_agent_takes_the_tasks_termination_fn():
+    env = gym.make(ARM)
+    agent = JacPropAgent(env, AgentConfig(progress=False, tensorboard=False, checkpoint=False,
+                                          ensemble_size=2, eval_every=0),
+                         termination_fn=lambda obs: np.abs(obs[..., 0]) > 0.5)
+    menv = ModelEnv.from_agent(agent)
+    obs, _ = menv.reset(seed=0, options={"obs": [0.5, 0, 0, 0, 0.3, 0.2]})
+    for a in np.random.default_rng(0).uniform(-1, 1, (20, 2)).astype(np.float32):
+        nxt, _, term, _, _ = menv.step(a)
+        assert term == (abs(nxt[0]) > 0.5)  # the task's function on the next observation
+        if term:
+            obs, _ = menv.reset(seed=0, options={"obs": [0.5, 0, 0, 0, 0.3, 0.2]})
