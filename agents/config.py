@@ -89,6 +89,9 @@ class AgentConfig:
     :param cem_elites: CEM elite sequences that refit the sampling distribution.
     :param cem_iterations: CEM iterations per MPC step (the first step of an episode gets
         ``first_plan_iterations``).
+    :param replan_every: execute every plan open loop for this many steps before re-solving
+        (1: re-plan every step, the default; larger: the feedback-limited regime, where
+        feedback hides less of the model's error). The oracle uses the same setting.
     :param horizon: MPC horizon (steps).
     :param ilqr_iterations: iLQR iterations per MPC step (the first step of an episode gets
         ``first_plan_iterations``).
@@ -105,7 +108,10 @@ class AgentConfig:
     :param solved_return: success threshold on the mean evaluation return (``None``: the
         oracle-ratio criterion, or no "solved" decision for envs without a true model).
 
-    :param eval_every: evaluate every this many episodes after the excitation phase (0: never).
+    :param eval_every: evaluate every this many episodes from the last excitation episode on,
+        and after the last episode of every ``learn`` call (0: never). ``episodes_to_solve`` is
+        the episode of the first solved evaluation, so it is resolved to ``eval_every``
+        episodes (an upper bound on the first episode whose model would have passed).
     :param eval_episodes: evaluation episodes (fixed targets/seeds, see ``eval_seed``).
     :param eval_seed: seed of the evaluation targets and resets.
     :param solved_ratio: the solved threshold relative to the oracle.
@@ -162,13 +168,14 @@ class AgentConfig:
     cem_samples: int = 200
     cem_elites: int = 20
     cem_iterations: int = 3
+    replan_every: int = 1
     horizon: int = 30
     ilqr_iterations: int = 2
     first_plan_iterations: int = 20
     terminal_weight: float = 1.0
     # evaluation
-    eval_every: int = 1
-    eval_episodes: int = 10
+    eval_every: int = 4
+    eval_episodes: int = 3
     eval_seed: int = 1000
     solved_ratio: float = 1.2
     solved_return: float | None = None
@@ -231,7 +238,11 @@ class AgentConfig:
             raise ValueError(
                 f"cem_elites must be <= cem_samples, got {self.cem_elites} > {self.cem_samples}")
         _int_at_least(self, "cem_iterations", 1)
+        _int_at_least(self, "replan_every", 1)
         _int_at_least(self, "horizon", 2)
+        if self.replan_every > self.horizon:
+            raise ValueError(f"replan_every must be <= horizon={self.horizon}, got "
+                             f"{self.replan_every}")
         _int_at_least(self, "ilqr_iterations", 1)
         _int_at_least(self, "first_plan_iterations", 1)
         _float_range(self, "terminal_weight", 0.0, math.inf)

@@ -19,19 +19,27 @@ from __future__ import annotations
 import hashlib
 import json
 import os
-import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import casadi as ca
 import gymnasium as gym
 import numpy as np
+
+from agents.task import ObservationCost
+from mbtsr.costs import CasadiCost
+from mbtsr.ilqr import ILQROptions, ilqr
+from mbtsr.mpc import MPC, MPCOptions
+from mbtsr.rollout import EpisodeRecord, as_policy, run_episode
 
 __all__ = [
     "ARM_ID",
     "EpisodeRecord",
+    "MPCPolicy",
     "make_env",
+    "mpc_policy",
+    "planner_cost",
     "run_episode",
     "evaluation_targets",
     "evaluate_policy_costs",
@@ -58,85 +66,125 @@ def make_env(env: gym.Env | str, **kwargs: Any) -> tuple[gym.Env, bool]:
     return gym.make(env, **kwargs), True
 
 
-@dataclass
-class EpisodeRecord:
-    """One episode in a real env.
+def planner_cost(task_cost: ObservationCost, terminal_weight: float = 1.0) -> CasadiCost:
+    """The planner's :class:`mbtsr.costs.CasadiCost` of a task, compiled once: stage
+    ``cost_fn(obs_fn(s, p), a)`` and terminal ``terminal_weight * cost_fn(obs_fn(s, p), 0)`` on
+    the model state ``s``, with the reference observation ``p = obs [obs_dim]`` as the cost
+    parameter (for the arm only its target entries matter). A new target is a new ``params``,
+    not a new function."""
+    n, m, d = task_cost.state_dim, task_cost.spec.act_dim, task_cost.spec.obs_dim
+    s, a, p, t = ca.SX.sym("s", n), ca.SX.sym("a", m), ca.SX.sym("p", d), ca.SX.sym("t")
+    stage = ca.Function("stage", [s, a, t, p], [task_cost.stage(s, a, p)])
+    terminal = ca.Function(
+        "terminal", [s, p], [float(terminal_weight) * task_cost.terminal(s, p)]
+    )
+    return CasadiCost(stage, terminal, n, m)
 
-    ``obs: [T+1, obs_dim]``, ``actions: [T, m]``, ``rewards: [T]``; ``states: [T+1, k]`` the
-    env's ``info["state"]`` when it reports one; ``frames`` rendered images (``render=True``);
-    wall times of the policy and of the env steps.
+
+class MPCPolicy:
+    """Stable-Baselines3's ``predict`` on observations for an :class:`mbtsr.mpc.MPC`.
+
+    Maps the observation to the model state (``task_cost.state_map``) and to the cost
+    parameters (the observation itself: see :func:`planner_cost`), solves from there, and
+    returns the first action with the rest of the plan, shifted by one step, as the recurrent
+    ``state`` (the warm start of the next call), so ``predict`` is a pure function of its
+    arguments. The same adapter serves the agent (frozen learned model) and the oracle (true
+    model).
+
+    :param mpc: the controller (its cost from :func:`planner_cost`).
+    :param task_cost: the task (observation/state maps, env spec).
     """
 
-    obs: np.ndarray
-    actions: np.ndarray
-    rewards: np.ndarray
-    states: np.ndarray | None
-    terminated: bool
-    info0: dict = field(default_factory=dict)
-    frames: list = field(default_factory=list)
-    time_policy: float = 0.0
-    time_env: float = 0.0
+    def __init__(self, mpc: MPC, task_cost: ObservationCost) -> None:
+        if not isinstance(mpc, MPC):
+            raise TypeError(f"mpc must be a mbtsr.mpc.MPC, got {type(mpc).__name__}")
+        self.mpc = mpc
+        self.task_cost = task_cost
+        self.spec = task_cost.spec
+        self.state_map = task_cost.state_map
+        self.last_result = None
 
     @property
-    def cost(self) -> float:
-        """Episode cost ``-sum(rewards)``."""
-        return float(-np.sum(self.rewards))
+    def model(self) -> Any:
+        """The planning model."""
+        return self.mpc.model
 
-    @property
-    def T(self) -> int:  # noqa: N802
-        return self.actions.shape[0]
+    def predict(
+        self,
+        observation: np.ndarray,
+        state: np.ndarray | None = None,
+        episode_start: np.ndarray | bool | None = None,
+        deterministic: bool = True,
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """One MPC step (Stable-Baselines3 signature).
+
+        :param observation: ``[obs_dim]`` current observation.
+        :param state: ``[H, m]`` warm start returned by the previous call, or ``None`` (cold
+            start, also forced by ``episode_start``).
+        :param episode_start: ``True`` at the first step of an episode.
+        :param deterministic: unused (MPC is deterministic); kept for SB3 compatibility.
+        :return: ``(action [m], next_state [H, m])``.
+        """
+        obs = np.asarray(observation, dtype=float)
+        if obs.shape != (self.spec.obs_dim,):
+            raise ValueError(
+                f"observation must have shape ({self.spec.obs_dim},), got {list(obs.shape)}"
+            )
+        if not np.isfinite(obs).all():
+            raise ValueError("observation contains non-finite values (NaN or inf)")
+        if episode_start is not None and bool(np.any(episode_start)):
+            state = None
+        if state is not None:
+            state = np.asarray(state, dtype=float)
+            if state.shape != (self.mpc.horizon, self.spec.act_dim):
+                raise ValueError(
+                    f"state must be the [H={self.mpc.horizon}, m={self.spec.act_dim}] plan "
+                    f"returned by predict, got {list(state.shape)}"
+                )
+        res = self.mpc.solve(self.state_map.state(obs), 0, params=obs, warm_start=state,
+                             **self._solve_kwargs(obs))
+        self.last_result = res
+        U = np.asarray(res.U, dtype=float)
+        action = np.clip(U[0], self.spec.u_min, self.spec.u_max)
+        return action, np.concatenate([U[1:], U[-1:]], axis=0)
+
+    def _solve_kwargs(self, obs: np.ndarray) -> dict[str, Any]:
+        """Extra keyword arguments of the optimizer for this observation (none here; the CEM
+        policy passes its predicted-termination function)."""
+        return {}
 
 
-def run_episode(
-    env: gym.Env,
-    act: Callable[[np.ndarray, int], np.ndarray],
+def mpc_policy(
+    model: Any,
+    task_cost: ObservationCost,
     *,
-    seed: int | None,
-    options: dict | None = None,
-    max_steps: int | None = None,
-    render: bool = False,
-) -> EpisodeRecord:
-    """Roll out ``act(obs, t) -> action`` in ``env`` until termination, truncation or
-    ``max_steps``. Actions are clipped to the action space."""
-    low, high = env.action_space.low, env.action_space.high
-    obs, info = env.reset(seed=seed, options=options)
-    obs_list, act_list, rew_list = [np.asarray(obs, dtype=float)], [], []
-    states = [info["state"]] if "state" in info else None
-    frames = [env.render()] if render else []
-    t_policy = t_env = 0.0
-    terminated = False
-    t = 0
-    while max_steps is None or t < max_steps:
-        tic = time.perf_counter()
-        a = np.clip(np.asarray(act(obs_list[-1], t), dtype=float), low, high)
-        # record exactly what the env receives (the action space's dtype, e.g. float32)
-        a_env = a.astype(env.action_space.dtype)
-        a = a_env.astype(float)
-        tac = time.perf_counter()
-        obs, reward, terminated, truncated, info = env.step(a_env)
-        t_env += time.perf_counter() - tac
-        t_policy += tac - tic
-        obs_list.append(np.asarray(obs, dtype=float))
-        act_list.append(a)
-        rew_list.append(float(reward))
-        if states is not None:
-            states.append(info["state"])
-        if render:
-            frames.append(env.render())
-        t += 1
-        if terminated or truncated:
-            break
-    m = env.action_space.shape[0]
-    return EpisodeRecord(
-        obs=np.asarray(obs_list),
-        actions=np.asarray(act_list, dtype=float).reshape(-1, m),
-        rewards=np.asarray(rew_list),
-        states=None if states is None else np.asarray(states, dtype=float),
-        terminated=bool(terminated),
-        frames=frames,
-        time_policy=t_policy,
-        time_env=t_env,
+    horizon: int,
+    iterations: int,
+    first_plan_iterations: int,
+    terminal_weight: float = 1.0,
+    cost: CasadiCost | None = None,
+    optimizer: Callable[..., Any] = ilqr,
+    optimizer_options: Any = None,
+) -> MPCPolicy:
+    """The agent's and the oracle's controller: :class:`MPCPolicy` around
+    ``MPC(optimizer, planner_cost(task_cost), model, horizon)`` with the env's action box.
+
+    :param model: a planning model (a frozen ensemble, the true model).
+    :param cost: the compiled :func:`planner_cost` to reuse (built when ``None``).
+    :param optimizer_options: ``None``: iLQR's own defaults (``ILQROptions()``).
+    """
+    spec = task_cost.spec
+    cost = planner_cost(task_cost, terminal_weight) if cost is None else cost
+    if optimizer_options is None and optimizer is ilqr:
+        optimizer_options = ILQROptions()
+    mpc = MPC(
+        optimizer, cost, model, horizon, u_min=spec.u_min, u_max=spec.u_max,
+        options=MPCOptions(
+            iterations_per_step=iterations, first_step_iterations=first_plan_iterations,
+            optimizer_options=optimizer_options, warm_start_lambda=False,
+        ),
     )
+    return MPCPolicy(mpc, task_cost)
 
 
 def evaluation_targets(
@@ -166,27 +214,6 @@ def evaluation_targets(
     return targets
 
 
-def _policy_step_fn(policy: Any) -> Callable[[np.ndarray, int], np.ndarray]:
-    """Wrap an SB3-style ``predict`` (threading its recurrent state) or a callable."""
-    if hasattr(policy, "predict"):
-        holder: dict[str, Any] = {"state": None}
-
-        def act(obs: np.ndarray, t: int) -> np.ndarray:
-            action, holder["state"] = policy.predict(
-                obs, state=None if t == 0 else holder["state"],
-                episode_start=np.array([t == 0]), deterministic=True,
-            )
-            return np.asarray(action, dtype=float).reshape(-1)
-
-        return act
-    if callable(policy):
-        return lambda obs, t: np.asarray(policy(obs), dtype=float).reshape(-1)
-    raise TypeError(
-        f"policy must have a predict(obs, state, episode_start, deterministic) method or be a "
-        f"callable obs -> action, got {type(policy).__name__}"
-    )
-
-
 def evaluate_policy_costs(
     policy: Any,
     env: gym.Env | str,
@@ -200,8 +227,7 @@ def evaluate_policy_costs(
     """Per-episode costs ``-sum(rewards)`` of ``policy``.
 
     :param policy: an object with SB3's ``predict(obs, state, episode_start, deterministic)``
-        (our agent, an SB3 model, :class:`agents.planner.MPCPolicy`) or a callable
-        ``obs -> action``.
+        (our agent, an SB3 model, :class:`MPCPolicy`) or a callable ``obs -> action``.
     :param env: an env or an env id.
     :param targets: one target per episode, passed as ``options={"target": ...}``; ``None``
         for envs without targets (then give ``n_episodes``).
@@ -221,7 +247,10 @@ def evaluate_policy_costs(
         if len(targets) < 1:
             raise ValueError("targets must hold at least one target")
         options = [{"target": np.asarray(t, dtype=float)} for t in targets]
-    act = _policy_step_fn(policy)
+    if hasattr(policy, "predict") or not callable(policy):
+        act = as_policy(policy)
+    else:
+        act = lambda obs, t: np.asarray(policy(obs), dtype=float).reshape(-1)  # noqa: E731
     env, created = make_env(env)
     try:
         costs: list[float] = []
@@ -271,8 +300,7 @@ def oracle_policy(
     are given. Same controller as the agent, only the model differs.
 
     The true model's state must be the agent's model state (the arm: ``obs[:4]``)."""
-    from agents.planner import MPCPolicy, PlannerCosts
-    from agents.task import ObservationCost, default_task_for_env, env_spec
+    from agents.task import default_task_for_env, env_spec
 
     if model not in ("dynamics_model", "analytic_model"):
         raise ValueError(f"model must be 'dynamics_model' or 'analytic_model', got {model!r}")
@@ -292,13 +320,13 @@ def oracle_policy(
 
         state_map = StateMap()
     task_cost = ObservationCost(cost_fn, state_map, spec, true_model.state_dim)
-    return MPCPolicy(
+    return mpc_policy(
         true_model,
-        PlannerCosts(task_cost, terminal_weight),
-        spec,
+        task_cost,
         horizon=horizon,
         iterations=iterations,
         first_plan_iterations=first_plan_iterations,
+        terminal_weight=terminal_weight,
     )
 
 

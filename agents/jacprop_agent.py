@@ -50,14 +50,16 @@ from agents.config import AgentConfig
 from agents.episode_log import TIMING_COLUMNS, EpisodeLog
 from agents.evaluation import (
     EpisodeRecord,
+    MPCPolicy,
     cached_costs,
     code_fingerprint,
     evaluate_policy_costs,
     evaluation_targets,
+    mpc_policy,
     oracle_policy,
+    planner_cost,
     run_episode,
 )
-from agents.planner import MPCPolicy, PlannerCosts
 from agents.task import (
     EnvSpec,
     ObservationCost,
@@ -181,22 +183,11 @@ class JacPropAgent:
             cost_fn, state_map, spec, self.state_dim, terminal_cost_fn=terminal_cost_fn)
         self.terminal_cost_fn = terminal_cost_fn
         self.termination_fn = _checked_termination_fn(termination_fn, env, spec)
-        self.planner_costs = PlannerCosts(self.task_cost, config.terminal_weight)
+        self.planner_cost = planner_cost(self.task_cost, config.terminal_weight)
         # the model: an ensemble of small networks, Objective 1 (f) or 2 (g)
         self.ensemble_config = config.ensemble_config(self.state_dim, spec.act_dim)
         self.model = DynamicsEnsemble(self.ensemble_config)
-        policy_cls = MPCPolicy if config.planner == "ilqr" else CEMPolicy
-        self.policy = policy_cls(
-            self.model,
-            self.planner_costs,
-            spec,
-            horizon=config.horizon,
-            iterations=config.ilqr_iterations if config.planner == "ilqr" else
-            config.cem_iterations,
-            first_plan_iterations=config.first_plan_iterations,
-        )
-        if config.planner == "cem":
-            self.policy.configure(config, self.termination_fn)
+        self._freeze()
         self.has_linearize = env is not None and (
             hasattr(env.unwrapped, "linearize_trajectory") or hasattr(env.unwrapped, "linearize")
         )
@@ -213,6 +204,40 @@ class JacPropAgent:
         self.oracle_costs: np.ndarray | None = None
         self._eval_env: gym.Env | None = None
         self._log: EpisodeLog | None = None
+
+    def _freeze(self) -> None:
+        """Train -> freeze -> plan: the controller plans with an immutable float64 copy of the
+        ensemble, taken after each training round (and at construction / load). One MPC
+        (:class:`mbtsr.mpc.MPC`) with iLQR or CEM (``config.planner``)."""
+        cfg = self.config
+        self.planning_model = self.model.freeze()
+        if cfg.planner == "ilqr":
+            self.policy = mpc_policy(
+                self.planning_model,
+                self.task_cost,
+                horizon=cfg.horizon,
+                iterations=cfg.ilqr_iterations,
+                first_plan_iterations=cfg.first_plan_iterations,
+                cost=self.planner_cost,
+            )
+            self.actor = ReplanEvery(self.policy, cfg.replan_every)
+            return
+        from mbtsr.cem import cem
+
+        mpc = mpc_policy(
+            self.planning_model,
+            self.task_cost,
+            horizon=cfg.horizon,
+            iterations=cfg.cem_iterations,
+            first_plan_iterations=cfg.first_plan_iterations,
+            cost=self.planner_cost,
+            optimizer=cem,
+            optimizer_options={
+                "samples": cfg.cem_samples, "elites": cfg.cem_elites, "seed": cfg.seed,
+            },
+        ).mpc
+        self.policy = CEMPolicy(mpc, self.task_cost, self.termination_fn)
+        self.actor = ReplanEvery(self.policy, cfg.replan_every)
 
     def _check_state_fn(self, env: gym.Env | None, spec: EnvSpec) -> np.ndarray:
         """Call the state map on one observation and on a batch of three (it is called on
@@ -309,6 +334,15 @@ class JacPropAgent:
                 before = self.env_steps
                 cap = None if step_end is None else step_end - self.env_steps
                 row = self._episode(max_steps=cap)
+                ends = (episodes is not None and done >= episodes) or (
+                    step_end is not None and self.env_steps >= step_end)
+                if ends and row["eval_returns"] is None and self._should_evaluate(
+                        self.episodes_done, last=True):
+                    tic = time.perf_counter()  # the final score of this learn call
+                    row.update(self._evaluate())
+                    dt = time.perf_counter() - tic
+                    row["time_eval"] += dt
+                    row["time_total"] += dt
                 self.logger_rows.append(row)
                 self.episodes_done += 1
                 if self.config.checkpoint:
@@ -342,13 +376,14 @@ class JacPropAgent:
 
         :param observation: ``[obs_dim]`` one observation.
         :param state: ``[H, m]`` warm-start plan returned by the previous call (``None`` at an
-            episode start: a cold full-horizon iLQR plan).
+            episode start: a cold full-horizon plan); ``[H+1, m]`` with
+            ``AgentConfig.replan_every > 1`` (the last row counts the steps since the plan).
         :param episode_start: ``True`` forces a cold start.
         :param deterministic: kept for SB3 compatibility (MPC is deterministic; exploration
             noise is only added in :meth:`learn`).
         :return: ``(action [m], next_state [H, m])``.
         """
-        return self.policy.predict(observation, state, episode_start, deterministic)
+        return self.actor.predict(observation, state, episode_start, deterministic)
 
     def save(self, path: str | Path) -> Path:
         """Save everything needed to continue learning or to act (one atomic file)."""
@@ -456,7 +491,7 @@ class JacPropAgent:
             plan: dict[str, Any] = {"U": None}
 
             def act(obs: np.ndarray, t: int) -> np.ndarray:
-                a, plan["U"] = self.policy.predict(obs, plan["U"], episode_start=t == 0)
+                a, plan["U"] = self.actor.predict(obs, plan["U"], episode_start=t == 0)
                 return a + noise[t]
 
         rec = run_episode(self.env, act, seed=reset_seed, max_steps=T, render=render)
@@ -486,6 +521,7 @@ class JacPropAgent:
         # (c) + (d) regularised warm-started update on all data --------------------------------
         tic = time.perf_counter()
         history = self._train(train_seed)
+        self._freeze()
         time_training = time.perf_counter() - tic
 
         # evaluation: the MPC policy on the updated model vs the oracle ------------------------
@@ -709,11 +745,13 @@ class JacPropAgent:
         return one_step, jac
 
     # ------------------------------------------------------------------ evaluation
-    def _should_evaluate(self, ep: int) -> bool:
+    def _should_evaluate(self, ep: int, last: bool = False) -> bool:
+        """Every ``eval_every``-th episode from the last excitation episode on, and the last
+        episode of every :meth:`learn` call (the final score)."""
         cfg = self.config
         if cfg.eval_every == 0 or ep < cfg.n_excitation_episodes - 1:
             return False
-        return (ep - (cfg.n_excitation_episodes - 1)) % cfg.eval_every == 0
+        return last or (ep - (cfg.n_excitation_episodes - 1)) % cfg.eval_every == 0
 
     def _eval_env_instance(self) -> gym.Env:
         if self._eval_env is None:
@@ -785,7 +823,7 @@ class JacPropAgent:
         cfg = self.config
 
         def compute() -> np.ndarray:
-            policy = oracle_policy(
+            policy = ReplanEvery(oracle_policy(
                 env,
                 cfg.horizon,
                 iterations=cfg.ilqr_iterations,
@@ -793,23 +831,23 @@ class JacPropAgent:
                 terminal_weight=cfg.terminal_weight,
                 cost_fn=self.cost_fn,
                 state_map=self.state_map,
-            )
+            ), cfg.replan_every)
             return evaluate_policy_costs(policy, env, self.eval_targets, cfg.eval_seed, **kwargs)
 
         cache_dir = cfg.oracle_cache_dir
         if not (isinstance(self.cost_fn, QuadraticTargetCost) and self.state_map.serializable):
             cache_dir = None  # user functions cannot be part of a cache key
         import agents.evaluation
-        import agents.planner
         import agents.task
         import mbtsr.costs
         import mbtsr.ilqr
+        import mbtsr.mpc
 
         spec = env.spec
         key = {
             "version": 1,
             "code": code_fingerprint(
-                agents.evaluation, agents.planner, agents.task, mbtsr.costs, mbtsr.ilqr,
+                agents.evaluation, agents.task, mbtsr.costs, mbtsr.ilqr, mbtsr.mpc,
                 packages=[sys.modules[type(env.unwrapped).__module__]],
             ),
             "env_id": spec.id,
@@ -822,6 +860,7 @@ class JacPropAgent:
             "iterations": cfg.ilqr_iterations,
             "first_plan_iterations": cfg.first_plan_iterations,
             "terminal_weight": cfg.terminal_weight,
+            **({"replan_every": cfg.replan_every} if cfg.replan_every > 1 else {}),
             "cost": self.cost_fn.to_dict() if cache_dir is not None else None,
         }
         self.oracle_costs = cached_costs(cache_dir, key, compute)
@@ -892,6 +931,8 @@ class JacPropAgent:
             "oracle_cost": self.oracle_mean,
             "solved_ratio": self.config.solved_ratio,
             "wall_seconds_per_phase": phases,
+            "eval_fraction_of_wall": (
+                phases["eval"] / phases["total"] if phases.get("total") else None),
             "config": self.config.to_dict(),
         }
 
@@ -946,7 +987,7 @@ class JacPropAgent:
 
     def _restore(self, p: dict[str, Any]) -> None:
         self.model.load_state_dict(p["model_state"])
-        self.model.invalidate_cache()
+        self._freeze()
         self.optimizer_state = p["optimizer_state"]
         self.trajectories = [
             Trajectory(d["x"].numpy(), d["u"].numpy(), self.spec.dt, meta=json.loads(d["meta"]))
@@ -991,27 +1032,61 @@ class JacPropAgent:
             save_video(frames, folder / f"episode_{ep:04d}.gif", fps=fps)
 
 
+class ReplanEvery:
+    """Feedback-limited MPC: each plan of ``policy`` is executed open loop for ``k`` steps
+    before the next solve (warm-started with the rest of the plan). ``k = 1`` is ``policy``
+    itself. The SB3 ``state`` is the remaining plan ``[H, m]`` plus one row holding the number
+    of steps since the last solve."""
+
+    def __init__(self, policy: Any, k: int) -> None:
+        self.policy, self.k = policy, int(k)
+
+    def predict(
+        self,
+        observation: np.ndarray,
+        state: np.ndarray | None = None,
+        episode_start: np.ndarray | bool | None = None,
+        deterministic: bool = True,
+    ) -> tuple[np.ndarray, np.ndarray]:
+        if self.k == 1:
+            return self.policy.predict(observation, state, episode_start, deterministic)
+        if episode_start is not None and bool(np.any(episode_start)):
+            state = None
+        plan, age = None, 0
+        if state is not None:
+            state = np.asarray(state, dtype=float)
+            plan, age = state[:-1], int(state[-1, 0])
+        if plan is None or age >= self.k:
+            action, rest = self.policy.predict(observation, plan, plan is None, deterministic)
+            age = 1
+        else:
+            spec = self.policy.spec
+            action = np.clip(plan[0], spec.u_min, spec.u_max)
+            rest = np.concatenate([plan[1:], plan[-1:]], axis=0)
+            age += 1
+        return action, np.concatenate([rest, np.full((1, rest.shape[1]), float(age))], axis=0)
+
+
 class CEMPolicy(MPCPolicy):
     """The same receding-horizon MPC with :func:`mbtsr.cem.cem` instead of iLQR (forward
     predictions of the model only). ``predict`` stays a pure function of its arguments: every
-    solve uses the seed ``AgentConfig.seed``."""
+    solve uses the seed ``AgentConfig.seed``. With a ``termination_fn`` the stage costs after a
+    predicted termination are dropped (CEM's ``terminated``)."""
 
-    def configure(self, config: AgentConfig, termination_fn: Callable | None) -> None:
+    def __init__(self, mpc: Any, task_cost: ObservationCost,
+                 termination_fn: Callable | None = None) -> None:
+        super().__init__(mpc, task_cost)
         import casadi as ca
 
-        self.cem_options = {
-            "samples": config.cem_samples, "elites": config.cem_elites, "seed": config.seed,
-        }
         self.termination_fn = termination_fn
-        tc = self.costs.task_cost
-        s, p = ca.SX.sym("s", tc.state_dim), ca.SX.sym("p", tc.spec.obs_dim)
+        s, p = ca.SX.sym("s", task_cost.state_dim), ca.SX.sym("p", task_cost.spec.obs_dim)
         self._obs_of_state = ca.Function("obs_of_state", [s, p], [
             ca.SX(self.state_map.observation(s, p))])
 
-    def _terminated(self, obs_ref: np.ndarray) -> Callable[[np.ndarray], np.ndarray] | None:
+    def _solve_kwargs(self, obs: np.ndarray) -> dict[str, Any]:
         if self.termination_fn is None:
-            return None
-        fn = self.termination_fn
+            return {}
+        fn, obs_ref = self.termination_fn, np.asarray(obs, dtype=float)
 
         def terminated(X: np.ndarray) -> np.ndarray:
             flat = X.reshape(-1, X.shape[-1])
@@ -1019,22 +1094,7 @@ class CEMPolicy(MPCPolicy):
                 flat.T, np.repeat(obs_ref[:, None], flat.shape[0], axis=1))).T
             return np.asarray(fn(obs), dtype=bool).reshape(X.shape[:-1])
 
-        return terminated
-
-    def plan(self, obs: np.ndarray, U0: np.ndarray | None = None) -> tuple[np.ndarray, Any]:
-        from mbtsr.cem import cem
-
-        s = self.state_map.state(obs)
-        cold = U0 is None
-        U0 = self.initial_plan() if cold else U0
-        iters = self.first_plan_iterations if cold else self.iterations
-        res = cem(
-            self.costs(obs), self.model, s, U0, u_min=self.spec.u_min, u_max=self.spec.u_max,
-            options={**self.cem_options, "iterations": iters},
-            terminated=self._terminated(np.asarray(obs, dtype=float)),
-        )
-        self.last_result = res
-        return np.asarray(res.U, dtype=float), res
+        return {"terminated": terminated}
 
 
 def _checked_termination_fn(

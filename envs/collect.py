@@ -20,7 +20,9 @@ import gymnasium as gym
 import numpy as np
 
 from mbtsr.excitation import filtered_gaussian, multisine
+from mbtsr.rollout import run_episode
 from mbtsr.trajectory import Trajectory
+from mbtsr.validation import as_array
 
 __all__ = ["collect_trajectories", "default_input_kwargs", "rollout_open_loop"]
 
@@ -64,35 +66,31 @@ def rollout_open_loop(
     reset_options: Mapping | None = None,
     abort: Callable[[np.ndarray], bool] | None = None,
 ) -> tuple[np.ndarray, np.ndarray, dict] | None:
-    """Reset ``env`` and apply ``u: [T, m]`` (clipped into the action space) open loop.
+    """Reset ``env`` and apply ``u: [T, m]`` (clipped into the action space) open loop, through
+    the one rollout loop :func:`mbtsr.rollout.run_episode`.
 
     :param abort: called with each new state; a true result stops the rollout early.
     :return: ``(x [T+1, n], u_applied [T, m], reset_info)``, or ``None`` if aborted.
     :raises ValueError: if the env terminates or truncates before ``T`` steps.
     """
-    low, high = env.action_space.low, env.action_space.high
-    u_applied = np.clip(u, low, high).astype(np.float64)
-    obs, info = env.reset(seed=seed, options=dict(reset_options) if reset_options else None)
-    x0 = _state_of(obs, info)
-    if abort is not None and abort(x0):
+    u = as_array("u", u, ndim=2)
+    T = u.shape[0]
+    rec = run_episode(
+        env, lambda x, t: u[t], seed=seed, max_steps=T, observe=_state_of, stop=abort,
+        options=dict(reset_options) if reset_options else None,
+    )
+    if rec.stopped:
         return None
-    x = np.empty((u.shape[0] + 1, x0.shape[0]))
-    x[0] = x0
-    action_dtype = env.action_space.dtype
-    for t in range(u.shape[0]):
-        # the env receives exactly u_applied[t] (float32 spaces: the float32 value of it)
-        obs, _, terminated, truncated, step_info = env.step(u_applied[t].astype(action_dtype))
-        x[t + 1] = _state_of(obs, step_info)
-        if abort is not None and abort(x[t + 1]):
-            return None
-        if (terminated or truncated) and t + 1 < u.shape[0]:
-            raise ValueError(
-                f"the env ended the episode after {t + 1} steps but T={u.shape[0]} were "
-                "requested; make the env with a longer episode (e.g. episode_steps=T)"
-            )
-    if action_dtype != np.float64:
-        u_applied = u_applied.astype(action_dtype).astype(np.float64)
-    return x, u_applied, dict(info)
+    if rec.info.get("unstable"):
+        raise ValueError(f"the simulation became unstable during the open-loop rollout: "
+                         f"{rec.info.get('instability', '')}")
+    if rec.T < T:
+        raise ValueError(
+            f"the env ended the episode after {rec.T} steps but T={T} were "
+            "requested; make the env with a longer episode (e.g. episode_steps=T)"
+        )
+    x = rec.states if rec.states is not None else rec.obs
+    return np.asarray(x, dtype=np.float64).reshape(T + 1, -1), rec.actions, rec.info0
 
 
 def collect_trajectories(

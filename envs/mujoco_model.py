@@ -67,6 +67,7 @@ _INTEGRATORS = {
     "implicitfast": mujoco.mjtIntegrator.mjINT_IMPLICITFAST,
 }
 _SPEC = mujoco.mjtState.mjSTATE_FULLPHYSICS
+_LOOP_MAX = 8  # batches up to this size step in a Python loop of mj_step, larger ones via rollout
 
 
 def _unwrap(env):
@@ -127,7 +128,12 @@ class MujocoDynamics:
     :param jacobian_method: ``"auto"``, ``"transition_fd"`` or ``"fd"``.
     :param nthread: threads of ``mujoco.rollout`` for ``step`` and ``"fd"`` Jacobians.
     :param fd_eps: finite-difference step (absolute, per coordinate).
+
+    ``linear_batch_cost = True`` tells iLQR that a batch of ``N`` steps costs ``N`` simulations
+    (its line search then rolls out the step sizes in chunks, see :mod:`mbtsr.ilqr`).
     """
+
+    linear_batch_cost = True
 
     def __init__(
         self,
@@ -200,9 +206,20 @@ class MujocoDynamics:
 
     def _rollout_final(self, xs: np.ndarray, us: np.ndarray) -> np.ndarray:
         """States after ``frame_skip`` substeps: ``xs: [N, n]``, ``us: [N, m]`` -> ``[N, n]``."""
-        state0 = np.empty((xs.shape[0], self._nstate))
+        N = xs.shape[0]
+        state0 = np.empty((N, self._nstate))
         state0[:] = self._template
         state0[:, self._qpos0 : self._qpos0 + self.state_dim] = xs
+        if N <= _LOOP_MAX and self._runner is None:  # cheaper than rollout's wrapper
+            d, model, out = self._datas[0], self.model, np.empty((N, self.state_dim))
+            for i in range(N):
+                mujoco.mj_setState(model, d, state0[i], _SPEC)
+                d.qacc_warmstart[:] = 0.0
+                d.ctrl[:] = us[i]
+                mujoco.mj_step(model, d, nstep=self.frame_skip)
+                out[i, : self.nq] = d.qpos
+                out[i, self.nq :] = d.qvel
+            return out
         control = us[:, None, :]
         if self._runner is None:
             states, _ = rollout.rollout(
@@ -324,5 +341,7 @@ class HybridDynamics:
         self.step_model, self.jacobian_model = step_model, jacobian_model
         self.state_dim, self.action_dim = step_model.state_dim, step_model.action_dim
         self.dt = getattr(step_model, "dt", None)
+        self.linear_batch_cost = bool(getattr(step_model, "linear_batch_cost", False))
+        self._step = getattr(step_model, "_step", step_model.step)
         self.step = step_model.step
         self.jacobians = jacobian_model.jacobians

@@ -15,6 +15,8 @@ import gymnasium as gym
 import numpy as np
 
 from mbtsr.io import atomic_write
+from mbtsr.rollout import run_episode
+from mbtsr.validation import as_array
 
 __all__ = ["render_episode", "save_png_strip", "save_video"]
 
@@ -29,23 +31,17 @@ def render_episode(
     """Reset ``env`` and render one frame before and one after each action.
 
     :param env: an env made with ``render_mode="rgb_array"``.
-    :param actions: ``[T, m]`` actions applied open loop.
+    :param actions: ``[T, m]`` actions applied open loop (clipped into the action space), via
+        the one rollout loop :func:`mbtsr.rollout.run_episode`.
     :param seed: reset seed.
     :return: ``T + 1`` frames (fewer if the episode ends early).
     """
     if env.render_mode != "rgb_array":
         raise ValueError(f"env must be made with render_mode='rgb_array', got {env.render_mode!r}")
-    actions = np.asarray(actions)
-    if actions.ndim != 2:
-        raise ValueError(f"actions must be [T, m], got shape {list(actions.shape)}")
-    env.reset(seed=seed, options=reset_options)
-    frames = [np.asarray(env.render()).copy()]
-    for a in actions:
-        _, _, terminated, truncated, _ = env.step(a.astype(env.action_space.dtype))
-        frames.append(np.asarray(env.render()).copy())
-        if terminated or truncated:
-            break
-    return frames
+    actions = as_array("actions", actions, ndim=2)
+    rec = run_episode(env, lambda obs, t: actions[t], seed=seed, options=reset_options,
+                      max_steps=actions.shape[0], render=True)
+    return rec.frames
 
 
 def _check_frames(frames: Sequence[np.ndarray]) -> list[np.ndarray]:
@@ -53,10 +49,16 @@ def _check_frames(frames: Sequence[np.ndarray]) -> list[np.ndarray]:
         raise ValueError("frames is empty")
     out = [np.asarray(f) for f in frames]
     shape = out[0].shape
-    if len(shape) != 3 or shape[2] not in (3, 4):
-        raise ValueError(f"frames must be [H, W, 3|4] images, got shape {list(shape)}")
+    if len(shape) != 3 or shape[2] not in (3, 4) or shape[0] < 1 or shape[1] < 1:
+        raise ValueError(f"frames must be [H, W, 3|4] images with H, W >= 1, got shape "
+                         f"{list(shape)}")
     if any(f.shape != shape for f in out):
         raise ValueError("all frames must have the same shape")
+    for i, f in enumerate(out):
+        if f.dtype != np.uint8 and (f.dtype.kind not in "iuf" or not np.all(np.isfinite(f))
+                                    or f.min() < 0 or f.max() > 255):
+            raise ValueError(f"frames[{i}] must be uint8 or real values in [0, 255], got "
+                             f"dtype {f.dtype}")
     return [f.astype(np.uint8) for f in out]
 
 

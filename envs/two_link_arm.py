@@ -270,6 +270,9 @@ class TwoLinkArmEnv(MujocoEnv, utils.EzPickle):
             )
         if int(episode_steps) != episode_steps or episode_steps < 1:
             raise ValueError(f"episode_steps must be an integer >= 1, got {episode_steps!r}")
+        for name, size in (("width", width), ("height", height)):
+            if isinstance(size, bool) or int(size) != size or size < 1:
+                raise ValueError(f"{name} must be an integer >= 1 (pixels), got {size!r}")
         if dt is not None and not check_positive("dt", dt) <= MAX_DT:
             raise ValueError(
                 f"dt must be <= MAX_DT={MAX_DT} s (10 Euler substeps per step; larger periods "
@@ -307,7 +310,7 @@ class TwoLinkArmEnv(MujocoEnv, utils.EzPickle):
         self._target = np.zeros(2)
         self._goal = np.zeros(4)
         self._t = 0
-        self._analytic: TwoLinkArmCasadi | None = None
+        self._analytic: dict[bool, TwoLinkArmCasadi] | None = None
         self._mujoco_model: MujocoDynamics | None = None
 
     # --- MujocoEnv hooks -------------------------------------------------------------------
@@ -449,8 +452,11 @@ class TwoLinkArmEnv(MujocoEnv, utils.EzPickle):
         state ``[q, qdot]`` = the first 4 observation entries, ``mjd_transitionFD`` Jacobians)."""
         return MujocoDynamics(self, jacobian_method="transition_fd", fd_eps=FD_EPS)
 
-    def analytic_model(self) -> TwoLinkArmCasadi:
-        """The analytic CasADi twin of this env's arm (built once, then cached)."""
+    def analytic_model(self, jit: bool = False) -> TwoLinkArmCasadi:
+        """The analytic CasADi twin of this env's arm (built once per ``jit`` value, cached);
+        ``jit=True`` compiles it to C for planning speed (see ``TwoLinkArmCasadi``)."""
         if self._analytic is None:
-            self._analytic = TwoLinkArmCasadi(self.params)
-        return self._analytic
+            self._analytic = {}
+        if bool(jit) not in self._analytic:
+            self._analytic[bool(jit)] = TwoLinkArmCasadi(self.params, jit=jit)
+        return self._analytic[bool(jit)]

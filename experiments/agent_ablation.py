@@ -44,6 +44,9 @@ class Args:
     """parallel runs"""
     backend: Literal["process", "ray"] = "process"
     """mbtsr.runner backend"""
+    address: str = ""
+    """Ray only: address of an existing cluster (``auto``, ``host:6379``); empty: a private local
+    Ray instance for the sweep (docs/troubleshooting.md)"""
     out: str = "runs/agent_ablation"
     """folder of the per-run JSON files (a killed sweep resumes), summary.json and table.md"""
     oracle_cache_dir: str = "runs/oracle_cache"
@@ -189,7 +192,7 @@ def run(args: Args) -> dict:
         probe = JacPropAgent(gym.make(first["env_id"]), AgentConfig(**agent_fields(first, 0)))
         print(f"oracle mean cost {probe.compute_oracle():.4g}")
         run_sweep(run_one, configs, range(args.seeds), out, backend=args.backend,
-                  workers=args.workers)
+                  workers=args.workers, address=args.address or None)
     records = [r for r in load_results(out) if r["status"] == "ok" and r["name"] in configs]
     summary = report(records, args)
     summary["command"] = " ".join(["python", "scripts/agent_ablation.py", *sys.argv[1:]])

@@ -17,7 +17,7 @@ first solved evaluation. A run that does not solve within its budget has steps-t
 ratio it enters. Wall seconds exclude evaluation time.
 
 Outputs: ``--json PATH`` (everything, including the learning curves), a learning-curve figure
-(log-scale env steps) and the markdown report ``--docs`` (default ``docs/benchmark.md``, the
+(log-scale env steps) and the markdown report ``--docs`` (default ``docs/benchmark_sb3.md``, the
 figure next to it as ``<stem>_curves.png``).
 
 Usage::
@@ -74,12 +74,15 @@ class Args:
     """the benchmark JSON (--quick: runs/benchmark_sb3_quick/benchmark.json)"""
     out_dir: str = ""
     """per-run JSON + TensorBoard; default runs/benchmark_sb3[_quick]"""
-    docs: str = "docs/benchmark.md"
+    docs: str = "docs/benchmark_sb3.md"
     """markdown report; the figure goes next to it (--quick: under runs/benchmark_sb3_quick)"""
     quick: bool = False
     """CI smoke test: tiny budgets, 1 seed (options not given take the QUICK values)"""
     backend: Literal["process", "serial", "ray"] = "process"
     """mbtsr.runner backend"""
+    address: str = ""
+    """Ray only: address of an existing cluster (``auto``, ``host:6379``); empty: a private local
+    Ray instance for the sweep (docs/troubleshooting.md)"""
     workers: int = 2
     """parallel runs"""
     seeds: int = 3
@@ -662,7 +665,7 @@ def run(args: Args) -> dict:
                    and r["seed"] in seeds and r["config"] == configs[r["name"]]]
     else:
         records = run_sweep(run_case, configs, seeds, out_dir / "sweep", backend=args.backend,
-                            workers=args.workers, progress=True)
+                            workers=args.workers, progress=True, address=args.address or None)
 
     # 5. summaries, ratios, outputs --------------------------------------------------------------
     summary = {m: summarize_method(m, [r for r in records if r["name"] == m], configs[m],

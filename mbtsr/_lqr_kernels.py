@@ -22,6 +22,12 @@ else an active-set guess checked by its KKT conditions, else Bertsekas' projecte
 so Cholesky factorisations are written out (no LAPACK call overhead) and double as the positive
 definiteness check.
 
+Why numba and not CasADi-generated code: the box QP has data-dependent control flow (which
+controls are clamped, projected-Newton iterations with a backtracking line search, a fallback
+from the active-set guess), which numba compiles from the same Python as the numpy reference,
+while a CasADi expression graph would have to unroll every branch with ``if_else`` for a fixed
+worst-case iteration count. (A CasADi-generated version was not built or measured.)
+
 Compilation: ``numba.njit(cache=True)``; the first call in a fresh environment compiles (a few
 seconds, measured in ``tests/test_lqr_kernels.py``), later processes load the cache from
 ``__pycache__``.
@@ -471,3 +477,22 @@ def rollout_policy_affine(A, B, c, x0, X, U, k, K, alphas, lower, upper, max_nor
             if not abs(x0[i]) <= max_norm:
                 alive[a] = False
     return Xn, Un, alive
+
+
+@njit(cache=True)
+def policy_controls(Xn, X, ff, K, t, lower, upper, Un):
+    """``Un[:, t] = clip(ff[:, t] + K_t (Xn[:, t] - X_t), lower, upper)`` for all rows.
+
+    ``Xn: [N, T+1, n]``, ``X: [T+1, n]``, ``ff: [N, T, m]`` (``U + alpha k``), ``K: [T, m, n]``,
+    ``lower, upper: [m]``, ``Un: [N, T, m]`` (written). One call per time step of the generic
+    closed-loop rollout, instead of six numpy calls.
+    """
+    N = Xn.shape[0]
+    n = X.shape[1]
+    m = K.shape[1]
+    for a in range(N):
+        for j in range(m):
+            v = ff[a, t, j]
+            for i in range(n):
+                v += K[t, j, i] * (Xn[a, t, i] - X[t, i])
+            Un[a, t, j] = min(max(v, lower[j]), upper[j])

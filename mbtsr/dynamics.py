@@ -150,7 +150,12 @@ def rollout(model: DynamicsModel, x0: np.ndarray, u: np.ndarray, t0: int = 0) ->
     :param u: ``[T, ..., m]`` inputs (time first), batch dims equal to those of ``x0``.
     :return: ``[T+1, ..., n]`` states. Once a state becomes non-finite, later states stay NaN
         (a diverged simulation is reported, not hidden).
+
+    A trainable model (one with ``freeze``, e.g. a :class:`mbtsr.ensemble.DynamicsEnsemble`)
+    is frozen once and its frozen copy simulated.
     """
+    if callable(getattr(model, "freeze", None)):
+        model = model.freeze()
     x0 = as_array("x0", x0)
     u = as_array("u", u)
     if u.ndim < 2 or x0.ndim < 1 or u.shape[1:-1] != x0.shape[:-1]:
@@ -159,10 +164,10 @@ def rollout(model: DynamicsModel, x0: np.ndarray, u: np.ndarray, t0: int = 0) ->
             f"{list(u.shape)}"
         )
     n, m = x0.shape[-1], u.shape[-1]
-    for attr, want in (("state_dim", n), ("action_dim", m)):
+    for arg, attr, want in (("x0", "state_dim", n), ("u", "action_dim", m)):
         got = getattr(model, attr, want)
         if got != want:
-            raise ValueError(f"model.{attr}={got} does not match the data's dimension {want}")
+            raise ValueError(f"{arg} has last dimension {want}, but model.{attr}={got}")
     if isinstance(t0, bool) or not isinstance(t0, (int, np.integer)) or t0 < 0:
         raise ValueError(f"t0 must be an integer time index >= 0, got {t0!r}")
     T, batch = u.shape[0], x0.shape[:-1]
@@ -191,8 +196,8 @@ def _rollout(
     with np.errstate(all="ignore"):
         for t in range(T):
             xn = np.asarray(step(x, U[:, t], t0 + t), dtype=np.float64).reshape(Bsz, n)
-            if not np.abs(xn).max() <= max_norm:  # NaN compares false
-                bad = ~(np.abs(xn).max(axis=-1) <= max_norm)
+            if not np.abs(xn).max() < max_norm:  # NaN compares false; inf >= max_norm=inf
+                bad = ~(np.abs(xn).max(axis=-1) < max_norm)
                 alive &= ~bad
             if not alive.all():
                 X[:, t + 1] = np.where(alive[:, None], xn, np.nan)

@@ -35,26 +35,28 @@ Members may differ in activation, width (padded to the widest member with a fixe
 depth (1 or 2 hidden layers; members are grouped by depth, one batched computation per group),
 dropout and layer normalization. Jacobians are computed in closed form
 (``W_out^T diag(act'(z)) W_1^T`` chains), batched over points and members, in torch (differentiable,
-for Jacobian penalties by double backprop) and in a cached float64 numpy path used by the dynamics
-protocol (``step``, ``predict``, ``jacobians``).
+for Jacobian penalties by double backprop) and in float64 numpy.
+
+Train, then freeze, then plan: :meth:`DynamicsEnsemble.freeze` returns a :class:`FrozenEnsemble`,
+an immutable float64 copy (weights copied at that moment, normalization folded in, no torch) with
+the dynamics protocol (``step``, ``jacobians``) and the member spread (``predict``,
+``member_jacobians``). Planning uses only the frozen copy; nothing global tracks the training.
 """
 
 from __future__ import annotations
 
 import json
-import math
 import os
 from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, field
-from operator import attrgetter
 from types import SimpleNamespace
 
 import numpy as np
 import torch
+from numba import njit
 from scipy.special import expit
 from torch import nn
 from torch.nn import functional as F  # noqa: N812
-from torch.optim.optimizer import register_optimizer_step_post_hook
 
 from mbtsr.dynamics import check_step_inputs
 from mbtsr.fileformat import CheckpointError, torch_load_verified, torch_save_verified
@@ -63,6 +65,7 @@ from mbtsr.validation import as_array
 
 __all__ = [
     "ACTIVATIONS",
+    "FrozenEnsemble",
     "FORMULATIONS",
     "MemberSpec",
     "EnsembleConfig",
@@ -74,18 +77,11 @@ __all__ = [
 FORMULATIONS = ("f", "g", "nominal", "scaled")
 LEAKY_RELU_SLOPE = 0.01
 LAYER_NORM_EPS = 1e-5
-_VERSION = attrgetter("_version")
-_OPTIMIZER_STEPS = [0]  # steps of any torch optimizer so far: part of the numpy cache key, because
-# fused optimizers (``torch.optim.Adam(fused=True)``, used by training) update parameters in place
-# WITHOUT bumping their version counters (measured, torch 2.13)
-
-
-def _count_optimizer_step(optimizer, args, kwargs) -> None:
-    _OPTIMIZER_STEPS[0] += 1
-
-
-register_optimizer_step_post_hook(_count_optimizer_step)
-STD_FLOOR = 1e-8  # a dimension with a smaller std (e.g. a constant input) is not rescaled
+#: A dimension whose std is below REL_STD_FLOOR times its magnitude ``max |value|`` (for the
+#: residual targets: the magnitude of the next state) is constant up to float32 rounding (e.g. a
+#: constant input) and is not rescaled. Relative, so that data of any unit or scale normalize
+#: the same way (an absolute floor of 1e-8 left data scaled by 1e-6 unnormalized).
+REL_STD_FLOOR = 1e-6
 
 
 # --------------------------------------------------------------------------------------------
@@ -350,140 +346,6 @@ def _activate(z, runs, ops, jac_rows: int):
     return a, ops.cat(ders, 0)
 
 
-# In-place float64 activations for the cached numpy inference path: they write ``act(z)`` into
-# ``h`` and, if given, ``act'(z)`` into ``dh``; ``tmp`` is optional scratch of z's shape. Few
-# temporaries: on small VMs page-faulting fresh large allocations costs more than the arithmetic.
-
-
-def _np_elu_(z, h, dh=None, tmp=None):
-    pos = z > 0
-    if dh is None:
-        np.minimum(z, 0.0, out=h)
-        np.expm1(h, out=h)
-    else:
-        np.minimum(z, 0.0, out=dh)
-        np.exp(dh, out=dh)
-        np.subtract(dh, 1.0, out=h)
-        np.copyto(dh, 1.0, where=pos)
-    np.copyto(h, z, where=pos)
-
-
-def _np_sigmoid_(z, h, dh=None, tmp=None):
-    expit(z, out=h)
-    if dh is not None:
-        np.subtract(1.0, h, out=dh)
-        dh *= h
-
-
-def _np_tanh_(z, h, dh=None, tmp=None):
-    np.tanh(z, out=h)
-    if dh is not None:
-        np.multiply(h, h, out=dh)
-        np.subtract(1.0, dh, out=dh)
-
-
-def _np_swish_(z, h, dh=None, tmp=None):
-    if dh is None:
-        expit(z, out=h)
-        h *= z
-        return
-    expit(z, out=dh)  # s
-    np.multiply(z, dh, out=h)  # z s
-    tmp = np.multiply(h, dh, out=tmp)  # z s^2
-    dh += h
-    dh -= tmp  # s + z s - z s^2
-
-
-def _np_relu_(z, h, dh=None, tmp=None):
-    np.maximum(z, 0.0, out=h)
-    if dh is not None:
-        np.greater(z, 0.0, out=dh)
-
-
-def _np_leaky_relu_(z, h, dh=None, tmp=None):
-    np.multiply(z, LEAKY_RELU_SLOPE, out=h)
-    np.maximum(z, h, out=h)
-    if dh is not None:
-        dh.fill(LEAKY_RELU_SLOPE)
-        np.copyto(dh, 1.0, where=z > 0)
-
-
-_NP_INPLACE = {
-    "elu": _np_elu_,
-    "sigmoid": _np_sigmoid_,
-    "tanh": _np_tanh_,
-    "swish": _np_swish_,
-    "relu": _np_relu_,
-    "leaky_relu": _np_leaky_relu_,
-}
-
-
-# Value-only activations of the ensemble-mean ``step`` fast path (:meth:`DynamicsEnsemble.step`):
-# ``f(z, h)`` writes into ``h`` in place. Sigmoid, swish and tanh all go through numpy's vectorized
-# tanh (scipy's ``expit`` is a scalar loop, ~5x slower on small batches), with the affine parts
-# folded into the weights (see :func:`_fast_activation_plan`), so the three share ONE op:
-#     sigmoid(z) = 0.5 tanh(z/2) + 0.5,     swish(z) = z sigmoid(z) = z' tanh(z') + z',  z' = z/2.
-
-
-def _fast_elu(z, h):
-    np.minimum(z, 0.0, out=h)
-    np.expm1(h, out=h)
-    np.maximum(h, z, out=h)  # expm1(z) >= z for z <= 0, and 0 < z for z > 0
-
-
-def _fast_tanh(z, h):
-    np.tanh(z, out=h)
-
-
-def _fast_times(z, h):
-    h *= z  # swish rows: z' tanh(z'), h already holds tanh(z')
-
-
-def _fast_relu(z, h):
-    np.maximum(z, 0.0, out=h)
-
-
-def _fast_leaky_relu(z, h):
-    np.multiply(z, LEAKY_RELU_SLOPE, out=h)
-    np.maximum(z, h, out=h)
-
-
-_FAST_VALUE = {
-    "elu": _fast_elu,
-    "relu": _fast_relu,
-    "leaky_relu": _fast_leaky_relu,
-    "sigmoid": _fast_tanh,
-    "swish": _fast_tanh,
-    "tanh": _fast_tanh,
-}
-
-
-def _fast_activation_plan(runs, W: int, H: int) -> tuple[list, np.ndarray, np.ndarray, np.ndarray]:
-    """Ops of the hidden activations of member ``runs`` (``(name, first, stop)`` member ranges;
-    member k owns hidden rows ``k*W .. (k+1)*W`` of ``H``).
-
-    :return: ``(ops, half, sigmoid, swish)``: ``ops`` a list of ``(f, first_row, stop_row)``
-        (consecutive tanh-family rows merged into one op), and ``[H]`` boolean row masks: ``half``
-        rows whose pre-activation weights are halved (sigmoid, swish: exact), ``sigmoid`` and
-        ``swish`` rows whose affine remainder the output weights must absorb.
-    """
-    ops: list[tuple[Callable, int, int]] = []
-    swish_ops: list[tuple[Callable, int, int]] = []
-    sigmoid, swish = np.zeros(H, bool), np.zeros(H, bool)
-    for name, a, b in runs:
-        f, first, stop = _FAST_VALUE[name], a * W, b * W
-        if f is _fast_tanh and ops and ops[-1][0] is _fast_tanh and ops[-1][2] == first:
-            ops[-1] = (f, ops[-1][1], stop)
-        else:
-            ops.append((f, first, stop))
-        if name == "sigmoid":
-            sigmoid[first:stop] = True
-        elif name == "swish":
-            swish[first:stop] = True
-            swish_ops.append((_fast_times, first, stop))
-    return ops + swish_ops, sigmoid | swish, sigmoid, swish
-
-
 def _layer_norm(z, gain, bias, mask, width, ops):
     """Masked layer norm over the hidden axis.
 
@@ -597,7 +459,6 @@ class _StackedGroup(nn.Module):
             else:
                 self.runs.append((s.activation, k, k + 1))
         self.dropout_p = [s.dropout for s in specs]
-        self._arrays: dict[str, torch.Tensor] | None = None
 
         def stacked(name: str, shape: tuple[int, int]) -> torch.Tensor:
             out = torch.zeros(K, *shape, dtype=torch.float64)
@@ -631,10 +492,8 @@ class _StackedGroup(nn.Module):
             self.register_buffer("dropout", torch.tensor(self.dropout_p).reshape(K, 1, 1))
 
     def arrays(self) -> dict[str, torch.Tensor]:
-        """Parameters and buffers by name (cached; :meth:`DynamicsEnsemble.invalidate_cache`)."""
-        if self._arrays is None:
-            self._arrays = {**dict(self.named_parameters()), **dict(self.named_buffers())}
-        return self._arrays
+        """Parameters and buffers by name."""
+        return {**dict(self.named_parameters()), **dict(self.named_buffers())}
 
     def dropout_masks(self, B: int, gen: torch.Generator | None) -> list[torch.Tensor]:
         K, W = self.W1.shape[0], self.W1.shape[2]
@@ -658,10 +517,10 @@ class DynamicsEnsemble(nn.Module):
     """An ensemble of K neural dynamics models ``x+ = s(x, u) + NN_k(x, u)`` computed in one batch.
 
     Torch surface (float32, for training): :meth:`forward_torch`, :meth:`member_jacobians_torch`.
-    Numpy float64 surface (the :class:`mbtsr.dynamics.DynamicsModel` protocol; weights are cached
-    as float64 and the cache is refreshed automatically when a parameter changes in place):
-    :meth:`step`, :meth:`predict`, :meth:`jacobians`, :meth:`member_jacobians`,
-    :meth:`member_predictions`. Members are reported in the order of ``config.members``.
+    Planning surface: :meth:`freeze` -> :class:`FrozenEnsemble` (float64 numpy, immutable). The
+    numpy methods :meth:`step`, :meth:`predict`, :meth:`jacobians`, :meth:`member_jacobians`,
+    :meth:`member_predictions` are conveniences that freeze on every call. Members are reported
+    in the order of ``config.members``.
 
     :param config: the architecture, see :class:`EnsembleConfig`.
     """
@@ -700,11 +559,6 @@ class DynamicsEnsemble(nn.Module):
         self.register_buffer("skip_J", torch.as_tensor(config.skip_jacobian(), dtype=torch.float32))
         self.register_buffer("normalization_set", torch.zeros((), dtype=torch.uint8))
         self.dropout_generator: torch.Generator | None = None
-        self._skip_J = config.skip_jacobian()
-        self._np_cache: tuple | None = None
-        self._watched: list | None = None
-        self._workspace: dict[str, np.ndarray] = {}
-        self._step_buffers: dict[int, tuple[np.ndarray, np.ndarray]] = {}
         self.eval()
 
     # ---------------------------------------------------------------- basic properties
@@ -727,7 +581,8 @@ class DynamicsEnsemble(nn.Module):
 
         Inputs: per-dimension mean and (population) std of ``[x_t, u_t]``; outputs: the same for
         the residual targets ``x_{t+1} - s(x_t, u_t)``; all transitions pooled. A std below
-        ``STD_FLOOR`` is replaced by 1. With ``config.normalize=False`` the statistics stay
+        ``REL_STD_FLOOR`` times the dimension's magnitude (constant up to float32 rounding) is
+        replaced by 1. With ``config.normalize=False`` the statistics stay
         identity and the model is only marked as set.
 
         :param trajs: a :class:`~mbtsr.trajectory.Trajectory` or a list of them.
@@ -735,13 +590,13 @@ class DynamicsEnsemble(nn.Module):
         xu, x_next = _pool_transitions(trajs, self.state_dim, self.action_dim)
         if self.config.normalize:
             resid = x_next - xu @ self.config.skip_jacobian().T
-            for name, data in (("in", xu), ("out", resid)):
+            for name, data, raw in (("in", xu, xu), ("out", resid, x_next)):
                 mean, std = data.mean(0), data.std(0)
-                std = np.where(std < STD_FLOOR, 1.0, std)
+                scale = np.maximum(np.abs(raw).max(0), np.abs(data).max(0))
+                std = np.where((std <= REL_STD_FLOOR * scale) | (std == 0), 1.0, std)
                 getattr(self, f"{name}_mean").copy_(torch.as_tensor(mean))
                 getattr(self, f"{name}_std").copy_(torch.as_tensor(std))
         self.normalization_set.fill_(1)
-        self.invalidate_cache()
 
     def refit_normalization(self, trajs: Trajectory | Sequence[Trajectory]) -> None:
         """Recompute the statistics from ``trajs`` (as :meth:`set_normalization`) WITHOUT
@@ -771,8 +626,6 @@ class DynamicsEnsemble(nn.Module):
                 g.Wo.copy_(g.Wo.double() * (old["out_std"] / new["out_std"])[None, None, :])
                 g.bo.copy_((g.bo.double() * old["out_std"] + old["out_mean"] - new["out_mean"])
                            / new["out_std"])
-                g._arrays = None
-        self.invalidate_cache()
 
     # ---------------------------------------------------------------- torch surface
     def _xu_torch(self, x, u) -> torch.Tensor:
@@ -894,255 +747,329 @@ class DynamicsEnsemble(nn.Module):
             out[name] = t
         return out
 
-    # ---------------------------------------------------------------- numpy float64 surface
-    def invalidate_cache(self) -> None:
-        """Drop the float64 weight cache (done automatically when parameters change in place)."""
-        self._np_cache = None
-        self._watched = None
-        for g in self.groups:
-            g._arrays = None
+    # ---------------------------------------------------------------- planning surface
+    def freeze(self) -> FrozenEnsemble:
+        """An immutable float64 copy for planning (:class:`FrozenEnsemble`): weights copied
+        now, normalization folded in, no autograd. Freeze after each training round and plan
+        (iLQR, MPC, CEM) with the frozen copy; the ensemble itself keeps training.
 
-    def _apply(self, fn, recurse=True):  # .to(), .float(), ... may replace buffers
-        out = super()._apply(fn, recurse)
-        self.invalidate_cache()
-        return out
-
-    def _work(self, name: str, shape: tuple[int, ...]) -> np.ndarray:
-        """Reusable float64 scratch buffer (the numpy path is not thread-safe, like torch)."""
-        buf = self._workspace.get(name)
-        if buf is None or buf.shape != shape:
-            buf = self._workspace[name] = np.empty(shape)
-        return buf
-
-    def _watched_tensors(self) -> list[torch.Tensor]:
-        """Parameters and buffers whose in-place version counters key the numpy cache."""
-        if getattr(self, "_watched", None) is None:
-            self._watched = [t for g in self.groups for t in g.arrays().values()]
-            self._watched += [self.in_mean, self.in_std, self.out_mean, self.out_std]
-        return self._watched
-
-    def _numpy_state(self) -> list:
-        """float64 copies of the weights with the normalization folded in (cached).
-
-        Depth-1 groups without layer norm get a "wide" layout in which all members of the group
-        are evaluated by single matrix products over the concatenated hidden units ``[B, K*W]``:
-        ``z = xu @ W1_wide + b1_wide`` (input normalization folded into ``W1_wide``), the
-        ensemble mean as ``h @ Wo_vertical`` and the mean Jacobian as ``act'(z) @ M`` with
-        ``M[(k, w), (o, i)] = out_std[o] Wo[k, w, o] W1[k, i, w] / in_std[i] / K``.
+        :raises ValueError: naming the tensor, if a weight or normalization statistic is NaN/inf
+            (a diverged training run) or a normalization std is not positive.
         """
-        return self._numpy_cached()[0]
+        with torch.no_grad():
+            for name, t in (*self.named_parameters(), *self.named_buffers()):
+                if t.is_floating_point() and not bool(torch.isfinite(t).all()):
+                    bad = int((~torch.isfinite(t)).sum())
+                    raise ValueError(
+                        f"cannot freeze: {name} contains {bad} non-finite value(s) (NaN or inf)"
+                    )
+            for name in ("in_std", "out_std"):
+                if not bool((getattr(self, name) > 0).all()):
+                    raise ValueError(f"cannot freeze: {name} must be > 0")
+            return FrozenEnsemble(self)
 
-    def _numpy_cached(self) -> tuple[list, SimpleNamespace | None]:
-        """``(states, mean_plan)``: the cached float64 weights of :meth:`_numpy_state` and the
-        plan of the ensemble-mean fast path of :meth:`step` (None when not applicable).
+    # Convenience for one-off numpy evaluation (metrics, tests): each call freezes a fresh copy
+    # (tens of microseconds); for repeated calls freeze once and use the frozen model.
+    def step(self, x: np.ndarray, u: np.ndarray, t: int | None = None) -> np.ndarray:
+        """``self.freeze().step(x, u, t)``: ensemble-mean next state ``[..., n]`` (float64)."""
+        return self.freeze().step(x, u, t)
 
-        The cache key is the number of torch optimizer steps taken so far (a global step hook:
-        fused optimizers do not bump version counters) and the in-place version counters
-        (``Tensor._version``) of every parameter and normalization buffer, so optimizer steps,
-        ``copy_``, ``load_state_dict`` etc. invalidate it without any explicit call (~1 us per
-        check). Only writes that bypass autograd's version counting (``.data`` assignment,
-        writes through ``.numpy()`` views) need :meth:`invalidate_cache`."""
-        key = (_OPTIMIZER_STEPS[0], *map(_VERSION, self._watched_tensors()))
-        cache = self._np_cache
-        if cache is not None and cache[0] == key:
-            return cache[1], cache[2]
-        in_mean, in_std, out_mean, out_std = (
-            getattr(self, k).detach().double().numpy().copy()
-            for k in ("in_mean", "in_std", "out_mean", "out_std")
-        )
-        K_total, n = self.n_members, self.state_dim
-        states = []
-        for g in self.groups:
-            p = {k: v.detach().double().numpy().copy() for k, v in g.arrays().items()}
-            st = SimpleNamespace(group=g, p=p, K=p["W1"].shape[0], wide=False)
-            st.in_mean, st.in_std, st.out_mean, st.out_std = in_mean, in_std, out_mean, out_std
-            if g.depth == 1 and not g.layer_norm:
-                K, n_in, W = p["W1"].shape
-                W1, Wo = p["W1"], p["Wo"]
-                if g.padded:
-                    W1, Wo = W1 * p["mask"], Wo * p["mask"].swapaxes(-1, -2)
-                W1f = W1 / in_std[None, :, None]  # [K, in, W], normalization folded in
-                # transposed layout: hidden units of all members along the rows, points along
-                # the columns, so each activation run is a contiguous block of rows
-                st.W1T_wide = np.ascontiguousarray(W1f.transpose(0, 2, 1).reshape(K * W, n_in))
-                b1 = p["b1"][:, 0] - (in_mean / in_std) @ W1  # [K, W]
-                st.b1T_wide = b1.reshape(K * W, 1)
-                Wo_f = Wo * out_std  # [K, W, n]
-                st.WoT_f = np.ascontiguousarray(Wo_f.transpose(0, 2, 1))  # [K, n, W]
-                st.bo_f = p["bo"][:, 0] * out_std + out_mean  # [K, n]
-                st.WoT_mean = np.ascontiguousarray(Wo_f.reshape(K * W, n).T) / K_total
-                st.bo_mean = st.bo_f.sum(0) / K_total
-                M = Wo_f[:, :, :, None] * W1f.swapaxes(1, 2)[:, :, None, :]  # [K, W, n, in]
-                st.MT = np.ascontiguousarray(M.reshape(K, W, -1).transpose(0, 2, 1))
-                st.M_wide = M.reshape(K * W, -1) / K_total
-                st.runs = [(_NP_INPLACE[name], a * W, b * W) for name, a, b in g.runs]
-                st.W, st.wide = W, True
-            states.append(st)
-        mean_plan = None
-        if len(states) == 1 and states[0].wide:
-            mean_plan = self._mean_step_plan(states[0])
-        self._np_cache = (key, states, mean_plan)
-        return states, mean_plan
+    def member_predictions(self, x: np.ndarray, u: np.ndarray) -> np.ndarray:
+        """``self.freeze().member_predictions(x, u)``: ``[K, ..., n]``."""
+        return self.freeze().member_predictions(x, u)
 
-    def _mean_step_plan(self, st: SimpleNamespace) -> SimpleNamespace:
-        """Folded weights of the ensemble-mean :meth:`step` for a single wide group of H hidden
-        units (``H = K*W``).
+    def predict(self, x: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``self.freeze().predict(x, u)``: ensemble ``(mean, std)`` of the next state."""
+        return self.freeze().predict(x, u)
 
-        One buffer ``G = [h; 1; x^T; u^T]: [H+1+n+m, B]`` holds everything:
-        ``z = W_in @ G[H:]`` with ``W_in = [b1T_wide, W1T_wide]: [H, 1+n+m]``, ``h = act(z)`` in
-        place, and ``x+ = G^T @ W_out`` with ``W_out = [WoT_mean^T; bo_mean; skip_J^T]:
-        [H+1+n+m, n]``: the biases and the skip part ride along in the two matrix products.
-        Sigmoid and swish rows run as tanh of ``z' = z/2`` (rows of ``W_in`` halved); the
-        affine remainders ``0.5 t + 0.5`` (sigmoid) and ``+ z'`` (swish) are linear in ``G``
-        and folded into ``W_out`` (rows of the hidden units and of ``[1, x, u]``).
-        """
-        H = st.W1T_wide.shape[0]
-        ops, half, sigmoid, swish = _fast_activation_plan(st.group.runs, st.W, H)
-        W_in = np.concatenate([st.b1T_wide, st.W1T_wide], 1)  # [H, 1+n+m]
-        W_in[half] *= 0.5
-        Wo = st.WoT_mean.T  # [H, n]
-        W_out = np.concatenate([Wo, st.bo_mean[None], self._skip_J.T], 0)
-        W_out[:H][sigmoid] *= 0.5  # Wo (0.5 t + 0.5) = (0.5 Wo) t + 0.5 Wo
-        W_out[H] += 0.5 * Wo[sigmoid].sum(0)
-        W_out[H:] += W_in[swish].T @ Wo[swish]  # Wo (z' t + z') = Wo z' t + (Wo W_in') G_in
-        return SimpleNamespace(
-            W_in=np.ascontiguousarray(W_in), W_out=np.ascontiguousarray(W_out), ops=ops, H=H,
-            n=self.state_dim, m=self.action_dim,
-        )
+    def member_jacobians(self, x: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``self.freeze().member_jacobians(x, u)``: ``(A [K, T, n, n], B [K, T, n, m])``."""
+        return self.freeze().member_jacobians(x, u)
 
-    def _numpy_eval(self, xu: np.ndarray, *, members: bool, jacobians: bool):
-        """float64 evaluation at ``xu: [B, n+m]``.
+    def jacobians(self, x: np.ndarray, u: np.ndarray, t: int = 0) -> tuple[np.ndarray, np.ndarray]:
+        """``self.freeze().jacobians(x, u)``: ensemble-mean ``(A [T, n, n], B [T, n, m])``."""
+        return self.freeze().jacobians(x, u, t)
 
-        :return: ``(x_next, J)`` with ``x_next [K, B, n]`` and ``J [K, B, n, n+m]`` per member
-            (config order) if ``members``, else ensemble means ``[B, n]``, ``[B, n, n+m]``;
-            ``J`` is None unless ``jacobians``. Skip parts are included.
-        """
-        states = self._numpy_state()
-        B, n, n_in = xu.shape[0], self.state_dim, xu.shape[1]
-        skip_J = self._skip_J
-        K_total = self.n_members
-        ys, Js = [], []
-        y_sum = J_sum = 0.0  # ensemble-mean contributions of the groups
-        for st in states:
-            if st.wide:
-                shape = (st.W1T_wide.shape[0], B)
-                zT = np.matmul(st.W1T_wide, xu.T, out=self._work("z", shape))  # [K*W, B]
-                zT += st.b1T_wide
-                hT = self._work("h", shape)
-                dhT = self._work("dh", shape) if jacobians else None
-                tmp = self._work("tmp", shape)
-                for act, a, b in st.runs:
-                    act(zT[a:b], hT[a:b], None if dhT is None else dhT[a:b], tmp[a:b])
-                if members:
-                    hk = hT.reshape(st.K, st.W, B)
-                    ys.append((st.WoT_f @ hk).transpose(0, 2, 1) + st.bo_f[:, None, :])
-                    if jacobians:
-                        dk = dhT.reshape(st.K, st.W, B)
-                        Js.append((st.MT @ dk).transpose(0, 2, 1).reshape(st.K, B, n, n_in))
-                else:
-                    y_sum = y_sum + (st.WoT_mean @ hT).T + st.bo_mean
-                    if jacobians:
-                        J_sum = J_sum + dhT.T @ st.M_wide
-                continue
-            xn = (xu - st.in_mean) / st.in_std
-            y, J = _group_forward(st.p, st.group, xn, _NUMPY_OPS, B if jacobians else 0)
-            y = st.out_mean + st.out_std * y
-            if jacobians:
-                J = st.out_std[:, None] * J / st.in_std
-            if members:
-                ys.append(y)
-                Js.append(J)
+
+# --------------------------------------------------------------------------------------------
+# The frozen planning model: float64 numpy, normalization folded into the weights once
+# --------------------------------------------------------------------------------------------
+
+
+def _fast_elu(z, h):
+    np.minimum(z, 0.0, out=h)
+    np.expm1(h, out=h)
+    np.maximum(h, z, out=h)  # expm1(z) >= z for z <= 0, and 0 < z for z > 0
+
+
+def _fast_tanh(z, h):
+    np.tanh(z, out=h)
+
+
+def _fast_times(z, h):
+    h *= z  # swish rows: z' tanh(z'), h already holds tanh(z')
+
+
+def _fast_relu(z, h):
+    np.maximum(z, 0.0, out=h)
+
+
+def _fast_leaky_relu(z, h):
+    np.multiply(z, LEAKY_RELU_SLOPE, out=h)
+    np.maximum(z, h, out=h)
+
+
+_FAST_VALUE = {
+    "elu": _fast_elu,
+    "relu": _fast_relu,
+    "leaky_relu": _fast_leaky_relu,
+    "sigmoid": _fast_tanh,
+    "swish": _fast_tanh,
+    "tanh": _fast_tanh,
+}
+"""Value-only activations of :meth:`FrozenEnsemble.step`: ``f(z, h)`` writes into ``h``. Sigmoid,
+swish and tanh all run as numpy's vectorized tanh, the affine parts folded into the weights::
+
+    sigmoid(z) = 0.5 tanh(z/2) + 0.5,     swish(z) = z sigmoid(z) = z' tanh(z') + z',  z' = z/2.
+"""
+
+
+_KERNEL_MAX_BATCH = 4  # rows up to which the compiled kernel beats numpy (measured: ~2x at 1-4
+# rows; at 11 rows numpy's SIMD transcendental functions are faster than scalar libm calls)
+_KERNEL_CODE = {"elu": 0, "sigmoid": 1, "tanh": 1, "swish": 2, "relu": 3, "leaky_relu": 4}
+
+
+@njit(cache=True)
+def _mean_step_kernel(x, u, W_inT, W_out, code, out):  # pragma: no cover - compiled
+    """Compiled ensemble-mean step on the folded weights of :func:`_mean_step_plan`:
+    ``x [B, n]``, ``u [B, m]``, ``W_inT [1+n+m, H]``, ``W_out [H+1+n+m, n]``, ``code [H]``
+    (0 elu, 1 tanh (sigmoid rows are pre-halved), 2 swish as ``z' tanh(z')``, 3 relu,
+    4 leaky relu) -> ``out [B, n]``. The same arithmetic as the numpy path, one row at a time,
+    without numpy's per-call overhead (a few microseconds per call instead of ~15)."""
+    B, n = x.shape
+    m = u.shape[1]
+    H = W_inT.shape[1]
+    z = np.empty(H)
+    for b in range(B):
+        for h in range(H):
+            z[h] = W_inT[0, h]
+        for i in range(n):
+            xi = x[b, i]
+            for h in range(H):
+                z[h] += xi * W_inT[1 + i, h]
+        for j in range(m):
+            uj = u[b, j]
+            for h in range(H):
+                z[h] += uj * W_inT[1 + n + j, h]
+        for o in range(n):
+            out[b, o] = W_out[H, o]
+        for i in range(n):
+            xi = x[b, i]
+            for o in range(n):
+                out[b, o] += xi * W_out[H + 1 + i, o]
+        for j in range(m):
+            uj = u[b, j]
+            for o in range(n):
+                out[b, o] += uj * W_out[H + 1 + n + j, o]
+        for h in range(H):
+            c, zh = code[h], z[h]
+            if c == 0:
+                a = zh if zh > 0.0 else np.expm1(zh)
+            elif c == 1:
+                a = np.tanh(zh)
+            elif c == 2:
+                a = zh * np.tanh(zh)
+            elif c == 3:
+                a = zh if zh > 0.0 else 0.0
             else:
-                y_sum = y_sum + y.sum(0) / K_total
-                if jacobians:
-                    J_sum = J_sum + J.sum(0).reshape(B, -1) / K_total
-        skip = xu @ skip_J.T
-        if not members:
-            x_next = skip + y_sum
-            J = None if not jacobians else J_sum.reshape(B, n, n_in) + skip_J
-            return x_next, J
-        y = ys[0] if len(ys) == 1 else np.concatenate(ys, 0)
-        x_next = y + skip
+                a = zh if zh > 0.0 else LEAKY_RELU_SLOPE * zh
+            for o in range(n):
+                out[b, o] += a * W_out[h, o]
+    return out
+
+
+def _mean_step_plan(runs, W: int, W1: np.ndarray, b1: np.ndarray, Wo: np.ndarray,
+                    bo: np.ndarray, skip_J: np.ndarray, n_members: int) -> SimpleNamespace:
+    """Folded weights of the ensemble-mean step of ONE depth-1 group without layer norm.
+
+    ``W1 [K, n+m, W]``, ``b1 [K, W]``, ``Wo [K, W, n]``, ``bo [K, n]`` already hold the
+    normalization (raw units in and out) and zero padded units. With ``H = K*W`` hidden units,
+    one buffer ``G = [h; 1; x^T; u^T]: [H+1+n+m, B]`` carries everything: ``z = W_in @ G[H:]``
+    with ``W_in = [b1, W1^T]: [H, 1+n+m]``, ``h = act(z)`` and ``x+ = G^T @ W_out`` with
+    ``W_out = [Wo / K; mean bo; skip_J^T]``. Sigmoid and swish rows run as tanh of ``z/2``
+    (rows of ``W_in`` halved); their affine remainders are linear in ``G`` and go into
+    ``W_out``.
+    """
+    K = W1.shape[0]
+    H = K * W
+    W_in = np.concatenate([b1.reshape(H, 1), W1.transpose(0, 2, 1).reshape(H, -1)], 1)
+    Wo_mean = Wo.reshape(H, -1) / n_members
+    ops: list[tuple[Callable, int, int]] = []
+    swish_ops: list[tuple[Callable, int, int]] = []
+    sigmoid, swish = np.zeros(H, bool), np.zeros(H, bool)
+    for name, a, b in runs:
+        f, first, stop = _FAST_VALUE[name], a * W, b * W
+        if f is _fast_tanh and ops and ops[-1][0] is _fast_tanh and ops[-1][2] == first:
+            ops[-1] = (f, ops[-1][1], stop)  # one tanh call over consecutive tanh-family rows
+        else:
+            ops.append((f, first, stop))
+        if name == "sigmoid":
+            sigmoid[first:stop] = True
+        elif name == "swish":
+            swish[first:stop] = True
+            swish_ops.append((_fast_times, first, stop))
+    W_in[sigmoid | swish] *= 0.5
+    W_out = np.concatenate([Wo_mean, bo.sum(0, keepdims=True) / n_members, skip_J.T], 0)
+    W_out[:H][sigmoid] *= 0.5  # Wo (0.5 t + 0.5) = (0.5 Wo) t + 0.5 Wo
+    W_out[H] += 0.5 * Wo_mean[sigmoid].sum(0)
+    W_out[H:] += W_in[swish].T @ Wo_mean[swish]  # Wo (z' t + z') = Wo z' t + (Wo W_in') G_in
+    # mean Jacobian: J[b, (o, i)] = sum_h act'(z[h, b]) M[h, (o, i)],  M = Wo[h, o] W1[i, h] / K
+    M = (Wo[:, :, :, None] * W1.swapaxes(1, 2)[:, :, None, :]).reshape(H, -1) / n_members
+    code = np.zeros(H, np.int64)  # per hidden row, for the compiled kernel
+    for name, a, b in runs:
+        code[a * W:b * W] = _KERNEL_CODE[name]
+    return SimpleNamespace(
+        W_in=_readonly(W_in), W_out=_readonly(W_out), ops=tuple(ops + swish_ops), H=H,
+        code=_readonly(code), W_inT=_readonly(W_in.T),
+        W1=_readonly(W1.transpose(1, 0, 2).reshape(-1, H)), b1=_readonly(b1.reshape(H)),
+        M=_readonly(M), runs=tuple((name, a * W, b * W) for name, a, b in runs),
+    )
+
+
+def _readonly(a: np.ndarray) -> np.ndarray:
+    a = np.ascontiguousarray(a, dtype=np.float64)
+    a.setflags(write=False)
+    return a
+
+
+class FrozenEnsemble:
+    """An immutable float64 copy of a :class:`DynamicsEnsemble`: the model planning uses.
+
+    Made by :meth:`DynamicsEnsemble.freeze` (after each training round); it holds plain numpy
+    arrays (read-only) with the input/output normalization folded into the weights, no torch
+    tensors, no autograd, no cache: later training of the ensemble does not change it. It has
+    the :class:`mbtsr.dynamics.DynamicsModel` protocol (``step``, ``jacobians``,
+    ``state_dim``, ``action_dim``) and the member spread (:meth:`predict`,
+    :meth:`member_predictions`, :meth:`member_jacobians`). Members are in config order.
+
+    The ensemble-mean :meth:`step` of the paper's architecture (one group of depth-1 members
+    without layer norm) runs on pre-folded weights (see :func:`_mean_step_plan`): a compiled
+    (numba) kernel for up to ``_KERNEL_MAX_BATCH`` rows (the rollouts of iLQR and MPC), two
+    matrix products and vectorized activations for larger batches; other architectures run the
+    generic batched forward pass.
+    Public methods validate their inputs; ``_step`` is the unchecked kernel solver loops call
+    (see :mod:`mbtsr.dynamics`). Not thread-safe only in the sense that numpy is not.
+    """
+
+    def __init__(self, ensemble: DynamicsEnsemble) -> None:
+        n, m = ensemble.state_dim, ensemble.action_dim
+        stats = {k: getattr(ensemble, k).detach().double().numpy().copy()
+                 for k in ("in_mean", "in_std", "out_mean", "out_std")}
+        in_mean, in_std = stats["in_mean"], stats["in_std"]
+        out_mean, out_std = stats["out_mean"], stats["out_std"]
+        skip_J = ensemble.config.skip_jacobian()
+        groups = []
+        for g in ensemble.groups:
+            p = {k: v.detach().double().numpy().copy() for k, v in g.arrays().items()}
+            if g.padded:  # padded units get exactly zero weights in and out
+                mask = p["mask"]
+                p["W1"] = p["W1"] * mask
+                if g.depth == 2:
+                    p["W2"] = p["W2"] * mask.swapaxes(-1, -2) * mask
+                p["Wo"] = p["Wo"] * mask.swapaxes(-1, -2)
+            # ((xu - in_mean) / in_std) @ W1 + b1 = xu @ (W1 / in_std) + (b1 - (in_mean/in_std) W1)
+            p["b1"] = p["b1"] - ((in_mean / in_std) @ p["W1"])[:, None, :]
+            p["W1"] = p["W1"] / in_std[None, :, None]
+            # out_mean + out_std * (h @ Wo + bo)
+            p["Wo"] = p["Wo"] * out_std
+            p["bo"] = p["bo"] * out_std + out_mean
+            static = SimpleNamespace(depth=g.depth, runs=list(g.runs), layer_norm=g.layer_norm,
+                                     padded=False)
+            groups.append((static, {k: _readonly(v) for k, v in p.items()}))
+        plan = None
+        if len(groups) == 1 and groups[0][0].depth == 1 and not groups[0][0].layer_norm:
+            static, p = groups[0]
+            plan = _mean_step_plan(static.runs, p["W1"].shape[2], p["W1"], p["b1"][:, 0],
+                                   p["Wo"], p["bo"][:, 0], skip_J, ensemble.n_members)
+        perm = None if ensemble._to_config_order is None else ensemble._to_config_order.numpy()
+        for name, value in (
+            ("config", ensemble.config), ("state_dim", n), ("action_dim", m),
+            ("n_members", ensemble.n_members), ("_groups", tuple(groups)),
+            ("_skip_J", _readonly(skip_J)), ("_perm", perm), ("_plan", plan),
+        ):
+            object.__setattr__(self, name, value)
+
+    def __setattr__(self, name: str, value: object) -> None:
+        raise AttributeError(f"a FrozenEnsemble is immutable (tried to set {name!r})")
+
+    def __repr__(self) -> str:
+        return (f"FrozenEnsemble(state_dim={self.state_dim}, action_dim={self.action_dim}, "
+                f"n_members={self.n_members})")
+
+    # ---------------------------------------------------------------- kernels (no checks)
+    def _members(self, xu: np.ndarray, jac_rows: int):
+        """``xu [B, n+m]`` -> ``(x_next [K, B, n], J [K, B, n, n+m] or None)``, config order,
+        skip parts included."""
+        ys, Js = [], []
+        for static, p in self._groups:
+            y, J = _group_forward(p, static, xu, _NUMPY_OPS, jac_rows)
+            ys.append(y)
+            Js.append(J)
+        y = (ys[0] if len(ys) == 1 else np.concatenate(ys, 0)) + xu @ self._skip_J.T
         J = None
-        if jacobians:
-            J = (Js[0] if len(Js) == 1 else np.concatenate(Js, 0)) + skip_J
-        if self._to_config_order is not None:
-            perm = self._to_config_order.numpy()
-            x_next = x_next[perm]
-            J = None if J is None else J[perm]
-        return x_next, J
+        if jac_rows:
+            J = (Js[0] if len(Js) == 1 else np.concatenate(Js, 0)) + self._skip_J
+        if self._perm is not None:
+            y = y[self._perm]
+            J = None if J is None else J[self._perm]
+        return y, J
 
-    def _stacked_inputs(self, x: object, u: object) -> tuple[np.ndarray, tuple[int, ...]]:
-        """Validated ``[x, u]`` as ``[B, n+m]`` float64 and the leading (batch) shape.
-
-        One finiteness check on the concatenation (the hot path of iLQR rollouts); on failure the
-        full per-argument check names the culprit."""
+    def _step(self, x: np.ndarray, u: np.ndarray, t: int | None = None) -> np.ndarray:
+        """:meth:`step` on float64 arrays ``x [..., n]``, ``u [..., m]`` known to be valid."""
         n, m = self.state_dim, self.action_dim
-        xa = np.asarray(x, dtype=np.float64) if not isinstance(x, np.ndarray) else x
-        ua = np.asarray(u, dtype=np.float64) if not isinstance(u, np.ndarray) else u
-        if (xa.ndim < 1 or ua.ndim < 1 or xa.shape[-1] != n or ua.shape[-1] != m
-                or xa.shape[:-1] != ua.shape[:-1] or xa.dtype.kind not in "fiub"
-                or ua.dtype.kind not in "fiub"):
-            check_step_inputs(x, u, n, m)  # raises the precise message
-            raise ValueError(f"x and u must be numeric arrays [..., {n}] and [..., {m}]")
-        xu = np.concatenate([xa, ua], -1, dtype=np.float64).reshape(-1, n + m)
-        if not np.isfinite(xu).all():
-            check_step_inputs(x, u, n, m)  # names x or u and the first bad index
-        return xu, xa.shape[:-1]
+        lead = x.shape[:-1]
+        B = x.size // n
+        plan = self._plan
+        if plan is None:
+            y, _ = self._members(np.concatenate([x.reshape(B, n), u.reshape(B, m)], 1), 0)
+            return y.mean(0).reshape(*lead, n)
+        x, u = x.reshape(B, n), u.reshape(B, m)
+        if B > _KERNEL_MAX_BATCH:  # numpy's vectorized tanh/expm1 win on larger batches
+            return self._step_numpy(x, u).reshape(*lead, n)
+        out = np.empty((B, n))
+        _mean_step_kernel(x, u, plan.W_inT, plan.W_out, plan.code, out)
+        return out.reshape(*lead, n)
+
+    def _step_numpy(self, x: np.ndarray, u: np.ndarray) -> np.ndarray:
+        """The ensemble-mean step of the folded plan in numpy (the compiled kernel's reference;
+        ``x [B, n]``, ``u [B, m]`` -> ``[B, n]``)."""
+        n, m, plan = self.state_dim, self.action_dim, self._plan
+        B, H = x.shape[0], plan.H
+        G = np.empty((H + 1 + n + m, B))
+        G[H] = 1.0
+        G[H + 1:H + 1 + n] = x.T
+        G[H + 1 + n:] = u.T
+        z = plan.W_in @ G[H:]  # [H, B]
+        for act, a, b in plan.ops:
+            act(z[a:b], G[a:b])
+        return G.T @ plan.W_out
+
+    # ---------------------------------------------------------------- public surface
+    def step(self, x: np.ndarray, u: np.ndarray, t: int | None = None) -> np.ndarray:
+        """Ensemble-mean next state: ``x: [..., n]``, ``u: [..., m]`` -> ``[..., n]`` (float64,
+        a fresh array). ``t`` is ignored (time-invariant)."""
+        x, u = check_step_inputs(x, u, self.state_dim, self.action_dim)
+        with np.errstate(over="ignore"):  # saturating activations are exact in the limit
+            return self._step(x, u, t)
 
     def member_predictions(self, x: np.ndarray, u: np.ndarray) -> np.ndarray:
         """Next state of every member: ``x: [..., n]``, ``u: [..., m]`` -> ``[K, ..., n]``."""
-        xu, lead = self._stacked_inputs(x, u)
-        nxt, _ = self._numpy_eval(xu, members=True, jacobians=False)
-        return nxt.reshape(self.n_members, *lead, self.state_dim)
-
-    def step(self, x: np.ndarray, u: np.ndarray, t: int | None = None) -> np.ndarray:
-        """Ensemble-mean next state: ``x: [..., n]``, ``u: [..., m]`` -> ``[..., n]`` (float64).
-
-        ``t`` is ignored (the model is time-invariant). The hot path of iLQR rollouts: for an
-        ensemble of one depth-1 group without layer norm (the paper's) it runs two matrix
-        products with folded biases and in-place activations on reused buffers (see
-        :meth:`_mean_step_plan`); it agrees with :meth:`member_predictions` averaged to ~1e-15.
-        """
-        cache = self._np_cache  # inline cache check: this is the hot path of iLQR rollouts
-        if cache is None or cache[0] != (_OPTIMIZER_STEPS[0], *map(_VERSION, self._watched)):
-            cache = (None, *self._numpy_cached())
-        plan = cache[2]
-        if plan is None:
-            xu, lead = self._stacked_inputs(x, u)
-            nxt, _ = self._numpy_eval(xu, members=False, jacobians=False)
-            return nxt.reshape(*lead, self.state_dim)
-        n, m, H = plan.n, plan.m, plan.H
-        xa = x if isinstance(x, np.ndarray) else np.asarray(x, dtype=np.float64)
-        ua = u if isinstance(u, np.ndarray) else np.asarray(u, dtype=np.float64)
-        lead = xa.shape[:-1]
-        if (xa.shape[-1:] != (n,) or ua.shape[-1:] != (m,) or lead != ua.shape[:-1]
-                or xa.dtype.kind not in "fiub" or ua.dtype.kind not in "fiub"):
-            check_step_inputs(x, u, n, m)  # raises the precise message
-            raise ValueError(f"x and u must be numeric arrays [..., {n}] and [..., {m}]")
-        B = xa.size // n
-        bufs = self._step_buffers.get(B) or self._mean_step_buffers(B, plan)
-        G, z = bufs
-        G[H + 1:H + 1 + n] = xa.reshape(B, n).T
-        G[H + 1 + n:] = ua.reshape(B, m).T
-        G_in = G[H:]  # [1+n+m, B]: ones, x^T, u^T
-        if not math.isfinite(G_in.sum()):  # any NaN/inf (or an overflowing sum: checked anew)
-            check_step_inputs(x, u, n, m)  # names x or u and the first bad index
-        np.dot(plan.W_in, G_in, out=z)  # [H, B]
-        for act, a, b in plan.ops:
-            act(z[a:b], G[a:b])
-        return np.dot(G.T, plan.W_out).reshape(*lead, n)  # a fresh array (callers keep it)
-
-    def _mean_step_buffers(self, B: int, plan: SimpleNamespace) -> tuple[np.ndarray, np.ndarray]:
-        """The reused buffers of :meth:`step` for batch size ``B``: ``G [H+1+n+m, B]`` with the
-        constant ones row written once, and the pre-activations ``z [H, B]``. A few batch sizes
-        are kept (iLQR alternates 1 and the line-search batch)."""
-        if len(self._step_buffers) >= 8:
-            self._step_buffers.clear()
-        G = np.empty((plan.H + 1 + plan.n + plan.m, B))
-        G[plan.H] = 1.0
-        bufs = self._step_buffers[B] = (G, np.empty((plan.H, B)))
-        return bufs
+        x, u = check_step_inputs(x, u, self.state_dim, self.action_dim)
+        lead = x.shape[:-1]
+        xu = np.concatenate([x, u], -1).reshape(-1, self.state_dim + self.action_dim)
+        with np.errstate(over="ignore"):
+            y, _ = self._members(xu, 0)
+        return y.reshape(self.n_members, *lead, self.state_dim)
 
     def predict(self, x: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Ensemble mean and spread (population std over members, ``ddof=0``) of the next state.
@@ -1161,16 +1088,27 @@ class DynamicsEnsemble(nn.Module):
         n, m = self.state_dim, self.action_dim
         x = as_array("x", x, (None, n))
         u = as_array("u", u, (x.shape[0], m))
-        _, J = self._numpy_eval(np.concatenate([x, u], -1), members=True, jacobians=True)
+        with np.errstate(over="ignore"):
+            _, J = self._members(np.concatenate([x, u], -1), x.shape[0])
         return J[..., :n], J[..., n:]
 
     def jacobians(self, x: np.ndarray, u: np.ndarray, t: int = 0) -> tuple[np.ndarray, np.ndarray]:
         """Ensemble-mean Jacobians of the full map: ``x: [T, n]``, ``u: [T, m]`` ->
         ``(A [T, n, n], B [T, n, m])`` (paper Eq. (jacerr) averages exactly these)."""
+        plan = self._plan
+        if plan is None:
+            A, B = self.member_jacobians(x, u)
+            return A.mean(0), B.mean(0)
         n, m = self.state_dim, self.action_dim
         x = as_array("x", x, (None, n))
         u = as_array("u", u, (x.shape[0], m))
-        _, J = self._numpy_eval(np.concatenate([x, u], -1), members=False, jacobians=True)
+        z = np.concatenate([x, u], -1) @ plan.W1 + plan.b1  # [T, H]
+        d = np.empty_like(z)
+        with np.errstate(over="ignore"):
+            for name, a, b in plan.runs:
+                _, value, derivative = ACTIVATIONS[name]
+                d[:, a:b] = derivative(z[:, a:b], value(z[:, a:b]), np)
+        J = (d @ plan.M).reshape(-1, n, n + m) + self._skip_J
         return J[..., :n], J[..., n:]
 
 
@@ -1237,5 +1175,4 @@ def load_model(path: str | os.PathLike) -> DynamicsEnsemble:
         raise CheckpointError(
             f"{path}: the saved weights do not fit the saved config ({type(err).__name__}: "
             f"{str(err).splitlines()[0]})") from None
-    model.invalidate_cache()
     return model.eval()

@@ -26,11 +26,14 @@ Implementation notes
   ``dposv`` for ``[k_t, K_t] = -Quu_reg^-1 [Qu, Qux_reg]``, ``V_t = G_t^T M_t G_t`` with
   ``G_t = [[I], [k_t, K_t]]``; the unregularised ``Quu, Qux`` enter the value update, as in
   Tassa et al.) is the reference the tests compare the kernel against.
-* The forward pass rolls out the full step first and, only if it is rejected, all smaller
-  line-search step sizes as one batch (``T`` batched ``step`` calls, not ``T x n_alpha``); it
-  accepts the largest acceptable step. Near convergence (and in warm-started MPC) the full step
-  is nearly always accepted, so a model whose cost grows with the batch (MuJoCo) pays for one
-  rollout instead of ``n_alpha``.
+* The forward pass rolls out ALL line-search step sizes as one batch (``T`` batched ``step``
+  calls per iteration, not ``T x n_alpha``) and accepts the largest acceptable step. A model
+  whose step cost grows linearly with the batch (a simulator; it says so with
+  ``linear_batch_cost = True``) gets the step sizes in chunks of 2, 2, 3 and the rest, largest
+  first, stopping at the first chunk with an acceptable step: the same accepted step for
+  about half the simulation (measured in MPC on the arm: the accepted step is usually the
+  2nd-5th). So does an affine model (:class:`mbtsr.dynamics.LinearDynamics`, rolled out in one
+  compiled call), whose line search is dominated by the cost of the rollouts.
 * A rollout that produces NaN/inf or a state beyond ``max_state_norm`` is rejected; the solver
   then raises the regularisation and keeps the best (current) iterate, so the returned controls
   are always finite and within the bounds.
@@ -217,6 +220,10 @@ def ilqr(
     opts = _as_options(options)
     if not isinstance(cost, CasadiCost):
         raise TypeError(f"cost must be a mbtsr.costs.CasadiCost, got {type(cost).__name__}")
+    if not (callable(getattr(dynamics, "step", None))
+            and callable(getattr(dynamics, "jacobians", None))):
+        raise TypeError("dynamics must have step(x, u, t) and jacobians(x, u, t0) methods, got "
+                        f"{type(dynamics).__name__}")
     n, m = cost.n, cost.m
     check_planning_model(dynamics, n, m)
     table = cost.check_params(params)
@@ -231,6 +238,10 @@ def ilqr(
     has_limits = bool(np.any(np.isfinite(lower)) or np.any(np.isfinite(upper)))
     alphas = np.asarray(opts.alphas, dtype=float)
     boxqp_prm = _boxqp_params(opts)
+    chunks = _line_search_chunks(  # affine models: the line-search costs dominate, chunk them
+        len(alphas),
+        type(dynamics) is LinearDynamics or bool(getattr(dynamics, "linear_batch_cost", False)),
+    )
     T = U0.shape[0]
     timings = dict.fromkeys(
         ("jacobians", "cost_derivatives", "backward", "forward", "line_search_cost"), 0.0
@@ -334,17 +345,15 @@ def ilqr(
             status, message = "converged", "gradient norm below tol_grad"
             break
 
-        # ---- forward pass: the full step alone first (usually accepted), then all smaller
-        # step sizes in one batched rollout; the accepted step is the same as when all are
-        # rolled out at once (the largest acceptable one)
+        # ---- forward pass: all step sizes in one batched rollout, or, for models whose step
+        # cost grows with the batch (simulators), in growing chunks until one is acceptable;
+        # either way the accepted step is the largest acceptable one
         expected = -alphas * (dV1 + alphas * dV2)
         Xn = np.empty((len(alphas), T + 1, n))
         Un = np.empty((len(alphas), T, m))
         alive = np.zeros(len(alphas), dtype=bool)
         Jn = np.full(len(alphas), np.inf)
-        for chunk in (slice(0, 1), slice(1, len(alphas))):
-            if chunk.start >= len(alphas):
-                break
+        for chunk in chunks:
             tic = time.perf_counter()
             Xn[chunk], Un[chunk], alive[chunk] = _rollout_policy(
                 dynamics, x0, X, U, k, K, alphas[chunk], lower, upper, t0, opts.max_state_norm
@@ -419,6 +428,14 @@ def _as_options(options) -> ILQROptions:
             raise ValueError(f"unknown ILQROptions field(s): {sorted(unknown)}")
         return ILQROptions(**options)
     raise TypeError(f"options must be an ILQROptions or a dict, got {type(options).__name__}")
+
+
+def _line_search_chunks(n_alpha: int, linear_batch_cost: bool) -> list[slice]:
+    """Step-size chunks of the forward pass: all at once, or 2, 2, 3, rest for simulators."""
+    if not linear_batch_cost:
+        return [slice(0, n_alpha)]
+    edges = [e for e in (0, 2, 4, 7) if e < n_alpha] + [n_alpha]
+    return [slice(a, b) for a, b in zip(edges[:-1], edges[1:])]
 
 
 def _boxqp_params(opts: ILQROptions) -> tuple[float, ...]:
@@ -691,17 +708,13 @@ def _rollout_policy(dynamics, x0, X, U, k, K, alphas, lower, upper, t0, max_norm
     Un = np.empty((nA, T, U.shape[1]))
     Xn[:, 0] = x0
     feedforward = U[None] + alphas[:, None, None] * k[None]  # [A, T, m]
-    KT = K.transpose(0, 2, 1)
     alive = np.ones(nA, dtype=bool)
-    clip = bool(np.isfinite(lower).any() or np.isfinite(upper).any())
     step = raw_step(dynamics)
+    policy = _lqr_kernels.policy_controls
     with np.errstate(all="ignore"):
         for t in range(T):
-            u = feedforward[:, t] + (Xn[:, t] - X[t]) @ KT[t]
-            if clip:
-                np.maximum(u, lower, out=u)
-                np.minimum(u, upper, out=u)
-            Un[:, t] = u
+            policy(Xn, X, feedforward, K, t, lower, upper, Un)
+            u = Un[:, t]
             xn = np.asarray(step(Xn[:, t], u, t0 + t), dtype=float)
             if not math.isfinite(xn.sum()):
                 bad = ~np.isfinite(xn).all(axis=-1)

@@ -70,7 +70,9 @@ def remove_stale_temp_files(path: str | os.PathLike) -> list[Path]:
     removed: list[Path] = []
     if not path.parent.is_dir():
         return removed
-    pattern = re.compile(rf"^\.{re.escape(path.name)}\.(\d+)\.tmp{re.escape(path.suffix)}$")
+    # also the suffix-less name of earlier versions (``.<name>.<pid>.tmp``)
+    pattern = re.compile(
+        rf"^\.{re.escape(path.name)}\.(\d+)\.tmp(?:{re.escape(path.suffix)})?$")
     for cand in path.parent.iterdir():
         m = pattern.match(cand.name)
         if m and not _pid_alive(int(m.group(1))):

@@ -63,6 +63,7 @@ def solve_ipopt(
     U0: np.ndarray | None = None,
     *,
     t0: int = 0,
+    params: np.ndarray | None = None,
     max_iter: int = 3000,
     tol: float = 1e-8,
     ipopt_options: dict | None = None,
@@ -78,6 +79,8 @@ def solve_ipopt(
     :param U0: ``[T, m]`` initial guess of the controls (default zeros, clipped to the bounds);
         the state guess is its simulation through ``F``.
     :param t0: absolute time of ``x0`` (for time-indexed costs).
+    :param params: cost parameters (``[p]`` or ``[N_ref, p]``; default: the cost's own), as
+        for :func:`mbtsr.ilqr.ilqr`.
     :param max_iter: IPOPT iteration cap.
     :param tol: IPOPT convergence tolerance.
     :param ipopt_options: extra IPOPT options (override the defaults above).
@@ -121,7 +124,7 @@ def solve_ipopt(
             opti.bounded(np.tile(lower[:, None], (1, T)), U, np.tile(upper[:, None], (1, T)))
         )
     times = np.arange(t0, t0 + T + 1)
-    P = cost.params_at(times)
+    P = cost.params_at(times, params)
     stage = cost.stage.map(T)(X[:, :-1], U, times[None, :-1].astype(float), P[:-1].T)
     opti.minimize(ca.sum2(stage) + cost.terminal(X[:, -1], P[-1]))
     opti.set_initial(X, X0.T)
@@ -142,7 +145,7 @@ def solve_ipopt(
     X_opt = np.atleast_2d(np.asarray(value(X), dtype=float)).reshape(n, T + 1).T
     U_opt = np.clip(np.asarray(value(U), dtype=float).reshape(m, T).T, lower, upper)
     X_sim = _simulate(casadi_step, x0, U_opt)
-    J = float(cost.total(X_sim, U_opt, t0)) if np.all(np.isfinite(X_sim)) else float("inf")
+    J = float(cost.total(X_sim, U_opt, t0, params)) if np.all(np.isfinite(X_sim)) else float("inf")
     return IpoptResult(
         X=X_opt,
         U=U_opt,

@@ -451,7 +451,7 @@ class _L2Solution:
     cb: np.ndarray | None  # its banded Cholesky factor
     rss: np.ndarray  # [n]
     penalty: np.ndarray  # [n] lam^2 ||D theta||^2 (+ ridge0 ||theta_0||^2)
-    logdet: float | None
+    logdet: float  # log det H (its lam -> inf asymptote in that limit)
     Gsum_inv: np.ndarray | None  # (sum_t G_t)^{-1} if it exists
 
 
@@ -474,7 +474,12 @@ def _solve_l2(prob: _Problem, lam: float, ridge0: float = 0.0) -> _L2Solution:
         Gsum_inv, theta_bar = None, np.zeros((p, n))
     s2 = float(np.trace(Gsum)) / (T * p)
     if Gsum_inv is not None and lam2 >= _LIMIT * s2 and ridge0 == 0.0:
-        theta, ab, cb, logdet = np.broadcast_to(theta_bar, (T, p, n)).copy(), None, None, None
+        theta, ab, cb = np.broadcast_to(theta_bar, (T, p, n)).copy(), None, None
+        # log det H in the same limit: H -> blkdiag(G_t) + lam^2 (L kron I_p), L the path
+        # Laplacian whose nonzero eigenvalues multiply to T, so that det H -> lam^(2 (T-1) p)
+        # det(sum_t G_t) (the constant direction keeps (1/T) sum_t G_t, times T^p)
+        logdet = (2.0 * float(np.sum(np.log(np.diag(Gsum_cho[0]))))
+                  + 2.0 * (T - 1) * p * float(np.log(lam)))
     else:
         ab = _band(prob.G, lam2, ridge0)
         try:

@@ -1,49 +1,68 @@
-"""Receding-horizon control (MPC) with iLQR on any dynamics model.
+"""Receding-horizon control (MPC) with any trajectory optimizer on any planning model.
 
 At every control step ``t`` the controller solves the finite-horizon problem ::
 
-    min_U  sum_{k=0}^{H-1} l(x_k, u_k, t + k) + l_T(x_H),   x_0 = current state
+    min_U  sum_{k=0}^{H-1} l(x_k, u_k, t + k, p) + l_T(x_H, p),   x_0 = current state
 
-with a few iLQR iterations (:func:`mbtsr.ilqr.ilqr`), warm-started from the previous plan
-shifted by the elapsed steps (the last control repeated at the end) and from the previous
-regularisation, and applies the first control. The cost receives the absolute time ``t + k``,
-so time-indexed references (:func:`mbtsr.costs.quadratic_cost` with ``x_goal: [N, n]``) are
-followed in step with the environment.
+with a few iterations of ``optimizer`` (:func:`mbtsr.ilqr.ilqr` by default; the CEM solver has
+the same signature), warm-started from the previous plan shifted by the elapsed steps (the last
+control repeated at the end) and, for iLQR, from the previous regularisation; it applies the
+first control. The cost receives the absolute time ``t + k``, so time-indexed references are
+followed in step with the environment; ``p`` are the cost parameters (a target, a reference:
+see :mod:`mbtsr.costs`), given per call or as the controller's default.
 
-:func:`run_mpc_episode` drives any Gymnasium env with an :class:`MPC` and records states,
-actions, rewards and the compute time per control step.
+The optimizer signature (shared by every solver)::
+
+    result = optimizer(cost, model, x0[n], U0[T, m], *, u_min, u_max, params=None, t0=0,
+                       options=None)
+    # result.X [T+1, n], result.U [T, m] (finite, inside the bounds), result.cost,
+    # result.status ("converged" | "max_iter" | "failed"), result.iterations
+
+The model is a *planning* model: ``ensemble.freeze()``, or a true / analytic / linear / LTV
+model. Everything is validated once, here; per step only the state and time are checked.
+
+An MPC is a policy for :func:`mbtsr.rollout.run_episode` (it is called as ``mpc(x, t)`` and
+reset before each episode)::
+
+    rec = run_episode(env, mpc, seed=0, observe=lambda obs, info: info["state"])
 """
 
 from __future__ import annotations
 
+import dataclasses
 import time
-from collections.abc import Callable
-from dataclasses import dataclass, field, replace
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
 from mbtsr.costs import CasadiCost
-from mbtsr.ilqr import ILQROptions, ILQRResult, check_control_bounds, ilqr
+from mbtsr.dynamics import check_planning_model
+from mbtsr.ilqr import ILQROptions, check_control_bounds, ilqr
 from mbtsr.validation import as_array
 
-__all__ = ["MPC", "MPCOptions", "run_mpc_episode"]
+__all__ = ["MPC", "MPCOptions"]
 
 
 @dataclass(frozen=True)
 class MPCOptions:
     """Settings of :class:`MPC`.
 
-    :param iterations_per_step: iLQR iterations per control step when warm-started.
-    :param first_step_iterations: iLQR iterations of a cold start (first step, after
+    :param iterations_per_step: optimizer iterations per control step when warm-started.
+    :param first_step_iterations: iterations of a cold start (first step, after
         :meth:`MPC.reset`, or when the warm start is unusable).
-    :param ilqr: options of the inner solver (``max_iter`` is overridden by the two above).
-    :param warm_start_lambda: start each solve from the previous solve's regularisation,
-        capped at ``ilqr.lambda_init`` (instead of ``lambda_init`` every time).
+    :param optimizer_options: options of the optimizer (an :class:`mbtsr.ilqr.ILQROptions`,
+        a :class:`mbtsr.cem.CEMOptions` or a dict of their fields); the iteration cap
+        (``max_iter`` / ``iterations``) is overridden by the two counts above. ``None``: for
+        iLQR ``ILQROptions(tol_fun_rel=1e-6)``, for other optimizers their defaults.
+    :param warm_start_lambda: (iLQR) start each solve from the previous solve's regularisation,
+        capped at ``lambda_init`` (instead of ``lambda_init`` every time).
     """
 
     iterations_per_step: int = 3
     first_step_iterations: int = 50
-    ilqr: ILQROptions = field(default_factory=lambda: ILQROptions(tol_fun_rel=1e-6))
+    optimizer_options: Any = None
     warm_start_lambda: bool = True
 
     def __post_init__(self) -> None:
@@ -51,36 +70,49 @@ class MPCOptions:
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 1:
                 raise ValueError(f"{name} must be an integer >= 1, got {v!r}")
-        if not isinstance(self.ilqr, ILQROptions):
-            raise TypeError(f"ilqr must be an ILQROptions, got {type(self.ilqr).__name__}")
+        o = self.optimizer_options
+        if not (o is None or isinstance(o, Mapping) or dataclasses.is_dataclass(o)):
+            raise TypeError(
+                f"optimizer_options must be None, a dict or an options dataclass, got "
+                f"{type(o).__name__}"
+            )
 
 
 class MPC:
-    """Receding-horizon iLQR controller.
+    """Receding-horizon controller: ``MPC(optimizer, cost, model, horizon)``.
 
+    :param optimizer: a trajectory optimizer with the shared signature (module docstring),
+        e.g. :func:`mbtsr.ilqr.ilqr` or ``mbtsr.cem.cem``.
     :param cost: the task cost (:class:`mbtsr.costs.CasadiCost`), evaluated at absolute times.
-    :param dynamics: any model with the :class:`mbtsr.dynamics.DynamicsModel` protocol.
+    :param model: a planning model (:mod:`mbtsr.dynamics` protocol; a learned ensemble's
+        ``freeze()``).
     :param horizon: planning horizon ``H`` in steps.
     :param u_min: ``[m]`` (or scalar) lower control bound, ``None`` = unbounded.
     :param u_max: ``[m]`` (or scalar) upper control bound, ``None`` = unbounded.
     :param options: :class:`MPCOptions`.
     :param U_init: ``[H, m]`` cold-start plan; default: the middle of the box (0 if unbounded).
+    :param params: default cost parameters (``[p]`` or ``[N_ref, p]``) when a call gives none.
 
-    Attributes: ``compute_times`` (seconds per :meth:`act` call since the last reset),
-    ``last_result`` (the last :class:`mbtsr.ilqr.ILQRResult`), ``plan`` (current ``[H, m]``
+    Attributes: ``compute_times`` and ``statuses`` (per :meth:`act` since the last
+    :meth:`reset`), ``last_result`` (the optimizer's last result), ``plan`` (current ``[H, m]``
     plan or ``None``).
     """
 
     def __init__(
         self,
+        optimizer: Callable[..., Any],
         cost: CasadiCost,
-        dynamics,
+        model: Any,
         horizon: int = 50,
+        *,
         u_min: np.ndarray | float | None = None,
         u_max: np.ndarray | float | None = None,
         options: MPCOptions | None = None,
         U_init: np.ndarray | None = None,
+        params: np.ndarray | None = None,
     ) -> None:
+        if not callable(optimizer):
+            raise TypeError(f"optimizer must be callable, got {type(optimizer).__name__}")
         if not isinstance(cost, CasadiCost):
             raise TypeError(f"cost must be a mbtsr.costs.CasadiCost, got {type(cost).__name__}")
         if isinstance(horizon, bool) or not isinstance(horizon, (int, np.integer)) or horizon < 1:
@@ -89,107 +121,128 @@ class MPC:
         if not isinstance(self.options, MPCOptions):
             raise TypeError(f"options must be an MPCOptions, got {type(self.options).__name__}")
         n, m = cost.n, cost.m
-        for attr, want in (("state_dim", n), ("action_dim", m)):
-            got = getattr(dynamics, attr, want)
-            if got != want:
-                raise ValueError(
-                    f"dynamics.{attr}={got} does not match the cost's dimension {want}"
-                )
-        self.cost, self.dynamics, self.horizon = cost, dynamics, int(horizon)
+        check_planning_model(model, n, m)
+        self.optimizer, self.cost, self.model, self.horizon = optimizer, cost, model, int(horizon)
         self.u_min, self.u_max = check_control_bounds(u_min, u_max, m)
+        self.params = None if params is None else cost.check_params(params)
         if U_init is None:
             bounded = np.isfinite(self.u_min) & np.isfinite(self.u_max)
             middle = np.clip(np.zeros(m), self.u_min, self.u_max)
             middle[bounded] = 0.5 * (self.u_min[bounded] + self.u_max[bounded])
             U_init = np.tile(middle, (self.horizon, 1))
         self.U_init = np.clip(as_array("U_init", U_init, (self.horizon, m)), self.u_min, self.u_max)
+        self._base_options = _resolve_options(optimizer, self.options.optimizer_options)
         self.reset()
 
     def reset(self) -> None:
-        """Forget the warm start and the recorded compute times (call at a new episode)."""
+        """Forget the warm start and the recorded times/statuses (a new episode)."""
         self.plan: np.ndarray | None = None
         self.compute_times: list[float] = []
-        self.last_result: ILQRResult | None = None
+        self.statuses: list[str] = []
+        self.last_result: Any = None
         self._t_plan: int | None = None
         self._lam: float | None = None
 
-    def act(self, x: np.ndarray, t: int = 0) -> np.ndarray:
-        """The control to apply now.
+    def _options(self, iterations: int, lam: float | None) -> Any:
+        """The optimizer's options with its iteration cap (iLQR ``max_iter``, CEM
+        ``iterations``) and iLQR's ``lambda_init`` set."""
+        base = self._base_options
+        key = "max_iter"
+        if dataclasses.is_dataclass(base):
+            names = {f.name for f in dataclasses.fields(base)}
+            key = "max_iter" if "max_iter" in names else "iterations"
+        extra: dict[str, Any] = {key: int(iterations)}
+        if lam is not None:
+            init = base.get("lambda_init") if isinstance(base, Mapping) else getattr(
+                base, "lambda_init", None)
+            extra["lambda_init"] = min(lam, ILQROptions.lambda_init if init is None else init)
+        if base is None:
+            return extra
+        if isinstance(base, Mapping):
+            return {**base, **extra}
+        return dataclasses.replace(base, **extra)
+
+    def solve(
+        self,
+        x: np.ndarray,
+        t: int = 0,
+        *,
+        params: np.ndarray | None = None,
+        warm_start: np.ndarray | None = None,
+        **optimizer_kwargs: Any,
+    ) -> Any:
+        """One solve from state ``x`` at time ``t`` (no controller state is read or written).
+
+        :param warm_start: ``[H, m]`` plan to start from (``options.iterations_per_step``
+            iterations); ``None``: a cold start from ``U_init`` (``first_step_iterations``).
+        :param optimizer_kwargs: extra keyword arguments of the optimizer (e.g. CEM's
+            ``terminated``).
+        :return: the optimizer's result.
+        """
+        x = as_array("x", x, (self.cost.n,))
+        t = _check_t(t)
+        U0 = self.U_init
+        iterations = self.options.first_step_iterations
+        if warm_start is not None:
+            U0 = np.clip(as_array("warm_start", warm_start, (self.horizon, self.cost.m)),
+                         self.u_min, self.u_max)
+            iterations = self.options.iterations_per_step
+        return self._solve(x, t, params, U0, iterations, None, optimizer_kwargs)
+
+    def _solve(self, x, t, params, U0, iterations, lam, kwargs=None) -> Any:
+        return self.optimizer(
+            self.cost, self.model, x, U0, u_min=self.u_min, u_max=self.u_max,
+            params=self.params if params is None else params, t0=t,
+            options=self._options(iterations, lam), **(kwargs or {}),
+        )
+
+    def act(self, x: np.ndarray, t: int = 0, params: np.ndarray | None = None) -> np.ndarray:
+        """The control to apply now (warm-started from the previous call's plan).
 
         :param x: ``[n]`` current state.
         :param t: absolute time index of ``x`` (the cost sees ``t + k`` along the horizon).
-        :return: ``[m]`` control within the bounds.
+        :param params: cost parameters (default: the controller's ``params``).
+        :return: ``[m]`` control within the bounds (finite even when the solve failed: the
+            optimizer returns its best finite iterate).
         """
         tic = time.perf_counter()
         x = as_array("x", x, (self.cost.n,))
-        if isinstance(t, bool) or not isinstance(t, (int, np.integer)) or t < 0:
-            raise ValueError(f"t must be an integer time index >= 0, got {t!r}")
-        t = int(t)
+        t = _check_t(t)
         shift = None if self._t_plan is None else t - self._t_plan
         if self.plan is None or shift is None or not 0 <= shift < self.horizon:
             U0, iters, lam = self.U_init, self.options.first_step_iterations, None
         else:
             U0 = np.concatenate([self.plan[shift:], np.repeat(self.plan[-1:], shift, axis=0)])
-            iters, lam = self.options.iterations_per_step, self._lam
-        opts = replace(self.options.ilqr, max_iter=iters)
-        if lam is not None and self.options.warm_start_lambda:
-            opts = replace(opts, lambda_init=min(lam, self.options.ilqr.lambda_init))
-        res = ilqr(
-            self.cost, self.dynamics, x, U0, u_min=self.u_min, u_max=self.u_max, options=opts, t0=t
-        )
-        self.plan, self._t_plan, self._lam, self.last_result = res.U, t, res.lam, res
-        action = res.U[0].copy()
+            iters = self.options.iterations_per_step
+            lam = self._lam if self.options.warm_start_lambda else None
+        res = self._solve(x, t, params, U0, iters, lam)
+        self.plan, self._t_plan, self.last_result = res.U, t, res
+        self._lam = getattr(res, "lam", None)
+        self.statuses.append(res.status)
+        action = np.array(res.U[0], dtype=float)
         self.compute_times.append(time.perf_counter() - tic)
         return action
 
+    __call__ = act
 
-def run_mpc_episode(
-    env,
-    mpc: MPC,
-    state_fn: Callable[[np.ndarray, dict], np.ndarray] = lambda obs, info: info["state"],
-    seed: int | None = None,
-    options: dict | None = None,
-    max_steps: int | None = None,
-) -> dict:
-    """Run one episode of ``env`` under ``mpc`` (any Gymnasium env; no ``envs`` import).
 
-    :param env: a Gymnasium env whose actions are the controls ``mpc`` plans.
-    :param mpc: the controller; it is reset first.
-    :param state_fn: ``(obs, info) -> x [n]`` the model state (default ``info["state"]``).
-    :param seed: passed to ``env.reset``.
-    :param options: passed to ``env.reset`` (e.g. ``{"target": ..., "state": ...}``).
-    :param max_steps: stop after this many steps (default: until terminated/truncated).
-    :return: dict with ``states [T+1, n]``, ``actions [T, m]``, ``rewards [T]``,
-        ``compute_times [T]`` (seconds per control step), ``total_reward``, ``steps``,
-        ``terminated``, ``truncated``, ``ilqr_status`` (one per step), ``info`` (the last info).
-    """
-    if max_steps is not None and (int(max_steps) != max_steps or max_steps < 1):
-        raise ValueError(f"max_steps must be an integer >= 1 or None, got {max_steps!r}")
-    mpc.reset()
-    obs, info = env.reset(seed=seed, options=options)
-    states = [np.asarray(state_fn(obs, info), dtype=float)]
-    actions, rewards, statuses = [], [], []
-    terminated = truncated = False
-    t = 0
-    while True:
-        a = mpc.act(states[-1], t)
-        obs, reward, terminated, truncated, info = env.step(a)
-        actions.append(a)
-        rewards.append(float(reward))
-        statuses.append(mpc.last_result.status)
-        states.append(np.asarray(state_fn(obs, info), dtype=float))
-        t += 1
-        if terminated or truncated or (max_steps is not None and t >= max_steps):
-            break
-    return {
-        "states": np.stack(states),
-        "actions": np.stack(actions),
-        "rewards": np.asarray(rewards),
-        "compute_times": np.asarray(mpc.compute_times),
-        "total_reward": float(np.sum(rewards)),
-        "steps": t,
-        "terminated": bool(terminated),
-        "truncated": bool(truncated),
-        "ilqr_status": statuses,
-        "info": info,
-    }
+def _resolve_options(optimizer: Callable[..., Any], options: Any) -> Any:
+    """The optimizer's base options: iLQR's and CEM's as their options dataclasses (a dict is
+    checked here, once), other optimizers' as given (``None``: a dict)."""
+    if optimizer is ilqr:
+        if options is None:
+            return ILQROptions(tol_fun_rel=1e-6)
+        return ILQROptions(**options) if isinstance(options, Mapping) else options
+    from mbtsr import cem as cem_module  # the sibling solver; imported lazily
+
+    if optimizer is cem_module.cem:
+        if options is None:
+            return cem_module.CEMOptions()
+        return cem_module.CEMOptions(**options) if isinstance(options, Mapping) else options
+    return {} if options is None else options
+
+
+def _check_t(t: object) -> int:
+    if isinstance(t, bool) or not isinstance(t, (int, np.integer)) or t < 0:
+        raise ValueError(f"t must be an integer time index >= 0, got {t!r}")
+    return int(t)

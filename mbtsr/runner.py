@@ -512,7 +512,10 @@ def load_results(out_dir: str | os.PathLike, name: str | None = None) -> list[di
 
 def summarize(values: Iterable[float]) -> dict:
     """Mean, std, median, min, max and count of the finite values (and the non-finite count)."""
-    vals = [float(v) for v in values]
+    try:
+        vals = [float(v) for v in values]
+    except (TypeError, ValueError) as err:
+        raise ValueError(f"values must be real numbers: {err}") from None
     finite = sorted(v for v in vals if math.isfinite(v))
     k = len(finite)
     if k == 0:

@@ -32,6 +32,7 @@ steps. Compare methods with the baseline at equal optimizer steps (:attr:`TrainH
 from __future__ import annotations
 
 import copy
+import math
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
@@ -277,6 +278,47 @@ def _optimizer(model: DynamicsEnsemble, config: TrainConfig) -> torch.optim.Opti
         return cls(groups, foreach=True, **kw)
 
 
+def _check_optimizer_state(optimizer: torch.optim.Optimizer, state: object) -> None:
+    """Refuse an Adam ``state_dict`` saved for another architecture BEFORE loading it (the fused
+    kernel would read past the moment buffers: a segfault, not an exception)."""
+    if not isinstance(state, dict) or not isinstance(state.get("param_groups"), list | tuple) \
+            or not isinstance(state.get("state"), dict):
+        raise ValueError("optimizer_state must be an optimizer state_dict with 'state' and "
+                         f"'param_groups', got {type(state).__name__}")
+    groups = optimizer.param_groups
+    saved_groups = state["param_groups"]
+    if len(saved_groups) != len(groups) or any(
+            not isinstance(sg, dict) or len(sg.get("params", ())) != len(g["params"])
+            for sg, g in zip(saved_groups, groups)):
+        sizes = [len(sg.get("params", ())) if isinstance(sg, dict) else None
+                 for sg in saved_groups]
+        raise ValueError(
+            f"optimizer_state does not fit this model: it holds parameter groups of sizes {sizes}"
+            f", the model's optimizer {[len(g['params']) for g in groups]} (another architecture)")
+    for sg, g in zip(saved_groups, groups):
+        for pid, param in zip(sg["params"], g["params"]):
+            buffers = state["state"].get(pid, {})
+            for key in ("exp_avg", "exp_avg_sq", "max_exp_avg_sq"):
+                buf = buffers.get(key) if isinstance(buffers, dict) else None
+                if buf is not None and (not isinstance(buf, torch.Tensor)
+                                        or tuple(buf.shape) != tuple(param.shape)):
+                    got = list(buf.shape) if isinstance(buf, torch.Tensor) else type(buf).__name__
+                    raise ValueError(
+                        f"optimizer_state does not fit this model: state {pid} {key} has shape "
+                        f"{got}, the parameter {list(param.shape)} (another architecture)")
+
+
+def _finite_term(name: str, value: float, epoch: int) -> float:
+    """``value`` of the loss term ``name``; a ``FloatingPointError`` naming it if it overflowed
+    (checked before the optimizer step, so the weights stay finite)."""
+    if not math.isfinite(value):
+        what = "data term" if name == "data" else f"{name!r} regularizer term"
+        fix = ("lower lr or check the data scale" if name == "data" else
+               f"lower reg.{name}_weight or lr, or check the data and LTV Jacobian scales")
+        raise FloatingPointError(f"the {what} of the loss is {value} at epoch {epoch}; {fix}")
+    return value
+
+
 def _squared_norm(a: torch.Tensor, dims: tuple[int, ...]) -> torch.Tensor:
     return (a * a).sum(dims)
 
@@ -376,6 +418,7 @@ def train_ensemble(
     # ---- optimizer and random streams
     optimizer = _optimizer(model, config)
     if optimizer_state is not None:
+        _check_optimizer_state(optimizer, optimizer_state)
         try:
             optimizer.load_state_dict(optimizer_state)
         except (ValueError, KeyError, TypeError, RuntimeError) as err:
@@ -436,17 +479,17 @@ def train_ensemble(
                 y, J = model.stacked_forward(inputs, jac_rows=jac_rows, normalized=True)
                 # sum over members of (mean over points of the squared error norm)
                 loss = _sum_squared(y[:, :B], target[idx]) / B
-                data_sum += float(loss.detach()) / K * B
+                data_sum += _finite_term("data", float(loss.detach()), epoch) / K * B
                 if reg.sampled and not own_copies:
                     tp = target_pert[:, idx].reshape(-1, n)
                     pen = _sum_squared(y[:, inputs.shape[0] - tp.shape[0]:], tp) / tp.shape[0]
                     loss = loss + reg.sampled_weight * pen
-                    pen_sum["sampled"] += float(pen.detach()) / K
+                    pen_sum["sampled"] += _finite_term("sampled", float(pen.detach()), epoch) / K
                 if reg.exact:
                     scale = B if trajectory_batches else mean_terms
                     pen = _squared_norm(J[:, :B] - J_ltv[idx], (-1, -2)).mean(-1) * scale
                     loss = loss + reg.exact_weight * pen.sum()
-                    pen_sum["exact"] += float(pen.detach().mean())
+                    pen_sum["exact"] += _finite_term("exact", float(pen.detach().mean()), epoch)
                 if reg.smooth:
                     if trajectory_batches:
                         dJ = J[:, 1:B] - J[:, : B - 1]
@@ -457,7 +500,8 @@ def train_ensemble(
                     if dJ.shape[1] > 0:
                         pen = _squared_norm(dJ, (-1, -2)).mean(-1) * scale
                         loss = loss + reg.smooth_weight * pen.sum()
-                        pen_sum["smooth"] += float(pen.detach().mean())
+                        pen_sum["smooth"] += _finite_term("smooth", float(pen.detach().mean()),
+                                                          epoch)
                 optimizer.zero_grad(set_to_none=True)
                 loss.backward()
                 optimizer.step()
@@ -470,7 +514,8 @@ def train_ensemble(
                         tp = target_pert[c, idx]
                         pen = _sum_squared(y, tp) / tp.shape[0]
                         loss = reg.sampled_weight * pen
-                        pen_sum["sampled"] += float(pen.detach()) / K / reg.n_copies
+                        pen_sum["sampled"] += _finite_term(
+                            "sampled", float(pen.detach()), epoch) / K / reg.n_copies
                         optimizer.zero_grad(set_to_none=True)
                         loss.backward()
                         optimizer.step()
@@ -502,7 +547,6 @@ def train_ensemble(
     finally:
         bar.close()
         model.eval()
-        model.invalidate_cache()
     return TrainHistory(
         train_loss=train_loss,
         val_loss=val_loss,

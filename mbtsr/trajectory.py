@@ -87,10 +87,10 @@ def stack_trajectories(trajs: Sequence[Trajectory]) -> tuple[np.ndarray, np.ndar
     Raises ``ValueError`` if the trajectories differ in length or dimensions.
     """
     if len(trajs) == 0:
-        raise ValueError("need at least one trajectory")
+        raise ValueError("trajs must hold at least one Trajectory")
     shapes = {(t.x.shape, t.u.shape) for t in trajs}
     if len(shapes) != 1:
-        raise ValueError(f"trajectories must share T, n and m to be stacked; got shapes {shapes}")
+        raise ValueError(f"trajs must share T, n and m to be stacked; got shapes {shapes}")
     return np.stack([t.x for t in trajs]), np.stack([t.u for t in trajs])
 
 
@@ -100,6 +100,8 @@ def save_trajectories(path: str | os.PathLike, trajs: Iterable[Trajectory]) -> N
     Metadata is not stored; only ``x``, ``u`` and ``dt``.
     """
     trajs = list(trajs)
+    if not trajs or not all(isinstance(t, Trajectory) for t in trajs):
+        raise ValueError("trajs must be a non-empty list of Trajectory")
     path = Path(path)
     arrays: dict[str, np.ndarray] = {"count": np.array(len(trajs))}
     for i, t in enumerate(trajs):

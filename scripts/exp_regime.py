@@ -74,6 +74,9 @@ class Args(ExperimentArgs):
     still_speed: float = field(default=0.05, metadata={
         "help": "joint speed [rad/s] below which a point counts as near-zero velocity"})
     n_log: int = field(default=5, metadata={"help": "training-point Jacobian checkpoints"})
+    paper_protocol: bool = field(default=True, metadata={
+        "help": "also run the paper cell with the paper's protocol (4-member nominal ensemble, "
+                "one step per trajectory) for none, sampled and oracle labels"})
     duration: float = field(default=4.0, metadata={"help": "trajectory length [s]"})
     n_val: int = field(default=10, metadata={"help": "validation trajectories"})
 
@@ -99,7 +102,7 @@ def make_configs(args: Args) -> dict[str, dict[str, dict]]:
     n_trains, epochs = _ints(args.n_trains), _ints(args.epochs)
     frictions = [{"on": True, "off": False}[f] for f in _strs(args.frictions)]
     label_cells = {tuple(c.split("-")) for c in _strs(args.label_cells)}
-    out: dict[str, dict[str, dict]] = {"main": {}, "labels": {}}
+    out: dict[str, dict[str, dict]] = {"main": {}, "labels": {}, "paper_protocol": {}}
     for window in _strs(args.windows):
         for friction in frictions:
             data = dataclasses.asdict(RegimeData(
@@ -121,23 +124,41 @@ def make_configs(args: Args) -> dict[str, dict[str, dict]]:
                                 "model": {"activations": _strs(args.activations),
                                           "width": args.width},
                                 "still_speed": args.still_speed, "n_log": args.n_log}
+            if args.paper_protocol and label:
+                for m in ("none", "sampled", "oracle"):
+                    n = _ints(args.label_n_trains)[0]
+                    e = min(epochs)
+                    name = cell_name(m, n, e, window, friction)
+                    out["paper_protocol"][f"paperprotocol.{name}"] = {
+                        "data": data, "n_train": n, "epochs": e, "method": m,
+                        "exact_weight": args.exact_weight, "prior_scale": args.prior_scale,
+                        "lr": args.lr, "batch": "trajectory", "model": {},
+                        "still_speed": args.still_speed, "n_log": args.n_log,
+                        "paper_protocol": True}
     return out
 
 
 def run(args: Args, out: Path) -> list[dict]:
     """The sweep, seed by seed (so that an interrupted sweep leaves every cell with the same
-    number of seeds, give or take the cells of the last seed)."""
+    number of seeds, give or take the cells of the last seed), the shortest runs first."""
     from mbtsr.runner import load_results, run_sweep
 
     configs = make_configs(args)
     write_json(out / "args.json", {"args": dataclasses.asdict(args), "command": command_line()})
     n_before = len(load_results(out))
     start, t0, c0 = library_version(), time.perf_counter(), time.process_time()
-    for seed in range(args.mc):
-        run_sweep(run_regime, {**configs["main"], **configs["labels"]}, [seed], out,
-                  backend=args.backend, workers=args.workers, progress=False)
-        if not args.quick:
-            print(f"[regime] seed {seed} done, {time.perf_counter() - t0:.0f} s", flush=True)
+    every = {**configs["main"], **configs["labels"], **configs["paper_protocol"]}
+    shortest = min(c["epochs"] for c in every.values())
+    # first the cheap shortest-run cells for every seed, then everything seed by seed: on a busy
+    # machine an interrupted sweep still has the whole short-run map at full seed count
+    for part, todo in (("short runs", {k: c for k, c in every.items()
+                                       if c["epochs"] == shortest}), ("all", every)):
+        for seed in range(args.mc):
+            run_sweep(run_regime, todo, [seed], out, backend=args.backend,
+                      workers=args.workers, progress=False)
+            if not args.quick:
+                print(f"[regime] {part}: seed {seed} done, {time.perf_counter() - t0:.0f} s",
+                      flush=True)
     recs = load_results(out)
     log_path = out / "sweeps.json"
     log = json.loads(log_path.read_text()) if log_path.exists() else []
@@ -202,6 +223,41 @@ DIAG_KEYS = ("jac_err", "jac_pos", "jac_vel", "jac_moving_all", "jac_still_all",
              "label_jac_pos", "label_jac_vel", "log10_pred_rms", "log10_sim_rms")
 
 
+def _cell_text(ax, j: int, i: int, s: dict) -> None:
+    ax.text(j, i, f"{s['median_pct']:+.0f}%\n{s['wins']}/{s['total']}", ha="center",
+            va="center", fontsize=7, color="white" if abs(s["median_pct"]) > 25 else "black")
+
+
+def variants_map(ax, records, protocol: list[dict]) -> None:
+    """Rows = methods, columns = the cells that ran the label variants (+ the paper cell under
+    the paper's protocol); colour and text as :func:`regime_map`."""
+    cells = [c for c in _cells(records)
+             if any(r["config"]["method"] == "oracle" for r in _cell_records(records, c))]
+    cols = [(records, c, f"{c[2]} tr., {c[3]} ep.\n1 member, full batch") for c in cells]
+    cols += [(protocol, c, f"{c[2]} tr., {c[3]} ep.\npaper protocol (4 members)")
+             for c in _cells(protocol)]
+    rows = ["sampled", "oracle", "exact", "prior"]
+    grid = np.full((len(rows), len(cols)), np.nan)
+    for j, (recs, c, _) in enumerate(cols):
+        for i, m in enumerate(rows):
+            s = paired_relative(recs, m, c)
+            if s is not None:
+                grid[i, j] = s["median_pct"]
+                _cell_text(ax, j, i, s)
+    ax.imshow(grid, cmap="RdBu_r", vmin=-40, vmax=40, aspect="auto")
+    ax.set_xticks(range(len(cols)), [t for _, _, t in cols], fontsize=7)
+    ax.set_yticks(range(len(rows)), [METHOD_LABELS[m] for m in rows], fontsize=7)
+    if cells:
+        ax.set_title(f"label variants vs none, {cells[0][0]} window, "
+                     f"{'friction' if cells[0][1] else 'no friction'}", fontsize=9)
+
+
+def _cell_records(records: list[dict], cell: tuple) -> list[dict]:
+    w, f, n, e = cell
+    return [r for r in records if (r["config"]["data"]["window"], r["config"]["data"]["friction"],
+                                   r["config"]["n_train"], r["config"]["epochs"]) == cell]
+
+
 def regime_map(ax, records, method: str, title: str) -> None:
     """Heat map: rows = excitation window x friction, columns = trajectories x epochs; colour =
     median relative change of the Jacobian error vs none, text = change and wins/total."""
@@ -215,8 +271,7 @@ def regime_map(ax, records, method: str, title: str) -> None:
             if s is None:
                 continue
             grid[i, j] = s["median_pct"]
-            ax.text(j, i, f"{s['median_pct']:+.0f}%\n{s['wins']}/{s['total']}", ha="center",
-                    va="center", fontsize=7)
+            _cell_text(ax, j, i, s)
     lim = 40.0
     im = ax.imshow(grid, cmap="RdBu_r", vmin=-lim, vmax=lim, aspect="auto")
     ax.set_xticks(range(len(cols)), [f"{n} tr.\n{e} ep." for n, e in cols], fontsize=7)
@@ -226,23 +281,66 @@ def regime_map(ax, records, method: str, title: str) -> None:
     return im
 
 
-def report(records: list[dict], out: Path, figures: Path, args: Args) -> dict:
+def diagnostics_figure(records: list[dict], path: Path) -> None:
+    """The network's own Jacobian error at the training points during training (median over
+    seeds; none = solid, sampled = dotted) against the error of the LTV labels (dashed), per row
+    group, for each window x friction family at its middle trajectory count and longest run."""
+    plt = pyplot()
+    cells = _cells(records)
+    if not cells:
+        return
+    n_mid = sorted({c[2] for c in cells})[len({c[2] for c in cells}) // 2]
+    e_max = max(c[3] for c in cells)
+    fams = sorted({(c[0], c[1]) for c in cells}, key=lambda k: (k[0] != "short", not k[1]))
+    fig, axes = plt.subplots(1, 2, figsize=(10, 3.8), layout="constrained")
+    colors = plt.rcParams["axes.prop_cycle"].by_key()["color"]
+    for i, (w, f) in enumerate(fams):
+        cell, color = (w, f, n_mid, e_max), colors[i % len(colors)]
+        label = f"{w} window, {'friction' if f else 'no friction'}"
+        for j, rows in enumerate(("pos", "vel")):
+            for method, style in (("none", "-"), ("sampled", ":")):
+                logs = [r["result"]["net_train_jac"] for r in records
+                        if r["config"]["method"] == method and (
+                            r["config"]["data"]["window"], r["config"]["data"]["friction"],
+                            r["config"]["n_train"], r["config"]["epochs"]) == cell]
+                if logs:
+                    ep = logs[0]["epoch"]
+                    med = np.median(np.array([lg[rows] for lg in logs]), 0)
+                    axes[j].plot(ep, med, style, color=color,
+                                 label=f"{label}: network, {method}" if j == 0 else None)
+            lab = _median(records, "sampled", cell, f"label_jac_{rows}")
+            if lab is not None:
+                axes[j].axhline(lab, ls="--", color=color, lw=1,
+                                label=f"{label}: LTV labels" if j == 0 else None)
+    for j, rows in enumerate(("position rows (q)", "velocity rows (qdot)")):
+        axes[j].set_xlabel("epoch")
+        axes[j].set_ylabel("Jacobian error at the training points")
+        axes[j].set_title(f"{rows}, {n_mid} trajectories", fontsize=9)
+    fig.legend(loc="outside right center", fontsize=6)
+    save_figure(fig, path)
+
+
+def report(records: list[dict], out: Path, figures: Path, args: Args,
+           protocol: list[dict] | None = None) -> dict:
     plt = pyplot()
     methods = [m for m in ("sampled", "oracle", "exact", "prior")
                if any(r["config"]["method"] == m for r in records)]
-    fig, axes = plt.subplots(len(methods), 1, figsize=(8.5, 2.6 * len(methods)), squeeze=False)
-    im = None
-    for ax, m in zip(axes[:, 0], methods):
-        im = regime_map(ax, records, m, f"{METHOD_LABELS[m]} vs none: median change of the "
-                                        "Jacobian error (text: change, runs better / runs)")
-    if im is not None:
-        fig.colorbar(im, ax=axes[:, 0].tolist(), shrink=0.6, label="Jacobian error change [%]")
+    fig, axes = plt.subplots(2, 1, figsize=(9, 7.5), layout="constrained",
+                             gridspec_kw={"height_ratios": [1.1, 1]})
+    im = regime_map(axes[0], records, "sampled", "sampled JacProp vs none: median change of "
+                    "the robot Jacobian error (text: change, runs better / runs)")
+    variants_map(axes[1], records, protocol or [])
+    fig.colorbar(im, ax=axes.tolist(), shrink=0.6, label="Jacobian error change vs none [%]")
     save_figure(fig, figures / "regime_map.png")
+
+    diagnostics_figure(records, figures / "regime_diagnostics.png")
 
     cells = _cells(records)
     table = {}
     for cell in cells:
         row = {"none_" + k: _median(records, "none", cell, k) for k in DIAG_KEYS}
+        row["none_net_train_pos"] = _final_train_err(records, cell, "pos")
+        row["none_net_train_vel"] = _final_train_err(records, cell, "vel")
         for m in methods:
             s = paired_relative(records, m, cell)
             if s is not None:
@@ -258,7 +356,7 @@ def report(records: list[dict], out: Path, figures: Path, args: Args) -> dict:
         table[_cell_label(cell)] = row
     cpu = sum(r["result"].get("cpu_time", 0.0) for r in records)
     summary = {"cells": table, "n_runs": len(records), "cpu_s_runs": cpu,
-               "figures": ["regime_map.png"]}
+               "figures": ["regime_map.png", "regime_diagnostics.png"]}
     (out / "table.md").write_text(markdown_table(records, methods))
     return summary
 
@@ -267,10 +365,22 @@ def _fmt(v, digits=2) -> str:
     return "-" if v is None else f"{v:.{digits}f}"
 
 
+def _final_train_err(records: list[dict], cell: tuple, rows: str,
+                     method: str = "none") -> float | None:
+    """Median over seeds of the network's own Jacobian error at the training points at the
+    end of training (``rows``: "pos" or "vel")."""
+    w, f, n, e = cell
+    v = [r["result"]["net_train_jac"][rows][-1] for r in records
+         if r["config"]["method"] == method and r["config"]["data"]["window"] == w
+         and r["config"]["data"]["friction"] == f and r["config"]["n_train"] == n
+         and r["config"]["epochs"] == e]
+    return float(np.median(v)) if v else None
+
+
 def markdown_table(records: list[dict], methods: list[str]) -> str:
     """One row per cell: none's Jacobian error and its diagnostics, each method's change."""
     head = ["cell", "none: Jacobian error (pos / vel rows; moving / still pts)", "still pts",
-            "LTV labels pos / vel (train pts)"]
+            "none's network / LTV labels at the train pts, pos rows; vel rows"]
     head += [f"{m}: change, wins" for m in methods]
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for cell in _cells(records):
@@ -280,13 +390,54 @@ def markdown_table(records: list[dict], methods: list[str]) -> str:
                f"{_fmt(md('none', 'jac_vel'))}; {_fmt(md('none', 'jac_moving_all'))} / "
                f"{_fmt(md('none', 'jac_still_all'))})",
                f"{100 * (md('none', 'frac_still') or 0):.0f} %",
-               f"{_fmt(md('sampled', 'label_jac_pos'))} / {_fmt(md('sampled', 'label_jac_vel'))}"]
+               f"{_fmt(_final_train_err(records, cell, 'pos'))} / "
+               f"{_fmt(md('sampled', 'label_jac_pos'))}; "
+               f"{_fmt(_final_train_err(records, cell, 'vel'))} / "
+               f"{_fmt(md('sampled', 'label_jac_vel'))}"]
         for m in methods:
             s = paired_relative(records, m, cell)
             row.append("-" if s is None else
                        f"{s['median_pct']:+.0f} % [{s['q1_pct']:+.0f}, {s['q3_pct']:+.0f}], "
                        f"{s['wins']}/{s['total']}")
         lines.append("| " + " | ".join(row) + " |")
+    return "\n".join(lines) + "\n"
+
+
+PROTOCOL_KEYS = ("jac_err", "jac_pos", "jac_vel", "jac_moving_all", "jac_still_all",
+                 "frac_still", "label_jac_pos", "label_jac_vel", "log10_pred_rms",
+                 "log10_sim_rms", "steps")
+
+
+def paper_protocol_summary(records: list[dict]) -> dict:
+    """The paper cell under the paper's protocol: medians per method, the network's own
+    training-point error per row group at the end, and the paired change vs none."""
+    cell = next((c for c in _cells(records)), None)
+    out = {"cell": _cell_label(cell), "methods": {}}
+    for m in ("none", "sampled", "oracle"):
+        row = {k: _median(records, m, cell, k) for k in PROTOCOL_KEYS}
+        fin = [r["result"]["net_train_jac"] for r in records if r["config"]["method"] == m]
+        if fin:
+            row["net_train_pos"] = float(np.median([f["pos"][-1] for f in fin]))
+            row["net_train_vel"] = float(np.median([f["vel"][-1] for f in fin]))
+        if m != "none":
+            row["vs_none"] = paired_relative(records, m, cell)
+        out["methods"][m] = row
+    return out
+
+
+def paper_protocol_table(s: dict) -> str:
+    lines = [f"Paper protocol at the paper cell ({s['cell']}; 4-member nominal ensemble, one "
+             "optimizer step per trajectory, equal steps):", "",
+             "| method | Jacobian error (pos / vel rows) | network at train pts pos / vel | "
+             "labels pos / vel | change vs none, wins |", "|---|---|---|---|---|"]
+    for m, r in s["methods"].items():
+        vs = r.get("vs_none")
+        lines.append(
+            f"| {m} | {_fmt(r['jac_err'])} ({_fmt(r['jac_pos'])} / {_fmt(r['jac_vel'])}) | "
+            f"{_fmt(r.get('net_train_pos'))} / {_fmt(r.get('net_train_vel'))} | "
+            f"{_fmt(r['label_jac_pos'])} / {_fmt(r['label_jac_vel'])} | "
+            + ("-" if not vs else f"{vs['median_pct']:+.0f} % [{vs['q1_pct']:+.0f}, "
+               f"{vs['q3_pct']:+.0f}], {vs['wins']}/{vs['total']}") + " |")
     return "\n".join(lines) + "\n"
 
 
@@ -299,7 +450,13 @@ def main(args: Args) -> dict:
     records = [r for r in load_results(out) if r.get("status") == "ok"]
     if not records:
         raise SystemExit(f"no finished runs in {out}")
-    summary = report(records, out, figures, args)
+    protocol = [r for r in records if r["config"].get("paper_protocol")]
+    records = [r for r in records if not r["config"].get("paper_protocol")]
+    summary = report(records, out, figures, args, protocol)
+    if protocol:
+        summary["paper_protocol"] = paper_protocol_summary(protocol)
+        with open(out / "table.md", "a") as fh:
+            fh.write("\n" + paper_protocol_table(summary["paper_protocol"]))
     write_json(out / "summary.json", summary)
     if args.json:
         write_json(args.json, summary)

@@ -33,7 +33,8 @@ import numpy as np
 import envs  # noqa: F401  (registers mbtsr/TwoLinkArm-v0)
 from mbtsr.costs import quadratic_cost
 from mbtsr.ilqr import ILQROptions, ilqr
-from mbtsr.mpc import MPC, MPCOptions, run_mpc_episode
+from mbtsr.mpc import MPC, MPCOptions
+from mbtsr.rollout import run_episode
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
@@ -83,16 +84,13 @@ def episode_cost(X: np.ndarray, U: np.ndarray, goal, Q, R) -> np.ndarray:
 
 
 def run_policy(env, policy, T, seed, options):
-    """Run ``policy(t, x) -> a`` in ``env``; ``-> (X [T+1, n], U [T, m], rewards [T])``."""
-    obs, info = env.reset(seed=seed, options=options)
-    X, U, rewards = [info["state"]], [], []
-    for t in range(T):
-        a = np.clip(policy(t, X[-1]), -1.0, 1.0)
-        obs, r, _, _, info = env.step(a)
-        X.append(info["state"])
-        U.append(a)
-        rewards.append(r)
-    return np.array(X), np.array(U), np.array(rewards)
+    """Run ``policy(x, t) -> a`` on the env state; ``-> (X [T+1, n], U [T, m], rewards [T])``."""
+    rec = run_episode(env, policy, seed=seed, options=options, max_steps=T, observe=_state)
+    return rec.states, rec.actions, rec.rewards
+
+
+def _state(obs, info):
+    return info["state"]
 
 
 if __name__ == "__main__":
@@ -112,7 +110,7 @@ if __name__ == "__main__":
     options = {"target": target, "state": x0}  # replay exactly this episode below
     goal = np.r_[target, 0.0, 0.0]
     Q, R = arm.cost_Q, arm.cost_R
-    cost = quadratic_cost(Q, R, goal)
+    cost = quadratic_cost(Q, R)  # the goal is a parameter: params=cost.reference(goal)
     print(f"start {np.round(x0, 3).tolist()}, target {np.round(target, 3).tolist()}")
 
     # ---- the model
@@ -133,7 +131,7 @@ if __name__ == "__main__":
     else:
         from mbtsr.ensemble import load_model
 
-        model, model_name = load_model(args.model), Path(args.model).stem
+        model, model_name = load_model(args.model).freeze(), Path(args.model).stem
     print(f"model: {model_name} ({time.perf_counter() - tic:.2f} s to build)")
 
     # ---- 1. plan with iLQR on the model
@@ -144,6 +142,7 @@ if __name__ == "__main__":
         np.zeros((args.T, 2)),
         u_min=-1.0,
         u_max=1.0,
+        params=cost.reference(goal),
         options=ILQROptions(max_iter=args.max_iter, tol_fun_rel=1e-6),
     )
     print(
@@ -152,21 +151,24 @@ if __name__ == "__main__":
     )
 
     # ---- 2./3. execute the plan in the env: open loop, and with the plan's feedback gains
-    X_ol, U_ol, r_ol = run_policy(env, lambda t, x: res.U[t], args.T, args.seed, options)
+    X_ol, U_ol, r_ol = run_policy(env, lambda x, t: res.U[t], args.T, args.seed, options)
     X_fb, U_fb, r_fb = run_policy(
-        env, lambda t, x: res.U[t] + res.K[t] @ (x - res.X[t]), args.T, args.seed, options
+        env, lambda x, t: res.U[t] + res.K[t] @ (x - res.X[t]), args.T, args.seed, options
     )
 
     # ---- 4. MPC on the model in the env
     mpc = MPC(
+        ilqr,
         cost,
         model,
         horizon=args.mpc_horizon,
         u_min=-1.0,
         u_max=1.0,
         options=MPCOptions(iterations_per_step=args.mpc_iterations, first_step_iterations=30),
+        params=cost.reference(goal),
     )
-    mpc_out = run_mpc_episode(env, mpc, seed=args.seed, options=options)
+    mpc_out = run_episode(env, mpc, seed=args.seed, options=options, observe=_state)
+    compute_times = np.asarray(mpc.compute_times)
 
     # ---- summary
     planned = episode_cost(res.X, res.U, goal, Q, R)
@@ -183,16 +185,16 @@ if __name__ == "__main__":
             "planned_under_model": float(planned.sum()),
             "open_loop": float(-r_ol.sum()),
             "plan_with_feedback": float(-r_fb.sum()),
-            "mpc": float(-mpc_out["total_reward"]),
+            "mpc": mpc_out.cost,
         },
         "final_angle_error_rad": {
             "planned": float(np.abs(res.X[-1, :2] - target).max()),
             "open_loop": float(np.abs(X_ol[-1, :2] - target).max()),
             "plan_with_feedback": float(np.abs(X_fb[-1, :2] - target).max()),
-            "mpc": float(np.abs(mpc_out["states"][-1, :2] - target).max()),
+            "mpc": float(np.abs(mpc_out.states[-1, :2] - target).max()),
         },
-        "mpc_ms_per_step": float(mpc_out["compute_times"][1:].mean() * 1e3),
-        "mpc_real_time_factor": float(arm.dt / mpc_out["compute_times"][1:].mean()),
+        "mpc_ms_per_step": float(compute_times[1:].mean() * 1e3),
+        "mpc_real_time_factor": float(arm.dt / compute_times[1:].mean()),
     }
     for key in ("episode_cost", "final_angle_error_rad"):
         print(key + ": " + ", ".join(f"{k} {v:.4f}" for k, v in summary[key].items()))

@@ -47,6 +47,8 @@ class ExperimentArgs:
     figures: str = field(default="", metadata={"help": "figure folder"})
     workers: int = field(default=2, metadata={"help": "parallel worker processes"})
     backend: str = field(default="process", metadata={"help": "process, serial or ray"})
+    address: str = field(default="", metadata={
+        "help": "Ray only: address of an existing cluster (auto, host:6379); empty: a local one"})
     report_only: bool = field(default=False, metadata={"help": "only redraw from JSON"})
     json: str = field(default="", metadata={"help": "also write the summary JSON here"})
 
@@ -153,7 +155,8 @@ def run_experiment(
         library_at_start = library_version()
         t0 = time.perf_counter()
         recs = run_sweep(run_fn, configs, range(args.mc), out, backend=args.backend,
-                         workers=args.workers, progress=not args.quick)
+                         workers=args.workers, progress=not args.quick,
+                         address=args.address or None)
         wall = time.perf_counter() - t0
         print(f"[{experiment}] sweep finished in {wall:.1f} s")
         log_path = out / "sweeps.json"  # wall time of every (resumed) sweep
@@ -251,7 +254,8 @@ def pyplot():
 
 
 def save_figure(fig, path: Path) -> None:
-    fig.tight_layout()
+    if fig.get_layout_engine() is None:  # a figure made with layout="constrained" keeps it
+        fig.tight_layout()
     fig.savefig(path, dpi=110)
     pyplot().close(fig)
 

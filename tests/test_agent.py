@@ -35,11 +35,11 @@ from agents.evaluation import (
     evaluate_policy_costs,
     evaluation_targets,
     oracle_policy,
+    planner_cost,
     run_episode,
     solved_threshold,
 )
 from agents.jacprop_agent import JacPropAgent
-from agents.planner import PlannerCosts
 from agents.task import ObservationCost, default_task_for_env, env_spec
 from mbtsr.ensemble import load_model
 from mbtsr.metrics import prediction_rms
@@ -216,20 +216,19 @@ def test_planner_cost_matches_numpy_formula_and_depends_only_on_the_target(data)
     env = gym.make(ARM)
     cost_fn, state_map = default_task_for_env(env)
     task = ObservationCost(cost_fn, state_map, env_spec(env), state_dim=4)
-    costs = PlannerCosts(task, terminal_weight=2.0)
-    np.testing.assert_array_equal(costs.context_index, [4, 5])
+    cost = planner_cost(task, terminal_weight=2.0)  # one compiled cost, the reference a param
     f = st.floats(-3.0, 3.0)
     x = np.array(data.draw(st.lists(f, min_size=4, max_size=4)))
     u = np.array(data.draw(st.lists(st.floats(-1, 1), min_size=2, max_size=2)))
     ref = np.array(data.draw(st.lists(f, min_size=6, max_size=6)))
     Q, R = env.unwrapped.cost_Q, env.unwrapped.cost_R
     e = x - np.r_[ref[4:], 0.0, 0.0]
-    c = costs(ref)
-    assert c.stage_values(x[None], u[None])[0] == pytest.approx(e @ Q @ e + u @ R @ u, rel=1e-12)
-    assert c.terminal_values(x, 0) == pytest.approx(2.0 * e @ Q @ e, rel=1e-12)
+    stage = cost.stage_values(x[None], u[None], 0, ref)[0]
+    assert stage == pytest.approx(e @ Q @ e + u @ R @ u, rel=1e-12)
+    assert cost.terminal_values(x, 0, ref) == pytest.approx(2.0 * e @ Q @ e, rel=1e-12)
     ref2 = ref.copy()
-    ref2[:4] += 1.0  # the state part of the reference does not matter: same cached cost
-    assert costs(ref2) is c
+    ref2[:4] += 1.0  # the state part of the reference does not matter
+    assert cost.stage_values(x[None], u[None], 0, ref2)[0] == stage
 
 
 # ------------------------------------------------------------------------------ checkpoints
@@ -601,8 +600,8 @@ def test_cem_planner_runs_the_same_mpc_and_respects_the_termination_fn():
     assert agent.policy.last_result.status in ("converged", "max_iter")
     ended = JacPropAgent(env, cfg, cost_fn=pendulum_cost,
                          termination_fn=lambda o: np.ones(o.shape[:-1], dtype=bool))
-    ended.model = agent.model
-    ended.policy.model = agent.model
+    ended.model.load_state_dict(agent.model.state_dict())
+    ended._freeze()  # train -> freeze -> plan, as learn() does after its training round
     ended.predict(obs)
     res = ended.policy.last_result
     first_stage = float(agent.task_cost.stage(agent.state_map.state(obs), res.U[0], obs))
@@ -632,3 +631,36 @@ def test_refit_normalization_keeps_the_function_and_follows_the_data():
     A1, B1 = model.jacobians(x, u)
     np.testing.assert_allclose(A1, A0, atol=1e-4 * np.abs(A0).max())
     np.testing.assert_allclose(B1, B0, atol=1e-4 * np.abs(B0).max())
+
+
+def test_replan_every_executes_each_plan_open_loop():
+    """With replan_every=k the actions between solves are exactly the plan's next actions."""
+    env = gym.make("Pendulum-v1")
+    agent = JacPropAgent(env, tiny_config(episode_steps=12, replan_every=3),
+                         cost_fn=pendulum_cost)
+    agent.learn(1, progress_bar=False)
+    solves = []
+    original = agent.policy.plan
+
+    def counting_plan(obs, U0=None):
+        U, res = original(obs, U0)
+        solves.append(U.copy())
+        return U, res
+
+    agent.policy.plan = counting_plan
+    rec = agent.rollout_policy(env, seed=4)
+    assert len(solves) == 4  # steps 0, 3, 6, 9 of 12
+    for j, U in enumerate(solves):
+        np.testing.assert_allclose(rec.actions[3 * j: 3 * j + 3],
+                                   np.clip(U[:3], -2, 2).astype(np.float32), rtol=1e-6)
+
+
+def test_evaluation_schedule_every_k_episodes_and_at_the_end_of_learn():
+    env = gym.make("Pendulum-v1")
+    agent = JacPropAgent(env, tiny_config(episode_steps=10, eval_every=4, eval_episodes=1),
+                         cost_fn=pendulum_cost)
+    agent.learn(3, progress_bar=False)
+    assert [r["episode"] for r in agent.logger_rows if r["eval_returns"]] == [0, 2]
+    agent.learn(total_env_steps=25, progress_bar=False)  # episodes 3, 4, 5 (5 steps)
+    assert [r["episode"] for r in agent.logger_rows if r["eval_returns"]] == [0, 2, 4, 5]
+    assert agent.logger_rows[-1]["env_steps"] == 55

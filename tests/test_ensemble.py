@@ -291,13 +291,15 @@ def test_set_normalization_uses_input_and_residual_statistics():
     np.testing.assert_array_equal(raw.out_mean.numpy(), 0.0)
 
 
-def test_numpy_cache_follows_in_place_parameter_updates():
+def test_frozen_model_is_a_snapshot_and_a_new_freeze_sees_the_update():
     model = make_model(EnsembleConfig(1, 1).members, "g")
     x, u = sample_points()
-    before = model.step(x, u)
+    frozen = model.freeze()
+    before = frozen.step(x, u)
     with torch.no_grad():
         model.groups[0].bo.add_(1.0)  # as an optimizer step would
-    after = model.step(x, u)
+    np.testing.assert_array_equal(frozen.step(x, u), before)
+    after = model.freeze().step(x, u)
     np.testing.assert_allclose(after - before, np.broadcast_to(model.out_std.numpy(), after.shape),
                                rtol=1e-6)
 
@@ -479,8 +481,8 @@ def _normwise_close(a, b, tol):
 def test_step_agrees_with_the_per_member_path(formulation, members):
     """``step`` (folded fast path: tanh-based sigmoid/swish, biases and skip inside the matrix
     products) equals the mean of the per-member float64 predictions to rounding."""
-    model = make_model(members, formulation, perturb=0.5)
-    assert (model._numpy_cached()[1] is None) == any(s.depth == 2 for s in members)
+    model = make_model(members, formulation, perturb=0.5).freeze()
+    assert (model._plan is None) == any(s.depth == 2 for s in members)
     rng = np.random.default_rng(7)
     for lead in [(11,), (), (3, 4), (0,)]:
         x = rng.normal(size=(*lead, N_STATE)) * 3 + 1
@@ -519,22 +521,151 @@ def test_step_returns_a_fresh_array():
     lambda params: torch.optim.Adam(params, lr=0.05, fused=True),  # no version-counter bump
     lambda params: torch.optim.Adam(params, lr=0.05, foreach=True),
 ], ids=["sgd", "adam-fused", "adam-foreach"])
-def test_step_cache_follows_optimizer_steps_and_load_state_dict(make_optimizer):
-    """No explicit invalidation: an optimizer step on the weights (in place) and
-    ``load_state_dict`` both change what ``step`` computes, matching a freshly built model."""
+def test_freeze_after_optimizer_steps_and_load_state_dict(make_optimizer):
+    """Nothing to invalidate: a freeze after an optimizer step (in place, even fused) or after
+    ``load_state_dict`` computes what a freshly built model with those weights computes, and
+    the copy frozen before the step is unchanged."""
     model = make_model(WIDE_MEMBERS, "g")
     x, u = sample_points(T=7)
-    before = model.step(x, u)
+    old = model.freeze()
+    before = old.step(x, u)
     opt = make_optimizer(model.parameters())
     loss = model.forward_torch(torch.tensor(x), torch.tensor(u)).square().sum()
     loss.backward()
     opt.step()
-    after = model.step(x, u)
+    after = model.freeze().step(x, u)
     assert np.max(np.abs(after - before)) > 1e-3
+    np.testing.assert_array_equal(old.step(x, u), before)
     fresh = DynamicsEnsemble(model.config)
     fresh.load_state_dict(model.state_dict())
-    _normwise_close(after, fresh.step(x, u), 1e-14)
-    _normwise_close(after, model.member_predictions(x, u).mean(0), 1e-14)
+    _normwise_close(after, fresh.freeze().step(x, u), 1e-14)
+    _normwise_close(after, model.freeze().member_predictions(x, u).mean(0), 1e-14)
     other = make_model(WIDE_MEMBERS, "g", seed=5)
     fresh.load_state_dict(other.state_dict())  # copies in place into the same tensors
-    _normwise_close(fresh.step(x, u), other.member_predictions(x, u).mean(0), 1e-14)
+    _normwise_close(fresh.freeze().step(x, u), other.member_predictions(x, u).mean(0), 1e-14)
+
+
+@pytest.mark.parametrize("members", [WIDE_MEMBERS, MIXED_MEMBERS], ids=["wide", "mixed"])
+def test_frozen_model_matches_the_torch_model_and_is_immutable_float64_numpy(members):
+    """The frozen copy: outputs equal the torch (float32) forward pass, Jacobians equal torch
+    autograd of it and finite differences of the frozen step; float64 numpy only, read-only."""
+    model = make_model(members, "nominal")
+    frozen = model.freeze()
+    assert (frozen.state_dim, frozen.action_dim, frozen.n_members) == (N_STATE, N_INPUT,
+                                                                      len(members))
+    x, u = sample_points(T=5)
+    members_t = model.forward_torch(torch.tensor(x), torch.tensor(u)).detach().numpy()
+    pred = frozen.member_predictions(x, u)
+    np.testing.assert_allclose(pred, members_t, rtol=1e-5, atol=1e-5 * np.abs(pred).max())
+    mean, std = frozen.predict(x, u)
+    np.testing.assert_allclose(frozen.step(x, u), mean, rtol=1e-13, atol=1e-13)
+    np.testing.assert_allclose(std, pred.std(0), rtol=1e-13)
+    xu = torch.tensor(np.concatenate([x, u], 1), dtype=torch.float32)
+    J_auto = torch.stack([
+        torch.autograd.functional.jacobian(lambda p: model.forward_torch(p[None])[:, 0].mean(0),
+                                           xu[i])
+        for i in range(len(xu))
+    ]).numpy()
+    A, B = frozen.jacobians(x, u)
+    J = np.concatenate([A, B], -1)
+    np.testing.assert_allclose(J, J_auto, rtol=1e-4, atol=1e-4 * np.abs(J).max())
+    eps, cols = 1e-6, []
+    for j in range(N_STATE + N_INPUT):
+        e = np.zeros(N_STATE + N_INPUT)
+        e[j] = eps
+        cols.append((frozen.step(x + e[:N_STATE], u + e[N_STATE:])
+                     - frozen.step(x - e[:N_STATE], u - e[N_STATE:])) / (2 * eps))
+    np.testing.assert_allclose(J, np.stack(cols, -1), rtol=1e-6, atol=1e-7)
+    # immutable: no attribute can be set, no array written; nothing torch inside
+    with pytest.raises(AttributeError, match="immutable"):
+        frozen.state_dim = 7
+    arrays = [a for _, p in frozen._groups for a in p.values()] + [frozen._skip_J]
+    if frozen._plan is not None:
+        arrays += [frozen._plan.W_in, frozen._plan.W_out]
+    assert all(isinstance(a, np.ndarray) and a.dtype == np.float64 for a in arrays)
+    with pytest.raises(ValueError, match="read-only"):
+        arrays[0][...] = 0.0
+    assert not any(isinstance(v, torch.Tensor) for v in vars(frozen).values())
+
+
+@pytest.mark.parametrize(
+    "call, match",
+    [
+        (lambda f, x, u: f.step(x[:, :2], u), "x must have last dimension"),
+        (lambda f, x, u: f.step(x, u[:3]), "batch"),
+        (lambda f, x, u: f.step(np.where(x > 1, np.nan, x), u), "x contains .* non-finite"),
+        (lambda f, x, u: f.step(x, np.full_like(u, np.inf)), "u contains .* non-finite"),
+        (lambda f, x, u: f.jacobians(x, u[:-1]), r"u must have shape \[6, 2\]"),
+        (lambda f, x, u: f.member_jacobians(x[None], u), "x must have shape"),
+        (lambda f, x, u: f.predict(x, "u"), "u must be numeric"),
+    ],
+)
+def test_frozen_model_names_bad_inputs(call, match):
+    frozen = make_model(WIDE_MEMBERS, "g").freeze()
+    x, u = sample_points()
+    with pytest.raises(ValueError, match=match):
+        call(frozen, x, u)
+
+
+def test_planning_code_refuses_the_trainable_model():
+    from mbtsr.costs import quadratic_cost
+    from mbtsr.ilqr import ilqr
+
+    model = make_model(WIDE_MEMBERS, "g")
+    cost = quadratic_cost(np.eye(N_STATE), np.eye(N_INPUT))
+    with pytest.raises(TypeError, match=r"model.freeze\(\)"):
+        ilqr(cost, model, np.zeros(N_STATE), np.zeros((4, N_INPUT)))
+    res = ilqr(cost, model.freeze(), np.zeros(N_STATE), np.zeros((4, N_INPUT)),
+               options={"max_iter": 3})
+    assert np.isfinite(res.U).all()
+
+
+@pytest.mark.parametrize(
+    "corrupt, match",
+    [
+        (lambda m: m.groups[0].W1.data.__setitem__((0, 1, 2), float("nan")),
+         r"groups.0.W1 contains 1 non-finite"),
+        (lambda m: m.out_mean.__setitem__(0, float("inf")), "out_mean contains 1 non-finite"),
+        (lambda m: m.in_std.__setitem__(1, 0.0), "in_std must be > 0"),
+    ],
+)
+def test_freeze_names_a_non_finite_or_invalid_tensor(corrupt, match):
+    model = make_model(WIDE_MEMBERS, "g")
+    with torch.no_grad():
+        corrupt(model)
+    with pytest.raises(ValueError, match=match):
+        model.freeze()
+
+
+def test_rollout_of_the_trainable_model_simulates_one_frozen_copy():
+    from mbtsr.dynamics import rollout
+
+    model = make_model(WIDE_MEMBERS, "g")
+    x, u = sample_points(T=6)
+    frozen = model.freeze()
+    want = [x[0]]
+    for t in range(6):
+        want.append(frozen.step(want[-1], u[t]))
+    np.testing.assert_array_equal(rollout(model, x[0], u), np.array(want))
+
+
+@pytest.mark.parametrize(
+    "members", [[MemberSpec(a, 6) for a in ACTIVATIONS], WIDE_MEMBERS],
+    ids=["all-activations", "wide-padded"],
+)
+def test_compiled_step_kernel_equals_the_numpy_step(members):
+    """The compiled kernel (small batches) and the numpy path (large batches) of the frozen
+    ensemble-mean step agree to rounding, also with saturated activations."""
+    frozen = make_model(members, "nominal", perturb=0.5).freeze()
+    rng = np.random.default_rng(11)
+    for B in (1, 2, 3, 4):
+        for scale in (1.0, 1e3, 1e12):
+            x = rng.normal(size=(B, N_STATE)) * 3 * scale
+            u = rng.normal(size=(B, N_INPUT)) * scale
+            got = frozen._step(x, u)
+            want = frozen._step_numpy(x, u)
+            _normwise_close(got, want, 1e-14)
+            _normwise_close(got, frozen.member_predictions(x, u).mean(0), 1e-13)
+    x = rng.normal(size=(7, 3, N_STATE))[:, 1]  # a strided view, as in batched rollouts
+    u = rng.normal(size=(7, N_INPUT))
+    _normwise_close(frozen._step(x[:3], u[:3]), frozen._step_numpy(x[:3], u[:3]), 1e-14)

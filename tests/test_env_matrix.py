@@ -163,3 +163,26 @@ def test_high_dimensional_env_runs_without_ltv(env_id):
     agent.learn(2, progress_bar=False)
     assert agent.env_steps > 0 and np.isfinite(agent.logger_rows[-1]["one_step_rms"])
     env.close()
+
+
+class ConstantColumns(gym.ObservationWrapper):
+    """Appends coordinates that never change (0 and 5) to the observation."""
+
+    def __init__(self, env: gym.Env) -> None:
+        super().__init__(env)
+        low, high = env.observation_space.low, env.observation_space.high
+        self.observation_space = gym.spaces.Box(
+            np.concatenate([low, [-10, -10]]).astype(np.float32),
+            np.concatenate([high, [10, 10]]).astype(np.float32))
+
+    def observation(self, obs):
+        return np.concatenate([obs, [0.0, 5.0]]).astype(np.float32)
+
+
+def test_observation_coordinates_constant_over_all_data():
+    env = ConstantColumns(gym.make("Pendulum-v1", max_episode_steps=20))
+    agent = run_two_episodes(env)
+    check_run(agent, env)
+    assert "degenerate regressors" in agent.logger_rows[0]["ltv_fallback"]
+    # zero-variance coordinates keep unit scale in the normalization (no division by 0)
+    assert np.all(agent.model.in_std.numpy()[3:5] == 1.0)

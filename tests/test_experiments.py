@@ -266,8 +266,9 @@ def test_regime_quick_runs_every_method_at_equal_steps_and_redraws(tmp_path):
     run_script("exp_regime.py", "--quick", "--out", str(out), "--backend", "serial")
     recs = [json.loads(p.read_text()) for p in sorted((out / "runs").glob("*.json"))]
     # 2 windows x 2 frictions x 1 trajectory count x 2 epoch counts x (none, sampled) plus
-    # oracle / exact / prior on the paper-friction cells, 2 seeds each
-    assert len(recs) == 2 * (2 * 2 * 2 * 2 + 3 * 2)
+    # oracle / exact / prior on the paper-friction cells, plus none / sampled / oracle under the
+    # paper's protocol (4 members, one step per trajectory) at its shortest run; 2 seeds each
+    assert len(recs) == 2 * (2 * 2 * 2 * 2 + 3 * 2 + 3)
     cells: dict = {}
     for r in recs:
         assert r["status"] == "ok"
@@ -281,14 +282,19 @@ def test_regime_quick_runs_every_method_at_equal_steps_and_redraws(tmp_path):
             assert res["label_jac_vel"] >= 0
         if c["method"] == "oracle":  # true-Jacobian labels have no Jacobian error
             assert res["label_jac_pos"] == res["label_jac_vel"] == 0.0
-        key = (c["data"]["window"], c["data"]["friction"], c["n_train"], c["epochs"], r["seed"])
+        key = (c["data"]["window"], c["data"]["friction"], c["n_train"], c["epochs"], r["seed"],
+               c.get("paper_protocol", False))
         cells.setdefault(key, set()).add(res["steps"])
-    # every method of a cell took the same number of optimizer steps (= epochs, full batch)
-    assert all(len(s) == 1 and next(iter(s)) == k[3] for k, s in cells.items())
+    # every method of a cell took the same number of optimizer steps: epochs (full batch), or
+    # epochs x trajectories (the paper's protocol)
+    assert all(len(s) == 1 and next(iter(s)) == k[3] * (k[2] if k[5] else 1)
+               for k, s in cells.items())
+    summary_pp = json.loads((out / "summary.json").read_text())["paper_protocol"]
+    assert set(summary_pp["methods"]) == {"none", "sampled", "oracle"}
     fig = out / "figures" / "regime_map.png"
     assert fig.stat().st_size > 5000
     summary = json.loads((out / "summary.json").read_text())
-    assert summary["n_runs"] == len(recs)
+    assert summary["n_runs"] + 2 * 3 == len(recs)  # the map's runs; paper protocol apart
     fig.unlink()
     run_script("exp_regime.py", "--quick", "--out", str(out), "--report-only")
     assert fig.stat().st_size > 5000

@@ -1,5 +1,6 @@
 """Tests of mbtsr.mpc: the receding-horizon controller against finite-horizon LQR, its warm
-start and time handling, and reach-and-hold on the MuJoCo arm with the true model."""
+start and time handling, any optimizer with the shared signature, episodes through the one
+rollout loop, and reach-and-hold on the MuJoCo arm with the true model."""
 
 from __future__ import annotations
 
@@ -8,11 +9,11 @@ import numpy as np
 import pytest
 
 import envs  # noqa: F401  (registers the envs)
-import mbtsr.mpc as mpc_module
 from mbtsr.costs import quadratic_cost
 from mbtsr.dynamics import LinearDynamics
-from mbtsr.ilqr import ILQROptions
-from mbtsr.mpc import MPC, MPCOptions, run_mpc_episode
+from mbtsr.ilqr import ILQROptions, ilqr
+from mbtsr.mpc import MPC, MPCOptions
+from mbtsr.rollout import run_episode
 
 N_X, N_U = 3, 2
 
@@ -34,9 +35,10 @@ def _first_lqr_control(A, B, Q, R, Qf, x, H):
 def test_mpc_action_is_the_first_control_of_finite_horizon_lqr():
     A, B = _system()
     Q, R, Qf = np.eye(N_X), 0.1 * np.eye(N_U), 2 * np.eye(N_X)
-    opts = MPCOptions(iterations_per_step=3, ilqr=ILQROptions(lambda_init=0.0))
+    opts = MPCOptions(iterations_per_step=3, optimizer_options=ILQROptions(lambda_init=0.0))
     mpc = MPC(
-        quadratic_cost(Q, R, np.zeros(N_X), Qf=Qf), LinearDynamics(A, B), horizon=15, options=opts
+        ilqr, quadratic_cost(Q, R, np.zeros(N_X), Qf=Qf), LinearDynamics(A, B), horizon=15,
+        options=opts,
     )
     x = np.array([1.0, -0.5, 0.7])
     for t in range(5):
@@ -48,25 +50,27 @@ def test_mpc_action_is_the_first_control_of_finite_horizon_lqr():
     assert mpc.compute_times == [] and mpc.plan is None
 
 
-def test_warm_start_shifts_the_previous_plan_and_passes_absolute_time(monkeypatch):
+def test_warm_start_shifts_the_previous_plan_and_passes_absolute_time():
     calls = []
-    real_ilqr = mpc_module.ilqr
 
-    def spy(cost, dynamics, x0, U0, **kw):
-        calls.append({"U0": U0.copy(), "t0": kw["t0"], "max_iter": kw["options"].max_iter})
-        return real_ilqr(cost, dynamics, x0, U0, **kw)
+    def spy(cost, dynamics, x0, U0, **kw):  # any optimizer with the shared signature
+        calls.append({"U0": U0.copy(), "t0": kw["t0"], "max_iter": kw["options"]["max_iter"],
+                      "params": kw["params"]})
+        return ilqr(cost, dynamics, x0, U0, **kw)
 
-    monkeypatch.setattr(mpc_module, "ilqr", spy)
     A, B = _system()
     ref = np.tile(np.array([0.5, 0.0, 0.0]), (40, 1))
     ref[20:, 0] = -0.5
+    cost = quadratic_cost(np.eye(N_X), 0.1 * np.eye(N_U))
     mpc = MPC(
-        quadratic_cost(np.eye(N_X), 0.1 * np.eye(N_U), ref),
+        spy,
+        cost,
         LinearDynamics(A, B),
         horizon=10,
         u_min=-1.0,
         u_max=1.0,
-        options=MPCOptions(iterations_per_step=2, first_step_iterations=7),
+        options=MPCOptions(iterations_per_step=2, first_step_iterations=7, optimizer_options={}),
+        params=cost.reference(ref),
     )
     x = np.zeros(N_X)
     mpc.act(x, 3)
@@ -80,6 +84,15 @@ def test_warm_start_shifts_the_previous_plan_and_passes_absolute_time(monkeypatc
     np.testing.assert_array_equal(calls[3]["U0"], np.zeros((10, N_U)))
     assert [c["t0"] for c in calls] == [3, 4, 6, 2]
     assert [c["max_iter"] for c in calls] == [7, 2, 2, 7]
+    assert all(np.array_equal(c["params"], cost.reference(ref)) for c in calls)
+    # the reference is a parameter: the same as a cost built for it
+    mpc2 = MPC(ilqr, quadratic_cost(np.eye(N_X), 0.1 * np.eye(N_U), ref), LinearDynamics(A, B),
+               horizon=10, u_min=-1.0, u_max=1.0,
+               options=MPCOptions(iterations_per_step=2, first_step_iterations=7,
+                                  optimizer_options={}))
+    mpc.reset()
+    for t in range(3):
+        np.testing.assert_array_equal(mpc.act(x, t), mpc2.act(x, t))
 
 
 def test_run_mpc_episode_on_the_linear_system_env_equals_receding_horizon_lqr():
@@ -88,21 +101,25 @@ def test_run_mpc_episode_on_the_linear_system_env_equals_receding_horizon_lqr():
     cost = quadratic_cost(u.cost_Q, u.cost_R, np.zeros(4))
     H = 20
     mpc = MPC(
+        ilqr,
         cost,
         u.dynamics_model(),
         horizon=H,
         u_min=-u.action_space.high,
         u_max=u.action_space.high,
-        options=MPCOptions(iterations_per_step=2, ilqr=ILQROptions(lambda_init=0.0)),
+        options=MPCOptions(iterations_per_step=2,
+                           optimizer_options=ILQROptions(lambda_init=0.0)),
     )
-    out = run_mpc_episode(env, mpc, seed=3)
-    x, a = out["states"], out["actions"]
+    mpc.act(np.ones(4), 5)  # a stale plan: run_episode resets the controller first
+    out = run_episode(env, mpc, seed=3, observe=lambda obs, info: info["state"])
+    x, a = out.states, out.actions
     assert x.shape == (41, 4) and a.shape == (40, 2)
-    assert out["rewards"].shape == (40,) and out["compute_times"].shape == (40,)
-    assert out["truncated"] and out["steps"] == 40
+    assert out.rewards.shape == (40,) and out.policy_times.shape == (40,)
+    assert len(mpc.compute_times) == len(mpc.statuses) == 40
+    assert out.truncated and out.T == 40
     # the rewards are the env's: -(x'Qx + u'Ru) on the state after the step
     np.testing.assert_allclose(
-        out["rewards"], -(np.sum(x[1:] ** 2, 1) + u.cost_R[0, 0] * np.sum(a**2, 1))
+        out.rewards, -(np.sum(x[1:] ** 2, 1) + u.cost_R[0, 0] * np.sum(a**2, 1))
     )
     assert np.all(np.abs(a) < u.action_space.high)  # limits inactive: pure LQR
     for t in range(40):
@@ -115,18 +132,21 @@ def _reach_and_hold(seed, target, horizon, steps, iterations):
     env = gym.make("mbtsr/TwoLinkArm-v0", episode_steps=steps)
     arm = env.unwrapped
     goal = np.r_[target, 0.0, 0.0]
-    cost = quadratic_cost(arm.cost_Q, arm.cost_R, goal)
+    cost = quadratic_cost(arm.cost_Q, arm.cost_R)  # the goal is a parameter
     mpc = MPC(
+        ilqr,
         cost,
         arm.dynamics_model(),
         horizon=horizon,
         u_min=-1.0,
         u_max=1.0,
         options=MPCOptions(iterations_per_step=iterations, first_step_iterations=30),
+        params=cost.reference(goal),
     )
-    out = run_mpc_episode(env, mpc, seed=seed, options={"target": target})
-    assert np.all(np.abs(out["actions"]) <= 1.0)
-    return out["states"] - goal
+    out = run_episode(env, mpc, seed=seed, options={"target": target},
+                      observe=lambda obs, info: info["state"])
+    assert np.all(np.abs(out.actions) <= 1.0)
+    return out.states - goal
 
 
 # Bound ("reaches and holds"): the joint angles are within Q_TOL = 0.03 rad of the target at
@@ -167,23 +187,60 @@ def test_mpc_with_true_mujoco_model_reaches_and_holds_random_targets(seed):
         ({"u_min": 1.0, "u_max": -1.0}, ValueError, "u_min must be <= u_max"),
         ({"U_init": np.zeros((4, N_U))}, ValueError, r"U_init must have shape \[5, 2\]"),
         ({"options": ILQROptions()}, TypeError, "options must be an MPCOptions"),
+        ({"params": np.zeros(4)}, ValueError, r"params must be \[5\] or \[N_ref, 5\]"),
+        ({"params": np.full(5, np.nan)}, ValueError, "params contains 5 non-finite"),
+        ({"optimizer": "ilqr"}, TypeError, "optimizer must be callable"),
+        ({"model": object()}, TypeError, "model must have step"),
+        ({"model": LinearDynamics(np.eye(4), np.ones((4, 2)))}, ValueError, "state_dim=4"),
+        ({"cost": "quadratic"}, TypeError, "cost must be a mbtsr.costs.CasadiCost"),
     ],
 )
 def test_bad_construction_arguments(kwargs, exc, match):
     A, B = _system()
-    args = {"horizon": 5} | kwargs
+    args = {"optimizer": ilqr, "cost": quadratic_cost(np.eye(N_X), np.eye(N_U)),
+            "model": LinearDynamics(A, B), "horizon": 5} | kwargs
     with pytest.raises(exc, match=match):
-        MPC(quadratic_cost(np.eye(N_X), np.eye(N_U), np.zeros(N_X)), LinearDynamics(A, B), **args)
+        MPC(**args)
 
 
 def test_bad_act_arguments():
     A, B = _system()
-    mpc = MPC(quadratic_cost(np.eye(N_X), np.eye(N_U), np.zeros(N_X)), LinearDynamics(A, B), 5)
+    mpc = MPC(ilqr, quadratic_cost(np.eye(N_X), np.eye(N_U)), LinearDynamics(A, B), 5)
     with pytest.raises(ValueError, match=r"x must have shape \[3\]"):
         mpc.act(np.zeros(2))
     with pytest.raises(ValueError, match="x contains"):
         mpc.act(np.array([0.0, np.nan, 0.0]))
     with pytest.raises(ValueError, match="t must be"):
         mpc.act(np.zeros(3), -1)
+    with pytest.raises(ValueError, match="params must be"):
+        mpc.act(np.zeros(3), 0, params=np.zeros(2))
+    with pytest.raises(ValueError, match=r"warm_start must have shape \[5, 2\]"):
+        mpc.solve(np.zeros(3), warm_start=np.zeros((4, 2)))
     with pytest.raises(ValueError, match="iterations_per_step"):
         MPCOptions(iterations_per_step=0)
+    with pytest.raises(TypeError, match="optimizer_options"):
+        MPCOptions(optimizer_options=3)
+
+
+def test_a_model_that_turns_nan_gives_finite_actions_inside_the_box():
+    A, B = _system()
+    lin = LinearDynamics(A, B)
+
+    class NaNAway:
+        state_dim, action_dim = N_X, N_U
+
+        def step(self, x, u, t=None):
+            out = lin.step(x, u)
+            out[np.abs(out).max(axis=-1) > 0.8] = np.nan
+            return out
+
+        def jacobians(self, x, u, t=0):
+            return lin.jacobians(x, u)
+
+    cost = quadratic_cost(np.eye(N_X), 0.01 * np.eye(N_U), np.full(N_X, 2.0))
+    mpc = MPC(ilqr, cost, NaNAway(), 8, u_min=-1.0, u_max=1.0)
+    x = np.full(N_X, 0.5)
+    for t in range(6):
+        a = mpc.act(x, t)
+        assert np.isfinite(a).all() and np.all(np.abs(a) <= 1.0)
+        x = np.clip(lin.step(x, a), -0.7, 0.7)

@@ -165,3 +165,15 @@ def test_hybrid_uses_analytic_jacobians_and_true_steps():
     A_t, _ = true.jacobians(x, u)
     np.testing.assert_array_equal(A_h, analytic.jacobians(x, u)[0])
     np.testing.assert_allclose(A_h, A_t, rtol=0, atol=1e-6 * np.abs(A_t).max())
+
+
+def test_jit_analytic_twin_equals_the_symbolic_one():
+    from envs.two_link_arm_model import TwoLinkArmCasadi, arm_params
+
+    p = arm_params("default")
+    plain, jitted = TwoLinkArmCasadi(p), TwoLinkArmCasadi(p, jit=True)
+    rng = np.random.default_rng(4)
+    X, U = rng.uniform(-2, 2, (7, 4)), rng.uniform(-1, 1, (7, 2))
+    np.testing.assert_allclose(jitted.step(X, U), plain.step(X, U), rtol=1e-12, atol=1e-12)
+    for a, b in zip(jitted.jacobians(X, U), plain.jacobians(X, U)):
+        np.testing.assert_allclose(a, b, rtol=1e-10, atol=1e-10 * np.abs(b).max())

@@ -251,6 +251,29 @@ def test_ray_existing_cluster_and_resume(tmp_path):
                           address=address, progress=False)
         assert again == recs
         assert mtimes == {p.name: p.stat().st_mtime_ns for p in (tmp_path / "runs").glob("*")}
+        # a run function whose module needs another module found only on the driver's
+        # sys.path: recorded as failed with the import error, the sweep completes
+        mod_dir = tmp_path / "driver_only"
+        mod_dir.mkdir()
+        (mod_dir / "driver_only_dep.py").write_text("VALUE = 3\n")
+        (mod_dir / "driver_only_fn.py").write_text(
+            "import driver_only_dep\n\n\ndef run(config, seed):\n"
+            "    return {'v': driver_only_dep.VALUE + seed}\n")
+        sys.path.insert(0, str(mod_dir))
+        try:
+            import driver_only_fn
+
+            bad = run_sweep(driver_only_fn.run, {"d": {}}, [0, 1], tmp_path / "d",
+                            backend="ray", address=address, progress=False)
+            # the pool's workers see the driver's sys.path: there it works
+            good = run_sweep(driver_only_fn.run, {"d": {}}, [0, 1], tmp_path / "p",
+                             backend="process", workers=2, progress=False)
+        finally:
+            sys.path.remove(str(mod_dir))
+        assert bad == [] and [r["result"]["v"] for r in good] == [3, 4]
+        for seed in (0, 1):
+            err = json.loads((tmp_path / "d" / "errors" / f"d__seed{seed}.json").read_text())
+            assert "driver_only_dep" in err["error"]
         assert head.poll() is None  # the cluster is the user's: still up
     finally:
         os.killpg(head.pid, signal.SIGTERM)  # the head's session: the processes it started

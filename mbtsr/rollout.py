@@ -1,0 +1,186 @@
+"""The one env-rollout loop: :func:`run_episode`.
+
+Evaluation, data collection, MPC episodes and video rendering all run an episode the same way::
+
+    rec = run_episode(env, policy, seed=0)                   # policy(obs, t) -> action
+    rec = run_episode(env, mpc, seed=0, observe=lambda obs, info: info["state"])
+    rec = run_episode(env, sb3_model, seed=0)                # anything with SB3's predict
+
+It takes any Gymnasium env object (no import of ``envs`` or ``agents``), clips the action into
+the action space, hands the env exactly the recorded action (in the space's dtype) and records
+observations, actions, rewards, the env's ``info["state"]`` when it reports one, optional frames
+and the wall time of the policy per step.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+
+__all__ = ["EpisodeRecord", "as_policy", "run_episode"]
+
+Policy = Callable[[np.ndarray, int], np.ndarray]
+
+
+@dataclass
+class EpisodeRecord:
+    """One episode in a real env.
+
+    ``obs: [T+1, obs_dim]``, ``actions: [T, m]`` (as applied, after clipping), ``rewards: [T]``;
+    ``states: [T+1, k]`` the env's ``info["state"]`` when it reports one; ``frames`` rendered
+    images (``render=True``); ``policy_times: [T]`` seconds the policy took per step and the
+    totals ``time_policy``/``time_env``; ``terminated``/``truncated`` as the env said,
+    ``stopped`` if ``stop`` ended it; ``info0`` the reset info, ``info`` the last one.
+    """
+
+    obs: np.ndarray
+    actions: np.ndarray
+    rewards: np.ndarray
+    states: np.ndarray | None
+    terminated: bool
+    truncated: bool = False
+    stopped: bool = False
+    info0: dict = field(default_factory=dict)
+    info: dict = field(default_factory=dict)
+    frames: list = field(default_factory=list)
+    policy_times: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    time_policy: float = 0.0
+    time_env: float = 0.0
+
+    @property
+    def cost(self) -> float:
+        """Episode cost ``-sum(rewards)``."""
+        return float(-np.sum(self.rewards))
+
+    @property
+    def T(self) -> int:  # noqa: N802
+        return self.actions.shape[0]
+
+
+def as_policy(policy: Any) -> Policy:
+    """``policy`` as a step function ``(obs, t) -> action``.
+
+    Accepts a callable ``(obs, t) -> action`` or an object with Stable-Baselines3's
+    ``predict(obs, state, episode_start, deterministic)`` (its recurrent state is threaded
+    through the episode; ``t == 0`` starts a new one).
+    """
+    if hasattr(policy, "predict"):
+        holder: dict[str, Any] = {"state": None}
+
+        def act(obs: np.ndarray, t: int) -> np.ndarray:
+            action, holder["state"] = policy.predict(
+                obs, state=None if t == 0 else holder["state"],
+                episode_start=np.array([t == 0]), deterministic=True,
+            )
+            return np.asarray(action, dtype=float).reshape(-1)
+
+        return act
+    if callable(policy):
+        return policy
+    raise TypeError(
+        f"policy must be a callable (obs, t) -> action or have a predict(obs, state, "
+        f"episode_start, deterministic) method, got {type(policy).__name__}"
+    )
+
+
+def run_episode(
+    env: gym.Env,
+    policy: Any,
+    *,
+    seed: int | None,
+    options: dict | None = None,
+    max_steps: int | None = None,
+    render: bool = False,
+    observe: Callable[[Any, dict], np.ndarray] | None = None,
+    stop: Callable[[np.ndarray], bool] | None = None,
+) -> EpisodeRecord:
+    """Reset ``env`` and run ``policy`` until termination, truncation, ``max_steps`` or
+    ``stop``.
+
+    :param env: a Gymnasium env with a 1-D ``Box`` action space.
+    :param policy: ``(y, t) -> action`` or an SB3-style object (see :func:`as_policy`); ``y``
+        is ``observe(obs, info)`` (default: the observation). A policy with a ``reset()``
+        method (e.g. :class:`mbtsr.mpc.MPC`) is reset first.
+    :param seed: reset seed (``None``: the env's own stream).
+    :param options: passed to ``env.reset`` (e.g. ``{"target": ...}``).
+    :param max_steps: stop after this many steps (``None``: the env's own limit).
+    :param render: record ``env.render()`` before the first and after every step.
+    :param observe: ``(obs, info) -> y`` what the policy and ``stop`` see.
+    :param stop: ``stop(y) -> bool`` checked on every ``y`` (the first included); true ends
+        the episode with ``stopped=True``.
+    :return: :class:`EpisodeRecord`.
+    """
+    space = env.action_space
+    if not isinstance(space, gym.spaces.Box) or len(space.shape) != 1:
+        raise ValueError(f"env.action_space must be a 1-D Box, got {space}")
+    if max_steps is not None and (
+        isinstance(max_steps, bool) or not isinstance(max_steps, int | np.integer) or max_steps < 0
+    ):
+        raise ValueError(f"max_steps must be an integer >= 0 or None, got {max_steps!r}")
+    if isinstance(seed, bool) or not (seed is None or isinstance(seed, int | np.integer)):
+        raise ValueError(f"seed must be an integer or None, got {seed!r}")
+    for name, fn in (("observe", observe), ("stop", stop)):
+        if fn is not None and not callable(fn):
+            raise TypeError(f"{name} must be callable or None, got {type(fn).__name__}")
+    act = as_policy(policy)
+    if callable(getattr(policy, "reset", None)) and not hasattr(policy, "predict"):
+        policy.reset()
+    low, high, m = space.low, space.high, space.shape[0]
+    obs, info = env.reset(seed=None if seed is None else int(seed), options=options)
+    info0 = dict(info)
+    y = obs if observe is None else observe(obs, info)
+    obs_list, act_list, rew_list, times = [np.asarray(obs, dtype=float)], [], [], []
+    states = [np.array(info["state"], dtype=float)] if "state" in info else None
+    frames = [np.asarray(env.render()).copy()] if render else []
+    t_env = 0.0
+    terminated = truncated = stopped = False
+    t = 0
+    if stop is not None and stop(y):
+        stopped = True
+    while not stopped and (max_steps is None or t < max_steps):
+        tic = time.perf_counter()
+        a = np.asarray(act(y, t), dtype=float)
+        times.append(time.perf_counter() - tic)
+        if a.size != m or not np.isfinite(a).all():
+            raise ValueError(
+                f"the policy returned action {a.tolist()} at step {t}; the env needs a finite "
+                f"[{m}] action"
+            )
+        a = np.clip(a.reshape(m), low, high)
+        a_env = a.astype(space.dtype)  # the env receives exactly the recorded action
+        tac = time.perf_counter()
+        obs, reward, terminated, truncated, info = env.step(a_env)
+        t_env += time.perf_counter() - tac
+        obs_list.append(np.asarray(obs, dtype=float))
+        act_list.append(a_env.astype(float))
+        rew_list.append(float(reward))
+        if states is not None:
+            states.append(np.array(info["state"], dtype=float))
+        if render:
+            frames.append(np.asarray(env.render()).copy())
+        t += 1
+        y = obs if observe is None else observe(obs, info)
+        if stop is not None and stop(y):
+            stopped = True
+        if terminated or truncated:
+            break
+    return EpisodeRecord(
+        obs=np.asarray(obs_list),
+        actions=np.asarray(act_list, dtype=float).reshape(-1, m),
+        rewards=np.asarray(rew_list),
+        states=None if states is None else np.asarray(states, dtype=float),
+        terminated=bool(terminated),
+        truncated=bool(truncated),
+        stopped=stopped,
+        info0=info0,
+        info=dict(info),
+        frames=frames,
+        policy_times=np.asarray(times),
+        time_policy=float(np.sum(times)),
+        time_env=t_env,
+    )

@@ -1,0 +1,68 @@
+"""Smoke test of scripts/bench_suite.py (tiny budgets): every task runs with every planner and
+regularizer, the JSON holds the thresholds stated in the script, per-run curves, env steps to
+solve (or None), and wall time per phase; the table aggregates them."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def _suite():
+    path = REPO / "scripts" / "bench_suite.py"
+    spec = importlib.util.spec_from_file_location("bench_suite", path)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def test_bench_suite_smoke(tmp_path):
+    suite = _suite()
+    out = tmp_path / "suite.json"
+    state = suite.main(["--smoke", "--seeds", "0", "--json", str(out), "--figures", str(tmp_path),
+                        "--oracle-cache", str(tmp_path / "oracle"),
+                        "--tasks", "arm-open-loop", "inverted-pendulum"])
+    saved = json.loads(out.read_text())
+    assert saved["thresholds"]["arm-far"] == {"solved_ratio": 1.05}
+    assert saved["thresholds"]["reacher"] == {"solved_return": -3.75}
+    runs = saved["runs"]
+    assert {(r["task"], r["planner"], r["regularization"]) for r in runs} == {
+        (t, p, g) for t in ("arm-open-loop", "inverted-pendulum")
+        for p in ("ilqr", "cem") for g in ("none", "sampled")}
+    for r in runs:
+        assert r["env_steps"] <= r["budget_env_steps"]
+        assert r["curve"], r  # at least the final evaluation
+        assert set(r["wall_seconds_per_phase"]) >= {"training", "ltv", "planning", "eval"}
+        if r["env_steps_to_solve"] is not None:
+            assert r["env_steps_to_solve"] <= r["env_steps"]
+    assert len(state["table"]) == 8
+    assert (tmp_path / "bench_suite_curves.png").is_file()
+    assert (tmp_path / "bench_suite_planner_x_regularizer.png").is_file()
+    # resume skips finished runs
+    again = suite.main(["--smoke", "--seeds", "0", "--json", str(out), "--resume",
+                        "--tasks", "arm-open-loop", "--oracle-cache", str(tmp_path / "oracle")])
+    assert len(again["runs"]) == len(runs)
+
+
+@pytest.mark.parametrize("name", ["reacher", "inverted-pendulum"])
+def test_gymnasium_task_costs_compile(name):
+    import gymnasium as gym
+    import numpy as np
+
+    from agents.config import AgentConfig
+    from agents.jacprop_agent import JacPropAgent
+
+    suite = _suite()
+    task = suite.TASKS[name]
+    env = gym.make(task["env_id"], **task["make"])
+    agent = JacPropAgent(env, AgentConfig(eval_every=0, progress=False), cost_fn=task["cost"],
+                         terminal_cost_fn=task.get("terminal"),
+                         termination_fn=task.get("termination"))
+    obs = env.reset(seed=0)[0]
+    c = agent.task_cost.on_observations(obs[None], np.zeros((1, env.action_space.shape[0])))
+    assert np.isfinite(c).all()
