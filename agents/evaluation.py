@@ -29,9 +29,10 @@ import numpy as np
 
 from agents.task import ObservationCost
 from mbtsr.costs import CasadiCost
+from mbtsr.episode import EpisodeRecord, as_policy, run_episode
 from mbtsr.ilqr import ILQROptions, ilqr
 from mbtsr.mpc import MPC, MPCOptions
-from mbtsr.rollout import EpisodeRecord, as_policy, run_episode
+from mbtsr.validation import as_array, check_finite
 
 __all__ = [
     "ARM_ID",
@@ -125,13 +126,12 @@ class MPCPolicy:
         :param deterministic: unused (MPC is deterministic); kept for SB3 compatibility.
         :return: ``(action [m], next_state [H, m])``.
         """
-        obs = np.asarray(observation, dtype=float)
+        obs = as_array("observation", observation, finite=False)  # refuses complex values
         if obs.shape != (self.spec.obs_dim,):
             raise ValueError(
                 f"observation must have shape ({self.spec.obs_dim},), got {list(obs.shape)}"
             )
-        if not np.isfinite(obs).all():
-            raise ValueError("observation contains non-finite values (NaN or inf)")
+        check_finite("observation", obs)
         if episode_start is not None and bool(np.any(episode_start)):
             state = None
         if state is not None:

@@ -120,6 +120,9 @@ def env_spec(env: gym.Env, episode_steps: int | None = None) -> EnvSpec:
                 "the env has no TimeLimit (env.spec.max_episode_steps is None) and no "
                 "env.unwrapped.episode_steps; set AgentConfig.episode_steps"
             )
+    if isinstance(episode_steps, bool) or int(episode_steps) != episode_steps \
+            or episode_steps < 1:
+        raise ValueError(f"episode_steps must be an integer >= 1, got {episode_steps!r}")
     dt = getattr(env.unwrapped, "dt", None)
     return EnvSpec(
         obs_dim=int(obs_space.shape[0]),

@@ -19,8 +19,8 @@ from collections.abc import Callable, Mapping
 import gymnasium as gym
 import numpy as np
 
+from mbtsr.episode import run_episode
 from mbtsr.excitation import filtered_gaussian, multisine
-from mbtsr.rollout import run_episode
 from mbtsr.trajectory import Trajectory
 from mbtsr.validation import as_array
 
@@ -67,13 +67,13 @@ def rollout_open_loop(
     abort: Callable[[np.ndarray], bool] | None = None,
 ) -> tuple[np.ndarray, np.ndarray, dict] | None:
     """Reset ``env`` and apply ``u: [T, m]`` (clipped into the action space) open loop, through
-    the one rollout loop :func:`mbtsr.rollout.run_episode`.
+    the one rollout loop :func:`mbtsr.episode.run_episode`.
 
     :param abort: called with each new state; a true result stops the rollout early.
     :return: ``(x [T+1, n], u_applied [T, m], reset_info)``, or ``None`` if aborted.
     :raises ValueError: if the env terminates or truncates before ``T`` steps.
     """
-    u = as_array("u", u, ndim=2)
+    u = as_array("u", u, (None, int(np.prod(env.action_space.shape))))
     T = u.shape[0]
     rec = run_episode(
         env, lambda x, t: u[t], seed=seed, max_steps=T, observe=_state_of, stop=abort,

@@ -14,8 +14,8 @@ from pathlib import Path
 import gymnasium as gym
 import numpy as np
 
+from mbtsr.episode import run_episode
 from mbtsr.io import atomic_write
-from mbtsr.rollout import run_episode
 from mbtsr.validation import as_array
 
 __all__ = ["render_episode", "save_png_strip", "save_video"]
@@ -32,7 +32,7 @@ def render_episode(
 
     :param env: an env made with ``render_mode="rgb_array"``.
     :param actions: ``[T, m]`` actions applied open loop (clipped into the action space), via
-        the one rollout loop :func:`mbtsr.rollout.run_episode`.
+        the one rollout loop :func:`mbtsr.episode.run_episode`.
     :param seed: reset seed.
     :return: ``T + 1`` frames (fewer if the episode ends early).
     """

@@ -49,11 +49,11 @@ import envs  # noqa: F401  (registers mbtsr/TwoLinkArm-v0)
 from agents.config import AgentConfig
 from envs.mujoco_model import HybridDynamics, MujocoDynamics
 from mbtsr.costs import quadratic_cost
+from mbtsr.episode import run_episode
 from mbtsr.ilqr import ILQROptions, ilqr
 from mbtsr.io import write_json_atomic
 from mbtsr.ipopt_reference import solve_ipopt
 from mbtsr.mpc import MPC, MPCOptions
-from mbtsr.rollout import run_episode
 
 
 @dataclass(frozen=True)

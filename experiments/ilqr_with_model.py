@@ -31,10 +31,10 @@ import numpy as np
 
 import envs  # noqa: F401  (registers mbtsr/TwoLinkArm-v0)
 from mbtsr.costs import quadratic_cost
+from mbtsr.episode import run_episode
 from mbtsr.ilqr import ILQROptions, ilqr
 from mbtsr.io import write_json_atomic
 from mbtsr.mpc import MPC, MPCOptions
-from mbtsr.rollout import run_episode
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402

@@ -21,7 +21,7 @@ The optimizer signature (shared by every solver)::
 The model is a *planning* model: ``ensemble.freeze()``, or a true / analytic / linear / LTV
 model. Everything is validated once, here; per step only the state and time are checked.
 
-An MPC is a policy for :func:`mbtsr.rollout.run_episode` (it is called as ``mpc(x, t)`` and
+An MPC is a policy for :func:`mbtsr.episode.run_episode` (it is called as ``mpc(x, t)`` and
 reset before each episode)::
 
     rec = run_episode(env, mpc, seed=0, observe=lambda obs, info: info["state"])

@@ -640,14 +640,14 @@ def test_replan_every_executes_each_plan_open_loop():
                          cost_fn=pendulum_cost)
     agent.learn(1, progress_bar=False)
     solves = []
-    original = agent.policy.plan
+    original = agent.policy.mpc.solve
 
-    def counting_plan(obs, U0=None):
-        U, res = original(obs, U0)
-        solves.append(U.copy())
-        return U, res
+    def counting_solve(*args, **kwargs):
+        res = original(*args, **kwargs)
+        solves.append(np.asarray(res.U, dtype=float).copy())
+        return res
 
-    agent.policy.plan = counting_plan
+    agent.policy.mpc.solve = counting_solve
     rec = agent.rollout_policy(env, seed=4)
     assert len(solves) == 4  # steps 0, 3, 6, 9 of 12
     for j, U in enumerate(solves):

@@ -161,6 +161,30 @@ def test_script_rejects_bad_arguments(flag, capsys):
     assert name in capsys.readouterr().err
 
 
+def test_resume_on_a_damaged_checkpoint_or_a_changed_flag_is_one_line(tmp_path, capsys):
+    """--resume names the damaged file, or the config field that differs; no traceback."""
+    script = _script()
+    run = tmp_path / "run"
+    tiny = [a if a != str(EPISODES) else "1" for a in TINY] + ["--eval-every", "0"]
+    script.main(["--run-dir", str(run), *tiny])
+    good = (run / "checkpoint.pt").read_bytes()
+    with pytest.raises(SystemExit) as exc:
+        script.main(["--run-dir", str(run), "--resume", *tiny, "--horizon", "7"])
+    err = capsys.readouterr().err
+    assert exc.value.code == 2 and err.count("\n") == 1 and "--horizon 7 differs" in err
+    damaged = bytearray(good)
+    damaged[-10] ^= 4
+    for data, what in ((bytes(damaged), "is corrupted"), (good[: len(good) // 3], "is truncated")):
+        (run / "checkpoint.pt").write_bytes(data)
+        with pytest.raises(SystemExit) as exc:
+            script.main(["--run-dir", str(run), "--resume", *tiny])
+        err = capsys.readouterr().err
+        assert exc.value.code == 2 and err.count("\n") == 1, err
+        assert f"{run / 'checkpoint.pt'} {what}" in err
+    (run / "checkpoint.pt").write_bytes(good)  # intact again: resumes (nothing left to do)
+    assert script.main(["--run-dir", str(run), "--resume", *tiny])["episodes_done"] == 1
+
+
 def test_resume_loads_the_saved_config_and_refuses_a_contradicting_flag(tmp_path, capsys):
     script = _script()
     run_dir = str(tmp_path / "run")
@@ -176,30 +200,3 @@ def test_resume_loads_the_saved_config_and_refuses_a_contradicting_flag(tmp_path
     assert exc.value.code == 2 and err.count("\n") == 1 and "--seed 5 differs" in err
     saved = json.loads((tmp_path / "run" / "config.json").read_text())
     assert saved["script"]["agent"]["seed"] == 4  # the whole config tree is saved with the run
-
-
-def test_resume_on_a_damaged_checkpoint_or_a_changed_flag_is_one_line(tmp_path, capsys):
-    """--resume names the damaged file, or the config field that differs; no traceback."""
-    script = _script()
-    run = tmp_path / "run"
-    tiny = [a if a != str(EPISODES) else "1" for a in TINY] + ["--eval-every", "0"]
-    script.main(["--run-dir", str(run), *tiny])
-    good = (run / "checkpoint.pt").read_bytes()
-    def fails(argv: list[str]) -> str:
-        with pytest.raises(SystemExit) as exc:
-            script.main(argv)
-        err = capsys.readouterr().err
-        assert exc.value.code == 2 and err.count("\n") == 1, err
-        return err
-
-    err = fails(["--run-dir", str(run), "--resume", *tiny, "--horizon", "7"])
-    assert "--resume: --horizon 7 differs from the saved run's 6" in err
-    damaged = bytearray(good)
-    damaged[-10] ^= 4
-    (run / "checkpoint.pt").write_bytes(bytes(damaged))
-    assert f"--resume: {run / 'checkpoint.pt'} is corrupted" in fails(
-        ["--run-dir", str(run), "--resume", *tiny])
-    (run / "checkpoint.pt").write_bytes(good[: len(good) // 3])
-    assert "is truncated" in fails(["--run-dir", str(run), "--resume", *tiny])
-    (run / "checkpoint.pt").write_bytes(good)  # intact again: resumes (nothing left to do)
-    assert script.main(["--run-dir", str(run), "--resume", *tiny])["episodes_done"] == 1

@@ -403,3 +403,22 @@ def test_select_lambda_handles_huge_grids_and_is_continuous_at_the_limit():
         below = ltv._score(prob, 0.999 * edge, method)
         above = ltv._score(prob, 1.001 * edge, method)
         assert above == pytest.approx(below, rel=1e-4)
+
+
+def test_agent_boundaries_name_the_argument():
+    from agents.config import AgentConfig
+    from agents.jacprop_agent import JacPropAgent
+    from agents.task import env_spec
+
+    env = gym.make("mbtsr/TwoLinkArm-v0")
+    with pytest.raises(ValueError, match="^episode_steps must"):
+        env_spec(env, 0)
+    agent = JacPropAgent(env, AgentConfig(ensemble_size=1, hidden_width=4, progress=False,
+                                          tensorboard=False))
+    for obs, match in [(np.full(6, NAN), "^observation contains"),
+                       (np.zeros(6) + 1j, "^observation must be real"),
+                       (np.zeros(5), "^observation must have shape")]:
+        with pytest.raises(ValueError, match=match):
+            agent.predict(obs)
+    with pytest.raises(FileNotFoundError, match="h14_missing.pt"):
+        JacPropAgent.load("/nonexistent/h14_missing.pt")

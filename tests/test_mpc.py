@@ -11,9 +11,9 @@ import pytest
 import envs  # noqa: F401  (registers the envs)
 from mbtsr.costs import quadratic_cost
 from mbtsr.dynamics import LinearDynamics
+from mbtsr.episode import run_episode
 from mbtsr.ilqr import ILQROptions, ilqr
 from mbtsr.mpc import MPC, MPCOptions
-from mbtsr.rollout import run_episode
 
 N_X, N_U = 3, 2
 

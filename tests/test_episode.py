@@ -1,4 +1,4 @@
-"""Tests of mbtsr.rollout.run_episode, the one env-rollout loop: it equals stepping the env by
+"""Tests of mbtsr.episode.run_episode, the one env-rollout loop: it equals stepping the env by
 hand, clips and records exactly what the env receives, threads SB3 recurrent state, stops on
 request, and names bad arguments."""
 
@@ -11,7 +11,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 import envs  # noqa: F401  (registers the envs)
-from mbtsr.rollout import as_policy, run_episode
+from mbtsr.episode import as_policy, run_episode
 
 LIN = "mbtsr/LinearSystem-v0"
 
