@@ -189,13 +189,10 @@ def test_train_agent_help_lists_every_agent_config_field_with_its_doc(capsys):
         assert first in text, (f.name, first)
 
 
-@pytest.mark.parametrize("name", sorted(p.stem for p in (REPO / "scripts").glob("exp_*.py")))
+@pytest.mark.parametrize("name", sorted(p.stem for p in (REPO / "experiments").glob("exp_*.py")))
 def test_every_experiment_help_lists_every_field_with_its_help(name, capsys):
-    sys.path.insert(0, str(REPO / "scripts"))
-    try:
-        module = importlib.import_module(name)
-    finally:
-        sys.path.remove(str(REPO / "scripts"))
+    module = importlib.import_module(f"experiments.{name}")
+    assert (REPO / "scripts" / f"{name}.py").exists()
     text = " ".join(help_text(module.Args, capsys).split())
     for flag, f in fields_of(module.Args):
         assert f"--{flag}" in text, flag

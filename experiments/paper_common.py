@@ -29,8 +29,6 @@ from pathlib import Path
 import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
-if str(REPO) not in sys.path:  # the scripts are run from anywhere; the repo holds envs/
-    sys.path.insert(0, str(REPO))
 
 # ------------------------------------------------------------------------------------------------
 # command line
