@@ -1,4 +1,4 @@
-"""Shared code of the paper-reproduction scripts (``scripts/exp_*.py``).
+"""Shared code of the paper experiments (``experiments/exp_*.py``, run by ``scripts/exp_*.py``).
 
 Bagge Carlson, Johansson and Robertsson, "Tangent-Space Regularization for Neural-Network Models
 of Dynamical Systems" (arXiv:1806.09919). Every experiment script reads top to bottom:
