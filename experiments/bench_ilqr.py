@@ -32,6 +32,7 @@ Usage: ``python scripts/bench_ilqr.py --json runs/bench_ilqr.json``
 from __future__ import annotations
 
 import dataclasses
+import json
 import os
 import platform
 import subprocess
@@ -39,7 +40,7 @@ import sys
 import tempfile
 import time
 from dataclasses import dataclass
-from typing import Literal
+from pathlib import Path
 
 import gymnasium as gym
 import numpy as np
@@ -51,17 +52,15 @@ from envs.mujoco_model import HybridDynamics, MujocoDynamics
 from mbtsr.costs import quadratic_cost
 from mbtsr.episode import run_episode
 from mbtsr.ilqr import ILQROptions, ilqr
-from mbtsr.io import write_json_atomic
 from mbtsr.ipopt_reference import solve_ipopt
 from mbtsr.mpc import MPC, MPCOptions
 
 
 @dataclass(frozen=True)
 class Args:
-    """Benchmark iLQR and MPC on the two-link arm: ms/iteration per model, cost and time vs IPOPT,
-    crocoddyl side by side, MPC real-time factor."""
+    """Benchmark of iLQR and MPC on the arm, against IPOPT and crocoddyl (issue 13)."""
 
-    preset: Literal["default", "paper"] = "default"
+    preset: str = "default"
     """arm preset"""
     horizons: str = "100,200"
     """comma-separated iLQR horizons"""
@@ -239,7 +238,7 @@ def cold_compile_seconds() -> float:
 
 
 def run(args: Args) -> dict:
-    """Run the benchmark; print and return the results (and write ``args.json``)."""
+    """The whole benchmark; writes ``args.json`` if set and returns the results."""
     torch.set_num_threads(args.threads)
     horizons = [int(h) for h in args.horizons.split(",")]
     load_start = os.getloadavg()
@@ -485,6 +484,7 @@ def run(args: Args) -> dict:
         "total_time_s": time.perf_counter() - t_start,
     }
     if args.json:
-        write_json_atomic(args.json, results, indent=2)
+        Path(args.json).parent.mkdir(parents=True, exist_ok=True)
+        Path(args.json).write_text(json.dumps(results, indent=2))
         print(f"wrote {args.json}")
     return results

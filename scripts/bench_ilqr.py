@@ -1,4 +1,7 @@
-"""The command line of experiments.bench_ilqr (``--help`` lists the options)."""
+"""Benchmark iLQR and MPC on the two-link arm against IPOPT and crocoddyl (issue 13).
+
+    python scripts/bench_ilqr.py --json runs/bench_ilqr.json   # --help: the options
+"""
 
 import _bootstrap  # noqa: F401
 

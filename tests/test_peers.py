@@ -6,15 +6,11 @@ checks the bench's message in that case.
 
 from __future__ import annotations
 
-import sys
-from pathlib import Path
-
 import numpy as np
 import pytest
 
-sys.path.append(str(Path(__file__).resolve().parents[1]))  # experiments/ (editable installs
-from experiments import peers_crocoddyl as peers  # noqa: E402  made before it existed)
-from mbtsr.ilqr import ilqr  # noqa: E402
+from experiments import peers_crocoddyl as peers
+from mbtsr.ilqr import ilqr
 
 needs_crocoddyl = pytest.mark.skipif(not peers.HAVE_CROCODDYL, reason="crocoddyl not installed")
 
