@@ -1,8 +1,7 @@
-"""The command line of experiments.exp_robot (``--help`` lists the options)."""
+"""The command line of agents.experiments.exp_robot (``--help`` lists the options)."""
 
-import _bootstrap  # noqa: F401
 
-from experiments.exp_robot import cli
+from agents.experiments.exp_robot import cli
 
 if __name__ == "__main__":
     cli()

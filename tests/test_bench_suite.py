@@ -1,6 +1,6 @@
-"""Smoke test of experiments/bench_suite.py (tiny budgets): every task runs with every planner and
-regularizer, the JSON holds the thresholds stated in the script, per-run curves, env steps to
-solve (or None), and wall time per phase; the table aggregates them."""
+"""Smoke test of agents/experiments/bench_suite.py (tiny budgets): every task runs with every
+planner and regularizer, the JSON holds the thresholds stated in the script, per-run curves, env
+steps to solve (or None), and wall time per phase; the table aggregates them."""
 
 from __future__ import annotations
 
@@ -13,7 +13,7 @@ REPO = Path(__file__).resolve().parents[1]
 
 
 def _suite():
-    from experiments import bench_suite  # scripts/bench_suite.py is its command line
+    from agents.experiments import bench_suite  # scripts/bench_suite.py is its command line
 
     return bench_suite
 

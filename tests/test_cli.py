@@ -17,7 +17,7 @@ import pytest
 from mbtsr.cli import check_output_path, main, parse
 
 REPO = Path(__file__).resolve().parents[1]
-sys.path.append(str(REPO))  # experiments/ (until the editable install is refreshed)
+sys.path.append(str(REPO))  # agents/experiments/ (until the editable install is refreshed)
 
 #: every experiments module behind a script in scripts/
 EXPERIMENTS = ["agent_ablation", "bench_env", "bench_ilqr", "bench_ltv", "bench_models",
@@ -123,7 +123,7 @@ def test_value_errors_of_the_run_are_one_line_too(capsys):
 
 @pytest.mark.parametrize("name", EXPERIMENTS)
 def test_every_script_help_lists_every_field_with_its_docstring(name, capsys):
-    module = importlib.import_module(f"experiments.{name}")
+    module = importlib.import_module(f"agents.experiments.{name}")
     assert (REPO / "scripts" / f"{name}.py").exists()
     text = " ".join(help_text(module.Args, capsys).split())
     source = inspect.getsource(module.Args)
@@ -140,7 +140,7 @@ NOT_YET: set[str] = set()
 
 
 def test_no_script_builds_an_argparse_parser():
-    for path in [*(REPO / "scripts").glob("*.py"), *(REPO / "experiments").glob("*.py")]:
+    for path in [*(REPO / "scripts").glob("*.py"), *(REPO / "agents" / "experiments").glob("*.py")]:
         if path.name not in NOT_YET:
             assert "argparse" not in path.read_text(), path
 
@@ -178,7 +178,7 @@ def test_train_agent_help_lists_every_agent_config_field_with_its_doc(capsys):
     import re
 
     from agents.config import AgentConfig
-    from experiments import train_agent
+    from agents.experiments import train_agent
 
     text = " ".join(help_text(train_agent.Args, capsys).split())
     docs = dict(chunk.split(":", 1) for chunk in (AgentConfig.__doc__ or "").split(":param ")[1:])
@@ -189,9 +189,12 @@ def test_train_agent_help_lists_every_agent_config_field_with_its_doc(capsys):
         assert first in text, (f.name, first)
 
 
-@pytest.mark.parametrize("name", sorted(p.stem for p in (REPO / "experiments").glob("exp_*.py")))
+EXPERIMENTS = REPO / "agents" / "experiments"
+
+
+@pytest.mark.parametrize("name", sorted(p.stem for p in EXPERIMENTS.glob("exp_*.py")))
 def test_every_experiment_help_lists_every_field_with_its_help(name, capsys):
-    module = importlib.import_module(f"experiments.{name}")
+    module = importlib.import_module(f"agents.experiments.{name}")
     assert (REPO / "scripts" / f"{name}.py").exists()
     text = " ".join(help_text(module.Args, capsys).split())
     for flag, f in fields_of(module.Args):

@@ -22,7 +22,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from experiments.paper_common import (
+from agents.experiments.paper_common import (
     ExperimentArgs,
     LinearData,
     complex_from_pairs,

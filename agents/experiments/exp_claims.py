@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from experiments.paper_common import REPO, ExperimentArgs, parse_args, write_json
+from agents.experiments.paper_common import REPO, ExperimentArgs, parse_args, write_json
 
 
 @dataclass

@@ -27,7 +27,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from experiments.paper_common import (
+from agents.experiments.paper_common import (
     NOMINAL_ACTIVATIONS,
     ExperimentArgs,
     RobotData,

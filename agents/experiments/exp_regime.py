@@ -31,7 +31,7 @@ from pathlib import Path
 
 import numpy as np
 
-from experiments.paper_common import (
+from agents.experiments.paper_common import (
     ExperimentArgs,
     RegimeData,
     command_line,

@@ -24,7 +24,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from experiments.paper_common import (
+from agents.experiments.paper_common import (
     ExperimentArgs,
     RobotData,
     nominal_epochs,
@@ -150,7 +150,7 @@ def report(records: list[dict], out, figures, args: Args) -> dict:
 def truth_diagnostics(args: Args) -> dict:
     """:func:`paper_common.robot_truth_diagnostics` over seeds ``0..mc-1``, with the median and
     quartiles of each quantity; written to ``<out>/truth.json``."""
-    from experiments.paper_common import output_dirs, robot_truth_diagnostics, write_json
+    from agents.experiments.paper_common import output_dirs, robot_truth_diagnostics, write_json
 
     out, _ = output_dirs(args, EXPERIMENT)
     cfg = RobotData(n_val=args.n_val)
