@@ -3,9 +3,8 @@
     python scripts/bench_ilqr.py --json runs/bench_ilqr.json   # --help: the options
 """
 
-import _bootstrap  # noqa: F401
 
-from experiments.bench_ilqr import Args, run
+from agents.experiments.bench_ilqr import Args, run
 from mbtsr.cli import main
 
 if __name__ == "__main__":

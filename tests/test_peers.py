@@ -1,4 +1,4 @@
-"""crocoddyl side by side (experiments/peers_crocoddyl.py): same problems, same optimum.
+"""crocoddyl side by side (agents/experiments/peers_crocoddyl.py): same problems, same optimum.
 
 Crocoddyl is the optional ``[peers]`` extra: these tests skip without it, except the one that
 checks the bench's message in that case.
@@ -9,7 +9,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from experiments import peers_crocoddyl as peers
+from agents.experiments import peers_crocoddyl as peers
 from mbtsr.ilqr import ilqr
 
 needs_crocoddyl = pytest.mark.skipif(not peers.HAVE_CROCODDYL, reason="crocoddyl not installed")
@@ -40,7 +40,7 @@ def test_crocoddyl_and_mbtsr_reach_the_same_optimum(which):
 
 
 def test_bench_reports_crocoddyl_skipped_when_not_installed(monkeypatch, capsys):
-    from experiments import bench_ilqr
+    from agents.experiments import bench_ilqr
 
     monkeypatch.setattr(peers, "HAVE_CROCODDYL", False)
     out = bench_ilqr.peer_comparison(None, [(np.zeros(4), np.zeros(2))])

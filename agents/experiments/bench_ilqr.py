@@ -9,7 +9,7 @@ Measures, in one run:
 2. on the analytic model (the one IPOPT uses): iterations to converge, final cost / IPOPT's cost,
    wall time / IPOPT's wall time, for the default tolerances and for ``tol_fun_rel = 1e-4`` and
    ``1e-3``, and the time until iLQR's cost is within 1 % of IPOPT's;
-3. peers: crocoddyl's ``SolverBoxFDDP`` side by side (``experiments/peers_crocoddyl.py``) on a
+3. peers: crocoddyl's ``SolverBoxFDDP`` side by side (``agents.experiments.peers_crocoddyl``) on a
    box-LQ problem (n=4, m=2, T=200) and the friction-free arm reach (pinocchio model from the
    project's MJCF): ms per iteration, iterations and time to converge, final costs (both
    evaluated with the same mbtsr cost). Without the optional extra
@@ -158,7 +158,7 @@ def time_to_within(res, wall, threshold):
 
 def peer_comparison(args, problems) -> dict:
     """mbtsr iLQR and crocoddyl BoxFDDP on the same problems (best of ``args.repeats`` each)."""
-    from experiments import peers_crocoddyl as peers_mod
+    from agents.experiments import peers_crocoddyl as peers_mod
 
     if not peers_mod.HAVE_CROCODDYL:
         print("crocoddyl: skipped (not installed)")

@@ -1,4 +1,4 @@
-"""Shared code of the paper-reproduction scripts (``scripts/exp_*.py``).
+"""Shared code of the paper experiments (``agents.experiments.exp_*``, run by ``scripts/exp_*.py``).
 
 Bagge Carlson, Johansson and Robertsson, "Tangent-Space Regularization for Neural-Network Models
 of Dynamical Systems" (arXiv:1806.09919). Every experiment script reads top to bottom:
@@ -28,9 +28,7 @@ from pathlib import Path
 
 import numpy as np
 
-REPO = Path(__file__).resolve().parents[1]
-if str(REPO) not in sys.path:  # the scripts are run from anywhere; the repo holds envs/
-    sys.path.insert(0, str(REPO))
+REPO = Path(__file__).resolve().parents[2]
 
 # ------------------------------------------------------------------------------------------------
 # command line

@@ -52,7 +52,7 @@ from typing import Any, Literal
 from mbtsr.io import atomic_write_text
 from mbtsr.report import markdown_table
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 os.environ.setdefault("MUJOCO_GL", "egl")
 
 SB3_METHODS = ("sac", "td3", "ppo")
