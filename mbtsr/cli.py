@@ -137,7 +137,8 @@ def parse(
 
 
 def call(run: Callable[[T], Any], config: T) -> Any:
-    """``run(config)``, with the ``ValueError`` it raises reported like a bad option.
+    """``run(config)``, with the ``ValueError`` (or file-system ``OSError``, e.g. an output
+    folder that cannot be created) it raises reported like a bad option.
 
     The library validates its inputs at its public boundary and names the argument in a
     ``ValueError``, so such an error is a bad option value too: one line on stderr, exit code 2
@@ -147,7 +148,7 @@ def call(run: Callable[[T], Any], config: T) -> Any:
     """
     try:
         return run(config)
-    except ValueError as e:
+    except (ValueError, OSError) as e:  # a bad value, or an output the system refuses
         if os.environ.get("MBTSR_TRACEBACK"):
             raise
         fail(f"{' '.join(str(e).split())} (MBTSR_TRACEBACK=1 shows where)")

@@ -145,6 +145,28 @@ def test_no_script_builds_an_argparse_parser():
             assert "argparse" not in path.read_text(), path
 
 
+def test_file_system_errors_of_the_run_are_one_line_too(tmp_path, capsys):
+    def run(cfg):  # an output the system refuses although the parser's check passed
+        (tmp_path / "file").write_text("x")
+        (tmp_path / "file" / "sub").mkdir()
+
+    with pytest.raises(SystemExit) as exit_:
+        main(Config, run, args=[])
+    err = capsys.readouterr().err
+    assert exit_.value.code == 2 and err.count("\n") == 1 and "Not a directory" in err
+
+
+def test_train_agent_checks_its_run_dir_before_any_work(tmp_path, capsys):
+    from agents.experiments.train_agent import parse as parse_train_agent
+
+    (tmp_path / "file").write_text("x")
+    with pytest.raises(SystemExit) as exit_:
+        parse_train_agent(["--run-dir", str(tmp_path / "file" / "run")])
+    err = capsys.readouterr().err
+    assert exit_.value.code == 2 and err.count("\n") == 1 and "--run-dir" in err
+    assert "is not a folder" in err
+
+
 def test_a_real_script_fails_in_one_line_without_traceback():
     for args in (["--repeats", "many"], ["--json", "/"]):
         proc = subprocess.run([sys.executable, str(REPO / "scripts" / "bench_ltv.py"), *args],

@@ -78,6 +78,11 @@ def parse(argv: list[str] | None = None) -> Args:
     from agents.checkpoint import CheckpointError, load_checkpoint
 
     args = cli.parse(Args, args=argv, outputs=("json",))
+    if args.agent.run_dir:
+        try:
+            cli.check_output_path(args.agent.run_dir, name="--run-dir", folder=True)
+        except ValueError as err:
+            cli.fail(str(err))
     if not args.resume:
         return args
     run_dir = Path(args.agent.run_dir) if args.agent.run_dir else default_run_dir(args)
