@@ -30,7 +30,6 @@ at once, so an interrupted suite reports what finished (``--resume`` skips finis
 
 from __future__ import annotations
 
-import argparse
 import json
 import math
 import os
@@ -39,8 +38,9 @@ import subprocess
 import sys
 import time
 import warnings
+from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 REPO = Path(__file__).resolve().parents[1]
 if str(REPO) not in sys.path:
@@ -396,18 +396,37 @@ def write_markdown(state: dict[str, Any], path: Path, figure_dir: Path) -> None:
     path.write_text("\n".join(lines))
 
 
+TaskName = Literal["arm-far", "arm-open-loop", "reacher", "inverted-pendulum"]
+
+
+@dataclass(frozen=True)
+class Args:
+    """Benchmark suite: {iLQR, CEM} x {none, sampled} on tasks where model quality decides."""
+
+    json: str = str(REPO / "runs" / "bench_suite.json")
+    """the results JSON (appended after every run)"""
+    seeds: list[int] = field(default_factory=lambda: [0, 1, 2, 3, 4])
+    """seeds (scheduled seed-major)"""
+    tasks: list[TaskName] = field(default_factory=lambda: list(TASKS))
+    """tasks to run"""
+    smoke: bool = False
+    """tiny budgets (CI)"""
+    resume: bool = False
+    """skip runs already in --json"""
+    report_only: bool = False
+    """no runs: aggregate and report the JSON"""
+    figures: str = ""
+    """folder for the PNGs (default: none)"""
+    oracle_cache: str = str(REPO / "runs" / "oracle_cache")
+    """oracle cache folder (shared by all runs)"""
+    docs: str = ""
+    """write the markdown report here (with --figures)"""
+
+
 def main(argv: list[str] | None = None) -> dict[str, Any]:
-    p = argparse.ArgumentParser(description=(__doc__ or "").splitlines()[0])
-    p.add_argument("--json", default=str(REPO / "runs" / "bench_suite.json"))
-    p.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2, 3, 4])
-    p.add_argument("--tasks", nargs="+", default=list(TASKS), choices=list(TASKS))
-    p.add_argument("--smoke", action="store_true", help="tiny budgets (CI)")
-    p.add_argument("--resume", action="store_true", help="skip runs already in --json")
-    p.add_argument("--report-only", action="store_true")
-    p.add_argument("--figures", default="", help="folder for the PNGs (default: none)")
-    p.add_argument("--oracle-cache", default=str(REPO / "runs" / "oracle_cache"))
-    p.add_argument("--docs", default="", help="write the markdown report here (with --figures)")
-    a = p.parse_args(argv)
+    from mbtsr.cli import parse
+
+    a = parse(Args, args=argv, outputs=("json", "docs"))
     path = Path(a.json)
     path.parent.mkdir(parents=True, exist_ok=True)
     state: dict[str, Any] = {"runs": []}

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import importlib.util
 import json
+import sys
 from pathlib import Path
 
 import pytest
@@ -17,6 +18,7 @@ def _suite():
     path = REPO / "scripts" / "bench_suite.py"
     spec = importlib.util.spec_from_file_location("bench_suite", path)
     mod = importlib.util.module_from_spec(spec)
+    sys.modules["bench_suite"] = mod  # dataclasses resolve annotations through sys.modules
     spec.loader.exec_module(mod)
     return mod
 
