@@ -5,7 +5,10 @@
   with a Stable-Baselines3-style ``learn / predict / save / load`` surface;
 - :mod:`agents.evaluation`: the "solved" protocol (fixed random targets, the true-model MPC
   oracle) shared by the agent and the model-free baselines;
-- :mod:`agents.sb3_baselines`: Stable-Baselines3 baselines on the same task.
+- :mod:`agents.sb3_baselines`: Stable-Baselines3 baselines on the same task;
+- :mod:`agents.model_env`: the learned, frozen model as a Gymnasium env (MBPO-style);
+- :mod:`agents.experiments`: the benchmarks and the paper's experiments as ``Args`` dataclasses
+  with ``run(args)`` functions, the logic behind the thin ``scripts/*.py``.
 
 ``from agents import JacPropAgent, AgentConfig`` works; the heavy imports happen on first use.
 """

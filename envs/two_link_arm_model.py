@@ -49,6 +49,7 @@ from dataclasses import asdict, dataclass, fields, replace
 import casadi as ca
 import numpy as np
 
+from mbtsr.costs import casadi_jit_options
 from mbtsr.dynamics import check_step_inputs
 from mbtsr.validation import as_array
 
@@ -311,7 +312,7 @@ class TwoLinkArmCasadi:
         self._kernels = {"step": self.casadi_step, "jac": self.casadi_jacobians}
         if self.jit:  # the same expressions compiled to C once (about 1-3 s); the public
             # casadi_* functions stay symbolic (IPOPT differentiates through casadi_step)
-            opts = {"jit": True, "compiler": "shell", "jit_options": {"flags": ["-O1"]}}
+            opts = casadi_jit_options("-O1")
             self._kernels = {
                 which: ca.Function(f"{fn.name()}_jit", [x, a], fn.call([x, a]), opts)
                 for which, fn in self._kernels.items()

@@ -137,19 +137,21 @@ def parse(
 
 
 def call(run: Callable[[T], Any], config: T) -> Any:
-    """``run(config)``, with the ``ValueError``/``TypeError`` it raises reported like a bad option.
+    """``run(config)``, with the ``ValueError`` (or file-system ``OSError``, e.g. an output
+    folder that cannot be created) it raises reported like a bad option.
 
-    The library validates its inputs at its public boundary and names the argument in the
-    exception, so such an error is a bad option value too: one line on stderr, exit code 2
-    (``MBTSR_TRACEBACK=1`` re-raises it with the traceback, for debugging).
+    The library validates its inputs at its public boundary and names the argument in a
+    ``ValueError``, so such an error is a bad option value too: one line on stderr, exit code 2
+    (``MBTSR_TRACEBACK=1`` re-raises it with the traceback, for debugging). Other exceptions
+    (the option types are already checked by the parser, so a ``TypeError`` is a bug) keep
+    their traceback.
     """
     try:
         return run(config)
-    except (ValueError, TypeError) as e:
+    except (ValueError, OSError) as e:  # a bad value, or an output the system refuses
         if os.environ.get("MBTSR_TRACEBACK"):
             raise
-        kind = "" if type(e) is ValueError else f"{type(e).__name__}: "
-        fail(f"{kind}{' '.join(str(e).split())} (MBTSR_TRACEBACK=1 shows where)")
+        fail(f"{' '.join(str(e).split())} (MBTSR_TRACEBACK=1 shows where)")
 
 
 def main(

@@ -30,6 +30,8 @@ matrix, so time-major trajectories map onto ``Function.map(N)`` inputs directly.
 
 from __future__ import annotations
 
+import os
+import tempfile
 from dataclasses import dataclass
 
 import casadi as ca
@@ -37,9 +39,31 @@ import numpy as np
 
 from mbtsr.validation import as_array
 
-__all__ = ["CasadiCost", "QuadraticCost", "CostDerivatives", "quadratic_cost", "smooth_norm"]
+__all__ = [
+    "CasadiCost",
+    "QuadraticCost",
+    "CostDerivatives",
+    "casadi_jit_options",
+    "quadratic_cost",
+    "smooth_norm",
+]
 
-_JIT_OPTIONS = {"jit": True, "compiler": "shell", "jit_options": {"flags": ["-O2"]}}
+def casadi_jit_options(opt_level: str = "-O2") -> dict:
+    """CasADi ``Function`` options that JIT-compile with the system C compiler (``"shell"``).
+
+    The generated C sources and shared objects go to ``<tmp>/mbtsr-casadi-jit/`` with unique
+    names, where CasADi removes them when the function is freed (by default it writes
+    ``jit_tmp*.c`` and ``tmp_casadi_compiler_shell*`` files into the current working directory,
+    and a killed process leaves them there).
+    """
+    folder = os.path.join(tempfile.gettempdir(), "mbtsr-casadi-jit")
+    os.makedirs(folder, exist_ok=True)
+    return {
+        "jit": True,
+        "compiler": "shell",
+        "jit_temp_suffix": True,
+        "jit_options": {"flags": [opt_level], "directory": folder + os.sep},
+    }
 
 
 def smooth_norm(v, eps: float):
@@ -167,7 +191,7 @@ class CasadiCost:
                     raise
         self.stage = ca.Function("stage", [x, u, t, p], [l_expr], ["x", "u", "t", "p"], ["l"])
         self.terminal = ca.Function("terminal", [x, p], [lT_expr], ["x", "p"], ["lT"])
-        opts = _JIT_OPTIONS if self.jit else {}
+        opts = casadi_jit_options("-O2") if self.jit else {}
         l, lT = self.stage(x, u, t, p), self.terminal(x, p)
         lx, lu = ca.gradient(l, x), ca.gradient(l, u)
         # outputs are stored transposed where it matters so that the column-major CasADi

@@ -840,52 +840,102 @@ _KERNEL_CODE = {"elu": 0, "sigmoid": 1, "tanh": 1, "swish": 2, "relu": 3, "leaky
 
 
 @njit(cache=True)
+def _mean_step_row(x, u, W_inT, W_out, code, z, out):  # pragma: no cover - compiled
+    """One row of :func:`_mean_step_kernel`: ``x [n]``, ``u [m]`` -> ``out [n]`` (``z [H]``
+    scratch)."""
+    n, m, H = x.shape[0], u.shape[0], W_inT.shape[1]
+    for h in range(H):
+        z[h] = W_inT[0, h]
+    for i in range(n):
+        xi = x[i]
+        for h in range(H):
+            z[h] += xi * W_inT[1 + i, h]
+    for j in range(m):
+        uj = u[j]
+        for h in range(H):
+            z[h] += uj * W_inT[1 + n + j, h]
+    for o in range(n):
+        out[o] = W_out[H, o]
+    for i in range(n):
+        xi = x[i]
+        for o in range(n):
+            out[o] += xi * W_out[H + 1 + i, o]
+    for j in range(m):
+        uj = u[j]
+        for o in range(n):
+            out[o] += uj * W_out[H + 1 + n + j, o]
+    for h in range(H):
+        c, zh = code[h], z[h]
+        if c == 0:
+            a = zh if zh > 0.0 else np.expm1(zh)
+        elif c == 1:
+            a = np.tanh(zh)
+        elif c == 2:
+            a = zh * np.tanh(zh)
+        elif c == 3:
+            a = zh if zh > 0.0 else 0.0
+        else:
+            a = zh if zh > 0.0 else LEAKY_RELU_SLOPE * zh
+        for o in range(n):
+            out[o] += a * W_out[h, o]
+
+
+@njit(cache=True)
 def _mean_step_kernel(x, u, W_inT, W_out, code, out):  # pragma: no cover - compiled
     """Compiled ensemble-mean step on the folded weights of :func:`_mean_step_plan`:
     ``x [B, n]``, ``u [B, m]``, ``W_inT [1+n+m, H]``, ``W_out [H+1+n+m, n]``, ``code [H]``
     (0 elu, 1 tanh (sigmoid rows are pre-halved), 2 swish as ``z' tanh(z')``, 3 relu,
     4 leaky relu) -> ``out [B, n]``. The same arithmetic as the numpy path, one row at a time,
-    without numpy's per-call overhead (a few microseconds per call instead of ~15)."""
-    B, n = x.shape
-    m = u.shape[1]
-    H = W_inT.shape[1]
-    z = np.empty(H)
-    for b in range(B):
-        for h in range(H):
-            z[h] = W_inT[0, h]
-        for i in range(n):
-            xi = x[b, i]
-            for h in range(H):
-                z[h] += xi * W_inT[1 + i, h]
-        for j in range(m):
-            uj = u[b, j]
-            for h in range(H):
-                z[h] += uj * W_inT[1 + n + j, h]
-        for o in range(n):
-            out[b, o] = W_out[H, o]
-        for i in range(n):
-            xi = x[b, i]
-            for o in range(n):
-                out[b, o] += xi * W_out[H + 1 + i, o]
-        for j in range(m):
-            uj = u[b, j]
-            for o in range(n):
-                out[b, o] += uj * W_out[H + 1 + n + j, o]
-        for h in range(H):
-            c, zh = code[h], z[h]
-            if c == 0:
-                a = zh if zh > 0.0 else np.expm1(zh)
-            elif c == 1:
-                a = np.tanh(zh)
-            elif c == 2:
-                a = zh * np.tanh(zh)
-            elif c == 3:
-                a = zh if zh > 0.0 else 0.0
-            else:
-                a = zh if zh > 0.0 else LEAKY_RELU_SLOPE * zh
-            for o in range(n):
-                out[b, o] += a * W_out[h, o]
+    without numpy's per-call overhead."""
+    z = np.empty(W_inT.shape[1])
+    for b in range(x.shape[0]):
+        _mean_step_row(x[b], u[b], W_inT, W_out, code, z, out[b])
     return out
+
+
+@njit(cache=True)
+def _rollout_policy_kernel(W_inT, W_out, code, x0, X, U, k, K, alphas, lower, upper,
+                           max_norm):  # pragma: no cover - compiled
+    """Closed-loop rollouts of the frozen ensemble-mean model for all step sizes, in one
+    compiled call: ``u_t = clip(U_t + alpha k_t + K_t (x_t - X_t), lower, upper)``;
+    ``X: [T+1, n]``, ``U, k: [T, m]``, ``K: [T, m, n]``, ``alphas: [N]`` ->
+    ``(Xn [N, T+1, n], Un [N, T, m], alive [N])``, the semantics of
+    ``mbtsr.ilqr._rollout_policy`` (a row that turns non-finite is dead and continues from the
+    nominal state; rows exceeding ``max_norm`` are dead at the end)."""
+    T, m = U.shape
+    n = x0.shape[0]
+    N = alphas.shape[0]
+    Xn = np.empty((N, T + 1, n))
+    Un = np.empty((N, T, m))
+    alive = np.ones(N, dtype=np.bool_)
+    z = np.empty(W_inT.shape[1])
+    for a in range(N):
+        alpha = alphas[a]
+        for i in range(n):
+            Xn[a, 0, i] = x0[i]
+        biggest = 0.0
+        for i in range(n):
+            biggest = max(biggest, abs(x0[i]))
+        for t in range(T):
+            for j in range(m):
+                v = U[t, j] + alpha * k[t, j]
+                for i in range(n):
+                    v += K[t, j, i] * (Xn[a, t, i] - X[t, i])
+                Un[a, t, j] = min(max(v, lower[j]), upper[j])
+            _mean_step_row(Xn[a, t], Un[a, t], W_inT, W_out, code, z, Xn[a, t + 1])
+            finite = True
+            for i in range(n):
+                if not np.isfinite(Xn[a, t + 1, i]):
+                    finite = False
+            if not finite:
+                alive[a] = False
+                for i in range(n):
+                    Xn[a, t + 1, i] = X[t + 1, i]
+            for i in range(n):
+                biggest = max(biggest, abs(Xn[a, t + 1, i]))
+        if not biggest <= max_norm:
+            alive[a] = False
+    return Xn, Un, alive
 
 
 def _mean_step_plan(runs, W: int, W1: np.ndarray, b1: np.ndarray, Wo: np.ndarray,
@@ -1039,6 +1089,23 @@ class FrozenEnsemble:
         out = np.empty((B, n))
         _mean_step_kernel(x, u, plan.W_inT, plan.W_out, plan.code, out)
         return out.reshape(*lead, n)
+
+    @property
+    def linear_batch_cost(self) -> bool:
+        """True with the compiled rollouts (their cost grows with the number of step sizes,
+        so iLQR rolls the step sizes out in chunks, largest first; see :mod:`mbtsr.ilqr`)."""
+        return self._plan is not None
+
+    def _rollout_policy(self, x0, X, U, k, K, alphas, lower, upper, max_norm):
+        """iLQR's closed-loop line-search rollouts in one compiled call (see
+        :func:`_rollout_policy_kernel`; arguments as ``mbtsr.ilqr._rollout_policy`` without
+        ``t0``), or ``None`` for architectures without the folded plan (the solver then steps
+        the model from Python)."""
+        plan = self._plan
+        if plan is None:
+            return None
+        return _rollout_policy_kernel(plan.W_inT, plan.W_out, plan.code, x0, X, U, k, K,
+                                      alphas, lower, upper, float(max_norm))
 
     def _step_numpy(self, x: np.ndarray, u: np.ndarray) -> np.ndarray:
         """The ensemble-mean step of the folded plan in numpy (the compiled kernel's reference;

@@ -692,8 +692,15 @@ def _rollout_policy(dynamics, x0, X, U, k, K, alphas, lower, upper, t0, max_norm
     A row that turns non-finite is marked dead and continues from the nominal state (so the
     model never sees NaN); rows exceeding ``max_norm`` are marked dead at the end.
     An affine model (:class:`mbtsr.dynamics.LinearDynamics`) is rolled out in one compiled call
-    (:func:`mbtsr._lqr_kernels.rollout_policy_affine`, same semantics).
+    (:func:`mbtsr._lqr_kernels.rollout_policy_affine`, same semantics); so is a model that
+    offers ``_rollout_policy(x0, X, U, k, K, alphas, lower, upper, max_norm)`` (the frozen
+    ensemble; it may return ``None`` to decline).
     """
+    kernel = getattr(dynamics, "_rollout_policy", None)  # a model's compiled rollouts
+    if kernel is not None:
+        out = kernel(x0, X, U, k, K, alphas, lower, upper, max_norm)
+        if out is not None:
+            return out
     if type(dynamics) is LinearDynamics:
         A, B, c = (
             np.ascontiguousarray(a, dtype=float)[None]

@@ -3,9 +3,8 @@
     python scripts/bench_env.py --json runs/bench_env.json
 """
 
-import _bootstrap  # noqa: F401
 
-from experiments.bench_env import Args, run
+from agents.experiments.bench_env import Args, run
 from mbtsr.cli import main
 
 if __name__ == "__main__":

@@ -3,9 +3,11 @@
     python scripts/bench_ltv.py --json runs/bench_ltv.json
 """
 
-import _bootstrap  # noqa: F401
 
-from experiments.bench_ltv import Args, run  # first: sets the BLAS threads before numpy loads
+from agents.experiments.bench_ltv import (  # first: sets the BLAS threads before numpy loads
+    Args,
+    run,
+)
 from mbtsr.cli import main
 
 if __name__ == "__main__":

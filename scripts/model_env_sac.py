@@ -1,12 +1,11 @@
 """SAC trained inside the learned model (agents.model_env.ModelEnv), evaluated in the real env
-(experiments.model_env_sac).
+(agents.experiments.model_env_sac).
 
     python scripts/model_env_sac.py                        # 6 real episodes, 5000 model steps
 """
 
-import _bootstrap  # noqa: F401
 
-from experiments.model_env_sac import Args, run
+from agents.experiments.model_env_sac import Args, run
 from mbtsr.cli import main
 
 if __name__ == "__main__":

@@ -134,7 +134,9 @@ def test_sigkill_and_resume_is_bit_identical_to_an_uninterrupted_run(tmp_path):
 
 
 def _script():
-    from experiments import train_agent  # the script's logic (scripts/train_agent.py calls it)
+    from agents.experiments import (
+        train_agent,  # the script's logic (scripts/train_agent.py calls it)
+    )
 
     return train_agent
 

@@ -1,12 +1,10 @@
-"""Smoke test of scripts/bench_suite.py (tiny budgets): every task runs with every planner and
-regularizer, the JSON holds the thresholds stated in the script, per-run curves, env steps to
-solve (or None), and wall time per phase; the table aggregates them."""
+"""Smoke test of agents/experiments/bench_suite.py (tiny budgets): every task runs with every
+planner and regularizer, the JSON holds the thresholds stated in the script, per-run curves, env
+steps to solve (or None), and wall time per phase; the table aggregates them."""
 
 from __future__ import annotations
 
-import importlib.util
 import json
-import sys
 from pathlib import Path
 
 import pytest
@@ -15,12 +13,9 @@ REPO = Path(__file__).resolve().parents[1]
 
 
 def _suite():
-    path = REPO / "scripts" / "bench_suite.py"
-    spec = importlib.util.spec_from_file_location("bench_suite", path)
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules["bench_suite"] = mod  # dataclasses resolve annotations through sys.modules
-    spec.loader.exec_module(mod)
-    return mod
+    from agents.experiments import bench_suite  # scripts/bench_suite.py is its command line
+
+    return bench_suite
 
 
 def test_bench_suite_smoke(tmp_path):

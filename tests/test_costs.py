@@ -153,7 +153,8 @@ def test_derivatives_match_finite_differences(with_params):
         np.testing.assert_allclose(g, w, rtol=1e-5, atol=1e-5, err_msg=name)
 
 
-def test_jit_compiled_cost_gives_the_same_numbers():
+def test_jit_compiled_cost_gives_the_same_numbers(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)  # CasADi's default writes its C files into the working folder
     rng = np.random.default_rng(4)
     x, u = ca.SX.sym("x", N_X), ca.SX.sym("u", N_U)
     stage = smooth_norm(x[:2], 0.05) + ca.sumsqr(u) + u[0] * x[3]
@@ -163,6 +164,7 @@ def test_jit_compiled_cost_gives_the_same_numbers():
     for a, b in zip(plain.derivatives(X, U), jitted.derivatives(X, U)):
         np.testing.assert_allclose(a, b, rtol=1e-13, atol=1e-13)
     assert jitted.total(X, U) == pytest.approx(plain.total(X, U), rel=1e-13)
+    assert list(tmp_path.iterdir()) == []  # the JIT's temporary files go to a private folder
 
 
 def test_batched_values_equal_per_trajectory_values():

@@ -669,3 +669,30 @@ def test_compiled_step_kernel_equals_the_numpy_step(members):
     x = rng.normal(size=(7, 3, N_STATE))[:, 1]  # a strided view, as in batched rollouts
     u = rng.normal(size=(7, N_INPUT))
     _normwise_close(frozen._step(x[:3], u[:3]), frozen._step_numpy(x[:3], u[:3]), 1e-14)
+
+
+@pytest.mark.parametrize("max_norm", [1e8, 6.0])
+def test_compiled_line_search_rollouts_equal_the_python_rollouts(max_norm):
+    """iLQR's closed-loop rollouts through the frozen ensemble's compiled kernel equal the
+    solver's generic rollouts through ``step`` (same states, controls and dead rows)."""
+    from mbtsr.ilqr import _rollout_policy
+
+    frozen = make_model(WIDE_MEMBERS, "g", perturb=0.5).freeze()
+
+    class StepOnly:  # the same model seen only through its step: the generic path
+        state_dim, action_dim = frozen.state_dim, frozen.action_dim
+        step = staticmethod(frozen.step)
+
+    rng = np.random.default_rng(5)
+    T = 9
+    X = rng.normal(size=(T + 1, N_STATE))
+    U, k = rng.normal(size=(T, N_INPUT)), rng.normal(size=(T, N_INPUT))
+    K = 0.3 * rng.normal(size=(T, N_INPUT, N_STATE))
+    alphas = np.array([1.0, 0.5, 0.1, 0.01])
+    lower, upper = np.array([-1.0, -np.inf]), np.array([0.5, np.inf])
+    got = _rollout_policy(frozen, X[0], X, U, k, K, alphas, lower, upper, 0, max_norm)
+    want = _rollout_policy(StepOnly(), X[0], X, U, k, K, alphas, lower, upper, 0, max_norm)
+    for g, w in zip(got, want):
+        np.testing.assert_allclose(g, w, rtol=1e-13, atol=1e-13)
+    if max_norm < 10:
+        assert not got[2].all()  # some rows were declared dead, identically

@@ -3,7 +3,7 @@
 Every ``--quick`` mode runs for real (real MuJoCo, real training, tiny budgets) into a temporary
 folder; the tests check the per-run JSON records, the figures and the summary, and that the
 report step redraws everything from the stored JSON alone (without rerunning anything). The
-shared helpers of ``scripts/paper_common.py`` are checked against independent computations.
+shared helpers of ``agents.experiments.paper_common`` are checked against independent computations.
 """
 
 from __future__ import annotations
@@ -25,7 +25,7 @@ REPO = Path(__file__).resolve().parents[1]
 SCRIPTS = REPO / "scripts"
 sys.path.insert(0, str(SCRIPTS))
 
-import paper_common as pc  # noqa: E402
+from agents.experiments import paper_common as pc  # noqa: E402
 
 #: script -> (number of configs in --quick, figures it draws, numeric result keys to check)
 QUICK = {
@@ -234,7 +234,7 @@ def test_stored_eigenvalues_round_trip(rows):
 
 
 def test_parse_args_quick_overrides_only_unset_fields(capsys):
-    import exp_robot
+    from agents.experiments import exp_robot
 
     args = pc.parse_args(exp_robot.Args, ["--quick", "--mc", "3"])
     assert args.mc == 3 and args.epoch_scale == exp_robot.Args.QUICK["epoch_scale"]
@@ -248,7 +248,7 @@ def test_parse_args_quick_overrides_only_unset_fields(capsys):
 
 
 def test_unknown_method_and_deviation_are_rejected():
-    import exp_deviations
+    from agents.experiments import exp_deviations
 
     with pytest.raises(ValueError, match="method"):
         pc.regularization("dropout")
@@ -303,7 +303,7 @@ def test_regime_quick_runs_every_method_at_equal_steps_and_redraws(tmp_path):
 
 
 def test_regime_paired_relative_change_and_wins():
-    import exp_regime as er
+    from agents.experiments import exp_regime as er
 
     def rec(method, seed, v):
         return {"config": {"method": method, "data": {"window": "paper", "friction": True},
@@ -391,7 +391,7 @@ def test_truth_diagnostics_best_constant_and_labels():
 
 
 def test_claims_statistics_match_a_direct_computation(tmp_path):
-    import exp_claims
+    from agents.experiments import exp_claims
 
     rng = np.random.default_rng(3)
     a, b = rng.normal(size=9), rng.normal(size=9)

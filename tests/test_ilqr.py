@@ -570,6 +570,21 @@ def test_a_model_or_cost_that_turns_nan_mid_solve_ends_failed_with_the_best_fini
         assert res.cost == pytest.approx(cost.total(res.X, res.U), rel=1e-12)
 
 
+def test_an_all_nan_cost_fails_with_finite_controls_inside_the_box():
+    """A cost that is NaN everywhere (e.g. a typo'd expression) cannot be optimised: the solve
+    says so (status failed) and still returns the finite, clipped initial guess."""
+    A, B = _stable_system(11)
+    x, u = ca.SX.sym("x", N_X), ca.SX.sym("u", N_U)
+    nan = ca.sqrt(-1.0 - ca.sumsqr(x))  # NaN for every state
+    cost = CasadiCost.from_expressions(x, u, nan + ca.sumsqr(u), nan)
+    U0 = np.full((8, N_U), 3.0)
+    res = ilqr(cost, LinearDynamics(A, B), np.ones(N_X), U0, u_min=-1, u_max=1,
+               options={"max_iter": 10})
+    assert res.status == "failed"
+    assert np.isfinite(res.U).all() and np.all(np.abs(res.U) <= 1.0)
+    assert np.isfinite(res.X).all()
+
+
 @settings(max_examples=25, deadline=None)
 @given(
     st.integers(0, 2**16),

@@ -1,4 +1,4 @@
-"""crocoddyl side by side (scripts/peers_crocoddyl.py): same problems, same optimum.
+"""crocoddyl side by side (agents/experiments/peers_crocoddyl.py): same problems, same optimum.
 
 Crocoddyl is the optional ``[peers]`` extra: these tests skip without it, except the one that
 checks the bench's message in that case.
@@ -6,16 +6,11 @@ checks the bench's message in that case.
 
 from __future__ import annotations
 
-import sys
-from pathlib import Path
-
 import numpy as np
 import pytest
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "scripts"))
-import peers_crocoddyl as peers  # noqa: E402
-
-from mbtsr.ilqr import ilqr  # noqa: E402
+from agents.experiments import peers_crocoddyl as peers
+from mbtsr.ilqr import ilqr
 
 needs_crocoddyl = pytest.mark.skipif(not peers.HAVE_CROCODDYL, reason="crocoddyl not installed")
 
@@ -45,8 +40,7 @@ def test_crocoddyl_and_mbtsr_reach_the_same_optimum(which):
 
 
 def test_bench_reports_crocoddyl_skipped_when_not_installed(monkeypatch, capsys):
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "scripts"))
-    import bench_ilqr
+    from agents.experiments import bench_ilqr
 
     monkeypatch.setattr(peers, "HAVE_CROCODDYL", False)
     out = bench_ilqr.peer_comparison(None, [(np.zeros(4), np.zeros(2))])

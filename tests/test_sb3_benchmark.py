@@ -44,7 +44,7 @@ def _one_thread():
 
 
 def _load_script():
-    from experiments import benchmark_sb3
+    from agents.experiments import benchmark_sb3
 
     return benchmark_sb3
 

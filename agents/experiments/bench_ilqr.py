@@ -1,0 +1,490 @@
+"""Benchmark iLQR and MPC on the two-link arm reach task, against IPOPT and crocoddyl.
+
+Measures, in one run:
+1. ms per iLQR iteration at horizons T (default 100 and 200) with (a) the true MuJoCo model
+   (``envs.mujoco_model.MujocoDynamics``: mujoco.rollout steps, mjd_transitionFD Jacobians), (b)
+   the analytic CasADi model, (c) a 4-member NN ensemble (``--ensemble PATH`` or a randomly
+   initialised ``DynamicsEnsemble``, frozen for planning), with the time per phase (Jacobians,
+   cost derivatives, backward pass, forward pass, line-search costs);
+2. on the analytic model (the one IPOPT uses): iterations to converge, final cost / IPOPT's cost,
+   wall time / IPOPT's wall time, for the default tolerances and for ``tol_fun_rel = 1e-4`` and
+   ``1e-3``, and the time until iLQR's cost is within 1 % of IPOPT's;
+3. peers: crocoddyl's ``SolverBoxFDDP`` side by side (``agents.experiments.peers_crocoddyl``) on a
+   box-LQ problem (n=4, m=2, T=200) and the friction-free arm reach (pinocchio model from the
+   project's MJCF): ms per iteration, iterations and time to converge, final costs (both
+   evaluated with the same mbtsr cost). Without the optional extra
+   (``pip install -c constraints.txt -e ".[peers]"``) it prints
+   "crocoddyl: skipped (not installed)" and runs the rest;
+4. the MPC real-time factor (control period 0.02 s / compute time per MPC step) at the agent's
+   default horizon and iterations (``AgentConfig``) for the ensemble, the analytic model and the
+   true MuJoCo arm (MuJoCo steps with the analytic twin's exact Jacobians, and with MuJoCo's own
+   finite-difference Jacobians for reference), and the final reach error;
+5. the cold (first-ever) compile time of the numba backward pass, in a fresh process with an
+   empty cache.
+
+Targets (issue 13) are listed in the JSON with a pass flag each. Numbers are noisy on a shared
+machine: every timing is the best of ``--repeats`` runs and the load average is recorded; the
+ratios are measured side by side in the same run.
+
+Usage: ``python scripts/bench_ilqr.py --json runs/bench_ilqr.json``
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+import platform
+import subprocess
+import sys
+import tempfile
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import gymnasium as gym
+import numpy as np
+import torch
+
+import envs  # noqa: F401  (registers mbtsr/TwoLinkArm-v0)
+from agents.config import AgentConfig
+from envs.mujoco_model import HybridDynamics, MujocoDynamics
+from mbtsr.costs import quadratic_cost
+from mbtsr.episode import run_episode
+from mbtsr.ilqr import ILQROptions, ilqr
+from mbtsr.ipopt_reference import solve_ipopt
+from mbtsr.mpc import MPC, MPCOptions
+
+
+@dataclass(frozen=True)
+class Args:
+    """Benchmark of iLQR and MPC on the arm, against IPOPT and crocoddyl (issue 13)."""
+
+    preset: str = "default"
+    """arm preset"""
+    horizons: str = "100,200"
+    """comma-separated iLQR horizons"""
+    timing_iterations: int = 15
+    """iLQR iterations per timing run (tolerances off)"""
+    repeats: int = 3
+    """timing runs; the best (least disturbed by other processes) is reported"""
+    n_problems: int = 3
+    """start/target pairs for the IPOPT comparison"""
+    mpc_horizon: int = AgentConfig().horizon
+    """MPC horizon (default: the agent's)"""
+    mpc_steps: int = 100
+    """control steps per MPC episode"""
+    mpc_iterations: int = AgentConfig().ilqr_iterations
+    """iLQR iterations per MPC step (warm-started; default: the agent's)"""
+    mpc_first_iterations: int = AgentConfig().first_plan_iterations
+    """iLQR iterations of the first MPC step (default: the agent's)"""
+    peers: bool = True
+    """run crocoddyl side by side (skipped when not installed)"""
+    ensemble: str = ""
+    """path of a saved ensemble (mbtsr.ensemble.save_model); empty: random 4-member ensemble"""
+    seed: int = 0
+    """seed of the start/target pairs and of the random ensemble"""
+    threads: int = 1
+    """torch threads"""
+    json: str | None = None
+    """write the results to this JSON file"""
+
+
+def load_ensemble(path: str, seed: int):
+    """The ensemble under test, or None if mbtsr.ensemble is not available.
+
+    Without a path: the paper's 4-member ensemble with random weights, its input/output
+    normalization set from 4 excitation rollouts of the arm, so that its one-step increments have
+    the data's scale (an unnormalized random net diverges over 200 steps); only its timing is
+    representative, not its accuracy.
+    """
+    try:
+        from envs.collect import collect_trajectories
+        from mbtsr.ensemble import DynamicsEnsemble, EnsembleConfig, load_model
+    except ImportError as err:  # pragma: no cover - only before the model issue lands
+        return None, f"not available: {err}"
+    if path:
+        return load_model(path), f"loaded from {path}"
+    model = DynamicsEnsemble(EnsembleConfig(4, 2, seed=seed))
+    data_env = gym.make("mbtsr/TwoLinkArm-v0", episode_steps=100)
+    model.set_normalization(collect_trajectories(data_env, 4, 100, seed=seed))
+    return model, "random weights, 4 members (paper), normalization from 4 excitation rollouts"
+
+
+def time_ilqr(cost, model, x0, T, iterations, repeats):
+    """Best-of-``repeats`` ms per iteration with tolerances off (fixed iteration count)."""
+    opts = ILQROptions(max_iter=iterations, tol_fun=0.0, tol_grad=0.0)
+    ilqr(cost, model, x0, np.zeros((T, 2)), u_min=-1.0, u_max=1.0, options=opts)  # warm-up
+    best = None
+    for _ in range(repeats):
+        cpu = time.process_time()
+        res = ilqr(cost, model, x0, np.zeros((T, 2)), u_min=-1.0, u_max=1.0, options=opts)
+        cpu = time.process_time() - cpu
+        if res.iterations == 0:
+            return {"error": res.message}
+        per_iter = res.timings["total"] / res.iterations * 1e3
+        if best is None or per_iter < best["ms_per_iteration"]:
+            n_jac = 1 + sum(tr["accepted"] for tr in res.trace[:-1])
+            best = {
+                "ms_per_iteration": per_iter,
+                "cpu_ms_per_iteration": cpu / res.iterations * 1e3,
+                "iterations": res.iterations,
+                "accepted": int(sum(tr["accepted"] for tr in res.trace)),
+                "status": res.status,
+                "ms_per_phase_per_iteration": {
+                    k: v / res.iterations * 1e3 for k, v in res.timings.items() if k != "total"
+                },
+                "ms_per_jacobian_call": res.timings["jacobians"] / n_jac * 1e3,
+            }
+    return best
+
+
+def solve_ilqr_timed(cost, model, x0, T, options, u_min=-1.0, u_max=1.0):
+    tic = time.perf_counter()
+    res = ilqr(cost, model, x0, np.zeros((T, 2)), u_min=u_min, u_max=u_max, options=options)
+    return res, time.perf_counter() - tic
+
+
+def time_to_within(res, wall, threshold):
+    """Seconds until the iLQR trace first reaches ``cost <= threshold`` (None if never)."""
+    setup = wall - sum(tr["time"] for tr in res.trace)
+    elapsed = setup
+    for tr in res.trace:
+        elapsed += tr["time"]
+        if tr["cost"] <= threshold:
+            return elapsed
+    return None
+
+
+def peer_comparison(args, problems) -> dict:
+    """mbtsr iLQR and crocoddyl BoxFDDP on the same problems (best of ``args.repeats`` each)."""
+    from agents.experiments import peers_crocoddyl as peers_mod
+
+    if not peers_mod.HAVE_CROCODDYL:
+        print("crocoddyl: skipped (not installed)")
+        return {"skipped": "crocoddyl not installed"}
+    x0, target = problems[0]
+    out = {}
+    for prob in (peers_mod.box_lq_problem(), peers_mod.arm_reach_problem(x0, target)):
+        if prob.params is not None:
+            out["pinocchio_vs_twin_max_accel_error"] = peers_mod.check_pinocchio_matches_twin(
+                prob.params
+            )
+        croc = peers_mod.solve_crocoddyl(prob, repeats=args.repeats + 1)  # first: warm-up
+        best = None
+        solve_ilqr_timed(  # warm-up: builds the cost's mapped functions, loads numba's cache
+            prob.cost, prob.model, prob.x0, prob.T, ILQROptions(), prob.u_min, prob.u_max
+        )
+        for _ in range(args.repeats):
+            cpu = time.process_time()
+            res, wall = solve_ilqr_timed(
+                prob.cost, prob.model, prob.x0, prob.T, ILQROptions(), prob.u_min, prob.u_max
+            )
+            cpu = time.process_time() - cpu
+            if best is None or cpu < best[2]:  # least disturbed by the other processes
+                best = (res, wall, cpu)
+        res, wall, cpu = best
+        ms_iter = wall / max(res.iterations, 1) * 1e3
+        cpu_ms_iter = cpu / max(res.iterations, 1) * 1e3
+        out[prob.name] = {
+            "mbtsr": {
+                "cost": res.cost,
+                "iterations": res.iterations,
+                "status": res.status,
+                "wall_time_s": wall,
+                "ms_per_iteration": ms_iter,
+                "cpu_time_s": cpu,
+                "cpu_ms_per_iteration": cpu_ms_iter,
+                "ms_per_phase_per_iteration": {
+                    k: v / max(res.iterations, 1) * 1e3
+                    for k, v in res.timings.items()
+                    if k != "total"
+                },
+            },
+            "crocoddyl": croc,
+            "per_iteration_ratio": ms_iter / croc["ms_per_iteration"],
+            "time_to_converge_ratio": wall / croc["wall_time_s"],
+            "per_iteration_ratio_cpu": cpu_ms_iter / croc["cpu_ms_per_iteration"],
+            "time_to_converge_ratio_cpu": cpu / croc["cpu_time_s"],
+            "final_cost_rel_diff": abs(res.cost - croc["cost"]) / abs(croc["cost"]),
+        }
+        r = out[prob.name]
+        print(
+            f"{prob.name}: mbtsr {ms_iter:.3f} ms/it x {res.iterations} it, cost {res.cost:.10g}; "
+            f"crocoddyl {croc['ms_per_iteration']:.3f} ms/it x {croc['iterations']} it, cost "
+            f"{croc['cost']:.10g}; per-iteration ratio {r['per_iteration_ratio']:.2f}, "
+            f"time-to-converge ratio {r['time_to_converge_ratio']:.2f} (CPU time: "
+            f"{r['per_iteration_ratio_cpu']:.2f}, {r['time_to_converge_ratio_cpu']:.2f}), "
+            f"cost rel diff {r['final_cost_rel_diff']:.2e}"
+        )
+    return out
+
+
+def cold_compile_seconds() -> float:
+    """Seconds for the first-ever call of the numba backward pass (fresh process, empty cache)."""
+    code = (
+        "import time, numpy as np; t = time.perf_counter();"
+        "from mbtsr import _lqr_kernels as k; z = np.zeros;"
+        "k.backward_pass(z((3, 2, 2)) + np.eye(2), z((3, 2, 1)) + 1, z((4, 2)), z((3, 1)),"
+        " z((4, 2, 2)) + np.eye(2), z((3, 1, 1)) + 1, z((3, 1, 2)), z((3, 1)) - 1,"
+        " z((3, 1)) + 1, 0.1, 1, True, k.BOXQP_DEFAULTS); print(time.perf_counter() - t)"
+    )
+    with tempfile.TemporaryDirectory() as cache:
+        env = {**os.environ, "NUMBA_CACHE_DIR": cache}
+        out = subprocess.run(
+            [sys.executable, "-c", code], capture_output=True, text=True, env=env, check=True
+        )
+    return float(out.stdout.strip().splitlines()[-1])
+
+
+def run(args: Args) -> dict:
+    """The whole benchmark; writes ``args.json`` if set and returns the results."""
+    torch.set_num_threads(args.threads)
+    horizons = [int(h) for h in args.horizons.split(",")]
+    load_start = os.getloadavg()
+    t_start = time.perf_counter()
+
+    # ---- the task: the arm env's own reach cost, a few start/target pairs
+    env = gym.make("mbtsr/TwoLinkArm-v0", preset=args.preset, episode_steps=args.mpc_steps)
+    arm = env.unwrapped
+    rng = np.random.default_rng(args.seed)
+    problems = [
+        (np.r_[rng.uniform(-0.3, 0.3, 2), 0.0, 0.0], rng.uniform(-1.3, 1.3, 2))
+        for _ in range(args.n_problems)
+    ]
+    ensemble, ensemble_note = load_ensemble(args.ensemble, args.seed)
+    models = {
+        "true_mujoco": MujocoDynamics(env),
+        "analytic_casadi": arm.analytic_model(),
+        "analytic_casadi_jit": arm.analytic_model(jit=True),
+    }
+    if ensemble is not None:
+        models["ensemble"] = ensemble.freeze()  # train -> freeze -> plan
+
+    def make_cost(target):
+        return quadratic_cost(arm.cost_Q, arm.cost_R, np.r_[target, 0.0, 0.0])
+
+    # ---- 1. ms per iteration
+    timing = {}
+    x0, target = problems[0]
+    for name, model in models.items():
+        timing[name] = {}
+        for T in horizons:
+            timing[name][f"T={T}"] = time_ilqr(
+                make_cost(target), model, x0, T, args.timing_iterations, args.repeats
+            )
+            row = timing[name][f"T={T}"]
+            print(
+                f"{name:20s} T={T}: {row.get('ms_per_iteration', float('nan')):.2f} ms/iter "
+                f"(CPU {row.get('cpu_ms_per_iteration', float('nan')):.2f})"
+            )
+    if ensemble is None:
+        timing["ensemble"] = ensemble_note
+
+    # ---- 2. convergence and cost vs IPOPT (analytic model; true model for iterations)
+    comparison = {}
+    for T in horizons:
+        rows = []
+        for i, (x0, target) in enumerate(problems):
+            cost = make_cost(target)
+            ref = solve_ipopt(arm.analytic_model().casadi_step, cost, x0, T, -1.0, 1.0)
+            row = {
+                "problem": i,
+                "x0": x0.tolist(),
+                "target": target.tolist(),
+                "ipopt": {
+                    "cost": ref.cost,
+                    "wall_time_s": ref.wall_time,
+                    "build_time_s": ref.build_time,
+                    "iterations": ref.iterations,
+                    "status": ref.status,
+                },
+            }
+            for label, opts in (
+                ("ilqr_default", ILQROptions()),
+                ("ilqr_rel_1e-4", ILQROptions(tol_fun_rel=1e-4)),
+                ("ilqr_rel_1e-3", ILQROptions(tol_fun_rel=1e-3)),
+            ):
+                best = None
+                for _ in range(args.repeats):
+                    res, wall = solve_ilqr_timed(cost, models["analytic_casadi_jit"], x0, T, opts)
+                    if best is None or wall < best[1]:
+                        best = (res, wall)
+                res, wall = best
+                t1 = time_to_within(res, wall, 1.01 * ref.cost)
+                row[label] = {
+                    "cost": res.cost,
+                    "cost_over_ipopt": res.cost / ref.cost,
+                    "wall_time_s": wall,
+                    "wall_over_ipopt": wall / ref.wall_time,
+                    "iterations": res.iterations,
+                    "status": res.status,
+                    "time_to_1pct_of_ipopt_s": t1,
+                    "time_to_1pct_over_ipopt": None if t1 is None else t1 / ref.wall_time,
+                    "all_controls_within_limits": bool(np.all(np.abs(res.U) <= 1.0)),
+                }
+            res, wall = solve_ilqr_timed(
+                cost, models["true_mujoco"], x0, T, ILQROptions(tol_fun_rel=1e-4)
+            )
+            row["ilqr_rel_1e-4_true_mujoco"] = {
+                "cost_under_mujoco": res.cost,
+                "cost_over_ipopt_analytic": res.cost / ref.cost,
+                "wall_time_s": wall,
+                "iterations": res.iterations,
+                "status": res.status,
+            }
+            rows.append(row)
+            print(
+                f"T={T} problem {i}: ipopt {ref.cost:.4f} ({ref.wall_time:.3f} s), "
+                f"ilqr default {row['ilqr_default']['cost_over_ipopt']:.5f} x cost, "
+                f"{row['ilqr_default']['wall_over_ipopt']:.2f} x time; rel1e-4 "
+                f"{row['ilqr_rel_1e-4']['cost_over_ipopt']:.5f} x cost, "
+                f"{row['ilqr_rel_1e-4']['wall_over_ipopt']:.2f} x time; rel1e-3 "
+                f"{row['ilqr_rel_1e-3']['cost_over_ipopt']:.5f} x cost, "
+                f"{row['ilqr_rel_1e-3']['wall_over_ipopt']:.2f} x time"
+            )
+
+        def median(key, field, rows=rows):
+            vals = [r[key][field] for r in rows if r[key][field] is not None]
+            return float(np.median(vals)) if vals else None
+
+        comparison[f"T={T}"] = {
+            "problems": rows,
+            "median": {
+                label: {
+                    f: median(label, f)
+                    for f in (
+                        "cost_over_ipopt",
+                        "wall_over_ipopt",
+                        "iterations",
+                        "time_to_1pct_over_ipopt",
+                    )
+                }
+                for label in ("ilqr_default", "ilqr_rel_1e-4", "ilqr_rel_1e-3")
+            },
+        }
+
+    # ---- 3. peers: crocoddyl BoxFDDP side by side
+    peers = peer_comparison(args, problems) if args.peers else {"skipped": "--peers false"}
+
+    # ---- 4. MPC real-time factor at the agent's default horizon
+    mpc_models = {
+        "ensemble": models.get("ensemble"),
+        "analytic_casadi": models["analytic_casadi"],
+        "analytic_casadi_jit": models["analytic_casadi_jit"],
+        "true_mujoco_analytic_jacobians": HybridDynamics(
+            models["true_mujoco"], models["analytic_casadi_jit"]
+        ),
+        "true_mujoco_fd_jacobians": models["true_mujoco"],
+    }
+    mpc_results = {}
+    x0, target = problems[0]
+    for name, model in mpc_models.items():
+        if model is None:
+            continue
+        mpc = MPC(
+            ilqr,
+            make_cost(target),
+            model,
+            horizon=args.mpc_horizon,
+            u_min=-1.0,
+            u_max=1.0,
+            options=MPCOptions(
+                iterations_per_step=args.mpc_iterations,
+                first_step_iterations=args.mpc_first_iterations,
+            ),
+        )
+        best, best_ct = None, None
+        for _ in range(args.repeats):
+            cpu = time.process_time()
+            out = run_episode(env, mpc, seed=args.seed, options={"target": target, "state": x0},
+                              observe=lambda obs, info: info["state"])
+            cpu_s = time.process_time() - cpu  # incl. the env's own steps
+            ct_run = np.asarray(mpc.compute_times)
+            if best is None or ct_run[1:].mean() < best_ct[1:].mean():
+                best, best_ct, best_cpu = out, ct_run, cpu_s
+        ct = best_ct
+        err = best.states[-1] - np.r_[target, 0.0, 0.0]
+        mpc_results[name] = {
+            "real_time_factor_mean": arm.dt / float(ct[1:].mean()),
+            "real_time_factor_median": arm.dt / float(np.median(ct[1:])),
+            "real_time_factor_incl_first_step": arm.dt / float(ct.mean()),
+            "real_time_factor_cpu_time_incl_first_step_and_env": arm.dt * len(ct) / best_cpu,
+            "ms_per_step_mean": float(ct[1:].mean() * 1e3),
+            "ms_first_step": float(ct[0] * 1e3),
+            "final_angle_error_rad": float(np.abs(err[:2]).max()),
+            "final_speed_rad_s": float(np.abs(err[2:]).max()),
+            "episode_cost": best.cost,
+        }
+        print(
+            f"MPC {name}: RTF {mpc_results[name]['real_time_factor_mean']:.2f} (CPU-time RTF "
+            f"{mpc_results[name]['real_time_factor_cpu_time_incl_first_step_and_env']:.2f}) "
+            f"(horizon {args.mpc_horizon}, {args.mpc_iterations} iterations/step)"
+        )
+
+    # ---- 5. numba: the first-ever compile of the backward pass (fresh process, empty cache)
+    compile_s = cold_compile_seconds()
+    print(f"numba backward pass: cold compile {compile_s:.1f} s")
+
+    ens200 = timing.get("ensemble", {})
+    ens200 = ens200.get("T=200", {}) if isinstance(ens200, dict) else {}
+    ana200 = timing["analytic_casadi_jit"].get("T=200", {})
+    med200 = comparison.get("T=200", {}).get("median", {}).get("ilqr_rel_1e-4", {})
+    lq = peers.get("box_lq", {}) if isinstance(peers, dict) else {}
+    checks = {
+        "ensemble_ms_per_iteration_T200": (ens200.get("ms_per_iteration"), "<=", 5.0),
+        "analytic_ms_per_iteration_T200": (ana200.get("ms_per_iteration"), "<=", 5.0),
+        "box_lq_per_iteration_over_crocoddyl": (lq.get("per_iteration_ratio"), "<=", 3.0),
+        "box_lq_time_to_converge_over_crocoddyl": (lq.get("time_to_converge_ratio"), "<=", 2.0),
+        "box_lq_final_cost_rel_diff": (lq.get("final_cost_rel_diff"), "<=", 1e-6),
+        "cost_over_ipopt_rel_1e-4_T200": (med200.get("cost_over_ipopt"), "<=", 1.01),
+        "wall_over_ipopt_rel_1e-4_T200": (med200.get("wall_over_ipopt"), "<=", 0.2),
+        "mpc_rtf_ensemble": (mpc_results.get("ensemble", {}).get("real_time_factor_mean"), ">=", 5),
+        "mpc_rtf_analytic": (
+            mpc_results["analytic_casadi_jit"]["real_time_factor_mean"], ">=", 5.0
+        ),
+        "mpc_rtf_true_mujoco": (
+            mpc_results["true_mujoco_analytic_jacobians"]["real_time_factor_mean"], ">=", 1.0
+        ),
+    }
+    targets = {
+        k: {
+            "value": v,
+            "target": f"{op} {bound}",
+            "met": None if v is None else bool(v <= bound if op == "<=" else v >= bound),
+        }
+        for k, (v, op, bound) in checks.items()
+    }
+    print("targets:")
+    for k, t in targets.items():
+        v = "n/a" if t["value"] is None else f"{t['value']:.4g}"
+        print(f"  {k:42s} {v:>10s}  target {t['target']:>8s}  met: {t['met']}")
+
+    results = {
+        "args": dataclasses.asdict(args),
+        "ensemble": ensemble_note,
+        "control_period_s": arm.dt,
+        "ms_per_iteration": timing,
+        "vs_ipopt_analytic_model": comparison,
+        "peers": peers,
+        "mpc": mpc_results,
+        "mpc_true_mujoco_uses": "MuJoCo steps with the analytic twin's exact (JIT-compiled) "
+        "Jacobians (HybridDynamics); true_mujoco_fd_jacobians: MuJoCo's chained mjd_transitionFD",
+        "analytic_model_in_targets": "analytic_casadi_jit (TwoLinkArmCasadi(jit=True)); "
+        "analytic_casadi is the uncompiled CasADi VM, for reference",
+        "numba_cold_compile_s": compile_s,
+        "targets": targets,
+        "machine": {
+            "platform": platform.platform(),
+            "cpu_count": os.cpu_count(),
+            "load_average_start": load_start,
+            "load_average_end": os.getloadavg(),
+            "torch_threads": torch.get_num_threads(),
+        },
+        "total_time_s": time.perf_counter() - t_start,
+    }
+    if args.json:
+        Path(args.json).parent.mkdir(parents=True, exist_ok=True)
+        Path(args.json).write_text(json.dumps(results, indent=2))
+        print(f"wrote {args.json}")
+    return results

@@ -1,0 +1,478 @@
+"""Benchmark suite: tasks where model quality should decide, {iLQR, CEM} x {none, sampled}.
+
+Every run is the JacProp agent on its defaults except the task's budget and criterion; the
+planner and the regularizer are the only things that vary inside a task, at equal env steps and
+optimizer steps. Success thresholds are fixed HERE, before any run (never tuned afterwards):
+
+=====================  =======================================  ===============================
+task                   what makes it hard                        solved when
+=====================  =======================================  ===============================
+arm-far                targets across the workspace               eval cost <= 1.05 x oracle
+                       (``target_limit = 0.85 pi``)
+arm-open-loop          each plan runs open loop for 10 steps      eval cost <= 1.05 x oracle
+                       (``replan_every=10``): feedback cannot     (the oracle re-plans every 10
+                       hide model error                           steps too)
+reacher                Reacher-v5, goal in the observation        mean return >= -3.75
+                                                                  (Gymnasium's reward_threshold)
+inverted-pendulum      InvertedPendulum-v5 (200-step episodes),   mean return >= 190
+                       terminates when the pole falls             (0.95 x 200; Gymnasium: 950/1000)
+=====================  =======================================  ===============================
+
+The oracle is the same MPC on the TRUE MuJoCo model (arm tasks only; Gymnasium envs get the true
+model once ``envs/mujoco_model.py`` is wired in). Runs are scheduled seed-major (every task and
+configuration gets seed 0 before any gets seed 1), and each finished run is appended to the JSON
+at once, so an interrupted suite reports what finished (``--resume`` skips finished runs)::
+
+    python scripts/bench_suite.py --json docs/results/bench_suite.json --figures docs/figures
+    python scripts/bench_suite.py --smoke --json runs/bench_suite_smoke.json   # CI, ~1 min
+    python scripts/bench_suite.py --report-only --json docs/results/bench_suite.json
+    python scripts/bench_suite.py --help                 # every option
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import platform
+import subprocess
+import sys
+import time
+import warnings
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+REPO = Path(__file__).resolve().parents[2]
+os.environ.setdefault("MUJOCO_GL", "egl")
+
+import casadi as ca  # noqa: E402
+import numpy as np  # noqa: E402
+
+from mbtsr import cli  # noqa: E402
+from mbtsr.io import atomic_write_text, write_json_atomic  # noqa: E402
+
+PLANNERS = ("ilqr", "cem")
+REGULARIZATIONS = ("none", "sampled")
+
+
+def reacher_cost(obs, a):
+    """Reacher-v5's reward terms: distance fingertip-target (smoothed) and effort."""
+    return ca.sqrt(ca.sumsqr(obs[8:10]) + 1e-4) + ca.sumsqr(a)
+
+
+def reacher_terminal(obs):
+    return 10.0 * ca.sumsqr(obs[8:10])
+
+
+def pendulum_cost(obs, a):
+    """InvertedPendulum-v5: obs = [x, theta, x_dot, theta_dot]; keep the pole up, cart near 0,
+    minus the env's alive bonus of 1 per step: with ``termination_fn`` the CEM planner adds no
+    cost after a predicted fall (PETS), so staying alive must be cheaper than falling (without
+    the bonus a positive cost makes falling early the cheapest plan)."""
+    return (10.0 * obs[1] ** 2 + 0.1 * obs[0] ** 2 + 0.01 * obs[2] ** 2 + 0.1 * obs[3] ** 2
+            + 0.001 * ca.sumsqr(a) - 1.0)
+
+
+def pendulum_terminated(obs):
+    """The env terminates when |theta| > 0.2 (or the state is not finite)."""
+    return np.abs(obs[..., 1]) > 0.2
+
+
+#: the tasks and their thresholds (stated before the runs; see the module docstring)
+TASKS: dict[str, dict[str, Any]] = {
+    "arm-far": {
+        "env_id": "mbtsr/TwoLinkArm-v0", "make": {"target_limit": 0.85 * math.pi},
+        "solved_ratio": 1.05, "episodes": 8, "overrides": {},
+    },
+    "arm-open-loop": {
+        "env_id": "mbtsr/TwoLinkArm-v0", "make": {}, "solved_ratio": 1.05, "episodes": 8,
+        "overrides": {"replan_every": 10},
+    },
+    "reacher": {
+        "env_id": "Reacher-v5", "make": {}, "solved_return": -3.75, "total_env_steps": 1000,
+        "cost": reacher_cost, "terminal": reacher_terminal, "overrides": {},
+    },
+    "inverted-pendulum": {
+        "env_id": "InvertedPendulum-v5", "make": {"max_episode_steps": 200},
+        "solved_return": 190.0, "total_env_steps": 2000, "max_episodes": 15,
+        "cost": pendulum_cost,
+        "termination": pendulum_terminated, "overrides": {},
+    },
+}
+
+SMOKE_OVERRIDES = {
+    "epochs_per_episode": 3, "horizon": 5, "first_plan_iterations": 2, "ilqr_iterations": 1,
+    "cem_samples": 16, "cem_elites": 4, "cem_iterations": 1, "eval_episodes": 1,
+    "ensemble_size": 2, "hidden_width": 8,
+}
+
+
+def make_env(task: dict[str, Any]):
+    import gymnasium as gym
+
+    import envs  # noqa: F401  (registers mbtsr/ ids)
+
+    return gym.make(task["env_id"], **task["make"])
+
+
+def run_one(name: str, planner: str, reg: str, seed: int, *, smoke: bool,
+            oracle_cache: str) -> dict[str, Any]:
+    """One agent run; returns its record (summary, curve, wall per phase)."""
+    import torch
+
+    from agents.config import AgentConfig
+    from agents.jacprop_agent import JacPropAgent
+
+    torch.set_num_threads(1)
+    task = TASKS[name]
+    env = make_env(task)
+    overrides = dict(task["overrides"])
+    overrides.update(
+        seed=seed, planner=planner, regularization=reg, eval_every=2, eval_episodes=3,
+        oracle_cache_dir=oracle_cache, progress=False, tensorboard=False, checkpoint=False,
+        torch_threads=1, jacobian_error=False,
+    )
+    if "solved_ratio" in task:
+        overrides["solved_ratio"] = task["solved_ratio"]
+    else:
+        overrides["solved_return"] = task["solved_return"]
+    if smoke:
+        overrides.update(SMOKE_OVERRIDES)
+        if "replan_every" in overrides:
+            overrides["replan_every"] = 2
+    config = AgentConfig(**overrides)
+    agent = JacPropAgent(env, config, cost_fn=task.get("cost"),
+                         terminal_cost_fn=task.get("terminal"),
+                         termination_fn=task.get("termination"))
+    tic = time.perf_counter()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # logged LTV fallbacks
+        if "episodes" in task:
+            agent.learn(2 if smoke else task["episodes"], progress_bar=False)
+        else:
+            agent.learn(task.get("max_episodes") if not smoke else None,
+                        total_env_steps=300 if smoke else task["total_env_steps"],
+                        progress_bar=False)
+    s = agent.summary()
+    env.close()
+    # the env steps a run could spend (an unsolved run is reported as ">= budget"); a run
+    # stopped by max_episodes spent fewer steps than total_env_steps: its budget is what it spent
+    budget = (agent.spec.episode_steps * (2 if smoke else task["episodes"])
+              if "episodes" in task else agent.env_steps)
+    score_key = "cost_ratio" if "solved_ratio" in task else "eval_return"
+    curve = [{"env_steps": c["env_steps"], "score": c[score_key],
+              "returns": c["eval_returns"]} for c in s["eval_curve"]]
+    return {
+        "task": name, "planner": planner, "regularization": reg, "seed": seed,
+        "budget_env_steps": budget, "env_steps": s["env_steps"],
+        "env_steps_to_solve": s["env_steps_to_solve"],
+        "episodes_to_solve": s["episodes_to_solve"],
+        "final_score": curve[-1]["score"] if curve else None,
+        "score": "cost / oracle (lower is better)" if score_key == "cost_ratio"
+        else "mean return (higher is better)",
+        "oracle_cost": s["oracle_cost"], "curve": curve,
+        "wall_seconds_per_phase": s["wall_seconds_per_phase"],
+        "wall_seconds": time.perf_counter() - tic,
+    }
+
+
+def _median_censored(values: list[int | None], budget: int) -> str:
+    """Median of env steps to solve where ``None`` means ">= budget" (a lower bound)."""
+    xs = sorted((v if v is not None else math.inf) for v in values)
+    if not xs:
+        return "-"
+    med = float(np.median(xs))
+    return f">= {budget}" if math.isinf(med) else f"{med:.0f}"
+
+
+def aggregate(runs: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    rows = []
+    for name in TASKS:
+        for planner in PLANNERS:
+            for reg in REGULARIZATIONS:
+                rs = sorted((r for r in runs if (r["task"], r["planner"], r["regularization"])
+                             == (name, planner, reg)), key=lambda r: r["seed"])
+                if not rs:
+                    continue
+                budget = min(r["budget_env_steps"] for r in rs)
+                finals = [r["final_score"] for r in rs if r["final_score"] is not None]
+                phases = {k: float(np.median([r["wall_seconds_per_phase"][k] for r in rs]))
+                          for k in rs[0]["wall_seconds_per_phase"]}
+                rows.append({
+                    "task": name, "planner": planner, "regularization": reg,
+                    "seeds": [r["seed"] for r in rs],
+                    "solved": f"{sum(r['env_steps_to_solve'] is not None for r in rs)}/{len(rs)}",
+                    "env_steps_to_solve_median": _median_censored(
+                        [r["env_steps_to_solve"] for r in rs], budget),
+                    "env_steps_to_solve": [r["env_steps_to_solve"] for r in rs],
+                    "final_score_median": float(np.median(finals)) if finals else None,
+                    "final_scores": [r["final_score"] for r in rs],
+                    "wall_median_per_phase": phases,
+                    "budget_env_steps": budget,
+                })
+    return rows
+
+
+def figures(runs: list[dict[str, Any]], out: Path) -> list[Path]:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    paths = []
+    out.mkdir(parents=True, exist_ok=True)
+    names = [n for n in TASKS if any(r["task"] == n for r in runs)]
+    if not names:
+        return paths
+    colors = {("ilqr", "none"): "tab:blue", ("ilqr", "sampled"): "tab:orange",
+              ("cem", "none"): "tab:green", ("cem", "sampled"): "tab:red"}
+    fig, axes = plt.subplots(1, len(names), figsize=(4.2 * len(names), 3.4), squeeze=False)
+    for ax, name in zip(axes[0], names):
+        for (planner, reg), color in colors.items():
+            rs = [r for r in runs if (r["task"], r["planner"], r["regularization"])
+                  == (name, planner, reg)]
+            for i, r in enumerate(rs):
+                xs = [c["env_steps"] for c in r["curve"] if c["score"] is not None]
+                ys = [c["score"] for c in r["curve"] if c["score"] is not None]
+                ax.plot(xs, ys, color=color, alpha=0.6, lw=1,
+                        label=f"{planner}/{reg}" if i == 0 else None)
+        task = TASKS[name]
+        if "solved_ratio" in task:
+            ax.axhline(task["solved_ratio"], color="k", ls="--", lw=0.8)
+            ax.set_yscale("log")
+            ax.set_ylabel("eval cost / oracle")
+        else:
+            ax.axhline(task["solved_return"], color="k", ls="--", lw=0.8)
+            ax.set_ylabel("mean eval return")
+        ax.set_title(name)
+        ax.set_xlabel("env steps")
+    axes[0][0].legend(fontsize=7)
+    fig.tight_layout()
+    p = out / "bench_suite_curves.png"
+    fig.savefig(p, dpi=110)
+    plt.close(fig)
+    paths.append(p)
+    # planner x regularizer: median final score per task, normalized by the threshold
+    rows = aggregate(runs)
+    fig, axes = plt.subplots(1, len(names), figsize=(3.2 * len(names), 3.0), squeeze=False)
+    for ax, name in zip(axes[0], names):
+        grid = np.full((2, 2), np.nan)
+        for r in rows:
+            if r["task"] == name and r["final_score_median"] is not None:
+                grid[PLANNERS.index(r["planner"]), REGULARIZATIONS.index(r["regularization"])] = (
+                    r["final_score_median"])
+        ax.imshow(grid, cmap="viridis")
+        for i in range(2):
+            for j in range(2):
+                ax.text(j, i, "-" if np.isnan(grid[i, j]) else f"{grid[i, j]:.3g}",
+                        ha="center", va="center", color="w", fontsize=9)
+        ax.set_xticks([0, 1], REGULARIZATIONS)
+        ax.set_yticks([0, 1], PLANNERS)
+        ax.set_title(f"{name}\nmedian final score", fontsize=9)
+    fig.tight_layout()
+    p = out / "bench_suite_planner_x_regularizer.png"
+    fig.savefig(p, dpi=110)
+    plt.close(fig)
+    paths.append(p)
+    return paths
+
+
+def _fmt(v: Any, digits: int = 3) -> str:
+    if v is None:
+        return "-"
+    if isinstance(v, float):
+        return f"{v:.{digits}g}"
+    return str(v)
+
+
+def comparisons(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """sampled vs none per task and planner: median env steps to solve (censored medians give
+    bounds) and median final score, and the median wall time ratio."""
+    out = []
+    for name in TASKS:
+        for planner in PLANNERS:
+            by = {r["regularization"]: r for r in rows
+                  if r["task"] == name and r["planner"] == planner}
+            if set(by) != set(REGULARIZATIONS):
+                continue
+            s_, n_ = by["sampled"], by["none"]
+            lower_better = "solved_ratio" in TASKS[name]
+            fs, fn = s_["final_score_median"], n_["final_score_median"]
+            out.append({
+                "task": name, "planner": planner,
+                "steps_to_solve": f"{s_['env_steps_to_solve_median']} vs "
+                                  f"{n_['env_steps_to_solve_median']}",
+                "final_score": f"{_fmt(fs)} vs {_fmt(fn)}",
+                "final_score_ratio": (fs / fn if (fs is not None and fn not in (None, 0)
+                                                  and lower_better) else None),
+                "wall_ratio": (s_["wall_median_per_phase"]["total"]
+                               / n_["wall_median_per_phase"]["total"]),
+                "seeds": f"{len(s_['seeds'])} vs {len(n_['seeds'])}",
+            })
+    return out
+
+
+def write_markdown(state: dict[str, Any], path: Path, figure_dir: Path) -> None:
+    rows = state["table"]
+    rel = os.path.relpath(figure_dir, path.parent)
+    lines = [
+        "# Benchmark suite: where model quality should decide",
+        "",
+        "Generated by `scripts/bench_suite.py` from the runs in "
+        "`docs/results/bench_suite.json` (git " + state.get("git", "?") + "). The SB3 "
+        "comparison on the arm's home task is in [benchmark_sb3.md](benchmark_sb3.md).",
+        "",
+        "## Tasks and thresholds (fixed in the script before any run)",
+        "",
+        "| task | env | budget | solved when |",
+        "|---|---|---|---|",
+    ]
+    for name, t in TASKS.items():
+        budget = (f"{t['episodes']} episodes" if "episodes" in t
+                  else f"{t['total_env_steps']} env steps"
+                  + (f" / {t['max_episodes']} episodes" if "max_episodes" in t else ""))
+        crit = (f"eval cost <= {t['solved_ratio']} x true-model oracle" if "solved_ratio" in t
+                else f"mean eval return >= {t['solved_return']}")
+        extra = ", ".join(f"{k}={v:.3g}" if isinstance(v, float) else f"{k}={v}"
+                          for k, v in {**t["make"], **t["overrides"]}.items())
+        lines.append(f"| {name} | `{t['env_id']}`{' (' + extra + ')' if extra else ''} | "
+                     f"{budget} | {crit} |")
+    lines += [
+        "",
+        "Every run: `AgentConfig` defaults except the task's criterion, `planner`, "
+        "`regularization`, `seed`, and evaluation every 2 episodes on 3 fixed episodes (plus the "
+        "last episode). Scores: cost / oracle for the arm tasks (lower is better), mean return "
+        "for the Gymnasium tasks (higher is better). `>= B`: not solved within the budget (a "
+        "lower bound).",
+        "",
+        "## Results",
+        "",
+        "| task | planner | regularizer | solved | env steps to solve: median (per seed) | "
+        "final score: median (per seed) | wall s median: training / ltv / planning / eval / "
+        "total |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for r in rows:
+        ph = r["wall_median_per_phase"]
+        per_seed = ", ".join("-" if v is None else str(v) for v in r["env_steps_to_solve"])
+        finals = ", ".join(_fmt(v) for v in r["final_scores"])
+        lines.append(
+            f"| {r['task']} | {r['planner']} | {r['regularization']} | {r['solved']} | "
+            f"{r['env_steps_to_solve_median']} ({per_seed}) | "
+            f"{_fmt(r['final_score_median'])} ({finals}) | "
+            f"{ph['training']:.0f} / {ph['ltv']:.1f} / {ph['planning']:.0f} / "
+            f"{ph['eval']:.0f} / {ph['total']:.0f} |")
+    cmp = comparisons(rows)
+    state["comparisons"] = cmp
+    lines += [
+        "",
+        "## sampled JacProp vs none (same planner, same seeds, same env and optimizer steps)",
+        "",
+        "Target of issue 12: sampled needs <= 0.7x the env steps to solve of `none`, or reaches "
+        "<= 0.9x its cost at equal env steps, at <= 2x its wall time.",
+        "",
+        "| task | planner | env steps to solve (sampled vs none) | final score (sampled vs "
+        "none) | final cost ratio sampled/none | wall ratio sampled/none | seeds |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for c in cmp:
+        lines.append(f"| {c['task']} | {c['planner']} | {c['steps_to_solve']} | "
+                     f"{c['final_score']} | {_fmt(c['final_score_ratio'])} | "
+                     f"{_fmt(c['wall_ratio'])} | {c['seeds']} |")
+    lines += [
+        "",
+        f"![learning curves per task]({rel}/bench_suite_curves.png)",
+        "",
+        "Evaluation score vs env steps, one line per run (seed), dashed: the threshold.",
+        "",
+        f"![planner x regularizer]({rel}/bench_suite_planner_x_regularizer.png)",
+        "",
+        "Median final score per task for each planner x regularizer.",
+        "",
+        "## Compute",
+        "",
+        f"{len(state['runs'])} runs, {state.get('compute_seconds', 0) / 60:.0f} min of wall "
+        f"time in one process (`nice -n 10`, one torch thread) on {state.get('machine', '?')}, "
+        "shared with other jobs (load average about 9 on 2 cores): wall times are inflated "
+        "several-fold and only their ratios within a table row pair mean something.",
+        "",
+    ]
+    atomic_write_text(path, "\n".join(lines))
+
+
+@dataclass(frozen=True)
+class Args:
+    """Benchmark suite: tasks where model quality should decide, {iLQR, CEM} x {none, sampled}."""
+
+    json: str = "runs/bench_suite.json"
+    """the suite's JSON (every finished run is appended at once)"""
+    seeds: tuple[int, ...] = (0, 1, 2, 3, 4)
+    """agent seeds (seed-major schedule)"""
+    tasks: tuple[str, ...] = ("arm-far", "arm-open-loop", "reacher", "inverted-pendulum")
+    """tasks to run (see the module docstring)"""
+    smoke: bool = False
+    """tiny budgets (CI)"""
+    resume: bool = False
+    """skip runs already in --json"""
+    report_only: bool = False
+    """no new runs: aggregate, draw and report the ones in --json"""
+    figures: str = ""
+    """folder for the PNGs (default: none)"""
+    oracle_cache: str = "runs/oracle_cache"
+    """cache of the true-model oracle's costs"""
+    docs: str = ""
+    """write the markdown report here (with --figures)"""
+
+    def __post_init__(self) -> None:
+        unknown = sorted(set(self.tasks) - set(TASKS))
+        if unknown or not self.tasks:
+            raise ValueError(f"--tasks must name some of {list(TASKS)}, got {list(self.tasks)}")
+
+
+def main(argv: list[str] | None = None) -> dict[str, Any]:
+    """The command line (``scripts/bench_suite.py``): :class:`Args` -> :func:`run`."""
+    return cli.main(Args, run, args=argv, outputs=("json", "docs"), folders=("figures",))
+
+
+def run(a: Args) -> dict[str, Any]:
+    """Run (or resume) the suite; write the JSON after every run, then figures and report."""
+    path = Path(a.json)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    state: dict[str, Any] = {"runs": []}
+    if (a.resume or a.report_only) and path.is_file():
+        state = json.loads(path.read_text())
+    state.update({
+        "command": " ".join(sys.argv), "smoke": a.smoke,
+        "thresholds": {n: {k: t[k] for k in ("solved_ratio", "solved_return") if k in t}
+                       for n, t in TASKS.items()},
+        "machine": f"{os.cpu_count()} cores, {platform.platform()}",
+        "git": subprocess.run(["git", "-C", str(REPO), "rev-parse", "--short", "HEAD"],
+                              capture_output=True, text=True).stdout.strip(),
+    })
+    done = {(r["task"], r["planner"], r["regularization"], r["seed"]) for r in state["runs"]}
+    if not a.report_only:
+        for seed in a.seeds:
+            for name in a.tasks:
+                for planner in PLANNERS:
+                    for reg in REGULARIZATIONS:
+                        if (name, planner, reg, seed) in done:
+                            continue
+                        rec = run_one(name, planner, reg, seed, smoke=a.smoke,
+                                      oracle_cache=a.oracle_cache)
+                        state["runs"].append(rec)
+                        state["table"] = aggregate(state["runs"])
+                        write_json_atomic(path, state)
+                        print(f"{name} {planner}/{reg} seed {seed}: solved at "
+                              f"{rec['env_steps_to_solve']} steps, final {rec['final_score']}, "
+                              f"{rec['wall_seconds']:.0f} s", flush=True)
+    state["table"] = aggregate(state["runs"])
+    state["compute_seconds"] = float(sum(r["wall_seconds"] for r in state["runs"]))
+    write_json_atomic(path, state)
+    if a.figures:
+        figures(state["runs"], Path(a.figures))
+        if a.docs:
+            write_markdown(state, Path(a.docs), Path(a.figures))
+            write_json_atomic(path, state)
+    return state
+

@@ -1,0 +1,125 @@
+"""Comparison of activation functions (paper appendix A, Fig. "activations").
+
+Distribution over Monte-Carlo runs of the log one-step prediction error on validation data after
+20, 500 and 1500 epochs, for single networks with elu, sigmoid, tanh, swish, relu and leaky relu
+(20 units, one hidden layer, formulation g, no regularization) on the robot task of
+``exp_robot.py``. The paper does not state the task or formulation of this comparison; the robot
+with g (the nominal model) is our choice. The six networks of one run are trained as one
+batched 6-member ensemble: they share no weights and Adam is per-parameter, so this is the same
+as training them one by one on the same batches, only faster. The paper used 200 runs.
+
+The paper's claim: relu and leaky relu are worse suited for the task (hence left out of the
+nominal ensemble).
+
+    python scripts/exp_activations.py                 # full run
+    python scripts/exp_activations.py --report-only   # redraw from the JSON
+    python scripts/exp_activations.py --quick         # smoke test
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from agents.experiments.paper_common import (
+    ALL_ACTIVATIONS,
+    ExperimentArgs,
+    RobotData,
+    paired_comparison,
+    parse_args,
+    pyplot,
+    run_activations,
+    run_experiment,
+    save_figure,
+    spread,
+    violins,
+)
+
+EXPERIMENT = "activations"
+
+
+@dataclass
+class Args(ExperimentArgs):
+    """Activation functions: log prediction error after 20 / 500 / 1500 epochs."""
+
+    mc: int = field(default=200, metadata={"help": "Monte-Carlo runs (paper: 200)"})
+    formulation: str = field(default="g", metadata={"help": "f or g"})
+    checkpoints: str = field(default="20,500,1500", metadata={
+        "help": "comma-separated epochs at which the error is recorded"})
+    width: int = field(default=20, metadata={"help": "hidden units"})
+    lr: float = field(default=0.01, metadata={"help": "Adam step size"})
+    n_val: int = field(default=10, metadata={"help": "validation trajectories"})
+
+    QUICK = {"mc": 2, "checkpoints": "2,5,10", "n_val": 2}
+
+
+def make_configs(args: Args) -> dict[str, dict]:
+    checkpoints = [int(c) for c in args.checkpoints.split(",")]
+    if sorted(checkpoints) != checkpoints or checkpoints[0] < 1:
+        raise ValueError(f"--checkpoints must be increasing epochs >= 1, got {args.checkpoints}")
+    return {f"all_{args.formulation}": {
+        "data": dataclasses.asdict(RobotData(n_val=args.n_val)),
+        "formulation": args.formulation, "activations": list(ALL_ACTIVATIONS),
+        "width": args.width, "checkpoints": checkpoints, "lr": args.lr}}
+
+
+def log_errors(records: list[dict]) -> tuple[list[int], dict[str, np.ndarray]]:
+    """``checkpoints`` and ``{activation: [runs, checkpoints]}`` log10 prediction RMS."""
+    checkpoints = records[0]["result"]["checkpoints"]
+    acts = list(records[0]["result"]["pred_rms"])
+    out = {}
+    for a in acts:
+        v = np.array([[np.nan if x is None else x for x in r["result"]["pred_rms"][a]]
+                      for r in records], dtype=float)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            out[a] = np.log10(v)
+    return checkpoints, out
+
+
+def report(records: list[dict], out, figures, args: Args) -> dict:
+    plt = pyplot()
+    checkpoints, logs = log_errors(records)
+    fig, axes = plt.subplots(1, len(checkpoints), figsize=(4.6 * len(checkpoints), 3.8))
+    for j, (ax, c) in enumerate(zip(np.atleast_1d(axes), checkpoints)):
+        data = {a: v[:, j] for a, v in logs.items()}
+        # crop extreme values as the paper's figure (1st-99th percentile of all activations)
+        pooled = np.concatenate([d[np.isfinite(d)] for d in data.values()])
+        if pooled.size:
+            lo, hi = np.percentile(pooled, [1, 99])
+            data = {a: d[(d >= lo) & (d <= hi)] for a, d in data.items()}
+        violins(ax, data, ylabel="log10 prediction RMS" if j == 0 else "",
+                title=f"after {c} epochs")
+    fig.suptitle(f"{len(records)} Monte-Carlo runs per violin", fontsize=10)
+    save_figure(fig, figures / "activations.png")
+
+    summary = {"checkpoints": checkpoints, "n_runs": len(records),
+               "log10_pred_rms": {a: [spread(v[:, j]) for j in range(len(checkpoints))]
+                                  for a, v in logs.items()}}
+    # rank of each activation per run at each checkpoint (1 = best), averaged
+    stack = np.stack([logs[a] for a in logs])  # [A, runs, C]
+    ranks = np.argsort(np.argsort(np.where(np.isfinite(stack), stack, np.inf), 0), 0) + 1
+    summary["mean_rank"] = {a: ranks[i].mean(0).tolist() for i, a in enumerate(logs)}
+    best_smooth = {}
+    for j, c in enumerate(checkpoints):
+        for a in ("relu", "leaky_relu"):
+            if a in logs:
+                best_smooth[f"{a}_vs_tanh@{c}"] = paired_comparison(logs[a][:, j],
+                                                                    logs["tanh"][:, j])
+                best_smooth[f"{a}_vs_elu@{c}"] = paired_comparison(logs[a][:, j],
+                                                                   logs["elu"][:, j])
+    summary["comparisons"] = best_smooth
+    summary["figures"] = ["activations.png"]
+    return summary
+
+
+def cli(argv: list[str] | None = None) -> None:
+    """The script (``scripts/exp_activations.py``): parse the command line, run, print."""
+    args = parse_args(Args, argv)
+    configs = make_configs(args)
+    summary = run_experiment(args, EXPERIMENT, run_activations, configs, report)
+    for a, per_c in summary["log10_pred_rms"].items():
+        meds = " ".join(f"{s.get('median', float('nan')):7.3f}" for s in per_c)
+        print(f"{a:11s} median log10 pred RMS at {summary['checkpoints']}: {meds}  "
+              f"mean rank {np.round(summary['mean_rank'][a], 2).tolist()}")

@@ -1,0 +1,475 @@
+"""Regime sweep of the robot Jacobian claim: where does sampled Jacobian propagation lower the
+two-link arm's Jacobian error, and why not elsewhere?
+
+Grid (issue 16): training trajectories {1, 3, 10} x epochs {1000, 5000} x excitation window
+{short (10 taps), paper (100 taps)} x Coulomb friction {on, off}; methods none / sampled
+JacProp on every cell, and on the label cells (default: paper window, friction on, 3 trajectories,
+both epoch counts) the exact LTV-matching penalty and two label variants:
+``oracle`` (the perturbed copies labelled with the TRUE Jacobians, an upper bound of what
+sampled JacProp can give) and ``prior`` (LTV labels fused with the network as a prior after
+half the epochs, the original's ``useprior``). Every method of a cell takes the same number of
+optimizer steps (full-batch steps, one per epoch, perturbed copies in the same batch).
+
+Diagnostics per run: the Jacobian error split into moving points and points with a joint
+speed below ``still_speed`` (stiction), and into position and velocity rows; the labels'
+Jacobian error at the training points against the network's own error there, logged during
+training (:func:`paper_common.run_regime`).
+
+    python scripts/exp_regime.py                  # full sweep (long job, resumable)
+    python scripts/exp_regime.py --report-only    # redraw from the JSON
+    python scripts/exp_regime.py --quick          # smoke test (seconds)
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from agents.experiments.paper_common import (
+    ExperimentArgs,
+    RegimeData,
+    command_line,
+    library_version,
+    output_dirs,
+    parse_args,
+    pyplot,
+    run_regime,
+    save_figure,
+    write_json,
+)
+
+EXPERIMENT = "regime"
+METHOD_LABELS = {"none": "none", "sampled": "sampled JacProp", "exact": "exact LTV match",
+                 "oracle": "sampled, true-Jacobian labels (oracle)",
+                 "prior": "sampled, LTV fused with network prior"}
+
+
+@dataclass
+class Args(ExperimentArgs):
+    """Regime sweep of the robot Jacobian error: none vs sampled JacProp (and label variants)."""
+
+    mc: int = field(default=8, metadata={"help": "Monte-Carlo runs per cell"})
+    workers: int = field(default=1, metadata={"help": "parallel worker processes"})
+    n_trains: str = field(default="1,3,10", metadata={"help": "training trajectories"})
+    epochs: str = field(default="1000,5000", metadata={"help": "epochs (= optimizer steps)"})
+    windows: str = field(default="short,paper", metadata={"help": "excitation windows"})
+    frictions: str = field(default="on,off", metadata={"help": "Coulomb friction on/off"})
+    label_cells: str = field(default="paper-on", metadata={
+        "help": "window-friction cells that also run oracle, exact and prior"})
+    label_n_trains: str = field(default="3", metadata={
+        "help": "training-trajectory counts of the label cells"})
+    activations: str = field(default="tanh", metadata={
+        "help": "ensemble members (comma list; paper: elu,sigmoid,tanh,swish)"})
+    width: int = field(default=20, metadata={"help": "hidden units per member"})
+    batch: str = field(default="full", metadata={"help": "full (one step/epoch) or trajectory"})
+    lr: float = field(default=0.01, metadata={"help": "Adam step size"})
+    exact_weight: float = field(default=0.01, metadata={"help": "weight of the LTV match"})
+    prior_scale: float = field(default=1.0, metadata={
+        "help": "prior covariance / LTV posterior covariance for the fused labels"})
+    still_speed: float = field(default=0.05, metadata={
+        "help": "joint speed [rad/s] below which a point counts as near-zero velocity"})
+    n_log: int = field(default=5, metadata={"help": "training-point Jacobian checkpoints"})
+    paper_protocol: bool = field(default=True, metadata={
+        "help": "also run the paper cell with the paper's protocol (4-member nominal ensemble, "
+                "one step per trajectory) for none, sampled and oracle labels"})
+    duration: float = field(default=4.0, metadata={"help": "trajectory length [s]"})
+    n_val: int = field(default=10, metadata={"help": "validation trajectories"})
+
+    QUICK = {"mc": 2, "n_trains": "2", "epochs": "3,6", "duration": 1.0, "n_val": 2,
+             "n_log": 2, "label_n_trains": "2"}
+
+
+def _ints(s: str) -> list[int]:
+    return [int(v) for v in s.split(",") if v.strip()]
+
+
+def _strs(s: str) -> list[str]:
+    return [v.strip() for v in s.split(",") if v.strip()]
+
+
+def cell_name(method: str, n_train: int, epochs: int, window: str, friction: bool) -> str:
+    return f"{method}.n{n_train}.e{epochs}.{window}.{'fric' if friction else 'nofric'}"
+
+
+def make_configs(args: Args) -> dict[str, dict[str, dict]]:
+    """``{"main": {name: config}, "labels": {name: config}}``: the none/sampled grid and the
+    label-variant cells (run after the main grid is complete for all seeds)."""
+    n_trains, epochs = _ints(args.n_trains), _ints(args.epochs)
+    frictions = [{"on": True, "off": False}[f] for f in _strs(args.frictions)]
+    label_cells = {tuple(c.split("-")) for c in _strs(args.label_cells)}
+    out: dict[str, dict[str, dict]] = {"main": {}, "labels": {}, "paper_protocol": {}}
+    for window in _strs(args.windows):
+        for friction in frictions:
+            data = dataclasses.asdict(RegimeData(
+                window=window, friction=friction, duration=args.duration,
+                n_train_max=max(n_trains), n_val=args.n_val))
+            label = (window, "on" if friction else "off") in label_cells
+            for n in n_trains:
+                methods = {"main": ["none", "sampled"],
+                           "labels": ["oracle", "exact", "prior"]
+                           if label and n in _ints(args.label_n_trains) else []}
+                for e in epochs:
+                    for part, ms in methods.items():
+                        for m in ms:
+                            out[part][cell_name(m, n, e, window, friction)] = {
+                                "data": data, "n_train": n, "epochs": e, "method": m,
+                                "exact_weight": args.exact_weight,
+                                "prior_scale": args.prior_scale, "lr": args.lr,
+                                "batch": args.batch,
+                                "model": {"activations": _strs(args.activations),
+                                          "width": args.width},
+                                "still_speed": args.still_speed, "n_log": args.n_log}
+            if args.paper_protocol and label:
+                for m in ("none", "sampled", "oracle"):
+                    n = _ints(args.label_n_trains)[0]
+                    e = min(epochs)
+                    name = cell_name(m, n, e, window, friction)
+                    out["paper_protocol"][f"paperprotocol.{name}"] = {
+                        "data": data, "n_train": n, "epochs": e, "method": m,
+                        "exact_weight": args.exact_weight, "prior_scale": args.prior_scale,
+                        "lr": args.lr, "batch": "trajectory", "model": {},
+                        "still_speed": args.still_speed, "n_log": args.n_log,
+                        "paper_protocol": True}
+    return out
+
+
+def run(args: Args, out: Path) -> list[dict]:
+    """The sweep, seed by seed (so that an interrupted sweep leaves every cell with the same
+    number of seeds, give or take the cells of the last seed), the shortest runs first."""
+    from mbtsr.runner import load_results, run_sweep
+
+    configs = make_configs(args)
+    write_json(out / "args.json", {"args": dataclasses.asdict(args), "command": command_line()})
+    n_before = len(load_results(out))
+    start, t0, c0 = library_version(), time.perf_counter(), time.process_time()
+    every = {**configs["main"], **configs["labels"], **configs["paper_protocol"]}
+    shortest = min(c["epochs"] for c in every.values())
+    # first the cheap shortest-run cells for every seed, then everything seed by seed: on a busy
+    # machine an interrupted sweep still has the whole short-run map at full seed count
+    for part, todo in (("short runs", {k: c for k, c in every.items()
+                                       if c["epochs"] == shortest}), ("all", every)):
+        for seed in range(args.mc):
+            run_sweep(run_regime, todo, [seed], out, backend=args.backend,
+                      workers=args.workers, progress=False)
+            if not args.quick:
+                print(f"[regime] {part}: seed {seed} done, {time.perf_counter() - t0:.0f} s",
+                      flush=True)
+    recs = load_results(out)
+    log_path = out / "sweeps.json"
+    log = json.loads(log_path.read_text()) if log_path.exists() else []
+    log.append({"started": time.strftime("%Y-%m-%dT%H:%M:%S",
+                                         time.localtime(time.time() - (time.perf_counter() - t0))),
+                "wall_s": round(time.perf_counter() - t0, 1),
+                "cpu_s_driver": round(time.process_time() - c0, 1),
+                "runs_finished_before": n_before, "runs_finished_after": len(recs),
+                "workers": args.workers, "backend": args.backend,
+                "load_avg_1min": round(os.getloadavg()[0], 2),
+                "library_at_start": start, "library_at_end": library_version()})
+    write_json(log_path, log)
+    return recs
+
+
+# ------------------------------------------------------------------------------------------------
+# report
+
+
+def _cells(records: list[dict]) -> list[tuple]:
+    keys = {(r["config"]["data"]["window"], r["config"]["data"]["friction"],
+             r["config"]["n_train"], r["config"]["epochs"]) for r in records}
+    return sorted(keys, key=lambda k: (k[0] != "short", not k[1], k[2], k[3]))
+
+
+def _by_seed(records: list[dict], method: str, cell: tuple, key: str) -> dict[int, float]:
+    w, f, n, e = cell
+    out = {}
+    for r in records:
+        c = r["config"]
+        if (c["method"] == method and c["data"]["window"] == w and c["data"]["friction"] == f
+                and c["n_train"] == n and c["epochs"] == e):
+            v = r["result"].get(key)
+            if v is not None:
+                out[r["seed"]] = float(v)
+    return out
+
+
+def paired_relative(records, method: str, cell: tuple, key: str = "jac_err") -> dict | None:
+    """Median per-seed relative change of ``key`` (method vs none, %), q1/q3, wins/total."""
+    a, b = _by_seed(records, method, cell, key), _by_seed(records, "none", cell, key)
+    seeds = sorted(set(a) & set(b))
+    if not seeds:
+        return None
+    rel = np.array([100.0 * (a[s] - b[s]) / b[s] for s in seeds])
+    return {"median_pct": float(np.median(rel)), "q1_pct": float(np.percentile(rel, 25)),
+            "q3_pct": float(np.percentile(rel, 75)), "wins": int((rel < 0).sum()),
+            "total": len(seeds), "per_seed_pct": [round(float(v), 2) for v in rel]}
+
+
+def _median(records, method, cell, key) -> float | None:
+    v = list(_by_seed(records, method, cell, key).values())
+    return float(np.median(v)) if v else None
+
+
+def _cell_label(cell: tuple) -> str:
+    w, f, n, e = cell
+    return f"{w}, {'friction' if f else 'no friction'}, {n} traj, {e} ep."
+
+
+DIAG_KEYS = ("jac_err", "jac_pos", "jac_vel", "jac_moving_all", "jac_still_all", "frac_still",
+             "label_jac_pos", "label_jac_vel", "log10_pred_rms", "log10_sim_rms")
+
+
+def _cell_text(ax, j: int, i: int, s: dict) -> None:
+    ax.text(j, i, f"{s['median_pct']:+.0f}%\n{s['wins']}/{s['total']}", ha="center",
+            va="center", fontsize=7, color="white" if abs(s["median_pct"]) > 25 else "black")
+
+
+def variants_map(ax, records, protocol: list[dict]) -> None:
+    """Rows = methods, columns = the cells that ran the label variants (+ the paper cell under
+    the paper's protocol); colour and text as :func:`regime_map`."""
+    cells = [c for c in _cells(records)
+             if any(r["config"]["method"] == "oracle" for r in _cell_records(records, c))]
+    cols = [(records, c, f"{c[2]} tr., {c[3]} ep.\n1 member, full batch") for c in cells]
+    cols += [(protocol, c, f"{c[2]} tr., {c[3]} ep.\npaper protocol (4 members)")
+             for c in _cells(protocol)]
+    rows = ["sampled", "oracle", "exact", "prior"]
+    grid = np.full((len(rows), len(cols)), np.nan)
+    for j, (recs, c, _) in enumerate(cols):
+        for i, m in enumerate(rows):
+            s = paired_relative(recs, m, c)
+            if s is not None:
+                grid[i, j] = s["median_pct"]
+                _cell_text(ax, j, i, s)
+    ax.imshow(grid, cmap="RdBu_r", vmin=-40, vmax=40, aspect="auto")
+    ax.set_xticks(range(len(cols)), [t for _, _, t in cols], fontsize=7)
+    ax.set_yticks(range(len(rows)), [METHOD_LABELS[m] for m in rows], fontsize=7)
+    if cells:
+        ax.set_title(f"label variants vs none, {cells[0][0]} window, "
+                     f"{'friction' if cells[0][1] else 'no friction'}", fontsize=9)
+
+
+def _cell_records(records: list[dict], cell: tuple) -> list[dict]:
+    w, f, n, e = cell
+    return [r for r in records if (r["config"]["data"]["window"], r["config"]["data"]["friction"],
+                                   r["config"]["n_train"], r["config"]["epochs"]) == cell]
+
+
+def regime_map(ax, records, method: str, title: str) -> None:
+    """Heat map: rows = excitation window x friction, columns = trajectories x epochs; colour =
+    median relative change of the Jacobian error vs none, text = change and wins/total."""
+    cells = _cells(records)
+    rows = sorted({(c[0], c[1]) for c in cells}, key=lambda k: (k[0] != "short", not k[1]))
+    cols = sorted({(c[2], c[3]) for c in cells})
+    grid = np.full((len(rows), len(cols)), np.nan)
+    for i, (w, f) in enumerate(rows):
+        for j, (n, e) in enumerate(cols):
+            s = paired_relative(records, method, (w, f, n, e))
+            if s is None:
+                continue
+            grid[i, j] = s["median_pct"]
+            _cell_text(ax, j, i, s)
+    lim = 40.0
+    im = ax.imshow(grid, cmap="RdBu_r", vmin=-lim, vmax=lim, aspect="auto")
+    ax.set_xticks(range(len(cols)), [f"{n} tr.\n{e} ep." for n, e in cols], fontsize=7)
+    ax.set_yticks(range(len(rows)), [f"{w} window\n{'friction' if f else 'no friction'}"
+                                     for w, f in rows], fontsize=7)
+    ax.set_title(title, fontsize=9)
+    return im
+
+
+def diagnostics_figure(records: list[dict], path: Path) -> None:
+    """The network's own Jacobian error at the training points during training (median over
+    seeds; none = solid, sampled = dotted) against the error of the LTV labels (dashed), per row
+    group, for each window x friction family at its middle trajectory count and longest run."""
+    plt = pyplot()
+    cells = _cells(records)
+    if not cells:
+        return
+    n_mid = sorted({c[2] for c in cells})[len({c[2] for c in cells}) // 2]
+    e_max = max(c[3] for c in cells)
+    fams = sorted({(c[0], c[1]) for c in cells}, key=lambda k: (k[0] != "short", not k[1]))
+    fig, axes = plt.subplots(1, 2, figsize=(10, 3.8), layout="constrained")
+    colors = plt.rcParams["axes.prop_cycle"].by_key()["color"]
+    for i, (w, f) in enumerate(fams):
+        cell, color = (w, f, n_mid, e_max), colors[i % len(colors)]
+        label = f"{w} window, {'friction' if f else 'no friction'}"
+        for j, rows in enumerate(("pos", "vel")):
+            for method, style in (("none", "-"), ("sampled", ":")):
+                logs = [r["result"]["net_train_jac"] for r in records
+                        if r["config"]["method"] == method and (
+                            r["config"]["data"]["window"], r["config"]["data"]["friction"],
+                            r["config"]["n_train"], r["config"]["epochs"]) == cell]
+                if logs:
+                    ep = logs[0]["epoch"]
+                    med = np.median(np.array([lg[rows] for lg in logs]), 0)
+                    axes[j].plot(ep, med, style, color=color,
+                                 label=f"{label}: network, {method}" if j == 0 else None)
+            lab = _median(records, "sampled", cell, f"label_jac_{rows}")
+            if lab is not None:
+                axes[j].axhline(lab, ls="--", color=color, lw=1,
+                                label=f"{label}: LTV labels" if j == 0 else None)
+    for j, rows in enumerate(("position rows (q)", "velocity rows (qdot)")):
+        axes[j].set_xlabel("epoch")
+        axes[j].set_ylabel("Jacobian error at the training points")
+        axes[j].set_title(f"{rows}, {n_mid} trajectories", fontsize=9)
+    fig.legend(loc="outside right center", fontsize=6)
+    save_figure(fig, path)
+
+
+def report(records: list[dict], out: Path, figures: Path, args: Args,
+           protocol: list[dict] | None = None) -> dict:
+    plt = pyplot()
+    methods = [m for m in ("sampled", "oracle", "exact", "prior")
+               if any(r["config"]["method"] == m for r in records)]
+    fig, axes = plt.subplots(2, 1, figsize=(9, 7.5), layout="constrained",
+                             gridspec_kw={"height_ratios": [1.1, 1]})
+    im = regime_map(axes[0], records, "sampled", "sampled JacProp vs none: median change of "
+                    "the robot Jacobian error (text: change, runs better / runs)")
+    variants_map(axes[1], records, protocol or [])
+    fig.colorbar(im, ax=axes.tolist(), shrink=0.6, label="Jacobian error change vs none [%]")
+    save_figure(fig, figures / "regime_map.png")
+
+    diagnostics_figure(records, figures / "regime_diagnostics.png")
+
+    cells = _cells(records)
+    table = {}
+    for cell in cells:
+        row = {"none_" + k: _median(records, "none", cell, k) for k in DIAG_KEYS}
+        row["none_net_train_pos"] = _final_train_err(records, cell, "pos")
+        row["none_net_train_vel"] = _final_train_err(records, cell, "vel")
+        for m in methods:
+            s = paired_relative(records, m, cell)
+            if s is not None:
+                row[m] = s
+                for k in DIAG_KEYS:
+                    row[f"{m}_{k}"] = _median(records, m, cell, k)
+                for k in ("log10_pred_rms", "log10_sim_rms"):
+                    a, b = (_by_seed(records, m, cell, k), _by_seed(records, "none", cell, k))
+                    seeds = sorted(set(a) & set(b))
+                    d = np.array([a[s_] - b[s_] for s_ in seeds])
+                    row[f"{m}_{k}_diff"] = {"median": float(np.median(d)),
+                                            "wins": int((d < 0).sum()), "total": len(d)}
+        table[_cell_label(cell)] = row
+    cpu = sum(r["result"].get("cpu_time", 0.0) for r in records)
+    summary = {"cells": table, "n_runs": len(records), "cpu_s_runs": cpu,
+               "figures": ["regime_map.png", "regime_diagnostics.png"]}
+    (out / "table.md").write_text(markdown_table(records, methods))
+    return summary
+
+
+def _fmt(v, digits=2) -> str:
+    return "-" if v is None else f"{v:.{digits}f}"
+
+
+def _final_train_err(records: list[dict], cell: tuple, rows: str,
+                     method: str = "none") -> float | None:
+    """Median over seeds of the network's own Jacobian error at the training points at the
+    end of training (``rows``: "pos" or "vel")."""
+    w, f, n, e = cell
+    v = [r["result"]["net_train_jac"][rows][-1] for r in records
+         if r["config"]["method"] == method and r["config"]["data"]["window"] == w
+         and r["config"]["data"]["friction"] == f and r["config"]["n_train"] == n
+         and r["config"]["epochs"] == e]
+    return float(np.median(v)) if v else None
+
+
+def markdown_table(records: list[dict], methods: list[str]) -> str:
+    """One row per cell: none's Jacobian error and its diagnostics, each method's change."""
+    head = ["cell", "none: Jacobian error (pos / vel rows; moving / still pts)", "still pts",
+            "none's network / LTV labels at the train pts, pos rows; vel rows"]
+    head += [f"{m}: change, wins" for m in methods]
+    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for cell in _cells(records):
+        md = lambda m, k, cell=cell: _median(records, m, cell, k)  # noqa: E731
+        row = [_cell_label(cell),
+               f"{_fmt(md('none', 'jac_err'))} ({_fmt(md('none', 'jac_pos'))} / "
+               f"{_fmt(md('none', 'jac_vel'))}; {_fmt(md('none', 'jac_moving_all'))} / "
+               f"{_fmt(md('none', 'jac_still_all'))})",
+               f"{100 * (md('none', 'frac_still') or 0):.0f} %",
+               f"{_fmt(_final_train_err(records, cell, 'pos'))} / "
+               f"{_fmt(md('sampled', 'label_jac_pos'))}; "
+               f"{_fmt(_final_train_err(records, cell, 'vel'))} / "
+               f"{_fmt(md('sampled', 'label_jac_vel'))}"]
+        for m in methods:
+            s = paired_relative(records, m, cell)
+            row.append("-" if s is None else
+                       f"{s['median_pct']:+.0f} % [{s['q1_pct']:+.0f}, {s['q3_pct']:+.0f}], "
+                       f"{s['wins']}/{s['total']}")
+        lines.append("| " + " | ".join(row) + " |")
+    return "\n".join(lines) + "\n"
+
+
+PROTOCOL_KEYS = ("jac_err", "jac_pos", "jac_vel", "jac_moving_all", "jac_still_all",
+                 "frac_still", "label_jac_pos", "label_jac_vel", "log10_pred_rms",
+                 "log10_sim_rms", "steps")
+
+
+def paper_protocol_summary(records: list[dict]) -> dict:
+    """The paper cell under the paper's protocol: medians per method, the network's own
+    training-point error per row group at the end, and the paired change vs none."""
+    cell = next((c for c in _cells(records)), None)
+    out = {"cell": _cell_label(cell), "methods": {}}
+    for m in ("none", "sampled", "oracle"):
+        row = {k: _median(records, m, cell, k) for k in PROTOCOL_KEYS}
+        fin = [r["result"]["net_train_jac"] for r in records if r["config"]["method"] == m]
+        if fin:
+            row["net_train_pos"] = float(np.median([f["pos"][-1] for f in fin]))
+            row["net_train_vel"] = float(np.median([f["vel"][-1] for f in fin]))
+        if m != "none":
+            row["vs_none"] = paired_relative(records, m, cell)
+        out["methods"][m] = row
+    return out
+
+
+def paper_protocol_table(s: dict) -> str:
+    lines = [f"Paper protocol at the paper cell ({s['cell']}; 4-member nominal ensemble, one "
+             "optimizer step per trajectory, equal steps):", "",
+             "| method | Jacobian error (pos / vel rows) | network at train pts pos / vel | "
+             "labels pos / vel | change vs none, wins |", "|---|---|---|---|---|"]
+    for m, r in s["methods"].items():
+        vs = r.get("vs_none")
+        lines.append(
+            f"| {m} | {_fmt(r['jac_err'])} ({_fmt(r['jac_pos'])} / {_fmt(r['jac_vel'])}) | "
+            f"{_fmt(r.get('net_train_pos'))} / {_fmt(r.get('net_train_vel'))} | "
+            f"{_fmt(r['label_jac_pos'])} / {_fmt(r['label_jac_vel'])} | "
+            + ("-" if not vs else f"{vs['median_pct']:+.0f} % [{vs['q1_pct']:+.0f}, "
+               f"{vs['q3_pct']:+.0f}], {vs['wins']}/{vs['total']}") + " |")
+    return "\n".join(lines) + "\n"
+
+
+def main(args: Args) -> dict:
+    from mbtsr.runner import load_results
+
+    out, figures = output_dirs(args, EXPERIMENT)
+    if not args.report_only:
+        run(args, out)
+    records = [r for r in load_results(out) if r.get("status") == "ok"]
+    if not records:
+        raise SystemExit(f"no finished runs in {out}")
+    protocol = [r for r in records if r["config"].get("paper_protocol")]
+    records = [r for r in records if not r["config"].get("paper_protocol")]
+    summary = report(records, out, figures, args, protocol)
+    if protocol:
+        summary["paper_protocol"] = paper_protocol_summary(protocol)
+        with open(out / "table.md", "a") as fh:
+            fh.write("\n" + paper_protocol_table(summary["paper_protocol"]))
+    write_json(out / "summary.json", summary)
+    if args.json:
+        write_json(args.json, summary)
+    return summary
+
+
+def cli(argv: list[str] | None = None) -> None:
+    """The script (``scripts/exp_regime.py``): parse the command line, run, print."""
+    args = parse_args(Args, argv)
+    summary = main(args)
+    for name, row in summary["cells"].items():
+        s = row.get("sampled")
+        if s:
+            print(f"{name:40s} none {row['none_jac_err']:.3f} sampled {s['median_pct']:+.1f}% "
+                  f"({s['wins']}/{s['total']})")

@@ -1,0 +1,182 @@
+"""Weight decay and the f / g formulations on random stable linear systems (paper Sec. IV and
+Fig. "wd": rows without/with weight decay, columns f/g, all with sampled Jacobian propagation).
+
+The claim checked: L2 weight decay pulls the eigenvalues of the learned state Jacobian toward 0
+for f (x+ = NN(x, u); harmful, the true eigenvalues sit near the unit circle close to 1) and
+toward 1 for g (x+ = x + NN(x, u); harmless or helpful). Data and training follow the original
+README weight-decay study (original_implementation.md section 4): the system and data of
+``exp_linear.py``, 3 rounds x 200 epochs, sampled JacProp, weight decay 0 and 0.1 (coupled L2 on
+the weight matrices, as the original's ADAM ``expdecay``); 0.01 is added as an intermediate
+strength. Note that here the networks see standardized inputs and outputs (the original did
+not), so the decay acts on normalized weights: it pulls the Jacobian toward the skip part, 0 for
+f and I for g, in either case.
+
+    python scripts/exp_weight_decay.py                 # full run
+    python scripts/exp_weight_decay.py --report-only   # redraw from the JSON
+    python scripts/exp_weight_decay.py --quick         # smoke test
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from agents.experiments.paper_common import (
+    ExperimentArgs,
+    LinearData,
+    complex_from_pairs,
+    eigen_limits,
+    eigen_scatter,
+    paired_comparison,
+    parse_args,
+    pyplot,
+    run_experiment,
+    run_linear,
+    save_figure,
+    spread,
+    values,
+    violins,
+)
+
+EXPERIMENT = "weight_decay"
+
+
+@dataclass
+class Args(ExperimentArgs):
+    """Weight decay x formulation (f, g) on random linear systems (paper Fig. wd)."""
+
+    mc: int = field(default=20, metadata={"help": "Monte-Carlo runs (random systems)"})
+    rounds: int = field(default=3, metadata={"help": "training rounds (one trajectory each)"})
+    epochs_per_round: int = field(default=200, metadata={"help": "epochs per round"})
+    lr: float = field(default=0.01, metadata={"help": "Adam step size"})
+    n_val: int = field(default=10, metadata={"help": "validation trajectories"})
+    weight_decay: float = field(default=0.1, metadata={"help": "the strong weight decay"})
+    weight_decay_mid: float = field(default=0.01, metadata={
+        "help": "an intermediate weight decay (<= 0 to skip)"})
+    method: str = field(default="sampled", metadata={"help": "regularization of all models"})
+    original_bug: bool = field(default=True, metadata={
+        "help": "also run on data with the original's last-state bug (no / strong decay)"})
+
+    QUICK = {"mc": 2, "rounds": 1, "epochs_per_round": 5, "n_val": 2, "weight_decay_mid": 0.0,
+             "original_bug": False}
+
+
+def config_name(formulation: str, wd: float, bug: bool = False) -> str:
+    return f"{formulation}_wd{wd:g}" + ("_bug" if bug else "")
+
+
+def make_configs(args: Args) -> dict[str, dict]:
+    data = dataclasses.asdict(LinearData(n_val=args.n_val))
+    base = {"data": data, "rounds": args.rounds, "epochs_per_round": args.epochs_per_round,
+            "lr": args.lr, "incremental": True, "method": args.method, "reg": {},
+            "n_eig_store": 30}
+    decays = [0.0] + ([args.weight_decay_mid] if args.weight_decay_mid > 0 else []) + [
+        args.weight_decay]
+    configs = {config_name(f, wd): {**base, "formulation": f, "weight_decay": wd}
+               for f in ("f", "g") for wd in decays}
+    if args.original_bug:  # the original's data (last training state 0), no/strong decay
+        bug = {**base, "data": {**data, "last_state_zero": True}}
+        configs.update({config_name(f, wd, True): {**bug, "formulation": f, "weight_decay": wd}
+                        for f in ("f", "g") for wd in (0.0, args.weight_decay)})
+    return configs
+
+
+def eigen_figure(records: list[dict], wd_lo: float, wd_hi: float, bug: bool, path) -> bool:
+    """The paper's 2x2 figure (rows no / strong weight decay, columns f / g) for the first
+    MC run's system; False if no such records."""
+    first = min(r["seed"] for r in records)
+    panels = {(i, j): next((r["result"] for r in records if r["seed"] == first
+                            and r["name"] == config_name(f, wd, bug)), None)
+              for i, wd in enumerate((wd_lo, wd_hi)) for j, f in enumerate(("f", "g"))}
+    shown = [p for p in panels.values() if p is not None]
+    if not shown:
+        return False
+    limits = eigen_limits([complex_from_pairs(p["eig_learned"]) for p in shown],
+                          complex_from_pairs(shown[0]["eig_true"]))  # one scale for all
+    plt = pyplot()
+    fig, axes = plt.subplots(2, 2, figsize=(8, 8.4))
+    for (i, j), res in panels.items():
+        if res is None:
+            axes[i, j].set_visible(False)
+            continue
+        f, wd = ("f", "g")[j], (wd_lo, wd_hi)[i]
+        eigen_scatter(axes[i, j], complex_from_pairs(res["eig_learned"]),
+                      complex_from_pairs(res["eig_true"]),
+                      f"{f}, weight decay {wd:g}{', orig. data bug' if bug else ''}\n"
+                      f"mean |l| {res['eig_mean_abs']:.3f}, "
+                      f"mean |l-1| {res['eig_mean_dist_to_1']:.3f}", limits=limits)
+    save_figure(fig, path)
+    return True
+
+
+def report(records: list[dict], out, figures, args: Args) -> dict:
+    plt = pyplot()
+
+    def order(n: str) -> tuple:
+        f, rest = n.split("_wd")
+        return (n.endswith("_bug"), f, float(rest.removesuffix("_bug")))
+
+    names = sorted({r["name"] for r in records}, key=order)
+    decays = sorted({r["config"]["weight_decay"] for r in records})
+    wd_lo, wd_hi = decays[0], decays[-1]
+    drawn = [name for bug, name in ((False, "weight_decay_eigenvalues.png"),
+                                    (True, "weight_decay_eigenvalues_bug.png"))
+             if eigen_figure(records, wd_lo, wd_hi, bug, figures / name)]
+
+    fig, axes = plt.subplots(1, 4, figsize=(4 * (0.8 + 0.45 * len(names)), 4.2))
+    for ax, key, label in zip(axes, ("eig_mean_abs", "eig_mean_dist_to_1", "eig_match_err",
+                                     "jac_rms_entry"),
+                              ("mean |eigenvalue|", "mean |eigenvalue - 1|",
+                               "eigenvalue matching error", "Jacobian RMS per entry")):
+        violins(ax, {n: values(records, n, key) for n in names}, ylabel=label)
+    true_abs = np.nanmean([r["result"]["eig_true_mean_abs"] for r in records])
+    true_d1 = np.nanmean([r["result"]["eig_true_mean_dist_to_1"] for r in records])
+    axes[0].axhline(true_abs, color="tab:red", lw=0.8, ls="--", label="true")
+    axes[1].axhline(true_d1, color="tab:red", lw=0.8, ls="--", label="true")
+    axes[0].legend(fontsize=7)
+    for ax in axes[2:]:
+        ax.set_yscale("log")
+    save_figure(fig, figures / "weight_decay_errors.png")
+
+    keys = ("eig_mean_abs", "eig_mean_dist_to_1", "eig_max_abs", "eig_match_err", "jac_err",
+            "jac_rms_entry", "log10_pred_rms", "log10_sim_rms", "sim_diverged", "train_loss",
+            "train_pred_rms", "wall", "cpu_time")
+    summary = {"configs": {n: {k: spread(values(records, n, k)) for k in keys} for n in names}}
+    summary["true_eig_mean_abs"] = float(true_abs)
+    summary["true_eig_mean_dist_to_1"] = float(true_d1)
+    comp = {}
+    present = set(names)
+    for bug in (False, True):
+        for f in ("f", "g"):
+            base = config_name(f, wd_lo, bug)
+            for wd in decays[1:]:
+                name = config_name(f, wd, bug)
+                if name in present and base in present:
+                    comp[f"{name}_vs_{base}"] = {
+                        k: paired_comparison(values(records, name, k),
+                                             values(records, base, k))
+                        for k in ("eig_mean_abs", "eig_mean_dist_to_1", "eig_match_err",
+                                  "jac_err", "log10_pred_rms", "log10_sim_rms")}
+        g, f = config_name("g", wd_lo, bug), config_name("f", wd_lo, bug)
+        if g in present and f in present:
+            comp[f"{g}_vs_{f}"] = {
+                k: paired_comparison(values(records, g, k), values(records, f, k))
+                for k in ("eig_match_err", "jac_err", "log10_pred_rms", "log10_sim_rms",
+                          "train_pred_rms")}
+    summary["comparisons"] = comp
+    summary["figures"] = [*drawn, "weight_decay_errors.png"]
+    return summary
+
+
+def cli(argv: list[str] | None = None) -> None:
+    """The script (``scripts/exp_weight_decay.py``): parse the command line, run, print."""
+    args = parse_args(Args, argv)
+    configs = make_configs(args)
+    summary = run_experiment(args, EXPERIMENT, run_linear, configs, report)
+    for name, s in summary["configs"].items():
+        print(f"{name:14s} mean|l| {s['eig_mean_abs'].get('median', float('nan')):.3f} "
+              f"mean|l-1| {s['eig_mean_dist_to_1'].get('median', float('nan')):.3f} "
+              f"eig err {s['eig_match_err'].get('median', float('nan')):.3f} "
+              f"jac {s['jac_rms_entry'].get('median', float('nan')):.4f}")

@@ -1,0 +1,227 @@
+"""Plug a dynamics model into iLQR: plan a reach on the two-link arm and run it in the env.
+
+The model is any object with the ``DynamicsModel`` protocol:
+
+- ``--model true``: the MuJoCo arm itself (``env.dynamics_model()``, finite-difference Jacobians);
+- ``--model analytic``: the analytic CasADi twin (``env.analytic_model()``);
+- ``--model ltv``: an LTV model fitted (``mbtsr.ltv.fit_ltv``) on excitation rollouts that start
+  at the same state (valid only near those rollouts: a local, time-indexed model);
+- ``--model PATH``: a saved NN ensemble (``mbtsr.ensemble.load_model``).
+
+Steps: (1) plan ``T`` steps with iLQR on the model from the episode's start state; (2) run the
+plan in the env open loop, and (3) with the plan's feedback gains ``u = U_t + K_t (x - X_t)``;
+(4) run receding-horizon MPC on the model in the env. It prints a summary (episode costs =
+``-sum(rewards)`` of the env) and saves ``ilqr_with_model_<model>.png`` (planned vs executed joint
+angles, speeds, actions and cumulative costs) and a JSON summary into ``--out``.
+
+Usage: ``python scripts/ilqr_with_model.py --model true --seed 0 --out runs/ilqr``
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Literal
+
+import gymnasium as gym
+import matplotlib
+import numpy as np
+
+import envs  # noqa: F401  (registers mbtsr/TwoLinkArm-v0)
+from mbtsr.costs import quadratic_cost
+from mbtsr.episode import run_episode
+from mbtsr.ilqr import ILQROptions, ilqr
+from mbtsr.io import write_json_atomic
+from mbtsr.mpc import MPC, MPCOptions
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+
+
+@dataclass(frozen=True)
+class Args:
+    """Plan a reach of the two-link arm with iLQR on a chosen model and replay it (open loop and
+    MPC) in the real env."""
+
+    model: str = "true"
+    """true | analytic | ltv | PATH of a saved ensemble"""
+    seed: int = 0
+    """reset seed (start state and, without --target, the target)"""
+    target: str = ""
+    """target joint angles "q1,q2" [rad]; empty: drawn by the env"""
+    preset: Literal["default", "paper"] = "default"
+    """arm preset"""
+    T: int = 100
+    """planning horizon and episode length [steps]"""
+    max_iter: int = 100
+    """iLQR iterations of the open-loop plan"""
+    mpc_horizon: int = 50
+    """MPC horizon [steps]"""
+    mpc_iterations: int = 2
+    """iLQR iterations per MPC step"""
+    ltv_trajectories: int = 20
+    """excitation rollouts for --model ltv"""
+    ltv_lam: float = 10.0
+    """LTV smoothness weight lambda for --model ltv"""
+    out: str = "runs/ilqr_with_model"
+    """output directory"""
+
+
+def episode_cost(X: np.ndarray, U: np.ndarray, goal, Q, R) -> np.ndarray:
+    """Per-step env cost ``(x_{t+1} - g)^T Q (x_{t+1} - g) + u_t^T R u_t`` -> ``[T]``."""
+    E = X[1:] - goal
+    return np.einsum("ti,ij,tj->t", E, Q, E) + np.einsum("ti,ij,tj->t", U, R, U)
+
+
+def run_policy(env, policy, T, seed, options):
+    """Run ``policy(x, t) -> a`` on the env state; ``-> (X [T+1, n], U [T, m], rewards [T])``."""
+    rec = run_episode(env, policy, seed=seed, options=options, max_steps=T, observe=_state)
+    return rec.states, rec.actions, rec.rewards
+
+
+def _state(obs, info):
+    return info["state"]
+
+
+def run(args: Args) -> dict:
+    """Plan with the chosen model, replay in the real arm; write the figure and the JSON."""
+    out_dir = Path(args.out)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    horizon_steps = args.T + (args.mpc_horizon if args.model == "ltv" else 0)
+    env = gym.make("mbtsr/TwoLinkArm-v0", preset=args.preset, episode_steps=args.T)
+    arm = env.unwrapped
+
+    # ---- the episode: start state and target
+    options = {}
+    if args.target:
+        options["target"] = [float(v) for v in args.target.split(",")]
+    _, info = env.reset(seed=args.seed, options=options or None)
+    x0, target = info["state"], info["target"]
+    options = {"target": target, "state": x0}  # replay exactly this episode below
+    goal = np.r_[target, 0.0, 0.0]
+    Q, R = arm.cost_Q, arm.cost_R
+    cost = quadratic_cost(Q, R)  # the goal is a parameter: params=cost.reference(goal)
+    print(f"start {np.round(x0, 3).tolist()}, target {np.round(target, 3).tolist()}")
+
+    # ---- the model
+    tic = time.perf_counter()
+    if args.model == "true":
+        model, model_name = arm.dynamics_model(), "true"
+    elif args.model == "analytic":
+        model, model_name = arm.analytic_model(), "analytic"
+    elif args.model == "ltv":
+        from envs.collect import collect_trajectories
+        from mbtsr.ltv import fit_ltv
+
+        data_env = gym.make("mbtsr/TwoLinkArm-v0", preset=args.preset, episode_steps=horizon_steps)
+        trajs = collect_trajectories(
+            data_env, args.ltv_trajectories, horizon_steps, seed=args.seed, reset_options=options
+        )
+        model, model_name = fit_ltv(trajs, args.ltv_lam), "ltv"
+    else:
+        from mbtsr.ensemble import load_model
+
+        model, model_name = load_model(args.model).freeze(), Path(args.model).stem
+    print(f"model: {model_name} ({time.perf_counter() - tic:.2f} s to build)")
+
+    # ---- 1. plan with iLQR on the model
+    res = ilqr(
+        cost,
+        model,
+        x0,
+        np.zeros((args.T, 2)),
+        u_min=-1.0,
+        u_max=1.0,
+        params=cost.reference(goal),
+        options=ILQROptions(max_iter=args.max_iter, tol_fun_rel=1e-6),
+    )
+    print(
+        f"iLQR: {res.status} after {res.iterations} iterations ({res.message}), "
+        f"{res.timings['total']:.2f} s, planned cost {res.cost:.4f}"
+    )
+
+    # ---- 2./3. execute the plan in the env: open loop, and with the plan's feedback gains
+    X_ol, U_ol, r_ol = run_policy(env, lambda x, t: res.U[t], args.T, args.seed, options)
+    X_fb, U_fb, r_fb = run_policy(
+        env, lambda x, t: res.U[t] + res.K[t] @ (x - res.X[t]), args.T, args.seed, options
+    )
+
+    # ---- 4. MPC on the model in the env
+    mpc = MPC(
+        ilqr,
+        cost,
+        model,
+        horizon=args.mpc_horizon,
+        u_min=-1.0,
+        u_max=1.0,
+        options=MPCOptions(iterations_per_step=args.mpc_iterations, first_step_iterations=30),
+        params=cost.reference(goal),
+    )
+    mpc_out = run_episode(env, mpc, seed=args.seed, options=options, observe=_state)
+    compute_times = np.asarray(mpc.compute_times)
+
+    # ---- summary
+    planned = episode_cost(res.X, res.U, goal, Q, R)
+    summary = {
+        "args": dataclasses.asdict(args),
+        "x0": x0.tolist(),
+        "target": target.tolist(),
+        "ilqr": {
+            "status": res.status,
+            "iterations": res.iterations,
+            "wall_time_s": res.timings["total"],
+        },
+        "episode_cost": {
+            "planned_under_model": float(planned.sum()),
+            "open_loop": float(-r_ol.sum()),
+            "plan_with_feedback": float(-r_fb.sum()),
+            "mpc": mpc_out.cost,
+        },
+        "final_angle_error_rad": {
+            "planned": float(np.abs(res.X[-1, :2] - target).max()),
+            "open_loop": float(np.abs(X_ol[-1, :2] - target).max()),
+            "plan_with_feedback": float(np.abs(X_fb[-1, :2] - target).max()),
+            "mpc": float(np.abs(mpc_out.states[-1, :2] - target).max()),
+        },
+        "mpc_ms_per_step": float(compute_times[1:].mean() * 1e3),
+        "mpc_real_time_factor": float(arm.dt / compute_times[1:].mean()),
+    }
+    for key in ("episode_cost", "final_angle_error_rad"):
+        print(key + ": " + ", ".join(f"{k} {v:.4f}" for k, v in summary[key].items()))
+    ms, rtf = summary["mpc_ms_per_step"], summary["mpc_real_time_factor"]
+    print(f"MPC: {ms:.1f} ms/step, real-time factor {rtf:.2f}")
+
+    # ---- plot: planned vs executed
+    t = np.arange(args.T + 1) * arm.dt
+    runs = {
+        "planned (model)": (res.X, res.U, planned),
+        "open loop (env)": (X_ol, U_ol, -r_ol),
+        "plan + feedback (env)": (X_fb, U_fb, -r_fb),
+        "MPC (env)": (mpc_out.states, mpc_out.actions, -mpc_out.rewards),
+    }
+    fig, axes = plt.subplots(2, 3, figsize=(14, 7), sharex=True)
+    for label, (X, U, c) in runs.items():
+        style = "--" if label.startswith("planned") else "-"
+        for i in range(2):
+            axes[0, i].plot(t, X[:, i], style, label=label)
+            axes[1, i].plot(t, X[:, 2 + i], style, label=label)
+        axes[0, 2].step(t[:-1], U[:, 0], style, where="post", label=label)
+        axes[1, 2].plot(t[1:], np.cumsum(c), style, label=label)
+    for i in range(2):
+        axes[0, i].axhline(target[i], color="k", lw=0.8, ls=":")
+        axes[0, i].set_ylabel(f"q{i + 1} [rad]")
+        axes[1, i].set_ylabel(f"q{i + 1} dot [rad/s]")
+    axes[0, 2].set_ylabel("a1 (normalized)")
+    axes[1, 2].set_ylabel("cumulative cost")
+    for ax in axes[1]:
+        ax.set_xlabel("time [s]")
+    axes[0, 0].legend(fontsize=8)
+    fig.suptitle(f"iLQR with model '{model_name}': target {np.round(target, 2).tolist()}")
+    fig.tight_layout()
+    png = out_dir / f"ilqr_with_model_{model_name}.png"
+    fig.savefig(png, dpi=100)
+    write_json_atomic(out_dir / f"ilqr_with_model_{model_name}.json", summary, indent=2)
+    print(f"wrote {png}")
+    return summary

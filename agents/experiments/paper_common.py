@@ -1,0 +1,1057 @@
+"""Shared code of the paper experiments (``agents.experiments.exp_*``, run by ``scripts/exp_*.py``).
+
+Bagge Carlson, Johansson and Robertsson, "Tangent-Space Regularization for Neural-Network Models
+of Dynamical Systems" (arXiv:1806.09919). Every experiment script reads top to bottom:
+
+1. parse a dataclass of arguments from the command line (:func:`parse_args`);
+2. run the Monte-Carlo sweep through :func:`mbtsr.runner.run_sweep` (one JSON per run, resumable);
+3. a separate report step that reads the per-run JSON only and redraws figures and a summary
+   (``--report-only`` repeats just this step).
+
+This module holds what the scripts share: the command-line plumbing, data generation for the
+random linear systems (paper Algorithm 2, original code section 4) and for the two-link robot,
+the nominal model and training settings (paper Sec. "Nominal model"), the metric bundle, and the
+plotting helpers.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import os
+import sys
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[2]
+
+# ------------------------------------------------------------------------------------------------
+# command line
+
+
+@dataclass
+class ExperimentArgs:
+    """The command-line fields every experiment script shares; a script's ``Args`` subclasses
+    this, redefines ``mc`` with its own default and adds its own fields."""
+
+    quick: bool = field(default=False, metadata={"help": "tiny smoke-test run"})
+    mc: int = field(default=1, metadata={"help": "Monte-Carlo runs"})
+    out: str = field(default="", metadata={"help": "results folder"})
+    figures: str = field(default="", metadata={"help": "figure folder"})
+    workers: int = field(default=2, metadata={"help": "parallel worker processes"})
+    backend: str = field(default="process", metadata={"help": "process, serial or ray"})
+    address: str = field(default="", metadata={
+        "help": "Ray only: address of an existing cluster (auto, host:6379); empty: a local one"})
+    report_only: bool = field(default=False, metadata={"help": "only redraw from JSON"})
+    json: str = field(default="", metadata={"help": "also write the summary JSON here"})
+
+
+def parse_args(args_cls: type, argv: Sequence[str] | None = None):
+    """The experiment's command line, generated from the dataclass ``args_cls`` by tyro
+    (:func:`mbtsr.cli.parse`): every field is a flag documented by its ``help`` metadata, booleans
+    are ``--flag/--no-flag``; with ``--quick`` the class attribute ``QUICK`` (field overrides)
+    supplies the defaults, so options given explicitly win. A bad option or value prints one line
+    and exits with code 2.
+    """
+    from mbtsr.cli import fail, parse
+
+    quick = {"quick": True, **getattr(args_cls, "QUICK", {})}
+    args = parse(args_cls, args=argv, presets={"--quick": quick})
+    try:
+        _check_common(args)
+    except ValueError as err:
+        fail(str(err))
+    return args
+
+
+def _check_common(args) -> None:
+    if getattr(args, "mc", 1) < 1:
+        raise ValueError(f"--mc must be >= 1, got {args.mc}")
+    if getattr(args, "workers", 1) < 1:
+        raise ValueError(f"--workers must be >= 1, got {args.workers}")
+    if getattr(args, "backend", "process") not in ("process", "serial", "ray"):
+        raise ValueError(f"--backend must be process, serial or ray, got {args.backend!r}")
+
+
+def output_dirs(args, experiment: str) -> tuple[Path, Path]:
+    """``(out, figures)``: results folder and figure folder of a run.
+
+    Defaults: full runs write ``docs/results/<experiment>`` and ``docs/figures``; ``--quick``
+    runs write ``runs/quick/<experiment>`` (git-ignored) and its ``figures`` sub-folder.
+    """
+    if args.out:
+        out = Path(args.out)
+    elif args.quick:
+        out = REPO / "runs" / "quick" / experiment
+    else:
+        out = REPO / "docs" / "results" / experiment
+    if args.figures:
+        figures = Path(args.figures)
+    elif args.quick or args.out:
+        figures = out / "figures"
+    else:
+        figures = REPO / "docs" / "figures"
+    out.mkdir(parents=True, exist_ok=True)
+    figures.mkdir(parents=True, exist_ok=True)
+    return out, figures
+
+
+def write_json(path: str | os.PathLike, obj) -> None:
+    """Write ``obj`` as indented JSON (numpy values converted)."""
+    from mbtsr.runner import write_json_atomic
+
+    write_json_atomic(path, obj)
+
+
+def command_line() -> str:
+    """The command that regenerates a result, as typed from the repository root."""
+    script = Path(sys.argv[0])
+    try:
+        script = script.resolve().relative_to(REPO)
+    except ValueError:
+        pass
+    return " ".join(["python", str(script), *sys.argv[1:]])
+
+
+def library_version() -> dict:
+    """The git commit of the checkout and whether ``mbtsr/`` or ``envs/`` differ from it (the
+    results depend on the library code, so every sweep records it)."""
+    import subprocess
+
+    def git(*cmd: str) -> str:
+        try:
+            return subprocess.run(["git", *cmd], cwd=REPO, capture_output=True, text=True,
+                                  timeout=10).stdout.strip()
+        except (OSError, subprocess.SubprocessError):
+            return ""
+
+    return {"commit": git("rev-parse", "HEAD"),
+            "library_dirty": bool(git("status", "--porcelain", "--", "mbtsr", "envs"))}
+
+
+def run_experiment(
+    args,
+    experiment: str,
+    run_fn: Callable[[dict, int], dict],
+    configs: dict[str, dict],
+    report_fn: Callable[[list[dict], Path, Path, object], dict],
+) -> dict:
+    """Sweep ``run_fn`` over ``configs`` x ``range(args.mc)`` (unless ``--report-only``), then
+    report from the stored JSON alone. Returns the summary written to ``<out>/summary.json``."""
+    from mbtsr.runner import load_results, run_sweep
+
+    out, figures = output_dirs(args, experiment)
+    if not args.report_only:
+        write_json(out / "args.json", {"args": dataclasses.asdict(args),
+                                       "command": command_line()})
+        n_before = len(load_results(out))
+        library_at_start = library_version()
+        t0 = time.perf_counter()
+        recs = run_sweep(run_fn, configs, range(args.mc), out, backend=args.backend,
+                         workers=args.workers, progress=not args.quick,
+                         address=args.address or None)
+        wall = time.perf_counter() - t0
+        print(f"[{experiment}] sweep finished in {wall:.1f} s")
+        log_path = out / "sweeps.json"  # wall time of every (resumed) sweep
+        log = json.loads(log_path.read_text()) if log_path.exists() else []
+        log.append({"started": time.strftime("%Y-%m-%dT%H:%M:%S", time.localtime(time.time()
+                                                                                  - wall)),
+                    "wall_s": round(wall, 1), "runs_finished_before": n_before,
+                    "runs_finished_after": len(recs), "workers": args.workers,
+                    "backend": args.backend, "load_avg_1min": round(os.getloadavg()[0], 2),
+                    "library_at_start": library_at_start, "library_at_end": library_version()})
+        write_json(log_path, log)
+    records = [r for r in load_results(out) if r["name"] in configs or args.report_only]
+    if not records:
+        raise SystemExit(f"no finished runs in {out}/runs; run without --report-only first")
+    summary = report_fn(records, out, figures, args)
+    summary = {"experiment": experiment, "n_records": len(records), **summary}
+    write_json(out / "summary.json", summary)
+    if getattr(args, "json", ""):
+        write_json(args.json, summary)
+    return summary
+
+
+# ------------------------------------------------------------------------------------------------
+# small numerical helpers
+
+
+def seed_sequence(seed: int, *tags: int) -> np.random.Generator:
+    """An independent generator for (seed, tags...), e.g. ``seed_sequence(seed, 1, k)``."""
+    return np.random.default_rng(np.random.SeedSequence([int(seed), *map(int, tags)]))
+
+
+def child_seed(seed: int, *tags: int) -> int:
+    """A 31-bit integer seed derived from (seed, tags...) (for APIs that take an int)."""
+    return int(np.random.SeedSequence([int(seed), *map(int, tags)]).generate_state(1)[0] >> 1)
+
+
+def finite_or_none(v: float) -> float | None:
+    v = float(v)
+    return v if math.isfinite(v) else None
+
+
+def rounded(a, digits: int = 5) -> list:
+    """A nested list of floats rounded to ``digits`` significant-ish decimals (small JSON)."""
+    return np.round(np.asarray(a, dtype=float), digits).tolist()
+
+
+def values(records: list[dict], name: str, key: str) -> np.ndarray:
+    """``[runs]`` array of ``result[key]`` for the records of config ``name`` (None -> nan)."""
+    out = [r["result"].get(key) for r in records if r["name"] == name]
+    return np.array([np.nan if v is None else v for v in out], dtype=float)
+
+
+def spread(v: np.ndarray) -> dict:
+    """Median, inter-quartile range, mean, std and count of the finite values."""
+    v = np.asarray(v, dtype=float)
+    f = v[np.isfinite(v)]
+    if f.size == 0:
+        return {"n": 0, "n_nonfinite": int(v.size)}
+    q1, med, q3 = np.percentile(f, [25, 50, 75])
+    return {"n": int(f.size), "n_nonfinite": int(v.size - f.size), "median": float(med),
+            "q1": float(q1), "q3": float(q3), "mean": float(f.mean()),
+            "std": float(f.std(ddof=1)) if f.size > 1 else 0.0}
+
+
+def paired_comparison(a: np.ndarray, b: np.ndarray) -> dict:
+    """Compare paired samples ``a`` (e.g. a variant) and ``b`` (e.g. the nominal model).
+
+    Returns the median of ``a - b``, the fraction of pairs with ``a < b`` and the two-sided
+    Wilcoxon signed-rank p-value (pairs with a non-finite member are dropped).
+    """
+    from scipy.stats import wilcoxon
+
+    a, b = np.asarray(a, float), np.asarray(b, float)
+    ok = np.isfinite(a) & np.isfinite(b)
+    d = a[ok] - b[ok]
+    res = {"n_pairs": int(ok.sum()), "median_diff": float(np.median(d)) if d.size else None,
+           "frac_lower": float(np.mean(d < 0)) if d.size else None, "p_value": None}
+    if d.size >= 5 and np.any(d != 0):
+        res["p_value"] = float(wilcoxon(d).pvalue)
+    return res
+
+
+# ------------------------------------------------------------------------------------------------
+# plotting
+
+
+def pyplot():
+    """matplotlib.pyplot on the Agg backend (headless)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def save_figure(fig, path: Path) -> None:
+    if fig.get_layout_engine() is None:  # a figure made with layout="constrained" keeps it
+        fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    pyplot().close(fig)
+
+
+def violins(ax, groups: dict[str, np.ndarray], *, ylabel: str, title: str = "",
+            annotate: dict[str, str] | None = None) -> None:
+    """One violin per group (finite values only) with the median marked and the points jittered.
+
+    :param annotate: optional text per group placed above its violin (e.g. a diverged count).
+    """
+    names = list(groups)
+    data = [np.asarray(groups[k], float) for k in names]
+    finite = [d[np.isfinite(d)] for d in data]
+    pos = np.arange(1, len(names) + 1)
+    ok = [i for i, d in enumerate(finite) if d.size >= 2 and np.ptp(d) > 0]
+    if ok:
+        parts = ax.violinplot([finite[i] for i in ok], positions=pos[ok], showmedians=True,
+                              showextrema=False, widths=0.8)
+        for body in parts["bodies"]:
+            body.set_alpha(0.45)
+    rng = np.random.default_rng(0)
+    for i, d in enumerate(finite):
+        if d.size:
+            ax.plot(pos[i] + rng.uniform(-0.08, 0.08, d.size), d, ".", ms=3, color="k",
+                    alpha=0.6)
+    ax.set_xticks(pos, names, rotation=30, ha="right")
+    ax.set_ylabel(ylabel)
+    if title:
+        ax.set_title(title)
+    if annotate:
+        lo, hi = ax.get_ylim()
+        ax.set_ylim(lo, hi + 0.12 * (hi - lo))  # room for the labels inside the axes
+        trans = ax.get_xaxis_transform()  # x in data, y in axes coordinates
+        for i, k in enumerate(names):
+            if k in annotate:
+                ax.text(pos[i], 0.98, annotate[k], ha="center", va="top", fontsize=8,
+                        transform=trans)
+
+
+def eigen_limits(learned: Sequence[np.ndarray], true: np.ndarray | None = None,
+                 pct: float = 99.0) -> tuple[float, float, float]:
+    """Square axis limits ``(re_min, re_max, im_max)`` around the bulk of the learned eigenvalues
+    (``100 - pct`` .. ``pct`` percentile), all true ones and the point 1."""
+    pts = np.concatenate([np.asarray(z).ravel() for z in learned])
+    pts = pts[np.isfinite(pts)]
+    lo_re, hi_re, hi_im = 0.9, 1.05, 0.05
+    if pts.size:
+        lo_re, hi_re = np.percentile(pts.real, [100 - pct, pct])
+        hi_im = np.percentile(np.abs(pts.imag), pct)
+    if true is not None:
+        true = np.asarray(true).ravel()
+        lo_re, hi_re = min(lo_re, true.real.min()), max(hi_re, true.real.max())
+        hi_im = max(hi_im, np.abs(true.imag).max())
+    lo_re, hi_re = min(lo_re, 0.9), max(hi_re, 1.05)
+    half = 1.1 * max((hi_re - lo_re) / 2, hi_im, 0.05)
+    mid = (lo_re + hi_re) / 2
+    return mid - half, mid + half, half
+
+
+def eigen_scatter(ax, learned: np.ndarray, true: np.ndarray | None, title: str,
+                  limits: tuple[float, float, float] | None = None) -> None:
+    """Scatter learned eigenvalues (blue) and true ones (red) in the complex plane with the unit
+    circle, like the paper's eigenvalue figures. ``limits`` as :func:`eigen_limits` (default:
+    from these eigenvalues)."""
+    th = np.linspace(0, 2 * np.pi, 2000)
+    ax.plot(np.cos(th), np.sin(th), "k-", lw=0.6)
+    learned = np.asarray(learned).ravel()
+    ax.plot(learned.real, learned.imag, ".", ms=2, color="tab:blue", alpha=0.35,
+            label="learned")
+    if true is not None:
+        true = np.asarray(true).ravel()
+        ax.plot(true.real, true.imag, "o", ms=4, mfc="none", color="tab:red", label="true")
+    lo, hi, half = limits if limits is not None else eigen_limits([learned], true)
+    ax.set_xlim(lo, hi)
+    ax.set_ylim(-half, half)
+    ax.set_aspect("equal")
+    ax.set_xlabel("Re")
+    ax.set_ylabel("Im")
+    ax.set_title(title, fontsize=9)
+
+
+def complex_from_pairs(pairs) -> np.ndarray:
+    """Inverse of :func:`complex_to_pairs`: the stored form (or a nested ``[..., 2]`` list of
+    (real, imag)) -> complex array ``[...]``."""
+    if isinstance(pairs, dict):
+        a = np.array(pairs["re_im"].split(), dtype=float).reshape(*pairs["shape"], 2)
+    else:
+        a = np.asarray(pairs, dtype=float)
+    return a[..., 0] + 1j * a[..., 1]
+
+
+def complex_to_pairs(z: np.ndarray, digits: int = 4) -> dict:
+    """Complex ``[...]`` -> ``{"shape": [...], "re_im": "re im re im ..."}`` with ``digits``
+    decimals: one JSON string instead of one line per number keeps the per-run files small."""
+    z = np.asarray(z)
+    flat = np.stack([z.real, z.imag], axis=-1).ravel()
+    return {"shape": list(z.shape), "re_im": " ".join(f"{v:.{digits}f}" for v in flat)}
+
+
+# ------------------------------------------------------------------------------------------------
+# data: random stable linear systems (paper Algorithm 2; original code section 4)
+
+
+@dataclass(frozen=True)
+class LinearData:
+    """Data of the random-linear-system experiments.
+
+    Follows the original code (``linear_sys.jl``): n = m = 10, dt = 0.02, trajectories of
+    T = 200 steps from ``x0 ~ N(0, I)`` driven by a causal 5-tap moving average of
+    ``10 N(0, 1)`` (steady-state std 10/sqrt(5) = 4.47), measurement noise 0.01 on the training
+    states only. Differences: the original left the last state of every trajectory at 0 (a
+    bug); here it is simulated unless ``last_state_zero`` reinstates the bug in the training
+    data (to test whether it explains the original's numbers). Validation uses ``n_val``
+    noise-free trajectories (original: 41, subsampled), Jacobians and eigenvalues are evaluated
+    at every ``eval_stride``-th validation point (original: 3).
+    """
+
+    n: int = 10
+    m: int = 10
+    dt: float = 0.02
+    T: int = 200
+    input_window: int = 5
+    input_scale: float = 10.0
+    noise_std: float = 0.01
+    n_train: int = 3
+    n_val: int = 10
+    n_sim: int = 3
+    eval_stride: int = 3
+    last_state_zero: bool = False
+
+
+def simulate_linear(A: np.ndarray, B: np.ndarray, x0: np.ndarray, u: np.ndarray) -> np.ndarray:
+    """``x_{t+1} = A x_t + B u_t``. ``x0: [n]``, ``u: [T, m]`` -> ``x: [T+1, n]``."""
+    x = np.empty((u.shape[0] + 1, A.shape[0]))
+    x[0] = x0
+    Bu = u @ B.T
+    for t in range(u.shape[0]):
+        x[t + 1] = A @ x[t] + Bu[t]
+    return x
+
+
+def linear_dataset(cfg: LinearData, seed: int) -> dict:
+    """A random stable system (seeded by ``seed``) and its train / validation / simulation sets.
+
+    :return: ``{"A": [n, n], "B": [n, m], "train": [Trajectory], "val": [...], "sim": [...]}``;
+        only the training states carry measurement noise.
+    """
+    from envs.linear_system import random_stable_system
+    from mbtsr.excitation import filtered_gaussian
+    from mbtsr.trajectory import Trajectory
+
+    A, B = random_stable_system(n=cfg.n, m=cfg.m, dt=cfg.dt, seed=child_seed(seed, 0))
+
+    def trajectory(split: int, k: int, noise_std: float) -> Trajectory:
+        rng = seed_sequence(seed, split, k)
+        u = filtered_gaussian(cfg.T, cfg.m, window=cfg.input_window, scale=cfg.input_scale,
+                              seed=child_seed(seed, split, k, 1))
+        x = simulate_linear(A, B, rng.standard_normal(cfg.n), u)
+        if cfg.last_state_zero and split == 1:
+            x[-1] = 0.0  # the original generate_data never filled the last state
+        x = x + noise_std * rng.standard_normal(x.shape)
+        return Trajectory(x, u, dt=cfg.dt)
+
+    return {
+        "A": A,
+        "B": B,
+        "train": [trajectory(1, k, cfg.noise_std) for k in range(cfg.n_train)],
+        "val": [trajectory(2, k, 0.0) for k in range(cfg.n_val)],
+        "sim": [trajectory(3, k, 0.0) for k in range(cfg.n_sim)],
+    }
+
+
+# ------------------------------------------------------------------------------------------------
+# data: the two-link robot (paper Sec. "Robot task"; original code section 3)
+
+
+@dataclass(frozen=True)
+class RobotData:
+    """Data of the robot experiments, on ``mbtsr/TwoLinkArm-v0`` with ``preset="paper"``.
+
+    Follows the original code at arXiv v1 (``two_link_sys.jl``@v1, the paper's "low-pass filtered
+    random input"): trajectories of 4 s at dt = 0.02 s (T = 200), inputs a causal 100-tap moving
+    average of white Gaussian noise (torque std about 1 N m), trajectories redrawn while
+    ``|q| >= 0.9 pi``, measurement noise 0.01 on the training states, 3 training trajectories.
+    Differences: the start state is the env's (at rest hanging down plus small noise; original
+    ``[-0.4, 0, 0, 0]``); the robot has no inertia typo (see ``envs/two_link_arm.py``);
+    validation uses ``n_val`` noise-free trajectories (original 41), Jacobians are evaluated at
+    every ``eval_stride``-th validation point.
+
+    ``dt`` other than 0.02 is the sample-rate deviation (paper appendix B): the SAME continuous-
+    time experiment (duration, input signal on the 0.02 s grid, held) sampled at another rate,
+    so T = duration / dt.
+    """
+
+    duration: float = 4.0
+    dt: float = 0.02
+    noise_std: float = 0.01
+    n_train: int = 3
+    n_val: int = 10
+    n_sim: int = 3
+    eval_stride: int = 3
+
+    @property
+    def T(self) -> int:  # noqa: N802 - the paper's symbol
+        return int(round(self.duration / self.dt))
+
+
+NOMINAL_DT = 0.02
+
+
+def held_filtered_gaussian(T: int, m: int, rng: np.random.Generator, *, dt: float,
+                           scale: float, window: int = 100) -> np.ndarray:
+    """The paper's filtered Gaussian input generated on the nominal 0.02 s grid and held
+    (zero-order) on a grid of period ``dt``: ``[T, m]``."""
+    from mbtsr.excitation import filtered_gaussian
+
+    n_nominal = int(np.ceil(T * dt / NOMINAL_DT - 1e-9)) + 1
+    u = filtered_gaussian(n_nominal, m, window=window, scale=scale, seed=rng)
+    idx = np.floor(np.arange(T) * dt / NOMINAL_DT + 1e-9).astype(int)
+    return u[idx]
+
+
+def robot_env(cfg: RobotData):
+    """The paper-preset arm with episodes as long as one trajectory."""
+    import envs  # noqa: F401 - registers the envs
+    from envs.two_link_arm import TwoLinkArmEnv
+
+    return TwoLinkArmEnv(preset="paper", episode_steps=cfg.T, dt=cfg.dt)
+
+
+def robot_dataset(cfg: RobotData, seed: int) -> dict:
+    """Train / validation / simulation trajectories of the paper arm for MC run ``seed``.
+
+    :return: ``{"env": env, "train": [...], "val": [...], "sim": [...]}``.
+    """
+    from envs.collect import collect_trajectories
+    from mbtsr.trajectory import Trajectory
+
+    env = robot_env(cfg)
+    scale = 10.0 * env.excitation_std  # 100-tap average: std = scale / 10 (about 1 N m)
+
+    def collect(split: int, count: int, noise_std: float) -> list:
+        trajs = collect_trajectories(
+            env, count, cfg.T, input=held_filtered_gaussian,
+            input_kwargs={"dt": cfg.dt, "scale": scale}, seed=child_seed(seed, split),
+            reject_abs_q=0.9 * np.pi)
+        rng = seed_sequence(seed, split, 99)
+        return [Trajectory(tr.x + noise_std * rng.standard_normal(tr.x.shape), tr.u, dt=tr.dt)
+                for tr in trajs]
+
+    return {
+        "env": env,
+        "train": collect(1, cfg.n_train, cfg.noise_std),
+        "val": collect(2, cfg.n_val, 0.0),
+        "sim": collect(3, cfg.n_sim, 0.0),
+    }
+
+
+# ------------------------------------------------------------------------------------------------
+# nominal model and training (paper Sec. "Nominal model")
+
+NOMINAL_ACTIVATIONS = ("elu", "sigmoid", "tanh", "swish")
+ALL_ACTIVATIONS = ("elu", "sigmoid", "tanh", "swish", "relu", "leaky_relu")
+
+#: Epochs of the nominal model (paper): 1000 for g, 2000 for f; "the network was trained for
+#: half the number of epochs" with sampled Jacobian propagation.
+NOMINAL_EPOCHS = {"g": 1000, "f": 2000}
+
+
+def nominal_epochs(formulation: str, method: str, scale: float = 1.0) -> int:
+    """The paper's epoch count for ``formulation`` and ``method``, times ``scale`` (>= 1)."""
+    epochs = NOMINAL_EPOCHS[formulation] * (0.5 if method == "sampled" else 1.0)
+    return max(1, int(round(epochs * scale)))
+
+
+def regularization(method: str, *, sigma: float = 0.1, n_copies: int = 1,
+                   exact_weight: float = 1.0, smooth_weight: float = 0.01,
+                   ltv_lambda: float | str | None = None, copies_batch: str = "shared"):
+    """The :class:`mbtsr.training.RegularizationConfig` of a method name.
+
+    ``"none"``; ``"sampled"`` (the paper's sampled Jacobian propagation: one perturbed copy per
+    trajectory and epoch, sigma 0.1 of the per-dimension std); ``"exact"`` (exact matching of the
+    model Jacobian to the LTV Jacobian, ``exact_weight * sum_t ||J - J_LTV||_F^2``);
+    ``"smooth"`` (the exact penalty of paper eq. (reg), ``smooth_weight * sum_t ||J_{t+1} -
+    J_t||_F^2``, the original's later "AD jacprop").
+
+    :param ltv_lambda: ``None`` keeps the library default (the original's R2/R1 = 1000, i.e.
+        lambda = 31.6), ``"auto"`` picks it per trajectory by marginal likelihood.
+    :param copies_batch: ``"shared"`` (copies in their trajectory's batch) or ``"own"`` (one
+        optimizer step per copy, the original code's batching).
+    """
+    from mbtsr.training import RegularizationConfig
+
+    extra = {}
+    if ltv_lambda == "auto":
+        extra["ltv_lambda"] = None
+    elif ltv_lambda is not None:
+        extra["ltv_lambda"] = float(ltv_lambda)
+    if method == "none":
+        return RegularizationConfig(**extra)
+    if method == "sampled":
+        return RegularizationConfig.paper(sigma=sigma, n_copies=n_copies,
+                                          copies_batch=copies_batch, **extra)
+    if method == "exact":
+        return RegularizationConfig(exact_weight=exact_weight, **extra)
+    if method == "smooth":
+        return RegularizationConfig(smooth_weight=smooth_weight, **extra)
+    raise ValueError(f"method must be none, sampled, exact or smooth, got {method!r}")
+
+
+def build_ensemble(n: int, m: int, *, formulation: str = "g",
+                   activations: Sequence[str] = NOMINAL_ACTIVATIONS, width: int = 20,
+                   depth: int = 1, dropout: float = 0.0, layer_norm: bool = False,
+                   repeat: int = 1, seed: int = 0):
+    """The paper's nominal ensemble (4 x 20 units, elu/sigmoid/tanh/swish) or a deviation of it.
+
+    :param repeat: every activation ``repeat`` times (ensemble size x3 deviation: 3).
+    """
+    from mbtsr.ensemble import DynamicsEnsemble, EnsembleConfig, MemberSpec
+
+    members = tuple(MemberSpec(a, width, depth, dropout, layer_norm)
+                    for _ in range(repeat) for a in activations)
+    return DynamicsEnsemble(EnsembleConfig(n, m, members=members, formulation=formulation,
+                                           seed=int(seed)))
+
+
+def train(model, trajs, *, epochs: int, method: str, seed: int, lr: float = 0.01,
+          weight_decay: float = 0.0, optimizer_state=None, reg_kwargs: dict | None = None):
+    """One :func:`mbtsr.training.train_ensemble` call with the experiments' settings
+    (Adam, one trajectory per step as the original code, coupled L2 weight decay)."""
+    from mbtsr.training import TrainConfig, train_ensemble
+
+    cfg = TrainConfig(epochs=int(epochs), lr=lr, weight_decay=weight_decay, seed=int(seed),
+                      progress=False)
+    return train_ensemble(model, trajs, cfg, regularization(method, **(reg_kwargs or {})),
+                          optimizer_state=optimizer_state)
+
+
+# ------------------------------------------------------------------------------------------------
+# the metric bundle (paper Sec. "Evaluation")
+
+
+def evaluation_points(trajs, stride: int) -> tuple[np.ndarray, np.ndarray]:
+    """Every ``stride``-th ``(x_t, u_t)`` of the trajectories: ``([P, n], [P, m])``."""
+    X = np.concatenate([tr.x[:-1][::stride] for tr in trajs])
+    U = np.concatenate([tr.u[::stride] for tr in trajs])
+    return X, U
+
+
+def eigenvalue_matching_error(ev_hat: np.ndarray, ev_true: np.ndarray) -> float:
+    """The original code's eigenvalue error (``eval_jac2``): at each point
+    ``sum_i min_j |l_i - l*_j|^2 + sum_j min_i |l_i - l*_j|^2``, then sqrt of the mean over
+    points. ``ev_hat: [P, n]``, ``ev_true: [n]`` or ``[P, n]``."""
+    ev_true = np.broadcast_to(ev_true, ev_hat.shape)
+    d = np.abs(ev_hat[:, :, None] - ev_true[:, None, :]) ** 2  # [P, n, n]
+    per_point = d.min(2).sum(1) + d.min(1).sum(1)
+    return float(np.sqrt(per_point.mean()))
+
+
+def evaluate(model, val, sim, X: np.ndarray, U: np.ndarray, A_true: np.ndarray,
+             B_true: np.ndarray) -> dict:
+    """Prediction, simulation and Jacobian metrics of ``model``.
+
+    :param val: validation trajectories (one-step prediction RMS, all transitions).
+    :param sim: trajectories simulated from their ``x_0`` with their inputs (simulation RMS per
+        trajectory, averaged as the original's ``simaverage``; divergence counted).
+    :param X: ``[P, n]``, ``U: [P, m]`` points where the Jacobians are compared.
+    :param A_true: ``[P, n, n]``, ``B_true: [P, n, m]`` true Jacobians there.
+    :return: ``pred_rms, sim_rms`` (mean over ``sim``; inf if one blew up), ``sim_rms_finite``
+        (mean over the non-diverged ones), ``sim_diverged`` (count), ``jac_err`` (paper eq.
+        (jacerr)), ``jac_rms_entry`` (original's per-entry RMS), ``log10`` versions.
+    """
+    from mbtsr.metrics import jacobian_error, jacobian_rms_per_entry, prediction_rms, simulation_rms
+
+    pred = prediction_rms(model, val)
+    sims = [simulation_rms(model, tr) for tr in sim]
+    sim_rms = np.array([s[0] for s in sims], dtype=float)
+    diverged = np.array([s[1] > 0 for s in sims])
+    A_hat, B_hat = model.member_jacobians(X, U)
+    J_true = (A_true, B_true)
+    jac = jacobian_error(J_true, (A_hat, B_hat))
+    with np.errstate(divide="ignore"):
+        return {
+            "pred_rms": finite_or_none(pred),
+            "log10_pred_rms": finite_or_none(np.log10(pred)),
+            "sim_rms": finite_or_none(sim_rms.mean()),
+            "log10_sim_rms": finite_or_none(np.log10(sim_rms.mean())),
+            "sim_rms_each": [finite_or_none(v) for v in sim_rms],
+            "sim_diverged": int(diverged.sum()),
+            "n_sim": len(sim),
+            "jac_err": finite_or_none(jac),
+            "jac_rms_entry": finite_or_none(jacobian_rms_per_entry(J_true, (A_hat, B_hat))),
+        }
+
+
+def eigen_summary(ev_hat: np.ndarray, ev_true: np.ndarray | None, n_store: int) -> dict:
+    """Scalar summaries of learned state-Jacobian eigenvalues ``ev_hat: [P, n]`` (complex) and the
+    first ``n_store`` points' eigenvalues for the figures."""
+    out = {
+        "eig_mean_abs": float(np.abs(ev_hat).mean()),
+        "eig_mean_dist_to_1": float(np.abs(ev_hat - 1.0).mean()),
+        "eig_max_abs": float(np.abs(ev_hat).max()),
+        "eig_learned": complex_to_pairs(ev_hat[:n_store]),
+    }
+    if ev_true is not None:
+        out["eig_match_err"] = eigenvalue_matching_error(ev_hat, ev_true)
+        out["eig_true"] = complex_to_pairs(ev_true)
+        out["eig_true_mean_abs"] = float(np.abs(ev_true).mean())
+        out["eig_true_mean_dist_to_1"] = float(np.abs(ev_true - 1.0).mean())
+    return out
+
+
+# ------------------------------------------------------------------------------------------------
+# Monte-Carlo run functions (module level, so that the process pool's workers can import them)
+
+
+def run_linear(config: dict, seed: int) -> dict:
+    """One Monte-Carlo run on a random stable linear system (``exp_linear``,
+    ``exp_weight_decay``).
+
+    ``config``: ``data`` (:class:`LinearData` fields), ``formulation``, ``method``, ``reg``
+    (keyword arguments of :func:`regularization`), ``rounds``, ``epochs_per_round``, ``lr``,
+    ``weight_decay``, ``incremental`` (round r trains on trajectories 1..r, warm-started, as
+    the original README experiment; otherwise every round on all trajectories), ``n_eig_store``.
+    All configs of one seed share the system, the data and the initial weights.
+    """
+    from mbtsr.metrics import jacobian_eigenvalues, prediction_rms
+
+    t0, c0 = time.perf_counter(), time.process_time()
+    cfg = LinearData(**config["data"])
+    d = linear_dataset(cfg, seed)
+    X, U = evaluation_points(d["val"], cfg.eval_stride)
+    A_true = np.broadcast_to(d["A"], (len(X), cfg.n, cfg.n))
+    B_true = np.broadcast_to(d["B"], (len(X), cfg.n, cfg.m))
+    model = build_ensemble(cfg.n, cfg.m, formulation=config["formulation"],
+                           seed=child_seed(seed, 10))
+    rounds, state = [], None
+    for r in range(config["rounds"]):
+        trajs = d["train"][: r + 1] if config["incremental"] else d["train"]
+        hist = train(model, trajs, epochs=config["epochs_per_round"], method=config["method"],
+                     seed=child_seed(seed, 20, r), lr=config["lr"],
+                     weight_decay=config["weight_decay"], optimizer_state=state,
+                     reg_kwargs=config["reg"])
+        state = hist.optimizer_state
+        metrics = evaluate(model, d["val"], d["sim"], X, U, A_true, B_true)
+        rounds.append({k: metrics[k] for k in ("jac_rms_entry", "jac_err", "pred_rms",
+                                               "sim_rms")}
+                      | {"train_loss": finite_or_none(hist.train_loss[-1])})
+    result = dict(metrics)
+    result["train_pred_rms"] = finite_or_none(prediction_rms(model, d["train"]))
+    ev_hat = jacobian_eigenvalues(model, X, U)
+    result.update(eigen_summary(ev_hat, np.linalg.eigvals(d["A"]), config["n_eig_store"]))
+    result["rounds"] = rounds
+    result["train_loss"] = rounds[-1]["train_loss"]
+    result["wall"] = time.perf_counter() - t0
+    result["cpu_time"] = time.process_time() - c0
+    return result
+
+
+def run_robot(config: dict, seed: int) -> dict:
+    """One Monte-Carlo run on the paper's two-link robot (``exp_robot``, ``exp_deviations``).
+
+    ``config``: ``data`` (:class:`RobotData` fields), ``formulation``, ``method``, ``reg``
+    (keyword arguments of :func:`regularization`), ``epochs``, ``lr``, ``model`` (keyword
+    arguments of :func:`build_ensemble` other than dims/formulation/seed).
+    All configs of one seed share the data (for equal ``data``) and the weight-init seed.
+    """
+    from mbtsr.metrics import jacobian_eigenvalues, prediction_rms
+
+    t0, c0 = time.perf_counter(), time.process_time()
+    cfg = RobotData(**config["data"])
+    d = robot_dataset(cfg, seed)
+    env = d["env"]
+    X, U = evaluation_points(d["val"], cfg.eval_stride)
+    A_true, B_true = env.linearize_trajectory(X, U)
+    model = build_ensemble(4, 2, formulation=config["formulation"], seed=child_seed(seed, 10),
+                           **config.get("model", {}))
+    t1 = time.perf_counter()
+    hist = train(model, d["train"], epochs=config["epochs"], method=config["method"],
+                 seed=child_seed(seed, 20), lr=config["lr"], reg_kwargs=config["reg"])
+    train_time = time.perf_counter() - t1
+    result = evaluate(model, d["val"], d["sim"], X, U, A_true, B_true)
+    result["train_pred_rms"] = finite_or_none(prediction_rms(model, d["train"]))
+    ev_hat = jacobian_eigenvalues(model, X, U)
+    ev_true = np.linalg.eigvals(A_true)
+    result["eig_match_err"] = eigenvalue_matching_error(ev_hat, ev_true)
+    result["train_loss"] = finite_or_none(hist.train_loss[-1])
+    result["steps"] = int(hist.steps)
+    result["train_time"] = train_time
+    result["wall"] = time.perf_counter() - t0
+    result["cpu_time"] = time.process_time() - c0
+    return result
+
+
+def run_activations(config: dict, seed: int) -> dict:
+    """One Monte-Carlo run of the activation-function comparison (paper appendix A).
+
+    One network per activation, all trained in ONE batched ensemble (members share no weights
+    and Adam is per-parameter, so this equals separate training; the batch order is shared),
+    formulation ``config["formulation"]``, no regularization. Training is split at the
+    ``checkpoints`` (epochs; Adam state carried over) and each member's one-step prediction
+    RMS on the validation trajectories is recorded there.
+    """
+    t0, c0 = time.perf_counter(), time.process_time()
+    cfg = RobotData(**config["data"])
+    d = robot_dataset(cfg, seed)
+    acts = list(config["activations"])
+    model = build_ensemble(4, 2, formulation=config["formulation"], activations=acts,
+                           width=config["width"], seed=child_seed(seed, 10))
+    Xv = np.concatenate([tr.x[:-1] for tr in d["val"]])
+    Uv = np.concatenate([tr.u for tr in d["val"]])
+    Yv = np.concatenate([tr.x[1:] for tr in d["val"]])
+    pred = {a: [] for a in acts}
+    done, state = 0, None
+    for c in config["checkpoints"]:
+        hist = train(model, d["train"], epochs=c - done, method="none",
+                     seed=child_seed(seed, 20, c), lr=config["lr"], optimizer_state=state)
+        state, done = hist.optimizer_state, c
+        P = model.member_predictions(Xv, Uv)  # [K, N, n]
+        with np.errstate(over="ignore", invalid="ignore"):
+            rms = np.sqrt(np.mean((P - Yv) ** 2, axis=(1, 2)))
+        for a, v in zip(acts, rms):
+            pred[a].append(finite_or_none(v))
+    return {"pred_rms": pred, "checkpoints": list(config["checkpoints"]),
+            "wall": time.perf_counter() - t0, "cpu_time": time.process_time() - c0}
+
+
+# ------------------------------------------------------------------------------------------------
+# regime sweep of the robot Jacobian claim (``exp_regime``)
+
+#: moving-average lengths of the two excitation windows (samples at dt 0.02 s): the paper's
+#: 100 taps (2 s) and a short 10-tap window (0.2 s); the torque std is kept at the env's
+#: ``excitation_std`` in both (scale = excitation_std * sqrt(window))
+EXCITATION_WINDOWS = {"paper": 100, "short": 10}
+
+
+@dataclass(frozen=True)
+class RegimeData:
+    """Data of one regime-sweep cell family: the paper arm (``RobotData`` protocol) with a given
+    excitation window and with or without Coulomb friction (``frictionloss = (0, 0)``: the
+    friction-free truth; viscous friction kept). ``n_train_max`` trajectories are collected and
+    a cell uses the first ``n_train`` of them, so the cells of one seed share their data."""
+
+    window: str = "paper"
+    friction: bool = True
+    duration: float = 4.0
+    dt: float = 0.02
+    noise_std: float = 0.01
+    n_train_max: int = 10
+    n_val: int = 10
+    n_sim: int = 3
+    eval_stride: int = 3
+
+    @property
+    def T(self) -> int:  # noqa: N802 - the paper's symbol
+        return int(round(self.duration / self.dt))
+
+
+def regime_env(cfg: RegimeData):
+    """The paper-preset arm, friction on or off."""
+    import envs  # noqa: F401 - registers the envs
+    from envs.two_link_arm import TwoLinkArmEnv
+
+    params = None if cfg.friction else {"frictionloss": (0.0, 0.0)}
+    return TwoLinkArmEnv(preset="paper", episode_steps=cfg.T, dt=cfg.dt, params=params)
+
+
+_REGIME_CACHE: dict = {}
+
+
+def regime_dataset(cfg: RegimeData, seed: int) -> dict:
+    """Train / validation / simulation trajectories and the true Jacobians (MuJoCo finite
+    differences) at the evaluation points and at every training point, for MC run ``seed``.
+
+    Cached in-process (the cells of one seed share it; the sweep runs seed by seed).
+
+    :return: ``{"env", "train", "val", "sim", "X", "U", "A", "B", "A_train", "B_train"}`` with
+        ``A_train: [n_train_max, T, 4, 4]`` at the measured (noisy) training states.
+    """
+    from envs.collect import collect_trajectories
+    from mbtsr.trajectory import Trajectory
+
+    key = (cfg, int(seed))
+    if key in _REGIME_CACHE:
+        return _REGIME_CACHE[key]
+    env = regime_env(cfg)
+    window = EXCITATION_WINDOWS[cfg.window]
+    scale = math.sqrt(window) * env.excitation_std
+
+    def collect(split: int, count: int, noise_std: float) -> list:
+        trajs = collect_trajectories(
+            env, count, cfg.T, input=held_filtered_gaussian,
+            input_kwargs={"dt": cfg.dt, "scale": scale, "window": window},
+            seed=child_seed(seed, split), reject_abs_q=0.9 * np.pi)
+        rng = seed_sequence(seed, split, 99)
+        return [Trajectory(tr.x + noise_std * rng.standard_normal(tr.x.shape), tr.u, dt=tr.dt)
+                for tr in trajs]
+
+    d = {"env": env, "train": collect(1, cfg.n_train_max, cfg.noise_std),
+         "val": collect(2, cfg.n_val, 0.0), "sim": collect(3, cfg.n_sim, 0.0)}
+    d["X"], d["U"] = evaluation_points(d["val"], cfg.eval_stride)
+    d["A"], d["B"] = env.linearize_trajectory(d["X"], d["U"])
+    jac_train = [env.linearize_trajectory(tr.x[:-1], tr.u) for tr in d["train"]]
+    d["A_train"] = np.stack([a for a, _ in jac_train])
+    d["B_train"] = np.stack([b for _, b in jac_train])
+    if len(_REGIME_CACHE) >= 8:
+        _REGIME_CACHE.pop(next(iter(_REGIME_CACHE)))
+    _REGIME_CACHE[key] = d
+    return d
+
+
+def row_group_errors(A_true: np.ndarray, B_true: np.ndarray, A_hat: np.ndarray,
+                     B_hat: np.ndarray, mask: np.ndarray | None = None) -> dict:
+    """Paper eq. (jacerr) ``sqrt(mean_t ||J_t - Jhat_t||_F^2)`` over all rows and split into the
+    arm's position rows (q, rows 0-1) and velocity rows (qdot, rows 2-3), over the points in
+    ``mask`` (default all). ``A: [P, 4, 4]``, ``B: [P, 4, 2]``."""
+    dJ = np.concatenate([A_true - A_hat, B_true - B_hat], -1)  # [P, 4, 6]
+    if mask is not None:
+        dJ = dJ[mask]
+    if dJ.shape[0] == 0:
+        return {"all": None, "pos": None, "vel": None}
+    sq = dJ ** 2
+    return {"all": float(np.sqrt(sq.sum((1, 2)).mean())),
+            "pos": float(np.sqrt(sq[:, :2].sum((1, 2)).mean())),
+            "vel": float(np.sqrt(sq[:, 2:].sum((1, 2)).mean()))}
+
+
+def jacobian_diagnostics(X: np.ndarray, A_true: np.ndarray, B_true: np.ndarray,
+                         A_hat: np.ndarray, B_hat: np.ndarray, still_speed: float) -> dict:
+    """The Jacobian error split by point type and row group.
+
+    "still" points have a joint speed ``|qdot_i| < still_speed`` for some joint (there the
+    Coulomb friction's stiction makes the true Jacobian jump); "moving" points are the rest.
+    :return: ``jac_{all,pos,vel}`` and ``jac_{moving,still}_{all,pos,vel}``, ``frac_still``.
+    """
+    still = (np.abs(X[:, 2:4]) < still_speed).any(1)
+    out = {"frac_still": float(still.mean())}
+    for tag, mask in (("", None), ("moving_", ~still), ("still_", still)):
+        for k, v in row_group_errors(A_true, B_true, A_hat, B_hat, mask).items():
+            out[f"jac_{tag}{k}"] = v
+    return out
+
+
+def oracle_ltv_models(trajs, A_train: np.ndarray, B_train: np.ndarray) -> list:
+    """"LTV" models whose Jacobians are the TRUE ones at the training points, with the affine
+    term ``c_t = x_{t+1} - A_t x_t - B_t u_t`` (measured states), so the labels of the perturbed
+    copies are ``x_{t+1} + A_t dx + B_t du``: the oracle upper bound of sampled JacProp."""
+    from mbtsr.ltv import LTVModel
+
+    models = []
+    for tr, A, B in zip(trajs, A_train, B_train):
+        T = tr.T
+        A, B = A[:T], B[:T]
+        c = tr.x[1:] - np.einsum("tij,tj->ti", A, tr.x[:-1]) - np.einsum("tij,tj->ti", B, tr.u)
+        cov = np.broadcast_to(np.eye(tr.n + tr.m + 1), (T, tr.n, tr.n + tr.m + 1,
+                                                        tr.n + tr.m + 1))
+        models.append(LTVModel(A=A, B=B, c=c, cov=np.array(cov), lam=0.0))
+    return models
+
+
+def fused_ltv_models(ltv_models: list, model, trajs, prior_scale: float = 1.0) -> list:
+    """The LTV models fused with the network as a prior (the original's ``useprior``): per time
+    step a product of Gaussians (:func:`mbtsr.ltv.fuse_prior`) of the LTV posterior and a prior
+    centred on the network's ensemble-mean Jacobian at the trajectory points, with covariance
+    ``prior_scale`` x the LTV posterior covariance (1: equal confidence, i.e. the average of
+    the two Jacobians; the original's prior covariance, ensemble variance + 10 in raw units,
+    has no counterpart for a one-member ensemble)."""
+    from mbtsr.ltv import fuse_prior
+
+    out = []
+    for lm, tr in zip(ltv_models, trajs):
+        T = tr.T
+        A_p, B_p = model.jacobians(tr.x[:-1], tr.u)
+        cov = np.asarray(lm.cov)[:T] * prior_scale
+        out.append(fuse_prior(lm, A_p[:T], B_p[:T], cov))
+    return out
+
+
+REGIME_METHODS = ("none", "sampled", "exact", "oracle", "prior")
+
+
+def run_regime(config: dict, seed: int) -> dict:
+    """One Monte-Carlo run of the regime sweep (``exp_regime``).
+
+    ``config``: ``data`` (:class:`RegimeData` fields), ``n_train``, ``epochs``, ``method``
+    (``none``, ``sampled``, ``exact``, ``oracle`` = sampled JacProp with true-Jacobian labels,
+    ``prior`` = sampled JacProp whose LTV labels are fused with the network as a prior after
+    the first half of the epochs), ``exact_weight``, ``prior_scale``, ``lr``, ``batch``
+    (``"full"``: one optimizer step per epoch on all training transitions, or
+    ``"trajectory"``), ``model`` (:func:`build_ensemble` keyword arguments), ``still_speed``,
+    ``n_log`` (checkpoints of the training-point Jacobian error during training).
+    Every method of one cell takes the same number of optimizer steps.
+    """
+    from mbtsr.metrics import prediction_rms
+    from mbtsr.training import RegularizationConfig, TrainConfig, train_ensemble
+
+    t0, c0 = time.perf_counter(), time.process_time()
+    cfg = RegimeData(**config["data"])
+    d = regime_dataset(cfg, seed)
+    n_train, E, method = int(config["n_train"]), int(config["epochs"]), config["method"]
+    trajs = d["train"][:n_train]
+    A_tr = np.concatenate(list(d["A_train"][:n_train]))
+    B_tr = np.concatenate(list(d["B_train"][:n_train]))
+    X_tr = np.concatenate([tr.x[:-1] for tr in trajs])
+    U_tr = np.concatenate([tr.u for tr in trajs])
+    model = build_ensemble(4, 2, seed=child_seed(seed, 10), **config.get("model", {}))
+    batch = sum(tr.T for tr in trajs) if config["batch"] == "full" else "trajectory"
+    log_epochs = sorted({max(0, int(round(E * f)) - 1) for f in
+                         np.linspace(0, 1, int(config["n_log"]) + 1)[1:]})
+    log = {"epoch": [], "pos": [], "vel": []}
+
+    def callback(epoch: int, m) -> None:
+        if epoch + offset[0] in log_epochs:
+            A_h, B_h = m.jacobians(X_tr, U_tr)
+            e = row_group_errors(A_tr, B_tr, A_h, B_h)
+            log["epoch"].append(epoch + offset[0] + 1)
+            log["pos"].append(e["pos"])
+            log["vel"].append(e["vel"])
+
+    offset = [0]
+    ltv_models = None
+    if method == "oracle":
+        ltv_models = oracle_ltv_models(trajs, d["A_train"], d["B_train"])
+    reg = {"none": RegularizationConfig(), "exact": RegularizationConfig(
+        exact_weight=config["exact_weight"])}.get(method, RegularizationConfig.paper())
+    t1 = time.perf_counter()
+    phases = [E] if method != "prior" else [E // 2, E - E // 2]
+    state, label_models, steps, plain = None, ltv_models, 0, None
+    for p, epochs in enumerate(phases):
+        tc = TrainConfig(epochs=epochs, lr=config["lr"], batch=batch, seed=child_seed(seed, 20, p),
+                         progress=False)
+        if p == 1:
+            label_models = fused_ltv_models(label_models, model, trajs, config["prior_scale"])
+        hist = train_ensemble(model, trajs, tc, reg, ltv_models=label_models,
+                              optimizer_state=state, callback=callback)
+        state, offset[0], steps = hist.optimizer_state, offset[0] + epochs, steps + hist.steps
+        if p == 0:
+            label_models = plain = hist.ltv_models
+    train_time = time.perf_counter() - t1
+    result = evaluate(model, d["val"], d["sim"], d["X"], d["U"], d["A"], d["B"])
+    A_hat, B_hat = model.jacobians(d["X"], d["U"])
+    result.update(jacobian_diagnostics(d["X"], d["A"], d["B"], A_hat, B_hat,
+                                       config["still_speed"]))
+    result["train_pred_rms"] = finite_or_none(prediction_rms(model, trajs))
+    result["net_train_jac"] = log
+    if label_models is not None:  # error of the labels' Jacobians at the training points
+        A_l = np.concatenate([np.asarray(lm.A)[:tr.T] for lm, tr in zip(label_models, trajs)])
+        B_l = np.concatenate([np.asarray(lm.B)[:tr.T] for lm, tr in zip(label_models, trajs)])
+        e = row_group_errors(A_tr, B_tr, A_l, B_l)
+        result.update({"label_jac_pos": e["pos"], "label_jac_vel": e["vel"]})
+    if method == "prior":  # the plain LTV labels of the first half, for comparison
+        A_l = np.concatenate([np.asarray(lm.A)[:tr.T] for lm, tr in zip(plain, trajs)])
+        B_l = np.concatenate([np.asarray(lm.B)[:tr.T] for lm, tr in zip(plain, trajs)])
+        e = row_group_errors(A_tr, B_tr, A_l, B_l)
+        result.update({"ltv_jac_pos": e["pos"], "ltv_jac_vel": e["vel"]})
+    result["steps"] = steps
+    result["train_time"] = train_time
+    result["wall"] = time.perf_counter() - t0
+    result["cpu_time"] = time.process_time() - c0
+    return result
+
+
+def robot_truth_diagnostics(cfg: RobotData, seed: int, still_speed: float = 0.05) -> dict:
+    """What caps the robot's Jacobian error, for MC run ``seed`` of ``exp_robot`` (no training):
+
+    - ``const_train`` / ``const_eval``: eq. (jacerr) of a constant matrix, the mean true
+      Jacobian over the training points (a constant a model could learn) / over the evaluation
+      points themselves (the best constant in that norm);
+    - ``twin``: the analytic CasADi twin (friction ``fc tanh(qd / 0.01)``) against MuJoCo's
+      Jacobian, all points and split into moving / near-zero-velocity points;
+    - ``ltv_{pos,vel}``: the LTV labels' error (lambda of the library default) at the training
+      points per row group (position rows 0-1, velocity rows 2-3), ``frac_still``.
+    """
+    from mbtsr.ltv import fit_ltv
+    from mbtsr.training import ORIGINAL_LTV_LAMBDA
+
+    d = robot_dataset(cfg, seed)
+    env = d["env"]
+    X, U = evaluation_points(d["val"], cfg.eval_stride)
+    A, B = env.linearize_trajectory(X, U)
+    J = np.concatenate([A, B], -1)
+    train_jac = [env.linearize_trajectory(tr.x[:-1], tr.u) for tr in d["train"]]
+    J_train = np.concatenate([np.concatenate([a, b], -1) for a, b in train_jac])
+    twin = env.analytic_model()
+    A_tw, B_tw = twin.jacobians(X, U)
+    still = (np.abs(X[:, 2:4]) < still_speed).any(1)
+
+    def err(dJ: np.ndarray) -> float:
+        return float(np.sqrt((dJ ** 2).sum((-1, -2)).mean()))
+
+    dtw = np.concatenate([A_tw, B_tw], -1) - J
+    out = {"const_train": err(J - J_train.mean(0)), "const_eval": err(J - J.mean(0)),
+           "twin": err(dtw), "twin_moving": err(dtw[~still]), "twin_still": err(dtw[still]),
+           "frac_still": float(still.mean())}
+    lab = []
+    for tr, (a, b) in zip(d["train"], train_jac):
+        lm = fit_ltv(tr, ORIGINAL_LTV_LAMBDA)
+        lab.append(np.concatenate([lm.A[:tr.T], lm.B[:tr.T]], -1) - np.concatenate([a, b], -1))
+    lab = np.concatenate(lab)
+    out["ltv_pos"], out["ltv_vel"] = err(lab[:, :2]), err(lab[:, 2:])
+    return out

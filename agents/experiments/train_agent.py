@@ -1,0 +1,288 @@
+"""Train the Algorithm-1 agent (JacProp model learning + iLQR MPC) on the two-link arm.
+
+The project's main job (Bagge Carlson et al., "Tangent-Space Regularization for Neural-Network
+Models of Dynamical Systems", arXiv:1806.09919, Algorithm 1 in an episodic loop)::
+
+    python scripts/train_agent.py                       # embedded defaults, mbtsr/TwoLinkArm-v0
+    python scripts/train_agent.py --seed 3 --regularization exact --json bench.json
+    python scripts/train_agent.py --run-dir runs/x --resume   # continue a killed run exactly
+
+Every field of :class:`agents.config.AgentConfig` is a flag (``--epochs-per-episode 100``,
+``--formulation f``, ``--no-tensorboard`` ...; ``--help`` lists them with their documentation).
+``--resume`` takes the configuration saved in the checkpoint; flags given with it must agree.
+The run folder receives ``config.json``, ``episodes.csv``, ``checkpoint.pt`` (resume),
+``model.pt`` (the learned ensemble, :func:`mbtsr.ensemble.load_model`), ``data.npz`` (all
+trajectories), ``tb/`` (TensorBoard), ``learning_curve.png``, ``final_reach.png`` and
+``summary.json``. ``--json PATH`` writes the benchmark numbers: episodes_to_solve,
+env_steps_to_solve, the final cost ratio to the oracle and the wall seconds per phase.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Annotated
+
+import tyro
+
+from agents.config import AgentConfig
+from mbtsr import cli
+
+os.environ.setdefault("MUJOCO_GL", "egl")  # headless rendering, before mujoco is imported
+
+
+@dataclass(frozen=True)
+class Args:
+    """Train the Algorithm-1 agent (JacProp model learning + iLQR MPC) on a Gymnasium env."""
+
+    env_id: str = "mbtsr/TwoLinkArm-v0"
+    """Gymnasium env id"""
+    episodes: int = 10
+    """total training episodes of the run (a resumed run counts the done ones)"""
+    resume: bool = False
+    """continue from <run-dir>/checkpoint.pt with the configuration saved there"""
+    json: str = ""
+    """write the benchmark JSON here"""
+    plots: bool = True
+    """learning curve and final-reach PNGs"""
+    summary_table: bool = True
+    """print the rich summary table"""
+    agent: Annotated[AgentConfig, tyro.conf.OmitArgPrefixes] = field(
+        default_factory=lambda: AgentConfig(oracle_cache_dir="runs/oracle_cache"))
+    """the agent (its flags carry no prefix). --run-dir defaults to
+    runs/train_agent/<env>_<regularization>_<formulation>_seed<seed> (a fresh run that finds a
+    finished one there adds _1, _2, ...); --oracle-cache-dir none disables the shared cache of
+    the (deterministic) oracle costs"""
+
+    def __post_init__(self) -> None:
+        if self.episodes < 1:
+            raise ValueError(f"--episodes must be >= 1, got {self.episodes}")
+        if str(self.agent.oracle_cache_dir).lower() in ("", "none"):
+            object.__setattr__(self, "agent", self.agent.replace(oracle_cache_dir=None))
+
+
+def default_run_dir(args: Args) -> Path:
+    cfg = args.agent
+    return Path("runs") / "train_agent" / (
+        f"{args.env_id.replace('/', '_')}_{cfg.regularization}_{cfg.formulation}_seed{cfg.seed}")
+
+
+def parse(argv: list[str] | None = None) -> Args:
+    """The command line; with ``--resume`` the checkpoint's saved AgentConfig supplies the
+    defaults, and a flag that contradicts it is an error (exit code 2, one line)."""
+    from agents.checkpoint import CheckpointError, load_checkpoint
+
+    args = cli.parse(Args, args=argv, outputs=("json",))
+    if args.agent.run_dir:
+        try:
+            cli.check_output_path(args.agent.run_dir, name="--run-dir", folder=True)
+        except ValueError as err:
+            cli.fail(str(err))
+    if not args.resume:
+        return args
+    run_dir = Path(args.agent.run_dir) if args.agent.run_dir else default_run_dir(args)
+    checkpoint = run_dir / "checkpoint.pt"
+    if not checkpoint.is_file():
+        cli.fail(f"--resume: no checkpoint at {checkpoint}")
+    try:
+        saved = AgentConfig.from_dict(json.loads(load_checkpoint(checkpoint)["agent_config"]))
+    except (CheckpointError, ValueError) as err:
+        cli.fail(f"--resume: {err}")
+    saved = saved.replace(run_dir=str(run_dir))
+    args = cli.parse(Args, args=argv, default=dataclasses.replace(args, agent=saved))
+    changed = [f.name for f in dataclasses.fields(AgentConfig)
+               if getattr(args.agent, f.name) != getattr(saved, f.name)]
+    if changed:
+        name = changed[0]
+        cli.fail(f"--resume: --{name.replace('_', '-')} {getattr(args.agent, name)!r} differs "
+                 f"from the saved run's {getattr(saved, name)!r} ({checkpoint})")
+    return args
+
+
+def main(argv: list[str] | None = None) -> dict:
+    """The script: :func:`parse`, then :func:`run` (errors: one line, exit code 2)."""
+    return cli.call(run, parse(argv))
+
+
+def run(args: Args) -> dict:
+    """Train (or resume) one run; write its folder, the JSON, the figures; return the summary."""
+    from agents.checkpoint import CheckpointError, atomic_write_text
+    from agents.evaluation import make_env
+    from agents.jacprop_agent import JacPropAgent
+
+    # 1. the run folder -----------------------------------------------------------------------
+    cfg = args.agent
+    run_dir = Path(cfg.run_dir) if cfg.run_dir else default_run_dir(args)
+    if not cfg.run_dir and not args.resume:  # a fresh default run never clobbers an old one
+        base, k = run_dir, 1
+        while (run_dir / "checkpoint.pt").exists():
+            run_dir, k = base.with_name(f"{base.name}_{k}"), k + 1
+    checkpoint = run_dir / "checkpoint.pt"
+    if args.resume and not checkpoint.is_file():
+        raise ValueError(f"--resume: no checkpoint at {checkpoint}")
+    if not args.resume and checkpoint.exists():
+        raise ValueError(
+            f"{checkpoint} exists: pass --resume to continue it or choose another --run-dir")
+
+    # 2. the env and the agent (fresh, or restored from the checkpoint) ----------------------
+    env, _ = make_env(args.env_id, render_mode="rgb_array") if cfg.video else \
+        make_env(args.env_id)
+    if args.resume:
+        try:  # a damaged checkpoint or another env (dt, preset, ...): one line
+            agent = JacPropAgent.load(checkpoint, env=env, run_dir=str(run_dir))
+        except CheckpointError as err:
+            raise ValueError(f"--resume: {err}") from None
+        print(f"resuming {run_dir} after episode {agent.episodes_done}")
+    else:
+        agent = JacPropAgent(env, cfg.replace(run_dir=str(run_dir)))
+    atomic_write_text(run_dir / "config.json", json.dumps(
+        {"script": dataclasses.asdict(args), "command": " ".join(sys.argv),
+         **agent.resolved_config()}, indent=2, default=str))
+
+    # 3. Algorithm 1: episodes of rollout -> LTV fit -> regularised model update -> planning --
+    remaining = max(0, args.episodes - agent.episodes_done)
+    t0 = time.perf_counter()
+    agent.learn(remaining, progress_bar=agent.config.progress)
+    wall = time.perf_counter() - t0
+
+    # 4. results: summary, benchmark JSON, figures --------------------------------------------
+    summary = agent.summary()
+    summary["wall_seconds_this_process"] = wall
+    summary["run_dir"] = str(run_dir)
+    atomic_write_text(run_dir / "summary.json", json.dumps(summary, indent=2))
+    if args.json:
+        atomic_write_text(args.json, json.dumps(summary, indent=2))
+    if args.plots:
+        plot_learning_curve(agent, run_dir / "learning_curve.png")
+        plot_final_reach(agent, env, run_dir / "final_reach.png")
+    if args.summary_table:
+        print_summary(agent, summary)
+    env.close()
+    return summary
+
+
+def plot_learning_curve(agent, path: Path) -> None:
+    """Episode cost (training rollouts) and evaluation cost vs episodes, with the oracle."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import numpy as np
+
+    rows = agent.logger_rows
+    ep = np.array([r["episode"] for r in rows]) + 1
+    fig, axes = plt.subplots(1, 2, figsize=(10, 3.8))
+    ax = axes[0]
+    ax.semilogy(ep, [r["episode_cost"] for r in rows], "o-", label="training rollout")
+    ev = np.array([np.nan if r.get("eval_cost") is None else r["eval_cost"] for r in rows])
+    if np.any(np.isfinite(ev)):
+        ax.semilogy(ep, ev, "s-", label="evaluation (mean of targets)")
+    oracle = agent.oracle_mean
+    if oracle is not None:
+        ax.axhline(oracle, color="k", ls="--", label="oracle (true-model MPC)")
+        ax.axhline(agent.config.solved_ratio * oracle, color="g", ls=":", label="solved")
+    ax.set_xlabel("episode")
+    ax.set_ylabel("episode cost")
+    ax.legend(fontsize=8)
+    ax = axes[1]
+    for key, label in (("one_step_rms", "one-step RMS (new data)"),
+                       ("jacobian_error", "Jacobian error (new data)")):
+        v = np.array([np.nan if r.get(key) is None else r[key] for r in rows], dtype=float)
+        if np.any(np.isfinite(v)):
+            ax.semilogy(ep, v, "o-", label=label)
+    ax.set_xlabel("episode")
+    ax.set_title("model error before the update")
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def plot_final_reach(agent, env, path: Path) -> None:
+    """One evaluation reach of the final agent (and of the oracle) against its target."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import numpy as np
+
+    from agents.evaluation import oracle_policy, run_episode
+
+    target, seed = agent.evaluation_problem(0)
+    options = None if target is None else {"target": target}
+    rec = agent.rollout_policy(env, seed=seed, options=options)
+    curves = [("agent", rec)]
+    if hasattr(env.unwrapped, "dynamics_model") and target is not None:
+        oracle = oracle_policy(env, agent.config.horizon, iterations=agent.config.ilqr_iterations,
+                               first_plan_iterations=agent.config.first_plan_iterations,
+                               terminal_weight=agent.config.terminal_weight)
+        state = {"U": None}
+
+        def act(obs, t):
+            a, state["U"] = oracle.predict(obs, state["U"], episode_start=t == 0)
+            return a
+
+        curves.append(("oracle", run_episode(env, act, seed=seed, options=options)))
+    dt = agent.spec.dt or 1.0
+    fig, axes = plt.subplots(1, 2, figsize=(10, 3.8))
+    for name, r in curves:
+        t = np.arange(r.obs.shape[0]) * dt
+        x = agent.state_map.state(r.obs)
+        k = min(2, x.shape[1])
+        for i in range(k):
+            axes[0].plot(t, x[:, i], ls="-" if name == "agent" else "--",
+                         label=f"{name}: state {i} (cost {r.cost:.3g})" if i == 0 else
+                         f"{name}: state {i}")
+        ta = np.arange(r.actions.shape[0]) * dt
+        for i in range(r.actions.shape[1]):
+            axes[1].plot(ta, r.actions[:, i], ls="-" if name == "agent" else "--",
+                         label=f"{name}: action {i}")
+    if target is not None:
+        for i, v in enumerate(np.atleast_1d(target)):
+            axes[0].axhline(v, color="k", lw=0.8, ls=":", label="target" if i == 0 else None)
+    axes[0].set_xlabel("time [s]" if agent.spec.dt else "step")
+    axes[0].set_title("final reach vs target")
+    axes[0].legend(fontsize=7)
+    axes[1].set_xlabel("time [s]" if agent.spec.dt else "step")
+    axes[1].set_title("actions")
+    axes[1].legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def print_summary(agent, summary: dict) -> None:
+    from rich.console import Console
+    from rich.table import Table
+
+    table = Table(title=f"JacProp agent on {agent.env_id}")
+    for col in ("episode", "phase", "env steps", "episode cost", "eval cost", "ratio",
+                "1-step RMS", "Jac err", "s/episode"):
+        table.add_column(col, justify="right")
+    for r in agent.logger_rows:
+        table.add_row(
+            str(r["episode"] + 1), r["phase"], str(r["env_steps"]), _num(r["episode_cost"]),
+            _num(r.get("eval_cost")), _num(r.get("cost_ratio")), _num(r.get("one_step_rms")),
+            _num(r.get("jacobian_error")), _num(r.get("time_total")),
+        )
+    console = Console(width=max(120, Console().width))
+    console.print(table)
+    keys = ("episodes_to_solve", "env_steps_to_solve", "final_cost_ratio", "oracle_cost",
+            "wall_seconds_per_phase")
+    console.print({k: summary.get(k) for k in keys})
+
+
+def _num(v) -> str:
+    if v is None:
+        return "-"
+    try:
+        f = float(v)
+    except (TypeError, ValueError):
+        return str(v)
+    return "-" if f != f else f"{f:.4g}"
+
