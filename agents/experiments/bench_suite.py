@@ -66,9 +66,12 @@ def reacher_terminal(obs):
 
 
 def pendulum_cost(obs, a):
-    """InvertedPendulum-v5: obs = [x, theta, x_dot, theta_dot]; keep the pole up, cart near 0."""
+    """InvertedPendulum-v5: obs = [x, theta, x_dot, theta_dot]; keep the pole up, cart near 0,
+    minus the env's alive bonus of 1 per step: with ``termination_fn`` the CEM planner adds no
+    cost after a predicted fall (PETS), so staying alive must be cheaper than falling (without
+    the bonus a positive cost makes falling early the cheapest plan)."""
     return (10.0 * obs[1] ** 2 + 0.1 * obs[0] ** 2 + 0.01 * obs[2] ** 2 + 0.1 * obs[3] ** 2
-            + 0.001 * ca.sumsqr(a))
+            + 0.001 * ca.sumsqr(a) - 1.0)
 
 
 def pendulum_terminated(obs):
