@@ -842,6 +842,7 @@ class JacPropAgent:
             cache_dir = None  # user functions cannot be part of a cache key
         import agents.evaluation
         import agents.task
+        import envs.mujoco_model
         import mbtsr.costs
         import mbtsr.ilqr
         import mbtsr.mpc
@@ -851,7 +852,7 @@ class JacPropAgent:
             "version": 1,
             "code": code_fingerprint(
                 agents.evaluation, agents.task, mbtsr.costs, mbtsr.ilqr, mbtsr.mpc,
-                packages=[sys.modules[type(env.unwrapped).__module__]],
+                envs.mujoco_model, packages=[sys.modules[type(env.unwrapped).__module__]],
             ),
             "env_id": spec.id,
             "env_kwargs": spec.kwargs,
