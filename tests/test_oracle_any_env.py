@@ -144,3 +144,12 @@ def test_env_without_true_model():
                                           checkpoint=False), cost_fn=cost)
     assert agent.compute_oracle() is None
     env.close()
+
+
+def test_bench_suite_task_oracle_smoke():
+    from agents.experiments.bench_suite import task_oracle
+
+    rec = task_oracle("reacher", smoke=True)
+    assert rec["eval_seed"] == 1000 and len(rec["returns"]) == rec["eval_episodes"] == 1
+    assert np.isfinite(rec["mean_return"]) and rec["solved_return"] == -3.75
+    assert rec["solved"] == (rec["mean_return"] >= -3.75)
