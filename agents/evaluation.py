@@ -47,6 +47,8 @@ __all__ = [
     "evaluate_policy_cost",
     "oracle_policy",
     "oracle_cost",
+    "has_true_model",
+    "TrueStatePolicy",
     "cached_costs",
     "code_fingerprint",
     "solved_threshold",
@@ -141,12 +143,16 @@ class MPCPolicy:
                     f"state must be the [H={self.mpc.horizon}, m={self.spec.act_dim}] plan "
                     f"returned by predict, got {list(state.shape)}"
                 )
-        res = self.mpc.solve(self.state_map.state(obs), 0, params=obs, warm_start=state,
+        res = self.mpc.solve(self._model_state(obs), 0, params=obs, warm_start=state,
                              **self._solve_kwargs(obs))
         self.last_result = res
         U = np.asarray(res.U, dtype=float)
         action = np.clip(U[0], self.spec.u_min, self.spec.u_max)
         return action, np.concatenate([U[1:], U[-1:]], axis=0)
+
+    def _model_state(self, obs: np.ndarray) -> np.ndarray:
+        """The planner's start state for this observation (the task's state map)."""
+        return self.state_map.state(obs)
 
     def _solve_kwargs(self, obs: np.ndarray) -> dict[str, Any]:
         """Extra keyword arguments of the optimizer for this observation (none here; the CEM
@@ -284,6 +290,38 @@ def evaluate_policy_cost(
     )
 
 
+class TrueStatePolicy(MPCPolicy):
+    """:class:`MPCPolicy` that plans from the env's TRUE physical state instead of the
+    observation: the oracle of a Gymnasium MuJoCo env. Each call reads ``qpos, qvel`` of the live
+    ``env`` (after ``reset`` its initial state; mocap poses too, e.g. a target marker) and
+    starts the plan at ``model.lift(x) = [x, observation(x)]`` (an
+    :class:`envs.mujoco_model.ObservedDynamics`). Only valid inside episodes of that ``env``."""
+
+    def __init__(self, mpc: MPC, task_cost: ObservationCost, env: gym.Env) -> None:
+        super().__init__(mpc, task_cost)
+        self.env = env
+
+    def _model_state(self, obs: np.ndarray) -> np.ndarray:
+        from envs.mujoco_model import state_of
+
+        dyn, base = self.model.dynamics, self.env.unwrapped
+        if dyn.model.nmocap:
+            dyn.set_mocap(base.data.mocap_pos, base.data.mocap_quat)
+        return self.model.lift(state_of(self.env))
+
+
+def _is_mujoco_env(env: gym.Env) -> bool:
+    from gymnasium.envs.mujoco.mujoco_env import MujocoEnv
+
+    return isinstance(env.unwrapped, MujocoEnv)
+
+
+def has_true_model(env: gym.Env) -> bool:
+    """Whether :func:`oracle_policy` can build the true model of ``env``: it has
+    ``dynamics_model()`` (the project's arm) or is a Gymnasium ``MujocoEnv``."""
+    return hasattr(env.unwrapped, "dynamics_model") or _is_mujoco_env(env)
+
+
 def oracle_policy(
     env: gym.Env,
     horizon: int,
@@ -294,20 +332,36 @@ def oracle_policy(
     model: str = "dynamics_model",
     cost_fn: Callable | None = None,
     state_map: Any = None,
-):
-    """MPC on the TRUE model of ``env`` (``env.unwrapped.dynamics_model()`` -- MuJoCo -- or
-    ``analytic_model()``), with the env's own quadratic cost unless ``cost_fn``/``state_map``
-    are given. Same controller as the agent, only the model differs.
+    terminal_cost_fn: Callable | None = None,
+) -> MPCPolicy:
+    """MPC on the TRUE model of ``env``, with the env's own quadratic cost unless
+    ``cost_fn``/``state_map`` are given. Same controller (:func:`mpc_policy`, iLQR) as the
+    agent, only the model differs. The true model is
 
-    The true model's state must be the agent's model state (the arm: ``obs[:4]``)."""
-    from agents.task import default_task_for_env, env_spec
+    * ``env.unwrapped.dynamics_model()`` (or ``analytic_model()``) when the env offers one (the
+      arm); its state must be the agent's model state (the arm: ``obs[:4]``, via ``state_map``);
+    * otherwise, for any Gymnasium ``MujocoEnv`` (Reacher-v5, InvertedPendulum-v5, ...),
+      :class:`envs.mujoco_model.MujocoDynamics` lifted to ``z = [qpos, qvel, observation]`` by
+      :class:`envs.mujoco_model.ObservedDynamics`: the task's ``cost_fn(obs, a)`` (and
+      ``terminal_cost_fn``) is evaluated on the env's own observation of the predicted state,
+      and the plan starts from the env's true ``qpos, qvel`` (:class:`TrueStatePolicy`, so the
+      returned policy only works on this ``env``). ``state_map`` is ignored there (the true
+      state needs no map).
+
+    :raises ValueError: an env that has neither (not MuJoCo, no ``dynamics_model()``): it has
+        no true model, so no oracle (the agent then reports ``oracle_cost = None``); also when
+        no cost is given and the env has no ``cost_Q``/``cost_R``.
+    """
+    from agents.task import StateMap, default_task_for_env, env_spec
 
     if model not in ("dynamics_model", "analytic_model"):
         raise ValueError(f"model must be 'dynamics_model' or 'analytic_model', got {model!r}")
     factory = getattr(env.unwrapped, model, None)
-    if factory is None:
-        raise ValueError(f"{env.unwrapped!r} has no {model}() to build the oracle from")
-    true_model = factory()
+    if factory is None and not _is_mujoco_env(env):
+        raise ValueError(
+            f"{env.unwrapped!r} has no {model}() and is not a Gymnasium MujocoEnv: there is no "
+            "true model to build the oracle from"
+        )
     spec = env_spec(env)
     if cost_fn is None:
         default = default_task_for_env(env)
@@ -315,24 +369,39 @@ def oracle_policy(
             raise ValueError("the env has no cost_Q/cost_R; give cost_fn and state_map")
         cost_fn, default_map = default
         state_map = state_map or default_map
-    if state_map is None:
-        from agents.task import StateMap
+    kwargs = {"horizon": horizon, "iterations": iterations,
+              "first_plan_iterations": first_plan_iterations, "terminal_weight": terminal_weight}
+    if factory is None:  # any Gymnasium MuJoCo env: plan on [qpos, qvel, observation]
+        from envs.mujoco_model import MujocoDynamics, ObservedDynamics
 
+        true_model = ObservedDynamics(MujocoDynamics(env), env)
+        if true_model.obs_dim != spec.obs_dim:
+            raise ValueError(
+                f"the env's _get_obs returns {true_model.obs_dim} values, its observation_space "
+                f"has {spec.obs_dim}"
+            )
+        n = true_model.n
+        obs_map = StateMap(state_fn=_oracle_state_fn, obs_fn=lambda s, ref: s[n:])
+        task_cost = ObservationCost(cost_fn, obs_map, spec, true_model.state_dim,
+                                    terminal_cost_fn=terminal_cost_fn)
+        policy = mpc_policy(true_model, task_cost, **kwargs)
+        return TrueStatePolicy(policy.mpc, task_cost, env)
+    true_model = factory()
+    if state_map is None:
         state_map = StateMap()
-    task_cost = ObservationCost(cost_fn, state_map, spec, true_model.state_dim)
-    return mpc_policy(
-        true_model,
-        task_cost,
-        horizon=horizon,
-        iterations=iterations,
-        first_plan_iterations=first_plan_iterations,
-        terminal_weight=terminal_weight,
-    )
+    task_cost = ObservationCost(cost_fn, state_map, spec, true_model.state_dim,
+                                terminal_cost_fn=terminal_cost_fn)
+    return mpc_policy(true_model, task_cost, **kwargs)
+
+
+def _oracle_state_fn(obs: np.ndarray) -> np.ndarray:
+    raise ValueError("the MuJoCo oracle reads its state from the env (TrueStatePolicy), not "
+                     "from an observation")
 
 
 def oracle_cost(
     env: gym.Env | str,
-    targets: Sequence[np.ndarray],
+    targets: Sequence[np.ndarray] | None,
     horizon: int,
     *,
     seed: int = 0,
@@ -341,11 +410,19 @@ def oracle_cost(
     terminal_weight: float = 1.0,
     model: str = "dynamics_model",
     return_costs: bool = False,
+    cost_fn: Callable | None = None,
+    terminal_cost_fn: Callable | None = None,
+    n_episodes: int | None = None,
+    max_steps: int | None = None,
 ) -> float | np.ndarray:
     """Mean episode cost of MPC with the TRUE model on ``targets`` (see :func:`oracle_policy`
     and :func:`evaluate_policy_costs`; the same ``seed`` gives the same initial states).
 
     :param return_costs: return the per-episode costs ``[n]`` instead of the mean.
+    :param cost_fn: the task's stage cost on observations (default: the env's own quadratic
+        cost); ``terminal_cost_fn`` its terminal cost. ``targets=None`` with ``n_episodes``:
+        envs without targets (Reacher-v5, InvertedPendulum-v5).
+    :param max_steps: cap on the steps per episode (default: the env's own limit).
     """
     env, created = make_env(env)
     try:
@@ -356,8 +433,11 @@ def oracle_cost(
             first_plan_iterations=first_plan_iterations,
             terminal_weight=terminal_weight,
             model=model,
+            cost_fn=cost_fn,
+            terminal_cost_fn=terminal_cost_fn,
         )
-        costs = evaluate_policy_costs(policy, env, targets, seed)
+        costs = evaluate_policy_costs(policy, env, targets, seed, n_episodes=n_episodes,
+                                      max_steps=max_steps)
     finally:
         if created:
             env.close()

@@ -55,6 +55,7 @@ from agents.evaluation import (
     code_fingerprint,
     evaluate_policy_costs,
     evaluation_targets,
+    has_true_model,
     mpc_policy,
     oracle_policy,
     planner_cost,
@@ -818,8 +819,8 @@ class JacPropAgent:
 
     def _oracle_costs(self, env: gym.Env, kwargs: dict[str, Any]) -> np.ndarray | None:
         """Per-episode costs of MPC with the TRUE model (computed once, then kept)."""
-        if self.oracle_costs is not None or not hasattr(env.unwrapped, "dynamics_model"):
-            return self.oracle_costs
+        if self.oracle_costs is not None or not has_true_model(env):
+            return self.oracle_costs  # None: no true model (not MuJoCo, no dynamics_model())
         cfg = self.config
 
         def compute() -> np.ndarray:
@@ -831,14 +832,17 @@ class JacPropAgent:
                 terminal_weight=cfg.terminal_weight,
                 cost_fn=self.cost_fn,
                 state_map=self.state_map,
+                terminal_cost_fn=self.terminal_cost_fn,
             ), cfg.replan_every)
             return evaluate_policy_costs(policy, env, self.eval_targets, cfg.eval_seed, **kwargs)
 
         cache_dir = cfg.oracle_cache_dir
-        if not (isinstance(self.cost_fn, QuadraticTargetCost) and self.state_map.serializable):
+        if not (isinstance(self.cost_fn, QuadraticTargetCost) and self.state_map.serializable
+                and self.terminal_cost_fn is None):
             cache_dir = None  # user functions cannot be part of a cache key
         import agents.evaluation
         import agents.task
+        import envs.mujoco_model
         import mbtsr.costs
         import mbtsr.ilqr
         import mbtsr.mpc
@@ -848,7 +852,7 @@ class JacPropAgent:
             "version": 1,
             "code": code_fingerprint(
                 agents.evaluation, agents.task, mbtsr.costs, mbtsr.ilqr, mbtsr.mpc,
-                packages=[sys.modules[type(env.unwrapped).__module__]],
+                envs.mujoco_model, packages=[sys.modules[type(env.unwrapped).__module__]],
             ),
             "env_id": spec.id,
             "env_kwargs": spec.kwargs,

@@ -42,6 +42,12 @@ env's ``qacc_warmstart`` zeroed the two agree bit for bit (tested).
   including RK4. Perturbations follow the raw coordinates (``qpos`` as stored).
 - ``"auto"`` (default): ``"transition_fd"`` where it applies, else ``"fd"``.
 
+**Cost on observations** (:class:`ObservedDynamics`): a planner whose cost is written on the
+env's observation plans on the lifted state ``z = [x, observation(x)]``; the observation part is
+recomputed by the env's own ``_get_obs`` after every step and linearised by centred differences
+(so iLQR sees the cost's exact derivatives in the observation and the map's first derivative,
+the Gauss-Newton approximation it already makes for the dynamics).
+
 A model with the same ``step`` but other Jacobians (e.g. the arm's analytic twin, exact where
 it matches MuJoCo) is :class:`HybridDynamics`.
 """
@@ -58,7 +64,13 @@ from mujoco import rollout
 from mbtsr.dynamics import check_step_inputs
 from mbtsr.validation import as_array
 
-__all__ = ["HybridDynamics", "MujocoDynamics", "state_of", "transition_jacobians"]
+__all__ = [
+    "HybridDynamics",
+    "MujocoDynamics",
+    "ObservedDynamics",
+    "state_of",
+    "transition_jacobians",
+]
 
 _INTEGRATORS = {
     "euler": mujoco.mjtIntegrator.mjINT_EULER,
@@ -345,3 +357,76 @@ class HybridDynamics:
         self._step = getattr(step_model, "_step", step_model.step)
         self.step = step_model.step
         self.jacobians = jacobian_model.jacobians
+
+
+class ObservedDynamics:
+    """A :class:`MujocoDynamics` with the env's observation carried in the state.
+
+    State ``z = [x (n), obs (d)]`` with ``x = concat(qpos, qvel)`` and ``obs = observation(x)``
+    (the env's ``_get_obs``); ``step(z, u) = [x', observation(x')]`` with ``x' = f(x, u)``, so a
+    cost written on observations is a cost on ``z[n:]`` (an ordinary CasADi expression, see
+    :func:`agents.evaluation.oracle_policy`). The observation part of the input state is not
+    read by ``step``.
+
+    Jacobians: ``A_z = [[A, 0], [C A, 0]]``, ``B_z = [B; C B]`` with ``A, B`` the model's and
+    ``C = d observation / dx`` at ``x'`` by centred differences (step ``fd_eps`` per raw
+    coordinate).
+
+    :param dynamics: the true model. :param env: the env whose ``_get_obs`` defines the map
+        (only read: its ``data`` is swapped for a copy during each evaluation, then restored).
+    """
+
+    linear_batch_cost = True
+
+    def __init__(self, dynamics: MujocoDynamics, env, *, fd_eps: float = 1e-6) -> None:
+        if not isinstance(dynamics, MujocoDynamics):
+            raise TypeError(f"dynamics must be a MujocoDynamics, got {type(dynamics).__name__}")
+        if not (math.isfinite(fd_eps) and fd_eps > 0):
+            raise ValueError(f"fd_eps must be a finite number > 0, got {fd_eps!r}")
+        self.dynamics, self.env, self.fd_eps = dynamics, env, float(fd_eps)
+        self.n = dynamics.state_dim
+        self.obs_dim = int(np.asarray(dynamics.observation(env, np.zeros(self.n))).shape[0])
+        self.state_dim = self.n + self.obs_dim
+        self.action_dim = dynamics.action_dim
+        self.dt = dynamics.dt
+
+    def lift(self, x: np.ndarray) -> np.ndarray:
+        """``x [n] -> z = [x, observation(x)] [n + d]``."""
+        x = as_array("x", x, (self.n,))
+        return np.concatenate((x, self.dynamics.observation(self.env, x)))
+
+    def _observe(self, xs: np.ndarray) -> np.ndarray:
+        """``xs [N, n] -> [N, d]`` (finite input)."""
+        return np.asarray(self.dynamics.observation(self.env, xs), dtype=float).reshape(
+            xs.shape[0], self.obs_dim)
+
+    def step(self, z: np.ndarray, u: np.ndarray, t: int | None = None) -> np.ndarray:
+        """``z: [..., n + d]``, ``u: [..., m]`` -> ``[..., n + d]``."""
+        z, u = check_step_inputs(z, u, self.state_dim, self.action_dim)
+        return self._step(z, u)
+
+    def _step(self, z: np.ndarray, u: np.ndarray, t: int | None = None) -> np.ndarray:
+        batch = z.shape[:-1]
+        xs = self.dynamics._step(z.reshape(-1, self.state_dim)[:, : self.n],
+                                 u.reshape(-1, self.action_dim))
+        return np.concatenate((xs, self._observe(xs)), axis=1).reshape(*batch, self.state_dim)
+
+    def jacobians(self, z: np.ndarray, u: np.ndarray, t: int = 0) -> tuple[np.ndarray, np.ndarray]:
+        """``z: [T, n + d]``, ``u: [T, m]`` -> ``(A_z [T, n+d, n+d], B_z [T, n+d, m])``."""
+        z = as_array("z", z, (None, self.state_dim))
+        u = as_array("u", u, (z.shape[0], self.action_dim))
+        T, n, d, eps = z.shape[0], self.n, self.obs_dim, self.fd_eps
+        x = z[:, :n]
+        A, B = self.dynamics.jacobians(x, u)
+        x_next = self.dynamics._step(x, u)
+        pert = np.repeat(x_next[:, None, :], 2 * n, axis=1)  # [T, 2n, n]
+        idx = np.arange(n)
+        pert[:, idx, idx] += eps
+        pert[:, n + idx, idx] -= eps
+        o = self._observe(pert.reshape(-1, n)).reshape(T, 2, n, d)
+        C = (o[:, 0] - o[:, 1]).transpose(0, 2, 1) / (2 * eps)  # [T, d, n]
+        Az = np.zeros((T, n + d, n + d))
+        Az[:, :n, :n] = A
+        Az[:, n:, :n] = C @ A
+        Bz = np.concatenate((B, C @ B), axis=1)
+        return Az, Bz

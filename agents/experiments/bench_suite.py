@@ -18,8 +18,10 @@ inverted-pendulum      InvertedPendulum-v5 (200-step episodes),   mean return >=
                        terminates when the pole falls             (0.95 x 200; Gymnasium: 950/1000)
 =====================  =======================================  ===============================
 
-The oracle is the same MPC on the TRUE MuJoCo model (arm tasks only; Gymnasium envs get the true
-model once ``envs/mujoco_model.py`` is wired in). Runs are scheduled seed-major (every task and
+The oracle is the same MPC on the TRUE MuJoCo model: the arm's own ``dynamics_model()``, and for
+the Gymnasium tasks :class:`envs.mujoco_model.MujocoDynamics` with the cost on the env's own
+observation (``--oracle`` computes and stores its score per task; the Gymnasium tasks' criterion
+stays the return threshold). Runs are scheduled seed-major (every task and
 configuration gets seed 0 before any gets seed 1), and each finished run is appended to the JSON
 at once, so an interrupted suite reports what finished (``--resume`` skips finished runs)::
 
@@ -175,6 +177,50 @@ def run_one(name: str, planner: str, reg: str, seed: int, *, smoke: bool,
         "wall_seconds_per_phase": s["wall_seconds_per_phase"],
         "wall_seconds": time.perf_counter() - tic,
     }
+
+
+def task_oracle(name: str, *, smoke: bool = False) -> dict[str, Any]:
+    """The true-model oracle's score on task ``name``: the agent's own MPC (defaults: iLQR,
+    ``horizon``, ``ilqr_iterations``, ``first_plan_iterations``, the task's cost and terminal
+    cost) on the TRUE MuJoCo dynamics, over the suite's evaluation episodes (same reset seeds
+    ``eval_seed + i``, same episode length), via :meth:`JacPropAgent.compute_oracle`. For the
+    Gymnasium tasks the true model is :class:`envs.mujoco_model.MujocoDynamics` (no user glue,
+    see :func:`agents.evaluation.oracle_policy`)."""
+    import torch
+
+    from agents.config import AgentConfig
+    from agents.jacprop_agent import JacPropAgent
+
+    torch.set_num_threads(1)
+    task = TASKS[name]
+    env = make_env(task)
+    overrides = dict(task["overrides"], eval_episodes=3, progress=False, tensorboard=False,
+                     checkpoint=False, torch_threads=1)
+    if smoke:
+        overrides.update(SMOKE_OVERRIDES)
+        if "replan_every" in overrides:
+            overrides["replan_every"] = 2
+    config = AgentConfig(**overrides)
+    agent = JacPropAgent(env, config, cost_fn=task.get("cost"),
+                         terminal_cost_fn=task.get("terminal"),
+                         termination_fn=task.get("termination"))
+    tic = time.perf_counter()
+    agent.compute_oracle()
+    env.close()
+    costs = np.asarray(agent.oracle_costs, dtype=float)
+    returns = (-costs).tolist()
+    rec: dict[str, Any] = {
+        "task": name, "returns": returns, "mean_return": float(np.mean(returns)),
+        "costs": costs.tolist(), "mean_cost": float(np.mean(costs)),
+        "eval_seed": config.eval_seed, "eval_episodes": config.eval_episodes,
+        "horizon": config.horizon, "ilqr_iterations": config.ilqr_iterations,
+        "first_plan_iterations": config.first_plan_iterations,
+        "wall_seconds": time.perf_counter() - tic,
+    }
+    if "solved_return" in task:
+        rec["solved_return"] = task["solved_return"]
+        rec["solved"] = bool(rec["mean_return"] >= task["solved_return"])
+    return rec
 
 
 def _median_censored(values: list[int | None], budget: int) -> str:
@@ -423,6 +469,8 @@ class Args:
     """cache of the true-model oracle's costs"""
     docs: str = ""
     """write the markdown report here (with --figures)"""
+    oracle: bool = False
+    """also compute the true-model oracle's score per task (once per task, kept in --json)"""
 
     def __post_init__(self) -> None:
         unknown = sorted(set(self.tasks) - set(TASKS))
@@ -451,6 +499,14 @@ def run(a: Args) -> dict[str, Any]:
                               capture_output=True, text=True).stdout.strip(),
     })
     done = {(r["task"], r["planner"], r["regularization"], r["seed"]) for r in state["runs"]}
+    if a.oracle and not a.report_only:
+        oracles = state.setdefault("oracles", {})
+        for name in a.tasks:
+            if name not in oracles:
+                oracles[name] = task_oracle(name, smoke=a.smoke)
+                write_json_atomic(path, state)
+                print(f"{name} oracle: returns {oracles[name]['returns']}, "
+                      f"{oracles[name]['wall_seconds']:.0f} s", flush=True)
     if not a.report_only:
         for seed in a.seeds:
             for name in a.tasks:

@@ -1,0 +1,155 @@
+"""The true-model oracle for any Gymnasium MuJoCo env (issue 12 item 4): MPC on
+``MujocoDynamics`` lifted to ``[qpos, qvel, observation]``, no user glue.
+
+Checks: the lifted model's observation part is the env's own observation; its Jacobians agree
+with independent finite differences of its own ``step``; the oracle's plans start from the env's
+true state after ``reset`` (same seeds as the agent's evaluation); on InvertedPendulum-v5 the
+true-model MPC keeps the pole up where doing nothing lets it fall; the agent's oracle is wired
+for Reacher-v5 and InvertedPendulum-v5; an env with no true model gives a clear error / None.
+Tiny horizons and episodes throughout."""
+
+from __future__ import annotations
+
+import gymnasium as gym
+import numpy as np
+import pytest
+
+from agents.evaluation import evaluate_policy_costs, has_true_model, oracle_policy
+from agents.experiments.bench_suite import (
+    pendulum_cost,
+    reacher_cost,
+    reacher_terminal,
+)
+from envs.mujoco_model import MujocoDynamics, ObservedDynamics, state_of
+from mbtsr.episode import as_policy, run_episode
+
+TINY = {"horizon": 4, "iterations": 1, "first_plan_iterations": 3}
+
+
+@pytest.mark.parametrize("env_id", ["Reacher-v5", "InvertedPendulum-v5"])
+def test_lifted_state_is_the_envs_observation_and_true_state(env_id):
+    env = gym.make(env_id)
+    model = ObservedDynamics(MujocoDynamics(env), env)
+    obs, _ = env.reset(seed=1000)
+    z = model.lift(state_of(env))
+    base = env.unwrapped
+    np.testing.assert_array_equal(z[: model.n], np.concatenate((base.data.qpos, base.data.qvel)))
+    np.testing.assert_allclose(z[model.n :], obs, rtol=0, atol=1e-12)
+    # one step of the model vs one env step (cold vs warm solver start, one substep of
+    # kinematics lag in body positions: see envs.mujoco_model)
+    u = np.full(env.action_space.shape, 0.5)
+    z1 = model.step(z, u)
+    obs1, *_ = env.step(u)
+    np.testing.assert_allclose(z1[: model.n], state_of(env), rtol=0, atol=1e-6)
+    np.testing.assert_allclose(z1[model.n :], obs1, rtol=0, atol=1e-4)
+    env.close()
+
+
+@pytest.mark.parametrize("env_id", ["Reacher-v5", "InvertedPendulum-v5"])
+def test_lifted_jacobians_match_finite_differences_of_step(env_id):
+    env = gym.make(env_id)
+    model = ObservedDynamics(MujocoDynamics(env), env)
+    env.reset(seed=3)
+    rng = np.random.default_rng(0)
+    z = model.lift(state_of(env) + 0.05 * rng.standard_normal(model.n))
+    u = rng.uniform(-0.5, 0.5, env.action_space.shape)
+    A, B = model.jacobians(z[None], u[None])
+    eps = 1e-5  # a different step than the model's (1e-6)
+    num_a = np.empty((model.state_dim, model.n))
+    for i in range(model.n):
+        dz = np.zeros(model.state_dim)
+        dz[i] = eps
+        num_a[:, i] = (model.step(z + dz, u) - model.step(z - dz, u)) / (2 * eps)
+    num_b = np.empty((model.state_dim, model.action_dim))
+    for j in range(model.action_dim):
+        du = np.zeros(model.action_dim)
+        du[j] = eps
+        num_b[:, j] = (model.step(z, u + du) - model.step(z, u - du)) / (2 * eps)
+    np.testing.assert_allclose(A[0][:, : model.n], num_a, rtol=1e-3, atol=1e-4)
+    np.testing.assert_allclose(A[0][:, model.n :], 0.0)  # step ignores the observation part
+    np.testing.assert_allclose(B[0], num_b, rtol=1e-3, atol=1e-4)
+    env.close()
+
+
+def test_reacher_oracle_without_glue_starts_from_the_true_state():
+    env = gym.make("Reacher-v5")
+    assert has_true_model(env)
+    policy = oracle_policy(env, cost_fn=reacher_cost, terminal_cost_fn=reacher_terminal, **TINY)
+    obs, _ = env.reset(seed=1000)
+    x0 = state_of(env)
+    policy.predict(obs, episode_start=True)
+    X = np.asarray(policy.last_result.X)
+    np.testing.assert_array_equal(X[0, :8], x0)  # the plan starts at the env's qpos|qvel
+    costs = evaluate_policy_costs(policy, env, None, 1000, n_episodes=2, max_steps=5)
+    assert costs.shape == (2,) and np.isfinite(costs).all()
+    env.close()
+
+
+def test_true_model_mpc_keeps_the_inverted_pendulum_up():
+    env = gym.make("InvertedPendulum-v5")
+    policy = oracle_policy(env, horizon=10, iterations=1, first_plan_iterations=5,
+                           cost_fn=pendulum_cost)
+    steps = 40
+    for seed in (1000, 1001):
+        zero = run_episode(env, lambda obs, t: np.zeros(1), seed=seed, max_steps=steps)
+        assert zero.terminated, "doing nothing must let the pole fall within the episode"
+        rec = run_episode(env, as_policy(policy), seed=seed, max_steps=steps)
+        assert not rec.terminated
+        assert len(rec.rewards) == steps
+        assert np.max(np.abs(rec.obs[:, 1])) < 0.2
+    env.close()
+
+
+@pytest.mark.parametrize("env_id,cost,terminal", [
+    ("Reacher-v5", reacher_cost, reacher_terminal),
+    ("InvertedPendulum-v5", pendulum_cost, None),
+])
+def test_agent_oracle_any_mujoco_env(env_id, cost, terminal):
+    from agents.config import AgentConfig
+    from agents.jacprop_agent import JacPropAgent
+
+    env = gym.make(env_id, max_episode_steps=6)
+    cfg = AgentConfig(horizon=4, ilqr_iterations=1, first_plan_iterations=3, eval_episodes=2,
+                      eval_every=0, progress=False, tensorboard=False, checkpoint=False)
+    agent = JacPropAgent(env, cfg, cost_fn=cost, terminal_cost_fn=terminal)
+    mean = agent.compute_oracle()
+    assert mean is not None and np.isfinite(mean)
+    assert agent.oracle_costs.shape == (2,)
+    # the same episodes by hand: same seeds (eval_seed + i), same controller
+    policy = oracle_policy(gym.make(env_id, max_episode_steps=6), 4, iterations=1,
+                           first_plan_iterations=3, cost_fn=cost, terminal_cost_fn=terminal)
+    by_hand = evaluate_policy_costs(policy, policy.env, None, cfg.eval_seed, n_episodes=2,
+                                    max_steps=6)
+    np.testing.assert_allclose(agent.oracle_costs, by_hand, rtol=0, atol=1e-9)
+    env.close()
+
+
+def test_env_without_true_model():
+    """Not MuJoCo and no dynamics_model(): oracle_policy raises a clear ValueError; the agent
+    reports no oracle (``compute_oracle() is None``) and goes on."""
+    import casadi as ca
+
+    from agents.config import AgentConfig
+    from agents.jacprop_agent import JacPropAgent
+
+    env = gym.make("Pendulum-v1")
+    assert not has_true_model(env)
+
+    def cost(obs, a):
+        return ca.sumsqr(obs) + ca.sumsqr(a)
+
+    with pytest.raises(ValueError, match="no true model"):
+        oracle_policy(env, 4, cost_fn=cost)
+    agent = JacPropAgent(env, AgentConfig(eval_every=0, progress=False, tensorboard=False,
+                                          checkpoint=False), cost_fn=cost)
+    assert agent.compute_oracle() is None
+    env.close()
+
+
+def test_bench_suite_task_oracle_smoke():
+    from agents.experiments.bench_suite import task_oracle
+
+    rec = task_oracle("reacher", smoke=True)
+    assert rec["eval_seed"] == 1000 and len(rec["returns"]) == rec["eval_episodes"] == 1
+    assert np.isfinite(rec["mean_return"]) and rec["solved_return"] == -3.75
+    assert rec["solved"] == (rec["mean_return"] >= -3.75)
