@@ -1022,7 +1022,8 @@ class JacPropAgent:
         atomic_write_text(run_dir / "summary.json", json.dumps(self.summary(), indent=2))
 
     def _save_video(self, frames: list, ep: int) -> None:
-        """``videos/episode_XXXX.mp4`` (``.gif`` when no ffmpeg is available)."""
+        """``videos/episode_<ep>.mp4`` (:func:`envs.rendering.save_video` writes a ``.gif``
+        instead, with a warning, when no ffmpeg is available)."""
         if not frames:
             return
         from envs.rendering import save_video
@@ -1030,10 +1031,7 @@ class JacPropAgent:
         folder = Path(self.config.run_dir) / "videos"
         folder.mkdir(parents=True, exist_ok=True)
         fps = 1.0 / self.spec.dt if self.spec.dt else 30.0
-        try:
-            save_video(frames, folder / f"episode_{ep:04d}.mp4", fps=fps)
-        except ValueError:  # no imageio-ffmpeg
-            save_video(frames, folder / f"episode_{ep:04d}.gif", fps=fps)
+        save_video(frames, folder / f"episode_{ep:04d}.mp4", fps=fps)
 
 
 class ReplanEvery:

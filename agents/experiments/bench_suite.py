@@ -118,13 +118,25 @@ def make_env(task: dict[str, Any]):
     return gym.make(task["env_id"], **task["make"])
 
 
+def _make_agent(env: Any, task: dict[str, Any], overrides: dict[str, Any], smoke: bool) -> Any:
+    """The agent of ``task`` on ``env`` with ``overrides`` (plus the tiny smoke budgets)."""
+    from agents.config import AgentConfig
+    from agents.jacprop_agent import JacPropAgent
+
+    if smoke:
+        overrides = {**overrides, **SMOKE_OVERRIDES}
+        if "replan_every" in overrides:
+            overrides["replan_every"] = 2
+    return JacPropAgent(env, AgentConfig(**overrides), cost_fn=task.get("cost"),
+                        terminal_cost_fn=task.get("terminal"),
+                        termination_fn=task.get("termination"))
+
+
 def run_one(name: str, planner: str, reg: str, seed: int, *, smoke: bool,
             oracle_cache: str) -> dict[str, Any]:
     """One agent run; returns its record (summary, curve, wall per phase)."""
     import torch
 
-    from agents.config import AgentConfig
-    from agents.jacprop_agent import JacPropAgent
 
     torch.set_num_threads(1)
     task = TASKS[name]
@@ -139,14 +151,7 @@ def run_one(name: str, planner: str, reg: str, seed: int, *, smoke: bool,
         overrides["solved_ratio"] = task["solved_ratio"]
     else:
         overrides["solved_return"] = task["solved_return"]
-    if smoke:
-        overrides.update(SMOKE_OVERRIDES)
-        if "replan_every" in overrides:
-            overrides["replan_every"] = 2
-    config = AgentConfig(**overrides)
-    agent = JacPropAgent(env, config, cost_fn=task.get("cost"),
-                         terminal_cost_fn=task.get("terminal"),
-                         termination_fn=task.get("termination"))
+    agent = _make_agent(env, task, overrides, smoke)
     tic = time.perf_counter()
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)  # logged LTV fallbacks
@@ -188,22 +193,13 @@ def task_oracle(name: str, *, smoke: bool = False) -> dict[str, Any]:
     see :func:`agents.evaluation.oracle_policy`)."""
     import torch
 
-    from agents.config import AgentConfig
-    from agents.jacprop_agent import JacPropAgent
 
     torch.set_num_threads(1)
     task = TASKS[name]
     env = make_env(task)
     overrides = dict(task["overrides"], eval_episodes=3, progress=False, tensorboard=False,
                      checkpoint=False, torch_threads=1)
-    if smoke:
-        overrides.update(SMOKE_OVERRIDES)
-        if "replan_every" in overrides:
-            overrides["replan_every"] = 2
-    config = AgentConfig(**overrides)
-    agent = JacPropAgent(env, config, cost_fn=task.get("cost"),
-                         terminal_cost_fn=task.get("terminal"),
-                         termination_fn=task.get("termination"))
+    agent = _make_agent(env, task, overrides, smoke)
     tic = time.perf_counter()
     agent.compute_oracle()
     env.close()
@@ -212,9 +208,9 @@ def task_oracle(name: str, *, smoke: bool = False) -> dict[str, Any]:
     rec: dict[str, Any] = {
         "task": name, "returns": returns, "mean_return": float(np.mean(returns)),
         "costs": costs.tolist(), "mean_cost": float(np.mean(costs)),
-        "eval_seed": config.eval_seed, "eval_episodes": config.eval_episodes,
-        "horizon": config.horizon, "ilqr_iterations": config.ilqr_iterations,
-        "first_plan_iterations": config.first_plan_iterations,
+        "eval_seed": agent.config.eval_seed, "eval_episodes": agent.config.eval_episodes,
+        "horizon": agent.config.horizon, "ilqr_iterations": agent.config.ilqr_iterations,
+        "first_plan_iterations": agent.config.first_plan_iterations,
         "wall_seconds": time.perf_counter() - tic,
     }
     if "solved_return" in task:
