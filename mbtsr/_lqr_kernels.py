@@ -420,6 +420,32 @@ def backward_pass(A, B, lx, lu, lxx, luu, lux, lo, hi, lam, reg_type, has_limits
 
 
 @njit(cache=True)
+def policy_row(U, k, K, X, t, alpha, lower, upper, x, u_out):  # pragma: no cover - compiled
+    """``u_out[m] = clip(U_t + alpha k_t + K_t (x - X_t), lower, upper)``: one step of iLQR's
+    line-search policy for one rollout (shared by the compiled rollouts)."""
+    m, n = K.shape[1], K.shape[2]
+    for j in range(m):
+        v = U[t, j] + alpha * k[t, j]
+        for i in range(n):
+            v += K[t, j, i] * (x[i] - X[t, i])
+        u_out[j] = min(max(v, lower[j]), upper[j])
+
+
+@njit(cache=True)
+def guard_row(x_next, x_nominal):  # pragma: no cover - compiled
+    """A non-finite ``x_next [n]`` is replaced by ``x_nominal`` (so the model never sees NaN);
+    :return: whether it was finite (the rollout stays alive)."""
+    finite = True
+    for i in range(x_next.shape[0]):
+        if not np.isfinite(x_next[i]):
+            finite = False
+    if not finite:
+        for i in range(x_next.shape[0]):
+            x_next[i] = x_nominal[i]
+    return finite
+
+
+@njit(cache=True)
 def rollout_policy_affine(A, B, c, x0, X, U, k, K, alphas, lower, upper, max_norm):
     """Closed-loop rollouts of an affine model for all step sizes, in one compiled call.
 
@@ -439,7 +465,6 @@ def rollout_policy_affine(A, B, c, x0, X, U, k, K, alphas, lower, upper, max_nor
     Xn = np.empty((N, T + 1, n))
     Un = np.empty((N, T, m))
     alive = np.ones(N, dtype=np.bool_)
-    dx = np.empty(n)
     for a in range(N):
         alpha = alphas[a]
         for i in range(n):
@@ -447,15 +472,7 @@ def rollout_policy_affine(A, B, c, x0, X, U, k, K, alphas, lower, upper, max_nor
         biggest = 0.0
         for t in range(T):
             s = t if TA > 1 else 0
-            for i in range(n):
-                dx[i] = Xn[a, t, i] - X[t, i]
-            for j in range(m):
-                v = U[t, j] + alpha * k[t, j]
-                for i in range(n):
-                    v += K[t, j, i] * dx[i]
-                v = min(max(v, lower[j]), upper[j])
-                Un[a, t, j] = v
-            finite = True
+            policy_row(U, k, K, X, t, alpha, lower, upper, Xn[a, t], Un[a, t])
             for i in range(n):
                 v = c[s, i]
                 for j in range(n):
@@ -463,12 +480,8 @@ def rollout_policy_affine(A, B, c, x0, X, U, k, K, alphas, lower, upper, max_nor
                 for j in range(m):
                     v += B[s, i, j] * Un[a, t, j]
                 Xn[a, t + 1, i] = v
-                if not np.isfinite(v):
-                    finite = False
-            if not finite:
+            if not guard_row(Xn[a, t + 1], X[t + 1]):
                 alive[a] = False
-                for i in range(n):
-                    Xn[a, t + 1, i] = X[t + 1, i]
             for i in range(n):
                 biggest = max(biggest, abs(Xn[a, t + 1, i]))
         if not biggest <= max_norm:

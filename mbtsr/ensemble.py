@@ -58,6 +58,7 @@ from scipy.special import expit
 from torch import nn
 from torch.nn import functional as F  # noqa: N812
 
+from mbtsr._lqr_kernels import guard_row, policy_row
 from mbtsr.dynamics import check_step_inputs
 from mbtsr.fileformat import CheckpointError, torch_load_verified, torch_save_verified
 from mbtsr.trajectory import Trajectory
@@ -917,20 +918,10 @@ def _rollout_policy_kernel(W_inT, W_out, code, x0, X, U, k, K, alphas, lower, up
         for i in range(n):
             biggest = max(biggest, abs(x0[i]))
         for t in range(T):
-            for j in range(m):
-                v = U[t, j] + alpha * k[t, j]
-                for i in range(n):
-                    v += K[t, j, i] * (Xn[a, t, i] - X[t, i])
-                Un[a, t, j] = min(max(v, lower[j]), upper[j])
+            policy_row(U, k, K, X, t, alpha, lower, upper, Xn[a, t], Un[a, t])
             _mean_step_row(Xn[a, t], Un[a, t], W_inT, W_out, code, z, Xn[a, t + 1])
-            finite = True
-            for i in range(n):
-                if not np.isfinite(Xn[a, t + 1, i]):
-                    finite = False
-            if not finite:
+            if not guard_row(Xn[a, t + 1], X[t + 1]):
                 alive[a] = False
-                for i in range(n):
-                    Xn[a, t + 1, i] = X[t + 1, i]
             for i in range(n):
                 biggest = max(biggest, abs(Xn[a, t + 1, i]))
         if not biggest <= max_norm:
