@@ -50,7 +50,8 @@ __all__ = [
     "has_true_model",
     "TrueStatePolicy",
     "cached_costs",
-    "code_fingerprint",
+    "oracle_cache_key",
+    "physics_fingerprint",
     "solved_threshold",
 ]
 
@@ -467,21 +468,56 @@ def cached_costs(
     return costs
 
 
-def code_fingerprint(*objects: Any, packages: Sequence[Any] = ()) -> str:
-    """sha256 over the source files defining ``objects`` (modules, classes, functions) and over
-    every ``.py``/``.xml`` file in the folders of ``packages`` (an env's package with its
-    assets): part of a cache key, so that cached oracle costs are recomputed when the env or
-    solver code changes."""
-    import inspect
+def physics_fingerprint(env: gym.Env) -> str:
+    """sha256 (16 hex digits) of the physics the env simulates: its compiled ``MjModel`` saved
+    as MJB bytes (every numeric array, option and size: masses, geometry, actuator gains,
+    time step, ...). Changes when a physical parameter does, not when source code is edited."""
+    import mujoco
 
-    files = {inspect.getsourcefile(o) or "" for o in objects}
-    for pkg in packages:
-        folder = Path(inspect.getsourcefile(pkg) or "").parent
-        files |= {str(f) for f in folder.rglob("*") if f.suffix in (".py", ".xml")}
-    h = hashlib.sha256()
-    for path in sorted(f for f in files if f and Path(f).is_file()):
-        h.update(Path(path).read_bytes())
-    return h.hexdigest()[:16]
+    model = getattr(env.unwrapped, "model", None)
+    if not isinstance(model, mujoco.MjModel):
+        raise ValueError(f"{env.unwrapped!r} has no compiled MuJoCo model (env.unwrapped.model)")
+    buf = np.empty(mujoco.mj_sizeModel(model), np.uint8)
+    mujoco.mj_saveModel(model, None, buf)
+    return hashlib.sha256(buf.tobytes()).hexdigest()[:16]
+
+
+def oracle_cache_key(
+    env: gym.Env,
+    task: dict[str, Any],
+    targets: Sequence[np.ndarray] | None,
+    seed: int,
+    *,
+    n_episodes: int,
+    episode_steps: int,
+    planner: dict[str, Any],
+    optimizer_options: ILQROptions | None = None,
+) -> dict[str, Any]:
+    """What the oracle's costs depend on, as data (the key of :func:`cached_costs`): the env's
+    physics (:func:`physics_fingerprint`) and :func:`agents.checkpoint.env_fingerprint` (id,
+    constructor arguments, time step, spaces), the task (``task``: the cost's and the state map's
+    ``to_dict()``), the evaluation targets,
+    seed, episode count and length, the planner settings (``planner``: horizon, iterations,
+    ...; ``optimizer_options``: iLQR's, default ``ILQROptions()`` as :func:`mpc_policy` uses)
+    and ``mbtsr.__version__`` (a release invalidates every entry)."""
+    import dataclasses
+
+    import mbtsr
+    from agents.checkpoint import env_fingerprint
+
+    options = ILQROptions() if optimizer_options is None else optimizer_options
+    return {
+        "mbtsr": mbtsr.__version__,
+        "physics": physics_fingerprint(env),
+        "env": env_fingerprint(env),
+        "task": task,
+        "targets": None if targets is None else [np.asarray(t, float).tolist() for t in targets],
+        "eval_seed": int(seed),
+        "eval_episodes": int(n_episodes),
+        "episode_steps": int(episode_steps),
+        "planner": dict(planner),
+        "optimizer_options": dataclasses.asdict(options),
+    }
 
 
 def _json_default(o: Any) -> Any:

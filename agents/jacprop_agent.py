@@ -26,7 +26,6 @@ from __future__ import annotations
 
 import json
 import math
-import sys
 import time
 import warnings
 from collections.abc import Callable
@@ -51,12 +50,13 @@ from agents.episode_log import TIMING_COLUMNS, EpisodeLog
 from agents.evaluation import (
     EpisodeRecord,
     MPCPolicy,
+    _is_mujoco_env,
     cached_costs,
-    code_fingerprint,
     evaluate_policy_costs,
     evaluation_targets,
     has_true_model,
     mpc_policy,
+    oracle_cache_key,
     oracle_policy,
     planner_cost,
     run_episode,
@@ -836,37 +836,21 @@ class JacPropAgent:
             ), cfg.replan_every)
             return evaluate_policy_costs(policy, env, self.eval_targets, cfg.eval_seed, **kwargs)
 
+        key: dict[str, Any] = {}
         cache_dir = cfg.oracle_cache_dir
         if not (isinstance(self.cost_fn, QuadraticTargetCost) and self.state_map.serializable
-                and self.terminal_cost_fn is None):
-            cache_dir = None  # user functions cannot be part of a cache key
-        import agents.evaluation
-        import agents.task
-        import envs.mujoco_model
-        import mbtsr.costs
-        import mbtsr.ilqr
-        import mbtsr.mpc
-
-        spec = env.spec
-        key = {
-            "version": 1,
-            "code": code_fingerprint(
-                agents.evaluation, agents.task, mbtsr.costs, mbtsr.ilqr, mbtsr.mpc,
-                envs.mujoco_model, packages=[sys.modules[type(env.unwrapped).__module__]],
-            ),
-            "env_id": spec.id,
-            "env_kwargs": spec.kwargs,
-            "targets": self.eval_targets,
-            "eval_seed": cfg.eval_seed,
-            "eval_episodes": cfg.eval_episodes,
-            "episode_steps": self.spec.episode_steps,
-            "horizon": cfg.horizon,
-            "iterations": cfg.ilqr_iterations,
-            "first_plan_iterations": cfg.first_plan_iterations,
-            "terminal_weight": cfg.terminal_weight,
-            **({"replan_every": cfg.replan_every} if cfg.replan_every > 1 else {}),
-            "cost": self.cost_fn.to_dict() if cache_dir is not None else None,
-        }
+                and self.terminal_cost_fn is None and _is_mujoco_env(env)):
+            cache_dir = None  # user functions (or non-MuJoCo physics) cannot be part of a key
+        if cache_dir is not None:
+            key = oracle_cache_key(
+                env, {"cost": self.cost_fn.to_dict(), "state_map": self.state_map.to_dict()},
+                self.eval_targets, cfg.eval_seed, n_episodes=cfg.eval_episodes,
+                episode_steps=self.spec.episode_steps,
+                planner={"horizon": cfg.horizon, "iterations": cfg.ilqr_iterations,
+                         "first_plan_iterations": cfg.first_plan_iterations,
+                         "terminal_weight": cfg.terminal_weight,
+                         "replan_every": cfg.replan_every},
+            )
         self.oracle_costs = cached_costs(cache_dir, key, compute)
         return self.oracle_costs
 
