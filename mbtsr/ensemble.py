@@ -58,8 +58,8 @@ from scipy.special import expit
 from torch import nn
 from torch.nn import functional as F  # noqa: N812
 
-from mbtsr._lqr_kernels import guard_row, policy_row
-from mbtsr.dynamics import check_step_inputs
+from mbtsr._lqr_kernels import guard_row, policy_row, rollout_buffers
+from mbtsr.dynamics import check_step_inputs, check_step_shapes
 from mbtsr.fileformat import CheckpointError, torch_load_verified, torch_save_verified
 from mbtsr.trajectory import Trajectory
 from mbtsr.validation import as_array
@@ -637,14 +637,7 @@ class DynamicsEnsemble(nn.Module):
                 raise ValueError(f"xu must have last dimension n+m={n + m}, got {list(x.shape)}")
             return x
         u = torch.as_tensor(u, dtype=torch.float32)
-        if x.ndim < 1 or x.shape[-1] != n:
-            raise ValueError(f"x must have last dimension n={n}, got shape {list(x.shape)}")
-        if u.ndim < 1 or u.shape[-1] != m:
-            raise ValueError(f"u must have last dimension m={m}, got shape {list(u.shape)}")
-        if x.shape[:-1] != u.shape[:-1]:
-            raise ValueError(
-                f"x and u must share batch dimensions, got {list(x.shape)} and {list(u.shape)}"
-            )
+        check_step_shapes(x.shape, u.shape, n, m)
         return torch.cat([x, u], -1)
 
     def stacked_forward(self, xu: torch.Tensor, jac_rows: int = 0, *, normalized: bool = False):
@@ -904,26 +897,17 @@ def _rollout_policy_kernel(W_inT, W_out, code, x0, X, U, k, K, alphas, lower, up
     ``mbtsr.ilqr._rollout_policy`` (a row that turns non-finite is dead and continues from the
     nominal state; rows exceeding ``max_norm`` are dead at the end)."""
     T, m = U.shape
-    n = x0.shape[0]
-    N = alphas.shape[0]
-    Xn = np.empty((N, T + 1, n))
-    Un = np.empty((N, T, m))
-    alive = np.ones(N, dtype=np.bool_)
+    Xn, Un, alive = rollout_buffers(x0, T, m, alphas.shape[0])
     z = np.empty(W_inT.shape[1])
-    for a in range(N):
-        alpha = alphas[a]
-        for i in range(n):
-            Xn[a, 0, i] = x0[i]
+    for a in range(alphas.shape[0]):
         biggest = 0.0
-        for i in range(n):
+        for i in range(x0.shape[0]):
             biggest = max(biggest, abs(x0[i]))
         for t in range(T):
-            policy_row(U, k, K, X, t, alpha, lower, upper, Xn[a, t], Un[a, t])
+            policy_row(U, k, K, X, t, alphas[a], lower, upper, Xn[a, t], Un[a, t])
             _mean_step_row(Xn[a, t], Un[a, t], W_inT, W_out, code, z, Xn[a, t + 1])
-            if not guard_row(Xn[a, t + 1], X[t + 1]):
-                alive[a] = False
-            for i in range(n):
-                biggest = max(biggest, abs(Xn[a, t + 1, i]))
+            finite, biggest = guard_row(Xn[a, t + 1], X[t + 1], biggest)
+            alive[a] &= finite
         if not biggest <= max_norm:
             alive[a] = False
     return Xn, Un, alive
