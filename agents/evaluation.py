@@ -38,6 +38,7 @@ __all__ = [
     "ARM_ID",
     "EpisodeRecord",
     "MPCPolicy",
+    "SB3Predictor",
     "make_env",
     "mpc_policy",
     "planner_cost",
@@ -85,7 +86,36 @@ def planner_cost(task_cost: ObservationCost, terminal_weight: float = 1.0) -> Ca
     return CasadiCost(stage, terminal, n, m)
 
 
-class MPCPolicy:
+class SB3Predictor:
+    """Stable-Baselines3's ``predict`` over ``_act(observation, state)``: the MPC policies and
+    the agent. ``episode_start`` forces a cold start (``state=None``); ``deterministic`` is
+    unused (MPC is deterministic), kept for SB3 compatibility."""
+
+    def _act(self, observation: Any, state: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+        raise NotImplementedError
+
+    def predict(
+        self,
+        observation: np.ndarray,
+        state: np.ndarray | None = None,
+        episode_start: np.ndarray | bool | None = None,
+        deterministic: bool = True,
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """One step (Stable-Baselines3 signature).
+
+        :param observation: ``[obs_dim]`` current observation.
+        :param state: the recurrent state returned by the previous call (the remaining plan),
+            or ``None`` (cold start, also forced by ``episode_start``).
+        :param episode_start: ``True`` at the first step of an episode.
+        :param deterministic: unused (MPC is deterministic); kept for SB3 compatibility.
+        :return: ``(action [m], next_state)``.
+        """
+        if episode_start is not None and bool(np.any(episode_start)):
+            state = None
+        return self._act(observation, state)
+
+
+class MPCPolicy(SB3Predictor):
     """Stable-Baselines3's ``predict`` on observations for an :class:`mbtsr.mpc.MPC`.
 
     Maps the observation to the model state (``task_cost.state_map``) and to the cost
@@ -113,30 +143,15 @@ class MPCPolicy:
         """The planning model."""
         return self.mpc.model
 
-    def predict(
-        self,
-        observation: np.ndarray,
-        state: np.ndarray | None = None,
-        episode_start: np.ndarray | bool | None = None,
-        deterministic: bool = True,
-    ) -> tuple[np.ndarray, np.ndarray]:
-        """One MPC step (Stable-Baselines3 signature).
-
-        :param observation: ``[obs_dim]`` current observation.
-        :param state: ``[H, m]`` warm start returned by the previous call, or ``None`` (cold
-            start, also forced by ``episode_start``).
-        :param episode_start: ``True`` at the first step of an episode.
-        :param deterministic: unused (MPC is deterministic); kept for SB3 compatibility.
-        :return: ``(action [m], next_state [H, m])``.
-        """
+    def _act(self, observation: Any, state: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+        """One MPC step: ``state`` is the ``[H, m]`` plan returned by the previous call (the
+        warm start) or ``None`` (a cold start); returns ``(action [m], next_state [H, m])``."""
         obs = as_array("observation", observation, finite=False)  # refuses complex values
         if obs.shape != (self.spec.obs_dim,):
             raise ValueError(
                 f"observation must have shape ({self.spec.obs_dim},), got {list(obs.shape)}"
             )
         check_finite("observation", obs)
-        if episode_start is not None and bool(np.any(episode_start)):
-            state = None
         if state is not None:
             state = np.asarray(state, dtype=float)
             if state.shape != (self.mpc.horizon, self.spec.act_dim):
@@ -272,23 +287,9 @@ def evaluate_policy_costs(
     return np.asarray(costs)
 
 
-def evaluate_policy_cost(
-    policy: Any,
-    env: gym.Env | str,
-    targets: Sequence[np.ndarray] | None = None,
-    seed: int = 0,
-    *,
-    n_episodes: int | None = None,
-    max_steps: int | None = None,
-) -> float:
-    """Mean of :func:`evaluate_policy_costs`."""
-    return float(
-        np.mean(
-            evaluate_policy_costs(
-                policy, env, targets, seed, n_episodes=n_episodes, max_steps=max_steps
-            )
-        )
-    )
+def evaluate_policy_cost(policy: Any, env: gym.Env | str, *args: Any, **kwargs: Any) -> float:
+    """Mean of :func:`evaluate_policy_costs` (the same arguments)."""
+    return float(np.mean(evaluate_policy_costs(policy, env, *args, **kwargs)))
 
 
 class TrueStatePolicy(MPCPolicy):

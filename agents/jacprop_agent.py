@@ -50,6 +50,7 @@ from agents.episode_log import TIMING_COLUMNS, EpisodeLog
 from agents.evaluation import (
     EpisodeRecord,
     MPCPolicy,
+    SB3Predictor,
     _is_mujoco_env,
     cached_costs,
     evaluate_policy_costs,
@@ -83,7 +84,7 @@ LTV_MEMORY_BUDGET = 256e6
 LTV_MEMORY_MAX = 2e9
 
 
-class JacPropAgent:
+class JacPropAgent(SB3Predictor):
     """Model-based agent of the paper's Algorithm 1 (learned NN ensemble + iLQR MPC).
 
     :param env: a Gymnasium env with 1-D ``Box`` observation and action spaces, a bounded action
@@ -366,25 +367,12 @@ class JacPropAgent:
                 self._log = None
         return self
 
-    def predict(
-        self,
-        observation: np.ndarray,
-        state: np.ndarray | None = None,
-        episode_start: np.ndarray | bool | None = None,
-        deterministic: bool = True,
-    ) -> tuple[np.ndarray, np.ndarray]:
-        """Action of the MPC controller on the learned model (Algorithm 1, step (e)).
-
-        :param observation: ``[obs_dim]`` one observation.
-        :param state: ``[H, m]`` warm-start plan returned by the previous call (``None`` at an
-            episode start: a cold full-horizon plan); ``[H+1, m]`` with
-            ``AgentConfig.replan_every > 1`` (the last row counts the steps since the plan).
-        :param episode_start: ``True`` forces a cold start.
-        :param deterministic: kept for SB3 compatibility (MPC is deterministic; exploration
-            noise is only added in :meth:`learn`).
-        :return: ``(action [m], next_state [H, m])``.
-        """
-        return self.actor.predict(observation, state, episode_start, deterministic)
+    def _act(self, observation: Any, state: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+        """Action of the MPC controller on the learned model (Algorithm 1, step (e)); ``state``
+        is the warm-start plan ``[H, m]`` of the previous call (``[H+1, m]`` with
+        ``AgentConfig.replan_every > 1``: the last row counts the steps since the plan), ``None``
+        a cold full-horizon plan. Exploration noise is only added in :meth:`learn`."""
+        return self.actor.predict(observation, state)
 
     def save(self, path: str | Path) -> Path:
         """Save everything needed to continue learning or to act (one atomic file)."""
@@ -1018,7 +1006,7 @@ class JacPropAgent:
         save_video(frames, folder / f"episode_{ep:04d}.mp4", fps=fps)
 
 
-class ReplanEvery:
+class ReplanEvery(SB3Predictor):
     """Feedback-limited MPC: each plan of ``policy`` is executed open loop for ``k`` steps
     before the next solve (warm-started with the rest of the plan). ``k = 1`` is ``policy``
     itself. The SB3 ``state`` is the remaining plan ``[H, m]`` plus one row holding the number
@@ -1027,23 +1015,15 @@ class ReplanEvery:
     def __init__(self, policy: Any, k: int) -> None:
         self.policy, self.k = policy, int(k)
 
-    def predict(
-        self,
-        observation: np.ndarray,
-        state: np.ndarray | None = None,
-        episode_start: np.ndarray | bool | None = None,
-        deterministic: bool = True,
-    ) -> tuple[np.ndarray, np.ndarray]:
+    def _act(self, observation: Any, state: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
         if self.k == 1:
-            return self.policy.predict(observation, state, episode_start, deterministic)
-        if episode_start is not None and bool(np.any(episode_start)):
-            state = None
+            return self.policy.predict(observation, state)
         plan, age = None, 0
         if state is not None:
             state = np.asarray(state, dtype=float)
             plan, age = state[:-1], int(state[-1, 0])
         if plan is None or age >= self.k:
-            action, rest = self.policy.predict(observation, plan, plan is None, deterministic)
+            action, rest = self.policy.predict(observation, plan)
             age = 1
         else:
             spec = self.policy.spec
