@@ -47,8 +47,9 @@ import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any
 
+from agents.experiments.paper_common import SweepArgs
 from mbtsr.io import atomic_write_text
 from mbtsr.report import markdown_table
 
@@ -66,8 +67,8 @@ LABELS = {
 }
 
 
-@dataclass(frozen=True)
-class Args:
+@dataclass
+class Args(SweepArgs):
     """Benchmark the Algorithm-1 agent against Stable-Baselines3 SAC, TD3 and PPO (issue 7)."""
 
     json: str = "docs/benchmark.json"
@@ -76,15 +77,6 @@ class Args:
     """per-run JSON + TensorBoard; default runs/benchmark_sb3[_quick]"""
     docs: str = "docs/benchmark_sb3.md"
     """markdown report; the figure goes next to it (--quick: under runs/benchmark_sb3_quick)"""
-    quick: bool = False
-    """CI smoke test: tiny budgets, 1 seed (options not given take the QUICK values)"""
-    backend: Literal["process", "serial", "ray"] = "process"
-    """mbtsr.runner backend"""
-    address: str = ""
-    """Ray only: address of an existing cluster (``auto``, ``host:6379``); empty: a private local
-    Ray instance for the sweep (docs/troubleshooting.md)"""
-    workers: int = 2
-    """parallel runs"""
     seeds: int = 3
     """seeds per method"""
     first_seed: int = 0
@@ -121,8 +113,6 @@ class Args:
     """JSON {algo: {kwarg: value}} replacing the defaults of an algo"""
     sb3_progress_bar: bool = False
     """SB3's own progress bars (garbled with several workers)"""
-    report_only: bool = False
-    """no new runs: report the finished ones in --out-dir (interim)"""
     tensorboard: bool = True
     """TensorBoard logs of every run under --out-dir"""
 

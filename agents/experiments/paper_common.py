@@ -25,6 +25,7 @@ import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Literal
 
 import numpy as np
 
@@ -35,19 +36,30 @@ REPO = Path(__file__).resolve().parents[2]
 
 
 @dataclass
-class ExperimentArgs:
+class SweepArgs:
+    """The command-line fields of every script that runs a sweep through
+    :func:`mbtsr.runner.run_sweep` (the experiments, ``benchmark_sb3``)."""
+
+    quick: bool = field(default=False, metadata={
+        "help": "tiny smoke-test run (options not given take the script's QUICK values)"})
+    workers: int = field(default=2, metadata={"help": "parallel worker processes"})
+    backend: Literal["process", "serial", "ray"] = field(default="process", metadata={
+        "help": "mbtsr.runner backend"})
+    address: str = field(default="", metadata={
+        "help": "Ray only: address of an existing cluster (auto, host:6379); empty: a private "
+                "local Ray instance for the sweep (docs/troubleshooting.md)"})
+    report_only: bool = field(default=False, metadata={
+        "help": "no new runs: report the finished ones from their JSON"})
+
+
+@dataclass
+class ExperimentArgs(SweepArgs):
     """The command-line fields every experiment script shares; a script's ``Args`` subclasses
     this, redefines ``mc`` with its own default and adds its own fields."""
 
-    quick: bool = field(default=False, metadata={"help": "tiny smoke-test run"})
     mc: int = field(default=1, metadata={"help": "Monte-Carlo runs"})
     out: str = field(default="", metadata={"help": "results folder"})
     figures: str = field(default="", metadata={"help": "figure folder"})
-    workers: int = field(default=2, metadata={"help": "parallel worker processes"})
-    backend: str = field(default="process", metadata={"help": "process, serial or ray"})
-    address: str = field(default="", metadata={
-        "help": "Ray only: address of an existing cluster (auto, host:6379); empty: a local one"})
-    report_only: bool = field(default=False, metadata={"help": "only redraw from JSON"})
     json: str = field(default="", metadata={"help": "also write the summary JSON here"})
 
 
