@@ -67,3 +67,17 @@ def test_gymnasium_task_costs_compile(name):
     obs = env.reset(seed=0)[0]
     c = agent.task_cost.on_observations(obs[None], np.zeros((1, env.action_space.shape[0])))
     assert np.isfinite(c).all()
+
+
+def test_regenerating_the_report_keeps_the_hand_written_notes(tmp_path):
+    suite = _suite()
+    doc = tmp_path / "benchmark.md"
+    state = {"table": [], "runs": [], "thresholds": {}, "git": "abc"}
+    suite.write_markdown(state, doc, tmp_path)
+    doc.write_text(doc.read_text() + "\nWhat the numbers say, by hand.\n")
+    state["git"] = "def"
+    suite.write_markdown(state, doc, tmp_path)
+    text = doc.read_text()
+    assert "git def" in text and "git abc" not in text
+    assert text.count(suite.NOTES_MARKER) == 1
+    assert text.endswith("\nWhat the numbers say, by hand.\n")

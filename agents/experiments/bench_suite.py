@@ -470,7 +470,14 @@ def write_markdown(state: dict[str, Any], path: Path, figure_dir: Path) -> None:
         "several-fold and only their ratios within a table row pair mean something.",
         "",
     ]
-    atomic_write_text(path, "\n".join(lines))
+    notes = ""
+    if path.is_file() and NOTES_MARKER in path.read_text():
+        notes = path.read_text().split(NOTES_MARKER, 1)[1]
+    atomic_write_text(path, "\n".join(lines) + "\n" + NOTES_MARKER + notes)
+
+
+#: everything after this line of the report is written by people and kept on regeneration
+NOTES_MARKER = "<!-- notes below are hand-written; scripts/bench_suite.py keeps them -->"
 
 
 @dataclass(frozen=True)
