@@ -437,37 +437,24 @@ def oracle_cost(
     horizon: int,
     *,
     seed: int = 0,
-    iterations: int = 2,
-    first_plan_iterations: int = 20,
-    terminal_weight: float = 1.0,
-    model: str = "dynamics_model",
     return_costs: bool = False,
-    cost_fn: Callable | None = None,
-    terminal_cost_fn: Callable | None = None,
     n_episodes: int | None = None,
     max_steps: int | None = None,
+    **policy_options: Any,
 ) -> float | np.ndarray:
-    """Mean episode cost of MPC with the TRUE model on ``targets`` (see :func:`oracle_policy`
-    and :func:`evaluate_policy_costs`; the same ``seed`` gives the same initial states).
+    """Mean episode cost of MPC with the TRUE model on ``targets``: :func:`oracle_policy`
+    (``policy_options``: its keyword arguments, e.g. ``iterations``, ``cost_fn``,
+    ``terminal_cost_fn``) scored by :func:`evaluate_policy_costs` (the same ``seed`` gives the
+    same initial states).
 
     :param return_costs: return the per-episode costs ``[n]`` instead of the mean.
-    :param cost_fn: the task's stage cost on observations (default: the env's own quadratic
-        cost); ``terminal_cost_fn`` its terminal cost. ``targets=None`` with ``n_episodes``:
-        envs without targets (Reacher-v5, InvertedPendulum-v5).
+    :param targets: ``None`` with ``n_episodes``: envs without targets (Reacher-v5,
+        InvertedPendulum-v5).
     :param max_steps: cap on the steps per episode (default: the env's own limit).
     """
     env, created = make_env(env)
     try:
-        policy = oracle_policy(
-            env,
-            horizon,
-            iterations=iterations,
-            first_plan_iterations=first_plan_iterations,
-            terminal_weight=terminal_weight,
-            model=model,
-            cost_fn=cost_fn,
-            terminal_cost_fn=terminal_cost_fn,
-        )
+        policy = oracle_policy(env, horizon, **policy_options)
         costs = evaluate_policy_costs(policy, env, targets, seed, n_episodes=n_episodes,
                                       max_steps=max_steps)
     finally:

@@ -100,6 +100,16 @@ def _atv(X, v, base, out):
 
 
 @njit(cache=True)
+def _qp_grad(H, g, x, out):
+    """``out = g + H x``: the box QP's gradient."""
+    for i in range(g.shape[0]):
+        s = g[i]
+        for j in range(g.shape[0]):
+            s += H[i, j] * x[j]
+        out[i] = s
+
+
+@njit(cache=True)
 def _qp_value(H, g, x):
     m = x.shape[0]
     v = 0.0
@@ -177,11 +187,7 @@ def _box_qp(H, g, lo, hi, x0, x, free, L, idx, b, prm):
         x[i] = min(max(x0[i], lo[i]), hi[i])
     value = _qp_value(H, g, x)
     for it in range(int(max_iter)):
-        for i in range(m):
-            s = g[i]
-            for j in range(m):
-                s += H[i, j] * x[j]
-            grad[i] = s
+        _qp_grad(H, g, x, grad)
         nf = 0
         gnorm2 = 0.0
         for i in range(m):
@@ -225,12 +231,9 @@ def _box_qp(H, g, lo, hi, x0, x, free, L, idx, b, prm):
         value = vc
         if it > 0 and improvement < min_rel * abs(value):
             break
+    _qp_grad(H, g, x, grad)
     for i in range(m):
-        s = g[i]
-        for j in range(m):
-            s += H[i, j] * x[j]
-        clamped = (x[i] <= lo[i] and s > 0) or (x[i] >= hi[i] and s < 0)
-        free[i] = not clamped
+        free[i] = not ((x[i] <= lo[i] and grad[i] > 0) or (x[i] >= hi[i] and grad[i] < 0))
     return True
 
 

@@ -17,6 +17,7 @@ plotting helpers.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import json
 import math
 import os
@@ -745,6 +746,20 @@ def eigen_summary(ev_hat: np.ndarray, ev_true: np.ndarray | None, n_store: int) 
 # Monte-Carlo run functions (module level, so that the process pool's workers can import them)
 
 
+def timed(run_fn: Callable[[dict, int], dict]) -> Callable[[dict, int], dict]:
+    """``run_fn(config, seed)`` with its wall and CPU time [s] added to the result (``wall``,
+    ``cpu_time``)."""
+
+    @functools.wraps(run_fn)
+    def run(config: dict, seed: int) -> dict:
+        t0, c0 = time.perf_counter(), time.process_time()
+        result = run_fn(config, seed)
+        return {**result, "wall": time.perf_counter() - t0, "cpu_time": time.process_time() - c0}
+
+    return run
+
+
+@timed
 def run_linear(config: dict, seed: int) -> dict:
     """One Monte-Carlo run on a random stable linear system (``exp_linear``,
     ``exp_weight_decay``).
@@ -757,7 +772,6 @@ def run_linear(config: dict, seed: int) -> dict:
     """
     from mbtsr.metrics import jacobian_eigenvalues, prediction_rms
 
-    t0, c0 = time.perf_counter(), time.process_time()
     cfg = LinearData(**config["data"])
     d = linear_dataset(cfg, seed)
     X, U = evaluation_points(d["val"], cfg.eval_stride)
@@ -783,11 +797,10 @@ def run_linear(config: dict, seed: int) -> dict:
     result.update(eigen_summary(ev_hat, np.linalg.eigvals(d["A"]), config["n_eig_store"]))
     result["rounds"] = rounds
     result["train_loss"] = rounds[-1]["train_loss"]
-    result["wall"] = time.perf_counter() - t0
-    result["cpu_time"] = time.process_time() - c0
     return result
 
 
+@timed
 def run_robot(config: dict, seed: int) -> dict:
     """One Monte-Carlo run on the paper's two-link robot (``exp_robot``, ``exp_deviations``).
 
@@ -798,7 +811,6 @@ def run_robot(config: dict, seed: int) -> dict:
     """
     from mbtsr.metrics import jacobian_eigenvalues, prediction_rms
 
-    t0, c0 = time.perf_counter(), time.process_time()
     cfg = RobotData(**config["data"])
     d = robot_dataset(cfg, seed)
     env = d["env"]
@@ -818,11 +830,10 @@ def run_robot(config: dict, seed: int) -> dict:
     result["train_loss"] = finite_or_none(hist.train_loss[-1])
     result["steps"] = int(hist.steps)
     result["train_time"] = train_time
-    result["wall"] = time.perf_counter() - t0
-    result["cpu_time"] = time.process_time() - c0
     return result
 
 
+@timed
 def run_activations(config: dict, seed: int) -> dict:
     """One Monte-Carlo run of the activation-function comparison (paper appendix A).
 
@@ -832,7 +843,6 @@ def run_activations(config: dict, seed: int) -> dict:
     ``checkpoints`` (epochs; Adam state carried over) and each member's one-step prediction
     RMS on the validation trajectories is recorded there.
     """
-    t0, c0 = time.perf_counter(), time.process_time()
     cfg = RobotData(**config["data"])
     d = robot_dataset(cfg, seed)
     acts = list(config["activations"])
@@ -852,8 +862,7 @@ def run_activations(config: dict, seed: int) -> dict:
             rms = np.sqrt(np.mean((P - Yv) ** 2, axis=(1, 2)))
         for a, v in zip(acts, rms):
             pred[a].append(finite_or_none(v))
-    return {"pred_rms": pred, "checkpoints": list(config["checkpoints"]),
-            "wall": time.perf_counter() - t0, "cpu_time": time.process_time() - c0}
+    return {"pred_rms": pred, "checkpoints": list(config["checkpoints"])}
 
 
 # ------------------------------------------------------------------------------------------------
@@ -1000,6 +1009,7 @@ def fused_ltv_models(ltv_models: list, model, trajs, prior_scale: float = 1.0) -
 REGIME_METHODS = ("none", "sampled", "exact", "oracle", "prior")
 
 
+@timed
 def run_regime(config: dict, seed: int) -> dict:
     """One Monte-Carlo run of the regime sweep (``exp_regime``).
 
@@ -1015,7 +1025,6 @@ def run_regime(config: dict, seed: int) -> dict:
     from mbtsr.metrics import prediction_rms
     from mbtsr.training import RegularizationConfig, TrainConfig, train_ensemble
 
-    t0, c0 = time.perf_counter(), time.process_time()
     cfg = RegimeData(**config["data"])
     d = regime_dataset(cfg, seed)
     n_train, E, method = int(config["n_train"]), int(config["epochs"]), config["method"]
@@ -1076,8 +1085,6 @@ def run_regime(config: dict, seed: int) -> dict:
         result.update({"ltv_jac_pos": e["pos"], "ltv_jac_vel": e["vel"]})
     result["steps"] = steps
     result["train_time"] = train_time
-    result["wall"] = time.perf_counter() - t0
-    result["cpu_time"] = time.process_time() - c0
     return result
 
 
