@@ -100,16 +100,6 @@ def _atv(X, v, base, out):
 
 
 @njit(cache=True)
-def _qp_grad(H, g, x, out):
-    """``out = g + H x``: the box QP's gradient."""
-    for i in range(g.shape[0]):
-        s = g[i]
-        for j in range(g.shape[0]):
-            s += H[i, j] * x[j]
-        out[i] = s
-
-
-@njit(cache=True)
 def _qp_value(H, g, x):
     m = x.shape[0]
     v = 0.0
@@ -187,7 +177,7 @@ def _box_qp(H, g, lo, hi, x0, x, free, L, idx, b, prm):
         x[i] = min(max(x0[i], lo[i]), hi[i])
     value = _qp_value(H, g, x)
     for it in range(int(max_iter)):
-        _qp_grad(H, g, x, grad)
+        _atv(H.T, x, g, grad)  # the gradient g + H x
         nf = 0
         gnorm2 = 0.0
         for i in range(m):
@@ -231,7 +221,7 @@ def _box_qp(H, g, lo, hi, x0, x, free, L, idx, b, prm):
         value = vc
         if it > 0 and improvement < min_rel * abs(value):
             break
-    _qp_grad(H, g, x, grad)
+    _atv(H.T, x, g, grad)  # the gradient g + H x
     for i in range(m):
         free[i] = not ((x[i] <= lo[i] and grad[i] > 0) or (x[i] >= hi[i] and grad[i] < 0))
     return True
