@@ -10,9 +10,6 @@ as training them one by one on the same batches, only faster. The paper used 200
 
 The paper's claim: relu and leaky relu are worse suited for the task (hence left out of the
 nominal ensemble).
-
-Run ``python scripts/exp_activations.py [--quick | --report-only]``; ``--help``
-lists every option.
 """
 
 from __future__ import annotations

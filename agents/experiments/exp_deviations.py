@@ -14,9 +14,6 @@ differences gives p < 0.05, otherwise "~" (no significant change).
 
 Errors at another sample rate are per step of another length, so for the sample-rate rows
 the meaningful comparison is f against g at that rate (the paper's claims), also reported.
-
-Run ``python scripts/exp_deviations.py [--quick | --report-only]``; ``--help``
-lists every option.
 """
 
 from __future__ import annotations

@@ -9,9 +9,6 @@ the way the original README experiment did: 3 training rounds, one new trajector
 smoothness penalty of paper eq. (reg). Two extra configs reinstate the original code's data bug
 (last state of every training trajectory left at 0) to test whether it explains the original's
 Jacobian errors (RMS per entry after round 3: ~0.074 without, ~0.041 with sampled JacProp).
-
-Run ``python scripts/exp_linear.py [--quick | --report-only]`` (results in docs/results/linear,
-figures in docs/figures); ``--help`` lists every option.
 """
 
 from __future__ import annotations

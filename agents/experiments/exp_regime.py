@@ -14,9 +14,6 @@ Diagnostics per run: the Jacobian error split into moving points and points with
 speed below ``still_speed`` (stiction), and into position and velocity rows; the labels'
 Jacobian error at the training points against the network's own error there, logged during
 training (:func:`paper_common.run_regime`).
-
-Run ``python scripts/exp_regime.py [--quick | --report-only]`` (a long, resumable sweep); ``--help``
-lists every option.
 """
 
 from __future__ import annotations

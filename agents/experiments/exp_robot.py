@@ -11,9 +11,6 @@ ensemble-mean Jacobian against the simulator's exact Jacobian (MuJoCo finite dif
 env step). Methods: none, sampled Jacobian propagation (the paper's), the exact LTV-matching
 penalty and the exact smoothness penalty of eq. (reg) (weight 0.01 as the original's two-link
 "AD" script). The paper used 35 Monte-Carlo runs.
-
-Run ``python scripts/exp_robot.py [--quick | --report-only]``; ``--help``
-lists every option.
 """
 
 from __future__ import annotations

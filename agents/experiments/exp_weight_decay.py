@@ -10,9 +10,6 @@ the weight matrices, as the original's ADAM ``expdecay``); 0.01 is added as an i
 strength. Note that here the networks see standardized inputs and outputs (the original did
 not), so the decay acts on normalized weights: it pulls the Jacobian toward the skip part, 0 for
 f and I for g, in either case.
-
-Run ``python scripts/exp_weight_decay.py [--quick | --report-only]``; ``--help``
-lists every option.
 """
 
 from __future__ import annotations
