@@ -302,28 +302,26 @@ def _torch_affine(h: torch.Tensor, W: torch.Tensor, b: torch.Tensor) -> torch.Te
     return torch.baddbmm(b, h, W)
 
 
-_TORCH_OPS = SimpleNamespace(
-    xp=torch,
-    affine=_torch_affine,
-    split=lambda z, sizes: z.split(sizes, 0),
-    act=lambda name: ACTIVATIONS[name][0],
-    sum_last=lambda a: a.sum(-1, keepdim=True),
-    sum_m2=lambda a: a.sum(-2, keepdim=True),
-    sqrt=torch.sqrt,
-    cat=lambda parts, axis: torch.cat(parts, dim=axis),
-    T=lambda a: a.transpose(-1, -2),
-)
-_NUMPY_OPS = SimpleNamespace(
-    xp=np,
-    affine=lambda h, W, b: h @ W + b,
-    split=lambda z, sizes: np.split(z, np.cumsum(sizes)[:-1], 0),
-    act=lambda name: ACTIVATIONS[name][1],
-    sum_last=lambda a: a.sum(-1, keepdims=True),
-    sum_m2=lambda a: a.sum(-2, keepdims=True),
-    sqrt=np.sqrt,
-    cat=lambda parts, axis: np.concatenate(parts, axis=axis),
-    T=lambda a: a.swapaxes(-1, -2),
-)
+def _ops(xp, affine: Callable, split: Callable, act_index: int) -> SimpleNamespace:
+    """The array operations of the network math in ``xp`` (``torch`` or ``numpy``: both take
+    ``keepdims``/``axis`` and ``.mT``); ``act_index`` picks the torch (0) or numpy (1)
+    activation of :data:`ACTIVATIONS`."""
+    return SimpleNamespace(
+        xp=xp,
+        affine=affine,
+        split=split,
+        act=lambda name: ACTIVATIONS[name][act_index],
+        sum_last=lambda a: xp.sum(a, -1, keepdims=True),
+        sum_m2=lambda a: xp.sum(a, -2, keepdims=True),
+        sqrt=xp.sqrt,
+        cat=lambda parts, axis: xp.concatenate(parts, axis=axis),
+        T=lambda a: a.mT,
+    )
+
+
+_TORCH_OPS = _ops(torch, _torch_affine, lambda z, sizes: z.split(sizes, 0), 0)
+_NUMPY_OPS = _ops(np, lambda h, W, b: h @ W + b,
+                  lambda z, sizes: np.split(z, np.cumsum(sizes)[:-1], 0), 1)
 
 
 def _activate(z, runs, ops, jac_rows: int):
