@@ -154,5 +154,6 @@ def test_bench_suite_task_oracle_smoke():
 
     rec = task_oracle("reacher", smoke=True)
     assert rec["eval_seed"] == 1000 and len(rec["returns"]) == rec["eval_episodes"] == 1
-    assert np.isfinite(rec["mean_return"]) and rec["solved_return"] == -3.75
-    assert rec["solved"] == (rec["mean_return"] >= -3.75)
+    # the threshold is within oracle_margin (5 %) of the oracle's own return
+    assert np.isfinite(rec["mean_return"])
+    assert rec["solved_return"] == rec["mean_return"] - 0.05 * abs(rec["mean_return"])
