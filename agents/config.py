@@ -39,6 +39,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any, ClassVar, Literal
 
+from mbtsr.cem import CEMOptions
 from mbtsr.ensemble import ModelConfig
 from mbtsr.training import REGULARIZERS, RegularizationConfig, TrainConfig
 
@@ -115,52 +116,50 @@ class PlannerConfig(_Checked):
     """Planning (Algorithm 1, "optimize controller"): MPC = the planner re-solved every step on
     the learned model, warm-started with the shifted previous plan.
 
-    :param kind: ``"ilqr"`` (iLQR on the model's Jacobians, the paper's controller) or ``"cem"``
-        (the cross-entropy method of PETS, :func:`mbtsr.cem.cem`: forward predictions only,
-        never the model's Jacobians; the control for the paper's argument).
     :param horizon: MPC horizon (steps).
     :param replan_every: execute every plan open loop for this many steps before re-solving
         (1: re-plan every step, the default; larger: the feedback-limited regime, where feedback
         hides less of the model's error). The oracle uses the same setting.
+    :param kind: ``"ilqr"`` (iLQR on the model's Jacobians, the paper's controller) or ``"cem"``
+        (the cross-entropy method of PETS, :func:`mbtsr.cem.cem`: forward predictions only,
+        never the model's Jacobians; the control for the paper's argument).
+    :param terminal_weight: the planner's terminal cost is ``terminal_weight`` x the user's
+        ``terminal_cost_fn(obs)`` (default: the stage cost at zero action).
     :param ilqr_iterations: iLQR iterations per MPC step (the first step of an episode gets
         ``first_plan_iterations``).
     :param first_plan_iterations: iLQR (or CEM) iterations for the full plan at the start of an
         episode.
-    :param terminal_weight: the planner's terminal cost is ``terminal_weight`` x the user's
-        ``terminal_cost_fn(obs)`` (default: the stage cost at zero action).
-    :param cem_samples: CEM action sequences sampled per iteration.
-    :param cem_elites: CEM elite sequences that refit the sampling distribution.
-    :param cem_iterations: CEM iterations per MPC step (the first step of an episode gets
-        ``first_plan_iterations``).
+    :param cem: the CEM settings (:class:`mbtsr.cem.CEMOptions`, the library's own): ``samples``
+        (200) action sequences per iteration, ``elites`` (20) that refit the sampling
+        distribution, ``iterations`` (3) per MPC step (the first step of an episode gets
+        ``first_plan_iterations``); the agent seeds every solve from ``seed`` (``cem.seed`` stays
+        0).
     """
 
     _path: ClassVar[str] = "planner"
-    kind: Literal["ilqr", "cem"] = "ilqr"
     horizon: int = 30
     replan_every: int = 1
+    kind: Literal["ilqr", "cem"] = "ilqr"
+    terminal_weight: float = 1.0
     ilqr_iterations: int = 2
     first_plan_iterations: int = 20
-    terminal_weight: float = 1.0
-    cem_samples: int = 200
-    cem_elites: int = 20
-    cem_iterations: int = 3
+    cem: CEMOptions = field(default_factory=lambda: CEMOptions(iterations=3))
 
     def __post_init__(self) -> None:
         self._choice("kind", PLANNERS)
-        self._int_at_least("horizon", 2)
-        self._int_at_least("replan_every", 1)
+        for name, low in (("horizon", 2), ("replan_every", 1), ("ilqr_iterations", 1),
+                          ("first_plan_iterations", 1)):
+            self._int_at_least(name, low)
+        self._float_range("terminal_weight", 0.0)
         if self.replan_every > self.horizon:
             raise ValueError(f"planner.replan_every must be <= planner.horizon={self.horizon}, "
                              f"got {self.replan_every}")
-        self._int_at_least("ilqr_iterations", 1)
-        self._int_at_least("first_plan_iterations", 1)
-        self._float_range("terminal_weight", 0.0)
-        self._int_at_least("cem_samples", 2)
-        self._int_at_least("cem_elites", 1)
-        if self.cem_elites > self.cem_samples:
-            raise ValueError(f"planner.cem_elites must be <= planner.cem_samples, got "
-                             f"{self.cem_elites} > {self.cem_samples}")
-        self._int_at_least("cem_iterations", 1)
+        if not isinstance(self.cem, CEMOptions):
+            raise ValueError(f"planner.cem must be a mbtsr.cem.CEMOptions, got "
+                             f"{type(self.cem).__name__}")
+        if self.cem.seed != 0:
+            raise ValueError("planner.cem.seed must be 0: the agent seeds every solve from seed, "
+                             f"got {self.cem.seed!r}")
 
 
 @dataclass(frozen=True)
@@ -177,14 +176,14 @@ class EvaluationConfig(_Checked):
         bound on the first episode whose model would have passed).
     :param episodes: evaluation episodes (fixed targets/seeds, see ``seed``).
     :param seed: seed of the evaluation targets and resets.
-    :param solved_ratio: the solved threshold relative to the oracle.
-    :param solved_return: success threshold on the mean evaluation return (``None``: the
-        oracle-ratio criterion, or no "solved" decision for envs without a true model).
-    :param stop_when_solved: stop ``learn`` at the first solved evaluation.
     :param early_exit: stop an evaluation as soon as the summed cost exceeds ``solved_ratio`` x
         the oracle's summed cost (exact for costs >= 0: such an evaluation cannot be solved); its
         ``eval_cost`` is then not logged and ``cost_ratio`` is a lower bound (see
         ``eval_episodes_run``).
+    :param solved_ratio: the solved threshold relative to the oracle.
+    :param solved_return: success threshold on the mean evaluation return (``None``: the
+        oracle-ratio criterion, or no "solved" decision for envs without a true model).
+    :param stop_when_solved: stop ``learn`` at the first solved evaluation.
     :param oracle_cache_dir: folder where the oracle's evaluation costs are memoised across runs
         (``None``: recompute in every run).
     """
@@ -193,10 +192,10 @@ class EvaluationConfig(_Checked):
     every: int = 4
     episodes: int = 3
     seed: int = 1000
+    early_exit: bool = True
     solved_ratio: float = 1.2
     solved_return: float | None = None
     stop_when_solved: bool = False
-    early_exit: bool = True
     oracle_cache_dir: str | None = None
 
     def __post_init__(self) -> None:
@@ -330,25 +329,7 @@ class AgentConfig(_Checked):
 
         :raises ValueError: naming the dotted field (unknown, or a bad value).
         """
-        updates: dict[str, Any] = {}
-        nested: dict[str, dict[str, Any]] = {}
-        for key, value in {**(changes or {}), **top}.items():
-            section, _, name = key.partition(".")
-            if section not in _FIELD_NAMES:
-                raise ValueError(f"unknown AgentConfig field {key!r}")
-            if not name:
-                updates[section] = value
-                continue
-            cls = SECTIONS.get(section)
-            if cls is None or "." in name or name not in _field_names(cls):
-                raise ValueError(f"unknown AgentConfig field {key!r}")
-            nested.setdefault(section, {})[name] = value
-        for section, values in nested.items():
-            base = updates.get(section, getattr(self, section))
-            if isinstance(base, str):  # {"regularization": "none", "regularization.sigma": 0.2}
-                base = getattr(dataclasses.replace(self, **{section: base}), section)
-            updates[section] = _prefixed(section, dataclasses.replace, base, **values)
-        return dataclasses.replace(self, **updates)
+        return _replaced(self, {**(changes or {}), **top}, "")
 
     @classmethod
     def default(cls, changes: Mapping[str, Any] | None = None, /, **top: Any) -> AgentConfig:
@@ -370,23 +351,7 @@ class AgentConfig(_Checked):
         converted by :func:`from_flat`. Unknown keys are an error naming them."""
         if _is_flat(d):
             return from_flat(d)
-        unknown = sorted(set(d) - _FIELD_NAMES)
-        if unknown:
-            raise ValueError(f"unknown AgentConfig field(s): {unknown}")
-        kwargs: dict[str, Any] = {}
-        for key, value in d.items():
-            sub = SECTIONS.get(key)
-            if sub is None:
-                kwargs[key] = value
-                continue
-            if not isinstance(value, Mapping):
-                raise ValueError(f"{key} must be a dict of {sub.__name__} fields, got {value!r}")
-            bad = sorted(set(value) - _field_names(sub))
-            if bad:
-                raise ValueError(f"unknown AgentConfig field(s): {[f'{key}.{b}' for b in bad]}")
-            fields_ = {k: tuple(v) if isinstance(v, list) else v for k, v in value.items()}
-            kwargs[key] = _prefixed(key, sub, **fields_)
-        return cls(**kwargs)
+        return _built(cls, d, "")
 
     @classmethod
     def from_json(cls, text: str) -> AgentConfig:
@@ -402,14 +367,63 @@ _FIELD_NAMES = _field_names(AgentConfig)
 
 def _prefixed(section: str, make: Any, *args: Any, **kwargs: Any) -> Any:
     """``make(*args, **kwargs)`` with a ``ValueError`` re-raised as ``"<section>.<message>"`` (the
-    library's configs name their own fields, the tree names the path)."""
+    library's configs name their own fields, the tree names the path; ``CEMOptions`` names them
+    ``options.<field>``)."""
     try:
         return make(*args, **kwargs)
     except (ValueError, TypeError) as err:
         msg = str(err)
-        if msg.startswith(f"{section}.") or msg.startswith(f"{section} "):
+        if not section or msg.startswith(f"{section}.") or msg.startswith(f"{section} "):
             raise
+        if msg.startswith("options."):
+            raise type(err)(msg.replace("options.", f"{section}.")) from None
         raise type(err)(f"{section}.{msg}") from None
+
+
+def _sub_configs(obj: Any) -> dict[str, type]:
+    """The fields of dataclass ``obj`` (an instance or a class with defaults) that hold configs."""
+    inst = obj() if isinstance(obj, type) else obj
+    return {f.name: type(getattr(inst, f.name)) for f in dataclasses.fields(inst)
+            if dataclasses.is_dataclass(getattr(inst, f.name))}
+
+
+def _replaced(obj: Any, changes: Mapping[str, Any], prefix: str) -> Any:
+    """``dataclasses.replace`` with dotted keys (``"planner.cem.samples"``), at any depth; every
+    level is validated again and its errors name the dotted path."""
+    direct: dict[str, Any] = {}
+    nested: dict[str, dict[str, Any]] = {}
+    names = _field_names(type(obj))
+    for key, value in changes.items():
+        head, _, rest = key.partition(".")
+        if head not in names:
+            raise ValueError(f"unknown AgentConfig field {prefix + key!r}")
+        if rest:
+            nested.setdefault(head, {})[rest] = value
+        else:
+            direct[head] = value
+    for head, values in nested.items():
+        base = direct.get(head, getattr(obj, head))
+        if isinstance(base, str) and isinstance(obj, AgentConfig):  # a name, then its fields
+            base = getattr(dataclasses.replace(obj, **{head: base}), head)
+        if not dataclasses.is_dataclass(base):
+            bad = f"{prefix}{head}.{next(iter(values))}"
+            raise ValueError(f"unknown AgentConfig field {bad!r}")
+        direct[head] = _replaced(base, values, f"{prefix}{head}.")
+    return _prefixed(prefix[:-1], dataclasses.replace, obj, **direct)
+
+
+def _built(cls: type, d: Mapping[str, Any], prefix: str) -> Any:
+    """``cls`` from a nested dict of its fields (:meth:`AgentConfig.to_dict`'s inverse, at any
+    depth); lists become tuples, unknown keys are an error naming their dotted path."""
+    if not isinstance(d, Mapping):
+        raise ValueError(f"{prefix[:-1]} must be a dict of {cls.__name__} fields, got {d!r}")
+    unknown = sorted(set(d) - _field_names(cls))
+    if unknown:
+        raise ValueError(f"unknown AgentConfig field(s): {[prefix + k for k in unknown]}")
+    subs = _sub_configs(cls)
+    kwargs = {k: _built(subs[k], v, f"{prefix}{k}.") if k in subs
+              else tuple(v) if isinstance(v, list) else v for k, v in d.items()}
+    return _prefixed(prefix[:-1], cls, **kwargs)
 
 
 # ---- the old flat format (before the tree): one function, tested in tests/test_config_tree.py --
@@ -419,7 +433,8 @@ _FLAT_PATHS = {
     "epochs_per_episode": "training.epochs", "lr": "training.lr",
     "weight_decay": "training.weight_decay",
     "planner": "planner.kind",
-    **{n: f"planner.{n}" for n in _field_names(PlannerConfig) - {"kind"}},
+    **{n: f"planner.{n}" for n in _field_names(PlannerConfig) - {"kind", "cem"}},
+    **{f"cem_{n}": f"planner.cem.{n}" for n in ("samples", "elites", "iterations")},
     **{f"eval_{n}": f"evaluation.{n}" for n in ("every", "episodes", "seed", "early_exit")},
     **{n: f"evaluation.{n}" for n in ("solved_ratio", "solved_return", "stop_when_solved",
                                        "oracle_cache_dir")},

@@ -217,9 +217,8 @@ class JacPropAgent:
         if cfg.planner.kind == "cem":
             from mbtsr.cem import cem as optimizer
 
-            options = {"samples": cfg.planner.cem_samples, "elites": cfg.planner.cem_elites,
-                       "seed": cfg.seed}
-            iterations = cfg.planner.cem_iterations
+            options = dataclasses.replace(cfg.planner.cem, seed=cfg.seed)
+            iterations = options.iterations
         self.policy = mpc_policy(
             self.planning_model,
             self.task_cost,

@@ -69,6 +69,7 @@ def _qualify(message: str, argv: Sequence[str]) -> str:
     if not m:
         return message
     path, name, rest = m.groups()
+    name = name.removeprefix("options.")  # mbtsr.cem.CEMOptions names its fields options.<f>
     given = {a.split("=")[0][2:].replace("-", "_") for a in argv if a.startswith("--")}
     parts = path.split(".")
     for i in range(len(parts), -1, -1):

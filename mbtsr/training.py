@@ -123,6 +123,11 @@ class RegularizationConfig:
         propagation, the paper's method; paper value 1 = copies count like data).
     :param sigma: perturbation std relative to each dimension's std over time (paper: 0.1).
     :param n_copies: perturbed copies per trajectory per epoch (paper: 1).
+    :param copies_batch: ``"shared"``: the perturbed copies join the batch of their original
+        transitions (one optimizer step per batch, as the baseline); ``"own"``: each copy of
+        each batch is its own optimizer step after the epoch's data batches (the original
+        code's behaviour; ``1 + n_copies`` times the steps per epoch), its loss
+        ``sampled_weight * mean ||y(x~) - r~||^2`` alone.
     :param exact_weight: weight of ``sum_t ||J_model(t) - J_LTV(t)||_F^2`` (double backprop).
     :param smooth_weight: weight of ``sum_t ||J_model(t+1) - J_model(t)||_F^2`` (the original's
         later "AD jacprop", paper eq. (reg)); needs no LTV model.
@@ -130,21 +135,16 @@ class RegularizationConfig:
         ratio, scale dependent); default ``sqrt(1000)``, the original's R2 = 1000 I, R1 = I.
         ``None`` picks it per trajectory with :func:`mbtsr.ltv.select_lambda`.
     :param ltv_affine: fit LTV models with an affine term ``c_t``.
-    :param copies_batch: ``"shared"``: the perturbed copies join the batch of their original
-        transitions (one optimizer step per batch, as the baseline); ``"own"``: each copy of
-        each batch is its own optimizer step after the epoch's data batches (the original
-        code's behaviour; ``1 + n_copies`` times the steps per epoch), its loss
-        ``sampled_weight * mean ||y(x~) - r~||^2`` alone.
     """
 
     sampled_weight: float = 0.0
     sigma: float = 0.1
     n_copies: int = 1
+    copies_batch: Literal["shared", "own"] = "shared"
     exact_weight: float = 0.0
     smooth_weight: float = 0.0
     ltv_lambda: float | None = ORIGINAL_LTV_LAMBDA
     ltv_affine: bool = False
-    copies_batch: Literal["shared", "own"] = "shared"
 
     def __post_init__(self) -> None:
         for name in ("sampled_weight", "exact_weight", "smooth_weight", "sigma"):

@@ -591,8 +591,8 @@ def test_cem_planner_runs_the_same_mpc_and_respects_the_termination_fn():
     """planner='cem' plans with forward predictions only; a termination predicted at every
     state leaves only the first stage cost in every plan's cost."""
     env = gym.make("Pendulum-v1")
-    cfg = tiny_config({"planner.cem_samples": 16, "planner.cem_elites": 4,
-                       "planner.cem_iterations": 1, "collection.episode_steps": 12}, planner="cem")
+    cfg = tiny_config({"planner.cem.samples": 16, "planner.cem.elites": 4,
+                       "planner.cem.iterations": 1, "collection.episode_steps": 12}, planner="cem")
     agent = JacPropAgent(env, cfg, cost_fn=pendulum_cost)
     agent.learn(2, progress_bar=False)
     assert agent.logger_rows[-1]["phase"] == "mpc"

@@ -24,6 +24,7 @@ from agents.config import (
     from_flat,
 )
 from agents.jacprop_agent import JacPropAgent
+from mbtsr.cem import CEMOptions
 from mbtsr.ensemble import EnsembleConfig, MemberSpec, ModelConfig
 from mbtsr.training import RegularizationConfig, TrainConfig
 
@@ -169,8 +170,12 @@ def test_every_old_flat_field_lands_on_its_tree_field():
                              progress=False),
         regularization=RegularizationConfig(smooth_weight=0.2, sigma=0.05, n_copies=2,
                                             ltv_lambda=4.0),
-        planner=PlannerConfig("cem", 12, 3, 4, 9, 2.0, 50, 5, 2),
-        evaluation=EvaluationConfig(2, 5, 7, 1.5, -10.0, True, False, "cache"),
+        planner=PlannerConfig(kind="cem", horizon=12, replan_every=3, ilqr_iterations=4,
+                              first_plan_iterations=9, terminal_weight=2.0,
+                              cem=CEMOptions(samples=50, elites=5, iterations=2)),
+        evaluation=EvaluationConfig(every=2, episodes=5, seed=7, solved_ratio=1.5,
+                                    solved_return=-10.0, stop_when_solved=True,
+                                    early_exit=False, oracle_cache_dir="cache"),
         seed=9, renormalize=False, ltv_prior=0.0, run_dir="r", checkpoint=False,
         tensorboard=False, video=True, video_every=2, jacobian_error=False, progress=False,
         torch_threads=1)
@@ -224,7 +229,7 @@ def test_an_old_format_checkpoint_resumes_exactly(tmp_path):
 
 # ---------------------------------------------------------------------------- errors
 INT_MINIMA = {"model.hidden_width": 1, "model.ensemble_size": 1, "training.epochs": 1,
-              "planner.horizon": 2, "planner.cem_samples": 2, "evaluation.episodes": 1,
+              "planner.horizon": 2, "planner.cem.samples": 2, "evaluation.episodes": 1,
               "collection.excitation_window": 1, "regularization.n_copies": 1}
 
 
