@@ -938,13 +938,11 @@ class JacPropAgent:
         }
 
     def resolved_config(self) -> dict[str, Any]:
-        """The agent config and the component configs it resolves to (for ``config.json``)."""
-        tcfg, reg = self._train_configs()
+        """The agent config tree and what it resolves to with the env (for ``config.json``):
+        the ensemble's :class:`~mbtsr.ensemble.EnsembleConfig` and the env spec."""
         return {
             "agent": self.config.to_dict(),
             "ensemble": json.loads(self.ensemble_config.to_json()),
-            "training": {k: v for k, v in dataclasses.asdict(tcfg).items() if k != "seed"},
-            "regularization": dataclasses.asdict(reg),
             "env_spec": self.spec.to_dict(),
         }
 

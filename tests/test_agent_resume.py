@@ -204,4 +204,8 @@ def test_resume_loads_the_saved_config_and_refuses_a_contradicting_flag(tmp_path
     err = capsys.readouterr().err
     assert exc.value.code == 2 and err.count("\n") == 1 and "--seed 5 differs" in err
     saved = json.loads((tmp_path / "run" / "config.json").read_text())
-    assert saved["script"]["agent"]["seed"] == 4  # the whole config tree is saved with the run
+    # the whole config tree is saved with the run, nested, and loads back
+    assert saved["agent"]["seed"] == 4 and saved["agent"]["model"]["hidden_width"] == 12
+    from agents.config import AgentConfig
+
+    assert AgentConfig.from_dict(saved["agent"]) == args.agent

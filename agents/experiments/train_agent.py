@@ -175,7 +175,8 @@ def run(args: Args) -> dict:
     else:
         agent = JacPropAgent(env, cfg.replace(run_dir=str(run_dir)))
     atomic_write_text(run_dir / "config.json", json.dumps(
-        {"script": dataclasses.asdict(args), "command": " ".join(sys.argv),
+        {"script": {k: v for k, v in dataclasses.asdict(args).items() if k != "agent"},
+         "command": " ".join(sys.argv),
          **agent.resolved_config()}, indent=2, default=str))
 
     # 3. Algorithm 1: episodes of rollout -> LTV fit -> regularised model update -> planning --
