@@ -58,9 +58,9 @@ class Args:
     summary_table: bool = True
     """print the rich summary table"""
     regularization: Literal["weights", "sampled", "exact", "smooth", "none"] = "weights"
-    """the regularizer by name: only its weight stays on (the --regularization.<name>-weight
-    given, else its default: sampled 1, exact/smooth 0.01); none: all weights 0; weights: as the
-    --regularization.*-weight flags say"""
+    """the regularizer by name: only its weight stays on (the one given with its flag, e.g.
+    --regularization.exact-weight, else its default: sampled 1, exact/smooth 0.01); none: all
+    weights 0; weights: as the weight flags say"""
     agent: Annotated[AgentConfig, tyro.conf.arg(name="")] = field(
         default_factory=lambda: AgentConfig(
             evaluation=EvaluationConfig(oracle_cache_dir="runs/oracle_cache")))
