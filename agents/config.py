@@ -396,7 +396,9 @@ def _replaced(obj: Any, changes: Mapping[str, Any], prefix: str) -> Any:
     for key, value in changes.items():
         head, _, rest = key.partition(".")
         if head not in names:
-            raise ValueError(f"unknown AgentConfig field {prefix + key!r}")
+            old = _FLAT_PATHS.get(key) if not prefix else None
+            hint = f" (a field before the tree: now {old!r})" if old else ""
+            raise ValueError(f"unknown AgentConfig field {prefix + key!r}{hint}")
         if rest:
             nested.setdefault(head, {})[rest] = value
         else:

@@ -139,6 +139,9 @@ def test_unknown_fields_are_named():
         AgentConfig.from_dict({**AgentConfig().to_dict(), "model": {"depth": 2}})
     with pytest.raises(ValueError, match=r"unknown AgentConfig field 'planner\.depth'"):
         AgentConfig().replace({"planner.depth": 2})
+    with pytest.raises(ValueError, match=r"'horizon' \(a field before the tree: now "
+                                         r"'planner\.horizon'\)"):
+        AgentConfig().replace({"horizon": 2})
 
 
 # ---------------------------------------------------------------------------- the old flat format
