@@ -50,6 +50,7 @@ import os
 from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, field
 from types import SimpleNamespace
+from typing import Literal
 
 import numpy as np
 import torch
@@ -65,6 +66,7 @@ from mbtsr.trajectory import Trajectory
 from mbtsr.validation import as_array
 
 __all__ = [
+    "ModelConfig",
     "ACTIVATIONS",
     "FrozenEnsemble",
     "FORMULATIONS",
@@ -289,6 +291,62 @@ class EnsembleConfig:
         if isinstance(d.get("tau"), list):
             d["tau"] = tuple(d["tau"])
         return cls(**d)
+
+
+
+@dataclass(frozen=True)
+class ModelConfig:
+    """An ensemble architecture before the data's dimensions are known (the agent's ``model``).
+
+    :class:`EnsembleConfig` needs ``state_dim``/``action_dim`` (and a seed), which a learner only
+    knows once it sees its env; this config holds everything else and :meth:`build` adds them.
+    It covers the formulations that need no nominal matrices (``"g"``, ``"f"``) and uniform
+    members (one width and depth, activations cycled).
+
+    :param formulation: ``"g"`` (``x+ = x + g(x, u)``, paper Objective 2) or ``"f"``
+        (``x+ = f(x, u)``, Objective 1).
+    :param ensemble_size: number of ensemble members (their mean is the model).
+    :param hidden_width: hidden units per layer of each member (paper: 20).
+    :param hidden_layers: hidden layers per member, 1 (paper) or 2.
+    :param activations: member ``k`` uses ``activations[k % len(activations)]``; the default is
+        the paper's nominal ensemble (elu, sigmoid, tanh, swish).
+    """
+
+    formulation: Literal["g", "f"] = "g"
+    ensemble_size: int = 4
+    hidden_width: int = 20
+    hidden_layers: int = 1
+    activations: tuple[str, ...] = ("elu", "sigmoid", "tanh", "swish")
+
+    def __post_init__(self) -> None:
+        acts = (self.activations,) if isinstance(self.activations, str) else self.activations
+        object.__setattr__(self, "activations", tuple(acts))
+        if self.formulation not in ("g", "f"):
+            raise ValueError(f"formulation must be one of ('g', 'f'), got {self.formulation!r}")
+        for name in ("ensemble_size", "hidden_width"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 1:
+                raise ValueError(f"{name} must be an integer >= 1, got {v!r}")
+        if self.hidden_layers not in (1, 2) or isinstance(self.hidden_layers, bool):
+            raise ValueError(f"hidden_layers must be 1 or 2, got {self.hidden_layers!r}")
+        if len(self.activations) == 0 or any(a not in ACTIVATIONS for a in self.activations):
+            raise ValueError(
+                f"activations must be a non-empty tuple of names from {sorted(ACTIVATIONS)}, "
+                f"got {self.activations!r}"
+            )
+
+    def ensemble_config(self, state_dim: int, action_dim: int, seed: int = 0) -> EnsembleConfig:
+        """The :class:`EnsembleConfig` for data of these dimensions (inputs and outputs
+        normalized; ``seed`` seeds the weight initialisation)."""
+        acts = self.activations
+        members = tuple(MemberSpec(activation=acts[k % len(acts)], width=self.hidden_width,
+                                   depth=self.hidden_layers) for k in range(self.ensemble_size))
+        return EnsembleConfig(state_dim=state_dim, action_dim=action_dim, members=members,
+                              formulation=self.formulation, normalize=True, seed=seed)
+
+    def build(self, state_dim: int, action_dim: int, seed: int = 0) -> DynamicsEnsemble:
+        """A freshly initialised :class:`DynamicsEnsemble` of :meth:`ensemble_config`."""
+        return DynamicsEnsemble(self.ensemble_config(state_dim, action_dim, seed))
 
 
 # --------------------------------------------------------------------------------------------

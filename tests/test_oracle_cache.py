@@ -9,8 +9,6 @@ changed planner setting runs it again."""
 
 from __future__ import annotations
 
-import dataclasses
-
 import gymnasium as gym
 import numpy as np
 import pytest
@@ -91,9 +89,11 @@ def test_agent_oracle_hits_the_cache(tmp_path, monkeypatch):
         return real(policy, *args, **kwargs)
 
     monkeypatch.setattr(jp, "evaluate_policy_costs", counted)
-    cfg = AgentConfig(horizon=4, ilqr_iterations=1, first_plan_iterations=3, eval_episodes=1,
-                      eval_every=0, progress=False, tensorboard=False, checkpoint=False,
-                      oracle_cache_dir=str(tmp_path))
+    cfg = AgentConfig.default({"planner.horizon": 4, "planner.ilqr_iterations": 1,
+                               "planner.first_plan_iterations": 3, "evaluation.episodes": 1,
+                               "evaluation.every": 0,
+                               "evaluation.oracle_cache_dir": str(tmp_path)},
+                              progress=False, tensorboard=False, checkpoint=False)
 
     def oracle(cfg):
         return jp.JacPropAgent(gym.make(ARM, episode_steps=4), cfg).compute_oracle()
@@ -101,5 +101,5 @@ def test_agent_oracle_hits_the_cache(tmp_path, monkeypatch):
     first = oracle(cfg)
     assert len(runs) == 1 and len(list(tmp_path.glob("oracle_*.json"))) == 1
     assert oracle(cfg) == first and len(runs) == 1  # read back, not recomputed
-    oracle(dataclasses.replace(cfg, first_plan_iterations=4))
+    oracle(cfg.replace({"planner.first_plan_iterations": 4}))
     assert len(runs) == 2
