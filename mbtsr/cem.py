@@ -176,7 +176,11 @@ def _costs(
     else:
         stage = np.asarray(cost.stage_values(X[:, :-1], U, t0, params), dtype=float)
         final = np.asarray(cost.terminal_values(X[:, -1], t0 + U.shape[1], params), dtype=float)
-    return truncated_total(stage, final, terminated(X[:, 1:]), termination_cost)
+    done = np.asarray(terminated(X[:, 1:]))
+    if done.shape != stage.shape:
+        raise ValueError(f"terminated(X [S, T, n]) must return bool [S, T] = "
+                         f"{list(stage.shape)}, got {list(done.shape)}")
+    return truncated_total(stage, final, done, termination_cost)
 
 
 def cem(
@@ -211,6 +215,8 @@ def cem(
     :return: :class:`CEMResult`.
     """
     opts = _as_options(options)
+    if terminated is not None and not callable(terminated):
+        raise TypeError(f"terminated must be callable X -> bool, got {terminated!r}")
     x0 = as_array("x0", x0, ndim=1)
     n = x0.shape[0]
     for attr in ("state_dim",):

@@ -535,7 +535,18 @@ def truncated_total(
     cost. ``stage: [S, T]``, ``terminal: [S]``, ``done: [S, T]`` (``done[:, t]``: ``x_{t+1}``
     is terminal) -> ``[S]``.
     """
-    done = np.asarray(done, dtype=bool)
+    stage = np.asarray(stage, dtype=float)
+    terminal = np.asarray(terminal, dtype=float)
+    done = np.asarray(done)
+    if stage.ndim != 2:
+        raise ValueError(f"stage must be [S, T] stage costs, got shape {list(stage.shape)}")
+    if terminal.shape != stage.shape[:1]:
+        raise ValueError(f"terminal must be [S] = {list(stage.shape[:1])} terminal costs, got "
+                         f"shape {list(terminal.shape)}")
+    if done.shape != stage.shape:
+        raise ValueError(f"done (what terminated returns for x_1 .. x_T) must be bool [S, T] = "
+                         f"{list(stage.shape)}, got shape {list(done.shape)}")
+    done = done.astype(bool)
     ended_before = np.zeros_like(done)
     ended_before[:, 1:] = np.cumsum(done, axis=1)[:, :-1] > 0
     J = np.where(ended_before, 0.0, stage).sum(axis=1)

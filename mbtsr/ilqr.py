@@ -245,6 +245,8 @@ def ilqr(
     if isinstance(t0, bool) or not isinstance(t0, (int, np.integer)) or t0 < 0:
         raise ValueError(f"t0 must be an integer time index >= 0, got {t0!r}")
     t0 = int(t0)
+    if terminated is not None and not callable(terminated):
+        raise TypeError(f"terminated must be callable X -> bool, got {terminated!r}")
     lower, upper = check_control_bounds(u_min, u_max, m)
     has_limits = bool(np.any(np.isfinite(lower)) or np.any(np.isfinite(upper)))
     alphas = np.asarray(opts.alphas, dtype=float)
@@ -285,8 +287,6 @@ def ilqr(
         X, U = Xc[i], cands[i]
     else:
         X = X[0]
-    if terminated is not None and not callable(terminated):
-        raise TypeError(f"terminated must be callable X -> bool, got {terminated!r}")
 
     def total(X: np.ndarray, U: np.ndarray) -> np.ndarray:
         if terminated is None:

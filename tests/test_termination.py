@@ -100,3 +100,34 @@ def test_terminated_must_return_one_bool_per_state():
     with pytest.raises(TypeError, match="terminated"):
         ilqr(cost, LinearDynamics(np.eye(1), np.eye(1)), np.ones(1), np.zeros((3, 1)),
              terminated=3)
+
+
+@pytest.mark.parametrize("stage, terminal, done, name", [
+    (np.zeros((2, 3)), np.zeros(2), np.zeros((2, 1), bool), "done"),  # would broadcast silently
+    (np.zeros((2, 3)), np.zeros(2), np.zeros(2, bool), "done"),
+    (np.zeros((2, 3)), np.zeros(3), np.zeros((2, 3), bool), "terminal"),
+    (np.zeros(3), np.zeros(()), np.zeros(3, bool), "stage"),
+])
+def test_truncated_total_refuses_mismatched_shapes(stage, terminal, done, name):
+    with pytest.raises(ValueError, match=name):
+        truncated_total(stage, terminal, done)
+
+
+def test_cem_checks_what_terminated_returns():
+    cost = quadratic_cost(np.eye(1), np.eye(1), np.zeros(1))
+    model = LinearDynamics(np.eye(1), np.eye(1))
+    kw = dict(u_min=-1, u_max=1, options={"iterations": 1, "samples": 8, "elites": 2})
+    for wrong in (lambda X: np.zeros(X.shape[0], bool),          # one per sample, not per state
+                  lambda X: np.zeros((X.shape[0], 1), bool)):    # would broadcast silently
+        with pytest.raises(ValueError, match="terminated"):
+            cem(cost, model, np.ones(1), np.zeros((3, 1)), **kw, terminated=wrong)
+    with pytest.raises(TypeError, match="terminated"):
+        cem(cost, model, np.ones(1), np.zeros((3, 1)), **kw, terminated=3)
+
+
+def test_ilqr_checks_terminated_before_any_rollout():
+    """A non-callable ``terminated`` is refused even when the initial rollout diverges."""
+    cost = quadratic_cost(np.eye(1), np.eye(1), np.zeros(1))
+    model = LinearDynamics(1e9 * np.eye(1), np.eye(1))
+    with pytest.raises(TypeError, match="terminated"):
+        ilqr(cost, model, np.ones(1), np.zeros((3, 1)), terminated=3)
