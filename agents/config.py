@@ -349,6 +349,9 @@ class AgentConfig(_Checked):
     def from_dict(cls, d: Mapping[str, Any]) -> AgentConfig:
         """Inverse of :meth:`to_dict`; a dict in the old flat format (before the tree) is
         converted by :func:`from_flat`. Unknown keys are an error naming them."""
+        if not isinstance(d, Mapping):
+            raise ValueError(f"AgentConfig.from_dict needs a dict of AgentConfig fields, got "
+                             f"{type(d).__name__} {d!r}")
         if _is_flat(d):
             return from_flat(d)
         return _built(cls, d, "")

@@ -144,6 +144,14 @@ def test_unknown_fields_are_named():
         AgentConfig().replace({"horizon": 2})
 
 
+@pytest.mark.parametrize("bad", [[1, 2], "horizon", 3, None])
+def test_from_dict_and_from_json_refuse_a_non_dict(bad):
+    with pytest.raises(ValueError, match="AgentConfig.from_dict needs a dict"):
+        AgentConfig.from_dict(bad)
+    with pytest.raises(ValueError, match="AgentConfig.from_dict needs a dict"):
+        AgentConfig.from_json(json.dumps(bad))
+
+
 # ---------------------------------------------------------------------------- the old flat format
 def test_the_old_flat_defaults_load_to_the_default_tree():
     assert from_flat(OLD_DEFAULTS) == AgentConfig()
