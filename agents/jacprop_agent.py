@@ -857,7 +857,9 @@ class JacPropAgent(SB3Predictor):
         """Compute (or fetch from ``oracle_cache_dir``) the oracle's evaluation costs now;
         return their mean (``None`` if the env offers no true model)."""
         env, kwargs = self._eval_setup()
+        pending = self._oracle_seconds
         self._oracle_costs(env, kwargs)
+        self._oracle_seconds = pending  # computed outside learn: no episode's time_oracle
         return self.oracle_mean
 
     def _eval_setup(self) -> tuple[gym.Env, dict[str, Any]]:

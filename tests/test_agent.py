@@ -670,3 +670,24 @@ def test_evaluation_schedule_every_k_episodes_and_at_the_end_of_learn():
     agent.learn(total_env_steps=25, progress_bar=False)  # episodes 3, 4, 5 (5 steps)
     assert [r["episode"] for r in agent.logger_rows if r["eval_returns"]] == [0, 2, 4, 5]
     assert agent.logger_rows[-1]["env_steps"] == 55
+
+
+def test_oracle_time_is_booked_once_in_its_own_phase():
+    """The oracle's one-off computation is ``time_oracle`` of the episode whose evaluation ran
+    it, outside ``time_eval``; computed beforehand by ``compute_oracle()`` it belongs to no
+    episode (no negative ``time_eval``, no oracle time outside ``time_total``)."""
+    changes = {"collection.episode_steps": 10, "planner.horizon": 4,
+               "planner.first_plan_iterations": 2, "evaluation.every": 1,
+               "evaluation.episodes": 1, "training.epochs": 2}
+    rows = {}
+    for early in (False, True):
+        agent = JacPropAgent(gym.make("mbtsr/TwoLinkArm-v0"), tiny_config(changes, seed=0))
+        if early:
+            agent.compute_oracle()
+        agent.learn(1)
+        rows[early] = agent.logger_rows[0]
+    assert rows[False]["time_oracle"] > 0 and rows[True]["time_oracle"] == 0
+    for r in rows.values():
+        assert r["time_eval"] >= 0
+        assert r["time_eval"] + r["time_oracle"] <= r["time_total"]
+        assert r["oracle_cost"] == rows[False]["oracle_cost"]
