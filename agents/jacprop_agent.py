@@ -275,7 +275,7 @@ class JacPropAgent(SB3Predictor):
         self,
         episodes: int | None = None,
         callback: Callable[[dict[str, Any]], bool | None] | None = None,
-        progress_bar: bool = True,
+        progress_bar: bool | None = None,
         *,
         total_env_steps: int | None = None,
     ) -> JacPropAgent:
@@ -286,7 +286,7 @@ class JacPropAgent(SB3Predictor):
         :param episodes: number of episodes to run now (a loaded agent continues its count).
         :param callback: called after every episode with ``{"agent", "row"}``; returning
             ``False`` stops learning (as in Stable-Baselines3).
-        :param progress_bar: show a tqdm progress bar.
+        :param progress_bar: show a tqdm progress bar (``None``: ``config.progress``).
         :param total_env_steps: budget of env steps for this call (as SB3's
             ``learn(total_timesteps)``); the last episode is cut short (truncated) so that the
             budget is exact. With ``episodes`` too, whichever is reached first stops.
@@ -313,6 +313,8 @@ class JacPropAgent(SB3Predictor):
             )
         bar = None
         step_end = None if total_env_steps is None else self.env_steps + int(total_env_steps)
+        if progress_bar is None:
+            progress_bar = self.config.progress
         if progress_bar and (episodes or total_env_steps):
             from tqdm.auto import tqdm
 

@@ -691,3 +691,13 @@ def test_oracle_time_is_booked_once_in_its_own_phase():
         assert r["time_eval"] >= 0
         assert r["time_eval"] + r["time_oracle"] <= r["time_total"]
         assert r["oracle_cost"] == rows[False]["oracle_cost"]
+
+
+def test_config_progress_false_shows_no_progress_bar(capsys):
+    """``AgentConfig.progress`` (``--no-progress``) is what ``learn`` follows by default."""
+    agent = JacPropAgent(gym.make("mbtsr/TwoLinkArm-v0"),
+                         tiny_config({"collection.episode_steps": 5}, progress=False))
+    agent.learn(1)
+    assert "JacProp agent" not in capsys.readouterr().err
+    agent.learn(1, progress_bar=True)  # an explicit argument still wins
+    assert "JacProp agent" in capsys.readouterr().err
