@@ -199,6 +199,8 @@ def test_resume_loads_the_saved_config_and_refuses_a_contradicting_flag(tmp_path
     assert args.agent.seed == 4 and args.agent.model.hidden_width == 12  # from the checkpoint
     assert args.agent.run_dir == run_dir and args.episodes == 2
     assert script.parse(["--run-dir", run_dir, "--resume", "--seed", "4"]).agent.seed == 4
+    # the same folder spelled with a trailing slash (shell completion) is not a changed flag
+    assert script.parse(["--run-dir", run_dir + "/", "--resume"]).agent.run_dir == run_dir
     with pytest.raises(SystemExit) as exc:
         script.parse(["--run-dir", run_dir, "--resume", "--seed", "5"])
     err = capsys.readouterr().err

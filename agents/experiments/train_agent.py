@@ -118,6 +118,8 @@ def parse(argv: list[str] | None = None) -> Args:
         cli.fail(f"--resume: {err}")
     saved = saved.replace(run_dir=str(run_dir))
     args = cli.parse(Args, args=argv, default=dataclasses.replace(args, agent=saved))
+    if args.agent.run_dir:  # the same folder spelled differently ("runs/x/") is no change
+        args = dataclasses.replace(args, agent=args.agent.replace(run_dir=str(run_dir)))
     given, kept = _dotted(args.agent.to_dict()), _dotted(saved.to_dict())
     changed = [name for name in given if given[name] != kept[name]]
     if changed:
