@@ -137,6 +137,8 @@ class MPCPolicy(SB3Predictor):
                  termination_fn: Callable[[np.ndarray], np.ndarray] | None = None) -> None:
         if not isinstance(mpc, MPC):
             raise TypeError(f"mpc must be a mbtsr.mpc.MPC, got {type(mpc).__name__}")
+        if termination_fn is not None and not callable(termination_fn):
+            raise TypeError(f"termination_fn must be callable obs -> bool, got {termination_fn!r}")
         self.mpc = mpc
         self.task_cost = task_cost
         self.spec = task_cost.spec

@@ -131,3 +131,16 @@ def test_ilqr_checks_terminated_before_any_rollout():
     model = LinearDynamics(1e9 * np.eye(1), np.eye(1))
     with pytest.raises(TypeError, match="terminated"):
         ilqr(cost, model, np.ones(1), np.zeros((3, 1)), terminated=3)
+
+
+def test_mpc_policy_refuses_a_termination_fn_that_is_not_callable():
+    """Checked where it is given, not as a ``TypeError: 'int' object is not callable`` from
+    inside iLQR's line search at the first predict."""
+    import gymnasium as gym
+
+    import envs  # noqa: F401  (registers mbtsr/TwoLinkArm-v0)
+    from agents.evaluation import oracle_policy
+
+    env = gym.make("mbtsr/TwoLinkArm-v0")
+    with pytest.raises(TypeError, match="termination_fn"):
+        oracle_policy(env, 5, termination_fn=3)
