@@ -76,21 +76,20 @@ def as_array(
 
 def check_positive(name: str, value: float) -> float:
     """Raise ``ValueError`` unless ``value`` is a finite number > 0."""
-    try:
-        v = float(value)
-    except (TypeError, ValueError):
-        v = math.nan  # not a number: the same message
-    if not np.isfinite(v) or v <= 0:
-        raise ValueError(f"{name} must be a finite number > 0, got {value!r}")
-    return v
+    return _check_number(name, value, ">")
 
 
 def check_nonnegative(name: str, value: float) -> float:
     """Raise ``ValueError`` unless ``value`` is a finite number >= 0."""
+    return _check_number(name, value, ">=")
+
+
+def _check_number(name: str, value: float, op: str) -> float:
+    """``float(value)`` if it is finite and ``op`` (``">"`` or ``">="``) 0, else ``ValueError``."""
     try:
         v = float(value)
     except (TypeError, ValueError):
         v = math.nan  # not a number: the same message
-    if not np.isfinite(v) or v < 0:
-        raise ValueError(f"{name} must be a finite number >= 0, got {value!r}")
+    if not np.isfinite(v) or v < 0 or (op == ">" and v == 0):
+        raise ValueError(f"{name} must be a finite number {op} 0, got {value!r}")
     return v
