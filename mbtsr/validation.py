@@ -8,12 +8,15 @@ silently wrong answer deep inside a solver.
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
+from typing import Any
 
 import numpy as np
 
 __all__ = [
     "as_array",
+    "call_user_fn",
+    "check_callable",
     "check_finite",
     "check_positive",
     "check_nonnegative",
@@ -93,3 +96,21 @@ def _check_number(name: str, value: float, op: str) -> float:
     if not np.isfinite(v) or v < 0 or (op == ">" and v == 0):
         raise ValueError(f"{name} must be a finite number {op} 0, got {value!r}")
     return v
+
+
+def check_callable(name: str, fn: Any, signature: str) -> Callable:
+    """Raise ``TypeError`` unless ``fn`` is callable; ``signature`` (e.g. ``"obs -> cost"``)
+    says in the message what ``name`` should be."""
+    if not callable(fn):
+        raise TypeError(f"{name} must be callable {signature}, got {fn!r}")
+    return fn
+
+
+def call_user_fn(fn: Callable, *args: Any, failure: str) -> Any:
+    """``fn(*args)`` for a user's function, checked once at the public boundary: any exception
+    becomes ONE ``ValueError(f"{failure}: {ExceptionType}: {message}")`` (no traceback chain),
+    where ``failure`` names the function and the probe it failed on."""
+    try:
+        return fn(*args)
+    except Exception as err:  # noqa: BLE001 - whatever the user's code raises
+        raise ValueError(f"{failure}: {type(err).__name__}: {err}") from None
