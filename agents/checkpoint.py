@@ -18,7 +18,6 @@ env's ``dt``, a preset, the spaces, a config field).
 
 from __future__ import annotations
 
-import io
 import json
 import math
 import os
@@ -40,7 +39,6 @@ __all__ = [
     "CheckpointError",
     "atomic_write_bytes",
     "atomic_write_text",
-    "atomic_torch_save",
     "check_same",
     "env_fingerprint",
     "save_checkpoint",
@@ -54,13 +52,6 @@ __all__ = [
 #: bumped when the payload layout changes incompatibly (2: checksummed file with a header)
 CHECKPOINT_FORMAT = 2
 _KIND = "agent-checkpoint"
-
-
-def atomic_torch_save(obj: Any, path: str | os.PathLike) -> Path:
-    """``torch.save`` into memory, then :func:`atomic_write_bytes`."""
-    buf = io.BytesIO()
-    torch.save(obj, buf)
-    return atomic_write_bytes(path, buf.getvalue())
 
 
 def numpy_rng_state(rng: np.random.Generator) -> str:

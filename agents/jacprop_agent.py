@@ -74,6 +74,7 @@ from mbtsr.ensemble import DynamicsEnsemble, save_model
 from mbtsr.ilqr import ilqr
 from mbtsr.ltv import LTVModel, fit_ltv, fuse_prior, select_lambda
 from mbtsr.trajectory import Trajectory, save_trajectories
+from mbtsr.validation import call_user_fn, check_callable
 
 __all__ = ["JacPropAgent"]
 
@@ -238,27 +239,19 @@ class JacPropAgent(SB3Predictor):
         """Call the state map on one observation and on a batch of three (it is called on
         whole episodes ``[T+1, obs_dim]`` during :meth:`learn`) and check that the batch gives
         the rows of the single calls. :return: the state of the first probe ``[n]``."""
-        rng = np.random.default_rng(0)
-        probe = rng.uniform(-1.0, 1.0, (3, spec.obs_dim))
-        if env is not None:
-            probe = np.clip(probe, env.observation_space.low, env.observation_space.high)
-        try:
-            single = [self.state_map.state(o) for o in probe]
-        except Exception as err:
-            raise ValueError(
-                f"state_fn failed on one observation [{spec.obs_dim}]: {type(err).__name__}: {err}"
-            ) from None
+        probe = _probe_observations(env, (3, spec.obs_dim))
+        single = call_user_fn(
+            lambda: [self.state_map.state(o) for o in probe],
+            failure=f"state_fn failed on one observation [{spec.obs_dim}]",
+        )
         s = single[0]
         if s.ndim != 1 or s.size < 1:
             raise ValueError(f"state_fn(obs) must return a 1-D state, got shape {list(s.shape)}")
-        try:
-            batch = self.state_map.state(probe)
-        except Exception as err:
-            raise ValueError(
-                "state_fn must also accept a batch of observations [B, obs_dim] and return "
-                f"[B, n] (it is applied to whole episodes); it failed on [3, {spec.obs_dim}]: "
-                f"{type(err).__name__}: {err}"
-            ) from None
+        batch = call_user_fn(
+            self.state_map.state, probe,
+            failure="state_fn must also accept a batch of observations [B, obs_dim] and return "
+            f"[B, n] (it is applied to whole episodes); it failed on [3, {spec.obs_dim}]",
+        )
         if batch.shape != (3, s.size) or not np.allclose(batch, np.stack(single), equal_nan=True):
             raise ValueError(
                 "state_fn must map a batch of observations [B, obs_dim] row by row to "
@@ -1045,24 +1038,27 @@ class ReplanEvery(SB3Predictor):
         return action, np.concatenate([rest, np.full((1, rest.shape[1]), float(age))], axis=0)
 
 
+def _probe_observations(env: gym.Env | None, shape: tuple[int, ...]) -> np.ndarray:
+    """Seeded test observations ``shape = [..., obs_dim]`` in ``[-1, 1]``, clipped to the
+    env's observation space when there is an env."""
+    probe = np.random.default_rng(0).uniform(-1.0, 1.0, shape)
+    if env is not None:
+        probe = np.clip(probe, env.observation_space.low, env.observation_space.high)
+    return probe
+
+
 def _checked_termination_fn(
     fn: Callable[[np.ndarray], np.ndarray] | None, env: gym.Env | None, spec: EnvSpec
 ) -> Callable[[np.ndarray], np.ndarray] | None:
     """Check ``termination_fn`` on a batch of observations ``[2, 3, obs_dim] -> bool [2, 3]``."""
     if fn is None:
         return None
-    if not callable(fn):
-        raise TypeError(f"termination_fn must be callable obs -> bool, got {fn!r}")
-    probe = np.random.default_rng(0).uniform(-1.0, 1.0, (2, 3, spec.obs_dim))
-    if env is not None:
-        probe = np.clip(probe, env.observation_space.low, env.observation_space.high)
-    try:
-        out = np.asarray(fn(probe))
-    except Exception as err:
-        raise ValueError(
-            f"termination_fn must accept a batch of observations [..., obs_dim={spec.obs_dim}]; "
-            f"it failed on [2, 3, {spec.obs_dim}]: {type(err).__name__}: {err}"
-        ) from None
+    check_callable("termination_fn", fn, "obs -> bool")
+    out = np.asarray(call_user_fn(
+        fn, _probe_observations(env, (2, 3, spec.obs_dim)),
+        failure=f"termination_fn must accept a batch of observations [..., "
+        f"obs_dim={spec.obs_dim}]; it failed on [2, 3, {spec.obs_dim}]",
+    ))
     if out.shape != (2, 3):
         raise ValueError(
             f"termination_fn(obs [..., obs_dim]) must return one bool per observation [...]; for "

@@ -30,6 +30,8 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 
+from mbtsr.validation import check_callable
+
 __all__ = ["ModelEnv"]
 
 MEMBER_MODES = ("mean", "step", "episode")
@@ -97,8 +99,7 @@ class ModelEnv(gym.Env):
             )
         if cost_on not in ("next", "current"):
             raise ValueError(f"cost_on must be 'next' or 'current', got {cost_on!r}")
-        if not callable(cost_fn):
-            raise TypeError(f"cost_fn must be callable (obs, action) -> cost, got {cost_fn!r}")
+        check_callable("cost_fn", cost_fn, "(obs, action) -> cost")
         if (state_fn is None) != (obs_fn is None):
             raise ValueError("give both state_fn and obs_fn or neither")
         if (start_obs is None) == (reset_fn is None):

@@ -38,7 +38,7 @@ import casadi as ca
 import gymnasium as gym
 import numpy as np
 
-from mbtsr.validation import as_array
+from mbtsr.validation import as_array, call_user_fn, check_callable
 
 __all__ = [
     "EnvSpec",
@@ -254,9 +254,7 @@ class ObservationCost:
         state_dim: int,
         terminal_cost_fn: Callable[[Any], Any] | None = None,
     ) -> None:
-        if not callable(cost_fn):
-            raise TypeError(f"cost_fn must be callable (obs, action) -> cost, got {cost_fn!r}")
-        self.cost_fn = cost_fn
+        self.cost_fn = check_callable("cost_fn", cost_fn, "(obs, action) -> cost")
         self.state_map = state_map
         self.spec = spec
         self.state_dim = state_dim
@@ -265,14 +263,11 @@ class ObservationCost:
         s = ca.SX.sym("s", state_dim)
         c_obs = _call_cost(cost_fn, o, a, spec)
         self.obs_function = ca.Function("cost_obs", [o, a], [c_obs])
-        try:
-            o_of_s = state_map.observation(s, o)
-            o_of_s = ca.SX(o_of_s) if not isinstance(o_of_s, ca.SX) else o_of_s
-        except Exception as err:
-            raise ValueError(
-                f"obs_fn failed on a symbolic state of dimension {state_dim} and an observation "
-                f"of dimension {spec.obs_dim}: {err}"
-            ) from None
+        o_of_s = call_user_fn(
+            lambda: ca.SX(state_map.observation(s, o)),
+            failure=f"obs_fn failed on a symbolic state of dimension {state_dim} and an "
+            f"observation of dimension {spec.obs_dim}",
+        )
         if o_of_s.shape != (spec.obs_dim, 1):
             raise ValueError(
                 f"obs_fn(state, obs_ref) must return an observation of shape ({spec.obs_dim},), "
@@ -287,17 +282,12 @@ class ObservationCost:
         if terminal_cost_fn is None:
             c_term = ca.substitute(c_state, a, ca.DM.zeros(spec.act_dim))
         else:
-            if not callable(terminal_cost_fn):
-                raise TypeError(
-                    f"terminal_cost_fn must be callable obs -> cost, got {terminal_cost_fn!r}")
-            try:
-                c_term_obs = ca.SX(terminal_cost_fn(o))
-            except Exception as err:
-                raise ValueError(
-                    f"terminal_cost_fn(obs) failed on a symbolic observation of dimension "
-                    f"{spec.obs_dim} (write it with casadi operations): "
-                    f"{type(err).__name__}: {err}"
-                ) from None
+            check_callable("terminal_cost_fn", terminal_cost_fn, "obs -> cost")
+            c_term_obs = call_user_fn(
+                lambda: ca.SX(terminal_cost_fn(o)),
+                failure=f"terminal_cost_fn(obs) failed on a symbolic observation of dimension "
+                f"{spec.obs_dim} (write it with casadi operations)",
+            )
             if c_term_obs.shape != (1, 1):
                 raise ValueError(
                     f"terminal_cost_fn must return a scalar, got shape {c_term_obs.shape}")
@@ -315,14 +305,12 @@ class ObservationCost:
 
 
 def _call_cost(cost_fn: Callable, o: ca.SX, a: ca.SX, spec: EnvSpec) -> ca.SX:
-    try:
-        c = cost_fn(o, a)
-    except Exception as err:
-        raise ValueError(
-            f"cost_fn(obs, action) failed on a symbolic observation of dimension {spec.obs_dim} "
-            f"and action of dimension {spec.act_dim} (does the cost match the env's spaces? "
-            f"it must be written with casadi operations): {type(err).__name__}: {err}"
-        ) from None
+    c = call_user_fn(
+        cost_fn, o, a,
+        failure=f"cost_fn(obs, action) failed on a symbolic observation of dimension "
+        f"{spec.obs_dim} and action of dimension {spec.act_dim} (does the cost match the env's "
+        f"spaces? it must be written with casadi operations)",
+    )
     try:
         c = ca.SX(c)
     except Exception:

@@ -697,7 +697,8 @@ class DynamicsEnsemble(nn.Module):
         return torch.cat([x, u], -1)
 
     def stacked_forward(self, xu: torch.Tensor, jac_rows: int = 0, *, normalized: bool = False):
-        """Internal training entry point, members in *stacked* order (see ``stacked_order``).
+        """Internal training entry point, members in *stacked* order (``_stacked_order[i]``
+        is the config index of the i-th).
 
         :param xu: ``[B, n+m]`` raw inputs (float32), or normalized ones if ``normalized``
             (see :meth:`normalize_inputs`).
@@ -721,11 +722,6 @@ class DynamicsEnsemble(nn.Module):
         J = Js[0] if len(Js) == 1 else torch.cat(Js, 0)
         J = self.out_std[:, None] * J / self.in_std + self.skip_J
         return y, J
-
-    @property
-    def stacked_order(self) -> list[int]:
-        """``stacked_order[i]`` is the config index of the i-th member in stacked order."""
-        return list(self._stacked_order)
 
     def normalize_inputs(self, xu: torch.Tensor) -> torch.Tensor:
         """``([x, u] - in_mean) / in_std`` for ``xu: [..., n+m]``."""

@@ -8,12 +8,15 @@ silently wrong answer deep inside a solver.
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
+from typing import Any
 
 import numpy as np
 
 __all__ = [
     "as_array",
+    "call_user_fn",
+    "check_callable",
     "check_finite",
     "check_positive",
     "check_nonnegative",
@@ -76,21 +79,38 @@ def as_array(
 
 def check_positive(name: str, value: float) -> float:
     """Raise ``ValueError`` unless ``value`` is a finite number > 0."""
-    try:
-        v = float(value)
-    except (TypeError, ValueError):
-        v = math.nan  # not a number: the same message
-    if not np.isfinite(v) or v <= 0:
-        raise ValueError(f"{name} must be a finite number > 0, got {value!r}")
-    return v
+    return _check_number(name, value, ">")
 
 
 def check_nonnegative(name: str, value: float) -> float:
     """Raise ``ValueError`` unless ``value`` is a finite number >= 0."""
+    return _check_number(name, value, ">=")
+
+
+def _check_number(name: str, value: float, op: str) -> float:
+    """``float(value)`` if it is finite and ``op`` (``">"`` or ``">="``) 0, else ``ValueError``."""
     try:
         v = float(value)
     except (TypeError, ValueError):
         v = math.nan  # not a number: the same message
-    if not np.isfinite(v) or v < 0:
-        raise ValueError(f"{name} must be a finite number >= 0, got {value!r}")
+    if not np.isfinite(v) or v < 0 or (op == ">" and v == 0):
+        raise ValueError(f"{name} must be a finite number {op} 0, got {value!r}")
     return v
+
+
+def check_callable(name: str, fn: Any, signature: str) -> Callable:
+    """Raise ``TypeError`` unless ``fn`` is callable; ``signature`` (e.g. ``"obs -> cost"``)
+    says in the message what ``name`` should be."""
+    if not callable(fn):
+        raise TypeError(f"{name} must be callable {signature}, got {fn!r}")
+    return fn
+
+
+def call_user_fn(fn: Callable, *args: Any, failure: str) -> Any:
+    """``fn(*args)`` for a user's function, checked once at the public boundary: any exception
+    becomes ONE ``ValueError(f"{failure}: {ExceptionType}: {message}")`` (no traceback chain),
+    where ``failure`` names the function and the probe it failed on."""
+    try:
+        return fn(*args)
+    except Exception as err:  # noqa: BLE001 - whatever the user's code raises
+        raise ValueError(f"{failure}: {type(err).__name__}: {err}") from None

@@ -91,3 +91,22 @@ def test_unknown_names_exit_2_with_one_line(flag, capsys):
     assert e.value.code == 2
     err = capsys.readouterr().err.strip()
     assert flag in err and "\n" not in err
+
+
+def test_comparisons_pair_the_seeds_both_regularizers_ran():
+    suite = _suite()
+
+    def run(reg, seed, steps, score):
+        return {"task": "inverted-pendulum", "planner": "ilqr", "regularization": reg,
+                "seed": seed, "env_steps_to_solve": steps, "final_score": score,
+                "budget_env_steps": 2000, "wall_seconds_per_phase": {"total": 10.0 + seed}}
+
+    none = [run("none", k, s, 200.0) for k, s in enumerate([500, 100, 300, 50, 60])]
+    exact = [run("exact", k, s, 190.0) for k, s in enumerate([200, 100, None])]
+    (c,) = suite.comparisons(none + exact)
+    assert c["regularization"] == "exact" and c["seeds"] == [0, 1, 2]
+    # medians on seeds 0-2 only: exact {200, 100, >=2000} -> 200; none {500, 100, 300} -> 300
+    assert c["steps_to_solve"] == "200 vs 300"
+    assert c["wins_ties_losses"] == "1/1/1"  # seed 0 fewer, seed 1 equal, seed 2 unsolved
+    assert c["final_score"] == "190 vs 200"
+    assert c["wall_ratio"] == 1.0  # same seeds, same per-seed walls

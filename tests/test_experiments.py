@@ -405,3 +405,10 @@ def test_claims_statistics_match_a_direct_computation(tmp_path):
     assert r["total"] == 9 and r["wins"] == int((a < b).sum())
     assert r["paired"]["median"] == pytest.approx(np.median(a - b))
     assert r["a_stats"]["q1"] == pytest.approx(np.percentile(a, 25))
+
+
+@pytest.mark.parametrize("method", ["sampeld", "", None])
+def test_run_regime_rejects_an_unknown_method(method):
+    """An unknown method used to fall back silently to sampled JacProp."""
+    with pytest.raises(ValueError, match=r"config\['method'\] must be one of"):
+        pc.run_regime({"method": method}, 0)

@@ -361,28 +361,46 @@ def _fmt(v: Any, digits: int = 3) -> str:
     return str(v)
 
 
-def comparisons(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
-    """Each regularizer vs none per task and planner: median env steps to solve (censored
-    medians give bounds) and median final score, and the median wall time ratio."""
+def comparisons(runs: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """Each regularizer R vs none per task and planner, PAIRED on the seeds both ran: median env
+    steps to solve (censored medians give bounds), wins/ties/losses per seed (fewer steps to
+    solve; an unsolved run counts as more than its budget), median final score, and the ratio
+    of the median wall times."""
     out = []
     for name in TASKS:
         lower_better = "solved_ratio" in TASKS[name]
         for planner in PLANNERS:
-            by = {r["regularization"]: r for r in rows
-                  if r["task"] == name and r["planner"] == planner}
+            by: dict[str, dict[int, dict[str, Any]]] = {}
+            for r in runs:
+                if r["task"] == name and r["planner"] == planner:
+                    by.setdefault(r["regularization"], {})[r["seed"]] = r
             for reg in (g for g in REGULARIZATIONS[1:] if g in by and "none" in by):
-                s_, n_ = by[reg], by["none"]
-                fs, fn = s_["final_score_median"], n_["final_score_median"]
+                seeds = sorted(set(by[reg]) & set(by["none"]))
+                if not seeds:
+                    continue
+                R = [by[reg][k] for k in seeds]
+                N = [by["none"][k] for k in seeds]
+                budget = min(r["budget_env_steps"] for r in R + N)
+
+                def steps(r: dict[str, Any]) -> float:
+                    v = r["env_steps_to_solve"]
+                    return math.inf if v is None else v
+
+                wins = sum(steps(x) < steps(y) for x, y in zip(R, N))
+                losses = sum(steps(x) > steps(y) for x, y in zip(R, N))
+                fs = float(np.median([r["final_score"] for r in R]))
+                fn = float(np.median([r["final_score"] for r in N]))
+                wall = [float(np.median([r["wall_seconds_per_phase"]["total"] for r in rs]))
+                        for rs in (R, N)]
                 out.append({
-                    "task": name, "planner": planner, "regularization": reg,
-                    "steps_to_solve": f"{s_['env_steps_to_solve_median']} vs "
-                                      f"{n_['env_steps_to_solve_median']}",
+                    "task": name, "planner": planner, "regularization": reg, "seeds": seeds,
+                    "steps_to_solve": " vs ".join(
+                        _median_censored([r["env_steps_to_solve"] for r in rs], budget)
+                        for rs in (R, N)),
+                    "wins_ties_losses": f"{wins}/{len(seeds) - wins - losses}/{losses}",
                     "final_score": f"{_fmt(fs)} vs {_fmt(fn)}",
-                    "final_score_ratio": (fs / fn if (fs is not None and fn not in (None, 0)
-                                                      and lower_better) else None),
-                    "wall_ratio": (s_["wall_median_per_phase"]["total"]
-                                   / n_["wall_median_per_phase"]["total"]),
-                    "seeds": f"{len(s_['seeds'])} vs {len(n_['seeds'])}",
+                    "final_score_ratio": fs / fn if (lower_better and fn != 0) else None,
+                    "wall_ratio": wall[0] / wall[1],
                 })
     return out
 
@@ -440,23 +458,26 @@ def write_markdown(state: dict[str, Any], path: Path, figure_dir: Path) -> None:
             f"{_fmt(r['final_score_median'])} ({finals}) | "
             f"{ph['training']:.0f} / {ph['ltv']:.1f} / {ph['planning']:.0f} / "
             f"{ph['eval']:.0f} / {ph['total']:.0f} |")
-    cmp = comparisons(rows)
+    cmp = comparisons(state["runs"])
     state["comparisons"] = cmp
     lines += [
         "",
-        "## Each regularizer vs none (same planner, same seeds, same env and optimizer steps)",
+        "## Each regularizer vs none (same planner, paired on the seeds both ran, same env and "
+        "optimizer steps)",
         "",
         "Target of issue 12: sampled needs <= 0.7x the env steps to solve of `none`, or reaches "
         "<= 0.9x its cost at equal env steps, at <= 2x its wall time.",
         "",
-        "| task | planner | regularizer R | env steps to solve (R vs none) | final score (R vs "
-        "none) | final cost ratio R/none | wall ratio R/none | seeds |",
-        "|---|---|---|---|---|---|---|---|",
+        "| task | planner | regularizer R | seeds | env steps to solve: median, R vs none | "
+        "R fewer / equal / more steps (per seed) | final score: median, R vs none | final cost "
+        "ratio R/none | wall ratio R/none |",
+        "|---|---|---|---|---|---|---|---|---|",
     ]
     for c in cmp:
         lines.append(f"| {c['task']} | {c['planner']} | {c['regularization']} | "
-                     f"{c['steps_to_solve']} | {c['final_score']} | "
-                     f"{_fmt(c['final_score_ratio'])} | {_fmt(c['wall_ratio'])} | {c['seeds']} |")
+                     f"{', '.join(map(str, c['seeds']))} | {c['steps_to_solve']} | "
+                     f"{c['wins_ties_losses']} | {c['final_score']} | "
+                     f"{_fmt(c['final_score_ratio'])} | {_fmt(c['wall_ratio'])} |")
     lines += [
         "",
         f"![learning curves per task]({rel}/bench_suite_curves.png)",

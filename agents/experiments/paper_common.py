@@ -1025,9 +1025,12 @@ def run_regime(config: dict, seed: int) -> dict:
     from mbtsr.metrics import prediction_rms
     from mbtsr.training import RegularizationConfig, TrainConfig, train_ensemble
 
+    method = config["method"]
+    if method not in REGIME_METHODS:  # else it would silently train as "sampled"
+        raise ValueError(f"config['method'] must be one of {REGIME_METHODS}, got {method!r}")
     cfg = RegimeData(**config["data"])
     d = regime_dataset(cfg, seed)
-    n_train, E, method = int(config["n_train"]), int(config["epochs"]), config["method"]
+    n_train, E = int(config["n_train"]), int(config["epochs"])
     trajs = d["train"][:n_train]
     A_tr = np.concatenate(list(d["A_train"][:n_train]))
     B_tr = np.concatenate(list(d["B_train"][:n_train]))

@@ -26,7 +26,7 @@ out through the same model, so the two numbers are directly comparable.
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 from scipy.linalg import expm
@@ -48,21 +48,29 @@ except ImportError:  # pragma: no cover - depends on the install
 
 @dataclass
 class Problem:
-    """One benchmark problem in mbtsr's terms (the crocoddyl twin is built from it)."""
+    """One benchmark problem in mbtsr's terms (the crocoddyl twin is built from it): the cost
+    ``quadratic_cost(Q, R, x_goal, Qf=Qf)`` and the control box ``[-1, 1]^m`` are derived from
+    the fields, so the two solvers cannot get different weights."""
 
     name: str
     model: object  # mbtsr planning model
-    cost: object  # mbtsr CasadiCost
     x0: np.ndarray
     T: int
-    u_min: np.ndarray
-    u_max: np.ndarray
     Q: np.ndarray
     R: np.ndarray
     Qf: np.ndarray
     x_goal: np.ndarray
     dt: float = 1.0
     params: ArmParams | None = None
+    jit: bool = False  # JIT-compile the cost's derivatives
+    cost: object = field(init=False)  # mbtsr CasadiCost
+    u_min: np.ndarray = field(init=False)
+    u_max: np.ndarray = field(init=False)
+
+    def __post_init__(self) -> None:
+        self.cost = quadratic_cost(self.Q, self.R, self.x_goal, Qf=self.Qf, jit=self.jit)
+        m = self.R.shape[0]
+        self.u_min, self.u_max = np.full(m, -1.0), np.full(m, 1.0)
 
 
 def box_lq_problem(T: int = 200) -> Problem:
@@ -82,17 +90,8 @@ def box_lq_problem(T: int = 200) -> Problem:
     Q, R, Qf = np.diag([1.0, 0.1, 1.0, 0.1]), 0.01 * np.eye(2), np.diag([10.0, 1.0, 10.0, 1.0])
     goal = np.zeros(4)
     return Problem(
-        name="box_lq",
-        model=LinearDynamics(A, B),
-        cost=quadratic_cost(Q, R, goal, Qf=Qf, jit=True),
-        x0=np.array([2.0, 0.0, -1.5, 1.0]),
-        T=T,
-        u_min=np.full(2, -1.0),
-        u_max=np.full(2, 1.0),
-        Q=Q,
-        R=R,
-        Qf=Qf,
-        x_goal=goal,
+        name="box_lq", model=LinearDynamics(A, B), x0=np.array([2.0, 0.0, -1.5, 1.0]), T=T,
+        Q=Q, R=R, Qf=Qf, x_goal=goal, jit=True,
     )
 
 
@@ -113,19 +112,8 @@ def arm_reach_problem(
     R = np.diag([0.01, 0.01]) if R is None else R
     goal = np.r_[np.asarray(target, dtype=float), 0.0, 0.0]
     return Problem(
-        name="arm_reach",
-        model=TwoLinkArmCasadi(p),
-        cost=quadratic_cost(Q, R, goal),
-        x0=np.asarray(x0, dtype=float),
-        T=T,
-        u_min=np.full(2, -1.0),
-        u_max=np.full(2, 1.0),
-        Q=Q,
-        R=R,
-        Qf=Q,
-        x_goal=goal,
-        dt=p.timestep,
-        params=p,
+        name="arm_reach", model=TwoLinkArmCasadi(p), x0=np.asarray(x0, dtype=float), T=T,
+        Q=Q, R=R, Qf=Q, x_goal=goal, dt=p.timestep, params=p,
     )
 
 
