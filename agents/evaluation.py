@@ -32,7 +32,7 @@ from mbtsr.costs import CasadiCost
 from mbtsr.episode import EpisodeRecord, as_policy, run_episode
 from mbtsr.ilqr import ILQROptions, ilqr
 from mbtsr.mpc import MPC, MPCOptions
-from mbtsr.validation import as_array, check_finite
+from mbtsr.validation import as_array, check_callable, check_finite
 
 __all__ = [
     "ARM_ID",
@@ -137,8 +137,8 @@ class MPCPolicy(SB3Predictor):
                  termination_fn: Callable[[np.ndarray], np.ndarray] | None = None) -> None:
         if not isinstance(mpc, MPC):
             raise TypeError(f"mpc must be a mbtsr.mpc.MPC, got {type(mpc).__name__}")
-        if termination_fn is not None and not callable(termination_fn):
-            raise TypeError(f"termination_fn must be callable obs -> bool, got {termination_fn!r}")
+        if termination_fn is not None:
+            check_callable("termination_fn", termination_fn, "obs -> bool")
         self.mpc = mpc
         self.task_cost = task_cost
         self.spec = task_cost.spec

@@ -38,7 +38,7 @@ from typing import Any
 import numpy as np
 
 from mbtsr.costs import truncated_total
-from mbtsr.validation import as_array
+from mbtsr.validation import as_array, check_callable
 
 __all__ = ["CEMOptions", "CEMResult", "cem"]
 
@@ -215,8 +215,8 @@ def cem(
     :return: :class:`CEMResult`.
     """
     opts = _as_options(options)
-    if terminated is not None and not callable(terminated):
-        raise TypeError(f"terminated must be callable X -> bool, got {terminated!r}")
+    if terminated is not None:
+        check_callable("terminated", terminated, "X -> bool")
     x0 = as_array("x0", x0, ndim=1)
     n = x0.shape[0]
     for attr in ("state_dim",):

@@ -52,7 +52,7 @@ from scipy.linalg import lapack
 from mbtsr import _lqr_kernels
 from mbtsr.costs import CasadiCost, truncated_total
 from mbtsr.dynamics import LinearDynamics, _rollout, check_planning_model, raw_step
-from mbtsr.validation import as_array
+from mbtsr.validation import as_array, check_callable
 
 __all__ = ["ILQROptions", "ILQRResult", "ilqr", "check_control_bounds"]
 
@@ -245,8 +245,8 @@ def ilqr(
     if isinstance(t0, bool) or not isinstance(t0, (int, np.integer)) or t0 < 0:
         raise ValueError(f"t0 must be an integer time index >= 0, got {t0!r}")
     t0 = int(t0)
-    if terminated is not None and not callable(terminated):
-        raise TypeError(f"terminated must be callable X -> bool, got {terminated!r}")
+    if terminated is not None:
+        check_callable("terminated", terminated, "X -> bool")
     lower, upper = check_control_bounds(u_min, u_max, m)
     has_limits = bool(np.any(np.isfinite(lower)) or np.any(np.isfinite(upper)))
     alphas = np.asarray(opts.alphas, dtype=float)
