@@ -190,7 +190,7 @@ def test_censored_comparison_hand_computed():
     assert row["ratio"]["kind"] == "undetermined" and row["target_met"] is None
 
     lines = "\n".join(suite.sb3_markdown_lines(sb3, agent))
-    assert "| arm-far | SAC | 2/3 | 5000 (3000, >= 16000, 5000) |" in lines
+    assert "| arm-far | SAC | 16000 | 2/3 | 5000 (3000, >= 16000, 5000) |" in lines
     assert "| arm-far | SAC 5000 | ilqr/none 400 | 12.5 | no |" in lines
 
 

@@ -21,13 +21,19 @@ inverted-pendulum      InvertedPendulum-v5 (200-step episodes),   mean return >=
 The oracle is the same MPC on the TRUE MuJoCo model: the arm's own ``dynamics_model()``, and for
 the Gymnasium tasks :class:`envs.mujoco_model.MujocoDynamics` with the cost on the env's own
 observation (``--oracle`` computes and stores its score per task; the Gymnasium tasks' criterion
-stays the return threshold). Runs are scheduled seed-major (every task and
+stays the return threshold). ``--sb3 sac ppo`` runs SB3 methods instead of the agent on the
+same tasks, evaluation episodes and thresholds (arm tasks: <= 1.05 x the oracle's cost;
+Gymnasium tasks: mean return within 5 % of the oracle's), with budgets of 20x (SAC) and 200x
+(PPO) the agent's env steps, into ``<json stem>_sb3.json``; the report compares the best SB3
+method with the best agent configuration. Runs are scheduled seed-major (every task and
 configuration gets seed 0 before any gets seed 1), and each finished run is appended to the JSON
 at once, so an interrupted suite reports what finished (``--resume`` skips finished runs)::
 
     python scripts/bench_suite.py --json docs/results/bench_suite.json --figures docs/figures
     python scripts/bench_suite.py --smoke --json runs/bench_suite_smoke.json   # CI, ~1 min
     python scripts/bench_suite.py --report-only --json docs/results/bench_suite.json
+    python scripts/bench_suite.py --sb3 sac ppo --seeds 0 1 2 --resume \
+        --json docs/results/bench_suite.json    # SB3 -> docs/results/bench_suite_sb3.json
     python scripts/bench_suite.py --help                 # every option
 """
 
@@ -609,6 +615,7 @@ def censored_summary(runs: list[dict[str, Any]]) -> dict[str, Any]:
     vals = [steps_bound(r) for r in runs]
     med, lower = censored_median([v for v, _ in vals], [b for _, b in vals])
     return {"seeds": [r["seed"] for r in runs],
+            "budget_env_steps": min((r.get("budget_env_steps") or 0) for r in runs),
             "solved": f"{sum(not b for _, b in vals)}/{len(vals)}",
             "per_seed": [bound(v, b) for v, b in vals], "median": bound(med, lower)}
 
@@ -672,14 +679,15 @@ def sb3_markdown_lines(sb3_runs: list[dict[str, Any]], agent_runs: list[dict[str
         "ratio it enters (`<=`: an upper bound, `?`: bounds on both sides). Target of issue 12: "
         "the agent needs >= 20x fewer env steps than the best SB3 method.",
         "",
-        "| task | SB3 method | solved | env steps to solve: median (per seed) |",
-        "|---|---|---|---|",
+        "| task | SB3 method | budget (env steps) | solved | env steps to solve: median "
+        "(per seed) |",
+        "|---|---|---|---|---|",
     ]
     for row in rows:
         for m, s in row["sb3"].items():
             per_seed = ", ".join(v["display"] for v in s["per_seed"])
-            lines.append(f"| {row['task']} | {m.upper()} | {s['solved']} | "
-                         f"{s['median']['display']} ({per_seed}) |")
+            lines.append(f"| {row['task']} | {m.upper()} | {s['budget_env_steps']} | "
+                         f"{s['solved']} | {s['median']['display']} ({per_seed}) |")
     lines += [
         "",
         "| task | best SB3: median env steps | best agent configuration: median env steps | "
