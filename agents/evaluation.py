@@ -96,16 +96,28 @@ class MPCPolicy:
 
     :param mpc: the controller (its cost from :func:`planner_cost`).
     :param task_cost: the task (observation/state maps, env spec).
+    :param termination_fn: ``obs [..., obs_dim] -> bool [...]``, where the env would end the
+        episode, or ``None``. The optimizer (iLQR or CEM) then scores plans on the episode's
+        own cost: stage costs after a predicted termination are dropped
+        (:func:`mbtsr.costs.truncated_total`).
     """
 
-    def __init__(self, mpc: MPC, task_cost: ObservationCost) -> None:
+    def __init__(self, mpc: MPC, task_cost: ObservationCost,
+                 termination_fn: Callable[[np.ndarray], np.ndarray] | None = None) -> None:
         if not isinstance(mpc, MPC):
             raise TypeError(f"mpc must be a mbtsr.mpc.MPC, got {type(mpc).__name__}")
         self.mpc = mpc
         self.task_cost = task_cost
         self.spec = task_cost.spec
         self.state_map = task_cost.state_map
+        self.termination_fn = termination_fn
         self.last_result = None
+        if termination_fn is not None:
+            import casadi as ca
+
+            s, p = ca.SX.sym("s", task_cost.state_dim), ca.SX.sym("p", self.spec.obs_dim)
+            self._obs_of_state = ca.Function("obs_of_state", [s, p], [
+                ca.SX(self.state_map.observation(s, p))])
 
     @property
     def model(self) -> Any:
@@ -155,9 +167,20 @@ class MPCPolicy:
         return self.state_map.state(obs)
 
     def _solve_kwargs(self, obs: np.ndarray) -> dict[str, Any]:
-        """Extra keyword arguments of the optimizer for this observation (none here; the CEM
-        policy passes its predicted-termination function)."""
-        return {}
+        """Extra keyword arguments of the optimizer for this observation: the predicted
+        termination ``terminated(X [..., n]) -> bool [...]`` on model states, through the
+        observation map (the current observation fills what the state leaves out)."""
+        if self.termination_fn is None:
+            return {}
+        fn, obs_ref = self.termination_fn, np.asarray(obs, dtype=float)
+
+        def terminated(X: np.ndarray) -> np.ndarray:
+            flat = X.reshape(-1, X.shape[-1])
+            obs = np.asarray(self._obs_of_state.map(flat.shape[0])(
+                flat.T, np.repeat(obs_ref[:, None], flat.shape[0], axis=1))).T
+            return np.asarray(fn(obs), dtype=bool).reshape(X.shape[:-1])
+
+        return {"terminated": terminated}
 
 
 def mpc_policy(
@@ -171,6 +194,7 @@ def mpc_policy(
     cost: CasadiCost | None = None,
     optimizer: Callable[..., Any] = ilqr,
     optimizer_options: Any = None,
+    termination_fn: Callable[[np.ndarray], np.ndarray] | None = None,
 ) -> MPCPolicy:
     """The agent's and the oracle's controller: :class:`MPCPolicy` around
     ``MPC(optimizer, planner_cost(task_cost), model, horizon)`` with the env's action box.
@@ -178,6 +202,7 @@ def mpc_policy(
     :param model: a planning model (a frozen ensemble, the true model).
     :param cost: the compiled :func:`planner_cost` to reuse (built when ``None``).
     :param optimizer_options: ``None``: iLQR's own defaults (``ILQROptions()``).
+    :param termination_fn: see :class:`MPCPolicy`.
     """
     spec = task_cost.spec
     cost = planner_cost(task_cost, terminal_weight) if cost is None else cost
@@ -190,7 +215,7 @@ def mpc_policy(
             optimizer_options=optimizer_options, warm_start_lambda=False,
         ),
     )
-    return MPCPolicy(mpc, task_cost)
+    return MPCPolicy(mpc, task_cost, termination_fn)
 
 
 def evaluation_targets(
@@ -297,8 +322,9 @@ class TrueStatePolicy(MPCPolicy):
     starts the plan at ``model.lift(x) = [x, observation(x)]`` (an
     :class:`envs.mujoco_model.ObservedDynamics`). Only valid inside episodes of that ``env``."""
 
-    def __init__(self, mpc: MPC, task_cost: ObservationCost, env: gym.Env) -> None:
-        super().__init__(mpc, task_cost)
+    def __init__(self, mpc: MPC, task_cost: ObservationCost, env: gym.Env,
+                 termination_fn: Callable[[np.ndarray], np.ndarray] | None = None) -> None:
+        super().__init__(mpc, task_cost, termination_fn)
         self.env = env
 
     def _model_state(self, obs: np.ndarray) -> np.ndarray:
@@ -333,6 +359,7 @@ def oracle_policy(
     cost_fn: Callable | None = None,
     state_map: Any = None,
     terminal_cost_fn: Callable | None = None,
+    termination_fn: Callable | None = None,
 ) -> MPCPolicy:
     """MPC on the TRUE model of ``env``, with the env's own quadratic cost unless
     ``cost_fn``/``state_map`` are given. Same controller (:func:`mpc_policy`, iLQR) as the
@@ -347,6 +374,8 @@ def oracle_policy(
       and the plan starts from the env's true ``qpos, qvel`` (:class:`TrueStatePolicy`, so the
       returned policy only works on this ``env``). ``state_map`` is ignored there (the true
       state needs no map).
+
+    ``termination_fn`` (the task's, on observations) is respected as by the agent's MPC.
 
     :raises ValueError: an env that has neither (not MuJoCo, no ``dynamics_model()``): it has
         no true model, so no oracle (the agent then reports ``oracle_cost = None``); also when
@@ -370,7 +399,8 @@ def oracle_policy(
         cost_fn, default_map = default
         state_map = state_map or default_map
     kwargs = {"horizon": horizon, "iterations": iterations,
-              "first_plan_iterations": first_plan_iterations, "terminal_weight": terminal_weight}
+              "first_plan_iterations": first_plan_iterations, "terminal_weight": terminal_weight,
+              "termination_fn": termination_fn}
     if factory is None:  # any Gymnasium MuJoCo env: plan on [qpos, qvel, observation]
         from envs.mujoco_model import MujocoDynamics, ObservedDynamics
 
@@ -385,7 +415,7 @@ def oracle_policy(
         task_cost = ObservationCost(cost_fn, obs_map, spec, true_model.state_dim,
                                     terminal_cost_fn=terminal_cost_fn)
         policy = mpc_policy(true_model, task_cost, **kwargs)
-        return TrueStatePolicy(policy.mpc, task_cost, env)
+        return TrueStatePolicy(policy.mpc, task_cost, env, termination_fn)
     true_model = factory()
     if state_map is None:
         state_map = StateMap()

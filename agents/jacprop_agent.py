@@ -50,7 +50,6 @@ from agents.config import AgentConfig
 from agents.episode_log import TIMING_COLUMNS, EpisodeLog
 from agents.evaluation import (
     EpisodeRecord,
-    MPCPolicy,
     cached_costs,
     code_fingerprint,
     evaluate_policy_costs,
@@ -70,6 +69,7 @@ from agents.task import (
     env_spec,
 )
 from mbtsr.ensemble import DynamicsEnsemble, save_model
+from mbtsr.ilqr import ilqr
 from mbtsr.ltv import LTVModel, fit_ltv, fuse_prior, select_lambda
 from mbtsr.trajectory import Trajectory, save_trajectories
 
@@ -98,7 +98,7 @@ class JacPropAgent:
     :param terminal_cost_fn: ``obs -> scalar`` (CasADi), the cost of a plan's last predicted
         observation (x ``config.terminal_weight``; default: the stage cost at zero action).
     :param termination_fn: ``obs [..., obs_dim] -> bool [...]`` (numpy): where the env would
-        terminate; the CEM planner adds no cost after a predicted termination.
+        terminate; the planner (iLQR or CEM) adds no cost after a predicted termination.
     :raises ValueError: at construction for non-Box spaces, an unbounded action space, a cost
         or maps that do not fit the env's dimensions, a bad config.
     """
@@ -212,32 +212,23 @@ class JacPropAgent:
         (:class:`mbtsr.mpc.MPC`) with iLQR or CEM (``config.planner``)."""
         cfg = self.config
         self.planning_model = self.model.freeze()
-        if cfg.planner == "ilqr":
-            self.policy = mpc_policy(
-                self.planning_model,
-                self.task_cost,
-                horizon=cfg.horizon,
-                iterations=cfg.ilqr_iterations,
-                first_plan_iterations=cfg.first_plan_iterations,
-                cost=self.planner_cost,
-            )
-            self.actor = ReplanEvery(self.policy, cfg.replan_every)
-            return
-        from mbtsr.cem import cem
+        optimizer, options, iterations = ilqr, None, cfg.ilqr_iterations
+        if cfg.planner == "cem":
+            from mbtsr.cem import cem as optimizer
 
-        mpc = mpc_policy(
+            options = {"samples": cfg.cem_samples, "elites": cfg.cem_elites, "seed": cfg.seed}
+            iterations = cfg.cem_iterations
+        self.policy = mpc_policy(
             self.planning_model,
             self.task_cost,
             horizon=cfg.horizon,
-            iterations=cfg.cem_iterations,
+            iterations=iterations,
             first_plan_iterations=cfg.first_plan_iterations,
             cost=self.planner_cost,
-            optimizer=cem,
-            optimizer_options={
-                "samples": cfg.cem_samples, "elites": cfg.cem_elites, "seed": cfg.seed,
-            },
-        ).mpc
-        self.policy = CEMPolicy(mpc, self.task_cost, self.termination_fn)
+            optimizer=optimizer,
+            optimizer_options=options,
+            termination_fn=self.termination_fn,
+        )
         self.actor = ReplanEvery(self.policy, cfg.replan_every)
 
     def _check_state_fn(self, env: gym.Env | None, spec: EnvSpec) -> np.ndarray:
@@ -833,6 +824,7 @@ class JacPropAgent:
                 cost_fn=self.cost_fn,
                 state_map=self.state_map,
                 terminal_cost_fn=self.terminal_cost_fn,
+                termination_fn=self.termination_fn,
             ), cfg.replan_every)
             return evaluate_policy_costs(policy, env, self.eval_targets, cfg.eval_seed, **kwargs)
 
@@ -1067,36 +1059,6 @@ class ReplanEvery:
             rest = np.concatenate([plan[1:], plan[-1:]], axis=0)
             age += 1
         return action, np.concatenate([rest, np.full((1, rest.shape[1]), float(age))], axis=0)
-
-
-class CEMPolicy(MPCPolicy):
-    """The same receding-horizon MPC with :func:`mbtsr.cem.cem` instead of iLQR (forward
-    predictions of the model only). ``predict`` stays a pure function of its arguments: every
-    solve uses the seed ``AgentConfig.seed``. With a ``termination_fn`` the stage costs after a
-    predicted termination are dropped (CEM's ``terminated``)."""
-
-    def __init__(self, mpc: Any, task_cost: ObservationCost,
-                 termination_fn: Callable | None = None) -> None:
-        super().__init__(mpc, task_cost)
-        import casadi as ca
-
-        self.termination_fn = termination_fn
-        s, p = ca.SX.sym("s", task_cost.state_dim), ca.SX.sym("p", task_cost.spec.obs_dim)
-        self._obs_of_state = ca.Function("obs_of_state", [s, p], [
-            ca.SX(self.state_map.observation(s, p))])
-
-    def _solve_kwargs(self, obs: np.ndarray) -> dict[str, Any]:
-        if self.termination_fn is None:
-            return {}
-        fn, obs_ref = self.termination_fn, np.asarray(obs, dtype=float)
-
-        def terminated(X: np.ndarray) -> np.ndarray:
-            flat = X.reshape(-1, X.shape[-1])
-            obs = np.asarray(self._obs_of_state.map(flat.shape[0])(
-                flat.T, np.repeat(obs_ref[:, None], flat.shape[0], axis=1))).T
-            return np.asarray(fn(obs), dtype=bool).reshape(X.shape[:-1])
-
-        return {"terminated": terminated}
 
 
 def _checked_termination_fn(

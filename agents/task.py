@@ -20,8 +20,9 @@ The user describes the control task on the env's own terms:
   ``state [n]``, ``obs_ref [obs_dim]`` and must return ``[obs_dim]``. Both are checked at
   construction (on one observation and on a batch of three).
 * optionally ``termination_fn(obs) -> bool`` (numpy, batched ``[..., obs_dim] -> [...]``):
-  predicted observations where the env would terminate; the CEM planner stops accumulating cost
-  after a predicted termination (as PETS does), see :func:`mbtsr.cem.cem`.
+  predicted observations where the env would terminate; the planner (iLQR's line search, CEM's
+  ranking) stops accumulating cost after a predicted termination (as PETS does), see
+  :func:`mbtsr.costs.truncated_total`.
 
 Everything is checked at construction: non-Box spaces, unbounded actions, a cost that fails on
 or does not return a scalar for the given dimensions, maps that return the wrong sizes.

@@ -37,6 +37,7 @@ from typing import Any
 
 import numpy as np
 
+from mbtsr.costs import truncated_total
 from mbtsr.validation import as_array
 
 __all__ = ["CEMOptions", "CEMResult", "cem"]
@@ -175,13 +176,7 @@ def _costs(
     else:
         stage = np.asarray(cost.stage_values(X[:, :-1], U, t0, params), dtype=float)
         final = np.asarray(cost.terminal_values(X[:, -1], t0 + U.shape[1], params), dtype=float)
-    done = np.asarray(terminated(X[:, 1:]), dtype=bool)  # [S, T]: x_{t+1} terminal
-    # stage t counts unless one of x_1..x_t was terminal (x_0 is the current state)
-    ended_before = np.concatenate([np.zeros((X.shape[0], 1), bool),
-                                   np.cumsum(done, axis=1)[:, :-1] > 0], axis=1)
-    J = np.where(ended_before, 0.0, stage).sum(axis=1)
-    ever = done.any(axis=1)
-    return J + np.where(ever, termination_cost, final)
+    return truncated_total(stage, final, terminated(X[:, 1:]), termination_cost)
 
 
 def cem(

@@ -46,6 +46,7 @@ __all__ = [
     "casadi_jit_options",
     "quadratic_cost",
     "smooth_norm",
+    "truncated_total",
 ]
 
 def casadi_jit_options(opt_level: str = "-O2") -> dict:
@@ -378,6 +379,14 @@ class CasadiCost:
     def _total(self, X: np.ndarray, U: np.ndarray, t0: int, table: np.ndarray) -> np.ndarray:
         """:meth:`total` on validated float64 input and a :meth:`check_params` table.
         ``X: [..., T+1, n]``, ``U: [..., T, m]`` -> ``[...]``."""
+        ls, lT = self._stage_and_terminal(X, U, t0, table)
+        return ls.sum(axis=-1) + lT
+
+    def _stage_and_terminal(
+        self, X: np.ndarray, U: np.ndarray, t0: int, table: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Stage costs ``[..., T]`` and terminal costs ``[...]`` of validated trajectories
+        ``X: [..., T+1, n]``, ``U: [..., T, m]`` in one CasADi call."""
         batch, T = U.shape[:-2], U.shape[-2]
         B = int(np.prod(batch, dtype=np.int64))
         Xf = np.ascontiguousarray(X, dtype=np.float64).reshape(B, T + 1, self.n)
@@ -389,7 +398,7 @@ class CasadiCost:
             t0 + T,
             table,
         )
-        return (ls.reshape(B, T).sum(axis=1) + lT).reshape(batch)
+        return ls.reshape(*batch, T), lT.reshape(batch)
 
     def _derivatives(
         self, X: np.ndarray, U: np.ndarray, t0: int, table: np.ndarray
@@ -514,6 +523,23 @@ def _reference_table(x_goal, u_ref, n: int, m: int) -> np.ndarray:
     xg = np.concatenate([xg, np.repeat(xg[-1:], N - xg.shape[0], axis=0)])
     ur = np.concatenate([ur, np.repeat(ur[-1:], N - ur.shape[0], axis=0)])
     return np.hstack([xg, ur])
+
+
+def truncated_total(
+    stage: np.ndarray, terminal: np.ndarray, done: np.ndarray, termination_cost: float = 0.0
+) -> np.ndarray:
+    """Trajectory cost of episodes that end at a termination (PETS's convention).
+
+    Stage ``t`` counts unless one of ``x_1 .. x_t`` is terminal (``x_0`` is the current
+    state); a trajectory that terminates pays ``termination_cost`` once instead of the terminal
+    cost. ``stage: [S, T]``, ``terminal: [S]``, ``done: [S, T]`` (``done[:, t]``: ``x_{t+1}``
+    is terminal) -> ``[S]``.
+    """
+    done = np.asarray(done, dtype=bool)
+    ended_before = np.zeros_like(done)
+    ended_before[:, 1:] = np.cumsum(done, axis=1)[:, :-1] > 0
+    J = np.where(ended_before, 0.0, stage).sum(axis=1)
+    return J + np.where(done.any(axis=1), termination_cost, terminal)
 
 
 def quadratic_cost(

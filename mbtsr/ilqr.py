@@ -43,14 +43,14 @@ from __future__ import annotations
 
 import math
 import time
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field, fields
 
 import numpy as np
 from scipy.linalg import lapack
 
 from mbtsr import _lqr_kernels
-from mbtsr.costs import CasadiCost
+from mbtsr.costs import CasadiCost, truncated_total
 from mbtsr.dynamics import LinearDynamics, _rollout, check_planning_model, raw_step
 from mbtsr.validation import as_array
 
@@ -79,6 +79,8 @@ class ILQROptions:
         regularisation, ``Quu + lambda B^T B``, ``Qux + lambda B^T A``).
     :param reduce_ratio_min: accept a step when actual / expected improvement exceeds this.
     :param max_state_norm: a rollout whose ``max |x|`` exceeds this counts as diverged.
+    :param termination_cost: with ``terminated``: cost paid once by a trajectory that
+        terminates, instead of its terminal cost (see :func:`mbtsr.costs.truncated_total`).
     :param boxqp_*: projected-Newton box-QP settings (Tassa et al.'s ``boxQP`` defaults).
     """
 
@@ -94,6 +96,7 @@ class ILQROptions:
     reg_type: int = 1
     reduce_ratio_min: float = 0.0
     max_state_norm: float = 1e8
+    termination_cost: float = 0.0
     boxqp_max_iter: int = 100
     boxqp_min_grad: float = 1e-8
     boxqp_min_rel_improve: float = 1e-8
@@ -119,6 +122,8 @@ class ILQROptions:
             raise ValueError(f"alphas must be a non-empty sequence in (0, 1], got {self.alphas!r}")
         if self.reg_type not in (1, 2):
             raise ValueError(f"reg_type must be 1 or 2, got {self.reg_type!r}")
+        if not np.isfinite(self.termination_cost):
+            raise ValueError(f"termination_cost must be finite, got {self.termination_cost!r}")
         if not 0 < self.boxqp_step_dec < 1 or not 0 < self.boxqp_armijo < 1:
             raise ValueError("boxqp_step_dec and boxqp_armijo must lie in (0, 1)")
 
@@ -194,6 +199,7 @@ def ilqr(
     params: np.ndarray | None = None,
     t0: int = 0,
     options: ILQROptions | None = None,
+    terminated: Callable[[np.ndarray], np.ndarray] | None = None,
 ) -> ILQRResult:
     """Optimise a control sequence with control-limited iLQR (Tassa et al. 2014).
 
@@ -213,6 +219,11 @@ def ilqr(
         :mod:`mbtsr.costs`); ``None``: the cost's defaults.
     :param t0: absolute time index of ``x0`` (passed to the cost and to time-varying models).
     :param options: :class:`ILQROptions` (or a dict of its fields).
+    :param terminated: ``X [..., n] -> bool [...]``: model states where the episode ends (the
+        task's termination function). The line search then accepts steps on the episode's
+        own cost: stage costs after the first predicted termination are dropped and
+        ``options.termination_cost`` is paid once (:func:`mbtsr.costs.truncated_total`, as
+        :func:`mbtsr.cem.cem`); the search direction still comes from the smooth cost.
     :return: :class:`ILQRResult`. Its ``U`` is always finite and inside the bounds: a solve that
         meets NaN/inf (model, Jacobians, cost) stops with status ``"failed"`` and the best
         finite iterate.
@@ -274,7 +285,22 @@ def ilqr(
         X, U = Xc[i], cands[i]
     else:
         X = X[0]
-    J = float(cost._total(X, U, t0, table))
+    if terminated is not None and not callable(terminated):
+        raise TypeError(f"terminated must be callable X -> bool, got {terminated!r}")
+
+    def total(X: np.ndarray, U: np.ndarray) -> np.ndarray:
+        if terminated is None:
+            return cost._total(X, U, t0, table)
+        stage, final = cost._stage_and_terminal(X, U, t0, table)
+        done = np.asarray(terminated(X[..., 1:, :]), dtype=bool)
+        if done.shape != stage.shape:
+            raise ValueError(f"terminated(X [..., T, n]) must return bool [..., T] = "
+                             f"{list(stage.shape)}, got {list(done.shape)}")
+        S = int(np.prod(stage.shape[:-1], dtype=np.int64))
+        return truncated_total(stage.reshape(S, T), final.reshape(S), done.reshape(S, T),
+                               opts.termination_cost).reshape(stage.shape[:-1])
+
+    J = float(total(X, U))
 
     lam, dlam = float(opts.lambda_init), 1.0
     f = opts.lambda_factor
@@ -363,7 +389,7 @@ def ilqr(
             live = np.zeros(len(alphas), dtype=bool)
             live[chunk] = alive[chunk]
             if live.any():
-                Jn[live] = cost._total(Xn[live], Un[live], t0, table)
+                Jn[live] = total(Xn[live], Un[live])
             timings["line_search_cost"] += time.perf_counter() - tic
             actual = J - Jn
             with np.errstate(invalid="ignore", divide="ignore"):

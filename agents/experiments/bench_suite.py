@@ -12,11 +12,18 @@ arm-far                targets across the workspace               eval cost <= 1
 arm-open-loop          each plan runs open loop for 10 steps      eval cost <= 1.05 x oracle
                        (``replan_every=10``): feedback cannot     (the oracle re-plans every 10
                        hide model error                           steps too)
-reacher                Reacher-v5, goal in the observation        mean return >= -3.75
-                                                                  (Gymnasium's reward_threshold)
-inverted-pendulum      InvertedPendulum-v5 (200-step episodes),   mean return >= 190
-                       terminates when the pole falls             (0.95 x 200; Gymnasium: 950/1000)
+reacher                Reacher-v5, goal in the observation        mean return within 5 % of
+                                                                  the oracle's (>= R - 0.05 |R|)
+inverted-pendulum      InvertedPendulum-v5 (200-step episodes),   mean return within 5 % of
+                       terminates when the pole falls             the oracle's (200 -> 190)
 =====================  =======================================  ===============================
+
+One rule for every task: within 5 % of the true-model oracle on the same evaluation episodes.
+The Gymnasium tasks first had absolute thresholds (Reacher: Gymnasium's reward_threshold -3.75;
+InvertedPendulum: 190). The oracle itself scores -3.92 on Reacher's 3 evaluation episodes, so
+-3.75 could not separate models: it was restated as oracle-relative BEFORE the 5-seed runs
+(InvertedPendulum's 190 is the same rule). No run's outcome was looked at to choose 5 %: it is
+the arm tasks' margin (1.05 x the oracle's cost).
 
 The oracle is the same MPC on the TRUE MuJoCo model: the arm's own ``dynamics_model()``, and for
 the Gymnasium tasks :class:`envs.mujoco_model.MujocoDynamics` with the cost on the env's own
@@ -98,12 +105,12 @@ TASKS: dict[str, dict[str, Any]] = {
         "overrides": {"replan_every": 10},
     },
     "reacher": {
-        "env_id": "Reacher-v5", "make": {}, "solved_return": -3.75, "total_env_steps": 1000,
+        "env_id": "Reacher-v5", "make": {}, "oracle_margin": 0.05, "total_env_steps": 1000,
         "cost": reacher_cost, "terminal": reacher_terminal, "overrides": {},
     },
     "inverted-pendulum": {
         "env_id": "InvertedPendulum-v5", "make": {"max_episode_steps": 200},
-        "solved_return": 190.0, "total_env_steps": 2000, "max_episodes": 15,
+        "oracle_margin": 0.05, "total_env_steps": 2000, "max_episodes": 15,
         "cost": pendulum_cost,
         "termination": pendulum_terminated, "overrides": {},
     },
@@ -114,6 +121,26 @@ SMOKE_OVERRIDES = {
     "cem_samples": 16, "cem_elites": 4, "cem_iterations": 1, "eval_episodes": 1,
     "ensemble_size": 2, "hidden_width": 8,
 }
+
+
+def solved_return(name: str, oracle_return: float) -> float:
+    """The return threshold of Gymnasium task ``name``: the oracle's mean evaluation return
+    minus ``oracle_margin`` of its magnitude (``R - 0.05 |R|``: 200 -> 190, -3.92 -> -4.11)."""
+    return oracle_return - TASKS[name]["oracle_margin"] * abs(oracle_return)
+
+
+def thresholds(oracles: dict[str, Any]) -> dict[str, dict[str, float]]:
+    """Per task ``{"solved_ratio": r}`` (cost relative to the oracle, arm tasks) or
+    ``{"solved_return": R_thr, "oracle_return": R}`` (Gymnasium tasks; needs ``oracles[name]``
+    from :func:`task_oracle`, tasks without one are left out)."""
+    out: dict[str, dict[str, float]] = {}
+    for name, t in TASKS.items():
+        if "solved_ratio" in t:
+            out[name] = {"solved_ratio": t["solved_ratio"]}
+        elif name in oracles:
+            R = oracles[name]["mean_return"]
+            out[name] = {"solved_return": solved_return(name, R), "oracle_return": R}
+    return out
 
 
 def make_env(task: dict[str, Any]):
@@ -139,8 +166,9 @@ def _make_agent(env: Any, task: dict[str, Any], overrides: dict[str, Any], smoke
 
 
 def run_one(name: str, planner: str, reg: str, seed: int, *, smoke: bool,
-            oracle_cache: str) -> dict[str, Any]:
-    """One agent run; returns its record (summary, curve, wall per phase)."""
+            oracle_cache: str, threshold: dict[str, float]) -> dict[str, Any]:
+    """One agent run with ``threshold`` (from :func:`thresholds`); returns its record (summary,
+    curve, wall per phase)."""
     import torch
 
 
@@ -153,10 +181,8 @@ def run_one(name: str, planner: str, reg: str, seed: int, *, smoke: bool,
         oracle_cache_dir=oracle_cache, progress=False, tensorboard=False, checkpoint=False,
         torch_threads=1, jacobian_error=False,
     )
-    if "solved_ratio" in task:
-        overrides["solved_ratio"] = task["solved_ratio"]
-    else:
-        overrides["solved_return"] = task["solved_return"]
+    key = "solved_ratio" if "solved_ratio" in task else "solved_return"
+    overrides[key] = threshold[key]
     agent = _make_agent(env, task, overrides, smoke)
     tic = time.perf_counter()
     with warnings.catch_warnings():
@@ -219,9 +245,8 @@ def task_oracle(name: str, *, smoke: bool = False) -> dict[str, Any]:
         "first_plan_iterations": agent.config.first_plan_iterations,
         "wall_seconds": time.perf_counter() - tic,
     }
-    if "solved_return" in task:
-        rec["solved_return"] = task["solved_return"]
-        rec["solved"] = bool(rec["mean_return"] >= task["solved_return"])
+    if "oracle_margin" in task:
+        rec["solved_return"] = solved_return(name, rec["mean_return"])
     return rec
 
 
@@ -262,7 +287,8 @@ def aggregate(runs: list[dict[str, Any]]) -> list[dict[str, Any]]:
     return rows
 
 
-def figures(runs: list[dict[str, Any]], out: Path) -> list[Path]:
+def figures(runs: list[dict[str, Any]], out: Path,
+            limits: dict[str, dict[str, float]]) -> list[Path]:
     import matplotlib
 
     matplotlib.use("Agg")
@@ -285,13 +311,14 @@ def figures(runs: list[dict[str, Any]], out: Path) -> list[Path]:
                 ys = [c["score"] for c in r["curve"] if c["score"] is not None]
                 ax.plot(xs, ys, color=color, alpha=0.6, lw=1,
                         label=f"{planner}/{reg}" if i == 0 else None)
-        task = TASKS[name]
-        if "solved_ratio" in task:
-            ax.axhline(task["solved_ratio"], color="k", ls="--", lw=0.8)
+        limit = limits.get(name, {})
+        if "solved_ratio" in TASKS[name]:
+            ax.axhline(limit["solved_ratio"], color="k", ls="--", lw=0.8)
             ax.set_yscale("log")
             ax.set_ylabel("eval cost / oracle")
         else:
-            ax.axhline(task["solved_return"], color="k", ls="--", lw=0.8)
+            if "solved_return" in limit:
+                ax.axhline(limit["solved_return"], color="k", ls="--", lw=0.8)
             ax.set_ylabel("mean eval return")
         ax.set_title(name)
         ax.set_xlabel("env steps")
@@ -381,8 +408,11 @@ def write_markdown(state: dict[str, Any], path: Path, figure_dir: Path,
         budget = (f"{t['episodes']} episodes" if "episodes" in t
                   else f"{t['total_env_steps']} env steps"
                   + (f" / {t['max_episodes']} episodes" if "max_episodes" in t else ""))
+        limit = state["thresholds"].get(name, {})
         crit = (f"eval cost <= {t['solved_ratio']} x true-model oracle" if "solved_ratio" in t
-                else f"mean eval return >= {t['solved_return']}")
+                else f"mean eval return >= oracle return - {t['oracle_margin']:g} x |oracle "
+                f"return| = {_fmt(limit.get('solved_return'), 4)} (oracle "
+                f"{_fmt(limit.get('oracle_return'), 4)})")
         extra = ", ".join(f"{k}={v:.3g}" if isinstance(v, float) else f"{k}={v}"
                           for k, v in {**t["make"], **t["overrides"]}.items())
         lines.append(f"| {name} | `{t['env_id']}`{' (' + extra + ')' if extra else ''} | "
@@ -448,7 +478,14 @@ def write_markdown(state: dict[str, Any], path: Path, figure_dir: Path,
         "several-fold and only their ratios within a table row pair mean something.",
         "",
     ]
-    atomic_write_text(path, "\n".join(lines))
+    notes = ""
+    if path.is_file() and NOTES_MARKER in path.read_text():
+        notes = path.read_text().split(NOTES_MARKER, 1)[1]
+    atomic_write_text(path, "\n".join(lines) + "\n" + NOTES_MARKER + notes)
+
+
+#: everything after this line of the report is written by people and kept on regeneration
+NOTES_MARKER = "<!-- notes below are hand-written; scripts/bench_suite.py keeps them -->"
 
 
 # ---------------------------------------------------------------------------------------------
@@ -808,21 +845,21 @@ def run(a: Args) -> dict[str, Any]:
         state = json.loads(path.read_text())
     state.update({
         "command": " ".join(sys.argv), "smoke": a.smoke,
-        "thresholds": {n: {k: t[k] for k in ("solved_ratio", "solved_return") if k in t}
-                       for n, t in TASKS.items()},
         "machine": f"{os.cpu_count()} cores, {platform.platform()}",
         "git": subprocess.run(["git", "-C", str(REPO), "rev-parse", "--short", "HEAD"],
                               capture_output=True, text=True).stdout.strip(),
     })
     done = {(r["task"], r["planner"], r["regularization"], r["seed"]) for r in state["runs"]}
-    if a.oracle and not a.report_only:
-        oracles = state.setdefault("oracles", {})
+    oracles = state.setdefault("oracles", {})
+    if not a.report_only:  # the Gymnasium tasks' thresholds need the oracle's return first
         for name in a.tasks:
-            if name not in oracles:
+            if name not in oracles and (a.oracle or "oracle_margin" in TASKS[name]):
                 oracles[name] = task_oracle(name, smoke=a.smoke)
+                state["thresholds"] = thresholds(oracles)
                 write_json_atomic(path, state)
                 print(f"{name} oracle: returns {oracles[name]['returns']}, "
                       f"{oracles[name]['wall_seconds']:.0f} s", flush=True)
+    state["thresholds"] = thresholds(oracles)
     if not a.report_only:
         for seed in a.seeds:
             for name in a.tasks:
@@ -831,7 +868,8 @@ def run(a: Args) -> dict[str, Any]:
                         if (name, planner, reg, seed) in done:
                             continue
                         rec = run_one(name, planner, reg, seed, smoke=a.smoke,
-                                      oracle_cache=a.oracle_cache)
+                                      oracle_cache=a.oracle_cache,
+                                      threshold=state["thresholds"][name])
                         state["runs"].append(rec)
                         state["table"] = aggregate(state["runs"])
                         write_json_atomic(path, state)
@@ -842,7 +880,7 @@ def run(a: Args) -> dict[str, Any]:
     state["compute_seconds"] = float(sum(r["wall_seconds"] for r in state["runs"]))
     write_json_atomic(path, state)
     if a.figures:
-        figures(state["runs"], Path(a.figures))
+        figures(state["runs"], Path(a.figures), state["thresholds"])
         if a.docs:
             sb3_path = sb3_json_path(a)
             sb3_runs = json.loads(sb3_path.read_text())["runs"] if sb3_path.is_file() else []
