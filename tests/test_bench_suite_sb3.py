@@ -121,18 +121,17 @@ def test_bad_return_arguments(kwargs, msg):
 # ---------------------------------------------------------------------------------------------
 
 
-def test_return_threshold_hand_computed():
-    assert suite.return_threshold(200.0) == pytest.approx(190.0, abs=1e-12)
-    assert suite.return_threshold(-3.9172403724873845) == pytest.approx(-4.1131023911, abs=1e-9)
-    with pytest.raises(ValueError, match="oracle_return"):
-        suite.return_threshold(np.nan)
+def test_return_thresholds_hand_computed():
+    assert suite.solved_return("inverted-pendulum", 200.0) == pytest.approx(190.0, abs=1e-12)
+    assert suite.solved_return("reacher", -3.9172403724873845) == pytest.approx(
+        -4.1131023911, abs=1e-9)
 
 
-@given(st.floats(-1e6, 1e6), st.floats(0.0, 0.99))
-def test_return_threshold_is_within_tolerance_below_the_oracle(oracle, tol):
-    thr = suite.return_threshold(oracle, tol)
+@given(st.floats(-1e6, 1e6))
+def test_return_threshold_is_within_the_margin_below_the_oracle(oracle):
+    thr = suite.solved_return("reacher", oracle)
     assert thr <= oracle
-    assert oracle - thr == pytest.approx(tol * abs(oracle), rel=1e-9, abs=1e-9)
+    assert oracle - thr == pytest.approx(0.05 * abs(oracle), rel=1e-9, abs=1e-9)
 
 
 def test_budgets_are_the_stated_multiples():
@@ -210,7 +209,7 @@ def test_bench_suite_sb3_smoke(tmp_path):
     (run,) = saved["runs"]
     problem = saved["problems"]["inverted-pendulum"]
     assert problem["solved_return"] == pytest.approx(
-        suite.return_threshold(problem["oracle_mean_return"]))
+        suite.solved_return("inverted-pendulum", problem["oracle_mean_return"]))
     assert run["task"] == "inverted-pendulum" and run["method"] == "sac" and run["seed"] == 0
     assert run["budget_env_steps"] == run["env_steps"] == suite.SB3_SMOKE["budget"]
     # 256 training steps cannot balance the pole for 190 of 200 steps: a censored run

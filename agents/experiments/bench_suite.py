@@ -501,8 +501,6 @@ SB3_METHODS = ("sac", "ppo", "td3")
 SB3_BUDGET_FACTOR = {"sac": 20, "td3": 20, "ppo": 200}
 #: evaluation period in env steps (PPO: every rollout, ``n_steps``)
 SB3_EVAL_EVERY = {"sac": 1000, "td3": 1000}
-#: the Gymnasium tasks' SB3 threshold: mean return within this fraction of |oracle return|
-SB3_RETURN_TOLERANCE = 0.05
 #: the true-model oracle's scores of the Gymnasium tasks (``task_oracle``), computed once
 ORACLES_JSON = REPO / "docs" / "results" / "bench_suite_oracles.json"
 #: tiny SB3 settings of the smoke mode (CI)
@@ -538,17 +536,6 @@ def sb3_budget(name: str, algo: str) -> int:
     return SB3_BUDGET_FACTOR[algo] * agent_budget_env_steps(name)
 
 
-def return_threshold(oracle_return: float, tolerance: float = SB3_RETURN_TOLERANCE) -> float:
-    """Solved return of a Gymnasium task: ``oracle - tolerance * |oracle|`` (within
-    ``tolerance`` of the true-model oracle's mean return; e.g. 200 -> 190, -3.917 -> -4.113)."""
-    oracle_return = float(oracle_return)
-    if not math.isfinite(oracle_return):
-        raise ValueError(f"oracle_return must be finite, got {oracle_return!r}")
-    if not (0.0 <= tolerance < 1.0):
-        raise ValueError(f"tolerance must be in [0, 1), got {tolerance!r}")
-    return oracle_return - tolerance * abs(oracle_return)
-
-
 def sb3_eval_problem(name: str, *, oracle_cache: str | None, smoke: bool = False
                      ) -> dict[str, Any]:
     """The evaluation episodes and threshold of task ``name``, exactly the agent runs' ones.
@@ -558,7 +545,7 @@ def sb3_eval_problem(name: str, *, oracle_cache: str | None, smoke: bool = False
     ``replan_every=10`` for the oracle of arm-open-loop; cached in ``oracle_cache``); solved
     when the mean cost <= ``solved_ratio`` x the oracle's mean cost. Gymnasium tasks: 3 episodes
     reset with ``1000 + i``, cut at the episode length; solved when the mean return >=
-    :func:`return_threshold` of the oracle's mean return (from :data:`ORACLES_JSON`, else
+    :func:`solved_return` of the oracle's mean return (from :data:`ORACLES_JSON`, else
     computed by :func:`task_oracle`).
     """
     task = TASKS[name]
@@ -588,7 +575,7 @@ def sb3_eval_problem(name: str, *, oracle_cache: str | None, smoke: bool = False
         oracle, source = float(stored[name]["mean_return"]), str(ORACLES_JSON.relative_to(REPO))
     else:
         oracle, source = float(task_oracle(name, smoke=smoke)["mean_return"]), "task_oracle"
-    solved = return_threshold(oracle)
+    solved = solved_return(name, oracle)
     out.update(eval_targets=None, oracle_mean_return=oracle, solved_return=solved,
                score="mean return (higher is better)", threshold_score=solved,
                oracle_source=source)
