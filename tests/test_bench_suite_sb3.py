@@ -219,6 +219,23 @@ def test_bench_suite_sb3_smoke(tmp_path):
     (row,) = saved["comparison"]
     assert row["sb3"]["sac"]["per_seed"] == [
         {"value": 256.0, "lower_bound": True, "display": ">= 256"}]
+    # the report reads both JSONs: agent runs from --json, SB3 runs from <stem>_sb3.json
+    agent_rec = {"task": "inverted-pendulum", "planner": "ilqr", "regularization": "none",
+                 "seed": 0, "env_steps_to_solve": 200, "env_steps": 200,
+                 "budget_env_steps": 2000, "episodes_to_solve": 1, "final_score": 200.0,
+                 "curve": [{"env_steps": 200, "score": 200.0, "returns": [200.0]}],
+                 "wall_seconds_per_phase": {k: 1.0 for k in
+                                            ("training", "ltv", "planning", "eval", "total")},
+                 "wall_seconds": 5.0}
+    out.write_text(json.dumps({"runs": [agent_rec], "oracles": {
+        "inverted-pendulum": {"mean_return": problem["oracle_mean_return"]}}}))
+    suite.main(["--report-only", "--json", str(out), "--figures", str(tmp_path / "fig"),
+                "--docs", str(tmp_path / "bench.md"), "--tasks", "inverted-pendulum"])
+    md = (tmp_path / "bench.md").read_text()
+    assert "| inverted-pendulum | SAC | 256 | 0/1 | >= 256 (>= 256) |" in md
+    assert "| inverted-pendulum | SAC >= 256 | ilqr/none 200 | >= 1.28 | undetermined |" in md
+    assert (tmp_path / "fig" / "bench_suite_sb3_curves.png").is_file()
+    assert "](fig/bench_suite_sb3_curves.png)" in md
     # resume skips the finished run
     again = suite.main(args + ["--resume"])
     assert len(again["runs"]) == 1 and again["runs"][0]["wall_seconds"] == run["wall_seconds"]

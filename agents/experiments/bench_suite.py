@@ -469,7 +469,8 @@ def write_markdown(state: dict[str, Any], path: Path, figure_dir: Path,
         "",
         "Median final score per task for each planner x regularizer.",
         "",
-        *sb3_markdown_lines(sb3_runs or [], state["runs"]),
+        *sb3_markdown_lines(sb3_runs or [], state["runs"],
+                            f"{rel}/bench_suite_sb3_curves.png" if sb3_runs else None),
         "## Compute",
         "",
         f"{len(state['runs'])} runs, {state.get('compute_seconds', 0) / 60:.0f} min of wall "
@@ -682,9 +683,56 @@ def sb3_comparison(sb3_runs: list[dict[str, Any]], agent_runs: list[dict[str, An
     return out
 
 
-def sb3_markdown_lines(sb3_runs: list[dict[str, Any]], agent_runs: list[dict[str, Any]]
-                       ) -> list[str]:
-    """The report's section: best SB3 method per task vs the best agent configuration."""
+def sb3_figure(sb3_runs: list[dict[str, Any]], agent_runs: list[dict[str, Any]], out: Path
+               ) -> Path | None:
+    """Evaluation score vs env steps (log x) per task: every SB3 run (thin lines) and the
+    median env steps to solve of the best agent configuration (vertical line); the threshold
+    dashed. Writes ``out/bench_suite_sb3_curves.png`` (``None`` without SB3 runs)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    names = [n for n in TASKS if any(r["task"] == n for r in sb3_runs)]
+    if not names:
+        return None
+    out.mkdir(parents=True, exist_ok=True)
+    best = {row["task"]: row.get("best_agent") for row in sb3_comparison(sb3_runs, agent_runs)}
+    colors = {"sac": "tab:red", "ppo": "tab:green", "td3": "tab:orange"}
+    fig, axes = plt.subplots(1, len(names), figsize=(4.2 * len(names), 3.4), squeeze=False)
+    for ax, name in zip(axes[0], names):
+        for m, color in colors.items():
+            rs = [r for r in sb3_runs if r["task"] == name and r["method"] == m]
+            for i, r in enumerate(rs):
+                xs = [max(c["env_steps"], 1) for c in r["curve"]]
+                ax.plot(xs, [c["score"] for c in r["curve"]], color=color, alpha=0.6, lw=1,
+                        label=m.upper() if i == 0 else None)
+        thr = next(r["threshold_score"] for r in sb3_runs if r["task"] == name)
+        ax.axhline(thr, color="k", ls="--", lw=0.8)
+        if best.get(name):
+            b = best[name]
+            ax.axvline(max(b["value"], 1), color="tab:blue", lw=1.2,
+                       label=f"agent {b['config']} median")
+        if "solved_ratio" in TASKS[name]:
+            ax.set_yscale("log")
+            ax.set_ylabel("eval cost / oracle")
+        else:
+            ax.set_ylabel("mean eval return")
+        ax.set_xscale("log")
+        ax.set_title(name)
+        ax.set_xlabel("env steps")
+        ax.legend(fontsize=7)
+    fig.tight_layout()
+    p = out / "bench_suite_sb3_curves.png"
+    fig.savefig(p, dpi=110)
+    plt.close(fig)
+    return p
+
+
+def sb3_markdown_lines(sb3_runs: list[dict[str, Any]], agent_runs: list[dict[str, Any]],
+                       figure: str | None = None) -> list[str]:
+    """The report's section: best SB3 method per task vs the best agent configuration
+    (``figure``: the path of :func:`sb3_figure` relative to the report)."""
     if not sb3_runs:
         return []
     rows = sb3_comparison(sb3_runs, agent_runs)
@@ -727,6 +775,11 @@ def sb3_markdown_lines(sb3_runs: list[dict[str, Any]], agent_runs: list[dict[str
             + (f"{a['config']} {a['display']} | {row['ratio']['display']} | {met} |" if a
                else "- | - | - |"))
     lines.append("")
+    if figure:
+        lines += [f"![SB3 learning curves per task]({figure})", "",
+                  "SB3 evaluation score vs env steps, one line per run (seed); dashed: the "
+                  "threshold; vertical: the best agent configuration's median env steps to "
+                  "solve.", ""]
     return lines
 
 
@@ -871,6 +924,7 @@ def run(a: Args) -> dict[str, Any]:
         if a.docs:
             sb3_path = sb3_json_path(a)
             sb3_runs = json.loads(sb3_path.read_text())["runs"] if sb3_path.is_file() else []
+            sb3_figure(sb3_runs, state["runs"], Path(a.figures))
             write_markdown(state, Path(a.docs), Path(a.figures), sb3_runs=sb3_runs)
             write_json_atomic(path, state)
     return state
