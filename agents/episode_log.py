@@ -44,6 +44,7 @@ LOG_COLUMNS: tuple[str, ...] = (
     "time_ltv",
     "time_training",
     "time_eval",
+    "time_oracle",
     "time_total",
 )
 

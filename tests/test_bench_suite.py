@@ -81,3 +81,12 @@ def test_regenerating_the_report_keeps_the_hand_written_notes(tmp_path):
     assert "git def" in text and "git abc" not in text
     assert text.count(suite.NOTES_MARKER) == 1
     assert text.endswith("\nWhat the numbers say, by hand.\n")
+
+
+@pytest.mark.parametrize("flag", ["--regularizations", "--planners", "--tasks"])
+def test_unknown_names_exit_2_with_one_line(flag, capsys):
+    with pytest.raises(SystemExit) as e:
+        _suite().main([flag, "bogus", "--json", "/tmp/never_written.json"])
+    assert e.value.code == 2
+    err = capsys.readouterr().err.strip()
+    assert flag in err and "\n" not in err

@@ -68,7 +68,7 @@ from mbtsr import cli  # noqa: E402
 from mbtsr.io import atomic_write_text, write_json_atomic  # noqa: E402
 
 PLANNERS = ("ilqr", "cem")
-REGULARIZATIONS = ("none", "sampled")
+REGULARIZATIONS = ("none", "sampled", "exact", "smooth")  # the suite runs the first two by default
 
 
 def reacher_cost(obs, a):
@@ -300,7 +300,9 @@ def figures(runs: list[dict[str, Any]], out: Path,
     if not names:
         return paths
     colors = {("ilqr", "none"): "tab:blue", ("ilqr", "sampled"): "tab:orange",
-              ("cem", "none"): "tab:green", ("cem", "sampled"): "tab:red"}
+              ("cem", "none"): "tab:green", ("cem", "sampled"): "tab:red",
+              ("ilqr", "exact"): "tab:purple", ("ilqr", "smooth"): "tab:brown",
+              ("cem", "exact"): "tab:pink", ("cem", "smooth"): "tab:olive"}
     fig, axes = plt.subplots(1, len(names), figsize=(4.2 * len(names), 3.4), squeeze=False)
     for ax, name in zip(axes[0], names):
         for (planner, reg), color in colors.items():
@@ -332,18 +334,17 @@ def figures(runs: list[dict[str, Any]], out: Path,
     rows = aggregate(runs)
     fig, axes = plt.subplots(1, len(names), figsize=(3.2 * len(names), 3.0), squeeze=False)
     for ax, name in zip(axes[0], names):
-        grid = np.full((2, 2), np.nan)
+        grid = np.full((len(PLANNERS), len(REGULARIZATIONS)), np.nan)
         for r in rows:
             if r["task"] == name and r["final_score_median"] is not None:
                 grid[PLANNERS.index(r["planner"]), REGULARIZATIONS.index(r["regularization"])] = (
                     r["final_score_median"])
         ax.imshow(grid, cmap="viridis")
-        for i in range(2):
-            for j in range(2):
-                ax.text(j, i, "-" if np.isnan(grid[i, j]) else f"{grid[i, j]:.3g}",
-                        ha="center", va="center", color="w", fontsize=9)
-        ax.set_xticks([0, 1], REGULARIZATIONS)
-        ax.set_yticks([0, 1], PLANNERS)
+        for (i, j), v in np.ndenumerate(grid):
+            ax.text(j, i, "-" if np.isnan(v) else f"{v:.3g}",
+                    ha="center", va="center", color="w", fontsize=8)
+        ax.set_xticks(range(len(REGULARIZATIONS)), REGULARIZATIONS, fontsize=7)
+        ax.set_yticks(range(len(PLANNERS)), PLANNERS)
         ax.set_title(f"{name}\nmedian final score", fontsize=9)
     fig.tight_layout()
     p = out / "bench_suite_planner_x_regularizer.png"
@@ -362,29 +363,28 @@ def _fmt(v: Any, digits: int = 3) -> str:
 
 
 def comparisons(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
-    """sampled vs none per task and planner: median env steps to solve (censored medians give
-    bounds) and median final score, and the median wall time ratio."""
+    """Each regularizer vs none per task and planner: median env steps to solve (censored
+    medians give bounds) and median final score, and the median wall time ratio."""
     out = []
     for name in TASKS:
+        lower_better = "solved_ratio" in TASKS[name]
         for planner in PLANNERS:
             by = {r["regularization"]: r for r in rows
                   if r["task"] == name and r["planner"] == planner}
-            if set(by) != set(REGULARIZATIONS):
-                continue
-            s_, n_ = by["sampled"], by["none"]
-            lower_better = "solved_ratio" in TASKS[name]
-            fs, fn = s_["final_score_median"], n_["final_score_median"]
-            out.append({
-                "task": name, "planner": planner,
-                "steps_to_solve": f"{s_['env_steps_to_solve_median']} vs "
-                                  f"{n_['env_steps_to_solve_median']}",
-                "final_score": f"{_fmt(fs)} vs {_fmt(fn)}",
-                "final_score_ratio": (fs / fn if (fs is not None and fn not in (None, 0)
-                                                  and lower_better) else None),
-                "wall_ratio": (s_["wall_median_per_phase"]["total"]
-                               / n_["wall_median_per_phase"]["total"]),
-                "seeds": f"{len(s_['seeds'])} vs {len(n_['seeds'])}",
-            })
+            for reg in (g for g in REGULARIZATIONS[1:] if g in by and "none" in by):
+                s_, n_ = by[reg], by["none"]
+                fs, fn = s_["final_score_median"], n_["final_score_median"]
+                out.append({
+                    "task": name, "planner": planner, "regularization": reg,
+                    "steps_to_solve": f"{s_['env_steps_to_solve_median']} vs "
+                                      f"{n_['env_steps_to_solve_median']}",
+                    "final_score": f"{_fmt(fs)} vs {_fmt(fn)}",
+                    "final_score_ratio": (fs / fn if (fs is not None and fn not in (None, 0)
+                                                      and lower_better) else None),
+                    "wall_ratio": (s_["wall_median_per_phase"]["total"]
+                                   / n_["wall_median_per_phase"]["total"]),
+                    "seeds": f"{len(s_['seeds'])} vs {len(n_['seeds'])}",
+                })
     return out
 
 
@@ -446,19 +446,19 @@ def write_markdown(state: dict[str, Any], path: Path, figure_dir: Path,
     state["comparisons"] = cmp
     lines += [
         "",
-        "## sampled JacProp vs none (same planner, same seeds, same env and optimizer steps)",
+        "## Each regularizer vs none (same planner, same seeds, same env and optimizer steps)",
         "",
         "Target of issue 12: sampled needs <= 0.7x the env steps to solve of `none`, or reaches "
         "<= 0.9x its cost at equal env steps, at <= 2x its wall time.",
         "",
-        "| task | planner | env steps to solve (sampled vs none) | final score (sampled vs "
-        "none) | final cost ratio sampled/none | wall ratio sampled/none | seeds |",
-        "|---|---|---|---|---|---|---|",
+        "| task | planner | regularizer R | env steps to solve (R vs none) | final score (R vs "
+        "none) | final cost ratio R/none | wall ratio R/none | seeds |",
+        "|---|---|---|---|---|---|---|---|",
     ]
     for c in cmp:
-        lines.append(f"| {c['task']} | {c['planner']} | {c['steps_to_solve']} | "
-                     f"{c['final_score']} | {_fmt(c['final_score_ratio'])} | "
-                     f"{_fmt(c['wall_ratio'])} | {c['seeds']} |")
+        lines.append(f"| {c['task']} | {c['planner']} | {c['regularization']} | "
+                     f"{c['steps_to_solve']} | {c['final_score']} | "
+                     f"{_fmt(c['final_score_ratio'])} | {_fmt(c['wall_ratio'])} | {c['seeds']} |")
     lines += [
         "",
         f"![learning curves per task]({rel}/bench_suite_curves.png)",
@@ -838,6 +838,10 @@ class Args:
     """agent seeds (seed-major schedule)"""
     tasks: tuple[str, ...] = ("arm-far", "arm-open-loop", "reacher", "inverted-pendulum")
     """tasks to run (see the module docstring)"""
+    planners: tuple[str, ...] = PLANNERS
+    """planners to run"""
+    regularizations: tuple[str, ...] = ("none", "sampled")
+    """regularizers to run (also: exact, smooth)"""
     smoke: bool = False
     """tiny budgets (CI)"""
     resume: bool = False
@@ -865,6 +869,10 @@ class Args:
         bad = sorted(set(self.sb3) - set(SB3_METHODS))
         if bad:
             raise ValueError(f"--sb3 must name some of {list(SB3_METHODS)}, got {list(self.sb3)}")
+        for name, given, known in (("planners", self.planners, PLANNERS),
+                                   ("regularizations", self.regularizations, REGULARIZATIONS)):
+            if not given or set(given) - set(known):
+                raise ValueError(f"--{name} must name some of {list(known)}, got {list(given)}")
 
 
 def main(argv: list[str] | None = None) -> dict[str, Any]:
@@ -903,8 +911,8 @@ def run(a: Args) -> dict[str, Any]:
     if not a.report_only:
         for seed in a.seeds:
             for name in a.tasks:
-                for planner in PLANNERS:
-                    for reg in REGULARIZATIONS:
+                for planner in a.planners:
+                    for reg in a.regularizations:
                         if (name, planner, reg, seed) in done:
                             continue
                         rec = run_one(name, planner, reg, seed, smoke=a.smoke,
