@@ -1,9 +1,33 @@
-"""Configuration of the Algorithm-1 agent: one frozen dataclass, validated on construction.
+"""Configuration of the Algorithm-1 agent: one tree of frozen dataclasses, validated when built.
 
-The defaults are the configuration that is measured in ``docs/ablation.md`` on
-``mbtsr/TwoLinkArm-v0``; where the paper fixes a value it is used (sampled Jacobian propagation
-with perturbations of 0.1 x the per-dimension standard deviation, one perturbed copy resampled
-every epoch, the ``g`` formulation ``x+ = x + g(x, u)``, an ensemble of small tanh networks).
+::
+
+    AgentConfig
+    ├── collection      CollectionConfig                        rollouts: excitation, exploration
+    ├── model           mbtsr.ensemble.ModelConfig              the ensemble's architecture
+    ├── training        mbtsr.training.TrainConfig              one model update (Adam, epochs)
+    ├── regularization  mbtsr.training.RegularizationConfig     THE knob of the project
+    ├── planner         PlannerConfig                           iLQR / CEM MPC on the model
+    ├── evaluation      EvaluationConfig                        evaluation and the "solved" test
+    └── seed, run_dir, renormalize, ltv_prior, checkpoint, ...  bookkeeping and the update loop
+
+``model``, ``training`` and ``regularization`` are the library's own configs, used as they are:
+the agent hands ``training`` (with a per-update seed) and ``regularization`` to
+:func:`mbtsr.training.train_ensemble` and builds its ensemble with ``model.build(n, m, seed)``
+(the dimensions come from the env). The common calls stay short::
+
+    AgentConfig(regularization="none")                 # a name: RegularizationConfig.named("none")
+    AgentConfig(regularization="exact", planner="cem")  # (planner: PlannerConfig(kind="cem"))
+    cfg.replace({"planner.horizon": 50, "model.hidden_width": 32}, seed=3)
+
+An error names the full dotted field (``model.hidden_width must be an integer >= 1, got 0``).
+Configs saved in the old flat format (``{"epochs_per_episode": 150, "hidden_width": 20, ...}``)
+load through :func:`from_flat` (``AgentConfig.from_dict`` detects them).
+
+The defaults are the configuration measured in ``docs/ablation.md`` on ``mbtsr/TwoLinkArm-v0``;
+where the paper fixes a value it is used (sampled Jacobian propagation with perturbations of 0.1 x
+the per-dimension standard deviation, one perturbed copy resampled every epoch, the ``g``
+formulation ``x+ = x + g(x, u)``, an ensemble of small tanh networks).
 """
 
 from __future__ import annotations
@@ -11,26 +35,52 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
-from dataclasses import dataclass, fields
-from typing import TYPE_CHECKING, Any
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from typing import Any, ClassVar, Literal
 
-if TYPE_CHECKING:  # the library's configs, imported on use (torch is heavy for a CLI's --help)
-    from mbtsr.ensemble import EnsembleConfig
-    from mbtsr.training import RegularizationConfig, TrainConfig
+from mbtsr.cem import CEMOptions
+from mbtsr.ensemble import ModelConfig
+from mbtsr.training import REGULARIZERS, RegularizationConfig, TrainConfig
 
-__all__ = ["AgentConfig", "REGULARIZATIONS", "FORMULATIONS", "EXCITATIONS", "PLANNERS"]
+__all__ = ["AgentConfig", "CollectionConfig", "PlannerConfig", "EvaluationConfig", "from_flat",
+           "REGULARIZERS", "PLANNERS", "EXCITATIONS"]
 
-REGULARIZATIONS = ("sampled", "exact", "smooth", "none")
 PLANNERS = ("ilqr", "cem")
-FORMULATIONS = ("g", "f")
 EXCITATIONS = ("filtered_gaussian", "multisine")
 
 
-@dataclass(frozen=True)
-class AgentConfig:
-    """Everything that decides what :class:`agents.jacprop_agent.JacPropAgent` does.
+class _Checked:
+    """Range checks whose messages name the field by its dotted path in the tree."""
 
-    Data collection (Algorithm 1, "sample rollout trajectory"):
+    _path: ClassVar[str] = ""
+
+    def _name(self, name: str) -> str:
+        return f"{self._path}.{name}" if self._path else name
+
+    def _int_at_least(self, name: str, low: int) -> None:
+        v = getattr(self, name)
+        if isinstance(v, bool) or not isinstance(v, int) or v < low:
+            raise ValueError(f"{self._name(name)} must be an integer >= {low}, got {v!r}")
+
+    def _float_range(self, name: str, low: float, high: float = math.inf, *,
+                     low_open: bool = False) -> None:
+        v = getattr(self, name)
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+            raise ValueError(f"{self._name(name)} must be a finite number, got {v!r}")
+        if (v <= low if low_open else v < low) or v > high:
+            lo = "(" if low_open else "["
+            raise ValueError(f"{self._name(name)} must be in {lo}{low}, {high}], got {v!r}")
+
+    def _choice(self, name: str, options: tuple[str, ...]) -> None:
+        v = getattr(self, name)
+        if v not in options:
+            raise ValueError(f"{self._name(name)} must be one of {options}, got {v!r}")
+
+
+@dataclass(frozen=True)
+class CollectionConfig(_Checked):
+    """Data collection (Algorithm 1, "sample rollout trajectory").
 
     :param n_excitation_episodes: number of first episodes driven by an excitation signal
         instead of the planner (the model is untrained then).
@@ -41,91 +91,176 @@ class AgentConfig:
     :param exploration_std: std of Gaussian noise added to planned actions during training
         rollouts, as a fraction of the action half-range (0 disables it).
     :param episode_steps: steps per rollout; ``None`` uses the env's ``TimeLimit``.
+    """
 
-    Model (Objective 1 / 2 of the paper):
+    _path: ClassVar[str] = "collection"
+    n_excitation_episodes: int = 2
+    excitation: Literal["filtered_gaussian", "multisine"] = "filtered_gaussian"
+    excitation_scale: float = 0.3
+    excitation_window: int = 8
+    exploration_std: float = 0.1
+    episode_steps: int | None = None
 
-    :param formulation: ``"g"`` (``x+ = x + g(x,u)``, Objective 2) or ``"f"`` (``x+ = f(x,u)``).
-    :param ensemble_size: number of ensemble members (their mean is the model).
-    :param hidden_width: hidden units per layer of each member (paper: 20).
-    :param hidden_layers: hidden layers per member, 1 (paper) or 2.
-    :param activations: member ``k`` uses ``activations[k % len(activations)]``; the default is
-        the paper's nominal ensemble (elu, sigmoid, tanh, swish).
+    def __post_init__(self) -> None:
+        self._int_at_least("n_excitation_episodes", 1)
+        self._choice("excitation", EXCITATIONS)
+        self._float_range("excitation_scale", 0.0, 1.0, low_open=True)
+        self._int_at_least("excitation_window", 1)
+        self._float_range("exploration_std", 0.0)
+        if self.episode_steps is not None:
+            self._int_at_least("episode_steps", 2)
 
-    Model update (Algorithm 1, "fit f to tau_i and the perturbed tau_i"), warm-started:
 
-    :param epochs_per_episode: training epochs after each new episode (on ALL data so far).
-    :param lr: Adam step size; the Adam state is carried across episodes.
-    :param batch_size: minibatch size (``0``: full batch).
-    :param weight_decay: L2 weight decay.
-    :param regularization: ``"sampled"`` (sampled Jacobian propagation: LTV-labelled perturbed
-        points, Section 3 of the paper), ``"exact"`` (the penalty it approximates,
-        ``sum_t ||J_model(t) - [A_t B_t]_LTV||_F^2``, by double backprop), ``"smooth"`` (the
-        LTV-free penalty ``sum_t ||J_model(t+1) - J_model(t)||_F^2`` of Eq. (reg)) or
-        ``"none"``. See :mod:`mbtsr.training` for the exact objective.
-    :param jacprop_weight: weight of the perturbed points (``sampled``) in the loss.
-    :param jacobian_penalty: weight of the Jacobian penalty (``exact`` / ``smooth``).
-    :param perturbation_sigma: perturbation std as a fraction of the per-dimension data std.
-    :param n_perturbed_copies: perturbed copies of every point, resampled every epoch.
-    :param renormalize: before every update, recompute the model's input/output normalization
-        from ALL data so far (:meth:`mbtsr.ensemble.DynamicsEnsemble.refit_normalization`,
-        which keeps the represented function), instead of freezing the statistics of the
-        first episode. ``False``: the first episode's statistics are kept (the old behaviour).
-    :param ltv_lambda: smoothness weight of the LTV fit (Algorithm 1, "fit LTV model"), a
-        positive number or ``"auto"`` (:func:`mbtsr.ltv.select_lambda` on every trajectory).
-    :param ltv_prior: once the model has seen data, fuse each new LTV fit with the ensemble's
-        Jacobians as a Gaussian prior (mean: ensemble mean, variance: ensemble variance +
-        ``ltv_prior``; :func:`mbtsr.ltv.fuse_prior`), as the original code's "jacprop with
-        prior" did. MPC rollouts excite the system little, and an LTV fit to one of them alone
-        has wild Jacobians in the unexcited directions; the prior keeps the model's Jacobians
-        there. ``0`` disables it.
-
-    Planning (Algorithm 1, "optimize controller"): MPC = the planner re-solved every step on
+@dataclass(frozen=True)
+class PlannerConfig(_Checked):
+    """Planning (Algorithm 1, "optimize controller"): MPC = the planner re-solved every step on
     the learned model, warm-started with the shifted previous plan.
 
-    :param planner: ``"ilqr"`` (iLQR on the model's Jacobians, the paper's controller) or
-        ``"cem"`` (the cross-entropy method of PETS, :func:`mbtsr.cem.cem`: forward predictions
-        only, never the model's Jacobians; the control for the paper's argument).
-    :param cem_samples: CEM action sequences sampled per iteration.
-    :param cem_elites: CEM elite sequences that refit the sampling distribution.
-    :param cem_iterations: CEM iterations per MPC step (the first step of an episode gets
-        ``first_plan_iterations``).
-    :param replan_every: execute every plan open loop for this many steps before re-solving
-        (1: re-plan every step, the default; larger: the feedback-limited regime, where
-        feedback hides less of the model's error). The oracle uses the same setting.
     :param horizon: MPC horizon (steps).
-    :param ilqr_iterations: iLQR iterations per MPC step (the first step of an episode gets
-        ``first_plan_iterations``).
-    :param first_plan_iterations: iLQR iterations for the full plan at the start of an episode.
+    :param replan_every: execute every plan open loop for this many steps before re-solving
+        (1: re-plan every step, the default; larger: the feedback-limited regime, where feedback
+        hides less of the model's error). The oracle uses the same setting.
+    :param kind: ``"ilqr"`` (iLQR on the model's Jacobians, the paper's controller) or ``"cem"``
+        (the cross-entropy method of PETS, :func:`mbtsr.cem.cem`: forward predictions only,
+        never the model's Jacobians; the control for the paper's argument).
     :param terminal_weight: the planner's terminal cost is ``terminal_weight`` x the user's
         ``terminal_cost_fn(obs)`` (default: the stage cost at zero action).
+    :param ilqr_iterations: iLQR iterations per MPC step (the first step of an episode gets
+        ``first_plan_iterations``).
+    :param first_plan_iterations: iLQR (or CEM) iterations for the full plan at the start of an
+        episode.
+    :param cem: the CEM settings (:class:`mbtsr.cem.CEMOptions`, the library's own): ``samples``
+        (200) action sequences per iteration, ``elites`` (20) that refit the sampling
+        distribution, ``iterations`` (3) per MPC step (the first step of an episode gets
+        ``first_plan_iterations``); the agent seeds every solve from ``seed`` (``cem.seed`` stays
+        0).
+    """
 
-    Evaluation: the deterministic MPC policy (no exploration noise) on ``eval_episodes`` fixed
-    episodes; logged as returns (sum of the env's rewards, per episode and their mean). The run
+    _path: ClassVar[str] = "planner"
+    horizon: int = 30
+    replan_every: int = 1
+    kind: Literal["ilqr", "cem"] = "ilqr"
+    terminal_weight: float = 1.0
+    ilqr_iterations: int = 2
+    first_plan_iterations: int = 20
+    cem: CEMOptions = field(default_factory=lambda: CEMOptions(iterations=3))
+
+    def __post_init__(self) -> None:
+        self._choice("kind", PLANNERS)
+        for name, low in (("horizon", 2), ("replan_every", 1), ("ilqr_iterations", 1),
+                          ("first_plan_iterations", 1)):
+            self._int_at_least(name, low)
+        self._float_range("terminal_weight", 0.0)
+        if self.replan_every > self.horizon:
+            raise ValueError(f"planner.replan_every must be <= planner.horizon={self.horizon}, "
+                             f"got {self.replan_every}")
+        if not isinstance(self.cem, CEMOptions):
+            raise ValueError(f"planner.cem must be a mbtsr.cem.CEMOptions, got "
+                             f"{type(self.cem).__name__}")
+        if self.cem.seed != 0:
+            raise ValueError("planner.cem.seed must be 0: the agent seeds every solve from seed, "
+                             f"got {self.cem.seed!r}")
+
+
+@dataclass(frozen=True)
+class EvaluationConfig(_Checked):
+    """Evaluation: the deterministic MPC policy (no exploration noise) on ``episodes`` fixed
+    episodes, logged as returns (sum of the env's rewards, per episode and their mean). The run
     is "solved" at the first evaluation whose mean return is ``>= solved_return`` when that is
     given (any env), else whose mean cost is within ``solved_ratio`` x the cost of MPC with the
-    TRUE model on the same episodes (envs that offer a true model, e.g. the arm):
+    TRUE model on the same episodes (envs that offer a true model, e.g. the arm).
 
+    :param every: evaluate every this many episodes from the last excitation episode on, and
+        after the last episode of every ``learn`` call (0: never). ``episodes_to_solve`` is the
+        episode of the first solved evaluation, so it is resolved to ``every`` episodes (an upper
+        bound on the first episode whose model would have passed).
+    :param episodes: evaluation episodes (fixed targets/seeds, see ``seed``).
+    :param seed: seed of the evaluation targets and resets.
+    :param early_exit: stop an evaluation as soon as the summed cost exceeds ``solved_ratio`` x
+        the oracle's summed cost (exact for costs >= 0: such an evaluation cannot be solved); its
+        ``eval_cost`` is then not logged and ``cost_ratio`` is a lower bound (see
+        ``eval_episodes_run``).
+    :param solved_ratio: the solved threshold relative to the oracle.
     :param solved_return: success threshold on the mean evaluation return (``None``: the
         oracle-ratio criterion, or no "solved" decision for envs without a true model).
-
-    :param eval_every: evaluate every this many episodes from the last excitation episode on,
-        and after the last episode of every ``learn`` call (0: never). ``episodes_to_solve`` is
-        the episode of the first solved evaluation, so it is resolved to ``eval_every``
-        episodes (an upper bound on the first episode whose model would have passed).
-    :param eval_episodes: evaluation episodes (fixed targets/seeds, see ``eval_seed``).
-    :param eval_seed: seed of the evaluation targets and resets.
-    :param solved_ratio: the solved threshold relative to the oracle.
     :param stop_when_solved: stop ``learn`` at the first solved evaluation.
-    :param eval_early_exit: stop an evaluation as soon as the summed cost exceeds
-        ``solved_ratio`` x the oracle's summed cost (exact for costs >= 0: such an evaluation
-        cannot be solved); its ``eval_cost`` is then not logged and ``cost_ratio`` is a lower
-        bound (see ``eval_episodes_run``).
     :param oracle_cache_dir: folder where the oracle's evaluation costs are memoised across runs
         (``None``: recompute in every run).
+    """
 
-    Bookkeeping:
+    _path: ClassVar[str] = "evaluation"
+    every: int = 4
+    episodes: int = 3
+    seed: int = 1000
+    early_exit: bool = True
+    solved_ratio: float = 1.2
+    solved_return: float | None = None
+    stop_when_solved: bool = False
+    oracle_cache_dir: str | None = None
 
+    def __post_init__(self) -> None:
+        self._int_at_least("every", 0)
+        self._int_at_least("episodes", 1)
+        self._int_at_least("seed", 0)
+        self._float_range("solved_ratio", 1.0)
+        if self.solved_return is not None:
+            self._float_range("solved_return", -math.inf)
+        if self.oracle_cache_dir is not None and not isinstance(self.oracle_cache_dir, str):
+            object.__setattr__(self, "oracle_cache_dir", str(self.oracle_cache_dir))
+
+
+def _default_training() -> TrainConfig:
+    return TrainConfig(epochs=150, lr=3e-3, batch=256, progress=False)
+
+
+def _default_regularization() -> RegularizationConfig:
+    return RegularizationConfig.named("sampled", ltv_lambda=None)
+
+
+#: the sub-configs of the tree: field name -> its dataclass
+SECTIONS: dict[str, type] = {
+    "collection": CollectionConfig, "model": ModelConfig, "training": TrainConfig,
+    "regularization": RegularizationConfig, "planner": PlannerConfig,
+    "evaluation": EvaluationConfig,
+}
+
+
+@dataclass(frozen=True)
+class AgentConfig(_Checked):
+    """Everything that decides what :class:`agents.jacprop_agent.JacPropAgent` does.
+
+    ``regularization`` and ``planner`` also accept a name (``"none"``, ``"sampled"``, ``"exact"``,
+    ``"smooth"``; ``"ilqr"``, ``"cem"``): ``RegularizationConfig.named(name, ltv_lambda=None)``
+    and ``PlannerConfig(kind=name)``.
+
+    :param collection: data collection: excitation episodes, exploration noise, episode length.
+    :param model: the ensemble (Objective 1 / 2 of the paper); built by the agent with
+        ``model.build(state_dim, action_dim, seed)`` once the env's dimensions are known.
+    :param training: one model update (Algorithm 1, "fit f to tau_i and the perturbed tau_i"),
+        warm-started, on ALL data so far; ``training.epochs`` epochs after each new episode, the
+        Adam state carried across episodes. ``batch="trajectory"``: one batch per trajectory.
+        The agent gives every update its own seed (derived from ``seed``), so ``training.seed``
+        must stay 0.
+    :param regularization: the tangent-space regularizer (:mod:`mbtsr.training` has the exact
+        objective): ``sampled_weight`` > 0: sampled Jacobian propagation (LTV-labelled perturbed
+        points, Section 3 of the paper, the default), ``exact_weight``: the penalty it
+        approximates, ``sum_t ||J_model(t) - [A_t B_t]_LTV||_F^2``, by double backprop,
+        ``smooth_weight``: the LTV-free ``sum_t ||J_model(t+1) - J_model(t)||_F^2`` of Eq. (reg),
+        all 0: none. ``ltv_lambda`` is the smoothness weight of the agent's LTV fit (Algorithm 1,
+        "fit LTV model"; ``None``: :func:`mbtsr.ltv.select_lambda` on every trajectory).
+    :param planner: the MPC planner (iLQR or CEM) on the learned model.
+    :param evaluation: evaluation episodes and the "solved" criterion.
     :param seed: master seed; every random draw of a run derives from it.
+    :param renormalize: before every update, recompute the model's input/output normalization
+        from ALL data so far (:meth:`mbtsr.ensemble.DynamicsEnsemble.refit_normalization`, which
+        keeps the represented function), instead of freezing the statistics of the first
+        episode. ``False``: the first episode's statistics are kept (the old behaviour).
+    :param ltv_prior: once the model has seen data, fuse each new LTV fit with the ensemble's
+        Jacobians as a Gaussian prior (mean: ensemble mean, variance: ensemble variance +
+        ``ltv_prior``; :func:`mbtsr.ltv.fuse_prior`), as the original code's "jacprop with prior"
+        did. MPC rollouts excite the system little, and an LTV fit to one of them alone has wild
+        Jacobians in the unexcited directions; the prior keeps the model's Jacobians there.
+        ``0`` disables it.
     :param run_dir: folder for the CSV log, TensorBoard, checkpoint and exports (``None``: none).
     :param checkpoint: write a checkpoint after every episode (needs ``run_dir``).
     :param tensorboard: write TensorBoard scalars (needs ``run_dir``).
@@ -137,53 +272,15 @@ class AgentConfig:
     :param torch_threads: ``torch.set_num_threads`` value applied by ``learn`` (0: leave as is).
     """
 
-    # data collection
-    n_excitation_episodes: int = 2
-    excitation: str = "filtered_gaussian"
-    excitation_scale: float = 0.3
-    excitation_window: int = 8
-    exploration_std: float = 0.1
-    episode_steps: int | None = None
-    # model
-    formulation: str = "g"
-    ensemble_size: int = 4
-    hidden_width: int = 20
-    hidden_layers: int = 1
-    activations: tuple[str, ...] = ("elu", "sigmoid", "tanh", "swish")
-    # model update
-    epochs_per_episode: int = 150
-    lr: float = 3e-3
-    batch_size: int = 256
-    weight_decay: float = 0.0
-    regularization: str = "sampled"
-    jacprop_weight: float = 1.0
-    jacobian_penalty: float = 0.01
-    perturbation_sigma: float = 0.1
-    n_perturbed_copies: int = 1
-    renormalize: bool = True
-    ltv_lambda: float | str = "auto"
-    ltv_prior: float = 0.01
-    # planning
-    planner: str = "ilqr"
-    cem_samples: int = 200
-    cem_elites: int = 20
-    cem_iterations: int = 3
-    replan_every: int = 1
-    horizon: int = 30
-    ilqr_iterations: int = 2
-    first_plan_iterations: int = 20
-    terminal_weight: float = 1.0
-    # evaluation
-    eval_every: int = 4
-    eval_episodes: int = 3
-    eval_seed: int = 1000
-    solved_ratio: float = 1.2
-    solved_return: float | None = None
-    stop_when_solved: bool = False
-    eval_early_exit: bool = True
-    oracle_cache_dir: str | None = None
-    # bookkeeping
+    collection: CollectionConfig = field(default_factory=CollectionConfig)
+    model: ModelConfig = field(default_factory=ModelConfig)
+    training: TrainConfig = field(default_factory=_default_training)
+    regularization: RegularizationConfig = field(default_factory=_default_regularization)
+    planner: PlannerConfig = field(default_factory=PlannerConfig)
+    evaluation: EvaluationConfig = field(default_factory=EvaluationConfig)
     seed: int = 0
+    renormalize: bool = True
+    ltv_prior: float = 0.01
     run_dir: str | None = None
     checkpoint: bool = True
     tensorboard: bool = True
@@ -194,153 +291,196 @@ class AgentConfig:
     torch_threads: int = 0
 
     def __post_init__(self) -> None:
-        if isinstance(self.activations, str):
-            object.__setattr__(self, "activations", (self.activations,))
-        object.__setattr__(self, "activations", tuple(self.activations))
-        _int_at_least(self, "n_excitation_episodes", 1)
-        _choice(self, "excitation", EXCITATIONS)
-        _float_range(self, "excitation_scale", 0.0, 1.0, low_open=True)
-        _int_at_least(self, "excitation_window", 1)
-        _float_range(self, "exploration_std", 0.0, math.inf)
-        if self.episode_steps is not None:
-            _int_at_least(self, "episode_steps", 2)
-        _choice(self, "formulation", FORMULATIONS)
-        _int_at_least(self, "ensemble_size", 1)
-        _int_at_least(self, "hidden_width", 1)
-        if self.hidden_layers not in (1, 2) or isinstance(self.hidden_layers, bool):
-            raise ValueError(f"hidden_layers must be 1 or 2, got {self.hidden_layers!r}")
-        from mbtsr.ensemble import ACTIVATIONS
-
-        if len(self.activations) == 0 or any(a not in ACTIVATIONS for a in self.activations):
+        if isinstance(self.regularization, str):
+            object.__setattr__(self, "regularization",
+                               _prefixed("regularization", RegularizationConfig.named,
+                                         self.regularization, ltv_lambda=None))
+        if isinstance(self.planner, str):
+            object.__setattr__(self, "planner", PlannerConfig(kind=self.planner))
+        for name, cls in SECTIONS.items():
+            if not isinstance(getattr(self, name), cls):
+                raise ValueError(f"{name} must be a {cls.__module__}.{cls.__name__}, got "
+                                 f"{type(getattr(self, name)).__name__}")
+        if self.training.epochs < 1:
             raise ValueError(
-                f"activations must be a non-empty tuple of names from {sorted(ACTIVATIONS)}, "
-                f"got {self.activations!r}"
-            )
-        _int_at_least(self, "epochs_per_episode", 1)
-        _float_range(self, "lr", 0.0, math.inf, low_open=True)
-        _int_at_least(self, "batch_size", 0)
-        _float_range(self, "weight_decay", 0.0, math.inf)
-        _choice(self, "regularization", REGULARIZATIONS)
-        _float_range(self, "jacprop_weight", 0.0, math.inf)
-        _float_range(self, "jacobian_penalty", 0.0, math.inf)
-        _float_range(self, "perturbation_sigma", 0.0, math.inf, low_open=True)
-        _int_at_least(self, "n_perturbed_copies", 1)
-        if isinstance(self.ltv_lambda, str):
-            if self.ltv_lambda != "auto":
-                raise ValueError(f"ltv_lambda must be > 0 or 'auto', got {self.ltv_lambda!r}")
-        else:
-            _float_range(self, "ltv_lambda", 0.0, math.inf, low_open=True)
-        _float_range(self, "ltv_prior", 0.0, math.inf)
-        _choice(self, "planner", PLANNERS)
-        _int_at_least(self, "cem_samples", 2)
-        _int_at_least(self, "cem_elites", 1)
-        if self.cem_elites > self.cem_samples:
-            raise ValueError(
-                f"cem_elites must be <= cem_samples, got {self.cem_elites} > {self.cem_samples}")
-        _int_at_least(self, "cem_iterations", 1)
-        _int_at_least(self, "replan_every", 1)
-        _int_at_least(self, "horizon", 2)
-        if self.replan_every > self.horizon:
-            raise ValueError(f"replan_every must be <= horizon={self.horizon}, got "
-                             f"{self.replan_every}")
-        _int_at_least(self, "ilqr_iterations", 1)
-        _int_at_least(self, "first_plan_iterations", 1)
-        _float_range(self, "terminal_weight", 0.0, math.inf)
-        _int_at_least(self, "eval_every", 0)
-        _int_at_least(self, "eval_episodes", 1)
-        _int_at_least(self, "eval_seed", 0)
-        _float_range(self, "solved_ratio", 1.0, math.inf)
-        if self.solved_return is not None:
-            _float_range(self, "solved_return", -math.inf, math.inf)
-        _int_at_least(self, "seed", 0)
-        _int_at_least(self, "video_every", 1)
-        _int_at_least(self, "torch_threads", 0)
+                f"training.epochs must be an integer >= 1, got {self.training.epochs!r}")
+        if self.training.seed != 0:
+            raise ValueError("training.seed must be 0: the agent seeds every update from seed, "
+                             f"got {self.training.seed!r}")
+        lam = self.regularization.ltv_lambda
+        if lam is not None and not lam > 0:
+            raise ValueError(f"regularization.ltv_lambda must be > 0 or None (automatic), "
+                             f"got {lam!r}")
+        if self.regularization.ltv_affine:
+            raise ValueError("regularization.ltv_affine must be False: the agent's LTV fits "
+                             "have no affine term")
+        self._int_at_least("seed", 0)
+        self._float_range("ltv_prior", 0.0)
+        self._int_at_least("video_every", 1)
+        self._int_at_least("torch_threads", 0)
         if self.run_dir is not None and not isinstance(self.run_dir, str):
             object.__setattr__(self, "run_dir", str(self.run_dir))
 
-    # ---- the library's configs this one composes: the ONLY place its fields are mapped ----
-    def ensemble_config(self, state_dim: int, action_dim: int) -> EnsembleConfig:
-        """The :class:`mbtsr.ensemble.EnsembleConfig` of the agent's model (member ``k`` uses
-        ``activations[k % len(activations)]``; inputs and outputs normalized)."""
-        from mbtsr.ensemble import EnsembleConfig, MemberSpec
+    # ---- convenience -------------------------------------------------------------------------
+    def replace(self, changes: Mapping[str, Any] | None = None, /, **top: Any) -> AgentConfig:
+        """A copy with changes applied (validated again): ``changes`` maps dotted field names to
+        values (``{"planner.horizon": 50, "regularization": "none"}``), keywords set top-level
+        fields (``seed=3``, ``model=ModelConfig(...)``, ``regularization="exact"``).
 
-        members = tuple(
-            MemberSpec(activation=self.activations[k % len(self.activations)],
-                       width=self.hidden_width, depth=self.hidden_layers)
-            for k in range(self.ensemble_size)
-        )
-        return EnsembleConfig(state_dim=state_dim, action_dim=action_dim, members=members,
-                              formulation=self.formulation, normalize=True, seed=self.seed)
+        :raises ValueError: naming the dotted field (unknown, or a bad value).
+        """
+        return _replaced(self, {**(changes or {}), **top}, "")
 
-    def train_config(self, seed: int = 0) -> TrainConfig:
-        """The :class:`mbtsr.training.TrainConfig` of one model update (``seed`` drives the batch
-        order and the perturbation draws; ``batch_size=0`` is one batch per trajectory)."""
-        from mbtsr.training import TrainConfig
+    @classmethod
+    def default(cls, changes: Mapping[str, Any] | None = None, /, **top: Any) -> AgentConfig:
+        """``AgentConfig().replace(changes, **top)``: the defaults with these changes, e.g.
+        ``AgentConfig.default({"planner.horizon": 20}, regularization="none")``."""
+        return cls().replace(changes, **top)
 
-        return TrainConfig(epochs=self.epochs_per_episode, lr=self.lr,
-                           batch="trajectory" if self.batch_size == 0 else self.batch_size,
-                           weight_decay=self.weight_decay, seed=seed, progress=False)
-
-    def regularization_config(self) -> RegularizationConfig:
-        """The :class:`mbtsr.training.RegularizationConfig` of ``regularization``: ``sampled``
-        weighs the perturbed copies by ``jacprop_weight``, ``exact``/``smooth`` their penalty by
-        ``jacobian_penalty``, ``none`` nothing."""
-        from mbtsr.training import RegularizationConfig
-
-        weights = {
-            "sampled": {"sampled_weight": self.jacprop_weight},
-            "exact": {"exact_weight": self.jacobian_penalty},
-            "smooth": {"smooth_weight": self.jacobian_penalty},
-            "none": {},
-        }[self.regularization]
-        return RegularizationConfig(sigma=self.perturbation_sigma,
-                                    n_copies=self.n_perturbed_copies, **weights)
-
-    # ---- (de)serialisation: the resolved config is saved as JSON next to the results ----
+    # ---- (de)serialisation: the config is saved as JSON next to the results ------------------
     def to_dict(self) -> dict[str, Any]:
-        """A JSON-friendly dict of all fields."""
-        d = dataclasses.asdict(self)
-        d["activations"] = list(self.activations)
-        return d
+        """A JSON-friendly nested dict of all fields (tuples as lists)."""
+        return json.loads(json.dumps(dataclasses.asdict(self)))
 
     def to_json(self) -> str:
         return json.dumps(self.to_dict(), indent=2, sort_keys=True)
 
     @classmethod
-    def from_dict(cls, d: dict[str, Any]) -> AgentConfig:
-        """Inverse of :meth:`to_dict`; unknown keys are an error (naming them)."""
-        known = {f.name for f in fields(cls)}
-        unknown = sorted(set(d) - known)
-        if unknown:
-            raise ValueError(f"unknown AgentConfig field(s): {unknown}")
-        d = dict(d)
-        if "activations" in d:
-            d["activations"] = tuple(d["activations"])
-        return cls(**d)
+    def from_dict(cls, d: Mapping[str, Any]) -> AgentConfig:
+        """Inverse of :meth:`to_dict`; a dict in the old flat format (before the tree) is
+        converted by :func:`from_flat`. Unknown keys are an error naming them."""
+        if _is_flat(d):
+            return from_flat(d)
+        return _built(cls, d, "")
 
-    def replace(self, **changes: Any) -> AgentConfig:
-        """A copy with ``changes`` applied (validated again)."""
-        return dataclasses.replace(self, **changes)
+    @classmethod
+    def from_json(cls, text: str) -> AgentConfig:
+        return cls.from_dict(json.loads(text))
 
 
-def _int_at_least(cfg: AgentConfig, name: str, low: int) -> None:
-    v = getattr(cfg, name)
-    if isinstance(v, bool) or not isinstance(v, int) or v < low:
-        raise ValueError(f"{name} must be an integer >= {low}, got {v!r}")
+def _field_names(cls: type) -> set[str]:
+    return {f.name for f in dataclasses.fields(cls)}
 
 
-def _float_range(
-    cfg: AgentConfig, name: str, low: float, high: float, *, low_open: bool = False
-) -> None:
-    v = getattr(cfg, name)
-    if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
-        raise ValueError(f"{name} must be a finite number, got {v!r}")
-    if (v <= low if low_open else v < low) or v > high:
-        lo = "(" if low_open else "["
-        raise ValueError(f"{name} must be in {lo}{low}, {high}], got {v!r}")
+_FIELD_NAMES = _field_names(AgentConfig)
 
 
-def _choice(cfg: AgentConfig, name: str, options: tuple[str, ...]) -> None:
-    v = getattr(cfg, name)
-    if v not in options:
-        raise ValueError(f"{name} must be one of {options}, got {v!r}")
+def _prefixed(section: str, make: Any, *args: Any, **kwargs: Any) -> Any:
+    """``make(*args, **kwargs)`` with a ``ValueError`` re-raised as ``"<section>.<message>"`` (the
+    library's configs name their own fields, the tree names the path; ``CEMOptions`` names them
+    ``options.<field>``)."""
+    try:
+        return make(*args, **kwargs)
+    except (ValueError, TypeError) as err:
+        msg = str(err)
+        if not section or msg.startswith(f"{section}.") or msg.startswith(f"{section} "):
+            raise
+        if msg.startswith("options."):
+            raise type(err)(msg.replace("options.", f"{section}.")) from None
+        raise type(err)(f"{section}.{msg}") from None
+
+
+def _sub_configs(obj: Any) -> dict[str, type]:
+    """The fields of dataclass ``obj`` (an instance or a class with defaults) that hold configs."""
+    inst = obj() if isinstance(obj, type) else obj
+    return {f.name: type(getattr(inst, f.name)) for f in dataclasses.fields(inst)
+            if dataclasses.is_dataclass(getattr(inst, f.name))}
+
+
+def _replaced(obj: Any, changes: Mapping[str, Any], prefix: str) -> Any:
+    """``dataclasses.replace`` with dotted keys (``"planner.cem.samples"``), at any depth; every
+    level is validated again and its errors name the dotted path."""
+    direct: dict[str, Any] = {}
+    nested: dict[str, dict[str, Any]] = {}
+    names = _field_names(type(obj))
+    for key, value in changes.items():
+        head, _, rest = key.partition(".")
+        if head not in names:
+            old = _FLAT_PATHS.get(key) if not prefix else None
+            hint = f" (a field before the tree: now {old!r})" if old else ""
+            raise ValueError(f"unknown AgentConfig field {prefix + key!r}{hint}")
+        if rest:
+            nested.setdefault(head, {})[rest] = value
+        else:
+            direct[head] = value
+    for head, values in nested.items():
+        base = direct.get(head, getattr(obj, head))
+        if isinstance(base, str) and isinstance(obj, AgentConfig):  # a name, then its fields
+            base = getattr(dataclasses.replace(obj, **{head: base}), head)
+        if not dataclasses.is_dataclass(base):
+            bad = f"{prefix}{head}.{next(iter(values))}"
+            raise ValueError(f"unknown AgentConfig field {bad!r}")
+        direct[head] = _replaced(base, values, f"{prefix}{head}.")
+    return _prefixed(prefix[:-1], dataclasses.replace, obj, **direct)
+
+
+def _built(cls: type, d: Mapping[str, Any], prefix: str) -> Any:
+    """``cls`` from a nested dict of its fields (:meth:`AgentConfig.to_dict`'s inverse, at any
+    depth); lists become tuples, unknown keys are an error naming their dotted path."""
+    if not isinstance(d, Mapping):
+        raise ValueError(f"{prefix[:-1]} must be a dict of {cls.__name__} fields, got {d!r}")
+    unknown = sorted(set(d) - _field_names(cls))
+    if unknown:
+        raise ValueError(f"unknown AgentConfig field(s): {[prefix + k for k in unknown]}")
+    subs = _sub_configs(cls)
+    kwargs = {k: _built(subs[k], v, f"{prefix}{k}.") if k in subs
+              else tuple(v) if isinstance(v, list) else v for k, v in d.items()}
+    return _prefixed(prefix[:-1], cls, **kwargs)
+
+
+# ---- the old flat format (before the tree): one function, tested in tests/test_config_tree.py --
+_FLAT_PATHS = {
+    **{n: f"collection.{n}" for n in _field_names(CollectionConfig)},
+    **{n: f"model.{n}" for n in _field_names(ModelConfig)},
+    "epochs_per_episode": "training.epochs", "lr": "training.lr",
+    "weight_decay": "training.weight_decay",
+    "planner": "planner.kind",
+    **{n: f"planner.{n}" for n in _field_names(PlannerConfig) - {"kind", "cem"}},
+    **{f"cem_{n}": f"planner.cem.{n}" for n in ("samples", "elites", "iterations")},
+    **{f"eval_{n}": f"evaluation.{n}" for n in ("every", "episodes", "seed", "early_exit")},
+    **{n: f"evaluation.{n}" for n in ("solved_ratio", "solved_return", "stop_when_solved",
+                                       "oracle_cache_dir")},
+    **{n: n for n in _FIELD_NAMES - set(SECTIONS)},
+}
+_FLAT_REGULARIZATION = ("regularization", "jacprop_weight", "jacobian_penalty",
+                        "perturbation_sigma", "n_perturbed_copies", "ltv_lambda")
+
+
+_FLAT_KEYS = set(_FLAT_PATHS) | set(_FLAT_REGULARIZATION) | {"batch_size"}
+_FLAT_ONLY = _FLAT_KEYS - _FIELD_NAMES
+
+
+def _is_flat(d: Mapping[str, Any]) -> bool:
+    """Whether ``d`` is in the old flat format (a flat-only key, or a name for a section)."""
+    return any(k in _FLAT_ONLY for k in d) or any(
+        isinstance(d.get(k), str) for k in ("regularization", "planner"))
+
+
+def from_flat(flat: Mapping[str, Any]) -> AgentConfig:
+    """An :class:`AgentConfig` from the old flat dict (``AgentConfig.to_dict()`` before the tree,
+    e.g. ``{"epochs_per_episode": 150, "hidden_width": 20, "regularization": "sampled", ...}``;
+    missing keys take their defaults, which did not change).
+
+    ``batch_size=0`` becomes ``training.batch="trajectory"``; ``regularization`` with
+    ``jacprop_weight`` (sampled) or ``jacobian_penalty`` (exact/smooth), ``perturbation_sigma``,
+    ``n_perturbed_copies`` and ``ltv_lambda`` (``"auto"`` -> ``None``) become one
+    :class:`~mbtsr.training.RegularizationConfig`.
+    """
+    d = dict(flat)
+    unknown = sorted(set(d) - _FLAT_KEYS)
+    if unknown:
+        raise ValueError(f"unknown AgentConfig field(s): {unknown}")
+    kind = d.pop("regularization", "sampled")
+    weights = {"sampled": d.pop("jacprop_weight", 1.0)}
+    penalty = d.pop("jacobian_penalty", 0.01)
+    weights.update(exact=penalty, smooth=penalty)
+    lam = d.pop("ltv_lambda", "auto")
+    reg = _prefixed("regularization", RegularizationConfig.named, kind, weights.get(kind),
+                    sigma=d.pop("perturbation_sigma", 0.1), n_copies=d.pop("n_perturbed_copies", 1),
+                    ltv_lambda=None if lam == "auto" else lam)
+    changes: dict[str, Any] = {_FLAT_PATHS[k]: v for k, v in d.items() if k != "batch_size"}
+    if "batch_size" in d:
+        changes["training.batch"] = d["batch_size"] if d["batch_size"] != 0 else "trajectory"
+    if "model.activations" in changes:
+        changes["model.activations"] = tuple(changes["model.activations"])
+    return AgentConfig(regularization=reg).replace(changes)

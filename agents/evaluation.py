@@ -38,6 +38,7 @@ __all__ = [
     "ARM_ID",
     "EpisodeRecord",
     "MPCPolicy",
+    "SB3Predictor",
     "make_env",
     "mpc_policy",
     "planner_cost",
@@ -50,7 +51,8 @@ __all__ = [
     "has_true_model",
     "TrueStatePolicy",
     "cached_costs",
-    "code_fingerprint",
+    "oracle_cache_key",
+    "physics_fingerprint",
     "solved_threshold",
 ]
 
@@ -84,7 +86,36 @@ def planner_cost(task_cost: ObservationCost, terminal_weight: float = 1.0) -> Ca
     return CasadiCost(stage, terminal, n, m)
 
 
-class MPCPolicy:
+class SB3Predictor:
+    """Stable-Baselines3's ``predict`` over ``_act(observation, state)``: the MPC policies and
+    the agent. ``episode_start`` forces a cold start (``state=None``); ``deterministic`` is
+    unused (MPC is deterministic), kept for SB3 compatibility."""
+
+    def _act(self, observation: Any, state: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+        raise NotImplementedError
+
+    def predict(
+        self,
+        observation: np.ndarray,
+        state: np.ndarray | None = None,
+        episode_start: np.ndarray | bool | None = None,
+        deterministic: bool = True,
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """One step (Stable-Baselines3 signature).
+
+        :param observation: ``[obs_dim]`` current observation.
+        :param state: the recurrent state returned by the previous call (the remaining plan),
+            or ``None`` (cold start, also forced by ``episode_start``).
+        :param episode_start: ``True`` at the first step of an episode.
+        :param deterministic: unused (MPC is deterministic); kept for SB3 compatibility.
+        :return: ``(action [m], next_state)``.
+        """
+        if episode_start is not None and bool(np.any(episode_start)):
+            state = None
+        return self._act(observation, state)
+
+
+class MPCPolicy(SB3Predictor):
     """Stable-Baselines3's ``predict`` on observations for an :class:`mbtsr.mpc.MPC`.
 
     Maps the observation to the model state (``task_cost.state_map``) and to the cost
@@ -124,30 +155,15 @@ class MPCPolicy:
         """The planning model."""
         return self.mpc.model
 
-    def predict(
-        self,
-        observation: np.ndarray,
-        state: np.ndarray | None = None,
-        episode_start: np.ndarray | bool | None = None,
-        deterministic: bool = True,
-    ) -> tuple[np.ndarray, np.ndarray]:
-        """One MPC step (Stable-Baselines3 signature).
-
-        :param observation: ``[obs_dim]`` current observation.
-        :param state: ``[H, m]`` warm start returned by the previous call, or ``None`` (cold
-            start, also forced by ``episode_start``).
-        :param episode_start: ``True`` at the first step of an episode.
-        :param deterministic: unused (MPC is deterministic); kept for SB3 compatibility.
-        :return: ``(action [m], next_state [H, m])``.
-        """
+    def _act(self, observation: Any, state: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+        """One MPC step: ``state`` is the ``[H, m]`` plan returned by the previous call (the
+        warm start) or ``None`` (a cold start); returns ``(action [m], next_state [H, m])``."""
         obs = as_array("observation", observation, finite=False)  # refuses complex values
         if obs.shape != (self.spec.obs_dim,):
             raise ValueError(
                 f"observation must have shape ({self.spec.obs_dim},), got {list(obs.shape)}"
             )
         check_finite("observation", obs)
-        if episode_start is not None and bool(np.any(episode_start)):
-            state = None
         if state is not None:
             state = np.asarray(state, dtype=float)
             if state.shape != (self.mpc.horizon, self.spec.act_dim):
@@ -296,23 +312,9 @@ def evaluate_policy_costs(
     return np.asarray(costs)
 
 
-def evaluate_policy_cost(
-    policy: Any,
-    env: gym.Env | str,
-    targets: Sequence[np.ndarray] | None = None,
-    seed: int = 0,
-    *,
-    n_episodes: int | None = None,
-    max_steps: int | None = None,
-) -> float:
-    """Mean of :func:`evaluate_policy_costs`."""
-    return float(
-        np.mean(
-            evaluate_policy_costs(
-                policy, env, targets, seed, n_episodes=n_episodes, max_steps=max_steps
-            )
-        )
-    )
+def evaluate_policy_cost(policy: Any, env: gym.Env | str, *args: Any, **kwargs: Any) -> float:
+    """Mean of :func:`evaluate_policy_costs` (the same arguments)."""
+    return float(np.mean(evaluate_policy_costs(policy, env, *args, **kwargs)))
 
 
 class TrueStatePolicy(MPCPolicy):
@@ -435,37 +437,24 @@ def oracle_cost(
     horizon: int,
     *,
     seed: int = 0,
-    iterations: int = 2,
-    first_plan_iterations: int = 20,
-    terminal_weight: float = 1.0,
-    model: str = "dynamics_model",
     return_costs: bool = False,
-    cost_fn: Callable | None = None,
-    terminal_cost_fn: Callable | None = None,
     n_episodes: int | None = None,
     max_steps: int | None = None,
+    **policy_options: Any,
 ) -> float | np.ndarray:
-    """Mean episode cost of MPC with the TRUE model on ``targets`` (see :func:`oracle_policy`
-    and :func:`evaluate_policy_costs`; the same ``seed`` gives the same initial states).
+    """Mean episode cost of MPC with the TRUE model on ``targets``: :func:`oracle_policy`
+    (``policy_options``: its keyword arguments, e.g. ``iterations``, ``cost_fn``,
+    ``terminal_cost_fn``) scored by :func:`evaluate_policy_costs` (the same ``seed`` gives the
+    same initial states).
 
     :param return_costs: return the per-episode costs ``[n]`` instead of the mean.
-    :param cost_fn: the task's stage cost on observations (default: the env's own quadratic
-        cost); ``terminal_cost_fn`` its terminal cost. ``targets=None`` with ``n_episodes``:
-        envs without targets (Reacher-v5, InvertedPendulum-v5).
+    :param targets: ``None`` with ``n_episodes``: envs without targets (Reacher-v5,
+        InvertedPendulum-v5).
     :param max_steps: cap on the steps per episode (default: the env's own limit).
     """
     env, created = make_env(env)
     try:
-        policy = oracle_policy(
-            env,
-            horizon,
-            iterations=iterations,
-            first_plan_iterations=first_plan_iterations,
-            terminal_weight=terminal_weight,
-            model=model,
-            cost_fn=cost_fn,
-            terminal_cost_fn=terminal_cost_fn,
-        )
+        policy = oracle_policy(env, horizon, **policy_options)
         costs = evaluate_policy_costs(policy, env, targets, seed, n_episodes=n_episodes,
                                       max_steps=max_steps)
     finally:
@@ -497,21 +486,56 @@ def cached_costs(
     return costs
 
 
-def code_fingerprint(*objects: Any, packages: Sequence[Any] = ()) -> str:
-    """sha256 over the source files defining ``objects`` (modules, classes, functions) and over
-    every ``.py``/``.xml`` file in the folders of ``packages`` (an env's package with its
-    assets): part of a cache key, so that cached oracle costs are recomputed when the env or
-    solver code changes."""
-    import inspect
+def physics_fingerprint(env: gym.Env) -> str:
+    """sha256 (16 hex digits) of the physics the env simulates: its compiled ``MjModel`` saved
+    as MJB bytes (every numeric array, option and size: masses, geometry, actuator gains,
+    time step, ...). Changes when a physical parameter does, not when source code is edited."""
+    import mujoco
 
-    files = {inspect.getsourcefile(o) or "" for o in objects}
-    for pkg in packages:
-        folder = Path(inspect.getsourcefile(pkg) or "").parent
-        files |= {str(f) for f in folder.rglob("*") if f.suffix in (".py", ".xml")}
-    h = hashlib.sha256()
-    for path in sorted(f for f in files if f and Path(f).is_file()):
-        h.update(Path(path).read_bytes())
-    return h.hexdigest()[:16]
+    model = getattr(env.unwrapped, "model", None)
+    if not isinstance(model, mujoco.MjModel):
+        raise ValueError(f"{env.unwrapped!r} has no compiled MuJoCo model (env.unwrapped.model)")
+    buf = np.empty(mujoco.mj_sizeModel(model), np.uint8)
+    mujoco.mj_saveModel(model, None, buf)
+    return hashlib.sha256(buf.tobytes()).hexdigest()[:16]
+
+
+def oracle_cache_key(
+    env: gym.Env,
+    task: dict[str, Any],
+    targets: Sequence[np.ndarray] | None,
+    seed: int,
+    *,
+    n_episodes: int,
+    episode_steps: int,
+    planner: dict[str, Any],
+    optimizer_options: ILQROptions | None = None,
+) -> dict[str, Any]:
+    """What the oracle's costs depend on, as data (the key of :func:`cached_costs`): the env's
+    physics (:func:`physics_fingerprint`) and :func:`agents.checkpoint.env_fingerprint` (id,
+    constructor arguments, time step, spaces), the task (``task``: the cost's and the state map's
+    ``to_dict()``), the evaluation targets,
+    seed, episode count and length, the planner settings (``planner``: horizon, iterations,
+    ...; ``optimizer_options``: iLQR's, default ``ILQROptions()`` as :func:`mpc_policy` uses)
+    and ``mbtsr.__version__`` (a release invalidates every entry)."""
+    import dataclasses
+
+    import mbtsr
+    from agents.checkpoint import env_fingerprint
+
+    options = ILQROptions() if optimizer_options is None else optimizer_options
+    return {
+        "mbtsr": mbtsr.__version__,
+        "physics": physics_fingerprint(env),
+        "env": env_fingerprint(env),
+        "task": task,
+        "targets": None if targets is None else [np.asarray(t, float).tolist() for t in targets],
+        "eval_seed": int(seed),
+        "eval_episodes": int(n_episodes),
+        "episode_steps": int(episode_steps),
+        "planner": dict(planner),
+        "optimizer_options": dataclasses.asdict(options),
+    }
 
 
 def _json_default(o: Any) -> Any:

@@ -24,9 +24,9 @@ atomic checkpoint (data, model, Adam state, RNG states, config, log) from which
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
-import sys
 import time
 import warnings
 from collections.abc import Callable
@@ -50,12 +50,14 @@ from agents.config import AgentConfig
 from agents.episode_log import TIMING_COLUMNS, EpisodeLog
 from agents.evaluation import (
     EpisodeRecord,
+    SB3Predictor,
+    _is_mujoco_env,
     cached_costs,
-    code_fingerprint,
     evaluate_policy_costs,
     evaluation_targets,
     has_true_model,
     mpc_policy,
+    oracle_cache_key,
     oracle_policy,
     planner_cost,
     run_episode,
@@ -83,11 +85,11 @@ LTV_MEMORY_BUDGET = 256e6
 LTV_MEMORY_MAX = 2e9
 
 
-class JacPropAgent:
+class JacPropAgent(SB3Predictor):
     """Model-based agent of the paper's Algorithm 1 (learned NN ensemble + iLQR MPC).
 
     :param env: a Gymnasium env with 1-D ``Box`` observation and action spaces, a bounded action
-        space and a ``TimeLimit`` (or ``config.episode_steps``).
+        space and a ``TimeLimit`` (or ``config.collection.episode_steps``).
     :param config: :class:`agents.config.AgentConfig`.
     :param cost_fn: stage cost ``cost_fn(obs, action) -> scalar`` written with CasADi
         operations (see :mod:`agents.task`). ``None``: the env's own quadratic cost
@@ -96,7 +98,7 @@ class JacPropAgent:
     :param obs_fn: ``(state, obs_ref) -> obs`` (CasADi-compatible), the inverse map used to
         evaluate ``cost_fn`` on predicted states.
     :param terminal_cost_fn: ``obs -> scalar`` (CasADi), the cost of a plan's last predicted
-        observation (x ``config.terminal_weight``; default: the stage cost at zero action).
+        observation (x ``config.planner.terminal_weight``; default: the stage cost at zero action).
     :param termination_fn: ``obs [..., obs_dim] -> bool [...]`` (numpy): where the env would
         terminate; the planner (iLQR or CEM) adds no cost after a predicted termination.
     :raises ValueError: at construction for non-Box spaces, an unbounded action space, a cost
@@ -117,7 +119,7 @@ class JacPropAgent:
         config = AgentConfig() if config is None else config
         if not isinstance(config, AgentConfig):
             raise TypeError(f"config must be an AgentConfig, got {type(config).__name__}")
-        spec = env_spec(env, config.episode_steps)
+        spec = env_spec(env, config.collection.episode_steps)
         if config.video and getattr(env, "render_mode", None) != "rgb_array":
             raise ValueError(
                 "config.video needs an env created with render_mode='rgb_array', got "
@@ -170,11 +172,10 @@ class JacPropAgent:
         s = self._check_state_fn(env, spec)
         self.state_dim = int(s.size)
         p = self.state_dim + spec.act_dim
-        if config.regularization in ("sampled", "exact") and 8 * 4 * 2 * self.state_dim * p**2 > (
-            LTV_MEMORY_MAX
-        ):
+        if config.regularization.needs_ltv and 8 * 4 * 2 * self.state_dim * p**2 > LTV_MEMORY_MAX:
             raise ValueError(
-                f"regularization={config.regularization!r} fits LTV models whose covariance holds "
+                f"regularization={config.regularization.kind!r} fits LTV models whose covariance "
+                "holds "
                 f"n (n+m)^2 = {self.state_dim * p**2:.3g} numbers per time step for this model "
                 f"state (n={self.state_dim}, m={spec.act_dim}), more than this machine should "
                 "hold; pass a smaller model state with state_fn/obs_fn, or choose "
@@ -184,9 +185,10 @@ class JacPropAgent:
             cost_fn, state_map, spec, self.state_dim, terminal_cost_fn=terminal_cost_fn)
         self.terminal_cost_fn = terminal_cost_fn
         self.termination_fn = _checked_termination_fn(termination_fn, env, spec)
-        self.planner_cost = planner_cost(self.task_cost, config.terminal_weight)
+        self.planner_cost = planner_cost(self.task_cost, config.planner.terminal_weight)
         # the model: an ensemble of small networks, Objective 1 (f) or 2 (g)
-        self.ensemble_config = config.ensemble_config(self.state_dim, spec.act_dim)
+        self.ensemble_config = config.model.ensemble_config(self.state_dim, spec.act_dim,
+                                                            config.seed)
         self.model = DynamicsEnsemble(self.ensemble_config)
         self._freeze()
         self.has_linearize = env is not None and (
@@ -210,27 +212,27 @@ class JacPropAgent:
     def _freeze(self) -> None:
         """Train -> freeze -> plan: the controller plans with an immutable float64 copy of the
         ensemble, taken after each training round (and at construction / load). One MPC
-        (:class:`mbtsr.mpc.MPC`) with iLQR or CEM (``config.planner``)."""
+        (:class:`mbtsr.mpc.MPC`) with iLQR or CEM (``config.planner.kind``)."""
         cfg = self.config
         self.planning_model = self.model.freeze()
-        optimizer, options, iterations = ilqr, None, cfg.ilqr_iterations
-        if cfg.planner == "cem":
+        optimizer, options, iterations = ilqr, None, cfg.planner.ilqr_iterations
+        if cfg.planner.kind == "cem":
             from mbtsr.cem import cem as optimizer
 
-            options = {"samples": cfg.cem_samples, "elites": cfg.cem_elites, "seed": cfg.seed}
-            iterations = cfg.cem_iterations
+            options = dataclasses.replace(cfg.planner.cem, seed=cfg.seed)
+            iterations = options.iterations
         self.policy = mpc_policy(
             self.planning_model,
             self.task_cost,
-            horizon=cfg.horizon,
+            horizon=cfg.planner.horizon,
             iterations=iterations,
-            first_plan_iterations=cfg.first_plan_iterations,
+            first_plan_iterations=cfg.planner.first_plan_iterations,
             cost=self.planner_cost,
             optimizer=optimizer,
             optimizer_options=options,
             termination_fn=self.termination_fn,
         )
-        self.actor = ReplanEvery(self.policy, cfg.replan_every)
+        self.actor = ReplanEvery(self.policy, cfg.planner.replan_every)
 
     def _check_state_fn(self, env: gym.Env | None, spec: EnvSpec) -> np.ndarray:
         """Call the state map on one observation and on a batch of three (it is called on
@@ -350,7 +352,7 @@ class JacPropAgent:
                                     ratio=_fmt(row.get("cost_ratio")))
                 if callback is not None and callback({"agent": self, "row": row}) is False:
                     break
-                if self.config.stop_when_solved and row.get("solved"):
+                if self.config.evaluation.stop_when_solved and row.get("solved"):
                     break
         finally:
             if bar is not None:
@@ -360,25 +362,13 @@ class JacPropAgent:
                 self._log = None
         return self
 
-    def predict(
-        self,
-        observation: np.ndarray,
-        state: np.ndarray | None = None,
-        episode_start: np.ndarray | bool | None = None,
-        deterministic: bool = True,
-    ) -> tuple[np.ndarray, np.ndarray]:
-        """Action of the MPC controller on the learned model (Algorithm 1, step (e)).
-
-        :param observation: ``[obs_dim]`` one observation.
-        :param state: ``[H, m]`` warm-start plan returned by the previous call (``None`` at an
-            episode start: a cold full-horizon plan); ``[H+1, m]`` with
-            ``AgentConfig.replan_every > 1`` (the last row counts the steps since the plan).
-        :param episode_start: ``True`` forces a cold start.
-        :param deterministic: kept for SB3 compatibility (MPC is deterministic; exploration
-            noise is only added in :meth:`learn`).
-        :return: ``(action [m], next_state [H, m])``.
-        """
-        return self.actor.predict(observation, state, episode_start, deterministic)
+    def _act(self, observation: Any, state: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+        """Action of the MPC controller on the learned model (Algorithm 1, step (e)); ``state``
+        is the warm-start plan ``[H, m]`` of the previous call (``[H+1, m]`` with
+        ``AgentConfig.planner.replan_every > 1``: the last row counts the steps since the
+        plan), ``None`` a cold full-horizon plan. Exploration noise is only added in
+        :meth:`learn`."""
+        return self.actor.predict(observation, state)
 
     def save(self, path: str | Path) -> Path:
         """Save everything needed to continue learning or to act (one atomic file)."""
@@ -420,7 +410,7 @@ class JacPropAgent:
         config = AgentConfig.from_dict(cfg)
         spec = EnvSpec.from_dict(json.loads(payload["env_spec"]))
         if env is not None:
-            got = env_spec(env, config.episode_steps)
+            got = env_spec(env, config.collection.episode_steps)
             if (got.obs_dim, got.act_dim) != (spec.obs_dim, spec.act_dim) or not (
                 np.array_equal(got.u_min, spec.u_min) and np.array_equal(got.u_max, spec.u_max)
             ):
@@ -467,7 +457,7 @@ class JacPropAgent:
         )
         # anything that draws from torch's global generator is reproducible per episode
         torch.manual_seed(torch_seed)
-        excitation = ep < cfg.n_excitation_episodes
+        excitation = ep < cfg.collection.n_excitation_episodes
         T = spec.episode_steps if max_steps is None else min(spec.episode_steps, max_steps)
         render = cfg.video and cfg.run_dir is not None and ep % cfg.video_every == 0
 
@@ -480,7 +470,7 @@ class JacPropAgent:
         else:
             half = 0.5 * (spec.u_max - spec.u_min)
             noise = (
-                cfg.exploration_std * half
+                cfg.collection.exploration_std * half
                 * np.random.default_rng(signal_seed).standard_normal((T, spec.act_dim))
             )
             plan: dict[str, Any] = {"U": None}
@@ -506,7 +496,7 @@ class JacPropAgent:
         tic = time.perf_counter()
         lam = math.nan
         ltv_note = ""
-        if cfg.regularization in ("sampled", "exact"):
+        if cfg.regularization.needs_ltv:
             ltv, lam, ltv_note = self._ltv_for(traj)
             self.ltv_models.append(ltv)
         self.ltv_lambdas.append(lam)
@@ -557,24 +547,24 @@ class JacPropAgent:
         from mbtsr import excitation
 
         cfg, spec = self.config, self.spec
-        if cfg.excitation == "filtered_gaussian":
+        if cfg.collection.excitation == "filtered_gaussian":
             sig = excitation.filtered_gaussian(
-                T, spec.act_dim, window=cfg.excitation_window, scale=1.0, seed=seed
-            ) / excitation.filtered_gaussian_std(cfg.excitation_window, 1.0)
+                T, spec.act_dim, window=cfg.collection.excitation_window, scale=1.0, seed=seed
+            ) / excitation.filtered_gaussian_std(cfg.collection.excitation_window, 1.0)
         else:
             sig = excitation.multisine(T, spec.act_dim, seed=seed) / excitation.multisine_std(
                 5, 1.0
             )
         mid, half = 0.5 * (spec.u_max + spec.u_min), 0.5 * (spec.u_max - spec.u_min)
-        return np.clip(mid + half * cfg.excitation_scale * sig, spec.u_min, spec.u_max)
+        return np.clip(mid + half * cfg.collection.excitation_scale * sig, spec.u_min, spec.u_max)
 
     def _ltv_for(self, traj: Trajectory) -> tuple[LTVModel, float, str]:
         """The LTV model ``l_i`` of a new trajectory, with documented fallbacks instead of an
         error when the data cannot support the fit (see ``docs/agent.md``, "LTV fallbacks"):
 
-        1. ``ltv_lambda="auto"`` needs more transitions than regressors (``T > n + m``); a
-           shorter episode (early termination) reuses the median of the earlier selections,
-           or the regressor scale for the very first episode.
+        1. ``regularization.ltv_lambda=None`` (automatic) needs more transitions than
+           regressors (``T > n + m``); a shorter episode (early termination) reuses the median
+           of the earlier selections, or the regressor scale for the very first episode.
         2. Regressors that do not span their space (observation coordinates that are constant
            within the episode, such as a goal position, or an unexcited input) make the
            smooth fit singular: it is repeated with a weak Gaussian prior on the first
@@ -668,9 +658,10 @@ class JacPropAgent:
         return ltv, lam, note
 
     def _ltv_lambda(self, traj: Trajectory, notes: list[str] | None = None) -> float:
-        """``AgentConfig.ltv_lambda``, or its automatic choice (see :meth:`_ltv_for`)."""
-        if self.config.ltv_lambda != "auto":
-            return float(self.config.ltv_lambda)
+        """``AgentConfig.regularization.ltv_lambda``, or its automatic choice (see
+        :meth:`_ltv_for`)."""
+        if self.config.regularization.ltv_lambda is not None:
+            return float(self.config.regularization.ltv_lambda)
         # constant state coordinates (a goal in the observation) carry no information on the
         # smoothness and make the criterion singular: select on the varying ones
         varying = np.ptp(traj.x, axis=0) > 1e-9 * (1.0 + np.abs(traj.x).max(axis=0))
@@ -718,7 +709,8 @@ class JacPropAgent:
     def _train_configs(self, train_seed: int = 0):
         """The :class:`~mbtsr.training.TrainConfig` (its seed drives batch order and the
         perturbation draws) and :class:`~mbtsr.training.RegularizationConfig` of an update."""
-        return self.config.train_config(train_seed), self.config.regularization_config()
+        cfg = self.config
+        return dataclasses.replace(cfg.training, seed=train_seed), cfg.regularization
 
     def _model_errors(self, traj: Trajectory) -> tuple[float, float]:
         """One-step RMS of the ensemble mean on the new trajectory and the paper's Jacobian
@@ -743,12 +735,12 @@ class JacPropAgent:
 
     # ------------------------------------------------------------------ evaluation
     def _should_evaluate(self, ep: int, last: bool = False) -> bool:
-        """Every ``eval_every``-th episode from the last excitation episode on, and the last
+        """Every ``evaluation.every``-th episode from the last excitation episode on, and the last
         episode of every :meth:`learn` call (the final score)."""
         cfg = self.config
-        if cfg.eval_every == 0 or ep < cfg.n_excitation_episodes - 1:
+        if cfg.evaluation.every == 0 or ep < cfg.collection.n_excitation_episodes - 1:
             return False
-        return last or (ep - (cfg.n_excitation_episodes - 1)) % cfg.eval_every == 0
+        return last or (ep - (cfg.collection.n_excitation_episodes - 1)) % cfg.evaluation.every == 0
 
     def _eval_env_instance(self) -> gym.Env:
         if self._eval_env is None:
@@ -762,16 +754,16 @@ class JacPropAgent:
         """``(target or None, reset seed)`` of evaluation episode ``i``."""
         self._ensure_eval_targets()
         target = None if self.eval_targets is None else self.eval_targets[i]
-        return target, self.config.eval_seed + i
+        return target, self.config.evaluation.seed + i
 
     def _ensure_eval_targets(self) -> None:
         if self.eval_targets is not None:
             return
         env = self._eval_env_instance()
-        _, info = env.reset(seed=self.config.eval_seed)
+        _, info = env.reset(seed=self.config.evaluation.seed)
         if "target" in info:
             self.eval_targets = evaluation_targets(
-                self.config.eval_episodes, self.config.eval_seed, env
+                self.config.evaluation.episodes, self.config.evaluation.seed, env
             )
 
     def _evaluate(self) -> dict[str, Any]:
@@ -784,14 +776,15 @@ class JacPropAgent:
         """
         cfg = self.config
         env, kwargs = self._eval_setup()
-        oracle = None if cfg.solved_return is not None else self._oracle_costs(env, kwargs)
+        ev = cfg.evaluation
+        oracle = None if ev.solved_return is not None else self._oracle_costs(env, kwargs)
         stop_above = None
-        if oracle is not None and cfg.eval_early_exit and np.all(oracle >= 0):
-            stop_above = cfg.solved_ratio * float(np.sum(oracle))
+        if oracle is not None and cfg.evaluation.early_exit and np.all(oracle >= 0):
+            stop_above = cfg.evaluation.solved_ratio * float(np.sum(oracle))
         costs = evaluate_policy_costs(
-            self, env, self.eval_targets, cfg.eval_seed, stop_above=stop_above, **kwargs
+            self, env, self.eval_targets, cfg.evaluation.seed, stop_above=stop_above, **kwargs
         )
-        complete = len(costs) == cfg.eval_episodes
+        complete = len(costs) == cfg.evaluation.episodes
         returns = [float(-c) for c in costs]
         out: dict[str, Any] = {
             "eval_cost": float(np.mean(costs)) if complete else None,
@@ -802,15 +795,15 @@ class JacPropAgent:
             "eval_episodes_run": len(costs),
             "solved": False,
         }
-        if cfg.solved_return is not None:
-            out["solved"] = bool(complete and out["eval_return"] >= cfg.solved_return)
+        if cfg.evaluation.solved_return is not None:
+            out["solved"] = bool(complete and out["eval_return"] >= cfg.evaluation.solved_return)
             return out
         if oracle is None:
             return out
         total = float(np.sum(oracle))
         ratio = float(np.sum(costs)) / total if total > 0 else math.inf
         out.update(oracle_cost=float(np.mean(oracle)), cost_ratio=ratio,
-                   solved=bool(complete and ratio <= cfg.solved_ratio))
+                   solved=bool(complete and ratio <= cfg.evaluation.solved_ratio))
         return out
 
     def _oracle_costs(self, env: gym.Env, kwargs: dict[str, Any]) -> np.ndarray | None:
@@ -822,7 +815,7 @@ class JacPropAgent:
         def compute() -> np.ndarray:
             tic = time.perf_counter()
             try:
-                return evaluate_policy_costs(policy(), env, self.eval_targets, cfg.eval_seed,
+                return evaluate_policy_costs(policy(), env, self.eval_targets, cfg.evaluation.seed,
                                              **kwargs)
             finally:
                 self._oracle_seconds += time.perf_counter() - tic
@@ -830,47 +823,33 @@ class JacPropAgent:
         def policy() -> Any:
             return ReplanEvery(oracle_policy(
                 env,
-                cfg.horizon,
-                iterations=cfg.ilqr_iterations,
-                first_plan_iterations=cfg.first_plan_iterations,
-                terminal_weight=cfg.terminal_weight,
+                cfg.planner.horizon,
+                iterations=cfg.planner.ilqr_iterations,
+                first_plan_iterations=cfg.planner.first_plan_iterations,
+                terminal_weight=cfg.planner.terminal_weight,
                 cost_fn=self.cost_fn,
                 state_map=self.state_map,
                 terminal_cost_fn=self.terminal_cost_fn,
                 termination_fn=self.termination_fn,
-            ), cfg.replan_every)
+            ), cfg.planner.replan_every)
 
-        cache_dir = cfg.oracle_cache_dir
+        key: dict[str, Any] = {}
+        cache_dir = cfg.evaluation.oracle_cache_dir
         if not (isinstance(self.cost_fn, QuadraticTargetCost) and self.state_map.serializable
-                and self.terminal_cost_fn is None):
-            cache_dir = None  # user functions cannot be part of a cache key
-        import agents.evaluation
-        import agents.task
-        import envs.mujoco_model
-        import mbtsr.costs
-        import mbtsr.ilqr
-        import mbtsr.mpc
-
-        spec = env.spec
-        key = {
-            "version": 1,
-            "code": code_fingerprint(
-                agents.evaluation, agents.task, mbtsr.costs, mbtsr.ilqr, mbtsr.mpc,
-                envs.mujoco_model, packages=[sys.modules[type(env.unwrapped).__module__]],
-            ),
-            "env_id": spec.id,
-            "env_kwargs": spec.kwargs,
-            "targets": self.eval_targets,
-            "eval_seed": cfg.eval_seed,
-            "eval_episodes": cfg.eval_episodes,
-            "episode_steps": self.spec.episode_steps,
-            "horizon": cfg.horizon,
-            "iterations": cfg.ilqr_iterations,
-            "first_plan_iterations": cfg.first_plan_iterations,
-            "terminal_weight": cfg.terminal_weight,
-            **({"replan_every": cfg.replan_every} if cfg.replan_every > 1 else {}),
-            "cost": self.cost_fn.to_dict() if cache_dir is not None else None,
-        }
+                and self.terminal_cost_fn is None and self.termination_fn is None
+                and _is_mujoco_env(env)):
+            cache_dir = None  # user functions (or non-MuJoCo physics) cannot be part of a key
+        if cache_dir is not None:
+            key = oracle_cache_key(
+                env, {"cost": self.cost_fn.to_dict(), "state_map": self.state_map.to_dict()},
+                self.eval_targets, cfg.evaluation.seed, n_episodes=cfg.evaluation.episodes,
+                episode_steps=self.spec.episode_steps,
+                planner={"horizon": cfg.planner.horizon,
+                         "iterations": cfg.planner.ilqr_iterations,
+                         "first_plan_iterations": cfg.planner.first_plan_iterations,
+                         "terminal_weight": cfg.planner.terminal_weight,
+                         "replan_every": cfg.planner.replan_every},
+            )
         self.oracle_costs = cached_costs(cache_dir, key, compute)
         return self.oracle_costs
 
@@ -886,7 +865,7 @@ class JacPropAgent:
         self._ensure_eval_targets()
         kwargs: dict[str, Any] = {"max_steps": self.spec.episode_steps}
         if self.eval_targets is None:
-            kwargs["n_episodes"] = self.config.eval_episodes
+            kwargs["n_episodes"] = self.config.evaluation.episodes
         return env, kwargs
 
     @property
@@ -933,12 +912,12 @@ class JacPropAgent:
                  "cost_ratio": r.get("cost_ratio")}
                 for r in rows if r.get("eval_returns") is not None
             ],
-            "solved_return": self.config.solved_return,
+            "solved_return": self.config.evaluation.solved_return,
             "solved_criterion": (
-                "mean_return" if self.config.solved_return is not None
+                "mean_return" if self.config.evaluation.solved_return is not None
                 else "oracle_ratio" if self.oracle_costs is not None else None),
             "oracle_cost": self.oracle_mean,
-            "solved_ratio": self.config.solved_ratio,
+            "solved_ratio": self.config.evaluation.solved_ratio,
             "wall_seconds_per_phase": phases,
             "eval_fraction_of_wall": (
                 phases["eval"] / phases["total"] if phases.get("total") else None),
@@ -946,15 +925,11 @@ class JacPropAgent:
         }
 
     def resolved_config(self) -> dict[str, Any]:
-        """The agent config and the component configs it resolves to (for ``config.json``)."""
-        tcfg, reg = self._train_configs()
-        import dataclasses
-
+        """The agent config tree and what it resolves to with the env (for ``config.json``):
+        the ensemble's :class:`~mbtsr.ensemble.EnsembleConfig` and the env spec."""
         return {
             "agent": self.config.to_dict(),
             "ensemble": json.loads(self.ensemble_config.to_json()),
-            "training": {k: v for k, v in dataclasses.asdict(tcfg).items() if k != "seed"},
-            "regularization": dataclasses.asdict(reg),
             "env_spec": self.spec.to_dict(),
         }
 
@@ -1039,7 +1014,7 @@ class JacPropAgent:
         save_video(frames, folder / f"episode_{ep:04d}.mp4", fps=fps)
 
 
-class ReplanEvery:
+class ReplanEvery(SB3Predictor):
     """Feedback-limited MPC: each plan of ``policy`` is executed open loop for ``k`` steps
     before the next solve (warm-started with the rest of the plan). ``k = 1`` is ``policy``
     itself. The SB3 ``state`` is the remaining plan ``[H, m]`` plus one row holding the number
@@ -1048,23 +1023,15 @@ class ReplanEvery:
     def __init__(self, policy: Any, k: int) -> None:
         self.policy, self.k = policy, int(k)
 
-    def predict(
-        self,
-        observation: np.ndarray,
-        state: np.ndarray | None = None,
-        episode_start: np.ndarray | bool | None = None,
-        deterministic: bool = True,
-    ) -> tuple[np.ndarray, np.ndarray]:
+    def _act(self, observation: Any, state: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
         if self.k == 1:
-            return self.policy.predict(observation, state, episode_start, deterministic)
-        if episode_start is not None and bool(np.any(episode_start)):
-            state = None
+            return self.policy.predict(observation, state)
         plan, age = None, 0
         if state is not None:
             state = np.asarray(state, dtype=float)
             plan, age = state[:-1], int(state[-1, 0])
         if plan is None or age >= self.k:
-            action, rest = self.policy.predict(observation, plan, plan is None, deterministic)
+            action, rest = self.policy.predict(observation, plan)
             age = 1
         else:
             spec = self.policy.spec

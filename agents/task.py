@@ -8,7 +8,7 @@ The user describes the control task on the env's own terms:
   operations (``obs[0]``, ``ca.sumsqr``, ``ca.cos``, ``ca.mtimes`` ...).
 * optionally ``terminal_cost_fn(obs) -> scalar`` (CasADi-compatible): the cost of the last
   predicted observation of a plan (default: the stage cost at zero action), scaled by
-  ``AgentConfig.terminal_weight``.
+  ``AgentConfig.planner.terminal_weight``.
 * optionally ``state_fn(obs) -> state`` (numpy) and ``obs_fn(state, obs_ref) -> obs``
   (CasADi-compatible): the model learns the dynamics of ``state``, and the cost of a predicted
   state is ``cost_fn(obs_fn(state, obs_ref), action)``, where ``obs_ref`` is the current real
@@ -119,7 +119,7 @@ def env_spec(env: gym.Env, episode_steps: int | None = None) -> EnvSpec:
         if episode_steps is None:
             raise ValueError(
                 "the env has no TimeLimit (env.spec.max_episode_steps is None) and no "
-                "env.unwrapped.episode_steps; set AgentConfig.episode_steps"
+                "env.unwrapped.episode_steps; set AgentConfig.collection.episode_steps"
             )
     if isinstance(episode_steps, bool) or int(episode_steps) != episode_steps \
             or episode_steps < 1:

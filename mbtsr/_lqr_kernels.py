@@ -78,6 +78,28 @@ def _chol_solve(L, nf, b):
 
 
 @njit(cache=True)
+def _atb(X, Y, base, out):
+    """``out = base + X^T Y``: ``X [a, p]``, ``Y [a, q]``, ``base, out [p, q]`` (``X.T`` of a
+    view gives ``X Y``)."""
+    for i in range(X.shape[1]):
+        for j in range(Y.shape[1]):
+            s = base[i, j]
+            for a in range(X.shape[0]):
+                s += X[a, i] * Y[a, j]
+            out[i, j] = s
+
+
+@njit(cache=True)
+def _atv(X, v, base, out):
+    """``out = base + X^T v``: ``X [a, p]``, ``v [a]``, ``base, out [p]``."""
+    for i in range(X.shape[1]):
+        s = base[i]
+        for a in range(X.shape[0]):
+            s += X[a, i] * v[a]
+        out[i] = s
+
+
+@njit(cache=True)
 def _qp_value(H, g, x):
     m = x.shape[0]
     v = 0.0
@@ -87,6 +109,23 @@ def _qp_value(H, g, x):
             hx += H[i, j] * x[j]
         v += x[i] * (g[i] + 0.5 * hx)
     return v
+
+
+@njit(cache=True)
+def _free_newton(H, g, x, free, idx, nf, L, b):
+    """Newton step on the free set ``idx[:nf]`` with the clamped part of ``x`` fixed: ``b[:nf]``
+    becomes ``-x[free]`` of the minimiser; False if ``H[free, free]`` is not positive definite."""
+    for a in range(nf):
+        i = idx[a]
+        s = g[i]
+        for j in range(g.shape[0]):
+            if not free[j]:
+                s += H[i, j] * x[j]
+        b[a] = s
+    if not _chol(H, idx, nf, L):
+        return False
+    _chol_solve(L, nf, b)
+    return True
 
 
 @njit(cache=True)
@@ -104,16 +143,8 @@ def _active_set_guess(H, g, x_free, lo, hi, x, free, L, idx, b):
             idx[nf] = i
             nf += 1
     if nf > 0:
-        for a in range(nf):
-            i = idx[a]
-            s = g[i]
-            for j in range(m):
-                if not free[j]:
-                    s += H[i, j] * x[j]
-            b[a] = s
-        if not _chol(H, idx, nf, L):
+        if not _free_newton(H, g, x, free, idx, nf, L, b):
             return False
-        _chol_solve(L, nf, b)
         for a in range(nf):
             i = idx[a]
             x[i] = -b[a]
@@ -146,11 +177,7 @@ def _box_qp(H, g, lo, hi, x0, x, free, L, idx, b, prm):
         x[i] = min(max(x0[i], lo[i]), hi[i])
     value = _qp_value(H, g, x)
     for it in range(int(max_iter)):
-        for i in range(m):
-            s = g[i]
-            for j in range(m):
-                s += H[i, j] * x[j]
-            grad[i] = s
+        _atv(H.T, x, g, grad)  # the gradient g + H x
         nf = 0
         gnorm2 = 0.0
         for i in range(m):
@@ -165,16 +192,8 @@ def _box_qp(H, g, lo, hi, x0, x, free, L, idx, b, prm):
         if np.sqrt(gnorm2) < min_grad:
             break
         # Newton step on the free set with the clamped part fixed
-        for a in range(nf):
-            i = idx[a]
-            s = g[i]
-            for j in range(m):
-                if not free[j]:
-                    s += H[i, j] * x[j]
-            b[a] = s
-        if not _chol(H, idx, nf, L):
+        if not _free_newton(H, g, x, free, idx, nf, L, b):
             return False
-        _chol_solve(L, nf, b)
         for i in range(m):
             search[i] = 0.0
         for a in range(nf):
@@ -202,12 +221,9 @@ def _box_qp(H, g, lo, hi, x0, x, free, L, idx, b, prm):
         value = vc
         if it > 0 and improvement < min_rel * abs(value):
             break
+    _atv(H.T, x, g, grad)  # the gradient g + H x
     for i in range(m):
-        s = g[i]
-        for j in range(m):
-            s += H[i, j] * x[j]
-        clamped = (x[i] <= lo[i] and s > 0) or (x[i] >= hi[i] and s < 0)
-        free[i] = not clamped
+        free[i] = not ((x[i] <= lo[i] and grad[i] > 0) or (x[i] >= hi[i] and grad[i] < 0))
     return True
 
 
@@ -266,68 +282,32 @@ def backward_pass(A, B, lx, lu, lxx, luu, lux, lo, hi, lam, reg_type, has_limits
     k_warm = np.zeros(m)
     free = np.empty(m, dtype=np.bool_)
     QuuK = np.empty((m, n))
+    BB = np.empty((m, m))
+    BA = np.empty((m, n))
+    zero_nn, zero_nm, zero_mm, zero_mn = (np.zeros((n, n)), np.zeros((n, m)), np.zeros((m, m)),
+                                          np.zeros((m, n)))
     dV1 = 0.0
     dV2 = 0.0
     for t in range(T - 1, -1, -1):
         At, Bt = A[t], B[t]
-        # V A, V B
-        for i in range(n):
-            for j in range(n):
-                s = 0.0
-                for a in range(n):
-                    s += Vxx[i, a] * At[a, j]
-                VA[i, j] = s
-            for j in range(m):
-                s = 0.0
-                for a in range(n):
-                    s += Vxx[i, a] * Bt[a, j]
-                VB[i, j] = s
-        for i in range(n):
-            s = lx[t, i]
-            for a in range(n):
-                s += At[a, i] * vx[a]
-            Qx[i] = s
-            for j in range(n):
-                s = lxx[t, i, j]
-                for a in range(n):
-                    s += At[a, i] * VA[a, j]
-                Qxx[i, j] = s
-        for i in range(m):
-            s = lu[t, i]
-            for a in range(n):
-                s += Bt[a, i] * vx[a]
-            Qu[i] = s
-            for j in range(m):
-                s = luu[t, i, j]
-                for a in range(n):
-                    s += Bt[a, i] * VB[a, j]
-                Quu[i, j] = s
-            for j in range(n):
-                s = lux[t, i, j]
-                for a in range(n):
-                    s += Bt[a, i] * VA[a, j]
-                Qux[i, j] = s
+        _atb(Vxx.T, At, zero_nn, VA)  # V A
+        _atb(Vxx.T, Bt, zero_nm, VB)  # V B
+        _atv(At, vx, lx[t], Qx)
+        _atb(At, VA, lxx[t], Qxx)
+        _atv(Bt, vx, lu[t], Qu)
+        _atb(Bt, VB, luu[t], Quu)
+        _atb(Bt, VA, lux[t], Qux)
         # regularisation
-        for i in range(m):
-            for j in range(m):
-                H[i, j] = Quu[i, j]
-            for j in range(n):
-                R[i, j] = Qux[i, j]
+        H[:] = Quu
+        R[:] = Qux
         if reg_type == 1:
             for i in range(m):
                 H[i, i] += lam
         else:
-            for i in range(m):
-                for j in range(m):
-                    s = 0.0
-                    for a in range(n):
-                        s += Bt[a, i] * Bt[a, j]
-                    H[i, j] += lam * s
-                for j in range(n):
-                    s = 0.0
-                    for a in range(n):
-                        s += Bt[a, i] * At[a, j]
-                    R[i, j] += lam * s
+            _atb(Bt, Bt, zero_mm, BB)
+            _atb(Bt, At, zero_mn, BA)
+            H += lam * BB
+            R += lam * BA
         # unconstrained step
         for i in range(m):
             idx[i] = i
@@ -376,12 +356,7 @@ def backward_pass(A, B, lx, lu, lxx, luu, lux, lo, hi, lam, reg_type, has_limits
             k_warm[i] = kt[i]
         # value update with the unregularised Q terms
         Kt = K[t]
-        for i in range(m):
-            for j in range(n):
-                s = 0.0
-                for a in range(m):
-                    s += Quu[i, a] * Kt[a, j]
-                QuuK[i, j] = s  # Quu K
+        _atb(Quu.T, Kt, zero_mn, QuuK)  # Quu K
         for i in range(n):
             s = Qx[i]
             for a in range(m):
@@ -432,9 +407,11 @@ def policy_row(U, k, K, X, t, alpha, lower, upper, x, u_out):  # pragma: no cove
 
 
 @njit(cache=True)
-def guard_row(x_next, x_nominal):  # pragma: no cover - compiled
-    """A non-finite ``x_next [n]`` is replaced by ``x_nominal`` (so the model never sees NaN);
-    :return: whether it was finite (the rollout stays alive)."""
+def guard_row(x_next, x_nominal, biggest):  # pragma: no cover - compiled
+    """A non-finite ``x_next [n]`` is replaced by ``x_nominal`` (so the model never sees NaN).
+
+    :return: ``(finite, max(biggest, max |x_next|))``: whether the row stays alive, and the
+        running largest magnitude of the rollout (shared by the compiled rollouts)."""
     finite = True
     for i in range(x_next.shape[0]):
         if not np.isfinite(x_next[i]):
@@ -442,7 +419,20 @@ def guard_row(x_next, x_nominal):  # pragma: no cover - compiled
     if not finite:
         for i in range(x_next.shape[0]):
             x_next[i] = x_nominal[i]
-    return finite
+    for i in range(x_next.shape[0]):
+        biggest = max(biggest, abs(x_next[i]))
+    return finite, biggest
+
+
+@njit(cache=True)
+def rollout_buffers(x0, T, m, N):  # pragma: no cover - compiled
+    """``(Xn [N, T+1, n], Un [N, T, m], alive [N])`` of ``N`` rollouts, ``Xn[:, 0] = x0``."""
+    n = x0.shape[0]
+    Xn = np.empty((N, T + 1, n))
+    for a in range(N):
+        for i in range(n):
+            Xn[a, 0, i] = x0[i]
+    return Xn, np.empty((N, T, m)), np.ones(N, dtype=np.bool_)
 
 
 @njit(cache=True)
@@ -461,18 +451,12 @@ def rollout_policy_affine(A, B, c, x0, X, U, k, K, alphas, lower, upper, max_nor
     T, m = U.shape
     n = x0.shape[0]
     TA = A.shape[0]
-    N = alphas.shape[0]
-    Xn = np.empty((N, T + 1, n))
-    Un = np.empty((N, T, m))
-    alive = np.ones(N, dtype=np.bool_)
-    for a in range(N):
-        alpha = alphas[a]
-        for i in range(n):
-            Xn[a, 0, i] = x0[i]
+    Xn, Un, alive = rollout_buffers(x0, T, m, alphas.shape[0])
+    for a in range(alphas.shape[0]):
         biggest = 0.0
         for t in range(T):
             s = t if TA > 1 else 0
-            policy_row(U, k, K, X, t, alpha, lower, upper, Xn[a, t], Un[a, t])
+            policy_row(U, k, K, X, t, alphas[a], lower, upper, Xn[a, t], Un[a, t])
             for i in range(n):
                 v = c[s, i]
                 for j in range(n):
@@ -480,10 +464,8 @@ def rollout_policy_affine(A, B, c, x0, X, U, k, K, alphas, lower, upper, max_nor
                 for j in range(m):
                     v += B[s, i, j] * Un[a, t, j]
                 Xn[a, t + 1, i] = v
-            if not guard_row(Xn[a, t + 1], X[t + 1]):
-                alive[a] = False
-            for i in range(n):
-                biggest = max(biggest, abs(Xn[a, t + 1, i]))
+            finite, biggest = guard_row(Xn[a, t + 1], X[t + 1], biggest)
+            alive[a] &= finite
         if not biggest <= max_norm:
             alive[a] = False
         for i in range(n):

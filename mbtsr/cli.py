@@ -39,20 +39,45 @@ def fail(message: str, prog: str | None = None) -> NoReturn:
 
 
 def _one_line(rich_text: str) -> str:
-    """The message of a tyro error box: its first section, box art removed, lines joined."""
-    title, body = "", []
+    """The message of a tyro error box: its first section, box art removed, lines joined.
+
+    tyro draws the box with rich's box characters, or (no unicode terminal) as a title line and
+    sections separated by lines of ``-``."""
+    title, sections, current = "", [], []
     for line in rich_text.splitlines():
         stripped = line.strip()
-        if stripped.startswith("\u256d"):  # the title row
-            title = _BOX.sub("", stripped).strip()
-            continue
         content = _BOX.sub("", stripped).strip()
-        if not content:
-            if body and "\u2500" in stripped:  # a separator row ends the first section
-                break
-            continue
-        body.append(content)
+        if stripped.startswith("\u256d"):  # the title row
+            title = content
+        elif (not content and "\u2500" in stripped) or re.fullmatch(r"-{3,}", content):
+            sections.append(current)  # a separator row
+            current = []
+        elif content:
+            current.append(content)
+    sections = [s for s in [*sections, current] if s]
+    if not title and len(sections) > 1 and len(sections[0]) == 1:
+        title = sections.pop(0)[0]  # the plain title line
+    body = sections[0] if sections else []
     return re.sub(r"\s+", " ", " ".join(body) or title or "invalid arguments")
+
+
+def _qualify(message: str, argv: Sequence[str]) -> str:
+    """tyro's ``Error parsing agent.model: hidden_width must ...`` (a nested dataclass rejected a
+    value) -> ``model.hidden_width must ...``: the shortest dotted name that is a flag on the
+    command line (``--model.hidden-width``); unchanged when none is."""
+    m = re.match(r"Error parsing ([\w.]+): ([\w.]+)(.*)$", message)
+    if not m:
+        return message
+    path, name, rest = m.groups()
+    name = name.removeprefix("options.")  # mbtsr.cem.CEMOptions names its fields options.<f>
+    given = {a.split("=")[0][2:].replace("-", "_") for a in argv if a.startswith("--")}
+    parts = path.split(".")
+    for i in range(len(parts), -1, -1):
+        dotted = ".".join([*parts[i:], name])
+        head, _, last = dotted.rpartition(".")
+        if dotted in given or f"{head}.no_{last}".lstrip(".") in given:
+            return dotted + rest
+    return message
 
 
 def check_output_path(path: str | os.PathLike, *, name: str, folder: bool = False) -> Path:
@@ -118,7 +143,7 @@ def parse(
         if exit_.code in (0, None):
             sys.stderr.write(err.getvalue())
             raise
-        fail(_one_line(err.getvalue()) + " (see --help)", prog)
+        fail(_qualify(_one_line(err.getvalue()), argv) + " (see --help)", prog)
     except (ValueError, TypeError) as e:  # the dataclass's own validation
         fail(str(e).splitlines()[0] if str(e) else type(e).__name__, prog)
     sys.stderr.write(err.getvalue())  # tyro's warnings, if any

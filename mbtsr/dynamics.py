@@ -34,6 +34,7 @@ __all__ = [
     "LinearDynamics",
     "check_planning_model",
     "check_step_inputs",
+    "check_step_shapes",
     "raw_step",
     "rollout",
 ]
@@ -64,16 +65,23 @@ def check_step_inputs(
     """Validate and convert a batched ``(x[..., n], u[..., m])`` pair with matching batch dims."""
     x = as_array("x", x, finite=finite)
     u = as_array("u", u, finite=finite)
-    if x.ndim < 1 or x.shape[-1] != n:
-        raise ValueError(f"x must have last dimension n={n}, got shape {list(x.shape)}")
-    if u.ndim < 1 or u.shape[-1] != m:
-        raise ValueError(f"u must have last dimension m={m}, got shape {list(u.shape)}")
-    if x.shape[:-1] != u.shape[:-1]:
-        raise ValueError(
-            f"x and u must share leading (batch) dimensions, got {list(x.shape)} and "
-            f"{list(u.shape)}"
-        )
+    check_step_shapes(x.shape, u.shape, n, m)
     return x, u
+
+
+def check_step_shapes(x_shape: tuple[int, ...], u_shape: tuple[int, ...], n: int, m: int) -> None:
+    """Raise ``ValueError`` unless ``x: [..., n]`` and ``u: [..., m]`` share batch dimensions
+    (numpy arrays and torch tensors alike)."""
+    x_shape, u_shape = tuple(x_shape), tuple(u_shape)
+    if len(x_shape) < 1 or x_shape[-1] != n:
+        raise ValueError(f"x must have last dimension n={n}, got shape {list(x_shape)}")
+    if len(u_shape) < 1 or u_shape[-1] != m:
+        raise ValueError(f"u must have last dimension m={m}, got shape {list(u_shape)}")
+    if x_shape[:-1] != u_shape[:-1]:
+        raise ValueError(
+            f"x and u must share leading (batch) dimensions, got {list(x_shape)} and "
+            f"{list(u_shape)}"
+        )
 
 
 class LinearDynamics:

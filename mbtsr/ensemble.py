@@ -50,6 +50,7 @@ import os
 from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, field
 from types import SimpleNamespace
+from typing import Literal
 
 import numpy as np
 import torch
@@ -58,13 +59,14 @@ from scipy.special import expit
 from torch import nn
 from torch.nn import functional as F  # noqa: N812
 
-from mbtsr._lqr_kernels import guard_row, policy_row
-from mbtsr.dynamics import check_step_inputs
+from mbtsr._lqr_kernels import guard_row, policy_row, rollout_buffers
+from mbtsr.dynamics import check_step_inputs, check_step_shapes
 from mbtsr.fileformat import CheckpointError, torch_load_verified, torch_save_verified
 from mbtsr.trajectory import Trajectory
 from mbtsr.validation import as_array
 
 __all__ = [
+    "ModelConfig",
     "ACTIVATIONS",
     "FrozenEnsemble",
     "FORMULATIONS",
@@ -291,6 +293,62 @@ class EnsembleConfig:
         return cls(**d)
 
 
+
+@dataclass(frozen=True)
+class ModelConfig:
+    """An ensemble architecture before the data's dimensions are known (the agent's ``model``).
+
+    :class:`EnsembleConfig` needs ``state_dim``/``action_dim`` (and a seed), which a learner only
+    knows once it sees its env; this config holds everything else and :meth:`build` adds them.
+    It covers the formulations that need no nominal matrices (``"g"``, ``"f"``) and uniform
+    members (one width and depth, activations cycled).
+
+    :param formulation: ``"g"`` (``x+ = x + g(x, u)``, paper Objective 2) or ``"f"``
+        (``x+ = f(x, u)``, Objective 1).
+    :param ensemble_size: number of ensemble members (their mean is the model).
+    :param hidden_width: hidden units per layer of each member (paper: 20).
+    :param hidden_layers: hidden layers per member, 1 (paper) or 2.
+    :param activations: member ``k`` uses ``activations[k % len(activations)]``; the default is
+        the paper's nominal ensemble (elu, sigmoid, tanh, swish).
+    """
+
+    formulation: Literal["g", "f"] = "g"
+    ensemble_size: int = 4
+    hidden_width: int = 20
+    hidden_layers: int = 1
+    activations: tuple[str, ...] = ("elu", "sigmoid", "tanh", "swish")
+
+    def __post_init__(self) -> None:
+        acts = (self.activations,) if isinstance(self.activations, str) else self.activations
+        object.__setattr__(self, "activations", tuple(acts))
+        if self.formulation not in ("g", "f"):
+            raise ValueError(f"formulation must be one of ('g', 'f'), got {self.formulation!r}")
+        for name in ("ensemble_size", "hidden_width"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 1:
+                raise ValueError(f"{name} must be an integer >= 1, got {v!r}")
+        if self.hidden_layers not in (1, 2) or isinstance(self.hidden_layers, bool):
+            raise ValueError(f"hidden_layers must be 1 or 2, got {self.hidden_layers!r}")
+        if len(self.activations) == 0 or any(a not in ACTIVATIONS for a in self.activations):
+            raise ValueError(
+                f"activations must be a non-empty tuple of names from {sorted(ACTIVATIONS)}, "
+                f"got {self.activations!r}"
+            )
+
+    def ensemble_config(self, state_dim: int, action_dim: int, seed: int = 0) -> EnsembleConfig:
+        """The :class:`EnsembleConfig` for data of these dimensions (inputs and outputs
+        normalized; ``seed`` seeds the weight initialisation)."""
+        acts = self.activations
+        members = tuple(MemberSpec(activation=acts[k % len(acts)], width=self.hidden_width,
+                                   depth=self.hidden_layers) for k in range(self.ensemble_size))
+        return EnsembleConfig(state_dim=state_dim, action_dim=action_dim, members=members,
+                              formulation=self.formulation, normalize=True, seed=seed)
+
+    def build(self, state_dim: int, action_dim: int, seed: int = 0) -> DynamicsEnsemble:
+        """A freshly initialised :class:`DynamicsEnsemble` of :meth:`ensemble_config`."""
+        return DynamicsEnsemble(self.ensemble_config(state_dim, action_dim, seed))
+
+
 # --------------------------------------------------------------------------------------------
 # The batched network math, written once for torch (float32, differentiable) and numpy (float64)
 # --------------------------------------------------------------------------------------------
@@ -302,28 +360,26 @@ def _torch_affine(h: torch.Tensor, W: torch.Tensor, b: torch.Tensor) -> torch.Te
     return torch.baddbmm(b, h, W)
 
 
-_TORCH_OPS = SimpleNamespace(
-    xp=torch,
-    affine=_torch_affine,
-    split=lambda z, sizes: z.split(sizes, 0),
-    act=lambda name: ACTIVATIONS[name][0],
-    sum_last=lambda a: a.sum(-1, keepdim=True),
-    sum_m2=lambda a: a.sum(-2, keepdim=True),
-    sqrt=torch.sqrt,
-    cat=lambda parts, axis: torch.cat(parts, dim=axis),
-    T=lambda a: a.transpose(-1, -2),
-)
-_NUMPY_OPS = SimpleNamespace(
-    xp=np,
-    affine=lambda h, W, b: h @ W + b,
-    split=lambda z, sizes: np.split(z, np.cumsum(sizes)[:-1], 0),
-    act=lambda name: ACTIVATIONS[name][1],
-    sum_last=lambda a: a.sum(-1, keepdims=True),
-    sum_m2=lambda a: a.sum(-2, keepdims=True),
-    sqrt=np.sqrt,
-    cat=lambda parts, axis: np.concatenate(parts, axis=axis),
-    T=lambda a: a.swapaxes(-1, -2),
-)
+def _ops(xp, affine: Callable, split: Callable, act_index: int) -> SimpleNamespace:
+    """The array operations of the network math in ``xp`` (``torch`` or ``numpy``: both take
+    ``keepdims``/``axis`` and ``.mT``); ``act_index`` picks the torch (0) or numpy (1)
+    activation of :data:`ACTIVATIONS`."""
+    return SimpleNamespace(
+        xp=xp,
+        affine=affine,
+        split=split,
+        act=lambda name: ACTIVATIONS[name][act_index],
+        sum_last=lambda a: xp.sum(a, -1, keepdims=True),
+        sum_m2=lambda a: xp.sum(a, -2, keepdims=True),
+        sqrt=xp.sqrt,
+        cat=lambda parts, axis: xp.concatenate(parts, axis=axis),
+        T=lambda a: a.mT,
+    )
+
+
+_TORCH_OPS = _ops(torch, _torch_affine, lambda z, sizes: z.split(sizes, 0), 0)
+_NUMPY_OPS = _ops(np, lambda h, W, b: h @ W + b,
+                  lambda z, sizes: np.split(z, np.cumsum(sizes)[:-1], 0), 1)
 
 
 def _activate(z, runs, ops, jac_rows: int):
@@ -637,14 +693,7 @@ class DynamicsEnsemble(nn.Module):
                 raise ValueError(f"xu must have last dimension n+m={n + m}, got {list(x.shape)}")
             return x
         u = torch.as_tensor(u, dtype=torch.float32)
-        if x.ndim < 1 or x.shape[-1] != n:
-            raise ValueError(f"x must have last dimension n={n}, got shape {list(x.shape)}")
-        if u.ndim < 1 or u.shape[-1] != m:
-            raise ValueError(f"u must have last dimension m={m}, got shape {list(u.shape)}")
-        if x.shape[:-1] != u.shape[:-1]:
-            raise ValueError(
-                f"x and u must share batch dimensions, got {list(x.shape)} and {list(u.shape)}"
-            )
+        check_step_shapes(x.shape, u.shape, n, m)
         return torch.cat([x, u], -1)
 
     def stacked_forward(self, xu: torch.Tensor, jac_rows: int = 0, *, normalized: bool = False):
@@ -904,26 +953,17 @@ def _rollout_policy_kernel(W_inT, W_out, code, x0, X, U, k, K, alphas, lower, up
     ``mbtsr.ilqr._rollout_policy`` (a row that turns non-finite is dead and continues from the
     nominal state; rows exceeding ``max_norm`` are dead at the end)."""
     T, m = U.shape
-    n = x0.shape[0]
-    N = alphas.shape[0]
-    Xn = np.empty((N, T + 1, n))
-    Un = np.empty((N, T, m))
-    alive = np.ones(N, dtype=np.bool_)
+    Xn, Un, alive = rollout_buffers(x0, T, m, alphas.shape[0])
     z = np.empty(W_inT.shape[1])
-    for a in range(N):
-        alpha = alphas[a]
-        for i in range(n):
-            Xn[a, 0, i] = x0[i]
+    for a in range(alphas.shape[0]):
         biggest = 0.0
-        for i in range(n):
+        for i in range(x0.shape[0]):
             biggest = max(biggest, abs(x0[i]))
         for t in range(T):
-            policy_row(U, k, K, X, t, alpha, lower, upper, Xn[a, t], Un[a, t])
+            policy_row(U, k, K, X, t, alphas[a], lower, upper, Xn[a, t], Un[a, t])
             _mean_step_row(Xn[a, t], Un[a, t], W_inT, W_out, code, z, Xn[a, t + 1])
-            if not guard_row(Xn[a, t + 1], X[t + 1]):
-                alive[a] = False
-            for i in range(n):
-                biggest = max(biggest, abs(Xn[a, t + 1, i]))
+            finite, biggest = guard_row(Xn[a, t + 1], X[t + 1], biggest)
+            alive[a] &= finite
         if not biggest <= max_norm:
             alive[a] = False
     return Xn, Un, alive

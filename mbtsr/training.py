@@ -36,6 +36,7 @@ import math
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
+from typing import Literal
 
 import numpy as np
 import torch
@@ -46,7 +47,8 @@ from mbtsr.ensemble import DynamicsEnsemble, _pool_transitions
 from mbtsr.trajectory import Trajectory
 from mbtsr.validation import check_nonnegative, check_positive
 
-__all__ = ["TrainConfig", "RegularizationConfig", "TrainHistory", "train_ensemble"]
+__all__ = ["TrainConfig", "RegularizationConfig", "REGULARIZERS", "DEFAULT_WEIGHTS", "TrainHistory",
+           "train_ensemble"]
 
 ORIGINAL_LTV_LAMBDA = float(np.sqrt(1000.0))
 """The original's jacprop LTV fit used R1 = I, R2 = 1000 I, i.e. ``lam^2 = R2 / R1 = 1000``."""
@@ -81,7 +83,7 @@ class TrainConfig:
 
     epochs: int = 1000
     lr: float = 0.01
-    batch: str | int = "trajectory"
+    batch: int | Literal["trajectory"] = "trajectory"
     weight_decay: float = 0.0
     decoupled_weight_decay: bool = False
     betas: tuple[float, float] = (0.9, 0.999)
@@ -105,6 +107,14 @@ class TrainConfig:
             raise ValueError(f"seed must be an int, got {self.seed!r}")
 
 
+REGULARIZERS = ("sampled", "exact", "smooth", "none")
+"""The names :meth:`RegularizationConfig.named` knows (the first three combine by weights)."""
+
+DEFAULT_WEIGHTS = {"sampled": 1.0, "exact": 0.01, "smooth": 0.01}
+"""Default weight of each named regularizer (sampled: the paper's 1; exact/smooth: the agent's
+measured setting, ``docs/ablation.md``)."""
+
+
 @dataclass(frozen=True)
 class RegularizationConfig:
     """Tangent-space regularizers; each is on when its weight is > 0, and they combine.
@@ -113,6 +123,11 @@ class RegularizationConfig:
         propagation, the paper's method; paper value 1 = copies count like data).
     :param sigma: perturbation std relative to each dimension's std over time (paper: 0.1).
     :param n_copies: perturbed copies per trajectory per epoch (paper: 1).
+    :param copies_batch: ``"shared"``: the perturbed copies join the batch of their original
+        transitions (one optimizer step per batch, as the baseline); ``"own"``: each copy of
+        each batch is its own optimizer step after the epoch's data batches (the original
+        code's behaviour; ``1 + n_copies`` times the steps per epoch), its loss
+        ``sampled_weight * mean ||y(x~) - r~||^2`` alone.
     :param exact_weight: weight of ``sum_t ||J_model(t) - J_LTV(t)||_F^2`` (double backprop).
     :param smooth_weight: weight of ``sum_t ||J_model(t+1) - J_model(t)||_F^2`` (the original's
         later "AD jacprop", paper eq. (reg)); needs no LTV model.
@@ -120,21 +135,16 @@ class RegularizationConfig:
         ratio, scale dependent); default ``sqrt(1000)``, the original's R2 = 1000 I, R1 = I.
         ``None`` picks it per trajectory with :func:`mbtsr.ltv.select_lambda`.
     :param ltv_affine: fit LTV models with an affine term ``c_t``.
-    :param copies_batch: ``"shared"``: the perturbed copies join the batch of their original
-        transitions (one optimizer step per batch, as the baseline); ``"own"``: each copy of
-        each batch is its own optimizer step after the epoch's data batches (the original
-        code's behaviour; ``1 + n_copies`` times the steps per epoch), its loss
-        ``sampled_weight * mean ||y(x~) - r~||^2`` alone.
     """
 
     sampled_weight: float = 0.0
     sigma: float = 0.1
     n_copies: int = 1
+    copies_batch: Literal["shared", "own"] = "shared"
     exact_weight: float = 0.0
     smooth_weight: float = 0.0
     ltv_lambda: float | None = ORIGINAL_LTV_LAMBDA
     ltv_affine: bool = False
-    copies_batch: str = "shared"
 
     def __post_init__(self) -> None:
         for name in ("sampled_weight", "exact_weight", "smooth_weight", "sigma"):
@@ -149,6 +159,31 @@ class RegularizationConfig:
     def paper(cls, **overrides) -> RegularizationConfig:
         """The paper's sampled Jacobian propagation: one copy, sigma 0.1, weight 1."""
         return cls(**{"sampled_weight": 1.0, "sigma": 0.1, "n_copies": 1, **overrides})
+
+    @classmethod
+    def named(cls, kind: str, weight: float | None = None, **fields) -> RegularizationConfig:
+        """One regularizer by name: ``"sampled"``, ``"exact"``, ``"smooth"`` or ``"none"``.
+
+        ``weight`` is that regularizer's weight (default :data:`DEFAULT_WEIGHTS`: 1 for
+        ``sampled``, the paper's; 0.01 for ``exact``/``smooth``); every other weight is 0.
+        ``fields`` sets the remaining fields (``sigma``, ``n_copies``, ``ltv_lambda`` ...).
+        ``RegularizationConfig.named("none")`` is the unregularized baseline.
+        """
+        if kind not in REGULARIZERS:
+            raise ValueError(f"regularization must be one of {REGULARIZERS}, got {kind!r}")
+        if kind == "none":
+            if weight is not None:
+                raise ValueError(f"regularization 'none' takes no weight, got {weight!r}")
+            return cls(**fields)
+        w = DEFAULT_WEIGHTS[kind] if weight is None else weight
+        return cls(**{f"{kind}_weight": w, **fields})
+
+    @property
+    def kind(self) -> str:
+        """The active regularizers' names joined by ``+`` (``"none"`` when all weights are 0),
+        e.g. ``"sampled"`` or ``"sampled+smooth"``; the inverse of :meth:`named`."""
+        on = [k for k in REGULARIZERS[:3] if getattr(self, f"{k}_weight") > 0]
+        return "+".join(on) or "none"
 
     @property
     def sampled(self) -> bool:

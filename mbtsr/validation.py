@@ -7,6 +7,7 @@ silently wrong answer deep inside a solver.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 
 import numpy as np
@@ -75,7 +76,10 @@ def as_array(
 
 def check_positive(name: str, value: float) -> float:
     """Raise ``ValueError`` unless ``value`` is a finite number > 0."""
-    v = float(value)
+    try:
+        v = float(value)
+    except (TypeError, ValueError):
+        v = math.nan  # not a number: the same message
     if not np.isfinite(v) or v <= 0:
         raise ValueError(f"{name} must be a finite number > 0, got {value!r}")
     return v
@@ -83,7 +87,10 @@ def check_positive(name: str, value: float) -> float:
 
 def check_nonnegative(name: str, value: float) -> float:
     """Raise ``ValueError`` unless ``value`` is a finite number >= 0."""
-    v = float(value)
+    try:
+        v = float(value)
+    except (TypeError, ValueError):
+        v = math.nan  # not a number: the same message
     if not np.isfinite(v) or v < 0:
         raise ValueError(f"{name} must be a finite number >= 0, got {value!r}")
     return v

@@ -50,26 +50,23 @@ ARM = "mbtsr/TwoLinkArm-v0"
 torch.set_num_threads(1)
 
 
-def tiny_config(**overrides) -> AgentConfig:
-    """A configuration that runs an episode in about a second."""
-    base = dict(
-        n_excitation_episodes=1,
-        episode_steps=30,
-        ensemble_size=2,
-        hidden_width=16,
-        epochs_per_episode=30,
-        batch_size=64,
-        horizon=8,
-        ilqr_iterations=1,
-        first_plan_iterations=5,
-        eval_every=0,
-        progress=False,
-        tensorboard=False,
-        torch_threads=1,
-        ltv_lambda=2.0,
-    )
-    base.update(overrides)
-    return AgentConfig(**base)
+def tiny_config(changes: dict | None = None, /, **top) -> AgentConfig:
+    """A configuration that runs an episode in about a second (``changes``: dotted fields)."""
+    base = {
+        "collection.n_excitation_episodes": 1,
+        "collection.episode_steps": 30,
+        "model.ensemble_size": 2,
+        "model.hidden_width": 16,
+        "training.epochs": 30,
+        "training.batch": 64,
+        "planner.horizon": 8,
+        "planner.ilqr_iterations": 1,
+        "planner.first_plan_iterations": 5,
+        "evaluation.every": 0,
+        "regularization.ltv_lambda": 2.0,
+    }
+    top = {"progress": False, "tensorboard": False, "torch_threads": 1, **top}
+    return AgentConfig.default({**base, **(changes or {})}, **top)
 
 
 def pendulum_cost(obs, action):
@@ -93,10 +90,11 @@ def heldout_trajectories(env_id: str, state_fn, seeds, T: int, scale: float) -> 
 
 # ---------------------------------------------------------------------------------- config
 INT_FIELDS = {
-    "n_excitation_episodes": 1, "ensemble_size": 1, "hidden_width": 1, "epochs_per_episode": 1,
-    "horizon": 2, "ilqr_iterations": 1, "first_plan_iterations": 1, "eval_episodes": 1,
-    "n_perturbed_copies": 1, "excitation_window": 1, "video_every": 1, "batch_size": 0,
-    "eval_every": 0, "seed": 0, "eval_seed": 0, "torch_threads": 0,
+    "collection.n_excitation_episodes": 1, "model.ensemble_size": 1, "model.hidden_width": 1,
+    "training.epochs": 1, "planner.horizon": 2, "planner.ilqr_iterations": 1,
+    "planner.first_plan_iterations": 1, "evaluation.episodes": 1, "regularization.n_copies": 1,
+    "collection.excitation_window": 1, "video_every": 1, "training.batch": 1,
+    "evaluation.every": 0, "seed": 0, "evaluation.seed": 0, "torch_threads": 0,
 }
 
 
@@ -104,34 +102,37 @@ INT_FIELDS = {
 @given(field=st.sampled_from(sorted(INT_FIELDS)), delta=st.integers(1, 10**6))
 def test_config_rejects_integers_below_their_minimum(field, delta):
     with pytest.raises(ValueError, match=field):
-        AgentConfig(**{field: INT_FIELDS[field] - delta})
+        AgentConfig.default({field: INT_FIELDS[field] - delta})
 
 
 @settings(max_examples=30, deadline=None)
 @given(
-    field=st.sampled_from(["lr", "perturbation_sigma", "excitation_scale", "solved_ratio",
-                           "exploration_std", "weight_decay", "terminal_weight"]),
+    field=st.sampled_from(["training.lr", "regularization.sigma", "collection.excitation_scale",
+                           "evaluation.solved_ratio", "collection.exploration_std",
+                           "training.weight_decay", "planner.terminal_weight"]),
     value=st.one_of(st.just(math.nan), st.just(math.inf), st.floats(-1e6, -1e-9)),
 )
 def test_config_rejects_bad_floats(field, value):
     with pytest.raises(ValueError, match=field):
-        AgentConfig(**{field: value})
+        AgentConfig.default({field: value})
 
 
 @pytest.mark.parametrize(
     "field, value",
-    [("regularization", "jacprop"), ("formulation", "h"), ("excitation", "chirp"),
-     ("ltv_lambda", "best"), ("ltv_lambda", 0.0), ("hidden_layers", 3),
-     ("activations", ("tanh", "nope")), ("activations", ()), ("excitation_scale", 1.5),
-     ("solved_ratio", 0.9)],
+    [("regularization", "jacprop"), ("model.formulation", "h"), ("collection.excitation", "chirp"),
+     ("regularization.ltv_lambda", "best"), ("regularization.ltv_lambda", 0.0),
+     ("model.hidden_layers", 3), ("model.activations", ("tanh", "nope")),
+     ("model.activations", ()), ("collection.excitation_scale", 1.5),
+     ("evaluation.solved_ratio", 0.9)],
 )
 def test_config_rejects_bad_choices(field, value):
     with pytest.raises(ValueError, match=field):
-        AgentConfig(**{field: value})
+        AgentConfig.default({field: value})
 
 
 def test_config_round_trips_through_json_and_rejects_unknown_keys():
-    cfg = AgentConfig(regularization="exact", activations=("tanh",), ltv_lambda=3.0, seed=7)
+    cfg = AgentConfig.default({"model.activations": ("tanh",), "regularization.ltv_lambda": 3.0},
+                              regularization="exact", seed=7)
     again = AgentConfig.from_dict(json.loads(cfg.to_json()))
     assert again == cfg
     with pytest.raises(ValueError, match="unknown AgentConfig field"):
@@ -157,7 +158,7 @@ def test_construction_rejects_non_box_spaces_and_unbounded_actions():
     with pytest.raises(ValueError, match="observation_space must be a gymnasium.spaces.Box"):
         JacPropAgent(gym.make("FrozenLake-v1"), tiny_config(), cost_fn=lambda o, a: o)
     with pytest.raises(ValueError, match="bounded"):
-        JacPropAgent(_UnboundedActionEnv(), tiny_config(episode_steps=10),
+        JacPropAgent(_UnboundedActionEnv(), tiny_config({"collection.episode_steps": 10}),
                      cost_fn=lambda o, a: ca.sumsqr(o))
     with pytest.raises(TypeError, match="gymnasium.Env"):
         JacPropAgent("Pendulum-v1", tiny_config(), cost_fn=pendulum_cost)
@@ -346,8 +347,8 @@ def arm_run(tmp_path_factory):
     the model error on held-out data is recorded after the first and the last episode."""
     run_dir = tmp_path_factory.mktemp("arm_run")
     env = gym.make(ARM, episode_steps=30)
-    cfg = tiny_config(run_dir=str(run_dir), tensorboard=True, eval_every=1, eval_episodes=2,
-                      seed=3)
+    cfg = tiny_config({"evaluation.every": 1, "evaluation.episodes": 2},
+                      run_dir=str(run_dir), tensorboard=True, seed=3)
     agent = JacPropAgent(env, cfg)
     heldout = heldout_trajectories(ARM, lambda o: o[:, :4], [901, 902], 30, 0.3)
     agent.learn(1, progress_bar=False)
@@ -424,8 +425,8 @@ def test_predict_rejects_a_foreign_warm_start(arm_run):
 
 def test_video_of_an_episode_is_written(tmp_path):
     env = gym.make(ARM, episode_steps=8, render_mode="rgb_array", width=64, height=48)
-    agent = JacPropAgent(env, tiny_config(run_dir=str(tmp_path), video=True, video_every=1,
-                                          episode_steps=8, epochs_per_episode=2))
+    agent = JacPropAgent(env, tiny_config({"collection.episode_steps": 8, "training.epochs": 2},
+                                          run_dir=str(tmp_path), video=True, video_every=1))
     agent.learn(1, progress_bar=False)
     videos = list((tmp_path / "videos").iterdir())
     assert len(videos) == 1 and videos[0].stem == "episode_0000"
@@ -436,7 +437,8 @@ def test_video_of_an_episode_is_written(tmp_path):
 def test_tiny_pendulum_run_with_a_user_cost(tmp_path):
     """The README's "use your own environment" example on gymnasium's Pendulum-v1."""
     env = gym.make("Pendulum-v1")
-    cfg = tiny_config(run_dir=str(tmp_path), episode_steps=40, epochs_per_episode=40, seed=1)
+    cfg = tiny_config({"collection.episode_steps": 40, "training.epochs": 40},
+                      run_dir=str(tmp_path), seed=1)
     agent = JacPropAgent(env, cfg, cost_fn=pendulum_cost)
     assert agent.state_dim == 3 and agent.spec.u_max[0] == 2.0
     heldout = heldout_trajectories("Pendulum-v1", lambda o: o, [501, 502], 40, 0.5)
@@ -463,8 +465,9 @@ def test_tiny_pendulum_run_with_a_user_cost(tmp_path):
 @pytest.mark.slow
 def test_default_agent_solves_the_arm_within_30_episodes(tmp_path):
     env = gym.make(ARM)
-    agent = JacPropAgent(env, AgentConfig(run_dir=str(tmp_path), stop_when_solved=True,
-                                          progress=False, torch_threads=1))
+    cfg = AgentConfig.default({"evaluation.stop_when_solved": True}, run_dir=str(tmp_path),
+                              progress=False, torch_threads=1)
+    agent = JacPropAgent(env, cfg)
     agent.learn(30, progress_bar=False)
     summary = agent.summary()
     assert summary["episodes_to_solve"] is not None, summary
@@ -498,7 +501,7 @@ def test_state_fn_is_checked_on_a_batch_at_construction():
 
 def test_load_explains_a_missing_state_fn(tmp_path):
     env = gym.make("Pendulum-v1")
-    agent = JacPropAgent(env, tiny_config(episode_steps=10), cost_fn=pendulum_cost,
+    agent = JacPropAgent(env, tiny_config({"collection.episode_steps": 10}), cost_fn=pendulum_cost,
                          state_fn=_pendulum_angle_state, obs_fn=_pendulum_obs_of_state)
     agent.learn(1, progress_bar=False)
     path = agent.save(tmp_path / "a.pt")
@@ -516,7 +519,7 @@ def test_load_explains_a_missing_state_fn(tmp_path):
 # --------------------------------------------------------------------------- the user's task
 def test_learn_with_an_env_step_budget_cuts_the_last_episode():
     env = gym.make("Pendulum-v1")
-    agent = JacPropAgent(env, tiny_config(episode_steps=20), cost_fn=pendulum_cost)
+    agent = JacPropAgent(env, tiny_config({"collection.episode_steps": 20}), cost_fn=pendulum_cost)
     agent.learn(total_env_steps=45, progress_bar=False)
     assert [t.T for t in agent.trajectories] == [20, 20, 5]
     assert agent.env_steps == 45 == agent.logger_rows[-1]["env_steps"]
@@ -532,8 +535,9 @@ def test_solved_return_decides_from_the_envs_own_rewards():
     """Returns per evaluation episode equal an independent replay of the deterministic policy;
     the success criterion is the mean return against ``solved_return``."""
     env = gym.make("Pendulum-v1")
-    cfg = tiny_config(episode_steps=15, eval_every=1, eval_episodes=2, eval_seed=7)
-    easy = JacPropAgent(env, cfg.replace(solved_return=-1e9), cost_fn=pendulum_cost)
+    cfg = tiny_config({"collection.episode_steps": 15, "evaluation.every": 1,
+                       "evaluation.episodes": 2, "evaluation.seed": 7})
+    easy = JacPropAgent(env, cfg.replace({"evaluation.solved_return": -1e9}), cost_fn=pendulum_cost)
     easy.learn(2, progress_bar=False)
     row = easy.logger_rows[0]
     assert row["solved"] and len(row["eval_returns"]) == 2
@@ -545,7 +549,7 @@ def test_solved_return_decides_from_the_envs_own_rewards():
     eval_env = gym.make("Pendulum-v1")
     replay = [float(np.sum(easy.rollout_policy(eval_env, seed=7 + i).rewards)) for i in range(2)]
     np.testing.assert_allclose(easy.logger_rows[-1]["eval_returns"], replay, rtol=1e-12)
-    hard = JacPropAgent(env, cfg.replace(solved_return=0.0), cost_fn=pendulum_cost)
+    hard = JacPropAgent(env, cfg.replace({"evaluation.solved_return": 0.0}), cost_fn=pendulum_cost)
     hard.learn(2, progress_bar=False)  # Pendulum's rewards are <= 0 and not all 0
     assert not any(r["solved"] for r in hard.logger_rows)
     assert hard.summary()["episodes_to_solve"] is None
@@ -557,7 +561,7 @@ def test_terminal_cost_is_the_users_function_of_the_predicted_observation():
     def terminal(obs):
         return 5.0 * (1.0 - obs[0]) + obs[2] ** 2
 
-    agent = JacPropAgent(env, tiny_config(terminal_weight=2.0), cost_fn=pendulum_cost,
+    agent = JacPropAgent(env, tiny_config({"planner.terminal_weight": 2.0}), cost_fn=pendulum_cost,
                          state_fn=_pendulum_angle_state, obs_fn=_pendulum_obs_of_state,
                          terminal_cost_fn=terminal)
     rng = np.random.default_rng(0)
@@ -587,8 +591,8 @@ def test_cem_planner_runs_the_same_mpc_and_respects_the_termination_fn():
     """planner='cem' plans with forward predictions only; a termination predicted at every
     state leaves only the first stage cost in every plan's cost."""
     env = gym.make("Pendulum-v1")
-    cfg = tiny_config(planner="cem", cem_samples=16, cem_elites=4, cem_iterations=1,
-                      episode_steps=12)
+    cfg = tiny_config({"planner.cem.samples": 16, "planner.cem.elites": 4,
+                       "planner.cem.iterations": 1, "collection.episode_steps": 12}, planner="cem")
     agent = JacPropAgent(env, cfg, cost_fn=pendulum_cost)
     agent.learn(2, progress_bar=False)
     assert agent.logger_rows[-1]["phase"] == "mpc"
@@ -596,7 +600,7 @@ def test_cem_planner_runs_the_same_mpc_and_respects_the_termination_fn():
     a1, plan = agent.predict(obs)
     a2, _ = agent.predict(obs)
     np.testing.assert_array_equal(a1, a2)  # seeded: predict is a pure function
-    assert plan.shape == (cfg.horizon, 1) and -2.0 <= a1[0] <= 2.0
+    assert plan.shape == (cfg.planner.horizon, 1) and -2.0 <= a1[0] <= 2.0
     assert agent.policy.last_result.status in ("converged", "max_iter")
     ended = JacPropAgent(env, cfg, cost_fn=pendulum_cost,
                          termination_fn=lambda o: np.ones(o.shape[:-1], dtype=bool))
@@ -612,7 +616,7 @@ def test_refit_normalization_keeps_the_function_and_follows_the_data():
     """The ensemble's statistics move to the new data while predictions and Jacobians stay
     those of the old parameterization (float32 rounding)."""
     env = gym.make("Pendulum-v1")
-    agent = JacPropAgent(env, tiny_config(episode_steps=20, renormalize=False),
+    agent = JacPropAgent(env, tiny_config({"collection.episode_steps": 20}, renormalize=False),
                          cost_fn=pendulum_cost)
     agent.learn(1, progress_bar=False)
     model = agent.model
@@ -636,7 +640,8 @@ def test_refit_normalization_keeps_the_function_and_follows_the_data():
 def test_replan_every_executes_each_plan_open_loop():
     """With replan_every=k the actions between solves are exactly the plan's next actions."""
     env = gym.make("Pendulum-v1")
-    agent = JacPropAgent(env, tiny_config(episode_steps=12, replan_every=3),
+    agent = JacPropAgent(env, tiny_config({"collection.episode_steps": 12,
+                                           "planner.replan_every": 3}),
                          cost_fn=pendulum_cost)
     agent.learn(1, progress_bar=False)
     solves = []
@@ -657,7 +662,8 @@ def test_replan_every_executes_each_plan_open_loop():
 
 def test_evaluation_schedule_every_k_episodes_and_at_the_end_of_learn():
     env = gym.make("Pendulum-v1")
-    agent = JacPropAgent(env, tiny_config(episode_steps=10, eval_every=4, eval_episodes=1),
+    agent = JacPropAgent(env, tiny_config({"collection.episode_steps": 10, "evaluation.every": 4,
+                                           "evaluation.episodes": 1}),
                          cost_fn=pendulum_cost)
     agent.learn(3, progress_bar=False)
     assert [r["episode"] for r in agent.logger_rows if r["eval_returns"]] == [0, 2]

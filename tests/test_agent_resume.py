@@ -31,13 +31,15 @@ REPO = Path(__file__).resolve().parents[1]
 SCRIPT = REPO / "scripts" / "train_agent.py"
 EPISODES = 8
 TINY = [
-    "--episodes", str(EPISODES), "--seed", "4", "--episode-steps", "25",
-    "--n-excitation-episodes", "1", "--epochs-per-episode", "20", "--batch-size", "32",
-    "--ensemble-size", "2", "--hidden-width", "12", "--horizon", "6", "--ilqr-iterations", "1",
-    "--first-plan-iterations", "4", "--ltv-lambda", "auto", "--eval-every", "2",
-    "--eval-episodes", "1", "--no-eval-early-exit", "--no-stop-when-solved",
-    "--oracle-cache-dir", "none", "--torch-threads", "1", "--no-progress", "--no-plots",
-    "--no-summary-table", "--no-tensorboard",
+    "--episodes", str(EPISODES), "--seed", "4", "--collection.episode-steps", "25",
+    "--collection.n-excitation-episodes", "1", "--training.epochs", "20",
+    "--training.batch", "32", "--model.ensemble-size", "2", "--model.hidden-width", "12",
+    "--planner.horizon", "6", "--planner.ilqr-iterations", "1",
+    "--planner.first-plan-iterations", "4", "--regularization.ltv-lambda", "None",
+    "--evaluation.every", "2", "--evaluation.episodes", "1", "--evaluation.no-early-exit",
+    "--evaluation.no-stop-when-solved", "--evaluation.oracle-cache-dir", "none",
+    "--torch-threads", "1", "--no-progress", "--no-plots", "--no-summary-table",
+    "--no-tensorboard",
 ]
 
 
@@ -153,8 +155,9 @@ def test_resume_without_a_checkpoint_and_restart_over_one_fail_clearly(tmp_path,
     assert exc.value.code == 2 and "--resume" in capsys.readouterr().err
 
 
-@pytest.mark.parametrize("flag", [["--episodes", "0"], ["--horizon", "1"],
-                                  ["--regularization", "magic"], ["--ltv-lambda", "-1"]])
+@pytest.mark.parametrize("flag", [["--episodes", "0"], ["--planner.horizon", "1"],
+                                  ["--regularization", "magic"],
+                                  ["--regularization.ltv-lambda", "-1"]])
 def test_script_rejects_bad_arguments(flag, capsys):
     with pytest.raises(SystemExit) as exc:
         _script().parse(flag)
@@ -167,13 +170,13 @@ def test_resume_on_a_damaged_checkpoint_or_a_changed_flag_is_one_line(tmp_path, 
     """--resume names the damaged file, or the config field that differs; no traceback."""
     script = _script()
     run = tmp_path / "run"
-    tiny = [a if a != str(EPISODES) else "1" for a in TINY] + ["--eval-every", "0"]
+    tiny = [a if a != str(EPISODES) else "1" for a in TINY] + ["--evaluation.every", "0"]
     script.main(["--run-dir", str(run), *tiny])
     good = (run / "checkpoint.pt").read_bytes()
     with pytest.raises(SystemExit) as exc:
-        script.main(["--run-dir", str(run), "--resume", *tiny, "--horizon", "7"])
+        script.main(["--run-dir", str(run), "--resume", *tiny, "--planner.horizon", "7"])
     err = capsys.readouterr().err
-    assert exc.value.code == 2 and err.count("\n") == 1 and "--horizon 7 differs" in err
+    assert exc.value.code == 2 and err.count("\n") == 1 and "--planner.horizon 7 differs" in err
     damaged = bytearray(good)
     damaged[-10] ^= 4
     for data, what in ((bytes(damaged), "is corrupted"), (good[: len(good) // 3], "is truncated")):
@@ -190,10 +193,10 @@ def test_resume_on_a_damaged_checkpoint_or_a_changed_flag_is_one_line(tmp_path, 
 def test_resume_loads_the_saved_config_and_refuses_a_contradicting_flag(tmp_path, capsys):
     script = _script()
     run_dir = str(tmp_path / "run")
-    tiny = [*TINY[2:], "--episodes", "1", "--eval-every", "0"]  # one excitation episode
+    tiny = [*TINY[2:], "--episodes", "1", "--evaluation.every", "0"]  # one excitation episode
     script.main(["--run-dir", run_dir, *tiny])
     args = script.parse(["--run-dir", run_dir, "--resume", "--episodes", "2"])
-    assert args.agent.seed == 4 and args.agent.hidden_width == 12  # from the checkpoint
+    assert args.agent.seed == 4 and args.agent.model.hidden_width == 12  # from the checkpoint
     assert args.agent.run_dir == run_dir and args.episodes == 2
     assert script.parse(["--run-dir", run_dir, "--resume", "--seed", "4"]).agent.seed == 4
     with pytest.raises(SystemExit) as exc:
@@ -201,4 +204,8 @@ def test_resume_loads_the_saved_config_and_refuses_a_contradicting_flag(tmp_path
     err = capsys.readouterr().err
     assert exc.value.code == 2 and err.count("\n") == 1 and "--seed 5 differs" in err
     saved = json.loads((tmp_path / "run" / "config.json").read_text())
-    assert saved["script"]["agent"]["seed"] == 4  # the whole config tree is saved with the run
+    # the whole config tree is saved with the run, nested, and loads back
+    assert saved["agent"]["seed"] == 4 and saved["agent"]["model"]["hidden_width"] == 12
+    from agents.config import AgentConfig
+
+    assert AgentConfig.from_dict(saved["agent"]) == args.agent

@@ -413,8 +413,9 @@ def test_agent_boundaries_name_the_argument():
     env = gym.make("mbtsr/TwoLinkArm-v0")
     with pytest.raises(ValueError, match="^episode_steps must"):
         env_spec(env, 0)
-    agent = JacPropAgent(env, AgentConfig(ensemble_size=1, hidden_width=4, progress=False,
-                                          tensorboard=False))
+    agent = JacPropAgent(env, AgentConfig.default({"model.ensemble_size": 1,
+                                                   "model.hidden_width": 4},
+                                                  progress=False, tensorboard=False))
     for obs, match in [(np.full(6, NAN), "^observation contains"),
                        (np.zeros(6) + 1j, "^observation must be real"),
                        (np.zeros(5), "^observation must have shape")]:

@@ -61,7 +61,8 @@ def test_gymnasium_task_costs_compile(name):
     suite = _suite()
     task = suite.TASKS[name]
     env = gym.make(task["env_id"], **task["make"])
-    agent = JacPropAgent(env, AgentConfig(eval_every=0, progress=False), cost_fn=task["cost"],
+    agent = JacPropAgent(env, AgentConfig.default({"evaluation.every": 0}, progress=False),
+                         cost_fn=task["cost"],
                          terminal_cost_fn=task.get("terminal"),
                          termination_fn=task.get("termination"))
     obs = env.reset(seed=0)[0]

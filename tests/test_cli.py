@@ -126,13 +126,16 @@ def test_every_script_help_lists_every_field_with_its_docstring(name, capsys):
     module = importlib.import_module(f"agents.experiments.{name}")
     assert (REPO / "scripts" / f"{name}.py").exists()
     text = " ".join(help_text(module.Args, capsys).split())
-    source = inspect.getsource(module.Args)
     for flag, f in fields_of(module.Args):
         assert f"--{flag}" in text, flag
-        # the docstring under the field is the help text (its first words, as tyro wraps lines)
-        after = source.split(f"    {f.name}:", 1)[1].split('"""')
-        assert len(after) > 2 and after[0].count("\n") == 1, f"{name}.{f.name} has no docstring"
-        assert " ".join(after[1].split()[:3]) in text, f.name
+        doc = f.metadata.get("help")  # a shared base's field (paper_common.SweepArgs)
+        if doc is None:  # the docstring under the field, in the class that declares it
+            owner = next(c for c in module.Args.__mro__
+                         if f.name in c.__dict__.get("__annotations__", {}))
+            after = inspect.getsource(owner).split(f"    {f.name}:", 1)[1].split('"""')
+            assert len(after) > 2 and after[0].count("\n") == 1, f"{name}.{f.name}: no docstring"
+            doc = after[1]
+        assert " ".join(doc.split()[:3]) in text, f.name  # its first words, as tyro wraps lines
 
 
 #: scripts whose owners were still editing them when the CLIs were generated (converted later)
@@ -196,19 +199,78 @@ def test_a_preset_flag_changes_the_defaults_but_not_the_given_options():
     assert got == Sweep(True, 3, Model(2))
 
 
+def _param_docs(cls) -> dict[str, str]:
+    """``{field: first three words}`` of the ``:param field:`` entries of a class docstring."""
+    chunks = (cls.__doc__ or "").split(":param ")[1:]
+    return {k: " ".join(v.split()[:3]) for k, v in (c.split(":", 1) for c in chunks)}
+
+
+def _tree_docs(obj, prefix: str = "") -> list[tuple[str, str, bool]]:
+    """``(dotted name, first words of its doc, is a section)`` of every field of a config tree
+    (sections found from the default instance, at any depth)."""
+    out = []
+    for f in dataclasses.fields(obj):
+        value = getattr(obj, f.name)
+        section = dataclasses.is_dataclass(value)
+        out.append((prefix + f.name, _param_docs(type(obj))[f.name], section))
+        if section:
+            out += _tree_docs(value, f"{prefix}{f.name}.")
+    return out
+
+
 def test_train_agent_help_lists_every_agent_config_field_with_its_doc(capsys):
+    """Every field of the tree is a flag named by its dotted path (no --agent. prefix), with the
+    first words of its documentation; the sections' own docs head their groups."""
     import re
 
     from agents.config import AgentConfig
     from agents.experiments import train_agent
 
     text = " ".join(help_text(train_agent.Args, capsys).split())
-    docs = dict(chunk.split(":", 1) for chunk in (AgentConfig.__doc__ or "").split(":param ")[1:])
-    for f in dataclasses.fields(AgentConfig):
-        flag = "--" + f.name.replace("_", "-")
-        assert re.search(re.escape(flag) + r"\b", text), flag  # no --agent. prefix
-        first = " ".join(docs[f.name].split()[:3])
-        assert first in text, (f.name, first)
+    fields = _tree_docs(AgentConfig())
+    assert len(fields) >= 70 and ("planner.cem.samples", "action sequences sampled",
+                                 False) in fields
+    for name, doc, section in fields:
+        if not section:
+            flag = "--" + name.replace("_", "-")
+            assert re.search(re.escape(flag) + r"(?![\w.-])", text), flag
+        assert doc in text, (name, doc)
+
+
+def test_train_agent_sets_nested_fields_and_the_regularizer_by_name():
+    from agents.experiments import train_agent
+
+    args = train_agent.parse(["--model.hidden-width", "8", "--training.batch", "trajectory",
+                              "--planner.kind", "cem", "--regularization.sigma", "0.2"])
+    cfg = args.agent
+    assert (cfg.model.hidden_width, cfg.training.batch, cfg.planner.kind) == (8, "trajectory",
+                                                                              "cem")
+    assert cfg.regularization.kind == "sampled" and cfg.regularization.sigma == 0.2
+    none = train_agent.parse(["--regularization", "none"]).agent.regularization
+    assert none.kind == "none" and none.ltv_lambda is None
+    exact = train_agent.parse(["--regularization", "exact"]).agent.regularization
+    assert (exact.kind, exact.exact_weight) == ("exact", 0.01)
+    heavier = train_agent.parse(["--regularization", "exact",
+                                 "--regularization.exact-weight", "0.5"]).agent.regularization
+    assert (heavier.kind, heavier.exact_weight) == ("exact", 0.5)
+
+
+@pytest.mark.parametrize("argv, field", [
+    (["--model.hidden-width", "0"], "model.hidden_width"),
+    (["--training.epochs", "0"], "training.epochs"),
+    (["--regularization.sigma", "-1"], "regularization.sigma"),
+    (["--planner.replan-every", "99"], "planner.replan_every"),
+    (["--evaluation.solved-ratio", "0.5"], "evaluation.solved_ratio"),
+    (["--collection.excitation", "chirp"], "--collection.excitation"),
+])
+def test_train_agent_bad_nested_value_is_one_line_naming_the_field(argv, field, capsys):
+    from agents.experiments import train_agent
+
+    with pytest.raises(SystemExit) as exc:
+        train_agent.parse(argv)
+    err = capsys.readouterr().err
+    assert exc.value.code == 2 and err.count("\n") == 1 and "Traceback" not in err
+    assert field in err, err
 
 
 EXPERIMENTS = REPO / "agents" / "experiments"

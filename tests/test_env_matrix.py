@@ -42,15 +42,13 @@ FAST = ("Reacher-v5", "InvertedPendulum-v5", "Pendulum-v1")
 CANNOT_RUN_ON_DEFAULTS = ("Humanoid-v5", "HumanoidStandup-v5")
 
 
-def smoke_config(**overrides) -> AgentConfig:
+def smoke_config(**top) -> AgentConfig:
     """The defaults with tiny budgets (one excitation episode, then one MPC episode)."""
-    base = dict(
-        n_excitation_episodes=1, ensemble_size=2, hidden_width=8, epochs_per_episode=3,
-        horizon=4, ilqr_iterations=1, first_plan_iterations=2, eval_every=0, progress=False,
-        tensorboard=False, torch_threads=1,
-    )
-    base.update(overrides)
-    return AgentConfig(**base)
+    return AgentConfig.default({
+        "collection.n_excitation_episodes": 1, "model.ensemble_size": 2, "model.hidden_width": 8,
+        "training.epochs": 3, "planner.horizon": 4, "planner.ilqr_iterations": 1,
+        "planner.first_plan_iterations": 2, "evaluation.every": 0,
+    }, **{"progress": False, "tensorboard": False, "torch_threads": 1, **top})
 
 
 def generic_cost(obs, action):
@@ -58,8 +56,8 @@ def generic_cost(obs, action):
     return 0.01 * ca.sumsqr(obs) + 0.01 * ca.sumsqr(action)
 
 
-def run_two_episodes(env: gym.Env, **overrides) -> JacPropAgent:
-    agent = JacPropAgent(env, smoke_config(**overrides), cost_fn=generic_cost)
+def run_two_episodes(env: gym.Env) -> JacPropAgent:
+    agent = JacPropAgent(env, smoke_config(), cost_fn=generic_cost)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)  # logged LTV fallbacks are expected
         agent.learn(2, progress_bar=False)

@@ -158,8 +158,9 @@ def test_checkers_pass_on_a_real_ensemble():
 
 def test_from_agent_uses_the_agents_model_cost_and_spaces():
     env = gym.make(ARM)
-    agent = JacPropAgent(env, AgentConfig(progress=False, tensorboard=False, checkpoint=False,
-                                          ensemble_size=2, eval_every=0))
+    cfg = AgentConfig.default({"model.ensemble_size": 2, "evaluation.every": 0},
+                              progress=False, tensorboard=False, checkpoint=False)
+    agent = JacPropAgent(env, cfg)
     menv = ModelEnv.from_agent(agent)
     check_both(menv)
     obs, _ = menv.reset(seed=5)
@@ -199,8 +200,9 @@ def test_bad_arguments_are_named():
 
 def test_from_agent_takes_the_tasks_termination_fn():
     env = gym.make(ARM)
-    agent = JacPropAgent(env, AgentConfig(progress=False, tensorboard=False, checkpoint=False,
-                                          ensemble_size=2, eval_every=0),
+    cfg = AgentConfig.default({"model.ensemble_size": 2, "evaluation.every": 0},
+                              progress=False, tensorboard=False, checkpoint=False)
+    agent = JacPropAgent(env, cfg,
                          termination_fn=lambda obs: np.abs(obs[..., 0]) > 0.5)
     menv = ModelEnv.from_agent(agent)
     obs, _ = menv.reset(seed=0, options={"obs": [0.5, 0, 0, 0, 0.3, 0.2]})

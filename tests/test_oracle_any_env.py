@@ -109,8 +109,10 @@ def test_agent_oracle_any_mujoco_env(env_id, cost, terminal):
     from agents.jacprop_agent import JacPropAgent
 
     env = gym.make(env_id, max_episode_steps=6)
-    cfg = AgentConfig(horizon=4, ilqr_iterations=1, first_plan_iterations=3, eval_episodes=2,
-                      eval_every=0, progress=False, tensorboard=False, checkpoint=False)
+    cfg = AgentConfig.default({"planner.horizon": 4, "planner.ilqr_iterations": 1,
+                               "planner.first_plan_iterations": 3, "evaluation.episodes": 2,
+                               "evaluation.every": 0},
+                              progress=False, tensorboard=False, checkpoint=False)
     agent = JacPropAgent(env, cfg, cost_fn=cost, terminal_cost_fn=terminal)
     mean = agent.compute_oracle()
     assert mean is not None and np.isfinite(mean)
@@ -118,7 +120,7 @@ def test_agent_oracle_any_mujoco_env(env_id, cost, terminal):
     # the same episodes by hand: same seeds (eval_seed + i), same controller
     policy = oracle_policy(gym.make(env_id, max_episode_steps=6), 4, iterations=1,
                            first_plan_iterations=3, cost_fn=cost, terminal_cost_fn=terminal)
-    by_hand = evaluate_policy_costs(policy, policy.env, None, cfg.eval_seed, n_episodes=2,
+    by_hand = evaluate_policy_costs(policy, policy.env, None, cfg.evaluation.seed, n_episodes=2,
                                     max_steps=6)
     np.testing.assert_allclose(agent.oracle_costs, by_hand, rtol=0, atol=1e-9)
     env.close()
@@ -140,8 +142,9 @@ def test_env_without_true_model():
 
     with pytest.raises(ValueError, match="no true model"):
         oracle_policy(env, 4, cost_fn=cost)
-    agent = JacPropAgent(env, AgentConfig(eval_every=0, progress=False, tensorboard=False,
-                                          checkpoint=False), cost_fn=cost)
+    cfg = AgentConfig.default({"evaluation.every": 0}, progress=False, tensorboard=False,
+                              checkpoint=False)
+    agent = JacPropAgent(env, cfg, cost_fn=cost)
     assert agent.compute_oracle() is None
     env.close()
 
@@ -151,5 +154,6 @@ def test_bench_suite_task_oracle_smoke():
 
     rec = task_oracle("reacher", smoke=True)
     assert rec["eval_seed"] == 1000 and len(rec["returns"]) == rec["eval_episodes"] == 1
-    assert np.isfinite(rec["mean_return"]) and rec["solved_return"] == -3.75
-    assert rec["solved"] == (rec["mean_return"] >= -3.75)
+    # the threshold is within oracle_margin (5 %) of the oracle's own return
+    assert np.isfinite(rec["mean_return"])
+    assert rec["solved_return"] == rec["mean_return"] - 0.05 * abs(rec["mean_return"])

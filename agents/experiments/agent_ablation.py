@@ -34,8 +34,9 @@ THRESHOLDS = (1.2, 1.1, 1.05)
 class Args:
     """Agent ablation over regularizations x seeds."""
 
-    variants: str = "sampled,exact,none,sampled:perturbation_sigma=0.5"
-    """comma-separated variants ``regularization[:field=value;...]`` (AgentConfig fields)"""
+    variants: str = "sampled,exact,none,sampled:regularization.sigma=0.5"
+    """comma-separated variants ``regularization[:field=value;...]`` (dotted AgentConfig
+    fields)"""
     seeds: int = 5
     """seeds 0 .. seeds-1"""
     episodes: int = 10
@@ -52,7 +53,8 @@ class Args:
     oracle_cache_dir: str = "runs/oracle_cache"
     """cache of the true-model oracle's cost"""
     agent_config: str = "{}"
-    """JSON of further AgentConfig overrides for every run"""
+    """JSON of further AgentConfig overrides for every run (dotted fields,
+    '{"training.epochs": 100}')"""
     json: str = ""
     """write the summary here too"""
     report_only: bool = False
@@ -69,8 +71,9 @@ class Args:
 
 
 def parse_variants(text: str) -> dict[str, dict]:
-    """``"sampled,none,sampled:perturbation_sigma=0.5"`` -> ``{name: {"regularization",
-    "overrides"}}``; values are parsed as JSON when possible (numbers, booleans)."""
+    """``"sampled,none,sampled:regularization.sigma=0.5"`` -> ``{name: {"regularization",
+    "overrides"}}`` (names such as ``sampled_sigma0.5``); values are parsed as JSON when
+    possible (numbers, booleans)."""
     out = {}
     for item in filter(None, (v.strip() for v in text.split(","))):
         reg, _, rest = item.partition(":")
@@ -81,26 +84,26 @@ def parse_variants(text: str) -> dict[str, dict]:
                 overrides[key] = json.loads(value)
             except json.JSONDecodeError:
                 overrides[key] = value
-        name = "_".join([reg, *(f"{k}{v}" for k, v in overrides.items())])
+        name = "_".join([reg, *(f"{k.rsplit('.', 1)[-1]}{v}" for k, v in overrides.items())])
         out[name] = {"regularization": reg, "overrides": overrides}
     return out
 
 
 def agent_fields(config: dict, seed: int) -> dict:
-    """The AgentConfig of one run."""
+    """The AgentConfig (dotted fields) of one run."""
     return {
         **config["overrides"],
         **config["variant_overrides"],
         "regularization": config["regularization"],
         "seed": seed,
-        "eval_every": 1,
-        "eval_early_exit": False,
-        "stop_when_solved": False,
+        "evaluation.every": 1,
+        "evaluation.early_exit": False,
+        "evaluation.stop_when_solved": False,
         "checkpoint": False,
         "progress": False,
         "tensorboard": False,
         "torch_threads": 1,
-        "oracle_cache_dir": config["oracle_cache_dir"],
+        "evaluation.oracle_cache_dir": config["oracle_cache_dir"],
     }
 
 
@@ -114,7 +117,7 @@ def run_one(config: dict, seed: int) -> dict:
 
     t0 = time.perf_counter()
     env = gym.make(config["env_id"])
-    agent = JacPropAgent(env, AgentConfig(**agent_fields(config, seed)))
+    agent = JacPropAgent(env, AgentConfig.default(agent_fields(config, seed)))
     agent.learn(config["episodes"], progress_bar=False)
     rows = agent.logger_rows
     out = {
@@ -189,7 +192,8 @@ def run(args: Args) -> dict:
         from agents.jacprop_agent import JacPropAgent
 
         first = next(iter(configs.values()))
-        probe = JacPropAgent(gym.make(first["env_id"]), AgentConfig(**agent_fields(first, 0)))
+        probe = JacPropAgent(gym.make(first["env_id"]),
+                             AgentConfig.default(agent_fields(first, 0)))
         print(f"oracle mean cost {probe.compute_oracle():.4g}")
         run_sweep(run_one, configs, range(args.seeds), out, backend=args.backend,
                   workers=args.workers, address=args.address or None)

@@ -16,7 +16,8 @@ Measures, in one run:
    (``pip install -c constraints.txt -e ".[peers]"``) it prints
    "crocoddyl: skipped (not installed)" and runs the rest;
 4. the MPC real-time factor (control period 0.02 s / compute time per MPC step) at the agent's
-   default horizon and iterations (``AgentConfig``) for the ensemble, the analytic model and the
+   default horizon and iterations (``AgentConfig.planner``) for the ensemble, the analytic model
+   and the
    true MuJoCo arm (MuJoCo steps with the analytic twin's exact Jacobians, and with MuJoCo's own
    finite-difference Jacobians for reference), and the final reach error;
 5. the cold (first-ever) compile time of the numba backward pass, in a fresh process with an
@@ -47,7 +48,7 @@ import numpy as np
 import torch
 
 import envs  # noqa: F401  (registers mbtsr/TwoLinkArm-v0)
-from agents.config import AgentConfig
+from agents.config import PlannerConfig
 from envs.mujoco_model import HybridDynamics, MujocoDynamics
 from mbtsr.costs import quadratic_cost
 from mbtsr.episode import run_episode
@@ -70,13 +71,13 @@ class Args:
     """timing runs; the best (least disturbed by other processes) is reported"""
     n_problems: int = 3
     """start/target pairs for the IPOPT comparison"""
-    mpc_horizon: int = AgentConfig().horizon
+    mpc_horizon: int = PlannerConfig().horizon
     """MPC horizon (default: the agent's)"""
     mpc_steps: int = 100
     """control steps per MPC episode"""
-    mpc_iterations: int = AgentConfig().ilqr_iterations
+    mpc_iterations: int = PlannerConfig().ilqr_iterations
     """iLQR iterations per MPC step (warm-started; default: the agent's)"""
-    mpc_first_iterations: int = AgentConfig().first_plan_iterations
+    mpc_first_iterations: int = PlannerConfig().first_plan_iterations
     """iLQR iterations of the first MPC step (default: the agent's)"""
     peers: bool = True
     """run crocoddyl side by side (skipped when not installed)"""

@@ -102,7 +102,7 @@ TASKS: dict[str, dict[str, Any]] = {
     },
     "arm-open-loop": {
         "env_id": "mbtsr/TwoLinkArm-v0", "make": {}, "solved_ratio": 1.05, "episodes": 8,
-        "overrides": {"replan_every": 10},
+        "overrides": {"planner.replan_every": 10},
     },
     "reacher": {
         "env_id": "Reacher-v5", "make": {}, "oracle_margin": 0.05, "total_env_steps": 1000,
@@ -117,9 +117,10 @@ TASKS: dict[str, dict[str, Any]] = {
 }
 
 SMOKE_OVERRIDES = {
-    "epochs_per_episode": 3, "horizon": 5, "first_plan_iterations": 2, "ilqr_iterations": 1,
-    "cem_samples": 16, "cem_elites": 4, "cem_iterations": 1, "eval_episodes": 1,
-    "ensemble_size": 2, "hidden_width": 8,
+    "training.epochs": 3, "planner.horizon": 5, "planner.first_plan_iterations": 2,
+    "planner.ilqr_iterations": 1, "planner.cem.samples": 16, "planner.cem.elites": 4,
+    "planner.cem.iterations": 1, "evaluation.episodes": 1, "model.ensemble_size": 2,
+    "model.hidden_width": 8,
 }
 
 
@@ -152,15 +153,16 @@ def make_env(task: dict[str, Any]):
 
 
 def _make_agent(env: Any, task: dict[str, Any], overrides: dict[str, Any], smoke: bool) -> Any:
-    """The agent of ``task`` on ``env`` with ``overrides`` (plus the tiny smoke budgets)."""
+    """The agent of ``task`` on ``env`` with ``overrides`` (dotted ``AgentConfig`` fields, plus
+    the tiny smoke budgets)."""
     from agents.config import AgentConfig
     from agents.jacprop_agent import JacPropAgent
 
     if smoke:
         overrides = {**overrides, **SMOKE_OVERRIDES}
-        if "replan_every" in overrides:
-            overrides["replan_every"] = 2
-    return JacPropAgent(env, AgentConfig(**overrides), cost_fn=task.get("cost"),
+        if "planner.replan_every" in overrides:
+            overrides["planner.replan_every"] = 2
+    return JacPropAgent(env, AgentConfig.default(overrides), cost_fn=task.get("cost"),
                         terminal_cost_fn=task.get("terminal"),
                         termination_fn=task.get("termination"))
 
@@ -176,13 +178,14 @@ def run_one(name: str, planner: str, reg: str, seed: int, *, smoke: bool,
     task = TASKS[name]
     env = make_env(task)
     overrides = dict(task["overrides"])
-    overrides.update(
-        seed=seed, planner=planner, regularization=reg, eval_every=2, eval_episodes=3,
-        oracle_cache_dir=oracle_cache, progress=False, tensorboard=False, checkpoint=False,
-        torch_threads=1, jacobian_error=False,
-    )
+    overrides.update({
+        "seed": seed, "planner.kind": planner, "regularization": reg, "evaluation.every": 2,
+        "evaluation.episodes": 3, "evaluation.oracle_cache_dir": oracle_cache,
+        "progress": False, "tensorboard": False, "checkpoint": False, "torch_threads": 1,
+        "jacobian_error": False,
+    })
     key = "solved_ratio" if "solved_ratio" in task else "solved_return"
-    overrides[key] = threshold[key]
+    overrides[f"evaluation.{key}"] = threshold[key]
     agent = _make_agent(env, task, overrides, smoke)
     tic = time.perf_counter()
     with warnings.catch_warnings():
@@ -218,31 +221,33 @@ def run_one(name: str, planner: str, reg: str, seed: int, *, smoke: bool,
 
 def task_oracle(name: str, *, smoke: bool = False) -> dict[str, Any]:
     """The true-model oracle's score on task ``name``: the agent's own MPC (defaults: iLQR,
-    ``horizon``, ``ilqr_iterations``, ``first_plan_iterations``, the task's cost and terminal
-    cost) on the TRUE MuJoCo dynamics, over the suite's evaluation episodes (same reset seeds
-    ``eval_seed + i``, same episode length), via :meth:`JacPropAgent.compute_oracle`. For the
-    Gymnasium tasks the true model is :class:`envs.mujoco_model.MujocoDynamics` (no user glue,
-    see :func:`agents.evaluation.oracle_policy`)."""
+    ``planner.horizon``, ``ilqr_iterations``, ``first_plan_iterations``, the task's cost and
+    terminal cost) on the TRUE MuJoCo dynamics, over the suite's evaluation episodes (same reset
+    seeds ``evaluation.seed + i``, same episode length), via
+    :meth:`JacPropAgent.compute_oracle`. For the Gymnasium tasks the true model is
+    :class:`envs.mujoco_model.MujocoDynamics` (no user glue, see
+    :func:`agents.evaluation.oracle_policy`)."""
     import torch
 
 
     torch.set_num_threads(1)
     task = TASKS[name]
     env = make_env(task)
-    overrides = dict(task["overrides"], eval_episodes=3, progress=False, tensorboard=False,
-                     checkpoint=False, torch_threads=1)
+    overrides = {**task["overrides"], "evaluation.episodes": 3, "progress": False,
+                 "tensorboard": False, "checkpoint": False, "torch_threads": 1}
     agent = _make_agent(env, task, overrides, smoke)
     tic = time.perf_counter()
     agent.compute_oracle()
     env.close()
     costs = np.asarray(agent.oracle_costs, dtype=float)
     returns = (-costs).tolist()
+    cfg = agent.config
     rec: dict[str, Any] = {
         "task": name, "returns": returns, "mean_return": float(np.mean(returns)),
         "costs": costs.tolist(), "mean_cost": float(np.mean(costs)),
-        "eval_seed": agent.config.eval_seed, "eval_episodes": agent.config.eval_episodes,
-        "horizon": agent.config.horizon, "ilqr_iterations": agent.config.ilqr_iterations,
-        "first_plan_iterations": agent.config.first_plan_iterations,
+        "eval_seed": cfg.evaluation.seed, "eval_episodes": cfg.evaluation.episodes,
+        "horizon": cfg.planner.horizon, "ilqr_iterations": cfg.planner.ilqr_iterations,
+        "first_plan_iterations": cfg.planner.first_plan_iterations,
         "wall_seconds": time.perf_counter() - tic,
     }
     if "oracle_margin" in task:

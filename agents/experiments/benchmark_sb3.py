@@ -47,8 +47,9 @@ import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any
 
+from agents.experiments.paper_common import SweepArgs
 from mbtsr.io import atomic_write_text
 from mbtsr.report import markdown_table
 
@@ -66,8 +67,8 @@ LABELS = {
 }
 
 
-@dataclass(frozen=True)
-class Args:
+@dataclass
+class Args(SweepArgs):
     """Benchmark the Algorithm-1 agent against Stable-Baselines3 SAC, TD3 and PPO (issue 7)."""
 
     json: str = "docs/benchmark.json"
@@ -76,15 +77,6 @@ class Args:
     """per-run JSON + TensorBoard; default runs/benchmark_sb3[_quick]"""
     docs: str = "docs/benchmark_sb3.md"
     """markdown report; the figure goes next to it (--quick: under runs/benchmark_sb3_quick)"""
-    quick: bool = False
-    """CI smoke test: tiny budgets, 1 seed (options not given take the QUICK values)"""
-    backend: Literal["process", "serial", "ray"] = "process"
-    """mbtsr.runner backend"""
-    address: str = ""
-    """Ray only: address of an existing cluster (``auto``, ``host:6379``); empty: a private local
-    Ray instance for the sweep (docs/troubleshooting.md)"""
-    workers: int = 2
-    """parallel runs"""
     seeds: int = 3
     """seeds per method"""
     first_seed: int = 0
@@ -116,13 +108,11 @@ class Args:
     eval_every_ppo: int = 4096
     """env steps between PPO evaluations (a multiple of PPO's n_steps, 2048)"""
     agent_config: str = "{}"
-    """JSON of AgentConfig overrides, e.g. '{"epochs_per_episode": 100}'"""
+    """JSON of AgentConfig overrides by dotted field, e.g. '{"training.epochs": 100}'"""
     sb3_hyperparams: str = "{}"
     """JSON {algo: {kwarg: value}} replacing the defaults of an algo"""
     sb3_progress_bar: bool = False
     """SB3's own progress bars (garbled with several workers)"""
-    report_only: bool = False
-    """no new runs: report the finished ones in --out-dir (interim)"""
     tensorboard: bool = True
     """TensorBoard logs of every run under --out-dir"""
 
@@ -146,8 +136,8 @@ QUICK = {
     "json": "runs/benchmark_sb3_quick/benchmark.json",  # never over the real report by default
     "docs": "runs/benchmark_sb3_quick/benchmark.md",
 }
-QUICK_AGENT = {"epochs_per_episode": 10, "horizon": 10, "first_plan_iterations": 5,
-               "ensemble_size": 2, "ltv_lambda": 1.0}
+QUICK_AGENT = {"training.epochs": 10, "planner.horizon": 10, "planner.first_plan_iterations": 5,
+               "model.ensemble_size": 2, "regularization.ltv_lambda": 1.0}
 QUICK_SB3 = {
     "sac": {"learning_starts": 50, "batch_size": 32},
     "td3": {"learning_starts": 50, "batch_size": 32, "action_noise_std": 0.1},
@@ -186,16 +176,19 @@ def methods_of(args: Args) -> list[str]:
 
 
 def agent_fields(config: dict, seed: int, env) -> dict:
-    """The AgentConfig fields of an agent run (and of the oracle probe, which shares them)."""
+    """The AgentConfig fields (dotted) of an agent run (and of the oracle probe, which shares
+    them)."""
     fields = dict(config["agent_config"])
-    if fields.get("episode_steps") is None and getattr(env.spec, "max_episode_steps", None) is None:
-        fields["episode_steps"] = int(env.unwrapped.episode_steps)
-    fields.update(seed=seed, eval_every=1, eval_episodes=config["eval_episodes"],
-                  eval_seed=config["eval_seed"], solved_ratio=config["solved_ratio"],
-                  stop_when_solved=True, eval_early_exit=False, progress=False, checkpoint=False,
-                  oracle_cache_dir=config.get("oracle_cache_dir"),
-                  run_dir=config.get("run_dir") and f"{config['run_dir']}/seed{seed}",
-                  tensorboard=bool(config.get("run_dir")))
+    if fields.get("collection.episode_steps") is None and getattr(
+            env.spec, "max_episode_steps", None) is None:
+        fields["collection.episode_steps"] = int(env.unwrapped.episode_steps)
+    fields.update({
+        "seed": seed, "evaluation.every": 1, "evaluation.episodes": config["eval_episodes"],
+        "evaluation.seed": config["eval_seed"], "evaluation.solved_ratio": config["solved_ratio"],
+        "evaluation.stop_when_solved": True, "evaluation.early_exit": False, "progress": False,
+        "checkpoint": False, "evaluation.oracle_cache_dir": config.get("oracle_cache_dir"),
+        "run_dir": config.get("run_dir") and f"{config['run_dir']}/seed{seed}",
+        "tensorboard": bool(config.get("run_dir"))})
     return fields
 
 
@@ -212,7 +205,7 @@ def compute_oracle(config: dict) -> dict:
 
     env = gym.make(config["env_id"], **config["env_kwargs"])
     fields = {**agent_fields(config, 0, env), "run_dir": None, "tensorboard": False}
-    probe = JacPropAgent(env, AgentConfig(**fields))
+    probe = JacPropAgent(env, AgentConfig.default(fields))
     t0 = time.perf_counter()
     cost = probe.compute_oracle()
     seconds = time.perf_counter() - t0
@@ -248,7 +241,7 @@ def run_agent(config: dict, seed: int) -> dict:
 
     t_start = time.perf_counter()
     env = gym.make(config["env_id"], **config["env_kwargs"])
-    agent = JacPropAgent(env, AgentConfig(**agent_fields(config, seed, env)))
+    agent = JacPropAgent(env, AgentConfig.default(agent_fields(config, seed, env)))
     curve, train_wall, eval_seconds = [], [], [0.0]
     solve: dict[str, Any] = {}
 
@@ -269,7 +262,7 @@ def run_agent(config: dict, seed: int) -> dict:
     env.close()
     return {
         "method": config["method"],
-        "regularization": agent.config.regularization,
+        "regularization": agent.config.regularization.kind,
         "seed": seed,
         "budget_episodes": config["budget_episodes"],
         "budget_steps": config["budget_episodes"] * agent.spec.episode_steps,
@@ -594,9 +587,12 @@ def _agent_summary(s: dict) -> dict:
 
 
 def _agent_excitation(s: dict) -> str:
-    cfg = _agent_summary(s).get("agent_config") or {}
-    k = cfg.get("n_excitation_episodes")
-    steps = cfg.get("episode_steps")
+    from agents.config import AgentConfig
+
+    saved = _agent_summary(s).get("agent_config")
+    cfg = AgentConfig.from_dict(saved).collection if saved else None  # old flat JSON too
+    k = cfg and cfg.n_excitation_episodes
+    steps = cfg and cfg.episode_steps
     return "evaluations start after the excitation phase" if k is None else (
         f"{steps} steps each; the first evaluation after the {k} excitation episodes")
 

@@ -10,10 +10,6 @@ as training them one by one on the same batches, only faster. The paper used 200
 
 The paper's claim: relu and leaky relu are worse suited for the task (hence left out of the
 nominal ensemble).
-
-    python scripts/exp_activations.py                 # full run
-    python scripts/exp_activations.py --report-only   # redraw from the JSON
-    python scripts/exp_activations.py --quick         # smoke test
 """
 
 from __future__ import annotations
@@ -23,25 +19,13 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from agents.experiments.paper_common import (
-    ALL_ACTIVATIONS,
-    ExperimentArgs,
-    RobotData,
-    paired_comparison,
-    parse_args,
-    pyplot,
-    run_activations,
-    run_experiment,
-    save_figure,
-    spread,
-    violins,
-)
+from agents.experiments import paper_common as pc
 
 EXPERIMENT = "activations"
 
 
 @dataclass
-class Args(ExperimentArgs):
+class Args(pc.TrainingArgs):
     """Activation functions: log prediction error after 20 / 500 / 1500 epochs."""
 
     mc: int = field(default=200, metadata={"help": "Monte-Carlo runs (paper: 200)"})
@@ -49,8 +33,6 @@ class Args(ExperimentArgs):
     checkpoints: str = field(default="20,500,1500", metadata={
         "help": "comma-separated epochs at which the error is recorded"})
     width: int = field(default=20, metadata={"help": "hidden units"})
-    lr: float = field(default=0.01, metadata={"help": "Adam step size"})
-    n_val: int = field(default=10, metadata={"help": "validation trajectories"})
 
     QUICK = {"mc": 2, "checkpoints": "2,5,10", "n_val": 2}
 
@@ -60,8 +42,8 @@ def make_configs(args: Args) -> dict[str, dict]:
     if sorted(checkpoints) != checkpoints or checkpoints[0] < 1:
         raise ValueError(f"--checkpoints must be increasing epochs >= 1, got {args.checkpoints}")
     return {f"all_{args.formulation}": {
-        "data": dataclasses.asdict(RobotData(n_val=args.n_val)),
-        "formulation": args.formulation, "activations": list(ALL_ACTIVATIONS),
+        "data": dataclasses.asdict(pc.RobotData(n_val=args.n_val)),
+        "formulation": args.formulation, "activations": list(pc.ALL_ACTIVATIONS),
         "width": args.width, "checkpoints": checkpoints, "lr": args.lr}}
 
 
@@ -79,7 +61,7 @@ def log_errors(records: list[dict]) -> tuple[list[int], dict[str, np.ndarray]]:
 
 
 def report(records: list[dict], out, figures, args: Args) -> dict:
-    plt = pyplot()
+    plt = pc.pyplot()
     checkpoints, logs = log_errors(records)
     fig, axes = plt.subplots(1, len(checkpoints), figsize=(4.6 * len(checkpoints), 3.8))
     for j, (ax, c) in enumerate(zip(np.atleast_1d(axes), checkpoints)):
@@ -89,13 +71,13 @@ def report(records: list[dict], out, figures, args: Args) -> dict:
         if pooled.size:
             lo, hi = np.percentile(pooled, [1, 99])
             data = {a: d[(d >= lo) & (d <= hi)] for a, d in data.items()}
-        violins(ax, data, ylabel="log10 prediction RMS" if j == 0 else "",
+        pc.violins(ax, data, ylabel="log10 prediction RMS" if j == 0 else "",
                 title=f"after {c} epochs")
     fig.suptitle(f"{len(records)} Monte-Carlo runs per violin", fontsize=10)
-    save_figure(fig, figures / "activations.png")
+    pc.save_figure(fig, figures / "activations.png")
 
     summary = {"checkpoints": checkpoints, "n_runs": len(records),
-               "log10_pred_rms": {a: [spread(v[:, j]) for j in range(len(checkpoints))]
+               "log10_pred_rms": {a: [pc.spread(v[:, j]) for j in range(len(checkpoints))]
                                   for a, v in logs.items()}}
     # rank of each activation per run at each checkpoint (1 = best), averaged
     stack = np.stack([logs[a] for a in logs])  # [A, runs, C]
@@ -105,9 +87,9 @@ def report(records: list[dict], out, figures, args: Args) -> dict:
     for j, c in enumerate(checkpoints):
         for a in ("relu", "leaky_relu"):
             if a in logs:
-                best_smooth[f"{a}_vs_tanh@{c}"] = paired_comparison(logs[a][:, j],
+                best_smooth[f"{a}_vs_tanh@{c}"] = pc.paired_comparison(logs[a][:, j],
                                                                     logs["tanh"][:, j])
-                best_smooth[f"{a}_vs_elu@{c}"] = paired_comparison(logs[a][:, j],
+                best_smooth[f"{a}_vs_elu@{c}"] = pc.paired_comparison(logs[a][:, j],
                                                                    logs["elu"][:, j])
     summary["comparisons"] = best_smooth
     summary["figures"] = ["activations.png"]
@@ -116,9 +98,9 @@ def report(records: list[dict], out, figures, args: Args) -> dict:
 
 def cli(argv: list[str] | None = None) -> None:
     """The script (``scripts/exp_activations.py``): parse the command line, run, print."""
-    args = parse_args(Args, argv)
-    configs = make_configs(args)
-    summary = run_experiment(args, EXPERIMENT, run_activations, configs, report)
+    args = pc.parse_args(Args, argv)
+    summary = pc.run_experiment(args, EXPERIMENT, pc.run_activations, make_configs(args),
+                                report)
     for a, per_c in summary["log10_pred_rms"].items():
         meds = " ".join(f"{s.get('median', float('nan')):7.3f}" for s in per_c)
         print(f"{a:11s} median log10 pred RMS at {summary['checkpoints']}: {meds}  "

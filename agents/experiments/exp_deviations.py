@@ -14,10 +14,6 @@ differences gives p < 0.05, otherwise "~" (no significant change).
 
 Errors at another sample rate are per step of another length, so for the sample-rate rows
 the meaningful comparison is f against g at that rate (the paper's claims), also reported.
-
-    python scripts/exp_deviations.py                 # full run
-    python scripts/exp_deviations.py --report-only   # redraw table/figure from the JSON
-    python scripts/exp_deviations.py --quick         # smoke test
 """
 
 from __future__ import annotations
@@ -27,20 +23,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from agents.experiments.paper_common import (
-    NOMINAL_ACTIVATIONS,
-    ExperimentArgs,
-    RobotData,
-    nominal_epochs,
-    paired_comparison,
-    parse_args,
-    pyplot,
-    run_experiment,
-    run_robot,
-    save_figure,
-    spread,
-    values,
-)
+from agents.experiments import paper_common as pc
 
 EXPERIMENT = "deviations"
 METRICS = ("log10_pred_rms", "log10_sim_rms", "log10_jac_err")
@@ -63,7 +46,7 @@ DEVIATIONS = {
 
 
 @dataclass
-class Args(ExperimentArgs):
+class Args(pc.TrainingArgs):
     """Deviations from the nominal model: direction of change of the errors (paper app. B)."""
 
     mc: int = field(default=16, metadata={"help": "Monte-Carlo runs per deviation"})
@@ -72,8 +55,6 @@ class Args(ExperimentArgs):
     formulations: str = field(default="f,g", metadata={"help": "comma-separated formulations"})
     method: str = field(default="sampled", metadata={"help": "regularization of all models"})
     epoch_scale: float = field(default=1.0, metadata={"help": "multiplies the epochs"})
-    lr: float = field(default=0.01, metadata={"help": "Adam step size"})
-    n_val: int = field(default=10, metadata={"help": "validation trajectories"})
     alpha: float = field(default=0.05, metadata={"help": "significance level of a direction"})
 
     QUICK = {"mc": 2, "epoch_scale": 0.01, "n_val": 2,
@@ -91,11 +72,11 @@ def make_configs(args: Args) -> dict[str, dict]:
             raise ValueError(f"--formulations must list f and/or g, got {f!r}")
         for name in names:
             _, data_kw, model_kw, reg_kw = DEVIATIONS[name]
-            data = dataclasses.asdict(RobotData(n_val=args.n_val, **data_kw))
-            model = {"activations": list(NOMINAL_ACTIVATIONS), **model_kw}
+            data = dataclasses.asdict(pc.RobotData(n_val=args.n_val, **data_kw))
+            model = {"activations": list(pc.NOMINAL_ACTIVATIONS), **model_kw}
             configs[f"{f}_{name}"] = {
                 "data": data, "formulation": f, "method": args.method, "reg": reg_kw,
-                "epochs": nominal_epochs(f, args.method, args.epoch_scale), "lr": args.lr,
+                "epochs": pc.nominal_epochs(f, args.method, args.epoch_scale), "lr": args.lr,
                 "model": model, "deviation": name}
     return configs
 
@@ -103,8 +84,8 @@ def make_configs(args: Args) -> dict[str, dict]:
 def metric(records: list[dict], name: str, key: str) -> np.ndarray:
     if key == "log10_jac_err":
         with np.errstate(divide="ignore", invalid="ignore"):
-            return np.log10(values(records, name, "jac_err"))
-    return values(records, name, key)
+            return np.log10(pc.values(records, name, "jac_err"))
+    return pc.values(records, name, key)
 
 
 def direction(comp: dict, alpha: float) -> str:
@@ -116,7 +97,7 @@ def direction(comp: dict, alpha: float) -> str:
 
 
 def report(records: list[dict], out, figures, args: Args) -> dict:
-    plt = pyplot()
+    plt = pc.pyplot()
     present = {r["name"] for r in records}
     forms = [f for f in ("f", "g") if f"{f}_nominal" in present]
     devs = [d for d in DEVIATIONS if any(f"{f}_{d}" in present for f in forms)]
@@ -128,18 +109,18 @@ def report(records: list[dict], out, figures, args: Args) -> dict:
             name = f"{f}_{d}"
             if name not in present:
                 continue
-            row[f] = {k: spread(metric(records, name, k)) for k in METRICS}
-            row[f]["diverged"] = int(values(records, name, "sim_diverged").sum())
+            row[f] = {k: pc.spread(metric(records, name, k)) for k in METRICS}
+            row[f]["diverged"] = int(pc.values(records, name, "sim_diverged").sum())
             for k in ("train_time", "cpu_time", "train_pred_rms", "pred_rms", "sim_rms",
                       "jac_err"):
-                row[f][k] = spread(values(records, name, k))
+                row[f][k] = pc.spread(pc.values(records, name, k))
             if d != "nominal":
                 row[f"{f}_vs_nominal"] = {
-                    k: paired_comparison(metric(records, name, k),
+                    k: pc.paired_comparison(metric(records, name, k),
                                          metric(records, f"{f}_nominal", k))
                     for k in METRICS}
         if all(f"{f}_{d}" in present for f in ("f", "g")):
-            row["g_vs_f"] = {k: paired_comparison(metric(records, f"g_{d}", k),
+            row["g_vs_f"] = {k: pc.paired_comparison(metric(records, f"g_{d}", k),
                                                   metric(records, f"f_{d}", k))
                              for k in (*METRICS, "train_pred_rms")}
         table[d] = row
@@ -187,7 +168,7 @@ def report(records: list[dict], out, figures, args: Args) -> dict:
     np.atleast_1d(axes)[0].set_yticks(ypos, [DEVIATIONS[d][0] for d in others])
     np.atleast_1d(axes)[0].invert_yaxis()
     np.atleast_1d(axes)[-1].legend(title="formulation", fontsize=8)
-    save_figure(fig, figures / "deviations.png")
+    pc.save_figure(fig, figures / "deviations.png")
 
     return {"alpha": alpha, "table": table, "markdown": markdown,
             "n_runs": {n: int(sum(r["name"] == n for r in records)) for n in sorted(present)},
@@ -204,7 +185,6 @@ def _cell(comp: dict, alpha: float) -> str:
 
 def cli(argv: list[str] | None = None) -> None:
     """The script (``scripts/exp_deviations.py``): parse the command line, run, print."""
-    args = parse_args(Args, argv)
-    configs = make_configs(args)
-    summary = run_experiment(args, EXPERIMENT, run_robot, configs, report)
+    args = pc.parse_args(Args, argv)
+    summary = pc.run_experiment(args, EXPERIMENT, pc.run_robot, make_configs(args), report)
     print(summary["markdown"])

@@ -9,10 +9,6 @@ the way the original README experiment did: 3 training rounds, one new trajector
 smoothness penalty of paper eq. (reg). Two extra configs reinstate the original code's data bug
 (last state of every training trajectory left at 0) to test whether it explains the original's
 Jacobian errors (RMS per entry after round 3: ~0.074 without, ~0.041 with sampled JacProp).
-
-    python scripts/exp_linear.py                 # full run -> docs/results/linear, docs/figures
-    python scripts/exp_linear.py --report-only   # redraw figures/summary from the JSON
-    python scripts/exp_linear.py --quick         # smoke test (seconds)
 """
 
 from __future__ import annotations
@@ -22,22 +18,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from agents.experiments.paper_common import (
-    ExperimentArgs,
-    LinearData,
-    complex_from_pairs,
-    eigen_limits,
-    eigen_scatter,
-    paired_comparison,
-    parse_args,
-    pyplot,
-    run_experiment,
-    run_linear,
-    save_figure,
-    spread,
-    values,
-    violins,
-)
+from agents.experiments import paper_common as pc
 
 EXPERIMENT = "linear"
 METHODS = ("none", "sampled", "exact", "smooth")
@@ -49,15 +30,10 @@ ORIGINAL = {"none": [0.147, 0.082, 0.074], "sampled": [0.058, 0.040, 0.041]}
 
 
 @dataclass
-class Args(ExperimentArgs):
+class Args(pc.LinearRoundsArgs):
     """Random stable linear systems: eigenvalues and errors without/with tangent-space
     regularization (paper Fig. jacpropeig)."""
 
-    mc: int = field(default=20, metadata={"help": "Monte-Carlo runs (random systems)"})
-    rounds: int = field(default=3, metadata={"help": "training rounds (one trajectory each)"})
-    epochs_per_round: int = field(default=200, metadata={"help": "epochs per round"})
-    lr: float = field(default=0.01, metadata={"help": "Adam step size"})
-    n_val: int = field(default=10, metadata={"help": "validation trajectories"})
     exact_weight: float = field(default=1.0, metadata={"help": "weight of the LTV match"})
     smooth_weight: float = field(default=0.15, metadata={
         "help": "weight of the smoothness penalty (original linear_eigvals: 0.15)"})
@@ -68,7 +44,7 @@ class Args(ExperimentArgs):
 
 
 def make_configs(args: Args) -> dict[str, dict]:
-    data = dataclasses.asdict(LinearData(n_val=args.n_val))
+    data = dataclasses.asdict(pc.LinearData(n_val=args.n_val))
     base = {"data": data, "formulation": "g", "rounds": args.rounds,
             "epochs_per_round": args.epochs_per_round, "lr": args.lr, "weight_decay": 0.0,
             "incremental": True, "n_eig_store": 30}
@@ -83,7 +59,7 @@ def make_configs(args: Args) -> dict[str, dict]:
 
 
 def report(records: list[dict], out, figures, args: Args) -> dict:
-    plt = pyplot()
+    plt = pc.pyplot()
     names = [n for n in LABELS if any(r["name"] == n for r in records)]
     methods = [n for n in METHODS if n in names]
 
@@ -93,9 +69,9 @@ def report(records: list[dict], out, figures, args: Args) -> dict:
     first = min(r["seed"] for r in records)
     shown = {n: next(r["result"] for r in records if r["name"] == n and r["seed"] == first)
              for n in names}
-    learned = {n: complex_from_pairs(res["eig_learned"]) for n, res in shown.items()}
-    true = complex_from_pairs(shown[names[0]]["eig_true"])
-    limits = eigen_limits(list(learned.values()), true)
+    learned = {n: pc.complex_from_pairs(res["eig_learned"]) for n, res in shown.items()}
+    true = pc.complex_from_pairs(shown[names[0]]["eig_true"])
+    limits = pc.eigen_limits(list(learned.values()), true)
     offsets = {n: (ev.ravel() - true[np.argmin(np.abs(ev.ravel()[:, None] - true[None]), 1)])
                for n, ev in learned.items()}
     # one offset scale for the clean-data methods and one for the original-bug variants
@@ -106,7 +82,7 @@ def report(records: list[dict], out, figures, args: Args) -> dict:
             half[bug] = 1.1 * max(np.percentile(np.abs(np.concatenate(group)), 99), 1e-4)
     fig, axes = plt.subplots(2, len(names), figsize=(3.1 * len(names), 6.4), squeeze=False)
     for j, name in enumerate(names):
-        eigen_scatter(axes[0, j], learned[name], true,
+        pc.eigen_scatter(axes[0, j], learned[name], true,
                       f"{LABELS[name]}\neig. error {shown[name]['eig_match_err']:.3f}",
                       limits=limits)
         ax = axes[1, j]
@@ -119,23 +95,23 @@ def report(records: list[dict], out, figures, args: Args) -> dict:
         ax.set_xlabel("Re (learned - nearest true)")
         ax.set_ylabel("Im")
         ax.tick_params(labelsize=7)
-    save_figure(fig, figures / "linear_eigenvalues.png")
+    pc.save_figure(fig, figures / "linear_eigenvalues.png")
 
     # Fig. 2: error distributions over the MC runs
     fig, axes = plt.subplots(1, 4, figsize=(15, 3.8))
     groups = {LABELS[n]: n for n in names}
-    div = {LABELS[n]: f"div {int(values(records, n, 'sim_diverged').sum())}" for n in names}
-    violins(axes[0], {k: values(records, n, "log10_pred_rms") for k, n in groups.items()},
+    div = {LABELS[n]: f"div {int(pc.values(records, n, 'sim_diverged').sum())}" for n in names}
+    pc.violins(axes[0], {k: pc.values(records, n, "log10_pred_rms") for k, n in groups.items()},
             ylabel="log10 prediction RMS")
-    violins(axes[1], {k: values(records, n, "log10_sim_rms") for k, n in groups.items()},
+    pc.violins(axes[1], {k: pc.values(records, n, "log10_sim_rms") for k, n in groups.items()},
             ylabel="log10 simulation RMS", annotate=div)
-    violins(axes[2], {k: values(records, n, "jac_rms_entry") for k, n in groups.items()},
+    pc.violins(axes[2], {k: pc.values(records, n, "jac_rms_entry") for k, n in groups.items()},
             ylabel="Jacobian RMS per entry")
-    violins(axes[3], {k: values(records, n, "eig_match_err") for k, n in groups.items()},
+    pc.violins(axes[3], {k: pc.values(records, n, "eig_match_err") for k, n in groups.items()},
             ylabel="eigenvalue matching error")
     for ax in axes[2:]:
         ax.set_yscale("log")
-    save_figure(fig, figures / "linear_errors.png")
+    pc.save_figure(fig, figures / "linear_errors.png")
 
     # Fig. 3: Jacobian RMS per entry after each training round vs the original's numbers
     fig, ax = plt.subplots(figsize=(6, 4))
@@ -155,26 +131,24 @@ def report(records: list[dict], out, figures, args: Args) -> dict:
     ax.set_xlabel("training round (= number of training trajectories)")
     ax.set_ylabel("Jacobian RMS per entry")
     ax.legend(fontsize=7)
-    save_figure(fig, figures / "linear_rounds.png")
+    pc.save_figure(fig, figures / "linear_rounds.png")
 
     keys = ("jac_err", "jac_rms_entry", "eig_match_err", "pred_rms", "log10_pred_rms",
             "sim_rms", "log10_sim_rms", "sim_diverged", "train_loss", "train_pred_rms", "wall",
             "cpu_time")
-    summary = {"configs": {n: {k: spread(values(records, n, k)) for k in keys} for n in names}}
+    summary = {"configs": pc.spreads(records, names, keys)}
     for n in names:
         per_round = [[rd["jac_rms_entry"] for rd in r["result"]["rounds"]]
                      for r in records if r["name"] == n]
         summary["configs"][n]["jac_rms_entry_rounds_median"] = np.nanmedian(
             np.array(per_round, dtype=float), 0).tolist()
     summary["vs_none"] = {
-        n: {k: paired_comparison(values(records, n, k), values(records, "none", k))
-            for k in ("jac_err", "eig_match_err", "log10_pred_rms", "log10_sim_rms",
-                      "train_loss")}
+        n: pc.compare(records, n, "none", ("jac_err", "eig_match_err", "log10_pred_rms",
+                                           "log10_sim_rms", "train_loss"))
         for n in methods if n != "none"}
     if "sampled_bug" in names and "none_bug" in names:
-        summary["bug_sampled_vs_none"] = {
-            k: paired_comparison(values(records, "sampled_bug", k), values(records, "none_bug", k))
-            for k in ("jac_err", "log10_pred_rms", "log10_sim_rms")}
+        summary["bug_sampled_vs_none"] = pc.compare(
+            records, "sampled_bug", "none_bug", ("jac_err", "log10_pred_rms", "log10_sim_rms"))
     summary["original_jac_rms_entry_rounds"] = ORIGINAL
     summary["figures"] = ["linear_eigenvalues.png", "linear_errors.png", "linear_rounds.png"]
     return summary
@@ -182,10 +156,7 @@ def report(records: list[dict], out, figures, args: Args) -> dict:
 
 def cli(argv: list[str] | None = None) -> None:
     """The script (``scripts/exp_linear.py``): parse the command line, run, print."""
-    args = parse_args(Args, argv)
-    configs = make_configs(args)
-    summary = run_experiment(args, EXPERIMENT, run_linear, configs, report)
-    for name, s in summary["configs"].items():
-        print(f"{name:12s} jac_rms_entry {s['jac_rms_entry'].get('median', float('nan')):.4f} "
-              f"pred {s['pred_rms'].get('median', float('nan')):.4f} "
-              f"sim {s['sim_rms'].get('median', float('nan')):.3f}")
+    args = pc.parse_args(Args, argv)
+    summary = pc.run_experiment(args, EXPERIMENT, pc.run_linear, make_configs(args), report)
+    pc.print_medians(summary["configs"], {"jac_rms_entry": "jac_rms_entry:.4f",
+                                          "pred": "pred_rms:.4f", "sim": "sim_rms:.3f"}, 12)

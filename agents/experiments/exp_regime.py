@@ -14,35 +14,18 @@ Diagnostics per run: the Jacobian error split into moving points and points with
 speed below ``still_speed`` (stiction), and into position and velocity rows; the labels'
 Jacobian error at the training points against the network's own error there, logged during
 training (:func:`paper_common.run_regime`).
-
-    python scripts/exp_regime.py                  # full sweep (long job, resumable)
-    python scripts/exp_regime.py --report-only    # redraw from the JSON
-    python scripts/exp_regime.py --quick          # smoke test (seconds)
 """
 
 from __future__ import annotations
 
 import dataclasses
-import json
-import os
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
-from agents.experiments.paper_common import (
-    ExperimentArgs,
-    RegimeData,
-    command_line,
-    library_version,
-    output_dirs,
-    parse_args,
-    pyplot,
-    run_regime,
-    save_figure,
-    write_json,
-)
+from agents.experiments import paper_common as pc
 
 EXPERIMENT = "regime"
 METHOD_LABELS = {"none": "none", "sampled": "sampled JacProp", "exact": "exact LTV match",
@@ -51,7 +34,7 @@ METHOD_LABELS = {"none": "none", "sampled": "sampled JacProp", "exact": "exact L
 
 
 @dataclass
-class Args(ExperimentArgs):
+class Args(pc.TrainingArgs):
     """Regime sweep of the robot Jacobian error: none vs sampled JacProp (and label variants)."""
 
     mc: int = field(default=8, metadata={"help": "Monte-Carlo runs per cell"})
@@ -68,7 +51,6 @@ class Args(ExperimentArgs):
         "help": "ensemble members (comma list; paper: elu,sigmoid,tanh,swish)"})
     width: int = field(default=20, metadata={"help": "hidden units per member"})
     batch: str = field(default="full", metadata={"help": "full (one step/epoch) or trajectory"})
-    lr: float = field(default=0.01, metadata={"help": "Adam step size"})
     exact_weight: float = field(default=0.01, metadata={"help": "weight of the LTV match"})
     prior_scale: float = field(default=1.0, metadata={
         "help": "prior covariance / LTV posterior covariance for the fused labels"})
@@ -79,7 +61,6 @@ class Args(ExperimentArgs):
         "help": "also run the paper cell with the paper's protocol (4-member nominal ensemble, "
                 "one step per trajectory) for none, sampled and oracle labels"})
     duration: float = field(default=4.0, metadata={"help": "trajectory length [s]"})
-    n_val: int = field(default=10, metadata={"help": "validation trajectories"})
 
     QUICK = {"mc": 2, "n_trains": "2", "epochs": "3,6", "duration": 1.0, "n_val": 2,
              "n_log": 2, "label_n_trains": "2"}
@@ -106,7 +87,7 @@ def make_configs(args: Args) -> dict[str, dict[str, dict]]:
     out: dict[str, dict[str, dict]] = {"main": {}, "labels": {}, "paper_protocol": {}}
     for window in _strs(args.windows):
         for friction in frictions:
-            data = dataclasses.asdict(RegimeData(
+            data = dataclasses.asdict(pc.RegimeData(
                 window=window, friction=friction, duration=args.duration,
                 n_train_max=max(n_trains), n_val=args.n_val))
             label = (window, "on" if friction else "off") in label_cells
@@ -145,9 +126,8 @@ def run(args: Args, out: Path) -> list[dict]:
     from mbtsr.runner import load_results, run_sweep
 
     configs = make_configs(args)
-    write_json(out / "args.json", {"args": dataclasses.asdict(args), "command": command_line()})
-    n_before = len(load_results(out))
-    start, t0, c0 = library_version(), time.perf_counter(), time.process_time()
+    started = pc.sweep_started(args, out)
+    t0 = started["t0"]
     every = {**configs["main"], **configs["labels"], **configs["paper_protocol"]}
     shortest = min(c["epochs"] for c in every.values())
     # first the cheap shortest-run cells for every seed, then everything seed by seed: on a busy
@@ -155,23 +135,13 @@ def run(args: Args, out: Path) -> list[dict]:
     for part, todo in (("short runs", {k: c for k, c in every.items()
                                        if c["epochs"] == shortest}), ("all", every)):
         for seed in range(args.mc):
-            run_sweep(run_regime, todo, [seed], out, backend=args.backend,
+            run_sweep(pc.run_regime, todo, [seed], out, backend=args.backend,
                       workers=args.workers, progress=False)
             if not args.quick:
                 print(f"[regime] {part}: seed {seed} done, {time.perf_counter() - t0:.0f} s",
                       flush=True)
     recs = load_results(out)
-    log_path = out / "sweeps.json"
-    log = json.loads(log_path.read_text()) if log_path.exists() else []
-    log.append({"started": time.strftime("%Y-%m-%dT%H:%M:%S",
-                                         time.localtime(time.time() - (time.perf_counter() - t0))),
-                "wall_s": round(time.perf_counter() - t0, 1),
-                "cpu_s_driver": round(time.process_time() - c0, 1),
-                "runs_finished_before": n_before, "runs_finished_after": len(recs),
-                "workers": args.workers, "backend": args.backend,
-                "load_avg_1min": round(os.getloadavg()[0], 2),
-                "library_at_start": start, "library_at_end": library_version()})
-    write_json(log_path, log)
+    pc.sweep_finished(args, out, started, len(recs))
     return recs
 
 
@@ -286,7 +256,7 @@ def diagnostics_figure(records: list[dict], path: Path) -> None:
     """The network's own Jacobian error at the training points during training (median over
     seeds; none = solid, sampled = dotted) against the error of the LTV labels (dashed), per row
     group, for each window x friction family at its middle trajectory count and longest run."""
-    plt = pyplot()
+    plt = pc.pyplot()
     cells = _cells(records)
     if not cells:
         return
@@ -318,12 +288,12 @@ def diagnostics_figure(records: list[dict], path: Path) -> None:
         axes[j].set_ylabel("Jacobian error at the training points")
         axes[j].set_title(f"{rows}, {n_mid} trajectories", fontsize=9)
     fig.legend(loc="outside right center", fontsize=6)
-    save_figure(fig, path)
+    pc.save_figure(fig, path)
 
 
 def report(records: list[dict], out: Path, figures: Path, args: Args,
            protocol: list[dict] | None = None) -> dict:
-    plt = pyplot()
+    plt = pc.pyplot()
     methods = [m for m in ("sampled", "oracle", "exact", "prior")
                if any(r["config"]["method"] == m for r in records)]
     fig, axes = plt.subplots(2, 1, figsize=(9, 7.5), layout="constrained",
@@ -332,7 +302,7 @@ def report(records: list[dict], out: Path, figures: Path, args: Args,
                     "the robot Jacobian error (text: change, runs better / runs)")
     variants_map(axes[1], records, protocol or [])
     fig.colorbar(im, ax=axes.tolist(), shrink=0.6, label="Jacobian error change vs none [%]")
-    save_figure(fig, figures / "regime_map.png")
+    pc.save_figure(fig, figures / "regime_map.png")
 
     diagnostics_figure(records, figures / "regime_diagnostics.png")
 
@@ -445,7 +415,7 @@ def paper_protocol_table(s: dict) -> str:
 def main(args: Args) -> dict:
     from mbtsr.runner import load_results
 
-    out, figures = output_dirs(args, EXPERIMENT)
+    out, figures = pc.output_dirs(args, EXPERIMENT)
     if not args.report_only:
         run(args, out)
     records = [r for r in load_results(out) if r.get("status") == "ok"]
@@ -458,15 +428,15 @@ def main(args: Args) -> dict:
         summary["paper_protocol"] = paper_protocol_summary(protocol)
         with open(out / "table.md", "a") as fh:
             fh.write("\n" + paper_protocol_table(summary["paper_protocol"]))
-    write_json(out / "summary.json", summary)
+    pc.write_json(out / "summary.json", summary)
     if args.json:
-        write_json(args.json, summary)
+        pc.write_json(args.json, summary)
     return summary
 
 
 def cli(argv: list[str] | None = None) -> None:
     """The script (``scripts/exp_regime.py``): parse the command line, run, print."""
-    args = parse_args(Args, argv)
+    args = pc.parse_args(Args, argv)
     summary = main(args)
     for name, row in summary["cells"].items():
         s = row.get("sampled")

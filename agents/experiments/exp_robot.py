@@ -11,10 +11,6 @@ ensemble-mean Jacobian against the simulator's exact Jacobian (MuJoCo finite dif
 env step). Methods: none, sampled Jacobian propagation (the paper's), the exact LTV-matching
 penalty and the exact smoothness penalty of eq. (reg) (weight 0.01 as the original's two-link
 "AD" script). The paper used 35 Monte-Carlo runs.
-
-    python scripts/exp_robot.py                 # full run (35 MC runs)
-    python scripts/exp_robot.py --report-only   # redraw from the JSON
-    python scripts/exp_robot.py --quick         # smoke test
 """
 
 from __future__ import annotations
@@ -24,20 +20,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from agents.experiments.paper_common import (
-    ExperimentArgs,
-    RobotData,
-    nominal_epochs,
-    paired_comparison,
-    parse_args,
-    pyplot,
-    run_experiment,
-    run_robot,
-    save_figure,
-    spread,
-    values,
-    violins,
-)
+from agents.experiments import paper_common as pc
 
 EXPERIMENT = "robot"
 METHODS = ("none", "sampled", "exact", "smooth")
@@ -53,15 +36,13 @@ LABELS = {"none": "none", "sampled": "sampled JacProp", "exact": "exact LTV matc
 
 
 @dataclass
-class Args(ExperimentArgs):
+class Args(pc.TrainingArgs):
     """Robot arm: errors over Monte-Carlo runs for no / sampled / exact regularization."""
 
     mc: int = field(default=35, metadata={"help": "Monte-Carlo runs (paper: 35)"})
     formulation: str = field(default="g", metadata={"help": "f or g"})
     epoch_scale: float = field(default=1.0, metadata={
         "help": "multiplies the paper's epochs (g: 1000, 500 with sampled JacProp)"})
-    lr: float = field(default=0.01, metadata={"help": "Adam step size"})
-    n_val: int = field(default=10, metadata={"help": "validation trajectories"})
     exact_weight: float = field(default=0.01, metadata={"help": "weight of the LTV match"})
     smooth_weight: float = field(default=0.01, metadata={
         "help": "weight of the smoothness penalty (original two-link AD script: 0.01)"})
@@ -81,68 +62,62 @@ class Args(ExperimentArgs):
 
 
 def make_configs(args: Args) -> dict[str, dict]:
-    data = dataclasses.asdict(RobotData(n_val=args.n_val))
+    data = dataclasses.asdict(pc.RobotData(n_val=args.n_val))
     reg = {"none": {}, "sampled": {}, "exact": {"exact_weight": args.exact_weight},
            "smooth": {"smooth_weight": args.smooth_weight}}
     configs = {m: {"data": data, "formulation": args.formulation, "method": m, "reg": reg[m],
-                   "epochs": nominal_epochs(args.formulation, m, args.epoch_scale),
+                   "epochs": pc.nominal_epochs(args.formulation, m, args.epoch_scale),
                    "lr": args.lr, "model": {}}
                for m in METHODS}
     if args.epoch_controls:
         for name, (m, factor) in CONTROLS.items():
-            epochs = nominal_epochs(args.formulation, m, args.epoch_scale * factor)
+            epochs = pc.nominal_epochs(args.formulation, m, args.epoch_scale * factor)
             configs[name] = {**configs[m], "epochs": epochs}
     if args.own_batch_control:
         for name, (m, factor) in OWN_BATCH.items():
-            epochs = nominal_epochs(args.formulation, m, args.epoch_scale * factor)
+            epochs = pc.nominal_epochs(args.formulation, m, args.epoch_scale * factor)
             configs[name] = {**configs[m], "epochs": epochs, "reg": {"copies_batch": "own"}}
     return configs
 
 
 def report(records: list[dict], out, figures, args: Args) -> dict:
-    plt = pyplot()
+    plt = pc.pyplot()
     names = [m for m in LABELS if any(r["name"] == m for r in records)]
     n_runs = {n: sum(r["name"] == n for r in records) for n in names}
     epochs = {r["name"]: r["config"]["epochs"] for r in records}
     groups = {f"{LABELS[n]} ({epochs[n]} ep.)": n for n in names}
-    div = {k: f"diverged {int(values(records, n, 'sim_diverged').sum())}"
+    div = {k: f"diverged {int(pc.values(records, n, 'sim_diverged').sum())}"
            for k, n in groups.items()}
     fig, axes = plt.subplots(1, 3, figsize=(3 * (1.2 + 0.9 * len(names)), 4.6))
-    violins(axes[0], {k: values(records, n, "log10_pred_rms") for k, n in groups.items()},
+    pc.violins(axes[0], {k: pc.values(records, n, "log10_pred_rms") for k, n in groups.items()},
             ylabel="log10 one-step prediction RMS", title="prediction (validation)")
-    violins(axes[1], {k: values(records, n, "log10_sim_rms") for k, n in groups.items()},
+    pc.violins(axes[1], {k: pc.values(records, n, "log10_sim_rms") for k, n in groups.items()},
             ylabel="log10 simulation RMS", title="simulation (validation)", annotate=div)
-    violins(axes[2], {k: values(records, n, "jac_err") for k, n in groups.items()},
+    pc.violins(axes[2], {k: pc.values(records, n, "jac_err") for k, n in groups.items()},
             ylabel="Jacobian error, paper eq. (jacerr)", title="Jacobian")
     fig.suptitle(f"two-link robot, {args_formulation(records)} ensemble, "
                  f"{max(n_runs.values())} Monte-Carlo runs per violin", fontsize=10)
-    save_figure(fig, figures / "robot_errors.png")
+    pc.save_figure(fig, figures / "robot_errors.png")
 
     keys = ("pred_rms", "log10_pred_rms", "sim_rms", "log10_sim_rms", "sim_diverged", "jac_err",
             "jac_rms_entry", "eig_match_err", "train_loss", "train_pred_rms", "train_time", "wall",
             "cpu_time")
-    summary = {"configs": {n: {k: spread(values(records, n, k)) for k in keys} for n in names}}
+    summary = {"configs": pc.spreads(records, names, keys)}
     for n in names:
         summary["configs"][n]["diverged_simulations"] = int(
-            values(records, n, "sim_diverged").sum())
+            pc.values(records, n, "sim_diverged").sum())
         summary["configs"][n]["runs_with_divergence"] = int(
-            (values(records, n, "sim_diverged") > 0).sum())
-        summary["configs"][n]["n_simulations"] = int(values(records, n, "n_sim").sum())
+            (pc.values(records, n, "sim_diverged") > 0).sum())
+        summary["configs"][n]["n_simulations"] = int(pc.values(records, n, "n_sim").sum())
     compare = ("log10_pred_rms", "log10_sim_rms", "jac_err", "train_pred_rms")
     if "sampled_own" in names:  # the original's batching: equal optimizer steps with none
-        summary["sampled_own_vs_none"] = {
-            k: paired_comparison(values(records, "sampled_own", k), values(records, "none", k))
-            for k in compare}
-    summary["vs_none"] = {
-        n: {k: paired_comparison(values(records, n, k), values(records, "none", k))
-            for k in compare}
-        for n in names if n != "none"}
+        summary["sampled_own_vs_none"] = pc.compare(records, "sampled_own", "none", compare)
+    summary["vs_none"] = {n: pc.compare(records, n, "none", compare)
+                          for n in names if n != "none"}
     # same epoch count: JacProp's effect without the halved-epochs confound
     for a, b in (("sampled", "none_half"), ("sampled_full", "none")):
         if a in names and b in names:
-            summary[f"{a}_vs_{b}"] = {
-                k: paired_comparison(values(records, a, k), values(records, b, k))
-                for k in compare}
+            summary[f"{a}_vs_{b}"] = pc.compare(records, a, b, compare)
     summary["figures"] = ["robot_errors.png"]
     return summary
 
@@ -153,11 +128,11 @@ def truth_diagnostics(args: Args) -> dict:
     from agents.experiments.paper_common import output_dirs, robot_truth_diagnostics, write_json
 
     out, _ = output_dirs(args, EXPERIMENT)
-    cfg = RobotData(n_val=args.n_val)
+    cfg = pc.RobotData(n_val=args.n_val)
     per_seed = [robot_truth_diagnostics(cfg, s, args.still_speed) for s in range(args.mc)]
     keys = list(per_seed[0])
     summary = {"per_seed": per_seed, "still_speed": args.still_speed,
-               "summary": {k: spread(np.array([p[k] for p in per_seed])) for k in keys}}
+               "summary": {k: pc.spread(np.array([p[k] for p in per_seed])) for k in keys}}
     write_json(out / "truth.json", summary)
     return summary
 
@@ -168,13 +143,12 @@ def args_formulation(records: list[dict]) -> str:
 
 def cli(argv: list[str] | None = None) -> None:
     """The script (``scripts/exp_robot.py``): parse the command line, run, print."""
-    args = parse_args(Args, argv)
+    args = pc.parse_args(Args, argv)
     if args.truth_diagnostics:
         for k, v in truth_diagnostics(args)["summary"].items():
             print(f"{k:12s} median {v['median']:.3f} [{v['q1']:.3f}, {v['q3']:.3f}]")
         raise SystemExit(0)
-    configs = make_configs(args)
-    summary = run_experiment(args, EXPERIMENT, run_robot, configs, report)
+    summary = pc.run_experiment(args, EXPERIMENT, pc.run_robot, make_configs(args), report)
     for name, s in summary["configs"].items():
         med = {k: s[k].get("median", np.nan) for k in ("log10_pred_rms", "log10_sim_rms",
                                                        "jac_err")}

@@ -10,10 +10,6 @@ the weight matrices, as the original's ADAM ``expdecay``); 0.01 is added as an i
 strength. Note that here the networks see standardized inputs and outputs (the original did
 not), so the decay acts on normalized weights: it pulls the Jacobian toward the skip part, 0 for
 f and I for g, in either case.
-
-    python scripts/exp_weight_decay.py                 # full run
-    python scripts/exp_weight_decay.py --report-only   # redraw from the JSON
-    python scripts/exp_weight_decay.py --quick         # smoke test
 """
 
 from __future__ import annotations
@@ -23,35 +19,15 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from agents.experiments.paper_common import (
-    ExperimentArgs,
-    LinearData,
-    complex_from_pairs,
-    eigen_limits,
-    eigen_scatter,
-    paired_comparison,
-    parse_args,
-    pyplot,
-    run_experiment,
-    run_linear,
-    save_figure,
-    spread,
-    values,
-    violins,
-)
+from agents.experiments import paper_common as pc
 
 EXPERIMENT = "weight_decay"
 
 
 @dataclass
-class Args(ExperimentArgs):
+class Args(pc.LinearRoundsArgs):
     """Weight decay x formulation (f, g) on random linear systems (paper Fig. wd)."""
 
-    mc: int = field(default=20, metadata={"help": "Monte-Carlo runs (random systems)"})
-    rounds: int = field(default=3, metadata={"help": "training rounds (one trajectory each)"})
-    epochs_per_round: int = field(default=200, metadata={"help": "epochs per round"})
-    lr: float = field(default=0.01, metadata={"help": "Adam step size"})
-    n_val: int = field(default=10, metadata={"help": "validation trajectories"})
     weight_decay: float = field(default=0.1, metadata={"help": "the strong weight decay"})
     weight_decay_mid: float = field(default=0.01, metadata={
         "help": "an intermediate weight decay (<= 0 to skip)"})
@@ -68,7 +44,7 @@ def config_name(formulation: str, wd: float, bug: bool = False) -> str:
 
 
 def make_configs(args: Args) -> dict[str, dict]:
-    data = dataclasses.asdict(LinearData(n_val=args.n_val))
+    data = dataclasses.asdict(pc.LinearData(n_val=args.n_val))
     base = {"data": data, "rounds": args.rounds, "epochs_per_round": args.epochs_per_round,
             "lr": args.lr, "incremental": True, "method": args.method, "reg": {},
             "n_eig_store": 30}
@@ -93,26 +69,26 @@ def eigen_figure(records: list[dict], wd_lo: float, wd_hi: float, bug: bool, pat
     shown = [p for p in panels.values() if p is not None]
     if not shown:
         return False
-    limits = eigen_limits([complex_from_pairs(p["eig_learned"]) for p in shown],
-                          complex_from_pairs(shown[0]["eig_true"]))  # one scale for all
-    plt = pyplot()
+    limits = pc.eigen_limits([pc.complex_from_pairs(p["eig_learned"]) for p in shown],
+                          pc.complex_from_pairs(shown[0]["eig_true"]))  # one scale for all
+    plt = pc.pyplot()
     fig, axes = plt.subplots(2, 2, figsize=(8, 8.4))
     for (i, j), res in panels.items():
         if res is None:
             axes[i, j].set_visible(False)
             continue
         f, wd = ("f", "g")[j], (wd_lo, wd_hi)[i]
-        eigen_scatter(axes[i, j], complex_from_pairs(res["eig_learned"]),
-                      complex_from_pairs(res["eig_true"]),
+        pc.eigen_scatter(axes[i, j], pc.complex_from_pairs(res["eig_learned"]),
+                      pc.complex_from_pairs(res["eig_true"]),
                       f"{f}, weight decay {wd:g}{', orig. data bug' if bug else ''}\n"
                       f"mean |l| {res['eig_mean_abs']:.3f}, "
                       f"mean |l-1| {res['eig_mean_dist_to_1']:.3f}", limits=limits)
-    save_figure(fig, path)
+    pc.save_figure(fig, path)
     return True
 
 
 def report(records: list[dict], out, figures, args: Args) -> dict:
-    plt = pyplot()
+    plt = pc.pyplot()
 
     def order(n: str) -> tuple:
         f, rest = n.split("_wd")
@@ -130,7 +106,7 @@ def report(records: list[dict], out, figures, args: Args) -> dict:
                                      "jac_rms_entry"),
                               ("mean |eigenvalue|", "mean |eigenvalue - 1|",
                                "eigenvalue matching error", "Jacobian RMS per entry")):
-        violins(ax, {n: values(records, n, key) for n in names}, ylabel=label)
+        pc.violins(ax, {n: pc.values(records, n, key) for n in names}, ylabel=label)
     true_abs = np.nanmean([r["result"]["eig_true_mean_abs"] for r in records])
     true_d1 = np.nanmean([r["result"]["eig_true_mean_dist_to_1"] for r in records])
     axes[0].axhline(true_abs, color="tab:red", lw=0.8, ls="--", label="true")
@@ -138,12 +114,12 @@ def report(records: list[dict], out, figures, args: Args) -> dict:
     axes[0].legend(fontsize=7)
     for ax in axes[2:]:
         ax.set_yscale("log")
-    save_figure(fig, figures / "weight_decay_errors.png")
+    pc.save_figure(fig, figures / "weight_decay_errors.png")
 
     keys = ("eig_mean_abs", "eig_mean_dist_to_1", "eig_max_abs", "eig_match_err", "jac_err",
             "jac_rms_entry", "log10_pred_rms", "log10_sim_rms", "sim_diverged", "train_loss",
             "train_pred_rms", "wall", "cpu_time")
-    summary = {"configs": {n: {k: spread(values(records, n, k)) for k in keys} for n in names}}
+    summary = {"configs": pc.spreads(records, names, keys)}
     summary["true_eig_mean_abs"] = float(true_abs)
     summary["true_eig_mean_dist_to_1"] = float(true_d1)
     comp = {}
@@ -154,17 +130,13 @@ def report(records: list[dict], out, figures, args: Args) -> dict:
             for wd in decays[1:]:
                 name = config_name(f, wd, bug)
                 if name in present and base in present:
-                    comp[f"{name}_vs_{base}"] = {
-                        k: paired_comparison(values(records, name, k),
-                                             values(records, base, k))
-                        for k in ("eig_mean_abs", "eig_mean_dist_to_1", "eig_match_err",
-                                  "jac_err", "log10_pred_rms", "log10_sim_rms")}
+                    comp[f"{name}_vs_{base}"] = pc.compare(records, name, base, (
+                        "eig_mean_abs", "eig_mean_dist_to_1", "eig_match_err", "jac_err",
+                        "log10_pred_rms", "log10_sim_rms"))
         g, f = config_name("g", wd_lo, bug), config_name("f", wd_lo, bug)
         if g in present and f in present:
-            comp[f"{g}_vs_{f}"] = {
-                k: paired_comparison(values(records, g, k), values(records, f, k))
-                for k in ("eig_match_err", "jac_err", "log10_pred_rms", "log10_sim_rms",
-                          "train_pred_rms")}
+            comp[f"{g}_vs_{f}"] = pc.compare(records, g, f, (
+                "eig_match_err", "jac_err", "log10_pred_rms", "log10_sim_rms", "train_pred_rms"))
     summary["comparisons"] = comp
     summary["figures"] = [*drawn, "weight_decay_errors.png"]
     return summary
@@ -172,11 +144,8 @@ def report(records: list[dict], out, figures, args: Args) -> dict:
 
 def cli(argv: list[str] | None = None) -> None:
     """The script (``scripts/exp_weight_decay.py``): parse the command line, run, print."""
-    args = parse_args(Args, argv)
-    configs = make_configs(args)
-    summary = run_experiment(args, EXPERIMENT, run_linear, configs, report)
-    for name, s in summary["configs"].items():
-        print(f"{name:14s} mean|l| {s['eig_mean_abs'].get('median', float('nan')):.3f} "
-              f"mean|l-1| {s['eig_mean_dist_to_1'].get('median', float('nan')):.3f} "
-              f"eig err {s['eig_match_err'].get('median', float('nan')):.3f} "
-              f"jac {s['jac_rms_entry'].get('median', float('nan')):.4f}")
+    args = pc.parse_args(Args, argv)
+    summary = pc.run_experiment(args, EXPERIMENT, pc.run_linear, make_configs(args), report)
+    pc.print_medians(summary["configs"], {
+        "mean|l|": "eig_mean_abs:.3f", "mean|l-1|": "eig_mean_dist_to_1:.3f",
+        "eig err": "eig_match_err:.3f", "jac": "jac_rms_entry:.4f"}, 14)

@@ -67,8 +67,8 @@ def run(a: Args) -> dict:
     for seed in a.seeds:
         for renorm in (True, False):
             env = gym.make(ENV)
-            cfg = AgentConfig(seed=seed, renormalize=renorm, eval_every=0, progress=False,
-                              tensorboard=False, torch_threads=1)
+            cfg = AgentConfig(seed=seed, renormalize=renorm, progress=False, tensorboard=False,
+                              torch_threads=1).replace({"evaluation.every": 0})
             agent = JacPropAgent(env, cfg, cost_fn=reacher_cost)
             errs, tic = [], time.perf_counter()
             for _ in range(a.episodes):

@@ -64,8 +64,8 @@ def run(args: Args) -> dict:
     """Learn the model, train SAC in it, evaluate everything in the real env."""
     torch.set_num_threads(1)
     targets = evaluation_targets(args.eval_episodes, seed=1000)
-    cfg = AgentConfig(seed=args.seed, n_excitation_episodes=args.n_excitation_episodes,
-                      eval_every=0, progress=False, tensorboard=False)
+    cfg = AgentConfig(seed=args.seed, progress=False, tensorboard=False).replace(
+        {"collection.n_excitation_episodes": args.n_excitation_episodes, "evaluation.every": 0})
     agent = JacPropAgent(gym.make("mbtsr/TwoLinkArm-v0"), cfg)
     agent.learn(args.model_episodes, progress_bar=False)
     menv = ModelEnv.from_agent(agent, member=args.member)

@@ -17,6 +17,7 @@ plotting helpers.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import json
 import math
 import os
@@ -25,6 +26,7 @@ import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Literal
 
 import numpy as np
 
@@ -35,20 +37,60 @@ REPO = Path(__file__).resolve().parents[2]
 
 
 @dataclass
-class ExperimentArgs:
+class SweepArgs:
+    """The command-line fields of every script that runs a sweep through
+    :func:`mbtsr.runner.run_sweep` (the experiments, ``benchmark_sb3``)."""
+
+    quick: bool = field(default=False, metadata={
+        "help": "tiny smoke-test run (options not given take the script's QUICK values)"})
+    workers: int = field(default=2, metadata={"help": "parallel worker processes"})
+    backend: Literal["process", "serial", "ray"] = field(default="process", metadata={
+        "help": "mbtsr.runner backend"})
+    address: str = field(default="", metadata={
+        "help": "Ray only: address of an existing cluster (auto, host:6379); empty: a private "
+                "local Ray instance for the sweep (docs/troubleshooting.md)"})
+    report_only: bool = field(default=False, metadata={
+        "help": "no new runs: report the finished ones from their JSON"})
+
+
+@dataclass
+class ExperimentArgs(SweepArgs):
     """The command-line fields every experiment script shares; a script's ``Args`` subclasses
     this, redefines ``mc`` with its own default and adds its own fields."""
 
-    quick: bool = field(default=False, metadata={"help": "tiny smoke-test run"})
     mc: int = field(default=1, metadata={"help": "Monte-Carlo runs"})
     out: str = field(default="", metadata={"help": "results folder"})
     figures: str = field(default="", metadata={"help": "figure folder"})
-    workers: int = field(default=2, metadata={"help": "parallel worker processes"})
-    backend: str = field(default="process", metadata={"help": "process, serial or ray"})
-    address: str = field(default="", metadata={
-        "help": "Ray only: address of an existing cluster (auto, host:6379); empty: a local one"})
-    report_only: bool = field(default=False, metadata={"help": "only redraw from JSON"})
     json: str = field(default="", metadata={"help": "also write the summary JSON here"})
+
+
+@dataclass
+class TrainingArgs(ExperimentArgs):
+    """:class:`ExperimentArgs` plus the fields of the experiments that fit models."""
+
+    lr: float = field(default=0.01, metadata={"help": "Adam step size"})
+    n_val: int = field(default=10, metadata={"help": "validation trajectories"})
+
+
+@dataclass
+class LinearRoundsArgs(TrainingArgs):
+    """:class:`TrainingArgs` of the random-linear-system experiments (original README): models
+    trained in rounds, one new trajectory per round, warm-started."""
+
+    mc: int = field(default=20, metadata={"help": "Monte-Carlo runs (random systems)"})
+    rounds: int = field(default=3, metadata={"help": "training rounds (one trajectory each)"})
+    epochs_per_round: int = field(default=200, metadata={"help": "epochs per round"})
+
+
+def print_medians(configs: dict[str, dict], columns: dict[str, str], width: int) -> None:
+    """One line per config: ``name`` then ``label median`` of each ``columns`` entry
+    (``label -> "key:format"``) from a summary's ``configs`` of :func:`spread` values."""
+    for name, s in configs.items():
+        cells = []
+        for label, spec in columns.items():
+            key, fmt = spec.split(":")
+            cells.append(f"{label} {format(s[key].get('median', float('nan')), fmt)}")
+        print(f"{name:{width}s} " + " ".join(cells))
 
 
 def parse_args(args_cls: type, argv: Sequence[str] | None = None):
@@ -134,6 +176,34 @@ def library_version() -> dict:
             "library_dirty": bool(git("status", "--porcelain", "--", "mbtsr", "envs"))}
 
 
+def sweep_started(args, out: Path) -> dict:
+    """Write ``<out>/args.json`` (the arguments and the command line) and return what
+    :func:`sweep_finished` logs: finished runs, library version and clocks at the start."""
+    from mbtsr.runner import load_results
+
+    write_json(out / "args.json", {"args": dataclasses.asdict(args), "command": command_line()})
+    return {"n_before": len(load_results(out)), "library": library_version(),
+            "t0": time.perf_counter(), "c0": time.process_time()}
+
+
+def sweep_finished(args, out: Path, started: dict, n_after: int) -> float:
+    """Append this (possibly resumed) sweep to ``<out>/sweeps.json``: start, wall and driver CPU
+    time, runs finished before and after, workers, load, library version at start and end.
+    Returns the wall time [s]."""
+    wall = time.perf_counter() - started["t0"]
+    log_path = out / "sweeps.json"
+    log = json.loads(log_path.read_text()) if log_path.exists() else []
+    log.append({"started": time.strftime("%Y-%m-%dT%H:%M:%S", time.localtime(time.time() - wall)),
+                "wall_s": round(wall, 1),
+                "cpu_s_driver": round(time.process_time() - started["c0"], 1),
+                "runs_finished_before": started["n_before"], "runs_finished_after": n_after,
+                "workers": args.workers, "backend": args.backend,
+                "load_avg_1min": round(os.getloadavg()[0], 2),
+                "library_at_start": started["library"], "library_at_end": library_version()})
+    write_json(log_path, log)
+    return wall
+
+
 def run_experiment(
     args,
     experiment: str,
@@ -147,25 +217,12 @@ def run_experiment(
 
     out, figures = output_dirs(args, experiment)
     if not args.report_only:
-        write_json(out / "args.json", {"args": dataclasses.asdict(args),
-                                       "command": command_line()})
-        n_before = len(load_results(out))
-        library_at_start = library_version()
-        t0 = time.perf_counter()
+        started = sweep_started(args, out)
         recs = run_sweep(run_fn, configs, range(args.mc), out, backend=args.backend,
                          workers=args.workers, progress=not args.quick,
                          address=args.address or None)
-        wall = time.perf_counter() - t0
+        wall = sweep_finished(args, out, started, len(recs))
         print(f"[{experiment}] sweep finished in {wall:.1f} s")
-        log_path = out / "sweeps.json"  # wall time of every (resumed) sweep
-        log = json.loads(log_path.read_text()) if log_path.exists() else []
-        log.append({"started": time.strftime("%Y-%m-%dT%H:%M:%S", time.localtime(time.time()
-                                                                                  - wall)),
-                    "wall_s": round(wall, 1), "runs_finished_before": n_before,
-                    "runs_finished_after": len(recs), "workers": args.workers,
-                    "backend": args.backend, "load_avg_1min": round(os.getloadavg()[0], 2),
-                    "library_at_start": library_at_start, "library_at_end": library_version()})
-        write_json(log_path, log)
     records = [r for r in load_results(out) if r["name"] in configs or args.report_only]
     if not records:
         raise SystemExit(f"no finished runs in {out}/runs; run without --report-only first")
@@ -217,6 +274,16 @@ def spread(v: np.ndarray) -> dict:
     return {"n": int(f.size), "n_nonfinite": int(v.size - f.size), "median": float(med),
             "q1": float(q1), "q3": float(q3), "mean": float(f.mean()),
             "std": float(f.std(ddof=1)) if f.size > 1 else 0.0}
+
+
+def spreads(records: list[dict], names: Sequence[str], keys: Sequence[str]) -> dict:
+    """``{name: {key: spread(values(records, name, key))}}``: a report's per-config table."""
+    return {n: {k: spread(values(records, n, k)) for k in keys} for n in names}
+
+
+def compare(records: list[dict], a: str, b: str, keys: Sequence[str]) -> dict:
+    """``{key: paired_comparison(config a, config b)}`` over the keys (paired by seed)."""
+    return {k: paired_comparison(values(records, a, k), values(records, b, k)) for k in keys}
 
 
 def paired_comparison(a: np.ndarray, b: np.ndarray) -> dict:
@@ -431,7 +498,26 @@ def linear_dataset(cfg: LinearData, seed: int) -> dict:
 
 
 @dataclass(frozen=True)
-class RobotData:
+class ArmSampling:
+    """How the paper arm's data sets are sampled (shared by :class:`RobotData` and
+    :class:`RegimeData`): ``duration`` [s] at step ``dt`` (``T = duration / dt``), measurement
+    noise ``noise_std`` on the training states, ``n_val`` validation and ``n_sim`` simulation
+    trajectories, Jacobians at every ``eval_stride``-th validation point."""
+
+    duration: float = 4.0
+    dt: float = 0.02
+    noise_std: float = 0.01
+    n_val: int = 10
+    n_sim: int = 3
+    eval_stride: int = 3
+
+    @property
+    def T(self) -> int:  # noqa: N802 - the paper's symbol
+        return int(round(self.duration / self.dt))
+
+
+@dataclass(frozen=True)
+class RobotData(ArmSampling):
     """Data of the robot experiments, on ``mbtsr/TwoLinkArm-v0`` with ``preset="paper"``.
 
     Follows the original code at arXiv v1 (``two_link_sys.jl``@v1, the paper's "low-pass filtered
@@ -448,17 +534,7 @@ class RobotData:
     so T = duration / dt.
     """
 
-    duration: float = 4.0
-    dt: float = 0.02
-    noise_std: float = 0.01
     n_train: int = 3
-    n_val: int = 10
-    n_sim: int = 3
-    eval_stride: int = 3
-
-    @property
-    def T(self) -> int:  # noqa: N802 - the paper's symbol
-        return int(round(self.duration / self.dt))
 
 
 NOMINAL_DT = 0.02
@@ -670,6 +746,20 @@ def eigen_summary(ev_hat: np.ndarray, ev_true: np.ndarray | None, n_store: int) 
 # Monte-Carlo run functions (module level, so that the process pool's workers can import them)
 
 
+def timed(run_fn: Callable[[dict, int], dict]) -> Callable[[dict, int], dict]:
+    """``run_fn(config, seed)`` with its wall and CPU time [s] added to the result (``wall``,
+    ``cpu_time``)."""
+
+    @functools.wraps(run_fn)
+    def run(config: dict, seed: int) -> dict:
+        t0, c0 = time.perf_counter(), time.process_time()
+        result = run_fn(config, seed)
+        return {**result, "wall": time.perf_counter() - t0, "cpu_time": time.process_time() - c0}
+
+    return run
+
+
+@timed
 def run_linear(config: dict, seed: int) -> dict:
     """One Monte-Carlo run on a random stable linear system (``exp_linear``,
     ``exp_weight_decay``).
@@ -682,7 +772,6 @@ def run_linear(config: dict, seed: int) -> dict:
     """
     from mbtsr.metrics import jacobian_eigenvalues, prediction_rms
 
-    t0, c0 = time.perf_counter(), time.process_time()
     cfg = LinearData(**config["data"])
     d = linear_dataset(cfg, seed)
     X, U = evaluation_points(d["val"], cfg.eval_stride)
@@ -708,11 +797,10 @@ def run_linear(config: dict, seed: int) -> dict:
     result.update(eigen_summary(ev_hat, np.linalg.eigvals(d["A"]), config["n_eig_store"]))
     result["rounds"] = rounds
     result["train_loss"] = rounds[-1]["train_loss"]
-    result["wall"] = time.perf_counter() - t0
-    result["cpu_time"] = time.process_time() - c0
     return result
 
 
+@timed
 def run_robot(config: dict, seed: int) -> dict:
     """One Monte-Carlo run on the paper's two-link robot (``exp_robot``, ``exp_deviations``).
 
@@ -723,7 +811,6 @@ def run_robot(config: dict, seed: int) -> dict:
     """
     from mbtsr.metrics import jacobian_eigenvalues, prediction_rms
 
-    t0, c0 = time.perf_counter(), time.process_time()
     cfg = RobotData(**config["data"])
     d = robot_dataset(cfg, seed)
     env = d["env"]
@@ -743,11 +830,10 @@ def run_robot(config: dict, seed: int) -> dict:
     result["train_loss"] = finite_or_none(hist.train_loss[-1])
     result["steps"] = int(hist.steps)
     result["train_time"] = train_time
-    result["wall"] = time.perf_counter() - t0
-    result["cpu_time"] = time.process_time() - c0
     return result
 
 
+@timed
 def run_activations(config: dict, seed: int) -> dict:
     """One Monte-Carlo run of the activation-function comparison (paper appendix A).
 
@@ -757,7 +843,6 @@ def run_activations(config: dict, seed: int) -> dict:
     ``checkpoints`` (epochs; Adam state carried over) and each member's one-step prediction
     RMS on the validation trajectories is recorded there.
     """
-    t0, c0 = time.perf_counter(), time.process_time()
     cfg = RobotData(**config["data"])
     d = robot_dataset(cfg, seed)
     acts = list(config["activations"])
@@ -777,8 +862,7 @@ def run_activations(config: dict, seed: int) -> dict:
             rms = np.sqrt(np.mean((P - Yv) ** 2, axis=(1, 2)))
         for a, v in zip(acts, rms):
             pred[a].append(finite_or_none(v))
-    return {"pred_rms": pred, "checkpoints": list(config["checkpoints"]),
-            "wall": time.perf_counter() - t0, "cpu_time": time.process_time() - c0}
+    return {"pred_rms": pred, "checkpoints": list(config["checkpoints"])}
 
 
 # ------------------------------------------------------------------------------------------------
@@ -791,7 +875,7 @@ EXCITATION_WINDOWS = {"paper": 100, "short": 10}
 
 
 @dataclass(frozen=True)
-class RegimeData:
+class RegimeData(ArmSampling):
     """Data of one regime-sweep cell family: the paper arm (``RobotData`` protocol) with a given
     excitation window and with or without Coulomb friction (``frictionloss = (0, 0)``: the
     friction-free truth; viscous friction kept). ``n_train_max`` trajectories are collected and
@@ -799,17 +883,7 @@ class RegimeData:
 
     window: str = "paper"
     friction: bool = True
-    duration: float = 4.0
-    dt: float = 0.02
-    noise_std: float = 0.01
     n_train_max: int = 10
-    n_val: int = 10
-    n_sim: int = 3
-    eval_stride: int = 3
-
-    @property
-    def T(self) -> int:  # noqa: N802 - the paper's symbol
-        return int(round(self.duration / self.dt))
 
 
 def regime_env(cfg: RegimeData):
@@ -935,6 +1009,7 @@ def fused_ltv_models(ltv_models: list, model, trajs, prior_scale: float = 1.0) -
 REGIME_METHODS = ("none", "sampled", "exact", "oracle", "prior")
 
 
+@timed
 def run_regime(config: dict, seed: int) -> dict:
     """One Monte-Carlo run of the regime sweep (``exp_regime``).
 
@@ -950,7 +1025,6 @@ def run_regime(config: dict, seed: int) -> dict:
     from mbtsr.metrics import prediction_rms
     from mbtsr.training import RegularizationConfig, TrainConfig, train_ensemble
 
-    t0, c0 = time.perf_counter(), time.process_time()
     cfg = RegimeData(**config["data"])
     d = regime_dataset(cfg, seed)
     n_train, E, method = int(config["n_train"]), int(config["epochs"]), config["method"]
@@ -1011,8 +1085,6 @@ def run_regime(config: dict, seed: int) -> dict:
         result.update({"ltv_jac_pos": e["pos"], "ltv_jac_vel": e["vel"]})
     result["steps"] = steps
     result["train_time"] = train_time
-    result["wall"] = time.perf_counter() - t0
-    result["cpu_time"] = time.process_time() - c0
     return result
 
 

@@ -5,11 +5,15 @@ Models of Dynamical Systems", arXiv:1806.09919, Algorithm 1 in an episodic loop)
 
     python scripts/train_agent.py                       # embedded defaults, mbtsr/TwoLinkArm-v0
     python scripts/train_agent.py --seed 3 --regularization exact --json bench.json
+    python scripts/train_agent.py --regularization none --model.hidden-width 32 --planner.kind cem
     python scripts/train_agent.py --run-dir runs/x --resume   # continue a killed run exactly
 
-Every field of :class:`agents.config.AgentConfig` is a flag (``--epochs-per-episode 100``,
-``--formulation f``, ``--no-tensorboard`` ...; ``--help`` lists them with their documentation).
-``--resume`` takes the configuration saved in the checkpoint; flags given with it must agree.
+Every field of the :class:`agents.config.AgentConfig` tree is a flag named by its dotted path
+(``--training.epochs 100``, ``--model.formulation f``, ``--regularization.sigma 0.2``,
+``--evaluation.every 2``, ``--seed 3``, ``--no-tensorboard`` ...; ``--help`` lists them with
+their documentation). ``--regularization NAME`` picks the regularizer by name (its default weight,
+or the ``--regularization.<name>-weight`` given). ``--resume`` takes the configuration saved in
+the checkpoint; flags given with it must agree.
 The run folder receives ``config.json``, ``episodes.csv``, ``checkpoint.pt`` (resume),
 ``model.pt`` (the learned ensemble, :func:`mbtsr.ensemble.load_model`), ``data.npz`` (all
 trajectories), ``tb/`` (TensorBoard), ``learning_curve.png``, ``final_reach.png`` and
@@ -26,12 +30,13 @@ import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, Literal
 
 import tyro
 
-from agents.config import AgentConfig
+from agents.config import AgentConfig, EvaluationConfig
 from mbtsr import cli
+from mbtsr.training import RegularizationConfig
 
 os.environ.setdefault("MUJOCO_GL", "egl")  # headless rendering, before mujoco is imported
 
@@ -52,24 +57,42 @@ class Args:
     """learning curve and final-reach PNGs"""
     summary_table: bool = True
     """print the rich summary table"""
-    agent: Annotated[AgentConfig, tyro.conf.OmitArgPrefixes] = field(
-        default_factory=lambda: AgentConfig(oracle_cache_dir="runs/oracle_cache"))
-    """the agent (its flags carry no prefix). --run-dir defaults to
+    regularization: Literal["weights", "sampled", "exact", "smooth", "none"] = "weights"
+    """the regularizer by name: only its weight stays on (the one given with its flag, e.g.
+    --regularization.exact-weight, else its default: sampled 1, exact/smooth 0.01); none: all
+    weights 0; weights: as the weight flags say"""
+    agent: Annotated[AgentConfig, tyro.conf.arg(name="")] = field(
+        default_factory=lambda: AgentConfig(
+            evaluation=EvaluationConfig(oracle_cache_dir="runs/oracle_cache")))
+    """the agent (its flags carry no agent. prefix). --run-dir defaults to
     runs/train_agent/<env>_<regularization>_<formulation>_seed<seed> (a fresh run that finds a
-    finished one there adds _1, _2, ...); --oracle-cache-dir none disables the shared cache of
-    the (deterministic) oracle costs"""
+    finished one there adds _1, _2, ...); --evaluation.oracle-cache-dir none disables the shared
+    cache of the (deterministic) oracle costs"""
 
     def __post_init__(self) -> None:
         if self.episodes < 1:
             raise ValueError(f"--episodes must be >= 1, got {self.episodes}")
-        if str(self.agent.oracle_cache_dir).lower() in ("", "none"):
-            object.__setattr__(self, "agent", self.agent.replace(oracle_cache_dir=None))
+        agent = self.agent
+        if str(agent.evaluation.oracle_cache_dir).lower() in ("", "none"):
+            agent = agent.replace({"evaluation.oracle_cache_dir": None})
+        if self.regularization != "weights":
+            agent = agent.replace(regularization=_named(self.regularization, agent.regularization))
+        object.__setattr__(self, "agent", agent)
+
+
+def _named(kind: str, reg: RegularizationConfig) -> RegularizationConfig:
+    """``--regularization KIND``: ``reg`` with only KIND's weight on (its given weight, or the
+    default when that is 0)."""
+    rest = {k: v for k, v in dataclasses.asdict(reg).items() if not k.endswith("_weight")}
+    weight = getattr(reg, f"{kind}_weight", 0.0)
+    return RegularizationConfig.named(kind, weight if weight > 0 else None, **rest)
 
 
 def default_run_dir(args: Args) -> Path:
     cfg = args.agent
     return Path("runs") / "train_agent" / (
-        f"{args.env_id.replace('/', '_')}_{cfg.regularization}_{cfg.formulation}_seed{cfg.seed}")
+        f"{args.env_id.replace('/', '_')}_{cfg.regularization.kind}_{cfg.model.formulation}"
+        f"_seed{cfg.seed}")
 
 
 def parse(argv: list[str] | None = None) -> Args:
@@ -95,13 +118,24 @@ def parse(argv: list[str] | None = None) -> Args:
         cli.fail(f"--resume: {err}")
     saved = saved.replace(run_dir=str(run_dir))
     args = cli.parse(Args, args=argv, default=dataclasses.replace(args, agent=saved))
-    changed = [f.name for f in dataclasses.fields(AgentConfig)
-               if getattr(args.agent, f.name) != getattr(saved, f.name)]
+    given, kept = _dotted(args.agent.to_dict()), _dotted(saved.to_dict())
+    changed = [name for name in given if given[name] != kept[name]]
     if changed:
         name = changed[0]
-        cli.fail(f"--resume: --{name.replace('_', '-')} {getattr(args.agent, name)!r} differs "
-                 f"from the saved run's {getattr(saved, name)!r} ({checkpoint})")
+        cli.fail(f"--resume: --{name.replace('_', '-')} {given[name]!r} differs "
+                 f"from the saved run's {kept[name]!r} ({checkpoint})")
     return args
+
+
+def _dotted(tree: dict, prefix: str = "") -> dict:
+    """``{"model": {"hidden_width": 20}}`` -> ``{"model.hidden_width": 20}``."""
+    out = {}
+    for k, v in tree.items():
+        if isinstance(v, dict):
+            out.update(_dotted(v, f"{prefix}{k}."))
+        else:
+            out[prefix + k] = v
+    return out
 
 
 def main(argv: list[str] | None = None) -> dict:
@@ -141,7 +175,8 @@ def run(args: Args) -> dict:
     else:
         agent = JacPropAgent(env, cfg.replace(run_dir=str(run_dir)))
     atomic_write_text(run_dir / "config.json", json.dumps(
-        {"script": dataclasses.asdict(args), "command": " ".join(sys.argv),
+        {"script": {k: v for k, v in dataclasses.asdict(args).items() if k != "agent"},
+         "command": " ".join(sys.argv),
          **agent.resolved_config()}, indent=2, default=str))
 
     # 3. Algorithm 1: episodes of rollout -> LTV fit -> regularised model update -> planning --
@@ -185,7 +220,7 @@ def plot_learning_curve(agent, path: Path) -> None:
     oracle = agent.oracle_mean
     if oracle is not None:
         ax.axhline(oracle, color="k", ls="--", label="oracle (true-model MPC)")
-        ax.axhline(agent.config.solved_ratio * oracle, color="g", ls=":", label="solved")
+        ax.axhline(agent.config.evaluation.solved_ratio * oracle, color="g", ls=":", label="solved")
     ax.set_xlabel("episode")
     ax.set_ylabel("episode cost")
     ax.legend(fontsize=8)
@@ -218,9 +253,10 @@ def plot_final_reach(agent, env, path: Path) -> None:
     rec = agent.rollout_policy(env, seed=seed, options=options)
     curves = [("agent", rec)]
     if hasattr(env.unwrapped, "dynamics_model") and target is not None:
-        oracle = oracle_policy(env, agent.config.horizon, iterations=agent.config.ilqr_iterations,
-                               first_plan_iterations=agent.config.first_plan_iterations,
-                               terminal_weight=agent.config.terminal_weight)
+        plan = agent.config.planner
+        oracle = oracle_policy(env, plan.horizon, iterations=plan.ilqr_iterations,
+                               first_plan_iterations=plan.first_plan_iterations,
+                               terminal_weight=plan.terminal_weight)
         state = {"U": None}
 
         def act(obs, t):
