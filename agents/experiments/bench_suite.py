@@ -547,8 +547,8 @@ def sb3_eval_problem(name: str, *, oracle_cache: str | None, smoke: bool = False
     """The evaluation episodes and threshold of task ``name``, exactly the agent runs' ones.
 
     Arm tasks: the 3 evaluation targets and the oracle's costs of the agent built by
-    :func:`run_one` (``eval_seed`` 1000, ``eval_episodes=3``, the task's overrides, e.g.
-    ``replan_every=10`` for the oracle of arm-open-loop; cached in ``oracle_cache``); solved
+    :func:`run_one` (``evaluation.seed`` 1000, ``evaluation.episodes=3``, the task's overrides, e.g.
+    ``planner.replan_every=10`` for the oracle of arm-open-loop; cached in ``oracle_cache``); solved
     when the mean cost <= ``solved_ratio`` x the oracle's mean cost. Gymnasium tasks: 3 episodes
     reset with ``1000 + i``, cut at the episode length; solved when the mean return >=
     :func:`solved_return` of the oracle's mean return (from :data:`ORACLES_JSON`, else
@@ -556,12 +556,13 @@ def sb3_eval_problem(name: str, *, oracle_cache: str | None, smoke: bool = False
     """
     task = TASKS[name]
     env = make_env(task)
-    overrides = dict(task["overrides"], eval_episodes=3, oracle_cache_dir=oracle_cache,
-                     progress=False, tensorboard=False, checkpoint=False, torch_threads=1)
+    overrides = {**task["overrides"], "evaluation.episodes": 3,
+                 "evaluation.oracle_cache_dir": oracle_cache, "progress": False,
+                 "tensorboard": False, "checkpoint": False, "torch_threads": 1}
     try:
         agent = _make_agent(env, task, overrides, smoke)
-        out: dict[str, Any] = {"eval_seed": agent.config.eval_seed,
-                               "eval_episodes": agent.config.eval_episodes,
+        out: dict[str, Any] = {"eval_seed": agent.config.evaluation.seed,
+                               "eval_episodes": agent.config.evaluation.episodes,
                                "episode_steps": agent.spec.episode_steps}
         if "solved_ratio" in task:
             agent.compute_oracle()
