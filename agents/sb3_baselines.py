@@ -31,6 +31,7 @@ runs that did not solve within their budget: such a run's steps-to-solve is only
 
 from __future__ import annotations
 
+import math
 import time
 from collections.abc import Callable, Sequence
 from typing import Any
@@ -52,6 +53,7 @@ __all__ = [
     "best_of",
     "censored_median",
     "default_hyperparams",
+    "evaluate_episodes",
     "make_sb3_model",
     "make_training_env",
     "train_sb3",
@@ -59,8 +61,33 @@ __all__ = [
 
 ALGOS: dict[str, type[BaseAlgorithm]] = {"sac": SAC, "td3": TD3, "ppo": PPO}
 
-#: evaluation function: (policy_fn(obs) -> action, env, targets [k, 2], seed) -> mean cost
-EvaluateFn = Callable[[Callable[[np.ndarray], np.ndarray], gym.Env, np.ndarray, int], float]
+#: evaluation function: (policy_fn(obs) -> action, env, targets [k, 2] or None, seed) -> mean
+#: cost (= minus the mean return)
+EvaluateFn = Callable[[Callable[[np.ndarray], np.ndarray], gym.Env, np.ndarray | None, int], float]
+
+
+def evaluate_episodes(n_episodes: int, max_steps: int | None = None) -> EvaluateFn:
+    """The evaluation of a task without targets: the mean cost (minus the mean return, the
+    env's own reward) over ``n_episodes`` episodes, episode ``i`` reset with ``seed + i`` and
+    cut at ``max_steps`` (the agent's :meth:`JacPropAgent._evaluate` on such an env).
+
+    :param n_episodes: evaluation episodes (>= 1).
+    :param max_steps: cap on the steps per episode (``None``: the env's own limit).
+    """
+    from agents.evaluation import evaluate_policy_cost
+
+    n_episodes = _check_int("n_episodes", n_episodes, 1)
+    if max_steps is not None:
+        max_steps = _check_int("max_steps", max_steps, 1)
+
+    def evaluate(policy_fn: Callable[[np.ndarray], np.ndarray], env: gym.Env,
+                 targets: np.ndarray | None, seed: int) -> float:
+        if targets is not None:
+            raise ValueError("evaluate_episodes is for tasks without targets; got targets")
+        return evaluate_policy_cost(policy_fn, env, None, seed, n_episodes=n_episodes,
+                                    max_steps=max_steps)
+
+    return evaluate
 
 
 def default_hyperparams(algo: str) -> dict[str, Any]:
@@ -152,7 +179,9 @@ class CostEvalCallback(BaseCallback):
     - ``eval_seconds``: total time spent evaluating.
 
     :param eval_env: a separate env instance used only for evaluation.
-    :param eval_targets: ``[k, 2]`` goal joint angles, one per evaluation episode.
+    :param eval_targets: ``[k, 2]`` goal joint angles, one per evaluation episode, or ``None``
+        for an env without targets (then ``evaluate`` decides the episodes, e.g.
+        :func:`evaluate_episodes`).
     :param eval_every: evaluation period in env steps.
     :param threshold: the solved threshold on the mean cost (``None``: never stop early).
     :param eval_seed: evaluation episode ``i`` resets with ``eval_seed + i`` (as the agent's).
@@ -165,7 +194,7 @@ class CostEvalCallback(BaseCallback):
     def __init__(
         self,
         eval_env: gym.Env,
-        eval_targets: np.ndarray,
+        eval_targets: np.ndarray | None,
         eval_every: int,
         threshold: float | None,
         eval_seed: int,
@@ -253,7 +282,7 @@ def train_sb3(
     budget_steps: int,
     seed: int,
     eval_every: int,
-    eval_targets: np.ndarray | Sequence[Sequence[float]],
+    eval_targets: np.ndarray | Sequence[Sequence[float]] | None,
     threshold: float | None,
     hyperparams: dict[str, Any] | None = None,
     tensorboard_log: str | None = None,
@@ -264,6 +293,9 @@ def train_sb3(
     evaluate: EvaluateFn | None = None,
     tb_log_name: str | None = None,
     return_model: bool = False,
+    n_eval_episodes: int | None = None,
+    eval_max_steps: int | None = None,
+    solved_return: float | None = None,
 ) -> dict[str, Any]:
     """Train an SB3 agent on ``env_id`` until solved or out of budget; return its record.
 
@@ -272,9 +304,11 @@ def train_sb3(
     :param budget_steps: maximum env steps (PPO rounds up to whole rollouts of ``n_steps``).
     :param seed: seed of the SB3 model and of the training env's resets.
     :param eval_every: evaluation period in env steps.
-    :param eval_targets: ``[k, 2]`` fixed evaluation targets (the agent's).
-    :param threshold: solved threshold on the mean evaluation cost; ``None`` trains the whole
-        budget.
+    :param eval_targets: ``[k, 2]`` fixed evaluation targets (the agent's), or ``None`` for an
+        env without targets: then ``n_eval_episodes`` episodes, scored by the env's own return
+        (:func:`evaluate_episodes`).
+    :param threshold: solved threshold on the mean evaluation cost (> 0, the arm's cost); ``None``
+        trains the whole budget unless ``solved_return`` is given.
     :param hyperparams: SB3 keyword arguments (see :func:`make_sb3_model`); ``None``: the
         documented :func:`default_hyperparams`.
     :param tensorboard_log: TensorBoard folder (``None``: no logs).
@@ -286,23 +320,47 @@ def train_sb3(
         :func:`agents.evaluation.evaluate_policy_cost`.
     :param return_model: also return the trained model under ``"model"`` (not serializable;
         for tests and notebooks).
+    :param n_eval_episodes: evaluation episodes when ``eval_targets`` is ``None`` (>= 1).
+    :param eval_max_steps: cap on the steps of an evaluation episode when ``eval_targets`` is
+        ``None`` (``None``: the env's own limit).
+    :param solved_return: solved when the mean evaluation RETURN is ``>= solved_return`` (any
+        finite number; the same as ``threshold = -solved_return`` on the cost); exclusive with
+        ``threshold``.
     :return: a JSON-serializable dict: ``curve`` ``[[env_steps, eval_cost], ...]``,
         ``curve_train_wall`` (seconds, excl. evaluation, per curve point), ``solved``,
         ``steps_to_solve`` (``None`` if not solved), ``wall_seconds_to_solve`` (excl.
         evaluation), ``wall_seconds_to_solve_incl_eval``, ``env_steps`` (total),
         ``train_wall_seconds`` / ``eval_wall_seconds`` / ``total_wall_seconds``,
-        ``hyperparams`` and the arguments.
+        ``hyperparams`` and the arguments. The curve's cost is minus the mean return.
     """
     _check_algo(algo)
     budget_steps = _check_int("budget_steps", budget_steps, 1)
     eval_every = _check_int("eval_every", eval_every, 1)
     seed = _check_int("seed", seed, 0)
     eval_seed = _check_int("eval_seed", eval_seed, 0)
-    targets = as_array("eval_targets", eval_targets, (None, None))
-    if targets.shape[0] < 1:
-        raise ValueError("eval_targets must hold at least one target, got shape [0, *]")
+    if eval_targets is None:
+        if n_eval_episodes is None:
+            raise ValueError("give eval_targets or n_eval_episodes")
+        n_eval_episodes = _check_int("n_eval_episodes", n_eval_episodes, 1)
+        if evaluate is None:
+            evaluate = evaluate_episodes(n_eval_episodes, eval_max_steps)
+        targets = None
+    else:
+        if n_eval_episodes is not None or eval_max_steps is not None:
+            raise ValueError("n_eval_episodes and eval_max_steps are for eval_targets=None; "
+                             "with targets there is one episode per target")
+        targets = as_array("eval_targets", eval_targets, (None, None))
+        if targets.shape[0] < 1:
+            raise ValueError("eval_targets must hold at least one target, got shape [0, *]")
     if threshold is not None:
+        if solved_return is not None:
+            raise ValueError("give threshold (a cost) or solved_return (a return), not both")
         threshold = check_positive("threshold", threshold)
+    elif solved_return is not None:
+        solved_return = float(solved_return)
+        if not math.isfinite(solved_return):
+            raise ValueError(f"solved_return must be finite, got {solved_return!r}")
+        threshold = -solved_return
     if hyperparams is not None and not isinstance(hyperparams, dict):
         raise ValueError(f"hyperparams must be a dict or None, got {type(hyperparams).__name__}")
     hp = dict(default_hyperparams(algo) if hyperparams is None else hyperparams)
@@ -330,8 +388,10 @@ def train_sb3(
         "budget_steps": budget_steps,
         "eval_every": eval_every,
         "eval_seed": eval_seed,
-        "n_eval_targets": int(targets.shape[0]),
+        "n_eval_targets": 0 if targets is None else int(targets.shape[0]),
+        "n_eval_episodes": int(targets.shape[0]) if targets is not None else n_eval_episodes,
         "threshold": threshold,
+        "solved_return": solved_return,
         "hyperparams": hp,
         "curve": [[s, c] for s, c in callback.curve],
         "curve_train_wall": callback.train_wall,

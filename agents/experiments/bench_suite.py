@@ -28,13 +28,19 @@ the arm tasks' margin (1.05 x the oracle's cost).
 The oracle is the same MPC on the TRUE MuJoCo model: the arm's own ``dynamics_model()``, and for
 the Gymnasium tasks :class:`envs.mujoco_model.MujocoDynamics` with the cost on the env's own
 observation (``--oracle`` computes and stores its score per task; the Gymnasium tasks' criterion
-stays the return threshold). Runs are scheduled seed-major (every task and
+stays the return threshold). ``--sb3 sac ppo`` runs SB3 methods instead of the agent on the
+same tasks, evaluation episodes and thresholds (arm tasks: <= 1.05 x the oracle's cost;
+Gymnasium tasks: mean return within 5 % of the oracle's), with budgets of 20x (SAC) and 200x
+(PPO) the agent's env steps, into ``<json stem>_sb3.json``; the report compares the best SB3
+method with the best agent configuration. Runs are scheduled seed-major (every task and
 configuration gets seed 0 before any gets seed 1), and each finished run is appended to the JSON
 at once, so an interrupted suite reports what finished (``--resume`` skips finished runs)::
 
     python scripts/bench_suite.py --json docs/results/bench_suite.json --figures docs/figures
     python scripts/bench_suite.py --smoke --json runs/bench_suite_smoke.json   # CI, ~1 min
     python scripts/bench_suite.py --report-only --json docs/results/bench_suite.json
+    python scripts/bench_suite.py --sb3 sac ppo --seeds 0 1 2 --resume \
+        --json docs/results/bench_suite.json    # SB3 -> docs/results/bench_suite_sb3.json
     python scripts/bench_suite.py --help                 # every option
 """
 
@@ -405,7 +411,8 @@ def comparisons(runs: list[dict[str, Any]]) -> list[dict[str, Any]]:
     return out
 
 
-def write_markdown(state: dict[str, Any], path: Path, figure_dir: Path) -> None:
+def write_markdown(state: dict[str, Any], path: Path, figure_dir: Path,
+                   sb3_runs: list[dict[str, Any]] | None = None) -> None:
     rows = state["table"]
     rel = os.path.relpath(figure_dir, path.parent)
     lines = [
@@ -488,6 +495,8 @@ def write_markdown(state: dict[str, Any], path: Path, figure_dir: Path) -> None:
         "",
         "Median final score per task for each planner x regularizer.",
         "",
+        *sb3_markdown_lines(sb3_runs or [], state["runs"],
+                            f"{rel}/bench_suite_sb3_curves.png" if sb3_runs else None),
         "## Compute",
         "",
         f"{len(state['runs'])} runs, {state.get('compute_seconds', 0) / 60:.0f} min of wall "
@@ -504,6 +513,346 @@ def write_markdown(state: dict[str, Any], path: Path, figure_dir: Path) -> None:
 
 #: everything after this line of the report is written by people and kept on regeneration
 NOTES_MARKER = "<!-- notes below are hand-written; scripts/bench_suite.py keeps them -->"
+
+
+# ---------------------------------------------------------------------------------------------
+# SB3 baselines on the suite tasks: the best model-free method on the same task, threshold and
+# evaluation episodes. A run that does not solve within its budget is reported as a lower bound.
+# ---------------------------------------------------------------------------------------------
+
+#: SB3 methods ``--sb3`` accepts (:mod:`agents.sb3_baselines`)
+SB3_METHODS = ("sac", "ppo", "td3")
+#: budget per method: this factor x the agent's env-step budget on the task, stated before the
+#: runs (SAC/TD3 20x: a run that does not solve is ">= 20x", what the ">= 20x fewer env steps"
+#: target needs; PPO 10x more, it costs ~20x less compute per env step)
+SB3_BUDGET_FACTOR = {"sac": 20, "td3": 20, "ppo": 200}
+#: evaluation period in env steps (PPO: every rollout, ``n_steps``)
+SB3_EVAL_EVERY = {"sac": 1000, "td3": 1000}
+#: the true-model oracle's scores of the Gymnasium tasks (``task_oracle``), computed once
+ORACLES_JSON = REPO / "docs" / "results" / "bench_suite_oracles.json"
+#: tiny SB3 settings of the smoke mode (CI)
+SB3_SMOKE = {
+    "budget": 256, "eval_every": 128,
+    "sac": {"learning_starts": 32, "batch_size": 16, "policy_kwargs": {"net_arch": [16, 16]}},
+    "td3": {"learning_starts": 32, "batch_size": 16, "action_noise_std": 0.1,
+            "policy_kwargs": {"net_arch": [16, 16]}},
+    "ppo": {"n_steps": 128, "batch_size": 32, "n_epochs": 1, "normalize": True,
+            "policy_kwargs": {"net_arch": [16, 16]}},
+}
+
+
+def agent_budget_env_steps(name: str) -> int:
+    """The agent's env-step budget on task ``name``: ``episodes x episode length`` (arm tasks),
+    else ``total_env_steps``."""
+    task = TASKS[name]
+    if "total_env_steps" in task:
+        return int(task["total_env_steps"])
+    from agents.task import env_spec
+
+    env = make_env(task)
+    try:
+        return int(task["episodes"]) * int(env_spec(env).episode_steps)
+    finally:
+        env.close()
+
+
+def sb3_budget(name: str, algo: str) -> int:
+    """Env-step budget of SB3 method ``algo`` on task ``name`` (see :data:`SB3_BUDGET_FACTOR`)."""
+    if algo not in SB3_BUDGET_FACTOR:
+        raise ValueError(f"algo must be one of {list(SB3_BUDGET_FACTOR)}, got {algo!r}")
+    return SB3_BUDGET_FACTOR[algo] * agent_budget_env_steps(name)
+
+
+def sb3_eval_problem(name: str, *, oracle_cache: str | None, smoke: bool = False
+                     ) -> dict[str, Any]:
+    """The evaluation episodes and threshold of task ``name``, exactly the agent runs' ones.
+
+    Arm tasks: the 3 evaluation targets and the oracle's costs of the agent built by
+    :func:`run_one` (``evaluation.seed`` 1000, ``evaluation.episodes=3``, the task's overrides, e.g.
+    ``planner.replan_every=10`` for the oracle of arm-open-loop; cached in ``oracle_cache``); solved
+    when the mean cost <= ``solved_ratio`` x the oracle's mean cost. Gymnasium tasks: 3 episodes
+    reset with ``1000 + i``, cut at the episode length; solved when the mean return >=
+    :func:`solved_return` of the oracle's mean return (from :data:`ORACLES_JSON`, else
+    computed by :func:`task_oracle`).
+    """
+    task = TASKS[name]
+    env = make_env(task)
+    overrides = {**task["overrides"], "evaluation.episodes": 3,
+                 "evaluation.oracle_cache_dir": oracle_cache, "progress": False,
+                 "tensorboard": False, "checkpoint": False, "torch_threads": 1}
+    try:
+        agent = _make_agent(env, task, overrides, smoke)
+        out: dict[str, Any] = {"eval_seed": agent.config.evaluation.seed,
+                               "eval_episodes": agent.config.evaluation.episodes,
+                               "episode_steps": agent.spec.episode_steps}
+        if "solved_ratio" in task:
+            agent.compute_oracle()
+            oracle = float(np.mean(agent.oracle_costs))
+            out.update(eval_targets=[np.asarray(t, dtype=float).tolist()
+                                     for t in agent.eval_targets],
+                       oracle_costs=np.asarray(agent.oracle_costs, dtype=float).tolist(),
+                       oracle_mean_cost=oracle, threshold_cost=task["solved_ratio"] * oracle,
+                       score="cost / oracle (lower is better)",
+                       threshold_score=task["solved_ratio"], oracle_source="compute_oracle")
+            return out
+    finally:
+        env.close()
+    stored = json.loads(ORACLES_JSON.read_text()).get("oracles", {}) if ORACLES_JSON.is_file() \
+        else {}
+    if name in stored:
+        oracle, source = float(stored[name]["mean_return"]), str(ORACLES_JSON.relative_to(REPO))
+    else:
+        oracle, source = float(task_oracle(name, smoke=smoke)["mean_return"]), "task_oracle"
+    solved = solved_return(name, oracle)
+    out.update(eval_targets=None, oracle_mean_return=oracle, solved_return=solved,
+               score="mean return (higher is better)", threshold_score=solved,
+               oracle_source=source)
+    return out
+
+
+def run_sb3(name: str, algo: str, seed: int, problem: dict[str, Any], *, smoke: bool
+            ) -> dict[str, Any]:
+    """One SB3 run (:func:`agents.sb3_baselines.train_sb3`) on task ``name`` with the
+    evaluation ``problem`` of :func:`sb3_eval_problem`; returns its record (scores in the agent
+    runs' units: cost / oracle or mean return)."""
+    import torch
+
+    from agents.sb3_baselines import default_hyperparams, train_sb3
+
+    torch.set_num_threads(1)
+    task = TASKS[name]
+    hp = dict(SB3_SMOKE[algo]) if smoke else default_hyperparams(algo)
+    budget = SB3_SMOKE["budget"] if smoke else sb3_budget(name, algo)
+    eval_every = (SB3_SMOKE["eval_every"] if smoke and algo != "ppo"
+                  else SB3_EVAL_EVERY.get(algo, hp.get("n_steps", 2048)))
+    common = dict(hyperparams=hp, env_kwargs=dict(task["make"]), eval_seed=problem["eval_seed"])
+    if problem["eval_targets"] is not None:
+        r = train_sb3(algo, task["env_id"], budget, seed, eval_every, problem["eval_targets"],
+                      problem["threshold_cost"], **common)
+        to_score = lambda c: c / problem["oracle_mean_cost"]  # noqa: E731
+    else:
+        r = train_sb3(algo, task["env_id"], budget, seed, eval_every, None, None, **common,
+                      n_eval_episodes=problem["eval_episodes"],
+                      eval_max_steps=problem["episode_steps"],
+                      solved_return=problem["solved_return"])
+        to_score = lambda c: -c  # noqa: E731
+    curve = [{"env_steps": int(st), "score": float(to_score(c))} for st, c in r["curve"]]
+    return {
+        "task": name, "method": algo, "seed": seed, "budget_env_steps": budget,
+        "env_steps": r["env_steps"], "env_steps_to_solve": r["steps_to_solve"],
+        "solved": r["solved"], "final_score": curve[-1]["score"] if curve else None,
+        "score": problem["score"], "threshold_score": problem["threshold_score"],
+        "curve": curve, "eval_every": eval_every, "hyperparams": r["hyperparams"],
+        "wall_seconds_to_solve": r["wall_seconds_to_solve"],
+        "train_wall_seconds": r["train_wall_seconds"],
+        "eval_wall_seconds": r["eval_wall_seconds"], "wall_seconds": r["total_wall_seconds"],
+    }
+
+
+def steps_bound(run: dict[str, Any]) -> tuple[float, bool]:
+    """``(env steps to solve, is_lower_bound)`` of one run (agent or SB3): an unsolved run
+    needs more than it spent, so its value is the env steps it ran (>= its budget for SB3)."""
+    if run["env_steps_to_solve"] is not None:
+        return float(run["env_steps_to_solve"]), False
+    return float(max(run["env_steps"], run.get("budget_env_steps") or 0)), True
+
+
+def censored_summary(runs: list[dict[str, Any]]) -> dict[str, Any]:
+    """Median env steps to solve over ``runs`` (one configuration, several seeds) with lower
+    bounds marked (:func:`agents.sb3_baselines.censored_median`), and the per-seed values."""
+    from agents.experiments.benchmark_sb3 import bound
+    from agents.sb3_baselines import censored_median
+
+    runs = sorted(runs, key=lambda r: r["seed"])
+    vals = [steps_bound(r) for r in runs]
+    med, lower = censored_median([v for v, _ in vals], [b for _, b in vals])
+    return {"seeds": [r["seed"] for r in runs],
+            "budget_env_steps": min((r.get("budget_env_steps") or 0) for r in runs),
+            "solved": f"{sum(not b for _, b in vals)}/{len(vals)}",
+            "per_seed": [bound(v, b) for v, b in vals], "median": bound(med, lower)}
+
+
+def sb3_comparison(sb3_runs: list[dict[str, Any]], agent_runs: list[dict[str, Any]]
+                   ) -> list[dict[str, Any]]:
+    """Per task: every SB3 method's censored median, the best SB3 method and the best agent
+    configuration (smallest median env steps to solve, :func:`agents.sb3_baselines.best_of`),
+    and the ratio best-SB3 / best-agent with its kind (exact, lower or upper bound) against the
+    issue's target (>= 20)."""
+    from agents.experiments.benchmark_sb3 import bound, ratio, target_met
+    from agents.sb3_baselines import best_of
+
+    out = []
+    for name in TASKS:
+        methods = {m: censored_summary([r for r in sb3_runs
+                                        if r["task"] == name and r["method"] == m])
+                   for m in SB3_METHODS if any(r["task"] == name and r["method"] == m
+                                               for r in sb3_runs)}
+        if not methods:
+            continue
+        row: dict[str, Any] = {"task": name, "sb3": methods}
+        m, v, lb = best_of({k: (s["median"]["value"], s["median"]["lower_bound"])
+                            for k, s in methods.items()})
+        row["best_sb3"] = {"method": m, **bound(v, lb)}
+        configs = {f"{p}/{g}": censored_summary(
+            [r for r in agent_runs if (r["task"], r["planner"], r["regularization"])
+             == (name, p, g)]) for p in PLANNERS for g in REGULARIZATIONS
+            if any((r["task"], r["planner"], r["regularization"]) == (name, p, g)
+                   for r in agent_runs)}
+        if configs:
+            c, v, lb = best_of({k: (s["median"]["value"], s["median"]["lower_bound"])
+                                for k, s in configs.items()})
+            row["best_agent"] = {"config": c, **bound(v, lb),
+                                 "seeds": configs[c]["seeds"]}
+            r = ratio(row["best_sb3"], row["best_agent"])
+            row["ratio"] = r
+            row["target_met"] = target_met(r, 20.0)
+        out.append(row)
+    return out
+
+
+def sb3_figure(sb3_runs: list[dict[str, Any]], agent_runs: list[dict[str, Any]], out: Path
+               ) -> Path | None:
+    """Evaluation score vs env steps (log x) per task: every SB3 run (thin lines) and the
+    median env steps to solve of the best agent configuration (vertical line); the threshold
+    dashed. Writes ``out/bench_suite_sb3_curves.png`` (``None`` without SB3 runs)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    names = [n for n in TASKS if any(r["task"] == n for r in sb3_runs)]
+    if not names:
+        return None
+    out.mkdir(parents=True, exist_ok=True)
+    best = {row["task"]: row.get("best_agent") for row in sb3_comparison(sb3_runs, agent_runs)}
+    colors = {"sac": "tab:red", "ppo": "tab:green", "td3": "tab:orange"}
+    fig, axes = plt.subplots(1, len(names), figsize=(4.2 * len(names), 3.4), squeeze=False)
+    for ax, name in zip(axes[0], names):
+        for m, color in colors.items():
+            rs = [r for r in sb3_runs if r["task"] == name and r["method"] == m]
+            for i, r in enumerate(rs):
+                xs = [max(c["env_steps"], 1) for c in r["curve"]]
+                ax.plot(xs, [c["score"] for c in r["curve"]], color=color, alpha=0.6, lw=1,
+                        label=m.upper() if i == 0 else None)
+        thr = next(r["threshold_score"] for r in sb3_runs if r["task"] == name)
+        ax.axhline(thr, color="k", ls="--", lw=0.8)
+        if best.get(name):
+            b = best[name]
+            ax.axvline(max(b["value"], 1), color="tab:blue", lw=1.2,
+                       label=f"agent {b['config']} median")
+        if "solved_ratio" in TASKS[name]:
+            ax.set_yscale("log")
+            ax.set_ylabel("eval cost / oracle")
+        else:
+            ax.set_ylabel("mean eval return")
+        ax.set_xscale("log")
+        ax.set_title(name)
+        ax.set_xlabel("env steps")
+        ax.legend(fontsize=7)
+    fig.tight_layout()
+    p = out / "bench_suite_sb3_curves.png"
+    fig.savefig(p, dpi=110)
+    plt.close(fig)
+    return p
+
+
+def sb3_markdown_lines(sb3_runs: list[dict[str, Any]], agent_runs: list[dict[str, Any]],
+                       figure: str | None = None) -> list[str]:
+    """The report's section: best SB3 method per task vs the best agent configuration
+    (``figure``: the path of :func:`sb3_figure` relative to the report)."""
+    if not sb3_runs:
+        return []
+    rows = sb3_comparison(sb3_runs, agent_runs)
+    lines = [
+        "## Best SB3 method vs the best agent configuration",
+        "",
+        "Same task, same evaluation episodes and the same threshold as the agent runs (arm "
+        "tasks: mean cost <= 1.05 x the oracle's; Gymnasium tasks: mean return within 5 % of "
+        "the true-model oracle's), deterministic policy, `agents.sb3_baselines.train_sb3` with "
+        "the hyperparameters of [benchmark_sb3.md](benchmark_sb3.md). Budget stated before the "
+        "runs: " + ", ".join(f"{m.upper()} {f}x" for m, f in SB3_BUDGET_FACTOR.items()
+                             if any(r['method'] == m for r in sb3_runs))
+        + " the agent's env-step budget on the task; evaluation every "
+        "1,000 env steps (SAC/TD3) or every rollout (PPO), stopping at the first solved one. "
+        "`>= N`: not solved within the budget (a lower bound), and so is every median or "
+        "ratio it enters (`<=`: an upper bound, `?`: bounds on both sides). Target of issue 12: "
+        "the agent needs >= 20x fewer env steps than the best SB3 method.",
+        "",
+        "| task | SB3 method | budget (env steps) | solved | env steps to solve: median "
+        "(per seed) |",
+        "|---|---|---|---|---|",
+    ]
+    for row in rows:
+        for m, s in row["sb3"].items():
+            per_seed = ", ".join(v["display"] for v in s["per_seed"])
+            lines.append(f"| {row['task']} | {m.upper()} | {s['budget_env_steps']} | "
+                         f"{s['solved']} | {s['median']['display']} ({per_seed}) |")
+    lines += [
+        "",
+        "| task | best SB3: median env steps | best agent configuration: median env steps | "
+        "ratio SB3 / agent | >= 20x? |",
+        "|---|---|---|---|---|",
+    ]
+    for row in rows:
+        b = row["best_sb3"]
+        a = row.get("best_agent")
+        met = {True: "yes", False: "no", None: "undetermined"}[row.get("target_met")]
+        lines.append(
+            f"| {row['task']} | {b['method'].upper()} {b['display']} | "
+            + (f"{a['config']} {a['display']} | {row['ratio']['display']} | {met} |" if a
+               else "- | - | - |"))
+    lines.append("")
+    if figure:
+        lines += [f"![SB3 learning curves per task]({figure})", "",
+                  "SB3 evaluation score vs env steps, one line per run (seed); dashed: the "
+                  "threshold; vertical: the best agent configuration's median env steps to "
+                  "solve.", ""]
+    return lines
+
+
+def sb3_json_path(a: Any) -> Path:
+    """The SB3 runs' JSON: ``--sb3-json``, default next to ``--json`` as ``<stem>_sb3.json``."""
+    if a.sb3_json:
+        return Path(a.sb3_json)
+    p = Path(a.json)
+    return p.with_name(p.stem + "_sb3" + p.suffix)
+
+
+def run_sb3_suite(a: Any) -> dict[str, Any]:
+    """Run (or resume) the SB3 methods ``a.sb3`` on ``a.tasks`` x ``a.seeds`` (seed-major),
+    appending each finished run to :func:`sb3_json_path` at once; never touches ``--json``."""
+    path = sb3_json_path(a)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    state: dict[str, Any] = {"runs": []}
+    if a.resume and path.is_file():
+        state = json.loads(path.read_text())
+    state.update({
+        "command": " ".join(sys.argv), "smoke": a.smoke,
+        "budget_factor": {m: SB3_BUDGET_FACTOR[m] for m in a.sb3},
+        "machine": f"{os.cpu_count()} cores, {platform.platform()}",
+        "git": subprocess.run(["git", "-C", str(REPO), "rev-parse", "--short", "HEAD"],
+                              capture_output=True, text=True).stdout.strip(),
+    })
+    problems = state.setdefault("problems", {})
+    done = {(r["task"], r["method"], r["seed"]) for r in state["runs"]}
+    for seed in a.seeds:
+        for name in a.tasks:
+            for algo in a.sb3:
+                if (name, algo, seed) in done:
+                    continue
+                if name not in problems:
+                    problems[name] = sb3_eval_problem(name, oracle_cache=a.oracle_cache,
+                                                      smoke=a.smoke)
+                rec = run_sb3(name, algo, seed, problems[name], smoke=a.smoke)
+                state["runs"].append(rec)
+                state["comparison"] = sb3_comparison(state["runs"], [])
+                write_json_atomic(path, state)
+                print(f"{name} {algo} seed {seed}: solved at {rec['env_steps_to_solve']} of "
+                      f"{rec['budget_env_steps']} steps, final {rec['final_score']:.4g}, "
+                      f"{rec['wall_seconds']:.0f} s", flush=True)
+    state["compute_seconds"] = float(sum(r["wall_seconds"] for r in state["runs"]))
+    write_json_atomic(path, state)
+    return state
 
 
 @dataclass(frozen=True)
@@ -534,11 +883,19 @@ class Args:
     """write the markdown report here (with --figures)"""
     oracle: bool = False
     """also compute the true-model oracle's score per task (once per task, kept in --json)"""
+    sb3: tuple[str, ...] = ()
+    """run these SB3 methods (e.g. --sb3 sac ppo) on --tasks x --seeds INSTEAD of the agent, on
+    the same thresholds and evaluation episodes; their runs go to --sb3-json (never --json)"""
+    sb3_json: str = ""
+    """the SB3 runs' JSON (default: next to --json, <stem>_sb3.json); the report reads it"""
 
     def __post_init__(self) -> None:
         unknown = sorted(set(self.tasks) - set(TASKS))
         if unknown or not self.tasks:
             raise ValueError(f"--tasks must name some of {list(TASKS)}, got {list(self.tasks)}")
+        bad = sorted(set(self.sb3) - set(SB3_METHODS))
+        if bad:
+            raise ValueError(f"--sb3 must name some of {list(SB3_METHODS)}, got {list(self.sb3)}")
         for name, given, known in (("planners", self.planners, PLANNERS),
                                    ("regularizations", self.regularizations, REGULARIZATIONS)):
             if not given or set(given) - set(known):
@@ -547,11 +904,15 @@ class Args:
 
 def main(argv: list[str] | None = None) -> dict[str, Any]:
     """The command line (``scripts/bench_suite.py``): :class:`Args` -> :func:`run`."""
-    return cli.main(Args, run, args=argv, outputs=("json", "docs"), folders=("figures",))
+    return cli.main(Args, run, args=argv, outputs=("json", "docs", "sb3_json"),
+                    folders=("figures",))
 
 
 def run(a: Args) -> dict[str, Any]:
-    """Run (or resume) the suite; write the JSON after every run, then figures and report."""
+    """Run (or resume) the suite; write the JSON after every run, then figures and report.
+    With ``--sb3``: the SB3 runs only (:func:`run_sb3_suite`)."""
+    if a.sb3 and not a.report_only:
+        return run_sb3_suite(a)
     path = Path(a.json)
     path.parent.mkdir(parents=True, exist_ok=True)
     state: dict[str, Any] = {"runs": []}
@@ -596,7 +957,10 @@ def run(a: Args) -> dict[str, Any]:
     if a.figures:
         figures(state["runs"], Path(a.figures), state["thresholds"])
         if a.docs:
-            write_markdown(state, Path(a.docs), Path(a.figures))
+            sb3_path = sb3_json_path(a)
+            sb3_runs = json.loads(sb3_path.read_text())["runs"] if sb3_path.is_file() else []
+            sb3_figure(sb3_runs, state["runs"], Path(a.figures))
+            write_markdown(state, Path(a.docs), Path(a.figures), sb3_runs=sb3_runs)
             write_json_atomic(path, state)
     return state
 
