@@ -500,9 +500,9 @@ def write_markdown(state: dict[str, Any], path: Path, figure_dir: Path,
         "## Compute",
         "",
         f"{len(state['runs'])} runs, {state.get('compute_seconds', 0) / 60:.0f} min of wall "
-        f"time in one process (`nice -n 10`, one torch thread) on {state.get('machine', '?')}, "
-        "shared with other jobs (load average about 9 on 2 cores): wall times are inflated "
-        "several-fold and only their ratios within a table row pair mean something.",
+        f"time summed over the runs (one torch thread each) on {state.get('machine', '?')}. "
+        + state.get("compute_note", "Wall times depend on the machine's load: only their "
+                    "ratios within a table row pair mean something."),
         "",
     ]
     notes = ""
