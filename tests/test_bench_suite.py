@@ -109,4 +109,6 @@ def test_comparisons_pair_the_seeds_both_regularizers_ran():
     assert c["steps_to_solve"] == "200 vs 300"
     assert c["wins_ties_losses"] == "1/1/1"  # seed 0 fewer, seed 1 equal, seed 2 unsolved
     assert c["final_score"] == "190 vs 200"
+    assert c["final_scores_better_equal_worse"] == "0/0/3"  # a return: 190 < 200 is worse
+    assert c["final_score_ratio"] is None  # positive returns are not costs
     assert c["wall_ratio"] == 1.0  # same seeds, same per-seed walls

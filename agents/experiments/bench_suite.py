@@ -394,6 +394,9 @@ def comparisons(runs: list[dict[str, Any]]) -> list[dict[str, Any]]:
 
                 wins = sum(steps(x) < steps(y) for x, y in zip(R, N))
                 losses = sum(steps(x) > steps(y) for x, y in zip(R, N))
+                sign = 1.0 if lower_better else -1.0  # +: lower is better (a cost)
+                better = sum(sign * (x["final_score"] - y["final_score"]) < 0 for x, y in zip(R, N))
+                worse = sum(sign * (x["final_score"] - y["final_score"]) > 0 for x, y in zip(R, N))
                 fs = float(np.median([r["final_score"] for r in R]))
                 fn = float(np.median([r["final_score"] for r in N]))
                 wall = [float(np.median([r["wall_seconds_per_phase"]["total"] for r in rs]))
@@ -405,7 +408,12 @@ def comparisons(runs: list[dict[str, Any]]) -> list[dict[str, Any]]:
                         for rs in (R, N)),
                     "wins_ties_losses": f"{wins}/{len(seeds) - wins - losses}/{losses}",
                     "final_score": f"{_fmt(fs)} vs {_fmt(fn)}",
-                    "final_score_ratio": fs / fn if (lower_better and fn != 0) else None,
+                    "final_scores_better_equal_worse": (
+                        f"{better}/{len(seeds) - better - worse}/{worse}"),
+                    # a cost ratio: the arm's cost / oracle, or minus a return that is minus a
+                    # cost (Reacher: both returns < 0); None for positive returns
+                    "final_score_ratio": fs / fn if (lower_better and fn != 0) or (
+                        fs < 0 and fn < 0) else None,
                     "wall_ratio": wall[0] / wall[1],
                 })
     return out
@@ -473,17 +481,20 @@ def write_markdown(state: dict[str, Any], path: Path, figure_dir: Path,
         "optimizer steps)",
         "",
         "Target of issue 12: sampled needs <= 0.7x the env steps to solve of `none`, or reaches "
-        "<= 0.9x its cost at equal env steps, at <= 2x its wall time.",
+        "<= 0.9x its cost at equal env steps, at <= 2x its wall time. Final cost ratio: of the "
+        "median final scores (arm: cost / oracle; Reacher: minus the return, which is minus a "
+        "cost; none for InvertedPendulum's positive returns).",
         "",
         "| task | planner | regularizer R | seeds | env steps to solve: median, R vs none | "
-        "R fewer / equal / more steps (per seed) | final score: median, R vs none | final cost "
-        "ratio R/none | wall ratio R/none |",
-        "|---|---|---|---|---|---|---|---|---|",
+        "R fewer / equal / more steps (per seed) | final score: median, R vs none | R better / "
+        "equal / worse final score (per seed) | final cost ratio R/none | wall ratio R/none |",
+        "|---|---|---|---|---|---|---|---|---|---|",
     ]
     for c in cmp:
         lines.append(f"| {c['task']} | {c['planner']} | {c['regularization']} | "
                      f"{', '.join(map(str, c['seeds']))} | {c['steps_to_solve']} | "
                      f"{c['wins_ties_losses']} | {c['final_score']} | "
+                     f"{c['final_scores_better_equal_worse']} | "
                      f"{_fmt(c['final_score_ratio'])} | {_fmt(c['wall_ratio'])} |")
     lines += [
         "",
