@@ -16,6 +16,7 @@ Episode ``i`` is reset with ``seed + i`` and ``options={"target": targets[i]}``.
 
 from __future__ import annotations
 
+import abc
 import hashlib
 import json
 import os
@@ -86,13 +87,14 @@ def planner_cost(task_cost: ObservationCost, terminal_weight: float = 1.0) -> Ca
     return CasadiCost(stage, terminal, n, m)
 
 
-class SB3Predictor:
+class SB3Predictor(abc.ABC):
     """Stable-Baselines3's ``predict`` over ``_act(observation, state)``: the MPC policies and
     the agent. ``episode_start`` forces a cold start (``state=None``); ``deterministic`` is
     unused (MPC is deterministic), kept for SB3 compatibility."""
 
+    @abc.abstractmethod
     def _act(self, observation: Any, state: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
-        raise NotImplementedError
+        """One step from ``observation`` with the recurrent ``state`` (``None``: cold start)."""
 
     def predict(
         self,
@@ -145,9 +147,8 @@ class MPCPolicy(SB3Predictor):
         self.state_map = task_cost.state_map
         self.termination_fn = termination_fn
         self.last_result = None
+        self._obs_maps: dict[int, ca.Function] = {}  # obs_of_state mapped over N states
         if termination_fn is not None:
-            import casadi as ca
-
             s, p = ca.SX.sym("s", task_cost.state_dim), ca.SX.sym("p", self.spec.obs_dim)
             self._obs_of_state = ca.Function("obs_of_state", [s, p], [
                 ca.SX(self.state_map.observation(s, p))])
@@ -194,8 +195,10 @@ class MPCPolicy(SB3Predictor):
 
         def terminated(X: np.ndarray) -> np.ndarray:
             flat = X.reshape(-1, X.shape[-1])
-            obs = np.asarray(self._obs_of_state.map(flat.shape[0])(
-                flat.T, np.repeat(obs_ref[:, None], flat.shape[0], axis=1))).T
+            N = flat.shape[0]
+            if N not in self._obs_maps:  # the line search calls with a few fixed batch sizes
+                self._obs_maps[N] = self._obs_of_state.map(N)
+            obs = np.asarray(self._obs_maps[N](flat.T, np.repeat(obs_ref[:, None], N, axis=1))).T
             return np.asarray(fn(obs), dtype=bool).reshape(X.shape[:-1])
 
         return {"terminated": terminated}
