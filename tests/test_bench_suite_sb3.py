@@ -16,11 +16,9 @@ import gymnasium as gym
 import numpy as np
 import pytest
 import torch
+from helpers_sb3 import SMALL_RUNS, ScriptedResets, sb3_returns
 from hypothesis import given
 from hypothesis import strategies as st
-from stable_baselines3.common.evaluation import evaluate_policy
-from stable_baselines3.common.monitor import Monitor
-from stable_baselines3.common.vec_env import DummyVecEnv, VecNormalize
 
 from agents.experiments import bench_suite as suite
 from agents.sb3_baselines import train_sb3
@@ -37,31 +35,12 @@ def _one_thread():
     torch.set_num_threads(threads)
 
 
-class SeededResets(gym.Wrapper):
-    """Reset ``i`` uses ``seed + i`` whatever the caller asks for (SB3's ``evaluate_policy``
-    resets on its own)."""
-
-    def __init__(self, env, seed):
-        super().__init__(env)
-        self.seed0, self.i = seed, 0
-
-    def reset(self, *, seed=None, options=None):
-        self.i += 1
-        return self.env.reset(seed=self.seed0 + self.i - 1)
-
-
 # ---------------------------------------------------------------------------------------------
 # train_sb3 on an env's own return
 # ---------------------------------------------------------------------------------------------
 
 
-@pytest.mark.parametrize(
-    "algo, budget, every, hyperparams",
-    [
-        ("sac", 200, 100, {"learning_starts": 50, "batch_size": 32}),
-        ("ppo", 128, 64, {"n_steps": 64, "batch_size": 32, "n_epochs": 2, "normalize": True}),
-    ],
-)
+@pytest.mark.parametrize("algo, budget, every, hyperparams", SMALL_RUNS)
 def test_return_evaluation_is_sb3_return(algo, budget, every, hyperparams):
     rec = train_sb3(algo, IP, budget, seed=2, eval_every=every, eval_targets=None,
                     threshold=None, hyperparams=hyperparams, eval_seed=EVAL_SEED,
@@ -73,14 +52,8 @@ def test_return_evaluation_is_sb3_return(algo, budget, every, hyperparams):
     assert [s for s, _ in rec["curve"]] == list(range(0, budget + 1, every))
     assert not rec["solved"] and rec["steps_to_solve"] is None
 
-    venv = DummyVecEnv([lambda: Monitor(SeededResets(gym.make(IP, max_episode_steps=200),
-                                                     EVAL_SEED))])
-    train_norm = model.get_vec_normalize_env()
-    if hyperparams.get("normalize"):
-        venv = VecNormalize(venv, training=False, norm_reward=False)
-        venv.obs_rms = train_norm.obs_rms
-    returns, _ = evaluate_policy(model, venv, n_eval_episodes=3, deterministic=True,
-                                 return_episode_rewards=True)
+    returns, _ = sb3_returns(model, ScriptedResets(gym.make(IP, max_episode_steps=200), EVAL_SEED),
+                             3, bool(hyperparams.get("normalize")))
     assert rec["curve"][-1][1] == pytest.approx(-np.mean(returns), rel=1e-6)
 
 

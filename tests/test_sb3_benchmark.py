@@ -19,11 +19,9 @@ import gymnasium as gym
 import numpy as np
 import pytest
 import torch
+from helpers_sb3 import SMALL_RUNS, ScriptedResets, sb3_returns
 from hypothesis import given, settings
 from hypothesis import strategies as st
-from stable_baselines3.common.evaluation import evaluate_policy
-from stable_baselines3.common.monitor import Monitor
-from stable_baselines3.common.vec_env import DummyVecEnv, VecNormalize
 
 import envs  # noqa: F401  (registers mbtsr/TwoLinkArm-v0)
 from agents.sb3_baselines import best_of, censored_median, default_hyperparams, train_sb3
@@ -49,32 +47,12 @@ def _load_script():
     return benchmark_sb3
 
 
-class FixedResets(gym.Wrapper):
-    """Reset ``i`` uses ``seed + i`` and ``targets[i]``, whatever the caller asks for (so that
-    SB3's ``evaluate_policy``, which resets on its own, plays the benchmark's episodes)."""
-
-    def __init__(self, env, targets, seed):
-        super().__init__(env)
-        self.targets, self.seed0, self.i = targets, seed, 0
-
-    def reset(self, *, seed=None, options=None):
-        k = self.i % len(self.targets)
-        self.i += 1
-        return self.env.reset(seed=self.seed0 + k, options={"target": self.targets[k]})
-
-
 # ---------------------------------------------------------------------------------------------
 # the callback's cost is minus SB3's episode return
 # ---------------------------------------------------------------------------------------------
 
 
-@pytest.mark.parametrize(
-    "algo, budget, every, hyperparams",
-    [
-        ("sac", 200, 100, {"learning_starts": 50, "batch_size": 32}),
-        ("ppo", 128, 64, {"n_steps": 64, "batch_size": 32, "n_epochs": 2, "normalize": True}),
-    ],
-)
+@pytest.mark.parametrize("algo, budget, every, hyperparams", SMALL_RUNS)
 def test_callback_cost_is_minus_sb3_return(algo, budget, every, hyperparams):
     rec = train_sb3(algo, ARM, budget, seed=3, eval_every=every, eval_targets=TARGETS,
                     threshold=None, hyperparams=hyperparams, eval_seed=EVAL_SEED,
@@ -84,16 +62,8 @@ def test_callback_cost_is_minus_sb3_return(algo, budget, every, hyperparams):
     assert [s for s, _ in rec["curve"]] == list(range(0, budget + 1, every))
     assert rec["env_steps"] == budget and not rec["solved"] and rec["steps_to_solve"] is None
 
-    venv = DummyVecEnv([lambda: Monitor(FixedResets(gym.make(ARM), TARGETS, EVAL_SEED))])
-    train_norm = model.get_vec_normalize_env()
-    if hyperparams.get("normalize"):
-        assert train_norm is not None
-        venv = VecNormalize(venv, training=False, norm_reward=False)
-        venv.obs_rms = train_norm.obs_rms
-    else:
-        assert train_norm is None
-    returns, lengths = evaluate_policy(model, venv, n_eval_episodes=len(TARGETS),
-                                       deterministic=True, return_episode_rewards=True)
+    returns, lengths = sb3_returns(model, ScriptedResets(gym.make(ARM), EVAL_SEED, TARGETS),
+                                   len(TARGETS), bool(hyperparams.get("normalize")))
     assert lengths == [100] * len(TARGETS)
     # the final curve point is the final policy; rewards pass through float32 in the VecEnv
     assert rec["curve"][-1][1] == pytest.approx(-np.mean(returns), rel=1e-5)
