@@ -67,6 +67,9 @@ from mbtsr.validation import as_array
 
 __all__ = [
     "ModelConfig",
+    "PAPER_ACTIVATIONS",
+    "TrajectorySampling",
+    "default_size",
     "ACTIVATIONS",
     "FrozenEnsemble",
     "FORMULATIONS",
@@ -139,6 +142,9 @@ ACTIVATIONS: dict[str, tuple[Callable, Callable, Callable]] = {
 """Supported activations: name -> (torch value, numpy value, derivative ``d(z, act(z), xp)``).
 ``swish(z) = z * sigmoid(z)`` (silu), ``elu`` with alpha 1, ``leaky_relu`` with slope 0.01."""
 
+PAPER_ACTIVATIONS = ("elu", "sigmoid", "tanh", "swish")
+"""The paper's nominal ensemble: one member of each of these activations."""
+
 
 # --------------------------------------------------------------------------------------------
 # Configuration
@@ -151,8 +157,8 @@ class MemberSpec:
 
     :param activation: one of :data:`ACTIVATIONS` (elu, sigmoid, tanh, swish, relu, leaky_relu).
     :param width: hidden units per layer (paper: 20).
-    :param depth: number of hidden layers, 1 (paper, arXiv v1) or 2 (the original code after
-        2018-10; paper appendix "Number of layers").
+    :param depth: number of hidden layers, any integer >= 1 (paper, arXiv v1: 1; the original
+        code after 2018-10 and the paper appendix "Number of layers": 2; PETS: 4).
     :param dropout: dropout probability on hidden units during training, in ``[0, 1)`` (paper
         appendix "Dropout": 0.2 studied). Inverted dropout; off in evaluation and Jacobians.
     :param layer_norm: layer normalization (with gain and bias) of each hidden pre-activation
@@ -174,19 +180,21 @@ class MemberSpec:
             raise ValueError(f"width must be an int >= 1, got {self.width!r}")
         if self.width < 1:
             raise ValueError(f"width must be an int >= 1, got {self.width!r}")
-        if self.depth not in (1, 2) or isinstance(self.depth, bool):
-            raise ValueError(f"depth must be 1 or 2, got {self.depth!r}")
+        if isinstance(self.depth, bool) or not isinstance(self.depth, (int, np.integer)) or (
+                self.depth < 1):
+            raise ValueError(f"depth must be an int >= 1, got {self.depth!r}")
         if not (np.isfinite(self.dropout) and 0.0 <= self.dropout < 1.0):
             raise ValueError(f"dropout must be in [0, 1), got {self.dropout!r}")
         if not isinstance(self.layer_norm, (bool, np.bool_)):
             raise ValueError(f"layer_norm must be a bool, got {self.layer_norm!r}")
         object.__setattr__(self, "width", int(self.width))
+        object.__setattr__(self, "depth", int(self.depth))
         object.__setattr__(self, "dropout", float(self.dropout))
         object.__setattr__(self, "layer_norm", bool(self.layer_norm))
 
 
 def _paper_members() -> tuple[MemberSpec, ...]:
-    return tuple(MemberSpec(a, 20, 1) for a in ("elu", "sigmoid", "tanh", "swish"))
+    return tuple(MemberSpec(a, 20, 1) for a in PAPER_ACTIVATIONS)
 
 
 def _as_matrix_tuple(name: str, a: object, shape: tuple[int, int]) -> tuple[tuple[float, ...], ...]:
@@ -212,6 +220,12 @@ class EnsembleConfig:
         of the training data (see the module docstring); ``False`` feeds raw data as the
         original code did.
     :param seed: seed of the weight initialisation (glorot-uniform weights, zero biases, as Flux).
+    :param probabilistic: every member also has a log-variance head (PETS' probabilistic
+        members, mbrl-lib ``GaussianMLP``): ``logvar = min_lv + softplus(max_lv - softplus(max_lv
+        - raw) - min_lv)`` of a second output layer on the last hidden layer, soft-bounded
+        between learned per-member bounds (initially -10 and 0.5, normalized units); trained
+        with the Gaussian negative log-likelihood (:mod:`mbtsr.training`). The mean is the
+        model (its Jacobian is what the regularizers act on and what planners see).
 
     Arrays are stored as tuples so the config is hashable and JSON-serializable.
     """
@@ -225,6 +239,7 @@ class EnsembleConfig:
     tau: float | tuple[float, ...] = 1.0
     normalize: bool = True
     seed: int = 0
+    probabilistic: bool = False
 
     def __post_init__(self) -> None:
         for name in ("state_dim", "action_dim"):
@@ -264,6 +279,9 @@ class EnsembleConfig:
         if isinstance(self.seed, bool) or not isinstance(self.seed, (int, np.integer)):
             raise ValueError(f"seed must be an int, got {self.seed!r}")
         object.__setattr__(self, "seed", int(self.seed))
+        if not isinstance(self.probabilistic, (bool, np.bool_)):
+            raise ValueError(f"probabilistic must be a bool, got {self.probabilistic!r}")
+        object.__setattr__(self, "probabilistic", bool(self.probabilistic))
 
     @property
     def n_members(self) -> int:
@@ -294,6 +312,22 @@ class EnsembleConfig:
 
 
 
+def default_size(state_dim: int, action_dim: int) -> tuple[int, int]:
+    """The sizing rule of :class:`ModelConfig`: ``(hidden_layers, hidden_width)`` for a model of
+    ``n = state_dim`` states and ``m = action_dim`` inputs (``docs/models.md``, "Sizing").
+
+    PLACEHOLDER until measured.
+    """
+    p = int(state_dim) + int(action_dim)
+    width = int(min(256, max(32, 8 * int(np.ceil(16 * p / 8)))))
+    return 3, width
+
+
+def _int_at_least(name: str, v: object, low: int) -> None:
+    if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < low:
+        raise ValueError(f"{name} must be an integer >= {low}, got {v!r}")
+
+
 @dataclass(frozen=True)
 class ModelConfig:
     """An ensemble architecture before the data's dimensions are known (the agent's ``model``).
@@ -301,48 +335,69 @@ class ModelConfig:
     :class:`EnsembleConfig` needs ``state_dim``/``action_dim`` (and a seed), which a learner only
     knows once it sees its env; this config holds everything else and :meth:`build` adds them.
     It covers the formulations that need no nominal matrices (``"g"``, ``"f"``) and uniform
-    members (one width and depth, activations cycled).
+    members (one width and depth, activations cycled). ``hidden_width``/``hidden_layers`` left
+    at ``None`` follow the task's dimensions by :func:`default_size`; :meth:`paper` is the
+    paper's nominal ensemble (4 members x 1 hidden layer x 20 units, elu/sigmoid/tanh/swish).
 
     :param formulation: ``"g"`` (``x+ = x + g(x, u)``, paper Objective 2) or ``"f"``
         (``x+ = f(x, u)``, Objective 1).
     :param ensemble_size: number of ensemble members (their mean is the model).
-    :param hidden_width: hidden units per layer of each member (paper: 20).
-    :param hidden_layers: hidden layers per member, 1 (paper) or 2.
-    :param activations: member ``k`` uses ``activations[k % len(activations)]``; the default is
-        the paper's nominal ensemble (elu, sigmoid, tanh, swish).
+    :param hidden_width: hidden units per layer of each member; ``None``: :func:`default_size`.
+    :param hidden_layers: hidden layers per member (any integer >= 1); ``None``:
+        :func:`default_size`.
+    :param activations: member ``k`` uses ``activations[k % len(activations)]``.
+    :param probabilistic: members with a bounded log-variance head trained by Gaussian NLL
+        (PETS; :class:`EnsembleConfig`).
     """
 
     formulation: Literal["g", "f"] = "g"
     ensemble_size: int = 4
-    hidden_width: int = 20
-    hidden_layers: int = 1
-    activations: tuple[str, ...] = ("elu", "sigmoid", "tanh", "swish")
+    hidden_width: int | None = None
+    hidden_layers: int | None = None
+    activations: tuple[str, ...] = ("swish",)
+    probabilistic: bool = False
 
     def __post_init__(self) -> None:
         acts = (self.activations,) if isinstance(self.activations, str) else self.activations
         object.__setattr__(self, "activations", tuple(acts))
         if self.formulation not in ("g", "f"):
             raise ValueError(f"formulation must be one of ('g', 'f'), got {self.formulation!r}")
-        for name in ("ensemble_size", "hidden_width"):
-            v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 1:
-                raise ValueError(f"{name} must be an integer >= 1, got {v!r}")
-        if self.hidden_layers not in (1, 2) or isinstance(self.hidden_layers, bool):
-            raise ValueError(f"hidden_layers must be 1 or 2, got {self.hidden_layers!r}")
+        _int_at_least("ensemble_size", self.ensemble_size, 1)
+        for name in ("hidden_width", "hidden_layers"):
+            if getattr(self, name) is not None:
+                _int_at_least(name, getattr(self, name), 1)
         if len(self.activations) == 0 or any(a not in ACTIVATIONS for a in self.activations):
             raise ValueError(
                 f"activations must be a non-empty tuple of names from {sorted(ACTIVATIONS)}, "
                 f"got {self.activations!r}"
             )
+        if not isinstance(self.probabilistic, (bool, np.bool_)):
+            raise ValueError(f"probabilistic must be a bool, got {self.probabilistic!r}")
+
+    @classmethod
+    def paper(cls, **overrides) -> ModelConfig:
+        """The paper's nominal ensemble: 4 members x 1 hidden layer x 20 units with the
+        activations elu, sigmoid, tanh and swish (``overrides`` change fields)."""
+        return cls(**{"ensemble_size": 4, "hidden_width": 20, "hidden_layers": 1,
+                      "activations": PAPER_ACTIVATIONS, **overrides})
+
+    def size(self, state_dim: int, action_dim: int) -> tuple[int, int]:
+        """``(hidden_layers, hidden_width)`` for these dimensions: the fields, or the sizing
+        rule :func:`default_size` for those left at ``None``."""
+        layers, width = default_size(state_dim, action_dim)
+        return (layers if self.hidden_layers is None else int(self.hidden_layers),
+                width if self.hidden_width is None else int(self.hidden_width))
 
     def ensemble_config(self, state_dim: int, action_dim: int, seed: int = 0) -> EnsembleConfig:
         """The :class:`EnsembleConfig` for data of these dimensions (inputs and outputs
         normalized; ``seed`` seeds the weight initialisation)."""
         acts = self.activations
-        members = tuple(MemberSpec(activation=acts[k % len(acts)], width=self.hidden_width,
-                                   depth=self.hidden_layers) for k in range(self.ensemble_size))
+        depth, width = self.size(state_dim, action_dim)
+        members = tuple(MemberSpec(activation=acts[k % len(acts)], width=width, depth=depth)
+                        for k in range(self.ensemble_size))
         return EnsembleConfig(state_dim=state_dim, action_dim=action_dim, members=members,
-                              formulation=self.formulation, normalize=True, seed=seed)
+                              formulation=self.formulation, normalize=True, seed=seed,
+                              probabilistic=bool(self.probabilistic))
 
     def build(self, state_dim: int, action_dim: int, seed: int = 0) -> DynamicsEnsemble:
         """A freshly initialised :class:`DynamicsEnsemble` of :meth:`ensemble_config`."""
@@ -360,10 +415,12 @@ def _torch_affine(h: torch.Tensor, W: torch.Tensor, b: torch.Tensor) -> torch.Te
     return torch.baddbmm(b, h, W)
 
 
-def _ops(xp, affine: Callable, split: Callable, act_index: int) -> SimpleNamespace:
+def _ops(xp, affine: Callable, split: Callable, act_index: int, chain: Callable,
+         softplus: Callable) -> SimpleNamespace:
     """The array operations of the network math in ``xp`` (``torch`` or ``numpy``: both take
     ``keepdims``/``axis`` and ``.mT``); ``act_index`` picks the torch (0) or numpy (1)
-    activation of :data:`ACTIVATIONS`."""
+    activation of :data:`ACTIVATIONS`; ``chain(W, J)`` is ``W^T @ J`` per member and point
+    (``W [K, V, W]``, ``J [K, R, V, in]`` -> ``[K, R, W, in]``)."""
     return SimpleNamespace(
         xp=xp,
         affine=affine,
@@ -374,12 +431,20 @@ def _ops(xp, affine: Callable, split: Callable, act_index: int) -> SimpleNamespa
         sqrt=xp.sqrt,
         cat=lambda parts, axis: xp.concatenate(parts, axis=axis),
         T=lambda a: a.mT,
+        chain=chain,
+        softplus=softplus,
     )
 
 
-_TORCH_OPS = _ops(torch, _torch_affine, lambda z, sizes: z.split(sizes, 0), 0)
+# torch: one batched product per member (einsum -> bmm), never W broadcast over the points
+# (torch.matmul would materialize W^T for every point: K x R x W x W numbers); numpy's matmul
+# broadcasts without copies
+_TORCH_OPS = _ops(torch, _torch_affine, lambda z, sizes: z.split(sizes, 0), 0,
+                  lambda W, J: torch.einsum("kvw,krvi->krwi", W, J), F.softplus)
 _NUMPY_OPS = _ops(np, lambda h, W, b: h @ W + b,
-                  lambda z, sizes: np.split(z, np.cumsum(sizes)[:-1], 0), 1)
+                  lambda z, sizes: np.split(z, np.cumsum(sizes)[:-1], 0), 1,
+                  lambda W, J: W.swapaxes(-1, -2)[:, None] @ J,
+                  lambda z: np.logaddexp(0.0, z))
 
 
 def _activate(z, runs, ops, jac_rows: int):
@@ -430,29 +495,45 @@ def _layer_norm_jacobian(Jz, zhat, inv_std, gain, mask, width, ops):
     return (gain * inv_std)[..., None] * (Jz - mean_J - zh * mean_zJ) * m
 
 
+def _bounded_logvar(raw, max_logvar, min_logvar, ops):
+    """PETS' soft bounds: ``min + softplus(max - softplus(max - raw) - min)`` (mbrl-lib
+    ``GaussianMLP``), elementwise; ``raw [K, B, n]``, bounds ``[K, 1, n]``."""
+    lv = max_logvar - ops.softplus(max_logvar - raw)
+    return min_logvar + ops.softplus(lv - min_logvar)
+
+
+def _hidden_names(depth: int) -> list[tuple[str, str]]:
+    """``[("W1", "b1"), ..., ("W<depth>", "b<depth>")]``: the hidden layers' parameter names."""
+    return [(f"W{layer}", f"b{layer}") for layer in range(1, depth + 1)]
+
+
 def _group_forward(p, g, xn, ops, jac_rows=0, dropout_masks=None):
     """Forward pass (and closed-form Jacobians) of one depth group of stacked members.
 
-    :param p: dict of arrays/tensors: ``W1 [K, in, W]``, ``b1 [K, 1, W]``, (depth 2:
-        ``W2 [K, W, W]``, ``b2 [K, 1, W]``), ``Wo [K, W, n]``, ``bo [K, 1, n]``; if padded or
+    :param p: dict of arrays/tensors: ``W1 [K, in, W]``, ``b1 [K, 1, W]``, for deeper layers
+        ``W<l> [K, W, W]``, ``b<l> [K, 1, W]``, ``Wo [K, W, n]``, ``bo [K, 1, n]``; if padded or
         layer-normed ``mask [K, 1, W]`` and ``width [K, 1, 1]``; with layer norm
-        ``ln_gain1, ln_bias1 (, ln_gain2, ln_bias2) [K, 1, W]`` and, if only some members use it,
-        ``ln_select [K, 1, 1]``.
+        ``ln_gain<l>, ln_bias<l> [K, 1, W]`` and, if only some members use it,
+        ``ln_select [K, 1, 1]``; probabilistic members ``Wv [K, W, n]``, ``bv``,
+        ``max_logvar``, ``min_logvar [K, 1, n]``.
     :param g: static description: ``depth``, ``runs`` (activation, first, stop) over members,
-        ``layer_norm`` (any member), ``padded``.
-    :param xn: ``[B, in]`` normalized inputs, shared by all members.
+        ``layer_norm`` (any member), ``padded``, ``probabilistic``.
+    :param xn: ``[B, in]`` normalized inputs shared by all members, or ``[K, B, in]`` one set
+        per member.
     :param jac_rows: compute Jacobians for the first ``jac_rows`` points (0: none).
     :param dropout_masks: per hidden layer ``[K, B, W]`` inverted-dropout masks, or None.
-    :return: ``y: [K, B, n]`` normalized outputs, ``J: [K, jac_rows, n, in]`` of ``y`` w.r.t.
-        ``xn`` (or None).
+    :return: ``y: [K, B, n]`` normalized outputs (the mean), ``J: [K, jac_rows, n, in]`` of ``y``
+        w.r.t. ``xn`` (or None), ``logvar: [K, B, n]`` (probabilistic members) or None.
     """
     mask = p.get("mask")
-    W_hidden = [p["W1"], p["W2"]] if g.depth == 2 else [p["W1"]]
-    b_hidden = [p["b1"], p["b2"]] if g.depth == 2 else [p["b1"]]
-    Wo = p["Wo"]
+    names = _hidden_names(g.depth)
+    W_hidden = [p[w] for w, _ in names]
+    b_hidden = [p[b] for _, b in names]
+    Wo, Wv = p["Wo"], p.get("Wv")
     if g.padded:  # padded units have exactly zero weights in and out
         W_hidden = [W_hidden[0] * mask] + [W * ops.T(mask) * mask for W in W_hidden[1:]]
         Wo = Wo * ops.T(mask)
+        Wv = None if Wv is None else Wv * ops.T(mask)
     fast_jacobian = g.depth == 1 and not g.layer_norm
     h, J = xn, None
     for layer, (W, b) in enumerate(zip(W_hidden, b_hidden)):
@@ -476,7 +557,7 @@ def _group_forward(p, g, xn, ops, jac_rows=0, dropout_masks=None):
             M = (Wo[:, :, :, None] * ops.T(W)[:, :, None, :]).reshape(K, width, -1)
             J = (d @ M).reshape(K, jac_rows, n_out, -1)
             continue
-        Jz = ops.T(W)[:, None] if J is None else ops.T(W)[:, None] @ J  # [K, R|1, W, in]
+        Jz = ops.T(W)[:, None] if J is None else ops.chain(W, J)  # [K, R|1, W, in]
         if g.layer_norm:
             Jz_ln = _layer_norm_jacobian(
                 Jz, zhat[:, :jac_rows], inv_std[:, :jac_rows], gain, mask, p["width"], ops
@@ -486,8 +567,12 @@ def _group_forward(p, g, xn, ops, jac_rows=0, dropout_masks=None):
         J = d[..., None] * Jz
     y = ops.affine(h, Wo, p["bo"])
     if jac_rows and not fast_jacobian:
-        J = ops.T(Wo)[:, None] @ J
-    return y, J
+        J = ops.chain(Wo, J)
+    logvar = None
+    if Wv is not None:
+        logvar = _bounded_logvar(ops.affine(h, Wv, p["bv"]), p["max_logvar"], p["min_logvar"],
+                                 ops)
+    return y, J, logvar
 
 
 def _glorot(fan_in: int, fan_out: int, gen: torch.Generator) -> torch.Tensor:
@@ -495,11 +580,16 @@ def _glorot(fan_in: int, fan_out: int, gen: torch.Generator) -> torch.Tensor:
     return (torch.rand(fan_in, fan_out, generator=gen, dtype=torch.float64) * 2 - 1) * lim
 
 
+#: initial soft bounds of the log-variance head (normalized units; mbrl-lib's GaussianMLP)
+MAX_LOGVAR_INIT, MIN_LOGVAR_INIT = 0.5, -10.0
+
+
 class _StackedGroup(nn.Module):
     """Members of one depth, weights stacked along a leading member axis ``K``."""
 
     def __init__(
-        self, specs: Sequence[MemberSpec], weights: Sequence[dict], in_dim: int, out_dim: int
+        self, specs: Sequence[MemberSpec], weights: Sequence[dict], in_dim: int, out_dim: int,
+        probabilistic: bool = False,
     ) -> None:
         super().__init__()
         K = len(specs)
@@ -509,6 +599,7 @@ class _StackedGroup(nn.Module):
         self.depth = depth
         self.padded = any(w != W for w in widths)
         self.layer_norm = any(s.layer_norm for s in specs)
+        self.probabilistic = bool(probabilistic)
         self.runs: list[tuple[str, int, int]] = []
         for k, s in enumerate(specs):
             if self.runs and self.runs[-1][0] == s.activation:
@@ -524,11 +615,9 @@ class _StackedGroup(nn.Module):
                 out[k, : a.shape[0], : a.shape[1]] = a
             return out.float()
 
-        self.W1 = nn.Parameter(stacked("W1", (in_dim, W)))
-        self.b1 = nn.Parameter(stacked("b1", (1, W)))
-        if depth == 2:
-            self.W2 = nn.Parameter(stacked("W2", (W, W)))
-            self.b2 = nn.Parameter(stacked("b2", (1, W)))
+        for layer, (w, b) in enumerate(_hidden_names(depth)):
+            setattr(self, w, nn.Parameter(stacked(w, (in_dim if layer == 0 else W, W))))
+            setattr(self, b, nn.Parameter(stacked(b, (1, W))))
         self.Wo = nn.Parameter(stacked("Wo", (W, out_dim)))
         self.bo = nn.Parameter(stacked("bo", (1, out_dim)))
         if self.layer_norm:
@@ -538,6 +627,11 @@ class _StackedGroup(nn.Module):
             if not all(s.layer_norm for s in specs):
                 sel = torch.tensor([float(s.layer_norm) for s in specs]).reshape(K, 1, 1)
                 self.register_buffer("ln_select", sel)
+        if self.probabilistic:
+            self.Wv = nn.Parameter(stacked("Wv", (W, out_dim)))
+            self.bv = nn.Parameter(stacked("bv", (1, out_dim)))
+            self.max_logvar = nn.Parameter(torch.full((K, 1, out_dim), MAX_LOGVAR_INIT))
+            self.min_logvar = nn.Parameter(torch.full((K, 1, out_dim), MIN_LOGVAR_INIT))
         if self.padded or self.layer_norm:
             mask = torch.zeros(K, 1, W)
             for k, w in enumerate(widths):
@@ -547,6 +641,10 @@ class _StackedGroup(nn.Module):
             self.register_buffer("width", width)
         if any(self.dropout_p):
             self.register_buffer("dropout", torch.tensor(self.dropout_p).reshape(K, 1, 1))
+
+    @property
+    def n_members(self) -> int:
+        return self.W1.shape[0]
 
     def arrays(self) -> dict[str, torch.Tensor]:
         """Parameters and buffers by name."""
@@ -560,13 +658,18 @@ class _StackedGroup(nn.Module):
         ]
 
 
-def _member_init(spec: MemberSpec, in_dim: int, out_dim: int, gen: torch.Generator) -> dict:
-    """Flux-style init: glorot-uniform weights ``[fan_in, fan_out]``, zero biases."""
+def _member_init(spec: MemberSpec, in_dim: int, out_dim: int, gen: torch.Generator,
+                 probabilistic: bool = False) -> dict:
+    """Flux-style init: glorot-uniform weights ``[fan_in, fan_out]``, zero biases; drawn in the
+    order W1, W2, ..., Wo (, Wv)."""
     w = spec.width
-    d = {"W1": _glorot(in_dim, w, gen), "b1": torch.zeros(1, w, dtype=torch.float64)}
-    if spec.depth == 2:
-        d["W2"], d["b2"] = _glorot(w, w, gen), torch.zeros(1, w, dtype=torch.float64)
+    d = {}
+    for layer, (wn, bn) in enumerate(_hidden_names(spec.depth)):
+        d[wn] = _glorot(in_dim if layer == 0 else w, w, gen)
+        d[bn] = torch.zeros(1, w, dtype=torch.float64)
     d["Wo"], d["bo"] = _glorot(w, out_dim, gen), torch.zeros(1, out_dim, dtype=torch.float64)
+    if probabilistic:
+        d["Wv"], d["bv"] = _glorot(w, out_dim, gen), torch.zeros(1, out_dim, dtype=torch.float64)
     return d
 
 
@@ -590,7 +693,7 @@ class DynamicsEnsemble(nn.Module):
         n, m = config.state_dim, config.action_dim
         self.state_dim, self.action_dim = n, m
         gen = torch.Generator().manual_seed(config.seed)
-        inits = [_member_init(s, n + m, n, gen) for s in config.members]
+        inits = [_member_init(s, n + m, n, gen, config.probabilistic) for s in config.members]
         # stacked order: grouped by depth, activations contiguous inside a group
         order = sorted(
             range(config.n_members),
@@ -599,9 +702,9 @@ class DynamicsEnsemble(nn.Module):
         self.groups = nn.ModuleList()
         for depth in sorted({config.members[k].depth for k in order}):
             ks = [k for k in order if config.members[k].depth == depth]
-            self.groups.append(
-                _StackedGroup([config.members[k] for k in ks], [inits[k] for k in ks], n + m, n)
-            )
+            self.groups.append(_StackedGroup(
+                [config.members[k] for k in ks], [inits[k] for k in ks], n + m, n,
+                config.probabilistic))
         self._stacked_order = order
         position = np.argsort(order)  # position[k] = stacked index of config member k
         self._to_config_order = (
@@ -683,6 +786,10 @@ class DynamicsEnsemble(nn.Module):
                 g.Wo.copy_(g.Wo.double() * (old["out_std"] / new["out_std"])[None, None, :])
                 g.bo.copy_((g.bo.double() * old["out_std"] + old["out_mean"] - new["out_mean"])
                            / new["out_std"])
+                if g.probabilistic:  # the variance in raw units stays: shift the log-variance
+                    shift = 2.0 * torch.log(old["out_std"] / new["out_std"])
+                    for p in (g.bv, g.max_logvar, g.min_logvar):
+                        p.copy_(p.double() + shift)
 
     # ---------------------------------------------------------------- torch surface
     def _xu_torch(self, x, u) -> torch.Tensor:
@@ -696,32 +803,43 @@ class DynamicsEnsemble(nn.Module):
         check_step_shapes(x.shape, u.shape, n, m)
         return torch.cat([x, u], -1)
 
-    def stacked_forward(self, xu: torch.Tensor, jac_rows: int = 0, *, normalized: bool = False):
+    def stacked_forward(self, xu: torch.Tensor, jac_rows: int = 0, *, normalized: bool = False,
+                        logvar: bool = False):
         """Internal training entry point, members in *stacked* order (``_stacked_order[i]``
         is the config index of the i-th).
 
-        :param xu: ``[B, n+m]`` raw inputs (float32), or normalized ones if ``normalized``
-            (see :meth:`normalize_inputs`).
-        :param jac_rows: also return full-map Jacobians (raw units, skip included) of the first
-            ``jac_rows`` points.
-        :return: ``(y_norm [K, B, n], J [K, jac_rows, n, n+m] or None)`` where ``y_norm`` is the
-            normalized network output, comparable to :meth:`normalized_residual` targets.
+        :param xu: ``[B, n+m]`` raw inputs (float32) shared by all members, or ``[K, B, n+m]``
+            one batch per member (stacked order); normalized ones if ``normalized`` (see
+            :meth:`normalize_inputs`).
+        :param jac_rows: also return full-map Jacobians (raw units, skip included) of the mean
+            at the first ``jac_rows`` points.
+        :param logvar: also return the normalized log-variance ``[K, B, n]`` (probabilistic
+            members; ``None`` otherwise).
+        :return: ``(y_norm [K, B, n], J [K, jac_rows, n, n+m] or None)`` (and the log-variance
+            with ``logvar``) where ``y_norm`` is the normalized network output (the mean),
+            comparable to :meth:`normalized_residual` targets.
         """
         xn = xu if normalized else self.normalize_inputs(xu)
-        ys, Js = [], []
+        ys, Js, lvs = [], [], []
+        start = 0
         for g in self.groups:
+            K = g.n_members
+            xg = xn if xn.dim() == 2 else xn[start:start + K]
+            start += K
             masks = None
             if self.training and any(g.dropout_p):
-                masks = g.dropout_masks(xu.shape[0], self.dropout_generator)
-            y, J = _group_forward(g.arrays(), g, xn, _TORCH_OPS, jac_rows, masks)
+                masks = g.dropout_masks(xn.shape[-2], self.dropout_generator)
+            y, J, lv = _group_forward(g.arrays(), g, xg, _TORCH_OPS, jac_rows, masks)
             ys.append(y)
             Js.append(J)
+            lvs.append(lv)
         y = ys[0] if len(ys) == 1 else torch.cat(ys, 0)
-        if not jac_rows:
-            return y, None
-        J = Js[0] if len(Js) == 1 else torch.cat(Js, 0)
-        J = self.out_std[:, None] * J / self.in_std + self.skip_J
-        return y, J
+        lv = None if lvs[0] is None else lvs[0] if len(lvs) == 1 else torch.cat(lvs, 0)
+        J = None
+        if jac_rows:
+            J = Js[0] if len(Js) == 1 else torch.cat(Js, 0)
+            J = self.out_std[:, None] * J / self.in_std + self.skip_J
+        return (y, J, lv) if logvar else (y, J)
 
     def normalize_inputs(self, xu: torch.Tensor) -> torch.Tensor:
         """``([x, u] - in_mean) / in_std`` for ``xu: [..., n+m]``."""
@@ -762,8 +880,9 @@ class DynamicsEnsemble(nn.Module):
     def member_parameters(self, k: int, *, grad: bool = False) -> dict[str, torch.Tensor]:
         """Views of member ``k``'s (config index) unpadded parameters, or of their gradients.
 
-        Weights are ``[fan_in, fan_out]`` (``y = x @ W + b``): ``W1, b1, (W2, b2), Wo, bo`` and
-        ``ln_gain*/ln_bias*`` with layer norm.
+        Weights are ``[fan_in, fan_out]`` (``y = x @ W + b``): ``W1, b1, W2, b2, ..., Wo, bo``,
+        ``ln_gain*/ln_bias*`` with layer norm and ``Wv, bv, max_logvar, min_logvar``
+        (``[1, n]``) for probabilistic members.
         """
         if not 0 <= k < self.n_members:
             raise ValueError(f"k must be in [0, {self.n_members}), got {k}")
@@ -784,11 +903,11 @@ class DynamicsEnsemble(nn.Module):
                 out[name] = None
                 continue
             t = t[pos]
-            if name == "W2":
-                t = t[:w, :w]
-            elif name == "Wo":
+            if name in ("Wo", "Wv"):
                 t = t[:w]
-            elif name != "bo":  # W1 [in, W], b1/b2/ln_* [1, W]
+            elif name[0] == "W" and name != "W1":  # W2, W3, ... [W, W]
+                t = t[:w, :w]
+            elif name not in ("bo", "bv", "max_logvar", "min_logvar"):  # W1 [in, W], b*/ln_*
                 t = t[:, :w]
             out[name] = t
         return out
@@ -828,6 +947,10 @@ class DynamicsEnsemble(nn.Module):
         """``self.freeze().predict(x, u)``: ensemble ``(mean, std)`` of the next state."""
         return self.freeze().predict(x, u)
 
+    def member_std(self, x: np.ndarray, u: np.ndarray) -> np.ndarray:
+        """``self.freeze().member_std(x, u)``: ``[K, ..., n]`` (probabilistic members)."""
+        return self.freeze().member_std(x, u)
+
     def member_jacobians(self, x: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """``self.freeze().member_jacobians(x, u)``: ``(A [K, T, n, n], B [K, T, n, m])``."""
         return self.freeze().member_jacobians(x, u)
@@ -852,8 +975,9 @@ def _fast_tanh(z, h):
     np.tanh(z, out=h)
 
 
-def _fast_times(z, h):
-    h *= z  # swish rows: z' tanh(z'), h already holds tanh(z')
+def _fast_swish_rest(z, h):
+    h += 1.0  # swish rows: h holds tanh(z'), z' = z/2: swish(z) = z' (tanh(z') + 1)
+    h *= z
 
 
 def _fast_relu(z, h):
@@ -873,23 +997,42 @@ _FAST_VALUE = {
     "swish": _fast_tanh,
     "tanh": _fast_tanh,
 }
-"""Value-only activations of :meth:`FrozenEnsemble.step`: ``f(z, h)`` writes into ``h``. Sigmoid,
-swish and tanh all run as numpy's vectorized tanh, the affine parts folded into the weights::
+"""Value-only activations of the folded ensemble-mean step: ``f(z, h)`` writes into ``h``.
+Sigmoid, swish and tanh all run as numpy's vectorized tanh (no overflow for any finite input),
+with the halving of ``z`` folded into the layer's weights and sigmoid's affine part into the next
+layer's (see :func:`_mean_step_plan`)::
 
-    sigmoid(z) = 0.5 tanh(z/2) + 0.5,     swish(z) = z sigmoid(z) = z' tanh(z') + z',  z' = z/2.
+    sigmoid(z) = 0.5 tanh(z') + 0.5,     swish(z) = z sigmoid(z) = z' (tanh(z') + 1),  z' = z/2.
 """
 
-
-_KERNEL_MAX_BATCH = 4  # rows up to which the compiled kernel beats numpy (measured: ~2x at 1-4
-# rows; at 11 rows numpy's SIMD transcendental functions are faster than scalar libm calls)
-_KERNEL_CODE = {"elu": 0, "sigmoid": 1, "tanh": 1, "swish": 2, "relu": 3, "leaky_relu": 4}
+_KERNEL_MAX_BATCH = 4  # rows up to which the compiled kernel beats numpy for small members
+# (measured: ~2x at 1-4 rows for 4 x 20 units; at 11 rows numpy's SIMD transcendental functions
+# are faster than scalar libm calls; for wide members BLAS wins from 3-4 rows on)
+_KERNEL_CODE = {"elu": 0, "tanh": 1, "sigmoid": 1, "swish": 2, "relu": 3, "leaky_relu": 4}
+"""Activation codes of the compiled kernel on the folded weights (sigmoid rows run as tanh)."""
 
 
 @njit(cache=True)
-def _mean_step_row(x, u, W_inT, W_out, code, z, out):  # pragma: no cover - compiled
-    """One row of :func:`_mean_step_kernel`: ``x [n]``, ``u [m]`` -> ``out [n]`` (``z [H]``
-    scratch)."""
+def _act_scalar(c, z):  # pragma: no cover - compiled
+    """Activation with code ``c`` (:data:`_KERNEL_CODE`, folded weights) of one number."""
+    if c == 0:
+        return z if z > 0.0 else np.expm1(z)
+    if c == 1:
+        return np.tanh(z)
+    if c == 2:
+        return z * (np.tanh(z) + 1.0)
+    if c == 3:
+        return z if z > 0.0 else 0.0
+    return z if z > 0.0 else LEAKY_RELU_SLOPE * z
+
+
+@njit(cache=True)
+def _mean_step_row(x, u, W_inT, Wh, bh, W_out, code, z, z2, out):  # pragma: no cover
+    """One row of :func:`_mean_step_kernel`: ``x [n]``, ``u [m]`` -> ``out [n]`` (``z, z2 [H]``
+    scratch). Layer 1 of all members is one ``[1+n+m, H]`` product; deeper layers are
+    block-diagonal (one ``W x W`` block per member); the output weights hold the mean."""
     n, m, H = x.shape[0], u.shape[0], W_inT.shape[1]
+    L, K, W = Wh.shape[0], Wh.shape[1], Wh.shape[2]
     for h in range(H):
         z[h] = W_inT[0, h]
     for i in range(n):
@@ -900,6 +1043,19 @@ def _mean_step_row(x, u, W_inT, W_out, code, z, out):  # pragma: no cover - comp
         uj = u[j]
         for h in range(H):
             z[h] += uj * W_inT[1 + n + j, h]
+    for h in range(H):
+        z[h] = _act_scalar(code[h], z[h])
+    for layer in range(L):
+        for k in range(K):
+            o = k * W
+            for j in range(W):
+                z2[o + j] = bh[layer, k, j]
+            for i in range(W):
+                a = z[o + i]
+                for j in range(W):
+                    z2[o + j] += a * Wh[layer, k, i, j]
+        for h in range(H):
+            z[h] = _act_scalar(code[h], z2[h])
     for o in range(n):
         out[o] = W_out[H, o]
     for i in range(n):
@@ -911,36 +1067,27 @@ def _mean_step_row(x, u, W_inT, W_out, code, z, out):  # pragma: no cover - comp
         for o in range(n):
             out[o] += uj * W_out[H + 1 + n + j, o]
     for h in range(H):
-        c, zh = code[h], z[h]
-        if c == 0:
-            a = zh if zh > 0.0 else np.expm1(zh)
-        elif c == 1:
-            a = np.tanh(zh)
-        elif c == 2:
-            a = zh * np.tanh(zh)
-        elif c == 3:
-            a = zh if zh > 0.0 else 0.0
-        else:
-            a = zh if zh > 0.0 else LEAKY_RELU_SLOPE * zh
+        a = z[h]
         for o in range(n):
             out[o] += a * W_out[h, o]
 
 
 @njit(cache=True)
-def _mean_step_kernel(x, u, W_inT, W_out, code, out):  # pragma: no cover - compiled
+def _mean_step_kernel(x, u, W_inT, Wh, bh, W_out, code, out):  # pragma: no cover - compiled
     """Compiled ensemble-mean step on the folded weights of :func:`_mean_step_plan`:
-    ``x [B, n]``, ``u [B, m]``, ``W_inT [1+n+m, H]``, ``W_out [H+1+n+m, n]``, ``code [H]``
-    (0 elu, 1 tanh (sigmoid rows are pre-halved), 2 swish as ``z' tanh(z')``, 3 relu,
-    4 leaky relu) -> ``out [B, n]``. The same arithmetic as the numpy path, one row at a time,
-    without numpy's per-call overhead."""
+    ``x [B, n]``, ``u [B, m]``, ``W_inT [1+n+m, H]``, ``Wh [depth-1, K, W, W]``,
+    ``bh [depth-1, K, W]``, ``W_out [H+1+n+m, n]``, ``code [H]`` (:data:`_KERNEL_CODE`) ->
+    ``out [B, n]``. The arithmetic of the numpy path, one row at a time, without numpy's
+    per-call overhead."""
     z = np.empty(W_inT.shape[1])
+    z2 = np.empty(W_inT.shape[1])
     for b in range(x.shape[0]):
-        _mean_step_row(x[b], u[b], W_inT, W_out, code, z, out[b])
+        _mean_step_row(x[b], u[b], W_inT, Wh, bh, W_out, code, z, z2, out[b])
     return out
 
 
 @njit(cache=True)
-def _rollout_policy_kernel(W_inT, W_out, code, x0, X, U, k, K, alphas, lower, upper,
+def _rollout_policy_kernel(W_inT, Wh, bh, W_out, code, x0, X, U, k, K, alphas, lower, upper,
                            max_norm):  # pragma: no cover - compiled
     """Closed-loop rollouts of the frozen ensemble-mean model for all step sizes, in one
     compiled call: ``u_t = clip(U_t + alpha k_t + K_t (x_t - X_t), lower, upper)``;
@@ -951,13 +1098,15 @@ def _rollout_policy_kernel(W_inT, W_out, code, x0, X, U, k, K, alphas, lower, up
     T, m = U.shape
     Xn, Un, alive = rollout_buffers(x0, T, m, alphas.shape[0])
     z = np.empty(W_inT.shape[1])
+    z2 = np.empty(W_inT.shape[1])
     for a in range(alphas.shape[0]):
         biggest = 0.0
         for i in range(x0.shape[0]):
             biggest = max(biggest, abs(x0[i]))
         for t in range(T):
             policy_row(U, k, K, X, t, alphas[a], lower, upper, Xn[a, t], Un[a, t])
-            _mean_step_row(Xn[a, t], Un[a, t], W_inT, W_out, code, z, Xn[a, t + 1])
+            _mean_step_row(Xn[a, t], Un[a, t], W_inT, Wh, bh, W_out, code, z, z2,
+                           Xn[a, t + 1])
             finite, biggest = guard_row(Xn[a, t + 1], X[t + 1], biggest)
             alive[a] &= finite
         if not biggest <= max_norm:
@@ -965,52 +1114,112 @@ def _rollout_policy_kernel(W_inT, W_out, code, x0, X, U, k, K, alphas, lower, up
     return Xn, Un, alive
 
 
-def _mean_step_plan(runs, W: int, W1: np.ndarray, b1: np.ndarray, Wo: np.ndarray,
+def _mean_step_plan(runs, hidden: list[tuple[np.ndarray, np.ndarray]], Wo: np.ndarray,
                     bo: np.ndarray, skip_J: np.ndarray, n_members: int) -> SimpleNamespace:
-    """Folded weights of the ensemble-mean step of ONE depth-1 group without layer norm.
+    """Folded weights of the ensemble-mean step of ONE depth group without layer norm.
 
-    ``W1 [K, n+m, W]``, ``b1 [K, W]``, ``Wo [K, W, n]``, ``bo [K, n]`` already hold the
-    normalization (raw units in and out) and zero padded units. With ``H = K*W`` hidden units,
-    one buffer ``G = [h; 1; x^T; u^T]: [H+1+n+m, B]`` carries everything: ``z = W_in @ G[H:]``
-    with ``W_in = [b1, W1^T]: [H, 1+n+m]``, ``h = act(z)`` and ``x+ = G^T @ W_out`` with
-    ``W_out = [Wo / K; mean bo; skip_J^T]``. Sigmoid and swish rows run as tanh of ``z/2``
-    (rows of ``W_in`` halved); their affine remainders are linear in ``G`` and go into
-    ``W_out``.
+    ``hidden = [(W1 [K, n+m, W], b1 [K, W]), (W2 [K, W, W], b2 [K, W]), ...]``, ``Wo [K, W, n]``,
+    ``bo [K, n]`` already hold the normalization (raw units in and out) and zero padded units;
+    ``runs`` are the members' activations ``(name, first, stop)``. With ``H = K*W`` hidden units
+    per layer, one buffer ``G = [h; 1; x^T; u^T]: [H+1+n+m, B]`` carries everything: the first
+    layer of all members is one product ``z = W_in @ G[H:]`` (``W_in = [b1, W1^T]: [H, 1+n+m]``,
+    member ``k`` in rows ``k*W:(k+1)*W``); a deeper layer one batched product
+    ``[K, W, W] @ [K, W, B]`` (block diagonal over members); the output one product
+    ``G^T @ W_out`` with ``W_out = [Wo / K; mean bo; skip_J^T]`` (the mean and the skip part
+    folded in). Sigmoid and swish rows run as ``tanh(z/2)``: the halving is folded into their
+    layer's weights, sigmoid's affine part ``0.5 t + 0.5`` into the weights that consume it.
+
+    The unfolded weights are kept for the closed-form Jacobians (:func:`_plan_jacobians`).
     """
-    K = W1.shape[0]
-    H = K * W
-    W_in = np.concatenate([b1.reshape(H, 1), W1.transpose(0, 2, 1).reshape(H, -1)], 1)
-    Wo_mean = Wo.reshape(H, -1) / n_members
+    W1, b1 = hidden[0]
+    K, _, W = W1.shape
+    H, n = K * W, Wo.shape[2]
+    acts = [name for name, a, b in runs for _ in range(a, b)]  # per member
+    half = np.array([0.5 if a in ("sigmoid", "swish") else 1.0 for a in acts])
+    sig = np.array([a == "sigmoid" for a in acts])
+    folded = []
+    for layer, (Wl, bl) in enumerate(hidden):
+        Wl, bl = Wl.copy(), bl.copy()
+        if layer:  # consumes the previous layer's sigmoid rows: h = 0.5 t + 0.5
+            bl[sig] += 0.5 * Wl[sig].sum(1)
+            Wl[sig] *= 0.5
+        folded.append((Wl * half[:, None, None], bl * half[:, None]))
+    Wo_mean, bo_mean = Wo / n_members, bo.sum(0) / n_members
+    Wo_f = Wo_mean.copy()
+    bo_f = bo_mean + 0.5 * Wo_mean[sig].sum((0, 1))
+    Wo_f[sig] *= 0.5
+    deep = folded[1:]
+    Wh = np.stack([w for w, _ in deep]) if deep else np.zeros((0, K, W, W))
+    bh = np.stack([b for _, b in deep]) if deep else np.zeros((0, K, W))
+    W_inT = np.concatenate([folded[0][1].reshape(1, H),
+                            folded[0][0].transpose(1, 0, 2).reshape(-1, H)], 0)
     ops: list[tuple[Callable, int, int]] = []
     swish_ops: list[tuple[Callable, int, int]] = []
-    sigmoid, swish = np.zeros(H, bool), np.zeros(H, bool)
+    code = np.zeros(H, np.int64)
     for name, a, b in runs:
         f, first, stop = _FAST_VALUE[name], a * W, b * W
         if f is _fast_tanh and ops and ops[-1][0] is _fast_tanh and ops[-1][2] == first:
             ops[-1] = (f, ops[-1][1], stop)  # one tanh call over consecutive tanh-family rows
         else:
             ops.append((f, first, stop))
-        if name == "sigmoid":
-            sigmoid[first:stop] = True
-        elif name == "swish":
-            swish[first:stop] = True
-            swish_ops.append((_fast_times, first, stop))
-    W_in[sigmoid | swish] *= 0.5
-    W_out = np.concatenate([Wo_mean, bo.sum(0, keepdims=True) / n_members, skip_J.T], 0)
-    W_out[:H][sigmoid] *= 0.5  # Wo (0.5 t + 0.5) = (0.5 Wo) t + 0.5 Wo
-    W_out[H] += 0.5 * Wo_mean[sigmoid].sum(0)
-    W_out[H:] += W_in[swish].T @ Wo_mean[swish]  # Wo (z' t + z') = Wo z' t + (Wo W_in') G_in
-    # mean Jacobian: J[b, (o, i)] = sum_h act'(z[h, b]) M[h, (o, i)],  M = Wo[h, o] W1[i, h] / K
-    M = (Wo[:, :, :, None] * W1.swapaxes(1, 2)[:, :, None, :]).reshape(H, -1) / n_members
-    code = np.zeros(H, np.int64)  # per hidden row, for the compiled kernel
-    for name, a, b in runs:
-        code[a * W:b * W] = _KERNEL_CODE[name]
+        if name == "swish":
+            swish_ops.append((_fast_swish_rest, first, stop))
+        code[first:stop] = _KERNEL_CODE[name]
+    code.setflags(write=False)
+    M = None
+    if len(hidden) == 1:  # mean Jacobian J[b, (o, i)] = sum_h act'(z[h, b]) M[h, (o, i)]
+        M = (Wo[:, :, :, None] * W1.swapaxes(1, 2)[:, :, None, :]).reshape(H, -1) / n_members
+    ro = _readonly
     return SimpleNamespace(
-        W_in=_readonly(W_in), W_out=_readonly(W_out), ops=tuple(ops + swish_ops), H=H,
-        code=_readonly(code), W_inT=_readonly(W_in.T),
-        W1=_readonly(W1.transpose(1, 0, 2).reshape(-1, H)), b1=_readonly(b1.reshape(H)),
-        M=_readonly(M), runs=tuple((name, a * W, b * W) for name, a, b in runs),
+        K=K, W=W, H=H, ops=tuple(ops + swish_ops), code=code,
+        # folded (the step): kernel layout and numpy layout
+        W_inT=ro(W_inT), W_in=ro(W_inT.T), Wh=ro(Wh), WhT_f=ro(Wh.swapaxes(-1, -2)),
+        bh=ro(bh), bhT=ro(bh[..., None]),
+        W_out=ro(np.concatenate([Wo_f.reshape(H, n), bo_f[None], skip_J.T], 0)),
+        # unfolded (the Jacobians)
+        W1T_cat=ro(W1.transpose(0, 2, 1).reshape(H, -1)), b1=ro(b1.reshape(H, 1)),
+        WhT=ro(np.stack([w for w, _ in hidden[1:]]).swapaxes(-1, -2) if deep else Wh),
+        bh_u=ro(np.stack([b for _, b in hidden[1:]])[..., None] if deep else bh[..., None]),
+        W1T=ro(W1.swapaxes(1, 2)), WoT_mean=ro(Wo_mean.swapaxes(1, 2)),
+        M=None if M is None else ro(M), member_runs=tuple(runs),
+        row_runs=tuple((name, a * W, b * W) for name, a, b in runs),
     )
+
+
+def _value_and_derivative(z: np.ndarray, name: str) -> tuple[np.ndarray, np.ndarray]:
+    _, value, derivative = ACTIVATIONS[name]
+    a = value(z)
+    return a, derivative(z, a, np)
+
+
+def _plan_jacobians(plan: SimpleNamespace, xu: np.ndarray, n: int) -> np.ndarray:
+    """Ensemble-mean Jacobian ``[T, n, n+m]`` of the network part at ``xu [T, n+m]``.
+
+    Depth 1: ``act'(z)^T @ M``, one product. Deeper: reverse mode, one batched product per layer
+    for all members (``R <- (R * act'(z_l)) @ W_l^T``, ``R [K, T*n, W]``): ``n`` rows per point
+    instead of the ``n+m`` columns of forward mode.
+    """
+    T, p = xu.shape
+    K, W = plan.K, plan.W
+    z = plan.W1T_cat @ xu.T + plan.b1  # [H, T], member k in rows k*W:(k+1)*W
+    a, d = np.empty_like(z), np.empty_like(z)
+    for name, r0, r1 in plan.row_runs:
+        a[r0:r1], d[r0:r1] = _value_and_derivative(z[r0:r1], name)
+    if plan.M is not None:
+        return (d.T @ plan.M).reshape(T, n, p)
+    ds = [d.reshape(K, W, T)]
+    h = a.reshape(K, W, T)
+    for layer in range(plan.WhT.shape[0]):
+        z = plan.WhT[layer] @ h + plan.bh_u[layer]  # [K, W, T]
+        h, d = np.empty_like(z), np.empty_like(z)
+        for name, k0, k1 in plan.member_runs:
+            h[k0:k1], d[k0:k1] = _value_and_derivative(z[k0:k1], name)
+        ds.append(d)
+    R = plan.WoT_mean[:, None] * ds[-1].swapaxes(1, 2)[:, :, None, :]  # [K, T, n, W]
+    for layer in range(plan.WhT.shape[0] - 1, -1, -1):
+        R = (R.reshape(K, T * n, W) @ plan.WhT[layer]).reshape(K, T, n, W)
+        R *= ds[layer].swapaxes(1, 2)[:, :, None, :]
+    return (R.reshape(K, T * n, W) @ plan.W1T).sum(0).reshape(T, n, p)
 
 
 def _readonly(a: np.ndarray) -> np.ndarray:
@@ -1027,13 +1236,16 @@ class FrozenEnsemble:
     tensors, no autograd, no cache: later training of the ensemble does not change it. It has
     the :class:`mbtsr.dynamics.DynamicsModel` protocol (``step``, ``jacobians``,
     ``state_dim``, ``action_dim``) and the member spread (:meth:`predict`,
-    :meth:`member_predictions`, :meth:`member_jacobians`). Members are in config order.
+    :meth:`member_predictions`, :meth:`member_jacobians`, :meth:`member_std` for probabilistic
+    members). Members are in config order. :meth:`trajectory_sampling` is the view CEM plans
+    with when each particle follows one member (PETS' TS-inf).
 
-    The ensemble-mean :meth:`step` of the paper's architecture (one group of depth-1 members
-    without layer norm) runs on pre-folded weights (see :func:`_mean_step_plan`): a compiled
-    (numba) kernel for up to ``_KERNEL_MAX_BATCH`` rows (the rollouts of iLQR and MPC), two
-    matrix products and vectorized activations for larger batches; other architectures run the
-    generic batched forward pass.
+    The ensemble-mean :meth:`step` of one depth group without layer norm (any depth, width and
+    activations; see :func:`_mean_step_plan`) runs on pre-folded weights: a compiled (numba)
+    kernel for up to ``kernel_rows`` rows (the rollouts of iLQR), one batched product per layer
+    for all members and vectorized activations for larger batches; other architectures (mixed
+    depths, layer norm) run the generic batched forward pass. :meth:`jacobians` of the mean is
+    closed form, reverse mode for deep members (:func:`_plan_jacobians`).
     Public methods validate their inputs; ``_step`` is the unchecked kernel solver loops call
     (see :mod:`mbtsr.dynamics`). Not thread-safe only in the sense that numpy is not.
     """
@@ -1051,28 +1263,33 @@ class FrozenEnsemble:
             if g.padded:  # padded units get exactly zero weights in and out
                 mask = p["mask"]
                 p["W1"] = p["W1"] * mask
-                if g.depth == 2:
-                    p["W2"] = p["W2"] * mask.swapaxes(-1, -2) * mask
-                p["Wo"] = p["Wo"] * mask.swapaxes(-1, -2)
+                for w, _ in _hidden_names(g.depth)[1:]:
+                    p[w] = p[w] * mask.swapaxes(-1, -2) * mask
+                for w in ("Wo", "Wv"):
+                    if w in p:
+                        p[w] = p[w] * mask.swapaxes(-1, -2)
             # ((xu - in_mean) / in_std) @ W1 + b1 = xu @ (W1 / in_std) + (b1 - (in_mean/in_std) W1)
             p["b1"] = p["b1"] - ((in_mean / in_std) @ p["W1"])[:, None, :]
             p["W1"] = p["W1"] / in_std[None, :, None]
-            # out_mean + out_std * (h @ Wo + bo)
+            # out_mean + out_std * (h @ Wo + bo); the log-variance stays normalized
             p["Wo"] = p["Wo"] * out_std
             p["bo"] = p["bo"] * out_std + out_mean
             static = SimpleNamespace(depth=g.depth, runs=list(g.runs), layer_norm=g.layer_norm,
-                                     padded=False)
+                                     padded=False, probabilistic=g.probabilistic)
             groups.append((static, {k: _readonly(v) for k, v in p.items()}))
         plan = None
-        if len(groups) == 1 and groups[0][0].depth == 1 and not groups[0][0].layer_norm:
+        if len(groups) == 1 and not groups[0][0].layer_norm:
             static, p = groups[0]
-            plan = _mean_step_plan(static.runs, p["W1"].shape[2], p["W1"], p["b1"][:, 0],
+            plan = _mean_step_plan(static.runs,
+                                   [(p[w], p[b][:, 0]) for w, b in _hidden_names(static.depth)],
                                    p["Wo"], p["bo"][:, 0], skip_J, ensemble.n_members)
         perm = None if ensemble._to_config_order is None else ensemble._to_config_order.numpy()
         for name, value in (
             ("config", ensemble.config), ("state_dim", n), ("action_dim", m),
             ("n_members", ensemble.n_members), ("_groups", tuple(groups)),
             ("_skip_J", _readonly(skip_J)), ("_perm", perm), ("_plan", plan),
+            ("_order", None if perm is None else np.argsort(perm)),
+            ("_out_std", _readonly(out_std)), ("probabilistic", ensemble.config.probabilistic),
         ):
             object.__setattr__(self, name, value)
 
@@ -1083,23 +1300,44 @@ class FrozenEnsemble:
         return (f"FrozenEnsemble(state_dim={self.state_dim}, action_dim={self.action_dim}, "
                 f"n_members={self.n_members})")
 
+    @property
+    def kernel_rows(self) -> int:
+        """Batches up to this many rows run the compiled kernel (0 without the folded plan):
+        measured, it beats numpy up to 4 rows for small members (``width x depth <= 64``) and
+        up to 2 rows for wide ones (then BLAS's blocked products win)."""
+        if self._plan is None:
+            return 0
+        return _KERNEL_MAX_BATCH if self._plan.W * (self._plan.Wh.shape[0] + 1) <= 64 else 2
+
     # ---------------------------------------------------------------- kernels (no checks)
-    def _members(self, xu: np.ndarray, jac_rows: int):
-        """``xu [B, n+m]`` -> ``(x_next [K, B, n], J [K, B, n, n+m] or None)``, config order,
-        skip parts included."""
-        ys, Js = [], []
+    def _members(self, xu: np.ndarray, jac_rows: int, logvar: bool = False):
+        """``xu [B, n+m]`` (shared) or ``[K, B, n+m]`` (one batch per member, config order) ->
+        ``(x_next [K, B, n], J [K, jac_rows, n, n+m] or None, logvar [K, B, n] or None)`` in
+        config order, skip parts included, the log-variance in normalized units."""
+        per_member = xu.ndim == 3
+        if per_member and self._order is not None:
+            xu = xu[self._order]  # stacked order
+        ys, Js, lvs = [], [], []
+        start = 0
         for static, p in self._groups:
-            y, J = _group_forward(p, static, xu, _NUMPY_OPS, jac_rows)
+            K = p["W1"].shape[0]
+            xg = xu[start:start + K] if per_member else xu
+            start += K
+            y, J, lv = _group_forward(p, static, xg, _NUMPY_OPS, jac_rows)
             ys.append(y)
             Js.append(J)
+            lvs.append(lv)
         y = (ys[0] if len(ys) == 1 else np.concatenate(ys, 0)) + xu @ self._skip_J.T
-        J = None
+        J = lv = None
         if jac_rows:
             J = (Js[0] if len(Js) == 1 else np.concatenate(Js, 0)) + self._skip_J
+        if logvar and lvs[0] is not None:
+            lv = lvs[0] if len(lvs) == 1 else np.concatenate(lvs, 0)
         if self._perm is not None:
             y = y[self._perm]
             J = None if J is None else J[self._perm]
-        return y, J
+            lv = None if lv is None else lv[self._perm]
+        return y, J, lv
 
     def _step(self, x: np.ndarray, u: np.ndarray, t: int | None = None) -> np.ndarray:
         """:meth:`step` on float64 arrays ``x [..., n]``, ``u [..., m]`` known to be valid."""
@@ -1108,13 +1346,13 @@ class FrozenEnsemble:
         B = x.size // n
         plan = self._plan
         if plan is None:
-            y, _ = self._members(np.concatenate([x.reshape(B, n), u.reshape(B, m)], 1), 0)
+            y, _, _ = self._members(np.concatenate([x.reshape(B, n), u.reshape(B, m)], 1), 0)
             return y.mean(0).reshape(*lead, n)
         x, u = x.reshape(B, n), u.reshape(B, m)
-        if B > _KERNEL_MAX_BATCH:  # numpy's vectorized tanh/expm1 win on larger batches
+        if B > self.kernel_rows:  # numpy's BLAS and vectorized activations win on larger work
             return self._step_numpy(x, u).reshape(*lead, n)
         out = np.empty((B, n))
-        _mean_step_kernel(x, u, plan.W_inT, plan.W_out, plan.code, out)
+        _mean_step_kernel(x, u, plan.W_inT, plan.Wh, plan.bh, plan.W_out, plan.code, out)
         return out.reshape(*lead, n)
 
     @property
@@ -1131,22 +1369,45 @@ class FrozenEnsemble:
         plan = self._plan
         if plan is None:
             return None
-        return _rollout_policy_kernel(plan.W_inT, plan.W_out, plan.code, x0, X, U, k, K,
-                                      alphas, lower, upper, float(max_norm))
+        return _rollout_policy_kernel(plan.W_inT, plan.Wh, plan.bh, plan.W_out, plan.code, x0,
+                                      X, U, k, K, alphas, lower, upper, float(max_norm))
 
     def _step_numpy(self, x: np.ndarray, u: np.ndarray) -> np.ndarray:
         """The ensemble-mean step of the folded plan in numpy (the compiled kernel's reference;
-        ``x [B, n]``, ``u [B, m]`` -> ``[B, n]``)."""
-        n, m, plan = self.state_dim, self.action_dim, self._plan
-        B, H = x.shape[0], plan.H
-        G = np.empty((H + 1 + n + m, B))
+        ``x [B, n]``, ``u [B, m]`` -> ``[B, n]``): one product per layer for all members, in
+        the hidden-major layout of :func:`_mean_step_plan` (contiguous rows per activation)."""
+        n, plan = self.state_dim, self._plan
+        B, K, W, H = x.shape[0], plan.K, plan.W, plan.H
+        G = np.empty((H + 1 + n + self.action_dim, B))
         G[H] = 1.0
         G[H + 1:H + 1 + n] = x.T
         G[H + 1 + n:] = u.T
+        L = plan.Wh.shape[0]
         z = plan.W_in @ G[H:]  # [H, B]
-        for act, a, b in plan.ops:
-            act(z[a:b], G[a:b])
+        h = G[:H] if L == 0 else np.empty((H, B))
+        for layer in range(L + 1):
+            if layer:
+                z = plan.WhT_f[layer - 1] @ h.reshape(K, W, B)
+                z += plan.bhT[layer - 1]
+                z = z.reshape(H, B)
+                h = G[:H] if layer == L else np.empty((H, B))
+            for act, a, b in plan.ops:
+                act(z[a:b], h[a:b])
         return G.T @ plan.W_out
+
+    def _member_rows(self, xu: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
+        """Row ``r`` of ``xu [B, n+m]`` through member ``r mod K`` only (trajectory sampling):
+        ``(next state [B, n], aleatoric std [B, n] or None)``; one batched product per layer
+        for all members, each on its own rows."""
+        B, K, n = xu.shape[0], self.n_members, self.state_dim
+        b = -(-B // K)
+        if b * K != B:
+            xu = np.concatenate([xu, np.zeros((b * K - B, xu.shape[1]))])
+        y, _, lv = self._members(xu.reshape(b, K, -1).swapaxes(0, 1), 0, logvar=True)
+        y = y.swapaxes(0, 1).reshape(b * K, n)[:B]
+        if lv is None:
+            return y, None
+        return y, self._out_std * np.exp(0.5 * lv.swapaxes(0, 1).reshape(b * K, n)[:B])
 
     # ---------------------------------------------------------------- public surface
     def step(self, x: np.ndarray, u: np.ndarray, t: int | None = None) -> np.ndarray:
@@ -1157,13 +1418,30 @@ class FrozenEnsemble:
             return self._step(x, u, t)
 
     def member_predictions(self, x: np.ndarray, u: np.ndarray) -> np.ndarray:
-        """Next state of every member: ``x: [..., n]``, ``u: [..., m]`` -> ``[K, ..., n]``."""
+        """Next state (the mean of a probabilistic member) of every member: ``x: [..., n]``,
+        ``u: [..., m]`` -> ``[K, ..., n]``."""
+        return self._member_outputs(x, u)[0]
+
+    def member_std(self, x: np.ndarray, u: np.ndarray) -> np.ndarray:
+        """Aleatoric std of every probabilistic member's prediction (``out_std *
+        exp(logvar / 2)``, raw units): ``x: [..., n]``, ``u: [..., m]`` -> ``[K, ..., n]``.
+
+        :raises ValueError: for deterministic members.
+        """
+        if not self.probabilistic:
+            raise ValueError("member_std needs probabilistic members "
+                             "(EnsembleConfig(probabilistic=True))")
+        return self._member_outputs(x, u)[1]
+
+    def _member_outputs(self, x, u) -> tuple[np.ndarray, np.ndarray | None]:
         x, u = check_step_inputs(x, u, self.state_dim, self.action_dim)
         lead = x.shape[:-1]
         xu = np.concatenate([x, u], -1).reshape(-1, self.state_dim + self.action_dim)
         with np.errstate(over="ignore"):
-            y, _ = self._members(xu, 0)
-        return y.reshape(self.n_members, *lead, self.state_dim)
+            y, _, lv = self._members(xu, 0, logvar=self.probabilistic)
+        shape = (self.n_members, *lead, self.state_dim)
+        std = None if lv is None else (self._out_std * np.exp(0.5 * lv)).reshape(shape)
+        return y.reshape(shape), std
 
     def predict(self, x: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Ensemble mean and spread (population std over members, ``ddof=0``) of the next state.
@@ -1183,7 +1461,7 @@ class FrozenEnsemble:
         x = as_array("x", x, (None, n))
         u = as_array("u", u, (x.shape[0], m))
         with np.errstate(over="ignore"):
-            _, J = self._members(np.concatenate([x, u], -1), x.shape[0])
+            _, J, _ = self._members(np.concatenate([x, u], -1), x.shape[0])
         return J[..., :n], J[..., n:]
 
     def jacobians(self, x: np.ndarray, u: np.ndarray, t: int = 0) -> tuple[np.ndarray, np.ndarray]:
@@ -1196,14 +1474,81 @@ class FrozenEnsemble:
         n, m = self.state_dim, self.action_dim
         x = as_array("x", x, (None, n))
         u = as_array("u", u, (x.shape[0], m))
-        z = np.concatenate([x, u], -1) @ plan.W1 + plan.b1  # [T, H]
-        d = np.empty_like(z)
         with np.errstate(over="ignore"):
-            for name, a, b in plan.runs:
-                _, value, derivative = ACTIVATIONS[name]
-                d[:, a:b] = derivative(z[:, a:b], value(z[:, a:b]), np)
-        J = (d @ plan.M).reshape(-1, n, n + m) + self._skip_J
+            J = _plan_jacobians(plan, np.concatenate([x, u], -1), n) + self._skip_J
         return J[..., :n], J[..., n:]
+
+    def trajectory_sampling(self, seed: int = 0, noise: bool = True) -> TrajectorySampling:
+        """The planning-model view for CEM with trajectory sampling (PETS' TS-inf): its batched
+        ``step`` sends row ``r`` to member ``r mod K`` (see :class:`TrajectorySampling`)."""
+        return TrajectorySampling(self, seed=seed, noise=noise)
+
+
+class TrajectorySampling:
+    """Trajectory sampling on a :class:`FrozenEnsemble` (PETS' TS-inf, Chua et al. 2018): a
+    planning-model view whose batched :meth:`step` sends row ``r`` of a batch to member
+    ``r mod K`` only, so that in a batched rollout every row (a particle) follows one member
+    for the whole horizon. With :class:`mbtsr.cem.CEMOptions` ``particles = P`` the CEM solver
+    rolls each action sequence out as ``P`` consecutive rows and averages their costs: a
+    sequence is scored under every member (``P`` a multiple of ``K``: each member equally
+    often). Probabilistic members with ``noise`` also sample their aleatoric noise, ``mean +
+    std * eps`` with ``eps`` drawn from ``default_rng([seed, t])`` (``t`` the absolute time of
+    the step, ``0`` when ``None``): the same seed gives the same numbers, and the noise of a
+    particle at a time step is the same in every CEM iteration (common random numbers).
+
+    It has no Jacobians (``jacobians`` raises): gradient planners use the ensemble mean, the
+    :class:`FrozenEnsemble` itself. One batched product per layer for all members, each on
+    its own rows (a step costs ``1/K`` of the ensemble-mean step of the same batch).
+
+    :param frozen: the frozen ensemble.
+    :param seed: seed of the aleatoric noise (an int >= 0).
+    :param noise: sample the noise of probabilistic members (``False``: each particle follows
+        its member's mean; deterministic members have no noise).
+    """
+
+    def __init__(self, frozen: FrozenEnsemble, seed: int = 0, noise: bool = True) -> None:
+        if not isinstance(frozen, FrozenEnsemble):
+            raise ValueError(f"frozen must be a FrozenEnsemble, got {type(frozen).__name__}")
+        if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
+            raise ValueError(f"seed must be an integer >= 0, got {seed!r}")
+        if not isinstance(noise, (bool, np.bool_)):
+            raise ValueError(f"noise must be a bool, got {noise!r}")
+        for name, value in (("frozen", frozen), ("state_dim", frozen.state_dim),
+                            ("action_dim", frozen.action_dim), ("n_members", frozen.n_members),
+                            ("seed", int(seed)), ("noise", bool(noise) and frozen.probabilistic)):
+            object.__setattr__(self, name, value)
+
+    def __setattr__(self, name: str, value: object) -> None:
+        raise AttributeError(f"a TrajectorySampling view is immutable (tried to set {name!r})")
+
+    def __repr__(self) -> str:
+        return (f"TrajectorySampling({self.frozen!r}, seed={self.seed}, noise={self.noise})")
+
+    def _step(self, x: np.ndarray, u: np.ndarray, t: int | None = None) -> np.ndarray:
+        """:meth:`step` without input checks."""
+        n, m = self.state_dim, self.action_dim
+        lead = x.shape[:-1]
+        B = x.size // n
+        y, std = self.frozen._member_rows(np.concatenate([x.reshape(B, n), u.reshape(B, m)], 1))
+        if self.noise:
+            rng = np.random.default_rng([self.seed, 0 if t is None else int(t)])
+            y += std * rng.standard_normal(y.shape)
+        return y.reshape(*lead, n)
+
+    def step(self, x: np.ndarray, u: np.ndarray, t: int | None = None) -> np.ndarray:
+        """Next state of row ``r`` under member ``r mod K`` (rows of the flattened batch):
+        ``x: [..., n]``, ``u: [..., m]`` -> ``[..., n]``; ``t`` keys the noise."""
+        x, u = check_step_inputs(x, u, self.state_dim, self.action_dim)
+        if t is not None and (isinstance(t, bool) or not isinstance(t, (int, np.integer))
+                              or t < 0):
+            raise ValueError(f"t must be an integer time index >= 0 or None, got {t!r}")
+        with np.errstate(over="ignore"):
+            return self._step(x, u, t)
+
+    def jacobians(self, x: np.ndarray, u: np.ndarray, t: int = 0):
+        """Not defined for trajectory sampling: raises ``TypeError``."""
+        raise TypeError("TrajectorySampling has no Jacobians: plan with a sampling planner "
+                        "(CEM), or use the FrozenEnsemble itself (the ensemble mean) for iLQR")
 
 
 def _pool_transitions(trajs, n: int, m: int) -> tuple[np.ndarray, np.ndarray]:

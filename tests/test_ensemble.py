@@ -5,6 +5,8 @@ References: central finite differences of the float64 prediction path, torch aut
 written here from ``nn.functional`` primitives (one module per member, a Python loop).
 """
 
+import dataclasses
+import json
 from fractions import Fraction
 
 import numpy as np
@@ -87,6 +89,8 @@ MIXED_MEMBERS = (
     MemberSpec("swish", 7, 2, dropout=0.3),
     MemberSpec("sigmoid", 4, 1),
     MemberSpec("elu", 8, 1),
+    MemberSpec("tanh", 6, 3, layer_norm=True),
+    MemberSpec("relu", 4, 4),
 )
 
 
@@ -98,13 +102,14 @@ MIXED_MEMBERS = (
 @pytest.mark.parametrize("formulation", FORMULATIONS)
 @pytest.mark.parametrize("activation", sorted(ACTIVATIONS))
 def test_jacobians_match_finite_differences(formulation, activation):
-    members = [MemberSpec(activation, 7, 1), MemberSpec(activation, 4, 2)]
+    members = [MemberSpec(activation, 7, 1), MemberSpec(activation, 4, 2),
+               MemberSpec(activation, 5, 3)]
     model = make_model(members, formulation)
     x, u = sample_points()
     A, B = model.member_jacobians(x, u)
     J = np.concatenate([A, B], -1)
     J_fd = finite_difference_jacobians(model, x, u)
-    assert J.shape == (2, len(x), N_STATE, N_STATE + N_INPUT)
+    assert J.shape == (3, len(x), N_STATE, N_STATE + N_INPUT)
     np.testing.assert_allclose(J, J_fd, rtol=1e-6, atol=1e-7)
     # ensemble mean = mean of members, and = finite differences of the mean prediction (step)
     A_mean, B_mean = model.jacobians(x, u)
@@ -116,7 +121,7 @@ def test_jacobians_match_finite_differences(formulation, activation):
 
 @pytest.mark.parametrize("formulation", FORMULATIONS)
 def test_mixed_architecture_jacobians_match_autograd_and_finite_differences(formulation):
-    """Padded widths, depth 1 and 2 groups, layer norm on some members, dropout (inactive in
+    """Padded widths, depth 1 to 4 groups, layer norm on some members, dropout (inactive in
     evaluation): closed form vs finite differences (float64) and torch autograd (float32)."""
     model = make_model(MIXED_MEMBERS, formulation)
     x, u = sample_points(T=5)
@@ -171,7 +176,7 @@ def reference_member_forward(params, spec, xu, model):
         "leaky_relu": lambda z: F.leaky_relu(z, 0.01),
     }[spec.activation]
     h = (xu - model.in_mean) / model.in_std
-    layers = [("W1", "b1")] + ([("W2", "b2")] if spec.depth == 2 else [])
+    layers = [(f"W{i}", f"b{i}") for i in range(1, spec.depth + 1)]
     for i, (w, b) in enumerate(layers, start=1):
         z = F.linear(h, params[w].T, params[b][0])
         if spec.layer_norm:
@@ -369,7 +374,8 @@ def test_load_refuses_foreign_files(tmp_path):
         ({"activation": "gelu"}, "activation"),
         ({"width": 0}, "width"),
         ({"width": 2.5}, "width"),
-        ({"depth": 3}, "depth"),
+        ({"depth": 0}, "depth"),
+        ({"depth": 2.0}, "depth"),
         ({"dropout": 1.0}, "dropout"),
         ({"dropout": -0.1}, "dropout"),
         ({"dropout": float("nan")}, "dropout"),
@@ -441,7 +447,7 @@ def test_model_methods_reject_bad_inputs():
     activation=st.sampled_from(sorted(ACTIVATIONS) + ["gelu", "ELU", ""]),
 )
 def test_member_spec_accepts_exactly_the_valid_values(width, depth, dropout, activation):
-    valid = (width >= 1 and depth in (1, 2) and 0 <= dropout < 1 and activation in ACTIVATIONS)
+    valid = (width >= 1 and depth >= 1 and 0 <= dropout < 1 and activation in ACTIVATIONS)
     if valid:
         spec = MemberSpec(activation, width, depth, dropout)
         assert (spec.width, spec.depth) == (width, depth)
@@ -461,6 +467,8 @@ WIDE_MEMBERS = (  # depth 1, no layer norm, padded widths: the folded fast path 
     MemberSpec("elu", 8),
     MemberSpec("leaky_relu", 6),
 )
+#: one depth-3 group, no layer norm, padded widths: the folded plan with block-diagonal layers
+DEEP_MEMBERS = tuple(MemberSpec(a, w, 3) for a, w in zip(sorted(ACTIVATIONS), (5, 8, 3, 7, 4, 6)))
 
 
 def _normwise_close(a, b, tol):
@@ -475,14 +483,16 @@ def _normwise_close(a, b, tol):
     [[MemberSpec(a, 6) for a in ACTIVATIONS],  # every activation, one wide group
      WIDE_MEMBERS,
      [MemberSpec("swish", 7), MemberSpec("sigmoid", 3), MemberSpec("swish", 5)],  # padded
-     [MemberSpec(a, 4) for a in ACTIVATIONS] + [MemberSpec("tanh", 4, depth=2)]],  # generic path
-    ids=["all-activations", "wide-padded", "padded-swish-sigmoid", "two-depths"],
+     [MemberSpec(a, 4) for a in ACTIVATIONS] + [MemberSpec("tanh", 4, depth=2)],  # generic path
+     DEEP_MEMBERS],
+    ids=["all-activations", "wide-padded", "padded-swish-sigmoid", "two-depths", "deep"],
 )
 def test_step_agrees_with_the_per_member_path(formulation, members):
-    """``step`` (folded fast path: tanh-based sigmoid/swish, biases and skip inside the matrix
-    products) equals the mean of the per-member float64 predictions to rounding."""
+    """``step`` (folded fast path: tanh-based sigmoid/swish, the mean, biases and skip inside the
+    matrix products, deeper layers block-diagonal) equals the mean of the per-member float64
+    predictions to rounding."""
     model = make_model(members, formulation, perturb=0.5).freeze()
-    assert (model._plan is None) == any(s.depth == 2 for s in members)
+    assert (model._plan is None) == (len({s.depth for s in members}) > 1)
     rng = np.random.default_rng(7)
     for lead in [(11,), (), (3, 4), (0,)]:
         x = rng.normal(size=(*lead, N_STATE)) * 3 + 1
@@ -545,7 +555,8 @@ def test_freeze_after_optimizer_steps_and_load_state_dict(make_optimizer):
     _normwise_close(fresh.freeze().step(x, u), other.member_predictions(x, u).mean(0), 1e-14)
 
 
-@pytest.mark.parametrize("members", [WIDE_MEMBERS, MIXED_MEMBERS], ids=["wide", "mixed"])
+@pytest.mark.parametrize("members", [WIDE_MEMBERS, MIXED_MEMBERS, DEEP_MEMBERS],
+                         ids=["wide", "mixed", "deep"])
 def test_frozen_model_matches_the_torch_model_and_is_immutable_float64_numpy(members):
     """The frozen copy: outputs equal the torch (float32) forward pass, Jacobians equal torch
     autograd of it and finite differences of the frozen step; float64 numpy only, read-only."""
@@ -581,7 +592,9 @@ def test_frozen_model_matches_the_torch_model_and_is_immutable_float64_numpy(mem
         frozen.state_dim = 7
     arrays = [a for _, p in frozen._groups for a in p.values()] + [frozen._skip_J]
     if frozen._plan is not None:
-        arrays += [frozen._plan.W_in, frozen._plan.W_out]
+        arrays += [v for v in vars(frozen._plan).values()
+                   if isinstance(v, np.ndarray) and v.dtype.kind == "f"]
+        assert not frozen._plan.code.flags.writeable
     assert all(isinstance(a, np.ndarray) and a.dtype == np.float64 for a in arrays)
     with pytest.raises(ValueError, match="read-only"):
         arrays[0][...] = 0.0
@@ -650,8 +663,8 @@ def test_rollout_of_the_trainable_model_simulates_one_frozen_copy():
 
 
 @pytest.mark.parametrize(
-    "members", [[MemberSpec(a, 6) for a in ACTIVATIONS], WIDE_MEMBERS],
-    ids=["all-activations", "wide-padded"],
+    "members", [[MemberSpec(a, 6) for a in ACTIVATIONS], WIDE_MEMBERS, DEEP_MEMBERS],
+    ids=["all-activations", "wide-padded", "deep"],
 )
 def test_compiled_step_kernel_equals_the_numpy_step(members):
     """The compiled kernel (small batches) and the numpy path (large batches) of the frozen
@@ -671,13 +684,14 @@ def test_compiled_step_kernel_equals_the_numpy_step(members):
     _normwise_close(frozen._step(x[:3], u[:3]), frozen._step_numpy(x[:3], u[:3]), 1e-14)
 
 
+@pytest.mark.parametrize("members", [WIDE_MEMBERS, DEEP_MEMBERS], ids=["wide", "deep"])
 @pytest.mark.parametrize("max_norm", [1e8, 6.0])
-def test_compiled_line_search_rollouts_equal_the_python_rollouts(max_norm):
+def test_compiled_line_search_rollouts_equal_the_python_rollouts(max_norm, members):
     """iLQR's closed-loop rollouts through the frozen ensemble's compiled kernel equal the
     solver's generic rollouts through ``step`` (same states, controls and dead rows)."""
     from mbtsr.ilqr import _rollout_policy
 
-    frozen = make_model(WIDE_MEMBERS, "g", perturb=0.5).freeze()
+    frozen = make_model(members, "g", perturb=0.5).freeze()
 
     class StepOnly:  # the same model seen only through its step: the generic path
         state_dim, action_dim = frozen.state_dim, frozen.action_dim
@@ -696,3 +710,155 @@ def test_compiled_line_search_rollouts_equal_the_python_rollouts(max_norm):
         np.testing.assert_allclose(g, w, rtol=1e-13, atol=1e-13)
     if max_norm < 10:
         assert not got[2].all()  # some rows were declared dead, identically
+
+
+# ------------------------------------------------------------------------------------------
+# the scaled model: per-member batches, probabilistic members, trajectory sampling, sizing
+# ------------------------------------------------------------------------------------------
+
+
+def test_per_member_batches_equal_each_member_on_its_own_batch():
+    """``stacked_forward`` with one batch per member ``[K, B, n+m]`` gives member ``k`` exactly
+    what the shared-input forward gives it on batch ``k`` (outputs and Jacobians), for mixed
+    depths, padded widths and layer norm."""
+    model = make_model(MIXED_MEMBERS, "g")
+    K = model.n_members
+    rng = np.random.default_rng(4)
+    xu = torch.tensor(rng.normal(size=(K, 6, N_STATE + N_INPUT)) * 2, dtype=torch.float32)
+    y, J = model.stacked_forward(xu, jac_rows=6)
+    for i in range(K):
+        y_i, J_i = model.stacked_forward(xu[i], jac_rows=6)
+        torch.testing.assert_close(y[i], y_i[i], rtol=1e-6, atol=1e-6)
+        torch.testing.assert_close(J[i], J_i[i], rtol=1e-5, atol=1e-5)
+
+
+def make_probabilistic(members=DEEP_MEMBERS, seed=0):
+    model = make_model(members, "g", seed=seed, probabilistic=True)
+    with torch.no_grad():  # spread the log-variance head's inputs over its whole range
+        for g in model.groups:
+            g.Wv.mul_(8.0)
+    return model
+
+
+def test_probabilistic_members_have_a_soft_bounded_log_variance():
+    """The log-variance head: PETS' soft bounds (``min <= logvar <= max + log(1 + e^(min -
+    max))``, the formula increasing in the raw output; exactly mbrl-lib's), the frozen std
+    ``out_std * exp(logvar / 2)`` equals the torch head's, and the mean (and its Jacobian) is
+    the deterministic network's."""
+    model = make_probabilistic()
+    x, u = sample_points(T=40)
+    xu = torch.tensor(np.concatenate([x, u], 1), dtype=torch.float32)
+    y, _, lv = model.stacked_forward(xu, logvar=True)
+    g = model.groups[0]
+    assert lv.shape == y.shape == (len(DEEP_MEMBERS), 40, N_STATE)
+    hi = g.max_logvar + torch.log1p(torch.exp(g.min_logvar - g.max_logvar))
+    assert bool((lv <= hi + 1e-6).all()) and bool((lv >= g.min_logvar).all())
+    assert float(lv.detach().max() - lv.detach().min()) > 5.0  # softly reached bounds
+    with torch.no_grad():
+        h = model.normalize_inputs(xu)
+        for i in range(1, g.depth + 1):
+            h = torch.baddbmm(getattr(g, f"b{i}"), h.expand(len(DEEP_MEMBERS), -1, -1)
+                              if h.dim() == 2 else h, getattr(g, f"W{i}") * g.mask
+                              if i == 1 else getattr(g, f"W{i}") * g.mask.mT * g.mask)
+            parts = h.split([b - a for _, a, b in g.runs])
+            h = torch.cat([ACTIVATIONS[name][0](p) for (name, _, _), p in zip(g.runs, parts)])
+        raw = torch.baddbmm(g.bv, h, g.Wv * g.mask.mT)
+        want = g.max_logvar - F.softplus(g.max_logvar - raw)
+        want = g.min_logvar + F.softplus(want - g.min_logvar)
+    torch.testing.assert_close(lv.detach(), want, rtol=1e-5, atol=1e-5)
+    frozen = model.freeze()
+    std = frozen.member_std(x, u)
+    want_std = model.out_std.numpy() * np.exp(0.5 * model._config_order(lv).detach().numpy())
+    np.testing.assert_allclose(std, want_std, rtol=1e-4)
+    # the mean: the member predictions and Jacobians of the same weights without the head
+    det = DynamicsEnsemble(dataclasses.replace(model.config, probabilistic=False))
+    det.load_state_dict({k: v for k, v in model.state_dict().items()
+                         if k.rsplit(".", 1)[-1] not in ("Wv", "bv", "max_logvar", "min_logvar")})
+    np.testing.assert_array_equal(frozen.member_predictions(x, u), det.member_predictions(x, u))
+    np.testing.assert_allclose(np.concatenate(frozen.jacobians(x, u), -1),
+                               finite_difference_jacobians(frozen, x, u).mean(0), atol=1e-7)
+    with pytest.raises(ValueError, match="probabilistic"):
+        det.freeze().member_std(x, u)
+
+
+def test_refit_normalization_keeps_the_mean_and_the_variance_of_probabilistic_members():
+    model = make_probabilistic()
+    x, u = sample_points(T=9)
+    mean, std = model.member_predictions(x, u), model.member_std(x, u)
+    model.refit_normalization([random_trajectory(25, N_STATE, N_INPUT, 9, scale_x=7.0)])
+    np.testing.assert_allclose(model.member_predictions(x, u), mean, rtol=2e-5,
+                               atol=2e-5 * np.abs(mean).max())
+    np.testing.assert_allclose(model.member_std(x, u), std, rtol=2e-5)
+
+
+def test_probabilistic_model_saves_and_old_configs_load(tmp_path):
+    model = make_probabilistic(MIXED_MEMBERS)
+    save_model(model, tmp_path / "p.pt")
+    loaded = load_model(tmp_path / "p.pt")
+    x, u = sample_points()
+    assert loaded.config.probabilistic
+    np.testing.assert_array_equal(loaded.member_std(x, u), model.member_std(x, u))
+    # a config written before the field existed (no "probabilistic" key) is deterministic
+    old = json.loads(EnsembleConfig(N_STATE, N_INPUT).to_json())
+    del old["probabilistic"]
+    assert EnsembleConfig.from_json(json.dumps(old)) == EnsembleConfig(N_STATE, N_INPUT)
+
+
+@pytest.mark.parametrize("members", [DEEP_MEMBERS, MIXED_MEMBERS], ids=["deep", "mixed"])
+@pytest.mark.parametrize("B", [1, 7, 14])
+def test_trajectory_sampling_sends_row_r_to_member_r_mod_k(members, B):
+    """Row ``r`` of a batch is member ``r mod K``'s prediction (config order, any group
+    structure, batches not a multiple of K), with the batch shape kept."""
+    frozen = make_model(members, "nominal", perturb=0.5).freeze()
+    K = frozen.n_members
+    ts = frozen.trajectory_sampling(seed=3)
+    rng = np.random.default_rng(B)
+    x, u = rng.normal(size=(B, N_STATE)) * 2, rng.normal(size=(B, N_INPUT))
+    every = frozen.member_predictions(x, u)  # [K, B, n]
+    got = ts.step(x, u, t=4)
+    want = every[np.arange(B) % K, np.arange(B)]
+    _normwise_close(got, want, 1e-13)
+    assert ts.step(x.reshape(1, B, N_STATE), u.reshape(1, B, N_INPUT)).shape == (1, B, N_STATE)
+    with pytest.raises(TypeError, match="no Jacobians"):
+        ts.jacobians(x, u)
+
+
+def test_trajectory_sampling_of_probabilistic_members_samples_seeded_noise():
+    frozen = make_probabilistic().freeze()
+    K = frozen.n_members
+    B = 3 * K
+    rng = np.random.default_rng(0)
+    x, u = rng.normal(size=(B, N_STATE)), rng.normal(size=(B, N_INPUT))
+    rows = np.arange(B) % K, np.arange(B)
+    mean = frozen.member_predictions(x, u)[rows]
+    std = frozen.member_std(x, u)[rows]
+    ts = frozen.trajectory_sampling(seed=5)
+    eps = np.random.default_rng([5, 7]).standard_normal((B, N_STATE))
+    np.testing.assert_allclose(ts.step(x, u, 7), mean + std * eps, rtol=1e-12, atol=1e-12)
+    np.testing.assert_array_equal(ts.step(x, u, 7), frozen.trajectory_sampling(5).step(x, u, 7))
+    assert not np.allclose(ts.step(x, u, 8), ts.step(x, u, 7))
+    np.testing.assert_allclose(frozen.trajectory_sampling(5, noise=False).step(x, u, 7), mean,
+                               rtol=1e-12, atol=1e-12)
+    for bad, match in (({"seed": -1}, "seed"), ({"noise": "yes"}, "noise")):
+        with pytest.raises(ValueError, match=match):
+            frozen.trajectory_sampling(**bad)
+
+
+def test_model_config_sizes_by_the_rule_and_keeps_the_paper_preset():
+    from mbtsr.ensemble import PAPER_ACTIVATIONS, ModelConfig, default_size
+
+    cfg = ModelConfig().ensemble_config(11, 2, seed=1)
+    layers, width = default_size(11, 2)
+    assert {(s.depth, s.width) for s in cfg.members} == {(layers, width)}
+    assert ModelConfig(hidden_width=33, hidden_layers=5).size(11, 2) == (5, 33)
+    assert ModelConfig(hidden_layers=2).size(11, 2) == (2, width)
+    paper = ModelConfig.paper().ensemble_config(4, 2, seed=5)
+    assert paper == EnsembleConfig(4, 2, seed=5)  # the paper's nominal ensemble
+    assert paper.members == tuple(MemberSpec(a, 20, 1) for a in PAPER_ACTIVATIONS)
+    assert ModelConfig(probabilistic=True).ensemble_config(3, 1).probabilistic
+    for kwargs, match in (({"hidden_layers": 0}, "hidden_layers must be an integer >= 1, got 0"),
+                          ({"hidden_width": 0}, "hidden_width must be an integer >= 1, got 0"),
+                          ({"ensemble_size": 0}, "ensemble_size must be"),
+                          ({"probabilistic": 1}, "probabilistic must be a bool")):
+        with pytest.raises(ValueError, match=match):
+            ModelConfig(**kwargs)
