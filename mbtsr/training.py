@@ -48,7 +48,7 @@ from mbtsr.trajectory import Trajectory
 from mbtsr.validation import check_nonnegative, check_positive
 
 __all__ = ["TrainConfig", "RegularizationConfig", "REGULARIZERS", "DEFAULT_WEIGHTS", "TrainHistory",
-           "train_ensemble"]
+           "MEMBER_DATA", "EARLY_STOPPING", "holdout_mask", "train_ensemble"]
 
 ORIGINAL_LTV_LAMBDA = float(np.sqrt(1000.0))
 """The original's jacprop LTV fit used R1 = I, R2 = 1000 I, i.e. ``lam^2 = R2 / R1 = 1000``."""
@@ -60,25 +60,66 @@ def _check_int(name: str, value: object, minimum: int) -> int:
     return int(value)
 
 
+MEMBER_DATA = ("shared", "order", "bootstrap")
+EARLY_STOPPING = ("member", "ensemble")
+MIN_REL_IMPROVEMENT = 0.01
+"""Early stopping: an evaluation counts as progress (resets ``patience``) when a validation loss
+falls by more than this fraction of its best value (mbrl-lib's ``improvement_threshold``)."""
+LOGVAR_BOUND_WEIGHT = 0.01
+"""Probabilistic members: weight of ``sum(max_logvar) - sum(min_logvar)`` in the loss (PETS)."""
+HOLDOUT_SEED = 20260901
+"""Seed of the hold-out split's uniform stream (fixed, independent of ``TrainConfig.seed``)."""
+
+
 @dataclass(frozen=True)
 class TrainConfig:
     """Optimizer and schedule (Adam, paper Sec. "Nominal model").
 
-    :param epochs: passes over the data. Paper: 1000 for g and 2000 for f, half of that with
-        sampled Jacobian propagation.
+    Two schedules. ``steps=None`` (default): ``epochs`` passes over all data, the paper's
+    schedule (its cost grows with the data). ``steps=S``: a budget of ``S`` gradient steps on
+    minibatches of ``batch`` transitions per call, independent of the data size, with an
+    optional held-out split, early stopping and members that differ by data order or bootstrap
+    (``docs/models.md``, "Training with a step budget").
+
+    :param epochs: passes over the data (``steps=None``). Paper: 1000 for g and 2000 for f, half
+        of that with sampled Jacobian propagation.
     :param lr: Adam step size. The original used 0.02 (linear system, robot v1) and 0.01 (later
         scripts); 0.01 is the default here (normalized data, see ``docs/models.md``).
-    :param batch: ``"trajectory"`` (one optimizer step per trajectory, like the original) or an
-        int minibatch size (transitions drawn without replacement across trajectories).
+    :param batch: ``"trajectory"`` (one optimizer step per trajectory, like the original; epochs
+        only) or an int minibatch size (transitions drawn without replacement across
+        trajectories).
     :param weight_decay: L2 weight decay on weight matrices only (not biases or layer-norm
         parameters). Coupled (added to the gradient before Adam, as in the original) unless
         ``decoupled_weight_decay``.
     :param decoupled_weight_decay: AdamW-style decay ``W <- W - lr * weight_decay * W``.
     :param betas: Adam's ``(beta1, beta2)``.
     :param adam_eps: Adam's epsilon (original: 1e-8; some scripts 1e-2).
-    :param shuffle: reshuffle the batch order every epoch.
-    :param seed: seeds batch order, perturbation sampling and dropout.
+    :param shuffle: reshuffle the batch order every epoch (epochs only; a step budget always
+        draws random minibatches).
+    :param seed: seeds batch order, perturbation sampling, bootstrap resampling and dropout.
     :param progress: show a tqdm progress bar.
+    :param steps: gradient-step budget per call (``None``: ``epochs``). Each step takes one
+        minibatch per member (an epoch-free stream: a random permutation of the member's
+        training rows, redrawn when used up); sampled Jacobian propagation perturbs the
+        minibatch's transitions afresh at every step.
+    :param holdout: fraction of the transitions held out of training to measure the validation
+        loss (steps only). The split is a fixed function of the transition's index (the
+        ``j``-th uniform of a stream seeded with :data:`HOLDOUT_SEED`), so data appended by later
+        calls never moves an old transition between the sets: a warm-started model is never
+        validated on data it trained on. Perturbed copies of held-out transitions are not
+        trained on either.
+    :param eval_every: steps between validation evaluations (steps only; also at step 0 and at
+        the end).
+    :param patience: stop after this many evaluations without an improvement of more than
+        :data:`MIN_REL_IMPROVEMENT` and restore the best weights seen (``None``: train the whole
+        budget, restore nothing). Needs ``holdout > 0`` or ``validation`` data.
+    :param early_stopping: ``"member"``: every member keeps its own best weights by its own
+        validation loss, and training stops when no member improves; ``"ensemble"``: one
+        snapshot by the validation loss of the ensemble mean.
+    :param member_data: ``"shared"``: all members see the same minibatches (the paper's);
+        ``"order"``: every member draws its own minibatch stream (same data, different order);
+        ``"bootstrap"``: every member trains on its own bootstrap resample of the training rows
+        (drawn once per call, as PETS). Not ``"shared"`` needs ``steps``.
     """
 
     epochs: int = 1000
@@ -91,6 +132,12 @@ class TrainConfig:
     shuffle: bool = True
     seed: int = 0
     progress: bool = True
+    steps: int | None = None
+    holdout: float = 0.0
+    eval_every: int = 100
+    patience: int | None = None
+    early_stopping: Literal["member", "ensemble"] = "member"
+    member_data: Literal["shared", "order", "bootstrap"] = "shared"
 
     def __post_init__(self) -> None:
         _check_int("epochs", self.epochs, 0)
@@ -105,6 +152,28 @@ class TrainConfig:
         object.__setattr__(self, "betas", (float(betas[0]), float(betas[1])))
         if isinstance(self.seed, bool) or not isinstance(self.seed, (int, np.integer)):
             raise ValueError(f"seed must be an int, got {self.seed!r}")
+        if self.steps is not None:
+            _check_int("steps", self.steps, 1)
+            if self.batch == "trajectory":
+                raise ValueError("batch must be an int minibatch size with steps, got "
+                                 "'trajectory'")
+        check_nonnegative("holdout", self.holdout)
+        if not self.holdout < 1:
+            raise ValueError(f"holdout must be in [0, 1), got {self.holdout!r}")
+        _check_int("eval_every", self.eval_every, 1)
+        if self.patience is not None:
+            _check_int("patience", self.patience, 1)
+        if self.early_stopping not in EARLY_STOPPING:
+            raise ValueError(f"early_stopping must be one of {EARLY_STOPPING}, got "
+                             f"{self.early_stopping!r}")
+        if self.member_data not in MEMBER_DATA:
+            raise ValueError(f"member_data must be one of {MEMBER_DATA}, got "
+                             f"{self.member_data!r}")
+        if self.steps is None:
+            for name, off in (("holdout", 0.0), ("patience", None), ("member_data", "shared")):
+                if getattr(self, name) != off:
+                    raise ValueError(f"{name}={getattr(self, name)!r} needs steps (a gradient-step "
+                                     "budget); the epoch schedule is the paper's")
 
 
 REGULARIZERS = ("sampled", "exact", "smooth", "none")
@@ -206,18 +275,30 @@ class RegularizationConfig:
 class TrainHistory:
     """What :func:`train_ensemble` returns.
 
-    :param train_loss: ``[epochs]`` data term (mean over members and training transitions,
-        normalized units) accumulated during each epoch.
-    :param val_loss: ``[epochs]`` the same data term on the validation trajectories after each
-        epoch (evaluation mode); empty without validation data.
-    :param penalties: ``{"sampled", "exact", "smooth"} -> [epochs]`` mean per-step value of each
-        active regularizer (before its weight).
+    :param train_loss: epochs: ``[epochs]`` data term (mean over members and training
+        transitions, normalized units; the Gaussian NLL for probabilistic members) accumulated
+        during each epoch. Steps: ``[evaluations]`` its mean over the steps since the previous
+        evaluation (NaN at step 0).
+    :param val_loss: epochs: ``[epochs]`` the squared error of the members' means on the
+        validation trajectories after each epoch (evaluation mode); steps: ``[evaluations]`` the
+        same on the hold-out rows (or ``validation``); empty without validation data.
+    :param penalties: ``{"sampled", "exact", "smooth"} -> [epochs or evaluations]`` mean
+        per-step value of each active regularizer (before its weight).
     :param wall_time: seconds spent in the call.
     :param optimizer_state: Adam's ``state_dict`` (a deep copy) to resume exactly.
     :param steps: optimizer steps taken.
     :param ltv_models: the LTV models used (one per training trajectory) or None.
     :param step_loss: ``[steps]`` the objective minimized at each optimizer step (summed over
         members, weights applied).
+    :param eval_steps: steps only: ``[evaluations]`` the step count at each evaluation.
+    :param val_member_loss: steps only: ``[evaluations, K]`` every member's validation loss
+        (config order).
+    :param val_ensemble_loss: steps only: ``[evaluations]`` the validation loss of the ensemble
+        mean.
+    :param best_steps: with early stopping, ``[K]`` the step count of every member's restored
+        weights (config order); ``None`` otherwise.
+    :param stopped_early: True when ``patience`` ended training before the step budget.
+    :param n_train, n_holdout: transitions trained on and held out.
     """
 
     train_loss: np.ndarray
@@ -228,6 +309,20 @@ class TrainHistory:
     steps: int = 0
     ltv_models: list | None = None
     step_loss: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    eval_steps: np.ndarray = field(default_factory=lambda: np.zeros(0, int))
+    val_member_loss: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)))
+    val_ensemble_loss: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    best_steps: np.ndarray | None = None
+    stopped_early: bool = False
+    n_train: int = 0
+    n_holdout: int = 0
+
+
+def holdout_mask(n: int, fraction: float) -> np.ndarray:
+    """``[n]`` bool, True for held-out transitions: the ``j``-th uniform of a stream seeded with
+    :data:`HOLDOUT_SEED` is below ``fraction``. A prefix property: the mask of ``n`` rows is the
+    first ``n`` entries of the mask of more rows (appended data never moves old rows)."""
+    return np.random.default_rng(HOLDOUT_SEED).random(int(n)) < fraction
 
 
 def _as_trajectory_list(name: str, trajs: object) -> list[Trajectory]:
@@ -300,7 +395,9 @@ def _optimizer(model: DynamicsEnsemble, config: TrainConfig) -> torch.optim.Opti
     """Adam (coupled L2 on weights) or AdamW (decoupled), weight matrices decayed only."""
     weights, others = [], []
     for name, p in model.named_parameters():
-        (weights if name.rsplit(".", 1)[-1] in ("W1", "W2", "Wo") else others).append(p)
+        leaf = name.rsplit(".", 1)[-1]
+        (weights if leaf[0] == "W" and (leaf[1:].isdigit() or leaf in ("Wo", "Wv"))
+         else others).append(p)
     groups = [
         {"params": weights, "weight_decay": config.weight_decay},
         {"params": others, "weight_decay": 0.0},
@@ -361,6 +458,26 @@ def _squared_norm(a: torch.Tensor, dims: tuple[int, ...]) -> torch.Tensor:
 def _sum_squared(y: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
     """``sum (y - target)^2`` with ``y: [K, B, n]`` and ``target: [B, n]`` shared by members."""
     return F.mse_loss(y, target.expand_as(y), reduction="sum")
+
+
+def _data_sum(y: torch.Tensor, target: torch.Tensor, logvar: torch.Tensor | None) -> torch.Tensor:
+    """The data term summed over members, points and dimensions: squared error, or for
+    probabilistic members the Gaussian NLL ``(y - target)^2 exp(-logvar) + logvar`` (without
+    the constant ``log 2 pi`` and the factor 1/2, as mbrl-lib). ``target`` ``[B, n]`` (shared)
+    or ``[K, B, n]``."""
+    if logvar is None:
+        return _sum_squared(y, target)
+    d = y - target
+    return (d * d * torch.exp(-logvar) + logvar).sum()
+
+
+def _logvar_bound_penalty(model: DynamicsEnsemble) -> torch.Tensor | None:
+    """``LOGVAR_BOUND_WEIGHT * (sum max_logvar - sum min_logvar)`` over all members (PETS'
+    term that keeps the soft bounds tight), or None for deterministic members."""
+    if not model.config.probabilistic:
+        return None
+    return LOGVAR_BOUND_WEIGHT * sum(g.max_logvar.sum() - g.min_logvar.sum()
+                                     for g in model.groups)
 
 
 def train_ensemble(
@@ -461,7 +578,15 @@ def train_ensemble(
     rng = np.random.default_rng(config.seed)
     batch_gen = torch.Generator().manual_seed(int(config.seed))
     model.dropout_generator = torch.Generator().manual_seed(int(config.seed) + 1)
+    if config.steps is not None:
+        if config.patience is not None and config.holdout == 0 and val_data is None:
+            raise ValueError("config.patience needs held-out data: config.holdout > 0 or "
+                             "validation trajectories")
+        return _train_steps(model, trajs, config, reg, ltv_models, optimizer, callback, t_start,
+                            xu_raw=xu_raw, xu=xu, target=target, starts=starts,
+                            val=None if val_data is None else (xu_val, target_val))
 
+    probabilistic = model.config.probabilistic
     E = config.epochs
     train_loss = np.zeros(E)
     val_loss = np.zeros(E) if val_data is not None else np.zeros(0)
@@ -511,15 +636,20 @@ def train_ensemble(
                 if xu_pert is not None and not own_copies:
                     parts.append(xu_pert[:, idx].reshape(-1, n + m))
                 inputs = parts[0] if len(parts) == 1 else torch.cat(parts, 0)
-                y, J = model.stacked_forward(inputs, jac_rows=jac_rows, normalized=True)
-                # sum over members of (mean over points of the squared error norm)
-                loss = _sum_squared(y[:, :B], target[idx]) / B
+                y, J, lv = model.stacked_forward(inputs, jac_rows=jac_rows, normalized=True,
+                                                 logvar=True)
+                # sum over members of (mean over points of the squared error norm / the NLL)
+                loss = _data_sum(y[:, :B], target[idx], None if lv is None else lv[:, :B]) / B
                 data_sum += _finite_term("data", float(loss.detach()), epoch) / K * B
                 if reg.sampled and not own_copies:
                     tp = target_pert[:, idx].reshape(-1, n)
-                    pen = _sum_squared(y[:, inputs.shape[0] - tp.shape[0]:], tp) / tp.shape[0]
+                    first = inputs.shape[0] - tp.shape[0]
+                    pen = _data_sum(y[:, first:], tp,
+                                    None if lv is None else lv[:, first:]) / tp.shape[0]
                     loss = loss + reg.sampled_weight * pen
                     pen_sum["sampled"] += _finite_term("sampled", float(pen.detach()), epoch) / K
+                if probabilistic:
+                    loss = loss + _logvar_bound_penalty(model)
                 if reg.exact:
                     scale = B if trajectory_batches else mean_terms
                     pen = _squared_norm(J[:, :B] - J_ltv[idx], (-1, -2)).mean(-1) * scale
@@ -545,10 +675,13 @@ def train_ensemble(
             if own_copies:  # the original's extra batches: one step per copy of each batch
                 for idx in batches:
                     for c in range(reg.n_copies):
-                        y, _ = model.stacked_forward(xu_pert[c, idx], normalized=True)
+                        y, _, lv = model.stacked_forward(xu_pert[c, idx], normalized=True,
+                                                         logvar=True)
                         tp = target_pert[c, idx]
-                        pen = _sum_squared(y, tp) / tp.shape[0]
+                        pen = _data_sum(y, tp, lv) / tp.shape[0]
                         loss = reg.sampled_weight * pen
+                        if probabilistic:
+                            loss = loss + _logvar_bound_penalty(model)
                         pen_sum["sampled"] += _finite_term(
                             "sampled", float(pen.detach()), epoch) / K / reg.n_copies
                         optimizer.zero_grad(set_to_none=True)
@@ -592,3 +725,228 @@ def train_ensemble(
         ltv_models=ltv_models,
         step_loss=np.asarray(step_loss),
     )
+
+
+class _MemberStreams:
+    """Per-member minibatch streams over training rows (stacked member order): a random
+    permutation of the member's rows (all training rows, or its bootstrap resample), consumed
+    ``batch`` rows at a time and redrawn when used up; ``"shared"`` is one stream for all."""
+
+    def __init__(self, rows: torch.Tensor, K: int, batch: int, mode: str,
+                 gen: torch.Generator) -> None:
+        self.gen, self.batch = gen, min(int(batch), rows.numel())
+        n_streams = 1 if mode == "shared" else K
+        if mode == "bootstrap":
+            self.pools = [rows[torch.randint(rows.numel(), (rows.numel(),), generator=gen)]
+                          for _ in range(K)]
+        else:
+            self.pools = [rows] * n_streams
+        self.K = K
+        self.perm = [self._permuted(p) for p in self.pools]
+        self.pos = [0] * n_streams
+
+    def _permuted(self, pool: torch.Tensor) -> torch.Tensor:
+        return pool[torch.randperm(pool.numel(), generator=self.gen)]
+
+    def next(self) -> torch.Tensor:
+        """``[K, batch]`` row indices of the next step."""
+        out = []
+        for s in range(len(self.pools)):
+            if self.pos[s] + self.batch > self.perm[s].numel():
+                self.perm[s], self.pos[s] = self._permuted(self.pools[s]), 0
+            out.append(self.perm[s][self.pos[s]:self.pos[s] + self.batch])
+            self.pos[s] += self.batch
+        idx = torch.stack(out)
+        return idx.expand(self.K, -1) if idx.shape[0] == 1 else idx
+
+
+def _member_slices(model: DynamicsEnsemble) -> list[tuple[torch.nn.Module, int]]:
+    """``(group, position in group)`` of every member in stacked order."""
+    return [(g, i) for g in model.groups for i in range(g.n_members)]
+
+
+def _train_steps(model, trajs, config, reg, ltv_models, optimizer, callback, t_start, *, xu_raw,
+                 xu, target, starts, val) -> TrainHistory:
+    """:func:`train_ensemble` with a gradient-step budget (``config.steps``): see
+    :class:`TrainConfig` and the module docstring. Members in stacked order inside."""
+    n, m = model.state_dim, model.action_dim
+    N, K = xu.shape[0], model.n_members
+    held = holdout_mask(N, config.holdout) if config.holdout > 0 else np.zeros(N, bool)
+    if held.all():
+        held[:] = False  # too little data to hold any out and still train
+    train_rows = torch.as_tensor(np.flatnonzero(~held))
+    if held.any():
+        val = (xu[torch.as_tensor(np.flatnonzero(held))],
+               target[torch.as_tensor(np.flatnonzero(held))])
+    early = config.patience is not None and val is not None
+    gen = torch.Generator().manual_seed(int(config.seed))
+    noise_gen = torch.Generator().manual_seed(int(config.seed) + 2)
+    streams = _MemberStreams(train_rows, K, config.batch, config.member_data, gen)
+    b = streams.batch
+
+    # per-row LTV Jacobians [A B] (and affine terms), perturbation scales, successors
+    J_rows = c_rows = s_rows = next_index = None
+    if reg.needs_ltv:
+        J_rows = torch.as_tensor(np.concatenate([
+            np.concatenate([np.asarray(lm.A)[:tr.T], np.asarray(lm.B)[:tr.T]], -1)
+            for lm, tr in zip(ltv_models, trajs)]), dtype=torch.float32)  # [N, n, n+m]
+        if any(getattr(lm, "c", None) is not None for lm in ltv_models):
+            c_rows = torch.as_tensor(np.concatenate([
+                np.asarray(lm.c)[:tr.T] if getattr(lm, "c", None) is not None
+                else np.zeros((tr.T, n)) for lm, tr in zip(ltv_models, trajs)]),
+                dtype=torch.float32)
+    if reg.sampled:
+        s_rows = torch.as_tensor(np.concatenate([
+            np.broadcast_to(np.concatenate([tr.x[:-1].std(0), tr.u.std(0)]), (tr.T, n + m))
+            for tr in trajs]), dtype=torch.float32)
+    if reg.smooth:
+        nxt = np.arange(1, N + 1)
+        nxt[starts[1:] - 1] = -1
+        next_index = torch.as_tensor(nxt)
+    mean_terms = N / len(trajs)
+    mean_pairs = (N - len(trajs)) / len(trajs)
+    bound = model.config.probabilistic
+
+    active = [k for k in ("sampled", "exact", "smooth") if getattr(reg, k)]
+    evals: list[dict] = []
+    best = np.full(K if config.early_stopping == "member" else 1, np.inf)
+    best_step = np.zeros(K, int)
+    snapshot = ({name: p.detach().clone() for name, p in model.named_parameters()}
+                if early else None)
+    members = _member_slices(model)
+    since_progress = 0
+    stopped = False
+    window = {"data": [], **{k: [] for k in active}}
+    step_loss: list[float] = []
+
+    def evaluate(step: int) -> bool:
+        """Record the validation losses; update the best weights; True: patience ran out."""
+        nonlocal since_progress
+        row = {"step": step, "train": float(np.mean(window["data"])) if window["data"]
+               else np.nan, **{k: float(np.mean(window[k])) if window[k] else np.nan
+                               for k in active}}
+        for v in window.values():
+            v.clear()
+        if val is not None:
+            model.eval()
+            with torch.no_grad():
+                yv, _ = model.stacked_forward(val[0], normalized=True)
+                member = _squared_norm(yv - val[1], (-1,)).mean(-1).numpy().astype(float)
+                ensemble = float(_squared_norm(yv.mean(0) - val[1], (-1,)).mean())
+            model.train()
+            row.update(member=member, ensemble=ensemble)
+        evals.append(row)
+        if callback is not None:
+            model.eval()
+            with torch.no_grad():
+                callback(step, model)
+            model.train()
+        if not early:
+            return False
+        score = row["member"] if config.early_stopping == "member" else np.array([ensemble])
+        better = score < best
+        progress = bool(np.any(score < best * (1.0 - MIN_REL_IMPROVEMENT)))  # losses >= 0
+        if better.any():
+            improved = np.flatnonzero(better) if config.early_stopping == "member" else range(K)
+            with torch.no_grad():
+                for k in improved:
+                    g, i = members[k]
+                    for name, p in g.named_parameters():
+                        snapshot[_param_key(model, g, name)][i].copy_(p[i])
+                    best_step[k] = step
+            best[better] = score[better]
+        since_progress = 0 if progress else since_progress + 1
+        return since_progress >= config.patience
+
+    model.train()
+    bar = tqdm(total=config.steps, desc="train_ensemble", disable=not config.progress,
+               leave=False)
+    steps = 0
+    try:
+        stopped = evaluate(0)
+        while steps < config.steps and not stopped:
+            idx = streams.next()  # [K, b]
+            parts = [xu[idx]]
+            valid = None
+            if reg.smooth:
+                nxt = next_index[idx]
+                valid = (nxt >= 0).float()
+                parts.append(xu[nxt.clamp(min=0)])
+            jac_rows = (2 * b if reg.smooth else b) if (reg.exact or reg.smooth) else 0
+            tp = None
+            if reg.sampled:
+                C = reg.n_copies
+                x0 = xu_raw[idx]  # [K, b, n+m]
+                noise = torch.randn((C, *x0.shape), generator=noise_gen)
+                xp = x0 + reg.sigma * s_rows[idx] * noise  # [C, K, b, n+m]
+                label = torch.einsum("kboi,ckbi->ckbo", J_rows[idx], xp)
+                if c_rows is not None:
+                    label = label + c_rows[idx]
+                with torch.no_grad():
+                    tp = model.normalized_residual(xp, label).transpose(0, 1).reshape(K, C * b, n)
+                    parts.append(model.normalize_inputs(xp).transpose(0, 1).reshape(K, C * b,
+                                                                                     n + m))
+            inputs = torch.cat(parts, 1)
+            y, J, lv = model.stacked_forward(inputs, jac_rows=jac_rows, normalized=True,
+                                             logvar=True)
+            loss = _data_sum(y[:, :b], target[idx], None if lv is None else lv[:, :b]) / b
+            window["data"].append(_finite_term("data", float(loss.detach()), steps) / K)
+            if tp is not None:
+                first = inputs.shape[1] - tp.shape[1]
+                pen = _data_sum(y[:, first:], tp, None if lv is None else lv[:, first:])
+                pen = pen / tp.shape[1]
+                loss = loss + reg.sampled_weight * pen
+                window["sampled"].append(_finite_term("sampled", float(pen.detach()), steps) / K)
+            if bound:
+                loss = loss + _logvar_bound_penalty(model)
+            if reg.exact:
+                pen = _squared_norm(J[:, :b] - J_rows[idx], (-1, -2)).mean(-1) * mean_terms
+                loss = loss + reg.exact_weight * pen.sum()
+                window["exact"].append(_finite_term("exact", float(pen.detach().mean()), steps))
+            if reg.smooth:
+                dJ = _squared_norm(J[:, b:2 * b] - J[:, :b], (-1, -2)) * valid
+                pen = dJ.sum(-1) / valid.sum(-1).clamp(min=1.0) * mean_pairs
+                loss = loss + reg.smooth_weight * pen.sum()
+                window["smooth"].append(_finite_term("smooth", float(pen.detach().mean()), steps))
+            optimizer.zero_grad(set_to_none=True)
+            loss.backward()
+            optimizer.step()
+            step_loss.append(float(loss.detach()))
+            steps += 1
+            bar.update(1)
+            if steps % config.eval_every == 0 or steps == config.steps:
+                stopped = evaluate(steps) and steps < config.steps
+                if config.progress and evals[-1].get("ensemble") is not None:
+                    bar.set_postfix({"val": f"{evals[-1]['ensemble']:.3g}"}, refresh=False)
+        if early:
+            with torch.no_grad():
+                for name, p in model.named_parameters():
+                    p.copy_(snapshot[name])
+    finally:
+        bar.close()
+        model.eval()
+    order = np.argsort(model._stacked_order)  # stacked -> config order
+    has_val = val is not None
+    return TrainHistory(
+        train_loss=np.array([e["train"] for e in evals]),
+        val_loss=np.array([e["member"].mean() for e in evals]) if has_val else np.zeros(0),
+        penalties={k: np.array([e[k] for e in evals]) for k in active},
+        wall_time=time.perf_counter() - t_start,
+        optimizer_state=copy.deepcopy(optimizer.state_dict()),
+        steps=steps,
+        ltv_models=ltv_models,
+        step_loss=np.asarray(step_loss),
+        eval_steps=np.array([e["step"] for e in evals], int),
+        val_member_loss=(np.stack([e["member"] for e in evals])[:, order] if has_val
+                         else np.zeros((0, K))),
+        val_ensemble_loss=np.array([e["ensemble"] for e in evals]) if has_val else np.zeros(0),
+        best_steps=best_step[order] if early else None,
+        stopped_early=bool(stopped),
+        n_train=int(train_rows.numel()),
+        n_holdout=int(held.sum()),
+    )
+
+
+def _param_key(model: DynamicsEnsemble, group: torch.nn.Module, name: str) -> str:
+    """The model-level parameter name of ``group``'s parameter ``name``."""
+    return f"groups.{list(model.groups).index(group)}.{name}"
