@@ -18,7 +18,11 @@ and returns ``X [T+1, n]``, ``U [T, m]`` (finite, inside the bounds), ``cost``, 
    and the best sequence found so far are always candidates (so a warm start is never lost
    and the returned cost never increases over iterations);
 2. ``X_s`` = the batched forward rollout ``model.step(X[:, t], U_s[:, t], t0 + t)``; a
-   non-finite or diverged rollout costs ``inf``;
+   non-finite or diverged rollout costs ``inf``. With ``particles = P > 1`` every sequence is
+   rolled out as ``P`` consecutive rows (``s P, ..., s P + P - 1``) and its cost is the mean of
+   their costs (``inf`` if any diverged): with a trajectory-sampling model
+   (:meth:`mbtsr.ensemble.FrozenEnsemble.trajectory_sampling`, row ``r`` follows member
+   ``r mod K``) a sequence is scored under the members of the ensemble, PETS' TS-inf;
 3. ``J_s = sum_t l(x_t, u_t) + l_T(x_T)``; with ``terminated`` the stage costs after the first
    predicted termination are dropped (the episode would have ended), plus an optional
    ``termination_cost``;
@@ -56,6 +60,8 @@ class CEMOptions:
     :param seed: seed of the samples (an int; same seed, same result).
     :param max_state_norm: a rollout whose ``max |x|`` exceeds this costs ``inf``.
     :param termination_cost: cost added once at a predicted termination (see ``terminated``).
+    :param particles: rollouts per action sequence, their costs averaged (1: one rollout;
+        PETS: 20 with trajectory sampling; see step 2 of the module docstring).
     """
 
     samples: int = 200
@@ -67,9 +73,10 @@ class CEMOptions:
     seed: int = 0
     max_state_norm: float = 1e8
     termination_cost: float = 0.0
+    particles: int = 1
 
     def __post_init__(self) -> None:
-        for name in ("samples", "elites", "iterations"):
+        for name in ("samples", "elites", "iterations", "particles"):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, int | np.integer) or v < 1:
                 raise ValueError(f"options.{name} must be an integer >= 1, got {v!r}")
@@ -96,7 +103,8 @@ class CEMOptions:
 class CEMResult:
     """Outcome of :func:`cem`.
 
-    :param X: ``[T+1, n]`` model rollout of ``U``.
+    :param X: ``[T+1, n]`` model rollout of ``U`` (one row: with trajectory sampling, the
+        first particle's).
     :param U: ``[T, m]`` the best sequence found (finite, inside the bounds).
     :param cost: its cost (``inf`` if every rollout diverged).
     :param status: ``"converged"`` (std below ``tol_std``), ``"max_iter"`` or ``"failed"``
@@ -253,13 +261,16 @@ def cem(
         if np.isfinite(best_J):
             cand[1] = best_U  # ... and the best so far are always candidates
         tr = time.perf_counter()
-        X, alive = rollout_batch(model, x0, cand, int(t0), opts.max_state_norm)
+        rows = cand if opts.particles == 1 else np.repeat(cand, opts.particles, axis=0)
+        X, alive = rollout_batch(model, x0, rows, int(t0), opts.max_state_norm)
         tc = time.perf_counter()
-        J = np.full(opts.samples, np.inf)
+        J = np.full(rows.shape[0], np.inf)
         if alive.any():
-            J[alive] = _costs(cost, X[alive], cand[alive], int(t0), params, terminated,
+            J[alive] = _costs(cost, X[alive], rows[alive], int(t0), params, terminated,
                               opts.termination_cost)
         J[~np.isfinite(J)] = np.inf
+        if opts.particles > 1:
+            J = J.reshape(opts.samples, opts.particles).mean(1)  # inf if any particle diverged
         timings["rollout"] += tc - tr
         timings["cost"] += time.perf_counter() - tc
         order = np.argsort(J, kind="stable")

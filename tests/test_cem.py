@@ -126,3 +126,60 @@ def test_bad_inputs_are_named():
         cem(cost, model, X0, U0, u_min=1, u_max=1)
     with pytest.raises(ValueError, match="x0"):
         cem(cost, model, np.array([np.nan, 0.0]), U0, u_min=-1, u_max=1)
+
+
+class TwoSystems:
+    """A trajectory-sampling-like model: row ``r`` of a batch follows system ``r mod 2``."""
+
+    state_dim, action_dim = 2, 1
+
+    def __init__(self, A2, B2):
+        self.A2, self.B2 = A2, B2
+
+    def step(self, x, u, t=None):
+        x, u = np.atleast_2d(x), np.atleast_2d(u)
+        r = np.arange(len(x)) % 2
+        return np.einsum("rij,rj->ri", self.A2[r], x) + np.einsum("rij,rj->ri", self.B2[r], u)
+
+    def jacobians(self, x, u, t=0):  # pragma: no cover - CEM never asks
+        raise TypeError
+
+
+def test_particles_average_the_cost_over_the_rows_of_a_sequence():
+    """With two particles per sequence on a model whose even rows follow system a and odd rows
+    system b, CEM minimizes the mean of the two costs: the Riccati optimum of the stacked system
+    ``[x_a; x_b]`` driven by the one control (state costs halved). One particle cannot: each
+    sequence is scored on one system only."""
+    A2 = np.stack([A, np.array([[1.0, DT], [-0.5 * DT, 1.0]])])
+    B2 = np.stack([B, 2.0 * B])
+    model = TwoSystems(A2, B2)
+    T = 10
+    cost = quadratic_cost(Q, R, np.zeros(2), Qf=Qf)
+    Aa = np.block([[A2[0], np.zeros((2, 2))], [np.zeros((2, 2)), A2[1]]])
+    Ba = np.concatenate([B2[0], B2[1]])
+    Qa, Qfa = 0.5 * np.kron(np.eye(2), Q), 0.5 * np.kron(np.eye(2), Qf)
+    P = Qfa
+    for _ in range(T):
+        K = np.linalg.solve(R + Ba.T @ P @ Ba, Ba.T @ P @ Aa)
+        P = Qa + Aa.T @ P @ (Aa - Ba @ K)
+    xa = np.concatenate([X0, X0])
+    optimum = float(xa @ P @ xa)
+    opts = dict(samples=400, elites=40, iterations=40, init_std=0.2)
+    res = cem(cost, model, X0, np.zeros((T, 1)), u_min=-50.0, u_max=50.0,
+              options=CEMOptions(particles=2, **opts))
+    def mean_cost(U):  # the mean cost of U over the two systems
+        total = 0.0
+        for Ai, Bi in zip(A2, B2):
+            X = [X0]
+            for u in U:
+                X.append(Ai @ X[-1] + Bi @ u)
+            total += 0.5 * cost.total(np.array(X), U)
+        return total
+
+    assert res.cost == pytest.approx(mean_cost(res.U), rel=1e-10)
+    assert optimum * (1 - 1e-12) <= res.cost <= 1.01 * optimum
+    one = cem(cost, model, X0, np.zeros((T, 1)), u_min=-50.0, u_max=50.0,
+              options=CEMOptions(particles=1, **opts))
+    assert mean_cost(one.U) > 1.01 * optimum
+    with pytest.raises(ValueError, match="options.particles must be an integer >= 1"):
+        CEMOptions(particles=0)

@@ -1,0 +1,260 @@
+"""Model sizing and training measurements on standard MuJoCo tasks (issue 21, items 1-2).
+
+Data: open-loop excitation of a suite task's env (``agents.tasks``), the model state being the
+observation (the agent's custom-env path): alternating episodes of i.i.d. uniform actions over
+the action box ("random") and a low-pass filtered Gaussian (the agent's excitation, window 8, half
+the half-range, "smooth"), ``n_train`` training transitions and ``n_test`` held-out transitions
+from other episodes (other reset seeds).
+
+Two studies (``--study``):
+
+* ``sizes``: ensembles of 4 members of several sizes (``LxW`` = L hidden layers of W units, swish;
+  ``paper`` = the paper's 4 x 1 x 20 with elu/sigmoid/tanh/swish) trained at fixed gradient-step
+  budgets (minibatches of ``batch``, Adam ``lr``, no regularizer, no early stopping, shared
+  minibatches), the held-out one-step error recorded every ``eval_every`` steps, and the wall and
+  CPU time per gradient step; plus the frozen planning model's cost at each size on the task's
+  dimensions (ensemble-mean step of 200 rows, Jacobians at 30 points).
+* ``training``: at one size, the training designs side by side on the same data and budget:
+  the whole budget, hold-out + early stopping per member or on the ensemble mean, members with
+  their own data order or bootstrap, probabilistic members.
+
+Errors on the held-out transitions, of the ensemble mean:
+
+* ``nrmse``: ``sqrt(mean over points and moving dimensions of (error_d / std_d)^2)`` with
+  ``std_d`` the std of the one-step change ``x+ - x`` of dimension ``d`` in the training data
+  (dimensions that never change, such as a goal position, are left out): 1 is the error of
+  predicting the mean change;
+* ``rel_step``: ``sqrt(sum ||error||^2 / sum ||x+ - x||^2)`` in raw units (the issue's "error
+  relative to the true step").
+
+    python scripts/bench_model_sizes.py --task reacher --json runs/sizes_reacher.json
+    python scripts/bench_model_sizes.py --task pusher --study training --size 3x200 --json ...
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import platform
+import time
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from agents.tasks import make_task
+from mbtsr import Trajectory
+from mbtsr.ensemble import DynamicsEnsemble, ModelConfig
+from mbtsr.excitation import filtered_gaussian, filtered_gaussian_std
+from mbtsr.io import write_json_atomic
+from mbtsr.training import TrainConfig, train_ensemble
+
+
+@dataclass(frozen=True)
+class Args:
+    """Held-out one-step error and wall time of ensemble sizes and training designs."""
+
+    task: str = "reacher"
+    """suite task (agents.tasks.TASKS)"""
+    study: str = "sizes"
+    """sizes (ensembles of several sizes at fixed budgets) or training (designs at one size)"""
+    sizes: str = "paper,paper@0.003,2x64,2x128,3x128,3x200,4x200"
+    """comma-separated sizes LxW (swish) or paper (4 x 1 x 20, mixed activations), each
+    optionally with its own Adam step size (``paper@0.003``; default ``lr``)"""
+    size: str = "3x200"
+    """the size of the training study"""
+    budgets: str = "1000,4000"
+    """comma-separated gradient-step budgets (the sizes study trains to the largest and
+    records the error at each)"""
+    n_train: int = 3000
+    """training transitions"""
+    n_test: int = 1000
+    """held-out transitions (other episodes)"""
+    batch: int = 256
+    """minibatch size"""
+    lr: float = 1e-3
+    """Adam step size"""
+    members: int = 4
+    """ensemble size"""
+    eval_every: int = 250
+    """steps between held-out evaluations"""
+    seed: int = 0
+    """seed of the data and the models"""
+    threads: int = 1
+    """torch threads"""
+    json: str = ""
+    """write the results to this JSON file"""
+
+
+def collect(task_name: str, n: int, seed: int) -> list[Trajectory]:
+    """``n`` transitions of open-loop excitation (episodes alternate random and smooth)."""
+    task = make_task(task_name)
+    env = task.make_env()
+    lo, hi = env.action_space.low.astype(float), env.action_space.high.astype(float)
+    mid, half = 0.5 * (lo + hi), 0.5 * (hi - lo)
+    rng = np.random.default_rng(seed)
+    trajs, total, episode = [], 0, 0
+    while total < n:
+        T = env.spec.max_episode_steps or 1000
+        if episode % 2 == 0:
+            U = rng.uniform(lo, hi, size=(T, lo.size))
+        else:
+            sig = filtered_gaussian(T, lo.size, window=8, scale=1.0,
+                                    seed=int(rng.integers(2**31)))
+            U = np.clip(mid + 0.5 * half * sig / filtered_gaussian_std(8, 1.0), lo, hi)
+        obs, _ = env.reset(seed=int(rng.integers(2**31)))
+        xs, us = [np.asarray(obs, float)], []
+        for t in range(min(T, n - total)):
+            obs, _, terminated, truncated, _ = env.step(U[t])
+            xs.append(np.asarray(obs, float))
+            us.append(U[t])
+            if terminated or truncated:
+                break
+        if us:
+            trajs.append(Trajectory(np.array(xs), np.array(us), env.unwrapped.dt,
+                                    meta={"excitation": "random" if episode % 2 == 0
+                                          else "smooth"}))
+            total += len(us)
+        episode += 1
+    env.close()
+    return trajs
+
+
+def errors(model, train: list[Trajectory], test: list[Trajectory]) -> dict:
+    """``nrmse`` and ``rel_step`` of the ensemble mean on ``test`` (module docstring)."""
+    dx_train = np.concatenate([t.x[1:] - t.x[:-1] for t in train])
+    std = dx_train.std(0)
+    moving = std > 1e-9 * (1.0 + np.abs(dx_train).max(0))
+    x = np.concatenate([t.x[:-1] for t in test])
+    u = np.concatenate([t.u for t in test])
+    x_next = np.concatenate([t.x[1:] for t in test])
+    err = model.freeze().step(x, u) - x_next
+    return {
+        "nrmse": float(np.sqrt(np.mean((err[:, moving] / std[moving]) ** 2))),
+        "rel_step": float(np.sqrt(np.sum(err**2) / np.sum((x_next - x) ** 2))),
+    }
+
+
+def model_config(size: str, members: int, **kw) -> ModelConfig:
+    if size == "paper":
+        return ModelConfig.paper(ensemble_size=members, **kw)
+    layers, width = (int(v) for v in size.lower().split("x"))
+    return ModelConfig(ensemble_size=members, hidden_layers=layers, hidden_width=width, **kw)
+
+
+def planning_cost(model: DynamicsEnsemble, seed: int) -> dict:
+    """ms of the frozen ensemble-mean step at 1 and 200 rows and of its Jacobians at 30 points
+    (best of 5)."""
+    frozen = model.freeze()
+    rng = np.random.default_rng(seed)
+    n, m = frozen.state_dim, frozen.action_dim
+    out = {}
+    for name, fn, reps in (
+        ("step_1_ms", lambda a, b: frozen.step(a[:1], b[:1]), 200),
+        ("step_200_ms", lambda a, b: frozen.step(a, b), 20),
+        ("jacobians_30_ms", lambda a, b: frozen.jacobians(a[:30], b[:30]), 20),
+    ):
+        x, u = rng.normal(size=(200, n)), rng.normal(size=(200, m))
+        fn(x, u)
+        best = np.inf
+        for _ in range(5):
+            tic = time.perf_counter()
+            for _ in range(reps):
+                fn(x, u)
+            best = min(best, (time.perf_counter() - tic) / reps)
+        out[name] = best * 1e3
+    return out
+
+
+def train_one(cfg: ModelConfig, train, test, n, m, seed, tcfg: TrainConfig) -> dict:
+    model = cfg.build(n, m, seed=seed)
+    wall, cpu = time.perf_counter(), time.process_time()
+    hist = train_ensemble(model, train, tcfg, validation=test)
+    wall, cpu = time.perf_counter() - wall, time.process_time() - cpu
+    return {"model": model, "hist": hist, "wall_s": wall, "cpu_s": cpu,
+            "ms_per_step": wall / max(hist.steps, 1) * 1e3,
+            "cpu_ms_per_step": cpu / max(hist.steps, 1) * 1e3}
+
+
+def run(args: Args) -> dict:
+    torch.set_num_threads(args.threads)
+    t_start = time.perf_counter()
+    load_start = os.getloadavg()
+    train = collect(args.task, args.n_train, args.seed)
+    test = collect(args.task, args.n_test, args.seed + 1000)
+    n, m = train[0].n, train[0].m
+    budgets = sorted(int(b) for b in args.budgets.split(","))
+    result: dict = {"args": dataclasses.asdict(args), "n": n, "m": m,
+                    "episodes_train": len(train), "episodes_test": len(test)}
+    # the normalized validation loss of train_ensemble is sum_d (err_d / out_std_d)^2 with
+    # out_std the residual std of the training data: nrmse^2 * n_moving for the g model
+    dx = np.concatenate([t.x[1:] - t.x[:-1] for t in train])
+    n_moving = int(np.sum(dx.std(0) > 1e-9 * (1.0 + np.abs(dx).max(0))))
+    result["n_moving"] = n_moving
+    rows = {}
+    if args.study == "sizes":
+        for label in args.sizes.split(","):
+            size, _, lr = label.partition("@")
+            cfg = model_config(size, args.members)
+            tcfg = TrainConfig(steps=budgets[-1], batch=args.batch, lr=float(lr or args.lr),
+                               eval_every=args.eval_every, seed=args.seed, progress=False)
+            r = train_one(cfg, train, test, n, m, args.seed, tcfg)
+            hist = r["hist"]
+            curve = np.sqrt(hist.val_ensemble_loss / n_moving)
+            at = {str(b): float(curve[list(hist.eval_steps).index(b)]) for b in budgets
+                  if b in hist.eval_steps}
+            rows[label] = {
+                "lr": tcfg.lr,
+                "layers_x_width": [int(v) for v in cfg.size(n, m)],
+                "parameters": int(sum(p.numel() for p in r["model"].parameters())),
+                "nrmse_at_budget": at,
+                "nrmse_curve": {"steps": hist.eval_steps.tolist(), "nrmse": curve.tolist()},
+                "best_nrmse": float(curve.min()),
+                "best_step": int(hist.eval_steps[int(curve.argmin())]),
+                **errors(r["model"], train, test),
+                "ms_per_step": r["ms_per_step"], "cpu_ms_per_step": r["cpu_ms_per_step"],
+                "train_wall_s": r["wall_s"],
+                "planning": planning_cost(r["model"], args.seed),
+            }
+            row = rows[label]
+            print(f"{args.task} {label:12s}: nrmse {at} (best {row['best_nrmse']:.3f} at "
+                  f"{row['best_step']}), rel_step {row['rel_step']:.3f}, "
+                  f"{r['ms_per_step']:.1f} ms/step (CPU {r['cpu_ms_per_step']:.1f})", flush=True)
+    elif args.study == "training":
+        budget = budgets[-1]
+        base = {"steps": budget, "batch": args.batch, "lr": args.lr, "seed": args.seed,
+                "progress": False}
+        es = {"holdout": 0.1, "patience": 5, "eval_every": 100}
+        designs = {
+            "budget": ({}, {}),
+            "es_member": ({**es, "early_stopping": "member"}, {}),
+            "es_ensemble": ({**es, "early_stopping": "ensemble"}, {}),
+            "es_member_order": ({**es, "member_data": "order"}, {}),
+            "es_member_bootstrap": ({**es, "member_data": "bootstrap"}, {}),
+            "es_member_order_probabilistic": ({**es, "member_data": "order"},
+                                              {"probabilistic": True}),
+        }
+        for name, (tkw, mkw) in designs.items():
+            cfg = model_config(args.size, args.members, **mkw)
+            r = train_one(cfg, train, test, n, m, args.seed,
+                          TrainConfig(**{**base, **tkw}))
+            hist = r["hist"]
+            rows[name] = {**errors(r["model"], train, test), "steps": hist.steps,
+                          "stopped_early": hist.stopped_early,
+                          "best_steps": None if hist.best_steps is None
+                          else hist.best_steps.tolist(),
+                          "train_wall_s": r["wall_s"], "cpu_s": r["cpu_s"]}
+            print(f"{args.task} {name:30s}: nrmse {rows[name]['nrmse']:.4f} rel_step "
+                  f"{rows[name]['rel_step']:.4f} steps {hist.steps} "
+                  f"({r['wall_s']:.1f} s)", flush=True)
+    else:
+        raise ValueError(f"--study must be sizes or training, got {args.study!r}")
+    result["results"] = rows
+    result["machine"] = {"platform": platform.platform(), "cpu_count": os.cpu_count(),
+                         "load_average_start": load_start, "load_average_end": os.getloadavg(),
+                         "torch_threads": torch.get_num_threads()}
+    result["total_time_s"] = time.perf_counter() - t_start
+    if args.json:
+        write_json_atomic(args.json, result)
+        print(f"wrote {args.json}")
+    return result
