@@ -26,8 +26,11 @@ load through :func:`from_flat` (``AgentConfig.from_dict`` detects them).
 
 The defaults are the configuration measured in ``docs/ablation.md`` on ``mbtsr/TwoLinkArm-v0``;
 where the paper fixes a value it is used (sampled Jacobian propagation with perturbations of 0.1 x
-the per-dimension standard deviation, one perturbed copy resampled every epoch, the ``g``
-formulation ``x+ = x + g(x, u)``, an ensemble of small tanh networks).
+the per-dimension standard deviation, one perturbed copy resampled every step, the ``g``
+formulation ``x+ = x + g(x, u)``). The model is sized by the task's dimensions and trained with
+a budget of gradient steps per update (``docs/models.md``); ``ModelConfig.paper()`` and
+``training.steps=None`` with ``training.epochs`` give the paper-sized model and the former
+epoch schedule.
 """
 
 from __future__ import annotations
@@ -44,9 +47,10 @@ from mbtsr.ensemble import ModelConfig
 from mbtsr.training import REGULARIZERS, RegularizationConfig, TrainConfig
 
 __all__ = ["AgentConfig", "CollectionConfig", "PlannerConfig", "EvaluationConfig", "from_flat",
-           "REGULARIZERS", "PLANNERS", "EXCITATIONS"]
+           "REGULARIZERS", "PLANNERS", "PROPAGATIONS", "EXCITATIONS"]
 
 PLANNERS = ("ilqr", "cem")
+PROPAGATIONS = ("mean", "ts")
 EXCITATIONS = ("filtered_gaussian", "multisine")
 
 
@@ -132,8 +136,15 @@ class PlannerConfig(_Checked):
     :param cem: the CEM settings (:class:`mbtsr.cem.CEMOptions`, the library's own): ``samples``
         (200) action sequences per iteration, ``elites`` (20) that refit the sampling
         distribution, ``iterations`` (3) per MPC step (the first step of an episode gets
-        ``first_plan_iterations``); the agent seeds every solve from ``seed`` (``cem.seed`` stays
-        0).
+        ``first_plan_iterations``), ``particles`` (1) rollouts per sequence; the agent seeds
+        every solve from ``seed`` (``cem.seed`` stays 0).
+    :param propagation: how CEM rolls a sequence out on the ensemble: ``"mean"`` (the
+        ensemble-mean model, as iLQR) or ``"ts"`` (trajectory sampling, PETS' TS-inf: each of
+        the ``cem.particles`` rollouts of a sequence follows one member,
+        :meth:`mbtsr.ensemble.FrozenEnsemble.trajectory_sampling`, and the sequence's cost is
+        their mean; set ``cem.particles`` to a multiple of ``model.ensemble_size``, e.g. equal
+        to it for deterministic members; probabilistic members also sample their noise).
+        ``"ts"`` needs ``kind="cem"``.
     """
 
     _path: ClassVar[str] = "planner"
@@ -144,9 +155,14 @@ class PlannerConfig(_Checked):
     ilqr_iterations: int = 2
     first_plan_iterations: int = 20
     cem: CEMOptions = field(default_factory=lambda: CEMOptions(iterations=3))
+    propagation: Literal["mean", "ts"] = "mean"
 
     def __post_init__(self) -> None:
         self._choice("kind", PLANNERS)
+        self._choice("propagation", PROPAGATIONS)
+        if self.propagation == "ts" and self.kind != "cem":
+            raise ValueError("planner.propagation='ts' (trajectory sampling) needs "
+                             f"planner.kind='cem', got {self.kind!r}")
         for name, low in (("horizon", 2), ("replan_every", 1), ("ilqr_iterations", 1),
                           ("first_plan_iterations", 1)):
             self._int_at_least(name, low)
@@ -210,6 +226,15 @@ class EvaluationConfig(_Checked):
 
 
 def _default_training() -> TrainConfig:
+    """The agent's update: a budget of gradient steps, early stopping on a 10 % hold-out, the
+    members drawing their own minibatches (``docs/models.md``, "Training with a step budget")."""
+    return TrainConfig(steps=1000, lr=1e-3, batch=256, holdout=0.1, eval_every=100, patience=5,
+                       early_stopping="member", member_data="order", progress=False)
+
+
+def _legacy_training() -> TrainConfig:
+    """The agent's update before the step budget (150 epochs over all data): what configs saved
+    in the old flat format mean."""
     return TrainConfig(epochs=150, lr=3e-3, batch=256, progress=False)
 
 
@@ -235,12 +260,17 @@ class AgentConfig(_Checked):
 
     :param collection: data collection: excitation episodes, exploration noise, episode length.
     :param model: the ensemble (Objective 1 / 2 of the paper); built by the agent with
-        ``model.build(state_dim, action_dim, seed)`` once the env's dimensions are known.
+        ``model.build(state_dim, action_dim, seed)`` once the env's dimensions are known. By
+        default its depth and width follow the task's dimensions
+        (:func:`mbtsr.ensemble.default_size`); ``ModelConfig.paper()`` is the paper's 4 x 1 x 20.
     :param training: one model update (Algorithm 1, "fit f to tau_i and the perturbed tau_i"),
-        warm-started, on ALL data so far; ``training.epochs`` epochs after each new episode, the
-        Adam state carried across episodes. ``batch="trajectory"``: one batch per trajectory.
-        The agent gives every update its own seed (derived from ``seed``), so ``training.seed``
-        must stay 0.
+        warm-started (weights and Adam state carried across episodes) on ALL data so far. The
+        default: ``training.steps`` gradient steps per update (1000, minibatches of 256, Adam
+        1e-3), early stopping on a 10 % hold-out (evaluated every 100 steps, patience 5, every
+        member restored to its best weights), members drawing their own minibatch order: an
+        update costs the same at any data size. ``steps=None``: ``training.epochs`` passes over
+        all data (the former schedule). The agent gives every update its own seed (derived from
+        ``seed``), so ``training.seed`` must stay 0.
     :param regularization: the tangent-space regularizer (:mod:`mbtsr.training` has the exact
         objective): ``sampled_weight`` > 0: sampled Jacobian propagation (LTV-labelled perturbed
         points, Section 3 of the paper, the default), ``exact_weight``: the penalty it
@@ -462,7 +492,8 @@ def _is_flat(d: Mapping[str, Any]) -> bool:
 def from_flat(flat: Mapping[str, Any]) -> AgentConfig:
     """An :class:`AgentConfig` from the old flat dict (``AgentConfig.to_dict()`` before the tree,
     e.g. ``{"epochs_per_episode": 150, "hidden_width": 20, "regularization": "sampled", ...}``;
-    missing keys take their defaults, which did not change).
+    missing keys take the defaults of that time: the paper's 4 x 1 x 20 ensemble
+    (``ModelConfig.paper()``) and 150 epochs per update, so an old config means what it meant).
 
     ``batch_size=0`` becomes ``training.batch="trajectory"``; ``regularization`` with
     ``jacprop_weight`` (sampled) or ``jacobian_penalty`` (exact/smooth), ``perturbation_sigma``,
@@ -481,9 +512,11 @@ def from_flat(flat: Mapping[str, Any]) -> AgentConfig:
     reg = _prefixed("regularization", RegularizationConfig.named, kind, weights.get(kind),
                     sigma=d.pop("perturbation_sigma", 0.1), n_copies=d.pop("n_perturbed_copies", 1),
                     ltv_lambda=None if lam == "auto" else lam)
+    # the defaults of that time: the paper's ensemble, 150 epochs per update
     changes: dict[str, Any] = {_FLAT_PATHS[k]: v for k, v in d.items() if k != "batch_size"}
     if "batch_size" in d:
         changes["training.batch"] = d["batch_size"] if d["batch_size"] != 0 else "trajectory"
     if "model.activations" in changes:
         changes["model.activations"] = tuple(changes["model.activations"])
-    return AgentConfig(regularization=reg).replace(changes)
+    return AgentConfig(regularization=reg, model=ModelConfig.paper(),
+                       training=_legacy_training()).replace(changes)

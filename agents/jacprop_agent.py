@@ -12,7 +12,8 @@ of Dynamical Systems" (arXiv:1806.09919), Algorithm 1, run in an episodic loop. 
     (resampled every epoch inside :func:`mbtsr.training.train_ensemble`);
 (d) **model update**: the ensemble is trained further (warm start: weights and Adam state
     carried over) on ALL data so far, with the chosen regularization (``sampled`` Jacobian
-    propagation, the ``exact`` Jacobian-smoothness penalty, or ``none``);
+    propagation, the ``exact`` Jacobian-smoothness penalty, or ``none``), by default a budget
+    of gradient steps with early stopping on a hold-out (its cost does not grow with the data);
 (e) **planning**: the next rollout is optimised by iLQR on the learned model's Jacobians
     (full-horizon plan at the first step, then receding horizon).
 
@@ -213,17 +214,21 @@ class JacPropAgent(SB3Predictor):
     def _freeze(self) -> None:
         """Train -> freeze -> plan: the controller plans with an immutable float64 copy of the
         ensemble, taken after each training round (and at construction / load). One MPC
-        (:class:`mbtsr.mpc.MPC`) with iLQR or CEM (``config.planner.kind``)."""
+        (:class:`mbtsr.mpc.MPC`) with iLQR or CEM (``config.planner.kind``) on the ensemble
+        mean, or CEM on its trajectory-sampling view (``config.planner.propagation="ts"``)."""
         cfg = self.config
         self.planning_model = self.model.freeze()
+        model = self.planning_model
         optimizer, options, iterations = ilqr, None, cfg.planner.ilqr_iterations
         if cfg.planner.kind == "cem":
             from mbtsr.cem import cem as optimizer
 
             options = dataclasses.replace(cfg.planner.cem, seed=cfg.seed)
             iterations = options.iterations
+            if cfg.planner.propagation == "ts":
+                model = self.planning_model.trajectory_sampling(seed=cfg.seed)
         self.policy = mpc_policy(
-            self.planning_model,
+            model,
             self.task_cost,
             horizon=cfg.planner.horizon,
             iterations=iterations,

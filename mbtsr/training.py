@@ -101,15 +101,17 @@ class TrainConfig:
     :param steps: gradient-step budget per call (``None``: ``epochs``). Each step takes one
         minibatch per member (an epoch-free stream: a random permutation of the member's
         training rows, redrawn when used up); sampled Jacobian propagation perturbs the
-        minibatch's transitions afresh at every step.
+        minibatch's transitions afresh at every step. ``holdout``, ``patience`` and
+        ``member_data`` work with either schedule (with ``steps=None`` the budget is ``epochs``
+        passes over the training rows, ``epochs * ceil(rows / batch)`` steps).
     :param holdout: fraction of the transitions held out of training to measure the validation
-        loss (steps only). The split is a fixed function of the transition's index (the
+        loss. The split is a fixed function of the transition's index (the
         ``j``-th uniform of a stream seeded with :data:`HOLDOUT_SEED`), so data appended by later
         calls never moves an old transition between the sets: a warm-started model is never
         validated on data it trained on. Perturbed copies of held-out transitions are not
         trained on either.
-    :param eval_every: steps between validation evaluations (steps only; also at step 0 and at
-        the end).
+    :param eval_every: steps between validation evaluations of the step loop (also at step 0
+        and at the end).
     :param patience: stop after this many evaluations without an improvement of more than
         :data:`MIN_REL_IMPROVEMENT` and restore the best weights seen (``None``: train the whole
         budget, restore nothing). Needs ``holdout > 0`` or ``validation`` data.
@@ -119,7 +121,7 @@ class TrainConfig:
     :param member_data: ``"shared"``: all members see the same minibatches (the paper's);
         ``"order"``: every member draws its own minibatch stream (same data, different order);
         ``"bootstrap"``: every member trains on its own bootstrap resample of the training rows
-        (drawn once per call, as PETS). Not ``"shared"`` needs ``steps``.
+        (drawn once per call, as PETS).
     """
 
     epochs: int = 1000
@@ -154,9 +156,6 @@ class TrainConfig:
             raise ValueError(f"seed must be an int, got {self.seed!r}")
         if self.steps is not None:
             _check_int("steps", self.steps, 1)
-            if self.batch == "trajectory":
-                raise ValueError("batch must be an int minibatch size with steps, got "
-                                 "'trajectory'")
         check_nonnegative("holdout", self.holdout)
         if not self.holdout < 1:
             raise ValueError(f"holdout must be in [0, 1), got {self.holdout!r}")
@@ -169,11 +168,20 @@ class TrainConfig:
         if self.member_data not in MEMBER_DATA:
             raise ValueError(f"member_data must be one of {MEMBER_DATA}, got "
                              f"{self.member_data!r}")
-        if self.steps is None:
-            for name, off in (("holdout", 0.0), ("patience", None), ("member_data", "shared")):
-                if getattr(self, name) != off:
-                    raise ValueError(f"{name}={getattr(self, name)!r} needs steps (a gradient-step "
-                                     "budget); the epoch schedule is the paper's")
+        if self.batch == "trajectory" and self.uses_step_loop:
+            on = [f"{name}={getattr(self, name)!r}" for name, off in (
+                ("holdout", 0.0), ("patience", None), ("member_data", "shared"))
+                if getattr(self, name) != off]
+            raise ValueError(f"batch='trajectory' is the epoch loop's; {', '.join(on)} need an "
+                             "int minibatch size")
+
+    @property
+    def uses_step_loop(self) -> bool:
+        """Whether training runs the minibatch-step loop: with a step budget, or with a hold-out,
+        early stopping or per-member data (then ``epochs`` passes over the training rows set
+        the budget). Otherwise it is the paper's epoch loop, unchanged."""
+        return self.steps is not None or self.holdout > 0 or self.patience is not None or (
+            self.member_data != "shared")
 
 
 REGULARIZERS = ("sampled", "exact", "smooth", "none")
@@ -578,7 +586,7 @@ def train_ensemble(
     rng = np.random.default_rng(config.seed)
     batch_gen = torch.Generator().manual_seed(int(config.seed))
     model.dropout_generator = torch.Generator().manual_seed(int(config.seed) + 1)
-    if config.steps is not None:
+    if config.uses_step_loop:
         if config.patience is not None and config.holdout == 0 and val_data is None:
             raise ValueError("config.patience needs held-out data: config.holdout > 0 or "
                              "validation trajectories")
@@ -767,8 +775,9 @@ def _member_slices(model: DynamicsEnsemble) -> list[tuple[torch.nn.Module, int]]
 
 def _train_steps(model, trajs, config, reg, ltv_models, optimizer, callback, t_start, *, xu_raw,
                  xu, target, starts, val) -> TrainHistory:
-    """:func:`train_ensemble` with a gradient-step budget (``config.steps``): see
-    :class:`TrainConfig` and the module docstring. Members in stacked order inside."""
+    """:func:`train_ensemble`'s minibatch-step loop (``config.uses_step_loop``): a budget of
+    ``config.steps`` steps (or ``epochs`` passes over the training rows), see
+    :class:`TrainConfig`. Members in stacked order inside."""
     n, m = model.state_dim, model.action_dim
     N, K = xu.shape[0], model.n_members
     held = holdout_mask(N, config.holdout) if config.holdout > 0 else np.zeros(N, bool)
@@ -783,6 +792,7 @@ def _train_steps(model, trajs, config, reg, ltv_models, optimizer, callback, t_s
     noise_gen = torch.Generator().manual_seed(int(config.seed) + 2)
     streams = _MemberStreams(train_rows, K, config.batch, config.member_data, gen)
     b = streams.batch
+    budget = config.steps or config.epochs * math.ceil(train_rows.numel() / b)
 
     # per-row LTV Jacobians [A B] (and affine terms), perturbation scales, successors
     J_rows = c_rows = s_rows = next_index = None
@@ -859,12 +869,12 @@ def _train_steps(model, trajs, config, reg, ltv_models, optimizer, callback, t_s
         return since_progress >= config.patience
 
     model.train()
-    bar = tqdm(total=config.steps, desc="train_ensemble", disable=not config.progress,
+    bar = tqdm(total=budget, desc="train_ensemble", disable=not config.progress,
                leave=False)
     steps = 0
     try:
         stopped = evaluate(0)
-        while steps < config.steps and not stopped:
+        while steps < budget and not stopped:
             idx = streams.next()  # [K, b]
             parts = [xu[idx]]
             valid = None
@@ -914,8 +924,8 @@ def _train_steps(model, trajs, config, reg, ltv_models, optimizer, callback, t_s
             step_loss.append(float(loss.detach()))
             steps += 1
             bar.update(1)
-            if steps % config.eval_every == 0 or steps == config.steps:
-                stopped = evaluate(steps) and steps < config.steps
+            if steps % config.eval_every == 0 or steps == budget:
+                stopped = evaluate(steps) and steps < budget
                 if config.progress and evals[-1].get("ensemble") is not None:
                     bar.set_postfix({"val": f"{evals[-1]['ensemble']:.3g}"}, refresh=False)
         if early:

@@ -57,7 +57,7 @@ def tiny_config(changes: dict | None = None, /, **top) -> AgentConfig:
         "collection.episode_steps": 30,
         "model.ensemble_size": 2,
         "model.hidden_width": 16,
-        "training.epochs": 30,
+        "training.steps": 30,
         "training.batch": 64,
         "planner.horizon": 8,
         "planner.ilqr_iterations": 1,
@@ -425,7 +425,7 @@ def test_predict_rejects_a_foreign_warm_start(arm_run):
 
 def test_video_of_an_episode_is_written(tmp_path):
     env = gym.make(ARM, episode_steps=8, render_mode="rgb_array", width=64, height=48)
-    agent = JacPropAgent(env, tiny_config({"collection.episode_steps": 8, "training.epochs": 2},
+    agent = JacPropAgent(env, tiny_config({"collection.episode_steps": 8, "training.steps": 2},
                                           run_dir=str(tmp_path), video=True, video_every=1))
     agent.learn(1, progress_bar=False)
     videos = list((tmp_path / "videos").iterdir())
@@ -437,7 +437,7 @@ def test_video_of_an_episode_is_written(tmp_path):
 def test_tiny_pendulum_run_with_a_user_cost(tmp_path):
     """The README's "use your own environment" example on gymnasium's Pendulum-v1."""
     env = gym.make("Pendulum-v1")
-    cfg = tiny_config({"collection.episode_steps": 40, "training.epochs": 40},
+    cfg = tiny_config({"collection.episode_steps": 40, "training.steps": 80},
                       run_dir=str(tmp_path), seed=1)
     agent = JacPropAgent(env, cfg, cost_fn=pendulum_cost)
     assert agent.state_dim == 3 and agent.spec.u_max[0] == 2.0
@@ -678,7 +678,7 @@ def test_oracle_time_is_booked_once_in_its_own_phase():
     episode (no negative ``time_eval``, no oracle time outside ``time_total``)."""
     changes = {"collection.episode_steps": 10, "planner.horizon": 4,
                "planner.first_plan_iterations": 2, "evaluation.every": 1,
-               "evaluation.episodes": 1, "training.epochs": 2}
+               "evaluation.episodes": 1, "training.steps": 2}
     rows = {}
     for early in (False, True):
         agent = JacPropAgent(gym.make("mbtsr/TwoLinkArm-v0"), tiny_config(changes, seed=0))

@@ -240,11 +240,10 @@ def test_train_agent_help_lists_every_agent_config_field_with_its_doc(capsys):
 def test_train_agent_sets_nested_fields_and_the_regularizer_by_name():
     from agents.experiments import train_agent
 
-    args = train_agent.parse(["--model.hidden-width", "8", "--training.batch", "trajectory",
+    args = train_agent.parse(["--model.hidden-width", "8", "--training.batch", "64",
                               "--planner.kind", "cem", "--regularization.sigma", "0.2"])
     cfg = args.agent
-    assert (cfg.model.hidden_width, cfg.training.batch, cfg.planner.kind) == (8, "trajectory",
-                                                                              "cem")
+    assert (cfg.model.hidden_width, cfg.training.batch, cfg.planner.kind) == (8, 64, "cem")
     assert cfg.regularization.kind == "sampled" and cfg.regularization.sigma == 0.2
     none = train_agent.parse(["--regularization", "none"]).agent.regularization
     assert none.kind == "none" and none.ltv_lambda is None

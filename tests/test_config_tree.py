@@ -25,7 +25,7 @@ from agents.config import (
 )
 from agents.jacprop_agent import JacPropAgent
 from mbtsr.cem import CEMOptions
-from mbtsr.ensemble import EnsembleConfig, MemberSpec, ModelConfig
+from mbtsr.ensemble import EnsembleConfig, MemberSpec, ModelConfig, default_size
 from mbtsr.training import RegularizationConfig, TrainConfig
 
 REPO = Path(__file__).resolve().parents[1]
@@ -53,17 +53,64 @@ def test_the_sections_are_the_library_configs():
     assert type(cfg.model) is ModelConfig and type(cfg.training) is TrainConfig
     assert type(cfg.regularization) is RegularizationConfig
     assert {name: type(getattr(cfg, name)) for name in SECTIONS} == SECTIONS
-    # the defaults did not change: the paper's sampled JacProp, the measured training setting
-    assert cfg.training == TrainConfig(epochs=150, lr=3e-3, batch=256, progress=False)
+    # the paper's sampled JacProp; a step budget with early stopping; a model sized by the task
+    assert cfg.training == TrainConfig(steps=1000, lr=1e-3, batch=256, holdout=0.1,
+                                       eval_every=100, patience=5, early_stopping="member",
+                                       member_data="order", progress=False)
     assert cfg.regularization == RegularizationConfig(sampled_weight=1.0, ltv_lambda=None)
-    assert cfg.model.ensemble_config(4, 2, seed=5) == EnsembleConfig(
-        state_dim=4, action_dim=2, seed=5, formulation="g", normalize=True,
-        members=tuple(MemberSpec(a, 20, 1) for a in ("elu", "sigmoid", "tanh", "swish")))
+    layers, width = default_size(11, 2)
+    assert cfg.model.ensemble_config(11, 2, seed=5) == EnsembleConfig(
+        state_dim=11, action_dim=2, seed=5, formulation="g", normalize=True,
+        members=(MemberSpec("swish", width, layers),) * 4)
+    assert AgentConfig(model=ModelConfig.paper()).model.ensemble_config(4, 2, seed=5) == \
+        EnsembleConfig(state_dim=4, action_dim=2, seed=5)  # the paper's nominal ensemble
+
+
+#: ``AgentConfig().to_dict()`` of the tree before the scaled model and the step budget (as
+#: checkpoints of that time stored it)
+OLD_TREE = {
+    "collection": {"n_excitation_episodes": 2, "excitation": "filtered_gaussian",
+                   "excitation_scale": 0.3, "excitation_window": 8, "exploration_std": 0.1,
+                   "episode_steps": None},
+    "model": {"formulation": "g", "ensemble_size": 4, "hidden_width": 20, "hidden_layers": 1,
+              "activations": ["elu", "sigmoid", "tanh", "swish"]},
+    "training": {"epochs": 150, "lr": 0.003, "batch": 256, "weight_decay": 0.0,
+                 "decoupled_weight_decay": False, "betas": [0.9, 0.999], "adam_eps": 1e-08,
+                 "shuffle": True, "seed": 0, "progress": False},
+    "regularization": {"sampled_weight": 1.0, "sigma": 0.1, "n_copies": 1,
+                       "copies_batch": "shared", "exact_weight": 0.0, "smooth_weight": 0.0,
+                       "ltv_lambda": None, "ltv_affine": False},
+    "planner": {"horizon": 30, "replan_every": 1, "kind": "ilqr", "terminal_weight": 1.0,
+                "ilqr_iterations": 2, "first_plan_iterations": 20,
+                "cem": {"samples": 200, "elites": 20, "iterations": 3, "init_std": 0.5,
+                        "smoothing": 0.1, "tol_std": 0.001, "seed": 0,
+                        "max_state_norm": 100000000.0, "termination_cost": 0.0}},
+    "evaluation": {"every": 4, "episodes": 3, "seed": 1000, "early_exit": True,
+                   "solved_ratio": 1.2, "solved_return": None, "stop_when_solved": False,
+                   "oracle_cache_dir": None},
+    "seed": 0, "renormalize": True, "ltv_prior": 0.01, "run_dir": None, "checkpoint": True,
+    "tensorboard": True, "video": False, "video_every": 5, "jacobian_error": True,
+    "progress": True, "torch_threads": 0,
+}
+
+
+def test_an_old_tree_config_keeps_its_model_and_epoch_schedule():
+    """A config saved before the step budget (no ``training.steps`` and no
+    ``model.probabilistic``) loads to what it meant: the paper's ensemble trained 150 epochs per
+    update, CEM with one particle, planning on the mean."""
+    cfg = AgentConfig.from_dict(OLD_TREE)
+    assert cfg.training == TrainConfig(epochs=150, lr=3e-3, batch=256, progress=False)
+    assert cfg.training.steps is None
+    assert cfg.model == ModelConfig.paper()
+    assert cfg.planner == PlannerConfig()
+    assert cfg.planner.cem.particles == 1 and cfg.planner.propagation == "mean"
+    assert from_flat(OLD_DEFAULTS) == cfg  # the old flat format means the same
 
 
 def test_the_agent_uses_the_sections_as_they_are():
     cfg = AgentConfig.default({"model.ensemble_size": 3, "model.hidden_width": 9,
-                               "model.activations": ("tanh", "elu"), "training.batch": "trajectory",
+                               "model.hidden_layers": 1,
+                               "model.activations": ("tanh", "elu"), "training.batch": 32,
                                "regularization.sigma": 0.2}, regularization="exact", seed=5,
                               progress=False, tensorboard=False, checkpoint=False)
     agent = JacPropAgent(gym.make("mbtsr/TwoLinkArm-v0"), cfg)
@@ -77,9 +124,10 @@ def test_the_agent_uses_the_sections_as_they_are():
 
 
 def test_model_config_builds_the_ensemble():
-    model = ModelConfig(formulation="f", ensemble_size=2, hidden_width=5).build(3, 1, seed=2)
-    assert model.config == ModelConfig(formulation="f", ensemble_size=2,
-                                       hidden_width=5).ensemble_config(3, 1, seed=2)
+    cfg = ModelConfig(formulation="f", ensemble_size=2, hidden_width=5,
+                      activations=("elu", "sigmoid"))
+    model = cfg.build(3, 1, seed=2)
+    assert model.config == cfg.ensemble_config(3, 1, seed=2)
     assert model.config.n_members == 2 and model.config.members[1].activation == "sigmoid"
 
 
@@ -122,7 +170,9 @@ def test_short_calls():
 def test_the_tree_round_trips_through_json(width, batch, reg, lam, planner, solved_return,
                                            acts, betas):
     cfg = AgentConfig.default({
-        "model.hidden_width": width, "model.activations": tuple(acts), "training.batch": batch,
+        "model.hidden_width": width, "model.activations": tuple(acts),
+        **({"training": TrainConfig(batch=batch, epochs=5, progress=False)}
+           if batch == "trajectory" else {"training.batch": batch}),
         "training.betas": betas, "regularization.ltv_lambda": lam,
         "evaluation.solved_return": solved_return, "collection.episode_steps": 40,
     }, regularization=reg, planner=planner, run_dir="runs/x")
@@ -153,10 +203,12 @@ def test_from_dict_and_from_json_refuse_a_non_dict(bad):
 
 
 # ---------------------------------------------------------------------------- the old flat format
-def test_the_old_flat_defaults_load_to_the_default_tree():
-    assert from_flat(OLD_DEFAULTS) == AgentConfig()
-    assert AgentConfig.from_dict(OLD_DEFAULTS) == AgentConfig()  # detected
-    assert from_flat({}) == AgentConfig()  # missing keys: the (unchanged) defaults
+def test_the_old_flat_defaults_load_to_the_default_tree_of_their_time():
+    then = AgentConfig(model=ModelConfig.paper(),
+                       training=TrainConfig(epochs=150, lr=3e-3, batch=256, progress=False))
+    assert from_flat(OLD_DEFAULTS) == then
+    assert AgentConfig.from_dict(OLD_DEFAULTS) == then  # detected
+    assert from_flat({}) == then  # missing keys: the defaults of that time
 
 
 def test_every_old_flat_field_lands_on_its_tree_field():

@@ -46,7 +46,7 @@ def smoke_config(**top) -> AgentConfig:
     """The defaults with tiny budgets (one excitation episode, then one MPC episode)."""
     return AgentConfig.default({
         "collection.n_excitation_episodes": 1, "model.ensemble_size": 2, "model.hidden_width": 8,
-        "training.epochs": 3, "planner.horizon": 4, "planner.ilqr_iterations": 1,
+        "training.steps": 3, "planner.horizon": 4, "planner.ilqr_iterations": 1,
         "planner.first_plan_iterations": 2, "evaluation.every": 0,
     }, **{"progress": False, "tensorboard": False, "torch_threads": 1, **top})
 

@@ -711,16 +711,14 @@ def test_sampled_jacprop_with_a_step_budget_lowers_the_jacobian_error():
 
 @pytest.mark.parametrize("kwargs, match", [
     ({"steps": 0}, "steps must be an int >= 1"),
-    ({"steps": 10}, "batch must be an int minibatch size with steps"),
     ({"steps": 10, "batch": 8, "holdout": 1.0}, "holdout must be in"),
     ({"steps": 10, "batch": 8, "holdout": -0.1}, "holdout"),
     ({"steps": 10, "batch": 8, "patience": 0}, "patience must be an int >= 1"),
     ({"steps": 10, "batch": 8, "eval_every": 0}, "eval_every"),
     ({"steps": 10, "batch": 8, "member_data": "bagging"}, "member_data must be one of"),
     ({"steps": 10, "batch": 8, "early_stopping": "all"}, "early_stopping must be one of"),
-    ({"holdout": 0.1}, "holdout=0.1 needs steps"),
-    ({"patience": 3}, "patience=3 needs steps"),
-    ({"member_data": "order"}, "member_data='order' needs steps"),
+    ({"holdout": 0.1}, "batch='trajectory' is the epoch loop's; holdout=0.1 need an int"),
+    ({"steps": 5, "member_data": "order"}, "member_data='order' need an int minibatch size"),
 ])
 def test_step_budget_settings_are_validated(kwargs, match):
     with pytest.raises(ValueError, match=match):
@@ -732,3 +730,14 @@ def test_patience_needs_held_out_data():
     with pytest.raises(ValueError, match="patience needs held-out data"):
         train_ensemble(small_model(), [linear_trajectory(A, B, 10, seed=0)],
                        TrainConfig(steps=5, batch=4, patience=2, **QUIET))
+
+
+def test_epochs_with_early_stopping_run_the_step_loop_for_epochs_passes():
+    """The hold-out / early-stopping / member-data machinery with the epoch schedule: the step
+    loop with a budget of ``epochs`` passes over the training rows."""
+    A, B = random_stable_system(3, 2, 0.1, seed=10)
+    trajs = [linear_trajectory(A, B, 30, seed=s) for s in (0, 1)]
+    cfg = TrainConfig(epochs=3, batch=16, holdout=0.2, member_data="order", **QUIET)
+    assert cfg.uses_step_loop and not TrainConfig(epochs=3, batch=16).uses_step_loop
+    hist = train_ensemble(small_model(), trajs, cfg)
+    assert hist.steps == 3 * int(np.ceil(hist.n_train / 16)) and hist.n_holdout > 0

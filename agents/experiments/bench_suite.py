@@ -117,7 +117,7 @@ TASKS: dict[str, dict[str, Any]] = {
 }
 
 SMOKE_OVERRIDES = {
-    "training.epochs": 3, "planner.horizon": 5, "planner.first_plan_iterations": 2,
+    "training.steps": 3, "planner.horizon": 5, "planner.first_plan_iterations": 2,
     "planner.ilqr_iterations": 1, "planner.cem.samples": 16, "planner.cem.elites": 4,
     "planner.cem.iterations": 1, "evaluation.episodes": 1, "model.ensemble_size": 2,
     "model.hidden_width": 8,

@@ -136,7 +136,7 @@ QUICK = {
     "json": "runs/benchmark_sb3_quick/benchmark.json",  # never over the real report by default
     "docs": "runs/benchmark_sb3_quick/benchmark.md",
 }
-QUICK_AGENT = {"training.epochs": 10, "planner.horizon": 10, "planner.first_plan_iterations": 5,
+QUICK_AGENT = {"training.steps": 10, "planner.horizon": 10, "planner.first_plan_iterations": 5,
                "model.ensemble_size": 2, "regularization.ltv_lambda": 1.0}
 QUICK_SB3 = {
     "sac": {"learning_starts": 50, "batch_size": 32},
