@@ -21,7 +21,15 @@ Measures, in one run:
    true MuJoCo arm (MuJoCo steps with the analytic twin's exact Jacobians, and with MuJoCo's own
    finite-difference Jacobians for reference), and the final reach error;
 5. the cold (first-ever) compile time of the numba backward pass, in a fresh process with an
-   empty cache.
+   empty cache;
+6. planning at scale (issue 21): milliseconds per MPC step of the agent's planners on
+   Reacher-v5's dimensions (n = 11 observations, m = 2, horizon ``scale_horizon``) with the
+   paper's 4 x 1 x 20 ensemble, the default-sized ensemble (``mbtsr.ensemble.default_size``)
+   and 4 x 3 x 200: iLQR on the ensemble mean, CEM on the mean and CEM with trajectory sampling
+   (one member per particle, ``scale_particles`` particles). Random weights with the
+   normalization of Reacher excitation data (timing only); the agent's own controller
+   (``JacPropAgent.predict``) on the real env, the first (cold) step reported apart.
+   ``--scale-only`` runs just this section.
 
 Targets (issue 13) are listed in the JSON with a pass flag each. Numbers are noisy on a shared
 machine: every timing is the best of ``--repeats`` runs and the load average is recorded; the
@@ -55,6 +63,7 @@ from mbtsr.episode import run_episode
 from mbtsr.ilqr import ILQROptions, ilqr
 from mbtsr.ipopt_reference import solve_ipopt
 from mbtsr.mpc import MPC, MPCOptions
+from mbtsr.trajectory import Trajectory
 
 
 @dataclass(frozen=True)
@@ -89,6 +98,14 @@ class Args:
     """torch threads"""
     json: str | None = None
     """write the results to this JSON file"""
+    scale_only: bool = False
+    """run only section 6 (planning at scale on Reacher's dimensions)"""
+    scale_steps: int = 25
+    """MPC steps per planner and size in section 6"""
+    scale_horizon: int = 30
+    """MPC horizon of section 6"""
+    scale_particles: int = 4
+    """CEM particles per sequence with trajectory sampling in section 6"""
 
 
 def load_ensemble(path: str, seed: int):
@@ -238,9 +255,81 @@ def cold_compile_seconds() -> float:
     return float(out.stdout.strip().splitlines()[-1])
 
 
+def planning_at_scale(args: Args) -> dict:
+    """Section 6: ms per MPC step of the agent's planners at three ensemble sizes on Reacher."""
+    from agents.config import AgentConfig
+    from agents.jacprop_agent import JacPropAgent
+    from agents.tasks import reacher
+    from mbtsr.ensemble import ModelConfig, default_size
+    from mbtsr.excitation import filtered_gaussian
+
+    task = reacher()
+    env = task.make_env()
+    rng = np.random.default_rng(args.seed)
+    data = []
+    for i in range(10):  # excitation data for the normalization statistics
+        obs, _ = env.reset(seed=args.seed + i)
+        U = np.clip(filtered_gaussian(50, 2, window=8, scale=1.0, seed=rng), -1.0, 1.0)
+        xs = [obs]
+        for u in U:
+            xs.append(env.step(u)[0])
+        data.append(Trajectory(np.array(xs), U, 0.02))
+    n, m = data[0].n, data[0].m
+    sizes = {"paper_4x1x20": ModelConfig.paper(),
+             f"default_4x{'x'.join(map(str, default_size(n, m)))}": ModelConfig(),
+             "4x3x200": ModelConfig(hidden_layers=3, hidden_width=200)}
+    planners = {"ilqr_mean": {"planner.kind": "ilqr"},
+                "cem_mean": {"planner.kind": "cem"},
+                "cem_ts": {"planner.kind": "cem", "planner.propagation": "ts",
+                           "planner.cem.particles": args.scale_particles}}
+    out: dict = {"n": n, "m": m, "horizon": args.scale_horizon, "steps": args.scale_steps,
+                 "particles_ts": args.scale_particles, "results": {}}
+    for size, model_cfg in sizes.items():
+        for planner, changes in planners.items():
+            cfg = AgentConfig.default({**changes, "planner.horizon": args.scale_horizon,
+                                       "evaluation.every": 0}, model=model_cfg, seed=args.seed,
+                                      progress=False, tensorboard=False, checkpoint=False,
+                                      torch_threads=args.threads)
+            agent = JacPropAgent(env, cfg, **task.agent_kwargs())
+            agent.model.set_normalization(data)
+            agent._freeze()
+            obs, _ = env.reset(seed=args.seed)
+            plan, times = None, []
+            for t in range(args.scale_steps):
+                tic = time.perf_counter()
+                action, plan = agent.predict(obs, plan, episode_start=t == 0)
+                times.append(time.perf_counter() - tic)
+                obs = env.step(action)[0]
+            ms = np.asarray(times) * 1e3
+            row = {"ms_per_mpc_step_mean": float(ms[1:].mean()),
+                   "ms_per_mpc_step_median": float(np.median(ms[1:])),
+                   "ms_first_step": float(ms[0]),
+                   "iterations_per_step": (cfg.planner.ilqr_iterations if planner == "ilqr_mean"
+                                           else cfg.planner.cem.iterations),
+                   "first_plan_iterations": cfg.planner.first_plan_iterations}
+            out["results"].setdefault(size, {})[planner] = row
+            print(f"scale {size:22s} {planner:9s}: {row['ms_per_mpc_step_mean']:8.1f} ms per MPC "
+                  f"step (median {row['ms_per_mpc_step_median']:.1f}, first "
+                  f"{row['ms_first_step']:.0f} ms)", flush=True)
+    ref, big = out["results"]["paper_4x1x20"], out["results"]["4x3x200"]
+    out["ratio_4x3x200_over_paper"] = {
+        p: big[p]["ms_per_mpc_step_mean"] / ref[p]["ms_per_mpc_step_mean"] for p in planners}
+    return out
+
+
 def run(args: Args) -> dict:
     """The whole benchmark; writes ``args.json`` if set and returns the results."""
     torch.set_num_threads(args.threads)
+    if args.scale_only:
+        results = {"args": dataclasses.asdict(args), "planning_at_scale": planning_at_scale(args),
+                   "machine": {"platform": platform.platform(), "cpu_count": os.cpu_count(),
+                               "load_average_end": os.getloadavg(),
+                               "torch_threads": torch.get_num_threads()}}
+        if args.json:
+            Path(args.json).parent.mkdir(parents=True, exist_ok=True)
+            Path(args.json).write_text(json.dumps(results, indent=2))
+            print(f"wrote {args.json}")
+        return results
     horizons = [int(h) for h in args.horizons.split(",")]
     load_start = os.getloadavg()
     t_start = time.perf_counter()
@@ -427,6 +516,9 @@ def run(args: Args) -> dict:
     compile_s = cold_compile_seconds()
     print(f"numba backward pass: cold compile {compile_s:.1f} s")
 
+    # ---- 6. planning at scale on Reacher's dimensions
+    scale = planning_at_scale(args)
+
     ens200 = timing.get("ensemble", {})
     ens200 = ens200.get("T=200", {}) if isinstance(ens200, dict) else {}
     ana200 = timing["analytic_casadi_jit"].get("T=200", {})
@@ -474,6 +566,7 @@ def run(args: Args) -> dict:
         "analytic_model_in_targets": "analytic_casadi_jit (TwoLinkArmCasadi(jit=True)); "
         "analytic_casadi is the uncompiled CasADi VM, for reference",
         "numba_cold_compile_s": compile_s,
+        "planning_at_scale": scale,
         "targets": targets,
         "machine": {
             "platform": platform.platform(),
