@@ -1115,7 +1115,8 @@ def _rollout_policy_kernel(W_inT, Wh, bh, W_out, code, x0, X, U, k, K, alphas, l
 
 
 def _mean_step_plan(runs, hidden: list[tuple[np.ndarray, np.ndarray]], Wo: np.ndarray,
-                    bo: np.ndarray, skip_J: np.ndarray, n_members: int) -> SimpleNamespace:
+                    bo: np.ndarray, skip_J: np.ndarray, n_members: int,
+                    head: tuple[np.ndarray, np.ndarray] | None = None) -> SimpleNamespace:
     """Folded weights of the ensemble-mean step of ONE depth group without layer norm.
 
     ``hidden = [(W1 [K, n+m, W], b1 [K, W]), (W2 [K, W, W], b2 [K, W]), ...]``, ``Wo [K, W, n]``,
@@ -1129,7 +1130,9 @@ def _mean_step_plan(runs, hidden: list[tuple[np.ndarray, np.ndarray]], Wo: np.nd
     folded in). Sigmoid and swish rows run as ``tanh(z/2)``: the halving is folded into their
     layer's weights, sigmoid's affine part ``0.5 t + 0.5`` into the weights that consume it.
 
-    The unfolded weights are kept for the closed-form Jacobians (:func:`_plan_jacobians`).
+    The unfolded weights are kept for the closed-form Jacobians (:func:`_plan_jacobians`); the
+    per-member folded output layers (and the log-variance head ``head = (Wv, bv)``) serve
+    trajectory sampling (:meth:`FrozenEnsemble._member_rows`).
     """
     W1, b1 = hidden[0]
     K, _, W = W1.shape
@@ -1148,6 +1151,14 @@ def _mean_step_plan(runs, hidden: list[tuple[np.ndarray, np.ndarray]], Wo: np.nd
     Wo_f = Wo_mean.copy()
     bo_f = bo_mean + 0.5 * Wo_mean[sig].sum((0, 1))
     Wo_f[sig] *= 0.5
+
+    def per_member(W: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        W, b = W.copy(), b + 0.5 * np.where(sig[:, None], W.sum(1), 0.0)
+        W[sig] *= 0.5
+        return W, b
+
+    Wo_m, bo_m = per_member(Wo, bo)
+    Wv_m, bv_m = per_member(*head) if head is not None else (None, None)
     deep = folded[1:]
     Wh = np.stack([w for w, _ in deep]) if deep else np.zeros((0, K, W, W))
     bh = np.stack([b for _, b in deep]) if deep else np.zeros((0, K, W))
@@ -1176,6 +1187,10 @@ def _mean_step_plan(runs, hidden: list[tuple[np.ndarray, np.ndarray]], Wo: np.nd
         W_inT=ro(W_inT), W_in=ro(W_inT.T), Wh=ro(Wh), WhT_f=ro(Wh.swapaxes(-1, -2)),
         bh=ro(bh), bhT=ro(bh[..., None]),
         W_out=ro(np.concatenate([Wo_f.reshape(H, n), bo_f[None], skip_J.T], 0)),
+        # folded, per member (trajectory sampling)
+        W1fT=ro(folded[0][0].swapaxes(1, 2)), b1f=ro(folded[0][1][..., None]),
+        Wo_m=ro(Wo_m), bo_m=ro(bo_m[:, None]),
+        Wv_m=None if Wv_m is None else ro(Wv_m), bv_m=None if bv_m is None else ro(bv_m[:, None]),
         # unfolded (the Jacobians)
         W1T_cat=ro(W1.transpose(0, 2, 1).reshape(H, -1)), b1=ro(b1.reshape(H, 1)),
         WhT=ro(np.stack([w for w, _ in hidden[1:]]).swapaxes(-1, -2) if deep else Wh),
@@ -1282,7 +1297,8 @@ class FrozenEnsemble:
             static, p = groups[0]
             plan = _mean_step_plan(static.runs,
                                    [(p[w], p[b][:, 0]) for w, b in _hidden_names(static.depth)],
-                                   p["Wo"], p["bo"][:, 0], skip_J, ensemble.n_members)
+                                   p["Wo"], p["bo"][:, 0], skip_J, ensemble.n_members,
+                                   head=(p["Wv"], p["bv"][:, 0]) if "Wv" in p else None)
         perm = None if ensemble._to_config_order is None else ensemble._to_config_order.numpy()
         for name, value in (
             ("config", ensemble.config), ("state_dim", n), ("action_dim", m),
@@ -1403,11 +1419,43 @@ class FrozenEnsemble:
         b = -(-B // K)
         if b * K != B:
             xu = np.concatenate([xu, np.zeros((b * K - B, xu.shape[1]))])
-        y, _, lv = self._members(xu.reshape(b, K, -1).swapaxes(0, 1), 0, logvar=True)
+        xk = xu.reshape(b, K, -1).swapaxes(0, 1)  # [K, b, n+m]: member k's rows
+        if self._plan is None:
+            y, _, lv = self._members(xk, 0, logvar=True)
+        else:
+            y, lv = self._member_rows_plan(xk)
         y = y.swapaxes(0, 1).reshape(b * K, n)[:B]
         if lv is None:
             return y, None
         return y, self._out_std * np.exp(0.5 * lv.swapaxes(0, 1).reshape(b * K, n)[:B])
+
+    def _member_rows_plan(self, xk: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
+        """Each member on its own rows with the folded plan: ``xk [K, b, n+m]`` (config order)
+        -> ``(x_next [K, b, n], normalized logvar [K, b, n] or None)``; hidden-major layout,
+        one batched product per layer."""
+        plan, K = self._plan, self.n_members
+        if self._order is not None:
+            xk = xk[self._order]  # stacked order
+        b, W, H = xk.shape[1], plan.W, plan.H
+        z = (plan.W1fT @ xk.swapaxes(1, 2) + plan.b1f).reshape(H, b)
+        h = np.empty((H, b))
+        for layer in range(plan.Wh.shape[0] + 1):
+            if layer:
+                z = (plan.WhT_f[layer - 1] @ h.reshape(K, W, b) + plan.bhT[layer - 1])
+                z = z.reshape(H, b)
+            for act, a, c in plan.ops:
+                act(z[a:c], h[a:c])
+        hk = h.reshape(K, W, b).swapaxes(1, 2)  # [K, b, W]
+        y = hk @ plan.Wo_m + plan.bo_m + xk @ self._skip_J.T
+        lv = None
+        if plan.Wv_m is not None:
+            g = self._groups[0][1]
+            lv = _bounded_logvar(hk @ plan.Wv_m + plan.bv_m, g["max_logvar"], g["min_logvar"],
+                                 _NUMPY_OPS)
+        if self._perm is not None:
+            y = y[self._perm]
+            lv = None if lv is None else lv[self._perm]
+        return y, lv
 
     # ---------------------------------------------------------------- public surface
     def step(self, x: np.ndarray, u: np.ndarray, t: int | None = None) -> np.ndarray:
