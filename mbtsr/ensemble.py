@@ -314,13 +314,21 @@ class EnsembleConfig:
 
 def default_size(state_dim: int, action_dim: int) -> tuple[int, int]:
     """The sizing rule of :class:`ModelConfig`: ``(hidden_layers, hidden_width)`` for a model of
-    ``n = state_dim`` states and ``m = action_dim`` inputs (``docs/models.md``, "Sizing").
+    ``n = state_dim`` states and ``m = action_dim`` inputs::
 
-    PLACEHOLDER until measured.
+        hidden_layers = 3,   hidden_width = 32 sqrt(n + m), rounded to a multiple of 16,
+                             within [64, 256]
+
+    (``docs/models.md``, "Sizing": on Reacher, InvertedDoublePendulum, HalfCheetah and Pusher
+    with ``n + m`` from 10 to 30, the held-out one-step error falls 2-4x from the paper's
+    4 x 1 x 20 to three layers of about 100-180 units and by at most ~10 % beyond, at 2-3x the
+    cost per gradient step; the third layer mattered most at small step budgets). Examples:
+    the two-link arm (6 inputs) 3 x 80, Reacher (13) 3 x 112, HalfCheetah (23) 3 x 160,
+    Pusher (30) 3 x 176.
     """
     p = int(state_dim) + int(action_dim)
-    width = int(min(256, max(32, 8 * int(np.ceil(16 * p / 8)))))
-    return 3, width
+    width = 16 * int(round(32.0 * np.sqrt(p) / 16.0))
+    return 3, int(min(256, max(64, width)))
 
 
 def _int_at_least(name: str, v: object, low: int) -> None:

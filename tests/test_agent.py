@@ -612,6 +612,37 @@ def test_cem_planner_runs_the_same_mpc_and_respects_the_termination_fn():
     assert res.cost == pytest.approx(first_stage, rel=1e-9)
 
 
+@pytest.mark.parametrize("probabilistic", [False, True])
+def test_cem_with_trajectory_sampling_scores_plans_under_every_member(probabilistic):
+    """planner.propagation='ts': CEM plans on the trajectory-sampling view of the frozen
+    ensemble, each sequence rolled out once per member (2 members, 2 particles); for
+    deterministic members the returned cost is the mean of the members' costs of the returned
+    plan. Probabilistic members sample their noise (seeded: predict stays a pure function)."""
+    env = gym.make("Pendulum-v1")
+    cfg = tiny_config({"planner.cem.samples": 16, "planner.cem.elites": 4,
+                       "planner.cem.iterations": 1, "planner.cem.particles": 2,
+                       "planner.propagation": "ts", "model.probabilistic": probabilistic,
+                       "collection.episode_steps": 12}, planner="cem")
+    agent = JacPropAgent(env, cfg, cost_fn=pendulum_cost)
+    agent.learn(2, progress_bar=False)
+    ts = agent.policy.model
+    assert type(ts).__name__ == "TrajectorySampling" and ts.noise == probabilistic
+    obs = env.reset(seed=0)[0]
+    a1, _ = agent.predict(obs)
+    np.testing.assert_array_equal(a1, agent.predict(obs)[0])  # seeded
+    if not probabilistic:
+        res = agent.policy.last_result
+        X = np.repeat(obs[None], 2, 0)[:, None]  # row r follows member r mod 2
+        for t, u in enumerate(res.U):
+            X = np.concatenate([X, ts.step(X[:, -1], np.repeat(u[None], 2, 0), t)[:, None]], 1)
+        members = agent.planning_model.member_predictions(obs, res.U[0])
+        np.testing.assert_allclose(X[:, 1], members, rtol=1e-12)
+        costs = [float(agent.planner_cost.total(X[i], res.U, 0, obs)) for i in range(2)]
+        assert res.cost == pytest.approx(np.mean(costs), rel=1e-9)
+    with pytest.raises(ValueError, match="planner.propagation='ts' .* needs planner.kind='cem'"):
+        cfg.replace({"planner.kind": "ilqr"})
+
+
 def test_refit_normalization_keeps_the_function_and_follows_the_data():
     """The ensemble's statistics move to the new data while predictions and Jacobians stay
     those of the old parameterization (float32 rounding)."""

@@ -61,7 +61,8 @@ class Args:
     study: str = "sizes"
     """sizes (ensembles of several sizes at fixed budgets) or training (designs at one size)"""
     sizes: str = "paper,paper@0.003,2x64,2x128,3x128,3x200,4x200"
-    """comma-separated sizes LxW (swish) or paper (4 x 1 x 20, mixed activations), each
+    """comma-separated sizes LxW (swish), rule (the default size of the task's dimensions) or
+    paper (4 x 1 x 20, mixed activations), each
     optionally with its own Adam step size (``paper@0.003``; default ``lr``)"""
     size: str = "3x200"
     """the size of the training study"""
@@ -144,8 +145,11 @@ def errors(model, train: list[Trajectory], test: list[Trajectory]) -> dict:
 
 
 def model_config(size: str, members: int, **kw) -> ModelConfig:
+    """``paper``, ``rule`` (:func:`mbtsr.ensemble.default_size`) or ``LxW`` (swish)."""
     if size == "paper":
         return ModelConfig.paper(ensemble_size=members, **kw)
+    if size == "rule":
+        return ModelConfig(ensemble_size=members, **kw)
     layers, width = (int(v) for v in size.lower().split("x"))
     return ModelConfig(ensemble_size=members, hidden_layers=layers, hidden_width=width, **kw)
 
