@@ -228,7 +228,7 @@ class EvaluationConfig(_Checked):
 def _default_training() -> TrainConfig:
     """The agent's update: a budget of gradient steps, early stopping on a 10 % hold-out, the
     members drawing their own minibatches (``docs/models.md``, "Training with a step budget")."""
-    return TrainConfig(steps=1000, lr=1e-3, batch=256, holdout=0.1, eval_every=100, patience=5,
+    return TrainConfig(steps=500, lr=1e-3, batch=256, holdout=0.1, eval_every=50, patience=5,
                        early_stopping="member", member_data="order", progress=False)
 
 
@@ -265,10 +265,10 @@ class AgentConfig(_Checked):
         (:func:`mbtsr.ensemble.default_size`); ``ModelConfig.paper()`` is the paper's 4 x 1 x 20.
     :param training: one model update (Algorithm 1, "fit f to tau_i and the perturbed tau_i"),
         warm-started (weights and Adam state carried across episodes) on ALL data so far. The
-        default: ``training.steps`` gradient steps per update (1000, minibatches of 256, Adam
-        1e-3), early stopping on a 10 % hold-out (evaluated every 100 steps, patience 5, every
+        default: ``training.steps`` gradient steps per update (500, minibatches of 256, Adam
+        1e-3), early stopping on a 10 % hold-out (evaluated every 50 steps, patience 5, every
         member restored to its best weights), members drawing their own minibatch order: an
-        update costs the same at any data size. ``steps=None``: ``training.epochs`` passes over
+        update costs at most the same at any data size. ``steps=None``: ``training.epochs`` passes over
         all data (the former schedule). The agent gives every update its own seed (derived from
         ``seed``), so ``training.seed`` must stay 0.
     :param regularization: the tangent-space regularizer (:mod:`mbtsr.training` has the exact

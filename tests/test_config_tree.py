@@ -54,8 +54,8 @@ def test_the_sections_are_the_library_configs():
     assert type(cfg.regularization) is RegularizationConfig
     assert {name: type(getattr(cfg, name)) for name in SECTIONS} == SECTIONS
     # the paper's sampled JacProp; a step budget with early stopping; a model sized by the task
-    assert cfg.training == TrainConfig(steps=1000, lr=1e-3, batch=256, holdout=0.1,
-                                       eval_every=100, patience=5, early_stopping="member",
+    assert cfg.training == TrainConfig(steps=500, lr=1e-3, batch=256, holdout=0.1,
+                                       eval_every=50, patience=5, early_stopping="member",
                                        member_data="order", progress=False)
     assert cfg.regularization == RegularizationConfig(sampled_weight=1.0, ltv_lambda=None)
     layers, width = default_size(11, 2)

@@ -6,7 +6,7 @@ the action box ("random") and a low-pass filtered Gaussian (the agent's excitati
 the half-range, "smooth"), ``n_train`` training transitions and ``n_test`` held-out transitions
 from other episodes (other reset seeds).
 
-Two studies (``--study``):
+Three studies (``--study``):
 
 * ``sizes``: ensembles of 4 members of several sizes (``LxW`` = L hidden layers of W units, swish;
   ``paper`` = the paper's 4 x 1 x 20 with elu/sigmoid/tanh/swish) trained at fixed gradient-step
@@ -16,7 +16,12 @@ Two studies (``--study``):
   dimensions (ensemble-mean step of 200 rows, Jacobians at 30 points).
 * ``training``: at one size, the training designs side by side on the same data and budget:
   the whole budget, hold-out + early stopping per member or on the ensemble mean, members with
-  their own data order or bootstrap, probabilistic members.
+  their own data order or bootstrap, probabilistic members;
+* ``agent``: the agent itself (``JacPropAgent`` with its defaults and the task's cost, plus
+  ``--agent-overrides``) for ``episodes`` episodes on one torch thread: the wall seconds of every
+  update (``time_training``: normalization refit, training, freeze) and of the other phases,
+  the update time at episode 20 over that at episode 5 (medians of episodes 4-6 and 19-21), the
+  run's total, and its evaluation returns.
 
 Errors on the held-out transitions, of the ensemble mean:
 
@@ -87,6 +92,10 @@ class Args:
     """torch threads"""
     json: str = ""
     """write the results to this JSON file"""
+    episodes: int = 40
+    """episodes of the agent study"""
+    agent_overrides: str = "{}"
+    """JSON of AgentConfig changes by dotted field for the agent study"""
 
 
 def collect(task_name: str, n: int, seed: int) -> list[Trajectory]:
@@ -188,10 +197,60 @@ def train_one(cfg: ModelConfig, train, test, n, m, seed, tcfg: TrainConfig) -> d
             "cpu_ms_per_step": cpu / max(hist.steps, 1) * 1e3}
 
 
+def agent_study(args: Args) -> dict:
+    """The agent on the task: per-episode phase times, the update-time ratio, the returns."""
+    import json
+
+    from agents.config import AgentConfig
+    from agents.jacprop_agent import JacPropAgent
+
+    task = make_task(args.task)
+    changes = json.loads(args.agent_overrides)
+    cfg = AgentConfig.default(changes, seed=args.seed, progress=False, tensorboard=False,
+                              checkpoint=False, torch_threads=args.threads)
+    agent = JacPropAgent(task.make_env(), cfg, **task.agent_kwargs())
+    def show(info: dict) -> None:
+        r = info["row"]
+        print(f"{args.task} episode {r['episode']:3d}: update {r['time_training']:6.2f} s, "
+              f"planning {r['time_planning']:6.2f} s, eval {r['time_eval']:6.2f} s, "
+              f"return {r.get('eval_return')}", flush=True)
+
+    tic = time.perf_counter()
+    agent.learn(args.episodes, callback=show, progress_bar=False)
+    wall = time.perf_counter() - tic
+    log = agent.logger_rows
+    upd = np.array([r["time_training"] for r in log])
+    out = {"config": cfg.to_dict(),
+           "model": [int(v) for v in cfg.model.size(agent.state_dim, agent.spec.act_dim)],
+           "env_steps": agent.env_steps, "wall_s": wall,
+           "per_episode": [{k: r[k] for k in ("episode", "env_steps", "time_training",
+                                              "time_planning", "time_ltv", "time_eval",
+                                              "time_oracle", "time_total", "eval_return",
+                                              "one_step_rms")} for r in log],
+           "summary": agent.summary()}
+    if len(upd) >= 21:
+        out["update_s_episode_5"] = float(np.median(upd[3:6]))
+        out["update_s_episode_20"] = float(np.median(upd[18:21]))
+        out["update_ratio_20_over_5"] = out["update_s_episode_20"] / out["update_s_episode_5"]
+        print(f"update time: episode 5 {out['update_s_episode_5']:.2f} s, episode 20 "
+              f"{out['update_s_episode_20']:.2f} s, ratio {out['update_ratio_20_over_5']:.2f}")
+    print(f"{args.task}: {agent.env_steps} env steps in {wall:.0f} s")
+    return out
+
+
 def run(args: Args) -> dict:
     torch.set_num_threads(args.threads)
     t_start = time.perf_counter()
     load_start = os.getloadavg()
+    if args.study == "agent":
+        result = {"args": dataclasses.asdict(args), "results": agent_study(args)}
+        result["machine"] = {"platform": platform.platform(), "cpu_count": os.cpu_count(),
+                             "load_average_start": load_start,
+                             "load_average_end": os.getloadavg()}
+        if args.json:
+            write_json_atomic(args.json, result)
+            print(f"wrote {args.json}")
+        return result
     train = collect(args.task, args.n_train, args.seed)
     test = collect(args.task, args.n_test, args.seed + 1000)
     n, m = train[0].n, train[0].m
@@ -262,7 +321,7 @@ def run(args: Args) -> dict:
                   f"{rows[name]['rel_step']:.4f} steps {hist.steps} "
                   f"({r['wall_s']:.1f} s)", flush=True)
     else:
-        raise ValueError(f"--study must be sizes or training, got {args.study!r}")
+        raise ValueError(f"--study must be sizes, training or agent, got {args.study!r}")
     result["results"] = rows
     result["machine"] = {"platform": platform.platform(), "cpu_count": os.cpu_count(),
                          "load_average_start": load_start, "load_average_end": os.getloadavg(),
