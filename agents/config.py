@@ -268,9 +268,9 @@ class AgentConfig(_Checked):
         default: ``training.steps`` gradient steps per update (500, minibatches of 256, Adam
         1e-3), early stopping on a 10 % hold-out (evaluated every 50 steps, patience 5, every
         member restored to its best weights), members drawing their own minibatch order: an
-        update costs at most the same at any data size. ``steps=None``: ``training.epochs`` passes over
-        all data (the former schedule). The agent gives every update its own seed (derived from
-        ``seed``), so ``training.seed`` must stay 0.
+        update costs at most the same at any data size. ``steps=None``: ``training.epochs``
+        passes over all data (the former schedule). The agent gives every update its own seed
+        (derived from ``seed``), so ``training.seed`` must stay 0.
     :param regularization: the tangent-space regularizer (:mod:`mbtsr.training` has the exact
         objective): ``sampled_weight`` > 0: sampled Jacobian propagation (LTV-labelled perturbed
         points, Section 3 of the paper, the default), ``exact_weight``: the penalty it

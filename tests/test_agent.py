@@ -57,7 +57,7 @@ def tiny_config(changes: dict | None = None, /, **top) -> AgentConfig:
         "collection.episode_steps": 30,
         "model.ensemble_size": 2,
         "model.hidden_width": 16,
-        "training.steps": 30,
+        "training.steps": 100,
         "training.batch": 64,
         "planner.horizon": 8,
         "planner.ilqr_iterations": 1,
@@ -121,7 +121,7 @@ def test_config_rejects_bad_floats(field, value):
     "field, value",
     [("regularization", "jacprop"), ("model.formulation", "h"), ("collection.excitation", "chirp"),
      ("regularization.ltv_lambda", "best"), ("regularization.ltv_lambda", 0.0),
-     ("model.hidden_layers", 3), ("model.activations", ("tanh", "nope")),
+     ("model.hidden_layers", 0), ("model.activations", ("tanh", "nope")),
      ("model.activations", ()), ("collection.excitation_scale", 1.5),
      ("evaluation.solved_ratio", 0.9)],
 )

@@ -6,7 +6,8 @@ the action box ("random") and a low-pass filtered Gaussian (the agent's excitati
 the half-range, "smooth"), ``n_train`` training transitions and ``n_test`` held-out transitions
 from other episodes (other reset seeds).
 
-Three studies (``--study``):
+Four studies (``--study``; ``plot`` draws ``docs/figures/model_sizes.png`` from the sizes
+JSONs):
 
 * ``sizes``: ensembles of 4 members of several sizes (``LxW`` = L hidden layers of W units, swish;
   ``paper`` = the paper's 4 x 1 x 20 with elu/sigmoid/tanh/swish) trained at fixed gradient-step
@@ -17,6 +18,10 @@ Three studies (``--study``):
 * ``training``: at one size, the training designs side by side on the same data and budget:
   the whole budget, hold-out + early stopping per member or on the ensemble mean, members with
   their own data order or bootstrap, probabilistic members;
+* ``scaling``: the wall time of one ``train_ensemble`` call with the agent's default training
+  (a step budget, hold-out, early stopping off so that every call takes the whole budget) and
+  sampled Jacobian propagation, on the first 250, 1000 and ``n_train`` transitions, the sizes
+  interleaved over 3 repetitions (medians): an update's cost against the data size;
 * ``agent``: the agent itself (``JacPropAgent`` with its defaults and the task's cost, plus
   ``--agent-overrides``) for ``episodes`` episodes on one torch thread: the wall seconds of every
   update (``time_training``: normalization refit, training, freeze) and of the other phases,
@@ -96,6 +101,10 @@ class Args:
     """episodes of the agent study"""
     agent_overrides: str = "{}"
     """JSON of AgentConfig changes by dotted field for the agent study"""
+    plot: str = ""
+    """study plot: write the figure of the sizes JSONs given in plot_from to this PNG"""
+    plot_from: str = ""
+    """study plot: comma-separated JSON files of the sizes study (one per task)"""
 
 
 def collect(task_name: str, n: int, seed: int) -> list[Trajectory]:
@@ -197,6 +206,36 @@ def train_one(cfg: ModelConfig, train, test, n, m, seed, tcfg: TrainConfig) -> d
             "cpu_ms_per_step": cpu / max(hist.steps, 1) * 1e3}
 
 
+def scaling_study(args: Args) -> dict:
+    """Seconds of one update (the agent's training config without early stopping, sampled
+    JacProp) against the number of training transitions."""
+    from agents.config import AgentConfig
+    from mbtsr.ltv import fit_ltv
+
+    data = collect(args.task, args.n_train, args.seed)
+    ltvs = [fit_ltv(t, 10.0) if t.T >= 2 else None for t in data]
+    keep = [i for i, lm in enumerate(ltvs) if lm is not None]
+    data, ltvs = [data[i] for i in keep], [ltvs[i] for i in keep]
+    counts = np.cumsum([t.T for t in data])
+    tcfg = dataclasses.replace(AgentConfig().training, patience=None, seed=args.seed)
+    reg = AgentConfig().regularization
+    model = ModelConfig().build(data[0].n, data[0].m, seed=args.seed)
+    sizes = [n for n in (250, 1000, args.n_train) if n <= counts[-1]]
+    times: dict[int, list[float]] = {n: [] for n in sizes}
+    for _ in range(3):
+        for n in sizes:
+            k = int(np.searchsorted(counts, n)) + 1
+            tic = time.perf_counter()
+            train_ensemble(model, data[:k], tcfg, reg, ltv_models=ltvs[:k])
+            times[n].append(time.perf_counter() - tic)
+            print(f"{args.task}: {int(counts[k - 1])} transitions: {times[n][-1]:.2f} s",
+                  flush=True)
+    return {"steps": tcfg.steps, "seconds": {str(n): float(np.median(v)) for n, v in times.items()},
+            "all_seconds": {str(n): v for n, v in times.items()},
+            "ratio_largest_over_smallest": float(np.median(times[sizes[-1]])
+                                                 / np.median(times[sizes[0]]))}
+
+
 def agent_study(args: Args) -> dict:
     """The agent on the task: per-episode phase times, the update-time ratio, the returns."""
     import json
@@ -238,10 +277,52 @@ def agent_study(args: Args) -> dict:
     return out
 
 
+def plot_sizes(paths: list[str], out: str) -> None:
+    """Held-out error (median over dimensions, relative to the paper's 4 x 1 x 20 on the same
+    task) and CPU milliseconds per gradient step against the size, one line per task."""
+    import json
+
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, (ax_err, ax_time) = plt.subplots(1, 2, figsize=(10, 3.8))
+    for path in paths:
+        d = json.loads(open(path).read())
+        rows = {k: v for k, v in d["results"].items() if "@" not in k}
+        key = "nrmse_median_dim" if "nrmse_median_dim" in rows["paper"] else "nrmse"
+        ref = d["results"].get("paper@0.003", rows["paper"])[key]
+        labels = list(rows)
+        name = f"{d['args']['task']} (n+m={d['n'] + d['m']})"
+        ax_err.plot(labels, [rows[k][key] / ref for k in labels], "o-", label=name)
+        ax_time.plot(labels, [rows[k]["cpu_ms_per_step"] for k in labels], "o-", label=name)
+    ax_err.set(yscale="log", ylabel="held-out one-step error / paper's",
+               title=f"after {d['args']['budgets'].split(',')[-1]} steps (median over dims)")
+    ax_time.set(yscale="log", ylabel="CPU ms per gradient step (batch 256)",
+                title="training cost, 4 members")
+    for ax in (ax_err, ax_time):
+        ax.set_xlabel("members' hidden layers x width (paper: 1 x 20, mixed activations)")
+        ax.grid(True, which="both", alpha=0.3)
+    ax_err.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(out, dpi=120)
+    print(f"wrote {out}")
+
+
 def run(args: Args) -> dict:
     torch.set_num_threads(args.threads)
     t_start = time.perf_counter()
     load_start = os.getloadavg()
+    if args.study == "plot":
+        plot_sizes([p for p in args.plot_from.split(",") if p], args.plot)
+        return {}
+    if args.study == "scaling":
+        result = {"args": dataclasses.asdict(args), "results": scaling_study(args)}
+        if args.json:
+            write_json_atomic(args.json, result)
+            print(f"wrote {args.json}")
+        return result
     if args.study == "agent":
         result = {"args": dataclasses.asdict(args), "results": agent_study(args)}
         result["machine"] = {"platform": platform.platform(), "cpu_count": os.cpu_count(),
