@@ -77,9 +77,10 @@ class TrainConfig:
 
     Two schedules. ``steps=None`` (default): ``epochs`` passes over all data, the paper's
     schedule (its cost grows with the data). ``steps=S``: a budget of ``S`` gradient steps on
-    minibatches of ``batch`` transitions per call, independent of the data size, with an
-    optional held-out split, early stopping and members that differ by data order or bootstrap
-    (``docs/models.md``, "Training with a step budget").
+    minibatches of ``batch`` transitions per call, independent of the data size. Either can
+    hold out data, stop early and give the members their own data order or bootstrap sample
+    (then the minibatch-step loop runs, :attr:`uses_step_loop`; without them ``epochs`` runs
+    the paper's epoch loop, unchanged). See ``docs/models.md``, "Training with a step budget".
 
     :param epochs: passes over the data (``steps=None``). Paper: 1000 for g and 2000 for f, half
         of that with sampled Jacobian propagation.
@@ -773,11 +774,23 @@ def _member_slices(model: DynamicsEnsemble) -> list[tuple[torch.nn.Module, int]]
     return [(g, i) for g in model.groups for i in range(g.n_members)]
 
 
-def _train_steps(model, trajs, config, reg, ltv_models, optimizer, callback, t_start, *, xu_raw,
-                 xu, target, starts, val) -> TrainHistory:
+def _train_steps(
+    model: DynamicsEnsemble, trajs: list[Trajectory], config: TrainConfig,
+    reg: RegularizationConfig, ltv_models: list | None, optimizer: torch.optim.Optimizer,
+    callback: Callable[[int, DynamicsEnsemble], None] | None, t_start: float, *,
+    xu_raw: torch.Tensor, xu: torch.Tensor, target: torch.Tensor, starts: np.ndarray,
+    val: tuple[torch.Tensor, torch.Tensor] | None,
+) -> TrainHistory:
     """:func:`train_ensemble`'s minibatch-step loop (``config.uses_step_loop``): a budget of
     ``config.steps`` steps (or ``epochs`` passes over the training rows), see
-    :class:`TrainConfig`. Members in stacked order inside."""
+    :class:`TrainConfig`. Members in stacked order inside.
+
+    :param xu_raw: ``[N, n+m]`` raw inputs of all transitions (float32).
+    :param xu: ``[N, n+m]`` the same normalized.  :param target: ``[N, n]`` normalized targets.
+    :param starts: ``[len(trajs) + 1]`` first row of every trajectory (and ``N``).
+    :param val: normalized validation inputs and targets (``validation``), or None; held-out
+        rows replace them when ``config.holdout > 0``.
+    """
     n, m = model.state_dim, model.action_dim
     N, K = xu.shape[0], model.n_members
     held = holdout_mask(N, config.holdout) if config.holdout > 0 else np.zeros(N, bool)
