@@ -27,6 +27,12 @@ epoch equal the baseline's); ``"own"`` gives every copy of every batch its own o
 after the epoch's data batches, as the original code did (it chained the perturbed trajectories
 after the data as extra batches), so an epoch takes ``(1 + n_copies)`` times the baseline's
 steps. Compare methods with the baseline at equal optimizer steps (:attr:`TrainHistory.steps`).
+
+With a step budget (:attr:`TrainConfig.steps`) or a hold-out, early stopping or per-member data,
+the minibatch-step loop runs instead of epochs: every step draws a minibatch per member, the
+perturbed copies of that minibatch's transitions (fresh every step, labelled by their
+trajectory's LTV Jacobians), and a probabilistic member's data term is the Gaussian NLL; see
+:class:`TrainConfig`.
 """
 
 from __future__ import annotations
