@@ -212,8 +212,20 @@ def scaling_study(args: Args) -> dict:
     from agents.config import AgentConfig
     from mbtsr.ltv import fit_ltv
 
+    def ltv(t: Trajectory):
+        """The agent's LTV fit with its fallback for degenerate regressors (a constant goal):
+        a weak prior on the first Jacobian."""
+        if t.T < 2:
+            return None
+        try:
+            return fit_ltv(t, 10.0)
+        except ValueError:
+            phi = np.concatenate(t.inputs, axis=1)
+            return fit_ltv(t, 10.0, P0=1.0 / (1e-6 * float(np.mean(np.sum(phi**2, 1))) * t.T
+                                              + 1e-12))
+
     data = collect(args.task, args.n_train, args.seed)
-    ltvs = [fit_ltv(t, 10.0) if t.T >= 2 else None for t in data]
+    ltvs = [ltv(t) for t in data]
     keep = [i for i, lm in enumerate(ltvs) if lm is not None]
     data, ltvs = [data[i] for i in keep], [ltvs[i] for i in keep]
     counts = np.cumsum([t.T for t in data])
