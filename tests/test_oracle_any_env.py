@@ -15,14 +15,12 @@ import numpy as np
 import pytest
 
 from agents.evaluation import evaluate_policy_costs, has_true_model, oracle_policy
-from agents.experiments.bench_suite import (
-    pendulum_cost,
-    reacher_cost,
-    reacher_terminal,
-)
+from agents.tasks import inverted_pendulum, reacher
 from envs.mujoco_model import MujocoDynamics, ObservedDynamics, state_of
 from mbtsr.episode import as_policy, run_episode
 
+reacher_cost, reacher_terminal = reacher().cost_fn, reacher().terminal_cost_fn
+pendulum_cost = inverted_pendulum().cost_fn
 TINY = {"horizon": 4, "iterations": 1, "first_plan_iterations": 3}
 
 

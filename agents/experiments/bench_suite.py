@@ -61,7 +61,6 @@ from typing import Any
 REPO = Path(__file__).resolve().parents[2]
 os.environ.setdefault("MUJOCO_GL", "egl")
 
-import casadi as ca  # noqa: E402
 import numpy as np  # noqa: E402
 
 from mbtsr import cli  # noqa: E402
@@ -71,27 +70,15 @@ PLANNERS = ("ilqr", "cem")
 REGULARIZATIONS = ("none", "sampled", "exact", "smooth")  # the suite runs the first two by default
 
 
-def reacher_cost(obs, a):
-    """Reacher-v5's reward terms: distance fingertip-target (smoothed) and effort."""
-    return ca.sqrt(ca.sumsqr(obs[8:10]) + 1e-4) + ca.sumsqr(a)
+from agents import tasks as _tasks  # noqa: E402
 
 
-def reacher_terminal(obs):
-    return 10.0 * ca.sumsqr(obs[8:10])
-
-
-def pendulum_cost(obs, a):
-    """InvertedPendulum-v5: obs = [x, theta, x_dot, theta_dot]; keep the pole up, cart near 0,
-    minus the env's alive bonus of 1 per step: with ``termination_fn`` the CEM planner adds no
-    cost after a predicted fall (PETS), so staying alive must be cheaper than falling (without
-    the bonus a positive cost makes falling early the cheapest plan)."""
-    return (10.0 * obs[1] ** 2 + 0.1 * obs[0] ** 2 + 0.01 * obs[2] ** 2 + 0.1 * obs[3] ** 2
-            + 0.001 * ca.sumsqr(a) - 1.0)
-
-
-def pendulum_terminated(obs):
-    """The env terminates when |theta| > 0.2 (or the state is not finite)."""
-    return np.abs(obs[..., 1]) > 0.2
+def _task(task: _tasks.Task, **extra: Any) -> dict[str, Any]:
+    """A suite entry from a reusable :class:`agents.tasks.Task` (its env, cost, terminal cost
+    and termination), plus the suite's budget and criterion ``extra``."""
+    return {"env_id": task.env_id, "make": dict(task.make_kwargs), "cost": task.cost_fn,
+            "terminal": task.terminal_cost_fn, "termination": task.termination_fn,
+            "overrides": {}, **extra}
 
 
 #: the tasks and their thresholds (stated before the runs; see the module docstring)
@@ -104,16 +91,13 @@ TASKS: dict[str, dict[str, Any]] = {
         "env_id": "mbtsr/TwoLinkArm-v0", "make": {}, "solved_ratio": 1.05, "episodes": 8,
         "overrides": {"planner.replan_every": 10},
     },
-    "reacher": {
-        "env_id": "Reacher-v5", "make": {}, "oracle_margin": 0.05, "total_env_steps": 1000,
-        "cost": reacher_cost, "terminal": reacher_terminal, "overrides": {},
-    },
-    "inverted-pendulum": {
-        "env_id": "InvertedPendulum-v5", "make": {"max_episode_steps": 200},
-        "oracle_margin": 0.05, "total_env_steps": 2000, "max_episodes": 15,
-        "cost": pendulum_cost,
-        "termination": pendulum_terminated, "overrides": {},
-    },
+    "reacher": _task(_tasks.reacher(), oracle_margin=0.05, total_env_steps=2000),
+    "inverted-pendulum": _task(_tasks.inverted_pendulum(max_episode_steps=200),
+                               oracle_margin=0.05, total_env_steps=2000, max_episodes=15),
+    "inverted-double-pendulum": _task(_tasks.inverted_double_pendulum(), oracle_margin=0.05,
+                                      total_env_steps=5000),
+    "pusher": _task(_tasks.pusher(), oracle_margin=0.05, total_env_steps=3000),
+    "half-cheetah": _task(_tasks.half_cheetah(), oracle_margin=0.05, total_env_steps=10000),
 }
 
 SMOKE_OVERRIDES = {
@@ -574,8 +558,8 @@ def sb3_budget(name: str, algo: str) -> int:
     return SB3_BUDGET_FACTOR[algo] * agent_budget_env_steps(name)
 
 
-def sb3_eval_problem(name: str, *, oracle_cache: str | None, smoke: bool = False
-                     ) -> dict[str, Any]:
+def sb3_eval_problem(name: str, *, oracle_cache: str | None, smoke: bool = False,
+                     threshold: bool = True) -> dict[str, Any]:
     """The evaluation episodes and threshold of task ``name``, exactly the agent runs' ones.
 
     Arm tasks: the 3 evaluation targets and the oracle's costs of the agent built by
@@ -608,6 +592,11 @@ def sb3_eval_problem(name: str, *, oracle_cache: str | None, smoke: bool = False
             return out
     finally:
         env.close()
+    if not threshold:  # a fixed budget: the Gymnasium tasks' returns need no oracle
+        out.update(eval_targets=None, oracle_mean_return=None, solved_return=None,
+                   score="mean return (higher is better)", threshold_score=None,
+                   oracle_source=None)
+        return out
     stored = json.loads(ORACLES_JSON.read_text()).get("oracles", {}) if ORACLES_JSON.is_file() \
         else {}
     if name in stored:
@@ -621,11 +610,14 @@ def sb3_eval_problem(name: str, *, oracle_cache: str | None, smoke: bool = False
     return out
 
 
-def run_sb3(name: str, algo: str, seed: int, problem: dict[str, Any], *, smoke: bool
-            ) -> dict[str, Any]:
+def run_sb3(name: str, algo: str, seed: int, problem: dict[str, Any], *, smoke: bool,
+            steps: int = 0) -> dict[str, Any]:
     """One SB3 run (:func:`agents.sb3_baselines.train_sb3`) on task ``name`` with the
     evaluation ``problem`` of :func:`sb3_eval_problem`; returns its record (scores in the agent
-    runs' units: cost / oracle or mean return)."""
+    runs' units: cost / oracle or mean return).
+
+    :param steps: a fixed budget (> 0): train all of it (no stop when solved) and evaluate 20
+        times along the way; 0: :func:`sb3_budget`, stopping at the first solved evaluation."""
     import torch
 
     from agents.sb3_baselines import default_hyperparams, train_sb3
@@ -633,19 +625,22 @@ def run_sb3(name: str, algo: str, seed: int, problem: dict[str, Any], *, smoke: 
     torch.set_num_threads(1)
     task = TASKS[name]
     hp = dict(SB3_SMOKE[algo]) if smoke else default_hyperparams(algo)
-    budget = SB3_SMOKE["budget"] if smoke else sb3_budget(name, algo)
+    budget = SB3_SMOKE["budget"] if smoke else (steps or sb3_budget(name, algo))
     eval_every = (SB3_SMOKE["eval_every"] if smoke and algo != "ppo"
                   else SB3_EVAL_EVERY.get(algo, hp.get("n_steps", 2048)))
+    if steps and not smoke:
+        eval_every = max(steps // 20, 1)
+    full = bool(steps)  # a fixed budget runs to its end: no threshold
     common = dict(hyperparams=hp, env_kwargs=dict(task["make"]), eval_seed=problem["eval_seed"])
     if problem["eval_targets"] is not None:
         r = train_sb3(algo, task["env_id"], budget, seed, eval_every, problem["eval_targets"],
-                      problem["threshold_cost"], **common)
+                      None if full else problem["threshold_cost"], **common)
         to_score = lambda c: c / problem["oracle_mean_cost"]  # noqa: E731
     else:
         r = train_sb3(algo, task["env_id"], budget, seed, eval_every, None, None, **common,
                       n_eval_episodes=problem["eval_episodes"],
                       eval_max_steps=problem["episode_steps"],
-                      solved_return=problem["solved_return"])
+                      solved_return=None if full else problem["solved_return"])
         to_score = lambda c: -c  # noqa: E731
     curve = [{"env_steps": int(st), "score": float(to_score(c))} for st, c in r["curve"]]
     return {
@@ -853,8 +848,9 @@ def run_sb3_suite(a: Any) -> dict[str, Any]:
                     continue
                 if name not in problems:
                     problems[name] = sb3_eval_problem(name, oracle_cache=a.oracle_cache,
-                                                      smoke=a.smoke)
-                rec = run_sb3(name, algo, seed, problems[name], smoke=a.smoke)
+                                                      smoke=a.smoke, threshold=not a.sb3_steps)
+                rec = run_sb3(name, algo, seed, problems[name], smoke=a.smoke,
+                              steps=a.sb3_steps)
                 state["runs"].append(rec)
                 state["comparison"] = sb3_comparison(state["runs"], [])
                 write_json_atomic(path, state)
@@ -899,6 +895,9 @@ class Args:
     the same thresholds and evaluation episodes; their runs go to --sb3-json (never --json)"""
     sb3_json: str = ""
     """the SB3 runs' JSON (default: next to --json, <stem>_sb3.json); the report reads it"""
+    sb3_steps: int = 0
+    """a fixed SB3 budget in env steps for every task, trained to its end and evaluated 20
+    times (0: the method's factor x the agent's budget, stopping when solved)"""
 
     def __post_init__(self) -> None:
         unknown = sorted(set(self.tasks) - set(TASKS))
