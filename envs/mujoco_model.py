@@ -207,6 +207,7 @@ class MujocoDynamics:
         self._template[0] = 0.0
         self._qpos0 = mujoco.mj_stateSize(self.model, mujoco.mjtState.mjSTATE_TIME)
         self._runner = rollout.Rollout(nthread=self.nthread) if self.nthread > 1 else None
+        self._obs_scratch: dict[int, tuple] = {}  # id(env) -> (its model, a private MjData)
 
     def set_mocap(self, pos: np.ndarray, quat: np.ndarray | None = None) -> None:
         """Set the held mocap body poses (``[nmocap, 3]``, ``[nmocap, 4]``), e.g. a target."""
@@ -317,23 +318,32 @@ class MujocoDynamics:
 
     def observation(self, env, x: np.ndarray) -> np.ndarray:
         """The env's observation at state ``x`` (``[n]`` or ``[N, n]``), by the env's own
-        ``_get_obs`` on a copy of its ``data`` (the env is not modified)."""
+        ``_get_obs`` on a private copy of its ``data`` (the env is not modified). The copy is
+        made once per env and takes the env's mocap poses and controls at every call."""
         base = _unwrap(env)
         x = as_array("x", x)
         single = x.ndim == 1
         xs = as_array("x", x.reshape(-1, x.shape[-1]), (None, self.state_dim))
         saved = base.data
+        scratch = self._obs_scratch.get(id(base))
+        if scratch is None or scratch[0] is not base.model:
+            scratch = (base.model, copy.copy(saved))
+            self._obs_scratch[id(base)] = scratch
+        data = scratch[1]
+        data.mocap_pos[:] = saved.mocap_pos
+        data.mocap_quat[:] = saved.mocap_quat
+        data.ctrl[:] = saved.ctrl
+        obs = np.empty((xs.shape[0],) + np.shape(base._get_obs()))
         try:
-            base.data = copy.copy(saved)
-            obs = []
-            for row in xs:
-                base.data.qpos[:] = row[: self.nq]
-                base.data.qvel[:] = row[self.nq :]
-                mujoco.mj_forward(base.model, base.data)
-                obs.append(np.array(base._get_obs(), dtype=float))
+            base.data = data
+            for i, row in enumerate(xs):
+                data.qpos[:] = row[: self.nq]
+                data.qvel[:] = row[self.nq :]
+                mujoco.mj_forward(base.model, data)
+                obs[i] = base._get_obs()
         finally:
             base.data = saved
-        return obs[0] if single else np.stack(obs)
+        return obs[0] if single else obs
 
 
 class HybridDynamics:
