@@ -81,6 +81,11 @@ class ILQROptions:
     :param max_state_norm: a rollout whose ``max |x|`` exceeds this counts as diverged.
     :param termination_cost: with ``terminated``: cost paid once by a trajectory that
         terminates, instead of its terminal cost (see :func:`mbtsr.costs.truncated_total`).
+    :param convexify_cost: project each stage's cost Hessian onto the positive semidefinite
+        cone before the backward pass (:meth:`mbtsr.costs.CostDerivatives.convexified`; a
+        no-op for convex costs). Off, a cost that is not convex in the state (a pole's height
+        written from ``sin``/``cos`` observations) gives indefinite value Hessians and
+        untrustworthy steps (InvertedDoublePendulum-v5's true-model MPC fell within 10 steps).
     :param boxqp_*: projected-Newton box-QP settings (Tassa et al.'s ``boxQP`` defaults).
     """
 
@@ -97,6 +102,7 @@ class ILQROptions:
     reduce_ratio_min: float = 0.0
     max_state_norm: float = 1e8
     termination_cost: float = 0.0
+    convexify_cost: bool = True
     boxqp_max_iter: int = 100
     boxqp_min_grad: float = 1e-8
     boxqp_min_rel_improve: float = 1e-8
@@ -327,6 +333,8 @@ def ilqr(
             timings["jacobians"] += time.perf_counter() - tic
             tic = time.perf_counter()
             derivs = cost._derivatives(X, U, t0, table)
+            if opts.convexify_cost:
+                derivs = derivs.convexified()
             timings["cost_derivatives"] += time.perf_counter() - tic
             finite = (
                 np.isfinite(A).all()
