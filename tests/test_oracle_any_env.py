@@ -174,3 +174,30 @@ def test_true_model_mpc_keeps_the_double_pendulum_up():
                                               - rec.obs[:, 1] * rec.obs[:, 2])
     assert tip_height.min() > 1.15
     assert -rec.cost > 60 * 9.0  # alive bonus 10 minus the distance penalty (0.64 at the top)
+
+
+def test_affine_observations_are_detected_and_give_the_same_lifted_model():
+    """HalfCheetah's observation [qpos[1:], qvel] is affine in the state: the lifted model
+    computes it as one matrix product, equal to the env's own _get_obs; Hopper's clipped
+    velocities and Reacher's sin/cos are not affine and keep the env's _get_obs."""
+    env = gym.make("HalfCheetah-v5")
+    env.reset(seed=0)
+    dyn = MujocoDynamics(env)
+    model = ObservedDynamics(dyn, env)
+    assert model.affine is not None
+    rng = np.random.default_rng(1)
+    xs = state_of(env) + 0.3 * rng.standard_normal((5, model.n))
+    np.testing.assert_allclose(model._observe(xs), dyn.observation(env, xs), rtol=0, atol=1e-12)
+    z = model.lift(xs[0])
+    us = rng.uniform(-1, 1, (4, model.action_dim))
+    A, B = model.jacobians(np.repeat(z[None], 4, axis=0), us)
+    eps = 1e-6  # the lifted Jacobian's control columns against central differences of step
+    for j in range(model.action_dim):
+        du = np.zeros(model.action_dim)
+        du[j] = eps
+        fd = (model.step(z, us[0] + du) - model.step(z, us[0] - du)) / (2 * eps)
+        np.testing.assert_allclose(B[0, :, j], fd, rtol=1e-4, atol=1e-4)
+    for env_id in ("Hopper-v5", "Reacher-v5"):
+        other = gym.make(env_id)
+        other.reset(seed=0)
+        assert ObservedDynamics(MujocoDynamics(other), other).affine is None
