@@ -35,18 +35,20 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import Any, ClassVar, Literal
 
-from mbtsr.cem import CEMOptions
+from mbtsr.cem import CEMOptions, cem
+from mbtsr.cem_ilqr import CEMILQROptions, cem_ilqr
 from mbtsr.ensemble import ModelConfig
+from mbtsr.ilqr import ilqr
 from mbtsr.training import REGULARIZERS, RegularizationConfig, TrainConfig
 
 __all__ = ["AgentConfig", "CollectionConfig", "PlannerConfig", "EvaluationConfig", "from_flat",
            "REGULARIZERS", "PLANNERS", "EXCITATIONS"]
 
-PLANNERS = ("ilqr", "cem")
+PLANNERS = ("ilqr", "cem", "cem-ilqr")
 EXCITATIONS = ("filtered_gaussian", "multisine")
 
 
@@ -120,9 +122,12 @@ class PlannerConfig(_Checked):
     :param replan_every: execute every plan open loop for this many steps before re-solving
         (1: re-plan every step, the default; larger: the feedback-limited regime, where feedback
         hides less of the model's error). The oracle uses the same setting.
-    :param kind: ``"ilqr"`` (iLQR on the model's Jacobians, the paper's controller) or ``"cem"``
+    :param kind: ``"ilqr"`` (iLQR on the model's Jacobians, the paper's controller), ``"cem"``
         (the cross-entropy method of PETS, :func:`mbtsr.cem.cem`: forward predictions only,
-        never the model's Jacobians; the control for the paper's argument).
+        never the model's Jacobians; the control for the paper's argument) or ``"cem-ilqr"``
+        (CEM proposes, iLQR refines with ``ilqr_iterations``: :func:`mbtsr.cem_ilqr.cem_ilqr`;
+        CEM finds contacts where gradients are zero, iLQR's feedback balances what open-loop
+        samples cannot).
     :param terminal_weight: the planner's terminal cost is ``terminal_weight`` x the user's
         ``terminal_cost_fn(obs)`` (default: the stage cost at zero action).
     :param ilqr_iterations: iLQR iterations per MPC step (the first step of an episode gets
@@ -134,16 +139,20 @@ class PlannerConfig(_Checked):
         distribution, ``iterations`` (3) per MPC step (the first step of an episode gets
         ``first_plan_iterations``); the agent seeds every solve from ``seed`` (``cem.seed`` stays
         0).
+    :param proposal: the CEM settings of ``kind="cem-ilqr"``'s proposal (64 samples, 8 elites,
+        2 iterations per MPC step; seeded like ``cem``).
     """
 
     _path: ClassVar[str] = "planner"
     horizon: int = 30
     replan_every: int = 1
-    kind: Literal["ilqr", "cem"] = "ilqr"
+    kind: Literal["ilqr", "cem", "cem-ilqr"] = "ilqr"
     terminal_weight: float = 1.0
     ilqr_iterations: int = 2
     first_plan_iterations: int = 20
     cem: CEMOptions = field(default_factory=lambda: CEMOptions(iterations=3))
+    proposal: CEMOptions = field(
+        default_factory=lambda: CEMOptions(samples=64, elites=8, iterations=2))
 
     def __post_init__(self) -> None:
         self._choice("kind", PLANNERS)
@@ -154,12 +163,26 @@ class PlannerConfig(_Checked):
         if self.replan_every > self.horizon:
             raise ValueError(f"planner.replan_every must be <= planner.horizon={self.horizon}, "
                              f"got {self.replan_every}")
-        if not isinstance(self.cem, CEMOptions):
-            raise ValueError(f"planner.cem must be a mbtsr.cem.CEMOptions, got "
-                             f"{type(self.cem).__name__}")
-        if self.cem.seed != 0:
-            raise ValueError("planner.cem.seed must be 0: the agent seeds every solve from seed, "
-                             f"got {self.cem.seed!r}")
+        for name in ("cem", "proposal"):
+            opts = getattr(self, name)
+            if not isinstance(opts, CEMOptions):
+                raise ValueError(f"planner.{name} must be a mbtsr.cem.CEMOptions, got "
+                                 f"{type(opts).__name__}")
+            if opts.seed != 0:
+                raise ValueError(f"planner.{name}.seed must be 0: the agent seeds every solve "
+                                 f"from seed, got {opts.seed!r}")
+
+    def optimizer(self, seed: int = 0) -> tuple[Callable[..., Any], Any, int]:
+        """``(optimizer, options, iterations per MPC step)`` of :class:`mbtsr.mpc.MPC` for
+        this planner, its sampling seeded from ``seed`` (the agent's and the oracle's)."""
+        if self.kind == "ilqr":
+            return ilqr, None, self.ilqr_iterations
+        if self.kind == "cem":
+            options = dataclasses.replace(self.cem, seed=seed)
+            return cem, options, options.iterations
+        return cem_ilqr, CEMILQROptions(
+            max_iter=self.ilqr_iterations,
+            cem=dataclasses.replace(self.proposal, seed=seed)), self.ilqr_iterations
 
 
 @dataclass(frozen=True)

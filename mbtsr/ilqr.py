@@ -152,6 +152,8 @@ class ILQRResult:
     :param lam: the final regularisation (useful to warm-start a next solve).
     :param timings: total seconds per phase: ``jacobians, cost_derivatives, backward, forward,
         line_search_cost, total``.
+    :param proposal_cost: the cost of the initial plan a proposal step handed to iLQR (set by
+        :func:`mbtsr.cem_ilqr.cem_ilqr`), else ``None``.
     """
 
     X: np.ndarray
@@ -165,6 +167,7 @@ class ILQRResult:
     message: str
     lam: float = 1.0
     timings: dict = field(default_factory=dict, repr=False)
+    proposal_cost: float | None = None
 
 
 def check_control_bounds(u_min: object, u_max: object, m: int) -> tuple[np.ndarray, np.ndarray]:

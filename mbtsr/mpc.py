@@ -264,6 +264,10 @@ def _resolve_options(optimizer: Callable[..., Any], options: Any) -> Any:
         if options is None:
             return cem_module.CEMOptions()
         return cem_module.CEMOptions(**options) if isinstance(options, Mapping) else options
+    from mbtsr import cem_ilqr as hybrid
+
+    if optimizer is hybrid.cem_ilqr:
+        return hybrid._as_options(options)
     return {} if options is None else options
 
 
