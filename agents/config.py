@@ -53,7 +53,8 @@ from mbtsr.ensemble import ModelConfig
 from mbtsr.training import REGULARIZERS, RegularizationConfig, TrainConfig
 
 __all__ = ["AgentConfig", "CollectionConfig", "PlannerConfig", "EvaluationConfig", "from_flat",
-           "read_config_file", "split_run_config", "REGULARIZERS", "PLANNERS", "EXCITATIONS"]
+           "read_config_file", "split_run_config", "in_file", "REGULARIZERS", "PLANNERS",
+           "EXCITATIONS"]
 
 PLANNERS = ("ilqr", "cem")
 EXCITATIONS = ("filtered_gaussian", "multisine")
@@ -408,11 +409,11 @@ class AgentConfig(_Checked):
         :raises ValueError: naming the file and the problem (unreadable, not JSON/YAML, not a
             dict, or a bad field named by its dotted path).
         """
-        agent, _ = split_run_config(read_config_file(path))
         try:
+            agent, _ = split_run_config(read_config_file(path))
             return cls.from_dict(agent, base=base)
         except ValueError as err:
-            raise ValueError(f"{path}: {err}") from None
+            raise in_file(path, err) from None
 
 
 # ---- the tree's fields: types, defaults, coercion ---------------------------------------------
@@ -780,6 +781,11 @@ def read_config_file(path: str | os.PathLike) -> dict[str, Any]:
     if not isinstance(data, Mapping):
         raise ValueError(f"{p} holds a {type(data).__name__}, not a dict of AgentConfig fields")
     return dict(data)
+
+
+def in_file(path: str | os.PathLike, err: ValueError) -> ValueError:
+    """``err`` with its message prefixed by ``"<path>: "`` (unless it names the file already)."""
+    return err if str(err).startswith(str(path)) else ValueError(f"{path}: {err}")
 
 
 def split_run_config(d: Mapping[str, Any]) -> tuple[Mapping[str, Any], dict[str, Any]]:

@@ -158,8 +158,10 @@ def _make_agent(env: Any, task: dict[str, Any], overrides: dict[str, Any], smoke
     from agents.config import AgentConfig
     from agents.jacprop_agent import JacPropAgent
 
-    if smoke:
-        overrides = {**overrides, **SMOKE_OVERRIDES}
+    if smoke:  # the CEM budgets only for CEM (the config refuses settings without effect)
+        cem = overrides.get("planner.kind") == "cem"
+        overrides = {**overrides, **{k: v for k, v in SMOKE_OVERRIDES.items()
+                                     if cem or not k.startswith("planner.cem.")}}
         if "planner.replan_every" in overrides:
             overrides["planner.replan_every"] = 2
     return JacPropAgent(env, AgentConfig.default(overrides), cost_fn=task.get("cost"),
