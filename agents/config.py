@@ -41,7 +41,7 @@ import numbers
 import os
 import types
 import typing
-from collections.abc import Callable, Iterator, Mapping
+from collections.abc import Callable, Iterable, Iterator, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, ClassVar, Literal
@@ -53,8 +53,8 @@ from mbtsr.ensemble import ModelConfig
 from mbtsr.training import REGULARIZERS, RegularizationConfig, TrainConfig
 
 __all__ = ["AgentConfig", "CollectionConfig", "PlannerConfig", "EvaluationConfig", "from_flat",
-           "read_config_file", "split_run_config", "in_file", "REGULARIZERS", "PLANNERS",
-           "EXCITATIONS"]
+           "read_config_file", "split_run_config", "file_changes", "in_file", "REGULARIZERS",
+           "PLANNERS", "EXCITATIONS"]
 
 PLANNERS = ("ilqr", "cem")
 EXCITATIONS = ("filtered_gaussian", "multisine")
@@ -781,6 +781,22 @@ def read_config_file(path: str | os.PathLike) -> dict[str, Any]:
     if not isinstance(data, Mapping):
         raise ValueError(f"{p} holds a {type(data).__name__}, not a dict of AgentConfig fields")
     return dict(data)
+
+
+def file_changes(path: str | os.PathLike, fixed: Iterable[str] = ()) -> tuple[dict[str, Any],
+                                                                              list[str]]:
+    """The settings of the config file ``path`` (:meth:`AgentConfig.load`) as dotted changes to
+    the defaults (JSON values), for a sweep that builds every run with
+    ``AgentConfig.default(changes)``:
+    ``(changes without the fields in fixed, the fixed fields the file sets)`` (``fixed``: what
+    the sweep sets per run; the caller reports them).
+
+    :raises ValueError: naming the file and the problem.
+    """
+    changes = json.loads(json.dumps(AgentConfig.load(path).changes()))  # JSON-friendly
+    fixed = set(fixed)
+    return ({k: v for k, v in changes.items() if k not in fixed},
+            sorted(k for k in changes if k in fixed))
 
 
 def in_file(path: str | os.PathLike, err: ValueError) -> ValueError:

@@ -135,3 +135,58 @@ def test_config_and_resume_and_a_dropped_weight_are_refused(tmp_path, capsys):
             train_agent.parse(argv)
         err = capsys.readouterr().err
         assert exc.value.code == 2 and err.count("\n") == 1 and message in err, err
+
+
+# ---------------------------------------------------------------------------- the sweeps
+def test_agent_ablation_takes_a_config_file_as_every_runs_base(tmp_path, capsys):
+    from agents.experiments import agent_ablation
+
+    path = tmp_path / "base.yaml"
+    path.write_text("training: {epochs: 7}\nmodel: {hidden_width: 9}\nseed: 99\nrun_dir: r\n"
+                    "regularization: {sampled_weight: 2}\n")
+    args = agent_ablation.Args(variants="sampled,exact", config=str(path),
+                               agent_config='{"model.hidden_width": 11}')
+    configs = agent_ablation.sweep_configs(args)
+    assert capsys.readouterr().out.strip() == (
+        f"--config {path}: the sweep sets regularization.sampled_weight, run_dir, seed per run")
+    for name, config in configs.items():
+        cfg = AgentConfig.default(agent_ablation.agent_fields(config, 3))
+        assert (cfg.training.epochs, cfg.model.hidden_width, cfg.seed) == (7, 11, 3)
+        assert cfg.run_dir is None and cfg.regularization.kind == name
+    path.write_text("regularization: {sigma: 0.3}\n")
+    with pytest.raises(ValueError, match=r"^variant 'none': regularization\.sigma=0\.3 has no "
+                                         r"effect: "):
+        agent_ablation.sweep_configs(agent_ablation.Args(variants="sampled,none",
+                                                         config=str(path)))
+
+
+def test_benchmark_sb3_quick_agent_configs_are_valid_for_every_method():
+    """--quick fixed ltv_lambda for every agent method, also for 'none', where it does
+    nothing; its runs are now refused, so --quick gives it only to the LTV regularizers."""
+    from agents.experiments.benchmark_sb3 import AGENT_METHODS, QUICK_AGENT, _agent_config
+
+    for method in AGENT_METHODS:
+        cfg = AgentConfig.default(_agent_config(QUICK_AGENT, method, quick=True))
+        assert cfg.regularization.ltv_lambda == (1.0 if method == "jacprop" else None)
+
+
+def test_benchmark_sb3_refuses_a_file_setting_without_effect_before_any_run(tmp_path):
+    import os
+    import subprocess
+    import sys
+
+    path = tmp_path / "base.json"
+    path.write_text('{"regularization": {"n_copies": 2}, "seed": 5}')
+    repo = Path(__file__).resolve().parents[1]
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(repo), os.environ.get(
+        "PYTHONPATH", "")])}  # this checkout's packages, as pytest's pythonpath
+    proc = subprocess.run(
+        [sys.executable, str(repo / "scripts" / "benchmark_sb3.py"), "--quick", "--methods",
+         "jacprop,none", "--config", str(path), "--out-dir", str(tmp_path / "o"), "--json",
+         str(tmp_path / "b.json"), "--docs", str(tmp_path / "b.md")],
+        capture_output=True, text=True, timeout=300, env=env)
+    assert proc.returncode == 2, proc.stderr
+    assert proc.stdout.splitlines()[0] == f"--config {path}: the benchmark sets seed per run"
+    assert proc.stderr.count("\n") == 1 and "error: method 'none': regularization.n_copies=2 " \
+        "has no effect: it shapes the perturbed copies" in proc.stderr, proc.stderr
+    assert not (tmp_path / "o" / "sweep").exists()
