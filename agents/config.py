@@ -21,6 +21,12 @@ the agent hands ``training`` (with a per-update seed) and ``regularization`` to
     cfg.replace({"planner.horizon": 50, "model.hidden_width": 32}, seed=3)
 
 An error names the full dotted field (``model.hidden_width must be an integer >= 1, got 0``).
+Files: :meth:`AgentConfig.load` reads JSON or YAML (:func:`read_config_file`), a partial dict
+being CHANGES to the defaults (:meth:`AgentConfig.from_dict`, the semantics of ``replace``), every
+value checked against its field's type and coerced only where unambiguous; a run's
+``config.json`` loads through its ``agent`` section. A setting that has no effect under the others
+(a sampled-only field with another regularizer, a CEM field with iLQR, ...: ``_DEPENDENT``) is
+refused with the reason, unless it holds its default.
 Configs saved in the old flat format (``{"epochs_per_episode": 150, "hidden_width": 20, ...}``)
 load through :func:`from_flat` (``AgentConfig.from_dict`` detects them).
 
