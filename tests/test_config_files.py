@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 
-from agents.config import AgentConfig, read_config_file
+from agents.config import AgentConfig
 from agents.episode_log import TIMING_COLUMNS
 from agents.experiments import train_agent
 
@@ -110,6 +110,8 @@ def test_a_bad_file_is_one_line_naming_the_file_and_the_problem(tmp_path, capsys
 
 
 def test_read_config_file_refuses_yaml_objects_and_binary(tmp_path):
+    from agents.config import read_config_file
+
     evil = tmp_path / "evil.yaml"
     evil.write_text("seed: !!python/object/apply:os.system ['echo hacked']\n")
     with pytest.raises(ValueError, match=r"evil\.yaml is not valid YAML: .*python/object"):
