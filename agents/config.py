@@ -390,7 +390,11 @@ class AgentConfig(_Checked):
         float is an integer (``50.0`` -> 50), ``"true"``/``"false"`` are booleans,
         ``"none"``/``"null"`` is ``None`` where the field takes ``None`` but no string, a list is
         a tuple; anything else of the wrong type is refused. A dict in the old flat format
-        (before the tree) is converted by :func:`from_flat`.
+        (before the tree, complete by nature: ``base`` is not used) is converted by
+        :func:`from_flat`.
+
+        :param d: the fields, nested or dotted.
+        :param base: the config the changes apply to (default ``AgentConfig()``).
 
         :raises ValueError: naming the dotted field: unknown (with the closest valid field),
             of the wrong type, out of range, or without effect under the other settings.
@@ -404,6 +408,10 @@ class AgentConfig(_Checked):
 
     @classmethod
     def from_json(cls, text: str) -> AgentConfig:
+        """:meth:`from_dict` of a JSON object (a key given twice is an error).
+
+        :param text: the JSON text, e.g. :meth:`to_json`'s.
+        """
         return cls.from_dict(json.loads(text, object_pairs_hook=_unique_keys))
 
     @classmethod
