@@ -232,7 +232,8 @@ def ilqr(
         task's termination function). The line search then accepts steps on the episode's
         own cost: stage costs after the first predicted termination are dropped and
         ``options.termination_cost`` is paid once (:func:`mbtsr.costs.truncated_total`, as
-        :func:`mbtsr.cem.cem`); the search direction still comes from the smooth cost.
+        :func:`mbtsr.cem.cem`); the search direction still comes from the smooth cost. A plan
+        that no (finite) step improves under the episode's cost ends ``"converged"``.
     :return: :class:`ILQRResult`. Its ``U`` is always finite and inside the bounds: a solve that
         meets NaN/inf (model, Jacobians, cost) stops with status ``"failed"`` and the best
         finite iterate.
@@ -430,6 +431,13 @@ def ilqr(
             if alive[0] and expected[0] < opts.tol_fun and abs(actual[0]) < opts.tol_fun:
                 status = "converged"
                 message = "expected and actual cost change of the full step below tol_fun"
+                break
+            no_better = np.all(np.isfinite(Jn) & (Jn >= J - opts.tol_fun))
+            if lam > opts.lambda_max and terminated is not None and no_better:
+                # every step is finite and none improves the episode's (truncated) cost: the
+                # plan is optimal under it, though the smooth cost's direction points elsewhere
+                status = "converged"
+                message = "no step improves the episode's cost (terminated) up to lambda_max"
                 break
             if lam > opts.lambda_max:
                 status = "failed"

@@ -66,7 +66,7 @@ import numpy as np  # noqa: E402
 from mbtsr import cli  # noqa: E402
 from mbtsr.io import atomic_write_text, write_json_atomic  # noqa: E402
 
-PLANNERS = ("ilqr", "cem")
+PLANNERS = ("ilqr", "cem", "cem-ilqr")
 REGULARIZATIONS = ("none", "sampled", "exact", "smooth")  # the suite runs the first two by default
 
 
@@ -103,9 +103,20 @@ TASKS: dict[str, dict[str, Any]] = {
 SMOKE_OVERRIDES = {
     "training.epochs": 3, "planner.horizon": 5, "planner.first_plan_iterations": 2,
     "planner.ilqr_iterations": 1, "planner.cem.samples": 16, "planner.cem.elites": 4,
-    "planner.cem.iterations": 1, "evaluation.episodes": 1, "model.ensemble_size": 2,
+    "planner.cem.iterations": 1, "planner.proposal.samples": 8, "planner.proposal.elites": 2,
+    "planner.proposal.iterations": 1, "evaluation.episodes": 1, "model.ensemble_size": 2,
     "model.hidden_width": 8,
 }
+
+
+def _planner_applies(key: str, kind: str) -> bool:
+    """Whether the dotted setting ``key`` acts under planner ``kind`` (the config refuses
+    settings without effect)."""
+    if key.startswith("planner.cem."):
+        return kind == "cem"
+    if key.startswith("planner.proposal."):
+        return kind == "cem-ilqr"
+    return key != "planner.ilqr_iterations" or kind != "cem"
 
 
 def solved_return(name: str, oracle_return: float) -> float:
@@ -142,8 +153,10 @@ def _make_agent(env: Any, task: dict[str, Any], overrides: dict[str, Any], smoke
     from agents.config import AgentConfig
     from agents.jacprop_agent import JacPropAgent
 
-    if smoke:
-        overrides = {**overrides, **SMOKE_OVERRIDES}
+    if smoke:  # each planner's tiny budgets only for it
+        kind = overrides.get("planner.kind", "ilqr")
+        overrides = {**overrides, **{k: v for k, v in SMOKE_OVERRIDES.items()
+                                     if _planner_applies(k, kind)}}
         if "planner.replan_every" in overrides:
             overrides["planner.replan_every"] = 2
     return JacPropAgent(env, AgentConfig.default(overrides), cost_fn=task.get("cost"),
