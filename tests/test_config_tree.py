@@ -163,7 +163,7 @@ def test_every_old_flat_field_lands_on_its_tree_field():
         training=TrainConfig(epochs=11, lr=0.01, batch="trajectory", weight_decay=1e-4,
                              progress=False),
         regularization=RegularizationConfig(smooth_weight=0.2, ltv_lambda=None),
-        planner=PlannerConfig(kind="cem", horizon=12, replan_every=3, ilqr_iterations=4,
+        planner=PlannerConfig(kind="cem", horizon=12, replan_every=3,  # iLQR's iterations
                               first_plan_iterations=9, terminal_weight=2.0,
                               cem=CEMOptions(samples=50, elites=5, iterations=2)),
         evaluation=EvaluationConfig(every=2, episodes=5, seed=7, solved_return=-10.0,
@@ -298,7 +298,7 @@ LEAVES = {
     "regularization.ltv_lambda": st.none() | st.floats(1e-3, 1e6),
     "planner.horizon": st.integers(2, 60),
     "planner.replan_every": st.integers(1, 2),
-    "planner.kind": st.sampled_from(["ilqr", "cem"]),
+    "planner.kind": st.sampled_from(["ilqr", "cem", "cem-ilqr"]),
     "planner.terminal_weight": st.floats(0.0, 10.0),
     "planner.ilqr_iterations": st.integers(1, 5),
     "planner.first_plan_iterations": st.integers(1, 30),
@@ -310,6 +310,14 @@ LEAVES = {
     "planner.cem.tol_std": st.floats(0.0, 1.0),
     "planner.cem.max_state_norm": st.floats(0.0, 1e10),
     "planner.cem.termination_cost": st.floats(-1e3, 1e3),
+    "planner.proposal.samples": st.integers(8, 500),
+    "planner.proposal.elites": st.integers(1, 8),
+    "planner.proposal.iterations": st.integers(1, 10),
+    "planner.proposal.init_std": st.floats(0.0, 2.0),
+    "planner.proposal.smoothing": st.floats(0.0, 1.0),
+    "planner.proposal.tol_std": st.floats(0.0, 1.0),
+    "planner.proposal.max_state_norm": st.floats(0.0, 1e10),
+    "planner.proposal.termination_cost": st.floats(-1e3, 1e3),
     "evaluation.every": st.integers(0, 10),
     "evaluation.episodes": st.integers(1, 10),
     "evaluation.seed": st.integers(0, 10_000),
@@ -340,6 +348,9 @@ ACTS_ONLY_WHEN = {
     "ltv_prior": lambda v: max(v["regularization.sampled_weight"],
                                v["regularization.exact_weight"]) > 0,
     **{k: (lambda v: v["planner.kind"] == "cem") for k in LEAVES if k.startswith("planner.cem.")},
+    **{k: (lambda v: v["planner.kind"] == "cem-ilqr") for k in LEAVES
+       if k.startswith("planner.proposal.")},
+    "planner.ilqr_iterations": lambda v: v["planner.kind"] != "cem",
     "collection.excitation_window": lambda v: v["collection.excitation"] == "filtered_gaussian",
     "video_every": lambda v: v["video"],
     "evaluation.solved_ratio": lambda v: v["evaluation.solved_return"] is None,
@@ -399,7 +410,8 @@ def assert_exactly(cfg: AgentConfig, changes: dict) -> None:
 def test_a_partial_dict_loads_as_exactly_its_changes_and_round_trips(changes):
     import yaml
 
-    fixed = {"training.seed", "planner.cem.seed", "regularization.ltv_affine"}
+    fixed = {"training.seed", "planner.cem.seed", "planner.proposal.seed",
+             "regularization.ltv_affine"}
     assert set(LEAVES) | fixed == set(DEFAULTS)  # the strategies cover the whole tree
     cfg = AgentConfig.from_dict(nested(changes))
     assert_exactly(cfg, changes)
