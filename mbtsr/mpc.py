@@ -158,10 +158,13 @@ class MPC:
         self._t_plan: int | None = None
         self._lam: float | None = None
 
-    def _options(self, iterations: int, lam: float | None) -> Any:
+    def _options(self, iterations: int, lam: float | None, cold: bool = False) -> Any:
         """The optimizer's options with its iteration cap (iLQR ``max_iter``, CEM
-        ``iterations``) and iLQR's ``lambda_init`` set."""
+        ``iterations``) and iLQR's ``lambda_init`` set; for a cold start, options that offer
+        ``for_cold_start()`` (:class:`mbtsr.cem_ilqr.CEMILQROptions`) give theirs."""
         base = self._base_options
+        if cold and hasattr(base, "for_cold_start"):
+            base = base.for_cold_start()
         key = "max_iter"
         if dataclasses.is_dataclass(base):
             names = {f.name for f in dataclasses.fields(base)}
@@ -203,11 +206,11 @@ class MPC:
         return self._solve(x, t, params, U0, self.options.iterations_per_step, None,
                            optimizer_kwargs)
 
-    def _solve(self, x, t, params, U0, iterations, lam, kwargs=None) -> Any:
+    def _solve(self, x, t, params, U0, iterations, lam, kwargs=None, cold=False) -> Any:
         return self.optimizer(
             self.cost, self.model, x, U0, u_min=self.u_min, u_max=self.u_max,
             params=self.params if params is None else params, t0=t,
-            options=self._options(iterations, lam), **(kwargs or {}),
+            options=self._options(iterations, lam, cold), **(kwargs or {}),
         )
 
     def _cold_solve(self, x, t, params, kwargs=None) -> Any:
@@ -218,7 +221,7 @@ class MPC:
         U = self.U_init[: lengths[0]] if lengths else self.U_init
         for h in [*lengths, H]:
             U0 = np.concatenate([U, np.repeat(U[-1:], h - len(U), axis=0)])
-            res = self._solve(x, t, params, U0, its, None, kwargs)
+            res = self._solve(x, t, params, U0, its, None, kwargs, cold=True)
             U = res.U
         return res
 

@@ -75,3 +75,22 @@ def test_the_mpc_sets_the_refinement_iterations_and_options_are_checked():
             options=MPCOptions(optimizer_options={"samples": 3}))
     with pytest.raises(ValueError, match="max_iter"):
         CEMILQROptions(max_iter=0)
+
+
+def test_a_cold_start_searches_longer():
+    cost, model = _dead_zone_problem()
+    seen = []
+
+    def spy(*args, options=None, **kw):
+        seen.append(options.cem.iterations)
+        return cem_ilqr(*args, options=options, **kw)
+
+    opts = CEMILQROptions(cem=CEMOptions(samples=8, elites=2, iterations=1),
+                          cold_proposal_iterations=4)
+    mpc = MPC(spy, cost, model, T, u_min=-1, u_max=1,
+              options=MPCOptions(optimizer_options=opts, cold_start_fractions=(0.5,)))
+    mpc.act(np.zeros(1), 0)
+    mpc.act(np.zeros(1), 1)
+    assert seen == [4, 4, 1]  # two cold-start horizons, then a warm start
+    assert opts.for_cold_start().cem.iterations == 4
+    assert CEMILQROptions(cold_proposal_iterations=1).for_cold_start().cem.iterations == 2
