@@ -21,6 +21,12 @@ the agent hands ``training`` (with a per-update seed) and ``regularization`` to
     cfg.replace({"planner.horizon": 50, "model.hidden_width": 32}, seed=3)
 
 An error names the full dotted field (``model.hidden_width must be an integer >= 1, got 0``).
+Files: :meth:`AgentConfig.load` reads JSON or YAML (:func:`read_config_file`), a partial dict
+being CHANGES to the defaults (:meth:`AgentConfig.from_dict`, the semantics of ``replace``), every
+value checked against its field's type and coerced only where unambiguous; a run's
+``config.json`` loads through its ``agent`` section. A setting that has no effect under the others
+(a sampled-only field with another regularizer, a CEM field with iLQR, ...: ``_DEPENDENT``) is
+refused with the reason, unless it holds its default.
 Configs saved in the old flat format (``{"epochs_per_episode": 150, "hidden_width": 20, ...}``)
 load through :func:`from_flat` (``AgentConfig.from_dict`` detects them).
 
@@ -36,20 +42,32 @@ epoch schedule.
 from __future__ import annotations
 
 import dataclasses
+import difflib
+import functools
 import json
 import math
-from collections.abc import Mapping
+import numbers
+import os
+import types
+import typing
+from collections.abc import Callable, Iterable, Iterator, Mapping
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any, ClassVar, Literal
 
-from mbtsr.cem import CEMOptions
+import numpy as np
+
+from mbtsr.cem import CEMOptions, cem
+from mbtsr.cem_ilqr import CEMILQROptions, cem_ilqr
 from mbtsr.ensemble import ModelConfig
+from mbtsr.ilqr import ilqr
 from mbtsr.training import REGULARIZERS, RegularizationConfig, TrainConfig
 
 __all__ = ["AgentConfig", "CollectionConfig", "PlannerConfig", "EvaluationConfig", "from_flat",
-           "REGULARIZERS", "PLANNERS", "PROPAGATIONS", "EXCITATIONS"]
+           "read_config_file", "split_run_config", "file_changes", "in_file", "REGULARIZERS",
+           "PLANNERS", "PROPAGATIONS", "EXCITATIONS"]
 
-PLANNERS = ("ilqr", "cem")
+PLANNERS = ("ilqr", "cem", "cem-ilqr")
 PROPAGATIONS = ("mean", "ts")
 EXCITATIONS = ("filtered_gaussian", "multisine")
 
@@ -124,9 +142,12 @@ class PlannerConfig(_Checked):
     :param replan_every: execute every plan open loop for this many steps before re-solving
         (1: re-plan every step, the default; larger: the feedback-limited regime, where feedback
         hides less of the model's error). The oracle uses the same setting.
-    :param kind: ``"ilqr"`` (iLQR on the model's Jacobians, the paper's controller) or ``"cem"``
+    :param kind: ``"ilqr"`` (iLQR on the model's Jacobians, the paper's controller), ``"cem"``
         (the cross-entropy method of PETS, :func:`mbtsr.cem.cem`: forward predictions only,
-        never the model's Jacobians; the control for the paper's argument).
+        never the model's Jacobians; the control for the paper's argument) or ``"cem-ilqr"``
+        (CEM proposes, iLQR refines with ``ilqr_iterations``: :func:`mbtsr.cem_ilqr.cem_ilqr`;
+        CEM finds contacts where gradients are zero, iLQR's feedback balances what open-loop
+        samples cannot).
     :param terminal_weight: the planner's terminal cost is ``terminal_weight`` x the user's
         ``terminal_cost_fn(obs)`` (default: the stage cost at zero action).
     :param ilqr_iterations: iLQR iterations per MPC step (the first step of an episode gets
@@ -138,23 +159,27 @@ class PlannerConfig(_Checked):
         distribution, ``iterations`` (3) per MPC step (the first step of an episode gets
         ``first_plan_iterations``), ``particles`` (1) rollouts per sequence; the agent seeds
         every solve from ``seed`` (``cem.seed`` stays 0).
+    :param proposal: the CEM settings of ``kind="cem-ilqr"``'s proposal (64 samples, 8 elites,
+        2 iterations per MPC step; seeded like ``cem``).
     :param propagation: how CEM rolls a sequence out on the ensemble: ``"mean"`` (the
         ensemble-mean model, as iLQR) or ``"ts"`` (trajectory sampling, PETS' TS-inf: each of
         the ``cem.particles`` rollouts of a sequence follows one member,
         :meth:`mbtsr.ensemble.FrozenEnsemble.trajectory_sampling`, and the sequence's cost is
         their mean; set ``cem.particles`` to a multiple of ``model.ensemble_size``, e.g. equal
         to it for deterministic members; probabilistic members also sample their noise).
-        ``"ts"`` needs ``kind="cem"``.
+        ``"ts"`` needs ``kind="cem"`` (iLQR, also cem-ilqr's refinement, plans on the mean).
     """
 
     _path: ClassVar[str] = "planner"
     horizon: int = 30
     replan_every: int = 1
-    kind: Literal["ilqr", "cem"] = "ilqr"
+    kind: Literal["ilqr", "cem", "cem-ilqr"] = "ilqr"
     terminal_weight: float = 1.0
     ilqr_iterations: int = 2
     first_plan_iterations: int = 20
     cem: CEMOptions = field(default_factory=lambda: CEMOptions(iterations=3))
+    proposal: CEMOptions = field(
+        default_factory=lambda: CEMOptions(samples=64, elites=8, iterations=2))
     propagation: Literal["mean", "ts"] = "mean"
 
     def __post_init__(self) -> None:
@@ -170,12 +195,26 @@ class PlannerConfig(_Checked):
         if self.replan_every > self.horizon:
             raise ValueError(f"planner.replan_every must be <= planner.horizon={self.horizon}, "
                              f"got {self.replan_every}")
-        if not isinstance(self.cem, CEMOptions):
-            raise ValueError(f"planner.cem must be a mbtsr.cem.CEMOptions, got "
-                             f"{type(self.cem).__name__}")
-        if self.cem.seed != 0:
-            raise ValueError("planner.cem.seed must be 0: the agent seeds every solve from seed, "
-                             f"got {self.cem.seed!r}")
+        for name in ("cem", "proposal"):
+            opts = getattr(self, name)
+            if not isinstance(opts, CEMOptions):
+                raise ValueError(f"planner.{name} must be a mbtsr.cem.CEMOptions, got "
+                                 f"{type(opts).__name__}")
+            if opts.seed != 0:
+                raise ValueError(f"planner.{name}.seed must be 0: the agent seeds every solve "
+                                 f"from seed, got {opts.seed!r}")
+
+    def optimizer(self, seed: int = 0) -> tuple[Callable[..., Any], Any, int]:
+        """``(optimizer, options, iterations per MPC step)`` of :class:`mbtsr.mpc.MPC` for
+        this planner, its sampling seeded from ``seed`` (the agent's and the oracle's)."""
+        if self.kind == "ilqr":
+            return ilqr, None, self.ilqr_iterations
+        if self.kind == "cem":
+            options = dataclasses.replace(self.cem, seed=seed)
+            return cem, options, options.iterations
+        return cem_ilqr, CEMILQROptions(
+            max_iter=self.ilqr_iterations,
+            cem=dataclasses.replace(self.proposal, seed=seed)), self.ilqr_iterations
 
 
 @dataclass(frozen=True)
@@ -236,6 +275,33 @@ def _legacy_training() -> TrainConfig:
     """The agent's update before the step budget (150 epochs over all data): what configs saved
     in the old flat format mean."""
     return TrainConfig(epochs=150, lr=3e-3, batch=256, progress=False)
+
+
+@functools.cache
+def _then_defaults() -> AgentConfig:
+    """The defaults before the sized model and the step budget (the paper's ensemble, 150 epochs
+    per update): the base of configs saved in the old flat format."""
+    return AgentConfig(model=ModelConfig.paper(), training=_legacy_training())
+
+
+#: every field of ``training`` a config saved before the step budget holds
+_TRAINING_BEFORE_STEPS = ("epochs", "lr", "batch", "weight_decay", "decoupled_weight_decay",
+                          "betas", "adam_eps", "shuffle", "seed", "progress")
+
+
+def _saved_before_the_step_budget(d: Mapping[str, Any]) -> Mapping[str, Any]:
+    """A config saved before the step budget (a ``training`` section complete in the fields of
+    that time, without ``steps``) meant epochs: its new fields get the values that keep that
+    meaning (``TrainConfig``'s own defaults: no budget, no hold-out, shared minibatches),
+    instead of the agent's step-budget defaults. Its model section names its sizes, so it keeps
+    the paper's ensemble by itself."""
+    training = d.get("training")
+    if not (isinstance(training, Mapping) and "steps" not in training
+            and all(k in training for k in _TRAINING_BEFORE_STEPS)):
+        return d
+    then = {f.name: _field_default(f) for f in dataclasses.fields(TrainConfig)
+            if f.name not in _TRAINING_BEFORE_STEPS}
+    return {**d, "training": {**then, **training}}
 
 
 def _default_regularization() -> RegularizationConfig:
@@ -321,19 +387,25 @@ class AgentConfig(_Checked):
     torch_threads: int = 0
 
     def __post_init__(self) -> None:
-        if isinstance(self.regularization, str):
-            object.__setattr__(self, "regularization",
-                               _prefixed("regularization", RegularizationConfig.named,
-                                         self.regularization, ltv_lambda=None))
-        if isinstance(self.planner, str):
-            object.__setattr__(self, "planner", PlannerConfig(kind=self.planner))
+        for name, named in _NAMED.items():  # a name for a section: that section, fresh
+            if isinstance(getattr(self, name), str):
+                object.__setattr__(self, name, _prefixed(name, named, getattr(self, name)))
         for name, cls in SECTIONS.items():
             if not isinstance(getattr(self, name), cls):
-                raise ValueError(f"{name} must be a {cls.__module__}.{cls.__name__}, got "
-                                 f"{type(getattr(self, name)).__name__}")
+                raise ValueError(f"{name} must be a {cls.__module__}.{cls.__name__} (or a dict of "
+                                 f"its fields), got {type(getattr(self, name)).__name__}")
+        if self.run_dir is not None and not isinstance(self.run_dir, str):
+            object.__setattr__(self, "run_dir", str(self.run_dir))
+        for dotted, value, hint in _leaves(self):  # every leaf of its declared type
+            _coerce(value, hint, dotted, strict=True)
         if self.training.epochs < 1:
             raise ValueError(
                 f"training.epochs must be an integer >= 1, got {self.training.epochs!r}")
+        if self.training.patience is not None and self.training.holdout == 0:
+            raise ValueError(
+                f"training.patience={self.training.patience!r} has no effect: early stopping "
+                "needs held-out data (training.holdout > 0): set training.patience=None to "
+                "train the whole budget, or a hold-out")
         if self.training.seed != 0:
             raise ValueError("training.seed must be 0: the agent seeds every update from seed, "
                              f"got {self.training.seed!r}")
@@ -348,16 +420,21 @@ class AgentConfig(_Checked):
         self._float_range("ltv_prior", 0.0)
         self._int_at_least("video_every", 1)
         self._int_at_least("torch_threads", 0)
-        if self.run_dir is not None and not isinstance(self.run_dir, str):
-            object.__setattr__(self, "run_dir", str(self.run_dir))
+        values = self.dotted()
+        for dotted, reason in _inactive(values).items():
+            raise ValueError(f"{dotted}={values[dotted]!r} has no effect: {reason}")
 
     # ---- convenience -------------------------------------------------------------------------
     def replace(self, changes: Mapping[str, Any] | None = None, /, **top: Any) -> AgentConfig:
         """A copy with changes applied (validated again): ``changes`` maps dotted field names to
-        values (``{"planner.horizon": 50, "regularization": "none"}``), keywords set top-level
-        fields (``seed=3``, ``model=ModelConfig(...)``, ``regularization="exact"``).
+        values (``{"planner.horizon": 50, "regularization": "none"}``), a section to a dict of its
+        changes (``{"model": {"hidden_width": 32}}``); keywords set top-level fields
+        (``seed=3``, ``model=ModelConfig(...)``, ``regularization="exact"``). Fields not given
+        keep this config's values. Values are coerced where unambiguous (see
+        :func:`from_dict`).
 
-        :raises ValueError: naming the dotted field (unknown, or a bad value).
+        :raises ValueError: naming the dotted field (unknown, with the closest valid one; of
+            the wrong type; out of range; or without effect under the other settings).
         """
         return _replaced(self, {**(changes or {}), **top}, "")
 
@@ -366,6 +443,16 @@ class AgentConfig(_Checked):
         """``AgentConfig().replace(changes, **top)``: the defaults with these changes, e.g.
         ``AgentConfig.default({"planner.horizon": 20}, regularization="none")``."""
         return cls().replace(changes, **top)
+
+    def dotted(self) -> dict[str, Any]:
+        """``{dotted field: value}`` of every leaf of the tree (``"planner.cem.samples": 200``)."""
+        return {name: value for name, value, _ in _leaves(self)}
+
+    def changes(self) -> dict[str, Any]:
+        """The leaves that differ from ``AgentConfig()``'s, by dotted name: the partial config
+        that ``AgentConfig.default(cfg.changes()) == cfg`` rebuilds."""
+        defaults = _default_leaves()
+        return {k: v for k, v in self.dotted().items() if v != defaults[k]}
 
     # ---- (de)serialisation: the config is saved as JSON next to the results ------------------
     def to_dict(self) -> dict[str, Any]:
@@ -376,26 +463,304 @@ class AgentConfig(_Checked):
         return json.dumps(self.to_dict(), indent=2, sort_keys=True)
 
     @classmethod
-    def from_dict(cls, d: Mapping[str, Any]) -> AgentConfig:
-        """Inverse of :meth:`to_dict`; a dict in the old flat format (before the tree) is
-        converted by :func:`from_flat`. Unknown keys are an error naming them."""
+    def from_dict(cls, d: Mapping[str, Any], /, base: AgentConfig | None = None) -> AgentConfig:
+        """A config from a (partial) nested dict: the CHANGES it gives to ``base`` (default
+        ``AgentConfig()``), with the semantics of :meth:`replace`; :meth:`to_dict`'s inverse.
+
+        Sections are dicts (``{"model": {"hidden_width": 32}}``) or, for ``regularization`` and
+        ``planner``, names (``"none"``, ``"cem"``); dotted keys (``"planner.horizon"``) work too.
+        Every value is checked against its field's type and coerced where unambiguous: a
+        number given as a string (YAML 1.1 reads ``1e-3`` as one) is parsed (``"1e-3"`` -> 0.001
+        for a float field, ``"50"`` -> 50 for an integer field, not ``"2.5"``), an integral
+        float is an integer (``50.0`` -> 50), ``"true"``/``"false"`` are booleans,
+        ``"none"``/``"null"`` is ``None`` where the field takes ``None`` but no string, a list is
+        a tuple; anything else of the wrong type is refused. A dict in the old flat format
+        (before the tree, complete by nature: ``base`` is not used) is converted by
+        :func:`from_flat`.
+
+        :param d: the fields, nested or dotted.
+        :param base: the config the changes apply to (default ``AgentConfig()``).
+
+        :raises ValueError: naming the dotted field: unknown (with the closest valid field),
+            of the wrong type, out of range, or without effect under the other settings.
+        """
         if not isinstance(d, Mapping):
             raise ValueError(f"AgentConfig.from_dict needs a dict of AgentConfig fields, got "
                              f"{type(d).__name__} {d!r}")
         if _is_flat(d):
             return from_flat(d)
-        return _built(cls, d, "")
+        return (base or cls()).replace(_saved_before_the_step_budget(d))
 
     @classmethod
     def from_json(cls, text: str) -> AgentConfig:
-        return cls.from_dict(json.loads(text))
+        """:meth:`from_dict` of a JSON object (a key given twice is an error).
+
+        :param text: the JSON text, e.g. :meth:`to_json`'s.
+        """
+        return cls.from_dict(json.loads(text, object_pairs_hook=_unique_keys))
+
+    @classmethod
+    def load(cls, path: str | os.PathLike, base: AgentConfig | None = None) -> AgentConfig:
+        """The config in a JSON or YAML file (:func:`read_config_file`): a dict of (some)
+        AgentConfig fields, changes to ``base`` as in :meth:`from_dict`, or a run's
+        ``config.json`` (its ``agent`` section).
+
+        :raises ValueError: naming the file and the problem (unreadable, not JSON/YAML, not a
+            dict, or a bad field named by its dotted path).
+        """
+        try:
+            agent, _ = split_run_config(read_config_file(path))
+            return cls.from_dict(agent, base=base)
+        except ValueError as err:
+            raise in_file(path, err) from None
 
 
-def _field_names(cls: type) -> set[str]:
-    return {f.name for f in dataclasses.fields(cls)}
+# ---- the tree's fields: types, defaults, coercion ---------------------------------------------
+_NAMED: dict[str, Any] = {  # the sections a name can stand for
+    "regularization": lambda name: RegularizationConfig.named(name, ltv_lambda=None),
+    "planner": lambda name: PlannerConfig(kind=name),
+}
 
 
-_FIELD_NAMES = _field_names(AgentConfig)
+@functools.cache
+def _hints(cls: type) -> dict[str, Any]:
+    """The resolved type of every field of dataclass ``cls``."""
+    hints = typing.get_type_hints(cls)
+    return {f.name: hints[f.name] for f in dataclasses.fields(cls)}
+
+
+def _is_section(hint: Any) -> bool:
+    return isinstance(hint, type) and dataclasses.is_dataclass(hint)
+
+
+def _leaves(obj: Any, prefix: str = "") -> Iterator[tuple[str, Any, Any]]:
+    """``(dotted name, value, declared type)`` of every non-section field of ``obj``'s tree."""
+    for name, hint in _hints(type(obj)).items():
+        value = getattr(obj, name)
+        if _is_section(hint):
+            yield from _leaves(value, f"{prefix}{name}.")
+        else:
+            yield prefix + name, value, hint
+
+
+def _field_default(f: dataclasses.Field) -> Any:
+    return f.default_factory() if f.default_factory is not dataclasses.MISSING else f.default
+
+
+@functools.cache
+def _default_leaves() -> dict[str, Any]:
+    """The dotted leaves of ``AgentConfig()`` (built from the field defaults, not by
+    constructing it: its validation uses them)."""
+    out: dict[str, Any] = {}
+    for f in dataclasses.fields(AgentConfig):
+        value = _field_default(f)
+        if dataclasses.is_dataclass(value):
+            out.update({k: v for k, v, _ in _leaves(value, f"{f.name}.")})
+        else:
+            out[f.name] = value
+    return out
+
+
+@functools.cache
+def _class_default_leaves() -> dict[str, Any]:
+    """The dotted leaves of every section at ITS class's defaults (``RegularizationConfig()``'s
+    ``ltv_lambda`` is 31.6, the agent's None): a value equal to either default was not chosen."""
+    out: dict[str, Any] = {}
+
+    def walk(cls: type, prefix: str) -> None:
+        for f in dataclasses.fields(cls):
+            hint = _hints(cls)[f.name]
+            if _is_section(hint):
+                walk(hint, f"{prefix}{f.name}.")
+            elif prefix and (f.default is not dataclasses.MISSING
+                             or f.default_factory is not dataclasses.MISSING):
+                out[prefix + f.name] = _field_default(f)
+
+    walk(AgentConfig, "")
+    return out
+
+
+@functools.cache
+def _all_paths() -> tuple[str, ...]:
+    """Every dotted field of the tree, sections included (for "did you mean")."""
+    out: list[str] = []
+
+    def walk(cls: type, prefix: str) -> None:
+        for name, hint in _hints(cls).items():
+            out.append(prefix + name)
+            if _is_section(hint):
+                walk(hint, f"{prefix}{name}.")
+
+    walk(AgentConfig, "")
+    return tuple(out)
+
+
+def _describe(hint: Any) -> str:
+    """``float | None`` -> ``"a number or null"`` (the words of the type errors)."""
+    origin, args = typing.get_origin(hint), typing.get_args(hint)
+    if origin in (typing.Union, types.UnionType):
+        return " or ".join(_describe(a) for a in args)
+    if origin is Literal:
+        return repr(args[0]) if len(args) == 1 else f"one of {args}"
+    if origin is tuple:
+        item = _describe(args[0]).split(" ", 1)[-1]  # "a number" -> "number"
+        count = "" if args[-1] is Ellipsis else f"{len(args)} "
+        return f"a list of {count}{item}s"
+    return {bool: "true or false", int: "an integer", float: "a number", str: "a string",
+            type(None): "null"}.get(hint, getattr(hint, "__name__", str(hint)))
+
+
+def _number(value: Any) -> float | None:
+    """A real number given as a number or a numeric string (not a bool), else None."""
+    if isinstance(value, (bool, np.bool_)):
+        return None
+    if isinstance(value, numbers.Real):
+        return float(value)
+    if isinstance(value, str):
+        try:
+            return float(value.strip())
+        except ValueError:
+            return None
+    return None
+
+
+def _coerce(value: Any, hint: Any, name: str, *, strict: bool = False) -> Any:
+    """``value`` as the type ``hint`` of field ``name`` (dotted), coerced where unambiguous (see
+    :meth:`AgentConfig.from_dict`); ``strict``: no coercion, only the type check.
+
+    :raises ValueError: ``"<name> must be <type>, got <value>"``.
+    """
+    origin, args = typing.get_origin(hint), typing.get_args(hint)
+    bad = ValueError(f"{name} must be {_describe(hint)}, got {value!r}")
+    if origin in (typing.Union, types.UnionType):
+        if value is None:
+            if type(None) in args:
+                return None
+            raise bad
+        for option in sorted(args, key=lambda a: typing.get_origin(a) is not Literal):
+            if option is not type(None):
+                try:
+                    return _coerce(value, option, name, strict=strict)
+                except ValueError:
+                    pass
+        if (not strict and type(None) in args and str not in args and isinstance(value, str)
+                and value.strip().lower() in ("none", "null")):
+            return None
+        raise bad
+    if origin is Literal:
+        if isinstance(value, str) and value in args:
+            return value
+        raise bad
+    if origin is tuple:
+        if not strict and isinstance(value, str) and args[-1] is Ellipsis:
+            value = (value,)  # one name for a list of names
+        if not isinstance(value, (tuple, list)) or (strict and not isinstance(value, tuple)):
+            raise bad
+        items = args[:1] * len(value) if args[-1] is Ellipsis else args
+        if len(items) != len(value):
+            raise bad
+        try:
+            return tuple(_coerce(v, h, name, strict=strict) for v, h in zip(value, items))
+        except ValueError:
+            raise bad from None
+    if hint is bool:
+        if isinstance(value, (bool, np.bool_)):
+            return bool(value)
+        if not strict and isinstance(value, str) and value.strip().lower() in ("true", "false"):
+            return value.strip().lower() == "true"
+        raise bad
+    if hint is int:
+        if isinstance(value, numbers.Integral) and not isinstance(value, (bool, np.bool_)):
+            return int(value)
+        number = None if strict else _number(value)
+        if number is not None and math.isfinite(number) and number == int(number):
+            return int(number)
+        raise bad
+    if hint is float:
+        number = _number(value) if (not strict or not isinstance(value, str)) else None
+        if number is None:
+            raise bad
+        return number
+    if hint is str:
+        if isinstance(value, str):
+            return value
+        if isinstance(value, os.PathLike):
+            return os.fspath(value)
+        raise bad
+    return value  # a type the tree does not use: unchecked
+
+
+#: settings that act only under another setting: (fields, needed(dotted values), reason); a
+#: value other than the default in such a field, while it is not needed, is refused
+_DEPENDENT: tuple[tuple[tuple[str, ...], Callable[[Mapping[str, Any]], bool], str], ...] = (
+    (("regularization.sigma", "regularization.n_copies", "regularization.copies_batch"),
+     lambda v: v["regularization.sampled_weight"] > 0,
+     "it shapes the perturbed copies of sampled Jacobian propagation, which is off "
+     "(regularization.sampled_weight is 0): remove it, or turn that on"),
+    (("regularization.ltv_lambda", "ltv_prior"),
+     lambda v: v["regularization.sampled_weight"] > 0 or v["regularization.exact_weight"] > 0,
+     "the agent fits LTV models only for the sampled and exact regularizers, whose weights are "
+     "0 here: remove it"),
+    (("planner.cem.",), lambda v: v["planner.kind"] == "cem",
+     "it is a setting of planner.kind='cem', which is not the planner: remove it, or set "
+     "planner.kind='cem'"),
+    (("planner.proposal.",), lambda v: v["planner.kind"] == "cem-ilqr",
+     "it is a setting of the CEM proposal of planner.kind='cem-ilqr', which is not the "
+     "planner: remove it, or set planner.kind='cem-ilqr'"),
+    (("planner.ilqr_iterations",), lambda v: v["planner.kind"] != "cem",
+     "CEM runs planner.cem.iterations per step: remove it, or plan with iLQR"),
+    (("collection.excitation_window",), lambda v: v["collection.excitation"] == "filtered_gaussian",
+     "it is the window of collection.excitation='filtered_gaussian' and the excitation is "
+     "'multisine': remove it"),
+    (("training.epochs",), lambda v: v["training.steps"] is None,
+     "training.steps sets a budget of gradient steps per update, so the epochs are not used: "
+     "remove it, or set training.steps=None for the epoch schedule"),
+    (("training.early_stopping",), lambda v: v["training.patience"] is not None,
+     "it chooses how early stopping keeps the best weights, and training.patience is None (no "
+     "early stopping): remove it, or set a patience"),
+    (("video_every",), lambda v: bool(v["video"]),
+     "video is off: remove it, or set video=true"),
+    (("evaluation.solved_ratio", "evaluation.early_exit"),
+     lambda v: v["evaluation.solved_return"] is None,
+     "evaluation.solved_return is set, so the solved test is on the return and the oracle "
+     "this relates to is not run: remove it, or evaluation.solved_return"),
+)
+
+
+def _inactive(values: Mapping[str, Any]) -> dict[str, str]:
+    """``{dotted field: reason}`` of the fields of ``values`` (every dotted leaf) that hold a
+    chosen value (neither the agent's default nor its section's) without effect under the
+    others."""
+    defaults, class_defaults = _default_leaves(), _class_default_leaves()
+    out = {}
+    for fields, needed, reason in _DEPENDENT:
+        if needed(values):
+            continue
+        for name, value in values.items():
+            chosen = value != defaults[name] and value != class_defaults.get(name, defaults[name])
+            if chosen and any(name == f or (f.endswith(".") and name.startswith(f))
+                              for f in fields):
+                out[name] = reason
+    return out
+
+
+def _closest(key: str) -> str:
+    """The valid dotted field nearest to ``key`` (difflib; whole path or last part)."""
+    tail = key.rpartition(".")[2]
+
+    def score(path: str) -> tuple[float, float]:
+        whole = difflib.SequenceMatcher(None, key, path).ratio()
+        last = difflib.SequenceMatcher(None, tail, path.rpartition(".")[2]).ratio()
+        return max(whole, last), whole
+
+    return max(_all_paths(), key=score)
+
+
+def _unknown(key: str) -> ValueError:
+    old = _FLAT_PATHS.get(key)
+    hint = (f" (a field before the tree: now {old!r})" if old and old != key
+            else f"; the closest valid field is {_closest(key)!r}")
+    return ValueError(f"unknown AgentConfig field {key!r}{hint}")
 
 
 def _prefixed(section: str, make: Any, *args: Any, **kwargs: Any) -> Any:
@@ -413,55 +778,164 @@ def _prefixed(section: str, make: Any, *args: Any, **kwargs: Any) -> Any:
         raise type(err)(f"{section}.{msg}") from None
 
 
-def _sub_configs(obj: Any) -> dict[str, type]:
-    """The fields of dataclass ``obj`` (an instance or a class with defaults) that hold configs."""
-    inst = obj() if isinstance(obj, type) else obj
-    return {f.name: type(getattr(inst, f.name)) for f in dataclasses.fields(inst)
-            if dataclasses.is_dataclass(getattr(inst, f.name))}
-
-
 def _replaced(obj: Any, changes: Mapping[str, Any], prefix: str) -> Any:
-    """``dataclasses.replace`` with dotted keys (``"planner.cem.samples"``), at any depth; every
-    level is validated again and its errors name the dotted path."""
+    """``dataclasses.replace`` with dotted keys (``"planner.cem.samples"``) and section dicts
+    (``{"planner": {"cem": {"samples": 50}}}``) at any depth, every leaf coerced to its type;
+    every level is validated again and its errors name the dotted path."""
+    hints = _hints(type(obj))
     direct: dict[str, Any] = {}
     nested: dict[str, dict[str, Any]] = {}
-    names = _field_names(type(obj))
     for key, value in changes.items():
+        if not isinstance(key, str):
+            where = f" in {prefix[:-1]!r}" if prefix else ""
+            raise ValueError(f"AgentConfig field names are strings, got {key!r}{where}")
         head, _, rest = key.partition(".")
-        if head not in names:
-            old = _FLAT_PATHS.get(key) if not prefix else None
-            hint = f" (a field before the tree: now {old!r})" if old else ""
-            raise ValueError(f"unknown AgentConfig field {prefix + key!r}{hint}")
-        if rest:
-            nested.setdefault(head, {})[rest] = value
+        if head not in hints:
+            while isinstance(value, Mapping) and value and isinstance(next(iter(value)), str):
+                key, value = f"{key}.{next(iter(value))}", next(iter(value.values()))
+            raise _unknown(prefix + key)  # named down to its first leaf
+        section = _is_section(hints[head])
+        if rest or (section and isinstance(value, Mapping)):
+            for sub, v in ({rest: value} if rest else value).items():
+                if sub in nested.setdefault(head, {}):
+                    raise ValueError(f"{prefix}{head}.{sub} is given twice")
+                nested[head][sub] = v
+        elif section:
+            direct[head] = value  # an instance, or a name (checked by the constructor)
         else:
-            direct[head] = value
+            direct[head] = _coerce(value, hints[head], prefix + head)
     for head, values in nested.items():
-        base = direct.get(head, getattr(obj, head))
-        if isinstance(base, str) and isinstance(obj, AgentConfig):  # a name, then its fields
-            base = getattr(dataclasses.replace(obj, **{head: base}), head)
-        if not dataclasses.is_dataclass(base):
+        if not _is_section(hints[head]):
             bad = f"{prefix}{head}.{next(iter(values))}"
-            raise ValueError(f"unknown AgentConfig field {bad!r}")
+            raise ValueError(f"unknown AgentConfig field {bad!r} ({prefix}{head} is a field, not "
+                             "a section)")
+        base = direct.get(head, getattr(obj, head))
+        if isinstance(base, str) and not prefix and head in _NAMED:  # a name, then its fields
+            base = _prefixed(head, _NAMED[head], base)
+        if not isinstance(base, hints[head]):
+            raise ValueError(f"{prefix}{head} must be a {hints[head].__name__} or a name, got "
+                             f"{base!r}")
         direct[head] = _replaced(base, values, f"{prefix}{head}.")
     return _prefixed(prefix[:-1], dataclasses.replace, obj, **direct)
 
 
-def _built(cls: type, d: Mapping[str, Any], prefix: str) -> Any:
-    """``cls`` from a nested dict of its fields (:meth:`AgentConfig.to_dict`'s inverse, at any
-    depth); lists become tuples, unknown keys are an error naming their dotted path."""
-    if not isinstance(d, Mapping):
-        raise ValueError(f"{prefix[:-1]} must be a dict of {cls.__name__} fields, got {d!r}")
-    unknown = sorted(set(d) - _field_names(cls))
+# ---- files: JSON and YAML, a run's config.json --------------------------------------------------
+#: the sections of a run's ``config.json`` beside ``agent`` (written by scripts/train_agent.py)
+RUN_SECTIONS = ("script", "command", "ensemble", "env_spec")
+
+
+def _unique_keys(pairs: list[tuple[Any, Any]]) -> dict[Any, Any]:
+    """A JSON object's dict; a key given twice is an error (JSON keeps the last, silently)."""
+    out: dict[Any, Any] = {}
+    for key, value in pairs:
+        if key in out:
+            raise ValueError(f"the key {key!r} is given twice")
+        out[key] = value
+    return out
+
+
+def _yaml_load(text: str) -> Any:
+    import yaml
+
+    class UniqueKeyLoader(yaml.SafeLoader):
+        def construct_mapping(self, node, deep=False):  # noqa: ANN001, ANN202
+            keys = [self.construct_object(k, deep=deep) for k, _ in node.value]
+            for i, key in enumerate(keys):
+                if key in keys[:i]:
+                    mark = node.value[i][0].start_mark
+                    raise ValueError(f"the key {key!r} is given twice (line {mark.line + 1})")
+            return super().construct_mapping(node, deep=deep)
+
+    try:
+        return yaml.load(text, Loader=UniqueKeyLoader)  # noqa: S506 - a SafeLoader
+    except yaml.YAMLError as err:
+        mark = getattr(err, "problem_mark", None)
+        where = f" (line {mark.line + 1}, column {mark.column + 1})" if mark else ""
+        problem = getattr(err, "problem", None) or str(err).splitlines()[0]
+        raise ValueError(f"is not valid YAML: {problem}{where}") from None
+
+
+def read_config_file(path: str | os.PathLike) -> dict[str, Any]:
+    """The dict in a JSON (``.json``) or YAML (``.yaml``/``.yml``; other names: JSON, else YAML)
+    file. Nothing but plain data is read (YAML's safe loader, no Python objects).
+
+    :raises ValueError: naming the file: missing or unreadable, not valid JSON/YAML (with the
+        line), a key given twice, empty, or not a dict.
+    """
+    p = Path(path)
+    try:
+        text = p.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise ValueError(f"{p}: no such file") from None
+    except IsADirectoryError:
+        raise ValueError(f"{p} is a folder, not a config file") from None
+    except UnicodeDecodeError:
+        raise ValueError(f"{p} is not a text file (a JSON or YAML config expected)") from None
+    except OSError as err:
+        raise ValueError(f"{p}: cannot read it ({err.strerror})") from None
+    suffix = p.suffix.lower()
+    try:
+        if suffix in (".yaml", ".yml"):
+            data = _yaml_load(text)
+        else:
+            try:
+                data = json.loads(text, object_pairs_hook=_unique_keys)
+            except json.JSONDecodeError as err:
+                if suffix == ".json":
+                    raise ValueError(f"is not valid JSON: {err.msg} (line {err.lineno}, column "
+                                     f"{err.colno})") from None
+                data = _yaml_load(text)
+    except ValueError as err:
+        raise ValueError(f"{p} {err}" if str(err).startswith("is ") else f"{p}: {err}") from None
+    if data is None:
+        raise ValueError(f"{p} is empty (a dict of AgentConfig fields expected)")
+    if not isinstance(data, Mapping):
+        raise ValueError(f"{p} holds a {type(data).__name__}, not a dict of AgentConfig fields")
+    return dict(data)
+
+
+def file_changes(path: str | os.PathLike, fixed: Iterable[str] = ()) -> tuple[dict[str, Any],
+                                                                              list[str]]:
+    """The settings of the config file ``path`` (:meth:`AgentConfig.load`) as dotted changes to
+    the defaults (JSON values), for a sweep that builds every run with
+    ``AgentConfig.default(changes)``:
+    ``(changes without the fields in fixed, the fixed fields the file sets)`` (``fixed``: what
+    the sweep sets per run; the caller reports them).
+
+    :raises ValueError: naming the file and the problem.
+    """
+    changes = json.loads(json.dumps(AgentConfig.load(path).changes()))  # JSON-friendly
+    fixed = set(fixed)
+    return ({k: v for k, v in changes.items() if k not in fixed},
+            sorted(k for k in changes if k in fixed))
+
+
+def in_file(path: str | os.PathLike, err: ValueError) -> ValueError:
+    """``err`` with its message prefixed by ``"<path>: "`` (unless it names the file already)."""
+    return err if str(err).startswith(str(path)) else ValueError(f"{path}: {err}")
+
+
+def split_run_config(d: Mapping[str, Any]) -> tuple[Mapping[str, Any], dict[str, Any]]:
+    """``(agent fields, the other sections)`` of a run's ``config.json`` (``{"agent": {...},
+    "script": {...}, "command", "ensemble", "env_spec"}``); any other dict is all agent fields.
+
+    :raises ValueError: for a key beside ``agent`` that a run's config.json does not hold.
+    """
+    if not isinstance(d.get("agent"), Mapping):
+        return d, {}
+    unknown = sorted(set(d) - {"agent", *RUN_SECTIONS})
     if unknown:
-        raise ValueError(f"unknown AgentConfig field(s): {[prefix + k for k in unknown]}")
-    subs = _sub_configs(cls)
-    kwargs = {k: _built(subs[k], v, f"{prefix}{k}.") if k in subs
-              else tuple(v) if isinstance(v, list) else v for k, v in d.items()}
-    return _prefixed(prefix[:-1], cls, **kwargs)
+        raise ValueError(f"unknown key(s) {unknown} beside 'agent' (a run's config.json holds "
+                         f"'agent' and {list(RUN_SECTIONS)})")
+    return d["agent"], {k: v for k, v in d.items() if k != "agent"}
 
 
 # ---- the old flat format (before the tree): one function, tested in tests/test_config_tree.py --
+def _field_names(cls: type) -> set[str]:
+    return {f.name for f in dataclasses.fields(cls)}
+
+
+_FIELD_NAMES = _field_names(AgentConfig)
 _FLAT_PATHS = {
     **{n: f"collection.{n}" for n in _field_names(CollectionConfig)},
     **{n: f"model.{n}" for n in _field_names(ModelConfig)},
@@ -484,9 +958,12 @@ _FLAT_ONLY = _FLAT_KEYS - _FIELD_NAMES
 
 
 def _is_flat(d: Mapping[str, Any]) -> bool:
-    """Whether ``d`` is in the old flat format (a flat-only key, or a name for a section)."""
-    return any(k in _FLAT_ONLY for k in d) or any(
-        isinstance(d.get(k), str) for k in ("regularization", "planner"))
+    """Whether ``d`` is in the old flat format: a flat-only key, and no section given as a dict
+    or a dotted key (a dict that mixes both is read as a tree: the old key is then named with
+    its new place)."""
+    tree = any(isinstance(k, str) and "." in k for k in d) or any(
+        isinstance(d.get(name), Mapping) for name in SECTIONS)
+    return not tree and any(k in _FLAT_ONLY for k in d)
 
 
 def from_flat(flat: Mapping[str, Any]) -> AgentConfig:
@@ -498,25 +975,35 @@ def from_flat(flat: Mapping[str, Any]) -> AgentConfig:
     ``batch_size=0`` becomes ``training.batch="trajectory"``; ``regularization`` with
     ``jacprop_weight`` (sampled) or ``jacobian_penalty`` (exact/smooth), ``perturbation_sigma``,
     ``n_perturbed_copies`` and ``ltv_lambda`` (``"auto"`` -> ``None``) become one
-    :class:`~mbtsr.training.RegularizationConfig`.
+    :class:`~mbtsr.training.RegularizationConfig`. The old format stored every field, used or
+    not: a stored value that the old agent ignored under the stored choices (e.g.
+    ``perturbation_sigma`` with ``regularization="none"``, ``cem_samples`` with the iLQR
+    planner; the tree refuses such settings) is not carried over.
     """
     d = dict(flat)
     unknown = sorted(set(d) - _FLAT_KEYS)
     if unknown:
         raise ValueError(f"unknown AgentConfig field(s): {unknown}")
     kind = d.pop("regularization", "sampled")
-    weights = {"sampled": d.pop("jacprop_weight", 1.0)}
+    if kind not in REGULARIZERS:
+        raise ValueError(f"regularization must be one of {REGULARIZERS}, got {kind!r}")
     penalty = d.pop("jacobian_penalty", 0.01)
-    weights.update(exact=penalty, smooth=penalty)
+    weights = {"sampled": d.pop("jacprop_weight", 1.0), "exact": penalty, "smooth": penalty}
     lam = d.pop("ltv_lambda", "auto")
-    reg = _prefixed("regularization", RegularizationConfig.named, kind, weights.get(kind),
-                    sigma=d.pop("perturbation_sigma", 0.1), n_copies=d.pop("n_perturbed_copies", 1),
-                    ltv_lambda=None if lam == "auto" else lam)
-    # the defaults of that time: the paper's ensemble, 150 epochs per update
-    changes: dict[str, Any] = {_FLAT_PATHS[k]: v for k, v in d.items() if k != "batch_size"}
+    changes: dict[str, Any] = {_FLAT_PATHS[k]: v for k, v in d.items()
+                               if k not in ("batch_size", "perturbation_sigma",
+                                            "n_perturbed_copies")}
+    changes.update({f"regularization.{k}_weight": weights[k] if k == kind else 0.0
+                    for k in REGULARIZERS[:3]})
+    changes.update({"regularization.sigma": d.get("perturbation_sigma", 0.1),
+                    "regularization.n_copies": d.get("n_perturbed_copies", 1),
+                    "regularization.ltv_lambda": None if lam == "auto" else lam})
     if "batch_size" in d:
         changes["training.batch"] = d["batch_size"] if d["batch_size"] != 0 else "trajectory"
-    if "model.activations" in changes:
-        changes["model.activations"] = tuple(changes["model.activations"])
-    return AgentConfig(regularization=reg, model=ModelConfig.paper(),
-                       training=_legacy_training()).replace(changes)
+    then = _then_defaults()  # the defaults of that time: the paper's ensemble, 150 epochs
+    values = {**then.dotted(), **changes}
+    try:
+        ignored = _inactive(values)
+    except TypeError:  # a value of the wrong type: reported by replace, naming the field
+        ignored = {}
+    return then.replace({k: v for k, v in changes.items() if k not in ignored})

@@ -367,10 +367,13 @@ def oracle_policy(
     state_map: Any = None,
     terminal_cost_fn: Callable | None = None,
     termination_fn: Callable | None = None,
+    optimizer: Callable[..., Any] = ilqr,
+    optimizer_options: Any = None,
 ) -> MPCPolicy:
     """MPC on the TRUE model of ``env``, with the env's own quadratic cost unless
-    ``cost_fn``/``state_map`` are given. Same controller (:func:`mpc_policy`, iLQR) as the
-    agent, only the model differs. The true model is
+    ``cost_fn``/``state_map`` are given. Same controller (:func:`mpc_policy`: ``optimizer``
+    with ``optimizer_options``, ``iterations`` per step; the agent passes its own planner's) as
+    the agent, only the model differs. The true model is
 
     * ``env.unwrapped.dynamics_model()`` (or ``analytic_model()``) when the env offers one (the
       arm); its state must be the agent's model state (the arm: ``obs[:4]``, via ``state_map``);
@@ -407,7 +410,8 @@ def oracle_policy(
         state_map = state_map or default_map
     kwargs = {"horizon": horizon, "iterations": iterations,
               "first_plan_iterations": first_plan_iterations, "terminal_weight": terminal_weight,
-              "termination_fn": termination_fn}
+              "termination_fn": termination_fn, "optimizer": optimizer,
+              "optimizer_options": optimizer_options}
     if factory is None:  # any Gymnasium MuJoCo env: plan on [qpos, qvel, observation]
         from envs.mujoco_model import MujocoDynamics, ObservedDynamics
 

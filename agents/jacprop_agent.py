@@ -72,7 +72,6 @@ from agents.task import (
     env_spec,
 )
 from mbtsr.ensemble import DynamicsEnsemble, save_model
-from mbtsr.ilqr import ilqr
 from mbtsr.ltv import LTVModel, fit_ltv, fuse_prior, select_lambda
 from mbtsr.trajectory import Trajectory, save_trajectories
 from mbtsr.validation import call_user_fn, check_callable
@@ -219,14 +218,9 @@ class JacPropAgent(SB3Predictor):
         cfg = self.config
         self.planning_model = self.model.freeze()
         model = self.planning_model
-        optimizer, options, iterations = ilqr, None, cfg.planner.ilqr_iterations
-        if cfg.planner.kind == "cem":
-            from mbtsr.cem import cem as optimizer
-
-            options = dataclasses.replace(cfg.planner.cem, seed=cfg.seed)
-            iterations = options.iterations
-            if cfg.planner.propagation == "ts":
-                model = self.planning_model.trajectory_sampling(seed=cfg.seed)
+        optimizer, options, iterations = cfg.planner.optimizer(cfg.seed)
+        if cfg.planner.propagation == "ts":
+            model = self.planning_model.trajectory_sampling(seed=cfg.seed)
         self.policy = mpc_policy(
             model,
             self.task_cost,
@@ -821,10 +815,15 @@ class JacPropAgent(SB3Predictor):
                 self._oracle_seconds += time.perf_counter() - tic
 
         def policy() -> Any:
+            optimizer, options, iterations = cfg.planner.optimizer(cfg.seed)
+            if getattr(options, "particles", 1) > 1:  # one true model: the particles would
+                options = dataclasses.replace(options, particles=1)  # repeat the same rollout
             return ReplanEvery(oracle_policy(
                 env,
                 cfg.planner.horizon,
-                iterations=cfg.planner.ilqr_iterations,
+                iterations=iterations,
+                optimizer=optimizer,
+                optimizer_options=options,
                 first_plan_iterations=cfg.planner.first_plan_iterations,
                 terminal_weight=cfg.planner.terminal_weight,
                 cost_fn=self.cost_fn,
@@ -844,11 +843,7 @@ class JacPropAgent(SB3Predictor):
                 env, {"cost": self.cost_fn.to_dict(), "state_map": self.state_map.to_dict()},
                 self.eval_targets, cfg.evaluation.seed, n_episodes=cfg.evaluation.episodes,
                 episode_steps=self.spec.episode_steps,
-                planner={"horizon": cfg.planner.horizon,
-                         "iterations": cfg.planner.ilqr_iterations,
-                         "first_plan_iterations": cfg.planner.first_plan_iterations,
-                         "terminal_weight": cfg.planner.terminal_weight,
-                         "replan_every": cfg.planner.replan_every},
+                planner={**dataclasses.asdict(cfg.planner), "seed": cfg.seed},
             )
         self.oracle_costs = cached_costs(cache_dir, key, compute)
         return self.oracle_costs

@@ -207,6 +207,7 @@ class MujocoDynamics:
         self._template[0] = 0.0
         self._qpos0 = mujoco.mj_stateSize(self.model, mujoco.mjtState.mjSTATE_TIME)
         self._runner = rollout.Rollout(nthread=self.nthread) if self.nthread > 1 else None
+        self._obs_scratch: dict[int, tuple] = {}  # id(env) -> (its model, a private MjData)
 
     def set_mocap(self, pos: np.ndarray, quat: np.ndarray | None = None) -> None:
         """Set the held mocap body poses (``[nmocap, 3]``, ``[nmocap, 4]``), e.g. a target."""
@@ -317,23 +318,32 @@ class MujocoDynamics:
 
     def observation(self, env, x: np.ndarray) -> np.ndarray:
         """The env's observation at state ``x`` (``[n]`` or ``[N, n]``), by the env's own
-        ``_get_obs`` on a copy of its ``data`` (the env is not modified)."""
+        ``_get_obs`` on a private copy of its ``data`` (the env is not modified). The copy is
+        made once per env and takes the env's mocap poses and controls at every call."""
         base = _unwrap(env)
         x = as_array("x", x)
         single = x.ndim == 1
         xs = as_array("x", x.reshape(-1, x.shape[-1]), (None, self.state_dim))
         saved = base.data
+        scratch = self._obs_scratch.get(id(base))
+        if scratch is None or scratch[0] is not base.model:
+            scratch = (base.model, copy.copy(saved))
+            self._obs_scratch[id(base)] = scratch
+        data = scratch[1]
+        data.mocap_pos[:] = saved.mocap_pos
+        data.mocap_quat[:] = saved.mocap_quat
+        data.ctrl[:] = saved.ctrl
+        obs = np.empty((xs.shape[0],) + np.shape(base._get_obs()))
         try:
-            base.data = copy.copy(saved)
-            obs = []
-            for row in xs:
-                base.data.qpos[:] = row[: self.nq]
-                base.data.qvel[:] = row[self.nq :]
-                mujoco.mj_forward(base.model, base.data)
-                obs.append(np.array(base._get_obs(), dtype=float))
+            base.data = data
+            for i, row in enumerate(xs):
+                data.qpos[:] = row[: self.nq]
+                data.qvel[:] = row[self.nq :]
+                mujoco.mj_forward(base.model, data)
+                obs[i] = base._get_obs()
         finally:
             base.data = saved
-        return obs[0] if single else np.stack(obs)
+        return obs[0] if single else obs
 
 
 class HybridDynamics:
@@ -372,6 +382,12 @@ class ObservedDynamics:
     ``C = d observation / dx`` at ``x'`` by centred differences (step ``fd_eps`` per raw
     coordinate).
 
+    Affine observations (HalfCheetah's ``[qpos[1:], qvel]``, InvertedPendulum's ``[qpos,
+    qvel]``): when ``observation(x) = C x + c`` holds exactly at random states far apart (checked
+    once at construction, velocities beyond the usual clipping thresholds included), ``C`` and
+    ``c`` are kept and the observation of a batch is one matrix product instead of a loop of
+    the env's ``_get_obs`` (``affine`` is ``(C, c)``, else ``None``).
+
     :param dynamics: the true model. :param env: the env whose ``_get_obs`` defines the map
         (only read: its ``data`` is swapped for a copy during each evaluation, then restored).
     """
@@ -389,6 +405,22 @@ class ObservedDynamics:
         self.state_dim = self.n + self.obs_dim
         self.action_dim = dynamics.action_dim
         self.dt = dynamics.dt
+        self.affine = self._affine_observation()
+
+    def _affine_observation(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """``(C [d, n], c [d])`` if ``observation(x) = C x + c`` at 8 random states (qpos
+        spread 1, qvel spread 30 around ``qpos0``, 0) to 1e-9 relative, else ``None``."""
+        model, n = self.dynamics.model, self.n
+        x0 = np.concatenate((model.qpos0, np.zeros(model.nv)))
+        rng = np.random.default_rng(0)
+        scale = np.concatenate((np.ones(model.nq), np.full(model.nv, 30.0)))
+        probes = x0 + rng.standard_normal((8, n)) * scale
+        o = self.dynamics.observation(self.env, np.vstack((x0, x0 + np.eye(n), probes)))
+        C = (o[1 : n + 1] - o[0]).T  # exact for an affine map (unit steps)
+        want = o[0] + (probes - x0) @ C.T
+        if not np.allclose(o[n + 1 :], want, rtol=1e-9, atol=1e-9):
+            return None
+        return C, o[0] - C @ x0
 
     def lift(self, x: np.ndarray) -> np.ndarray:
         """``x [n] -> z = [x, observation(x)] [n + d]``."""
@@ -397,6 +429,9 @@ class ObservedDynamics:
 
     def _observe(self, xs: np.ndarray) -> np.ndarray:
         """``xs [N, n] -> [N, d]`` (finite input)."""
+        if self.affine is not None:
+            C, c = self.affine
+            return xs @ C.T + c
         return np.asarray(self.dynamics.observation(self.env, xs), dtype=float).reshape(
             xs.shape[0], self.obs_dim)
 
@@ -418,13 +453,16 @@ class ObservedDynamics:
         T, n, d, eps = z.shape[0], self.n, self.obs_dim, self.fd_eps
         x = z[:, :n]
         A, B = self.dynamics.jacobians(x, u)
-        x_next = self.dynamics._step(x, u)
-        pert = np.repeat(x_next[:, None, :], 2 * n, axis=1)  # [T, 2n, n]
-        idx = np.arange(n)
-        pert[:, idx, idx] += eps
-        pert[:, n + idx, idx] -= eps
-        o = self._observe(pert.reshape(-1, n)).reshape(T, 2, n, d)
-        C = (o[:, 0] - o[:, 1]).transpose(0, 2, 1) / (2 * eps)  # [T, d, n]
+        if self.affine is not None:
+            C = np.broadcast_to(self.affine[0], (T, d, n))
+        else:
+            x_next = self.dynamics._step(x, u)
+            pert = np.repeat(x_next[:, None, :], 2 * n, axis=1)  # [T, 2n, n]
+            idx = np.arange(n)
+            pert[:, idx, idx] += eps
+            pert[:, n + idx, idx] -= eps
+            o = self._observe(pert.reshape(-1, n)).reshape(T, 2, n, d)
+            C = (o[:, 0] - o[:, 1]).transpose(0, 2, 1) / (2 * eps)  # [T, d, n]
         Az = np.zeros((T, n + d, n + d))
         Az[:, :n, :n] = A
         Az[:, n:, :n] = C @ A

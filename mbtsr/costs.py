@@ -103,6 +103,39 @@ class CostDerivatives:
     def __iter__(self):
         return iter((self.lx, self.lu, self.lxx, self.luu, self.lux))
 
+    def convexified(self) -> CostDerivatives:
+        """The same derivatives with every stage Hessian ``[[lxx, lxu], [lux, luu]]`` (and the
+        terminal ``lxx``) projected onto the positive semidefinite cone: negative eigenvalues
+        set to 0, eigenvectors kept (the nearest PSD matrix in the Frobenius norm). Stages that
+        are already PSD are returned bit for bit. Gradients are unchanged.
+
+        Why: a cost that is not convex in the planner's state (a product of observations such as
+        ``cos(q1 + q2) = c1 c2 - s1 s2``, a pole's height near hanging) makes the Riccati
+        recursion's value Hessian indefinite, and iLQR then takes steps its own quadratic model
+        cannot trust. The projection is the cost's counterpart of the Gauss-Newton
+        approximation iLQR already makes of the dynamics.
+        """
+        T, m, n = self.lux.shape
+        H = np.empty((T + 1, n + m, n + m))
+        H[:, :n, :n] = self.lxx
+        H[:T, n:, n:] = self.luu
+        H[:T, n:, :n] = self.lux
+        H[:T, :n, n:] = np.swapaxes(self.lux, 1, 2)
+        H[T, n:, :] = 0.0  # the terminal stage has no control: its u-block is a zero pad
+        H[T, :n, n:] = 0.0
+        H = 0.5 * (H + np.swapaxes(H, 1, 2))
+        w, V = np.linalg.eigh(H)
+        bad = w[:, 0] < 0.0  # ascending eigenvalues
+        if not bad.any():
+            return self
+        Hp = (V[bad] * np.maximum(w[bad], 0.0)[:, None, :]) @ np.swapaxes(V[bad], 1, 2)
+        lxx, luu, lux = self.lxx.copy(), self.luu.copy(), self.lux.copy()
+        lxx[bad] = Hp[:, :n, :n]
+        stages = np.flatnonzero(bad[:T])
+        luu[stages] = Hp[: stages.size, n:, n:]
+        lux[stages] = Hp[: stages.size, n:, :n]
+        return CostDerivatives(self.lx, self.lu, lxx, luu, lux)
+
 
 class _BufferedFunction:
     """A CasADi function called through ``Function.buffer`` on numpy arrays (no copies).

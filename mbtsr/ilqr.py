@@ -81,6 +81,11 @@ class ILQROptions:
     :param max_state_norm: a rollout whose ``max |x|`` exceeds this counts as diverged.
     :param termination_cost: with ``terminated``: cost paid once by a trajectory that
         terminates, instead of its terminal cost (see :func:`mbtsr.costs.truncated_total`).
+    :param convexify_cost: project each stage's cost Hessian onto the positive semidefinite
+        cone before the backward pass (:meth:`mbtsr.costs.CostDerivatives.convexified`; a
+        no-op for convex costs). Off, a cost that is not convex in the state (a pole's height
+        written from ``sin``/``cos`` observations) gives indefinite value Hessians and
+        untrustworthy steps (InvertedDoublePendulum-v5's true-model MPC fell within 10 steps).
     :param boxqp_*: projected-Newton box-QP settings (Tassa et al.'s ``boxQP`` defaults).
     """
 
@@ -97,6 +102,7 @@ class ILQROptions:
     reduce_ratio_min: float = 0.0
     max_state_norm: float = 1e8
     termination_cost: float = 0.0
+    convexify_cost: bool = True
     boxqp_max_iter: int = 100
     boxqp_min_grad: float = 1e-8
     boxqp_min_rel_improve: float = 1e-8
@@ -146,6 +152,8 @@ class ILQRResult:
     :param lam: the final regularisation (useful to warm-start a next solve).
     :param timings: total seconds per phase: ``jacobians, cost_derivatives, backward, forward,
         line_search_cost, total``.
+    :param proposal_cost: the cost of the initial plan a proposal step handed to iLQR (set by
+        :func:`mbtsr.cem_ilqr.cem_ilqr`), else ``None``.
     """
 
     X: np.ndarray
@@ -159,6 +167,7 @@ class ILQRResult:
     message: str
     lam: float = 1.0
     timings: dict = field(default_factory=dict, repr=False)
+    proposal_cost: float | None = None
 
 
 def check_control_bounds(u_min: object, u_max: object, m: int) -> tuple[np.ndarray, np.ndarray]:
@@ -223,7 +232,8 @@ def ilqr(
         task's termination function). The line search then accepts steps on the episode's
         own cost: stage costs after the first predicted termination are dropped and
         ``options.termination_cost`` is paid once (:func:`mbtsr.costs.truncated_total`, as
-        :func:`mbtsr.cem.cem`); the search direction still comes from the smooth cost.
+        :func:`mbtsr.cem.cem`); the search direction still comes from the smooth cost. A plan
+        that no (finite) step improves under the episode's cost ends ``"converged"``.
     :return: :class:`ILQRResult`. Its ``U`` is always finite and inside the bounds: a solve that
         meets NaN/inf (model, Jacobians, cost) stops with status ``"failed"`` and the best
         finite iterate.
@@ -327,6 +337,8 @@ def ilqr(
             timings["jacobians"] += time.perf_counter() - tic
             tic = time.perf_counter()
             derivs = cost._derivatives(X, U, t0, table)
+            if opts.convexify_cost:
+                derivs = derivs.convexified()
             timings["cost_derivatives"] += time.perf_counter() - tic
             finite = (
                 np.isfinite(A).all()
@@ -419,6 +431,13 @@ def ilqr(
             if alive[0] and expected[0] < opts.tol_fun and abs(actual[0]) < opts.tol_fun:
                 status = "converged"
                 message = "expected and actual cost change of the full step below tol_fun"
+                break
+            no_better = np.all(np.isfinite(Jn) & (Jn >= J - opts.tol_fun))
+            if lam > opts.lambda_max and terminated is not None and no_better:
+                # every step is finite and none improves the episode's (truncated) cost: the
+                # plan is optimal under it, though the smooth cost's direction points elsewhere
+                status = "converged"
+                message = "no step improves the episode's cost (terminated) up to lambda_max"
                 break
             if lam > opts.lambda_max:
                 status = "failed"

@@ -432,6 +432,14 @@ def _singular_message(prob: _Problem, lam: float, index: int) -> str:
             "example a constant or zero input, or an affine term with constant regressors); "
             "excite the system, drop affine=True, or pass P0 to add a prior on k_0"
         )
+    s2 = float(np.trace(Gsum)) / (prob.T * prob.p)
+    if lam * lam > s2:  # the penalty dominates: the data terms drown in its rounding
+        return (
+            f"the normal equations are numerically singular at lam={lam:.3g} (near t={t}): lam "
+            "is so large that the data terms are lost in the rounding of the smoothness penalty "
+            f"in float64; use a smaller lam, or lam >= {np.sqrt(_LIMIT * s2):.3g}, where the fit "
+            "takes its exact lam -> inf limit (time-invariant least squares)"
+        )
     return (
         f"the normal equations are numerically singular at lam={lam:.3g} (near t={t}):"
         f" with {prob.N} measurement(s) per time step and {prob.p} parameters the fit relies "
@@ -644,10 +652,14 @@ def select_lambda(
         ``1e-3 s`` to ``1e4 s`` with ``s = sqrt(mean_t tr(G_t) / p)`` the regressor scale.
     :param refine: refine the best grid point by a bounded 1-D search in ``log lam`` between its
         grid neighbours.
-    :return: ``(lam, curve)`` with ``curve = {"lambdas", "score" (lower is better), "method",
-        "grid_best", "at_boundary"}``. A minimizer on the grid boundary usually means the
-        criterion is still decreasing (``lam -> inf``: the data look time-invariant; ``lam ->
-        0``: overfitting, e.g. deterministic, coloured model error); a warning is issued.
+    :return: ``(lam, curve)`` with ``curve = {"lambdas", "score" (lower is better; NaN where
+        skipped), "method", "grid_best", "at_boundary", "skipped"}``. A grid point whose fit is
+        numerically singular in float64 (a ``lam`` just below the range where the fit switches
+        to its ``lam -> inf`` limit, or a tiny ``lam`` with few measurements) is skipped, listed
+        in ``skipped`` and reported in one warning; only a grid where every point is singular is
+        an error. A minimizer on the boundary of the usable grid usually means the criterion is
+        still decreasing (``lam -> inf``: the data look time-invariant; ``lam -> 0``:
+        overfitting, e.g. deterministic, coloured model error); a warning is issued.
     """
     if method not in ("marginal_likelihood", "gcv"):
         raise ValueError(f"method must be 'marginal_likelihood' or 'gcv', got {method!r}")
@@ -664,12 +676,29 @@ def select_lambda(
     if lambdas.size < 1 or np.any(lambdas <= 0):
         raise ValueError("lambdas must be a non-empty 1-D array of values > 0")
     lambdas = np.sort(lambdas)
-    scores = np.array([_score(prob, float(lam), method) for lam in lambdas])
+    scores, singular = np.full(lambdas.size, np.nan), []
+    for i, lam in enumerate(lambdas):
+        try:
+            scores[i] = _score(prob, float(lam), method)
+        except ValueError as err:  # numerically singular at this lam: skipped, reported
+            singular.append((float(lam), str(err)))
+    if len(singular) == lambdas.size:
+        raise ValueError(f"select_lambda: the fit is numerically singular at every lambda in the "
+                         f"grid; at lam={singular[0][0]:.3g}: {singular[0][1]}")
+    if singular:
+        warnings.warn(
+            f"select_lambda: skipped {len(singular)} of {lambdas.size} grid values whose fit is "
+            f"numerically singular (lam = {', '.join(f'{v:.3g}' for v, _ in singular[:5])}"
+            f"{', ...' if len(singular) > 5 else ''}; curve['skipped'] lists them)",
+            RuntimeWarning,
+            stacklevel=2,
+        )
     if not np.any(np.isfinite(scores)):
         raise ValueError("select_lambda: the criterion is not finite for any lambda in the grid")
-    best = int(np.nanargmin(np.where(np.isfinite(scores), scores, np.inf)))
+    usable = np.flatnonzero(np.isfinite(scores))
+    best = int(usable[np.argmin(scores[usable])])
     lam_best = float(lambdas[best])
-    at_boundary = lambdas.size > 1 and best in (0, lambdas.size - 1)
+    at_boundary = usable.size > 1 and best in (usable[0], usable[-1])
     if at_boundary:
         warnings.warn(
             f"select_lambda ({method}): the best lambda {lam_best:.3g} is at the edge of the grid "
@@ -677,14 +706,18 @@ def select_lambda(
             RuntimeWarning,
             stacklevel=2,
         )
-    elif refine and lambdas.size > 2:
-        lo, hi = np.log(lambdas[best - 1]), np.log(lambdas[best + 1])
-        res = minimize_scalar(
-            lambda s: _score(prob, float(np.exp(s)), method),
-            bounds=(lo, hi),
-            method="bounded",
-            options={"xatol": 1e-3},
-        )
+    elif refine and usable.size > 2:
+        k = int(np.searchsorted(usable, best))
+        lo, hi = np.log(lambdas[usable[k - 1]]), np.log(lambdas[usable[k + 1]])
+
+        def score(log_lam: float) -> float:
+            try:
+                return _score(prob, float(np.exp(log_lam)), method)
+            except ValueError:  # singular between the grid points: not a candidate
+                return np.inf
+
+        res = minimize_scalar(score, bounds=(lo, hi), method="bounded",
+                              options={"xatol": 1e-3})
         if res.success and res.fun <= scores[best]:
             lam_best = float(np.exp(res.x))
     curve = {
@@ -693,6 +726,7 @@ def select_lambda(
         "method": method,
         "grid_best": float(lambdas[best]),
         "at_boundary": bool(at_boundary),
+        "skipped": [v for v, _ in singular],
     }
     return lam_best, curve
 

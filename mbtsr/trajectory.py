@@ -11,6 +11,7 @@ so ``(x[:-1], u)`` are the regressors and ``x[1:]`` the targets of one-step pred
 from __future__ import annotations
 
 import os
+import zipfile
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -115,12 +116,70 @@ def save_trajectories(path: str | os.PathLike, trajs: Iterable[Trajectory]) -> N
     atomic_write(path, write)
 
 
+def _contents(z: np.lib.npyio.NpzFile) -> dict[str, str]:
+    """``{name: "float64 [21, 4]"}`` of every array in an ``.npz`` archive, read from the array
+    headers only (nothing is loaded, nothing unpickled)."""
+    out = {}
+    for name in z.files:
+        try:
+            with z.zip.open(name + ".npy") as fh:
+                read = (np.lib.format.read_array_header_1_0 if np.lib.format.read_magic(fh)
+                        == (1, 0) else np.lib.format.read_array_header_2_0)
+                shape, _, dtype = read(fh)
+            out[name] = f"{'object' if dtype.hasobject else dtype.name} {list(shape)}"
+        except (KeyError, ValueError, OSError):
+            out[name] = "unreadable"
+    return out
+
+
 def load_trajectories(path: str | os.PathLike) -> list[Trajectory]:
-    """Load trajectories saved by :func:`save_trajectories` (no pickle is ever loaded)."""
-    with np.load(path, allow_pickle=False) as z:
-        count = int(z["count"])
+    """Load trajectories saved by :func:`save_trajectories` (no pickle is ever loaded).
+
+    :raises ValueError: naming the file and what it holds: not an ``.npz`` archive, an array of
+        Python objects (never unpickled: it could run code), or not the arrays of
+        :func:`save_trajectories` (``count``, ``x0``, ``u0``, ``dt0``, ...).
+    """
+    p = Path(path)
+    try:
+        z = np.load(p, allow_pickle=False)
+    except (FileNotFoundError, IsADirectoryError, PermissionError):
+        raise
+    except ValueError:  # neither zip nor .npy: numpy would take it for a pickle
+        raise ValueError(f"{p} is neither an .npz archive (as save_trajectories writes) nor a "
+                         ".npy array; a pickle is never loaded here (it could run code)") from None
+    except (OSError, EOFError, zipfile.BadZipFile) as err:
+        raise ValueError(f"{p} is not a readable .npz archive of save_trajectories ({err})") \
+            from None
+    if not isinstance(z, np.lib.npyio.NpzFile):
+        raise ValueError(f"{p} holds a single array {z.dtype.name} {list(z.shape)} (a .npy "
+                         "file), not the .npz archive of save_trajectories")
+    with z:
+        contents = _contents(z)
+        held = ", ".join(f"{k}: {v}" for k, v in contents.items()) or "no arrays"
+
+        def get(key: str) -> np.ndarray:
+            if contents.get(key, "").startswith("object"):
+                raise ValueError(f"{p} holds an array of Python objects, {key!r} ({contents[key]}"
+                                 "), which is never unpickled (it could run code): save "
+                                 "trajectories with mbtsr.save_trajectories (numeric arrays)")
+            if key not in contents:
+                objects = any(v.startswith("object") for v in contents.values())
+                raise ValueError(f"{p} is not a file of save_trajectories: it has no array "
+                                 f"{key!r} and holds {held}" + (
+                                     "; arrays of Python objects are never unpickled (they could "
+                                     "run code)" if objects else ""))
+            return z[key]
+
+        count = get("count")
+        if count.shape != () or count.dtype.kind not in "iu" or count < 0:
+            raise ValueError(f"{p}: 'count' must be one integer >= 0, got {contents['count']}")
         out = []
-        for i in range(count):
-            dt = float(z[f"dt{i}"])
-            out.append(Trajectory(z[f"x{i}"], z[f"u{i}"], None if np.isnan(dt) else dt))
+        for i in range(int(count)):
+            dt = float(get(f"dt{i}"))
+            try:
+                out.append(Trajectory(get(f"x{i}"), get(f"u{i}"), None if np.isnan(dt) else dt))
+            except ValueError as err:
+                if str(err).startswith(str(p)):
+                    raise
+                raise ValueError(f"{p}: trajectory {i}: {err}") from None
     return out

@@ -4,6 +4,7 @@
     python scripts/train_agent.py                       # embedded defaults, mbtsr/TwoLinkArm-v0
     python scripts/train_agent.py --seed 3 --regularization exact --json bench.json
     python scripts/train_agent.py --run-dir runs/x --resume   # continue a killed run exactly
+    python scripts/train_agent.py --config runs/x/config.json # run x again, in a new folder
 """
 
 

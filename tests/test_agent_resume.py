@@ -32,7 +32,7 @@ SCRIPT = REPO / "scripts" / "train_agent.py"
 EPISODES = 8
 TINY = [
     "--episodes", str(EPISODES), "--seed", "4", "--collection.episode-steps", "25",
-    "--collection.n-excitation-episodes", "1", "--training.epochs", "20",
+    "--collection.n-excitation-episodes", "1", "--training.steps", "20",
     "--training.batch", "32", "--model.ensemble-size", "2", "--model.hidden-width", "12",
     "--planner.horizon", "6", "--planner.ilqr-iterations", "1",
     "--planner.first-plan-iterations", "4", "--regularization.ltv-lambda", "None",

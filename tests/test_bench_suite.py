@@ -1,108 +1,110 @@
-"""Smoke test of agents/experiments/bench_suite.py (tiny budgets): every task runs with every
-planner and regularizer, the JSON holds the thresholds stated in the script, per-run curves, env
-steps to solve (or None), and wall time per phase; the table aggregates them."""
+"""The benchmark suite (agents/experiments/bench_suite.py): every task's cost compiles and its
+agent runs a few steps; the smoke mode runs baselines, agents, figures and the report end to
+end and resumes; the report's numbers (thresholds, normalized scores, paired comparisons, SAC's
+env steps to the agent's final return) agree with hand-computed values."""
 
 from __future__ import annotations
 
 import json
 from pathlib import Path
 
+import numpy as np
 import pytest
+from hypothesis import given
+from hypothesis import strategies as st
+
+from agents.experiments import bench_suite as suite
 
 REPO = Path(__file__).resolve().parents[1]
 
 
-def _suite():
-    from agents.experiments import bench_suite  # scripts/bench_suite.py is its command line
-
-    return bench_suite
+@pytest.mark.parametrize("name", list(suite.TASKS))
+def test_every_task_runs_a_few_steps_of_its_agent(name):
+    agent = suite.make_agent(name, {"evaluation.every": 0}, smoke=True)
+    obs = agent.env.reset(seed=0)[0]
+    c = agent.task_cost.on_observations(obs[None], np.zeros((1, agent.spec.act_dim)))
+    assert np.isfinite(c).all()
+    agent.learn(total_env_steps=25, progress_bar=False)
+    assert agent.env_steps == 25
+    agent.env.close()
 
 
 def test_bench_suite_smoke(tmp_path):
-    suite = _suite()
-    out = tmp_path / "suite.json"
-    state = suite.main(["--smoke", "--seeds", "0", "--json", str(out), "--figures", str(tmp_path),
-                        "--oracle-cache", str(tmp_path / "oracle"),
-                        "--tasks", "arm-open-loop", "inverted-pendulum"])
-    saved = json.loads(out.read_text())
-    assert saved["thresholds"]["arm-far"] == {"solved_ratio": 1.05}
-    # the Gymnasium task's threshold: within 5 % of its own oracle's return
-    ip = saved["thresholds"]["inverted-pendulum"]
-    R = saved["oracles"]["inverted-pendulum"]["mean_return"]
-    assert ip == {"solved_return": R - 0.05 * abs(R), "oracle_return": R}
-    assert "reacher" not in saved["thresholds"]  # not run: no oracle, no threshold
-    runs = saved["runs"]
+    out, base = tmp_path / "suite.json", tmp_path / "baselines.json"
+    common = ["--smoke", "--seeds", "0", "--json", str(out), "--baselines-json", str(base),
+              "--oracle-cache", str(tmp_path / "oracle"), "--tasks", "arm-open-loop",
+              "inverted-pendulum"]
+    state = suite.main(common + ["--baselines", "--planners", "cem-ilqr", "ilqr",
+                                 "--figures", str(tmp_path), "--docs", str(tmp_path / "b.md")])
+    baselines = json.loads(base.read_text())["tasks"]
+    for name in ("arm-open-loop", "inverted-pendulum"):
+        b = baselines[name]
+        assert len(b["zero_returns"]) == len(b["oracle_returns"]) == suite.EVAL_EPISODES
+        assert b["oracle_return"] > b["zero_return"]  # the oracle does better than nothing
+    runs = json.loads(out.read_text())["runs"]
     assert {(r["task"], r["planner"], r["regularization"]) for r in runs} == {
         (t, p, g) for t in ("arm-open-loop", "inverted-pendulum")
-        for p in ("ilqr", "cem") for g in ("none", "sampled")}
+        for p in ("cem-ilqr", "ilqr") for g in ("none", "sampled")}
     for r in runs:
-        assert r["env_steps"] <= r["budget_env_steps"]
+        assert r["env_steps"] == r["budget_env_steps"] == suite.SMOKE_BUDGET
         assert r["curve"], r  # at least the final evaluation
         assert set(r["wall_seconds_per_phase"]) >= {"training", "ltv", "planning", "eval"}
-        if r["env_steps_to_solve"] is not None:
-            assert r["env_steps_to_solve"] <= r["env_steps"]
     assert len(state["table"]) == 8
+    assert all(row["normalized_median"] is not None for row in state["table"])
     assert (tmp_path / "bench_suite_curves.png").is_file()
-    assert (tmp_path / "bench_suite_planner_x_regularizer.png").is_file()
-    # resume skips finished runs
-    again = suite.main(["--smoke", "--seeds", "0", "--json", str(out), "--resume",
-                        "--tasks", "arm-open-loop", "--oracle-cache", str(tmp_path / "oracle")])
-    assert len(again["runs"]) == len(runs)
+    md = (tmp_path / "b.md").read_text()
+    assert "bench_suite_curves.png)" in md and "| inverted-pendulum | 2000 |" in md
+    again = suite.main(common + ["--resume", "--planners", "cem-ilqr", "ilqr"])
+    assert len(again["runs"]) == len(runs)  # resume skips finished runs
 
 
-@pytest.mark.parametrize("name", ["reacher", "inverted-pendulum"])
-def test_gymnasium_task_costs_compile(name):
-    import gymnasium as gym
-    import numpy as np
+@given(st.floats(-1e6, 1e6))
+def test_solved_is_within_five_percent_below_the_oracle(oracle):
+    thr = suite.solved_return(oracle)
+    assert thr <= oracle
+    assert oracle - thr == pytest.approx(0.05 * abs(oracle), rel=1e-9, abs=1e-9)
 
-    from agents.config import AgentConfig
-    from agents.jacprop_agent import JacPropAgent
 
-    suite = _suite()
-    task = suite.TASKS[name]
-    env = gym.make(task["env_id"], **task["make"])
-    agent = JacPropAgent(env, AgentConfig.default({"evaluation.every": 0}, progress=False),
-                         cost_fn=task["cost"],
-                         terminal_cost_fn=task.get("terminal"),
-                         termination_fn=task.get("termination"))
-    obs = env.reset(seed=0)[0]
-    c = agent.task_cost.on_observations(obs[None], np.zeros((1, env.action_space.shape[0])))
-    assert np.isfinite(c).all()
+def test_normalized_score_hand_computed():
+    b = {"zero_return": -11.0, "oracle_return": -3.0}
+    assert suite.normalized(-11.0, b) == 0.0 and suite.normalized(-3.0, b) == 1.0
+    assert suite.normalized(-5.0, b) == pytest.approx(0.75)
+    assert suite.normalized(None, b) is None and suite.normalized(-5.0, None) is None
 
 
 def test_regenerating_the_report_keeps_the_hand_written_notes(tmp_path):
-    suite = _suite()
     doc = tmp_path / "benchmark.md"
-    state = {"table": [], "runs": [], "thresholds": {}, "git": "abc"}
-    suite.write_markdown(state, doc, tmp_path)
+    state = {"table": [], "runs": [], "git": "abc"}
+    suite.write_markdown(state, doc, tmp_path, {}, [], [])
     doc.write_text(doc.read_text() + "\nWhat the numbers say, by hand.\n")
     state["git"] = "def"
-    suite.write_markdown(state, doc, tmp_path)
+    suite.write_markdown(state, doc, tmp_path, {}, [], [])
     text = doc.read_text()
     assert "git def" in text and "git abc" not in text
     assert text.count(suite.NOTES_MARKER) == 1
     assert text.endswith("\nWhat the numbers say, by hand.\n")
 
 
-@pytest.mark.parametrize("flag", ["--regularizations", "--planners", "--tasks"])
+@pytest.mark.parametrize("flag", ["--regularizations", "--planners", "--tasks", "--sb3"])
 def test_unknown_names_exit_2_with_one_line(flag, capsys):
     with pytest.raises(SystemExit) as e:
-        _suite().main([flag, "bogus", "--json", "/tmp/never_written.json"])
+        suite.main([flag, "bogus", "--json", "/tmp/never_written.json"])
     assert e.value.code == 2
     err = capsys.readouterr().err.strip()
     assert flag in err and "\n" not in err
 
 
+def _run(reg, seed, steps, score, planner="cem-ilqr", task="inverted-pendulum"):
+    return {"task": task, "planner": planner, "regularization": reg, "seed": seed,
+            "env_steps_to_solve": steps, "final_score": score, "budget_env_steps": 2000,
+            "env_steps": 2000, "wall_seconds": 10.0 + seed,
+            "curve": [{"env_steps": 1000, "score": score / 2}, {"env_steps": 2000, "score": score}],
+            "wall_seconds_per_phase": {"total": 10.0 + seed}}
+
+
 def test_comparisons_pair_the_seeds_both_regularizers_ran():
-    suite = _suite()
-
-    def run(reg, seed, steps, score):
-        return {"task": "inverted-pendulum", "planner": "ilqr", "regularization": reg,
-                "seed": seed, "env_steps_to_solve": steps, "final_score": score,
-                "budget_env_steps": 2000, "wall_seconds_per_phase": {"total": 10.0 + seed}}
-
-    none = [run("none", k, s, 200.0) for k, s in enumerate([500, 100, 300, 50, 60])]
-    exact = [run("exact", k, s, 190.0) for k, s in enumerate([200, 100, None])]
+    none = [_run("none", k, s, 200.0) for k, s in enumerate([500, 100, 300, 50, 60])]
+    exact = [_run("exact", k, s, 190.0) for k, s in enumerate([200, 100, None])]
     (c,) = suite.comparisons(none + exact)
     assert c["regularization"] == "exact" and c["seeds"] == [0, 1, 2]
     # medians on seeds 0-2 only: exact {200, 100, >=2000} -> 200; none {500, 100, 300} -> 300
@@ -110,5 +112,27 @@ def test_comparisons_pair_the_seeds_both_regularizers_ran():
     assert c["wins_ties_losses"] == "1/1/1"  # seed 0 fewer, seed 1 equal, seed 2 unsolved
     assert c["final_score"] == "190 vs 200"
     assert c["final_scores_better_equal_worse"] == "0/0/3"  # a return: 190 < 200 is worse
-    assert c["final_score_ratio"] is None  # positive returns are not costs
     assert c["wall_ratio"] == 1.0  # same seeds, same per-seed walls
+
+
+def test_reference_rows_hand_computed():
+    runs = [_run("none", k, None, -4.0 - k, task="reacher") for k in range(3)]
+    baselines = {"reacher": {"zero_return": -12.0, "oracle_return": -4.0,
+                             "oracle_ms_per_step_bound": 30.0}}
+    sac = [{"task": "reacher", "method": "sac", "seed": 0, "curve": [
+        {"env_steps": 0, "score": -12.0}, {"env_steps": 50_000, "score": -6.0},
+        {"env_steps": 100_000, "score": -4.5}]}]
+    pets = [{"task": "reacher", "seed": s, "wall_seconds": 100.0, "curve": [
+        {"env_steps": 1000, "score": -8.0}, {"env_steps": 2000, "score": -6.0 + s}]}
+        for s in (0, 1)]
+    state = {"runs": runs, "table": suite.aggregate(runs, baselines)}
+    row = next(r for r in suite.reference_rows(state, baselines, sac, pets)
+               if r["task"] == "reacher")
+    assert row["best"]["final_score_median"] == -5.0  # finals -4, -5, -6
+    assert row["best"]["normalized_median"] == pytest.approx((-5 + 12) / 8)
+    assert row["sac_50k"] == -6.0 and row["sac_100k"] == -4.5
+    # SAC reaches -5.0 first at 100,000 env steps: 50x the agent's 2,000
+    assert row["sac_steps_to_agent_final"] == {"value": 100_000.0, "lower_bound": False}
+    assert row["sac_ratio"]["value"] == pytest.approx(50.0)
+    assert row["pets"] == -5.5 and row["pets_env_steps"] == 2000
+    assert row["agent_at_pets_steps"] == -5.0

@@ -361,3 +361,57 @@ def test_costs_independent_of_x_or_u_have_zero_not_uninitialised_derivatives(con
             np.testing.assert_allclose(g, w, rtol=1e-5, atol=1e-6, err_msg=name)
             # a constant's central difference is exactly 0: so must the derivative be
             np.testing.assert_array_equal(g[w == 0.0], 0.0, err_msg=name)
+
+
+def _stage_hessians(d):
+    T, m, n = d.lux.shape
+    H = np.zeros((T, n + m, n + m))
+    H[:, :n, :n], H[:, n:, n:], H[:, n:, :n] = d.lxx[:T], d.luu, d.lux
+    H[:, :n, n:] = np.swapaxes(d.lux, 1, 2)
+    return H
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.integers(0, 2**31 - 1), st.integers(1, 4), st.integers(1, 3), st.integers(1, 5))
+def test_convexified_hessians_are_the_nearest_psd_matrices(seed, n, m, T):
+    from scipy.linalg import polar
+
+    from mbtsr.costs import CostDerivatives
+
+    rng = np.random.default_rng(seed)
+    G = rng.standard_normal((T + 1, n + m, n + m))
+    H = G + np.swapaxes(G, 1, 2)
+    H[T, n:, :], H[T, :, n:] = 0.0, 0.0  # the terminal stage has only lxx
+    d = CostDerivatives(lx=rng.standard_normal((T + 1, n)), lu=rng.standard_normal((T, m)),
+                        lxx=H[:, :n, :n].copy(), luu=H[:T, n:, n:].copy(),
+                        lux=H[:T, n:, :n].copy())
+    c = d.convexified()
+    assert c.lx is d.lx and c.lu is d.lu  # gradients untouched
+    got = np.concatenate([_stage_hessians(c), np.pad(c.lxx[T:], ((0, 0), (0, m), (0, m)))])
+    for k in range(T + 1):
+        # Higham: the nearest symmetric PSD matrix to a symmetric H is (H + P) / 2 with P the
+        # symmetric polar factor of H (an independent formula from the eigenvalue clipping)
+        Hk = H[k] if k < T else np.pad(H[k, :n, :n], ((0, m), (0, m)))
+        want = 0.5 * (Hk + polar(Hk)[1])
+        np.testing.assert_allclose(got[k], want, atol=1e-9)
+        assert np.linalg.eigvalsh(got[k]).min() >= -1e-9
+
+
+def test_convexified_leaves_psd_stages_bit_for_bit():
+    from mbtsr.costs import CostDerivatives
+
+    rng = np.random.default_rng(0)
+    n, m, T = 3, 2, 4
+    G = rng.standard_normal((T + 1, n + m, n + m))
+    H = G @ np.swapaxes(G, 1, 2)  # PSD
+    H[1, 0, 0] = -5.0  # ... but stage 1
+    d = CostDerivatives(lx=np.zeros((T + 1, n)), lu=np.zeros((T, m)), lxx=H[:, :n, :n].copy(),
+                        luu=H[:T, n:, n:].copy(), lux=H[:T, n:, :n].copy())
+    c = d.convexified()
+    for k in (0, 2, 3):
+        np.testing.assert_array_equal(_stage_hessians(c)[k], _stage_hessians(d)[k])
+    assert np.linalg.eigvalsh(_stage_hessians(c)[1]).min() >= -1e-12
+    assert not np.array_equal(_stage_hessians(c)[1], _stage_hessians(d)[1])
+    psd = CostDerivatives(lx=d.lx, lu=d.lu, lxx=np.array([np.eye(n)] * (T + 1)),
+                          luu=np.array([np.eye(m)] * T), lux=np.zeros((T, m, n)))
+    assert psd.convexified() is psd

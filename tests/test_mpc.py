@@ -50,6 +50,34 @@ def test_mpc_action_is_the_first_control_of_finite_horizon_lqr():
     assert mpc.compute_times == [] and mpc.plan is None
 
 
+def test_cold_start_grows_the_horizon_from_its_own_plans():
+    calls = []
+
+    def spy(cost, dynamics, x0, U0, **kw):
+        res = ilqr(cost, dynamics, x0, U0, **kw)
+        calls.append({"U0": U0.copy(), "U": res.U.copy(), "max_iter": kw["options"]["max_iter"]})
+        return res
+
+    A, B = _system()
+    mpc = MPC(spy, quadratic_cost(np.eye(N_X), 0.1 * np.eye(N_U), np.array([0.5, 0.0, 0.0])),
+              LinearDynamics(A, B), horizon=10, u_min=-1.0, u_max=1.0,
+              options=MPCOptions(first_step_iterations=7, cold_start_fractions=(0.25, 0.5)))
+    mpc.act(np.zeros(N_X), 0)
+    assert [len(c["U0"]) for c in calls] == [2, 5, 10]  # round(2.5) = 2, then 5, then all
+    assert [c["max_iter"] for c in calls] == [7, 7, 7]
+    np.testing.assert_array_equal(calls[0]["U0"], np.zeros((2, N_U)))
+    for prev, nxt in zip(calls[:-1], calls[1:]):  # each extends the last plan by its last control
+        k = len(prev["U"])
+        np.testing.assert_array_equal(nxt["U0"][:k], prev["U"])
+        np.testing.assert_array_equal(nxt["U0"][k:], np.repeat(prev["U"][-1:], len(nxt["U0"]) - k,
+                                                               axis=0))
+    np.testing.assert_array_equal(mpc.plan, calls[-1]["U"])
+    with pytest.raises(ValueError, match="cold_start_fractions"):
+        MPCOptions(cold_start_fractions=(0.5, 0.25))
+    with pytest.raises(ValueError, match="cold_start_fractions"):
+        MPCOptions(cold_start_fractions=(1.0,))
+
+
 def test_warm_start_shifts_the_previous_plan_and_passes_absolute_time():
     calls = []
 
@@ -69,7 +97,8 @@ def test_warm_start_shifts_the_previous_plan_and_passes_absolute_time():
         horizon=10,
         u_min=-1.0,
         u_max=1.0,
-        options=MPCOptions(iterations_per_step=2, first_step_iterations=7, optimizer_options={}),
+        options=MPCOptions(iterations_per_step=2, first_step_iterations=7, optimizer_options={},
+                           cold_start_fractions=()),
         params=cost.reference(ref),
     )
     x = np.zeros(N_X)
@@ -89,7 +118,7 @@ def test_warm_start_shifts_the_previous_plan_and_passes_absolute_time():
     mpc2 = MPC(ilqr, quadratic_cost(np.eye(N_X), 0.1 * np.eye(N_U), ref), LinearDynamics(A, B),
                horizon=10, u_min=-1.0, u_max=1.0,
                options=MPCOptions(iterations_per_step=2, first_step_iterations=7,
-                                  optimizer_options={}))
+                                  optimizer_options={}, cold_start_fractions=()))
     mpc.reset()
     for t in range(3):
         np.testing.assert_array_equal(mpc.act(x, t), mpc2.act(x, t))

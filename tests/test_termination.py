@@ -92,6 +92,43 @@ def test_ilqr_line_search_refuses_steps_that_end_the_episode():
     assert res.cost < free_J
 
 
+def test_ilqr_reports_a_plan_no_step_improves_under_the_episode_cost_as_converged():
+    """Warm-started with its own solution (or any plan that ends right at x = 3), every step
+    the smooth cost suggests ends the episode: the plan is optimal under the episode's cost.
+    The solve used to end 'failed' (no improving step up to lambda_max) with that plan; a
+    plan whose steps all diverge still fails."""
+    ended = lambda X: X[..., 0] > 3.0  # noqa: E731
+    first, cost = integrator_to_five(ended)
+    model = LinearDynamics(np.eye(1), np.eye(1))
+    opts = ILQROptions(max_iter=50, termination_cost=1000.0)
+    for U0 in (first.U, np.full((10, 1), 0.3)):
+        res = ilqr(cost, model, np.zeros(1), U0, u_min=-1, u_max=1, options=opts,
+                   terminated=ended)
+        assert res.status == "converged", res.message
+        assert "no step improves the episode's cost" in res.message
+        np.testing.assert_array_equal(res.U, U0)  # the plan, unchanged
+        assert not any(tr["accepted"] for tr in res.trace)
+        assert res.X.max() <= 3.0 and np.isfinite(res.cost)
+
+    # but a plan whose every step diverges (a model that is NaN off it) still fails
+    class NaNOffZero:
+        state_dim = action_dim = 1
+        lin = LinearDynamics(np.eye(1), np.eye(1))
+
+        def step(self, x, u, t=None):
+            out = self.lin.step(x, u)
+            out[np.any(u != 0, axis=-1)] = np.nan
+            return out
+
+        def jacobians(self, x, u, t=0):
+            return self.lin.jacobians(x, u)
+
+    cost = quadratic_cost(np.eye(1), 0.01 * np.eye(1), np.array([5.0]), Qf=np.eye(1))
+    res = ilqr(cost, NaNOffZero(), np.zeros(1), np.zeros((10, 1)), u_min=-1, u_max=1,
+               terminated=lambda X: X[..., 0] > 3.0)
+    assert res.status == "failed" and "lambda_max" in res.message
+
+
 def test_terminated_must_return_one_bool_per_state():
     cost = quadratic_cost(np.eye(1), np.eye(1), np.zeros(1))
     with pytest.raises(ValueError, match="terminated"):

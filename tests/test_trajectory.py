@@ -1,3 +1,5 @@
+from pathlib import Path
+
 import numpy as np
 import pytest
 from hypothesis import given
@@ -93,3 +95,47 @@ def test_step_validates_dimensions():
         model.step(np.zeros((4, 2)), np.zeros((3, 1)))
     with pytest.raises(ValueError, match="non-finite"):
         model.step(np.array([np.inf, 0.0]), np.zeros(1))
+
+
+class _TouchOnLoad:
+    """Unpickling this object creates a file: proof that something was unpickled."""
+
+    def __init__(self, marker):
+        self.marker = marker
+
+    def __reduce__(self):
+        return (Path.touch, (self.marker,))
+
+
+@pytest.mark.parametrize("arrays, message", [
+    (lambda m: {"trajs": np.array([_TouchOnLoad(m), None], dtype=object)},
+     "{p} is not a file of save_trajectories: it has no array 'count' and holds trajs: object "
+     "[2]; arrays of Python objects are never unpickled (they could run code)"),
+    (lambda m: {"count": np.array(1), "x0": np.array([_TouchOnLoad(m), 1.0], dtype=object),
+                "u0": np.zeros((1, 1)), "dt0": np.array(0.1)},
+     "{p} holds an array of Python objects, 'x0' (object [2]), which is never unpickled (it "
+     "could run code): save trajectories with mbtsr.save_trajectories (numeric arrays)"),
+    (lambda m: {"count": np.array(2), "x0": np.zeros((3, 2)), "u0": np.zeros((2, 1)),
+                "dt0": np.array(0.1)},
+     "{p} is not a file of save_trajectories: it has no array 'dt1' and holds count: int64 [], "
+     "x0: float64 [3, 2], u0: float64 [2, 1], dt0: float64 []"),
+])
+def test_load_trajectories_names_the_file_and_what_it_holds_and_unpickles_nothing(
+        tmp_path, arrays, message):
+    path, marker = tmp_path / "data.npz", tmp_path / "unpickled"
+    np.savez(path, **arrays(marker))
+    with pytest.raises(ValueError) as err:
+        load_trajectories(path)
+    assert str(err.value) == message.format(p=path)
+    assert not marker.exists()
+
+
+def test_load_trajectories_on_a_file_that_is_not_an_archive(tmp_path):
+    np.save(tmp_path / "one.npy", np.zeros(3))
+    with pytest.raises(ValueError, match=r"one\.npy holds a single array float64 \[3\] \(a \.npy "
+                                         r"file\), not the \.npz archive"):
+        load_trajectories(tmp_path / "one.npy")
+    (tmp_path / "text.npz").write_text("not numpy")
+    with pytest.raises(ValueError, match=r"text\.npz is neither an \.npz archive .* a pickle is "
+                                         r"never loaded here"):
+        load_trajectories(tmp_path / "text.npz")

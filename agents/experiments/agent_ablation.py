@@ -7,6 +7,7 @@ tangent-space regularization (``none``), all other settings at their defaults::
 
     python scripts/agent_ablation.py                       # 3 regularizations x 5 seeds
     python scripts/agent_ablation.py --episodes 15 --workers 2 --json ablation.json
+    python scripts/agent_ablation.py --config arm.yaml     # a config file as every run's base
     python scripts/agent_ablation.py --help                # every option
 
 Every run evaluates after every episode (10 fixed targets, no early exit, so every cost ratio is
@@ -52,9 +53,13 @@ class Args:
     """folder of the per-run JSON files (a killed sweep resumes), summary.json and table.md"""
     oracle_cache_dir: str = "runs/oracle_cache"
     """cache of the true-model oracle's cost"""
+    config: str = ""
+    """an AgentConfig file (YAML/JSON written by hand, or a run's config.json) as the base of
+    every run; --agent-config, the variants and what the sweep sets per run (seed, the
+    regularizer, evaluation, run_dir, ...; printed) apply on top"""
     agent_config: str = "{}"
     """JSON of further AgentConfig overrides for every run (dotted fields,
-    '{"training.epochs": 100}')"""
+    '{"training.steps": 200}')"""
     json: str = ""
     """write the summary here too"""
     report_only: bool = False
@@ -172,17 +177,43 @@ def markdown(summary: dict) -> str:
                                    for i, seed in enumerate(e["seeds"])])
 
 
-def run(args: Args) -> dict:
-    """Run (or resume) the sweep, write and return the summary."""
-    from mbtsr.runner import load_results, run_sweep
+def sweep_configs(args: Args) -> dict[str, dict]:
+    """The sweep's run configs by variant name: the --config file's settings, --agent-config
+    and the variant on top, what :func:`agent_fields` sets per run last; every variant's
+    AgentConfig is checked here, before any run.
 
-    out = Path(args.out)
+    :raises ValueError: naming the file, or the variant and the field.
+    """
+    from agents.config import AgentConfig, file_changes
+
     overrides = json.loads(args.agent_config)
+    if args.config:
+        per_run = {*agent_fields({"overrides": {}, "variant_overrides": {}, "regularization": "",
+                                  "oracle_cache_dir": None}, 0), "run_dir",
+                   *(f"regularization.{k}_weight" for k in ("sampled", "exact", "smooth"))}
+        from_file, fixed = file_changes(args.config, per_run)
+        if fixed:
+            print(f"--config {args.config}: the sweep sets {', '.join(fixed)} per run")
+        overrides = {**from_file, **overrides}
     base = {"env_id": "mbtsr/TwoLinkArm-v0", "episodes": args.episodes, "overrides": overrides,
             "oracle_cache_dir": str(Path(args.oracle_cache_dir).resolve())}
     configs = {name: {**base, "regularization": v["regularization"],
                       "variant_overrides": v["overrides"]}
                for name, v in parse_variants(args.variants).items()}
+    for name, config in configs.items():
+        try:
+            AgentConfig.default(agent_fields(config, 0))
+        except ValueError as err:
+            raise ValueError(f"variant {name!r}: {err}") from None
+    return configs
+
+
+def run(args: Args) -> dict:
+    """Run (or resume) the sweep, write and return the summary."""
+    from mbtsr.runner import load_results, run_sweep
+
+    out = Path(args.out)
+    configs = sweep_configs(args)
     if not args.report_only:
         # the oracle once, before the workers start (they read it from the cache)
         import gymnasium as gym

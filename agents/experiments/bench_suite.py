@@ -1,47 +1,44 @@
-"""Benchmark suite: tasks where model quality should decide, {iLQR, CEM} x {none, sampled}.
+"""Benchmark suite: the agent on standard MuJoCo tasks and the project's arm, measured against
+doing nothing, the true-model oracle, SB3 SAC and PETS, at equal env steps.
 
-Every run is the JacProp agent on its defaults except the task's budget and criterion; the
-planner and the regularizer are the only things that vary inside a task, at equal env steps and
-optimizer steps. Success thresholds are fixed HERE, before any run (never tuned afterwards):
+Every task (:data:`TASKS`) is a reusable :class:`agents.tasks.Task` (its env, a cost written
+from the observation and action, its termination) plus the suite's budget in env steps. One
+evaluation protocol for every method: 3 fixed episodes reset with seeds 1000, 1001, 1002 (the
+arm also draws its targets from them), the score is the mean of the env's own summed rewards.
 
-=====================  =======================================  ===============================
-task                   what makes it hard                        solved when
-=====================  =======================================  ===============================
-arm-far                targets across the workspace               eval cost <= 1.05 x oracle
-                       (``target_limit = 0.85 pi``)
-arm-open-loop          each plan runs open loop for 10 steps      eval cost <= 1.05 x oracle
-                       (``replan_every=10``): feedback cannot     (the oracle re-plans every 10
-                       hide model error                           steps too)
-reacher                Reacher-v5, goal in the observation        mean return within 5 % of
-                                                                  the oracle's (>= R - 0.05 |R|)
-inverted-pendulum      InvertedPendulum-v5 (200-step episodes),   mean return within 5 % of
-                       terminates when the pole falls             the oracle's (200 -> 190)
-=====================  =======================================  ===============================
+=========================  ==============================================  ============
+task                       what makes it hard                              budget
+=========================  ==============================================  ============
+arm-far                    targets across the workspace (0.85 pi)          800 steps
+arm-open-loop              each plan runs open loop for 10 steps           800 steps
+reacher                    Reacher-v5, goal in the observation             2,000 steps
+inverted-pendulum          InvertedPendulum-v5 (200-step episodes)         2,000 steps
+inverted-double-pendulum   InvertedDoublePendulum-v5, unstable, falls      5,000 steps
+pusher                     Pusher-v5, contacts decide (PETS' manipulation) 3,000 steps
+half-cheetah               HalfCheetah-v5, locomotion (PETS', MBPO's)      10,000 steps
+=========================  ==============================================  ============
 
-One rule for every task: within 5 % of the true-model oracle on the same evaluation episodes.
-The Gymnasium tasks first had absolute thresholds (Reacher: Gymnasium's reward_threshold -3.75;
-InvertedPendulum: 190). The oracle itself scores -3.92 on Reacher's 3 evaluation episodes, so
--3.75 could not separate models: it was restated as oracle-relative BEFORE the 5-seed runs
-(InvertedPendulum's 190 is the same rule). No run's outcome was looked at to choose 5 %: it is
-the arm tasks' margin (1.05 x the oracle's cost).
+Per task, computed once and stored (``--baselines``, :data:`BASELINES_JSON`): the return of the
+zero action and of the true-model oracle (the agent's own MPC on the TRUE MuJoCo dynamics, the
+agent's default planner, :meth:`agents.jacprop_agent.JacPropAgent.compute_oracle`) with its
+planning milliseconds per step. From them:
 
-The oracle is the same MPC on the TRUE MuJoCo model: the arm's own ``dynamics_model()``, and for
-the Gymnasium tasks :class:`envs.mujoco_model.MujocoDynamics` with the cost on the env's own
-observation (``--oracle`` computes and stores its score per task; the Gymnasium tasks' criterion
-stays the return threshold). ``--sb3 sac ppo`` runs SB3 methods instead of the agent on the
-same tasks, evaluation episodes and thresholds (arm tasks: <= 1.05 x the oracle's cost;
-Gymnasium tasks: mean return within 5 % of the oracle's), with budgets of 20x (SAC) and 200x
-(PPO) the agent's env steps, into ``<json stem>_sb3.json``; the report compares the best SB3
-method with the best agent configuration. Runs are scheduled seed-major (every task and
-configuration gets seed 0 before any gets seed 1), and each finished run is appended to the JSON
-at once, so an interrupted suite reports what finished (``--resume`` skips finished runs)::
+* **solved** (fixed before any run): mean evaluation return within 5 % of the oracle's,
+  ``R >= R_oracle - 0.05 |R_oracle|`` (the arm: cost <= 1.05 x the oracle's);
+* **normalized score** ``(R - R_zero) / (R_oracle - R_zero)``: 0 is doing nothing, 1 the oracle.
 
-    python scripts/bench_suite.py --json docs/results/bench_suite.json --figures docs/figures
+Reference methods, run by their own commands into their own JSON files and read by the report:
+SB3 SAC for a fixed 100,000 env steps, evaluated 20 times on the same episodes (``--sb3 sac``,
+:func:`run_sb3`), and PETS itself (mbrl-lib, ``scripts/pets_peer.py``, its own venv). Runs are
+scheduled seed-major, each finished run is appended to the JSON at once (``--resume`` skips
+finished runs)::
+
+    python scripts/bench_suite.py --baselines --report-only --json docs/results/bench_suite.json
+    python scripts/bench_suite.py --json docs/results/bench_suite.json --resume
+    python scripts/bench_suite.py --sb3 sac --seeds 0 --json docs/results/bench_suite.json
+    python scripts/bench_suite.py --report-only --json docs/results/bench_suite.json \\
+        --figures docs/figures --docs docs/benchmark.md
     python scripts/bench_suite.py --smoke --json runs/bench_suite_smoke.json   # CI, ~1 min
-    python scripts/bench_suite.py --report-only --json docs/results/bench_suite.json
-    python scripts/bench_suite.py --sb3 sac ppo --seeds 0 1 2 --resume \
-        --json docs/results/bench_suite.json    # SB3 -> docs/results/bench_suite_sb3.json
-    python scripts/bench_suite.py --help                 # every option
 """
 
 from __future__ import annotations
@@ -61,198 +58,175 @@ from typing import Any
 REPO = Path(__file__).resolve().parents[2]
 os.environ.setdefault("MUJOCO_GL", "egl")
 
-import casadi as ca  # noqa: E402
 import numpy as np  # noqa: E402
 
+from agents import tasks as _tasks  # noqa: E402
 from mbtsr import cli  # noqa: E402
 from mbtsr.io import atomic_write_text, write_json_atomic  # noqa: E402
 
-PLANNERS = ("ilqr", "cem")
-REGULARIZATIONS = ("none", "sampled", "exact", "smooth")  # the suite runs the first two by default
+PLANNERS = ("ilqr", "cem", "cem-ilqr")
+REGULARIZATIONS = ("none", "sampled", "exact", "smooth")
+#: a run within this fraction of the oracle's return (below it) counts as solved
+ORACLE_MARGIN = 0.05
+#: the evaluation protocol of every method
+EVAL_EPISODES, EVAL_SEED = 3, 1000
+#: the zero-action and oracle returns per task (``--baselines``), read by every report
+BASELINES_JSON = REPO / "docs" / "results" / "bench_suite_baselines.json"
 
 
-def reacher_cost(obs, a):
-    """Reacher-v5's reward terms: distance fingertip-target (smoothed) and effort."""
-    return ca.sqrt(ca.sumsqr(obs[8:10]) + 1e-4) + ca.sumsqr(a)
+def _task(task: _tasks.Task, budget: int, **overrides: Any) -> dict[str, Any]:
+    """A suite entry: a reusable :class:`agents.tasks.Task`, its budget in env steps and the
+    agent settings the task needs (dotted ``AgentConfig`` fields)."""
+    return {"task": task, "budget": budget, "overrides": overrides}
 
 
-def reacher_terminal(obs):
-    return 10.0 * ca.sumsqr(obs[8:10])
-
-
-def pendulum_cost(obs, a):
-    """InvertedPendulum-v5: obs = [x, theta, x_dot, theta_dot]; keep the pole up, cart near 0,
-    minus the env's alive bonus of 1 per step: with ``termination_fn`` the CEM planner adds no
-    cost after a predicted fall (PETS), so staying alive must be cheaper than falling (without
-    the bonus a positive cost makes falling early the cheapest plan)."""
-    return (10.0 * obs[1] ** 2 + 0.1 * obs[0] ** 2 + 0.01 * obs[2] ** 2 + 0.1 * obs[3] ** 2
-            + 0.001 * ca.sumsqr(a) - 1.0)
-
-
-def pendulum_terminated(obs):
-    """The env terminates when |theta| > 0.2 (or the state is not finite)."""
-    return np.abs(obs[..., 1]) > 0.2
-
-
-#: the tasks and their thresholds (stated before the runs; see the module docstring)
+#: the tasks, their budgets and task-specific settings (stated before the runs)
 TASKS: dict[str, dict[str, Any]] = {
-    "arm-far": {
-        "env_id": "mbtsr/TwoLinkArm-v0", "make": {"target_limit": 0.85 * math.pi},
-        "solved_ratio": 1.05, "episodes": 8, "overrides": {},
-    },
-    "arm-open-loop": {
-        "env_id": "mbtsr/TwoLinkArm-v0", "make": {}, "solved_ratio": 1.05, "episodes": 8,
-        "overrides": {"planner.replan_every": 10},
-    },
-    "reacher": {
-        "env_id": "Reacher-v5", "make": {}, "oracle_margin": 0.05, "total_env_steps": 1000,
-        "cost": reacher_cost, "terminal": reacher_terminal, "overrides": {},
-    },
-    "inverted-pendulum": {
-        "env_id": "InvertedPendulum-v5", "make": {"max_episode_steps": 200},
-        "oracle_margin": 0.05, "total_env_steps": 2000, "max_episodes": 15,
-        "cost": pendulum_cost,
-        "termination": pendulum_terminated, "overrides": {},
-    },
+    "arm-far": _task(_tasks.two_link_arm(target_limit=0.85 * math.pi), 800),
+    "arm-open-loop": _task(_tasks.two_link_arm(), 800, **{"planner.replan_every": 10}),
+    "reacher": _task(_tasks.reacher(), 2000),
+    "inverted-pendulum": _task(_tasks.inverted_pendulum(max_episode_steps=200), 2000),
+    "inverted-double-pendulum": _task(_tasks.inverted_double_pendulum(), 5000),
+    "pusher": _task(_tasks.pusher(), 3000),
+    "half-cheetah": _task(_tasks.half_cheetah(), 10000),
 }
 
+#: tiny budgets of the smoke mode (CI); planner settings only reach the planner they act in
 SMOKE_OVERRIDES = {
     "training.steps": 3, "planner.horizon": 5, "planner.first_plan_iterations": 2,
     "planner.ilqr_iterations": 1, "planner.cem.samples": 16, "planner.cem.elites": 4,
-    "planner.cem.iterations": 1, "evaluation.episodes": 1, "model.ensemble_size": 2,
-    "model.hidden_width": 8,
+    "planner.cem.iterations": 1, "planner.proposal.samples": 8, "planner.proposal.elites": 2,
+    "planner.proposal.iterations": 1, "model.ensemble_size": 2, "model.hidden_width": 8,
 }
+SMOKE_BUDGET = 200
 
 
-def solved_return(name: str, oracle_return: float) -> float:
-    """The return threshold of Gymnasium task ``name``: the oracle's mean evaluation return
-    minus ``oracle_margin`` of its magnitude (``R - 0.05 |R|``: 200 -> 190, -3.92 -> -4.11)."""
-    return oracle_return - TASKS[name]["oracle_margin"] * abs(oracle_return)
+def _planner_applies(key: str, kind: str) -> bool:
+    """Whether the dotted setting ``key`` acts under planner ``kind`` (the config refuses
+    settings without effect)."""
+    if key.startswith("planner.cem."):
+        return kind == "cem"
+    if key.startswith("planner.proposal."):
+        return kind == "cem-ilqr"
+    return key != "planner.ilqr_iterations" or kind != "cem"
 
 
-def thresholds(oracles: dict[str, Any]) -> dict[str, dict[str, float]]:
-    """Per task ``{"solved_ratio": r}`` (cost relative to the oracle, arm tasks) or
-    ``{"solved_return": R_thr, "oracle_return": R}`` (Gymnasium tasks; needs ``oracles[name]``
-    from :func:`task_oracle`, tasks without one are left out)."""
-    out: dict[str, dict[str, float]] = {}
-    for name, t in TASKS.items():
-        if "solved_ratio" in t:
-            out[name] = {"solved_ratio": t["solved_ratio"]}
-        elif name in oracles:
-            R = oracles[name]["mean_return"]
-            out[name] = {"solved_return": solved_return(name, R), "oracle_return": R}
-    return out
-
-
-def make_env(task: dict[str, Any]):
-    import gymnasium as gym
-
-    import envs  # noqa: F401  (registers mbtsr/ ids)
-
-    return gym.make(task["env_id"], **task["make"])
-
-
-def _make_agent(env: Any, task: dict[str, Any], overrides: dict[str, Any], smoke: bool) -> Any:
-    """The agent of ``task`` on ``env`` with ``overrides`` (dotted ``AgentConfig`` fields, plus
-    the tiny smoke budgets)."""
+def make_agent(name: str, overrides: dict[str, Any] | None = None, *, smoke: bool = False
+               ) -> Any:
+    """The agent of task ``name`` on a new env: the task's functions and settings, the
+    suite's evaluation protocol, ``overrides`` (dotted ``AgentConfig`` fields) and, with
+    ``smoke``, the tiny budgets."""
     from agents.config import AgentConfig
     from agents.jacprop_agent import JacPropAgent
 
+    entry = TASKS[name]
+    settings = {"evaluation.episodes": EVAL_EPISODES, "evaluation.seed": EVAL_SEED,
+                "progress": False, "tensorboard": False, "checkpoint": False,
+                "torch_threads": 1, "jacobian_error": False,
+                **entry["overrides"], **(overrides or {})}
     if smoke:
-        overrides = {**overrides, **SMOKE_OVERRIDES}
-        if "planner.replan_every" in overrides:
-            overrides["planner.replan_every"] = 2
-    return JacPropAgent(env, AgentConfig.default(overrides), cost_fn=task.get("cost"),
-                        terminal_cost_fn=task.get("terminal"),
-                        termination_fn=task.get("termination"))
+        kind = settings.get("planner.kind", "ilqr")
+        settings.update({k: v for k, v in SMOKE_OVERRIDES.items() if _planner_applies(k, kind)})
+        if "planner.replan_every" in settings:
+            settings["planner.replan_every"] = 2
+    task = entry["task"]
+    return JacPropAgent(task.make_env(), AgentConfig.default(settings), **task.agent_kwargs())
 
 
-def run_one(name: str, planner: str, reg: str, seed: int, *, smoke: bool,
-            oracle_cache: str, threshold: dict[str, float]) -> dict[str, Any]:
-    """One agent run with ``threshold`` (from :func:`thresholds`); returns its record (summary,
-    curve, wall per phase)."""
+# ---------------------------------------------------------------------------------------------
+# baselines: doing nothing and the true-model oracle
+# ---------------------------------------------------------------------------------------------
+
+def task_baselines(name: str, *, smoke: bool = False) -> dict[str, Any]:
+    """Zero action and the true-model oracle on task ``name``'s evaluation episodes.
+
+    The oracle is the agent's own MPC (its default planner, horizon and iterations, the task's
+    cost and termination) on the TRUE MuJoCo dynamics
+    (:meth:`agents.jacprop_agent.JacPropAgent.compute_oracle`), so its return is what the agent
+    would reach with a perfect model. ``ms_per_step``: its mean planning time per MPC step.
+    """
     import torch
 
+    from agents.evaluation import evaluate_policy_costs
 
     torch.set_num_threads(1)
-    task = TASKS[name]
-    env = make_env(task)
-    overrides = dict(task["overrides"])
-    overrides.update({
+    agent = make_agent(name, smoke=smoke)
+    env, kwargs = agent._eval_setup()
+    m = agent.spec.act_dim
+    zero = -evaluate_policy_costs(lambda obs: np.zeros(m), env, agent.eval_targets,
+                                  EVAL_SEED, **kwargs)
+    tic = time.perf_counter()
+    agent.compute_oracle()
+    wall = time.perf_counter() - tic
+    oracle = -np.asarray(agent.oracle_costs, dtype=float)
+    steps = agent.spec.episode_steps * len(oracle)  # an upper bound where episodes end early
+    cfg = agent.config.planner
+    agent.env.close()
+    return {
+        "task": name, "zero_returns": zero.tolist(), "zero_return": float(np.mean(zero)),
+        "oracle_returns": oracle.tolist(), "oracle_return": float(np.mean(oracle)),
+        "oracle_seconds": wall, "oracle_ms_per_step_bound": 1000.0 * wall / steps,
+        "planner": {"kind": cfg.kind, "horizon": cfg.horizon,
+                    "ilqr_iterations": cfg.ilqr_iterations,
+                    "first_plan_iterations": cfg.first_plan_iterations},
+    }
+
+
+def solved_return(oracle_return: float) -> float:
+    """The return a run must reach to count as solved: within :data:`ORACLE_MARGIN` of the
+    oracle's (``R - 0.05 |R|``: 200 -> 190, -3.92 -> -4.12)."""
+    return oracle_return - ORACLE_MARGIN * abs(oracle_return)
+
+
+def normalized(score: float | None, baseline: dict[str, Any] | None) -> float | None:
+    """``(R - R_zero) / (R_oracle - R_zero)``: 0 for doing nothing, 1 for the oracle."""
+    if score is None or baseline is None:
+        return None
+    span = baseline["oracle_return"] - baseline["zero_return"]
+    return None if span == 0 else (score - baseline["zero_return"]) / span
+
+
+def load_baselines(path: Path = BASELINES_JSON) -> dict[str, dict[str, Any]]:
+    """The stored baselines per task (``{}`` if none)."""
+    return json.loads(path.read_text()).get("tasks", {}) if path.is_file() else {}
+
+
+# ---------------------------------------------------------------------------------------------
+# agent runs
+# ---------------------------------------------------------------------------------------------
+
+def run_one(name: str, planner: str, reg: str, seed: int, *, smoke: bool,
+            oracle_cache: str, baseline: dict[str, Any] | None) -> dict[str, Any]:
+    """One agent run of task ``name`` for its budget; returns its record (curve of mean
+    evaluation returns, env steps to solve against the baseline's threshold, wall per phase).
+    """
+    import torch
+
+    torch.set_num_threads(1)
+    overrides: dict[str, Any] = {
         "seed": seed, "planner.kind": planner, "regularization": reg, "evaluation.every": 2,
-        "evaluation.episodes": 3, "evaluation.oracle_cache_dir": oracle_cache,
-        "progress": False, "tensorboard": False, "checkpoint": False, "torch_threads": 1,
-        "jacobian_error": False,
-    })
-    key = "solved_ratio" if "solved_ratio" in task else "solved_return"
-    overrides[f"evaluation.{key}"] = threshold[key]
-    agent = _make_agent(env, task, overrides, smoke)
+        "evaluation.oracle_cache_dir": oracle_cache}
+    if baseline is not None:
+        overrides["evaluation.solved_return"] = solved_return(baseline["oracle_return"])
+    agent = make_agent(name, overrides, smoke=smoke)
+    budget = SMOKE_BUDGET if smoke else TASKS[name]["budget"]
     tic = time.perf_counter()
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)  # logged LTV fallbacks
-        if "episodes" in task:
-            agent.learn(2 if smoke else task["episodes"], progress_bar=False)
-        else:
-            agent.learn(task.get("max_episodes") if not smoke else None,
-                        total_env_steps=300 if smoke else task["total_env_steps"],
-                        progress_bar=False)
+        agent.learn(total_env_steps=budget, progress_bar=False)
     s = agent.summary()
-    env.close()
-    # the env steps a run could spend (an unsolved run is reported as ">= budget"); a run
-    # stopped by max_episodes spent fewer steps than total_env_steps: its budget is what it spent
-    budget = (agent.spec.episode_steps * (2 if smoke else task["episodes"])
-              if "episodes" in task else agent.env_steps)
-    score_key = "cost_ratio" if "solved_ratio" in task else "eval_return"
-    curve = [{"env_steps": c["env_steps"], "score": c[score_key],
+    agent.env.close()
+    curve = [{"env_steps": c["env_steps"], "score": c["eval_return"],
               "returns": c["eval_returns"]} for c in s["eval_curve"]]
     return {
         "task": name, "planner": planner, "regularization": reg, "seed": seed,
         "budget_env_steps": budget, "env_steps": s["env_steps"],
-        "env_steps_to_solve": s["env_steps_to_solve"],
-        "episodes_to_solve": s["episodes_to_solve"],
-        "final_score": curve[-1]["score"] if curve else None,
-        "score": "cost / oracle (lower is better)" if score_key == "cost_ratio"
-        else "mean return (higher is better)",
-        "oracle_cost": s["oracle_cost"], "curve": curve,
+        "env_steps_to_solve": s["env_steps_to_solve"] if baseline is not None else None,
+        "final_score": curve[-1]["score"] if curve else None, "curve": curve,
+        "model": agent.config.to_dict()["model"],
         "wall_seconds_per_phase": s["wall_seconds_per_phase"],
         "wall_seconds": time.perf_counter() - tic,
     }
-
-
-def task_oracle(name: str, *, smoke: bool = False) -> dict[str, Any]:
-    """The true-model oracle's score on task ``name``: the agent's own MPC (defaults: iLQR,
-    ``planner.horizon``, ``ilqr_iterations``, ``first_plan_iterations``, the task's cost and
-    terminal cost) on the TRUE MuJoCo dynamics, over the suite's evaluation episodes (same reset
-    seeds ``evaluation.seed + i``, same episode length), via
-    :meth:`JacPropAgent.compute_oracle`. For the Gymnasium tasks the true model is
-    :class:`envs.mujoco_model.MujocoDynamics` (no user glue, see
-    :func:`agents.evaluation.oracle_policy`)."""
-    import torch
-
-
-    torch.set_num_threads(1)
-    task = TASKS[name]
-    env = make_env(task)
-    overrides = {**task["overrides"], "evaluation.episodes": 3, "progress": False,
-                 "tensorboard": False, "checkpoint": False, "torch_threads": 1}
-    agent = _make_agent(env, task, overrides, smoke)
-    tic = time.perf_counter()
-    agent.compute_oracle()
-    env.close()
-    costs = np.asarray(agent.oracle_costs, dtype=float)
-    returns = (-costs).tolist()
-    cfg = agent.config
-    rec: dict[str, Any] = {
-        "task": name, "returns": returns, "mean_return": float(np.mean(returns)),
-        "costs": costs.tolist(), "mean_cost": float(np.mean(costs)),
-        "eval_seed": cfg.evaluation.seed, "eval_episodes": cfg.evaluation.episodes,
-        "horizon": cfg.planner.horizon, "ilqr_iterations": cfg.planner.ilqr_iterations,
-        "first_plan_iterations": cfg.planner.first_plan_iterations,
-        "wall_seconds": time.perf_counter() - tic,
-    }
-    if "oracle_margin" in task:
-        rec["solved_return"] = solved_return(name, rec["mean_return"])
-    return rec
 
 
 def _median_censored(values: list[int | None], budget: int) -> str:
@@ -264,117 +238,54 @@ def _median_censored(values: list[int | None], budget: int) -> str:
     return f">= {budget}" if math.isinf(med) else f"{med:.0f}"
 
 
-def aggregate(runs: list[dict[str, Any]]) -> list[dict[str, Any]]:
+def _runs_of(runs: list[dict[str, Any]], name: str, planner: str, reg: str
+             ) -> list[dict[str, Any]]:
+    return sorted((r for r in runs if (r["task"], r["planner"], r["regularization"])
+                   == (name, planner, reg)), key=lambda r: r["seed"])
+
+
+def aggregate(runs: list[dict[str, Any]], baselines: dict[str, dict[str, Any]]
+              ) -> list[dict[str, Any]]:
+    """One row per task x planner x regularizer: solved, median env steps to solve (censored),
+    final scores and normalized scores (median and per seed), median wall per phase."""
     rows = []
     for name in TASKS:
         for planner in PLANNERS:
             for reg in REGULARIZATIONS:
-                rs = sorted((r for r in runs if (r["task"], r["planner"], r["regularization"])
-                             == (name, planner, reg)), key=lambda r: r["seed"])
+                rs = _runs_of(runs, name, planner, reg)
                 if not rs:
                     continue
-                budget = min(r["budget_env_steps"] for r in rs)
-                finals = [r["final_score"] for r in rs if r["final_score"] is not None]
-                phases = {k: float(np.median([r["wall_seconds_per_phase"][k] for r in rs]))
-                          for k in rs[0]["wall_seconds_per_phase"]}
+                finals = [r["final_score"] for r in rs]
+                norms = [normalized(f, baselines.get(name)) for f in finals]
+                known = [v for v in norms if v is not None]
                 rows.append({
                     "task": name, "planner": planner, "regularization": reg,
                     "seeds": [r["seed"] for r in rs],
                     "solved": f"{sum(r['env_steps_to_solve'] is not None for r in rs)}/{len(rs)}",
                     "env_steps_to_solve_median": _median_censored(
-                        [r["env_steps_to_solve"] for r in rs], budget),
+                        [r["env_steps_to_solve"] for r in rs],
+                        min(r["budget_env_steps"] for r in rs)),
                     "env_steps_to_solve": [r["env_steps_to_solve"] for r in rs],
-                    "final_score_median": float(np.median(finals)) if finals else None,
-                    "final_scores": [r["final_score"] for r in rs],
-                    "wall_median_per_phase": phases,
-                    "budget_env_steps": budget,
+                    "final_score_median": float(np.median([f for f in finals if f is not None]))
+                    if any(f is not None for f in finals) else None,
+                    "final_scores": finals,
+                    "normalized_median": float(np.median(known)) if known else None,
+                    "normalized": norms,
+                    "wall_median_per_phase": {
+                        k: float(np.median([r["wall_seconds_per_phase"][k] for r in rs]))
+                        for k in rs[0]["wall_seconds_per_phase"]},
+                    "budget_env_steps": min(r["budget_env_steps"] for r in rs),
                 })
     return rows
 
 
-def figures(runs: list[dict[str, Any]], out: Path,
-            limits: dict[str, dict[str, float]]) -> list[Path]:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    paths = []
-    out.mkdir(parents=True, exist_ok=True)
-    names = [n for n in TASKS if any(r["task"] == n for r in runs)]
-    if not names:
-        return paths
-    colors = {("ilqr", "none"): "tab:blue", ("ilqr", "sampled"): "tab:orange",
-              ("cem", "none"): "tab:green", ("cem", "sampled"): "tab:red",
-              ("ilqr", "exact"): "tab:purple", ("ilqr", "smooth"): "tab:brown",
-              ("cem", "exact"): "tab:pink", ("cem", "smooth"): "tab:olive"}
-    fig, axes = plt.subplots(1, len(names), figsize=(4.2 * len(names), 3.4), squeeze=False)
-    for ax, name in zip(axes[0], names):
-        for (planner, reg), color in colors.items():
-            rs = [r for r in runs if (r["task"], r["planner"], r["regularization"])
-                  == (name, planner, reg)]
-            for i, r in enumerate(rs):
-                xs = [c["env_steps"] for c in r["curve"] if c["score"] is not None]
-                ys = [c["score"] for c in r["curve"] if c["score"] is not None]
-                ax.plot(xs, ys, color=color, alpha=0.6, lw=1,
-                        label=f"{planner}/{reg}" if i == 0 else None)
-        limit = limits.get(name, {})
-        if "solved_ratio" in TASKS[name]:
-            ax.axhline(limit["solved_ratio"], color="k", ls="--", lw=0.8)
-            ax.set_yscale("log")
-            ax.set_ylabel("eval cost / oracle")
-        else:
-            if "solved_return" in limit:
-                ax.axhline(limit["solved_return"], color="k", ls="--", lw=0.8)
-            ax.set_ylabel("mean eval return")
-        ax.set_title(name)
-        ax.set_xlabel("env steps")
-    axes[0][0].legend(fontsize=7)
-    fig.tight_layout()
-    p = out / "bench_suite_curves.png"
-    fig.savefig(p, dpi=110)
-    plt.close(fig)
-    paths.append(p)
-    # planner x regularizer: median final score per task, normalized by the threshold
-    rows = aggregate(runs)
-    fig, axes = plt.subplots(1, len(names), figsize=(3.2 * len(names), 3.0), squeeze=False)
-    for ax, name in zip(axes[0], names):
-        grid = np.full((len(PLANNERS), len(REGULARIZATIONS)), np.nan)
-        for r in rows:
-            if r["task"] == name and r["final_score_median"] is not None:
-                grid[PLANNERS.index(r["planner"]), REGULARIZATIONS.index(r["regularization"])] = (
-                    r["final_score_median"])
-        ax.imshow(grid, cmap="viridis")
-        for (i, j), v in np.ndenumerate(grid):
-            ax.text(j, i, "-" if np.isnan(v) else f"{v:.3g}",
-                    ha="center", va="center", color="w", fontsize=8)
-        ax.set_xticks(range(len(REGULARIZATIONS)), REGULARIZATIONS, fontsize=7)
-        ax.set_yticks(range(len(PLANNERS)), PLANNERS)
-        ax.set_title(f"{name}\nmedian final score", fontsize=9)
-    fig.tight_layout()
-    p = out / "bench_suite_planner_x_regularizer.png"
-    fig.savefig(p, dpi=110)
-    plt.close(fig)
-    paths.append(p)
-    return paths
-
-
-def _fmt(v: Any, digits: int = 3) -> str:
-    if v is None:
-        return "-"
-    if isinstance(v, float):
-        return f"{v:.{digits}g}"
-    return str(v)
-
-
 def comparisons(runs: list[dict[str, Any]]) -> list[dict[str, Any]]:
-    """Each regularizer R vs none per task and planner, PAIRED on the seeds both ran: median env
-    steps to solve (censored medians give bounds), wins/ties/losses per seed (fewer steps to
-    solve; an unsolved run counts as more than its budget), median final score, and the ratio
-    of the median wall times."""
+    """Each regularizer R vs none per task and planner, PAIRED on the seeds both ran (equal env
+    steps and optimizer steps): median env steps to solve, wins/ties/losses per seed (fewer
+    steps to solve; unsolved counts as more than the budget), median final return, better /
+    equal / worse final return per seed, and the ratio of the median wall times."""
     out = []
     for name in TASKS:
-        lower_better = "solved_ratio" in TASKS[name]
         for planner in PLANNERS:
             by: dict[str, dict[int, dict[str, Any]]] = {}
             for r in runs:
@@ -394,11 +305,8 @@ def comparisons(runs: list[dict[str, Any]]) -> list[dict[str, Any]]:
 
                 wins = sum(steps(x) < steps(y) for x, y in zip(R, N))
                 losses = sum(steps(x) > steps(y) for x, y in zip(R, N))
-                sign = 1.0 if lower_better else -1.0  # +: lower is better (a cost)
-                better = sum(sign * (x["final_score"] - y["final_score"]) < 0 for x, y in zip(R, N))
-                worse = sum(sign * (x["final_score"] - y["final_score"]) > 0 for x, y in zip(R, N))
-                fs = float(np.median([r["final_score"] for r in R]))
-                fn = float(np.median([r["final_score"] for r in N]))
+                better = sum(x["final_score"] > y["final_score"] for x, y in zip(R, N))
+                worse = sum(x["final_score"] < y["final_score"] for x, y in zip(R, N))
                 wall = [float(np.median([r["wall_seconds_per_phase"]["total"] for r in rs]))
                         for rs in (R, N)]
                 out.append({
@@ -407,113 +315,328 @@ def comparisons(runs: list[dict[str, Any]]) -> list[dict[str, Any]]:
                         _median_censored([r["env_steps_to_solve"] for r in rs], budget)
                         for rs in (R, N)),
                     "wins_ties_losses": f"{wins}/{len(seeds) - wins - losses}/{losses}",
-                    "final_score": f"{_fmt(fs)} vs {_fmt(fn)}",
+                    "final_score": " vs ".join(
+                        _fmt(float(np.median([r["final_score"] for r in rs]))) for rs in (R, N)),
                     "final_scores_better_equal_worse": (
                         f"{better}/{len(seeds) - better - worse}/{worse}"),
-                    # a cost ratio: the arm's cost / oracle, or minus a return that is minus a
-                    # cost (Reacher: both returns < 0); None for positive returns
-                    "final_score_ratio": fs / fn if (lower_better and fn != 0) or (
-                        fs < 0 and fn < 0) else None,
                     "wall_ratio": wall[0] / wall[1],
                 })
     return out
 
 
+# ---------------------------------------------------------------------------------------------
+# SB3 SAC: a fixed budget, the same evaluation episodes
+# ---------------------------------------------------------------------------------------------
+
+SB3_METHODS = ("sac", "ppo", "td3")
+#: the reference budget of the SB3 runs (env steps), evaluated 20 times along the way
+SB3_STEPS = 100_000
+
+
+def run_sb3(name: str, algo: str, seed: int, *, steps: int, smoke: bool) -> dict[str, Any]:
+    """One SB3 run (:func:`agents.sb3_baselines.train_sb3`) on task ``name`` for ``steps`` env
+    steps, evaluated every ``steps / 20`` on the suite's episodes (mean return, the agent's
+    protocol); returns its record."""
+    import torch
+
+    from agents.sb3_baselines import default_hyperparams, train_sb3
+
+    torch.set_num_threads(1)
+    task = TASKS[name]["task"]
+    hp = dict(default_hyperparams(algo))
+    if smoke:
+        steps = 256
+        hp.update({"learning_starts": 32, "batch_size": 16, "policy_kwargs": {"net_arch": [16]}}
+                  if algo != "ppo" else {"n_steps": 128, "batch_size": 32, "n_epochs": 1})
+    every = max(steps // 20, 1) if algo != "ppo" else hp.get("n_steps", 2048)
+    agent = make_agent(name, smoke=smoke)  # the evaluation targets of the arm tasks
+    agent._ensure_eval_targets()
+    targets = agent.eval_targets
+    agent.env.close()
+    common = dict(hyperparams=hp, env_kwargs=dict(task.make_kwargs), eval_seed=EVAL_SEED)
+    if targets is not None:
+        r = train_sb3(algo, task.env_id, steps, seed, every,
+                      [np.asarray(t, float).tolist() for t in targets], None, **common)
+    else:
+        r = train_sb3(algo, task.env_id, steps, seed, every, None, None, **common,
+                      n_eval_episodes=EVAL_EPISODES)
+    return {"task": name, "method": algo, "seed": seed, "budget_env_steps": steps,
+            "env_steps": r["env_steps"],
+            "curve": [{"env_steps": int(st), "score": -float(c)} for st, c in r["curve"]],
+            "hyperparams": r["hyperparams"], "train_wall_seconds": r["train_wall_seconds"],
+            "wall_seconds": r["total_wall_seconds"]}
+
+
+def steps_to_reach(curve: list[dict[str, Any]], score: float) -> tuple[float, bool]:
+    """``(env steps, is_lower_bound)``: the first evaluation of ``curve`` whose score reaches
+    ``score``; a curve that never does gives its last env steps as a lower bound."""
+    for c in curve:
+        if c["score"] is not None and c["score"] >= score:
+            return float(c["env_steps"]), False
+    return float(curve[-1]["env_steps"]) if curve else math.inf, True
+
+
+def reference_rows(state: dict[str, Any], baselines: dict[str, dict[str, Any]],
+                   sb3_runs: list[dict[str, Any]], pets_runs: list[dict[str, Any]]
+                   ) -> list[dict[str, Any]]:
+    """Per task: zero action, oracle, SAC (at 50k and 100k), PETS at the task's budget, and the
+    best agent configuration (highest median final return) with its normalized score; the env
+    steps SAC needs to reach the best configuration's final return over the agent's budget
+    (>= 10: the target; a SAC run that never reaches it is a lower bound), and the agent vs
+    PETS at equal env steps with the wall-time ratio."""
+    rows = []
+    table = state.get("table", [])
+    for name in TASKS:
+        b = baselines.get(name)
+        row: dict[str, Any] = {"task": name, "budget": TASKS[name]["budget"],
+                               "zero": b and b["zero_return"], "oracle": b and b["oracle_return"],
+                               "oracle_ms_per_step": b and b["oracle_ms_per_step_bound"]}
+        sac = [r for r in sb3_runs if r["task"] == name and r["method"] == "sac"]
+        if sac:
+            for key, steps in (("sac_50k", 50_000), ("sac_100k", 100_000)):
+                vals = [v for r in sac if (v := score_at(r["curve"], steps)) is not None]
+                row[key] = float(np.median(vals)) if vals else None
+            row["sac_seeds"] = [r["seed"] for r in sac]
+        pets = [r for r in pets_runs if r["task"] == name and r["curve"]]
+        if pets:
+            row["pets"] = float(np.median([r["curve"][-1]["score"] for r in pets]))
+            row["pets_env_steps"] = int(min(r["curve"][-1]["env_steps"] for r in pets))
+            row["pets_seeds"] = [r["seed"] for r in pets]
+            row["pets_wall"] = float(np.median([r["wall_seconds"] for r in pets]))
+        cands = [t for t in table if t["task"] == name and t["final_score_median"] is not None]
+        if cands:
+            best = max(cands, key=lambda t: t["final_score_median"])
+            row["best"] = {k: best[k] for k in ("planner", "regularization", "seeds",
+                                                "final_score_median", "normalized_median",
+                                                "budget_env_steps")}
+            F = best["final_score_median"]
+            if sac:
+                reach = [steps_to_reach(r["curve"], F) for r in sac]
+                v = float(np.median([s for s, _ in reach]))
+                lower = all(lb for _, lb in reach) or (
+                    float(np.median([math.inf if lb else s for s, lb in reach])) != v)
+                row["sac_steps_to_agent_final"] = {"value": v, "lower_bound": bool(lower)}
+                row["sac_ratio"] = {"value": v / best["budget_env_steps"],
+                                    "lower_bound": bool(lower)}
+            agent_runs = _runs_of(state["runs"], name, best["planner"], best["regularization"])
+            if pets and agent_runs:
+                E = row["pets_env_steps"]
+                agent_at = [v for r in agent_runs if (v := score_at(r["curve"], E)) is not None]
+                row["agent_at_pets_steps"] = float(np.median(agent_at)) if agent_at else None
+                row["agent_wall"] = float(np.median([r["wall_seconds"] for r in agent_runs]))
+        rows.append(row)
+    return rows
+
+
+def score_at(curve: list[dict[str, Any]], steps: float) -> float | None:
+    """The score of ``curve`` at ``steps`` env steps (its last evaluation at or before them)."""
+    pts = [c["score"] for c in curve if c["env_steps"] <= steps and c["score"] is not None]
+    return pts[-1] if pts else None
+
+
+# ---------------------------------------------------------------------------------------------
+# figures and the report
+# ---------------------------------------------------------------------------------------------
+
+_COLORS = {"none": "tab:blue", "sampled": "tab:orange", "exact": "tab:purple",
+           "smooth": "tab:brown"}
+_STYLES = {"ilqr": ":", "cem": "--", "cem-ilqr": "-"}
+
+
+def figures(runs: list[dict[str, Any]], out: Path, baselines: dict[str, dict[str, Any]],
+            pets_runs: list[dict[str, Any]], sb3_runs: list[dict[str, Any]]) -> list[Path]:
+    """Learning curves per task: every agent configuration (median over seeds, thick; seeds
+    thin), PETS (black), SAC over its first budget (red), the zero action and the oracle
+    (dotted grey lines); a second figure shows SAC over its whole 100,000 steps (log x)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    names = [n for n in TASKS if any(r["task"] == n for r in runs + pets_runs + sb3_runs)]
+    if not names:
+        return []
+    out.mkdir(parents=True, exist_ok=True)
+    cols = min(4, len(names))
+    rows_n = math.ceil(len(names) / cols)
+    paths = []
+    for log_sac in (False, True):
+        fig, axes = plt.subplots(rows_n, cols, figsize=(4.3 * cols, 3.3 * rows_n),
+                                 squeeze=False)
+        for ax, name in zip(axes.flat, names):
+            budget = TASKS[name]["budget"]
+            for planner in PLANNERS:
+                for reg in REGULARIZATIONS:
+                    rs = _runs_of(runs, name, planner, reg)
+                    if not rs or log_sac:
+                        continue
+                    for r in rs:
+                        ax.plot([c["env_steps"] for c in r["curve"]],
+                                [c["score"] for c in r["curve"]], color=_COLORS[reg],
+                                ls=_STYLES[planner], lw=0.5, alpha=0.35)
+                    grid = sorted({c["env_steps"] for r in rs for c in r["curve"]})
+                    med = [np.median([v for r in rs if (v := score_at(
+                        r["curve"], x)) is not None] or [np.nan]) for x in grid]
+                    ax.plot(grid, med, color=_COLORS[reg], ls=_STYLES[planner], lw=1.8,
+                            label=f"agent {planner}/{reg} ({len(rs)})")
+            for r in (p for p in pets_runs if p["task"] == name and not log_sac):
+                ax.plot([c["env_steps"] for c in r["curve"]], [c["score"] for c in r["curve"]],
+                        color="k", lw=1.0, alpha=0.8,
+                        label="PETS (mbrl-lib)" if r["seed"] == min(
+                            p["seed"] for p in pets_runs if p["task"] == name) else None)
+            for r in (s for s in sb3_runs if s["task"] == name and s["method"] == "sac"):
+                pts = [c for c in r["curve"] if log_sac or c["env_steps"] <= budget * 1.05]
+                ax.plot([max(c["env_steps"], 1) for c in pts], [c["score"] for c in pts],
+                        color="tab:red", lw=1.0, marker=".", ms=3,
+                        label=f"SAC seed {r['seed']}")
+            b = baselines.get(name)
+            if b:
+                ax.axhline(b["oracle_return"], color="0.4", ls=":", lw=1, label="oracle")
+                ax.axhline(b["zero_return"], color="0.7", ls=":", lw=1, label="zero action")
+            if log_sac:
+                ax.set_xscale("log")
+            ax.set_title(name, fontsize=10)
+            ax.set_xlabel("env steps")
+            ax.set_ylabel("mean eval return")
+            ax.legend(fontsize=6)
+        for ax in list(axes.flat)[len(names):]:
+            ax.axis("off")
+        fig.tight_layout()
+        p = out / ("bench_suite_sac_curves.png" if log_sac else "bench_suite_curves.png")
+        fig.savefig(p, dpi=110)
+        plt.close(fig)
+        paths.append(p)
+    return paths
+
+
+def _fmt(v: Any, digits: int = 3) -> str:
+    if v is None:
+        return "-"
+    if isinstance(v, float):
+        return f"{v:.{digits}g}"
+    return str(v)
+
+
+def _yes(agent: float | None, other: float) -> str:
+    return "-" if agent is None else ("yes" if agent >= other else "no")
+
+
+def _bound(b: dict[str, Any] | None, fmt: str = "{:.3g}") -> str:
+    return "-" if b is None else (">= " if b["lower_bound"] else "") + fmt.format(b["value"])
+
+
 def write_markdown(state: dict[str, Any], path: Path, figure_dir: Path,
-                   sb3_runs: list[dict[str, Any]] | None = None) -> None:
-    rows = state["table"]
+                   baselines: dict[str, dict[str, Any]], sb3_runs: list[dict[str, Any]],
+                   pets_runs: list[dict[str, Any]]) -> None:
+    """The report (``docs/benchmark.md``): tasks and baselines, the reference methods next to
+    the best agent configuration, every configuration, each regularizer vs none, the figures;
+    everything below :data:`NOTES_MARKER` is kept."""
     rel = os.path.relpath(figure_dir, path.parent)
+    refs = reference_rows(state, baselines, sb3_runs, pets_runs)
+    state["references"] = refs
     lines = [
-        "# Benchmark suite: where model quality should decide",
+        "# Benchmark suite",
         "",
-        "Generated by `scripts/bench_suite.py` from the runs in "
-        "`docs/results/bench_suite.json` (git " + state.get("git", "?") + "). The SB3 "
-        "comparison on the arm's home task is in [benchmark_sb3.md](benchmark_sb3.md).",
+        "Generated by `scripts/bench_suite.py` from `docs/results/bench_suite.json` (agent "
+        "runs), `bench_suite_baselines.json` (zero action, true-model oracle), "
+        "`bench_suite_sac.json` (SB3 SAC) and `bench_suite_pets.json` (PETS, "
+        "[pets_peer.md](pets_peer.md)); git " + state.get("git", "?") + ".",
         "",
-        "## Tasks and thresholds (fixed in the script before any run)",
+        "Every method is scored the same way: the mean of the env's own summed rewards over 3 "
+        "fixed evaluation episodes (reset seeds 1000-1002). Normalized score: (R - R_zero) / "
+        "(R_oracle - R_zero), 0 = doing nothing, 1 = the true-model oracle (the agent's own "
+        "MPC on the true MuJoCo dynamics). Solved: within 5 % of the oracle's return.",
         "",
-        "| task | env | budget | solved when |",
-        "|---|---|---|---|",
+        "## Tasks, baselines and reference methods",
+        "",
+        "| task | budget (env steps) | zero action | oracle (planning ms/step) | SAC @ 50k | "
+        "SAC @ 100k | PETS @ its steps | best agent config: median final (normalized) | "
+        "SAC steps to the agent's final / agent's budget |",
+        "|---|---|---|---|---|---|---|---|---|",
     ]
-    for name, t in TASKS.items():
-        budget = (f"{t['episodes']} episodes" if "episodes" in t
-                  else f"{t['total_env_steps']} env steps"
-                  + (f" / {t['max_episodes']} episodes" if "max_episodes" in t else ""))
-        limit = state["thresholds"].get(name, {})
-        crit = (f"eval cost <= {t['solved_ratio']} x true-model oracle" if "solved_ratio" in t
-                else f"mean eval return >= oracle return - {t['oracle_margin']:g} x |oracle "
-                f"return| = {_fmt(limit.get('solved_return'), 4)} (oracle "
-                f"{_fmt(limit.get('oracle_return'), 4)})")
-        extra = ", ".join(f"{k}={v:.3g}" if isinstance(v, float) else f"{k}={v}"
-                          for k, v in {**t["make"], **t["overrides"]}.items())
-        lines.append(f"| {name} | `{t['env_id']}`{' (' + extra + ')' if extra else ''} | "
-                     f"{budget} | {crit} |")
+    for r in refs:
+        best = r.get("best")
+        agent = (f"{best['planner']}/{best['regularization']}: "
+                 f"{_fmt(best['final_score_median'], 4)} ({_fmt(best['normalized_median'])})"
+                 if best else "-")
+        pets = (f"{_fmt(r['pets'], 4)} @ {r['pets_env_steps']}" if "pets" in r else "-")
+        lines.append(
+            f"| {r['task']} | {r['budget']} | {_fmt(r['zero'], 4)} | {_fmt(r['oracle'], 4)} "
+            f"({_fmt(r['oracle_ms_per_step'])}) | {_fmt(r.get('sac_50k'), 4)} | "
+            f"{_fmt(r.get('sac_100k'), 4)} | {pets} | {agent} | "
+            f"{_bound(r.get('sac_ratio'))} |")
     lines += [
         "",
-        "Every run: `AgentConfig` defaults except the task's criterion, `planner`, "
-        "`regularization`, `seed`, and evaluation every 2 episodes on 3 fixed episodes (plus the "
-        "last episode). Scores: cost / oracle for the arm tasks (lower is better), mean return "
-        "for the Gymnasium tasks (higher is better). `>= B`: not solved within the budget (a "
-        "lower bound).",
+        "Oracle planning ms/step: its evaluation wall time over the episodes' full length (an "
+        "upper bound where an episode ended early). SAC: stable-baselines3 defaults, "
+        f"{SB3_STEPS} env steps, evaluated every 5,000.",
         "",
-        "## Results",
+        "The agent vs PETS at equal env steps (PETS' last evaluation; the agent's best "
+        "configuration at the same env steps, median over seeds) and their wall times:",
+        "",
+        "| task | env steps | PETS: median (seeds) | agent: median | agent >= PETS? | wall s: "
+        "agent / PETS |",
+        "|---|---|---|---|---|---|",
+        *[f"| {r['task']} | {r['pets_env_steps']} | {_fmt(r['pets'], 4)} "
+          f"({', '.join(map(str, r['pets_seeds']))}) | {_fmt(r.get('agent_at_pets_steps'), 4)} | "
+          f"{_yes(r.get('agent_at_pets_steps'), r['pets'])} | "
+          f"{_fmt(r.get('agent_wall'))} / {_fmt(r['pets_wall'])} |" for r in refs if "pets" in r],
+        "",
+        f"![learning curves per task]({rel}/bench_suite_curves.png)",
+        "",
+        "Mean evaluation return vs env steps: agent configurations (colour: regularizer; line "
+        "style: planner; thick: median over seeds, thin: seeds), PETS (black), SAC within the "
+        "agent's budget (red), the oracle and the zero action (dotted).",
+        "",
+        f"![SAC over 100,000 env steps]({rel}/bench_suite_sac_curves.png)",
+        "",
+        "## Every agent configuration",
         "",
         "| task | planner | regularizer | solved | env steps to solve: median (per seed) | "
-        "final score: median (per seed) | wall s median: training / ltv / planning / eval / "
-        "total |",
-        "|---|---|---|---|---|---|---|",
+        "final return: median (per seed) | normalized: median (per seed) | wall s median: "
+        "training / ltv / planning / eval / total |",
+        "|---|---|---|---|---|---|---|---|",
     ]
-    for r in rows:
+    for r in state.get("table", []):
         ph = r["wall_median_per_phase"]
-        per_seed = ", ".join("-" if v is None else str(v) for v in r["env_steps_to_solve"])
-        finals = ", ".join(_fmt(v) for v in r["final_scores"])
         lines.append(
             f"| {r['task']} | {r['planner']} | {r['regularization']} | {r['solved']} | "
-            f"{r['env_steps_to_solve_median']} ({per_seed}) | "
-            f"{_fmt(r['final_score_median'])} ({finals}) | "
-            f"{ph['training']:.0f} / {ph['ltv']:.1f} / {ph['planning']:.0f} / "
-            f"{ph['eval']:.0f} / {ph['total']:.0f} |")
+            f"{r['env_steps_to_solve_median']} "
+            f"({', '.join('-' if v is None else str(v) for v in r['env_steps_to_solve'])}) | "
+            f"{_fmt(r['final_score_median'], 4)} "
+            f"({', '.join(_fmt(v, 4) for v in r['final_scores'])}) | "
+            f"{_fmt(r['normalized_median'])} ({', '.join(_fmt(v) for v in r['normalized'])}) | "
+            f"{ph.get('training', 0):.0f} / {ph.get('ltv', 0):.1f} / {ph.get('planning', 0):.0f}"
+            f" / {ph.get('eval', 0):.0f} / {ph.get('total', 0):.0f} |")
     cmp = comparisons(state["runs"])
     state["comparisons"] = cmp
     lines += [
         "",
-        "## Each regularizer vs none (same planner, paired on the seeds both ran, same env and "
-        "optimizer steps)",
+        "## JacProp: each regularizer vs none",
         "",
-        "Target of issue 12: sampled needs <= 0.7x the env steps to solve of `none`, or reaches "
-        "<= 0.9x its cost at equal env steps, at <= 2x its wall time. Final cost ratio: of the "
-        "median final scores (arm: cost / oracle; Reacher: minus the return, which is minus a "
-        "cost; none for InvertedPendulum's positive returns).",
+        "Same planner, paired on the seeds both ran, equal env steps and equal optimizer steps. "
+        "Fewer steps: env steps to solve (an unsolved run counts as more than its budget). "
+        "Better final: a higher final evaluation return.",
         "",
         "| task | planner | regularizer R | seeds | env steps to solve: median, R vs none | "
-        "R fewer / equal / more steps (per seed) | final score: median, R vs none | R better / "
-        "equal / worse final score (per seed) | final cost ratio R/none | wall ratio R/none |",
-        "|---|---|---|---|---|---|---|---|---|---|",
+        "R fewer / equal / more steps | final return: median, R vs none | R better / equal / "
+        "worse final | wall ratio R/none |",
+        "|---|---|---|---|---|---|---|---|---|",
     ]
     for c in cmp:
         lines.append(f"| {c['task']} | {c['planner']} | {c['regularization']} | "
                      f"{', '.join(map(str, c['seeds']))} | {c['steps_to_solve']} | "
                      f"{c['wins_ties_losses']} | {c['final_score']} | "
-                     f"{c['final_scores_better_equal_worse']} | "
-                     f"{_fmt(c['final_score_ratio'])} | {_fmt(c['wall_ratio'])} |")
+                     f"{c['final_scores_better_equal_worse']} | {_fmt(c['wall_ratio'])} |")
     lines += [
         "",
-        f"![learning curves per task]({rel}/bench_suite_curves.png)",
-        "",
-        "Evaluation score vs env steps, one line per run (seed), dashed: the threshold.",
-        "",
-        f"![planner x regularizer]({rel}/bench_suite_planner_x_regularizer.png)",
-        "",
-        "Median final score per task for each planner x regularizer.",
-        "",
-        *sb3_markdown_lines(sb3_runs or [], state["runs"],
-                            f"{rel}/bench_suite_sb3_curves.png" if sb3_runs else None),
         "## Compute",
         "",
-        f"{len(state['runs'])} runs, {state.get('compute_seconds', 0) / 60:.0f} min of wall "
-        f"time summed over the runs (one torch thread each) on {state.get('machine', '?')}. "
-        + state.get("compute_note", "Wall times depend on the machine's load: only their "
-                    "ratios within a table row pair mean something."),
+        f"{len(state['runs'])} agent runs, {state.get('compute_seconds', 0) / 60:.0f} min of "
+        f"wall time summed over the runs (one torch thread each) on "
+        f"{state.get('machine', '?')}. "
+        + state.get("compute_note", "Wall times depend on the machine's load: only ratios "
+                    "within a table row pair mean something."),
         "",
     ]
     notes = ""
@@ -527,357 +650,22 @@ NOTES_MARKER = "<!-- notes below are hand-written; scripts/bench_suite.py keeps 
 
 
 # ---------------------------------------------------------------------------------------------
-# SB3 baselines on the suite tasks: the best model-free method on the same task, threshold and
-# evaluation episodes. A run that does not solve within its budget is reported as a lower bound.
+# the command
 # ---------------------------------------------------------------------------------------------
-
-#: SB3 methods ``--sb3`` accepts (:mod:`agents.sb3_baselines`)
-SB3_METHODS = ("sac", "ppo", "td3")
-#: budget per method: this factor x the agent's env-step budget on the task, stated before the
-#: runs (SAC/TD3 20x: a run that does not solve is ">= 20x", what the ">= 20x fewer env steps"
-#: target needs; PPO 10x more, it costs ~20x less compute per env step)
-SB3_BUDGET_FACTOR = {"sac": 20, "td3": 20, "ppo": 200}
-#: evaluation period in env steps (PPO: every rollout, ``n_steps``)
-SB3_EVAL_EVERY = {"sac": 1000, "td3": 1000}
-#: the true-model oracle's scores of the Gymnasium tasks (``task_oracle``), computed once
-ORACLES_JSON = REPO / "docs" / "results" / "bench_suite_oracles.json"
-#: tiny SB3 settings of the smoke mode (CI)
-SB3_SMOKE = {
-    "budget": 256, "eval_every": 128,
-    "sac": {"learning_starts": 32, "batch_size": 16, "policy_kwargs": {"net_arch": [16, 16]}},
-    "td3": {"learning_starts": 32, "batch_size": 16, "action_noise_std": 0.1,
-            "policy_kwargs": {"net_arch": [16, 16]}},
-    "ppo": {"n_steps": 128, "batch_size": 32, "n_epochs": 1, "normalize": True,
-            "policy_kwargs": {"net_arch": [16, 16]}},
-}
-
-
-def agent_budget_env_steps(name: str) -> int:
-    """The agent's env-step budget on task ``name``: ``episodes x episode length`` (arm tasks),
-    else ``total_env_steps``."""
-    task = TASKS[name]
-    if "total_env_steps" in task:
-        return int(task["total_env_steps"])
-    from agents.task import env_spec
-
-    env = make_env(task)
-    try:
-        return int(task["episodes"]) * int(env_spec(env).episode_steps)
-    finally:
-        env.close()
-
-
-def sb3_budget(name: str, algo: str) -> int:
-    """Env-step budget of SB3 method ``algo`` on task ``name`` (see :data:`SB3_BUDGET_FACTOR`)."""
-    if algo not in SB3_BUDGET_FACTOR:
-        raise ValueError(f"algo must be one of {list(SB3_BUDGET_FACTOR)}, got {algo!r}")
-    return SB3_BUDGET_FACTOR[algo] * agent_budget_env_steps(name)
-
-
-def sb3_eval_problem(name: str, *, oracle_cache: str | None, smoke: bool = False
-                     ) -> dict[str, Any]:
-    """The evaluation episodes and threshold of task ``name``, exactly the agent runs' ones.
-
-    Arm tasks: the 3 evaluation targets and the oracle's costs of the agent built by
-    :func:`run_one` (``evaluation.seed`` 1000, ``evaluation.episodes=3``, the task's overrides, e.g.
-    ``planner.replan_every=10`` for the oracle of arm-open-loop; cached in ``oracle_cache``); solved
-    when the mean cost <= ``solved_ratio`` x the oracle's mean cost. Gymnasium tasks: 3 episodes
-    reset with ``1000 + i``, cut at the episode length; solved when the mean return >=
-    :func:`solved_return` of the oracle's mean return (from :data:`ORACLES_JSON`, else
-    computed by :func:`task_oracle`).
-    """
-    task = TASKS[name]
-    env = make_env(task)
-    overrides = {**task["overrides"], "evaluation.episodes": 3,
-                 "evaluation.oracle_cache_dir": oracle_cache, "progress": False,
-                 "tensorboard": False, "checkpoint": False, "torch_threads": 1}
-    try:
-        agent = _make_agent(env, task, overrides, smoke)
-        out: dict[str, Any] = {"eval_seed": agent.config.evaluation.seed,
-                               "eval_episodes": agent.config.evaluation.episodes,
-                               "episode_steps": agent.spec.episode_steps}
-        if "solved_ratio" in task:
-            agent.compute_oracle()
-            oracle = float(np.mean(agent.oracle_costs))
-            out.update(eval_targets=[np.asarray(t, dtype=float).tolist()
-                                     for t in agent.eval_targets],
-                       oracle_costs=np.asarray(agent.oracle_costs, dtype=float).tolist(),
-                       oracle_mean_cost=oracle, threshold_cost=task["solved_ratio"] * oracle,
-                       score="cost / oracle (lower is better)",
-                       threshold_score=task["solved_ratio"], oracle_source="compute_oracle")
-            return out
-    finally:
-        env.close()
-    stored = json.loads(ORACLES_JSON.read_text()).get("oracles", {}) if ORACLES_JSON.is_file() \
-        else {}
-    if name in stored:
-        oracle, source = float(stored[name]["mean_return"]), str(ORACLES_JSON.relative_to(REPO))
-    else:
-        oracle, source = float(task_oracle(name, smoke=smoke)["mean_return"]), "task_oracle"
-    solved = solved_return(name, oracle)
-    out.update(eval_targets=None, oracle_mean_return=oracle, solved_return=solved,
-               score="mean return (higher is better)", threshold_score=solved,
-               oracle_source=source)
-    return out
-
-
-def run_sb3(name: str, algo: str, seed: int, problem: dict[str, Any], *, smoke: bool
-            ) -> dict[str, Any]:
-    """One SB3 run (:func:`agents.sb3_baselines.train_sb3`) on task ``name`` with the
-    evaluation ``problem`` of :func:`sb3_eval_problem`; returns its record (scores in the agent
-    runs' units: cost / oracle or mean return)."""
-    import torch
-
-    from agents.sb3_baselines import default_hyperparams, train_sb3
-
-    torch.set_num_threads(1)
-    task = TASKS[name]
-    hp = dict(SB3_SMOKE[algo]) if smoke else default_hyperparams(algo)
-    budget = SB3_SMOKE["budget"] if smoke else sb3_budget(name, algo)
-    eval_every = (SB3_SMOKE["eval_every"] if smoke and algo != "ppo"
-                  else SB3_EVAL_EVERY.get(algo, hp.get("n_steps", 2048)))
-    common = dict(hyperparams=hp, env_kwargs=dict(task["make"]), eval_seed=problem["eval_seed"])
-    if problem["eval_targets"] is not None:
-        r = train_sb3(algo, task["env_id"], budget, seed, eval_every, problem["eval_targets"],
-                      problem["threshold_cost"], **common)
-        to_score = lambda c: c / problem["oracle_mean_cost"]  # noqa: E731
-    else:
-        r = train_sb3(algo, task["env_id"], budget, seed, eval_every, None, None, **common,
-                      n_eval_episodes=problem["eval_episodes"],
-                      eval_max_steps=problem["episode_steps"],
-                      solved_return=problem["solved_return"])
-        to_score = lambda c: -c  # noqa: E731
-    curve = [{"env_steps": int(st), "score": float(to_score(c))} for st, c in r["curve"]]
-    return {
-        "task": name, "method": algo, "seed": seed, "budget_env_steps": budget,
-        "env_steps": r["env_steps"], "env_steps_to_solve": r["steps_to_solve"],
-        "solved": r["solved"], "final_score": curve[-1]["score"] if curve else None,
-        "score": problem["score"], "threshold_score": problem["threshold_score"],
-        "curve": curve, "eval_every": eval_every, "hyperparams": r["hyperparams"],
-        "wall_seconds_to_solve": r["wall_seconds_to_solve"],
-        "train_wall_seconds": r["train_wall_seconds"],
-        "eval_wall_seconds": r["eval_wall_seconds"], "wall_seconds": r["total_wall_seconds"],
-    }
-
-
-def steps_bound(run: dict[str, Any]) -> tuple[float, bool]:
-    """``(env steps to solve, is_lower_bound)`` of one run (agent or SB3): an unsolved run
-    needs more than it spent, so its value is the env steps it ran (>= its budget for SB3)."""
-    if run["env_steps_to_solve"] is not None:
-        return float(run["env_steps_to_solve"]), False
-    return float(max(run["env_steps"], run.get("budget_env_steps") or 0)), True
-
-
-def censored_summary(runs: list[dict[str, Any]]) -> dict[str, Any]:
-    """Median env steps to solve over ``runs`` (one configuration, several seeds) with lower
-    bounds marked (:func:`agents.sb3_baselines.censored_median`), and the per-seed values."""
-    from agents.experiments.benchmark_sb3 import bound
-    from agents.sb3_baselines import censored_median
-
-    runs = sorted(runs, key=lambda r: r["seed"])
-    vals = [steps_bound(r) for r in runs]
-    med, lower = censored_median([v for v, _ in vals], [b for _, b in vals])
-    return {"seeds": [r["seed"] for r in runs],
-            "budget_env_steps": min((r.get("budget_env_steps") or 0) for r in runs),
-            "solved": f"{sum(not b for _, b in vals)}/{len(vals)}",
-            "per_seed": [bound(v, b) for v, b in vals], "median": bound(med, lower)}
-
-
-def sb3_comparison(sb3_runs: list[dict[str, Any]], agent_runs: list[dict[str, Any]]
-                   ) -> list[dict[str, Any]]:
-    """Per task: every SB3 method's censored median, the best SB3 method and the best agent
-    configuration (smallest median env steps to solve, :func:`agents.sb3_baselines.best_of`),
-    and the ratio best-SB3 / best-agent with its kind (exact, lower or upper bound) against the
-    issue's target (>= 20)."""
-    from agents.experiments.benchmark_sb3 import bound, ratio, target_met
-    from agents.sb3_baselines import best_of
-
-    out = []
-    for name in TASKS:
-        methods = {m: censored_summary([r for r in sb3_runs
-                                        if r["task"] == name and r["method"] == m])
-                   for m in SB3_METHODS if any(r["task"] == name and r["method"] == m
-                                               for r in sb3_runs)}
-        if not methods:
-            continue
-        row: dict[str, Any] = {"task": name, "sb3": methods}
-        m, v, lb = best_of({k: (s["median"]["value"], s["median"]["lower_bound"])
-                            for k, s in methods.items()})
-        row["best_sb3"] = {"method": m, **bound(v, lb)}
-        configs = {f"{p}/{g}": censored_summary(
-            [r for r in agent_runs if (r["task"], r["planner"], r["regularization"])
-             == (name, p, g)]) for p in PLANNERS for g in REGULARIZATIONS
-            if any((r["task"], r["planner"], r["regularization"]) == (name, p, g)
-                   for r in agent_runs)}
-        if configs:
-            c, v, lb = best_of({k: (s["median"]["value"], s["median"]["lower_bound"])
-                                for k, s in configs.items()})
-            row["best_agent"] = {"config": c, **bound(v, lb),
-                                 "seeds": configs[c]["seeds"]}
-            r = ratio(row["best_sb3"], row["best_agent"])
-            row["ratio"] = r
-            row["target_met"] = target_met(r, 20.0)
-        out.append(row)
-    return out
-
-
-def sb3_figure(sb3_runs: list[dict[str, Any]], agent_runs: list[dict[str, Any]], out: Path
-               ) -> Path | None:
-    """Evaluation score vs env steps (log x) per task: every SB3 run (thin lines) and the
-    median env steps to solve of the best agent configuration (vertical line); the threshold
-    dashed. Writes ``out/bench_suite_sb3_curves.png`` (``None`` without SB3 runs)."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    names = [n for n in TASKS if any(r["task"] == n for r in sb3_runs)]
-    if not names:
-        return None
-    out.mkdir(parents=True, exist_ok=True)
-    best = {row["task"]: row.get("best_agent") for row in sb3_comparison(sb3_runs, agent_runs)}
-    colors = {"sac": "tab:red", "ppo": "tab:green", "td3": "tab:orange"}
-    fig, axes = plt.subplots(1, len(names), figsize=(4.2 * len(names), 3.4), squeeze=False)
-    for ax, name in zip(axes[0], names):
-        for m, color in colors.items():
-            rs = [r for r in sb3_runs if r["task"] == name and r["method"] == m]
-            for i, r in enumerate(rs):
-                xs = [max(c["env_steps"], 1) for c in r["curve"]]
-                ax.plot(xs, [c["score"] for c in r["curve"]], color=color, alpha=0.6, lw=1,
-                        label=m.upper() if i == 0 else None)
-        thr = next(r["threshold_score"] for r in sb3_runs if r["task"] == name)
-        ax.axhline(thr, color="k", ls="--", lw=0.8)
-        if best.get(name):
-            b = best[name]
-            ax.axvline(max(b["value"], 1), color="tab:blue", lw=1.2,
-                       label=f"agent {b['config']} median")
-        if "solved_ratio" in TASKS[name]:
-            ax.set_yscale("log")
-            ax.set_ylabel("eval cost / oracle")
-        else:
-            ax.set_ylabel("mean eval return")
-        ax.set_xscale("log")
-        ax.set_title(name)
-        ax.set_xlabel("env steps")
-        ax.legend(fontsize=7)
-    fig.tight_layout()
-    p = out / "bench_suite_sb3_curves.png"
-    fig.savefig(p, dpi=110)
-    plt.close(fig)
-    return p
-
-
-def sb3_markdown_lines(sb3_runs: list[dict[str, Any]], agent_runs: list[dict[str, Any]],
-                       figure: str | None = None) -> list[str]:
-    """The report's section: best SB3 method per task vs the best agent configuration
-    (``figure``: the path of :func:`sb3_figure` relative to the report)."""
-    if not sb3_runs:
-        return []
-    rows = sb3_comparison(sb3_runs, agent_runs)
-    lines = [
-        "## Best SB3 method vs the best agent configuration",
-        "",
-        "Same task, same evaluation episodes and the same threshold as the agent runs (arm "
-        "tasks: mean cost <= 1.05 x the oracle's; Gymnasium tasks: mean return within 5 % of "
-        "the true-model oracle's), deterministic policy, `agents.sb3_baselines.train_sb3` with "
-        "the hyperparameters of [benchmark_sb3.md](benchmark_sb3.md). Budget stated before the "
-        "runs: " + ", ".join(f"{m.upper()} {f}x" for m, f in SB3_BUDGET_FACTOR.items()
-                             if any(r['method'] == m for r in sb3_runs))
-        + " the agent's env-step budget on the task; evaluation every "
-        "1,000 env steps (SAC/TD3) or every rollout (PPO), stopping at the first solved one. "
-        "`>= N`: not solved within the budget (a lower bound), and so is every median or "
-        "ratio it enters (`<=`: an upper bound, `?`: bounds on both sides). Target of issue 12: "
-        "the agent needs >= 20x fewer env steps than the best SB3 method.",
-        "",
-        "| task | SB3 method | budget (env steps) | solved | env steps to solve: median "
-        "(per seed) |",
-        "|---|---|---|---|---|",
-    ]
-    for row in rows:
-        for m, s in row["sb3"].items():
-            per_seed = ", ".join(v["display"] for v in s["per_seed"])
-            lines.append(f"| {row['task']} | {m.upper()} | {s['budget_env_steps']} | "
-                         f"{s['solved']} | {s['median']['display']} ({per_seed}) |")
-    lines += [
-        "",
-        "| task | best SB3: median env steps | best agent configuration: median env steps | "
-        "ratio SB3 / agent | >= 20x? |",
-        "|---|---|---|---|---|",
-    ]
-    for row in rows:
-        b = row["best_sb3"]
-        a = row.get("best_agent")
-        met = {True: "yes", False: "no", None: "undetermined"}[row.get("target_met")]
-        lines.append(
-            f"| {row['task']} | {b['method'].upper()} {b['display']} | "
-            + (f"{a['config']} {a['display']} | {row['ratio']['display']} | {met} |" if a
-               else "- | - | - |"))
-    lines.append("")
-    if figure:
-        lines += [f"![SB3 learning curves per task]({figure})", "",
-                  "SB3 evaluation score vs env steps, one line per run (seed); dashed: the "
-                  "threshold; vertical: the best agent configuration's median env steps to "
-                  "solve.", ""]
-    return lines
-
-
-def sb3_json_path(a: Any) -> Path:
-    """The SB3 runs' JSON: ``--sb3-json``, default next to ``--json`` as ``<stem>_sb3.json``."""
-    if a.sb3_json:
-        return Path(a.sb3_json)
-    p = Path(a.json)
-    return p.with_name(p.stem + "_sb3" + p.suffix)
-
-
-def run_sb3_suite(a: Any) -> dict[str, Any]:
-    """Run (or resume) the SB3 methods ``a.sb3`` on ``a.tasks`` x ``a.seeds`` (seed-major),
-    appending each finished run to :func:`sb3_json_path` at once; never touches ``--json``."""
-    path = sb3_json_path(a)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    state: dict[str, Any] = {"runs": []}
-    if a.resume and path.is_file():
-        state = json.loads(path.read_text())
-    state.update({
-        "command": " ".join(sys.argv), "smoke": a.smoke,
-        "budget_factor": {m: SB3_BUDGET_FACTOR[m] for m in a.sb3},
-        "machine": f"{os.cpu_count()} cores, {platform.platform()}",
-        "git": subprocess.run(["git", "-C", str(REPO), "rev-parse", "--short", "HEAD"],
-                              capture_output=True, text=True).stdout.strip(),
-    })
-    problems = state.setdefault("problems", {})
-    done = {(r["task"], r["method"], r["seed"]) for r in state["runs"]}
-    for seed in a.seeds:
-        for name in a.tasks:
-            for algo in a.sb3:
-                if (name, algo, seed) in done:
-                    continue
-                if name not in problems:
-                    problems[name] = sb3_eval_problem(name, oracle_cache=a.oracle_cache,
-                                                      smoke=a.smoke)
-                rec = run_sb3(name, algo, seed, problems[name], smoke=a.smoke)
-                state["runs"].append(rec)
-                state["comparison"] = sb3_comparison(state["runs"], [])
-                write_json_atomic(path, state)
-                print(f"{name} {algo} seed {seed}: solved at {rec['env_steps_to_solve']} of "
-                      f"{rec['budget_env_steps']} steps, final {rec['final_score']:.4g}, "
-                      f"{rec['wall_seconds']:.0f} s", flush=True)
-    state["compute_seconds"] = float(sum(r["wall_seconds"] for r in state["runs"]))
-    write_json_atomic(path, state)
-    return state
-
 
 @dataclass(frozen=True)
 class Args:
-    """Benchmark suite: tasks where model quality should decide, {iLQR, CEM} x {none, sampled}."""
+    """Benchmark suite: the agent on standard MuJoCo tasks against doing nothing, the
+    true-model oracle, SB3 SAC and PETS."""
 
     json: str = "runs/bench_suite.json"
-    """the suite's JSON (every finished run is appended at once)"""
+    """the agent runs' JSON (every finished run is appended at once)"""
     seeds: tuple[int, ...] = (0, 1, 2, 3, 4)
-    """agent seeds (seed-major schedule)"""
-    tasks: tuple[str, ...] = ("arm-far", "arm-open-loop", "reacher", "inverted-pendulum")
+    """seeds (seed-major schedule)"""
+    tasks: tuple[str, ...] = tuple(TASKS)
     """tasks to run (see the module docstring)"""
-    planners: tuple[str, ...] = PLANNERS
-    """planners to run"""
+    planners: tuple[str, ...] = ("cem-ilqr",)
+    """planners to run (also: ilqr, cem)"""
     regularizations: tuple[str, ...] = ("none", "sampled")
     """regularizers to run (also: exact, smooth)"""
     smoke: bool = False
@@ -885,20 +673,26 @@ class Args:
     resume: bool = False
     """skip runs already in --json"""
     report_only: bool = False
-    """no new runs: aggregate, draw and report the ones in --json"""
+    """no new agent runs: aggregate, draw and report the ones in the JSON files"""
+    baselines: bool = False
+    """(re)compute the zero-action and oracle returns of --tasks into --baselines-json first"""
+    baselines_json: str = str(BASELINES_JSON)
+    """the stored baselines (zero action, oracle) per task"""
     figures: str = ""
     """folder for the PNGs (default: none)"""
-    oracle_cache: str = "runs/oracle_cache"
-    """cache of the true-model oracle's costs"""
     docs: str = ""
     """write the markdown report here (with --figures)"""
-    oracle: bool = False
-    """also compute the true-model oracle's score per task (once per task, kept in --json)"""
+    oracle_cache: str = "runs/oracle_cache"
+    """cache of the true-model oracle's costs"""
     sb3: tuple[str, ...] = ()
-    """run these SB3 methods (e.g. --sb3 sac ppo) on --tasks x --seeds INSTEAD of the agent, on
-    the same thresholds and evaluation episodes; their runs go to --sb3-json (never --json)"""
-    sb3_json: str = ""
-    """the SB3 runs' JSON (default: next to --json, <stem>_sb3.json); the report reads it"""
+    """run these SB3 methods (e.g. --sb3 sac) on --tasks x --seeds INSTEAD of the agent, for
+    --sb3-steps each, into --sb3-json"""
+    sb3_steps: int = SB3_STEPS
+    """SB3 budget in env steps, evaluated 20 times along the way"""
+    sb3_json: str = "docs/results/bench_suite_sac.json"
+    """the SB3 runs' JSON (read by the report)"""
+    pets_json: str = "docs/results/bench_suite_pets.json"
+    """PETS' runs (scripts/pets_peer.py; read by the report)"""
 
     def __post_init__(self) -> None:
         unknown = sorted(set(self.tasks) - set(TASKS))
@@ -911,42 +705,66 @@ class Args:
                                    ("regularizations", self.regularizations, REGULARIZATIONS)):
             if not given or set(given) - set(known):
                 raise ValueError(f"--{name} must name some of {list(known)}, got {list(given)}")
+        if self.sb3_steps < 1:
+            raise ValueError(f"--sb3-steps must be >= 1, got {self.sb3_steps}")
 
 
 def main(argv: list[str] | None = None) -> dict[str, Any]:
     """The command line (``scripts/bench_suite.py``): :class:`Args` -> :func:`run`."""
-    return cli.main(Args, run, args=argv, outputs=("json", "docs", "sb3_json"),
+    return cli.main(Args, run, args=argv,
+                    outputs=("json", "docs", "sb3_json", "baselines_json"),
                     folders=("figures",))
 
 
-def run(a: Args) -> dict[str, Any]:
-    """Run (or resume) the suite; write the JSON after every run, then figures and report.
-    With ``--sb3``: the SB3 runs only (:func:`run_sb3_suite`)."""
-    if a.sb3 and not a.report_only:
-        return run_sb3_suite(a)
-    path = Path(a.json)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    state: dict[str, Any] = {"runs": []}
-    if (a.resume or a.report_only) and path.is_file():
-        state = json.loads(path.read_text())
-    state.update({
-        "command": " ".join(sys.argv), "smoke": a.smoke,
+def _header(command_state: dict[str, Any], smoke: bool) -> None:
+    command_state.update({
+        "command": " ".join(sys.argv), "smoke": smoke,
         "machine": f"{os.cpu_count()} cores, {platform.platform()}",
         "git": subprocess.run(["git", "-C", str(REPO), "rev-parse", "--short", "HEAD"],
                               capture_output=True, text=True).stdout.strip(),
     })
-    done = {(r["task"], r["planner"], r["regularization"], r["seed"]) for r in state["runs"]}
-    oracles = state.setdefault("oracles", {})
-    if not a.report_only:  # the Gymnasium tasks' thresholds need the oracle's return first
+
+
+def _load(path: Path) -> dict[str, Any]:
+    return json.loads(path.read_text()) if path.is_file() else {"runs": []}
+
+
+def run(a: Args) -> dict[str, Any]:
+    """Baselines (``--baselines``), then the agent runs (or the SB3 runs with ``--sb3``), each
+    appended to its JSON at once; then figures and the report."""
+    bpath = Path(a.baselines_json)
+    if a.baselines:
+        stored = _load(bpath)
+        stored.setdefault("tasks", {})
+        _header(stored, a.smoke)
         for name in a.tasks:
-            if name not in oracles and (a.oracle or "oracle_margin" in TASKS[name]):
-                oracles[name] = task_oracle(name, smoke=a.smoke)
-                state["thresholds"] = thresholds(oracles)
-                write_json_atomic(path, state)
-                print(f"{name} oracle: returns {oracles[name]['returns']}, "
-                      f"{oracles[name]['wall_seconds']:.0f} s", flush=True)
-    state["thresholds"] = thresholds(oracles)
+            stored["tasks"][name] = task_baselines(name, smoke=a.smoke)
+            write_json_atomic(bpath, stored)
+            b = stored["tasks"][name]
+            print(f"{name}: zero {b['zero_return']:.4g}, oracle {b['oracle_return']:.4g} "
+                  f"({b['oracle_seconds']:.0f} s)", flush=True)
+    baselines = load_baselines(bpath)
+    if a.sb3 and not a.report_only:
+        spath = Path(a.sb3_json)
+        state = _load(spath) if a.resume else {"runs": []}
+        _header(state, a.smoke)
+        done = {(r["task"], r["method"], r["seed"]) for r in state["runs"]}
+        for seed in a.seeds:
+            for name in a.tasks:
+                for algo in a.sb3:
+                    if (name, algo, seed) in done:
+                        continue
+                    rec = run_sb3(name, algo, seed, steps=a.sb3_steps, smoke=a.smoke)
+                    state["runs"].append(rec)
+                    write_json_atomic(spath, state)
+                    print(f"{name} {algo} seed {seed}: final {rec['curve'][-1]['score']:.4g}, "
+                          f"{rec['wall_seconds']:.0f} s", flush=True)
+        return state
+    path = Path(a.json)
+    state = _load(path) if (a.resume or a.report_only) else {"runs": []}
+    _header(state, a.smoke)
     if not a.report_only:
+        done = {(r["task"], r["planner"], r["regularization"], r["seed"]) for r in state["runs"]}
         for seed in a.seeds:
             for name in a.tasks:
                 for planner in a.planners:
@@ -955,23 +773,23 @@ def run(a: Args) -> dict[str, Any]:
                             continue
                         rec = run_one(name, planner, reg, seed, smoke=a.smoke,
                                       oracle_cache=a.oracle_cache,
-                                      threshold=state["thresholds"][name])
+                                      baseline=baselines.get(name))
                         state["runs"].append(rec)
-                        state["table"] = aggregate(state["runs"])
+                        state["table"] = aggregate(state["runs"], baselines)
                         write_json_atomic(path, state)
-                        print(f"{name} {planner}/{reg} seed {seed}: solved at "
-                              f"{rec['env_steps_to_solve']} steps, final {rec['final_score']}, "
-                              f"{rec['wall_seconds']:.0f} s", flush=True)
-    state["table"] = aggregate(state["runs"])
+                        print(f"{name} {planner}/{reg} seed {seed}: final "
+                              f"{_fmt(rec['final_score'], 4)}, solved at "
+                              f"{rec['env_steps_to_solve']}, {rec['wall_seconds']:.0f} s",
+                              flush=True)
+    state["table"] = aggregate(state["runs"], baselines)
     state["compute_seconds"] = float(sum(r["wall_seconds"] for r in state["runs"]))
     write_json_atomic(path, state)
     if a.figures:
-        figures(state["runs"], Path(a.figures), state["thresholds"])
+        sb3_runs = _load(Path(a.sb3_json))["runs"]
+        pets_runs = _load(Path(a.pets_json))["runs"]
+        figures(state["runs"], Path(a.figures), baselines, pets_runs, sb3_runs)
         if a.docs:
-            sb3_path = sb3_json_path(a)
-            sb3_runs = json.loads(sb3_path.read_text())["runs"] if sb3_path.is_file() else []
-            sb3_figure(sb3_runs, state["runs"], Path(a.figures))
-            write_markdown(state, Path(a.docs), Path(a.figures), sb3_runs=sb3_runs)
+            write_markdown(state, Path(a.docs), Path(a.figures), baselines, sb3_runs,
+                           pets_runs)
             write_json_atomic(path, state)
     return state
-

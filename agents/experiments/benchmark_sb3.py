@@ -107,8 +107,12 @@ class Args(SweepArgs):
     """env steps between TD3 evaluations"""
     eval_every_ppo: int = 4096
     """env steps between PPO evaluations (a multiple of PPO's n_steps, 2048)"""
+    config: str = ""
+    """an AgentConfig file (YAML/JSON written by hand, or a run's config.json) as the base of the
+    agent runs; --quick, --agent-config, the method's regularizer and what the benchmark sets per
+    run (seed, evaluation, run_dir, ...; printed) apply on top"""
     agent_config: str = "{}"
-    """JSON of AgentConfig overrides by dotted field, e.g. '{"training.epochs": 100}'"""
+    """JSON of AgentConfig overrides by dotted field, e.g. '{"training.steps": 200}'"""
     sb3_hyperparams: str = "{}"
     """JSON {algo: {kwarg: value}} replacing the defaults of an algo"""
     sb3_progress_bar: bool = False
@@ -137,7 +141,8 @@ QUICK = {
     "docs": "runs/benchmark_sb3_quick/benchmark.md",
 }
 QUICK_AGENT = {"training.steps": 10, "planner.horizon": 10, "planner.first_plan_iterations": 5,
-               "model.ensemble_size": 2, "regularization.ltv_lambda": 1.0}
+               "model.ensemble_size": 2}
+QUICK_LTV = {"regularization.ltv_lambda": 1.0}  # --quick, for the regularizers that fit LTV models
 QUICK_SB3 = {
     "sac": {"learning_starts": 50, "batch_size": 32},
     "td3": {"learning_starts": 50, "batch_size": 32, "action_noise_std": 0.1},
@@ -179,7 +184,7 @@ def agent_fields(config: dict, seed: int, env) -> dict:
     """The AgentConfig fields (dotted) of an agent run (and of the oracle probe, which shares
     them)."""
     fields = dict(config["agent_config"])
-    if fields.get("collection.episode_steps") is None and getattr(
+    if env is not None and fields.get("collection.episode_steps") is None and getattr(
             env.spec, "max_episode_steps", None) is None:
         fields["collection.episode_steps"] = int(env.unwrapped.episode_steps)
     fields.update({
@@ -606,10 +611,18 @@ def _yes(v: bool | None) -> str:
 # ------------------------------------------------------------------------------------------
 
 
+def _agent_config(overrides: dict, method: str, quick: bool) -> dict:
+    """The AgentConfig fields (dotted) of agent method ``method``."""
+    kind = AGENT_METHODS[method]
+    ltv = QUICK_LTV if quick and kind in ("sampled", "exact") else {}
+    return {**ltv, **overrides, "regularization": kind}
+
+
 def run(args: Args) -> dict:
     """Oracle, sweep (resumable), summaries; writes the JSON, the figure and the markdown."""
     import torch
 
+    from agents.config import AgentConfig, file_changes
     from agents.sb3_baselines import default_hyperparams
     from mbtsr.io import write_json_atomic
     from mbtsr.runner import load_results, run_sweep
@@ -627,10 +640,25 @@ def run(args: Args) -> dict:
     command = "python scripts/benchmark_sb3.py " + shlex.join(sys.argv[1:])
 
     # 1. evaluation targets and the oracle: an agent's, through the cache the runs share ------
-    agent_overrides = {**(QUICK_AGENT if args.quick else {}), **json.loads(args.agent_config)}
+    from_file = {}
+    if args.config:
+        per_run = {*agent_fields({"agent_config": {}, "eval_episodes": 1, "eval_seed": 0,
+                                  "solved_ratio": 1.2}, 0, None),
+                   *(f"regularization.{k}_weight" for k in ("sampled", "exact", "smooth"))}
+        from_file, fixed = file_changes(args.config, per_run)
+        if fixed:
+            print(f"--config {args.config}: the benchmark sets {', '.join(fixed)} per run")
+    agent_overrides = {**from_file, **(QUICK_AGENT if args.quick else {}),
+                       **json.loads(args.agent_config)}
     agent_base = {"env_id": args.env_id, "env_kwargs": env_kwargs, "eval_seed": args.eval_seed,
                   "eval_episodes": args.eval_episodes, "solved_ratio": args.solved_ratio,
                   "oracle_cache_dir": str(out_dir / "oracle_cache")}
+    for m in sorted(set(methods) & set(AGENT_METHODS)):  # every agent config valid, before runs
+        try:
+            AgentConfig.default(agent_fields({**agent_base, "agent_config": _agent_config(
+                agent_overrides, m, args.quick)}, 0, None))
+        except ValueError as err:
+            raise ValueError(f"method {m!r}: {err}") from None
     oracle_rec = compute_oracle({**agent_base, "agent_config": agent_overrides})
     oracle = oracle_rec["oracle_cost"]
     threshold = args.solved_ratio * oracle
@@ -652,7 +680,7 @@ def run(args: Args) -> dict:
                           "tensorboard_log": str(out_dir / "tb") if args.tensorboard else None}
         else:
             configs[m] = {**base, **agent_base, "budget_episodes": args.budget_agent,
-                          "agent_config": {**agent_overrides, "regularization": AGENT_METHODS[m]},
+                          "agent_config": _agent_config(agent_overrides, m, args.quick),
                           "run_dir": str(out_dir / "agent" / m) if args.tensorboard else None}
 
     # 4. the sweep (per-run JSON, resumable) ----------------------------------------------------

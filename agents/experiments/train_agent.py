@@ -7,13 +7,18 @@ Models of Dynamical Systems", arXiv:1806.09919, Algorithm 1 in an episodic loop)
     python scripts/train_agent.py --seed 3 --regularization exact --json bench.json
     python scripts/train_agent.py --regularization none --model.hidden-width 32 --planner.kind cem
     python scripts/train_agent.py --run-dir runs/x --resume   # continue a killed run exactly
+    python scripts/train_agent.py --config runs/x/config.json # rerun run x (a new folder)
+    python scripts/train_agent.py --config arm.yaml --seed 3  # a file, flags on top
 
 Every field of the :class:`agents.config.AgentConfig` tree is a flag named by its dotted path
-(``--training.epochs 100``, ``--model.formulation f``, ``--regularization.sigma 0.2``,
+(``--training.steps 200``, ``--model.formulation f``, ``--regularization.sigma 0.2``,
 ``--evaluation.every 2``, ``--seed 3``, ``--no-tensorboard`` ...; ``--help`` lists them with
 their documentation). ``--regularization NAME`` picks the regularizer by name (its default weight,
 or the ``--regularization.<name>-weight`` given). ``--resume`` takes the configuration saved in
-the checkpoint; flags given with it must agree.
+the checkpoint; flags given with it must agree. ``--config PATH`` starts from a file: a run's
+``config.json`` (its agent and script settings: the same run again, in a new folder) or a YAML or
+JSON file of AgentConfig fields written by hand (changes to these defaults, see
+:meth:`agents.config.AgentConfig.from_dict`); the flags given with it apply on top.
 The run folder receives ``config.json``, ``episodes.csv``, ``checkpoint.pt`` (resume),
 ``model.pt`` (the learned ensemble, :func:`mbtsr.ensemble.load_model`), ``data.npz`` (all
 trajectories), ``tb/`` (TensorBoard), ``learning_curve.png``, ``final_reach.png`` and
@@ -45,6 +50,11 @@ os.environ.setdefault("MUJOCO_GL", "egl")  # headless rendering, before mujoco i
 class Args:
     """Train the Algorithm-1 agent (JacProp model learning + iLQR MPC) on a Gymnasium env."""
 
+    config: str = ""
+    """start from this file, the flags given with it on top: a run's config.json (its agent and
+    script settings; the rerun gets its own folder: --run-dir, else the default) or a YAML/JSON
+    file of AgentConfig fields written by hand (changes to these defaults, e.g. 'training: {lr:
+    1e-3}')"""
     env_id: str = "mbtsr/TwoLinkArm-v0"
     """Gymnasium env id"""
     episodes: int = 10
@@ -95,12 +105,75 @@ def default_run_dir(args: Args) -> Path:
         f"_seed{cfg.seed}")
 
 
+#: the script settings a run's config.json gives to a rerun (not: its outputs, --resume, the
+#: regularizer's name, which its agent section already resolves)
+_RERUN = ("env_id", "episodes", "plots", "summary_table")
+
+
+def _flag(argv: list[str], name: str) -> str | None:
+    """The value of the last ``name VALUE`` / ``name=VALUE`` in ``argv`` (None: not given)."""
+    value = None
+    for i, a in enumerate(argv):
+        if a == name and i + 1 < len(argv):
+            value = argv[i + 1]
+        elif a.startswith(name + "="):
+            value = a.split("=", 1)[1]
+    return value
+
+
+def from_file(path: str) -> Args:
+    """The :class:`Args` defaults that ``--config PATH`` gives (see :class:`Args`.config).
+
+    :raises ValueError: naming the file and the problem.
+    """
+    from agents.config import in_file, read_config_file, split_run_config
+
+    base = Args()
+    try:
+        agent, run = split_run_config(read_config_file(path))
+        cfg = AgentConfig.from_dict(agent, base=base.agent)
+        script = run.get("script", {})
+        names = {f.name for f in dataclasses.fields(Args)} - {"agent"}
+        if not isinstance(script, dict) or set(script) - names:
+            bad = sorted(set(script) - names) if isinstance(script, dict) else script
+            raise ValueError(f"unknown script setting(s) {bad} (this script has "
+                             f"{sorted(names)})")
+        if run:  # a run's record: its folder holds that run
+            cfg = cfg.replace(run_dir=None)
+        try:
+            return dataclasses.replace(base, config=str(path), agent=cfg,
+                                       **{k: script[k] for k in _RERUN if k in script})
+        except TypeError as err:  # e.g. episodes "3" < 1
+            raise ValueError(f"script: {err}") from None
+    except ValueError as err:
+        raise in_file(path, err) from None
+
+
 def parse(argv: list[str] | None = None) -> Args:
-    """The command line; with ``--resume`` the checkpoint's saved AgentConfig supplies the
-    defaults, and a flag that contradicts it is an error (exit code 2, one line)."""
+    """The command line; ``--config PATH`` supplies the defaults (:func:`from_file`); with
+    ``--resume`` the checkpoint's saved AgentConfig supplies them, and a flag that contradicts it
+    is an error (exit code 2, one line)."""
     from agents.checkpoint import CheckpointError, load_checkpoint
 
-    args = cli.parse(Args, args=argv, outputs=("json",))
+    argv = list(sys.argv[1:] if argv is None else argv)
+    path, default = _flag(argv, "--config"), None
+    if path:
+        try:
+            default = from_file(path)
+        except ValueError as err:
+            cli.fail(f"--config {err}")
+    args = cli.parse(Args, args=argv, outputs=("json",), default=default)
+    if args.config and args.resume:
+        cli.fail("--config starts a new run and --resume continues one with the configuration "
+                 "saved in its checkpoint: give one of them")
+    if args.regularization != "weights":  # a name and a weight of another regularizer
+        for kind in ("sampled", "exact", "smooth"):
+            flag = f"--regularization.{kind}-weight"
+            if kind != args.regularization and any(
+                    a.replace("_", "-").split("=")[0] == flag for a in argv):
+                cli.fail(f"--regularization {args.regularization} turns "
+                         f"regularization.{kind}_weight off: give {flag} or --regularization "
+                         f"{args.regularization}, not both")
     if args.agent.run_dir:
         try:
             cli.check_output_path(args.agent.run_dir, name="--run-dir", folder=True)
@@ -120,24 +193,13 @@ def parse(argv: list[str] | None = None) -> Args:
     args = cli.parse(Args, args=argv, default=dataclasses.replace(args, agent=saved))
     if args.agent.run_dir:  # the same folder spelled differently ("runs/x/") is no change
         args = dataclasses.replace(args, agent=args.agent.replace(run_dir=str(run_dir)))
-    given, kept = _dotted(args.agent.to_dict()), _dotted(saved.to_dict())
+    given, kept = args.agent.dotted(), saved.dotted()
     changed = [name for name in given if given[name] != kept[name]]
     if changed:
         name = changed[0]
         cli.fail(f"--resume: --{name.replace('_', '-')} {given[name]!r} differs "
                  f"from the saved run's {kept[name]!r} ({checkpoint})")
     return args
-
-
-def _dotted(tree: dict, prefix: str = "") -> dict:
-    """``{"model": {"hidden_width": 20}}`` -> ``{"model.hidden_width": 20}``."""
-    out = {}
-    for k, v in tree.items():
-        if isinstance(v, dict):
-            out.update(_dotted(v, f"{prefix}{k}."))
-        else:
-            out[prefix + k] = v
-    return out
 
 
 def main(argv: list[str] | None = None) -> dict:
@@ -158,6 +220,8 @@ def run(args: Args) -> dict:
         base, k = run_dir, 1
         while (run_dir / "checkpoint.pt").exists():
             run_dir, k = base.with_name(f"{base.name}_{k}"), k + 1
+        if args.config:
+            print(f"--config {args.config}: this run goes to {run_dir}")
     checkpoint = run_dir / "checkpoint.pt"
     if args.resume and not checkpoint.is_file():
         raise ValueError(f"--resume: no checkpoint at {checkpoint}")
