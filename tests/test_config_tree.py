@@ -650,3 +650,16 @@ def test_a_section_given_twice_or_a_leaf_as_a_section_is_named():
         AgentConfig.from_dict({"seed.x": 1})
     with pytest.raises(ValueError, match=r"field names are strings, got 1 in 'model'"):
         AgentConfig.from_dict({"model": {1: 2}})
+
+
+def test_step_budget_settings_without_effect_are_refused():
+    with pytest.raises(ValueError, match=r"^training\.epochs=50 has no effect: training\.steps"):
+        AgentConfig.default({"training.epochs": 50})
+    assert AgentConfig.default({"training.epochs": 50, "training.steps": None,
+                                "training.holdout": 0.1}).training.uses_step_loop
+    with pytest.raises(ValueError, match=r"^training\.patience=5 has no effect: early stopping "
+                                         r"needs held-out data"):
+        AgentConfig.default({"training.holdout": 0.0})
+    assert AgentConfig.default({"training.holdout": 0.0, "training.patience": None})
+    with pytest.raises(ValueError, match=r"^training\.early_stopping='ensemble' has no effect"):
+        AgentConfig.default({"training.early_stopping": "ensemble", "training.patience": None})
