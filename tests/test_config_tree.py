@@ -135,9 +135,10 @@ def test_from_dict_and_from_json_refuse_a_non_dict(bad):
 
 # ---------------------------------------------------------------------------- the old flat format
 def test_the_old_flat_defaults_load_to_the_default_tree():
-    assert from_flat(OLD_DEFAULTS) == AgentConfig()
-    assert AgentConfig.from_dict(OLD_DEFAULTS) == AgentConfig()  # detected
-    assert from_flat({}) == AgentConfig()  # missing keys: the (unchanged) defaults
+    then = AgentConfig().replace({"planner.kind": "ilqr"})  # the old default planner, stored
+    assert from_flat(OLD_DEFAULTS) == then
+    assert AgentConfig.from_dict(OLD_DEFAULTS) == then  # detected
+    assert from_flat({}) == AgentConfig()  # missing keys: the defaults
 
 
 def test_every_old_flat_field_lands_on_its_tree_field():
