@@ -145,9 +145,10 @@ class PlannerConfig(_Checked):
     :param kind: ``"ilqr"`` (iLQR on the model's Jacobians, the paper's controller), ``"cem"``
         (the cross-entropy method of PETS, :func:`mbtsr.cem.cem`: forward predictions only,
         never the model's Jacobians; the control for the paper's argument) or ``"cem-ilqr"``
-        (CEM proposes, iLQR refines with ``ilqr_iterations``: :func:`mbtsr.cem_ilqr.cem_ilqr`;
-        CEM finds contacts where gradients are zero, iLQR's feedback balances what open-loop
-        samples cannot).
+        (the default: CEM proposes, iLQR refines with ``ilqr_iterations``,
+        :func:`mbtsr.cem_ilqr.cem_ilqr`; CEM finds contacts where gradients are zero, iLQR's
+        feedback balances what open-loop samples cannot; measured on the true models in
+        docs/ilqr.md).
     :param terminal_weight: the planner's terminal cost is ``terminal_weight`` x the user's
         ``terminal_cost_fn(obs)`` (default: the stage cost at zero action).
     :param ilqr_iterations: iLQR iterations per MPC step (the first step of an episode gets
@@ -173,7 +174,7 @@ class PlannerConfig(_Checked):
     _path: ClassVar[str] = "planner"
     horizon: int = 30
     replan_every: int = 1
-    kind: Literal["ilqr", "cem", "cem-ilqr"] = "ilqr"
+    kind: Literal["ilqr", "cem", "cem-ilqr"] = "cem-ilqr"
     terminal_weight: float = 1.0
     ilqr_iterations: int = 2
     first_plan_iterations: int = 20
@@ -279,9 +280,10 @@ def _legacy_training() -> TrainConfig:
 
 @functools.cache
 def _then_defaults() -> AgentConfig:
-    """The defaults before the sized model and the step budget (the paper's ensemble, 150 epochs
-    per update): the base of configs saved in the old flat format."""
-    return AgentConfig(model=ModelConfig.paper(), training=_legacy_training())
+    """The defaults of the old flat format's time (the paper's ensemble, 150 epochs per update,
+    iLQR): the base of configs saved in it."""
+    return AgentConfig(model=ModelConfig.paper(), training=_legacy_training(),
+                       planner=PlannerConfig(kind="ilqr"))
 
 
 #: every field of ``training`` a config saved before the step budget holds

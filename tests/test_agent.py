@@ -65,6 +65,12 @@ def tiny_config(changes: dict | None = None, /, **top) -> AgentConfig:
         "evaluation.every": 0,
         "regularization.ltv_lambda": 2.0,
     }
+    kind = (changes or {}).get("planner.kind") or top.get("planner") or "cem-ilqr"
+    if kind == "cem":  # each planner's budget only where it acts (the config refuses the rest)
+        del base["planner.ilqr_iterations"]
+    elif kind == "cem-ilqr":
+        base.update({"planner.proposal.samples": 16, "planner.proposal.elites": 4,
+                     "planner.proposal.iterations": 1})
     top = {"progress": False, "tensorboard": False, "torch_threads": 1, **top}
     return AgentConfig.default({**base, **(changes or {})}, **top)
 

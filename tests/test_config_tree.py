@@ -102,7 +102,7 @@ def test_an_old_tree_config_keeps_its_model_and_epoch_schedule():
     assert cfg.training == TrainConfig(epochs=150, lr=3e-3, batch=256, progress=False)
     assert cfg.training.steps is None
     assert cfg.model == ModelConfig.paper()
-    assert cfg.planner == PlannerConfig()
+    assert cfg.planner == PlannerConfig(kind="ilqr")
     assert cfg.planner.cem.particles == 1 and cfg.planner.propagation == "mean"
     assert from_flat(OLD_DEFAULTS) == cfg  # the old flat format means the same
 
@@ -183,7 +183,7 @@ def test_from_dict_and_from_json_refuse_a_non_dict(bad):
 
 # ---------------------------------------------------------------------------- the old flat format
 def test_the_old_flat_defaults_load_to_the_default_tree_of_their_time():
-    then = AgentConfig(model=ModelConfig.paper(),
+    then = AgentConfig(model=ModelConfig.paper(), planner=PlannerConfig(kind="ilqr"),
                        training=TrainConfig(epochs=150, lr=3e-3, batch=256, progress=False))
     assert from_flat(OLD_DEFAULTS) == then
     assert AgentConfig.from_dict(OLD_DEFAULTS) == then  # detected
