@@ -239,6 +239,10 @@ class EvaluationConfig(_Checked):
     :param solved_ratio: the solved threshold relative to the oracle.
     :param solved_return: success threshold on the mean evaluation return (``None``: the
         oracle-ratio criterion, or no "solved" decision for envs without a true model).
+    :param every_steps: also evaluate at the end of every episode that crosses a multiple of
+        this many env steps (0: off), as SB3's ``eval_freq``: long episodes (HalfCheetah's 1000
+        steps) make ``every`` episodes too coarse, many short ones (a pendulum that falls) too
+        fine.
     :param stop_when_solved: stop ``learn`` at the first solved evaluation.
     :param oracle_cache_dir: folder where the oracle's evaluation costs are memoised across runs
         (``None``: recompute in every run).
@@ -246,6 +250,7 @@ class EvaluationConfig(_Checked):
 
     _path: ClassVar[str] = "evaluation"
     every: int = 4
+    every_steps: int = 0
     episodes: int = 3
     seed: int = 1000
     early_exit: bool = True
@@ -256,6 +261,7 @@ class EvaluationConfig(_Checked):
 
     def __post_init__(self) -> None:
         self._int_at_least("every", 0)
+        self._int_at_least("every_steps", 0)
         self._int_at_least("episodes", 1)
         self._int_at_least("seed", 0)
         self._float_range("solved_ratio", 1.0)
@@ -367,7 +373,8 @@ class AgentConfig(_Checked):
     :param jacobian_error: log the Jacobian error against ``env.unwrapped.linearize_trajectory``
         when the env provides it.
     :param progress: show a progress bar in ``learn``.
-    :param torch_threads: ``torch.set_num_threads`` value applied by ``learn`` (0: leave as is).
+    :param torch_threads: threads of torch and of numpy's BLAS (``threadpoolctl``), applied by
+        ``learn`` (0: leave as is).
     """
 
     collection: CollectionConfig = field(default_factory=CollectionConfig)

@@ -738,3 +738,16 @@ def test_config_progress_false_shows_no_progress_bar(capsys):
     assert "JacProp agent" not in capsys.readouterr().err
     agent.learn(1, progress_bar=True)  # an explicit argument still wins
     assert "JacProp agent" in capsys.readouterr().err
+
+
+def test_evaluation_every_steps_follows_the_env_steps():
+    """evaluation.every_steps=50 with 30-step episodes: the episodes that end at 60, 120 and 150
+    env steps cross 50, 100 and 150 (the last one is also the final score); every=0 adds none."""
+    env = gym.make("Pendulum-v1")
+    agent = JacPropAgent(env, tiny_config({"evaluation.every": 0, "evaluation.every_steps": 50,
+                                           "evaluation.episodes": 1}), cost_fn=pendulum_cost)
+    agent.learn(5, progress_bar=False)
+    assert [r["env_steps"] for r in agent.logger_rows if r["eval_returns"] is not None] == [
+        60, 120, 150]
+    with pytest.raises(ValueError, match="evaluation.every_steps"):
+        tiny_config({"evaluation.every_steps": -1})

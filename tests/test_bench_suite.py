@@ -20,7 +20,7 @@ REPO = Path(__file__).resolve().parents[1]
 
 @pytest.mark.parametrize("name", list(suite.TASKS))
 def test_every_task_runs_a_few_steps_of_its_agent(name):
-    agent = suite.make_agent(name, {"evaluation.every": 0}, smoke=True)
+    agent = suite.make_agent(name, {"evaluation.every_steps": 0}, smoke=True)
     obs = agent.env.reset(seed=0)[0]
     c = agent.task_cost.on_observations(obs[None], np.zeros((1, agent.spec.act_dim)))
     assert np.isfinite(c).all()

@@ -74,21 +74,22 @@ EVAL_EPISODES, EVAL_SEED = 3, 1000
 BASELINES_JSON = REPO / "docs" / "results" / "bench_suite_baselines.json"
 
 
-def _task(task: _tasks.Task, budget: int, **overrides: Any) -> dict[str, Any]:
-    """A suite entry: a reusable :class:`agents.tasks.Task`, its budget in env steps and the
-    agent settings the task needs (dotted ``AgentConfig`` fields)."""
-    return {"task": task, "budget": budget, "overrides": overrides}
+def _task(task: _tasks.Task, budget: int, eval_every: int, **overrides: Any) -> dict[str, Any]:
+    """A suite entry: a reusable :class:`agents.tasks.Task`, its budget in env steps, the env
+    steps between evaluations (the learning curve's resolution; an evaluation costs 3 episodes)
+    and the agent settings the task needs (dotted ``AgentConfig`` fields)."""
+    return {"task": task, "budget": budget, "eval_every": eval_every, "overrides": overrides}
 
 
-#: the tasks, their budgets and task-specific settings (stated before the runs)
+#: the tasks, their budgets, evaluation periods and task-specific settings (stated before runs)
 TASKS: dict[str, dict[str, Any]] = {
-    "arm-far": _task(_tasks.two_link_arm(target_limit=0.85 * math.pi), 800),
-    "arm-open-loop": _task(_tasks.two_link_arm(), 800, **{"planner.replan_every": 10}),
-    "reacher": _task(_tasks.reacher(), 2000),
-    "inverted-pendulum": _task(_tasks.inverted_pendulum(max_episode_steps=200), 2000),
-    "inverted-double-pendulum": _task(_tasks.inverted_double_pendulum(), 5000),
-    "pusher": _task(_tasks.pusher(), 3000),
-    "half-cheetah": _task(_tasks.half_cheetah(), 10000),
+    "arm-far": _task(_tasks.two_link_arm(target_limit=0.85 * math.pi), 800, 200),
+    "arm-open-loop": _task(_tasks.two_link_arm(), 800, 200, **{"planner.replan_every": 10}),
+    "reacher": _task(_tasks.reacher(), 2000, 250),
+    "inverted-pendulum": _task(_tasks.inverted_pendulum(max_episode_steps=200), 2000, 250),
+    "inverted-double-pendulum": _task(_tasks.inverted_double_pendulum(), 5000, 1000),
+    "pusher": _task(_tasks.pusher(), 3000, 300),
+    "half-cheetah": _task(_tasks.half_cheetah(), 10000, 2000),
 }
 
 #: tiny budgets of the smoke mode (CI); planner settings only reach the planner they act in
@@ -121,6 +122,8 @@ def make_agent(name: str, overrides: dict[str, Any] | None = None, *, smoke: boo
 
     entry = TASKS[name]
     settings = {"evaluation.episodes": EVAL_EPISODES, "evaluation.seed": EVAL_SEED,
+                "evaluation.every": 0,
+                "evaluation.every_steps": SMOKE_BUDGET // 2 if smoke else entry["eval_every"],
                 "progress": False, "tensorboard": False, "checkpoint": False,
                 "torch_threads": 1, "jacobian_error": False,
                 **entry["overrides"], **(overrides or {})}
@@ -204,7 +207,7 @@ def run_one(name: str, planner: str, reg: str, seed: int, *, smoke: bool,
 
     torch.set_num_threads(1)
     overrides: dict[str, Any] = {
-        "seed": seed, "planner.kind": planner, "regularization": reg, "evaluation.every": 2,
+        "seed": seed, "planner.kind": planner, "regularization": reg,
         "evaluation.oracle_cache_dir": oracle_cache}
     if baseline is not None:
         overrides["evaluation.solved_return"] = solved_return(baseline["oracle_return"])
