@@ -39,8 +39,9 @@ from typing import Annotated, Literal
 
 import tyro
 
-from agents.config import AgentConfig, EvaluationConfig
+from agents.config import AgentConfig, EvaluationConfig, PlannerConfig
 from mbtsr import cli
+from mbtsr.ensemble import ModelConfig
 from mbtsr.training import RegularizationConfig
 
 os.environ.setdefault("MUJOCO_GL", "egl")  # headless rendering, before mujoco is imported
@@ -73,8 +74,12 @@ class Args:
     weights 0; weights: as the weight flags say"""
     agent: Annotated[AgentConfig, tyro.conf.arg(name="")] = field(
         default_factory=lambda: AgentConfig(
+            model=ModelConfig.paper(), planner=PlannerConfig(kind="ilqr"),
             evaluation=EvaluationConfig(oracle_cache_dir="runs/oracle_cache")))
-    """the agent (its flags carry no agent. prefix). --run-dir defaults to
+    """the agent (its flags carry no agent. prefix): the paper's setup on the paper's arm, its
+    4 x 1 x 20 ensemble (ModelConfig.paper()) and iLQR on the learned Jacobians; the library's
+    defaults for other tasks (a model sized by the task, planner cem-ilqr) are --model.hidden-
+    width/--model.hidden-layers none and --planner.kind cem-ilqr. --run-dir defaults to
     runs/train_agent/<env>_<regularization>_<formulation>_seed<seed> (a fresh run that finds a
     finished one there adds _1, _2, ...); --evaluation.oracle-cache-dir none disables the shared
     cache of the (deterministic) oracle costs"""
