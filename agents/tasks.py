@@ -117,7 +117,8 @@ def _reacher_terminal(obs):
 
 def reacher(**make: Any) -> Task:
     """Reacher-v5 (obs ``[cos q (2), sin q (2), target (2), qvel (2), fingertip - target
-    (3)]``): the reward's distance and effort terms; a terminal cost on the distance."""
+    (x, y)]``, 10 values): the reward's distance and effort terms; a terminal cost on the
+    distance."""
     return Task("reacher", "Reacher-v5", make, _reacher_cost, _reacher_terminal)
 
 

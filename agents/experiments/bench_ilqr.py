@@ -23,13 +23,17 @@ Measures, in one run:
 5. the cold (first-ever) compile time of the numba backward pass, in a fresh process with an
    empty cache;
 6. planning at scale (issue 21): milliseconds per MPC step of the agent's planners on
-   Reacher-v5's dimensions (n = 11 observations, m = 2, horizon ``scale_horizon``) with the
+   Reacher-v5's dimensions (n = 10 observations, m = 2, horizon ``scale_horizon``) with the
    paper's 4 x 1 x 20 ensemble, the default-sized ensemble (``mbtsr.ensemble.default_size``)
    and 4 x 3 x 200: iLQR on the ensemble mean, CEM on the mean and CEM with trajectory sampling
    (one member per particle, ``scale_particles`` particles). Random weights with the
    normalization of Reacher excitation data (timing only); the agent's own controller
    (``JacPropAgent.predict``) on the real env, the first (cold) step reported apart.
    ``--scale-only`` runs just this section.
+7. the true-model MPC of every benchmark-suite task (``scripts/bench_suite.py``'s oracle: the
+   task's cost and termination on :class:`envs.mujoco_model.MujocoDynamics`): ms per MPC step
+   of the default planner (cem-ilqr) and of iLQR alone, warm-started, and the cold start.
+   ``--true-model-only`` runs just this section.
 
 Targets (issue 13) are listed in the JSON with a pass flag each. Numbers are noisy on a shared
 machine: every timing is the best of ``--repeats`` runs and the load average is recorded; the
@@ -106,6 +110,12 @@ class Args:
     """MPC horizon of section 6"""
     scale_particles: int = 4
     """CEM particles per sequence with trajectory sampling in section 6"""
+    true_model_only: bool = False
+    """run only section 7 (the true-model MPC of every benchmark-suite task)"""
+    true_model_steps: int = 20
+    """warm-started MPC steps per task and planner in section 7 (after the cold start)"""
+    true_model_tasks: tuple[str, ...] = ()
+    """section 7's tasks (default: every task of scripts/bench_suite.py)"""
 
 
 def load_ensemble(path: str, seed: int):
@@ -317,9 +327,62 @@ def planning_at_scale(args: Args) -> dict:
     return out
 
 
+def true_model_planning(args: Args) -> dict:
+    """Section 7: ms per MPC step on the TRUE model of every benchmark-suite task (the oracle of
+    ``scripts/bench_suite.py``: the task's cost, termination and horizon, evaluation episode
+    1000), for the agent's default planner (cem-ilqr) and for iLQR alone: the cold start (the
+    first plan of an episode) and the median of ``true_model_steps`` warm-started steps."""
+    from agents.evaluation import oracle_policy
+    from agents.experiments import bench_suite
+    from mbtsr.episode import as_policy
+
+    out: dict = {}
+    for name in args.true_model_tasks or tuple(bench_suite.TASKS):
+        entry = bench_suite.TASKS[name]
+        task = entry["task"]
+        out[name] = {}
+        for kind in ("cem-ilqr", "ilqr"):
+            planner = dataclasses.replace(PlannerConfig(kind=kind), **{
+                k.split(".", 1)[1]: v for k, v in entry["overrides"].items()
+                if k.startswith("planner.") and k != "planner.replan_every"})
+            optimizer, options, iterations = planner.optimizer(0)
+            env = task.make_env()
+            policy = as_policy(oracle_policy(
+                env, planner.horizon, iterations=iterations,
+                first_plan_iterations=planner.first_plan_iterations, optimizer=optimizer,
+                optimizer_options=options, **task.agent_kwargs()))
+            obs, _ = env.reset(seed=1000)
+            times = []
+            for t in range(args.true_model_steps + 1):
+                tic = time.perf_counter()
+                action = policy(obs, t)
+                times.append(time.perf_counter() - tic)
+                obs, _, terminated, truncated, _ = env.step(action)
+                if terminated or truncated:
+                    break
+            env.close()
+            out[name][kind] = {"cold_start_s": times[0],
+                               "ms_per_step_median": 1000 * float(np.median(times[1:])),
+                               "ms_per_step_max": 1000 * float(np.max(times[1:])),
+                               "steps": len(times) - 1, "horizon": planner.horizon}
+            print(f"true model {name} {kind}: cold {times[0]:.2f} s, "
+                  f"{out[name][kind]['ms_per_step_median']:.0f} ms/step", flush=True)
+    return out
+
+
 def run(args: Args) -> dict:
     """The whole benchmark; writes ``args.json`` if set and returns the results."""
     torch.set_num_threads(args.threads)
+    if args.true_model_only:
+        results = {"args": dataclasses.asdict(args),
+                   "true_model_planning": true_model_planning(args),
+                   "machine": {"platform": platform.platform(), "cpu_count": os.cpu_count(),
+                               "load_average_end": os.getloadavg()}}
+        if args.json:
+            Path(args.json).parent.mkdir(parents=True, exist_ok=True)
+            Path(args.json).write_text(json.dumps(results, indent=2))
+            print(f"wrote {args.json}")
+        return results
     if args.scale_only:
         results = {"args": dataclasses.asdict(args), "planning_at_scale": planning_at_scale(args),
                    "machine": {"platform": platform.platform(), "cpu_count": os.cpu_count(),
@@ -518,6 +581,7 @@ def run(args: Args) -> dict:
 
     # ---- 6. planning at scale on Reacher's dimensions
     scale = planning_at_scale(args)
+    true_models = true_model_planning(args)
 
     ens200 = timing.get("ensemble", {})
     ens200 = ens200.get("T=200", {}) if isinstance(ens200, dict) else {}
@@ -567,6 +631,7 @@ def run(args: Args) -> dict:
         "analytic_casadi is the uncompiled CasADi VM, for reference",
         "numba_cold_compile_s": compile_s,
         "planning_at_scale": scale,
+        "true_model_planning": true_models,
         "targets": targets,
         "machine": {
             "platform": platform.platform(),
