@@ -379,6 +379,7 @@ LEAVES = {
     "planner.proposal.termination_cost": st.floats(-1e3, 1e3),
     "planner.proposal.particles": st.integers(1, 8),
     "evaluation.every": st.integers(0, 10),
+    "evaluation.every_steps": st.integers(0, 5000),
     "evaluation.episodes": st.integers(1, 10),
     "evaluation.seed": st.integers(0, 10_000),
     "evaluation.early_exit": st.booleans(),
