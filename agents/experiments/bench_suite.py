@@ -775,8 +775,8 @@ def run(a: Args) -> dict[str, Any]:
                         if (name, planner, reg, seed) in done:
                             continue
                         rec = run_one(name, planner, reg, seed, smoke=a.smoke,
-                                      oracle_cache=a.oracle_cache,
-                                      baseline=baselines.get(name))
+                                      oracle_cache=a.oracle_cache,  # baselines may land late
+                                      baseline=load_baselines(bpath).get(name))
                         state["runs"].append(rec)
                         state["table"] = aggregate(state["runs"], baselines)
                         write_json_atomic(path, state)
@@ -784,6 +784,7 @@ def run(a: Args) -> dict[str, Any]:
                               f"{_fmt(rec['final_score'], 4)}, solved at "
                               f"{rec['env_steps_to_solve']}, {rec['wall_seconds']:.0f} s",
                               flush=True)
+    baselines = load_baselines(bpath)
     state["table"] = aggregate(state["runs"], baselines)
     state["compute_seconds"] = float(sum(r["wall_seconds"] for r in state["runs"]))
     write_json_atomic(path, state)
