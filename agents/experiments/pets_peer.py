@@ -540,12 +540,13 @@ def run_task(task_name: str, seed: int, settings: dict[str, Any], json_path: Pat
     :param stop_after: return after this many new evaluation points (an interruption that
         ``resume`` continues; for tests and time-boxed sessions).
     """
+    done = find_run(load_results(json_path), task_name, seed)
+    if resume and done is not None and is_finished(done):
+        log(f"{task_name} seed {seed}: finished, skipped")
+        return done
     import mbrl
     import torch
 
-    if resume and is_finished(find_run(load_results(json_path), task_name, seed)):
-        log(f"{task_name} seed {seed}: finished, skipped")
-        return find_run(load_results(json_path), task_name, seed)  # type: ignore[return-value]
     run = PetsRun(task_name, seed, settings, ckpt_root / f"{task_name}_seed{seed}")
     record = run.load_checkpoint() if resume else None
     if record is not None and any(record["settings"].get(k) != settings[k]
