@@ -140,6 +140,9 @@ def main(argv: list[str] | None = None) -> int:
             print(f"FAILED at step {name!r}: pip exit code {code}, installed {have}, "
                   f"wanted {want}", flush=True)
             return 1
+    print("note: pip's 'dependency conflicts' about mbrl's pins (hydra-core 1.0.3, omegaconf "
+          "<2.1, gymnasium 0.26.3) and its jupyter, pytest and sk-video requirements are the "
+          "deliberate workarounds above", flush=True)
     ok = check(py)
     print(f"{'done' if ok else 'FAILED'} in {time.perf_counter() - t0:.0f} s: {args.venv}",
           flush=True)

@@ -72,6 +72,8 @@ COMMON: dict[str, Any] = {
 TASKS: dict[str, dict[str, Any]] = {
     "reacher": {
         "make": {}, "budget_env_steps": 2000, "eval_every": 200,
+        "eval_note": "every 200 env steps (4 training episodes): after every 50-step episode "
+                     "would triple the planning work",
         "published": "pets_reacher",
         "training": {"model_lr": 4e-4, "model_wd": 1.7e-4, "model_batch_size": 32,
                      "validation_ratio": 0.05, "num_epochs_train_model": 25, "patience": 25},
@@ -86,7 +88,8 @@ TASKS: dict[str, dict[str, Any]] = {
                     "learned_rewards true -> false: the reward is the suite's cost"],
     },
     "inverted-pendulum": {
-        "make": {"max_episode_steps": 200}, "budget_env_steps": 2000, "eval_every": 400,
+        "make": {"max_episode_steps": 200}, "budget_env_steps": 2000, "eval_every": 500,
+        "eval_note": "every 500 env steps: an evaluation plans up to 600 steps at horizon 45",
         "published": "pets_inv_pendulum",
         "training": {"model_lr": 1.43e-3, "model_wd": 3.3e-5, "model_batch_size": 256,
                      "validation_ratio": 0.2, "num_epochs_train_model": 31, "patience": 50},
@@ -99,7 +102,9 @@ TASKS: dict[str, dict[str, Any]] = {
                     "learned_rewards true -> false: the reward is the suite's cost"],
     },
     "inverted-double-pendulum": {
-        "make": {}, "budget_env_steps": 5000, "eval_every": 1000,
+        "make": {}, "budget_env_steps": 5000, "eval_every": 2500,
+        "eval_note": "at 2,500 and 5,000 env steps only: an evaluation plans up to 3,000 "
+                     "steps at horizon 45",
         "published": "pets_inv_pendulum (mbrl has no double-pendulum override)",
         "training": {"model_lr": 1.43e-3, "model_wd": 3.3e-5, "model_batch_size": 256,
                      "validation_ratio": 0.2, "num_epochs_train_model": 31, "patience": 50},
@@ -111,7 +116,8 @@ TASKS: dict[str, dict[str, Any]] = {
                     "learned_rewards true -> false: the reward is the suite's cost"],
     },
     "pusher": {
-        "make": {}, "budget_env_steps": 3000, "eval_every": 500,
+        "make": {}, "budget_env_steps": 3000, "eval_every": 750,
+        "eval_note": "every 750 env steps: an evaluation plans 300 steps",
         "published": "pets_pusher",
         "training": {"model_lr": 1e-5, "model_wd": 5e-4, "model_batch_size": 32,
                      "validation_ratio": 0.0, "num_epochs_train_model": 25, "patience": 25},
@@ -124,7 +130,8 @@ TASKS: dict[str, dict[str, Any]] = {
                     "learned_rewards true -> false: the reward is the suite's cost"],
     },
     "half-cheetah": {
-        "make": {}, "budget_env_steps": 10000, "eval_every": 2000,
+        "make": {}, "budget_env_steps": 10000, "eval_every": 5000,
+        "eval_note": "at 5,000 and 10,000 env steps only: an evaluation plans 3,000 steps",
         "published": "pets_halfcheetah",
         "training": {"model_lr": 2.8e-4, "model_wd": 1e-4, "model_batch_size": 32,
                      "validation_ratio": 0.0, "num_epochs_train_model": 12, "patience": 12},
@@ -208,6 +215,7 @@ def task_settings(name: str, *, cem: dict[str, Any] | None = None,
         "budget_env_steps": int(budget if budget is not None else t["budget_env_steps"]),
         "eval_every": int(eval_every if eval_every is not None else t["eval_every"]),
         "eval_seed": EVAL_SEED, "eval_episodes": EVAL_EPISODES,
+        "eval_note": t["eval_note"] if eval_every is None else "set on the command line",
         "training_episode_seed": "seed * 10000 + training episode index",
         "initial_exploration_steps": t["initial_exploration_steps"],
         "initial_exploration": "uniform random actions (mbrl's RandomAgent), numpy rng of the seed",
@@ -586,6 +594,10 @@ def run_task(task_name: str, seed: int, settings: dict[str, Any], json_path: Pat
         record["plan_steps"] += len(timing)
         record["plan_seconds"] += float(sum(timing))
         if run.env_steps < points[run.next_eval]:
+            # a checkpoint at every episode end, so that a time-boxed session loses at most
+            # one episode (the JSON changes only at evaluation points)
+            record["wall_seconds"] = time.perf_counter() - tic_total
+            run.save_checkpoint(record)
             continue
         if run.since_train > 0 or not run.trained_once:
             record["train_model_seconds"] += run.train_model()
