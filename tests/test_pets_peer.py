@@ -221,3 +221,21 @@ def test_tiny_pets_run_in_the_venv_resumes_bit_for_bit(tmp_path):
     assert a["train_episode_returns"] == b["train_episode_returns"]
     assert a["finished"] and b["finished"] and a["plan_seconds_per_step"] > 0
     assert any("population_size 350 -> 14" in s for s in a["settings"]["shrinks"])
+
+
+def test_report_draws_the_agents_median_curves_beside_pets(tmp_path):
+    suite = tmp_path / "bench_suite.json"
+    runs = [{"task": "reacher", "planner": "cem", "regularization": "none", "seed": s,
+             "curve": [{"env_steps": 100, "score": -12.0 + s}, {"env_steps": 200, "score": s}]}
+            for s in range(3)]
+    suite.write_text(json.dumps({"runs": runs}))
+    (tmp_path / "bench_suite_oracles.json").write_text(
+        json.dumps({"oracles": {"reacher": {"mean_return": -3.9}}}))
+    assert pets_peer.agent_curves(suite, "reacher") == {"cem/none": [(100, -11.0), (200, 1.0)]}
+    assert pets_peer.agent_curves(suite, "pusher") == {}
+    assert pets_peer.suite_oracle(suite, "reacher") == -3.9
+    assert pets_peer.suite_oracle(suite, "pusher") is None
+    path = tmp_path / "pets.json"
+    pets_peer.upsert_run(path, _record("reacher", 0, [200, 400], True))
+    (fig,) = pets_peer.report(path, tmp_path / "fig", suite)
+    assert fig.name == "pets_reacher.png" and fig.stat().st_size > 1000

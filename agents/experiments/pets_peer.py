@@ -628,9 +628,45 @@ def run_task(task_name: str, seed: int, settings: dict[str, Any], json_path: Pat
 
 
 # ------------------------------------------------------------------ report (main environment)
-def report(json_path: Path, figures: Path) -> list[Path]:
-    """One learning-curve figure per task (``pets_<task>.png``: every seed and their mean) and a
-    Markdown table printed to stdout; runs in the main environment. Returns the figures."""
+def agent_curves(suite_json: Path | None, task: str) -> dict[str, list[tuple[int, float]]]:
+    """The agent's median learning curve per configuration (``"<planner>/<regularization>"``)
+    on ``task`` from the suite's JSON (``docs/results/bench_suite.json``), over the seeds that
+    evaluated at each env-step count; ``{}`` without that file or task."""
+    if suite_json is None or not Path(suite_json).is_file():
+        return {}
+    runs = [r for r in json.loads(Path(suite_json).read_text()).get("runs", [])
+            if r.get("task") == task and r.get("curve")]
+    by_cfg: dict[str, dict[int, list[float]]] = {}
+    for r in runs:
+        pts = by_cfg.setdefault(f"{r.get('planner')}/{r.get('regularization')}", {})
+        for p in r["curve"]:
+            pts.setdefault(int(p["env_steps"]), []).append(float(p["score"]))
+    return {cfg: [(x, float(np.median(v))) for x, v in sorted(pts.items())]
+            for cfg, pts in by_cfg.items()}
+
+
+def suite_oracle(suite_json: Path | None, task: str) -> float | None:
+    """The true-model oracle's mean return on ``task`` stored beside the suite's JSON
+    (``bench_suite_oracles.json``), or ``None``."""
+    if suite_json is None:
+        return None
+    path = Path(suite_json).with_name("bench_suite_oracles.json")
+    if not path.is_file():
+        return None
+    o = json.loads(path.read_text()).get("oracles", {}).get(task)
+    return None if o is None else float(o["mean_return"])
+
+
+def report(json_path: Path, figures: Path, suite_json: Path | None = None) -> list[Path]:
+    """One learning-curve figure per task (``pets_<task>.png``: every seed, their mean, and
+    when ``suite_json`` holds the task the agent's median curve per configuration and the
+    true-model oracle) and a Markdown table printed to stdout; runs in the main environment.
+    Returns the figures.
+
+    :param json_path: the PETS results.
+    :param figures: output folder.
+    :param suite_json: the agent's suite results (``docs/results/bench_suite.json``) or ``None``.
+    """
     import matplotlib
 
     matplotlib.use("Agg")
@@ -646,11 +682,13 @@ def report(json_path: Path, figures: Path) -> list[Path]:
           "wall s | finished |")
     print("|---|---|---|---|---|---|---|")
     for task, runs in by_task.items():
-        fig, ax = plt.subplots(figsize=(5.5, 3.6))
-        for r in sorted(runs, key=lambda r: r["seed"]):
+        fig, ax = plt.subplots(figsize=(7.5, 3.8))
+        blues = plt.get_cmap("Blues")
+        for i, r in enumerate(sorted(runs, key=lambda r: r["seed"])):
             xs = [p["env_steps"] for p in r["curve"]]
             ys = [p["score"] for p in r["curve"]]
-            ax.plot(xs, ys, marker="o", ms=3, lw=1, alpha=0.7, label=f"seed {r['seed']}")
+            ax.plot(xs, ys, marker="o", ms=3, lw=1.2, color=blues(0.45 + 0.5 * i / len(runs)),
+                    label=f"PETS seed {r['seed']}")
             pts = ", ".join(f"{x}: {y:.2f}" for x, y in zip(xs, ys))
             pps = r["plan_seconds_per_step"]
             print(f"| {task} | {r['seed']} | {r['env_steps']} | {pts} | "
@@ -662,14 +700,23 @@ def report(json_path: Path, figures: Path) -> list[Path]:
             if common:
                 mean = [np.mean([next(p["score"] for p in r["curve"] if p["env_steps"] == x)
                                  for r in runs]) for x in common]
-                ax.plot(common, mean, color="k", lw=2, label="mean")
+                ax.plot(common, mean, color="k", lw=2, label="PETS mean")
+        agents = agent_curves(suite_json, task)
+        oranges = plt.get_cmap("Oranges")
+        for i, (cfg, pts) in enumerate(agents.items()):
+            ax.plot([x for x, _ in pts], [y for _, y in pts], ls="--", lw=1,
+                    color=oranges(0.35 + 0.6 * i / max(len(agents), 1)),
+                    label=f"agent {cfg} (median)")
+        oracle = suite_oracle(suite_json, task)
+        if oracle is not None:
+            ax.axhline(oracle, color="g", ls=":", lw=1.5, label="true-model oracle")
         cem = runs[0]["settings"]["planner"]["cem"]
         ax.set_title(f"PETS (mbrl 0.2.0) on {task}: CEM {cem['population_size']} x "
                      f"{cem['num_iterations']}", fontsize=9)
         ax.set_xlabel("env steps")
         ax.set_ylabel("mean return, 3 eval episodes")
         ax.grid(alpha=0.3)
-        ax.legend(fontsize=7)
+        ax.legend(fontsize=7, loc="center left", bbox_to_anchor=(1.01, 0.5))
         fig.tight_layout()
         path = figures / f"pets_{task}.png"
         fig.savefig(path, dpi=110)
@@ -696,6 +743,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
                    help="checkpoint folder (one subfolder per run)")
     p.add_argument("--resume", action="store_true",
                    help="skip finished runs, continue interrupted ones from their checkpoint")
+    p.add_argument("--suite-json", type=Path, default=REPO / "docs" / "results" /
+                   "bench_suite.json", help="the agent's suite results drawn beside PETS")
     p.add_argument("--report-only", action="store_true",
                    help="only write the figures and print the table (main environment)")
     p.add_argument("--population", type=int, default=None, help="CEM population (shrink)")
@@ -733,7 +782,7 @@ def main(argv: list[str] | None = None) -> int:
     the report."""
     args = parse_args(argv)
     if args.report_only:
-        for f in report(args.json, args.figures):
+        for f in report(args.json, args.figures, args.suite_json):
             print("figure:", f.relative_to(REPO) if f.is_relative_to(REPO) else f)
         return 0
     os.environ.setdefault("OMP_NUM_THREADS", "1")
