@@ -89,7 +89,7 @@ TASKS: dict[str, dict[str, Any]] = {
     "inverted-pendulum": _task(_tasks.inverted_pendulum(max_episode_steps=200), 2000, 250),
     "inverted-double-pendulum": _task(_tasks.inverted_double_pendulum(), 5000, 1000),
     "pusher": _task(_tasks.pusher(), 3000, 300),
-    "half-cheetah": _task(_tasks.half_cheetah(), 10000, 2000),
+    "half-cheetah": _task(_tasks.half_cheetah(), 10000, 5000),
 }
 
 #: tiny budgets of the smoke mode (CI); planner settings only reach the planner they act in
