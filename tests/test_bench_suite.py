@@ -136,3 +136,13 @@ def test_reference_rows_hand_computed():
     assert row["sac_ratio"]["value"] == pytest.approx(50.0)
     assert row["pets"] == -5.5 and row["pets_env_steps"] == 2000
     assert row["agent_at_pets_steps"] == -5.0
+
+
+def test_solved_is_read_from_the_curve_against_the_stored_oracle():
+    run = _run("none", 0, None, -4.0, task="reacher")  # curve: -2.0 at 1000, -4.0 at 2000
+    b = {"reacher": {"oracle_return": -3.0, "zero_return": -12.0}}  # solved at >= -3.15
+    (r,) = suite.with_solved([run], b)
+    assert r["env_steps_to_solve"] == 1000 and run["env_steps_to_solve"] is None
+    (r,) = suite.with_solved([run], {"reacher": {"oracle_return": -1.0, "zero_return": -9.0}})
+    assert r["env_steps_to_solve"] is None  # -2.0 < -1.05
+    assert suite.with_solved([run], {})[0] is run  # no baseline: the run's own value

@@ -232,6 +232,24 @@ def run_one(name: str, planner: str, reg: str, seed: int, *, smoke: bool,
     }
 
 
+def with_solved(runs: list[dict[str, Any]], baselines: dict[str, dict[str, Any]]
+                ) -> list[dict[str, Any]]:
+    """The runs with ``env_steps_to_solve`` taken from their curves against the stored
+    baselines: the first evaluation whose mean return reaches :func:`solved_return` of the
+    task's oracle (``None``: never; a run whose task has no baseline keeps its own value). The
+    same test the agent makes during the run, so a baseline computed after a run still counts."""
+    out = []
+    for r in runs:
+        b = baselines.get(r["task"])
+        if b is not None:
+            thr = solved_return(b["oracle_return"])
+            hit = [c["env_steps"] for c in r["curve"] if c["score"] is not None
+                   and c["score"] >= thr]
+            r = {**r, "env_steps_to_solve": hit[0] if hit else None}
+        out.append(r)
+    return out
+
+
 def _median_censored(values: list[int | None], budget: int) -> str:
     """Median of env steps to solve where ``None`` means ">= budget" (a lower bound)."""
     xs = sorted((v if v is not None else math.inf) for v in values)
@@ -249,8 +267,10 @@ def _runs_of(runs: list[dict[str, Any]], name: str, planner: str, reg: str
 
 def aggregate(runs: list[dict[str, Any]], baselines: dict[str, dict[str, Any]]
               ) -> list[dict[str, Any]]:
-    """One row per task x planner x regularizer: solved, median env steps to solve (censored),
-    final scores and normalized scores (median and per seed), median wall per phase."""
+    """One row per task x planner x regularizer: solved, median env steps to solve (censored,
+    :func:`with_solved`), final scores and normalized scores (median and per seed), median wall
+    per phase."""
+    runs = with_solved(runs, baselines)
     rows = []
     for name in TASKS:
         for planner in PLANNERS:
@@ -611,7 +631,7 @@ def write_markdown(state: dict[str, Any], path: Path, figure_dir: Path,
             f"{_fmt(r['normalized_median'])} ({', '.join(_fmt(v) for v in r['normalized'])}) | "
             f"{ph.get('training', 0):.0f} / {ph.get('ltv', 0):.1f} / {ph.get('planning', 0):.0f}"
             f" / {ph.get('eval', 0):.0f} / {ph.get('total', 0):.0f} |")
-    cmp = comparisons(state["runs"])
+    cmp = comparisons(with_solved(state["runs"], baselines))
     state["comparisons"] = cmp
     lines += [
         "",
