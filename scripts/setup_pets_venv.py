@@ -28,11 +28,11 @@ Steps (each skipped when already satisfied, so the script is idempotent):
 
 from __future__ import annotations
 
-import argparse
 import subprocess
 import sys
 import time
 import venv
+from dataclasses import dataclass
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
@@ -111,12 +111,18 @@ def check(py: Path) -> bool:
     return True
 
 
-def main(argv: list[str] | None = None) -> int:
+@dataclass(frozen=True)
+class Args:
+    """Build (or only check) the PETS peer's venv."""
+
+    venv: Path = DEFAULT_VENV
+    """venv folder (outside git)"""
+    check: bool = False
+    """only verify the venv (exit code 1 if broken)"""
+
+
+def build(args: Args) -> int:
     """Build (or only ``--check``) the PETS venv; return the process exit code."""
-    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--venv", type=Path, default=DEFAULT_VENV, help="venv folder (outside git)")
-    p.add_argument("--check", action="store_true", help="only verify the venv")
-    args = p.parse_args(argv)
     t0 = time.perf_counter()
     py = venv_python(args.venv)
     if args.check:
@@ -150,4 +156,7 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.path.insert(0, str(REPO))
+    from mbtsr.cli import main
+
+    sys.exit(main(Args, build))
