@@ -229,8 +229,8 @@ def test_report_draws_the_agents_median_curves_beside_pets(tmp_path):
              "curve": [{"env_steps": 100, "score": -12.0 + s}, {"env_steps": 200, "score": s}]}
             for s in range(3)]
     suite.write_text(json.dumps({"runs": runs}))
-    (tmp_path / "bench_suite_oracles.json").write_text(
-        json.dumps({"oracles": {"reacher": {"mean_return": -3.9}}}))
+    (tmp_path / "bench_suite_baselines.json").write_text(
+        json.dumps({"tasks": {"reacher": {"zero_return": -12.0, "oracle_return": -3.9}}}))
     assert pets_peer.agent_curves(suite, "reacher") == {"cem/none": [(100, -11.0), (200, 1.0)]}
     assert pets_peer.agent_curves(suite, "pusher") == {}
     assert pets_peer.suite_oracle(suite, "reacher") == -3.9

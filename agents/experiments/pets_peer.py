@@ -646,15 +646,16 @@ def agent_curves(suite_json: Path | None, task: str) -> dict[str, list[tuple[int
 
 
 def suite_oracle(suite_json: Path | None, task: str) -> float | None:
-    """The true-model oracle's mean return on ``task`` stored beside the suite's JSON
-    (``bench_suite_oracles.json``), or ``None``."""
+    """The true-model oracle's mean return on ``task`` in the suite's stored baselines beside
+    its JSON (``bench_suite_baselines.json``, written by ``bench_suite.py --baselines``), or
+    ``None``."""
     if suite_json is None:
         return None
-    path = Path(suite_json).with_name("bench_suite_oracles.json")
+    path = Path(suite_json).with_name("bench_suite_baselines.json")
     if not path.is_file():
         return None
-    o = json.loads(path.read_text()).get("oracles", {}).get(task)
-    return None if o is None else float(o["mean_return"])
+    b = json.loads(path.read_text()).get("tasks", {}).get(task)
+    return None if b is None else float(b["oracle_return"])
 
 
 def report(json_path: Path, figures: Path, suite_json: Path | None = None) -> list[Path]:
