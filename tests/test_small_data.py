@@ -117,3 +117,17 @@ def test_smoke_run_writes_the_json_with_equal_optimizer_steps(tmp_path):
     assert set(cell["jac_rel"]) == {"none", "sampled", "exact"}
     assert cell["jac_rel_exact_wins"][1] == 1
     assert (tmp_path / "small.png").stat().st_size > 0
+
+
+def test_label_study_and_states_leave_the_data_unchanged(tmp_path):
+    plain = collect("reacher", 60, 2, episode_steps=30)
+    with_states = collect("reacher", 60, 2, episode_steps=30, states=True)
+    for a, b in zip(plain, with_states, strict=True):
+        np.testing.assert_array_equal(a.x, b.x)
+        np.testing.assert_array_equal(a.u, b.u)
+        assert b.meta["state"].shape == (b.T + 1, 8)  # Reacher: nq = nv = 4
+    out = tmp_path / "labels.json"
+    d = run(Args(**{**SMOKE, "study": "labels", "json": str(out)}))
+    assert len(d["records"]) == 2 and set(d["median_jac_rel"]) == {"inverted-pendulum 1",
+                                                                   "inverted-pendulum 2"}
+    assert all(np.isfinite(r["jac_rel"]) for r in d["records"]) and out.exists()

@@ -99,6 +99,8 @@ class Args:
         "help": "write the results to this JSON file ('' for none)"})
     plot: str = field(default="docs/figures/small_data.png", metadata={
         "help": "write the figure to this PNG ('' for none)"})
+    study: str = field(default="models", metadata={
+        "help": "models (train and measure) or labels (the LTV labels' Jacobian error only)"})
     smoke: bool = field(default=False, metadata={
         "help": "tiny settings for tests (set by --smoke)"})
 
@@ -239,7 +241,58 @@ def plot(cells: list[dict], records: list[dict], regs: list[str], out: str) -> N
     print(f"wrote {out}")
 
 
+def training_episodes(task: str, seed: int, k: int, args: Args) -> tuple[list, list]:
+    """The first ``k`` training episodes of ``task`` for ``seed`` (with their MuJoCo states)
+    and the smooth LTV fit of each (the labels of sampled and exact)."""
+    env = make_task(task).make_env()
+    T_max = min(env.spec.max_episode_steps or 1000, args.episode_steps)
+    env.close()
+    episodes = collect(task, k * T_max, seed, episode_steps=args.episode_steps,
+                       states=True)[:k]
+    ltvs = [ltv_fit(t, args.ltv_lambda) for t in episodes]
+    if any(lm is None for lm in ltvs):
+        raise ValueError(f"{task} seed {seed}: an episode of < 2 transitions")
+    return episodes, ltvs
+
+
+def label_study(args: Args) -> dict:
+    """The Jacobian error of the LTV labels themselves (what sampled and exact pull the model
+    towards) against the true model at the training points of the first k episodes
+    (``jac_points`` of them at most), same metric as the models'."""
+    t0 = time.perf_counter()
+    ks = sorted(int(k) for k in args.episodes.split(","))
+    records = []
+    for seed in range(args.seeds):
+        for task in [t for t in args.tasks.split(",") if t]:
+            episodes, ltvs = training_episodes(task, seed, ks[-1], args)
+            for k in ks:
+                x = np.concatenate([t.meta["state"][:-1] for t in episodes[:k]])
+                u = np.concatenate([t.u for t in episodes[:k]])
+                A_l = np.concatenate([lm.A[:t.T] for lm, t in zip(ltvs, episodes[:k])])
+                B_l = np.concatenate([lm.B[:t.T] for lm, t in zip(ltvs, episodes[:k])])
+                pts = np.sort(np.random.default_rng(seed).choice(
+                    len(u), min(args.jac_points, len(u)), replace=False))
+                A, B, P = true_jacobians(task, x[pts], u[pts])
+                rec = {"task": task, "episodes": k, "seed": seed, "transitions": len(u),
+                       **jacobian_rel_error(A, B, P, A_l[pts], B_l[pts])}
+                records.append(rec)
+                print(f"{task} seed {seed} {k} ep: LTV label jac {rec['jac_rel']:.3f}",
+                      flush=True)
+    cells = {}
+    for r in records:
+        cells.setdefault(f"{r['task']} {r['episodes']}", []).append(r["jac_rel"])
+    result = {"args": dataclasses.asdict(args), "records": records,
+              "median_jac_rel": {c: float(np.median(v)) for c, v in cells.items()},
+              "wall_s": time.perf_counter() - t0}
+    if args.json:
+        write_json_atomic(args.json, result)
+        print(f"wrote {args.json}")
+    return result
+
+
 def run(args: Args) -> dict:
+    if args.study == "labels":
+        return label_study(args)
     torch.set_num_threads(args.threads)
     t0 = time.perf_counter()
     load_start = os.getloadavg()
@@ -253,10 +306,7 @@ def run(args: Args) -> dict:
     for seed in range(args.seeds):  # seeds outermost: a run cut short keeps whole seeds
         for task in tasks:
             tic = time.perf_counter()
-            env = make_task(task).make_env()
-            T_max = min(env.spec.max_episode_steps or 1000, args.episode_steps)
-            env.close()
-            episodes = collect(task, ks[-1] * T_max, seed, episode_steps=args.episode_steps)
+            episodes, ltvs = training_episodes(task, seed, ks[-1], args)
             test = collect(task, args.n_test, seed + 10_000, episode_steps=args.episode_steps,
                            states=True)
             x = np.concatenate([t.meta["state"][:-1] for t in test])
@@ -265,9 +315,6 @@ def run(args: Args) -> dict:
             pts = np.sort(np.random.default_rng(seed).choice(
                 len(u), min(args.jac_points, len(u)), replace=False))
             A, B, P = true_jacobians(task, x[pts], u[pts])
-            ltvs = [ltv_fit(t, args.ltv_lambda) for t in episodes[:ks[-1]]]
-            if any(lm is None for lm in ltvs):
-                raise ValueError(f"{task} seed {seed}: an episode of < 2 transitions")
             data_info.setdefault(task, {})[seed] = {
                 "episode_lengths": [t.T for t in episodes[:ks[-1]]],
                 "test_transitions": len(u), "test_episodes": len(test)}
