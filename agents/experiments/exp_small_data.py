@@ -228,6 +228,7 @@ def plot(cells: list[dict], records: list[dict], regs: list[str], out: str) -> N
                 ax.scatter([p[0] * (1 + 0.04 * (o - 1)) for p in pts], [p[1] for p in pts],
                            s=8, color=col, alpha=0.4)
             ax.set(xscale="log", yscale="log", xticks=ks, xticklabels=[str(k) for k in ks])
+            ax.set_xticks([], minor=True)
             ax.grid(True, which="both", alpha=0.3)
             if i == 0:
                 ax.set_title(task)
