@@ -446,23 +446,28 @@ class ObservedDynamics:
                                  u.reshape(-1, self.action_dim))
         return np.concatenate((xs, self._observe(xs)), axis=1).reshape(*batch, self.state_dim)
 
+    def observation_jacobian(self, xs: np.ndarray) -> np.ndarray:
+        """``C = d observation / dx`` at each state: ``xs [T, n] -> [T, d, n]`` (the affine map's
+        ``C``, else centred differences of step ``fd_eps`` per raw coordinate)."""
+        xs = as_array("xs", xs, (None, self.n))
+        T, n, d, eps = xs.shape[0], self.n, self.obs_dim, self.fd_eps
+        if self.affine is not None:
+            return np.broadcast_to(self.affine[0], (T, d, n))
+        pert = np.repeat(xs[:, None, :], 2 * n, axis=1)  # [T, 2n, n]
+        idx = np.arange(n)
+        pert[:, idx, idx] += eps
+        pert[:, n + idx, idx] -= eps
+        o = self._observe(pert.reshape(-1, n)).reshape(T, 2, n, d)
+        return (o[:, 0] - o[:, 1]).transpose(0, 2, 1) / (2 * eps)
+
     def jacobians(self, z: np.ndarray, u: np.ndarray, t: int = 0) -> tuple[np.ndarray, np.ndarray]:
         """``z: [T, n + d]``, ``u: [T, m]`` -> ``(A_z [T, n+d, n+d], B_z [T, n+d, m])``."""
         z = as_array("z", z, (None, self.state_dim))
         u = as_array("u", u, (z.shape[0], self.action_dim))
-        T, n, d, eps = z.shape[0], self.n, self.obs_dim, self.fd_eps
+        T, n, d = z.shape[0], self.n, self.obs_dim
         x = z[:, :n]
         A, B = self.dynamics.jacobians(x, u)
-        if self.affine is not None:
-            C = np.broadcast_to(self.affine[0], (T, d, n))
-        else:
-            x_next = self.dynamics._step(x, u)
-            pert = np.repeat(x_next[:, None, :], 2 * n, axis=1)  # [T, 2n, n]
-            idx = np.arange(n)
-            pert[:, idx, idx] += eps
-            pert[:, n + idx, idx] -= eps
-            o = self._observe(pert.reshape(-1, n)).reshape(T, 2, n, d)
-            C = (o[:, 0] - o[:, 1]).transpose(0, 2, 1) / (2 * eps)  # [T, d, n]
+        C = self.observation_jacobian(self.dynamics._step(x, u) if self.affine is None else x)
         Az = np.zeros((T, n + d, n + d))
         Az[:, :n, :n] = A
         Az[:, n:, :n] = C @ A

@@ -23,7 +23,7 @@ sys.path.append(str(REPO))  # agents/experiments/ (until the editable install is
 EXPERIMENTS = ["agent_ablation", "bench_env", "bench_ilqr", "bench_ltv", "bench_model_sizes",
                "bench_models",
                "bench_suite",
-               "benchmark_sb3", "collect_excitation", "ilqr_with_model",
+               "benchmark_sb3", "collect_excitation", "exp_small_data", "ilqr_with_model",
                "measure_renormalization", "model_env_sac"]
 
 

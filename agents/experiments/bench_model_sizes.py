@@ -107,16 +107,24 @@ class Args:
     """study plot: comma-separated JSON files of the sizes study (one per task)"""
 
 
-def collect(task_name: str, n: int, seed: int) -> list[Trajectory]:
-    """``n`` transitions of open-loop excitation (episodes alternate random and smooth)."""
+def collect(task_name: str, n: int, seed: int, *, episode_steps: int | None = None,
+            states: bool = False) -> list[Trajectory]:
+    """``n`` transitions of open-loop excitation (episodes alternate random and smooth).
+
+    :param episode_steps: cap on an episode's length (default: the env's own limit).
+    :param states: also record the MuJoCo state ``concat(qpos, qvel)`` of every observation in
+        ``meta["state"]`` (``[T + 1, nq + nv]``, for the true model's Jacobians).
+    """
     task = make_task(task_name)
     env = task.make_env()
     lo, hi = env.action_space.low.astype(float), env.action_space.high.astype(float)
     mid, half = 0.5 * (lo + hi), 0.5 * (hi - lo)
     rng = np.random.default_rng(seed)
+    if states:
+        from envs.mujoco_model import state_of
     trajs, total, episode = [], 0, 0
     while total < n:
-        T = env.spec.max_episode_steps or 1000
+        T = min(env.spec.max_episode_steps or 1000, episode_steps or np.inf)
         if episode % 2 == 0:
             U = rng.uniform(lo, hi, size=(T, lo.size))
         else:
@@ -125,16 +133,20 @@ def collect(task_name: str, n: int, seed: int) -> list[Trajectory]:
             U = np.clip(mid + 0.5 * half * sig / filtered_gaussian_std(8, 1.0), lo, hi)
         obs, _ = env.reset(seed=int(rng.integers(2**31)))
         xs, us = [np.asarray(obs, float)], []
+        qs = [state_of(env)] if states else None
         for t in range(min(T, n - total)):
             obs, _, terminated, truncated, _ = env.step(U[t])
             xs.append(np.asarray(obs, float))
             us.append(U[t])
+            if states:
+                qs.append(state_of(env))
             if terminated or truncated:
                 break
         if us:
-            trajs.append(Trajectory(np.array(xs), np.array(us), env.unwrapped.dt,
-                                    meta={"excitation": "random" if episode % 2 == 0
-                                          else "smooth"}))
+            meta = {"excitation": "random" if episode % 2 == 0 else "smooth"}
+            if states:
+                meta["state"] = np.array(qs)
+            trajs.append(Trajectory(np.array(xs), np.array(us), env.unwrapped.dt, meta=meta))
             total += len(us)
         episode += 1
     env.close()
@@ -206,26 +218,29 @@ def train_one(cfg: ModelConfig, train, test, n, m, seed, tcfg: TrainConfig) -> d
             "cpu_ms_per_step": cpu / max(hist.steps, 1) * 1e3}
 
 
+def ltv_fit(t: Trajectory, lam: float = 10.0):
+    """The smooth LTV fit of ``t`` (:func:`mbtsr.ltv.fit_ltv`, smoothness ``lam``) with the
+    agent's fallback for degenerate regressors (a constant goal): a weak prior on the first
+    Jacobian; ``None`` for a trajectory of fewer than 2 transitions."""
+    from mbtsr.ltv import fit_ltv
+
+    if t.T < 2:
+        return None
+    try:
+        return fit_ltv(t, lam)
+    except ValueError:
+        phi = np.concatenate(t.inputs, axis=1)
+        return fit_ltv(t, lam, P0=1.0 / (1e-6 * float(np.mean(np.sum(phi**2, 1))) * t.T
+                                         + 1e-12))
+
+
 def scaling_study(args: Args) -> dict:
     """Seconds of one update (the agent's training config without early stopping, sampled
     JacProp) against the number of training transitions."""
     from agents.config import AgentConfig
-    from mbtsr.ltv import fit_ltv
-
-    def ltv(t: Trajectory):
-        """The agent's LTV fit with its fallback for degenerate regressors (a constant goal):
-        a weak prior on the first Jacobian."""
-        if t.T < 2:
-            return None
-        try:
-            return fit_ltv(t, 10.0)
-        except ValueError:
-            phi = np.concatenate(t.inputs, axis=1)
-            return fit_ltv(t, 10.0, P0=1.0 / (1e-6 * float(np.mean(np.sum(phi**2, 1))) * t.T
-                                              + 1e-12))
 
     data = collect(args.task, args.n_train, args.seed)
-    ltvs = [ltv(t) for t in data]
+    ltvs = [ltv_fit(t) for t in data]
     keep = [i for i, lm in enumerate(ltvs) if lm is not None]
     data, ltvs = [data[i] for i in keep], [ltvs[i] for i in keep]
     counts = np.cumsum([t.T for t in data])
