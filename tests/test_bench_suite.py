@@ -122,9 +122,11 @@ def test_reference_rows_hand_computed():
     sac = [{"task": "reacher", "method": "sac", "seed": 0, "curve": [
         {"env_steps": 0, "score": -12.0}, {"env_steps": 50_000, "score": -6.0},
         {"env_steps": 100_000, "score": -4.5}]}]
-    pets = [{"task": "reacher", "seed": s, "wall_seconds": 100.0, "curve": [
-        {"env_steps": 1000, "score": -8.0}, {"env_steps": 2000, "score": -6.0 + s}]}
-        for s in (0, 1)]
+    pets = [{"task": "reacher", "seed": s, "wall_seconds": 100.0 * (s + 1), "env_steps": 2000,
+             "curve": [{"env_steps": 1000, "score": -8.0 + s},
+                       {"env_steps": 2000, "score": -6.0 + s}]} for s in (0, 1)]
+    pets.append({"task": "reacher", "seed": 2, "wall_seconds": 50.0, "env_steps": 1000,
+                 "curve": [{"env_steps": 1000, "score": -9.0}]})  # stopped at 1,000
     state = {"runs": runs, "table": suite.aggregate(runs, baselines)}
     row = next(r for r in suite.reference_rows(state, baselines, sac, pets)
                if r["task"] == "reacher")
@@ -134,8 +136,14 @@ def test_reference_rows_hand_computed():
     # SAC reaches -5.0 first at 100,000 env steps: 50x the agent's 2,000
     assert row["sac_steps_to_agent_final"] == {"value": 100_000.0, "lower_bound": False}
     assert row["sac_ratio"]["value"] == pytest.approx(50.0)
+    # at 1,000 every PETS run counts (-8, -7, -9 -> -8); at 2,000 only seeds 0-1 (-6, -5)
+    (at_1k, at_2k) = row["pets_points"]
+    assert at_1k["env_steps"] == 1000 and at_1k["pets"] == -8.0
+    assert at_1k["pets_seeds"] == [0, 1, 2] and at_1k["agent"] == -2.5  # agent: -2, -2.5, -3 @ 1000
+    assert at_2k["pets"] == -5.5 and at_2k["pets_seeds"] == [0, 1]
     assert row["pets"] == -5.5 and row["pets_env_steps"] == 2000
     assert row["agent_at_pets_steps"] == -5.0
+    assert row["pets_wall_per_step"] == pytest.approx(0.05)  # of 100/2000, 200/2000, 50/1000
 
 
 def test_solved_is_read_from_the_curve_against_the_stored_oracle():

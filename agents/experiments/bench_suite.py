@@ -422,11 +422,13 @@ def reference_rows(state: dict[str, Any], baselines: dict[str, dict[str, Any]],
                 row[key] = float(np.median(vals)) if vals else None
             row["sac_seeds"] = [r["seed"] for r in sac]
         pets = [r for r in pets_runs if r["task"] == name and r["curve"]]
-        if pets:
-            row["pets"] = float(np.median([r["curve"][-1]["score"] for r in pets]))
-            row["pets_env_steps"] = int(min(r["curve"][-1]["env_steps"] for r in pets))
-            row["pets_seeds"] = [r["seed"] for r in pets]
-            row["pets_wall"] = float(np.median([r["wall_seconds"] for r in pets]))
+        if pets:  # scored at the env steps every PETS run reached, and at the furthest one
+            ends = sorted({int(r["curve"][-1]["env_steps"]) for r in pets})
+            row["pets_points"] = [pets_point(pets, E) for E in sorted({ends[0], ends[-1]})]
+            last = row["pets_points"][-1]
+            row["pets"], row["pets_env_steps"] = last["pets"], last["env_steps"]
+            row["pets_seeds"] = last["pets_seeds"]
+            row["pets_wall_per_step"] = _wall_per_step(pets)
         cands = [t for t in table if t["task"] == name and t["final_score_median"] is not None]
         if cands:
             best = max(cands, key=lambda t: t["final_score_median"])
@@ -444,12 +446,29 @@ def reference_rows(state: dict[str, Any], baselines: dict[str, dict[str, Any]],
                                     "lower_bound": bool(lower)}
             agent_runs = _runs_of(state["runs"], name, best["planner"], best["regularization"])
             if pets and agent_runs:
-                E = row["pets_env_steps"]
-                agent_at = [v for r in agent_runs if (v := score_at(r["curve"], E)) is not None]
-                row["agent_at_pets_steps"] = float(np.median(agent_at)) if agent_at else None
-                row["agent_wall"] = float(np.median([r["wall_seconds"] for r in agent_runs]))
+                for point in row["pets_points"]:
+                    E = point["env_steps"]
+                    at = [v for r in agent_runs if r["curve"] and r["curve"][-1]["env_steps"] >= E
+                          and (v := score_at(r["curve"], E)) is not None]
+                    point["agent"] = float(np.median(at)) if at else None
+                    point["agent_seeds"] = len(at)
+                row["agent_at_pets_steps"] = row["pets_points"][-1]["agent"]
+                row["agent_wall_per_step"] = _wall_per_step(agent_runs)
         rows.append(row)
     return rows
+
+
+def pets_point(pets: list[dict[str, Any]], env_steps: int) -> dict[str, Any]:
+    """PETS at ``env_steps``: the median score of the runs that got that far (each run's last
+    evaluation at or before it) and their seeds."""
+    got = [r for r in pets if r["curve"][-1]["env_steps"] >= env_steps]
+    return {"env_steps": int(env_steps), "pets_seeds": [r["seed"] for r in got],
+            "pets": float(np.median([score_at(r["curve"], env_steps) for r in got]))}
+
+
+def _wall_per_step(runs: list[dict[str, Any]]) -> float:
+    """Median over runs of wall seconds per env step (training, planning and evaluation)."""
+    return float(np.median([r["wall_seconds"] / max(r["env_steps"], 1) for r in runs]))
 
 
 def score_at(curve: list[dict[str, Any]], steps: float) -> float | None:
@@ -595,16 +614,19 @@ def write_markdown(state: dict[str, Any], path: Path, figure_dir: Path,
         "upper bound where an episode ended early). SAC: stable-baselines3 defaults, "
         f"{SB3_STEPS} env steps, evaluated every 5,000.",
         "",
-        "The agent vs PETS at equal env steps (PETS' last evaluation; the agent's best "
-        "configuration at the same env steps, median over seeds) and their wall times:",
+        "The agent vs PETS at equal env steps: the env steps every PETS run reached and the "
+        "furthest one (median over the runs that got there; the agent's best configuration, "
+        "median over its seeds, each at its last evaluation at or before those env steps), and "
+        "wall seconds per env step (training, planning and evaluation, median over runs):",
         "",
-        "| task | env steps | PETS: median (seeds) | agent: median | agent >= PETS? | wall s: "
-        "agent / PETS |",
+        "| task | env steps | PETS: median (seeds) | agent: median (seeds) | agent >= PETS? | "
+        "wall s per env step: agent / PETS |",
         "|---|---|---|---|---|---|",
-        *[f"| {r['task']} | {r['pets_env_steps']} | {_fmt(r['pets'], 4)} "
-          f"({', '.join(map(str, r['pets_seeds']))}) | {_fmt(r.get('agent_at_pets_steps'), 4)} | "
-          f"{_yes(r.get('agent_at_pets_steps'), r['pets'])} | "
-          f"{_fmt(r.get('agent_wall'))} / {_fmt(r['pets_wall'])} |" for r in refs if "pets" in r],
+        *[f"| {r['task']} | {p['env_steps']} | {_fmt(p['pets'], 4)} "
+          f"({', '.join(map(str, p['pets_seeds']))}) | {_fmt(p.get('agent'), 4)} "
+          f"({p.get('agent_seeds', 0)}) | {_yes(p.get('agent'), p['pets'])} | "
+          f"{_fmt(r.get('agent_wall_per_step'))} / {_fmt(r['pets_wall_per_step'])} |"
+          for r in refs if "pets" in r for p in r["pets_points"]],
         "",
         f"![learning curves per task]({rel}/bench_suite_curves.png)",
         "",
