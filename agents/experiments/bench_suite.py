@@ -423,11 +423,13 @@ def reference_rows(state: dict[str, Any], baselines: dict[str, dict[str, Any]],
             row["sac_seeds"] = [r["seed"] for r in sac]
         pets = [r for r in pets_runs if r["task"] == name and r["curve"]]
         if pets:  # scored at the env steps every PETS run reached, and at the furthest one
-            ends = sorted({int(r["curve"][-1]["env_steps"]) for r in pets})
-            row["pets_points"] = [pets_point(pets, E) for E in sorted({ends[0], ends[-1]})]
-            last = row["pets_points"][-1]
-            row["pets"], row["pets_env_steps"] = last["pets"], last["env_steps"]
-            row["pets_seeds"] = last["pets_seeds"]
+            ends = [int(r["curve"][-1]["env_steps"]) for r in pets]
+            row["pets_points"] = []
+            for E in sorted({min(ends), max(ends)}):
+                score, got = median_at(pets, E)
+                row["pets_points"].append({"env_steps": E, "pets": score,
+                                           "pets_seeds": [r["seed"] for r in got]})
+            row["pets"], row["pets_env_steps"] = score, E  # the furthest point
             row["pets_wall_per_step"] = _wall_per_step(pets)
         cands = [t for t in table if t["task"] == name and t["final_score_median"] is not None]
         if cands:
@@ -447,23 +449,22 @@ def reference_rows(state: dict[str, Any], baselines: dict[str, dict[str, Any]],
             agent_runs = _runs_of(state["runs"], name, best["planner"], best["regularization"])
             if pets and agent_runs:
                 for point in row["pets_points"]:
-                    E = point["env_steps"]
-                    at = [v for r in agent_runs if r["curve"] and r["curve"][-1]["env_steps"] >= E
-                          and (v := score_at(r["curve"], E)) is not None]
-                    point["agent"] = float(np.median(at)) if at else None
-                    point["agent_seeds"] = len(at)
+                    point["agent"], got = median_at(agent_runs, point["env_steps"])
+                    point["agent_seeds"] = len(got)
                 row["agent_at_pets_steps"] = row["pets_points"][-1]["agent"]
                 row["agent_wall_per_step"] = _wall_per_step(agent_runs)
         rows.append(row)
     return rows
 
 
-def pets_point(pets: list[dict[str, Any]], env_steps: int) -> dict[str, Any]:
-    """PETS at ``env_steps``: the median score of the runs that got that far (each run's last
-    evaluation at or before it) and their seeds."""
-    got = [r for r in pets if r["curve"][-1]["env_steps"] >= env_steps]
-    return {"env_steps": int(env_steps), "pets_seeds": [r["seed"] for r in got],
-            "pets": float(np.median([score_at(r["curve"], env_steps) for r in got]))}
+def median_at(runs: list[dict[str, Any]], env_steps: int
+              ) -> tuple[float | None, list[dict[str, Any]]]:
+    """``(median score, the runs counted)`` at ``env_steps``: the runs whose curve got that far,
+    each at its last evaluation at or before it (``None`` if no run counts)."""
+    got = [r for r in runs if r["curve"] and r["curve"][-1]["env_steps"] >= env_steps
+           and score_at(r["curve"], env_steps) is not None]
+    scores = [score_at(r["curve"], env_steps) for r in got]
+    return (float(np.median(scores)) if scores else None), got
 
 
 def _wall_per_step(runs: list[dict[str, Any]]) -> float:
