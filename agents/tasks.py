@@ -85,18 +85,40 @@ class Task:
         return {"cost_fn": self.cost_fn, "terminal_cost_fn": self.terminal_cost_fn,
                 "termination_fn": self.termination_fn}
 
+    def observation_cost(self) -> Callable[[Any, Any], Any]:
+        """The cost on ``(obs, action)`` in CasADi operations: ``cost_fn``, or for an env that
+        states its own quadratic cost (``env.unwrapped.cost_Q``/``cost_R``, as
+        ``mbtsr/TwoLinkArm-v0``) that cost (:class:`agents.task.QuadraticTargetCost`, the one
+        the agent builds for it): what peers outside mbtsr score plans with.
+
+        :raises ValueError: if the task has no ``cost_fn`` and its env states no cost.
+        """
+        if self.cost_fn is not None:
+            return self.cost_fn
+        from agents.task import default_task_for_env
+
+        env = self.make_env()
+        try:
+            found = default_task_for_env(env)
+        finally:
+            env.close()
+        if found is None:
+            raise ValueError(f"task {self.name!r} has no cost_fn and its env states no cost "
+                             "(env.unwrapped.cost_Q/cost_R)")
+        return found[0]
+
     def stage_costs(self, obs: np.ndarray, actions: np.ndarray) -> np.ndarray:
         """The cost of a batch, numerically: ``obs [N, obs_dim]``, ``actions [N, act_dim]`` ->
-        ``[N]`` (one mapped CasADi call; for peers that score plans outside mbtsr)."""
-        if self.cost_fn is None:
-            raise ValueError(f"task {self.name!r} has no cost_fn (the env defines its cost)")
+        ``[N]`` (one mapped CasADi call of :meth:`observation_cost`; for peers that score plans
+        outside mbtsr)."""
+        cost_fn = self.observation_cost()
         obs = np.atleast_2d(np.asarray(obs, dtype=float))
         actions = np.atleast_2d(np.asarray(actions, dtype=float))
         if obs.shape[0] != actions.shape[0]:
             raise ValueError(f"obs and actions must have the same number of rows, got "
                              f"{obs.shape[0]} and {actions.shape[0]}")
         o, a = ca.SX.sym("o", obs.shape[1]), ca.SX.sym("a", actions.shape[1])
-        fn = ca.Function("cost", [o, a], [self.cost_fn(o, a)]).map(obs.shape[0])
+        fn = ca.Function("cost", [o, a], [cost_fn(o, a)]).map(obs.shape[0])
         return np.asarray(fn(obs.T, actions.T)).reshape(-1)
 
 

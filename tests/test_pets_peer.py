@@ -56,6 +56,32 @@ def test_bridge_reward_is_the_env_reward(name):
     assert not bridge.terminated(d["next"]).any()
 
 
+def test_bridge_arm_cost_is_the_env_reward():
+    """The project's arm has no cost_fn: the bridge scores with the quadratic cost its env
+    states (cost_Q, cost_R), which is exactly the env's reward on the clipped action."""
+    task, d, info = _random_steps("two-link-arm", target_limit=0.85 * np.pi)
+    assert task.cost_fn is None
+    bridge = pets_peer.TaskBridge(task)
+    np.testing.assert_allclose(bridge.rewards(d["next"], d["act"]), d["rew"], rtol=1e-12)
+    parts = np.array([i["cost_state"] + i["cost_action"] for i in info])
+    np.testing.assert_allclose(bridge.costs(d["next"], d["act"]), parts, rtol=1e-12)
+
+
+def test_arm_tasks_run_the_suite_arm_and_replan_as_it():
+    far, open_loop = (pets_peer.task_settings(n) for n in ("arm-far", "arm-open-loop"))
+    assert far["agent_task"] == open_loop["agent_task"] == "two-link-arm"
+    assert far["make"]["target_limit"] == pytest.approx(0.85 * np.pi)
+    assert far["planner"]["replan_freq"] == 1 and open_loop["planner"]["replan_freq"] == 10
+    assert far["budget_env_steps"] == 800
+    env = make_task(far["agent_task"], **far["make"]).make_env()
+    assert env.unwrapped.target_limit == pytest.approx(0.85 * np.pi)
+    env.close()
+    # a checkpoint written before agent_task existed (its own name) still resumes
+    old = {k: v for k, v in pets_peer.task_settings("reacher").items() if k != "agent_task"}
+    assert pets_peer._resume_view(old) == pets_peer._resume_view(
+        pets_peer.task_settings("reacher"))
+
+
 def test_bridge_half_cheetah_differs_only_by_the_velocity_term():
     """HalfCheetah: the reward's forward term is the displacement over the step; the cost uses
     the observation's velocity at its end. Everything else (control cost) is exact."""

@@ -34,6 +34,7 @@ from __future__ import annotations
 import argparse
 import copy
 import json
+import math
 import os
 import sys
 import time
@@ -129,6 +130,39 @@ TASKS: dict[str, dict[str, Any]] = {
                     "every 150 steps = every episode)",
                     "learned_rewards true -> false: the reward is the suite's cost"],
     },
+    "arm-far": {
+        "task": "two-link-arm", "make": {"target_limit": 0.85 * math.pi},
+        "budget_env_steps": 800, "eval_every": 400,
+        "eval_note": "every 400 env steps (4 training episodes of 100 steps)",
+        "published": "pets_reacher (mbrl has no override for the project's arm: its reaching "
+                     "task at the same 0.02 s step)",
+        "training": {"model_lr": 4e-4, "model_wd": 1.7e-4, "model_batch_size": 32,
+                     "validation_ratio": 0.05, "num_epochs_train_model": 25, "patience": 25},
+        "initial_exploration_steps": 100, "train_every": 100, "planning_horizon": 15,
+        "cem_published": {"population_size": 350, "num_iterations": 5, "elite_ratio": 0.1,
+                          "alpha": 0.1},
+        "changes": ["no published override: pets_reacher's settings; one random episode (100 "
+                    "steps) of initial exploration, the model trained after every episode",
+                    "the reward is the env's own quadratic cost (cost_Q, cost_R: "
+                    "agents.task.QuadraticTargetCost)"],
+    },
+    "arm-open-loop": {
+        "task": "two-link-arm", "make": {}, "budget_env_steps": 800, "eval_every": 400,
+        "eval_note": "every 400 env steps (4 training episodes of 100 steps)",
+        "published": "pets_reacher (as arm-far), replanning every 10 steps as the suite's task",
+        "training": {"model_lr": 4e-4, "model_wd": 1.7e-4, "model_batch_size": 32,
+                     "validation_ratio": 0.05, "num_epochs_train_model": 25, "patience": 25},
+        "initial_exploration_steps": 100, "train_every": 100, "planning_horizon": 15,
+        "planner": {"replan_freq": 10},
+        "cem_published": {"population_size": 350, "num_iterations": 5, "elite_ratio": 0.1,
+                          "alpha": 0.1},
+        "changes": ["no published override: pets_reacher's settings; one random episode (100 "
+                    "steps) of initial exploration, the model trained after every episode",
+                    "replan_freq 1 -> 10: the suite's open-loop arm task executes 10 planned "
+                    "actions per plan",
+                    "the reward is the env's own quadratic cost (cost_Q, cost_R: "
+                    "agents.task.QuadraticTargetCost)"],
+    },
     "half-cheetah": {
         "make": {}, "budget_env_steps": 10000, "eval_every": 5000,
         "eval_note": "at 5,000 and 10,000 env steps only: an evaluation plans 3,000 steps",
@@ -162,14 +196,27 @@ CEM_SHRINK: dict[str, dict[str, Any]] = {
         "cem": {"population_size": 105, "num_iterations": 3},
         "reason": _SHRINK_WHY.format(pub="~12 (estimated from 105 x 3: 3.7)",
                                      steps="up to ~20,000", hours=65)},
+    "arm-far": {"cem": {"population_size": 105, "num_iterations": 3},
+                "reason": "CEM shrunk as on Reacher (same settings and step): " +
+                _SHRINK_WHY.format(pub=3.4, steps="~1,400", hours=1.3)},
+    "arm-open-loop": {"cem": {"population_size": 105, "num_iterations": 3},
+                      "reason": "CEM shrunk as on Reacher (same settings and step)"},
     "half-cheetah": {"cem": {"population_size": 105, "num_iterations": 3},
                      "reason": _SHRINK_WHY.format(pub="~10 (estimated from 105 x 3: 1.6)",
                                                   steps="~25,000", hours=70)},
 }
 
 #: the settings that must match for a checkpoint to be continued (free text may change)
-RESUME_KEYS = ("make", "budget_env_steps", "eval_every", "eval_seed", "eval_episodes",
-               "initial_exploration_steps", "train_every", "model", "training", "planner")
+RESUME_KEYS = ("agent_task", "make", "budget_env_steps", "eval_every", "eval_seed",
+               "eval_episodes", "initial_exploration_steps", "train_every", "model", "training",
+               "planner")
+
+
+def _resume_view(settings: dict[str, Any]) -> dict[str, Any]:
+    """The settings a checkpoint must share to be continued (records from before
+    ``agent_task`` ran the task of their own name)."""
+    return {k: settings.get(k, settings.get("task")) if k == "agent_task" else settings.get(k)
+            for k in RESUME_KEYS}
 
 
 def task_settings(name: str, *, cem: dict[str, Any] | None = None,
@@ -211,7 +258,7 @@ def task_settings(name: str, *, cem: dict[str, Any] | None = None,
         training["num_epochs_train_model"] = int(epochs)
         shrinks.append(f"num_epochs_train_model -> {epochs}")
     out = {
-        "task": name, "make": t["make"],
+        "task": name, "agent_task": t.get("task", name), "make": t["make"],
         "budget_env_steps": int(budget if budget is not None else t["budget_env_steps"]),
         "eval_every": int(eval_every if eval_every is not None else t["eval_every"]),
         "eval_seed": EVAL_SEED, "eval_episodes": EVAL_EPISODES,
@@ -224,7 +271,8 @@ def task_settings(name: str, *, cem: dict[str, Any] | None = None,
                           "before every evaluation point",
         "published_override": t["published"], "changes": t["changes"],
         "model": dict(COMMON["model"]), "training": training,
-        "planner": {**COMMON["planner"], "planning_horizon": t["planning_horizon"],
+        "planner": {**COMMON["planner"], **t.get("planner", {}),
+                    "planning_horizon": t["planning_horizon"],
                     "cem_published": t["cem_published"], "cem": used},
         "shrinks": shrinks,
         "reward": "reward_fn(act, next_obs) = -task.cost_fn(next_obs, act) (agents.tasks, CasADi "
@@ -243,14 +291,14 @@ def task_settings(name: str, *, cem: dict[str, Any] | None = None,
 class TaskBridge:
     """The task's cost and termination rule as numpy batch functions (no torch needed).
 
-    :param task: an :class:`agents.tasks.Task` with a ``cost_fn``.
+    :param task: an :class:`agents.tasks.Task` with a cost (``cost_fn``, or one its env states:
+        :meth:`agents.tasks.Task.observation_cost`).
     """
 
     def __init__(self, task: Any) -> None:
         import casadi as ca
 
-        if task.cost_fn is None:
-            raise ValueError(f"task {task.name!r} has no cost_fn")
+        cost_fn = task.observation_cost()  # raises if the task has no cost
         self.task = task
         env = task.make_env()
         try:
@@ -259,7 +307,7 @@ class TaskBridge:
         finally:
             env.close()
         o, a = ca.SX.sym("o", self.obs_dim), ca.SX.sym("a", self.act_dim)
-        self._fn = ca.Function("cost", [o, a], [task.cost_fn(o, a)])
+        self._fn = ca.Function("cost", [o, a], [cost_fn(o, a)])
         self._mapped: dict[int, Any] = {}
 
     def costs(self, obs: np.ndarray, actions: np.ndarray) -> np.ndarray:
@@ -377,7 +425,7 @@ class PetsRun:
         torch.set_num_threads(1)
         torch.manual_seed(seed)
         self.seed, self.settings, self.ckpt = int(seed), settings, Path(ckpt_dir)
-        self.task = make_task(task_name, **settings["make"])
+        self.task = make_task(settings.get("agent_task", task_name), **settings["make"])
         self.env = self.task.make_env()
         self.eval_env = self.task.make_env()
         self.bridge = TaskBridge(self.task)
@@ -439,11 +487,12 @@ class PetsRun:
 
         b = self.buffer
         state = {
-            "buffer": {k: getattr(b, k)[: b.num_stored].copy() for k in
+            "buffer": {k: torch.from_numpy(getattr(b, k)[: b.num_stored].copy()) for k in
                        ("obs", "next_obs", "action", "reward", "terminated", "truncated")},
             "buffer_idx": (b.cur_idx, b.num_stored),
             "model": self.model.state_dict(),
-            "elite_models": getattr(self.model.model, "elite_models", None),
+            "elite_models": (None if getattr(self.model.model, "elite_models", None) is None
+                             else [int(i) for i in self.model.model.elite_models]),
             "normalizer": (None if self.model.input_normalizer is None else
                            (self.model.input_normalizer.mean.clone(),
                             self.model.input_normalizer.std.clone())),
@@ -465,11 +514,11 @@ class PetsRun:
         path = self.ckpt / "checkpoint.pt"
         if not path.is_file():
             return None
-        state = torch.load(path, weights_only=False)
+        state = torch.load(path, weights_only=True)  # tensors and plain containers only
         b = self.buffer
         n = state["buffer_idx"][1]
         for k, v in state["buffer"].items():
-            getattr(b, k)[:n] = v
+            getattr(b, k)[:n] = v.numpy()
         b.cur_idx, b.num_stored = state["buffer_idx"]
         self.model.load_state_dict(state["model"])
         if state["elite_models"] is not None:
@@ -557,8 +606,7 @@ def run_task(task_name: str, seed: int, settings: dict[str, Any], json_path: Pat
 
     run = PetsRun(task_name, seed, settings, ckpt_root / f"{task_name}_seed{seed}")
     record = run.load_checkpoint() if resume else None
-    if record is not None and any(record["settings"].get(k) != settings[k]
-                                  for k in RESUME_KEYS):
+    if record is not None and _resume_view(record["settings"]) != _resume_view(settings):
         raise ValueError(f"{task_name} seed {seed}: the checkpoint's settings differ from "
                          f"these; delete {run.ckpt} or pass the same options")
     if record is None:
