@@ -68,6 +68,31 @@ COMMON: dict[str, Any] = {
                 "keep_last_solution": True},
 }
 
+def _arm_task(make: dict[str, Any], replan_every: int = 1) -> dict[str, Any]:
+    """The project's arm (``mbtsr/TwoLinkArm-v0``, 100-step episodes, the suite's budget of 800
+    env steps): mbrl has no override for it; pets_reacher's, its reaching task at the same
+    0.02 s step, replanning as the suite's task does."""
+    changes = ["no published override: pets_reacher's settings; one random episode (100 steps) "
+               "of initial exploration, the model trained after every episode",
+               "the reward is the env's own quadratic cost (cost_Q, cost_R: "
+               "agents.task.QuadraticTargetCost)"]
+    if replan_every != 1:
+        changes.append(f"replan_freq 1 -> {replan_every}: the suite's task executes "
+                       f"{replan_every} planned actions per plan")
+    return {
+        "task": "two-link-arm", "make": make, "budget_env_steps": 800, "eval_every": 400,
+        "eval_note": "every 400 env steps (4 training episodes of 100 steps)",
+        "published": "pets_reacher (mbrl has no override for the project's arm)",
+        "training": {"model_lr": 4e-4, "model_wd": 1.7e-4, "model_batch_size": 32,
+                     "validation_ratio": 0.05, "num_epochs_train_model": 25, "patience": 25},
+        "initial_exploration_steps": 100, "train_every": 100, "planning_horizon": 15,
+        "planner": {"replan_freq": replan_every},
+        "cem_published": {"population_size": 350, "num_iterations": 5, "elite_ratio": 0.1,
+                          "alpha": 0.1},
+        "changes": changes,
+    }
+
+
 #: per task: the suite's env and budget, mbrl's published PETS override it follows, the
 #: published values, what was changed (``changes``) and the CEM actually used (``cem``)
 TASKS: dict[str, dict[str, Any]] = {
@@ -130,39 +155,8 @@ TASKS: dict[str, dict[str, Any]] = {
                     "every 150 steps = every episode)",
                     "learned_rewards true -> false: the reward is the suite's cost"],
     },
-    "arm-far": {
-        "task": "two-link-arm", "make": {"target_limit": 0.85 * math.pi},
-        "budget_env_steps": 800, "eval_every": 400,
-        "eval_note": "every 400 env steps (4 training episodes of 100 steps)",
-        "published": "pets_reacher (mbrl has no override for the project's arm: its reaching "
-                     "task at the same 0.02 s step)",
-        "training": {"model_lr": 4e-4, "model_wd": 1.7e-4, "model_batch_size": 32,
-                     "validation_ratio": 0.05, "num_epochs_train_model": 25, "patience": 25},
-        "initial_exploration_steps": 100, "train_every": 100, "planning_horizon": 15,
-        "cem_published": {"population_size": 350, "num_iterations": 5, "elite_ratio": 0.1,
-                          "alpha": 0.1},
-        "changes": ["no published override: pets_reacher's settings; one random episode (100 "
-                    "steps) of initial exploration, the model trained after every episode",
-                    "the reward is the env's own quadratic cost (cost_Q, cost_R: "
-                    "agents.task.QuadraticTargetCost)"],
-    },
-    "arm-open-loop": {
-        "task": "two-link-arm", "make": {}, "budget_env_steps": 800, "eval_every": 400,
-        "eval_note": "every 400 env steps (4 training episodes of 100 steps)",
-        "published": "pets_reacher (as arm-far), replanning every 10 steps as the suite's task",
-        "training": {"model_lr": 4e-4, "model_wd": 1.7e-4, "model_batch_size": 32,
-                     "validation_ratio": 0.05, "num_epochs_train_model": 25, "patience": 25},
-        "initial_exploration_steps": 100, "train_every": 100, "planning_horizon": 15,
-        "planner": {"replan_freq": 10},
-        "cem_published": {"population_size": 350, "num_iterations": 5, "elite_ratio": 0.1,
-                          "alpha": 0.1},
-        "changes": ["no published override: pets_reacher's settings; one random episode (100 "
-                    "steps) of initial exploration, the model trained after every episode",
-                    "replan_freq 1 -> 10: the suite's open-loop arm task executes 10 planned "
-                    "actions per plan",
-                    "the reward is the env's own quadratic cost (cost_Q, cost_R: "
-                    "agents.task.QuadraticTargetCost)"],
-    },
+    "arm-far": _arm_task({"target_limit": 0.85 * math.pi}),
+    "arm-open-loop": _arm_task({}, replan_every=10),
     "half-cheetah": {
         "make": {}, "budget_env_steps": 10000, "eval_every": 5000,
         "eval_note": "at 5,000 and 10,000 env steps only: an evaluation plans 3,000 steps",
