@@ -149,14 +149,16 @@ def test_env_without_true_model():
     env.close()
 
 
-def test_bench_suite_baselines_smoke():
+@pytest.mark.parametrize("planner", [None, "ilqr"])
+def test_bench_suite_baselines_smoke(planner):
     from agents.experiments.bench_suite import EVAL_EPISODES, task_baselines
 
-    rec = task_baselines("reacher", smoke=True)
+    rec = task_baselines("reacher", smoke=True, planner=planner)
     assert len(rec["oracle_returns"]) == len(rec["zero_returns"]) == EVAL_EPISODES
     # even a 5-step horizon on the true model beats doing nothing
     assert np.isfinite(rec["oracle_return"]) and rec["oracle_return"] > rec["zero_return"]
-    assert rec["planner"]["kind"] == "cem-ilqr" and rec["planner"]["horizon"] == 5
+    assert rec["planner"]["kind"] == (planner or "cem-ilqr") and rec["planner"]["horizon"] == 5
+    assert 0 < rec["oracle_cpu_seconds"]
 
 
 def test_true_model_mpc_keeps_the_double_pendulum_up():

@@ -32,8 +32,11 @@ Measures, in one run:
    ``--scale-only`` runs just this section.
 7. the true-model MPC of every benchmark-suite task (``scripts/bench_suite.py``'s oracle: the
    task's cost and termination on :class:`envs.mujoco_model.MujocoDynamics`): ms per MPC step
-   of the default planner (cem-ilqr) and of iLQR alone, warm-started, and the cold start.
-   ``--true-model-only`` runs just this section.
+   of the default planner (cem-ilqr) and of iLQR alone, warm-started, and the cold start
+   (wall and this process's CPU time); with ``--true-model-returns ilqr`` also that planner's
+   return on the suite's evaluation episodes (the oracle of ``bench_suite.task_baselines`` with that
+   planner), so that speed and strength are measured together. ``--true-model-only`` runs
+   just this section.
 
 Targets (issue 13) are listed in the JSON with a pass flag each. Numbers are noisy on a shared
 machine: every timing is the best of ``--repeats`` runs and the load average is recorded; the
@@ -116,6 +119,12 @@ class Args:
     """warm-started MPC steps per task and planner in section 7 (after the cold start)"""
     true_model_tasks: tuple[str, ...] = ()
     """section 7's tasks (default: every task of scripts/bench_suite.py)"""
+    true_model_planners: tuple[str, ...] = ("cem-ilqr", "ilqr")
+    """section 7's planners"""
+    true_model_returns: tuple[str, ...] = ()
+    """section 7: the planners whose return on the suite's evaluation episodes is measured too
+    (a whole oracle evaluation per task; the default planner's is in
+    docs/results/bench_suite_baselines.json)"""
 
 
 def load_ensemble(path: str, seed: int):
@@ -341,7 +350,7 @@ def true_model_planning(args: Args) -> dict:
         entry = bench_suite.TASKS[name]
         task = entry["task"]
         out[name] = {}
-        for kind in ("cem-ilqr", "ilqr"):
+        for kind in args.true_model_planners:
             planner = dataclasses.replace(PlannerConfig(kind=kind), **{
                 k.split(".", 1)[1]: v for k, v in entry["overrides"].items()
                 if k.startswith("planner.") and k != "planner.replan_every"})
@@ -367,9 +376,14 @@ def true_model_planning(args: Args) -> dict:
                                "ms_per_step_max": 1000 * float(np.max(times[1:])),
                                "cpu_ms_per_step_median": 1000 * float(np.median(cpu[1:])),
                                "steps": len(times) - 1, "horizon": planner.horizon}
+            if kind in args.true_model_returns:
+                oracle = bench_suite.task_baselines(name, planner=kind)
+                out[name][kind].update({k: oracle[k] for k in (
+                    "oracle_return", "oracle_returns", "oracle_seconds", "oracle_cpu_seconds")})
             print(f"true model {name} {kind}: cold {times[0]:.2f} s, "
                   f"{out[name][kind]['ms_per_step_median']:.0f} ms/step "
-                  f"({out[name][kind]['cpu_ms_per_step_median']:.0f} ms CPU)", flush=True)
+                  f"({out[name][kind]['cpu_ms_per_step_median']:.0f} ms CPU), return "
+                  f"{out[name][kind].get('oracle_return', '-')}", flush=True)
     return out
 
 
