@@ -107,20 +107,6 @@ class Task:
                              "(env.unwrapped.cost_Q/cost_R)")
         return found[0]
 
-    def stage_costs(self, obs: np.ndarray, actions: np.ndarray) -> np.ndarray:
-        """The cost of a batch, numerically: ``obs [N, obs_dim]``, ``actions [N, act_dim]`` ->
-        ``[N]`` (one mapped CasADi call of :meth:`observation_cost`; for peers that score plans
-        outside mbtsr)."""
-        cost_fn = self.observation_cost()
-        obs = np.atleast_2d(np.asarray(obs, dtype=float))
-        actions = np.atleast_2d(np.asarray(actions, dtype=float))
-        if obs.shape[0] != actions.shape[0]:
-            raise ValueError(f"obs and actions must have the same number of rows, got "
-                             f"{obs.shape[0]} and {actions.shape[0]}")
-        o, a = ca.SX.sym("o", obs.shape[1]), ca.SX.sym("a", actions.shape[1])
-        fn = ca.Function("cost", [o, a], [cost_fn(o, a)]).map(obs.shape[0])
-        return np.asarray(fn(obs.T, actions.T)).reshape(-1)
-
 
 def _smooth_norm(v: Any) -> Any:
     return ca.sqrt(ca.sumsqr(v) + 1e-4)

@@ -68,6 +68,7 @@ COMMON: dict[str, Any] = {
                 "keep_last_solution": True},
 }
 
+
 def _arm_task(make: dict[str, Any], replan_every: int = 1) -> dict[str, Any]:
     """The project's arm (``mbtsr/TwoLinkArm-v0``, 100-step episodes, the suite's budget of 800
     env steps): mbrl has no override for it; pets_reacher's, its reaching task at the same
@@ -269,8 +270,8 @@ def task_settings(name: str, *, cem: dict[str, Any] | None = None,
                     "planning_horizon": t["planning_horizon"],
                     "cem_published": t["cem_published"], "cem": used},
         "shrinks": shrinks,
-        "reward": "reward_fn(act, next_obs) = -task.cost_fn(next_obs, act) (agents.tasks, CasADi "
-                  "evaluated on the batch)",
+        "reward": "reward_fn(act, next_obs) = -cost(next_obs, act) (the task's "
+                  "Task.observation_cost() in agents.tasks, CasADi evaluated on the batch)",
         "termination": "the task's termination_fn" if name in ("inverted-pendulum",
                                                                "inverted-double-pendulum")
         else "none (mbrl.env.termination_fns.no_termination)",
@@ -419,7 +420,7 @@ class PetsRun:
         torch.set_num_threads(1)
         torch.manual_seed(seed)
         self.seed, self.settings, self.ckpt = int(seed), settings, Path(ckpt_dir)
-        self.task = make_task(settings.get("agent_task", task_name), **settings["make"])
+        self.task = make_task(settings["agent_task"], **settings["make"])
         self.env = self.task.make_env()
         self.eval_env = self.task.make_env()
         self.bridge = TaskBridge(self.task)
