@@ -369,6 +369,8 @@ def oracle_policy(
     termination_fn: Callable | None = None,
     optimizer: Callable[..., Any] = ilqr,
     optimizer_options: Any = None,
+    state_fn: Callable | None = None,
+    obs_fn: Callable | None = None,
 ) -> MPCPolicy:
     """MPC on the TRUE model of ``env``, with the env's own quadratic cost unless
     ``cost_fn``/``state_map`` are given. Same controller (:func:`mpc_policy`: ``optimizer``
@@ -386,6 +388,7 @@ def oracle_policy(
       state needs no map).
 
     ``termination_fn`` (the task's, on observations) is respected as by the agent's MPC.
+    ``state_fn``/``obs_fn`` (the agent's arguments) build ``state_map`` when it is not given.
 
     :raises ValueError: an env that has neither (not MuJoCo, no ``dynamics_model()``): it has
         no true model, so no oracle (the agent then reports ``oracle_cost = None``); also when
@@ -402,6 +405,8 @@ def oracle_policy(
             "true model to build the oracle from"
         )
     spec = env_spec(env)
+    if state_map is None and state_fn is not None:
+        state_map = StateMap(state_fn, obs_fn)
     if cost_fn is None:
         default = default_task_for_env(env)
         if default is None:

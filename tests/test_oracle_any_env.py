@@ -10,10 +10,12 @@ Tiny horizons and episodes throughout."""
 
 from __future__ import annotations
 
+import casadi as ca
 import gymnasium as gym
 import numpy as np
 import pytest
 
+from agents.config import AgentConfig
 from agents.evaluation import evaluate_policy_costs, has_true_model, oracle_policy
 from agents.tasks import inverted_pendulum, reacher
 from envs.mujoco_model import MujocoDynamics, ObservedDynamics, state_of
@@ -178,6 +180,31 @@ def test_true_model_mpc_keeps_the_double_pendulum_up():
                                               - rec.obs[:, 1] * rec.obs[:, 2])
     assert tip_height.min() > 1.15
     assert -rec.cost > 60 * 9.0  # alive bonus 10 minus the distance penalty (0.64 at the top)
+
+
+def test_double_pendulum_task_state_is_the_joint_state_and_maps_back_to_the_observation():
+    """The IDP task's model state is the env's own ``[qpos, qvel]`` (angles from sin/cos), and
+    ``obs_fn(state_fn(obs), obs)`` rebuilds the observation, on states the env visits."""
+    from agents.jacprop_agent import JacPropAgent
+    from agents.tasks import inverted_double_pendulum
+
+    task = inverted_double_pendulum()
+    env = task.make_env()
+    obs, _ = env.reset(seed=3)
+    rng = np.random.default_rng(0)
+    for _ in range(20):
+        data = env.unwrapped.data
+        state = task.state_fn(obs)
+        np.testing.assert_allclose(state, np.r_[data.qpos, data.qvel], rtol=0, atol=1e-12)
+        back = np.asarray(ca.DM(task.obs_fn(ca.DM(state), ca.DM(obs)))).ravel()
+        np.testing.assert_allclose(back, obs, rtol=0, atol=1e-12)
+        obs, _, terminated, _, _ = env.step(rng.uniform(-1, 1, 1))
+        if terminated:
+            obs, _ = env.reset(seed=4)
+    batch = np.stack([obs, obs])
+    assert task.state_fn(batch).shape == (2, 6)
+    agent = JacPropAgent(task.make_env(), AgentConfig(progress=False), **task.agent_kwargs())
+    assert agent.state_dim == 6
 
 
 def test_affine_observations_are_detected_and_give_the_same_lifted_model():
