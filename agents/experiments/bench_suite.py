@@ -87,7 +87,14 @@ TASKS: dict[str, dict[str, Any]] = {
     "arm-open-loop": _task(_tasks.two_link_arm(), 800, 200, **{"planner.replan_every": 10}),
     "reacher": _task(_tasks.reacher(), 2000, 250),
     "inverted-pendulum": _task(_tasks.inverted_pendulum(max_episode_steps=200), 2000, 250),
-    "inverted-double-pendulum": _task(_tasks.inverted_double_pendulum(), 5000, 1000),
+    # horizon 15: the learned model's k-step error explodes between 10 and 20 steps (4,746
+    # near-upright steps: 0.55 rad/s at 5 steps, 2.1 at 10, 27 at 20) and at 20 or 30 steps the
+    # learned-model MPC falls within 17-61 steps; the terminal weight 100 stands in for the cost
+    # beyond the shortened horizon (without it even the true model falls on episode 1001 at
+    # horizons 10-20). Chosen on the true model and on fixed data, not on suite runs:
+    # docs/results/idp_state_and_horizon.json
+    "inverted-double-pendulum": _task(_tasks.inverted_double_pendulum(), 5000, 1000,
+                                      **{"planner.horizon": 15, "planner.terminal_weight": 100.0}),
     "pusher": _task(_tasks.pusher(), 3000, 300),
     "half-cheetah": _task(_tasks.half_cheetah(), 10000, 5000),
 }
@@ -175,6 +182,7 @@ def task_baselines(name: str, *, smoke: bool = False, planner: str | None = None
         "oracle_seconds": wall, "oracle_cpu_seconds": cpu,
         "oracle_ms_per_step_bound": 1000.0 * wall / steps,
         "planner": {"kind": cfg.kind, "horizon": cfg.horizon,
+                    "terminal_weight": cfg.terminal_weight,
                     "ilqr_iterations": cfg.ilqr_iterations,
                     "first_plan_iterations": cfg.first_plan_iterations},
     }
