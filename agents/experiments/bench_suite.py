@@ -626,7 +626,10 @@ def write_markdown(state: dict[str, Any], path: Path, figure_dir: Path,
         "",
         "Oracle planning ms/step: its evaluation wall time over the episodes' full length (an "
         "upper bound where an episode ended early). SAC: stable-baselines3 defaults, "
-        f"{SB3_STEPS} env steps, evaluated every 5,000.",
+        f"{SB3_STEPS} env steps, evaluated every 5,000. Task settings beyond the agent's "
+        "defaults (the agent and its oracle use them): "
+        + "; ".join(f"{name} " + ", ".join(f"{k}={v}" for k, v in entry["overrides"].items())
+                    for name, entry in TASKS.items() if entry["overrides"]) + ".",
         "",
         "The agent vs PETS at equal env steps: the env steps every PETS run reached and the "
         "furthest one (median over the runs that got there; the agent's best configuration, "
