@@ -121,6 +121,45 @@ def simulation_rms(
     return _rms(np.concatenate(errs), per_dimension), n_diverged
 
 
+def k_step_rms(
+    model: DynamicsModel,
+    trajs: Trajectory | Sequence[Trajectory],
+    k: int,
+    *,
+    per_dimension: bool = False,
+) -> float | np.ndarray:
+    """Open-loop prediction RMS ``k`` steps ahead, from every start of every trajectory.
+
+    ``sqrt(mean_{traj, t, i} (x_{t+k,i} - f^k(x_t; u_t, ..., u_{t+k-1})_i)^2)`` over the starts
+    ``t = 0..T-k`` of the trajectories with ``T >= k`` (one trajectory's starts propagate as one
+    batch). ``k = 1`` is :func:`prediction_rms`; how the error grows with ``k`` says how long a
+    plan the model supports (``docs/troubleshooting.md``).
+
+    :param k: steps ahead, ``>= 1``.
+    :param per_dimension: return the RMS per state dimension ``[n]``.
+    :return: float, or ``[n]``; ``inf`` if a prediction is not finite.
+    :raises ValueError: ``k`` is not an integer >= 1, or no trajectory has ``k`` steps.
+    """
+    if isinstance(k, bool) or not isinstance(k, (int, np.integer)) or k < 1:
+        raise ValueError(f"k must be an integer >= 1, got {k!r}")
+    trajs = _trajectories(trajs)
+    _check_model_dims(model, trajs)
+    errs = []
+    for tr in trajs:
+        starts = tr.T - k + 1
+        if starts < 1:
+            continue
+        x = tr.x[:starts]
+        with np.errstate(invalid="ignore", over="ignore"):
+            for j in range(k):
+                x = np.asarray(model.step(x, tr.u[j: j + starts]), dtype=float)
+        errs.append(tr.x[k: k + starts] - x)
+    if not errs:
+        raise ValueError(f"no trajectory has k={k} steps (the longest has "
+                         f"{max(tr.T for tr in trajs)})")
+    return _rms(np.concatenate(errs), per_dimension)
+
+
 def _as_jacobian(name: str, J: object, allow_members: bool) -> np.ndarray:
     """``[T, n, n+m]`` (or ``[K, T, n, n+m]``) from an array or an ``(A, B)`` pair."""
     if isinstance(J, tuple):

@@ -11,6 +11,7 @@ from mbtsr.metrics import (
     jacobian_eigenvalues,
     jacobian_error,
     jacobian_rms_per_entry,
+    k_step_rms,
     prediction_rms,
     simulation_rms,
 )
@@ -169,3 +170,33 @@ def test_metrics_reject_bad_inputs():
         jacobian_eigenvalues(model)
     with pytest.raises(ValueError, match="only used with a model"):
         jacobian_eigenvalues(A, np.zeros((1, 2)), np.zeros((1, 1)))
+
+
+def test_k_step_rms_matches_the_closed_form_of_a_wrong_linear_model():
+    """A model ``(A', B)`` of data from ``(A, B)``: ``k`` steps ahead its prediction is
+    ``A'^k x_t + sum_j A'^(k-1-j) B u_(t+j)``, written here with matrix powers; ``k = 1`` is
+    ``prediction_rms``, the true model's error is 0 at every ``k``."""
+    A, B = rotation_system()
+    trajs = make_trajs(A, B, T=20, count=2) + make_trajs(A, B, T=7, count=1, seed=3)
+    A_hat = 1.05 * A
+    for k in (1, 3, 8):
+        errs = []
+        for tr in trajs:
+            for t in range(tr.T - k + 1):
+                pred = np.linalg.matrix_power(A_hat, k) @ tr.x[t] + sum(
+                    np.linalg.matrix_power(A_hat, k - 1 - j) @ B @ tr.u[t + j] for j in range(k))
+                errs.append(tr.x[t + k] - pred)
+        want = np.sqrt(np.mean(np.square(errs)))
+        got = k_step_rms(LinearDynamics(A_hat, B), trajs, k)
+        assert got == pytest.approx(want, rel=1e-12)
+        assert k_step_rms(LinearDynamics(A, B), trajs, k) == pytest.approx(0.0, abs=1e-12)
+    assert k_step_rms(LinearDynamics(A_hat, B), trajs, 1) == pytest.approx(
+        prediction_rms(LinearDynamics(A_hat, B), trajs), rel=1e-12)
+    assert k_step_rms(LinearDynamics(A_hat, B), trajs, 8, per_dimension=True).shape == (2,)
+
+
+@pytest.mark.parametrize("k", [0, -1, 2.0, True, 21])
+def test_k_step_rms_refuses_a_bad_k(k):
+    A, B = rotation_system()
+    with pytest.raises(ValueError, match="k"):
+        k_step_rms(LinearDynamics(A, B), make_trajs(A, B, T=20, count=1), k)
