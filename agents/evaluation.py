@@ -405,8 +405,10 @@ def oracle_policy(
             "true model to build the oracle from"
         )
     spec = env_spec(env)
-    if state_map is None and state_fn is not None:
-        state_map = StateMap(state_fn, obs_fn)
+    if state_fn is not None or obs_fn is not None:
+        if state_map is not None:
+            raise ValueError("give state_map or state_fn/obs_fn, not both")
+        state_map = StateMap(state_fn, obs_fn)  # refuses one without the other
     if cost_fn is None:
         default = default_task_for_env(env)
         if default is None:

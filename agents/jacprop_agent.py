@@ -426,7 +426,8 @@ class JacPropAgent(SB3Predictor):
             raise ValueError(
                 f"the agent was saved with a custom state_fn/obs_fn (model state of dimension "
                 f"{saved_n}); functions are not saved: pass the same state_fn= and obs_fn= to "
-                "load"
+                "load (with the task's other functions: for a task of agents.tasks, "
+                "JacPropAgent.load(path, env, **task.agent_kwargs()))"
             )
         if task.get("cost") is None and cost_fn is None and (
             env is None or default_task_for_env(env) is None

@@ -2,7 +2,9 @@
 would (the env's own reward terms, with CasADi operations), and the env's termination rule.
 
 A task is data (:class:`Task`) that the agent, the true-model oracle, the benchmark suite, the
-SB3 baselines and the PETS peer all consume unchanged::
+SB3 baselines and the PETS peer all consume unchanged (a task's ``state_fn``/``obs_fn``, the
+agent's model state, concern the agent alone: SB3, PETS and the small-data study work on the
+observation)::
 
     from agents import AgentConfig, JacPropAgent
     from agents.tasks import pusher
@@ -197,7 +199,8 @@ def inverted_double_pendulum(**make: Any) -> Task:
     """InvertedDoublePendulum-v5: its reward terms minus the alive bonus, its termination, and
     a model state of joint angles and velocities (6 numbers, not the 9 of the observation: on
     the same 1,746 transitions the held-out one-step error fell from 0.16 to 0.13 of the step
-    and the learned-model MPC held the poles 1.3-8x longer per episode, ``docs/benchmark.md``)."""
+    and the learned-model MPC held the poles 1.3-8x longer per episode,
+    ``docs/results/idp_state_and_horizon.json``)."""
     return Task("inverted-double-pendulum", "InvertedDoublePendulum-v5", make,
                 _double_pendulum_cost, termination_fn=_double_pendulum_terminated,
                 state_fn=_double_pendulum_state, obs_fn=_double_pendulum_obs)

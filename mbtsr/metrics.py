@@ -25,6 +25,7 @@ from mbtsr.validation import as_array, check_positive
 
 __all__ = [
     "prediction_rms",
+    "k_step_rms",
     "simulation_rms",
     "jacobian_error",
     "jacobian_rms_per_entry",
@@ -149,10 +150,8 @@ def k_step_rms(
         starts = tr.T - k + 1
         if starts < 1:
             continue
-        x = tr.x[:starts]
-        with np.errstate(invalid="ignore", over="ignore"):
-            for j in range(k):
-                x = np.asarray(model.step(x, tr.u[j: j + starts]), dtype=float)
+        inputs = np.stack([tr.u[j: j + starts] for j in range(k)])  # [k, starts, m]
+        x = rollout(model, tr.x[:starts], inputs)[-1]  # NaN once a prediction diverged
         errs.append(tr.x[k: k + starts] - x)
     if not errs:
         raise ValueError(f"no trajectory has k={k} steps (the longest has "

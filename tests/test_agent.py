@@ -346,6 +346,33 @@ def test_oracle_mpc_with_the_true_model_reaches_the_target():
     assert oracle < 0.25 * idle
 
 
+def test_oracle_takes_the_agents_state_maps_and_refuses_conflicting_ones():
+    """On the arm (whose true model lives in the agent's model state) ``state_fn``/``obs_fn``
+    equal to the arm's own map plan exactly as the default map; conflicting maps are refused."""
+    import casadi as ca
+
+    from agents.task import StateMap
+
+    env = gym.make(ARM, episode_steps=10)
+    obs, _ = env.reset(seed=0, options={"target": np.array([0.6, -0.4])})
+
+    def state_fn(o):
+        return np.asarray(o)[..., :4]
+
+    def obs_fn(s, ref):
+        return ca.vertcat(s, ref[4:6])
+
+    kw = {"horizon": 8, "iterations": 2, "first_plan_iterations": 5}
+    a_default, _ = oracle_policy(env, **kw).predict(obs, None, episode_start=True)
+    a_maps, _ = oracle_policy(env, state_fn=state_fn, obs_fn=obs_fn, **kw).predict(
+        obs, None, episode_start=True)
+    np.testing.assert_allclose(a_maps, a_default, rtol=0, atol=1e-9)
+    with pytest.raises(ValueError, match="not both"):
+        oracle_policy(env, state_map=StateMap(prefix=4), state_fn=state_fn, obs_fn=obs_fn, **kw)
+    with pytest.raises(ValueError, match="obs_fn was given without state_fn"):
+        oracle_policy(env, obs_fn=obs_fn, **kw)
+
+
 # ----------------------------------------------------------------- learning: the arm (tiny)
 @pytest.fixture(scope="module")
 def arm_run(tmp_path_factory):

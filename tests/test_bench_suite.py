@@ -154,3 +154,19 @@ def test_solved_is_read_from_the_curve_against_the_stored_oracle():
     (r,) = suite.with_solved([run], {"reacher": {"oracle_return": -1.0, "zero_return": -9.0}})
     assert r["env_steps_to_solve"] is None  # -2.0 < -1.05
     assert suite.with_solved([run], {})[0] is run  # no baseline: the run's own value
+
+
+def test_a_stored_baseline_of_other_planner_settings_is_refused():
+    """The oracle's return sets the solved threshold: one computed with another horizon or
+    terminal weight than the task's settings now is refused, naming the command to recompute."""
+    from agents.config import PlannerConfig
+    from agents.experiments.bench_suite import _check_baseline_settings, _planner_settings
+
+    cfg = PlannerConfig(horizon=15, terminal_weight=100.0)
+    stored = {"planner": _planner_settings(cfg)}
+    _check_baseline_settings("inverted-double-pendulum", stored, cfg)  # same settings: fine
+    _check_baseline_settings("x", stored, PlannerConfig(kind="ilqr", horizon=15,
+                                                        terminal_weight=100.0))  # kind aside
+    _check_baseline_settings("x", {"planner": {"kind": "cem-ilqr", "horizon": 15}}, cfg)
+    with pytest.raises(ValueError, match=r"horizon.*--baselines --tasks inverted-double"):
+        _check_baseline_settings("inverted-double-pendulum", stored, PlannerConfig())

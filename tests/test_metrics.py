@@ -195,6 +195,16 @@ def test_k_step_rms_matches_the_closed_form_of_a_wrong_linear_model():
     assert k_step_rms(LinearDynamics(A_hat, B), trajs, 8, per_dimension=True).shape == (2,)
 
 
+def test_k_step_rms_of_a_diverging_model_is_inf():
+    """Predictions that overflow are reported (``inf``), not a validation error of the model's
+    own next input."""
+    A, B = rotation_system()
+    trajs = make_trajs(A, B, T=20, count=1)
+    blown = LinearDynamics(np.array([[1e100, 0.0], [0.0, 1.0]]), B)
+    assert np.isfinite(k_step_rms(blown, trajs, 1))  # errors of about 1e100
+    assert k_step_rms(blown, trajs, 4) == np.inf  # the states overflow at the 4th step
+
+
 @pytest.mark.parametrize("k", [0, -1, 2.0, True, 21])
 def test_k_step_rms_refuses_a_bad_k(k):
     A, B = rotation_system()

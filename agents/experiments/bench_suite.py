@@ -181,11 +181,39 @@ def task_baselines(name: str, *, smoke: bool = False, planner: str | None = None
         "oracle_returns": oracle.tolist(), "oracle_return": float(np.mean(oracle)),
         "oracle_seconds": wall, "oracle_cpu_seconds": cpu,
         "oracle_ms_per_step_bound": 1000.0 * wall / steps,
-        "planner": {"kind": cfg.kind, "horizon": cfg.horizon,
-                    "terminal_weight": cfg.terminal_weight,
-                    "ilqr_iterations": cfg.ilqr_iterations,
-                    "first_plan_iterations": cfg.first_plan_iterations},
+        "planner": _planner_settings(cfg), "git": _git(),
     }
+
+
+def _planner_settings(cfg: Any) -> dict[str, Any]:
+    """The planner settings a stored oracle was computed with (a :class:`PlannerConfig`)."""
+    return {"kind": cfg.kind, "horizon": cfg.horizon, "terminal_weight": cfg.terminal_weight,
+            "ilqr_iterations": cfg.ilqr_iterations,
+            "first_plan_iterations": cfg.first_plan_iterations}
+
+
+def _settings_sentence() -> str:
+    """The report's sentence on the task settings beyond the agent's defaults ('' if none)."""
+    parts = [f"{name} " + ", ".join(f"{k}={v}" for k, v in entry["overrides"].items())
+             for name, entry in TASKS.items() if entry["overrides"]]
+    return (" Task settings beyond the agent's defaults (the agent and its oracle use them): "
+            + "; ".join(parts) + ".") if parts else ""
+
+
+def _check_baseline_settings(name: str, baseline: dict[str, Any], planner_cfg: Any) -> None:
+    """Refuse a stored oracle computed with other planner settings (horizon, terminal weight,
+    iterations) than the task's now: its return and the solved threshold would not apply.
+
+    :raises ValueError: naming the task, both settings and the command that recomputes it.
+    """
+    stored = {k: v for k, v in baseline.get("planner", {}).items() if k != "kind"}
+    now = {k: v for k, v in _planner_settings(planner_cfg).items()
+           if k != "kind" and k in stored}
+    if stored != now:
+        raise ValueError(
+            f"the stored baseline of task {name!r} was computed with planner settings "
+            f"{stored}, the task now plans with {now}: recompute it with "
+            f"`python scripts/bench_suite.py --baselines --tasks {name} --seeds`")
 
 
 def solved_return(oracle_return: float) -> float:
@@ -225,6 +253,8 @@ def run_one(name: str, planner: str, reg: str, seed: int, *, smoke: bool,
     if baseline is not None:
         overrides["evaluation.solved_return"] = solved_return(baseline["oracle_return"])
     agent = make_agent(name, overrides, smoke=smoke)
+    if baseline is not None and not smoke:
+        _check_baseline_settings(name, baseline, agent.config.planner)
     budget = SMOKE_BUDGET if smoke else TASKS[name]["budget"]
     tic, cpu_tic = time.perf_counter(), time.process_time()
     with warnings.catch_warnings():
@@ -626,10 +656,7 @@ def write_markdown(state: dict[str, Any], path: Path, figure_dir: Path,
         "",
         "Oracle planning ms/step: its evaluation wall time over the episodes' full length (an "
         "upper bound where an episode ended early). SAC: stable-baselines3 defaults, "
-        f"{SB3_STEPS} env steps, evaluated every 5,000. Task settings beyond the agent's "
-        "defaults (the agent and its oracle use them): "
-        + "; ".join(f"{name} " + ", ".join(f"{k}={v}" for k, v in entry["overrides"].items())
-                    for name, entry in TASKS.items() if entry["overrides"]) + ".",
+        f"{SB3_STEPS} env steps, evaluated every 5,000." + _settings_sentence(),
         "",
         "The agent vs PETS at equal env steps: the env steps every PETS run reached and the "
         "furthest one (median over the runs that got there; the agent's best configuration, "
@@ -783,9 +810,17 @@ def _header(command_state: dict[str, Any], smoke: bool) -> None:
     command_state.update({
         "command": " ".join(sys.argv), "smoke": smoke,
         "machine": f"{os.cpu_count()} cores, {platform.platform()}",
-        "git": subprocess.run(["git", "-C", str(REPO), "rev-parse", "--short", "HEAD"],
-                              capture_output=True, text=True).stdout.strip(),
+        "git": _git(),
     })
+
+
+def _git() -> str:
+    """The short commit of the checkout, with ``-dirty`` when tracked files are modified."""
+    def git(*cmd: str) -> str:
+        return subprocess.run(["git", "-C", str(REPO), *cmd], capture_output=True,
+                              text=True).stdout.strip()
+    return git("rev-parse", "--short", "HEAD") + (
+        "-dirty" if git("status", "--porcelain", "--untracked-files=no") else "")
 
 
 def _load(path: Path) -> dict[str, Any]:
