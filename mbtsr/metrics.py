@@ -132,9 +132,9 @@ def k_step_rms(
     """Open-loop prediction RMS ``k`` steps ahead, from every start of every trajectory.
 
     ``sqrt(mean_{traj, t, i} (x_{t+k,i} - f^k(x_t; u_t, ..., u_{t+k-1})_i)^2)`` over the starts
-    ``t = 0..T-k`` of the trajectories with ``T >= k`` (one trajectory's starts propagate as one
-    batch). ``k = 1`` is :func:`prediction_rms`; how the error grows with ``k`` says how long a
-    plan the model supports (``docs/troubleshooting.md``).
+    ``t = 0..T-k`` of the trajectories with ``T >= k`` (all starts propagate as one batch).
+    ``k = 1`` is :func:`prediction_rms`; how the error grows with ``k`` says how long a plan the
+    model supports (``docs/troubleshooting.md``).
 
     :param k: steps ahead, ``>= 1``.
     :param per_dimension: return the RMS per state dimension ``[n]``.
@@ -145,18 +145,17 @@ def k_step_rms(
         raise ValueError(f"k must be an integer >= 1, got {k!r}")
     trajs = _trajectories(trajs)
     _check_model_dims(model, trajs)
-    errs = []
-    for tr in trajs:
-        starts = tr.T - k + 1
-        if starts < 1:
-            continue
-        inputs = np.stack([tr.u[j: j + starts] for j in range(k)])  # [k, starts, m]
-        x = rollout(model, tr.x[:starts], inputs)[-1]  # NaN once a prediction diverged
-        errs.append(tr.x[k: k + starts] - x)
-    if not errs:
+    long = [tr for tr in trajs if tr.T >= k]
+    if not long:
         raise ValueError(f"no trajectory has k={k} steps (the longest has "
                          f"{max(tr.T for tr in trajs)})")
-    return _rms(np.concatenate(errs), per_dimension)
+    n0 = [tr.T - k + 1 for tr in long]  # starts per trajectory
+    x0 = np.concatenate([tr.x[:s] for tr, s in zip(long, n0)])  # [N, n]
+    inputs = np.stack([np.concatenate([tr.u[j: j + s] for tr, s in zip(long, n0)])
+                       for j in range(k)])  # [k, N, m]
+    target = np.concatenate([tr.x[k: k + s] for tr, s in zip(long, n0)])
+    x = rollout(model, x0, inputs)[-1]  # NaN once a prediction diverged
+    return _rms(target - x, per_dimension)
 
 
 def _as_jacobian(name: str, J: object, allow_members: bool) -> np.ndarray:
