@@ -155,7 +155,9 @@ def test_env_without_true_model():
 def test_bench_suite_baselines_smoke(planner):
     from agents.experiments.bench_suite import EVAL_EPISODES, task_baselines
 
-    rec = task_baselines("reacher", smoke=True, planner=planner)
+    rec = task_baselines("reacher", smoke=True, planner=planner,
+                         overrides={"planner.terminal_weight": 3.0})
+    assert rec["planner"]["terminal_weight"] == 3.0  # the overrides reach the oracle's planner
     assert len(rec["oracle_returns"]) == len(rec["zero_returns"]) == EVAL_EPISODES
     # even a 5-step horizon on the true model beats doing nothing
     assert np.isfinite(rec["oracle_return"]) and rec["oracle_return"] > rec["zero_return"]
@@ -232,3 +234,18 @@ def test_affine_observations_are_detected_and_give_the_same_lifted_model():
         other = gym.make(env_id)
         other.reset(seed=0)
         assert ObservedDynamics(MujocoDynamics(other), other).affine is None
+
+
+def test_true_model_variants_parse_and_refuse():
+    """bench_ilqr's section 7 measures planner kinds and named planner settings alike, and
+    refuses variants that are not planner settings with a message naming them."""
+    from agents.experiments.bench_ilqr import Args, _true_model_variants
+
+    a = Args(true_model_planners=("ilqr",),
+             true_model_variants='{"h15": {"planner.horizon": 15}}')
+    assert _true_model_variants(a) == {"ilqr": {"planner.kind": "ilqr"},
+                                       "h15": {"planner.horizon": 15}}
+    with pytest.raises(ValueError, match=r"only planner.*training.steps"):
+        _true_model_variants(Args(true_model_variants='{"x": {"training.steps": 3}}'))
+    with pytest.raises(ValueError, match="JSON object"):
+        _true_model_variants(Args(true_model_variants="[1]"))

@@ -35,8 +35,9 @@ Measures, in one run:
    of the default planner (cem-ilqr) and of iLQR alone, warm-started, and the cold start
    (wall and this process's CPU time); with ``--true-model-returns ilqr`` also that planner's
    return on the suite's evaluation episodes (the oracle of ``bench_suite.task_baselines`` with that
-   planner), so that speed and strength are measured together. ``--true-model-only`` runs
-   just this section.
+   planner), so that speed and strength are measured together. ``--true-model-variants``
+   adds named planner settings (horizon, samples, iterations), each timed and scored the same
+   way. ``--true-model-only`` runs just this section.
 
 Targets (issue 13) are listed in the JSON with a pass flag each. Numbers are noisy on a shared
 machine: every timing is the best of ``--repeats`` runs and the load average is recorded; the
@@ -121,6 +122,9 @@ class Args:
     """section 7's tasks (default: every task of scripts/bench_suite.py)"""
     true_model_planners: tuple[str, ...] = ("cem-ilqr", "ilqr")
     """section 7's planners"""
+    true_model_variants: str = ""
+    """section 7: more planner variants, a JSON object of labels to dotted planner settings on
+    top of the task's (e.g. '{"h15": {"planner.horizon": 15}}'); their returns are measured too"""
     true_model_returns: tuple[str, ...] = ()
     """section 7: the planners whose return on the suite's evaluation episodes is measured too
     (a whole oracle evaluation per task; the default planner's is in
@@ -336,29 +340,50 @@ def planning_at_scale(args: Args) -> dict:
     return out
 
 
+def _true_model_variants(args: Args) -> dict[str, dict]:
+    """Section 7's planner variants by label: each of ``true_model_planners`` (its kind) and
+    each entry of ``true_model_variants`` (a JSON object of labels to dotted planner settings)."""
+    variants = {kind: {"planner.kind": kind} for kind in args.true_model_planners}
+    if args.true_model_variants:
+        extra = json.loads(args.true_model_variants)
+        if not isinstance(extra, dict) or not all(isinstance(v, dict) for v in extra.values()):
+            raise ValueError("--true-model-variants must be a JSON object of labels to objects of "
+                             "planner settings, e.g. '{\"h15\": {\"planner.horizon\": 15}}', "
+                             f"got {args.true_model_variants!r}")
+        bad = [k for v in extra.values() for k in v if not k.startswith("planner.")]
+        if bad:
+            raise ValueError(f"--true-model-variants sets only planner.* settings, got {bad}")
+        variants.update(extra)
+    return variants
+
+
 def true_model_planning(args: Args) -> dict:
     """Section 7: ms per MPC step on the TRUE model of every benchmark-suite task (the oracle of
-    ``scripts/bench_suite.py``: the task's cost, termination and horizon, evaluation episode
-    1000), for the agent's default planner (cem-ilqr) and for iLQR alone: the cold start (the
-    first plan of an episode) and the median of ``true_model_steps`` warm-started steps."""
+    ``scripts/bench_suite.py``: the task's cost, termination and planner settings, evaluation
+    episode 1000) for each planner variant (:func:`_true_model_variants`; by default the agent's
+    planner cem-ilqr and iLQR alone): the cold start (the first plan of an episode) and the
+    median of ``true_model_steps`` warm-started steps; for the variants named in
+    ``true_model_returns`` (and every ``true_model_variants`` entry) also the return on the
+    suite's evaluation episodes, so that speed and strength are measured together."""
     from agents.evaluation import oracle_policy
     from agents.experiments import bench_suite
     from mbtsr.episode import as_policy
 
+    variants = _true_model_variants(args)
     out: dict = {}
     for name in args.true_model_tasks or tuple(bench_suite.TASKS):
-        entry = bench_suite.TASKS[name]
-        task = entry["task"]
+        task = bench_suite.TASKS[name]["task"]
         out[name] = {}
-        for kind in args.true_model_planners:
-            planner = dataclasses.replace(PlannerConfig(kind=kind), **{
-                k.split(".", 1)[1]: v for k, v in entry["overrides"].items()
-                if k.startswith("planner.") and k != "planner.replan_every"})
+        for label, overrides in variants.items():
+            agent = bench_suite.make_agent(name, overrides)
+            planner = agent.config.planner
+            agent.env.close()
             optimizer, options, iterations = planner.optimizer(0)
             env = task.make_env()
             policy = as_policy(oracle_policy(
                 env, planner.horizon, iterations=iterations,
-                first_plan_iterations=planner.first_plan_iterations, optimizer=optimizer,
+                first_plan_iterations=planner.first_plan_iterations,
+                terminal_weight=planner.terminal_weight, optimizer=optimizer,
                 optimizer_options=options, **task.agent_kwargs()))
             obs, _ = env.reset(seed=1000)
             times, cpu = [], []  # wall, and this process's CPU time (load-independent work)
@@ -371,19 +396,22 @@ def true_model_planning(args: Args) -> dict:
                 if terminated or truncated:
                     break
             env.close()
-            out[name][kind] = {"cold_start_s": times[0],
-                               "ms_per_step_median": 1000 * float(np.median(times[1:])),
-                               "ms_per_step_max": 1000 * float(np.max(times[1:])),
-                               "cpu_ms_per_step_median": 1000 * float(np.median(cpu[1:])),
-                               "steps": len(times) - 1, "horizon": planner.horizon}
-            if kind in args.true_model_returns:
-                oracle = bench_suite.task_baselines(name, planner=kind)
-                out[name][kind].update({k: oracle[k] for k in (
+            row = out[name][label] = {
+                "overrides": overrides, "cold_start_s": times[0],
+                "ms_per_step_median": 1000 * float(np.median(times[1:])),
+                "ms_per_step_max": 1000 * float(np.max(times[1:])),
+                "cpu_ms_per_step_median": 1000 * float(np.median(cpu[1:])),
+                "steps": len(times) - 1, "horizon": planner.horizon}
+            if label in args.true_model_returns or label not in args.true_model_planners:
+                oracle = bench_suite.task_baselines(name, overrides=overrides)
+                row.update({k: oracle[k] for k in (
                     "oracle_return", "oracle_returns", "oracle_seconds", "oracle_cpu_seconds")})
-            print(f"true model {name} {kind}: cold {times[0]:.2f} s, "
-                  f"{out[name][kind]['ms_per_step_median']:.0f} ms/step "
-                  f"({out[name][kind]['cpu_ms_per_step_median']:.0f} ms CPU), return "
-                  f"{out[name][kind].get('oracle_return', '-')}", flush=True)
+                row["oracle_cpu_ms_per_step_bound"] = 1000 * oracle["oracle_cpu_seconds"] / (
+                    agent.spec.episode_steps * len(oracle["oracle_returns"]))
+            print(f"true model {name} {label}: cold {times[0]:.2f} s, "
+                  f"{row['ms_per_step_median']:.0f} ms/step "
+                  f"({row['cpu_ms_per_step_median']:.0f} ms CPU), return "
+                  f"{row.get('oracle_return', '-')}", flush=True)
     return out
 
 

@@ -147,8 +147,8 @@ def make_agent(name: str, overrides: dict[str, Any] | None = None, *, smoke: boo
 # baselines: doing nothing and the true-model oracle
 # ---------------------------------------------------------------------------------------------
 
-def task_baselines(name: str, *, smoke: bool = False, planner: str | None = None
-                   ) -> dict[str, Any]:
+def task_baselines(name: str, *, smoke: bool = False, planner: str | None = None,
+                   overrides: dict[str, Any] | None = None) -> dict[str, Any]:
     """Zero action and the true-model oracle on task ``name``'s evaluation episodes.
 
     The oracle is the agent's own MPC (its default planner, horizon and iterations, the task's
@@ -157,14 +157,16 @@ def task_baselines(name: str, *, smoke: bool = False, planner: str | None = None
     would reach with a perfect model. ``ms_per_step``: its mean planning time per MPC step.
 
     :param planner: another planner kind than the default (``"ilqr"``, ``"cem"``).
+    :param overrides: other planner settings (dotted ``AgentConfig`` fields such as
+        ``"planner.horizon"``), on top of the task's own.
     """
     import torch
 
     from agents.evaluation import evaluate_policy_costs
 
     torch.set_num_threads(1)
-    agent = make_agent(name, None if planner is None else {"planner.kind": planner},
-                       smoke=smoke)
+    agent = make_agent(name, {**({} if planner is None else {"planner.kind": planner}),
+                              **(overrides or {})}, smoke=smoke)
     env, kwargs = agent._eval_setup()
     m = agent.spec.act_dim
     zero = -evaluate_policy_costs(lambda obs: np.zeros(m), env, agent.eval_targets,
@@ -189,7 +191,10 @@ def _planner_settings(cfg: Any) -> dict[str, Any]:
     """The planner settings a stored oracle was computed with (a :class:`PlannerConfig`)."""
     return {"kind": cfg.kind, "horizon": cfg.horizon, "terminal_weight": cfg.terminal_weight,
             "ilqr_iterations": cfg.ilqr_iterations,
-            "first_plan_iterations": cfg.first_plan_iterations}
+            "first_plan_iterations": cfg.first_plan_iterations,
+            **{part: {k: getattr(getattr(cfg, part), k) for k in ("samples", "elites",
+                                                                 "iterations")}
+               for part in ("proposal", "cem")}}
 
 
 def _settings_sentence() -> str:
