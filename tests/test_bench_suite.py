@@ -136,6 +136,18 @@ def test_reference_rows_hand_computed():
     # SAC reaches -5.0 first at 100,000 env steps: 50x the agent's 2,000
     assert row["sac_steps_to_agent_final"] == {"value": 100_000.0, "lower_bound": False}
     assert row["sac_ratio"]["value"] == pytest.approx(50.0)
+    # the agent's seeds are at -2, -2.5, -3 (>= -5) from their first evaluation at 1,000
+    assert row["agent_steps_to_final"] == 1000.0
+    assert row["sac_ratio_first_reach"] == {"value": pytest.approx(100.0), "lower_bound": False}
+    late = [dict(r, curve=[{"env_steps": 1000, "score": -9.0}, r["curve"][1]]) for r in runs]
+    late[0]["curve"] = [{"env_steps": 1000, "score": -9.0}, {"env_steps": 2000, "score": -6.0}]
+    state_late = {"runs": late, "table": suite.aggregate(late, baselines)}
+    row_late = next(r for r in suite.reference_rows(state_late, baselines, sac, pets)
+                    if r["task"] == "reacher")
+    # F = -5 (the median final); only seed 1 reaches it (at 2,000): the median seed never does
+    assert row_late["agent_steps_to_final"] == float("inf")
+    assert row_late["sac_ratio_first_reach"]["value"] is None
+    assert suite._bound(row_late["sac_ratio_first_reach"]) == "-"
     # at 1,000 every PETS run counts (-8, -7, -9 -> -8); at 2,000 only seeds 0-1 (-6, -5)
     (at_1k, at_2k) = row["pets_points"]
     assert at_1k["env_steps"] == 1000 and at_1k["pets"] == -8.0
