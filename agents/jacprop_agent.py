@@ -809,6 +809,29 @@ class JacPropAgent(SB3Predictor):
                    solved=bool(complete and ratio <= cfg.evaluation.solved_ratio))
         return out
 
+    def oracle_policy(self, env: gym.Env) -> Any:
+        """The oracle's controller on ``env``: this agent's planner (kind, horizon, iterations,
+        terminal weight, ``replan_every``, seeded from ``config.seed``) and task functions on the
+        TRUE model of ``env`` (:func:`agents.evaluation.oracle_policy`; CEM's particles set to 1,
+        since one true model would repeat the same rollout). SB3-style ``predict``."""
+        cfg = self.config
+        optimizer, options, iterations = cfg.planner.optimizer(cfg.seed)
+        if getattr(options, "particles", 1) > 1:
+            options = dataclasses.replace(options, particles=1)
+        return ReplanEvery(oracle_policy(
+            env,
+            cfg.planner.horizon,
+            iterations=iterations,
+            optimizer=optimizer,
+            optimizer_options=options,
+            first_plan_iterations=cfg.planner.first_plan_iterations,
+            terminal_weight=cfg.planner.terminal_weight,
+            cost_fn=self.cost_fn,
+            state_map=self.state_map,
+            terminal_cost_fn=self.terminal_cost_fn,
+            termination_fn=self.termination_fn,
+        ), cfg.planner.replan_every)
+
     def _oracle_costs(self, env: gym.Env, kwargs: dict[str, Any]) -> np.ndarray | None:
         """Per-episode costs of MPC with the TRUE model (computed once, then kept)."""
         if self.oracle_costs is not None or not has_true_model(env):
@@ -824,22 +847,7 @@ class JacPropAgent(SB3Predictor):
                 self._oracle_seconds += time.perf_counter() - tic
 
         def policy() -> Any:
-            optimizer, options, iterations = cfg.planner.optimizer(cfg.seed)
-            if getattr(options, "particles", 1) > 1:  # one true model: the particles would
-                options = dataclasses.replace(options, particles=1)  # repeat the same rollout
-            return ReplanEvery(oracle_policy(
-                env,
-                cfg.planner.horizon,
-                iterations=iterations,
-                optimizer=optimizer,
-                optimizer_options=options,
-                first_plan_iterations=cfg.planner.first_plan_iterations,
-                terminal_weight=cfg.planner.terminal_weight,
-                cost_fn=self.cost_fn,
-                state_map=self.state_map,
-                terminal_cost_fn=self.terminal_cost_fn,
-                termination_fn=self.termination_fn,
-            ), cfg.planner.replan_every)
+            return self.oracle_policy(env)
 
         key: dict[str, Any] = {}
         cache_dir = cfg.evaluation.oracle_cache_dir

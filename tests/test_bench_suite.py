@@ -5,6 +5,7 @@ env steps to the agent's final return) agree with hand-computed values."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
 
@@ -139,15 +140,6 @@ def test_reference_rows_hand_computed():
     # the agent's seeds are at -2, -2.5, -3 (>= -5) from their first evaluation at 1,000
     assert row["agent_steps_to_final"] == 1000.0
     assert row["sac_ratio_first_reach"] == {"value": pytest.approx(100.0), "lower_bound": False}
-    late = [dict(r, curve=[{"env_steps": 1000, "score": -9.0}, r["curve"][1]]) for r in runs]
-    late[0]["curve"] = [{"env_steps": 1000, "score": -9.0}, {"env_steps": 2000, "score": -6.0}]
-    state_late = {"runs": late, "table": suite.aggregate(late, baselines)}
-    row_late = next(r for r in suite.reference_rows(state_late, baselines, sac, pets)
-                    if r["task"] == "reacher")
-    # F = -5 (the median final); only seed 1 reaches it (at 2,000): the median seed never does
-    assert row_late["agent_steps_to_final"] == float("inf")
-    assert row_late["sac_ratio_first_reach"]["value"] is None
-    assert suite._bound(row_late["sac_ratio_first_reach"]) == "-"
     # at 1,000 every PETS run counts (-8, -7, -9 -> -8); at 2,000 only seeds 0-1 (-6, -5)
     (at_1k, at_2k) = row["pets_points"]
     assert at_1k["env_steps"] == 1000 and at_1k["pets"] == -8.0
@@ -156,6 +148,34 @@ def test_reference_rows_hand_computed():
     assert row["pets"] == -5.5 and row["pets_env_steps"] == 2000
     assert row["agent_at_pets_steps"] == -5.0
     assert row["pets_wall_per_step"] == pytest.approx(0.05)  # of 100/2000, 200/2000, 50/1000
+
+
+def test_agent_steps_to_its_final_take_the_lower_median_seed():
+    """Two seeds: finals -5 (reached at 2,000) and -6 (at -6.5 until then) -> F = -5.5; seed 0
+    reaches it at 2,000 (-5 >= -5.5), seed 1 never (-6): the lower median is 2,000, a finite
+    ratio (np.median would give inf with half the seeds short)."""
+    runs = [_run("none", k, None, f, task="reacher") for k, f in enumerate([-5.0, -6.0])]
+    for r in runs:
+        r["curve"] = [{"env_steps": 1000, "score": -6.5}, {"env_steps": 2000,
+                                                            "score": r["final_score"]}]
+    baselines = {"reacher": {"zero_return": -12.0, "oracle_return": -4.0,
+                             "oracle_ms_per_step_bound": 30.0}}
+    sac = [{"task": "reacher", "method": "sac", "seed": 0, "curve": [
+        {"env_steps": 50_000, "score": -6.0}, {"env_steps": 100_000, "score": -5.0}]},
+        {"task": "reacher", "method": "sac", "seed": 1, "curve": []}]  # empty: not counted
+    state = {"runs": runs, "table": suite.aggregate(runs, baselines)}
+    (row,) = [r for r in suite.reference_rows(state, baselines, sac, [])
+              if r["task"] == "reacher"]
+    assert row["best"]["final_score_median"] == -5.5
+    assert row["agent_steps_to_final"] == 2000.0
+    assert row["sac_steps_to_agent_final"] == {"value": 100_000.0, "lower_bound": False}
+    assert row["sac_ratio_first_reach"] == {"value": pytest.approx(50.0), "lower_bound": False}
+    runs[0]["curve"][1]["score"] = -5.6  # now neither seed reaches F = -5.5 on its curve
+    row = next(r for r in suite.reference_rows(state, baselines, sac, [])
+               if r["task"] == "reacher")
+    assert row["agent_steps_to_final"] == float("inf")
+    assert row["sac_ratio_first_reach"]["value"] is None
+    assert suite._bound(row["sac_ratio_first_reach"]) == "-"
 
 
 def test_solved_is_read_from_the_curve_against_the_stored_oracle():
@@ -182,3 +202,8 @@ def test_a_stored_baseline_of_other_planner_settings_is_refused():
     _check_baseline_settings("x", {"planner": {"kind": "cem-ilqr", "horizon": 15}}, cfg)
     with pytest.raises(ValueError, match=r"horizon.*--baselines --tasks inverted-double"):
         _check_baseline_settings("inverted-double-pendulum", stored, PlannerConfig())
+    # the proposal's samples are part of the oracle too (stored since 2026-12-03)
+    fewer = PlannerConfig(horizon=15, terminal_weight=100.0,
+                          proposal=dataclasses.replace(cfg.proposal, samples=32))
+    with pytest.raises(ValueError, match=r"'samples': 64.*'samples': 32"):
+        _check_baseline_settings("inverted-double-pendulum", stored, fewer)

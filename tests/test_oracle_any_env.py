@@ -156,12 +156,13 @@ def test_bench_suite_baselines_smoke(planner):
     from agents.experiments.bench_suite import EVAL_EPISODES, task_baselines
 
     rec = task_baselines("reacher", smoke=True, planner=planner,
-                         overrides={"planner.terminal_weight": 3.0})
-    assert rec["planner"]["terminal_weight"] == 3.0  # the overrides reach the oracle's planner
+                         overrides={"planner.terminal_weight": 3.0, "planner.horizon": 4})
+    # the overrides reach the oracle's planner, over the smoke budgets (horizon 5)
+    assert rec["planner"]["terminal_weight"] == 3.0 and rec["planner"]["horizon"] == 4
     assert len(rec["oracle_returns"]) == len(rec["zero_returns"]) == EVAL_EPISODES
     # even a 5-step horizon on the true model beats doing nothing
     assert np.isfinite(rec["oracle_return"]) and rec["oracle_return"] > rec["zero_return"]
-    assert rec["planner"]["kind"] == (planner or "cem-ilqr") and rec["planner"]["horizon"] == 5
+    assert rec["planner"]["kind"] == (planner or "cem-ilqr")
     assert 0 < rec["oracle_cpu_seconds"]
 
 
@@ -249,3 +250,14 @@ def test_true_model_variants_parse_and_refuse():
         _true_model_variants(Args(true_model_variants='{"x": {"training.steps": 3}}'))
     with pytest.raises(ValueError, match="JSON object"):
         _true_model_variants(Args(true_model_variants="[1]"))
+    with pytest.raises(ValueError, match=r"labels \['ilqr'\] are planner kinds"):
+        _true_model_variants(Args(true_model_variants='{"ilqr": {"planner.horizon": 9}}'))
+    with pytest.raises(ValueError, match=r"names \['h9'\]"):
+        _true_model_variants(Args(true_model_returns=("h9",)))
+    # a bad value is refused before any measurement, naming the variant and the task
+    from agents.experiments.bench_ilqr import check_true_model_variants
+
+    check_true_model_variants(a)
+    with pytest.raises(ValueError, match=r"variant 'h0' on task 'reacher'.*horizon"):
+        check_true_model_variants(Args(true_model_tasks=("reacher",),
+                                       true_model_variants='{"h0": {"planner.horizon": 0}}'))

@@ -353,8 +353,32 @@ def _true_model_variants(args: Args) -> dict[str, dict]:
         bad = [k for v in extra.values() for k in v if not k.startswith("planner.")]
         if bad:
             raise ValueError(f"--true-model-variants sets only planner.* settings, got {bad}")
+        taken = sorted(set(extra) & set(variants))
+        if taken:
+            raise ValueError(f"--true-model-variants labels {taken} are planner kinds of "
+                             "--true-model-planners: choose other labels")
         variants.update(extra)
+    unknown = sorted(set(args.true_model_returns) - set(variants))
+    if unknown:
+        raise ValueError(f"--true-model-returns names {unknown}, which are neither planners nor "
+                         f"variants; known: {sorted(variants)}")
     return variants
+
+
+def check_true_model_variants(args: Args) -> None:
+    """Refuse, before any measurement, a variant whose settings the agent's config refuses on
+    one of section 7's tasks (an unknown field, a bad value, a setting without effect)."""
+    from agents.config import AgentConfig
+    from agents.experiments import bench_suite
+
+    for name in args.true_model_tasks or tuple(bench_suite.TASKS):
+        if name not in bench_suite.TASKS:
+            raise ValueError(f"unknown task {name!r}; known: {sorted(bench_suite.TASKS)}")
+        for label, overrides in _true_model_variants(args).items():
+            try:
+                AgentConfig.default({**bench_suite.TASKS[name]["overrides"], **overrides})
+            except (ValueError, TypeError) as e:
+                raise ValueError(f"true-model variant {label!r} on task {name!r}: {e}") from e
 
 
 def true_model_planning(args: Args) -> dict:
@@ -364,8 +388,9 @@ def true_model_planning(args: Args) -> dict:
     planner cem-ilqr and iLQR alone): the cold start (the first plan of an episode) and the
     median of ``true_model_steps`` warm-started steps; for the variants named in
     ``true_model_returns`` (and every ``true_model_variants`` entry) also the return on the
-    suite's evaluation episodes, so that speed and strength are measured together."""
-    from agents.evaluation import oracle_policy
+    suite's evaluation episodes, so that speed and strength are measured together. The timed
+    controller is the scored one (:meth:`JacPropAgent.oracle_policy`); with ``replan_every > 1``
+    most steps only replay the plan, so ``cpu_ms_per_step_mean`` is the cost per step there."""
     from agents.experiments import bench_suite
     from mbtsr.episode import as_policy
 
@@ -375,16 +400,11 @@ def true_model_planning(args: Args) -> dict:
         task = bench_suite.TASKS[name]["task"]
         out[name] = {}
         for label, overrides in variants.items():
-            agent = bench_suite.make_agent(name, overrides)
+            agent = bench_suite.make_agent(name, overrides)  # the scored oracle's own planner
             planner = agent.config.planner
-            agent.env.close()
-            optimizer, options, iterations = planner.optimizer(0)
             env = task.make_env()
-            policy = as_policy(oracle_policy(
-                env, planner.horizon, iterations=iterations,
-                first_plan_iterations=planner.first_plan_iterations,
-                terminal_weight=planner.terminal_weight, optimizer=optimizer,
-                optimizer_options=options, **task.agent_kwargs()))
+            policy = as_policy(agent.oracle_policy(env))
+            agent.env.close()
             obs, _ = env.reset(seed=1000)
             times, cpu = [], []  # wall, and this process's CPU time (load-independent work)
             for t in range(args.true_model_steps + 1):
@@ -401,7 +421,9 @@ def true_model_planning(args: Args) -> dict:
                 "ms_per_step_median": 1000 * float(np.median(times[1:])),
                 "ms_per_step_max": 1000 * float(np.max(times[1:])),
                 "cpu_ms_per_step_median": 1000 * float(np.median(cpu[1:])),
-                "steps": len(times) - 1, "horizon": planner.horizon}
+                "cpu_ms_per_step_mean": 1000 * float(np.mean(cpu[1:])),
+                "steps": len(times) - 1, "horizon": planner.horizon,
+                "replan_every": planner.replan_every}
             if label in args.true_model_returns or label not in args.true_model_planners:
                 oracle = bench_suite.task_baselines(name, overrides=overrides)
                 row.update({k: oracle[k] for k in (
@@ -418,6 +440,7 @@ def true_model_planning(args: Args) -> dict:
 def run(args: Args) -> dict:
     """The whole benchmark; writes ``args.json`` if set and returns the results."""
     torch.set_num_threads(args.threads)
+    check_true_model_variants(args)  # before sections 1-6, not after them
     if args.true_model_only:
         results = {"args": dataclasses.asdict(args),
                    "true_model_planning": true_model_planning(args),

@@ -123,7 +123,7 @@ def make_agent(name: str, overrides: dict[str, Any] | None = None, *, smoke: boo
                ) -> Any:
     """The agent of task ``name`` on a new env: the task's functions and settings, the
     suite's evaluation protocol, ``overrides`` (dotted ``AgentConfig`` fields) and, with
-    ``smoke``, the tiny budgets."""
+    ``smoke``, the tiny budgets (``overrides`` win over them)."""
     from agents.config import AgentConfig
     from agents.jacprop_agent import JacPropAgent
 
@@ -139,6 +139,7 @@ def make_agent(name: str, overrides: dict[str, Any] | None = None, *, smoke: boo
         settings.update({k: v for k, v in SMOKE_OVERRIDES.items() if _planner_applies(k, kind)})
         if "planner.replan_every" in settings:
             settings["planner.replan_every"] = 2
+        settings.update(overrides or {})  # the caller's settings win over the smoke budgets
     task = entry["task"]
     return JacPropAgent(task.make_env(), AgentConfig.default(settings), **task.agent_kwargs())
 
@@ -455,8 +456,9 @@ def reference_rows(state: dict[str, Any], baselines: dict[str, dict[str, Any]],
     best agent configuration (highest median final return) with its normalized score; the env
     steps SAC needs to reach the best configuration's final return over the agent's budget
     (>= 10: the target; a SAC run that never reaches it is a lower bound) and over the agent's
-    own steps to that return (the median seed's first evaluation at or above it; ``None``
-    when fewer than half its seeds reach it), and the agent vs
+    own steps to that return (the lower-median seed's first evaluation at or above it: with
+    the median final as the return, at least that seed reaches it; ``None`` if it never does),
+    and the agent vs
     PETS at equal env steps with the wall-time ratio."""
     rows = []
     table = state.get("table", [])
@@ -465,7 +467,7 @@ def reference_rows(state: dict[str, Any], baselines: dict[str, dict[str, Any]],
         row: dict[str, Any] = {"task": name, "budget": TASKS[name]["budget"],
                                "zero": b and b["zero_return"], "oracle": b and b["oracle_return"],
                                "oracle_ms_per_step": b and b["oracle_ms_per_step_bound"]}
-        sac = [r for r in sb3_runs if r["task"] == name and r["method"] == "sac"]
+        sac = [r for r in sb3_runs if r["task"] == name and r["method"] == "sac" and r["curve"]]
         if sac:
             for key, steps in (("sac_50k", 50_000), ("sac_100k", 100_000)):
                 vals = [v for r in sac if (v := score_at(r["curve"], steps)) is not None]
@@ -497,12 +499,14 @@ def reference_rows(state: dict[str, Any], baselines: dict[str, dict[str, Any]],
                 row["sac_ratio"] = {"value": v / best["budget_env_steps"],
                                     "lower_bound": bool(lower)}
             agent_runs = _runs_of(state["runs"], name, best["planner"], best["regularization"])
-            if sac and agent_runs:  # the agent's own steps to F: the median seed's first reach
-                mine = [steps_to_reach(r["curve"], F) for r in agent_runs]
-                a = float(np.median([math.inf if lb else s for s, lb in mine]))
+            if sac and agent_runs:  # the agent's own steps to F: the lower-median seed's
+                mine = sorted(math.inf if lb else s for s, lb in  # first reach (never: inf)
+                              (steps_to_reach(r["curve"], F) for r in agent_runs))
+                a = mine[(len(mine) - 1) // 2]
                 row["agent_steps_to_final"] = a
-                row["sac_ratio_first_reach"] = {"value": v / a if math.isfinite(a) else None,
-                                                "lower_bound": bool(lower)}
+                row["sac_ratio_first_reach"] = {
+                    "value": v / a if math.isfinite(a) and a > 0 else None,
+                    "lower_bound": bool(lower)}
             if pets and agent_runs:
                 for point in row["pets_points"]:
                     point["agent"], got = median_at(agent_runs, point["env_steps"])
@@ -679,9 +683,9 @@ def write_markdown(state: dict[str, Any], path: Path, figure_dir: Path,
         "upper bound where an episode ended early). SAC: stable-baselines3 defaults, "
         f"{SB3_STEPS} env steps, evaluated every 5,000. The last two columns divide the env "
         "steps SAC needs to reach the agent's median final return by the agent's budget (the "
-        "conservative ratio) and by the agent's own steps to that return (the median seed's "
-        "first evaluation at or above it; '-' when fewer than half its seeds reach it); "
-        "'>=': SAC never reached it within its budget." + _settings_sentence(),
+        "conservative ratio) and by the agent's own steps to that return (the lower-median "
+        "seed's first evaluation at or above it); '>=': the median SAC seed did not reach it "
+        "within its budget (a lower bound)." + _settings_sentence(),
         "",
         "The agent vs PETS at equal env steps: the env steps every PETS run reached and the "
         "furthest one (median over the runs that got there; the agent's best configuration, "
