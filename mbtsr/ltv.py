@@ -525,7 +525,12 @@ def _marginal_blocks(prob: _Problem, sol: _L2Solution, lam: float, ridge0: float
     ends = np.where((np.arange(T) == 0) | (np.arange(T) == T - 1), 1.0, 2.0)
     H_diag = prob.G + np.eye(p) * (ends * lam2)[:, None, None]
     H_diag[0] += ridge0 * np.eye(p)
-    Sigma = np.linalg.inv(forward + backward - H_diag)
+    blocks = forward + backward - H_diag
+    try:
+        Sigma = np.linalg.inv(blocks)
+    except np.linalg.LinAlgError:  # the factorization passed, a block of H^{-1} did not
+        bad = next((t for t in range(T) if np.linalg.matrix_rank(blocks[t]) < p), 0)
+        raise ValueError(_singular_message(prob, lam, bad)) from None
     return 0.5 * (Sigma + Sigma.transpose(0, 2, 1))
 
 
