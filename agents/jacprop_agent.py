@@ -841,13 +841,10 @@ class JacPropAgent(SB3Predictor):
         def compute() -> np.ndarray:
             tic = time.perf_counter()
             try:
-                return evaluate_policy_costs(policy(), env, self.eval_targets, cfg.evaluation.seed,
-                                             **kwargs)
+                return evaluate_policy_costs(self.oracle_policy(env), env, self.eval_targets,
+                                             cfg.evaluation.seed, **kwargs)
             finally:
                 self._oracle_seconds += time.perf_counter() - tic
-
-        def policy() -> Any:
-            return self.oracle_policy(env)
 
         key: dict[str, Any] = {}
         cache_dir = cfg.evaluation.oracle_cache_dir

@@ -155,8 +155,9 @@ def test_env_without_true_model():
 def test_bench_suite_baselines_smoke(planner):
     from agents.experiments.bench_suite import EVAL_EPISODES, task_baselines
 
-    rec = task_baselines("reacher", smoke=True, planner=planner,
-                         overrides={"planner.terminal_weight": 3.0, "planner.horizon": 4})
+    kind = {} if planner is None else {"planner.kind": planner}
+    rec = task_baselines("reacher", smoke=True,
+                         overrides={**kind, "planner.terminal_weight": 3.0, "planner.horizon": 4})
     # the overrides reach the oracle's planner, over the smoke budgets (horizon 5)
     assert rec["planner"]["terminal_weight"] == 3.0 and rec["planner"]["horizon"] == 4
     assert len(rec["oracle_returns"]) == len(rec["zero_returns"]) == EVAL_EPISODES

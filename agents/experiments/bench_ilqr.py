@@ -371,10 +371,11 @@ def check_true_model_variants(args: Args) -> None:
     from agents.config import AgentConfig
     from agents.experiments import bench_suite
 
+    variants = _true_model_variants(args)
     for name in args.true_model_tasks or tuple(bench_suite.TASKS):
         if name not in bench_suite.TASKS:
             raise ValueError(f"unknown task {name!r}; known: {sorted(bench_suite.TASKS)}")
-        for label, overrides in _true_model_variants(args).items():
+        for label, overrides in variants.items():
             try:
                 AgentConfig.default({**bench_suite.TASKS[name]["overrides"], **overrides})
             except (ValueError, TypeError) as e:
@@ -397,14 +398,11 @@ def true_model_planning(args: Args) -> dict:
     variants = _true_model_variants(args)
     out: dict = {}
     for name in args.true_model_tasks or tuple(bench_suite.TASKS):
-        task = bench_suite.TASKS[name]["task"]
         out[name] = {}
         for label, overrides in variants.items():
             agent = bench_suite.make_agent(name, overrides)  # the scored oracle's own planner
-            planner = agent.config.planner
-            env = task.make_env()
+            planner, env = agent.config.planner, agent.env
             policy = as_policy(agent.oracle_policy(env))
-            agent.env.close()
             obs, _ = env.reset(seed=1000)
             times, cpu = [], []  # wall, and this process's CPU time (load-independent work)
             for t in range(args.true_model_steps + 1):

@@ -148,7 +148,7 @@ def make_agent(name: str, overrides: dict[str, Any] | None = None, *, smoke: boo
 # baselines: doing nothing and the true-model oracle
 # ---------------------------------------------------------------------------------------------
 
-def task_baselines(name: str, *, smoke: bool = False, planner: str | None = None,
+def task_baselines(name: str, *, smoke: bool = False,
                    overrides: dict[str, Any] | None = None) -> dict[str, Any]:
     """Zero action and the true-model oracle on task ``name``'s evaluation episodes.
 
@@ -157,17 +157,15 @@ def task_baselines(name: str, *, smoke: bool = False, planner: str | None = None
     (:meth:`agents.jacprop_agent.JacPropAgent.compute_oracle`), so its return is what the agent
     would reach with a perfect model. ``ms_per_step``: its mean planning time per MPC step.
 
-    :param planner: another planner kind than the default (``"ilqr"``, ``"cem"``).
     :param overrides: other planner settings (dotted ``AgentConfig`` fields such as
-        ``"planner.horizon"``), on top of the task's own.
+        ``"planner.kind"`` or ``"planner.horizon"``), on top of the task's own.
     """
     import torch
 
     from agents.evaluation import evaluate_policy_costs
 
     torch.set_num_threads(1)
-    agent = make_agent(name, {**({} if planner is None else {"planner.kind": planner}),
-                              **(overrides or {})}, smoke=smoke)
+    agent = make_agent(name, overrides, smoke=smoke)
     env, kwargs = agent._eval_setup()
     m = agent.spec.act_dim
     zero = -evaluate_policy_costs(lambda obs: np.zeros(m), env, agent.eval_targets,
