@@ -207,3 +207,38 @@ def test_a_stored_baseline_of_other_planner_settings_is_refused():
                           proposal=dataclasses.replace(cfg.proposal, samples=32))
     with pytest.raises(ValueError, match=r"'samples': 64.*'samples': 32"):
         _check_baseline_settings("inverted-double-pendulum", stored, fewer)
+
+
+def test_a_paused_checkpointed_run_ends_as_an_uninterrupted_one(tmp_path, monkeypatch):
+    """--checkpoints with --stop-after-steps: the run pauses (nothing recorded), continues from
+    its checkpoint at the next call and ends with the same curve as a run without pauses; a
+    checkpoint of other settings is refused."""
+    common = ["--smoke", "--seeds", "0", "--tasks", "reacher", "--regularizations", "sampled",
+              "--oracle-cache", str(tmp_path / "oracle"), "--baselines-json",
+              str(tmp_path / "none.json")]
+    straight = suite.main(common + ["--json", str(tmp_path / "a.json")])["runs"]
+    paused = common + ["--json", str(tmp_path / "b.json"), "--resume",
+                       "--checkpoints", str(tmp_path / "ckpt"), "--stop-after-steps", "120"]
+    assert suite.main(paused)["runs"] == []  # 150 of 200 steps: paused, not recorded
+    from agents.jacprop_agent import JacPropAgent
+
+    episodes, run_episode = [], JacPropAgent._episode
+    monkeypatch.setattr(JacPropAgent, "_episode",
+                        lambda self, **kw: episodes.append(1) or run_episode(self, **kw))
+    resumed = suite.main(paused)["runs"]
+    assert len(episodes) == 1  # the last 50-step episode only: continued, not started over
+    assert len(resumed) == 1 and resumed[0]["env_steps"] == suite.SMOKE_BUDGET
+    assert resumed[0]["curve"] == straight[0]["curve"]
+    assert resumed[0]["final_score"] == straight[0]["final_score"]
+    assert resumed[0]["cpu_seconds"] > 0
+    folder = tmp_path / "ckpt" / "reacher_cem-ilqr_sampled_seed0"
+    with pytest.raises(ValueError, match="other settings"):
+        suite.run_one("reacher", "cem-ilqr", "sampled", 0, smoke=False,
+                      oracle_cache=str(tmp_path / "oracle"), baseline=None,
+                      checkpoint_dir=folder)
+
+
+def test_stop_after_steps_needs_checkpoints(capsys):
+    with pytest.raises(SystemExit) as exc:
+        suite.main(["--smoke", "--stop-after-steps", "100"])
+    assert exc.value.code == 2 and "--checkpoints" in capsys.readouterr().err

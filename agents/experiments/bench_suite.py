@@ -39,6 +39,14 @@ finished runs)::
     python scripts/bench_suite.py --report-only --json docs/results/bench_suite.json \\
         --figures docs/figures --docs docs/benchmark.md
     python scripts/bench_suite.py --smoke --json runs/bench_suite_smoke.json   # CI, ~1 min
+
+A HalfCheetah run takes about 35 CPU minutes: ``--checkpoints runs/suite_ckpt`` checkpoints every
+run after each episode so that a killed run continues where it stopped (bit-identical to an
+uninterrupted one), and ``--stop-after-steps N`` works through long runs in sessions of N env
+steps each (add ``--resume``)::
+
+    python scripts/bench_suite.py --tasks half-cheetah --resume --checkpoints runs/suite_ckpt \
+        --stop-after-steps 3000 --json docs/results/bench_suite.json
 """
 
 from __future__ import annotations
@@ -244,11 +252,22 @@ def load_baselines(path: Path = BASELINES_JSON) -> dict[str, dict[str, Any]]:
 # ---------------------------------------------------------------------------------------------
 
 def run_one(name: str, planner: str, reg: str, seed: int, *, smoke: bool,
-            oracle_cache: str, baseline: dict[str, Any] | None) -> dict[str, Any]:
+            oracle_cache: str, baseline: dict[str, Any] | None,
+            checkpoint_dir: Path | None = None, stop_after: int | None = None
+            ) -> dict[str, Any] | None:
     """One agent run of task ``name`` for its budget; returns its record (curve of mean
     evaluation returns, env steps to solve against the baseline's threshold, wall per phase).
+
+    :param checkpoint_dir: this run's folder: the agent checkpoints there after every episode
+        and a run found there continues from its checkpoint (bit-identical to an uninterrupted
+        run, as ``train_agent.py --resume``), so a killed run loses at most one episode.
+        ``None``: no checkpoint (a killed run is lost).
+    :param stop_after: run at most this many new env steps now; ``None`` (unfinished, to be
+        continued from ``checkpoint_dir``) if the budget is not reached.
     """
     import torch
+
+    from agents.jacprop_agent import JacPropAgent
 
     torch.set_num_threads(1)
     overrides: dict[str, Any] = {
@@ -256,17 +275,46 @@ def run_one(name: str, planner: str, reg: str, seed: int, *, smoke: bool,
         "evaluation.oracle_cache_dir": oracle_cache}
     if baseline is not None:
         overrides["evaluation.solved_return"] = solved_return(baseline["oracle_return"])
+    if checkpoint_dir is not None:
+        overrides.update({"run_dir": str(checkpoint_dir), "checkpoint": True})
     agent = make_agent(name, overrides, smoke=smoke)
     if baseline is not None and not smoke:
         _check_baseline_settings(name, baseline, agent.config.planner)
+    spent = {"wall_seconds": 0.0, "cpu_seconds": 0.0}  # of earlier sessions of this run
+    progress = None if checkpoint_dir is None else Path(checkpoint_dir) / "suite_progress.json"
+    if checkpoint_dir is not None and (Path(checkpoint_dir) / "checkpoint.pt").is_file():
+        fresh = agent
+        agent = JacPropAgent.load(checkpoint_dir, fresh.env, **TASKS[name]["task"].agent_kwargs())
+        if agent.config.to_dict() != fresh.config.to_dict():
+            raise ValueError(f"the checkpoint in {checkpoint_dir} was written with other "
+                             "settings than this run's: delete the folder to start over")
+        if progress.is_file():
+            spent = json.loads(progress.read_text())
     budget = SMOKE_BUDGET if smoke else TASKS[name]["budget"]
+    start = agent.env_steps
     tic, cpu_tic = time.perf_counter(), time.process_time()
+
+    def after_episode(_: Any) -> bool:
+        """After each episode's checkpoint: note the time spent so far; pause after
+        ``stop_after`` steps (through the callback, not a shorter budget: the end of a
+        ``learn`` call evaluates, and a pause must not add an evaluation)."""
+        if progress is not None:
+            write_json_atomic(progress, {
+                "wall_seconds": spent["wall_seconds"] + time.perf_counter() - tic,
+                "cpu_seconds": spent["cpu_seconds"] + time.process_time() - cpu_tic})
+        return stop_after is None or agent.env_steps - start < stop_after
+
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)  # logged LTV fallbacks
-        agent.learn(total_env_steps=budget, progress_bar=False)
-    cpu_seconds = time.process_time() - cpu_tic  # the run's own work, whatever else runs
+        agent.learn(total_env_steps=max(budget - start, 0), callback=after_episode,
+                    progress_bar=False)
+    # the run's own work, whatever else runs
+    cpu_seconds = spent["cpu_seconds"] + time.process_time() - cpu_tic
+    wall_seconds = spent["wall_seconds"] + time.perf_counter() - tic
     s = agent.summary()
     agent.env.close()
+    if agent.env_steps < budget:
+        return None
     curve = [{"env_steps": c["env_steps"], "score": c["eval_return"],
               "returns": c["eval_returns"]} for c in s["eval_curve"]]
     return {
@@ -276,7 +324,7 @@ def run_one(name: str, planner: str, reg: str, seed: int, *, smoke: bool,
         "final_score": curve[-1]["score"] if curve else None, "curve": curve,
         "model": agent.config.to_dict()["model"],
         "wall_seconds_per_phase": s["wall_seconds_per_phase"],
-        "wall_seconds": time.perf_counter() - tic, "cpu_seconds": cpu_seconds,
+        "wall_seconds": wall_seconds, "cpu_seconds": cpu_seconds,
     }
 
 
@@ -801,6 +849,12 @@ class Args:
     """write the markdown report here (with --figures)"""
     oracle_cache: str = "runs/oracle_cache"
     """cache of the true-model oracle's costs"""
+    checkpoints: str = ""
+    """folder of per-run checkpoints (one subfolder per run, written after every episode); a
+    run with a checkpoint there continues from it (default: no checkpoints)"""
+    stop_after_steps: int = 0
+    """with --checkpoints: run each run at most this many new env steps now, then go on to the
+    next (unfinished runs continue at the next call; 0: to the budget)"""
     sb3: tuple[str, ...] = ()
     """run these SB3 methods (e.g. --sb3 sac) on --tasks x --seeds INSTEAD of the agent, for
     --sb3-steps each, into --sb3-json"""
@@ -824,6 +878,10 @@ class Args:
                 raise ValueError(f"--{name} must name some of {list(known)}, got {list(given)}")
         if self.sb3_steps < 1:
             raise ValueError(f"--sb3-steps must be >= 1, got {self.sb3_steps}")
+        if self.stop_after_steps < 0 or (self.stop_after_steps and not self.checkpoints):
+            raise ValueError("--stop-after-steps must be >= 0 and needs --checkpoints (a run "
+                             f"stopped early continues from its checkpoint), got "
+                             f"{self.stop_after_steps}")
 
 
 def main(argv: list[str] | None = None) -> dict[str, Any]:
@@ -896,9 +954,17 @@ def run(a: Args) -> dict[str, Any]:
                     for reg in a.regularizations:
                         if (name, planner, reg, seed) in done:
                             continue
+                        ckpt = (Path(a.checkpoints) / f"{name}_{planner}_{reg}_seed{seed}"
+                                if a.checkpoints else None)
                         rec = run_one(name, planner, reg, seed, smoke=a.smoke,
                                       oracle_cache=a.oracle_cache,  # baselines may land late
-                                      baseline=load_baselines(bpath).get(name))
+                                      baseline=load_baselines(bpath).get(name),
+                                      checkpoint_dir=ckpt,
+                                      stop_after=a.stop_after_steps or None)
+                        if rec is None:
+                            print(f"{name} {planner}/{reg} seed {seed}: paused, continues from "
+                                  f"{ckpt}", flush=True)
+                            continue
                         state["runs"].append(rec)
                         state["table"] = aggregate(state["runs"], baselines)
                         write_json_atomic(path, state)
