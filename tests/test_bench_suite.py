@@ -225,20 +225,24 @@ def test_a_paused_checkpointed_run_ends_as_an_uninterrupted_one(tmp_path, monkey
     episodes, run_episode = [], JacPropAgent._episode
     monkeypatch.setattr(JacPropAgent, "_episode",
                         lambda self, **kw: episodes.append(1) or run_episode(self, **kw))
-    resumed = suite.main(paused)["runs"]
+    # another oracle cache is a path, not a setting of the run: accepted
+    resumed = suite.main(paused + ["--oracle-cache", str(tmp_path / "oracle2")])["runs"]
     assert len(episodes) == 1  # the last 50-step episode only: continued, not started over
     assert len(resumed) == 1 and resumed[0]["env_steps"] == suite.SMOKE_BUDGET
     assert resumed[0]["curve"] == straight[0]["curve"]
     assert resumed[0]["final_score"] == straight[0]["final_score"]
-    assert resumed[0]["cpu_seconds"] > 0
+    assert resumed[0]["cpu_seconds"] > 0 and len(resumed[0]["git_sessions"]) == 2
     folder = tmp_path / "ckpt" / "reacher_cem-ilqr_sampled_seed0"
-    with pytest.raises(ValueError, match="other settings"):
+    with pytest.raises(ValueError, match="other settings .*training.steps: 3 vs 500"):
         suite.run_one("reacher", "cem-ilqr", "sampled", 0, smoke=False,
                       oracle_cache=str(tmp_path / "oracle"), baseline=None,
                       checkpoint_dir=folder)
 
 
-def test_stop_after_steps_needs_checkpoints(capsys):
+def test_stop_after_steps_needs_checkpoints(capsys, tmp_path):
     with pytest.raises(SystemExit) as exc:
         suite.main(["--smoke", "--stop-after-steps", "100"])
     assert exc.value.code == 2 and "--checkpoints" in capsys.readouterr().err
+    with pytest.raises(ValueError, match="needs checkpoint_dir"):
+        suite.run_one("reacher", "cem-ilqr", "none", 0, smoke=True, oracle_cache=str(tmp_path),
+                      baseline=None, stop_after=50)

@@ -43,9 +43,9 @@ finished runs)::
 A HalfCheetah run takes about 35 CPU minutes: ``--checkpoints runs/suite_ckpt`` checkpoints every
 run after each episode so that a killed run continues where it stopped (bit-identical to an
 uninterrupted one), and ``--stop-after-steps N`` works through long runs in sessions of N env
-steps each (add ``--resume``)::
+steps each, rounded up to whole episodes (add ``--resume``)::
 
-    python scripts/bench_suite.py --tasks half-cheetah --resume --checkpoints runs/suite_ckpt \
+    python scripts/bench_suite.py --tasks half-cheetah --resume --checkpoints runs/suite_ckpt \\
         --stop-after-steps 3000 --json docs/results/bench_suite.json
 """
 
@@ -262,13 +262,19 @@ def run_one(name: str, planner: str, reg: str, seed: int, *, smoke: bool,
         and a run found there continues from its checkpoint (bit-identical to an uninterrupted
         run, as ``train_agent.py --resume``), so a killed run loses at most one episode.
         ``None``: no checkpoint (a killed run is lost).
-    :param stop_after: run at most this many new env steps now; ``None`` (unfinished, to be
-        continued from ``checkpoint_dir``) if the budget is not reached.
+    :param stop_after: pause after the episode that completes this many new env steps (needs
+        ``checkpoint_dir``); returns ``None`` (unfinished, to be continued from
+        ``checkpoint_dir``) if the budget is not reached.
+    :raises ValueError: ``stop_after`` without ``checkpoint_dir``; a checkpoint of other
+        settings (naming them).
     """
     import torch
 
     from agents.jacprop_agent import JacPropAgent
 
+    if stop_after is not None and checkpoint_dir is None:
+        raise ValueError("stop_after needs checkpoint_dir: a paused run continues from its "
+                         "checkpoint")
     torch.set_num_threads(1)
     overrides: dict[str, Any] = {
         "seed": seed, "planner.kind": planner, "regularization": reg,
@@ -280,16 +286,24 @@ def run_one(name: str, planner: str, reg: str, seed: int, *, smoke: bool,
     agent = make_agent(name, overrides, smoke=smoke)
     if baseline is not None and not smoke:
         _check_baseline_settings(name, baseline, agent.config.planner)
-    spent = {"wall_seconds": 0.0, "cpu_seconds": 0.0}  # of earlier sessions of this run
+    # earlier sessions of this run: their time and commits
+    spent: dict[str, Any] = {"wall_seconds": 0.0, "cpu_seconds": 0.0, "git": []}
     progress = None if checkpoint_dir is None else Path(checkpoint_dir) / "suite_progress.json"
     if checkpoint_dir is not None and (Path(checkpoint_dir) / "checkpoint.pt").is_file():
         fresh = agent
-        agent = JacPropAgent.load(checkpoint_dir, fresh.env, **TASKS[name]["task"].agent_kwargs())
-        if agent.config.to_dict() != fresh.config.to_dict():
+        agent = JacPropAgent.load(checkpoint_dir, fresh.env, run_dir=str(checkpoint_dir),
+                                  **TASKS[name]["task"].agent_kwargs())
+        differ = _differing_settings(agent.config, fresh.config)
+        if differ:
             raise ValueError(f"the checkpoint in {checkpoint_dir} was written with other "
-                             "settings than this run's: delete the folder to start over")
+                             f"settings than this run's ({', '.join(differ)}): delete the "
+                             "folder to start over")
         if progress.is_file():
-            spent = json.loads(progress.read_text())
+            earlier = json.loads(progress.read_text())
+            # only the time up to this checkpoint (not a deleted checkpoint's run)
+            if earlier.get("env_steps", math.inf) <= agent.env_steps:
+                spent = earlier
+    spent["git"] = [*spent["git"], _git()]
     budget = SMOKE_BUDGET if smoke else TASKS[name]["budget"]
     start = agent.env_steps
     tic, cpu_tic = time.perf_counter(), time.process_time()
@@ -300,6 +314,7 @@ def run_one(name: str, planner: str, reg: str, seed: int, *, smoke: bool,
         ``learn`` call evaluates, and a pause must not add an evaluation)."""
         if progress is not None:
             write_json_atomic(progress, {
+                "env_steps": agent.env_steps, "git": spent["git"],
                 "wall_seconds": spent["wall_seconds"] + time.perf_counter() - tic,
                 "cpu_seconds": spent["cpu_seconds"] + time.process_time() - cpu_tic})
         return stop_after is None or agent.env_steps - start < stop_after
@@ -325,7 +340,25 @@ def run_one(name: str, planner: str, reg: str, seed: int, *, smoke: bool,
         "model": agent.config.to_dict()["model"],
         "wall_seconds_per_phase": s["wall_seconds_per_phase"],
         "wall_seconds": wall_seconds, "cpu_seconds": cpu_seconds,
+        **({"git_sessions": spent["git"]} if checkpoint_dir is not None else {}),
     }
+
+
+#: settings that may differ between the sessions of a checkpointed run (paths, bookkeeping)
+_SESSION_SETTINGS = ("run_dir", "checkpoint", "evaluation.oracle_cache_dir")
+
+
+def _differing_settings(a: Any, b: Any) -> list[str]:
+    """The dotted ``AgentConfig`` settings where ``a`` and ``b`` differ, beyond
+    :data:`_SESSION_SETTINGS`."""
+    def flat(d: dict[str, Any], pre: str = "") -> dict[str, Any]:
+        out: dict[str, Any] = {}
+        for k, v in d.items():
+            out.update(flat(v, f"{pre}{k}.") if isinstance(v, dict) else {f"{pre}{k}": v})
+        return out
+    fa, fb = flat(a.to_dict()), flat(b.to_dict())
+    return [f"{k}: {fa.get(k)!r} vs {fb.get(k)!r}" for k in sorted(set(fa) | set(fb))
+            if k not in _SESSION_SETTINGS and fa.get(k) != fb.get(k)]
 
 
 def with_solved(runs: list[dict[str, Any]], baselines: dict[str, dict[str, Any]]
@@ -853,8 +886,9 @@ class Args:
     """folder of per-run checkpoints (one subfolder per run, written after every episode); a
     run with a checkpoint there continues from it (default: no checkpoints)"""
     stop_after_steps: int = 0
-    """with --checkpoints: run each run at most this many new env steps now, then go on to the
-    next (unfinished runs continue at the next call; 0: to the budget)"""
+    """with --checkpoints: pause each run after the episode that completes this many new env
+    steps, then go on to the next (unfinished runs continue at the next call; 0: to the
+    budget)"""
     sb3: tuple[str, ...] = ()
     """run these SB3 methods (e.g. --sb3 sac) on --tasks x --seeds INSTEAD of the agent, for
     --sb3-steps each, into --sb3-json"""
