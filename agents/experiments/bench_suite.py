@@ -266,10 +266,11 @@ def run_one(name: str, planner: str, reg: str, seed: int, *, smoke: bool,
         ``checkpoint_dir``); returns ``None`` (unfinished, to be continued from
         ``checkpoint_dir``) if the budget is not reached.
     :raises ValueError: ``stop_after`` without ``checkpoint_dir``; a checkpoint of other
-        settings (naming them).
+        settings (:class:`~mbtsr.fileformat.CheckpointError`, naming the first).
     """
     import torch
 
+    from agents.checkpoint import check_same
     from agents.jacprop_agent import JacPropAgent
 
     if stop_after is not None and checkpoint_dir is None:
@@ -293,11 +294,10 @@ def run_one(name: str, planner: str, reg: str, seed: int, *, smoke: bool,
         fresh = agent
         agent = JacPropAgent.load(checkpoint_dir, fresh.env, run_dir=str(checkpoint_dir),
                                   **TASKS[name]["task"].agent_kwargs())
-        differ = _differing_settings(agent.config, fresh.config)
-        if differ:
-            raise ValueError(f"the checkpoint in {checkpoint_dir} was written with other "
-                             f"settings than this run's ({', '.join(differ)}): delete the "
-                             "folder to start over")
+        saved, now = agent.config.dotted(), fresh.config.dotted()
+        for key in _SESSION_SETTINGS:  # paths and bookkeeping may change between sessions
+            saved.pop(key), now.pop(key)
+        check_same(saved, now, what="config", path=checkpoint_dir)
         if progress.is_file():
             earlier = json.loads(progress.read_text())
             # only the time up to this checkpoint (not a deleted checkpoint's run)
@@ -346,19 +346,6 @@ def run_one(name: str, planner: str, reg: str, seed: int, *, smoke: bool,
 
 #: settings that may differ between the sessions of a checkpointed run (paths, bookkeeping)
 _SESSION_SETTINGS = ("run_dir", "checkpoint", "evaluation.oracle_cache_dir")
-
-
-def _differing_settings(a: Any, b: Any) -> list[str]:
-    """The dotted ``AgentConfig`` settings where ``a`` and ``b`` differ, beyond
-    :data:`_SESSION_SETTINGS`."""
-    def flat(d: dict[str, Any], pre: str = "") -> dict[str, Any]:
-        out: dict[str, Any] = {}
-        for k, v in d.items():
-            out.update(flat(v, f"{pre}{k}.") if isinstance(v, dict) else {f"{pre}{k}": v})
-        return out
-    fa, fb = flat(a.to_dict()), flat(b.to_dict())
-    return [f"{k}: {fa.get(k)!r} vs {fb.get(k)!r}" for k in sorted(set(fa) | set(fb))
-            if k not in _SESSION_SETTINGS and fa.get(k) != fb.get(k)]
 
 
 def with_solved(runs: list[dict[str, Any]], baselines: dict[str, dict[str, Any]]
