@@ -30,8 +30,7 @@ refused with the reason, unless it holds its default.
 Configs saved in the old flat format (``{"epochs_per_episode": 150, "hidden_width": 20, ...}``)
 load through :func:`from_flat` (``AgentConfig.from_dict`` detects them).
 
-The defaults are the configuration measured in ``docs/ablation.md`` on ``mbtsr/TwoLinkArm-v0``;
-where the paper fixes a value it is used (sampled Jacobian propagation with perturbations of 0.1 x
+Where the paper fixes a value it is used (sampled Jacobian propagation with perturbations of 0.1 x
 the per-dimension standard deviation, one perturbed copy resampled every step, the ``g``
 formulation ``x+ = x + g(x, u)``). The model is sized by the task's dimensions and trained with
 a budget of gradient steps per update (``docs/models.md``); ``ModelConfig.paper()`` and
@@ -50,7 +49,7 @@ import numbers
 import os
 import types
 import typing
-from collections.abc import Callable, Iterable, Iterator, Mapping
+from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, ClassVar, Literal
@@ -64,7 +63,7 @@ from mbtsr.ilqr import ilqr
 from mbtsr.training import REGULARIZERS, RegularizationConfig, TrainConfig
 
 __all__ = ["AgentConfig", "CollectionConfig", "PlannerConfig", "EvaluationConfig", "from_flat",
-           "read_config_file", "split_run_config", "file_changes", "in_file", "REGULARIZERS",
+           "read_config_file", "split_run_config", "in_file", "REGULARIZERS",
            "PLANNERS", "PROPAGATIONS", "EXCITATIONS"]
 
 PLANNERS = ("ilqr", "cem", "cem-ilqr")
@@ -901,22 +900,6 @@ def read_config_file(path: str | os.PathLike) -> dict[str, Any]:
     if not isinstance(data, Mapping):
         raise ValueError(f"{p} holds a {type(data).__name__}, not a dict of AgentConfig fields")
     return dict(data)
-
-
-def file_changes(path: str | os.PathLike, fixed: Iterable[str] = ()) -> tuple[dict[str, Any],
-                                                                              list[str]]:
-    """The settings of the config file ``path`` (:meth:`AgentConfig.load`) as dotted changes to
-    the defaults (JSON values), for a sweep that builds every run with
-    ``AgentConfig.default(changes)``:
-    ``(changes without the fields in fixed, the fixed fields the file sets)`` (``fixed``: what
-    the sweep sets per run; the caller reports them).
-
-    :raises ValueError: naming the file and the problem.
-    """
-    changes = json.loads(json.dumps(AgentConfig.load(path).changes()))  # JSON-friendly
-    fixed = set(fixed)
-    return ({k: v for k, v in changes.items() if k not in fixed},
-            sorted(k for k in changes if k in fixed))
 
 
 def in_file(path: str | os.PathLike, err: ValueError) -> ValueError:

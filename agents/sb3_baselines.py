@@ -1,9 +1,9 @@
 """Stable-Baselines3 model-free baselines (SAC, TD3, PPO) on exactly the agent's task.
 
-The benchmark (``scripts/benchmark_sb3.py``) asks how many real environment steps, and how much
-wall time, a model-free agent needs to *solve* the reach task compared with the Algorithm-1
-agent of Bagge Carlson et al. (arXiv:1806.09919). To make the comparison mean something the
-baselines use everything the agent uses:
+The baselines ask how many real environment steps, and how much wall time, a model-free agent
+needs compared with the Algorithm-1 agent of Bagge Carlson et al. (arXiv:1806.09919); the
+suite's SAC rows (``scripts/bench_suite.py --sb3 sac``) train them on every task's own return.
+To make the comparison mean something the baselines use everything the agent uses:
 
 - the same env id and keyword arguments (preset), hence the same episode length and the same
   reward ``r = -cost`` (the env's ``(x - x_goal)^T Q (x - x_goal) + a^T R a``);
@@ -23,10 +23,6 @@ model-based agent.
 
 Wall time is counted EXCLUDING evaluation time (model construction, data collection and
 gradient steps only); the time including evaluation is reported next to it.
-
-The small statistics helpers at the end (:func:`censored_median`, :func:`best_of`) handle
-runs that did not solve within their budget: such a run's steps-to-solve is only known to be
-``>= budget``, and every summary built from it is reported as a lower bound.
 """
 
 from __future__ import annotations
@@ -50,8 +46,6 @@ from mbtsr.validation import as_array, check_positive
 __all__ = [
     "ALGOS",
     "CostEvalCallback",
-    "best_of",
-    "censored_median",
     "default_hyperparams",
     "evaluate_episodes",
     "make_sb3_model",
@@ -408,54 +402,6 @@ def train_sb3(
     if return_model:
         record["model"] = model
     return record
-
-
-# ---------------------------------------------------------------------------------------------
-# Summaries of censored data: a run that did not solve within its budget has steps-to-solve
-# (and wall-to-solve) only bounded from below.
-# ---------------------------------------------------------------------------------------------
-
-
-def censored_median(values: Sequence[float], is_lower_bound: Sequence[bool]) -> tuple[float, bool]:
-    """Median of values of which some are only lower bounds.
-
-    The median is nondecreasing in every value, so the median of the values with each censored
-    one replaced by its lower bound is a lower bound of the true median. It is exact when no
-    censored value can move it: when the median with every censored value set to ``+inf`` (the
-    other extreme) is the same number.
-
-    :param values: ``[k]`` exact values or lower bounds.
-    :param is_lower_bound: ``[k]`` which entries are lower bounds.
-    :return: ``(median, median_is_lower_bound)``.
-    """
-    v = as_array("values", values, (None,))
-    lb = np.asarray(is_lower_bound, dtype=bool)
-    if lb.shape != v.shape:
-        raise ValueError(f"is_lower_bound must have shape {list(v.shape)}, got {list(lb.shape)}")
-    k = v.shape[0]
-    if k == 0:
-        raise ValueError("values must hold at least one value")
-    med = float(np.median(v))
-    # the true values: exact entries fixed, censored ones anywhere in [bound, inf)
-    upper = float(np.median(np.where(lb, np.inf, v)))
-    return med, not (upper == med)
-
-
-def best_of(medians: dict[str, tuple[float, bool]]) -> tuple[str, float, bool]:
-    """The method with the smallest median when some medians are lower bounds.
-
-    The smallest true median is at least ``min_m median_m``. It is exact when that minimum is
-    attained by an exact median ``e``: every other true median is at least its reported value,
-    which is ``>= e``. When it is attained by a lower bound only, it stays a lower bound.
-
-    :param medians: ``{method: (median, is_lower_bound)}``.
-    :return: ``(method, value, is_lower_bound)``.
-    """
-    if not medians:
-        raise ValueError("medians must name at least one method")
-    name = min(medians, key=lambda n: (medians[n][0], medians[n][1]))
-    value, is_lb = medians[name]
-    return name, float(value), bool(is_lb)
 
 
 def _check_algo(algo: str) -> None:

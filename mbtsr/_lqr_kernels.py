@@ -2,7 +2,7 @@
 
 Pure functions on float64 arrays; ``mbtsr.ilqr`` calls :func:`backward_pass` once per backward
 pass (one compiled call for the whole horizon, no Python per time step). The numpy recursion in
-``mbtsr.ilqr._backward_pass`` (augmented form, LAPACK ``dposv``) stays as the reference the tests
+``tests/lqr_reference.py`` (augmented form, LAPACK ``dposv``) is the reference the tests
 compare against.
 
 Per time step ``t = T-1 .. 0`` with the value ``(v_x, V_xx)`` of step ``t+1``::

@@ -196,7 +196,7 @@ REGULARIZERS = ("sampled", "exact", "smooth", "none")
 
 DEFAULT_WEIGHTS = {"sampled": 1.0, "exact": 0.01, "smooth": 0.01}
 """Default weight of each named regularizer (sampled: the paper's 1; exact/smooth: the agent's
-measured setting, ``docs/ablation.md``)."""
+setting measured on the arm, ``docs/ablation.md``)."""
 
 
 @dataclass(frozen=True)

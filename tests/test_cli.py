@@ -20,11 +20,9 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.append(str(REPO))  # agents/experiments/ (until the editable install is refreshed)
 
 #: every experiments module behind a script in scripts/
-EXPERIMENTS = ["agent_ablation", "bench_env", "bench_ilqr", "bench_ltv", "bench_model_sizes",
-               "bench_models",
-               "bench_suite",
-               "benchmark_sb3", "collect_excitation", "exp_small_data", "ilqr_with_model",
-               "measure_renormalization", "model_env_sac"]
+EXPERIMENTS = ["bench_env", "bench_ilqr", "bench_ltv", "bench_model_sizes", "bench_models",
+               "bench_suite", "collect_excitation", "exp_small_data", "ilqr_with_model",
+               "model_env_sac"]
 
 
 @dataclass(frozen=True)

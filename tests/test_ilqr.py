@@ -9,11 +9,12 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from lqr_reference import _active_set_guess, _box_qp
 from scipy.optimize import lsq_linear
 
 from mbtsr.costs import CasadiCost, quadratic_cost
 from mbtsr.dynamics import LinearDynamics
-from mbtsr.ilqr import ILQROptions, _active_set_guess, _box_qp, ilqr
+from mbtsr.ilqr import ILQROptions, ilqr
 from mbtsr.ipopt_reference import solve_ipopt
 
 N_X, N_U = 4, 2

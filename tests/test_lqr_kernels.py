@@ -18,12 +18,13 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from lqr_reference import _backward_pass, _box_qp, _LQProblem
 from scipy.optimize import lsq_linear
 
 from mbtsr import _lqr_kernels as kernels
 from mbtsr.costs import quadratic_cost
 from mbtsr.dynamics import LinearDynamics
-from mbtsr.ilqr import ILQROptions, _backward_pass, _box_qp, _LQProblem, _rollout_policy, ilqr
+from mbtsr.ilqr import ILQROptions, _rollout_policy, ilqr
 
 PRM = kernels.BOXQP_DEFAULTS
 

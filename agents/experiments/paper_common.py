@@ -39,7 +39,7 @@ REPO = Path(__file__).resolve().parents[2]
 @dataclass
 class SweepArgs:
     """The command-line fields of every script that runs a sweep through
-    :func:`mbtsr.runner.run_sweep` (the experiments, ``benchmark_sb3``)."""
+    :func:`mbtsr.runner.run_sweep` (the paper's experiments)."""
 
     quick: bool = field(default=False, metadata={
         "help": "tiny smoke-test run (options not given take the script's QUICK values)"})
