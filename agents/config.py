@@ -138,9 +138,14 @@ class PlannerConfig(_Checked):
     the learned model, warm-started with the shifted previous plan.
 
     :param horizon: MPC horizon (steps).
-    :param replan_every: execute every plan open loop for this many steps before re-solving
-        (1: re-plan every step, the default; larger: the feedback-limited regime, where feedback
-        hides less of the model's error). The oracle uses the same setting.
+    :param replan_every: execute every plan for this many steps before re-solving (1:
+        re-plan every step, the default; larger: the feedback-limited regime, where feedback
+        hides less of the model's error; a fraction of the planning time). The oracle uses the
+        same setting.
+    :param replan_feedback: between re-plans, follow iLQR's local policy
+        ``u_t = U_t + K_t (x_t - X_t)`` (the last backward pass's gains, on the model's
+        Jacobians) instead of the plan's open-loop controls ``U_t`` (needs
+        ``replan_every > 1`` and a planner with iLQR: ``kind`` ``"ilqr"`` or ``"cem-ilqr"``).
     :param kind: ``"ilqr"`` (iLQR on the model's Jacobians, the paper's controller), ``"cem"``
         (the cross-entropy method of PETS, :func:`mbtsr.cem.cem`: forward predictions only,
         never the model's Jacobians; the control for the paper's argument) or ``"cem-ilqr"``
@@ -173,6 +178,7 @@ class PlannerConfig(_Checked):
     _path: ClassVar[str] = "planner"
     horizon: int = 30
     replan_every: int = 1
+    replan_feedback: bool = False
     kind: Literal["ilqr", "cem", "cem-ilqr"] = "cem-ilqr"
     terminal_weight: float = 1.0
     ilqr_iterations: int = 2
@@ -715,6 +721,10 @@ _DEPENDENT: tuple[tuple[tuple[str, ...], Callable[[Mapping[str, Any]], bool], st
     (("planner.proposal.",), lambda v: v["planner.kind"] == "cem-ilqr",
      "it is a setting of the CEM proposal of planner.kind='cem-ilqr', which is not the "
      "planner: remove it, or set planner.kind='cem-ilqr'"),
+    (("planner.replan_feedback",),
+     lambda v: v["planner.replan_every"] > 1 and v["planner.kind"] != "cem",
+     "it follows iLQR's gains between re-plans, so it needs planner.replan_every > 1 and a "
+     "planner with iLQR (planner.kind 'ilqr' or 'cem-ilqr'): remove it, or set those"),
     (("planner.ilqr_iterations",), lambda v: v["planner.kind"] != "cem",
      "CEM runs planner.cem.iterations per step: remove it, or plan with iLQR"),
     (("collection.excitation_window",), lambda v: v["collection.excitation"] == "filtered_gaussian",

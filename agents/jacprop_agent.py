@@ -233,7 +233,8 @@ class JacPropAgent(SB3Predictor):
             optimizer_options=options,
             termination_fn=self.termination_fn,
         )
-        self.actor = ReplanEvery(self.policy, cfg.planner.replan_every)
+        self.actor = ReplanEvery(self.policy, cfg.planner.replan_every,
+                                 cfg.planner.replan_feedback)
 
     def _check_state_fn(self, env: gym.Env | None, spec: EnvSpec) -> np.ndarray:
         """Call the state map on one observation and on a batch of three (it is called on
@@ -362,10 +363,10 @@ class JacPropAgent(SB3Predictor):
 
     def _act(self, observation: Any, state: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
         """Action of the MPC controller on the learned model (Algorithm 1, step (e)); ``state``
-        is the warm-start plan ``[H, m]`` of the previous call (``[H+1, m]`` with
-        ``AgentConfig.planner.replan_every > 1``: the last row counts the steps since the
-        plan), ``None`` a cold full-horizon plan. Exploration noise is only added in
-        :meth:`learn`."""
+        is the warm-start plan ``[H, m]`` of the previous call (with
+        ``AgentConfig.planner.replan_every > 1`` a :class:`ReplanEvery` state: one more row
+        counts the steps since the plan), ``None`` a cold full-horizon plan. Exploration noise
+        is only added in :meth:`learn`."""
         return self.actor.predict(observation, state)
 
     def save(self, path: str | Path) -> Path:
@@ -830,7 +831,7 @@ class JacPropAgent(SB3Predictor):
             state_map=self.state_map,
             terminal_cost_fn=self.terminal_cost_fn,
             termination_fn=self.termination_fn,
-        ), cfg.planner.replan_every)
+        ), cfg.planner.replan_every, cfg.planner.replan_feedback)
 
     def _oracle_costs(self, env: gym.Env, kwargs: dict[str, Any]) -> np.ndarray | None:
         """Per-episode costs of MPC with the TRUE model (computed once, then kept)."""
@@ -1026,30 +1027,55 @@ class JacPropAgent(SB3Predictor):
 
 
 class ReplanEvery(SB3Predictor):
-    """Feedback-limited MPC: each plan of ``policy`` is executed open loop for ``k`` steps
-    before the next solve (warm-started with the rest of the plan). ``k = 1`` is ``policy``
-    itself. The SB3 ``state`` is the remaining plan ``[H, m]`` plus one row holding the number
-    of steps since the last solve."""
+    """Feedback-limited MPC: each plan of ``policy`` is executed for ``k`` steps before the
+    next solve (warm-started with the rest of the plan). ``k = 1`` is ``policy`` itself.
 
-    def __init__(self, policy: Any, k: int) -> None:
-        self.policy, self.k = policy, int(k)
+    Between solves the plan's controls ``U_t`` are played open loop or, with ``feedback``,
+    through iLQR's local policy ``u_t = clip(U_t + K_t (x_t - X_t))`` (``x_t`` the model
+    state of the observation; the last solve's ``X`` and ``K``; a solve without gains, CEM,
+    plays open loop). The SB3 ``state`` is ``[H+1, m]``: the remaining plan and one row
+    holding the number of steps since the last solve; with ``feedback`` each plan row also
+    holds ``X_t`` and ``K_t`` (``[H+1, m + n + m n]``)."""
+
+    def __init__(self, policy: Any, k: int, feedback: bool = False) -> None:
+        self.policy, self.k, self.feedback = policy, int(k), bool(feedback)
 
     def _act(self, observation: Any, state: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
         if self.k == 1:
             return self.policy.predict(observation, state)
+        spec = self.policy.spec
+        m = spec.act_dim
         plan, age = None, 0
         if state is not None:
             state = np.asarray(state, dtype=float)
             plan, age = state[:-1], int(state[-1, 0])
         if plan is None or age >= self.k:
-            action, rest = self.policy.predict(observation, plan)
+            action, rest = self.policy.predict(observation, None if plan is None else plan[:, :m])
+            if self.feedback:
+                rest = np.concatenate([rest, self._reference()], axis=1)
             age = 1
         else:
-            spec = self.policy.spec
-            action = np.clip(plan[0], spec.u_min, spec.u_max)
+            u = plan[0, :m]
+            if plan.shape[1] > m and np.any(plan[0, m:]):
+                x = self.policy.state_map.state(np.asarray(observation, dtype=float))
+                n = x.shape[0]
+                u = u + plan[0, m + n:].reshape(m, n) @ (x - plan[0, m:m + n])
+            action = np.clip(u, spec.u_min, spec.u_max)
             rest = np.concatenate([plan[1:], plan[-1:]], axis=0)
             age += 1
         return action, np.concatenate([rest, np.full((1, rest.shape[1]), float(age))], axis=0)
+
+    def _reference(self) -> np.ndarray:
+        """``[H, n + m n]``: the last solve's states ``X_t`` and gains ``K_t`` for the steps
+        after the first, shifted as the plan (the last row repeated); zeros when the solve has
+        no gains (CEM), which play open loop."""
+        res = self.policy.last_result
+        X, K = np.asarray(res.X, dtype=float), getattr(res, "K", None)
+        H = X.shape[0] - 1
+        if K is None:
+            return np.zeros((H, X.shape[1] * (1 + self.policy.spec.act_dim)))
+        K = np.asarray(K, dtype=float).reshape(H, -1)
+        return np.concatenate([X[1:], np.concatenate([K[1:], K[-1:]], axis=0)], axis=1)
 
 
 def _probe_observations(env: gym.Env | None, shape: tuple[int, ...]) -> np.ndarray:

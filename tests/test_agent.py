@@ -724,6 +724,39 @@ def test_replan_every_executes_each_plan_open_loop():
                                    np.clip(U[:3], -2, 2).astype(np.float32), rtol=1e-6)
 
 
+@pytest.mark.parametrize("kind", ["ilqr", "cem-ilqr"])
+def test_replan_feedback_follows_ilqrs_local_policy_between_solves(kind):
+    """With planner.replan_feedback the actions between solves are the last solve's local
+    policy ``clip(U_i + K_i (x - X_i))`` at the observed model state ``x``, recomputed here from
+    each solve's result; a solve's own step plays its first control."""
+    env = gym.make("Pendulum-v1")
+    agent = JacPropAgent(env, tiny_config({"collection.episode_steps": 12, "planner.kind": kind,
+                                           "planner.replan_every": 3,
+                                           "planner.replan_feedback": True}),
+                         cost_fn=pendulum_cost)
+    agent.learn(1, progress_bar=False)
+    solves = []
+    original = agent.policy.mpc.solve
+
+    def recording_solve(*args, **kwargs):
+        solves.append(original(*args, **kwargs))
+        return solves[-1]
+
+    agent.policy.mpc.solve = recording_solve
+    rec = agent.rollout_policy(env, seed=4)
+    assert len(solves) == 4  # steps 0, 3, 6, 9 of 12
+    corrected = 0
+    for j, res in enumerate(solves):
+        for i in range(3):
+            x = agent.state_map.state(np.asarray(rec.obs[3 * j + i], dtype=float))
+            u = res.U[i] + (res.K[i] @ (x - res.X[i]) if i else 0.0)
+            np.testing.assert_allclose(rec.actions[3 * j + i],
+                                       np.clip(u, -2, 2).astype(np.float32), rtol=1e-5,
+                                       atol=1e-6)
+            corrected += bool(i) and not np.allclose(np.clip(u, -2, 2), np.clip(res.U[i], -2, 2))
+    assert corrected > 0  # the learned model is not the pendulum: the gains act
+
+
 def test_evaluation_schedule_every_k_episodes_and_at_the_end_of_learn():
     env = gym.make("Pendulum-v1")
     agent = JacPropAgent(env, tiny_config({"collection.episode_steps": 10, "evaluation.every": 4,

@@ -355,6 +355,7 @@ LEAVES = {
     "regularization.ltv_lambda": st.none() | st.floats(1e-3, 1e6),
     "planner.horizon": st.integers(2, 60),
     "planner.replan_every": st.integers(1, 2),
+    "planner.replan_feedback": st.booleans(),
     "planner.kind": st.sampled_from(["ilqr", "cem", "cem-ilqr"]),
     "planner.terminal_weight": st.floats(0.0, 10.0),
     "planner.ilqr_iterations": st.integers(1, 5),
@@ -412,6 +413,8 @@ ACTS_ONLY_WHEN = {
     **{k: (lambda v: v["planner.kind"] == "cem-ilqr") for k in LEAVES
        if k.startswith("planner.proposal.")},
     "planner.ilqr_iterations": lambda v: v["planner.kind"] != "cem",
+    "planner.replan_feedback": lambda v: (v["planner.replan_every"] > 1
+                                          and v["planner.kind"] != "cem"),
     "collection.excitation_window": lambda v: v["collection.excitation"] == "filtered_gaussian",
     "video_every": lambda v: v["video"],
     "evaluation.solved_ratio": lambda v: v["evaluation.solved_return"] is None,
@@ -624,6 +627,9 @@ def test_a_section_built_with_a_value_of_the_wrong_type_is_refused_by_the_tree()
     ({"collection": {"excitation": "multisine", "excitation_window": 3}},
      "collection.excitation_window"),
     ({"video_every": 2}, "video_every"),
+    ({"planner.replan_feedback": True}, "planner.replan_feedback"),  # replan_every is 1
+    ({"planner": {"kind": "cem", "replan_every": 4, "replan_feedback": True}},
+     "planner.replan_feedback"),
     ({"evaluation": {"solved_return": -4.0, "solved_ratio": 1.1}}, "evaluation.solved_ratio"),
     ({"evaluation": {"solved_return": -4.0, "early_exit": False}}, "evaluation.early_exit"),
 ])
