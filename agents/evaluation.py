@@ -174,14 +174,14 @@ class MPCPolicy(SB3Predictor):
                     f"state must be the [H={self.mpc.horizon}, m={self.spec.act_dim}] plan "
                     f"returned by predict, got {list(state.shape)}"
                 )
-        res = self.mpc.solve(self._model_state(obs), 0, params=obs, warm_start=state,
+        res = self.mpc.solve(self.model_state(obs), 0, params=obs, warm_start=state,
                              **self._solve_kwargs(obs))
         self.last_result = res
         U = np.asarray(res.U, dtype=float)
         action = np.clip(U[0], self.spec.u_min, self.spec.u_max)
         return action, np.concatenate([U[1:], U[-1:]], axis=0)
 
-    def _model_state(self, obs: np.ndarray) -> np.ndarray:
+    def model_state(self, obs: np.ndarray) -> np.ndarray:
         """The planner's start state for this observation (the task's state map)."""
         return self.state_map.state(obs)
 
@@ -334,7 +334,7 @@ class TrueStatePolicy(MPCPolicy):
         super().__init__(mpc, task_cost, termination_fn)
         self.env = env
 
-    def _model_state(self, obs: np.ndarray) -> np.ndarray:
+    def model_state(self, obs: np.ndarray) -> np.ndarray:
         from envs.mujoco_model import state_of
 
         dyn, base = self.model.dynamics, self.env.unwrapped

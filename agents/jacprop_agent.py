@@ -1031,11 +1031,12 @@ class ReplanEvery(SB3Predictor):
     next solve (warm-started with the rest of the plan). ``k = 1`` is ``policy`` itself.
 
     Between solves the plan's controls ``U_t`` are played open loop or, with ``feedback``,
-    through iLQR's local policy ``u_t = clip(U_t + K_t (x_t - X_t))`` (``x_t`` the model
-    state of the observation; the last solve's ``X`` and ``K``; a solve without gains, CEM,
-    plays open loop). The SB3 ``state`` is ``[H+1, m]``: the remaining plan and one row
-    holding the number of steps since the last solve; with ``feedback`` each plan row also
-    holds ``X_t`` and ``K_t`` (``[H+1, m + n + m n]``)."""
+    through iLQR's local policy ``u_t = clip(U_t + K_t (x_t - X_t))``: ``x_t`` is the
+    planner's start state for the observation (``policy.model_state``: the learned model's
+    state, or the oracle's true state), ``X`` and ``K`` are the last solve's (a solve without
+    gains, CEM, plays open loop). The SB3 ``state`` is ``[H+1, m]``: the remaining plan and
+    one row holding the number of steps since the last solve; with ``feedback`` each plan row
+    also holds ``X_t`` and ``K_t`` (``[H+1, m + n + m n]``)."""
 
     def __init__(self, policy: Any, k: int, feedback: bool = False) -> None:
         self.policy, self.k, self.feedback = policy, int(k), bool(feedback)
@@ -1057,7 +1058,7 @@ class ReplanEvery(SB3Predictor):
         else:
             u = plan[0, :m]
             if plan.shape[1] > m and np.any(plan[0, m:]):
-                x = self.policy.state_map.state(np.asarray(observation, dtype=float))
+                x = self.policy.model_state(np.asarray(observation, dtype=float))
                 n = x.shape[0]
                 u = u + plan[0, m + n:].reshape(m, n) @ (x - plan[0, m:m + n])
             action = np.clip(u, spec.u_min, spec.u_max)

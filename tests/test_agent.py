@@ -757,6 +757,38 @@ def test_replan_feedback_follows_ilqrs_local_policy_between_solves(kind):
     assert corrected > 0  # the learned model is not the pendulum: the gains act
 
 
+def test_oracle_replan_feedback_plans_from_the_true_state():
+    """The oracle (true MuJoCo state, TrueStatePolicy) with replan_feedback: the replayed
+    actions are ``clip(U_i + K_i (x - X_i))`` at the env's true lifted state ``x``; the model
+    is the env, so the state stays on the plan and the correction is at rounding level."""
+    from agents import tasks
+
+    task = tasks.inverted_pendulum(max_episode_steps=9)
+    env = task.make_env()
+    agent = JacPropAgent(env, tiny_config({"planner.kind": "ilqr", "planner.replan_every": 3,
+                                           "planner.replan_feedback": True}),
+                         **task.agent_kwargs())
+    oracle = agent.oracle_policy(env)
+    solves, original = [], oracle.policy.mpc.solve
+
+    def recording_solve(*args, **kwargs):
+        solves.append(original(*args, **kwargs))
+        return solves[-1]
+
+    oracle.policy.mpc.solve = recording_solve
+    obs, _ = env.reset(seed=3)
+    state, lo, hi = None, env.action_space.low, env.action_space.high
+    for t in range(9):
+        x = oracle.policy.model_state(obs)
+        action, state = oracle.predict(obs, state, episode_start=t == 0)
+        res, i = solves[-1], t % 3
+        assert len(solves) == t // 3 + 1
+        np.testing.assert_allclose(action, np.clip(res.U[i] + res.K[i] @ (x - res.X[i]), lo, hi),
+                                   rtol=1e-9, atol=1e-9)
+        np.testing.assert_allclose(x, res.X[i], atol=1e-6)  # the true model: on the plan
+        obs, *_ = env.step(action)
+
+
 def test_evaluation_schedule_every_k_episodes_and_at_the_end_of_learn():
     env = gym.make("Pendulum-v1")
     agent = JacPropAgent(env, tiny_config({"collection.episode_steps": 10, "evaluation.every": 4,
