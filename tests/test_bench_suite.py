@@ -247,3 +247,24 @@ def test_stop_after_steps_needs_checkpoints(capsys, tmp_path):
     with pytest.raises(ValueError, match="needs checkpoint_dir"):
         suite.run_one("reacher", "cem-ilqr", "none", 0, smoke=True, oracle_cache=str(tmp_path),
                       baseline=None, stop_after=50)
+
+
+def test_agent_settings_reach_every_run_and_keep_their_json_apart(tmp_path, capsys):
+    out = tmp_path / "suite.json"
+    common = ["--smoke", "--seeds", "0", "--json", str(out), "--baselines-json",
+              str(tmp_path / "b.json"), "--oracle-cache", str(tmp_path / "oracle"), "--tasks",
+              "inverted-pendulum", "--regularizations", "none"]
+    settings = {"model.hidden_width": 5, "planner.horizon": 6}
+    state = suite.main(common + ["--agent-settings", json.dumps(settings)])
+    (run,) = state["runs"]
+    assert run["agent_settings"] == state["agent_settings"] == settings
+    assert run["model"]["hidden_width"] == 5  # the setting reached the agent
+    with pytest.raises(SystemExit) as e:
+        suite.main(common + ["--resume", "--agent-settings", '{"model.hidden_width": 6}'])
+    assert e.value.code == 2 and "holds runs with agent settings" in capsys.readouterr().err
+    for bad, why in (('{"seed": 3}', "suite's own"), ('{"evaluation.episodes": 1}', "suite's own"),
+                     ("[1]", "JSON object"), ("nope", "not JSON")):
+        with pytest.raises(SystemExit) as e:
+            suite.main(common + ["--agent-settings", bad])
+        err = capsys.readouterr().err
+        assert e.value.code == 2 and why in err, err
