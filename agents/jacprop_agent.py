@@ -1033,8 +1033,11 @@ class ReplanEvery(SB3Predictor):
     Between solves the plan's controls ``U_t`` are played open loop or, with ``feedback``,
     through iLQR's local policy ``u_t = clip(U_t + K_t (x_t - X_t))``: ``x_t`` is the
     planner's start state for the observation (``policy.model_state``: the learned model's
-    state, or the oracle's true state), ``X`` and ``K`` are the last solve's (a solve without
-    gains, CEM, plays open loop). The SB3 ``state`` is ``[H+1, m]``: the remaining plan and
+    state, or the oracle's true state), ``X`` and ``K`` are the last solve's: ``K`` from its
+    last backward pass, linearized about the trajectory before its final line search, ``X``
+    the accepted trajectory. A solve without gains (CEM) or with a non-finite ``X`` or ``K``
+    (a failed solve) plays open loop, and so does a correction that comes out non-finite
+    (a model state far off the plan). The SB3 ``state`` is ``[H+1, m]``: the remaining plan and
     one row holding the number of steps since the last solve; with ``feedback`` each plan row
     also holds ``X_t`` and ``K_t`` (``[H+1, m + n + m n]``)."""
 
@@ -1060,7 +1063,9 @@ class ReplanEvery(SB3Predictor):
             if plan.shape[1] > m and np.any(plan[0, m:]):
                 x = self.policy.model_state(np.asarray(observation, dtype=float))
                 n = x.shape[0]
-                u = u + plan[0, m + n:].reshape(m, n) @ (x - plan[0, m:m + n])
+                corrected = u + plan[0, m + n:].reshape(m, n) @ (x - plan[0, m:m + n])
+                if np.all(np.isfinite(corrected)):
+                    u = corrected
             action = np.clip(u, spec.u_min, spec.u_max)
             rest = np.concatenate([plan[1:], plan[-1:]], axis=0)
             age += 1
@@ -1068,14 +1073,15 @@ class ReplanEvery(SB3Predictor):
 
     def _reference(self) -> np.ndarray:
         """``[H, n + m n]``: the last solve's states ``X_t`` and gains ``K_t`` for the steps
-        after the first, shifted as the plan (the last row repeated); zeros when the solve has
-        no gains (CEM), which play open loop."""
+        after the first, shifted as the plan (the last row repeated); zeros, which play open
+        loop, when the solve has no gains (CEM) or its ``X`` or ``K`` is not finite."""
         res = self.policy.last_result
         X, K = np.asarray(res.X, dtype=float), getattr(res, "K", None)
         H = X.shape[0] - 1
-        if K is None:
+        if K is not None:
+            K = np.asarray(K, dtype=float).reshape(H, -1)
+        if K is None or not (np.all(np.isfinite(X)) and np.all(np.isfinite(K))):
             return np.zeros((H, X.shape[1] * (1 + self.policy.spec.act_dim)))
-        K = np.asarray(K, dtype=float).reshape(H, -1)
         return np.concatenate([X[1:], np.concatenate([K[1:], K[-1:]], axis=0)], axis=1)
 
 

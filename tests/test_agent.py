@@ -843,3 +843,36 @@ def test_evaluation_every_steps_follows_the_env_steps():
         60, 120, 150]
     with pytest.raises(ValueError, match="evaluation.every_steps"):
         tiny_config({"evaluation.every_steps": -1})
+
+
+@pytest.mark.parametrize("broken", ["X", "K"])
+def test_replan_feedback_plays_a_failed_solves_plan_open_loop(broken):
+    """A solve whose ``X`` or ``K`` is not finite (a failed solve) gives no correction: the
+    steps until the next solve play its controls ``U_i`` open loop, never a NaN action."""
+    import dataclasses
+
+    env = gym.make("Pendulum-v1")
+    agent = JacPropAgent(env, tiny_config({"collection.episode_steps": 12, "planner.kind": "ilqr",
+                                           "planner.replan_every": 3,
+                                           "planner.replan_feedback": True}),
+                         cost_fn=pendulum_cost)
+    agent.learn(1, progress_bar=False)
+    solves = []
+    original = agent.policy.mpc.solve
+
+    def failing_solve(*args, **kwargs):
+        res = original(*args, **kwargs)
+        bad = np.array(getattr(res, broken), dtype=float)
+        bad[1 + len(solves) % 2] = np.nan
+        solves.append(dataclasses.replace(res, **{broken: bad}))
+        return solves[-1]
+
+    agent.policy.mpc.solve = failing_solve
+    rec = agent.rollout_policy(env, seed=4)
+    assert len(solves) == 4
+    assert np.all(np.isfinite(rec.actions))
+    for j, res in enumerate(solves):
+        for i in range(3):
+            np.testing.assert_allclose(rec.actions[3 * j + i],
+                                       np.clip(res.U[i], -2, 2).astype(np.float32), rtol=1e-5,
+                                       atol=1e-6)
