@@ -55,6 +55,7 @@ from agents.evaluation import (
     SB3Predictor,
     _is_mujoco_env,
     cached_costs,
+    checked_observation,
     evaluate_policy_costs,
     evaluation_targets,
     has_true_model,
@@ -1052,6 +1053,9 @@ class ReplanEvery(SB3Predictor):
         plan, age = None, 0
         if state is not None:
             state = np.asarray(state, dtype=float)
+            if state.ndim != 2 or state.shape[0] < 2 or state.shape[1] < m:
+                raise ValueError(f"state must be the [H+1, >= {m}] array a previous call "
+                                 f"returned, got shape {list(state.shape)}")
             plan, age = state[:-1], int(state[-1, 0])
         if plan is None or age >= self.k:
             action, rest = self.policy.predict(observation, None if plan is None else plan[:, :m])
@@ -1060,8 +1064,9 @@ class ReplanEvery(SB3Predictor):
             age = 1
         else:
             u = plan[0, :m]
+            obs = checked_observation(observation, spec.obs_dim)
             if plan.shape[1] > m and np.any(plan[0, m:]):
-                x = self.policy.model_state(np.asarray(observation, dtype=float))
+                x = self.policy.model_state(obs)
                 n = x.shape[0]
                 corrected = u + plan[0, m + n:].reshape(m, n) @ (x - plan[0, m:m + n])
                 if np.all(np.isfinite(corrected)):

@@ -876,3 +876,24 @@ def test_replan_feedback_plays_a_failed_solves_plan_open_loop(broken):
             np.testing.assert_allclose(rec.actions[3 * j + i],
                                        np.clip(res.U[i], -2, 2).astype(np.float32), rtol=1e-5,
                                        atol=1e-6)
+
+
+def test_replan_every_checks_the_observation_and_state_between_solves():
+    """The steps that replay a plan (no solve) refuse a wrong-shaped or non-finite observation
+    and a state that is not one ``predict`` returned, as a solving step does."""
+    env = gym.make("Pendulum-v1")
+    agent = JacPropAgent(env, tiny_config({"collection.episode_steps": 12, "planner.kind": "ilqr",
+                                           "planner.replan_every": 3,
+                                           "planner.replan_feedback": True}),
+                         cost_fn=pendulum_cost)
+    agent.learn(1, progress_bar=False)
+    obs, _ = env.reset(seed=0)
+    _, state = agent.predict(obs)  # a solve; the next two calls replay
+    for bad, why in ((obs[:2], "shape"), (np.array([np.nan, 0.0, 0.0]), "finite")):
+        with pytest.raises(ValueError, match=why):
+            agent.predict(bad, state)
+    for bad_state in (state[0], state[:1], state[:, :0]):
+        with pytest.raises(ValueError, match="state must be"):
+            agent.predict(obs, bad_state)
+    action, _ = agent.predict(obs, state)
+    assert action.shape == (1,) and np.all(np.isfinite(action))

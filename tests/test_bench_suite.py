@@ -251,20 +251,37 @@ def test_stop_after_steps_needs_checkpoints(capsys, tmp_path):
 
 def test_agent_settings_reach_every_run_and_keep_their_json_apart(tmp_path, capsys):
     out = tmp_path / "suite.json"
-    common = ["--smoke", "--seeds", "0", "--json", str(out), "--baselines-json",
-              str(tmp_path / "b.json"), "--oracle-cache", str(tmp_path / "oracle"), "--tasks",
-              "inverted-pendulum", "--regularizations", "none"]
-    settings = {"model.hidden_width": 5, "planner.horizon": 6}
-    state = suite.main(common + ["--agent-settings", json.dumps(settings)])
+    common = ["--smoke", "--seeds", "0", "--baselines-json", str(tmp_path / "b.json"),
+              "--oracle-cache", str(tmp_path / "oracle"), "--tasks", "inverted-pendulum",
+              "--regularizations", "none"]
+    # nested sections are flattened; a re-plan period beyond the smoke horizon lengthens it
+    settings = {"model": {"hidden_width": 5}, "planner.replan_every": 8}
+    state = suite.main(common + ["--json", str(out), "--agent-settings", json.dumps(settings)])
     (run,) = state["runs"]
-    assert run["agent_settings"] == state["agent_settings"] == settings
+    flat = {"model.hidden_width": 5, "planner.replan_every": 8}
+    assert run["agent_settings"] == state["agent_settings"] == flat
     assert run["model"]["hidden_width"] == 5  # the setting reached the agent
     with pytest.raises(SystemExit) as e:
-        suite.main(common + ["--resume", "--agent-settings", '{"model.hidden_width": 6}'])
+        suite.main(common + ["--json", str(out), "--resume",
+                             "--agent-settings", '{"model.hidden_width": 6}'])
     assert e.value.code == 2 and "holds runs with agent settings" in capsys.readouterr().err
+    fresh = tmp_path / "fresh.json"
     for bad, why in (('{"seed": 3}', "suite's own"), ('{"evaluation.episodes": 1}', "suite's own"),
+                     ('{"evaluation": {"episodes": 1}}', "suite's own"),
+                     ('{"evaluation": 1}', "suite's own"),
+                     ('{"planner": {"kind": "cem"}}', "suite's own"),
+                     ('{"regularization": "exact"}', "suite's own"),
+                     ('{"torch_threads": 2}', "suite's own"),
+                     ('{"planner.horizon": 20}', "true-model oracle"),
+                     ('{"planner": {"cem": {"samples": 9}}}', "true-model oracle"),
+                     # a value the config refuses fails before the first run starts
+                     ('{"planner.replan_feedback": true}', "inverted-pendulum with cem-ilqr"),
                      ("[1]", "JSON object"), ("nope", "not JSON")):
         with pytest.raises(SystemExit) as e:
-            suite.main(common + ["--agent-settings", bad])
+            suite.main(common + ["--json", str(fresh), "--agent-settings", bad])
         err = capsys.readouterr().err
-        assert e.value.code == 2 and why in err, err
+        assert e.value.code == 2 and why in err, (bad, err)
+        assert not fresh.exists()
+    with pytest.raises(SystemExit) as e:
+        suite.main(["--report-only", "--json", str(out), "--agent-settings", json.dumps(flat)])
+    assert e.value.code == 2 and "--report-only" in capsys.readouterr().err

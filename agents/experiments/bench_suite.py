@@ -127,13 +127,16 @@ def _planner_applies(key: str, kind: str) -> bool:
     return key != "planner.ilqr_iterations" or kind != "cem"
 
 
-def make_agent(name: str, overrides: dict[str, Any] | None = None, *, smoke: bool = False
-               ) -> Any:
-    """The agent of task ``name`` on a new env: the task's functions and settings, the
+def agent_config(name: str, overrides: dict[str, Any] | None = None, *, smoke: bool = False
+                 ) -> Any:
+    """The :class:`~agents.config.AgentConfig` of task ``name``: the task's settings, the
     suite's evaluation protocol, ``overrides`` (dotted ``AgentConfig`` fields) and, with
-    ``smoke``, the tiny budgets (``overrides`` win over them)."""
+    ``smoke``, the tiny budgets (``overrides`` win over them; a re-plan period longer than
+    the smoke horizon lengthens the horizon to it).
+
+    :raises ValueError: a setting the config refuses, naming it.
+    """
     from agents.config import AgentConfig
-    from agents.jacprop_agent import JacPropAgent
 
     entry = TASKS[name]
     settings = {"evaluation.episodes": EVAL_EPISODES, "evaluation.seed": EVAL_SEED,
@@ -148,8 +151,20 @@ def make_agent(name: str, overrides: dict[str, Any] | None = None, *, smoke: boo
         if "planner.replan_every" in settings:
             settings["planner.replan_every"] = 2
         settings.update(overrides or {})  # the caller's settings win over the smoke budgets
-    task = entry["task"]
-    return JacPropAgent(task.make_env(), AgentConfig.default(settings), **task.agent_kwargs())
+        if "planner.horizon" not in (overrides or {}):
+            settings["planner.horizon"] = max(settings["planner.horizon"],
+                                              int(settings.get("planner.replan_every", 1)))
+    return AgentConfig.default(settings)
+
+
+def make_agent(name: str, overrides: dict[str, Any] | None = None, *, smoke: bool = False
+               ) -> Any:
+    """The agent of task ``name`` on a new env, configured by :func:`agent_config`."""
+    from agents.jacprop_agent import JacPropAgent
+
+    task = TASKS[name]["task"]
+    return JacPropAgent(task.make_env(), agent_config(name, overrides, smoke=smoke),
+                        **task.agent_kwargs())
 
 
 # ---------------------------------------------------------------------------------------------
@@ -348,23 +363,59 @@ def run_one(name: str, planner: str, reg: str, seed: int, *, smoke: bool,
     }
 
 
-def check_agent_settings(settings: Any) -> dict[str, Any]:
-    """``settings`` if it is a dict of dotted ``AgentConfig`` fields that the suite does not
-    set per run or by protocol (``seed``, ``planner.kind``, ``regularization``, the
-    ``evaluation.*`` protocol, ``run_dir``/``checkpoint``); the values are checked when the
-    agent is built.
+#: agent settings a suite run may not take from ``--agent-settings``: the suite's own
+#: (per run, by protocol, bookkeeping) and the planner settings the stored oracle was computed
+#: with (a run planning otherwise would be scored against an oracle it does not match)
+_SUITE_OWN = ("seed", "planner.kind", "regularization", "run_dir", "checkpoint", "evaluation",
+              "torch_threads", "progress", "tensorboard", "jacobian_error")
+_ORACLE_OWN = ("planner.horizon", "planner.terminal_weight", "planner.ilqr_iterations",
+               "planner.first_plan_iterations", "planner.proposal.samples",
+               "planner.proposal.elites", "planner.proposal.iterations", "planner.cem.samples",
+               "planner.cem.elites", "planner.cem.iterations")
 
-    :raises ValueError: naming the field the suite sets itself.
+
+def _flatten(settings: dict[str, Any], prefix: str = "") -> dict[str, Any]:
+    """``{"planner": {"cem": {"samples": 9}}}`` -> ``{"planner.cem.samples": 9}`` (dotted keys
+    pass through), the form :meth:`AgentConfig.replace` accepts either way."""
+    out: dict[str, Any] = {}
+    for key, value in settings.items():
+        if not isinstance(key, str):
+            raise ValueError(f"agent setting names must be strings, got {key!r}")
+        if isinstance(value, dict):
+            out.update(_flatten(value, f"{prefix}{key}."))
+        else:
+            out[f"{prefix}{key}"] = value
+    return out
+
+
+def check_agent_settings(settings: Any) -> dict[str, Any]:
+    """``settings`` as dotted ``AgentConfig`` fields (nested sections flattened), if none is
+    one the suite sets itself (``seed``, ``planner.kind``, ``regularization`` by name, the
+    ``evaluation`` protocol, ``run_dir``/``checkpoint``, threads and logging) or one the stored
+    oracle was computed with (the planner's horizon, terminal weight, iterations and sample
+    sizes: change those in the task's entry of :data:`TASKS` and recompute its baseline with
+    ``--baselines``). The values are checked when the configs are built (:func:`run` builds
+    every run's config before the first run).
+
+    :raises ValueError: naming the refused field and why.
     """
     if not isinstance(settings, dict):
         raise ValueError(f"agent settings must be a JSON object of dotted AgentConfig fields, "
                          f"got {type(settings).__name__}")
-    for key in settings:
-        if key in ("seed", "planner.kind", "regularization", "run_dir", "checkpoint") or \
-                key.startswith("evaluation."):
+    flat = _flatten(settings)
+    for key in flat:
+        if any(key == own or key.startswith(own + ".") for own in _SUITE_OWN
+               if own != "regularization") or key == "regularization":
             raise ValueError(f"agent setting {key!r} is the suite's own (--seeds, --planners, "
-                             f"--regularizations, the evaluation protocol, --checkpoints)")
-    return dict(settings)
+                             f"--regularizations, the evaluation protocol, --checkpoints, "
+                             f"one thread and no logging per run)")
+        if key in _ORACLE_OWN:
+            raise ValueError(
+                f"agent setting {key!r} changes the planner the stored true-model oracle was "
+                f"computed with ({BASELINES_JSON.name}): set it in the task's entry of "
+                f"agents.experiments.bench_suite.TASKS and recompute the baseline with "
+                f"`python scripts/bench_suite.py --baselines --tasks <task> --seeds`")
+    return flat
 
 
 #: settings that may differ between the sessions of a checkpointed run (paths, bookkeeping)
@@ -742,7 +793,9 @@ def write_markdown(state: dict[str, Any], path: Path, figure_dir: Path,
         "`bench_suite_sac.json` (SB3 SAC) and `bench_suite_pets.json` (PETS, "
         "[pets_peer.md](pets_peer.md)); git " + state.get("git", "?") + "."
         + (f" Every agent run with the settings {json.dumps(state['agent_settings'])} on top "
-           "of its task's." if state.get("agent_settings") else ""),
+           "of its task's; normalized scores and solved thresholds are against the stored "
+           "true-model oracle, which plans with the task's settings alone."
+           if state.get("agent_settings") else ""),
         "",
         "Every method is scored the same way: the mean of the env's own summed rewards over 3 "
         "fixed evaluation episodes (reset seeds 1000-1002). Normalized score: (R - R_zero) / "
@@ -927,6 +980,9 @@ class Args:
             if not given or set(given) - set(known):
                 raise ValueError(f"--{name} must name some of {list(known)}, got {list(given)}")
         if self.agent_settings:
+            if self.report_only or self.sb3:
+                raise ValueError("--agent-settings acts on new agent runs; --report-only and "
+                                 "--sb3 run none (a report reads each JSON's own settings)")
             try:
                 check_agent_settings(json.loads(self.agent_settings))
             except json.JSONDecodeError as e:
@@ -1000,8 +1056,17 @@ def run(a: Args) -> dict[str, Any]:
         return state
     path = Path(a.json)
     state = _load(path) if (a.resume or a.report_only) else {"runs": []}
-    settings = json.loads(a.agent_settings) if a.agent_settings else {}
+    settings = check_agent_settings(json.loads(a.agent_settings)) if a.agent_settings else {}
     if not a.report_only:
+        for name in a.tasks:  # every run's config is valid before the first run starts
+            for planner in a.planners:
+                for reg in a.regularizations:
+                    try:
+                        agent_config(name, {**settings, "planner.kind": planner,
+                                            "regularization": reg}, smoke=a.smoke)
+                    except ValueError as e:
+                        raise ValueError(f"--agent-settings on {name} with {planner}/{reg}: "
+                                         f"{e}") from e
         if state["runs"] and state.get("agent_settings", {}) != settings:
             raise ValueError(f"{path} holds runs with agent settings "
                              f"{state.get('agent_settings', {})}, these are {settings}: give "
