@@ -724,17 +724,23 @@ def test_replan_every_executes_each_plan_open_loop():
                                    np.clip(U[:3], -2, 2).astype(np.float32), rtol=1e-6)
 
 
-@pytest.mark.parametrize("kind", ["ilqr", "cem-ilqr"])
-def test_replan_feedback_follows_ilqrs_local_policy_between_solves(kind):
-    """With planner.replan_feedback the actions between solves are the last solve's local
-    policy ``clip(U_i + K_i (x - X_i))`` at the observed model state ``x``, recomputed here from
-    each solve's result; a solve's own step plays its first control."""
+def _feedback_agent(kind: str) -> tuple[gym.Env, JacPropAgent]:
+    """A Pendulum agent after one episode, re-planning every 3 steps with feedback."""
     env = gym.make("Pendulum-v1")
     agent = JacPropAgent(env, tiny_config({"collection.episode_steps": 12, "planner.kind": kind,
                                            "planner.replan_every": 3,
                                            "planner.replan_feedback": True}),
                          cost_fn=pendulum_cost)
     agent.learn(1, progress_bar=False)
+    return env, agent
+
+
+@pytest.mark.parametrize("kind", ["ilqr", "cem-ilqr"])
+def test_replan_feedback_follows_ilqrs_local_policy_between_solves(kind):
+    """With planner.replan_feedback the actions between solves are the last solve's local
+    policy ``clip(U_i + K_i (x - X_i))`` at the observed model state ``x``, recomputed here from
+    each solve's result; a solve's own step plays its first control."""
+    env, agent = _feedback_agent(kind)
     solves = []
     original = agent.policy.mpc.solve
 
@@ -851,12 +857,7 @@ def test_replan_feedback_plays_a_failed_solves_plan_open_loop(broken):
     steps until the next solve play its controls ``U_i`` open loop, never a NaN action."""
     import dataclasses
 
-    env = gym.make("Pendulum-v1")
-    agent = JacPropAgent(env, tiny_config({"collection.episode_steps": 12, "planner.kind": "ilqr",
-                                           "planner.replan_every": 3,
-                                           "planner.replan_feedback": True}),
-                         cost_fn=pendulum_cost)
-    agent.learn(1, progress_bar=False)
+    env, agent = _feedback_agent("ilqr")
     solves = []
     original = agent.policy.mpc.solve
 
@@ -881,12 +882,7 @@ def test_replan_feedback_plays_a_failed_solves_plan_open_loop(broken):
 def test_replan_every_checks_the_observation_and_state_between_solves():
     """The steps that replay a plan (no solve) refuse a wrong-shaped or non-finite observation
     and a state that is not one ``predict`` returned, as a solving step does."""
-    env = gym.make("Pendulum-v1")
-    agent = JacPropAgent(env, tiny_config({"collection.episode_steps": 12, "planner.kind": "ilqr",
-                                           "planner.replan_every": 3,
-                                           "planner.replan_feedback": True}),
-                         cost_fn=pendulum_cost)
-    agent.learn(1, progress_bar=False)
+    env, agent = _feedback_agent("ilqr")
     obs, _ = env.reset(seed=0)
     _, state = agent.predict(obs)  # a solve; the next two calls replay
     for bad, why in ((obs[:2], "shape"), (np.array([np.nan, 0.0, 0.0]), "finite")):
