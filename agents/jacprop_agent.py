@@ -1053,9 +1053,16 @@ class ReplanEvery(SB3Predictor):
         plan, age = None, 0
         if state is not None:
             state = np.asarray(state, dtype=float)
-            if state.ndim != 2 or state.shape[0] < 2 or state.shape[1] < m:
-                raise ValueError(f"state must be the [H+1, >= {m}] array a previous call "
-                                 f"returned, got shape {list(state.shape)}")
+            H = self.policy.mpc.horizon
+            widths = "m + n + m n" if self.feedback else "m"
+            fits = state.ndim == 2 and state.shape[0] == H + 1 and (
+                (state.shape[1] - m) % (m + 1) == 0 and state.shape[1] > m if self.feedback
+                else state.shape[1] == m)
+            if not fits or not np.all(np.isfinite(state)):
+                raise ValueError(f"state must be the finite [H+1={H + 1}, {widths}] array "
+                                 f"(m={m}) the previous call returned, got shape "
+                                 f"{list(state.shape)}" + (" with non-finite entries"
+                                                           if fits else ""))
             plan, age = state[:-1], int(state[-1, 0])
         if plan is None or age >= self.k:
             action, rest = self.policy.predict(observation, None if plan is None else plan[:, :m])
@@ -1068,6 +1075,10 @@ class ReplanEvery(SB3Predictor):
             if plan.shape[1] > m and np.any(plan[0, m:]):
                 x = self.policy.model_state(obs)
                 n = x.shape[0]
+                if plan.shape[1] != m + n + m * n:
+                    raise ValueError(f"state must hold n={n} model states and [{m}, {n}] gains "
+                                     f"per row (width {m + n + m * n}), got width "
+                                     f"{plan.shape[1]}")
                 corrected = u + plan[0, m + n:].reshape(m, n) @ (x - plan[0, m:m + n])
                 if np.all(np.isfinite(corrected)):
                     u = corrected

@@ -888,8 +888,11 @@ def test_replan_every_checks_the_observation_and_state_between_solves():
     for bad, why in ((obs[:2], "shape"), (np.array([np.nan, 0.0, 0.0]), "finite")):
         with pytest.raises(ValueError, match=why):
             agent.predict(bad, state)
-    for bad_state in (state[0], state[:1], state[:, :0]):
-        with pytest.raises(ValueError, match="state must be"):
+    nan_plan, nan_age, wide = state.copy(), state.copy(), np.pad(state, ((0, 0), (0, 2)))
+    nan_plan[0, 0], nan_age[-1, 0] = np.nan, np.nan
+    for bad_state in (state[0], state[:1], state[:-1], state[:, :0], state[:, :2], nan_plan,
+                      nan_age, wide):
+        with pytest.raises(ValueError, match="state must"):
             agent.predict(obs, bad_state)
     action, _ = agent.predict(obs, state)
     assert action.shape == (1,) and np.all(np.isfinite(action))

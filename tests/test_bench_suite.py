@@ -272,6 +272,12 @@ def test_agent_settings_reach_every_run_and_keep_their_json_apart(tmp_path, caps
                      ('{"planner": {"kind": "cem"}}', "suite's own"),
                      ('{"regularization": "exact"}', "suite's own"),
                      ('{"torch_threads": 2}', "suite's own"),
+                     ('{"planner": "cem"}', "not an AgentConfig field"),
+                     ('{"planner.cem": 5}', "not an AgentConfig field"),
+                     ('{"video": true}', "suite's own"),
+                     ('{"model": {"hidden_width": 5}, "model.hidden_width": 6}', "given twice"),
+                     # weights that would make the "none" runs another regularizer
+                     ('{"regularization.sampled_weight": 1.0}', "make the 'none' runs"),
                      ('{"planner.horizon": 20}', "true-model oracle"),
                      ('{"planner": {"cem": {"samples": 9}}}', "true-model oracle"),
                      # a value the config refuses fails before the first run starts
@@ -282,6 +288,7 @@ def test_agent_settings_reach_every_run_and_keep_their_json_apart(tmp_path, caps
         err = capsys.readouterr().err
         assert e.value.code == 2 and why in err, (bad, err)
         assert not fresh.exists()
-    with pytest.raises(SystemExit) as e:
-        suite.main(["--report-only", "--json", str(out), "--agent-settings", json.dumps(flat)])
-    assert e.value.code == 2 and "--report-only" in capsys.readouterr().err
+    for only in (["--report-only"], ["--sb3", "sac"]):
+        with pytest.raises(SystemExit) as e:
+            suite.main(only + ["--json", str(out), "--agent-settings", json.dumps(flat)])
+        assert e.value.code == 2 and "--report-only and --sb3 run none" in capsys.readouterr().err

@@ -363,11 +363,11 @@ def run_one(name: str, planner: str, reg: str, seed: int, *, smoke: bool,
     }
 
 
-#: agent settings a suite run may not take from ``--agent-settings``: the suite's own
-#: (per run, by protocol, bookkeeping) and the planner settings the stored oracle was computed
-#: with (a run planning otherwise would be scored against an oracle it does not match)
-_SUITE_OWN = ("seed", "planner.kind", "regularization", "run_dir", "checkpoint", "evaluation",
-              "torch_threads", "progress", "tensorboard", "jacobian_error")
+#: agent settings a suite run may not take from ``--agent-settings``: the suite's own (per run,
+#: by protocol, bookkeeping) and the planner settings the stored baseline records (a run
+#: planning otherwise would be scored against an oracle it does not match)
+_SUITE_OWN = ("seed", "planner.kind", "run_dir", "checkpoint", "evaluation", "torch_threads",
+              "progress", "tensorboard", "jacobian_error", "video", "video_every")
 _ORACLE_OWN = ("planner.horizon", "planner.terminal_weight", "planner.ilqr_iterations",
                "planner.first_plan_iterations", "planner.proposal.samples",
                "planner.proposal.elites", "planner.proposal.iterations", "planner.cem.samples",
@@ -376,45 +376,60 @@ _ORACLE_OWN = ("planner.horizon", "planner.terminal_weight", "planner.ilqr_itera
 
 def _flatten(settings: dict[str, Any], prefix: str = "") -> dict[str, Any]:
     """``{"planner": {"cem": {"samples": 9}}}`` -> ``{"planner.cem.samples": 9}`` (dotted keys
-    pass through), the form :meth:`AgentConfig.replace` accepts either way."""
+    pass through), the form :meth:`AgentConfig.replace` accepts either way.
+
+    :raises ValueError: a key that is not a string, or a field given twice.
+    """
     out: dict[str, Any] = {}
     for key, value in settings.items():
         if not isinstance(key, str):
             raise ValueError(f"agent setting names must be strings, got {key!r}")
-        if isinstance(value, dict):
-            out.update(_flatten(value, f"{prefix}{key}."))
-        else:
-            out[f"{prefix}{key}"] = value
+        inner = _flatten(value, f"{prefix}{key}.") if isinstance(value, dict) else {
+            f"{prefix}{key}": value}
+        for k, v in inner.items():
+            if k in out:
+                raise ValueError(f"agent setting {k!r} is given twice")
+            out[k] = v
     return out
 
 
 def check_agent_settings(settings: Any) -> dict[str, Any]:
-    """``settings`` as dotted ``AgentConfig`` fields (nested sections flattened), if none is
-    one the suite sets itself (``seed``, ``planner.kind``, ``regularization`` by name, the
-    ``evaluation`` protocol, ``run_dir``/``checkpoint``, threads and logging) or one the stored
-    oracle was computed with (the planner's horizon, terminal weight, iterations and sample
-    sizes: change those in the task's entry of :data:`TASKS` and recompute its baseline with
-    ``--baselines``). The values are checked when the configs are built (:func:`run` builds
-    every run's config before the first run).
+    """``settings`` as dotted ``AgentConfig`` leaf fields (nested sections flattened; a whole
+    section by name, ``{"planner": "cem"}``, is refused), if none is one the suite sets itself
+    (``seed``, ``planner.kind``, the ``evaluation`` protocol, ``run_dir``/``checkpoint``,
+    threads, logging and video) or one the stored baseline records (the planner's horizon,
+    terminal weight, iterations and sample sizes: change those in the task's entry of
+    :data:`TASKS` and recompute its baseline with ``--baselines``). Other planner settings
+    (``planner.replan_every``, CEM's ``particles`` or ``init_std``, ...) pass: those runs are
+    scored against the stored oracle, which plans with the task's settings alone, and the
+    report says so. Regularizer weights pass, but :func:`run` refuses a set that changes a
+    run's regularizer away from its ``--regularizations`` name. The values are checked when
+    :func:`run` builds every run's config, before the first run.
 
     :raises ValueError: naming the refused field and why.
     """
+    from agents.config import AgentConfig
+
     if not isinstance(settings, dict):
         raise ValueError(f"agent settings must be a JSON object of dotted AgentConfig fields, "
                          f"got {type(settings).__name__}")
     flat = _flatten(settings)
+    leaves = AgentConfig().dotted()
     for key in flat:
-        if any(key == own or key.startswith(own + ".") for own in _SUITE_OWN
-               if own != "regularization") or key == "regularization":
+        if any(key == own or key.startswith(own + ".") for own in _SUITE_OWN) or \
+                key == "regularization":
             raise ValueError(f"agent setting {key!r} is the suite's own (--seeds, --planners, "
                              f"--regularizations, the evaluation protocol, --checkpoints, "
-                             f"one thread and no logging per run)")
+                             f"one thread and no logging or video per run)")
         if key in _ORACLE_OWN:
             raise ValueError(
                 f"agent setting {key!r} changes the planner the stored true-model oracle was "
                 f"computed with ({BASELINES_JSON.name}): set it in the task's entry of "
                 f"agents.experiments.bench_suite.TASKS and recompute the baseline with "
                 f"`python scripts/bench_suite.py --baselines --tasks <task> --seeds`")
+        if key not in leaves:
+            raise ValueError(f"agent setting {key!r} is not an AgentConfig field (a dotted "
+                             f"leaf such as 'model.hidden_width' or 'planner.replan_every')")
     return flat
 
 
@@ -1061,12 +1076,17 @@ def run(a: Args) -> dict[str, Any]:
         for name in a.tasks:  # every run's config is valid before the first run starts
             for planner in a.planners:
                 for reg in a.regularizations:
+                    what = f"the config of {name} with {planner}/{reg}" + (
+                        " and --agent-settings" if settings else "")
                     try:
-                        agent_config(name, {**settings, "planner.kind": planner,
-                                            "regularization": reg}, smoke=a.smoke)
+                        cfg = agent_config(name, {**settings, "planner.kind": planner,
+                                                  "regularization": reg}, smoke=a.smoke)
                     except ValueError as e:
-                        raise ValueError(f"--agent-settings on {name} with {planner}/{reg}: "
-                                         f"{e}") from e
+                        raise ValueError(f"{what}: {e}") from e
+                    if cfg.regularization.kind != reg:
+                        raise ValueError(f"{what}: the regularizer weights make the "
+                                         f"{reg!r} runs {cfg.regularization.kind!r}; set only "
+                                         f"the weights of the --regularizations they run")
         if state["runs"] and state.get("agent_settings", {}) != settings:
             raise ValueError(f"{path} holds runs with agent settings "
                              f"{state.get('agent_settings', {})}, these are {settings}: give "
