@@ -292,9 +292,9 @@ def _legacy_training() -> TrainConfig:
 @functools.cache
 def _then_defaults() -> AgentConfig:
     """The defaults of the old flat format's time (the paper's ensemble, 150 epochs per update,
-    iLQR): the base of configs saved in it."""
+    iLQR, torch's own threads): the base of configs saved in it."""
     return AgentConfig(model=ModelConfig.paper(), training=_legacy_training(),
-                       planner=PlannerConfig(kind="ilqr"))
+                       planner=PlannerConfig(kind="ilqr"), torch_threads=0)
 
 
 #: every field of ``training`` a config saved before the step budget holds
@@ -379,7 +379,9 @@ class AgentConfig(_Checked):
         when the env provides it.
     :param progress: show a progress bar in ``learn``.
     :param torch_threads: threads of torch and of numpy's BLAS (``threadpoolctl``), applied by
-        ``learn`` (0: leave as is).
+        ``learn`` (0: leave as is). Default 1: the networks are small and overhead-bound, and
+        on a busy 2-core machine torch's 2 threads ran ``scripts/train_agent.py`` 21x slower
+        than one (489 s against 23 s, 2026-12-04).
     """
 
     collection: CollectionConfig = field(default_factory=CollectionConfig)
@@ -398,7 +400,7 @@ class AgentConfig(_Checked):
     video_every: int = 5
     jacobian_error: bool = True
     progress: bool = True
-    torch_threads: int = 0
+    torch_threads: int = 1
 
     def __post_init__(self) -> None:
         for name, named in _NAMED.items():  # a name for a section: that section, fresh

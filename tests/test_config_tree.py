@@ -184,7 +184,8 @@ def test_from_dict_and_from_json_refuse_a_non_dict(bad):
 # ---------------------------------------------------------------------------- the old flat format
 def test_the_old_flat_defaults_load_to_the_default_tree_of_their_time():
     then = AgentConfig(model=ModelConfig.paper(), planner=PlannerConfig(kind="ilqr"),
-                       training=TrainConfig(epochs=150, lr=3e-3, batch=256, progress=False))
+                       training=TrainConfig(epochs=150, lr=3e-3, batch=256, progress=False),
+                       torch_threads=0)
     assert from_flat(OLD_DEFAULTS) == then
     assert AgentConfig.from_dict(OLD_DEFAULTS) == then  # detected
     assert from_flat({}) == then  # missing keys: the defaults of that time
