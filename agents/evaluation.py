@@ -33,14 +33,13 @@ from mbtsr.costs import CasadiCost
 from mbtsr.episode import EpisodeRecord, as_policy, run_episode
 from mbtsr.ilqr import ILQROptions, ilqr
 from mbtsr.mpc import MPC, MPCOptions
-from mbtsr.validation import as_array, check_callable, check_finite
+from mbtsr.validation import as_array, check_callable
 
 __all__ = [
     "ARM_ID",
     "EpisodeRecord",
     "MPCPolicy",
     "SB3Predictor",
-    "checked_observation",
     "make_env",
     "mpc_policy",
     "planner_cost",
@@ -86,18 +85,6 @@ def planner_cost(task_cost: ObservationCost, terminal_weight: float = 1.0) -> Ca
         "terminal", [s, p], [float(terminal_weight) * task_cost.terminal(s, p)]
     )
     return CasadiCost(stage, terminal, n, m)
-
-
-def checked_observation(observation: Any, obs_dim: int) -> np.ndarray:
-    """``observation`` as a finite float ``[obs_dim]`` array.
-
-    :raises ValueError: naming the wrong shape, or a non-finite or complex entry.
-    """
-    obs = as_array("observation", observation, finite=False)  # refuses complex values
-    if obs.shape != (obs_dim,):
-        raise ValueError(f"observation must have shape ({obs_dim},), got {list(obs.shape)}")
-    check_finite("observation", obs)
-    return obs
 
 
 class SB3Predictor(abc.ABC):
@@ -174,7 +161,7 @@ class MPCPolicy(SB3Predictor):
     def _act(self, observation: Any, state: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
         """One MPC step: ``state`` is the ``[H, m]`` plan returned by the previous call (the
         warm start) or ``None`` (a cold start); returns ``(action [m], next_state [H, m])``."""
-        obs = checked_observation(observation, self.spec.obs_dim)
+        obs = as_array("observation", observation, (self.spec.obs_dim,))
         if state is not None:
             state = np.asarray(state, dtype=float)
             if state.shape != (self.mpc.horizon, self.spec.act_dim):

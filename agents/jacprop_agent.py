@@ -55,7 +55,6 @@ from agents.evaluation import (
     SB3Predictor,
     _is_mujoco_env,
     cached_costs,
-    checked_observation,
     evaluate_policy_costs,
     evaluation_targets,
     has_true_model,
@@ -76,7 +75,7 @@ from agents.task import (
 from mbtsr.ensemble import DynamicsEnsemble, save_model
 from mbtsr.ltv import LTVModel, fit_ltv, fuse_prior, select_lambda
 from mbtsr.trajectory import Trajectory, save_trajectories
-from mbtsr.validation import call_user_fn, check_callable
+from mbtsr.validation import as_array, call_user_fn, check_callable, check_finite
 
 __all__ = ["JacPropAgent"]
 
@@ -1054,15 +1053,14 @@ class ReplanEvery(SB3Predictor):
         if state is not None:
             state = np.asarray(state, dtype=float)
             H = self.policy.mpc.horizon
-            widths = "m + n + m n" if self.feedback else "m"
+            # with feedback the width m + n + m n is checked where n is known (a replay step)
             fits = state.ndim == 2 and state.shape[0] == H + 1 and (
-                (state.shape[1] - m) % (m + 1) == 0 and state.shape[1] > m if self.feedback
-                else state.shape[1] == m)
-            if not fits or not np.all(np.isfinite(state)):
-                raise ValueError(f"state must be the finite [H+1={H + 1}, {widths}] array "
-                                 f"(m={m}) the previous call returned, got shape "
-                                 f"{list(state.shape)}" + (" with non-finite entries"
-                                                           if fits else ""))
+                state.shape[1] > m if self.feedback else state.shape[1] == m)
+            if not fits:
+                raise ValueError(f"state must be the [H+1={H + 1}, "
+                                 f"{'m + n + m n' if self.feedback else 'm'}] array (m={m}) the "
+                                 f"previous call returned, got shape {list(state.shape)}")
+            check_finite("state", state)
             plan, age = state[:-1], int(state[-1, 0])
         if plan is None or age >= self.k:
             action, rest = self.policy.predict(observation, None if plan is None else plan[:, :m])
@@ -1071,7 +1069,7 @@ class ReplanEvery(SB3Predictor):
             age = 1
         else:
             u = plan[0, :m]
-            obs = checked_observation(observation, spec.obs_dim)
+            obs = as_array("observation", observation, (spec.obs_dim,))
             if plan.shape[1] > m and np.any(plan[0, m:]):
                 x = self.policy.model_state(obs)
                 n = x.shape[0]

@@ -134,7 +134,8 @@ def agent_config(name: str, overrides: dict[str, Any] | None = None, *, smoke: b
     ``smoke``, the tiny budgets (``overrides`` win over them; a re-plan period longer than
     the smoke horizon lengthens the horizon to it).
 
-    :raises ValueError: a setting the config refuses, naming it.
+    :raises ValueError: a setting the config refuses, naming it; regularizer weights in
+        ``overrides`` that turn its ``regularization`` name into another regularizer.
     """
     from agents.config import AgentConfig
 
@@ -154,7 +155,13 @@ def agent_config(name: str, overrides: dict[str, Any] | None = None, *, smoke: b
         if "planner.horizon" not in (overrides or {}):
             settings["planner.horizon"] = max(settings["planner.horizon"],
                                               int(settings.get("planner.replan_every", 1)))
-    return AgentConfig.default(settings)
+    cfg = AgentConfig.default(settings)
+    reg = (overrides or {}).get("regularization")
+    if isinstance(reg, str) and cfg.regularization.kind != reg:
+        raise ValueError(f"the regularizer weights make the {reg!r} runs "
+                         f"{cfg.regularization.kind!r}; set only the weights of the "
+                         f"--regularizations they run")
+    return cfg
 
 
 def make_agent(name: str, overrides: dict[str, Any] | None = None, *, smoke: bool = False
@@ -402,9 +409,9 @@ def check_agent_settings(settings: Any) -> dict[str, Any]:
     :data:`TASKS` and recompute its baseline with ``--baselines``). Other planner settings
     (``planner.replan_every``, CEM's ``particles`` or ``init_std``, ...) pass: those runs are
     scored against the stored oracle, which plans with the task's settings alone, and the
-    report says so. Regularizer weights pass, but :func:`run` refuses a set that changes a
-    run's regularizer away from its ``--regularizations`` name. The values are checked when
-    :func:`run` builds every run's config, before the first run.
+    report says so. Regularizer weights pass; :func:`agent_config` refuses a set that changes
+    a run's regularizer away from its ``--regularizations`` name. The
+    values are checked when :func:`run` builds every run's config, before the first run.
 
     :raises ValueError: naming the refused field and why.
     """
@@ -1079,14 +1086,10 @@ def run(a: Args) -> dict[str, Any]:
                     what = f"the config of {name} with {planner}/{reg}" + (
                         " and --agent-settings" if settings else "")
                     try:
-                        cfg = agent_config(name, {**settings, "planner.kind": planner,
-                                                  "regularization": reg}, smoke=a.smoke)
+                        agent_config(name, {**settings, "planner.kind": planner,
+                                            "regularization": reg}, smoke=a.smoke)
                     except ValueError as e:
                         raise ValueError(f"{what}: {e}") from e
-                    if cfg.regularization.kind != reg:
-                        raise ValueError(f"{what}: the regularizer weights make the "
-                                         f"{reg!r} runs {cfg.regularization.kind!r}; set only "
-                                         f"the weights of the --regularizations they run")
         if state["runs"] and state.get("agent_settings", {}) != settings:
             raise ValueError(f"{path} holds runs with agent settings "
                              f"{state.get('agent_settings', {})}, these are {settings}: give "
