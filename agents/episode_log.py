@@ -31,6 +31,7 @@ LOG_COLUMNS: tuple[str, ...] = (
     "eval_episodes_run",
     "train_loss",
     "val_loss",
+    "train_steps",
     "ltv_lambda",
     "ltv_fallback",
     "eval_cost",

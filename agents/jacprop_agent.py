@@ -529,6 +529,7 @@ class JacPropAgent(SB3Predictor):
             "jacobian_error": jac,
             "train_loss": _last(getattr(history, "train_loss", None)),
             "val_loss": _last(getattr(history, "val_loss", None)),
+            "train_steps": getattr(history, "steps", None),
             "ltv_lambda": lam,
             "ltv_fallback": ltv_note,
             **ev,

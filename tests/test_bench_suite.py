@@ -50,6 +50,11 @@ def test_bench_suite_smoke(tmp_path):
         assert r["env_steps"] == r["budget_env_steps"] == suite.SMOKE_BUDGET
         assert r["curve"], r  # at least the final evaluation
         assert set(r["wall_seconds_per_phase"]) >= {"training", "ltv", "planning", "eval"}
+        # one update record per episode: env steps grow, the update's steps within its budget
+        steps = [u["env_steps"] for u in r["updates"]]
+        assert steps == sorted(steps) and steps[-1] == r["env_steps"]
+        budget = suite.SMOKE_OVERRIDES["training.steps"]
+        assert all(0 < u["train_steps"] <= budget for u in r["updates"]), r["updates"]
     assert len(state["table"]) == 8
     assert all(row["normalized_median"] is not None for row in state["table"])
     assert (tmp_path / "bench_suite_curves.png").is_file()

@@ -362,6 +362,9 @@ def run_one(name: str, planner: str, reg: str, seed: int, *, smoke: bool,
         "budget_env_steps": budget, "env_steps": s["env_steps"],
         "env_steps_to_solve": s["env_steps_to_solve"] if baseline is not None else None,
         "final_score": curve[-1]["score"] if curve else None, "curve": curve,
+        # per update: the model's one-step error on the new episode before it, and its steps
+        "updates": [{k: r.get(k) for k in ("env_steps", "one_step_rms", "train_steps")}
+                    for r in agent.logger_rows],
         "model": agent.config.to_dict()["model"],
         **({"agent_settings": agent_settings} if agent_settings else {}),
         "wall_seconds_per_phase": s["wall_seconds_per_phase"],
