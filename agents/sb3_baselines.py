@@ -41,7 +41,7 @@ from stable_baselines3.common.monitor import Monitor
 from stable_baselines3.common.noise import NormalActionNoise
 from stable_baselines3.common.vec_env import DummyVecEnv, VecEnv, VecNormalize
 
-from mbtsr.validation import as_array, check_positive
+from mbtsr.validation import as_array, check_int, check_positive
 
 __all__ = [
     "ALGOS",
@@ -70,9 +70,9 @@ def evaluate_episodes(n_episodes: int, max_steps: int | None = None) -> Evaluate
     """
     from agents.evaluation import evaluate_policy_cost
 
-    n_episodes = _check_int("n_episodes", n_episodes, 1)
+    n_episodes = check_int("n_episodes", n_episodes, 1)
     if max_steps is not None:
-        max_steps = _check_int("max_steps", max_steps, 1)
+        max_steps = check_int("max_steps", max_steps, 1)
 
     def evaluate(policy_fn: Callable[[np.ndarray], np.ndarray], env: gym.Env,
                  targets: np.ndarray | None, seed: int) -> float:
@@ -328,14 +328,14 @@ def train_sb3(
         ``hyperparams`` and the arguments. The curve's cost is minus the mean return.
     """
     _check_algo(algo)
-    budget_steps = _check_int("budget_steps", budget_steps, 1)
-    eval_every = _check_int("eval_every", eval_every, 1)
-    seed = _check_int("seed", seed, 0)
-    eval_seed = _check_int("eval_seed", eval_seed, 0)
+    budget_steps = check_int("budget_steps", budget_steps, 1)
+    eval_every = check_int("eval_every", eval_every, 1)
+    seed = check_int("seed", seed, 0)
+    eval_seed = check_int("eval_seed", eval_seed, 0)
     if eval_targets is None:
         if n_eval_episodes is None:
             raise ValueError("give eval_targets or n_eval_episodes")
-        n_eval_episodes = _check_int("n_eval_episodes", n_eval_episodes, 1)
+        n_eval_episodes = check_int("n_eval_episodes", n_eval_episodes, 1)
         if evaluate is None:
             evaluate = evaluate_episodes(n_eval_episodes, eval_max_steps)
         targets = None
@@ -407,9 +407,3 @@ def train_sb3(
 def _check_algo(algo: str) -> None:
     if algo not in ALGOS:
         raise ValueError(f"algo must be one of {sorted(ALGOS)}, got {algo!r}")
-
-
-def _check_int(name: str, value: Any, low: int) -> int:
-    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < low:
-        raise ValueError(f"{name} must be an integer >= {low}, got {value!r}")
-    return int(value)

@@ -50,15 +50,9 @@ import scipy.linalg
 from gymnasium import spaces
 
 from mbtsr.dynamics import LinearDynamics
-from mbtsr.validation import as_array, check_nonnegative, check_positive
+from mbtsr.validation import as_array, check_int, check_nonnegative, check_positive
 
 __all__ = ["LinearSystemEnv", "random_stable_system"]
-
-
-def _check_dim(name: str, value: object) -> int:
-    if isinstance(value, bool) or not isinstance(value, int | np.integer) or value < 1:
-        raise ValueError(f"{name} must be an integer >= 1, got {value!r}")
-    return int(value)
 
 
 def random_stable_system(
@@ -75,7 +69,7 @@ def random_stable_system(
     :param seed: int or ``numpy.random.Generator``; ``A0`` is drawn before ``B``.
     :return: ``A: [n, n]``, ``B: [n, m]``.
     """
-    n, m = _check_dim("n", n), _check_dim("m", m)
+    n, m = check_int("n", n, 1), check_int("m", m, 1)
     dt = check_positive("dt", dt)
     rng = np.random.default_rng(seed)
     a0 = rng.standard_normal((n, n))
@@ -113,7 +107,7 @@ class LinearSystemEnv(gym.Env):
         self.n, self.m = self.B.shape
         self.dt = float(dt)
         self.system_seed = system_seed
-        self.episode_steps = _check_dim("episode_steps", episode_steps)
+        self.episode_steps = check_int("episode_steps", episode_steps, 1)
         self.action_bound = check_positive("action_bound", action_bound)
         self.control_cost = check_nonnegative("control_cost", control_cost)
         self.cost_Q = np.eye(self.n)

@@ -63,7 +63,7 @@ from mbtsr._lqr_kernels import guard_row, policy_row, rollout_buffers
 from mbtsr.dynamics import check_step_inputs, check_step_shapes
 from mbtsr.fileformat import CheckpointError, torch_load_verified, torch_save_verified
 from mbtsr.trajectory import Trajectory
-from mbtsr.validation import as_array
+from mbtsr.validation import as_array, check_int
 
 __all__ = [
     "ModelConfig",
@@ -331,11 +331,6 @@ def default_size(state_dim: int, action_dim: int) -> tuple[int, int]:
     return 3, int(min(256, max(64, width)))
 
 
-def _int_at_least(name: str, v: object, low: int) -> None:
-    if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < low:
-        raise ValueError(f"{name} must be an integer >= {low}, got {v!r}")
-
-
 @dataclass(frozen=True)
 class ModelConfig:
     """An ensemble architecture before the data's dimensions are known (the agent's ``model``).
@@ -370,10 +365,10 @@ class ModelConfig:
         object.__setattr__(self, "activations", tuple(acts))
         if self.formulation not in ("g", "f"):
             raise ValueError(f"formulation must be one of ('g', 'f'), got {self.formulation!r}")
-        _int_at_least("ensemble_size", self.ensemble_size, 1)
+        check_int("ensemble_size", self.ensemble_size, 1)
         for name in ("hidden_width", "hidden_layers"):
             if getattr(self, name) is not None:
-                _int_at_least(name, getattr(self, name), 1)
+                check_int(name, getattr(self, name), 1)
         if len(self.activations) == 0 or any(a not in ACTIVATIONS for a in self.activations):
             raise ValueError(
                 f"activations must be a non-empty tuple of names from {sorted(ACTIVATIONS)}, "

@@ -18,15 +18,11 @@ import math
 
 import numpy as np
 
+from mbtsr.validation import check_int
+
 __all__ = ["filtered_gaussian", "multisine", "filtered_gaussian_std", "multisine_std"]
 
 SeedLike = int | np.random.SeedSequence | np.random.Generator
-
-
-def _check_int(name: str, value: object, minimum: int) -> int:
-    if isinstance(value, bool) or not isinstance(value, int | np.integer) or value < minimum:
-        raise ValueError(f"{name} must be an integer >= {minimum}, got {value!r}")
-    return int(value)
 
 
 def _check_float(name: str, value: object, *, positive: bool = True) -> float:
@@ -69,8 +65,8 @@ def filtered_gaussian(
     :param seed: int, ``SeedSequence`` or ``Generator``.
     :return: ``u: [T, m]``.
     """
-    T, m = _check_int("T", T, 1), _check_int("m", m, 1)  # noqa: N806
-    window = _check_int("window", window, 1)
+    T, m = check_int("T", T, 1), check_int("m", m, 1)  # noqa: N806
+    window = check_int("window", window, 1)
     scale = _check_float("scale", scale)
     rng = np.random.default_rng(seed)
     white = scale * rng.standard_normal((T, m))
@@ -114,9 +110,9 @@ def multisine(
     :param seed: int, ``SeedSequence`` or ``Generator``.
     :return: ``u: [T, m]``.
     """
-    T, m = _check_int("T", T, 1), _check_int("m", m, 1)  # noqa: N806
-    n_grid = _check_int("n_grid", n_grid, 1)
-    n_sines = _check_int("n_sines", n_sines, 1)
+    T, m = check_int("T", T, 1), check_int("m", m, 1)  # noqa: N806
+    n_grid = check_int("n_grid", n_grid, 1)
+    n_sines = check_int("n_sines", n_sines, 1)
     if n_sines > n_grid:
         raise ValueError(f"n_sines must be <= n_grid={n_grid}, got {n_sines}")
     f_min, f_max = _check_float("f_min", f_min), _check_float("f_max", f_max)

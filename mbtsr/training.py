@@ -51,19 +51,13 @@ from tqdm.auto import tqdm
 
 from mbtsr.ensemble import DynamicsEnsemble, _pool_transitions
 from mbtsr.trajectory import Trajectory
-from mbtsr.validation import check_nonnegative, check_positive
+from mbtsr.validation import check_int, check_nonnegative, check_positive
 
 __all__ = ["TrainConfig", "RegularizationConfig", "REGULARIZERS", "DEFAULT_WEIGHTS", "TrainHistory",
            "MEMBER_DATA", "EARLY_STOPPING", "holdout_mask", "train_ensemble"]
 
 ORIGINAL_LTV_LAMBDA = float(np.sqrt(1000.0))
 """The original's jacprop LTV fit used R1 = I, R2 = 1000 I, i.e. ``lam^2 = R2 / R1 = 1000``."""
-
-
-def _check_int(name: str, value: object, minimum: int) -> int:
-    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < minimum:
-        raise ValueError(f"{name} must be an int >= {minimum}, got {value!r}")
-    return int(value)
 
 
 MEMBER_DATA = ("shared", "order", "bootstrap")
@@ -149,10 +143,10 @@ class TrainConfig:
     member_data: Literal["shared", "order", "bootstrap"] = "shared"
 
     def __post_init__(self) -> None:
-        _check_int("epochs", self.epochs, 0)
+        check_int("epochs", self.epochs, 0)
         check_positive("lr", self.lr)
         if self.batch != "trajectory":
-            _check_int("batch", self.batch, 1)
+            check_int("batch", self.batch, 1)
         check_nonnegative("weight_decay", self.weight_decay)
         check_positive("adam_eps", self.adam_eps)
         betas = tuple(self.betas)
@@ -162,13 +156,13 @@ class TrainConfig:
         if isinstance(self.seed, bool) or not isinstance(self.seed, (int, np.integer)):
             raise ValueError(f"seed must be an int, got {self.seed!r}")
         if self.steps is not None:
-            _check_int("steps", self.steps, 1)
+            check_int("steps", self.steps, 1)
         check_nonnegative("holdout", self.holdout)
         if not self.holdout < 1:
             raise ValueError(f"holdout must be in [0, 1), got {self.holdout!r}")
-        _check_int("eval_every", self.eval_every, 1)
+        check_int("eval_every", self.eval_every, 1)
         if self.patience is not None:
-            _check_int("patience", self.patience, 1)
+            check_int("patience", self.patience, 1)
         if self.early_stopping not in EARLY_STOPPING:
             raise ValueError(f"early_stopping must be one of {EARLY_STOPPING}, got "
                              f"{self.early_stopping!r}")
@@ -235,7 +229,7 @@ class RegularizationConfig:
             check_nonnegative(name, getattr(self, name))
         if self.copies_batch not in ("shared", "own"):
             raise ValueError(f"copies_batch must be 'shared' or 'own', got {self.copies_batch!r}")
-        _check_int("n_copies", self.n_copies, 1)
+        check_int("n_copies", self.n_copies, 1)
         if self.ltv_lambda is not None:
             check_nonnegative("ltv_lambda", self.ltv_lambda)
 

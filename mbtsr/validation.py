@@ -17,6 +17,7 @@ __all__ = [
     "as_array",
     "call_user_fn",
     "check_callable",
+    "check_int",
     "check_finite",
     "check_positive",
     "check_nonnegative",
@@ -75,6 +76,14 @@ def as_array(
     if finite:
         check_finite(name, arr)
     return arr
+
+
+def check_int(name: str, value: object, minimum: int) -> int:
+    """``value`` as an ``int`` if it is an integer (not a bool) ``>= minimum``, else a
+    ``ValueError`` naming ``name``."""
+    if isinstance(value, bool) or not isinstance(value, int | np.integer) or value < minimum:
+        raise ValueError(f"{name} must be an integer >= {minimum}, got {value!r}")
+    return int(value)
 
 
 def check_positive(name: str, value: float) -> float:

@@ -710,10 +710,10 @@ def test_sampled_jacprop_with_a_step_budget_lowers_the_jacobian_error():
 
 
 @pytest.mark.parametrize("kwargs, match", [
-    ({"steps": 0}, "steps must be an int >= 1"),
+    ({"steps": 0}, "steps must be an integer >= 1"),
     ({"steps": 10, "batch": 8, "holdout": 1.0}, "holdout must be in"),
     ({"steps": 10, "batch": 8, "holdout": -0.1}, "holdout"),
-    ({"steps": 10, "batch": 8, "patience": 0}, "patience must be an int >= 1"),
+    ({"steps": 10, "batch": 8, "patience": 0}, "patience must be an integer >= 1"),
     ({"steps": 10, "batch": 8, "eval_every": 0}, "eval_every"),
     ({"steps": 10, "batch": 8, "member_data": "bagging"}, "member_data must be one of"),
     ({"steps": 10, "batch": 8, "early_stopping": "all"}, "early_stopping must be one of"),
