@@ -121,6 +121,34 @@ def test_comparisons_pair_the_seeds_both_regularizers_ran():
     assert c["wall_ratio"] == 1.0  # same seeds, same per-seed walls
 
 
+def test_settings_comparison_pairs_seeds_and_draws_both(tmp_path):
+    base = [_run("none", k, None, f, task="reacher") for k, f in enumerate([-5.0, -6.0, -7.0])]
+    base += [_run("sampled", 0, None, -1.0, task="reacher")]  # another regularizer: not paired
+    variant = [_run("none", k, None, f, task="reacher") for k, f in ((1, -4.0), (2, -7.0),
+                                                                       (3, -1.0))]
+    for runs, seconds in ((base, 1.0), (variant, 2.0)):
+        for r in runs:
+            r["wall_seconds_per_phase"]["training"] = seconds
+    baselines = {"reacher": {"zero_return": -12.0, "oracle_return": -4.0}}
+    (row,) = suite.settings_comparison(base, variant, baselines)
+    assert row["seeds"] == [1, 2]  # seed 3 has no suite run, seed 0 no variant run
+    assert row["finals"] == [[-6.0, -7.0], [-4.0, -7.0]]
+    assert row["final_median"] == [-6.5, -5.5]
+    assert row["normalized_median"] == [pytest.approx(5.5 / 8), pytest.approx(6.5 / 8)]
+    assert row["better_equal_worse"] == "1/1/0"
+    # no run records CPU seconds: the median wall seconds of seeds 1-2 (11, 12) of both
+    assert row["seconds"] == "wall_seconds" and row["seconds_median"] == [11.5, 11.5]
+    assert row["training_seconds_median"] == [1.0, 2.0]
+    path = suite.settings_figure(base, variant, "p20", tmp_path / "s.png")
+    assert path.stat().st_size > 10_000
+
+
+def test_compare_needs_report_only(tmp_path):
+    with pytest.raises(SystemExit) as e:
+        suite.main(["--compare", str(tmp_path / "v.json"), "--json", str(tmp_path / "x.json")])
+    assert e.value.code == 2
+
+
 def test_reference_rows_hand_computed():
     runs = [_run("none", k, None, -4.0 - k, task="reacher") for k in range(3)]
     baselines = {"reacher": {"zero_return": -12.0, "oracle_return": -4.0,

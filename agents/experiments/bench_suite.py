@@ -40,6 +40,10 @@ finished runs)::
         --figures docs/figures --docs docs/benchmark.md
     python scripts/bench_suite.py --smoke --json runs/bench_suite_smoke.json   # CI, ~1 min
 
+Other agent settings run into their own JSON (``--agent-settings '{"training.patience": 20}'
+--json runs/p20.json``); ``--report-only --compare runs/p20.json --figures F`` pairs them seed by
+seed with the suite's runs (``--json``) and draws both curves.
+
 A HalfCheetah run takes about 35 CPU minutes: ``--checkpoints runs/suite_ckpt`` checkpoints every
 run after each episode so that a killed run continues where it stopped (bit-identical to an
 uninterrupted one), and ``--stop-after-steps N`` works through long runs in sessions of N env
@@ -562,6 +566,81 @@ def comparisons(runs: list[dict[str, Any]]) -> list[dict[str, Any]]:
     return out
 
 
+def settings_comparison(base: list[dict[str, Any]], variant: list[dict[str, Any]],
+                        baselines: dict[str, dict[str, Any]]) -> list[dict[str, Any]]:
+    """Runs of other agent settings (``variant``, from ``--agent-settings``) vs the suite's
+    (``base``), PAIRED on task, planner, regularizer and seed (equal env steps): per group the
+    seeds, both median finals and normalized scores, the per-seed finals, better / equal / worse
+    finals, the median CPU seconds of both (wall seconds when a run lacks them: ``seconds``
+    says which) and their median training wall seconds."""
+    def key(r: dict[str, Any]) -> tuple:
+        return r["task"], r["planner"], r["regularization"]
+
+    out = []
+    for k in sorted({key(r) for r in variant}, key=lambda k: (list(TASKS).index(k[0]), k[1:])):
+        by_seed = {r["seed"]: r for r in base if key(r) == k}
+        pairs = [(by_seed[r["seed"]], r) for r in sorted(variant, key=lambda r: r["seed"])
+                 if key(r) == k and r["seed"] in by_seed]
+        if not pairs:
+            continue
+        finals = [[p[i]["final_score"] for p in pairs] for i in (0, 1)]
+        better = sum(v > b for b, v in zip(*finals))
+        worse = sum(v < b for b, v in zip(*finals))
+
+        def med(vals: list[float | None]) -> float | None:
+            vals = [v for v in vals if v is not None]
+            return float(np.median(vals)) if vals else None
+
+        out.append({
+            "task": k[0], "planner": k[1], "regularization": k[2],
+            "seeds": [p[0]["seed"] for p in pairs],
+            "final_median": [med(f) for f in finals],
+            "normalized_median": [med([normalized(v, baselines.get(k[0])) for v in f])
+                                  for f in finals],
+            "finals": finals,
+            "better_equal_worse": f"{better}/{len(pairs) - better - worse}/{worse}",
+            "seconds": (kind := "cpu_seconds" if all(
+                r.get("cpu_seconds") for p in pairs for r in p) else "wall_seconds"),
+            "seconds_median": [med([r[kind] for r in rs]) for rs in zip(*pairs)],
+            "training_seconds_median": [med([r["wall_seconds_per_phase"]["training"]
+                                             for r in rs]) for rs in zip(*pairs)],
+        })
+    return out
+
+
+def settings_figure(base: list[dict[str, Any]], variant: list[dict[str, Any]],
+                    label: str, path: Path) -> Path:
+    """Learning curves of the paired runs per task: the suite's (grey) and the variant's
+    (blue), seeds thin and the median thick."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    rows = settings_comparison(base, variant, {})
+    fig, axes = plt.subplots(1, len(rows), figsize=(4.3 * len(rows), 3.4), squeeze=False)
+    for ax, row in zip(axes.flat, rows):
+        for runs, color, name in ((base, "0.45", "suite"), (variant, "tab:blue", label)):
+            rs = [r for r in runs if (r["task"], r["planner"], r["regularization"]) == (
+                row["task"], row["planner"], row["regularization"]) and r["seed"] in row["seeds"]]
+            for r in rs:
+                ax.plot([c["env_steps"] for c in r["curve"]], [c["score"] for c in r["curve"]],
+                        color=color, lw=0.5, alpha=0.4)
+            grid = sorted({c["env_steps"] for r in rs for c in r["curve"]})
+            ax.plot(grid, [np.median([v for r in rs if (v := score_at(r["curve"], x))
+                                      is not None] or [np.nan]) for x in grid],
+                    color=color, lw=1.8, label=f"{name} ({len(rs)} seeds)")
+        ax.set_title(f"{row['task']} {row['planner']}/{row['regularization']}", fontsize=10)
+        ax.set_xlabel("env steps")
+        ax.set_ylabel("mean eval return")
+        ax.legend(fontsize=7)
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
 # ---------------------------------------------------------------------------------------------
 # SB3 SAC: a fixed budget, the same evaluation episodes
 # ---------------------------------------------------------------------------------------------
@@ -988,6 +1067,10 @@ class Args:
     """the SB3 runs' JSON (read by the report)"""
     pets_json: str = "docs/results/bench_suite_pets.json"
     """PETS' runs (scripts/pets_peer.py; read by the report)"""
+    compare: str = ""
+    """with --report-only: a JSON of runs with other --agent-settings, paired with --json's runs
+    (task, planner, regularizer, seed): prints the paired finals and, with --figures, draws
+    settings_<its name>.png"""
     agent_settings: str = ""
     """a JSON object of dotted AgentConfig fields applied to every agent run on top of the
     task's (e.g. '{"planner.replan_every": 8}'); recorded in the JSON, which then holds only
@@ -1012,6 +1095,8 @@ class Args:
                 check_agent_settings(json.loads(self.agent_settings))
             except json.JSONDecodeError as e:
                 raise ValueError(f"--agent-settings is not JSON: {e}") from e
+        if self.compare and not self.report_only:
+            raise ValueError("--compare reports stored runs: give it with --report-only")
         if self.sb3_steps < 1:
             raise ValueError(f"--sb3-steps must be >= 1, got {self.sb3_steps}")
         if self.stop_after_steps < 0 or (self.stop_after_steps and not self.checkpoints):
@@ -1127,6 +1212,21 @@ def run(a: Args) -> dict[str, Any]:
                               f"{rec['env_steps_to_solve']}, {rec['wall_seconds']:.0f} s",
                               flush=True)
     baselines = load_baselines(bpath)
+    if a.compare:
+        other = _load(Path(a.compare))
+        rows = settings_comparison(state["runs"], other["runs"], baselines)
+        settings = json.dumps(other.get("agent_settings", {}))
+        for row in rows:
+            print(f"{row['task']} {row['planner']}/{row['regularization']} seeds "
+                  f"{row['seeds']}: {settings} {_fmt(row['final_median'][1], 4)} "
+                  f"({_fmt(row['normalized_median'][1])}) vs the suite's "
+                  f"{_fmt(row['final_median'][0], 4)} ({_fmt(row['normalized_median'][0])}); "
+                  f"better/equal/worse {row['better_equal_worse']}; {row['seconds']} "
+                  f"{_fmt(row['seconds_median'][1])} vs {_fmt(row['seconds_median'][0])}")
+        if a.figures and rows:
+            settings_figure(state["runs"], other["runs"], settings,
+                            Path(a.figures) / f"settings_{Path(a.compare).stem}.png")
+        return {**state, "settings_comparison": rows}
     state["table"] = aggregate(state["runs"], baselines)
     state["compute_seconds"] = float(sum(r["wall_seconds"] for r in state["runs"]))
     write_json_atomic(path, state)
