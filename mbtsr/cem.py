@@ -36,13 +36,13 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 
 from mbtsr.costs import truncated_total
-from mbtsr.validation import as_array, check_callable
+from mbtsr.validation import as_array, check_callable, options_from
 
 __all__ = ["CEMOptions", "CEMResult", "cem"]
 
@@ -128,20 +128,6 @@ class CEMResult:
     timings: dict = field(repr=False, default_factory=dict)
 
 
-def _as_options(options: CEMOptions | dict | None) -> CEMOptions:
-    if options is None:
-        return CEMOptions()
-    if isinstance(options, CEMOptions):
-        return options
-    if isinstance(options, dict):
-        known = {f.name for f in fields(CEMOptions)}
-        unknown = sorted(set(options) - known)
-        if unknown:
-            raise ValueError(f"unknown CEM option(s) {unknown}; known: {sorted(known)}")
-        return CEMOptions(**options)
-    raise TypeError(f"options must be a CEMOptions, a dict or None, got {type(options).__name__}")
-
-
 def _bounds(u_min: Any, u_max: Any, m: int) -> tuple[np.ndarray, np.ndarray]:
     lo = np.broadcast_to(as_array("u_min", u_min, finite=False), (m,)).astype(float)
     hi = np.broadcast_to(as_array("u_max", u_max, finite=False), (m,)).astype(float)
@@ -222,7 +208,7 @@ def cem(
         ends; stage costs after the first one are dropped.
     :return: :class:`CEMResult`.
     """
-    opts = _as_options(options)
+    opts = options_from(CEMOptions, options)
     if terminated is not None:
         check_callable("terminated", terminated, "X -> bool")
     x0 = as_array("x0", x0, ndim=1)

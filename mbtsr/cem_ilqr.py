@@ -33,6 +33,7 @@ import numpy as np
 
 from mbtsr.cem import CEMOptions, cem
 from mbtsr.ilqr import ILQROptions, ILQRResult, ilqr
+from mbtsr.validation import options_from
 
 __all__ = ["CEMILQROptions", "cem_ilqr"]
 
@@ -79,21 +80,6 @@ class CEMILQROptions:
                              f"{self.lambda_init!r}")
 
 
-def _as_options(options: CEMILQROptions | Mapping | None) -> CEMILQROptions:
-    if options is None:
-        return CEMILQROptions()
-    if isinstance(options, CEMILQROptions):
-        return options
-    if isinstance(options, Mapping):
-        known = {f.name for f in dataclasses.fields(CEMILQROptions)}
-        unknown = sorted(set(options) - known)
-        if unknown:
-            raise ValueError(f"unknown CEMILQROptions field(s) {unknown}; known: {sorted(known)}")
-        return CEMILQROptions(**options)
-    raise TypeError(f"options must be a CEMILQROptions, a dict or None, got "
-                    f"{type(options).__name__}")
-
-
 def cem_ilqr(
     cost: Any,
     model: Any,
@@ -114,7 +100,7 @@ def cem_ilqr(
     :return: iLQR's :class:`mbtsr.ilqr.ILQRResult`; its ``timings`` add ``"proposal"`` (CEM's
         seconds) to the total, and ``proposal_cost`` is the cost of CEM's sequence.
     """
-    opts = _as_options(options)
+    opts = options_from(CEMILQROptions, options)
     proposal = cem(cost, model, x0, U0, u_min=u_min, u_max=u_max, params=params, t0=t0,
                    options=dataclasses.replace(opts.cem, seed=int(opts.cem.seed) + int(t0)),
                    terminated=terminated)

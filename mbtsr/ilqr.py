@@ -40,15 +40,15 @@ from __future__ import annotations
 
 import math
 import time
-from collections.abc import Callable, Mapping
-from dataclasses import dataclass, field, fields
+from collections.abc import Callable
+from dataclasses import dataclass, field
 
 import numpy as np
 
 from mbtsr import _lqr_kernels
 from mbtsr.costs import CasadiCost, truncated_total
 from mbtsr.dynamics import LinearDynamics, _rollout, check_planning_model, raw_step
-from mbtsr.validation import as_array, check_callable
+from mbtsr.validation import as_array, check_callable, options_from
 
 __all__ = ["ILQROptions", "ILQRResult", "ilqr", "check_control_bounds"]
 
@@ -234,7 +234,7 @@ def ilqr(
         meets NaN/inf (model, Jacobians, cost) stops with status ``"failed"`` and the best
         finite iterate.
     """
-    opts = _as_options(options)
+    opts = options_from(ILQROptions, options)
     if not isinstance(cost, CasadiCost):
         raise TypeError(f"cost must be a mbtsr.costs.CasadiCost, got {type(cost).__name__}")
     if not (callable(getattr(dynamics, "step", None))
@@ -458,19 +458,6 @@ def ilqr(
 
 
 # ----------------------------------------------------------------------------- internals
-def _as_options(options) -> ILQROptions:
-    if options is None:
-        return ILQROptions()
-    if isinstance(options, ILQROptions):
-        return options
-    if isinstance(options, Mapping):
-        unknown = set(options) - {f.name for f in fields(ILQROptions)}
-        if unknown:
-            raise ValueError(f"unknown ILQROptions field(s): {sorted(unknown)}")
-        return ILQROptions(**options)
-    raise TypeError(f"options must be an ILQROptions or a dict, got {type(options).__name__}")
-
-
 def _line_search_chunks(n_alpha: int, linear_batch_cost: bool) -> list[slice]:
     """Step-size chunks of the forward pass: all at once, or 2, 2, 3, rest for simulators."""
     if not linear_batch_cost:

@@ -40,7 +40,7 @@ import numpy as np
 from mbtsr.costs import CasadiCost
 from mbtsr.dynamics import check_planning_model
 from mbtsr.ilqr import ILQROptions, check_control_bounds, ilqr
-from mbtsr.validation import as_array
+from mbtsr.validation import as_array, options_from
 
 __all__ = ["MPC", "MPCOptions"]
 
@@ -258,19 +258,16 @@ def _resolve_options(optimizer: Callable[..., Any], options: Any) -> Any:
     """The optimizer's base options: iLQR's and CEM's as their options dataclasses (a dict is
     checked here, once), other optimizers' as given (``None``: a dict)."""
     if optimizer is ilqr:
-        if options is None:
-            return ILQROptions(tol_fun_rel=1e-6)
-        return ILQROptions(**options) if isinstance(options, Mapping) else options
+        return (ILQROptions(tol_fun_rel=1e-6) if options is None
+                else options_from(ILQROptions, options))
     from mbtsr import cem as cem_module  # the sibling solver; imported lazily
 
     if optimizer is cem_module.cem:
-        if options is None:
-            return cem_module.CEMOptions()
-        return cem_module.CEMOptions(**options) if isinstance(options, Mapping) else options
+        return options_from(cem_module.CEMOptions, options)
     from mbtsr import cem_ilqr as hybrid
 
     if optimizer is hybrid.cem_ilqr:
-        return hybrid._as_options(options)
+        return options_from(hybrid.CEMILQROptions, options)
     return {} if options is None else options
 
 

@@ -7,8 +7,9 @@ silently wrong answer deep inside a solver.
 
 from __future__ import annotations
 
+import dataclasses
 import math
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from typing import Any
 
 import numpy as np
@@ -22,6 +23,7 @@ __all__ = [
     "check_positive",
     "check_nonnegative",
     "check_shape",
+    "options_from",
 ]
 
 
@@ -123,3 +125,20 @@ def call_user_fn(fn: Callable, *args: Any, failure: str) -> Any:
         return fn(*args)
     except Exception as err:  # noqa: BLE001 - whatever the user's code raises
         raise ValueError(f"{failure}: {type(err).__name__}: {err}") from None
+
+
+def options_from(cls: type, options: Any) -> Any:
+    """An options dataclass ``cls`` from ``None`` (its defaults), an instance, or a mapping of
+    its fields (an unknown field is a ``ValueError`` listing the known ones)."""
+    if options is None:
+        return cls()
+    if isinstance(options, cls):
+        return options
+    if isinstance(options, Mapping):
+        known = {f.name for f in dataclasses.fields(cls)}
+        unknown = sorted(set(options) - known)
+        if unknown:
+            raise ValueError(f"unknown {cls.__name__} field(s) {unknown}; known: {sorted(known)}")
+        return cls(**options)
+    raise TypeError(f"options must be a {cls.__name__}, a dict or None, got "
+                    f"{type(options).__name__}")

@@ -110,7 +110,7 @@ def test_diverging_model_gives_failed_status_with_finite_controls():
 
 @pytest.mark.parametrize("bad, match", [
     ({"samples": 1}, "samples"), ({"elites": 300}, "elites"), ({"smoothing": 2.0}, "smoothing"),
-    ({"seed": -1}, "seed"), ({"nope": 1}, "unknown CEM option"),
+    ({"seed": -1}, "seed"), ({"nope": 1}, "unknown CEMOptions field"),
 ])
 def test_bad_options_are_named(bad, match):
     cost, model, U0 = problem(3)
