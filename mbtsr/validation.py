@@ -140,5 +140,5 @@ def options_from(cls: type, options: Any) -> Any:
         if unknown:
             raise ValueError(f"unknown {cls.__name__} field(s) {unknown}; known: {sorted(known)}")
         return cls(**options)
-    raise TypeError(f"options must be a {cls.__name__}, a dict or None, got "
+    raise TypeError(f"options must be an instance of {cls.__name__}, a dict or None, got "
                     f"{type(options).__name__}")

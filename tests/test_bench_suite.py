@@ -141,12 +141,29 @@ def test_settings_comparison_pairs_seeds_and_draws_both(tmp_path):
     assert row["training_seconds_median"] == [1.0, 2.0]
     path = suite.settings_figure(base, variant, "p20", tmp_path / "s.png")
     assert path.stat().st_size > 10_000
+    # another budget (a smoke run) or a run without a final score does not pair
+    variant[0]["budget_env_steps"] = 200
+    variant[1]["final_score"] = None
+    assert suite.settings_comparison(base, variant, baselines) == []
 
 
-def test_compare_needs_report_only(tmp_path):
+@pytest.mark.parametrize("extra", [[], ["--report-only", "--docs", "d.md"]])
+def test_compare_needs_report_only_without_docs(tmp_path, extra):
     with pytest.raises(SystemExit) as e:
-        suite.main(["--compare", str(tmp_path / "v.json"), "--json", str(tmp_path / "x.json")])
+        suite.main(["--compare", str(tmp_path / "v.json"), "--json", str(tmp_path / "x.json"),
+                    *extra])
     assert e.value.code == 2
+
+
+def test_compare_refuses_a_missing_file_and_runs_that_pair_with_none(tmp_path, capsys):
+    base, variant = tmp_path / "suite.json", tmp_path / "v.json"
+    base.write_text(json.dumps({"runs": [_run("none", 0, None, -5.0, task="reacher")]}))
+    variant.write_text(json.dumps({"runs": [_run("none", 1, None, -4.0, task="reacher")]}))
+    for path, says in ((tmp_path / "nope.json", "not a readable JSON"),
+                       (variant, "none of its runs pairs")):
+        with pytest.raises(SystemExit):
+            suite.main(["--report-only", "--json", str(base), "--compare", str(path)])
+        assert says in capsys.readouterr().err
 
 
 def test_reference_rows_hand_computed():

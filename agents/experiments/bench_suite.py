@@ -367,7 +367,8 @@ def run_one(name: str, planner: str, reg: str, seed: int, *, smoke: bool,
         "env_steps_to_solve": s["env_steps_to_solve"] if baseline is not None else None,
         "final_score": curve[-1]["score"] if curve else None, "curve": curve,
         # per update: the model's one-step error on the new episode before it, and its steps
-        "updates": [{k: r.get(k) for k in ("env_steps", "one_step_rms", "train_steps")}
+        "updates": [{k: _finite_or_none(r.get(k)) for k in ("env_steps", "one_step_rms",
+                                                             "train_steps")}
                     for r in agent.logger_rows],
         "model": agent.config.to_dict()["model"],
         **({"agent_settings": agent_settings} if agent_settings else {}),
@@ -375,6 +376,11 @@ def run_one(name: str, planner: str, reg: str, seed: int, *, smoke: bool,
         "wall_seconds": wall_seconds, "cpu_seconds": cpu_seconds,
         **({"git_sessions": spent["git"]} if checkpoint_dir is not None else {}),
     }
+
+
+def _finite_or_none(v: Any) -> Any:
+    """``None`` for a non-finite float (strict JSON has no NaN), else ``v``."""
+    return None if isinstance(v, float) and not math.isfinite(v) else v
 
 
 #: agent settings a suite run may not take from ``--agent-settings``: the suite's own (per run,
@@ -569,18 +575,22 @@ def comparisons(runs: list[dict[str, Any]]) -> list[dict[str, Any]]:
 def settings_comparison(base: list[dict[str, Any]], variant: list[dict[str, Any]],
                         baselines: dict[str, dict[str, Any]]) -> list[dict[str, Any]]:
     """Runs of other agent settings (``variant``, from ``--agent-settings``) vs the suite's
-    (``base``), PAIRED on task, planner, regularizer and seed (equal env steps): per group the
+    (``base``), PAIRED on task, planner, regularizer, budget and seed (runs without a final
+    score left out): per group the
     seeds, both median finals and normalized scores, the per-seed finals, better / equal / worse
     finals, the median CPU seconds of both (wall seconds when a run lacks them: ``seconds``
     says which) and their median training wall seconds."""
     def key(r: dict[str, Any]) -> tuple:
-        return r["task"], r["planner"], r["regularization"]
+        return r["task"], r["planner"], r["regularization"], r["budget_env_steps"]
 
+    order = list(TASKS)
     out = []
-    for k in sorted({key(r) for r in variant}, key=lambda k: (list(TASKS).index(k[0]), k[1:])):
+    for k in sorted({key(r) for r in variant},
+                    key=lambda k: (order.index(k[0]) if k[0] in order else len(order), k)):
         by_seed = {r["seed"]: r for r in base if key(r) == k}
         pairs = [(by_seed[r["seed"]], r) for r in sorted(variant, key=lambda r: r["seed"])
-                 if key(r) == k and r["seed"] in by_seed]
+                 if key(r) == k and r["seed"] in by_seed
+                 and None not in (r["final_score"], by_seed[r["seed"]]["final_score"])]
         if not pairs:
             continue
         finals = [[p[i]["final_score"] for p in pairs] for i in (0, 1)]
@@ -1068,9 +1078,9 @@ class Args:
     pets_json: str = "docs/results/bench_suite_pets.json"
     """PETS' runs (scripts/pets_peer.py; read by the report)"""
     compare: str = ""
-    """with --report-only: a JSON of runs with other --agent-settings, paired with --json's runs
-    (task, planner, regularizer, seed): prints the paired finals and, with --figures, draws
-    settings_<its name>.png"""
+    """with --report-only (instead of the suite's report): a JSON of runs with other
+    --agent-settings, paired with --json's runs (task, planner, regularizer, budget, seed):
+    prints the paired finals and seconds and, with --figures, draws settings_<its name>.png"""
     agent_settings: str = ""
     """a JSON object of dotted AgentConfig fields applied to every agent run on top of the
     task's (e.g. '{"planner.replan_every": 8}'); recorded in the JSON, which then holds only
@@ -1095,8 +1105,9 @@ class Args:
                 check_agent_settings(json.loads(self.agent_settings))
             except json.JSONDecodeError as e:
                 raise ValueError(f"--agent-settings is not JSON: {e}") from e
-        if self.compare and not self.report_only:
-            raise ValueError("--compare reports stored runs: give it with --report-only")
+        if self.compare and (not self.report_only or self.docs):
+            raise ValueError("--compare reports stored runs instead of the suite's report: give "
+                             "it with --report-only and without --docs")
         if self.sb3_steps < 1:
             raise ValueError(f"--sb3-steps must be >= 1, got {self.sb3_steps}")
         if self.stop_after_steps < 0 or (self.stop_after_steps and not self.checkpoints):
@@ -1213,8 +1224,14 @@ def run(a: Args) -> dict[str, Any]:
                               flush=True)
     baselines = load_baselines(bpath)
     if a.compare:
-        other = _load(Path(a.compare))
-        rows = settings_comparison(state["runs"], other["runs"], baselines)
+        try:
+            other = json.loads(Path(a.compare).read_text())
+        except (OSError, json.JSONDecodeError) as e:
+            raise ValueError(f"--compare {a.compare}: not a readable JSON of runs ({e})") from e
+        rows = settings_comparison(state["runs"], other.get("runs", []), baselines)
+        if not rows:
+            raise ValueError(f"--compare {a.compare}: none of its runs pairs with a run of "
+                             f"{a.json} (same task, planner, regularizer, budget and seed)")
         settings = json.dumps(other.get("agent_settings", {}))
         for row in rows:
             print(f"{row['task']} {row['planner']}/{row['regularization']} seeds "
@@ -1222,7 +1239,9 @@ def run(a: Args) -> dict[str, Any]:
                   f"({_fmt(row['normalized_median'][1])}) vs the suite's "
                   f"{_fmt(row['final_median'][0], 4)} ({_fmt(row['normalized_median'][0])}); "
                   f"better/equal/worse {row['better_equal_worse']}; {row['seconds']} "
-                  f"{_fmt(row['seconds_median'][1])} vs {_fmt(row['seconds_median'][0])}")
+                  f"{_fmt(row['seconds_median'][1])} vs {_fmt(row['seconds_median'][0])}, "
+                  f"training {_fmt(row['training_seconds_median'][1])} vs "
+                  f"{_fmt(row['training_seconds_median'][0])}")
         if a.figures and rows:
             settings_figure(state["runs"], other["runs"], settings,
                             Path(a.figures) / f"settings_{Path(a.compare).stem}.png")
