@@ -73,6 +73,7 @@ os.environ.setdefault("MUJOCO_GL", "egl")
 import numpy as np  # noqa: E402
 
 from agents import tasks as _tasks  # noqa: E402
+from agents.experiments.paper_common import finite_or_none  # noqa: E402
 from mbtsr import cli  # noqa: E402
 from mbtsr.io import atomic_write_text, write_json_atomic  # noqa: E402
 
@@ -367,8 +368,8 @@ def run_one(name: str, planner: str, reg: str, seed: int, *, smoke: bool,
         "env_steps_to_solve": s["env_steps_to_solve"] if baseline is not None else None,
         "final_score": curve[-1]["score"] if curve else None, "curve": curve,
         # per update: the model's one-step error on the new episode before it, and its steps
-        "updates": [{k: _finite_or_none(r.get(k)) for k in ("env_steps", "one_step_rms",
-                                                             "train_steps")}
+        "updates": [{"env_steps": r.get("env_steps"), "train_steps": r.get("train_steps"),
+                     "one_step_rms": finite_or_none(r.get("one_step_rms"))}
                     for r in agent.logger_rows],
         "model": agent.config.to_dict()["model"],
         **({"agent_settings": agent_settings} if agent_settings else {}),
@@ -376,11 +377,6 @@ def run_one(name: str, planner: str, reg: str, seed: int, *, smoke: bool,
         "wall_seconds": wall_seconds, "cpu_seconds": cpu_seconds,
         **({"git_sessions": spent["git"]} if checkpoint_dir is not None else {}),
     }
-
-
-def _finite_or_none(v: Any) -> Any:
-    """``None`` for a non-finite float (strict JSON has no NaN), else ``v``."""
-    return None if isinstance(v, float) and not math.isfinite(v) else v
 
 
 #: agent settings a suite run may not take from ``--agent-settings``: the suite's own (per run,
@@ -572,35 +568,44 @@ def comparisons(runs: list[dict[str, Any]]) -> list[dict[str, Any]]:
     return out
 
 
-def settings_comparison(base: list[dict[str, Any]], variant: list[dict[str, Any]],
-                        baselines: dict[str, dict[str, Any]]) -> list[dict[str, Any]]:
-    """Runs of other agent settings (``variant``, from ``--agent-settings``) vs the suite's
-    (``base``), PAIRED on task, planner, regularizer, budget and seed (runs without a final
-    score left out): per group the
-    seeds, both median finals and normalized scores, the per-seed finals, better / equal / worse
-    finals, the median CPU seconds of both (wall seconds when a run lacks them: ``seconds``
-    says which) and their median training wall seconds."""
+def paired_runs(base: list[dict[str, Any]], variant: list[dict[str, Any]]
+                ) -> dict[tuple, list[tuple[dict[str, Any], dict[str, Any]]]]:
+    """``(task, planner, regularizer, budget) -> [(base run, variant run), ...]`` by seed, in
+    task order; runs without a final score and groups without a pair are left out."""
     def key(r: dict[str, Any]) -> tuple:
         return r["task"], r["planner"], r["regularization"], r["budget_env_steps"]
 
     order = list(TASKS)
-    out = []
+    out = {}
     for k in sorted({key(r) for r in variant},
                     key=lambda k: (order.index(k[0]) if k[0] in order else len(order), k)):
         by_seed = {r["seed"]: r for r in base if key(r) == k}
         pairs = [(by_seed[r["seed"]], r) for r in sorted(variant, key=lambda r: r["seed"])
                  if key(r) == k and r["seed"] in by_seed
                  and None not in (r["final_score"], by_seed[r["seed"]]["final_score"])]
-        if not pairs:
-            continue
+        if pairs:
+            out[k] = pairs
+    return out
+
+
+def _median_or_none(vals: list[float | None]) -> float | None:
+    vals = [v for v in vals if v is not None]
+    return float(np.median(vals)) if vals else None
+
+
+def settings_comparison(base: list[dict[str, Any]], variant: list[dict[str, Any]],
+                        baselines: dict[str, dict[str, Any]]) -> list[dict[str, Any]]:
+    """Runs of other agent settings (``variant``, from ``--agent-settings``) vs the suite's
+    (``base``), paired by :func:`paired_runs`: per group the seeds, both median finals and
+    normalized scores, the per-seed finals, better / equal / worse finals, the median CPU
+    seconds of both (wall seconds when a run lacks them: ``seconds`` says which) and their
+    median training wall seconds."""
+    med = _median_or_none
+    out = []
+    for k, pairs in paired_runs(base, variant).items():
         finals = [[p[i]["final_score"] for p in pairs] for i in (0, 1)]
         better = sum(v > b for b, v in zip(*finals))
         worse = sum(v < b for b, v in zip(*finals))
-
-        def med(vals: list[float | None]) -> float | None:
-            vals = [v for v in vals if v is not None]
-            return float(np.median(vals)) if vals else None
-
         out.append({
             "task": k[0], "planner": k[1], "regularization": k[2],
             "seeds": [p[0]["seed"] for p in pairs],
@@ -627,20 +632,13 @@ def settings_figure(base: list[dict[str, Any]], variant: list[dict[str, Any]],
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    rows = settings_comparison(base, variant, {})
-    fig, axes = plt.subplots(1, len(rows), figsize=(4.3 * len(rows), 3.4), squeeze=False)
-    for ax, row in zip(axes.flat, rows):
-        for runs, color, name in ((base, "0.45", "suite"), (variant, "tab:blue", label)):
-            rs = [r for r in runs if (r["task"], r["planner"], r["regularization"]) == (
-                row["task"], row["planner"], row["regularization"]) and r["seed"] in row["seeds"]]
-            for r in rs:
-                ax.plot([c["env_steps"] for c in r["curve"]], [c["score"] for c in r["curve"]],
-                        color=color, lw=0.5, alpha=0.4)
-            grid = sorted({c["env_steps"] for r in rs for c in r["curve"]})
-            ax.plot(grid, [np.median([v for r in rs if (v := score_at(r["curve"], x))
-                                      is not None] or [np.nan]) for x in grid],
-                    color=color, lw=1.8, label=f"{name} ({len(rs)} seeds)")
-        ax.set_title(f"{row['task']} {row['planner']}/{row['regularization']}", fontsize=10)
+    groups = paired_runs(base, variant)
+    fig, axes = plt.subplots(1, len(groups), figsize=(4.3 * len(groups), 3.4), squeeze=False)
+    for ax, ((task, planner, reg, _), pairs) in zip(axes.flat, groups.items()):
+        for i, color, name in ((0, "0.45", "suite"), (1, "tab:blue", label)):
+            _plot_runs(ax, [p[i] for p in pairs], color=color, ls="-",
+                       label=f"{name} ({len(pairs)} seeds)", alpha=0.4)
+        ax.set_title(f"{task} {planner}/{reg}", fontsize=10)
         ax.set_xlabel("env steps")
         ax.set_ylabel("mean eval return")
         ax.legend(fontsize=7)
@@ -801,6 +799,19 @@ _COLORS = {"none": "tab:blue", "sampled": "tab:orange", "exact": "tab:purple",
 _STYLES = {"ilqr": ":", "cem": "--", "cem-ilqr": "-"}
 
 
+def _plot_runs(ax: Any, rs: list[dict[str, Any]], *, color: Any, ls: str, label: str,
+               alpha: float = 0.35) -> None:
+    """Every run's curve thin, their median over seeds (at each evaluation point of any run,
+    :func:`score_at`) thick and labelled."""
+    for r in rs:
+        ax.plot([c["env_steps"] for c in r["curve"]], [c["score"] for c in r["curve"]],
+                color=color, ls=ls, lw=0.5, alpha=alpha)
+    grid = sorted({c["env_steps"] for r in rs for c in r["curve"]})
+    med = [np.median([v for r in rs if (v := score_at(r["curve"], x)) is not None] or [np.nan])
+           for x in grid]
+    ax.plot(grid, med, color=color, ls=ls, lw=1.8, label=label)
+
+
 def figures(runs: list[dict[str, Any]], out: Path, baselines: dict[str, dict[str, Any]],
             pets_runs: list[dict[str, Any]], sb3_runs: list[dict[str, Any]]) -> list[Path]:
     """Learning curves per task: every agent configuration (median over seeds, thick; seeds
@@ -826,17 +837,9 @@ def figures(runs: list[dict[str, Any]], out: Path, baselines: dict[str, dict[str
             for planner in PLANNERS:
                 for reg in REGULARIZATIONS:
                     rs = _runs_of(runs, name, planner, reg)
-                    if not rs or log_sac:
-                        continue
-                    for r in rs:
-                        ax.plot([c["env_steps"] for c in r["curve"]],
-                                [c["score"] for c in r["curve"]], color=_COLORS[reg],
-                                ls=_STYLES[planner], lw=0.5, alpha=0.35)
-                    grid = sorted({c["env_steps"] for r in rs for c in r["curve"]})
-                    med = [np.median([v for r in rs if (v := score_at(
-                        r["curve"], x)) is not None] or [np.nan]) for x in grid]
-                    ax.plot(grid, med, color=_COLORS[reg], ls=_STYLES[planner], lw=1.8,
-                            label=f"agent {planner}/{reg} ({len(rs)})")
+                    if rs and not log_sac:
+                        _plot_runs(ax, rs, color=_COLORS[reg], ls=_STYLES[planner],
+                                   label=f"agent {planner}/{reg} ({len(rs)})")
             for r in (p for p in pets_runs if p["task"] == name and not log_sac):
                 ax.plot([c["env_steps"] for c in r["curve"]], [c["score"] for c in r["curve"]],
                         color="k", lw=1.0, alpha=0.8,

@@ -248,7 +248,10 @@ def child_seed(seed: int, *tags: int) -> int:
     return int(np.random.SeedSequence([int(seed), *map(int, tags)]).generate_state(1)[0] >> 1)
 
 
-def finite_or_none(v: float) -> float | None:
+def finite_or_none(v: float | None) -> float | None:
+    """``v`` as a float, ``None`` when it is ``None`` or not finite (strict JSON has no NaN)."""
+    if v is None:
+        return None
     v = float(v)
     return v if math.isfinite(v) else None
 
