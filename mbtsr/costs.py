@@ -37,7 +37,7 @@ from dataclasses import dataclass
 import casadi as ca
 import numpy as np
 
-from mbtsr.validation import as_array
+from mbtsr.validation import as_array, check_int
 
 __all__ = [
     "CasadiCost",
@@ -349,7 +349,7 @@ class CasadiCost:
         :return: ``[..., T]``.
         """
         X, U = self._check_xu(X, U, len_x_extra=0)
-        t0 = _check_t0(t0)
+        t0 = check_int("t0", t0, 0)
         table = self.check_params(params)
         batch, T = X.shape[:-2], X.shape[-2]
         B = int(np.prod(batch, dtype=np.int64))
@@ -370,7 +370,7 @@ class CasadiCost:
         X = as_array("X", X)
         if X.ndim < 1 or X.shape[-1] != self.n:
             raise ValueError(f"X must have last dimension n={self.n}, got {list(X.shape)}")
-        t = _check_t0(t, "t")
+        t = check_int("t", t, 0)
         table = self.check_params(params)
         batch = X.shape[:-1]
         B = int(np.prod(batch, dtype=np.int64))
@@ -390,7 +390,7 @@ class CasadiCost:
         :return: a float, or ``[...]`` for batched input.
         """
         X, U = self._check_xu(X, U, len_x_extra=1)
-        J = self._total(X, U, _check_t0(t0), self.check_params(params))
+        J = self._total(X, U, check_int("t0", t0, 0), self.check_params(params))
         return float(J) if J.ndim == 0 else J
 
     def derivatives(
@@ -406,7 +406,7 @@ class CasadiCost:
         X, U = self._check_xu(X, U, len_x_extra=1)
         if X.ndim != 2:
             raise ValueError(f"X must be [T+1, n] (no batch), got {list(X.shape)}")
-        return self._derivatives(X, U, _check_t0(t0), self.check_params(params))
+        return self._derivatives(X, U, check_int("t0", t0, 0), self.check_params(params))
 
     # ------------------------------------------------------------------ kernels (no checks)
     def _total(self, X: np.ndarray, U: np.ndarray, t0: int, table: np.ndarray) -> np.ndarray:
@@ -675,9 +675,3 @@ def _rows(table: np.ndarray, t: np.ndarray) -> np.ndarray:
 def _call(fn: ca.Function, args: list) -> ca.SX:
     """Call ``fn`` with as many of ``args`` as it takes (p is the optional last one)."""
     return fn(*args[: fn.n_in()])
-
-
-def _check_t0(t0: int, name: str = "t0") -> int:
-    if isinstance(t0, bool) or not isinstance(t0, (int, np.integer)) or t0 < 0:
-        raise ValueError(f"{name} must be an integer time index >= 0, got {t0!r}")
-    return int(t0)

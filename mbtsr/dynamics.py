@@ -27,7 +27,7 @@ from typing import Protocol, runtime_checkable
 
 import numpy as np
 
-from mbtsr.validation import as_array
+from mbtsr.validation import as_array, check_int
 
 __all__ = [
     "DynamicsModel",
@@ -176,8 +176,7 @@ def rollout(model: DynamicsModel, x0: np.ndarray, u: np.ndarray, t0: int = 0) ->
         got = getattr(model, attr, want)
         if got != want:
             raise ValueError(f"{arg} has last dimension {want}, but model.{attr}={got}")
-    if isinstance(t0, bool) or not isinstance(t0, (int, np.integer)) or t0 < 0:
-        raise ValueError(f"t0 must be an integer time index >= 0, got {t0!r}")
+    check_int("t0", t0, 0)
     T, batch = u.shape[0], x0.shape[:-1]
     U = np.moveaxis(u.reshape(T, -1, m), 0, 1)  # [B, T, m]
     X, _ = _rollout(model, x0.reshape(-1, n), U, int(t0), np.inf)

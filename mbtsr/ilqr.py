@@ -48,7 +48,7 @@ import numpy as np
 from mbtsr import _lqr_kernels
 from mbtsr.costs import CasadiCost, truncated_total
 from mbtsr.dynamics import LinearDynamics, _rollout, check_planning_model, raw_step
-from mbtsr.validation import as_array, check_callable, options_from
+from mbtsr.validation import as_array, check_callable, check_int, options_from
 
 __all__ = ["ILQROptions", "ILQRResult", "ilqr", "check_control_bounds"]
 
@@ -248,9 +248,7 @@ def ilqr(
     U0 = as_array("U0", U0, (None, m))
     if U0.shape[0] < 1:
         raise ValueError("U0 must hold at least one time step (T >= 1)")
-    if isinstance(t0, bool) or not isinstance(t0, (int, np.integer)) or t0 < 0:
-        raise ValueError(f"t0 must be an integer time index >= 0, got {t0!r}")
-    t0 = int(t0)
+    t0 = check_int("t0", t0, 0)
     if terminated is not None:
         check_callable("terminated", terminated, "X -> bool")
     lower, upper = check_control_bounds(u_min, u_max, m)

@@ -40,7 +40,7 @@ import numpy as np
 from mbtsr.costs import CasadiCost
 from mbtsr.dynamics import check_planning_model
 from mbtsr.ilqr import ILQROptions, check_control_bounds, ilqr
-from mbtsr.validation import as_array, options_from
+from mbtsr.validation import as_array, check_int, options_from
 
 __all__ = ["MPC", "MPCOptions"]
 
@@ -198,7 +198,7 @@ class MPC:
         :return: the optimizer's result.
         """
         x = as_array("x", x, (self.cost.n,))
-        t = _check_t(t)
+        t = check_int("t", t, 0)
         if warm_start is None:
             return self._cold_solve(x, t, params, optimizer_kwargs)
         U0 = np.clip(as_array("warm_start", warm_start, (self.horizon, self.cost.m)),
@@ -236,7 +236,7 @@ class MPC:
         """
         tic = time.perf_counter()
         x = as_array("x", x, (self.cost.n,))
-        t = _check_t(t)
+        t = check_int("t", t, 0)
         shift = None if self._t_plan is None else t - self._t_plan
         if self.plan is None or shift is None or not 0 <= shift < self.horizon:
             res = self._cold_solve(x, t, params)
@@ -270,8 +270,3 @@ def _resolve_options(optimizer: Callable[..., Any], options: Any) -> Any:
         return options_from(hybrid.CEMILQROptions, options)
     return {} if options is None else options
 
-
-def _check_t(t: object) -> int:
-    if isinstance(t, bool) or not isinstance(t, (int, np.integer)) or t < 0:
-        raise ValueError(f"t must be an integer time index >= 0, got {t!r}")
-    return int(t)
