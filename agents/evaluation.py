@@ -33,7 +33,7 @@ from mbtsr.costs import CasadiCost
 from mbtsr.episode import EpisodeRecord, as_policy, run_episode
 from mbtsr.ilqr import ILQROptions, ilqr
 from mbtsr.mpc import MPC, MPCOptions
-from mbtsr.validation import as_array, check_callable
+from mbtsr.validation import as_array, check_callable, check_int
 
 __all__ = [
     "ARM_ID",
@@ -244,8 +244,7 @@ def evaluation_targets(
     :param seed: base seed (>= 0).
     :param env_id: a registered id (or an instance) of an env that reports ``info["target"]``.
     """
-    if isinstance(n, bool) or not isinstance(n, int | np.integer) or n < 1:
-        raise ValueError(f"n must be an integer >= 1, got {n!r}")
+    check_int("n", n, 1)
     _check_seed(seed)
     env, created = make_env(env_id)
     try:
@@ -567,5 +566,4 @@ def solved_threshold(oracle: float, ratio: float = 1.2) -> float:
 
 
 def _check_seed(seed: Any) -> None:
-    if isinstance(seed, bool) or not isinstance(seed, int | np.integer) or seed < 0:
-        raise ValueError(f"seed must be an integer >= 0, got {seed!r}")
+    check_int("seed", seed, 0)

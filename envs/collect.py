@@ -22,7 +22,7 @@ import numpy as np
 from mbtsr.episode import run_episode
 from mbtsr.excitation import filtered_gaussian, multisine
 from mbtsr.trajectory import Trajectory
-from mbtsr.validation import as_array
+from mbtsr.validation import as_array, check_int
 
 __all__ = ["collect_trajectories", "default_input_kwargs", "rollout_open_loop"]
 
@@ -125,10 +125,8 @@ def collect_trajectories(
     :return: list of :class:`~mbtsr.trajectory.Trajectory` with ``dt`` set from the env and
         ``meta = {"reset_seed", "input_seed", "attempt", "target"?, "input"}``.
     """
-    if isinstance(n_traj, bool) or not isinstance(n_traj, int | np.integer) or n_traj < 1:
-        raise ValueError(f"n_traj must be an integer >= 1, got {n_traj!r}")
-    if isinstance(T, bool) or not isinstance(T, int | np.integer) or T < 1:
-        raise ValueError(f"T must be an integer >= 1, got {T!r}")
+    check_int("n_traj", n_traj, 1)
+    check_int("T", T, 1)
     if not isinstance(env.action_space, gym.spaces.Box) or len(env.action_space.shape) != 1:
         raise ValueError(f"env.action_space must be a 1-D Box, got {env.action_space}")
     base = env.unwrapped

@@ -42,7 +42,7 @@ from typing import Any
 import numpy as np
 
 from mbtsr.costs import truncated_total
-from mbtsr.validation import as_array, check_callable, options_from
+from mbtsr.validation import as_array, check_callable, check_int, options_from
 
 __all__ = ["CEMOptions", "CEMResult", "cem"]
 
@@ -78,8 +78,7 @@ class CEMOptions:
     def __post_init__(self) -> None:
         for name in ("samples", "elites", "iterations", "particles"):
             v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, int | np.integer) or v < 1:
-                raise ValueError(f"options.{name} must be an integer >= 1, got {v!r}")
+            check_int(f"options.{name}", v, 1)
         if self.samples < 2:
             raise ValueError(f"options.samples must be >= 2, got {self.samples}")
         if self.elites > self.samples:
@@ -223,8 +222,7 @@ def cem(
         raise ValueError(f"U0 must be [T >= 1, m >= 1], got {list(U0.shape)}")
     if getattr(model, "action_dim", m) != m:
         raise ValueError(f"model.action_dim={model.action_dim} does not match U0's m={m}")
-    if isinstance(t0, bool) or not isinstance(t0, int | np.integer) or t0 < 0:
-        raise ValueError(f"t0 must be an integer time index >= 0, got {t0!r}")
+    check_int("t0", t0, 0)
     lo, hi = _bounds(u_min, u_max, m)
     if not (np.all(np.isfinite(lo)) and np.all(np.isfinite(hi))):
         raise ValueError("cem needs finite u_min and u_max (it samples inside the box)")

@@ -33,7 +33,7 @@ import numpy as np
 
 from mbtsr.cem import CEMOptions, cem
 from mbtsr.ilqr import ILQROptions, ILQRResult, ilqr
-from mbtsr.validation import options_from
+from mbtsr.validation import check_int, options_from
 
 __all__ = ["CEMILQROptions", "cem_ilqr"]
 
@@ -68,8 +68,7 @@ class CEMILQROptions:
     def __post_init__(self) -> None:
         for name in ("max_iter", "cold_proposal_iterations"):
             v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, int | np.integer) or v < 1:
-                raise ValueError(f"{name} must be an integer >= 1, got {v!r}")
+            check_int(f"{name}", v, 1)
         if not isinstance(self.cem, CEMOptions):
             raise TypeError(f"cem must be a CEMOptions, got {type(self.cem).__name__}")
         if not isinstance(self.ilqr, ILQROptions):

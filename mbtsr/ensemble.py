@@ -244,8 +244,7 @@ class EnsembleConfig:
     def __post_init__(self) -> None:
         for name in ("state_dim", "action_dim"):
             v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 1:
-                raise ValueError(f"{name} must be an int >= 1, got {v!r}")
+            check_int(f"{name}", v, 1)
             object.__setattr__(self, name, int(v))
         n, m = self.state_dim, self.action_dim
         members = tuple(self.members)
@@ -1560,8 +1559,7 @@ class TrajectorySampling:
     def __init__(self, frozen: FrozenEnsemble, seed: int = 0, noise: bool = True) -> None:
         if not isinstance(frozen, FrozenEnsemble):
             raise ValueError(f"frozen must be a FrozenEnsemble, got {type(frozen).__name__}")
-        if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
-            raise ValueError(f"seed must be an integer >= 0, got {seed!r}")
+        check_int("seed", seed, 0)
         if not isinstance(noise, (bool, np.bool_)):
             raise ValueError(f"noise must be a bool, got {noise!r}")
         for name, value in (("frozen", frozen), ("state_dim", frozen.state_dim),

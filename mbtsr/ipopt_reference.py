@@ -21,7 +21,7 @@ import numpy as np
 
 from mbtsr.costs import CasadiCost
 from mbtsr.ilqr import check_control_bounds
-from mbtsr.validation import as_array
+from mbtsr.validation import as_array, check_int
 
 __all__ = ["IpoptResult", "solve_ipopt"]
 
@@ -101,10 +101,8 @@ def solve_ipopt(
             f"casadi_step must map (x[{n}], u[{m}]) -> x_next[{n}] like the cost; got inputs "
             f"{[tuple(casadi_step.size_in(i)) for i in range(casadi_step.n_in())]}"
         )
-    if isinstance(T, bool) or not isinstance(T, (int, np.integer)) or T < 1:
-        raise ValueError(f"T must be an integer >= 1, got {T!r}")
-    if isinstance(t0, bool) or not isinstance(t0, (int, np.integer)) or t0 < 0:
-        raise ValueError(f"t0 must be an integer time index >= 0, got {t0!r}")
+    check_int("T", T, 1)
+    check_int("t0", t0, 0)
     T, t0 = int(T), int(t0)
     x0 = as_array("x0", x0, (n,))
     lower, upper = check_control_bounds(u_min, u_max, m)

@@ -44,7 +44,7 @@ from scipy.optimize import minimize_scalar
 
 from mbtsr.dynamics import check_step_inputs
 from mbtsr.trajectory import Trajectory
-from mbtsr.validation import as_array, check_nonnegative, check_positive
+from mbtsr.validation import as_array, check_int, check_nonnegative, check_positive
 
 __all__ = ["LTVModel", "fit_ltv", "fit_ltv_tv", "select_lambda", "fuse_prior"]
 
@@ -253,8 +253,7 @@ class LTVModel:
             raise ValueError(f"x must have T'={Tp} or T'+1 rows to match u, got {x.shape[0]}")
         self._check_window(0, Tp, "sample_perturbed")
         sigma = check_nonnegative("sigma", sigma)
-        if isinstance(n_copies, bool) or not isinstance(n_copies, int | np.integer) or n_copies < 1:
-            raise ValueError(f"n_copies must be an int >= 1, got {n_copies!r}")
+        check_int("n_copies", n_copies, 1)
         x = x[:Tp]
         sx = x.std(axis=0) if std_x is None else as_array("std_x", std_x, (self.state_dim,))
         su = u.std(axis=0) if std_u is None else as_array("std_u", std_u, (self.action_dim,))
@@ -956,8 +955,7 @@ def fit_ltv_tv(
     """
     lam = _check_lam(lam)
     tol = check_positive("tol", tol)
-    if isinstance(max_iter, bool) or not isinstance(max_iter, int | np.integer) or max_iter < 1:
-        raise ValueError(f"max_iter must be an int >= 1, got {max_iter!r}")
+    check_int("max_iter", max_iter, 1)
     prob = _problem(data, affine)
     if rho is not None:
         rho = check_positive("rho", rho)

@@ -21,7 +21,7 @@ import numpy as np
 
 from mbtsr.dynamics import DynamicsModel, rollout
 from mbtsr.trajectory import Trajectory
-from mbtsr.validation import as_array, check_positive
+from mbtsr.validation import as_array, check_int, check_positive
 
 __all__ = [
     "prediction_rms",
@@ -141,8 +141,7 @@ def k_step_rms(
     :return: float, or ``[n]``; ``inf`` if a prediction is not finite.
     :raises ValueError: ``k`` is not an integer >= 1, or no trajectory has ``k`` steps.
     """
-    if isinstance(k, bool) or not isinstance(k, (int, np.integer)) or k < 1:
-        raise ValueError(f"k must be an integer >= 1, got {k!r}")
+    check_int("k", k, 1)
     trajs = _trajectories(trajs)
     _check_model_dims(model, trajs)
     long = [tr for tr in trajs if tr.T >= k]

@@ -78,8 +78,7 @@ class MPCOptions:
     def __post_init__(self) -> None:
         for name in ("iterations_per_step", "first_step_iterations"):
             v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 1:
-                raise ValueError(f"{name} must be an integer >= 1, got {v!r}")
+            check_int(f"{name}", v, 1)
         fr = tuple(float(f) for f in self.cold_start_fractions)
         if any(not 0.0 < f < 1.0 for f in fr) or list(fr) != sorted(fr):
             raise ValueError(f"cold_start_fractions must be increasing numbers in (0, 1), got "
@@ -130,8 +129,7 @@ class MPC:
             raise TypeError(f"optimizer must be callable, got {type(optimizer).__name__}")
         if not isinstance(cost, CasadiCost):
             raise TypeError(f"cost must be a mbtsr.costs.CasadiCost, got {type(cost).__name__}")
-        if isinstance(horizon, bool) or not isinstance(horizon, (int, np.integer)) or horizon < 1:
-            raise ValueError(f"horizon must be an integer >= 1, got {horizon!r}")
+        check_int("horizon", horizon, 1)
         self.options = MPCOptions() if options is None else options
         if not isinstance(self.options, MPCOptions):
             raise TypeError(f"options must be an MPCOptions, got {type(self.options).__name__}")
