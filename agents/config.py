@@ -112,6 +112,9 @@ class CollectionConfig(_Checked):
     :param exploration_std: std of Gaussian noise added to planned actions during training
         rollouts, as a fraction of the action half-range (0 disables it).
     :param episode_steps: steps per rollout; ``None`` uses the env's ``TimeLimit``.
+    :param exploration_window: that noise's moving-average window in steps, rescaled to the
+        same std (1: white noise; longer windows move the system further from the plan at the
+        same amplitude, as the excitation does).
     """
 
     _path: ClassVar[str] = "collection"
@@ -121,6 +124,7 @@ class CollectionConfig(_Checked):
     excitation_window: int = 8
     exploration_std: float = 0.1
     episode_steps: int | None = None
+    exploration_window: int = 1
 
     def __post_init__(self) -> None:
         self._int_at_least("n_excitation_episodes", 1)
@@ -128,6 +132,7 @@ class CollectionConfig(_Checked):
         self._float_range("excitation_scale", 0.0, 1.0, low_open=True)
         self._int_at_least("excitation_window", 1)
         self._float_range("exploration_std", 0.0)
+        self._int_at_least("exploration_window", 1)
         if self.episode_steps is not None:
             self._int_at_least("episode_steps", 2)
 

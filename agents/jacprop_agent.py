@@ -468,11 +468,7 @@ class JacPropAgent(SB3Predictor):
             def act(obs: np.ndarray, t: int) -> np.ndarray:
                 return U_exc[t]
         else:
-            half = 0.5 * (spec.u_max - spec.u_min)
-            noise = (
-                cfg.collection.exploration_std * half
-                * np.random.default_rng(signal_seed).standard_normal((T, spec.act_dim))
-            )
+            noise = self._exploration_noise(T, signal_seed)
             plan: dict[str, Any] = {"U": None}
 
             def act(obs: np.ndarray, t: int) -> np.ndarray:
@@ -541,6 +537,22 @@ class JacPropAgent(SB3Predictor):
             "time_oracle": time_oracle,
             "time_total": time.perf_counter() - t_start,
         }
+
+    def _exploration_noise(self, T: int, seed: int) -> np.ndarray:
+        """``[T, m]`` noise added to the planned actions of a training rollout: Gaussian with
+        std ``exploration_std`` x the half-range, white or a moving average of
+        ``exploration_window`` steps (by its stationary std)."""
+        from mbtsr import excitation
+
+        col, spec = self.config.collection, self.spec
+        half = 0.5 * (spec.u_max - spec.u_min)
+        if col.exploration_window == 1:
+            unit = np.random.default_rng(seed).standard_normal((T, spec.act_dim))
+        else:
+            unit = excitation.filtered_gaussian(
+                T, spec.act_dim, window=col.exploration_window, scale=1.0, seed=seed
+            ) / excitation.filtered_gaussian_std(col.exploration_window, 1.0)
+        return col.exploration_std * half * unit
 
     def _excitation_signal(self, T: int, seed: int) -> np.ndarray:
         """``[T, m]`` excitation in env units: a unit-std signal (by its stationary std)

@@ -99,7 +99,7 @@ INT_FIELDS = {
     "collection.n_excitation_episodes": 1, "model.ensemble_size": 1, "model.hidden_width": 1,
     "training.epochs": 1, "planner.horizon": 2, "planner.ilqr_iterations": 1,
     "planner.first_plan_iterations": 1, "evaluation.episodes": 1, "regularization.n_copies": 1,
-    "collection.excitation_window": 1, "video_every": 1, "training.batch": 1,
+    "collection.excitation_window": 1, "collection.exploration_window": 1, "video_every": 1, "training.batch": 1,
     "evaluation.every": 0, "seed": 0, "evaluation.seed": 0, "torch_threads": 0,
 }
 
@@ -371,6 +371,22 @@ def test_oracle_takes_the_agents_state_maps_and_refuses_conflicting_ones():
         oracle_policy(env, state_map=StateMap(prefix=4), state_fn=state_fn, obs_fn=obs_fn, **kw)
     with pytest.raises(ValueError, match="obs_fn was given without state_fn"):
         oracle_policy(env, obs_fn=obs_fn, **kw)
+
+
+@pytest.mark.parametrize("window", [1, 8])
+def test_exploration_noise_has_the_stated_std_and_memory(window):
+    """Training-rollout noise: std ``exploration_std`` x the half-range; white noise has no
+    lag-1 correlation, a moving average of ``W`` white samples has ``(W - 1) / W``."""
+    env = gym.make(ARM, episode_steps=30)
+    agent = JacPropAgent(env, tiny_config({"collection.exploration_std": 0.2,
+                                           "collection.exploration_window": window}))
+    noise = agent._exploration_noise(20000, seed=7)[window:]  # after the filter's ramp-up
+    half = 0.5 * (agent.spec.u_max - agent.spec.u_min)
+    np.testing.assert_allclose(noise.std(0), 0.2 * half, rtol=0.1)
+    lag1 = [np.corrcoef(noise[1:, j], noise[:-1, j])[0, 1] for j in range(noise.shape[1])]
+    np.testing.assert_allclose(lag1, (window - 1) / window, atol=0.03)
+    again = agent._exploration_noise(20000, seed=7)[window:]
+    np.testing.assert_array_equal(noise, again)  # same seed, same noise
 
 
 # ----------------------------------------------------------------- learning: the arm (tiny)

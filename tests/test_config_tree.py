@@ -325,6 +325,7 @@ LEAVES = {
     "collection.excitation_window": st.integers(1, 20),
     "collection.exploration_std": st.floats(0.0, 2.0),
     "collection.episode_steps": st.none() | st.integers(2, 500),
+    "collection.exploration_window": st.integers(1, 20),
     "model.formulation": st.sampled_from(["g", "f"]),
     "model.ensemble_size": st.integers(1, 8),
     "model.hidden_width": st.none() | st.integers(1, 64),
