@@ -112,9 +112,9 @@ class CollectionConfig(_Checked):
     :param exploration_std: std of Gaussian noise added to planned actions during training
         rollouts, as a fraction of the action half-range (0 disables it).
     :param episode_steps: steps per rollout; ``None`` uses the env's ``TimeLimit``.
-    :param exploration_window: that noise's moving-average window in steps, rescaled to the
-        same std (1: white noise; longer windows move the system further from the plan at the
-        same amplitude, as the excitation does).
+    :param exploration_window: moving-average window (steps) of the exploration noise,
+        rescaled to the same std (1: white noise; longer windows move the system further from
+        the plan at the same amplitude, as the excitation does).
     """
 
     _path: ClassVar[str] = "collection"
