@@ -147,6 +147,18 @@ def test_settings_comparison_pairs_seeds_and_draws_both(tmp_path):
     assert suite.settings_comparison(base, variant, baselines) == []
 
 
+def test_settings_labels_name_the_base_and_only_what_the_variant_changes():
+    p20 = {"training.patience": 20, "training.steps": 4000}
+    assert suite.settings_labels({}, p20) == (
+        "the suite's", "training.patience=20, training.steps=4000")
+    base, label = suite.settings_labels(p20, {**p20, "collection.exploration_window": 8})
+    assert base == "base (training.patience=20, training.steps=4000)"
+    assert label == "collection.exploration_window=8"
+    assert suite.settings_labels(p20, {"training.patience": 20})[1] == (
+        "training.steps=default")
+    assert suite.settings_labels(p20, dict(p20))[1] == "same"
+
+
 @pytest.mark.parametrize("extra", [[], ["--report-only", "--docs", "d.md"]])
 def test_compare_needs_report_only_without_docs(tmp_path, extra):
     with pytest.raises(SystemExit) as e:

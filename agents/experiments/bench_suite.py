@@ -623,10 +623,24 @@ def settings_comparison(base: list[dict[str, Any]], variant: list[dict[str, Any]
     return out
 
 
+def settings_labels(base: dict[str, Any], variant: dict[str, Any]) -> tuple[str, str]:
+    """Names of two sets of ``--agent-settings`` for the report: the base's (``"the suite's"``
+    for the defaults) and what the variant sets differently from it (``k=v, ...``)."""
+    def name(d: dict[str, Any]) -> str:
+        return ", ".join(f"{k}={json.dumps(v)}" for k, v in sorted(d.items()))
+
+    changed = {k: v for k, v in variant.items() if base.get(k, object()) != v}
+    dropped = sorted(k for k in base if k not in variant)
+    label = name(changed) + "".join(f", {k}=default" for k in dropped)
+    return (f"base ({name(base)})" if base else "the suite's"), (label.strip(", ") or "same")
+
+
 def settings_figure(base: list[dict[str, Any]], variant: list[dict[str, Any]],
-                    label: str, path: Path) -> Path:
-    """Learning curves of the paired runs per task: the suite's (grey) and the variant's
-    (blue), seeds thin and the median thick."""
+                    label: str, path: Path, base_label: str = "the suite's") -> Path:
+    """Learning curves of the paired runs per task: the base's (grey) and the variant's
+    (blue), seeds thin and the median thick; the labels wrapped to the panel."""
+    import textwrap
+
     import matplotlib
 
     matplotlib.use("Agg")
@@ -635,9 +649,9 @@ def settings_figure(base: list[dict[str, Any]], variant: list[dict[str, Any]],
     groups = paired_runs(base, variant)
     fig, axes = plt.subplots(1, len(groups), figsize=(4.3 * len(groups), 3.4), squeeze=False)
     for ax, ((task, planner, reg, _), pairs) in zip(axes.flat, groups.items()):
-        for i, color, name in ((0, "0.45", "suite"), (1, "tab:blue", label)):
-            _plot_runs(ax, [p[i] for p in pairs], color=color, ls="-",
-                       label=f"{name} ({len(pairs)} seeds)", alpha=0.4)
+        for i, color, name in ((0, "0.45", base_label), (1, "tab:blue", label)):
+            _plot_runs(ax, [p[i] for p in pairs], color=color, ls="-", alpha=0.4,
+                       label=textwrap.fill(f"{name} ({len(pairs)} seeds)", 40))
         ax.set_title(f"{task} {planner}/{reg}", fontsize=10)
         ax.set_xlabel("env steps")
         ax.set_ylabel("mean eval return")
@@ -1235,11 +1249,12 @@ def run(a: Args) -> dict[str, Any]:
         if not rows:
             raise ValueError(f"--compare {a.compare}: none of its runs pairs with a run of "
                              f"{a.json} (same task, planner, regularizer, budget and seed)")
-        settings = json.dumps(other.get("agent_settings", {}))
+        base_label, settings = settings_labels(state.get("agent_settings") or {},
+                                               other.get("agent_settings") or {})
         for row in rows:
             print(f"{row['task']} {row['planner']}/{row['regularization']} seeds "
                   f"{row['seeds']}: {settings} {_fmt(row['final_median'][1], 4)} "
-                  f"({_fmt(row['normalized_median'][1])}) vs the suite's "
+                  f"({_fmt(row['normalized_median'][1])}) vs {base_label} "
                   f"{_fmt(row['final_median'][0], 4)} ({_fmt(row['normalized_median'][0])}); "
                   f"better/equal/worse {row['better_equal_worse']}; {row['seconds']} "
                   f"{_fmt(row['seconds_median'][1])} vs {_fmt(row['seconds_median'][0])}, "
@@ -1247,7 +1262,8 @@ def run(a: Args) -> dict[str, Any]:
                   f"{_fmt(row['training_seconds_median'][0])}")
         if a.figures and rows:
             settings_figure(state["runs"], other["runs"], settings,
-                            Path(a.figures) / f"settings_{Path(a.compare).stem}.png")
+                            Path(a.figures) / f"settings_{Path(a.compare).stem}.png",
+                            base_label=base_label)
         return {**state, "settings_comparison": rows}
     state["table"] = aggregate(state["runs"], baselines)
     state["compute_seconds"] = float(sum(r["wall_seconds"] for r in state["runs"]))
