@@ -99,7 +99,8 @@ INT_FIELDS = {
     "collection.n_excitation_episodes": 1, "model.ensemble_size": 1, "model.hidden_width": 1,
     "training.epochs": 1, "planner.horizon": 2, "planner.ilqr_iterations": 1,
     "planner.first_plan_iterations": 1, "evaluation.episodes": 1, "regularization.n_copies": 1,
-    "collection.excitation_window": 1, "collection.exploration_window": 1, "video_every": 1, "training.batch": 1,
+    "collection.excitation_window": 1, "collection.exploration_window": 1, "video_every": 1,
+    "training.batch": 1,
     "evaluation.every": 0, "seed": 0, "evaluation.seed": 0, "torch_threads": 0,
 }
 
