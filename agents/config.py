@@ -113,8 +113,10 @@ class CollectionConfig(_Checked):
         rollouts, as a fraction of the action half-range (0 disables it).
     :param episode_steps: steps per rollout; ``None`` uses the env's ``TimeLimit``.
     :param exploration_window: moving-average window (steps) of the exploration noise,
-        rescaled to the same std (1: white noise; longer windows move the system further from
-        the plan at the same amplitude, as the excitation does).
+        rescaled to its stationary std (1: white noise; longer windows move the system further
+        from the plan at the same amplitude, as the excitation does). The filter starts from
+        rest, so the first ``W - 1`` steps of a rollout get less noise (std ``sqrt((t+1)/W)``
+        of it at step ``t``).
     """
 
     _path: ClassVar[str] = "collection"
@@ -737,6 +739,9 @@ _DEPENDENT: tuple[tuple[tuple[str, ...], Callable[[Mapping[str, Any]], bool], st
     (("collection.excitation_window",), lambda v: v["collection.excitation"] == "filtered_gaussian",
      "it is the window of collection.excitation='filtered_gaussian' and the excitation is "
      "'multisine': remove it"),
+    (("collection.exploration_window",), lambda v: v["collection.exploration_std"] > 0,
+     "it shapes the exploration noise, which is off (collection.exploration_std is 0): remove "
+     "it, or turn that on"),
     (("training.epochs",), lambda v: v["training.steps"] is None,
      "training.steps sets a budget of gradient steps per update, so the epochs are not used: "
      "remove it, or set training.steps=None for the epoch schedule"),

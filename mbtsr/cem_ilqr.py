@@ -68,7 +68,7 @@ class CEMILQROptions:
     def __post_init__(self) -> None:
         for name in ("max_iter", "cold_proposal_iterations"):
             v = getattr(self, name)
-            check_int(f"{name}", v, 1)
+            check_int(name, v, 1)
         if not isinstance(self.cem, CEMOptions):
             raise TypeError(f"cem must be a CEMOptions, got {type(self.cem).__name__}")
         if not isinstance(self.ilqr, ILQROptions):

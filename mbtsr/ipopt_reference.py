@@ -101,9 +101,7 @@ def solve_ipopt(
             f"casadi_step must map (x[{n}], u[{m}]) -> x_next[{n}] like the cost; got inputs "
             f"{[tuple(casadi_step.size_in(i)) for i in range(casadi_step.n_in())]}"
         )
-    check_int("T", T, 1)
-    check_int("t0", t0, 0)
-    T, t0 = int(T), int(t0)
+    T, t0 = check_int("T", T, 1), check_int("t0", t0, 0)
     x0 = as_array("x0", x0, (n,))
     lower, upper = check_control_bounds(u_min, u_max, m)
     U0 = np.zeros((T, m)) if U0 is None else as_array("U0", U0, (T, m))

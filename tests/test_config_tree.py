@@ -418,6 +418,7 @@ ACTS_ONLY_WHEN = {
     "planner.replan_feedback": lambda v: (v["planner.replan_every"] > 1
                                           and v["planner.kind"] != "cem"),
     "collection.excitation_window": lambda v: v["collection.excitation"] == "filtered_gaussian",
+    "collection.exploration_window": lambda v: v["collection.exploration_std"] > 0,
     "video_every": lambda v: v["video"],
     "evaluation.solved_ratio": lambda v: v["evaluation.solved_return"] is None,
     "evaluation.early_exit": lambda v: v["evaluation.solved_return"] is None,
@@ -628,6 +629,8 @@ def test_a_section_built_with_a_value_of_the_wrong_type_is_refused_by_the_tree()
     ({"planner": {"kind": "ilqr", "cem": {"elites": 5}}}, "planner.cem.elites"),
     ({"collection": {"excitation": "multisine", "excitation_window": 3}},
      "collection.excitation_window"),
+    ({"collection": {"exploration_std": 0.0, "exploration_window": 8}},
+     "collection.exploration_window"),
     ({"video_every": 2}, "video_every"),
     ({"planner.replan_feedback": True}, "planner.replan_feedback"),  # replan_every is 1
     ({"planner": {"kind": "cem", "replan_every": 4, "replan_feedback": True}},
