@@ -546,12 +546,8 @@ class JacPropAgent(SB3Predictor):
 
         col, spec = self.config.collection, self.spec
         half = 0.5 * (spec.u_max - spec.u_min)
-        if col.exploration_window == 1:
-            unit = np.random.default_rng(seed).standard_normal((T, spec.act_dim))
-        else:
-            unit = excitation.filtered_gaussian(
-                T, spec.act_dim, window=col.exploration_window, scale=1.0, seed=seed
-            ) / excitation.filtered_gaussian_std(col.exploration_window, 1.0)
+        unit = excitation.unit_filtered_gaussian(T, spec.act_dim, window=col.exploration_window,
+                                                 seed=seed)
         return col.exploration_std * half * unit
 
     def _excitation_signal(self, T: int, seed: int) -> np.ndarray:
@@ -561,9 +557,8 @@ class JacPropAgent(SB3Predictor):
 
         cfg, spec = self.config, self.spec
         if cfg.collection.excitation == "filtered_gaussian":
-            sig = excitation.filtered_gaussian(
-                T, spec.act_dim, window=cfg.collection.excitation_window, scale=1.0, seed=seed
-            ) / excitation.filtered_gaussian_std(cfg.collection.excitation_window, 1.0)
+            sig = excitation.unit_filtered_gaussian(
+                T, spec.act_dim, window=cfg.collection.excitation_window, seed=seed)
         else:
             sig = excitation.multisine(T, spec.act_dim, seed=seed) / excitation.multisine_std(
                 5, 1.0

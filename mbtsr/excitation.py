@@ -20,7 +20,8 @@ import numpy as np
 
 from mbtsr.validation import check_int
 
-__all__ = ["filtered_gaussian", "multisine", "filtered_gaussian_std", "multisine_std"]
+__all__ = ["filtered_gaussian", "multisine", "filtered_gaussian_std", "multisine_std",
+           "unit_filtered_gaussian"]
 
 SeedLike = int | np.random.SeedSequence | np.random.Generator
 
@@ -70,10 +71,21 @@ def filtered_gaussian(
     scale = _check_float("scale", scale)
     rng = np.random.default_rng(seed)
     white = scale * rng.standard_normal((T, m))
+    if window == 1:
+        return white  # the moving average of one sample is the sample itself (exactly)
     # causal moving average with zero initial state: differences of a cumulative sum
     csum = np.cumsum(np.vstack([np.zeros((1, m)), white]), axis=0)  # csum[k] = sum_{i<k} e[i]
     start = np.maximum(np.arange(T) + 1 - window, 0)
     return (csum[1:] - csum[start]) / window
+
+
+def unit_filtered_gaussian(T: int, m: int, *, window: int, seed: SeedLike) -> np.ndarray:  # noqa: N803
+    """:func:`filtered_gaussian` scaled to a unit stationary std (``window=1``: white N(0, 1)).
+
+    :return: ``u: [T, m]``.
+    """
+    return (filtered_gaussian(T, m, window=window, scale=1.0, seed=seed)
+            / filtered_gaussian_std(window, 1.0))
 
 
 def multisine_std(n_sines: int, amplitude: float) -> float:

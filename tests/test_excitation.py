@@ -10,7 +10,13 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.signal import lfilter
 
-from mbtsr.excitation import filtered_gaussian, filtered_gaussian_std, multisine, multisine_std
+from mbtsr.excitation import (
+    filtered_gaussian,
+    filtered_gaussian_std,
+    multisine,
+    multisine_std,
+    unit_filtered_gaussian,
+)
 
 
 @pytest.mark.parametrize("T, window", [(1, 1), (5, 100), (50, 52), (400, 100), (300, 5)])
@@ -126,3 +132,12 @@ def test_multisine_shapes_and_peak_bound(T, m, n_sines, amplitude, seed):  # noq
     u = multisine(T, m, n_sines=n_sines, amplitude=amplitude, seed=seed)
     assert u.shape == (T, m)
     assert np.all(np.abs(u) <= n_sines * amplitude * (1 + 1e-12))
+
+
+def test_window_one_is_the_white_noise_itself_and_the_unit_signal_has_unit_std():
+    white = np.random.default_rng(11).standard_normal((500, 3))
+    np.testing.assert_array_equal(unit_filtered_gaussian(500, 3, window=1, seed=11), white)
+    np.testing.assert_array_equal(filtered_gaussian(500, 3, window=1, scale=2.0, seed=11),
+                                  2.0 * white)
+    u = unit_filtered_gaussian(40000, 2, window=8, seed=3)[8:]  # after the ramp-up
+    np.testing.assert_allclose(u.std(0), 1.0, rtol=0.05)
