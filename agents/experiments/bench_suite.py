@@ -501,7 +501,6 @@ def aggregate(runs: list[dict[str, Any]], baselines: dict[str, dict[str, Any]]
                     continue
                 finals = [r["final_score"] for r in rs]
                 norms = [normalized(f, baselines.get(name)) for f in finals]
-                known = [v for v in norms if v is not None]
                 rows.append({
                     "task": name, "planner": planner, "regularization": reg,
                     "seeds": [r["seed"] for r in rs],
@@ -510,10 +509,9 @@ def aggregate(runs: list[dict[str, Any]], baselines: dict[str, dict[str, Any]]
                         [r["env_steps_to_solve"] for r in rs],
                         min(r["budget_env_steps"] for r in rs)),
                     "env_steps_to_solve": [r["env_steps_to_solve"] for r in rs],
-                    "final_score_median": float(np.median([f for f in finals if f is not None]))
-                    if any(f is not None for f in finals) else None,
+                    "final_score_median": _median_or_none(finals),
                     "final_scores": finals,
-                    "normalized_median": float(np.median(known)) if known else None,
+                    "normalized_median": _median_or_none(norms),
                     "normalized": norms,
                     "wall_median_per_phase": {
                         k: float(np.median([r["wall_seconds_per_phase"][k] for r in rs]))
@@ -736,8 +734,7 @@ def reference_rows(state: dict[str, Any], baselines: dict[str, dict[str, Any]],
         sac = [r for r in sb3_runs if r["task"] == name and r["method"] == "sac" and r["curve"]]
         if sac:
             for key, steps in (("sac_50k", 50_000), ("sac_100k", 100_000)):
-                vals = [v for r in sac if (v := score_at(r["curve"], steps)) is not None]
-                row[key] = float(np.median(vals)) if vals else None
+                row[key] = _median_or_none([score_at(r["curve"], steps) for r in sac])
             row["sac_seeds"] = [r["seed"] for r in sac]
         pets = [r for r in pets_runs if r["task"] == name and r["curve"]]
         if pets:  # scored at the env steps every PETS run reached, and at the furthest one
