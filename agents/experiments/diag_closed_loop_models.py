@@ -1,0 +1,152 @@
+"""Which model lowers the planning error on the agent's OWN data? A diagnostic for a plateau.
+
+``bench_model_sizes`` measures sizes on open-loop excitation, which on Pusher almost never
+pushes the object. This takes the trajectories an agent run stored (``data.npz`` of a checkpoint
+folder written by ``bench_suite.py --checkpoints``), trains fresh ensembles of each size on the
+first episodes and scores them on the last ones (the agent's late, closed-loop episodes) the way
+a planner uses them (:func:`planning_errors`):
+
+* ``median_dim``: the median over moving dimensions of the one-step RMSE over the training
+  std of the step (as ``bench_model_sizes``);
+* ``cost_err``: from every ``stride``-th state of a held-out episode, the episode's own actions
+  are rolled out ``horizon`` steps open loop on the model; the median absolute difference
+  between the predicted and the true summed task cost;
+* ``cost_rank``: the Spearman rank correlation of predicted and true costs over those windows
+  (how well the model orders plans).
+
+Every size is trained from several initialisations (``inits``): on Pusher the spread over
+initialisations exceeds the differences between sizes (docs/benchmark.md, "Does a larger model
+lift Pusher's plateau?").
+
+    python scripts/diag_closed_loop_models.py --task pusher \
+        --checkpoints runs/ckpt/pusher_cem-ilqr_none_seed0 --json runs/diag.json
+"""
+
+from __future__ import annotations
+
+import os
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import asdict, dataclass
+from typing import Any
+
+import casadi as ca
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from agents import tasks
+from agents.experiments.bench_model_sizes import model_config
+from mbtsr.io import write_json_atomic
+from mbtsr.training import TrainConfig, train_ensemble
+from mbtsr.trajectory import Trajectory
+
+
+@dataclass(frozen=True)
+class Args:
+    """Held-out planning error of ensemble sizes on an agent run's own trajectories."""
+
+    task: str = "pusher"
+    """a task of agents.tasks (its cost scores the rollouts)"""
+    checkpoints: tuple[str, ...] = ()
+    """checkpoint folders holding data.npz (one agent run each)"""
+    sizes: tuple[str, ...] = ("rule", "4x200", "7m:rule")
+    """rule, LxW or paper; a 7m: prefix sets 7 members (default 4)"""
+    inits: tuple[int, ...] = (1, 2, 3)
+    """weight-initialisation (and minibatch) seeds per size"""
+    steps: int = 4000
+    """gradient-step budget (the agent's optimizer, 10 % hold-out, patience 20)"""
+    test_episodes: int = 5
+    """the last episodes of each run, held out"""
+    horizon: int = 30
+    """open-loop rollout length of a scored window"""
+    stride: int = 10
+    """steps between the starts of scored windows"""
+    json: str = "runs/diag_closed_loop_models.json"
+    """output JSON"""
+
+
+def task_cost(task_name: str) -> tuple[Callable[[np.ndarray, np.ndarray], np.ndarray], int, int]:
+    """``(cost_of, obs_dim, act_dim)`` of a task of :mod:`agents.tasks`: ``cost_of(x_next [N,
+    n], u [N, m]) -> [N]``, its CasADi cost evaluated on a batch."""
+    task = getattr(tasks, task_name.replace("-", "_"))()
+    env = task.make_env()
+    n, m = env.observation_space.shape[0], env.action_space.shape[0]
+    env.close()
+    o, a = ca.SX.sym("o", n), ca.SX.sym("a", m)
+    cost = ca.Function("cost", [o, a], [task.observation_cost()(o, a)])
+    return (lambda x, u: np.asarray(cost.map(len(u))(x.T, u.T)).ravel()), n, m
+
+
+def planning_errors(step: Callable[[np.ndarray, np.ndarray], np.ndarray],
+                    cost_of: Callable[[np.ndarray, np.ndarray], np.ndarray],
+                    train: Sequence[Trajectory], test: Sequence[Trajectory], *,
+                    horizon: int, stride: int) -> dict[str, float]:
+    """The module docstring's scores of a model ``step(x [N, n], u [N, m]) -> [N, n]`` on
+    ``test`` (``train`` gives each dimension's step std)."""
+    dx = np.concatenate([t.x[1:] - t.x[:-1] for t in train])
+    std = dx.std(0)
+    moving = std > 1e-9 * (1.0 + np.abs(dx).max(0))
+    x, u = np.concatenate([t.x[:-1] for t in test]), np.concatenate([t.u for t in test])
+    err = step(x, u) - np.concatenate([t.x[1:] for t in test])
+    per_dim = np.sqrt(np.mean((err[:, moving] / std[moving]) ** 2, 0))
+    starts = [(t, s) for t in test for s in range(0, len(t.u) - horizon + 1, stride)]
+    if len(starts) < 2:
+        raise ValueError(f"the held-out episodes hold {len(starts)} windows of {horizon} steps; "
+                         "need at least 2 (lower horizon or stride)")
+    xs = np.stack([t.x[s] for t, s in starts])
+    predicted, true = np.zeros(len(starts)), np.zeros(len(starts))
+    for k in range(horizon):  # all windows at once, one batched step per time step
+        uk = np.stack([t.u[s + k] for t, s in starts])
+        xs = step(xs, uk)
+        predicted += cost_of(xs, uk)
+        true += cost_of(np.stack([t.x[s + k + 1] for t, s in starts]), uk)
+    rank = np.corrcoef(np.argsort(np.argsort(predicted)), np.argsort(np.argsort(true)))[0, 1]
+    return {"median_dim": float(np.median(per_dim)),
+            "cost_err": float(np.median(np.abs(predicted - true))),
+            "cost_true_median": float(np.median(true)), "cost_rank": float(rank)}
+
+
+def load_run(folder: str) -> list[Trajectory]:
+    """The trajectories of an agent's checkpoint folder (``data.npz``)."""
+    path = os.path.join(folder, "data.npz")
+    if not os.path.isfile(path):
+        raise ValueError(f"{folder!r} holds no data.npz (a folder of bench_suite --checkpoints)")
+    with np.load(path, allow_pickle=False) as d:
+        return [Trajectory(x=d[f"x{i}"], u=d[f"u{i}"], dt=float(d[f"dt{i}"]))
+                for i in range(int(d["count"]))]
+
+
+def run(args: Args) -> dict[str, Any]:
+    """Train every size from every initialisation on every run; the JSON is rewritten after
+    each model, so an interrupted study keeps what it measured."""
+    if not args.checkpoints:
+        raise ValueError("--checkpoints: give at least one checkpoint folder")
+    torch.set_num_threads(1)
+    cost_of, n, m = task_cost(args.task)
+    runs = {c: load_run(c) for c in args.checkpoints}
+    for c, trajs in runs.items():
+        if len(trajs) <= args.test_episodes:
+            raise ValueError(f"{c!r} holds {len(trajs)} episodes; --test-episodes "
+                             f"{args.test_episodes} leaves none to train on")
+    rows: list[dict[str, Any]] = []
+    jobs = [(c, s, i) for c in args.checkpoints for s in args.sizes for i in args.inits]
+    for ckpt, size, init in tqdm(jobs, desc="models"):
+        train, test = runs[ckpt][:-args.test_episodes], runs[ckpt][-args.test_episodes:]
+        members, name = (7, size[3:]) if size.startswith("7m:") else (4, size)
+        model = model_config(name, members).build(n, m, seed=init)
+        tic = time.process_time()
+        hist = train_ensemble(model, train, TrainConfig(
+            steps=args.steps, lr=1e-3, batch=256, holdout=0.1, eval_every=50, patience=20,
+            early_stopping="member", member_data="order", progress=False, seed=init))
+        rows.append({"checkpoint": ckpt, "size": size, "init": init, "steps": hist.steps,
+                     "cpu_s": time.process_time() - tic,
+                     **planning_errors(model.freeze().step, cost_of, train, test,
+                                       horizon=args.horizon, stride=args.stride)})
+        write_json_atomic(args.json, {"args": asdict(args), "rows": rows})
+    for size in args.sizes:
+        got = [r for r in rows if r["size"] == size]
+        print(f"{size:>10}: cost_err median {np.median([r['cost_err'] for r in got]):.2f}, "
+              f"median_dim {np.median([r['median_dim'] for r in got]):.3f}, "
+              f"cost_rank {np.median([r['cost_rank'] for r in got]):.2f} ({len(got)} models)")
+    return {"args": asdict(args), "rows": rows}

@@ -1,0 +1,110 @@
+"""The closed-loop model diagnostic: its planning errors against direct computations."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from agents.experiments.diag_closed_loop_models import Args, planning_errors, run, task_cost
+from mbtsr.trajectory import Trajectory
+
+rng = np.random.default_rng(0)
+N_OBS, N_ACT = 10, 2  # Reacher-v5's observation and action
+A = np.eye(N_OBS) + 0.05 * rng.normal(size=(N_OBS, N_OBS)) / np.sqrt(N_OBS)
+B = 0.1 * rng.normal(size=(N_OBS, N_ACT))
+
+
+def true_step(x, u):
+    return x @ A.T + u @ B.T
+
+
+def episodes(count: int, T: int = 40, seed: int = 1) -> list[Trajectory]:
+    g = np.random.default_rng(seed)
+    out = []
+    for _ in range(count):
+        u = g.uniform(-1, 1, size=(T, N_ACT))
+        x = np.zeros((T + 1, N_OBS))
+        x[0] = 0.1 * g.normal(size=N_OBS)
+        for t in range(T):
+            x[t + 1] = true_step(x[t], u[t])
+        out.append(Trajectory(x=x, u=u, dt=0.01))
+    return out
+
+
+def quadratic(x, u):
+    return np.sum(x**2, -1) + 0.1 * np.sum(u**2, -1)
+
+
+def test_the_true_model_has_no_error_and_orders_plans_perfectly():
+    train, test = episodes(3), episodes(2, seed=2)
+    e = planning_errors(true_step, quadratic, train, test, horizon=10, stride=5)
+    assert e["median_dim"] == pytest.approx(0, abs=1e-12)
+    assert e["cost_err"] == pytest.approx(0, abs=1e-12)
+    assert e["cost_rank"] == pytest.approx(1.0)
+
+
+def test_cost_error_matches_a_window_by_window_rollout():
+    train, test = episodes(3), episodes(2, seed=2)
+    bias = 0.01 * np.arange(N_OBS)
+
+    def biased(x, u):
+        return true_step(x, u) + bias
+
+    H, stride = 8, 4
+    e = planning_errors(biased, quadratic, train, test, horizon=H, stride=stride)
+    diffs = []
+    for t in test:  # one window at a time, one state at a time
+        for s in range(0, len(t.u) - H + 1, stride):
+            x, c_model, c_true = t.x[s], 0.0, 0.0
+            for k in range(H):
+                x = biased(x[None], t.u[s + k][None])[0]
+                c_model += quadratic(x, t.u[s + k])
+                c_true += quadratic(t.x[s + k + 1], t.u[s + k])
+            diffs.append(abs(c_model - c_true))
+    assert e["cost_err"] == pytest.approx(float(np.median(diffs)), rel=1e-12)
+    assert e["cost_err"] > 0 and e["median_dim"] > 0
+
+
+def test_too_few_windows_are_refused():
+    with pytest.raises(ValueError, match="windows"):
+        planning_errors(true_step, quadratic, episodes(2), episodes(1, T=5), horizon=10,
+                        stride=5)
+
+
+def test_task_cost_evaluates_the_tasks_casadi_cost_on_a_batch():
+    cost_of, n, m = task_cost("reacher")
+    assert (n, m) == (N_OBS, N_ACT)
+    x, u = rng.normal(size=(5, n)), rng.normal(size=(5, m))
+    # agents.tasks.reacher: the smoothed |fingertip - target| (obs[8:10]) + |a|^2
+    expected = np.sqrt(np.sum(x[:, 8:10] ** 2, -1) + 1e-4) + np.sum(u**2, -1)
+    assert cost_of(x, u) == pytest.approx(expected, rel=1e-12)
+
+
+def save_run(folder, trajs):
+    folder.mkdir()
+    arrays = {"count": np.array(len(trajs))}
+    for i, t in enumerate(trajs):
+        arrays.update({f"x{i}": t.x, f"u{i}": t.u, f"dt{i}": np.array(t.dt)})
+    np.savez(folder / "data.npz", **arrays)
+
+
+def test_run_writes_every_model_and_refuses_bad_folders(tmp_path):
+    save_run(tmp_path / "run0", episodes(4))
+    out = tmp_path / "diag.json"
+    args = Args(task="reacher", checkpoints=(str(tmp_path / "run0"),), sizes=("2x8", "7m:2x8"),
+                inits=(0, 1), steps=10, test_episodes=1, horizon=10, stride=5, json=str(out))
+    result = run(args)
+    stored = json.loads(out.read_text())
+    assert [(r["size"], r["init"]) for r in stored["rows"]] == [
+        ("2x8", 0), ("2x8", 1), ("7m:2x8", 0), ("7m:2x8", 1)]
+    assert stored["rows"] == json.loads(json.dumps(result["rows"]))
+    assert all(np.isfinite(r["cost_err"]) and r["steps"] <= 10 for r in stored["rows"])
+    with pytest.raises(ValueError, match="no data.npz"):
+        run(Args(task="reacher", checkpoints=(str(tmp_path),), json=str(out)))
+    with pytest.raises(ValueError, match="none to train on"):
+        run(Args(task="reacher", checkpoints=(str(tmp_path / "run0"),), test_episodes=4,
+                 json=str(out)))
+    with pytest.raises(ValueError, match="at least one checkpoint"):
+        run(Args(task="reacher", json=str(out)))
