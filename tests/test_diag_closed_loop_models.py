@@ -6,9 +6,11 @@ import json
 
 import numpy as np
 import pytest
+from scipy.stats import spearmanr
 
+from agents.experiments import diag_closed_loop_models as diag
 from agents.experiments.diag_closed_loop_models import Args, planning_errors, run, task_cost
-from mbtsr.trajectory import Trajectory
+from mbtsr.trajectory import Trajectory, save_trajectories
 
 rng = np.random.default_rng(0)
 N_OBS, N_ACT = 10, 2  # Reacher-v5's observation and action
@@ -54,7 +56,7 @@ def test_cost_error_matches_a_window_by_window_rollout():
 
     H, stride = 8, 4
     e = planning_errors(biased, quadratic, train, test, horizon=H, stride=stride)
-    diffs = []
+    diffs, predicted, true = [], [], []
     for t in test:  # one window at a time, one state at a time
         for s in range(0, len(t.u) - H + 1, stride):
             x, c_model, c_true = t.x[s], 0.0, 0.0
@@ -63,8 +65,22 @@ def test_cost_error_matches_a_window_by_window_rollout():
                 c_model += quadratic(x, t.u[s + k])
                 c_true += quadratic(t.x[s + k + 1], t.u[s + k])
             diffs.append(abs(c_model - c_true))
+            predicted.append(c_model)
+            true.append(c_true)
     assert e["cost_err"] == pytest.approx(float(np.median(diffs)), rel=1e-12)
     assert e["cost_err"] > 0 and e["median_dim"] > 0
+    assert e["cost_rank"] == pytest.approx(spearmanr(predicted, true).statistic, rel=1e-12)
+    assert e["cost_rank"] < 1.0
+    assert e["cost_true_median"] == pytest.approx(float(np.median(true)), rel=1e-12)
+
+
+def test_a_model_that_predicts_a_constant_has_no_rank():
+    def state_cost(x, u):
+        return np.sum(x**2, -1)
+
+    e = planning_errors(lambda x, u: np.zeros_like(x), state_cost, episodes(3),
+                        episodes(2, seed=2), horizon=8, stride=4)
+    assert np.isnan(e["cost_rank"]) and e["cost_err"] > 0
 
 
 def test_too_few_windows_are_refused():
@@ -84,18 +100,20 @@ def test_task_cost_evaluates_the_tasks_casadi_cost_on_a_batch():
 
 def save_run(folder, trajs):
     folder.mkdir()
-    arrays = {"count": np.array(len(trajs))}
-    for i, t in enumerate(trajs):
-        arrays.update({f"x{i}": t.x, f"u{i}": t.u, f"dt{i}": np.array(t.dt)})
-    np.savez(folder / "data.npz", **arrays)
+    save_trajectories(folder / "data.npz", trajs)  # as the agent's checkpoint stores them
 
 
-def test_run_writes_every_model_and_refuses_bad_folders(tmp_path):
+def test_run_writes_every_model_and_refuses_bad_folders(tmp_path, monkeypatch):
     save_run(tmp_path / "run0", episodes(4))
     out = tmp_path / "diag.json"
     args = Args(task="reacher", checkpoints=(str(tmp_path / "run0"),), sizes=("2x8", "7m:2x8"),
                 inits=(0, 1), steps=10, test_episodes=1, horizon=10, stride=5, json=str(out))
+    writes = []
+    write = diag.write_json_atomic
+    monkeypatch.setattr(diag, "write_json_atomic",
+                        lambda path, obj: (writes.append(len(obj["rows"])), write(path, obj)))
     result = run(args)
+    assert writes == [1, 2, 3, 4]  # the file after every model
     stored = json.loads(out.read_text())
     assert [(r["size"], r["init"]) for r in stored["rows"]] == [
         ("2x8", 0), ("2x8", 1), ("7m:2x8", 0), ("7m:2x8", 1)]
@@ -108,3 +126,24 @@ def test_run_writes_every_model_and_refuses_bad_folders(tmp_path):
                  json=str(out)))
     with pytest.raises(ValueError, match="at least one checkpoint"):
         run(Args(task="reacher", json=str(out)))
+    with pytest.raises(ValueError, match="task 'pusher' has 23 and 7"):
+        run(Args(task="pusher", checkpoints=(str(tmp_path / "run0"),), test_episodes=1,
+                 json=str(out)))
+
+
+@pytest.mark.parametrize("bad, match", [
+    ({"task": "reacher-v5"}, "task must be one of"),
+    ({"horizon": 0}, "horizon must be an integer >= 1"),
+    ({"stride": 0}, "stride must be an integer >= 1"),
+    ({"test_episodes": -1}, "test_episodes must be an integer >= 1"),
+    ({"inits": ()}, "at least one initialisation"),
+    ({"sizes": ("rule", "5m:2x8")}, "sizes: '5m:2x8'"),
+])
+def test_bad_arguments_are_refused_before_any_work(bad, match):
+    with pytest.raises(ValueError, match=match):
+        Args(**bad)
+
+
+def test_a_task_modelled_on_a_state_fn_is_refused():
+    with pytest.raises(ValueError, match="state_fn"):
+        task_cost("inverted-double-pendulum")

@@ -11,8 +11,13 @@ a planner uses them (:func:`planning_errors`):
 * ``cost_err``: from every ``stride``-th state of a held-out episode, the episode's own actions
   are rolled out ``horizon`` steps open loop on the model; the median absolute difference
   between the predicted and the true summed task cost;
+* ``cost_true_median``: the median true summed cost of those windows (the scale of
+  ``cost_err``);
 * ``cost_rank``: the Spearman rank correlation of predicted and true costs over those windows
-  (how well the model orders plans).
+  (how well the model orders plans; NaN when either is constant).
+
+The model state must be the observation (a task without ``state_fn``: the task's cost is
+written on the observation).
 
 Every size is trained from several initialisations (``inits``): on Pusher the spread over
 initialisations exceeds the differences between sizes (docs/benchmark.md, "Does a larger model
@@ -24,6 +29,7 @@ lift Pusher's plateau?").
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import time
 from collections.abc import Callable, Sequence
@@ -33,13 +39,16 @@ from typing import Any
 import casadi as ca
 import numpy as np
 import torch
+from scipy.stats import spearmanr
 from tqdm import tqdm
 
-from agents import tasks
+from agents.config import AgentConfig
 from agents.experiments.bench_model_sizes import model_config
+from agents.tasks import TASKS, make_task
 from mbtsr.io import write_json_atomic
-from mbtsr.training import TrainConfig, train_ensemble
-from mbtsr.trajectory import Trajectory
+from mbtsr.training import train_ensemble
+from mbtsr.trajectory import Trajectory, load_trajectories
+from mbtsr.validation import check_int
 
 
 @dataclass(frozen=True)
@@ -65,11 +74,41 @@ class Args:
     json: str = "runs/diag_closed_loop_models.json"
     """output JSON"""
 
+    def __post_init__(self) -> None:
+        if self.task not in TASKS:
+            raise ValueError(f"task must be one of {sorted(TASKS)}, got {self.task!r}")
+        for name in ("steps", "test_episodes", "horizon", "stride"):
+            check_int(name, getattr(self, name), 1)
+        if not self.inits:
+            raise ValueError("inits: give at least one initialisation seed")
+        for size in self.sizes:
+            members_and_size(size)
+
+
+def members_and_size(size: str) -> tuple[int, str]:
+    """``(members, size)`` of a ``sizes`` entry (``7m:`` prefix: 7 members, else 4).
+
+    :raises ValueError: naming the entry, if :func:`model_config` does not read its size.
+    """
+    members, name = (7, size[3:]) if size.startswith("7m:") else (4, size)
+    try:
+        model_config(name, members)
+    except (TypeError, ValueError) as e:
+        raise ValueError(f"sizes: {size!r} is not rule, paper or LxW (optionally after "
+                         f"'7m:'): {e}") from None
+    return members, name
+
 
 def task_cost(task_name: str) -> tuple[Callable[[np.ndarray, np.ndarray], np.ndarray], int, int]:
     """``(cost_of, obs_dim, act_dim)`` of a task of :mod:`agents.tasks`: ``cost_of(x_next [N,
-    n], u [N, m]) -> [N]``, its CasADi cost evaluated on a batch."""
-    task = getattr(tasks, task_name.replace("-", "_"))()
+    n], u [N, m]) -> [N]``, its CasADi cost evaluated on a batch.
+
+    :raises ValueError: for a task whose model state is not the observation (``state_fn``).
+    """
+    task = make_task(task_name)
+    if task.state_fn is not None:
+        raise ValueError(f"task {task_name!r} models a state_fn's state, not the observation "
+                         "its cost is written on; this diagnostic needs the observation")
     env = task.make_env()
     n, m = env.observation_space.shape[0], env.action_space.shape[0]
     env.close()
@@ -101,7 +140,7 @@ def planning_errors(step: Callable[[np.ndarray, np.ndarray], np.ndarray],
         xs = step(xs, uk)
         predicted += cost_of(xs, uk)
         true += cost_of(np.stack([t.x[s + k + 1] for t, s in starts]), uk)
-    rank = np.corrcoef(np.argsort(np.argsort(predicted)), np.argsort(np.argsort(true)))[0, 1]
+    rank = spearmanr(predicted, true).statistic if np.ptp(predicted) and np.ptp(true) else np.nan
     return {"median_dim": float(np.median(per_dim)),
             "cost_err": float(np.median(np.abs(predicted - true))),
             "cost_true_median": float(np.median(true)), "cost_rank": float(rank)}
@@ -112,9 +151,7 @@ def load_run(folder: str) -> list[Trajectory]:
     path = os.path.join(folder, "data.npz")
     if not os.path.isfile(path):
         raise ValueError(f"{folder!r} holds no data.npz (a folder of bench_suite --checkpoints)")
-    with np.load(path, allow_pickle=False) as d:
-        return [Trajectory(x=d[f"x{i}"], u=d[f"u{i}"], dt=float(d[f"dt{i}"]))
-                for i in range(int(d["count"]))]
+    return load_trajectories(path)
 
 
 def run(args: Args) -> dict[str, Any]:
@@ -129,16 +166,18 @@ def run(args: Args) -> dict[str, Any]:
         if len(trajs) <= args.test_episodes:
             raise ValueError(f"{c!r} holds {len(trajs)} episodes; --test-episodes "
                              f"{args.test_episodes} leaves none to train on")
+        if (trajs[0].x.shape[1], trajs[0].u.shape[1]) != (n, m):
+            raise ValueError(f"{c!r} holds states of {trajs[0].x.shape[1]} and actions of "
+                             f"{trajs[0].u.shape[1]} numbers; task {args.task!r} has {n} and {m}")
+    training = dataclasses.replace(AgentConfig().training, steps=args.steps, patience=20)
     rows: list[dict[str, Any]] = []
     jobs = [(c, s, i) for c in args.checkpoints for s in args.sizes for i in args.inits]
     for ckpt, size, init in tqdm(jobs, desc="models"):
         train, test = runs[ckpt][:-args.test_episodes], runs[ckpt][-args.test_episodes:]
-        members, name = (7, size[3:]) if size.startswith("7m:") else (4, size)
+        members, name = members_and_size(size)
         model = model_config(name, members).build(n, m, seed=init)
         tic = time.process_time()
-        hist = train_ensemble(model, train, TrainConfig(
-            steps=args.steps, lr=1e-3, batch=256, holdout=0.1, eval_every=50, patience=20,
-            early_stopping="member", member_data="order", progress=False, seed=init))
+        hist = train_ensemble(model, train, dataclasses.replace(training, seed=init))
         rows.append({"checkpoint": ckpt, "size": size, "init": init, "steps": hist.steps,
                      "cpu_s": time.process_time() - tic,
                      **planning_errors(model.freeze().step, cost_of, train, test,
