@@ -49,6 +49,7 @@ import dataclasses
 import os
 import platform
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -57,7 +58,7 @@ import torch
 from agents.tasks import make_task
 from mbtsr import Trajectory
 from mbtsr.ensemble import DynamicsEnsemble, ModelConfig
-from mbtsr.excitation import filtered_gaussian, filtered_gaussian_std
+from mbtsr.excitation import unit_filtered_gaussian
 from mbtsr.io import write_json_atomic
 from mbtsr.training import TrainConfig, train_ensemble
 
@@ -128,9 +129,8 @@ def collect(task_name: str, n: int, seed: int, *, episode_steps: int | None = No
         if episode % 2 == 0:
             U = rng.uniform(lo, hi, size=(T, lo.size))
         else:
-            sig = filtered_gaussian(T, lo.size, window=8, scale=1.0,
-                                    seed=int(rng.integers(2**31)))
-            U = np.clip(mid + 0.5 * half * sig / filtered_gaussian_std(8, 1.0), lo, hi)
+            sig = unit_filtered_gaussian(T, lo.size, window=8, seed=int(rng.integers(2**31)))
+            U = np.clip(mid + 0.5 * half * sig, lo, hi)
         obs, _ = env.reset(seed=int(rng.integers(2**31)))
         xs, us = [np.asarray(obs, float)], []
         qs = [state_of(env)] if states else None
@@ -153,8 +153,10 @@ def collect(task_name: str, n: int, seed: int, *, episode_steps: int | None = No
     return trajs
 
 
-def errors(model, train: list[Trajectory], test: list[Trajectory]) -> dict:
-    """Held-out errors of the ensemble mean on ``test`` (module docstring): ``nrmse`` (over
+def errors(step: Callable[[np.ndarray, np.ndarray], np.ndarray], train: list[Trajectory],
+           test: list[Trajectory]) -> dict:
+    """Held-out errors on ``test`` of a model ``step(x [N, n], u [N, m]) -> [N, n]`` (e.g. the
+    frozen ensemble mean's; module docstring): ``nrmse`` (over
     all moving dimensions), ``nrmse_median_dim`` (the median over dimensions of each one's
     normalized RMSE: robust to a few dimensions whose motion the training data hardly show,
     such as Pusher's object before it is pushed), ``nrmse_per_dim`` and ``rel_step``."""
@@ -164,7 +166,7 @@ def errors(model, train: list[Trajectory], test: list[Trajectory]) -> dict:
     x = np.concatenate([t.x[:-1] for t in test])
     u = np.concatenate([t.u for t in test])
     x_next = np.concatenate([t.x[1:] for t in test])
-    err = model.freeze().step(x, u) - x_next
+    err = step(x, u) - x_next
     per_dim = np.sqrt(np.mean((err[:, moving] / std[moving]) ** 2, 0))
     return {
         "nrmse": float(np.sqrt(np.mean(per_dim**2))),
@@ -393,7 +395,7 @@ def run(args: Args) -> dict:
                 "nrmse_curve": {"steps": hist.eval_steps.tolist(), "nrmse": curve.tolist()},
                 "best_nrmse": float(curve.min()),
                 "best_step": int(hist.eval_steps[int(curve.argmin())]),
-                **errors(r["model"], train, test),
+                **errors(r["model"].freeze().step, train, test),
                 "ms_per_step": r["ms_per_step"], "cpu_ms_per_step": r["cpu_ms_per_step"],
                 "train_wall_s": r["wall_s"],
                 "planning": planning_cost(r["model"], args.seed),
@@ -422,7 +424,7 @@ def run(args: Args) -> dict:
             r = train_one(cfg, train, test, n, m, args.seed,
                           TrainConfig(**{**base, **tkw}))
             hist = r["hist"]
-            rows[name] = {**errors(r["model"], train, test), "steps": hist.steps,
+            rows[name] = {**errors(r["model"].freeze().step, train, test), "steps": hist.steps,
                           "stopped_early": hist.stopped_early,
                           "best_steps": None if hist.best_steps is None
                           else hist.best_steps.tolist(),

@@ -43,7 +43,7 @@ from scipy.stats import spearmanr
 from tqdm import tqdm
 
 from agents.config import AgentConfig
-from agents.experiments.bench_model_sizes import model_config
+from agents.experiments.bench_model_sizes import errors, model_config
 from agents.tasks import TASKS, make_task
 from mbtsr.io import write_json_atomic
 from mbtsr.training import train_ensemble
@@ -123,25 +123,20 @@ def planning_errors(step: Callable[[np.ndarray, np.ndarray], np.ndarray],
                     horizon: int, stride: int) -> dict[str, float]:
     """The module docstring's scores of a model ``step(x [N, n], u [N, m]) -> [N, n]`` on
     ``test`` (``train`` gives each dimension's step std)."""
-    dx = np.concatenate([t.x[1:] - t.x[:-1] for t in train])
-    std = dx.std(0)
-    moving = std > 1e-9 * (1.0 + np.abs(dx).max(0))
-    x, u = np.concatenate([t.x[:-1] for t in test]), np.concatenate([t.u for t in test])
-    err = step(x, u) - np.concatenate([t.x[1:] for t in test])
-    per_dim = np.sqrt(np.mean((err[:, moving] / std[moving]) ** 2, 0))
     starts = [(t, s) for t in test for s in range(0, len(t.u) - horizon + 1, stride)]
     if len(starts) < 2:
         raise ValueError(f"the held-out episodes hold {len(starts)} windows of {horizon} steps; "
                          "need at least 2 (lower horizon or stride)")
-    xs = np.stack([t.x[s] for t, s in starts])
-    predicted, true = np.zeros(len(starts)), np.zeros(len(starts))
-    for k in range(horizon):  # all windows at once, one batched step per time step
-        uk = np.stack([t.u[s + k] for t, s in starts])
-        xs = step(xs, uk)
-        predicted += cost_of(xs, uk)
-        true += cost_of(np.stack([t.x[s + k + 1] for t, s in starts]), uk)
+    U = np.stack([t.u[s:s + horizon] for t, s in starts])  # [W, H, m]
+    X = np.stack([t.x[s:s + horizon + 1] for t, s in starts])  # [W, H+1, n] true states
+    W, m, n = len(starts), U.shape[2], X.shape[2]
+    true = cost_of(X[:, 1:].reshape(-1, n), U.reshape(-1, m)).reshape(W, horizon).sum(1)
+    xs, predicted = X[:, 0], np.zeros(W)
+    for k in range(horizon):  # all windows at once, one batched model step per time step
+        xs = step(xs, U[:, k])
+        predicted += cost_of(xs, U[:, k])
     rank = spearmanr(predicted, true).statistic if np.ptp(predicted) and np.ptp(true) else np.nan
-    return {"median_dim": float(np.median(per_dim)),
+    return {"median_dim": errors(step, train, test)["nrmse_median_dim"],
             "cost_err": float(np.median(np.abs(predicted - true))),
             "cost_true_median": float(np.median(true)), "cost_rank": float(rank)}
 
