@@ -83,6 +83,45 @@ def test_a_model_that_predicts_a_constant_has_no_rank():
     assert np.isnan(e["cost_rank"]) and e["cost_err"] > 0
 
 
+def test_displacement_scores_match_a_direct_computation():
+    train, test = episodes(3), episodes(2, seed=2)
+    track, H, stride, move = (2, 5), 8, 4, 0.13  # about half the windows move further
+
+    def half_motion(x, u):  # moves the tracked dimensions half as far as the truth
+        out = true_step(x, u)
+        out[:, list(track)] = x[:, list(track)] + 0.5 * (out[:, list(track)] - x[:, list(track)])
+        return out
+
+    e = planning_errors(half_motion, quadratic, train, test, horizon=H, stride=stride,
+                        track=track, move=move)
+    d_true, d_pred = [], []
+    for t in test:
+        for s in range(0, len(t.u) - H + 1, stride):
+            x = t.x[s]
+            for k in range(H):
+                x = half_motion(x[None], t.u[s + k][None])[0]
+            d_true.append(t.x[s + H, list(track)] - t.x[s, list(track)])
+            d_pred.append(x[list(track)] - t.x[s, list(track)])
+    d_true, d_pred = np.array(d_true), np.array(d_pred)
+    moved = np.linalg.norm(d_true, axis=1) > move
+    assert 0 < e["moved_windows"] == moved.sum() < len(moved)
+    assert e["disp_true"] == pytest.approx(np.median(np.linalg.norm(d_true[moved], axis=1)))
+    assert e["disp_pred"] == pytest.approx(np.median(np.linalg.norm(d_pred[moved], axis=1)))
+    assert e["disp_err"] == pytest.approx(
+        np.median(np.linalg.norm(d_pred[moved] - d_true[moved], axis=1)))
+    assert 0 < e["disp_pred"] < e["disp_true"] and e["disp_cos"] < 1.0
+    exact = planning_errors(true_step, quadratic, train, test, horizon=H, stride=stride,
+                            track=track, move=move)
+    assert exact["disp_err"] == pytest.approx(0, abs=1e-12)
+    assert exact["disp_cos"] == pytest.approx(1.0)
+    assert exact["disp_pred"] == pytest.approx(exact["disp_true"])
+    assert "disp_err" not in planning_errors(true_step, quadratic, train, test, horizon=H,
+                                             stride=stride)
+    with pytest.raises(ValueError, match="track: dimensions"):
+        planning_errors(true_step, quadratic, train, test, horizon=H, stride=stride,
+                        track=(N_OBS,))
+
+
 def test_too_few_windows_are_refused():
     with pytest.raises(ValueError, match="windows"):
         planning_errors(true_step, quadratic, episodes(2), episodes(1, T=5), horizon=10,
@@ -137,6 +176,7 @@ def test_run_writes_every_model_and_refuses_bad_folders(tmp_path, monkeypatch):
     ({"stride": 0}, "stride must be an integer >= 1"),
     ({"test_episodes": -1}, "test_episodes must be an integer >= 1"),
     ({"inits": ()}, "at least one initialisation"),
+    ({"move": 0.0}, "move must be a finite number > 0"),
     ({"sizes": ("rule", "5m:2x8")}, "sizes: '5m:2x8'"),
 ])
 def test_bad_arguments_are_refused_before_any_work(bad, match):

@@ -14,7 +14,12 @@ a planner uses them (:func:`planning_errors`):
 * ``cost_true_median``: the median true summed cost of those windows (the scale of
   ``cost_err``);
 * ``cost_rank``: the Spearman rank correlation of predicted and true costs over those windows
-  (how well the model orders plans; NaN when either is constant).
+  (how well the model orders plans; NaN when either is constant);
+* with ``track`` (observation dimensions, e.g. Pusher's object position ``17 18``), over the
+  windows in which those dimensions truly move more than ``move`` (their displacement's norm
+  over the window): ``moved_windows``, the medians ``disp_true`` and ``disp_pred`` of the true
+  and predicted displacement's norm, ``disp_err`` of the error's norm, and ``disp_cos`` of the
+  cosine between them (does the model see a push, and which way it goes).
 
 The model state must be the observation (a task without ``state_fn``: the task's cost is
 written on the observation).
@@ -71,6 +76,10 @@ class Args:
     """open-loop rollout length of a scored window"""
     stride: int = 10
     """steps between the starts of scored windows"""
+    track: tuple[int, ...] = ()
+    """observation dimensions whose displacement over a window is scored (module docstring)"""
+    move: float = 0.005
+    """a window counts as moving when the tracked displacement's norm exceeds this"""
     json: str = "runs/diag_closed_loop_models.json"
     """output JSON"""
 
@@ -79,6 +88,8 @@ class Args:
             raise ValueError(f"task must be one of {sorted(TASKS)}, got {self.task!r}")
         for name in ("steps", "test_episodes", "horizon", "stride"):
             check_int(name, getattr(self, name), 1)
+        if not (self.move > 0 and np.isfinite(self.move)):
+            raise ValueError(f"move must be a finite number > 0, got {self.move!r}")
         if not self.inits:
             raise ValueError("inits: give at least one initialisation seed")
         for size in self.sizes:
@@ -120,9 +131,11 @@ def task_cost(task_name: str) -> tuple[Callable[[np.ndarray, np.ndarray], np.nda
 def planning_errors(step: Callable[[np.ndarray, np.ndarray], np.ndarray],
                     cost_of: Callable[[np.ndarray, np.ndarray], np.ndarray],
                     train: Sequence[Trajectory], test: Sequence[Trajectory], *,
-                    horizon: int, stride: int) -> dict[str, float]:
+                    horizon: int, stride: int, track: Sequence[int] = (),
+                    move: float = 0.005) -> dict[str, float]:
     """The module docstring's scores of a model ``step(x [N, n], u [N, m]) -> [N, n]`` on
-    ``test`` (``train`` gives each dimension's step std)."""
+    ``test`` (``train`` gives each dimension's step std; ``track``, ``move``: the displacement
+    scores, none without ``track``)."""
     starts = [(t, s) for t in test for s in range(0, len(t.u) - horizon + 1, stride)]
     if len(starts) < 2:
         raise ValueError(f"the held-out episodes hold {len(starts)} windows of {horizon} steps; "
@@ -136,9 +149,28 @@ def planning_errors(step: Callable[[np.ndarray, np.ndarray], np.ndarray],
         xs = step(xs, U[:, k])
         predicted += cost_of(xs, U[:, k])
     rank = spearmanr(predicted, true).statistic if np.ptp(predicted) and np.ptp(true) else np.nan
-    return {"median_dim": errors(step, train, test)["nrmse_median_dim"],
-            "cost_err": float(np.median(np.abs(predicted - true))),
-            "cost_true_median": float(np.median(true)), "cost_rank": float(rank)}
+    scores = {"median_dim": errors(step, train, test)["nrmse_median_dim"],
+              "cost_err": float(np.median(np.abs(predicted - true))),
+              "cost_true_median": float(np.median(true)), "cost_rank": float(rank)}
+    if len(track):
+        idx = list(track)
+        if min(idx) < 0 or max(idx) >= n:
+            raise ValueError(f"track: dimensions {idx} out of range for states of {n} numbers")
+        d_true, d_pred = X[:, -1, idx] - X[:, 0, idx], xs[:, idx] - X[:, 0, idx]
+        norm_true = np.linalg.norm(d_true, axis=1)
+        moved = norm_true > move
+        norm_pred = np.linalg.norm(d_pred[moved], axis=1)
+        cos = np.sum(d_pred[moved] * d_true[moved], 1) / np.maximum(
+            norm_pred * norm_true[moved], 1e-300)
+
+        def med(v: np.ndarray) -> float:
+            return float(np.median(v)) if v.size else float("nan")
+
+        scores.update({"moved_windows": int(moved.sum()), "disp_true": med(norm_true[moved]),
+                       "disp_pred": med(norm_pred),
+                       "disp_err": med(np.linalg.norm(d_pred[moved] - d_true[moved], axis=1)),
+                       "disp_cos": med(cos)})
+    return scores
 
 
 def load_run(folder: str) -> list[Trajectory]:
@@ -176,11 +208,14 @@ def run(args: Args) -> dict[str, Any]:
         rows.append({"checkpoint": ckpt, "size": size, "init": init, "steps": hist.steps,
                      "cpu_s": time.process_time() - tic,
                      **planning_errors(model.freeze().step, cost_of, train, test,
-                                       horizon=args.horizon, stride=args.stride)})
+                                       horizon=args.horizon, stride=args.stride,
+                                       track=args.track, move=args.move)})
         write_json_atomic(args.json, {"args": asdict(args), "rows": rows})
     for size in args.sizes:
         got = [r for r in rows if r["size"] == size]
         print(f"{size:>10}: cost_err median {np.median([r['cost_err'] for r in got]):.2f}, "
               f"median_dim {np.median([r['median_dim'] for r in got]):.3f}, "
-              f"cost_rank {np.median([r['cost_rank'] for r in got]):.2f} ({len(got)} models)")
+              f"cost_rank {np.median([r['cost_rank'] for r in got]):.2f} ({len(got)} models)"
+              + (f", displacement predicted {np.median([r['disp_pred'] for r in got]):.4f} of "
+                 f"{np.median([r['disp_true'] for r in got]):.4f}" if args.track else ""))
     return {"args": asdict(args), "rows": rows}

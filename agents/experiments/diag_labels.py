@@ -1,0 +1,196 @@
+"""What do the regularizers pull the model towards during an agent run? A diagnostic.
+
+Runs the suite's agent (:func:`agents.experiments.bench_suite.make_agent`: the task's defaults,
+``cem-ilqr``) once per regularization and, after every episode, replays the episode in a fresh
+env (same reset seed, same actions; the replay must reproduce the recorded observations) to get
+its MuJoCo states, and compares with the true Jacobians there
+(:func:`agents.experiments.exp_small_data.true_jacobians`, on the observation's tangent space):
+
+* ``label``: the LTV model the regularizer used for the episode (``sampled``/``exact`` only;
+  the smooth fit fused with the model's Jacobians, as the agent makes it);
+* ``fit``: the smooth LTV fit alone, at the same ``lambda`` (for ``none``, the agent's automatic
+  choice);
+* ``model``: the ensemble mean's Jacobians at the episode's points after the update on it;
+* ``model_before``: the same of the model before that update (the previous episode's).
+
+Each is reported as three numbers (:func:`split_errors`): ``all``, the relative error of
+:func:`~agents.experiments.exp_small_data.jacobian_rel_error`; ``identified``, the same error
+restricted to the directions the episode moved in (the tangent directions of state
+coordinates that stayed constant through the episode, such as Reacher's target, are
+projected out: one episode's data cannot identify a Jacobian along them);
+``unidentified``, the median norm of the estimate's ``A`` along those directions (the truth's
+norm is ``truth_unidentified``).
+
+    python scripts/diag_labels.py --task reacher --regularizations none exact --json runs/l.json
+"""
+
+from __future__ import annotations
+
+import copy
+import time
+from dataclasses import asdict, dataclass
+from typing import Any
+
+import numpy as np
+import torch
+
+from agents.experiments.bench_model_sizes import ltv_fit
+from agents.experiments.bench_suite import TASKS, make_agent
+from agents.experiments.exp_small_data import jacobian_rel_error, true_jacobians
+from mbtsr.io import write_json_atomic
+from mbtsr.trajectory import Trajectory
+from mbtsr.validation import check_int
+
+REGULARIZATIONS = ("none", "sampled", "exact")
+
+
+@dataclass(frozen=True)
+class Args:
+    """Jacobian errors of the LTV labels and of the model along an agent run."""
+
+    task: str = "reacher"
+    """a suite task (agents.experiments.bench_suite.TASKS)"""
+    regularizations: tuple[str, ...] = ("none", "exact")
+    """one agent run each (none, sampled, exact)"""
+    seed: int = 0
+    """the agent's seed"""
+    env_steps: int = 2000
+    """each run's budget (the suite's Reacher budget)"""
+    json: str = "runs/diag_labels.json"
+    """output JSON (rewritten after every episode)"""
+
+    def __post_init__(self) -> None:
+        if self.task not in TASKS:
+            raise ValueError(f"task must be one of {sorted(TASKS)}, got {self.task!r}")
+        bad = [r for r in self.regularizations if r not in REGULARIZATIONS]
+        if bad or not self.regularizations:
+            raise ValueError(f"regularizations must be some of {REGULARIZATIONS}, got "
+                             f"{self.regularizations!r}")
+        check_int("seed", self.seed, 0)
+        check_int("env_steps", self.env_steps, 2)
+
+
+def replay_states(env: Any, traj: Trajectory, state_of: Any) -> np.ndarray:
+    """The MuJoCo states ``[T, nq + nv]`` before each action of ``traj``, replayed in ``env``
+    from ``traj.meta["seed"]``.
+
+    :param state_of: ``obs [k, d] -> model state [k, n]`` (the agent's state map).
+    :raises ValueError: if the replay does not reproduce the recorded states (a non-deterministic
+        env, or a trajectory that did not start at that reset).
+    """
+    obs, _ = env.reset(seed=int(traj.meta["seed"]))
+    data, states = env.unwrapped.data, []
+    for t, u in enumerate(traj.u):
+        if not np.allclose(state_of(obs[None])[0], traj.x[t], rtol=1e-6, atol=1e-8):
+            raise ValueError(f"the replay of episode seed {traj.meta['seed']} leaves the "
+                             f"recorded states at step {t}")
+        states.append(np.concatenate([data.qpos, data.qvel]))
+        obs, *_ = env.step(u)
+    return np.array(states)
+
+
+def split_errors(A: np.ndarray, B: np.ndarray, P: np.ndarray, U: np.ndarray,
+                 A_hat: np.ndarray, B_hat: np.ndarray) -> dict[str, float]:
+    """The module docstring's ``all``, ``identified`` and ``unidentified`` of an estimate
+    ``(A_hat [T, d, d], B_hat [T, d, m])`` against the truth ``(A, B)`` with tangent projector
+    ``P [T, d, d]`` and ``U [T, d, k]`` orthonormal unidentified directions (``k = 0``: none)."""
+    Q = np.eye(A.shape[1]) - U @ np.swapaxes(U, 1, 2)
+    D = A_hat @ P - A
+    num = np.sqrt(np.sum((D @ Q) ** 2, (1, 2)) + np.sum((B_hat - B) ** 2, (1, 2)))
+    den = np.sqrt(np.sum((A @ Q) ** 2, (1, 2)) + np.sum(B**2, (1, 2)))
+    return {"all": jacobian_rel_error(A, B, P, A_hat, B_hat)["jac_rel"],
+            "identified": float(np.median(num / den)),
+            "unidentified": float(np.median(np.linalg.norm(A_hat @ P @ U, axis=(1, 2)))),
+            "truth_unidentified": float(np.median(np.linalg.norm(A @ U, axis=(1, 2))))}
+
+
+def unidentified_directions(task: str, states: np.ndarray, tol: float = 1e-9) -> np.ndarray:
+    """``[T, d, k]`` orthonormal observation-space directions of the state coordinates that stay
+    constant through ``states [T, nq + nv]`` (their columns of ``C = d obs / dx``)."""
+    from envs.mujoco_model import MujocoDynamics, ObservedDynamics
+
+    env = TASKS[task]["task"].make_env()
+    env.reset(seed=0)
+    C = np.asarray(ObservedDynamics(MujocoDynamics(env), env).observation_jacobian(states))
+    env.close()
+    const = np.ptp(states, axis=0) <= tol * (1.0 + np.abs(states).max(axis=0))
+    out = []
+    for Ct in C[:, :, const]:
+        u, s, _ = np.linalg.svd(Ct, full_matrices=False)
+        out.append(u[:, s > 1e-8 * max(s.max(initial=0.0), 1e-300)])
+    k = min(o.shape[1] for o in out)
+    return np.stack([o[:, :k] for o in out])
+
+
+def run(args: Args, *, smoke: bool = False) -> dict[str, Any]:
+    """One agent run per regularization; see the module docstring.
+
+    :param smoke: the suite's tiny model and planner (tests).
+    """
+    torch.set_num_threads(1)
+    result: dict[str, Any] = {"args": asdict(args), "runs": {}}
+    for reg in args.regularizations:
+        agent = make_agent(args.task, {"seed": args.seed, "planner.kind": "cem-ilqr",
+                                       "regularization": reg}, smoke=smoke)
+        replay = TASKS[args.task]["task"].make_env()
+        rows: list[dict[str, Any]] = []
+        previous: dict[str, Any] = {"model": None}
+        result["runs"][reg] = rows
+
+        def record(info: dict[str, Any], agent=agent, replay=replay, rows=rows,
+                   previous=previous, reg=reg) -> None:
+            tic = time.process_time()
+            traj = agent.trajectories[-1]
+            if traj.T < 2:
+                return
+            x, u = traj.inputs
+            states = replay_states(replay, traj, agent.state_map.state)
+            A, B, P = true_jacobians(args.task, states, u)
+            U = unidentified_directions(args.task, states)
+            lam = agent.ltv_lambdas[-1] if reg != "none" else agent._ltv_lambda(traj)
+            fit = ltv_fit(traj, lam)
+            row: dict[str, Any] = {
+                "episode": len(agent.trajectories) - 1, "env_steps": agent.env_steps,
+                **{k: info["row"].get(k) for k in ("eval_return", "one_step_rms",
+                                                    "train_steps")},
+                "lambda": lam,
+                "fit": split_errors(A, B, P, U, np.asarray(fit.A)[:traj.T],
+                                    np.asarray(fit.B)[:traj.T]),
+                "model": split_errors(A, B, P, U, *agent.model.jacobians(x, u))}
+            if reg != "none":
+                lm = agent.ltv_models[-1]
+                row["label"] = split_errors(A, B, P, U, np.asarray(lm.A)[:traj.T],
+                                            np.asarray(lm.B)[:traj.T])
+            if previous["model"] is not None:
+                row["model_before"] = split_errors(A, B, P, U,
+                                                   *previous["model"].jacobians(x, u))
+            previous["model"] = copy.deepcopy(agent.model)
+            row["cpu_s"] = time.process_time() - tic
+            rows.append(row)
+            write_json_atomic(args.json, result)
+
+        agent.learn(total_env_steps=args.env_steps, callback=record, progress_bar=False)
+        replay.close()
+        agent.env.close()
+    result["summary"] = summarize(result["runs"])
+    write_json_atomic(args.json, result)
+    for reg, s in result["summary"].items():
+        print(f"{reg}: " + ", ".join(f"{k} {v['identified']:.3f}" for k, v in s.items()
+                                    if isinstance(v, dict)) + f"; final {s['final_return']}")
+    return result
+
+
+def summarize(runs: dict[str, list[dict[str, Any]]]) -> dict[str, dict[str, Any]]:
+    """Per regularization: the median over episodes of each estimate's three errors, and the
+    run's last evaluation return."""
+    out: dict[str, dict[str, Any]] = {}
+    for reg, rows in runs.items():
+        s: dict[str, Any] = {}
+        for what in ("fit", "label", "model", "model_before"):
+            got = [r[what] for r in rows if what in r]
+            if got:
+                s[what] = {k: float(np.median([g[k] for g in got])) for k in got[0]}
+        evals = [r["eval_return"] for r in rows if r.get("eval_return") is not None]
+        s["final_return"] = evals[-1] if evals else None
+        out[reg] = s
+    return out

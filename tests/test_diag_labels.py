@@ -1,0 +1,101 @@
+"""The label diagnostic: its replay, its error split against direct computations, a tiny run."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from agents.experiments.bench_suite import TASKS
+from agents.experiments.diag_labels import (
+    Args,
+    replay_states,
+    run,
+    split_errors,
+    unidentified_directions,
+)
+from agents.experiments.exp_small_data import true_jacobians
+from mbtsr.trajectory import Trajectory
+
+
+def reacher_episode(seed: int = 3, T: int = 12) -> tuple[Trajectory, np.ndarray]:
+    env = TASKS["reacher"]["task"].make_env()
+    obs, _ = env.reset(seed=seed)
+    u = np.random.default_rng(seed).uniform(-1, 1, size=(T, 2))
+    xs, states = [obs], []
+    for a in u:
+        states.append(np.concatenate([env.unwrapped.data.qpos, env.unwrapped.data.qvel]))
+        obs, *_ = env.step(a)
+        xs.append(obs)
+    env.close()
+    return Trajectory(np.array(xs), u, 0.02, meta={"seed": seed}), np.array(states)
+
+
+def test_replay_reproduces_the_states_and_refuses_another_episode():
+    traj, states = reacher_episode()
+    env = TASKS["reacher"]["task"].make_env()
+    assert np.array_equal(replay_states(env, traj, lambda o: o), states)
+    other = Trajectory(traj.x, traj.u, traj.dt, meta={"seed": 4})
+    with pytest.raises(ValueError, match="leaves the recorded states at step 0"):
+        replay_states(env, other, lambda o: o)
+
+
+def test_reachers_target_is_the_unidentified_direction():
+    _, states = reacher_episode()
+    U = unidentified_directions("reacher", states)
+    # the target (qpos[2:4]) enters the observation as +target (obs 4, 5) and -target in
+    # fingertip - target (obs 8, 9); its velocity is not observed
+    expected = np.zeros((10, 2))
+    expected[[4, 8], 0] = [1, -1]
+    expected[[5, 9], 1] = [1, -1]
+    expected /= np.sqrt(2)
+    for Ut in U:
+        assert Ut.shape == (10, 2)
+        assert Ut @ Ut.T == pytest.approx(expected @ expected.T, abs=1e-6)
+
+
+def test_split_errors_against_the_truth_and_a_perturbation_along_the_target():
+    traj, states = reacher_episode()
+    A, B, P = true_jacobians("reacher", states, traj.u)
+    U = unidentified_directions("reacher", states)
+    exact = split_errors(A, B, P, U, A, B)
+    assert exact["all"] == pytest.approx(0, abs=1e-9)
+    assert exact["identified"] == pytest.approx(0, abs=1e-9)
+    assert exact["unidentified"] == pytest.approx(exact["truth_unidentified"])
+    assert exact["truth_unidentified"] == pytest.approx(np.sqrt(2), rel=1e-4)  # A v = v
+    # forgetting the target (A v = 0 along it) is wrong, but not in the identified directions
+    forget = A - A @ U @ np.swapaxes(U, 1, 2)
+    e = split_errors(A, B, P, U, forget, B)
+    assert e["identified"] == pytest.approx(0, abs=1e-9)
+    assert e["all"] > 0.1 and e["unidentified"] == pytest.approx(0, abs=1e-9)
+    # a wrong input matrix shows in the identified error
+    assert split_errors(A, B, P, U, A, 2 * B)["identified"] > 0
+
+
+def test_a_tiny_run_records_every_episode(tmp_path):
+    out = tmp_path / "labels.json"
+    result = run(Args(task="reacher", regularizations=("none", "exact"), env_steps=100,
+                      json=str(out)), smoke=True)
+    stored = json.loads(out.read_text())
+    assert stored["summary"] == result["summary"]
+    for reg in ("none", "exact"):
+        rows = stored["runs"][reg]
+        assert [r["env_steps"] for r in rows] == [50, 100]
+        assert "model_before" in rows[1] and "model_before" not in rows[0]
+        assert ("label" in rows[0]) == (reg == "exact")
+        for r in rows:
+            assert r["model"]["truth_unidentified"] == pytest.approx(np.sqrt(2), rel=1e-3)
+    # the first episode's fit at the same lambda is the same smooth fit in both runs
+    assert stored["runs"]["none"][0]["fit"] == stored["runs"]["exact"][0]["fit"]
+
+
+@pytest.mark.parametrize("bad, match", [
+    ({"task": "reacher-v5"}, "task must be one of"),
+    ({"regularizations": ("l2",)}, "regularizations must be some of"),
+    ({"regularizations": ()}, "regularizations must be some of"),
+    ({"env_steps": 1}, "env_steps must be an integer >= 2"),
+])
+def test_bad_arguments_are_refused(bad, match):
+    with pytest.raises(ValueError, match=match):
+        Args(**bad)
