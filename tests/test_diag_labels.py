@@ -75,8 +75,10 @@ def test_split_errors_against_the_truth_and_a_perturbation_along_the_target():
 
 def test_a_tiny_run_records_every_episode(tmp_path):
     out = tmp_path / "labels.json"
+    png = tmp_path / "labels.png"
     result = run(Args(task="reacher", regularizations=("none", "exact"), env_steps=100,
-                      json=str(out)), smoke=True)
+                      json=str(out), plot=str(png)), smoke=True)
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     stored = json.loads(out.read_text())
     assert stored["summary"] == result["summary"]
     for reg in ("none", "exact"):

@@ -58,6 +58,8 @@ class Args:
     """each run's budget (the suite's Reacher budget)"""
     json: str = "runs/diag_labels.json"
     """output JSON (rewritten after every episode)"""
+    plot: str = ""
+    """PNG of the identified-direction errors along the runs ('' for none)"""
 
     def __post_init__(self) -> None:
         if self.task not in TASKS:
@@ -174,6 +176,8 @@ def run(args: Args, *, smoke: bool = False) -> dict[str, Any]:
         agent.env.close()
     result["summary"] = summarize(result["runs"])
     write_json_atomic(args.json, result)
+    if args.plot:
+        plot(result, args.plot)
     for reg, s in result["summary"].items():
         print(f"{reg}: " + ", ".join(f"{k} {v['identified']:.3f}" for k, v in s.items()
                                     if isinstance(v, dict)) + f"; final {s['final_return']}")
@@ -194,3 +198,35 @@ def summarize(runs: dict[str, list[dict[str, Any]]]) -> dict[str, dict[str, Any]
         s["final_return"] = evals[-1] if evals else None
         out[reg] = s
     return out
+
+
+def plot(result: dict[str, Any], out: str) -> None:
+    """The identified-direction Jacobian error of each run's model (after each update), of the
+    labels and of the smooth fits, against env steps (log scale)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(7, 4))
+    colours = {"none": "C0", "sampled": "C1", "exact": "C2"}
+    for reg, rows in result["runs"].items():
+        steps = [r["env_steps"] for r in rows]
+        ax.plot(steps, [r["model"]["identified"] for r in rows], "-", color=colours[reg],
+                label=f"{reg}: model")
+        if reg != "none":
+            ax.plot(steps, [r["label"]["identified"] for r in rows], ":", color=colours[reg],
+                    label=f"{reg}: its LTV labels")
+        else:
+            ax.plot(steps, [r["fit"]["identified"] for r in rows], ":", color="grey",
+                    label="smooth LTV fit (none's episodes)")
+    ax.set_yscale("log")
+    ax.set_xlabel("env steps")
+    ax.set_ylabel("relative Jacobian error, identified directions")
+    ax.set_title(f"{result['args']['task']}, seed {result['args']['seed']}: Jacobians against "
+                 "the true MuJoCo model")
+    ax.legend(fontsize=8)
+    ax.grid(alpha=0.3, which="both")
+    fig.tight_layout()
+    fig.savefig(out, dpi=110)
+    plt.close(fig)
