@@ -21,6 +21,10 @@ projected out: one episode's data cannot identify a Jacobian along them);
 ``unidentified``, the median norm of the estimate's ``A`` along those directions (the truth's
 norm is ``truth_unidentified``).
 
+Each episode's row also holds the agent's log fields ``one_step_rms``, ``train_steps`` and
+``eval_return``; the agent's evaluation stops early once it cannot reach the oracle's solved
+threshold (the agent's default early exit), and then ``eval_return`` is ``None``.
+
     python scripts/diag_labels.py --task reacher --regularizations none exact --json runs/l.json
 """
 
