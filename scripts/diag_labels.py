@@ -13,4 +13,4 @@ from agents.experiments.diag_labels import Args, run  # noqa: E402
 from mbtsr.cli import main  # noqa: E402
 
 if __name__ == "__main__":
-    main(Args, run, outputs=("json",))
+    main(Args, run, outputs=("json", "plot"))

@@ -165,6 +165,9 @@ def test_run_writes_every_model_and_refuses_bad_folders(tmp_path, monkeypatch):
                  json=str(out)))
     with pytest.raises(ValueError, match="at least one checkpoint"):
         run(Args(task="reacher", json=str(out)))
+    with pytest.raises(ValueError, match="out of range for task 'reacher'"):
+        run(Args(task="reacher", checkpoints=(str(tmp_path / "run0"),), track=(10,),
+                 json=str(out)))
     with pytest.raises(ValueError, match="task 'pusher' has 23 and 7"):
         run(Args(task="pusher", checkpoints=(str(tmp_path / "run0"),), test_episodes=1,
                  json=str(out)))
@@ -177,6 +180,8 @@ def test_run_writes_every_model_and_refuses_bad_folders(tmp_path, monkeypatch):
     ({"test_episodes": -1}, "test_episodes must be an integer >= 1"),
     ({"inits": ()}, "at least one initialisation"),
     ({"move": 0.0}, "move must be a finite number > 0"),
+    ({"track": (17, -1)}, "track entries must be an integer >= 0"),
+    ({"track": (17, 17)}, "each dimension once"),
     ({"sizes": ("rule", "5m:2x8")}, "sizes: '5m:2x8'"),
 ])
 def test_bad_arguments_are_refused_before_any_work(bad, match):

@@ -90,6 +90,10 @@ class Args:
             check_int(name, getattr(self, name), 1)
         if not (self.move > 0 and np.isfinite(self.move)):
             raise ValueError(f"move must be a finite number > 0, got {self.move!r}")
+        for i in self.track:
+            check_int("track entries", i, 0)
+        if len(set(self.track)) != len(self.track):
+            raise ValueError(f"track: each dimension once, got {list(self.track)}")
         if not self.inits:
             raise ValueError("inits: give at least one initialisation seed")
         for size in self.sizes:
@@ -188,6 +192,9 @@ def run(args: Args) -> dict[str, Any]:
         raise ValueError("--checkpoints: give at least one checkpoint folder")
     torch.set_num_threads(1)
     cost_of, n, m = task_cost(args.task)
+    if args.track and max(args.track) >= n:
+        raise ValueError(f"track: dimensions {list(args.track)} out of range for task "
+                         f"{args.task!r}'s {n} observations")
     runs = {c: load_run(c) for c in args.checkpoints}
     for c, trajs in runs.items():
         if len(trajs) <= args.test_episodes:

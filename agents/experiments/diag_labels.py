@@ -15,9 +15,10 @@ its MuJoCo states, and compares with the true Jacobians there
 
 Each is reported as three numbers (:func:`split_errors`): ``all``, the relative error of
 :func:`~agents.experiments.exp_small_data.jacobian_rel_error`; ``identified``, the same error
-restricted to the directions the episode moved in (the tangent directions of state
-coordinates that stayed constant through the episode, such as Reacher's target, are
-projected out: one episode's data cannot identify a Jacobian along them);
+restricted to the directions the episode moved in (the observation-space directions of the
+state coordinates that changed; those of coordinates that stayed constant through the episode,
+such as Reacher's target, are left out: one episode's data cannot identify a Jacobian along
+them);
 ``unidentified``, the median norm of the estimate's ``A`` along those directions (the truth's
 norm is ``truth_unidentified``).
 
@@ -46,6 +47,8 @@ from mbtsr.trajectory import Trajectory
 from mbtsr.validation import check_int
 
 REGULARIZATIONS = ("none", "sampled", "exact")
+MUJOCO_TASKS = ("reacher", "inverted-pendulum", "inverted-double-pendulum", "pusher",
+                "half-cheetah")  # those of agents.tasks (true_jacobians makes them by name)
 
 
 @dataclass(frozen=True)
@@ -68,6 +71,10 @@ class Args:
     def __post_init__(self) -> None:
         if self.task not in TASKS:
             raise ValueError(f"task must be one of {sorted(TASKS)}, got {self.task!r}")
+        if self.task not in MUJOCO_TASKS or TASKS[self.task]["task"].state_fn is not None:
+            raise ValueError(f"task {self.task!r}: the diagnostic needs a MuJoCo task of "
+                             f"agents.tasks whose model state is the observation, one of "
+                             f"{[t for t in MUJOCO_TASKS if TASKS[t]['task'].state_fn is None]}")
         bad = [r for r in self.regularizations if r not in REGULARIZATIONS]
         if bad or not self.regularizations:
             raise ValueError(f"regularizations must be some of {REGULARIZATIONS}, got "
@@ -86,33 +93,58 @@ def replay_states(env: Any, traj: Trajectory, state_of: Any) -> np.ndarray:
     """
     obs, _ = env.reset(seed=int(traj.meta["seed"]))
     data, states = env.unwrapped.data, []
-    for t, u in enumerate(traj.u):
+    for t in range(traj.T + 1):
         if not np.allclose(state_of(obs[None])[0], traj.x[t], rtol=1e-6, atol=1e-8):
             raise ValueError(f"the replay of episode seed {traj.meta['seed']} leaves the "
                              f"recorded states at step {t}")
-        states.append(np.concatenate([data.qpos, data.qvel]))
-        obs, *_ = env.step(u)
+        if t < traj.T:
+            states.append(np.concatenate([data.qpos, data.qvel]))
+            obs, *_ = env.step(traj.u[t])
     return np.array(states)
 
 
-def split_errors(A: np.ndarray, B: np.ndarray, P: np.ndarray, U: np.ndarray,
+def split_errors(A: np.ndarray, B: np.ndarray, P: np.ndarray, W: np.ndarray, U: np.ndarray,
                  A_hat: np.ndarray, B_hat: np.ndarray) -> dict[str, float]:
     """The module docstring's ``all``, ``identified`` and ``unidentified`` of an estimate
-    ``(A_hat [T, d, d], B_hat [T, d, m])`` against the truth ``(A, B)`` with tangent projector
-    ``P [T, d, d]`` and ``U [T, d, k]`` orthonormal unidentified directions (``k = 0``: none)."""
-    Q = np.eye(A.shape[1]) - U @ np.swapaxes(U, 1, 2)
+    ``(A_hat [T, d, d], B_hat [T, d, m])`` against the truth ``(A [T, d, d], B [T, d, m])``
+    with tangent projector ``P [T, d, d]``, ``W [T, d, k1]`` an orthonormal basis of the
+    identified directions and ``U [T, d, k2]`` of the unidentified ones
+    (:func:`directions`)::
+
+        identified_t = ||[(A_hat_t P_t - A_t) W_t, B_hat_t - B_t]||_F / ||[A_t W_t, B_t]||_F
+
+    (its median over ``t``); ``unidentified``, the median of ``||A_hat_t P_t U_t||_F``.
+
+    :raises ValueError: on arrays whose shapes disagree.
+    """
+    T, d = A.shape[0], A.shape[1]
+    m = B.shape[2]
+    for name, arr, shape in (("A", A, (T, d, d)), ("B", B, (T, d, m)), ("P", P, (T, d, d)),
+                             ("A_hat", A_hat, (T, d, d)), ("B_hat", B_hat, (T, d, m))):
+        if arr.shape != shape:
+            raise ValueError(f"{name} has shape {arr.shape}, expected {shape}")
+    for name, arr in (("W", W), ("U", U)):
+        if arr.ndim != 3 or arr.shape[:2] != (T, d):
+            raise ValueError(f"{name} has shape {arr.shape}, expected ({T}, {d}, k)")
     D = A_hat @ P - A
-    num = np.sqrt(np.sum((D @ Q) ** 2, (1, 2)) + np.sum((B_hat - B) ** 2, (1, 2)))
-    den = np.sqrt(np.sum((A @ Q) ** 2, (1, 2)) + np.sum(B**2, (1, 2)))
+    num = np.sqrt(np.sum((D @ W) ** 2, (1, 2)) + np.sum((B_hat - B) ** 2, (1, 2)))
+    den = np.sqrt(np.sum((A @ W) ** 2, (1, 2)) + np.sum(B**2, (1, 2)))
     return {"all": jacobian_rel_error(A, B, P, A_hat, B_hat)["jac_rel"],
             "identified": float(np.median(num / den)),
             "unidentified": float(np.median(np.linalg.norm(A_hat @ P @ U, axis=(1, 2)))),
             "truth_unidentified": float(np.median(np.linalg.norm(A @ U, axis=(1, 2))))}
 
 
-def unidentified_directions(task: str, states: np.ndarray, tol: float = 1e-9) -> np.ndarray:
-    """``[T, d, k]`` orthonormal observation-space directions of the state coordinates that stay
-    constant through ``states [T, nq + nv]`` (their columns of ``C = d obs / dx``)."""
+def directions(task: str, states: np.ndarray, tol: float = 1e-9
+               ) -> tuple[np.ndarray, np.ndarray]:
+    """``(W [T, d, k1], U [T, d, k2])``: orthonormal bases of the observation-space directions
+    spanned by the state coordinates that move within ``states [T, nq + nv]`` (identified) and
+    by those that stay constant (unidentified), i.e. of those columns of ``C = d obs / dx``.
+    The two spaces need not be orthogonal (Reacher's fingertip - target mixes the arm's and
+    the target's coordinates).
+
+    :raises ValueError: if either space's dimension changes along the episode.
+    """
     from envs.mujoco_model import MujocoDynamics, ObservedDynamics
 
     env = TASKS[task]["task"].make_env()
@@ -120,12 +152,19 @@ def unidentified_directions(task: str, states: np.ndarray, tol: float = 1e-9) ->
     C = np.asarray(ObservedDynamics(MujocoDynamics(env), env).observation_jacobian(states))
     env.close()
     const = np.ptp(states, axis=0) <= tol * (1.0 + np.abs(states).max(axis=0))
-    out = []
-    for Ct in C[:, :, const]:
-        u, s, _ = np.linalg.svd(Ct, full_matrices=False)
-        out.append(u[:, s > 1e-8 * max(s.max(initial=0.0), 1e-300)])
-    k = min(o.shape[1] for o in out)
-    return np.stack([o[:, :k] for o in out])
+
+    def basis(cols: np.ndarray) -> np.ndarray:
+        out = []
+        for Ct in cols:
+            u, s, _ = np.linalg.svd(Ct, full_matrices=False)
+            out.append(u[:, s > 1e-8 * max(s.max(initial=0.0), 1e-300)])
+        ranks = {o.shape[1] for o in out}
+        if len(ranks) > 1:
+            raise ValueError(f"the observation's directions change dimension along the episode "
+                             f"({sorted(ranks)})")
+        return np.stack(out)
+
+    return basis(C[:, :, ~const]), basis(C[:, :, const])
 
 
 def run(args: Args, *, smoke: bool = False) -> dict[str, Any]:
@@ -148,11 +187,12 @@ def run(args: Args, *, smoke: bool = False) -> dict[str, Any]:
             tic = time.process_time()
             traj = agent.trajectories[-1]
             if traj.T < 2:
+                previous["model"] = copy.deepcopy(agent.model)
                 return
             x, u = traj.inputs
             states = replay_states(replay, traj, agent.state_map.state)
             A, B, P = true_jacobians(args.task, states, u)
-            U = unidentified_directions(args.task, states)
+            W, U = directions(args.task, states)
             lam = agent.ltv_lambdas[-1] if reg != "none" else agent._ltv_lambda(traj)
             fit = ltv_fit(traj, lam)
             row: dict[str, Any] = {
@@ -160,15 +200,15 @@ def run(args: Args, *, smoke: bool = False) -> dict[str, Any]:
                 **{k: info["row"].get(k) for k in ("eval_return", "one_step_rms",
                                                     "train_steps")},
                 "lambda": lam,
-                "fit": split_errors(A, B, P, U, np.asarray(fit.A)[:traj.T],
+                "fit": split_errors(A, B, P, W, U, np.asarray(fit.A)[:traj.T],
                                     np.asarray(fit.B)[:traj.T]),
-                "model": split_errors(A, B, P, U, *agent.model.jacobians(x, u))}
+                "model": split_errors(A, B, P, W, U, *agent.model.jacobians(x, u))}
             if reg != "none":
                 lm = agent.ltv_models[-1]
-                row["label"] = split_errors(A, B, P, U, np.asarray(lm.A)[:traj.T],
+                row["label"] = split_errors(A, B, P, W, U, np.asarray(lm.A)[:traj.T],
                                             np.asarray(lm.B)[:traj.T])
             if previous["model"] is not None:
-                row["model_before"] = split_errors(A, B, P, U,
+                row["model_before"] = split_errors(A, B, P, W, U,
                                                    *previous["model"].jacobians(x, u))
             previous["model"] = copy.deepcopy(agent.model)
             row["cpu_s"] = time.process_time() - tic
