@@ -117,6 +117,11 @@ class CollectionConfig(_Checked):
         from the plan at the same amplitude, as the excitation does). The filter starts from
         rest, so the first ``W - 1`` steps of a rollout get less noise (std ``sqrt((t+1)/W)``
         of it at step ``t``).
+    :param explore_weight: directed exploration: training rollouts plan with the CEM samples
+        (``planner.kind`` ``"cem"``, or ``"cem-ilqr"``'s proposal) ranked by cost minus this
+        weight x the ensemble's disagreement along them, in units of the samples' spreads
+        (:class:`mbtsr.cem.CEMOptions` ``explore_weight``): the agent steers towards where its
+        members disagree, the data it lacks. Evaluation plans without it. 0: off.
     """
 
     _path: ClassVar[str] = "collection"
@@ -127,6 +132,7 @@ class CollectionConfig(_Checked):
     exploration_std: float = 0.1
     episode_steps: int | None = None
     exploration_window: int = 1
+    explore_weight: float = 0.0
 
     def __post_init__(self) -> None:
         self._int_at_least("n_excitation_episodes", 1)
@@ -135,6 +141,7 @@ class CollectionConfig(_Checked):
         self._int_at_least("excitation_window", 1)
         self._float_range("exploration_std", 0.0)
         self._int_at_least("exploration_window", 1)
+        self._float_range("explore_weight", 0.0)
         if self.episode_steps is not None:
             self._int_at_least("episode_steps", 2)
 
@@ -216,18 +223,28 @@ class PlannerConfig(_Checked):
             if opts.seed != 0:
                 raise ValueError(f"planner.{name}.seed must be 0: the agent seeds every solve "
                                  f"from seed, got {opts.seed!r}")
+            if opts.explore_weight != 0:
+                raise ValueError(f"planner.{name}.explore_weight must be 0: set "
+                                 "collection.explore_weight (training rollouts only), got "
+                                 f"{opts.explore_weight!r}")
 
-    def optimizer(self, seed: int = 0) -> tuple[Callable[..., Any], Any, int]:
+    def optimizer(self, seed: int = 0, explore_weight: float = 0.0
+                  ) -> tuple[Callable[..., Any], Any, int]:
         """``(optimizer, options, iterations per MPC step)`` of :class:`mbtsr.mpc.MPC` for
-        this planner, its sampling seeded from ``seed`` (the agent's and the oracle's)."""
+        this planner, its sampling seeded from ``seed`` (the agent's and the oracle's), its
+        CEM ranking with the disagreement bonus ``explore_weight`` (not for iLQR)."""
         if self.kind == "ilqr":
+            if explore_weight:
+                raise ValueError("explore_weight needs a planner with CEM ('cem' or "
+                                 "'cem-ilqr'), got planner.kind='ilqr'")
             return ilqr, None, self.ilqr_iterations
         if self.kind == "cem":
-            options = dataclasses.replace(self.cem, seed=seed)
+            options = dataclasses.replace(self.cem, seed=seed, explore_weight=explore_weight)
             return cem, options, options.iterations
         return cem_ilqr, CEMILQROptions(
             max_iter=self.ilqr_iterations,
-            cem=dataclasses.replace(self.proposal, seed=seed)), self.ilqr_iterations
+            cem=dataclasses.replace(self.proposal, seed=seed, explore_weight=explore_weight)
+        ), self.ilqr_iterations
 
 
 @dataclass(frozen=True)
@@ -739,6 +756,10 @@ _DEPENDENT: tuple[tuple[tuple[str, ...], Callable[[Mapping[str, Any]], bool], st
     (("collection.excitation_window",), lambda v: v["collection.excitation"] == "filtered_gaussian",
      "it is the window of collection.excitation='filtered_gaussian' and the excitation is "
      "'multisine': remove it"),
+    (("collection.explore_weight",),
+     lambda v: v["planner.kind"] != "ilqr" and v["model.ensemble_size"] > 1,
+     "it ranks CEM's samples by the members' disagreement, so it needs a planner with CEM "
+     "(planner.kind 'cem' or 'cem-ilqr') and model.ensemble_size > 1: remove it, or set those"),
     (("collection.exploration_window",), lambda v: v["collection.exploration_std"] > 0,
      "it shapes the exploration noise, which is off (collection.exploration_std is 0): remove "
      "it, or turn that on"),

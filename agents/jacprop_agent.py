@@ -219,22 +219,29 @@ class JacPropAgent(SB3Predictor):
         cfg = self.config
         self.planning_model = self.model.freeze()
         model = self.planning_model
-        optimizer, options, iterations = cfg.planner.optimizer(cfg.seed)
         if cfg.planner.propagation == "ts":
             model = self.planning_model.trajectory_sampling(seed=cfg.seed)
-        self.policy = mpc_policy(
-            model,
-            self.task_cost,
-            horizon=cfg.planner.horizon,
-            iterations=iterations,
-            first_plan_iterations=cfg.planner.first_plan_iterations,
-            cost=self.planner_cost,
-            optimizer=optimizer,
-            optimizer_options=options,
-            termination_fn=self.termination_fn,
-        )
-        self.actor = ReplanEvery(self.policy, cfg.planner.replan_every,
-                                 cfg.planner.replan_feedback)
+
+        def actor(explore_weight: float) -> tuple[Any, ReplanEvery]:
+            optimizer, options, iterations = cfg.planner.optimizer(cfg.seed, explore_weight)
+            policy = mpc_policy(
+                model,
+                self.task_cost,
+                horizon=cfg.planner.horizon,
+                iterations=iterations,
+                first_plan_iterations=cfg.planner.first_plan_iterations,
+                cost=self.planner_cost,
+                optimizer=optimizer,
+                optimizer_options=options,
+                termination_fn=self.termination_fn,
+            )
+            return policy, ReplanEvery(policy, cfg.planner.replan_every,
+                                       cfg.planner.replan_feedback)
+
+        self.policy, self.actor = actor(0.0)
+        # training rollouts: directed exploration (collection.explore_weight), else the same
+        self.explorer = (actor(cfg.collection.explore_weight)[1]
+                         if cfg.collection.explore_weight > 0 else self.actor)
 
     def _check_state_fn(self, env: gym.Env | None, spec: EnvSpec) -> np.ndarray:
         """Call the state map on one observation and on a batch of three (it is called on
@@ -472,7 +479,7 @@ class JacPropAgent(SB3Predictor):
             plan: dict[str, Any] = {"U": None}
 
             def act(obs: np.ndarray, t: int) -> np.ndarray:
-                a, plan["U"] = self.actor.predict(obs, plan["U"], episode_start=t == 0)
+                a, plan["U"] = self.explorer.predict(obs, plan["U"], episode_start=t == 0)
                 return a + noise[t]
 
         rec = run_episode(self.env, act, seed=reset_seed, max_steps=T, render=render)

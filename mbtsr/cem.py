@@ -29,6 +29,13 @@ and returns ``X [T+1, n]``, ``U [T, m]`` (finite, inside the bounds), ``cost``, 
 4. ``mu <- (1 - a) mu_elite + a mu``, ``sigma <- (1 - a) sigma_elite + a sigma`` over the
    ``elites`` lowest costs (``a = smoothing``).
 
+Directed exploration (``explore_weight = w > 0``, for training rollouts): samples are ranked by
+``J_s - c D_s`` instead of ``J_s``, where ``D_s = sum_t d(x_t, u_t)`` is the model's member
+disagreement along the rollout (:meth:`mbtsr.ensemble.FrozenEnsemble.disagreement`; averaged
+over a sequence's particles) and ``c = w std(J) / std(D)`` over the first iteration's finite
+samples, fixed for the solve: one spread of disagreement is worth ``w`` spreads of cost, on
+any task's cost scale. The result's ``cost`` stays the task cost ``J`` of the chosen sequence.
+
 It stops at ``iterations`` or when ``max sigma < tol_std`` (status ``"converged"``).
 """
 
@@ -62,6 +69,8 @@ class CEMOptions:
     :param termination_cost: cost added once at a predicted termination (see ``terminated``).
     :param particles: rollouts per action sequence, their costs averaged (1: one rollout;
         PETS: 20 with trajectory sampling; see step 2 of the module docstring).
+    :param explore_weight: weight ``w`` of the disagreement bonus (0: off; see the module
+        docstring); needs a model with ``disagreement(X, U)``.
     """
 
     samples: int = 200
@@ -74,6 +83,7 @@ class CEMOptions:
     max_state_norm: float = 1e8
     termination_cost: float = 0.0
     particles: int = 1
+    explore_weight: float = 0.0
 
     def __post_init__(self) -> None:
         for name in ("samples", "elites", "iterations", "particles"):
@@ -85,7 +95,8 @@ class CEMOptions:
             raise ValueError(
                 f"options.elites must be <= options.samples, got {self.elites} > {self.samples}")
         for name, lo, hi in (("init_std", 0.0, np.inf), ("smoothing", 0.0, 1.0),
-                             ("tol_std", 0.0, np.inf), ("max_state_norm", 0.0, np.inf)):
+                             ("tol_std", 0.0, np.inf), ("max_state_norm", 0.0, np.inf),
+                             ("explore_weight", 0.0, np.inf)):
             v = getattr(self, name)
             if not isinstance(v, int | float) or not np.isfinite(v) or v < lo or v > hi:
                 raise ValueError(f"options.{name} must be a finite number in [{lo}, {hi}], "
@@ -105,15 +116,18 @@ class CEMResult:
     :param X: ``[T+1, n]`` model rollout of ``U`` (one row: with trajectory sampling, the
         first particle's).
     :param U: ``[T, m]`` the best sequence found (finite, inside the bounds).
-    :param cost: its cost (``inf`` if every rollout diverged).
+    :param cost: its (task) cost (``inf`` if every rollout diverged).
     :param status: ``"converged"`` (std below ``tol_std``), ``"max_iter"`` or ``"failed"``
         (no finite rollout).
     :param iterations: iterations run.
     :param trace: per iteration ``{"iteration", "best_cost", "elite_mean_cost", "max_std",
-        "time"}``.
+        "time"}``; with ``explore_weight`` the costs are the ranking scores ``J - c D`` and
+        ``"explore_scale"`` is ``c`` (``None`` until set).
     :param message: why it stopped.
     :param std: ``[T, m]`` the final sampling std.
     :param timings: seconds in ``rollout``, ``cost`` and ``total``.
+    :param disagreement: the model's disagreement ``D`` along ``X`` (``explore_weight > 0``;
+        else ``None``).
     """
 
     X: np.ndarray
@@ -125,6 +139,7 @@ class CEMResult:
     message: str = ""
     std: np.ndarray | None = field(repr=False, default=None)
     timings: dict = field(repr=False, default_factory=dict)
+    disagreement: float | None = None
 
 
 def _bounds(u_min: Any, u_max: Any, m: int) -> tuple[np.ndarray, np.ndarray]:
@@ -210,6 +225,11 @@ def cem(
     opts = options_from(CEMOptions, options)
     if terminated is not None:
         check_callable("terminated", terminated, "X -> bool")
+    explore = opts.explore_weight > 0
+    if explore and not callable(getattr(model, "disagreement", None)):
+        raise ValueError(
+            f"options.explore_weight > 0 needs a model with disagreement(X, U) (an ensemble: "
+            f"mbtsr.ensemble.FrozenEnsemble), got {type(model).__name__}")
     x0 = as_array("x0", x0, ndim=1)
     n = x0.shape[0]
     for attr in ("state_dim",):
@@ -233,7 +253,8 @@ def cem(
 
     mu = np.clip(U0, lo, hi)
     std = np.broadcast_to(opts.init_std * half, (T, m)).copy()
-    best_U, best_J = mu.copy(), np.inf
+    best_U, best_J, best_cost = mu.copy(), np.inf, np.inf
+    bonus = None  # c of the module docstring, set on the first iteration with a spread
     trace: list[dict] = []
     status, message = "max_iter", f"reached {opts.iterations} iterations"
     it = 0
@@ -257,9 +278,13 @@ def cem(
             J = J.reshape(opts.samples, opts.particles).mean(1)  # inf if any particle diverged
         timings["rollout"] += tc - tr
         timings["cost"] += time.perf_counter() - tc
+        task_J = J
+        if explore:
+            J, bonus = _explore_scores(model, X, rows, J, alive, opts, bonus)
         order = np.argsort(J, kind="stable")
         if J[order[0]] < best_J:
             best_J, best_U = float(J[order[0]]), cand[order[0]].copy()
+            best_cost = float(task_J[order[0]])
         elite = order[: opts.elites]
         elite = elite[np.isfinite(J[elite])]
         if elite.size > 0:
@@ -272,6 +297,7 @@ def cem(
             "elite_mean_cost": float(np.mean(J[elite])) if elite.size else np.inf,
             "max_std": float(np.max(std / half)),
             "time": time.perf_counter() - tic,
+            **({"explore_scale": bonus} if explore else {}),
         })
         if np.max(std / half) < opts.tol_std:
             status, message = "converged", f"sampling std below tol_std={opts.tol_std}"
@@ -279,8 +305,35 @@ def cem(
     if not np.isfinite(best_J):
         status, message = "failed", "every sampled rollout diverged"
     X_best, _ = rollout_batch(model, x0, best_U[None], int(t0), opts.max_state_norm)
+    D = None
+    if explore:
+        with np.errstate(all="ignore"):
+            D = float(np.sum(model.disagreement(X_best[0, :-1], best_U)))
     timings["total"] = time.perf_counter() - t_start
     return CEMResult(
-        X=X_best[0], U=best_U, cost=best_J, status=status, iterations=it, trace=trace,
-        message=message, std=std, timings=timings,
+        X=X_best[0], U=best_U, cost=best_cost, status=status, iterations=it, trace=trace,
+        message=message, std=std, timings=timings, disagreement=D,
     )
+
+
+def _explore_scores(
+    model: Any, X: np.ndarray, rows: np.ndarray, J: np.ndarray, alive: np.ndarray,
+    opts: CEMOptions, bonus: float | None,
+) -> tuple[np.ndarray, float | None]:
+    """``(J - c D [S], c)``: the ranking scores of directed exploration (module docstring),
+    ``c`` fixed on the first call with a spread in both ``J`` and ``D`` (``None`` until then:
+    the scores are ``J``)."""
+    D = np.zeros(rows.shape[0])
+    if alive.any():
+        with np.errstate(all="ignore"):
+            D[alive] = np.sum(model.disagreement(X[alive, :-1], rows[alive]), axis=-1)
+    D[~np.isfinite(D)] = 0.0
+    if opts.particles > 1:
+        D = D.reshape(opts.samples, opts.particles).mean(1)
+    if bonus is None:
+        ok = np.isfinite(J)
+        if ok.sum() >= 2:
+            sJ, sD = float(np.std(J[ok])), float(np.std(D[ok]))
+            if sJ > 0 and sD > 0:
+                bonus = opts.explore_weight * sJ / sD
+    return (J if bonus is None else J - bonus * D), bonus

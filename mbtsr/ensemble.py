@@ -1493,6 +1493,28 @@ class FrozenEnsemble:
         std = None if lv is None else (self._out_std * np.exp(0.5 * lv)).reshape(shape)
         return y.reshape(shape), std
 
+    def disagreement(self, x: np.ndarray, u: np.ndarray) -> np.ndarray:
+        """How much the members disagree on the next state: the variance over members of
+        their predictions (the means of probabilistic members: epistemic only), per state
+        coordinate in units of the model's output scale (the std of its training targets),
+        averaged over the coordinates. ``x: [..., n]``, ``u: [..., m]`` -> ``[...]`` (0 for a
+        single member). It is the exploration bonus of :class:`mbtsr.cem.CEMOptions`
+        ``explore_weight``: large where the data has not pinned the model down."""
+        x, u = check_step_inputs(x, u, self.state_dim, self.action_dim)
+        with np.errstate(over="ignore"):
+            return self._disagreement(x, u)
+
+    def _disagreement(self, x: np.ndarray, u: np.ndarray) -> np.ndarray:
+        """:meth:`disagreement` without input checks."""
+        n, m, K = self.state_dim, self.action_dim, self.n_members
+        lead = x.shape[:-1]
+        xu = np.concatenate([x.reshape(-1, n), u.reshape(-1, m)], 1)
+        if self._plan is None:
+            y = self._members(xu, 0)[0]
+        else:  # every member on every row: one batched product per layer
+            y = self._member_rows_plan(np.broadcast_to(xu, (K, *xu.shape)))[0]
+        return (y.var(0) / self._out_std**2).mean(-1).reshape(lead)
+
     def predict(self, x: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Ensemble mean and spread (population std over members, ``ddof=0``) of the next state.
 
@@ -1593,6 +1615,10 @@ class TrajectorySampling:
             raise ValueError(f"t must be an integer time index >= 0 or None, got {t!r}")
         with np.errstate(over="ignore"):
             return self._step(x, u, t)
+
+    def disagreement(self, x: np.ndarray, u: np.ndarray) -> np.ndarray:
+        """The ensemble's :meth:`FrozenEnsemble.disagreement` (all members on every row)."""
+        return self.frozen.disagreement(x, u)
 
     def jacobians(self, x: np.ndarray, u: np.ndarray, t: int = 0):
         """Not defined for trajectory sampling: raises ``TypeError``."""

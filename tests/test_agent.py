@@ -693,6 +693,36 @@ def test_cem_with_trajectory_sampling_scores_plans_under_every_member(probabilis
         cfg.replace({"planner.kind": "ilqr"})
 
 
+def test_explore_weight_steers_training_rollouts_and_not_evaluation():
+    """collection.explore_weight: training rollouts plan with the CEM proposal ranked by cost
+    minus the members' disagreement (its own MPC), evaluation (predict) plans without it. Two
+    agents with the same seed share the excitation episode, hence the model: their evaluation
+    plans are identical, their training rollouts' plans are not; with weight 0 the training
+    actor is the evaluation actor."""
+    env = gym.make("Pendulum-v1")
+    base = {"collection.exploration_std": 0.0, "planner.proposal.samples": 32,
+            "planner.proposal.elites": 4}
+    plain = JacPropAgent(env, tiny_config(base), cost_fn=pendulum_cost)
+    agent = JacPropAgent(env, tiny_config({**base, "collection.explore_weight": 2.0}),
+                         cost_fn=pendulum_cost)
+    assert plain.explorer is plain.actor and agent.explorer is not agent.actor
+    assert agent.explorer.policy.mpc.options.optimizer_options.cem.explore_weight == 2.0
+    assert agent.actor.policy.mpc.options.optimizer_options.cem.explore_weight == 0.0
+    for a in (plain, agent):
+        a.learn(1, progress_bar=False)  # the excitation episode and the update
+    obs = env.reset(seed=3)[0]
+    np.testing.assert_array_equal(agent.predict(obs)[0], plain.predict(obs)[0])
+    explored = agent.explorer.predict(obs, None, episode_start=True)[1]
+    assert not np.allclose(explored, plain.predict(obs)[1])
+    for a in (plain, agent):
+        a.learn(1, progress_bar=False)  # one training rollout with the planner
+    assert agent.logger_rows[-1]["phase"] == "mpc"
+    np.testing.assert_array_equal(agent.trajectories[0].u, plain.trajectories[0].u)
+    assert not np.allclose(agent.trajectories[1].u, plain.trajectories[1].u)
+    with pytest.raises(ValueError, match="collection.explore_weight"):
+        tiny_config({**base, "collection.explore_weight": 1.0, "model.ensemble_size": 1})
+
+
 def test_refit_normalization_keeps_the_function_and_follows_the_data():
     """The ensemble's statistics move to the new data while predictions and Jacobians stay
     those of the old parameterization (float32 rounding)."""

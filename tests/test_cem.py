@@ -183,3 +183,69 @@ def test_particles_average_the_cost_over_the_rows_of_a_sequence():
     assert mean_cost(one.U) > 1.01 * optimum
     with pytest.raises(ValueError, match="options.particles must be an integer >= 1"):
         CEMOptions(particles=0)
+
+
+class ControlDisagreement(LinearDynamics):
+    """The linear test system with a 'disagreement' ``d(x, u) = 1 + u`` (first control), so
+    that ``D(U) = T + sum_t u_t``: the scored objective ``J(U) - c D(U)`` is quadratic with a
+    linear term, its minimizer closed form."""
+
+    def disagreement(self, x, u):
+        return 1.0 + np.asarray(u)[..., 0]
+
+
+def lq_matrices(T: int) -> tuple[np.ndarray, np.ndarray]:
+    """``(H, g)`` with ``J(U) = U^T H U + 2 g^T U + const`` for the module's LQ problem."""
+    n = A.shape[0]
+    Phi = [np.linalg.matrix_power(A, t) for t in range(T + 1)]
+    Gam = np.zeros((T + 1, n, T))
+    for t in range(1, T + 1):
+        for s in range(t):
+            Gam[t, :, s] = (Phi[t - 1 - s] @ B)[:, 0]
+    H, g = R[0, 0] * np.eye(T), np.zeros(T)
+    for t in range(T + 1):
+        W = Qf if t == T else Q
+        H += Gam[t].T @ W @ Gam[t]
+        g += Gam[t].T @ W @ Phi[t] @ X0
+    return H, g
+
+
+def test_explore_weight_minimizes_cost_minus_scaled_disagreement():
+    """With ``explore_weight`` CEM minimizes ``J(U) - c D(U)`` (``c`` from its trace): it lands
+    on that closed-form minimizer, ``cost`` is the task cost ``J`` of the returned plan, its
+    ``disagreement`` is ``D``; a larger weight buys more disagreement at more cost; weight 0
+    is the plain solver exactly; a model without ``disagreement`` is refused."""
+    T = 10
+    cost, _, U0 = problem(T)
+    model = ControlDisagreement(A, B)
+    opts = dict(samples=400, elites=40, iterations=60, init_std=0.2)
+    box = dict(u_min=-200.0, u_max=200.0)  # the scored minimizer is inside
+    plain = cem(cost, model, X0, U0, **box, options=CEMOptions(**opts))
+    same = cem(cost, model, X0, U0, **box,
+               options=CEMOptions(explore_weight=0.0, **opts))
+    np.testing.assert_array_equal(same.U, plain.U)
+    assert plain.disagreement is None and "explore_scale" not in plain.trace[0]
+    H, g = lq_matrices(T)
+    results = []
+    for w in (0.1, 0.4):
+        res = cem(cost, model, X0, U0, **box, options=CEMOptions(explore_weight=w, **opts))
+        c = res.trace[0]["explore_scale"]
+        assert c > 0 and all(r["explore_scale"] == c for r in res.trace)
+        best = np.linalg.solve(H, 0.5 * c * np.ones(T) - g)
+        assert np.all(np.abs(best) < 200.0)
+        def score(U, c=c):  # J(U) - c D(U) up to a constant
+            u = U[:, 0]
+            return u @ H @ u + 2 * g @ u - c * (T + u.sum())
+
+        gap = score(res.U) - score(best[:, None])
+        assert 0 <= gap <= 0.01 * (score(plain.U) - score(best[:, None]))  # 99 % of the way
+        assert res.cost == pytest.approx(cost.total(res.X, res.U), rel=1e-12)
+        assert res.disagreement == pytest.approx(T + res.U.sum(), rel=1e-12)
+        results.append(res)
+    assert plain.cost < results[0].cost < results[1].cost
+    assert T + plain.U.sum() < results[0].disagreement < results[1].disagreement
+    with pytest.raises(ValueError, match="needs a model with disagreement"):
+        cem(cost, LinearDynamics(A, B), X0, U0, u_min=-5.0, u_max=5.0,
+            options=CEMOptions(explore_weight=1.0))
+    with pytest.raises(ValueError, match="options.explore_weight"):
+        CEMOptions(explore_weight=-1.0)

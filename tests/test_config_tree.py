@@ -313,6 +313,9 @@ def test_sections_reject_the_wrong_type_and_training_seed():
         AgentConfig().replace({"training.seed": 1})
     with pytest.raises(ValueError, match="regularization.ltv_affine"):
         AgentConfig().replace({"regularization.ltv_affine": True})
+    with pytest.raises(ValueError, match="planner.proposal.explore_weight must be 0: set "
+                                         "collection.explore_weight"):
+        AgentConfig().replace({"planner.proposal.explore_weight": 1.0})
 
 
 # ---------------------------------------------------------------------------- partial dicts
@@ -326,6 +329,7 @@ LEAVES = {
     "collection.exploration_std": st.floats(0.0, 2.0),
     "collection.episode_steps": st.none() | st.integers(2, 500),
     "collection.exploration_window": st.integers(1, 20),
+    "collection.explore_weight": st.floats(0.0, 3.0),
     "model.formulation": st.sampled_from(["g", "f"]),
     "model.ensemble_size": st.integers(1, 8),
     "model.hidden_width": st.none() | st.integers(1, 64),
@@ -419,6 +423,8 @@ ACTS_ONLY_WHEN = {
                                           and v["planner.kind"] != "cem"),
     "collection.excitation_window": lambda v: v["collection.excitation"] == "filtered_gaussian",
     "collection.exploration_window": lambda v: v["collection.exploration_std"] > 0,
+    "collection.explore_weight": lambda v: (v["planner.kind"] != "ilqr"
+                                            and v["model.ensemble_size"] > 1),
     "video_every": lambda v: v["video"],
     "evaluation.solved_ratio": lambda v: v["evaluation.solved_return"] is None,
     "evaluation.early_exit": lambda v: v["evaluation.solved_return"] is None,
@@ -492,6 +498,7 @@ def test_a_partial_dict_loads_as_exactly_its_changes_and_round_trips(changes):
     import yaml
 
     fixed = {"training.seed", "planner.cem.seed", "planner.proposal.seed",
+             "planner.cem.explore_weight", "planner.proposal.explore_weight",
              "regularization.ltv_affine"}
     assert set(LEAVES) | fixed == set(DEFAULTS)  # the strategies cover the whole tree
     cfg = AgentConfig.from_dict(nested(changes))
@@ -632,6 +639,8 @@ def test_a_section_built_with_a_value_of_the_wrong_type_is_refused_by_the_tree()
     ({"collection": {"exploration_std": 0.0, "exploration_window": 8}},
      "collection.exploration_window"),
     ({"video_every": 2}, "video_every"),
+    ({"planner.kind": "ilqr", "collection.explore_weight": 1.0}, "collection.explore_weight"),
+    ({"model.ensemble_size": 1, "collection.explore_weight": 1.0}, "collection.explore_weight"),
     ({"planner.replan_feedback": True}, "planner.replan_feedback"),  # replan_every is 1
     ({"planner": {"kind": "cem", "replan_every": 4, "replan_feedback": True}},
      "planner.replan_feedback"),

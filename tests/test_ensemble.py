@@ -823,6 +823,32 @@ def test_trajectory_sampling_sends_row_r_to_member_r_mod_k(members, B):
         ts.jacobians(x, u)
 
 
+@pytest.mark.parametrize("members", [DEEP_MEMBERS, MIXED_MEMBERS], ids=["deep", "mixed"])
+@pytest.mark.parametrize("probabilistic", [False, True])
+def test_disagreement_is_the_member_variance_in_output_units(members, probabilistic):
+    """``disagreement`` = the variance over members of their predictions (the means, for
+    probabilistic members), divided by ``out_std^2`` and averaged over the state: computed here
+    from ``member_predictions`` and the torch model's statistics, on the folded fast path
+    (deep) and the generic one (mixed); the batch shape is kept; the trajectory-sampling view
+    gives the same; one member disagrees with nobody."""
+    model = make_model(members, "g", perturb=0.5, probabilistic=probabilistic)
+    frozen = model.freeze()
+    rng = np.random.default_rng(5)
+    x, u = rng.normal(size=(3, 4, N_STATE)) * 2, rng.normal(size=(3, 4, N_INPUT))
+    preds = frozen.member_predictions(x, u)  # [K, 3, 4, n]
+    scale = model.out_std.double().numpy()
+    want = (preds.var(0) / scale**2).mean(-1)
+    got = frozen.disagreement(x, u)
+    assert got.shape == (3, 4)
+    np.testing.assert_allclose(got, want, rtol=1e-10, atol=1e-14)
+    assert np.all(got > 0)
+    np.testing.assert_array_equal(frozen.trajectory_sampling(seed=1).disagreement(x, u), got)
+    one = make_model([MemberSpec("tanh", 5)], "g").freeze()
+    np.testing.assert_array_equal(one.disagreement(x, u), 0.0)
+    with pytest.raises(ValueError, match="x"):
+        frozen.disagreement(x[..., :2], u)
+
+
 def test_trajectory_sampling_of_probabilistic_members_samples_seeded_noise():
     frozen = make_probabilistic().freeze()
     K = frozen.n_members
