@@ -122,6 +122,9 @@ class CollectionConfig(_Checked):
         weight x the ensemble's disagreement along them, in units of the samples' spreads
         (:class:`mbtsr.cem.CEMOptions` ``explore_weight``): the agent steers towards where its
         members disagree, the data it lacks. Evaluation plans without it. 0: off.
+    :param explore_on: ``"state"`` (the members' variance of the next state) or ``"cost"``
+        (their spread of the stage cost of their next states: only disagreement the task's
+        cost sees); :class:`mbtsr.cem.CEMOptions` ``explore_on``.
     """
 
     _path: ClassVar[str] = "collection"
@@ -133,6 +136,7 @@ class CollectionConfig(_Checked):
     episode_steps: int | None = None
     exploration_window: int = 1
     explore_weight: float = 0.0
+    explore_on: Literal["state", "cost"] = "state"
 
     def __post_init__(self) -> None:
         self._int_at_least("n_excitation_episodes", 1)
@@ -142,6 +146,7 @@ class CollectionConfig(_Checked):
         self._float_range("exploration_std", 0.0)
         self._int_at_least("exploration_window", 1)
         self._float_range("explore_weight", 0.0)
+        self._choice("explore_on", ("state", "cost"))
         if self.episode_steps is not None:
             self._int_at_least("episode_steps", 2)
 
@@ -223,27 +228,30 @@ class PlannerConfig(_Checked):
             if opts.seed != 0:
                 raise ValueError(f"planner.{name}.seed must be 0: the agent seeds every solve "
                                  f"from seed, got {opts.seed!r}")
-            if opts.explore_weight != 0:
-                raise ValueError(f"planner.{name}.explore_weight must be 0: set "
-                                 "collection.explore_weight (training rollouts only), got "
-                                 f"{opts.explore_weight!r}")
+            for f, default in (("explore_weight", 0.0), ("explore_on", "state")):
+                if getattr(opts, f) != default:
+                    raise ValueError(f"planner.{name}.{f} must be {default!r}: set "
+                                     f"collection.{f} (training rollouts only), got "
+                                     f"{getattr(opts, f)!r}")
 
-    def optimizer(self, seed: int = 0, explore_weight: float = 0.0
+    def optimizer(self, seed: int = 0, explore_weight: float = 0.0, explore_on: str = "state"
                   ) -> tuple[Callable[..., Any], Any, int]:
         """``(optimizer, options, iterations per MPC step)`` of :class:`mbtsr.mpc.MPC` for
         this planner, its sampling seeded from ``seed`` (the agent's and the oracle's), its
-        CEM ranking with the disagreement bonus ``explore_weight`` (not for iLQR)."""
+        CEM ranking with the disagreement bonus ``explore_weight`` on ``explore_on`` (not for
+        iLQR)."""
+        explore = {"explore_weight": explore_weight, "explore_on": explore_on}
         if self.kind == "ilqr":
             if explore_weight:
                 raise ValueError("explore_weight needs a planner with CEM ('cem' or "
                                  "'cem-ilqr'), got planner.kind='ilqr'")
             return ilqr, None, self.ilqr_iterations
         if self.kind == "cem":
-            options = dataclasses.replace(self.cem, seed=seed, explore_weight=explore_weight)
+            options = dataclasses.replace(self.cem, seed=seed, **explore)
             return cem, options, options.iterations
         return cem_ilqr, CEMILQROptions(
             max_iter=self.ilqr_iterations,
-            cem=dataclasses.replace(self.proposal, seed=seed, explore_weight=explore_weight)
+            cem=dataclasses.replace(self.proposal, seed=seed, **explore)
         ), self.ilqr_iterations
 
 
@@ -756,6 +764,9 @@ _DEPENDENT: tuple[tuple[tuple[str, ...], Callable[[Mapping[str, Any]], bool], st
     (("collection.excitation_window",), lambda v: v["collection.excitation"] == "filtered_gaussian",
      "it is the window of collection.excitation='filtered_gaussian' and the excitation is "
      "'multisine': remove it"),
+    (("collection.explore_on",), lambda v: v["collection.explore_weight"] > 0,
+     "it chooses what directed exploration measures, which is off (collection.explore_weight "
+     "is 0): remove it, or turn that on"),
     (("collection.explore_weight",),
      lambda v: v["planner.kind"] != "ilqr" and v["model.ensemble_size"] > 1,
      "it ranks CEM's samples by the members' disagreement, so it needs a planner with CEM "

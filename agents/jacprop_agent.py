@@ -223,7 +223,8 @@ class JacPropAgent(SB3Predictor):
             model = self.planning_model.trajectory_sampling(seed=cfg.seed)
 
         def actor(explore_weight: float) -> tuple[Any, ReplanEvery]:
-            optimizer, options, iterations = cfg.planner.optimizer(cfg.seed, explore_weight)
+            optimizer, options, iterations = cfg.planner.optimizer(
+                cfg.seed, explore_weight, cfg.collection.explore_on)
             policy = mpc_policy(
                 model,
                 self.task_cost,

@@ -31,16 +31,21 @@ and returns ``X [T+1, n]``, ``U [T, m]`` (finite, inside the bounds), ``cost``, 
 
 Directed exploration (``explore_weight = w > 0``, for training rollouts): samples are ranked by
 ``J_s - c D_s`` instead of ``J_s``, where ``D_s = sum_t d(x_t, u_t)`` is the model's member
-disagreement along the rollout (:meth:`mbtsr.ensemble.FrozenEnsemble.disagreement`; averaged
-over a sequence's particles) and ``c = w std(J) / std(D)`` over the first iteration's finite
-samples, fixed for the solve: one spread of disagreement is worth ``w`` spreads of cost, on
-any task's cost scale. The result's ``cost`` stays the task cost ``J`` of the chosen sequence.
+disagreement along the rollout (averaged over a sequence's particles) and ``c = w std(J) /
+std(D)`` over the first iteration's finite samples, fixed for the solve: one spread of
+disagreement is worth ``w`` spreads of cost, on any task's cost scale. ``explore_on`` chooses
+``d``: ``"state"``, the members' variance of the next state
+(:meth:`mbtsr.ensemble.FrozenEnsemble.disagreement`), or ``"cost"``, the members' spread
+(std) of the stage cost of their predicted next states, ``std_k l(f_k(x_t, u_t), u_t, t+1)``,
+which counts only disagreement the task's cost sees. The result's ``cost`` stays the task cost
+``J`` of the chosen sequence.
 
 It stops at ``iterations`` or when ``max sigma < tol_std`` (status ``"converged"``).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -70,7 +75,10 @@ class CEMOptions:
     :param particles: rollouts per action sequence, their costs averaged (1: one rollout;
         PETS: 20 with trajectory sampling; see step 2 of the module docstring).
     :param explore_weight: weight ``w`` of the disagreement bonus (0: off; see the module
-        docstring); needs a model with ``disagreement(X, U)``.
+        docstring); needs a model with ``disagreement(X, U)`` (``explore_on="state"``) or
+        ``member_predictions(X, U)`` (``"cost"``): an ensemble.
+    :param explore_on: ``"state"`` or ``"cost"``: what the members' disagreement is measured
+        on (module docstring).
     """
 
     samples: int = 200
@@ -84,8 +92,12 @@ class CEMOptions:
     termination_cost: float = 0.0
     particles: int = 1
     explore_weight: float = 0.0
+    explore_on: str = "state"
 
     def __post_init__(self) -> None:
+        if self.explore_on not in ("state", "cost"):
+            raise ValueError(f"options.explore_on must be 'state' or 'cost', got "
+                             f"{self.explore_on!r}")
         for name in ("samples", "elites", "iterations", "particles"):
             v = getattr(self, name)
             check_int(f"options.{name}", v, 1)
@@ -226,10 +238,12 @@ def cem(
     if terminated is not None:
         check_callable("terminated", terminated, "X -> bool")
     explore = opts.explore_weight > 0
-    if explore and not callable(getattr(model, "disagreement", None)):
+    need = "disagreement" if opts.explore_on == "state" else "member_predictions"
+    if explore and not callable(getattr(model, need, None)):
         raise ValueError(
-            f"options.explore_weight > 0 needs a model with disagreement(X, U) (an ensemble: "
-            f"mbtsr.ensemble.FrozenEnsemble), got {type(model).__name__}")
+            f"options.explore_weight > 0 with explore_on={opts.explore_on!r} needs a model "
+            f"with {need}(X, U) (an ensemble: mbtsr.ensemble.FrozenEnsemble), got "
+            f"{type(model).__name__}")
     x0 = as_array("x0", x0, ndim=1)
     n = x0.shape[0]
     for attr in ("state_dim",):
@@ -280,7 +294,8 @@ def cem(
         timings["cost"] += time.perf_counter() - tc
         task_J = J
         if explore:
-            J, bonus = _explore_scores(model, X, rows, J, alive, opts, bonus)
+            D = _disagreements(model, cost, X, rows, alive, int(t0), params, opts)
+            J, bonus = _explore_scores(J, D, opts.explore_weight, bonus)
         order = np.argsort(J, kind="stable")
         if J[order[0]] < best_J:
             best_J, best_U = float(J[order[0]]), cand[order[0]].copy()
@@ -307,8 +322,8 @@ def cem(
     X_best, _ = rollout_batch(model, x0, best_U[None], int(t0), opts.max_state_norm)
     D = None
     if explore:
-        with np.errstate(all="ignore"):
-            D = float(np.sum(model.disagreement(X_best[0, :-1], best_U)))
+        D = float(_disagreements(model, cost, X_best, best_U[None], np.ones(1, bool), int(t0),
+                                 params, dataclasses.replace(opts, particles=1))[0])
     timings["total"] = time.perf_counter() - t_start
     return CEMResult(
         X=X_best[0], U=best_U, cost=best_cost, status=status, iterations=it, trace=trace,
@@ -316,24 +331,41 @@ def cem(
     )
 
 
+def _disagreements(
+    model: Any, cost: Any, X: np.ndarray, rows: np.ndarray, alive: np.ndarray, t0: int,
+    params: Any, opts: CEMOptions,
+) -> np.ndarray:
+    """``D [S]``: the members' disagreement summed along each sequence's rollout ``X [R, T+1,
+    n]`` of ``rows [R, T, m]`` (``R = S x particles``, averaged over particles; 0 for dead
+    rollouts), on the state or on the stage cost (``opts.explore_on``)."""
+    D = np.zeros(rows.shape[0])
+    if alive.any():
+        Xa, Ua = X[alive, :-1], rows[alive]
+        with np.errstate(all="ignore"):
+            if opts.explore_on == "state":
+                d = model.disagreement(Xa, Ua)
+            else:  # std over members of the stage cost of their predicted next states
+                P = model.member_predictions(Xa, Ua)  # [K, A, T, n]
+                Uk = np.broadcast_to(Ua, (P.shape[0], *Ua.shape))
+                args = () if params is None else (params,)
+                d = np.asarray(cost.stage_values(P, Uk, t0 + 1, *args), dtype=float).std(0)
+        D[alive] = np.sum(d, axis=-1)
+    D[~np.isfinite(D)] = 0.0
+    if opts.particles > 1:
+        D = D.reshape(-1, opts.particles).mean(1)
+    return D
+
+
 def _explore_scores(
-    model: Any, X: np.ndarray, rows: np.ndarray, J: np.ndarray, alive: np.ndarray,
-    opts: CEMOptions, bonus: float | None,
+    J: np.ndarray, D: np.ndarray, weight: float, bonus: float | None,
 ) -> tuple[np.ndarray, float | None]:
     """``(J - c D [S], c)``: the ranking scores of directed exploration (module docstring),
     ``c`` fixed on the first call with a spread in both ``J`` and ``D`` (``None`` until then:
     the scores are ``J``)."""
-    D = np.zeros(rows.shape[0])
-    if alive.any():
-        with np.errstate(all="ignore"):
-            D[alive] = np.sum(model.disagreement(X[alive, :-1], rows[alive]), axis=-1)
-    D[~np.isfinite(D)] = 0.0
-    if opts.particles > 1:
-        D = D.reshape(opts.samples, opts.particles).mean(1)
     if bonus is None:
         ok = np.isfinite(J)
         if ok.sum() >= 2:
             sJ, sD = float(np.std(J[ok])), float(np.std(D[ok]))
             if sJ > 0 and sD > 0:
-                bonus = opts.explore_weight * sJ / sD
+                bonus = weight * sJ / sD
     return (J if bonus is None else J - bonus * D), bonus

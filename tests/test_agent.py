@@ -693,7 +693,8 @@ def test_cem_with_trajectory_sampling_scores_plans_under_every_member(probabilis
         cfg.replace({"planner.kind": "ilqr"})
 
 
-def test_explore_weight_steers_training_rollouts_and_not_evaluation():
+@pytest.mark.parametrize("explore_on", ["state", "cost"])
+def test_explore_weight_steers_training_rollouts_and_not_evaluation(explore_on):
     """collection.explore_weight: training rollouts plan with the CEM proposal ranked by cost
     minus the members' disagreement (its own MPC), evaluation (predict) plans without it. Two
     agents with the same seed share the excitation episode, hence the model: their evaluation
@@ -703,10 +704,12 @@ def test_explore_weight_steers_training_rollouts_and_not_evaluation():
     base = {"collection.exploration_std": 0.0, "planner.proposal.samples": 32,
             "planner.proposal.elites": 4}
     plain = JacPropAgent(env, tiny_config(base), cost_fn=pendulum_cost)
-    agent = JacPropAgent(env, tiny_config({**base, "collection.explore_weight": 2.0}),
+    agent = JacPropAgent(env, tiny_config({**base, "collection.explore_weight": 2.0,
+                                           "collection.explore_on": explore_on}),
                          cost_fn=pendulum_cost)
     assert plain.explorer is plain.actor and agent.explorer is not agent.actor
     assert agent.explorer.policy.mpc.options.optimizer_options.cem.explore_weight == 2.0
+    assert agent.explorer.policy.mpc.options.optimizer_options.cem.explore_on == explore_on
     assert agent.actor.policy.mpc.options.optimizer_options.cem.explore_weight == 0.0
     for a in (plain, agent):
         a.learn(1, progress_bar=False)  # the excitation episode and the update

@@ -244,8 +244,64 @@ def test_explore_weight_minimizes_cost_minus_scaled_disagreement():
         results.append(res)
     assert plain.cost < results[0].cost < results[1].cost
     assert T + plain.U.sum() < results[0].disagreement < results[1].disagreement
-    with pytest.raises(ValueError, match="needs a model with disagreement"):
+    with pytest.raises(ValueError, match=r"needs a model\s+with disagreement"):
         cem(cost, LinearDynamics(A, B), X0, U0, u_min=-5.0, u_max=5.0,
             options=CEMOptions(explore_weight=1.0))
     with pytest.raises(ValueError, match="options.explore_weight"):
         CEMOptions(explore_weight=-1.0)
+
+
+class TwoMembers:
+    """Two 'members' of a 3-state system ``[pos, vel, z]``: the double integrator, and ``z``
+    (or ``pos``, with ``on_pos``) moved by ``+-0.5 u`` (member 0: -, member 1: +); the mean
+    model is the double integrator with ``z`` constant."""
+
+    state_dim, action_dim = 3, 1
+
+    def __init__(self, on_pos: bool = False):
+        self.dim = 0 if on_pos else 2
+
+    def member_predictions(self, x, u):
+        x, u = np.asarray(x, float), np.asarray(u, float)
+        mean = np.concatenate([x[..., :2] @ A.T + u @ B.T, x[..., 2:]], -1)
+        out = np.stack([mean, mean])
+        out[0, ..., self.dim] -= 0.5 * u[..., 0]
+        out[1, ..., self.dim] += 0.5 * u[..., 0]
+        return out
+
+    def step(self, x, u, t=None):
+        return self.member_predictions(x, u).mean(0)
+
+    def disagreement(self, x, u):
+        return self.member_predictions(x, u).var(0).mean(-1)
+
+
+def test_explore_on_cost_counts_only_the_disagreement_the_cost_sees():
+    """``explore_on="cost"``: members that disagree only on a coordinate the cost ignores give
+    no bonus (the plan is the plain one, bit for bit), where ``"state"`` explores; members that
+    disagree on a costed coordinate give ``D`` = the members' std of the stage cost of their
+    next states, summed (computed here from ``member_predictions`` and ``stage_values``)."""
+    T = 8
+    cost = quadratic_cost(np.diag([1.0, 0.1, 0.0]), R, np.zeros(3), Qf=np.diag([10.0, 1.0, 0.0]))
+    x0, U0 = np.array([1.0, 0.0, 0.0]), np.zeros((T, 1))
+    opts = dict(samples=100, elites=10, iterations=5, init_std=0.2)
+    box = dict(u_min=-20.0, u_max=20.0)
+    plain = cem(cost, TwoMembers(), x0, U0, **box, options=CEMOptions(**opts))
+    on_cost = cem(cost, TwoMembers(), x0, U0, **box,
+                  options=CEMOptions(explore_weight=1.0, explore_on="cost", **opts))
+    np.testing.assert_array_equal(on_cost.U, plain.U)
+    assert on_cost.disagreement == 0.0 and on_cost.trace[-1]["explore_scale"] is None
+    on_state = cem(cost, TwoMembers(), x0, U0, **box,
+                   options=CEMOptions(explore_weight=1.0, explore_on="state", **opts))
+    assert on_state.trace[0]["explore_scale"] > 0 and not np.allclose(on_state.U, plain.U)
+    model = TwoMembers(on_pos=True)
+    res = cem(cost, model, x0, U0, **box,
+              options=CEMOptions(explore_weight=1.0, explore_on="cost", **opts))
+    assert res.trace[0]["explore_scale"] > 0
+    P = model.member_predictions(res.X[:-1], res.U)
+    want = sum(np.std([cost.stage_values(P[k, t][None], res.U[t][None], t + 1)[0]
+                       for k in range(2)]) for t in range(T))
+    assert res.disagreement == pytest.approx(want, rel=1e-12)
+    assert res.cost == pytest.approx(cost.total(res.X, res.U), rel=1e-12)
+    with pytest.raises(ValueError, match="options.explore_on must be 'state' or 'cost'"):
+        CEMOptions(explore_on="value")

@@ -313,7 +313,7 @@ def test_sections_reject_the_wrong_type_and_training_seed():
         AgentConfig().replace({"training.seed": 1})
     with pytest.raises(ValueError, match="regularization.ltv_affine"):
         AgentConfig().replace({"regularization.ltv_affine": True})
-    with pytest.raises(ValueError, match="planner.proposal.explore_weight must be 0: set "
+    with pytest.raises(ValueError, match="planner.proposal.explore_weight must be 0.0: set "
                                          "collection.explore_weight"):
         AgentConfig().replace({"planner.proposal.explore_weight": 1.0})
 
@@ -330,6 +330,7 @@ LEAVES = {
     "collection.episode_steps": st.none() | st.integers(2, 500),
     "collection.exploration_window": st.integers(1, 20),
     "collection.explore_weight": st.floats(0.0, 3.0),
+    "collection.explore_on": st.sampled_from(["state", "cost"]),
     "model.formulation": st.sampled_from(["g", "f"]),
     "model.ensemble_size": st.integers(1, 8),
     "model.hidden_width": st.none() | st.integers(1, 64),
@@ -423,6 +424,7 @@ ACTS_ONLY_WHEN = {
                                           and v["planner.kind"] != "cem"),
     "collection.excitation_window": lambda v: v["collection.excitation"] == "filtered_gaussian",
     "collection.exploration_window": lambda v: v["collection.exploration_std"] > 0,
+    "collection.explore_on": lambda v: v["collection.explore_weight"] > 0,
     "collection.explore_weight": lambda v: (v["planner.kind"] != "ilqr"
                                             and v["model.ensemble_size"] > 1),
     "video_every": lambda v: v["video"],
@@ -499,6 +501,7 @@ def test_a_partial_dict_loads_as_exactly_its_changes_and_round_trips(changes):
 
     fixed = {"training.seed", "planner.cem.seed", "planner.proposal.seed",
              "planner.cem.explore_weight", "planner.proposal.explore_weight",
+             "planner.cem.explore_on", "planner.proposal.explore_on",
              "regularization.ltv_affine"}
     assert set(LEAVES) | fixed == set(DEFAULTS)  # the strategies cover the whole tree
     cfg = AgentConfig.from_dict(nested(changes))
@@ -641,6 +644,7 @@ def test_a_section_built_with_a_value_of_the_wrong_type_is_refused_by_the_tree()
     ({"video_every": 2}, "video_every"),
     ({"planner.kind": "ilqr", "collection.explore_weight": 1.0}, "collection.explore_weight"),
     ({"model.ensemble_size": 1, "collection.explore_weight": 1.0}, "collection.explore_weight"),
+    ({"collection.explore_on": "cost"}, "collection.explore_on"),
     ({"planner.replan_feedback": True}, "planner.replan_feedback"),  # replan_every is 1
     ({"planner": {"kind": "cem", "replan_every": 4, "replan_feedback": True}},
      "planner.replan_feedback"),
