@@ -152,7 +152,7 @@ def test_run_writes_every_model_and_refuses_bad_folders(tmp_path, monkeypatch):
     monkeypatch.setattr(diag, "write_json_atomic",
                         lambda path, obj: (writes.append(len(obj["rows"])), write(path, obj)))
     result = run(args)
-    assert writes == [1, 2, 3, 4]  # the file after every model
+    assert writes == [1, 2, 3, 4, 4]  # the file after every model, and at the end
     stored = json.loads(out.read_text())
     assert [(r["size"], r["init"]) for r in stored["rows"]] == [
         ("2x8", 0), ("2x8", 1), ("7m:2x8", 0), ("7m:2x8", 1)]
@@ -183,6 +183,8 @@ def test_run_writes_every_model_and_refuses_bad_folders(tmp_path, monkeypatch):
     ({"track": (17, -1)}, "track entries must be an integer >= 0"),
     ({"track": (17, 17)}, "each dimension once"),
     ({"sizes": ("rule", "5m:2x8")}, "sizes: '5m:2x8'"),
+    ({"track": (17, 18), "near": (14,)}, "near needs as many dimensions as track"),
+    ({"skip": -1}, "skip must be an integer >= 0"),
 ])
 def test_bad_arguments_are_refused_before_any_work(bad, match):
     with pytest.raises(ValueError, match=match):
@@ -192,3 +194,30 @@ def test_bad_arguments_are_refused_before_any_work(bad, match):
 def test_a_task_modelled_on_a_state_fn_is_refused():
     with pytest.raises(ValueError, match="state_fn"):
         task_cost("inverted-double-pendulum")
+
+
+def test_coverage_counts_the_episodes_that_moved_and_the_closest_approach(tmp_path):
+    """``coverage`` on hand-made episodes: the tracked pair moves (3, 4) (norm 5) in one, 0.5 in
+    another, nothing in the third; the 'near' pair starts 2 away and passes within 1; the run
+    reports it before any training (no sizes) and skips the first ``skip`` episodes."""
+    def episode(shift, closest):
+        x = np.zeros((5, N_OBS))
+        x[-1, 2:4] = shift
+        x[:, 4:6] = x[:, 2:4] + np.array([[2.0, 0], [1.5, 0], [closest, 0], [2.0, 0], [2.0, 0]])
+        return Trajectory(x=x, u=np.zeros((4, N_ACT)), dt=0.01)
+
+    trajs = [episode((3.0, 4.0), 1.0), episode((0.3, 0.4), 1.2), episode((0.0, 0.0), 0.5)]
+    cov = diag.coverage(trajs, (2, 3), move=1.0, near=(4, 5))
+    assert cov["episodes_moved"] == 1 and cov["displacement"] == pytest.approx([5.0, 0.5, 0.0])
+    assert cov["median_displacement"] == pytest.approx(0.5)
+    assert cov["closest"] == pytest.approx([1.0, 1.2, 0.5]) and cov["closest_near"] == 1.0
+    assert "closest_near" not in diag.coverage(trajs, (2, 3), move=1.0)
+    folder = tmp_path / "run0"
+    folder.mkdir()
+    save_trajectories(folder / "data.npz", [episode((9.0, 0.0), 3.0)] + trajs)
+    out = tmp_path / "c.json"
+    result = run(Args(task="reacher", checkpoints=(str(folder),), sizes=(), track=(2, 3),
+                      near=(4, 5), move=1.0, skip=1, test_episodes=1, json=str(out)))
+    got = result["coverage"][str(folder)]
+    assert got == cov and result["rows"] == []
+    assert json.loads(out.read_text())["coverage"][str(folder)] == json.loads(json.dumps(cov))

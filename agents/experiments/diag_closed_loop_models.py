@@ -19,7 +19,14 @@ a planner uses them (:func:`planning_errors`):
   windows in which those dimensions truly move more than ``move`` (their displacement's norm
   over the window): ``moved_windows``, the medians ``disp_true`` and ``disp_pred`` of the true
   and predicted displacement's norm, ``disp_err`` of the error's norm, and ``disp_cos`` of the
-  cosine between them (does the model see a push, and which way it goes).
+  cosine between them (does the model see a push, and which way it goes);
+* with ``track``, the data itself (``coverage``, per run, before any training): over the run's
+  episodes after ``skip`` (the agent's excitation episodes), how many moved the tracked
+  dimensions more than ``move`` from start to end (``episodes_moved``), the median of that
+  displacement, and with ``near`` (as many dimensions as ``track``, e.g. Pusher's fingertip
+  ``14 15 16`` for the object ``17 18 19``) the median over episodes of the closest distance
+  between the two (``closest_near``): did the training rollouts touch the object at all.
+  ``--sizes`` with no size reports only this.
 
 The model state must be the observation (a task without ``state_fn``: the task's cost is
 written on the observation).
@@ -80,6 +87,10 @@ class Args:
     """observation dimensions whose displacement over a window is scored (module docstring)"""
     move: float = 0.005
     """a window counts as moving when the tracked displacement's norm exceeds this"""
+    near: tuple[int, ...] = ()
+    """observation dimensions whose closest distance to the tracked ones is reported"""
+    skip: int = 2
+    """first episodes of a run left out of the coverage (the agent's excitation)"""
     json: str = "runs/diag_closed_loop_models.json"
     """output JSON"""
 
@@ -94,6 +105,12 @@ class Args:
             check_int("track entries", i, 0)
         if len(set(self.track)) != len(self.track):
             raise ValueError(f"track: each dimension once, got {list(self.track)}")
+        if self.near and len(self.near) != len(self.track):
+            raise ValueError(f"near needs as many dimensions as track ({len(self.track)}), got "
+                             f"{list(self.near)}")
+        for i in self.near:
+            check_int("near entries", i, 0)
+        check_int("skip", self.skip, 0)
         if not self.inits:
             raise ValueError("inits: give at least one initialisation seed")
         for size in self.sizes:
@@ -177,6 +194,22 @@ def planning_errors(step: Callable[[np.ndarray, np.ndarray], np.ndarray],
     return scores
 
 
+def coverage(trajs: Sequence[Trajectory], track: Sequence[int], move: float,
+             near: Sequence[int] = ()) -> dict[str, Any]:
+    """How the tracked dimensions moved in ``trajs`` (module docstring, ``coverage``)."""
+    idx = list(track)
+    disp = np.array([np.linalg.norm(t.x[-1, idx] - t.x[0, idx]) for t in trajs])
+    out = {"episodes": len(trajs), "episodes_moved": int(np.sum(disp > move)),
+           "median_displacement": float(np.median(disp)) if disp.size else float("nan"),
+           "displacement": disp.tolist()}
+    if len(near):
+        closest = [float(np.min(np.linalg.norm(t.x[:, list(near)] - t.x[:, idx], axis=1)))
+                   for t in trajs]
+        out.update({"closest_near": float(np.median(closest)) if closest else float("nan"),
+                    "closest": closest})
+    return out
+
+
 def load_run(folder: str) -> list[Trajectory]:
     """The trajectories of an agent's checkpoint folder (``data.npz``)."""
     path = os.path.join(folder, "data.npz")
@@ -192,9 +225,11 @@ def run(args: Args) -> dict[str, Any]:
         raise ValueError("--checkpoints: give at least one checkpoint folder")
     torch.set_num_threads(1)
     cost_of, n, m = task_cost(args.task)
-    if args.track and max(args.track) >= n:
-        raise ValueError(f"track: dimensions {list(args.track)} out of range for task "
-                         f"{args.task!r}'s {n} observations")
+    for name in ("track", "near"):
+        dims = getattr(args, name)
+        if dims and max(dims) >= n:
+            raise ValueError(f"{name}: dimensions {list(dims)} out of range for task "
+                             f"{args.task!r}'s {n} observations")
     runs = {c: load_run(c) for c in args.checkpoints}
     for c, trajs in runs.items():
         if len(trajs) <= args.test_episodes:
@@ -203,6 +238,13 @@ def run(args: Args) -> dict[str, Any]:
         if (trajs[0].x.shape[1], trajs[0].u.shape[1]) != (n, m):
             raise ValueError(f"{c!r} holds states of {trajs[0].x.shape[1]} and actions of "
                              f"{trajs[0].u.shape[1]} numbers; task {args.task!r} has {n} and {m}")
+    data = {c: coverage(trajs[args.skip:], args.track, args.move, args.near)
+            for c, trajs in runs.items()} if args.track else {}
+    for c, cov in data.items():
+        print(f"{c}: {cov['episodes_moved']} of {cov['episodes']} episodes moved the tracked "
+              f"dimensions > {args.move}, median {cov['median_displacement']:.4f}"
+              + (f"; median closest distance to near {cov['closest_near']:.4f}"
+                 if args.near else ""))
     training = dataclasses.replace(AgentConfig().training, steps=args.steps, patience=20)
     rows: list[dict[str, Any]] = []
     jobs = [(c, s, i) for c in args.checkpoints for s in args.sizes for i in args.inits]
@@ -217,7 +259,7 @@ def run(args: Args) -> dict[str, Any]:
                      **planning_errors(model.freeze().step, cost_of, train, test,
                                        horizon=args.horizon, stride=args.stride,
                                        track=args.track, move=args.move)})
-        write_json_atomic(args.json, {"args": asdict(args), "rows": rows})
+        write_json_atomic(args.json, {"args": asdict(args), "coverage": data, "rows": rows})
     for size in args.sizes:
         got = [r for r in rows if r["size"] == size]
         print(f"{size:>10}: cost_err median {np.median([r['cost_err'] for r in got]):.2f}, "
@@ -225,4 +267,5 @@ def run(args: Args) -> dict[str, Any]:
               f"cost_rank {np.median([r['cost_rank'] for r in got]):.2f} ({len(got)} models)"
               + (f", displacement predicted {np.median([r['disp_pred'] for r in got]):.4f} of "
                  f"{np.median([r['disp_true'] for r in got]):.4f}" if args.track else ""))
-    return {"args": asdict(args), "rows": rows}
+    write_json_atomic(args.json, {"args": asdict(args), "coverage": data, "rows": rows})
+    return {"args": asdict(args), "coverage": data, "rows": rows}
