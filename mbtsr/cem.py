@@ -31,14 +31,18 @@ and returns ``X [T+1, n]``, ``U [T, m]`` (finite, inside the bounds), ``cost``, 
 
 Directed exploration (``explore_weight = w > 0``, for training rollouts): samples are ranked by
 ``J_s - c D_s`` instead of ``J_s``, where ``D_s = sum_t d(x_t, u_t)`` is the model's member
-disagreement along the rollout (averaged over a sequence's particles) and ``c = w std(J) /
-std(D)`` over the first iteration's finite samples, fixed for the solve: one spread of
+disagreement along the rollout (averaged over a sequence's particles; with ``terminated``,
+only up to the first predicted termination) and ``c = w std(J) / std(D)`` over the finite
+samples of the first iteration that has at least ``elites`` of them and a spread in both, fixed
+for the solve (until then, and for a flat cost, the ranking is by ``J`` alone): one spread of
 disagreement is worth ``w`` spreads of cost, on any task's cost scale. ``explore_on`` chooses
 ``d``: ``"state"``, the members' variance of the next state
 (:meth:`mbtsr.ensemble.FrozenEnsemble.disagreement`), or ``"cost"``, the members' spread
-(std) of the stage cost of their predicted next states, ``std_k l(f_k(x_t, u_t), u_t, t+1)``,
-which counts only disagreement the task's cost sees. The result's ``cost`` stays the task cost
-``J`` of the chosen sequence.
+(std) of the stage cost of their predicted next states, ``std_k l(f_k(x_t, u_t), u_t, t+1)``
+(the stage cost also for the last state: the terminal cost is not used), which counts only
+disagreement the task's cost sees. Either runs every member on every sampled state (about
+``K`` times a mean rollout's model work; ``timings["disagreement"]``). The result's ``cost``
+stays the task cost ``J`` of the chosen sequence.
 
 It stops at ``iterations`` or when ``max sigma < tol_std`` (status ``"converged"``).
 """
@@ -137,7 +141,8 @@ class CEMResult:
         ``"explore_scale"`` is ``c`` (``None`` until set).
     :param message: why it stopped.
     :param std: ``[T, m]`` the final sampling std.
-    :param timings: seconds in ``rollout``, ``cost`` and ``total``.
+    :param timings: seconds in ``rollout``, ``cost``, ``disagreement`` (with
+        ``explore_weight``) and ``total``.
     :param disagreement: the model's disagreement ``D`` along ``X`` (``explore_weight > 0``;
         else ``None``).
     """
@@ -294,8 +299,13 @@ def cem(
         timings["cost"] += time.perf_counter() - tc
         task_J = J
         if explore:
-            D = _disagreements(model, cost, X, rows, alive, int(t0), params, opts)
-            J, bonus = _explore_scores(J, D, opts.explore_weight, bonus)
+            td = time.perf_counter()
+            D = _disagreements(model, cost, X, rows, alive, int(t0), params, opts, terminated)
+            was = bonus
+            J, bonus = _explore_scores(J, D, opts.explore_weight, bonus, opts.elites)
+            if was is None and bonus is not None:
+                best_J = np.inf  # scores change scale: the best so far is a candidate (cand[1])
+            timings["disagreement"] = timings.get("disagreement", 0.0) + time.perf_counter() - td
         order = np.argsort(J, kind="stable")
         if J[order[0]] < best_J:
             best_J, best_U = float(J[order[0]]), cand[order[0]].copy()
@@ -323,7 +333,7 @@ def cem(
     D = None
     if explore:
         D = float(_disagreements(model, cost, X_best, best_U[None], np.ones(1, bool), int(t0),
-                                 params, dataclasses.replace(opts, particles=1))[0])
+                                 params, dataclasses.replace(opts, particles=1), terminated)[0])
     timings["total"] = time.perf_counter() - t_start
     return CEMResult(
         X=X_best[0], U=best_U, cost=best_cost, status=status, iterations=it, trace=trace,
@@ -333,11 +343,12 @@ def cem(
 
 def _disagreements(
     model: Any, cost: Any, X: np.ndarray, rows: np.ndarray, alive: np.ndarray, t0: int,
-    params: Any, opts: CEMOptions,
+    params: Any, opts: CEMOptions, terminated: Callable[[np.ndarray], np.ndarray] | None,
 ) -> np.ndarray:
     """``D [S]``: the members' disagreement summed along each sequence's rollout ``X [R, T+1,
     n]`` of ``rows [R, T, m]`` (``R = S x particles``, averaged over particles; 0 for dead
-    rollouts), on the state or on the stage cost (``opts.explore_on``)."""
+    rollouts), on the state or on the stage cost (``opts.explore_on``); with ``terminated``
+    the steps after the first predicted termination do not count (as their stage costs)."""
     D = np.zeros(rows.shape[0])
     if alive.any():
         Xa, Ua = X[alive, :-1], rows[alive]
@@ -349,6 +360,11 @@ def _disagreements(
                 Uk = np.broadcast_to(Ua, (P.shape[0], *Ua.shape))
                 args = () if params is None else (params,)
                 d = np.asarray(cost.stage_values(P, Uk, t0 + 1, *args), dtype=float).std(0)
+        if terminated is not None:
+            done = np.asarray(terminated(X[alive, 1:]), dtype=bool)  # [A, T]: x_{t+1} ends
+            ended_before = np.zeros_like(done)
+            ended_before[:, 1:] = np.cumsum(done, axis=1)[:, :-1] > 0
+            d = np.where(ended_before, 0.0, d)
         D[alive] = np.sum(d, axis=-1)
     D[~np.isfinite(D)] = 0.0
     if opts.particles > 1:
@@ -357,14 +373,14 @@ def _disagreements(
 
 
 def _explore_scores(
-    J: np.ndarray, D: np.ndarray, weight: float, bonus: float | None,
+    J: np.ndarray, D: np.ndarray, weight: float, bonus: float | None, min_finite: int,
 ) -> tuple[np.ndarray, float | None]:
     """``(J - c D [S], c)``: the ranking scores of directed exploration (module docstring),
-    ``c`` fixed on the first call with a spread in both ``J`` and ``D`` (``None`` until then:
-    the scores are ``J``)."""
+    ``c`` fixed on the first call with at least ``min_finite`` (and 2) finite costs and a
+    spread in both ``J`` and ``D`` over them (``None`` until then: the scores are ``J``)."""
     if bonus is None:
         ok = np.isfinite(J)
-        if ok.sum() >= 2:
+        if ok.sum() >= max(2, min_finite):
             sJ, sD = float(np.std(J[ok])), float(np.std(D[ok]))
             if sJ > 0 and sD > 0:
                 bonus = weight * sJ / sD

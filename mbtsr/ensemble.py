@@ -1620,6 +1620,11 @@ class TrajectorySampling:
         """The ensemble's :meth:`FrozenEnsemble.disagreement` (all members on every row)."""
         return self.frozen.disagreement(x, u)
 
+    def member_predictions(self, x: np.ndarray, u: np.ndarray) -> np.ndarray:
+        """The ensemble's :meth:`FrozenEnsemble.member_predictions` (all members on every
+        row, their means)."""
+        return self.frozen.member_predictions(x, u)
+
     def jacobians(self, x: np.ndarray, u: np.ndarray, t: int = 0):
         """Not defined for trajectory sampling: raises ``TypeError``."""
         raise TypeError("TrajectorySampling has no Jacobians: plan with a sampling planner "

@@ -724,6 +724,16 @@ def test_explore_weight_steers_training_rollouts_and_not_evaluation(explore_on):
     assert not np.allclose(agent.trajectories[1].u, plain.trajectories[1].u)
     with pytest.raises(ValueError, match="collection.explore_weight"):
         tiny_config({**base, "collection.explore_weight": 1.0, "model.ensemble_size": 1})
+    ts = JacPropAgent(env, tiny_config(  # trajectory sampling: the explorer plans on the view
+        {"planner.cem.samples": 16, "planner.cem.elites": 4, "planner.cem.iterations": 1,
+         "planner.cem.particles": 2, "planner.propagation": "ts",
+         "collection.explore_weight": 1.0, "collection.explore_on": explore_on},
+        planner="cem"), cost_fn=pendulum_cost)
+    ts.learn(2, progress_bar=False)
+    assert ts.logger_rows[-1]["phase"] == "mpc"
+    assert type(ts.explorer.policy.mpc.model).__name__ == "TrajectorySampling"
+    ts.explorer.predict(env.reset(seed=0)[0], None, episode_start=True)
+    assert ts.explorer.policy.last_result.status in ("converged", "max_iter")
 
 
 def test_refit_normalization_keeps_the_function_and_follows_the_data():

@@ -9,7 +9,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from mbtsr.cem import CEMOptions, cem
+from mbtsr.cem import CEMOptions, cem, rollout_batch
 from mbtsr.costs import quadratic_cost
 from mbtsr.dynamics import LinearDynamics
 from mbtsr.ilqr import ilqr
@@ -226,11 +226,20 @@ def test_explore_weight_minimizes_cost_minus_scaled_disagreement():
     np.testing.assert_array_equal(same.U, plain.U)
     assert plain.disagreement is None and "explore_scale" not in plain.trace[0]
     H, g = lq_matrices(T)
+    # c by hand: the first iteration's samples (the solver's own draw), c = w std(J) / std(D)
+    eps = np.random.default_rng(0).standard_normal((400, T, 1))
+    cand = np.clip(U0[None] + 0.2 * 200.0 * eps, -200.0, 200.0)
+    cand[0] = U0
+    J1 = np.array([cost.total(rollout_batch(model, X0, c[None])[0][0], c) for c in cand])
+    D1 = T + cand[:, :, 0].sum(1)
+    scales = {}
     results = []
     for w in (0.1, 0.4):
         res = cem(cost, model, X0, U0, **box, options=CEMOptions(explore_weight=w, **opts))
         c = res.trace[0]["explore_scale"]
         assert c > 0 and all(r["explore_scale"] == c for r in res.trace)
+        assert c == pytest.approx(w * np.std(J1) / np.std(D1), rel=1e-9)
+        scales[w] = c
         best = np.linalg.solve(H, 0.5 * c * np.ones(T) - g)
         assert np.all(np.abs(best) < 200.0)
         def score(U, c=c):  # J(U) - c D(U) up to a constant
@@ -242,6 +251,7 @@ def test_explore_weight_minimizes_cost_minus_scaled_disagreement():
         assert res.cost == pytest.approx(cost.total(res.X, res.U), rel=1e-12)
         assert res.disagreement == pytest.approx(T + res.U.sum(), rel=1e-12)
         results.append(res)
+    assert scales[0.4] == pytest.approx(4 * scales[0.1], rel=1e-12)
     assert plain.cost < results[0].cost < results[1].cost
     assert T + plain.U.sum() < results[0].disagreement < results[1].disagreement
     with pytest.raises(ValueError, match=r"needs a model\s+with disagreement"):
@@ -305,3 +315,63 @@ def test_explore_on_cost_counts_only_the_disagreement_the_cost_sees():
     assert res.cost == pytest.approx(cost.total(res.X, res.U), rel=1e-12)
     with pytest.raises(ValueError, match="options.explore_on must be 'state' or 'cost'"):
         CEMOptions(explore_on="value")
+
+
+class TimedCost:
+    """A stage cost ``p t x_0^2`` that depends on the absolute time and on ``params`` (a
+    scalar ``p``), no terminal cost: checks which ``t`` and ``params`` the cost variant uses."""
+
+    def stage_values(self, X, U, t0, params):
+        T = X.shape[-2]
+        return params * (t0 + np.arange(T)) * X[..., 0] ** 2
+
+    def terminal_values(self, X, t, params):
+        return np.zeros(X.shape[:-1])
+
+    def total(self, X, U, t0, params):
+        return self.stage_values(X[..., :-1, :], U, t0, params).sum(-1)
+
+
+def test_explore_on_cost_scores_next_states_at_their_time_with_the_params():
+    """The cost variant's ``d`` at step ``t`` is the members' std of ``l(x^k_{t+1}, u_t,
+    t0 + t + 1, params)``: computed here with the solve's ``t0 = 3`` and ``params = 2``."""
+    T, t0, p = 6, 3, 2.0
+    model = TwoMembers(on_pos=True)
+    res = cem(TimedCost(), model, np.array([1.0, 0.0, 0.0]), np.zeros((T, 1)), u_min=-5.0,
+              u_max=5.0, params=p, t0=t0,
+              options=CEMOptions(samples=50, elites=5, iterations=3, explore_weight=1.0,
+                                 explore_on="cost"))
+    P = model.member_predictions(res.X[:-1], res.U)  # [2, T, 3]
+    want = sum(np.std(p * (t0 + t + 1) * P[:, t, 0] ** 2) for t in range(T))
+    assert res.disagreement == pytest.approx(want, rel=1e-12)
+    assert res.timings["disagreement"] > 0
+
+
+class DisagreePastOne(LinearDynamics):
+    """1-D integrator whose members disagree only beyond ``x > 1``, where the episode ends."""
+
+    def disagreement(self, x, u):
+        return (np.asarray(x)[..., 0] > 1.0).astype(float)
+
+
+def test_disagreement_after_a_predicted_termination_does_not_count():
+    """With ``terminated``, the bonus stops where the stage costs stop: members that disagree
+    only past a termination (cost 5) do not lure the plan across it; a plan that crosses is
+    credited only the steps before the end."""
+    model, x0 = DisagreePastOne(np.eye(1), np.eye(1)), np.array([0.5])
+    cost = quadratic_cost(np.eye(1), 0.01 * np.eye(1), np.zeros(1))
+    ends = lambda X: X[..., 0] > 1.0  # noqa: E731
+    opts = dict(samples=200, elites=20, iterations=20, termination_cost=5.0)
+    plain = cem(cost, model, x0, np.zeros((10, 1)), u_min=-1, u_max=1, terminated=ends,
+                options=CEMOptions(**opts))
+    res = cem(cost, model, x0, np.zeros((10, 1)), u_min=-1, u_max=1, terminated=ends,
+              options=CEMOptions(explore_weight=1.0, **opts))
+    assert not np.any(res.X[1:, 0] > 1.0) and res.disagreement == 0.0
+    assert res.cost == pytest.approx(plain.cost, rel=1e-9)
+    # a plan that crosses at step 1 (x_2 > 1) and stays beyond: d(x_t) counts for t <= 1 only
+    U = np.full((10, 1), 0.4)
+    crossing = cem(cost, model, x0, U, u_min=-1, u_max=1, terminated=ends,
+                   options=CEMOptions(samples=2, elites=1, iterations=1, init_std=0.0,
+                                      explore_weight=1.0, termination_cost=5.0))
+    np.testing.assert_allclose(crossing.U, U)
+    assert crossing.X[2, 0] > 1.0 and crossing.disagreement == 0.0

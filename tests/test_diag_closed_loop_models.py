@@ -217,7 +217,12 @@ def test_coverage_counts_the_episodes_that_moved_and_the_closest_approach(tmp_pa
     save_trajectories(folder / "data.npz", [episode((9.0, 0.0), 3.0)] + trajs)
     out = tmp_path / "c.json"
     result = run(Args(task="reacher", checkpoints=(str(folder),), sizes=(), track=(2, 3),
-                      near=(4, 5), move=1.0, skip=1, test_episodes=1, json=str(out)))
+                      near=(4, 5), move=1.0, skip=1, test_episodes=9, json=str(out)))
     got = result["coverage"][str(folder)]
     assert got == cov and result["rows"] == []
     assert json.loads(out.read_text())["coverage"][str(folder)] == json.loads(json.dumps(cov))
+    with pytest.raises(ValueError, match="--skip 4 leaves none for the coverage"):
+        run(Args(task="reacher", checkpoints=(str(folder),), sizes=(), track=(2, 3), skip=4,
+                 json=str(out)))
+    with pytest.raises(ValueError, match="nothing to do"):
+        run(Args(task="reacher", checkpoints=(str(folder),), sizes=(), json=str(out)))

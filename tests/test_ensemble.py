@@ -842,7 +842,9 @@ def test_disagreement_is_the_member_variance_in_output_units(members, probabilis
     assert got.shape == (3, 4)
     np.testing.assert_allclose(got, want, rtol=1e-10, atol=1e-14)
     assert np.all(got > 0)
-    np.testing.assert_array_equal(frozen.trajectory_sampling(seed=1).disagreement(x, u), got)
+    ts = frozen.trajectory_sampling(seed=1)  # what CEM's explore options call on the view
+    np.testing.assert_array_equal(ts.disagreement(x, u), got)
+    np.testing.assert_array_equal(ts.member_predictions(x, u), preds)
     one = make_model([MemberSpec("tanh", 5)], "g").freeze()
     np.testing.assert_array_equal(one.disagreement(x, u), 0.0)
     with pytest.raises(ValueError, match="x"):

@@ -230,9 +230,14 @@ def run(args: Args) -> dict[str, Any]:
         if dims and max(dims) >= n:
             raise ValueError(f"{name}: dimensions {list(dims)} out of range for task "
                              f"{args.task!r}'s {n} observations")
+    if not args.sizes and not args.track:
+        raise ValueError("nothing to do: give --sizes to train, or --track for the coverage")
     runs = {c: load_run(c) for c in args.checkpoints}
     for c, trajs in runs.items():
-        if len(trajs) <= args.test_episodes:
+        if args.track and len(trajs) <= args.skip:
+            raise ValueError(f"{c!r} holds {len(trajs)} episodes; --skip {args.skip} leaves "
+                             "none for the coverage")
+        if args.sizes and len(trajs) <= args.test_episodes:
             raise ValueError(f"{c!r} holds {len(trajs)} episodes; --test-episodes "
                              f"{args.test_episodes} leaves none to train on")
         if (trajs[0].x.shape[1], trajs[0].u.shape[1]) != (n, m):
