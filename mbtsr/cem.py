@@ -40,8 +40,9 @@ disagreement is worth ``w`` spreads of cost, on any task's cost scale. ``explore
 (:meth:`mbtsr.ensemble.FrozenEnsemble.disagreement`), or ``"cost"``, the members' spread
 (std) of the stage cost of their predicted next states, ``std_k l(f_k(x_t, u_t), u_t, t+1)``
 (the stage cost also for the last state: the terminal cost is not used), which counts only
-disagreement the task's cost sees. Either runs every member on every sampled state (about
-``K`` times a mean rollout's model work; ``timings["disagreement"]``). The result's ``cost``
+disagreement the task's cost sees. Either runs every member on every sampled state (about one
+more ensemble-mean rollout; the cost measure also evaluates the stage cost once per member;
+``timings["disagreement"]``). The result's ``cost``
 stays the task cost ``J`` of the chosen sequence.
 
 It stops at ``iterations`` or when ``max sigma < tol_std`` (status ``"converged"``).
