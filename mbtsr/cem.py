@@ -58,7 +58,7 @@ from typing import Any
 
 import numpy as np
 
-from mbtsr.costs import truncated_total
+from mbtsr.costs import after_termination, truncated_total
 from mbtsr.validation import as_array, check_callable, check_int, options_from
 
 __all__ = ["CEMOptions", "CEMResult", "cem"]
@@ -362,10 +362,7 @@ def _disagreements(
                 args = () if params is None else (params,)
                 d = np.asarray(cost.stage_values(P, Uk, t0 + 1, *args), dtype=float).std(0)
         if terminated is not None:
-            done = np.asarray(terminated(X[alive, 1:]), dtype=bool)  # [A, T]: x_{t+1} ends
-            ended_before = np.zeros_like(done)
-            ended_before[:, 1:] = np.cumsum(done, axis=1)[:, :-1] > 0
-            d = np.where(ended_before, 0.0, d)
+            d = np.where(after_termination(terminated(X[alive, 1:])), 0.0, d)
         D[alive] = np.sum(d, axis=-1)
     D[~np.isfinite(D)] = 0.0
     if opts.particles > 1:

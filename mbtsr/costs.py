@@ -47,6 +47,7 @@ __all__ = [
     "quadratic_cost",
     "smooth_norm",
     "truncated_total",
+    "after_termination",
 ]
 
 def casadi_jit_options(opt_level: str = "-O2") -> dict:
@@ -558,6 +559,16 @@ def _reference_table(x_goal, u_ref, n: int, m: int) -> np.ndarray:
     return np.hstack([xg, ur])
 
 
+def after_termination(done: np.ndarray) -> np.ndarray:
+    """``done [S, T]`` (``done[:, t]``: ``x_{t+1}`` is terminal) -> bool ``[S, T]``, true at
+    the steps ``t`` after the first termination (one of ``x_1 .. x_t`` terminal): the steps an
+    episode that terminates never reaches."""
+    done = np.asarray(done).astype(bool)
+    ended_before = np.zeros_like(done)
+    ended_before[:, 1:] = np.cumsum(done, axis=1)[:, :-1] > 0
+    return ended_before
+
+
 def truncated_total(
     stage: np.ndarray, terminal: np.ndarray, done: np.ndarray, termination_cost: float = 0.0
 ) -> np.ndarray:
@@ -580,9 +591,7 @@ def truncated_total(
         raise ValueError(f"done (what terminated returns for x_1 .. x_T) must be bool [S, T] = "
                          f"{list(stage.shape)}, got shape {list(done.shape)}")
     done = done.astype(bool)
-    ended_before = np.zeros_like(done)
-    ended_before[:, 1:] = np.cumsum(done, axis=1)[:, :-1] > 0
-    J = np.where(ended_before, 0.0, stage).sum(axis=1)
+    J = np.where(after_termination(done), 0.0, stage).sum(axis=1)
     return J + np.where(done.any(axis=1), termination_cost, terminal)
 
 

@@ -1488,7 +1488,10 @@ class FrozenEnsemble:
         lead = x.shape[:-1]
         xu = np.concatenate([x, u], -1).reshape(-1, self.state_dim + self.action_dim)
         with np.errstate(over="ignore"):
-            y, _, lv = self._members(xu, 0, logvar=self.probabilistic)
+            if self._plan is None:
+                y, _, lv = self._members(xu, 0, logvar=self.probabilistic)
+            else:  # every member on every row: one batched product per layer
+                y, lv = self._member_rows_plan(np.broadcast_to(xu, (self.n_members, *xu.shape)))
         shape = (self.n_members, *lead, self.state_dim)
         std = None if lv is None else (self._out_std * np.exp(0.5 * lv)).reshape(shape)
         return y.reshape(shape), std
@@ -1500,20 +1503,7 @@ class FrozenEnsemble:
         averaged over the coordinates. ``x: [..., n]``, ``u: [..., m]`` -> ``[...]`` (0 for a
         single member). It is the exploration bonus of :class:`mbtsr.cem.CEMOptions`
         ``explore_weight``: large where the data has not pinned the model down."""
-        x, u = check_step_inputs(x, u, self.state_dim, self.action_dim)
-        with np.errstate(over="ignore"):
-            return self._disagreement(x, u)
-
-    def _disagreement(self, x: np.ndarray, u: np.ndarray) -> np.ndarray:
-        """:meth:`disagreement` without input checks."""
-        n, m, K = self.state_dim, self.action_dim, self.n_members
-        lead = x.shape[:-1]
-        xu = np.concatenate([x.reshape(-1, n), u.reshape(-1, m)], 1)
-        if self._plan is None:
-            y = self._members(xu, 0)[0]
-        else:  # every member on every row: one batched product per layer
-            y = self._member_rows_plan(np.broadcast_to(xu, (K, *xu.shape)))[0]
-        return (y.var(0) / self._out_std**2).mean(-1).reshape(lead)
+        return (self.member_predictions(x, u).var(0) / self._out_std**2).mean(-1)
 
     def predict(self, x: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Ensemble mean and spread (population std over members, ``ddof=0``) of the next state.
