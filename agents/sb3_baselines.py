@@ -8,10 +8,8 @@ To make the comparison mean something the baselines use everything the agent use
 - the same env id and keyword arguments (preset), hence the same episode length and the same
   reward ``r = -cost`` (the env's ``(x - x_goal)^T Q (x - x_goal) + a^T R a``);
 - the same fixed evaluation targets and reset seeds, through the same function
-  (:func:`agents.evaluation.evaluate_policy_cost`) with the DETERMINISTIC policy;
-- the same "solved" threshold (``solved_ratio`` x the true-model MPC oracle's cost on those
-  targets), checked every ``eval_every`` env steps by :class:`CostEvalCallback`, which stops
-  training at the first solved evaluation.
+  (:func:`agents.evaluation.evaluate_policy_cost`) with the DETERMINISTIC policy, every
+  ``eval_every`` env steps (:class:`CostEvalCallback`).
 
 Hyperparameters (:func:`default_hyperparams`): Stable-Baselines3 defaults, with the
 rl-baselines3-zoo MuJoCo changes that are not about the budget: TD3 explores with Gaussian
@@ -27,9 +25,8 @@ gradient steps only); the time including evaluation is reported next to it.
 
 from __future__ import annotations
 
-import math
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from typing import Any
 
 import gymnasium as gym
@@ -47,42 +44,12 @@ __all__ = [
     "ALGOS",
     "CostEvalCallback",
     "default_hyperparams",
-    "evaluate_episodes",
     "make_sb3_model",
     "make_training_env",
     "train_sb3",
 ]
 
 ALGOS: dict[str, type[BaseAlgorithm]] = {"sac": SAC, "td3": TD3, "ppo": PPO}
-
-#: evaluation function: (policy_fn(obs) -> action, env, targets [k, 2] or None, seed) -> mean
-#: cost (= minus the mean return)
-EvaluateFn = Callable[[Callable[[np.ndarray], np.ndarray], gym.Env, np.ndarray | None, int], float]
-
-
-def evaluate_episodes(n_episodes: int, max_steps: int | None = None) -> EvaluateFn:
-    """The evaluation of a task without targets: the mean cost (minus the mean return, the
-    env's own reward) over ``n_episodes`` episodes, episode ``i`` reset with ``seed + i`` and
-    cut at ``max_steps`` (the agent's :meth:`JacPropAgent._evaluate` on such an env).
-
-    :param n_episodes: evaluation episodes (>= 1).
-    :param max_steps: cap on the steps per episode (``None``: the env's own limit).
-    """
-    from agents.evaluation import evaluate_policy_cost
-
-    n_episodes = check_int("n_episodes", n_episodes, 1)
-    if max_steps is not None:
-        max_steps = check_int("max_steps", max_steps, 1)
-
-    def evaluate(policy_fn: Callable[[np.ndarray], np.ndarray], env: gym.Env,
-                 targets: np.ndarray | None, seed: int) -> float:
-        if targets is not None:
-            raise ValueError("evaluate_episodes is for tasks without targets; got targets")
-        return evaluate_policy_cost(policy_fn, env, None, seed, n_episodes=n_episodes,
-                                    max_steps=max_steps)
-
-    return evaluate
-
 
 def default_hyperparams(algo: str) -> dict[str, Any]:
     """The hyperparameters the benchmark uses for ``algo`` (JSON-serializable).
@@ -118,7 +85,6 @@ def make_sb3_model(
     env: gym.Env | VecEnv,
     seed: int,
     hyperparams: dict[str, Any] | None = None,
-    tensorboard_log: str | None = None,
 ) -> BaseAlgorithm:
     """Build an SB3 model with an ``MlpPolicy`` on ``env`` (CPU, seeded).
 
@@ -144,43 +110,33 @@ def make_sb3_model(
             kwargs["policy_kwargs"]["net_arch"] = list(net_arch)
     try:
         return ALGOS[algo](
-            "MlpPolicy", env, seed=int(seed), device="cpu", tensorboard_log=tensorboard_log,
-            verbose=0, **kwargs,
+            "MlpPolicy", env, seed=int(seed), device="cpu", verbose=0, **kwargs,
         )
     except TypeError as err:
         raise ValueError(f"hyperparams for {algo} are not accepted by SB3: {err}") from None
 
 
 class CostEvalCallback(BaseCallback):
-    """Evaluate the deterministic policy every ``eval_every`` env steps; stop when solved.
+    """Evaluate the deterministic policy every ``eval_every`` env steps.
 
     The evaluation cost is the mean episode cost (= minus the mean undiscounted return) of the
-    deterministic policy on the fixed ``eval_targets``, in a separate raw env (when training
-    uses ``VecNormalize`` the policy sees observations normalized with the current running
-    statistics; the cost is always the env's own). Evaluations happen at the start of a
-    rollout, i.e. after the gradient updates on all data so far: for SAC/TD3 (``train_freq=1``)
-    every step boundary, for PPO after every ``n_steps`` rollout and its update. The first
-    evaluation is at step 0 (the untrained policy), the last at the end of training. At the
-    first evaluation with ``cost <= threshold`` training stops (one more env step is taken,
-    because SB3 can only be stopped from ``on_step``).
+    deterministic policy (:func:`agents.evaluation.evaluate_policy_cost`), in a separate raw env
+    (when training uses ``VecNormalize`` the policy sees observations normalized with the
+    current running statistics; the cost is always the env's own). Evaluations happen at the
+    start of a rollout, i.e. after the gradient updates on all data so far: for SAC/TD3
+    (``train_freq=1``) every step boundary, for PPO after every ``n_steps`` rollout and its
+    update. The first evaluation is at step 0 (the untrained policy), the last at the end of
+    training.
 
-    After training:
-
-    - ``curve``: ``[(env_steps, eval_cost), ...]``;
-    - ``train_wall``: wall seconds since ``t_start`` EXCLUDING evaluation, at each curve point;
-    - ``steps_to_solve`` / ``wall_to_solve`` (excl. evaluation) / ``wall_to_solve_incl_eval``
-      (``None`` when not solved);
-    - ``eval_seconds``: total time spent evaluating.
+    After training: ``curve`` ``[(env_steps, eval_cost), ...]``; ``train_wall``, wall seconds
+    since ``t_start`` EXCLUDING evaluation, at each curve point; ``eval_seconds``, the total
+    time spent evaluating.
 
     :param eval_env: a separate env instance used only for evaluation.
     :param eval_targets: ``[k, 2]`` goal joint angles, one per evaluation episode, or ``None``
-        for an env without targets (then ``evaluate`` decides the episodes, e.g.
-        :func:`evaluate_episodes`).
+        for an env without targets (then ``n_episodes`` episodes, cut at ``max_steps``).
     :param eval_every: evaluation period in env steps.
-    :param threshold: the solved threshold on the mean cost (``None``: never stop early).
     :param eval_seed: evaluation episode ``i`` resets with ``eval_seed + i`` (as the agent's).
-    :param evaluate: ``(policy_fn, env, targets, seed) -> mean cost``; default
-        :func:`agents.evaluation.evaluate_policy_cost`.
     :param t_start: ``time.perf_counter()`` value that wall times are measured from
         (default: the start of training).
     """
@@ -190,28 +146,22 @@ class CostEvalCallback(BaseCallback):
         eval_env: gym.Env,
         eval_targets: np.ndarray | None,
         eval_every: int,
-        threshold: float | None,
         eval_seed: int,
-        evaluate: EvaluateFn | None = None,
         t_start: float | None = None,
-        verbose: int = 0,
+        *,
+        n_episodes: int | None = None,
+        max_steps: int | None = None,
     ):
-        super().__init__(verbose)
-        if evaluate is None:
-            from agents.evaluation import evaluate_policy_cost as evaluate
+        super().__init__()
         self.eval_env = eval_env
         self.eval_targets = eval_targets
         self.eval_every = int(eval_every)
-        self.threshold = threshold
         self.eval_seed = int(eval_seed)
-        self.evaluate = evaluate
+        self.n_episodes, self.max_steps = n_episodes, max_steps
         self.t_start = t_start
         self.curve: list[tuple[int, float]] = []
         self.train_wall: list[float] = []
         self.eval_seconds = 0.0
-        self.steps_to_solve: int | None = None
-        self.wall_to_solve: float | None = None
-        self.wall_to_solve_incl_eval: float | None = None
         self._next_eval = 0
 
     def policy_action(self, obs: np.ndarray) -> np.ndarray:
@@ -223,28 +173,20 @@ class CostEvalCallback(BaseCallback):
         action, _ = self.model.predict(obs, deterministic=True)
         return action
 
-    def evaluate_now(self) -> bool:
-        """Evaluate at the current step (once per step); return ``True`` if solved."""
+    def evaluate_now(self) -> None:
+        """Evaluate at the current step (once per step)."""
+        from agents.evaluation import evaluate_policy_cost
+
         if self.curve and self.curve[-1][0] == self.num_timesteps:
-            return self.steps_to_solve is not None
+            return
         t0 = time.perf_counter()
         train_wall = t0 - self.t_start - self.eval_seconds
-        cost = float(self.evaluate(self.policy_action, self.eval_env, self.eval_targets,
-                                   self.eval_seed))
+        cost = evaluate_policy_cost(self.policy_action, self.eval_env, self.eval_targets,
+                                    self.eval_seed, n_episodes=self.n_episodes,
+                                    max_steps=self.max_steps)
         self.eval_seconds += time.perf_counter() - t0
         self.curve.append((int(self.num_timesteps), cost))
         self.train_wall.append(train_wall)
-        self.logger.record("eval/cost", cost)
-        self.logger.record("eval/train_wall_seconds", train_wall)
-        solved = self.threshold is not None and cost <= self.threshold
-        if solved and self.steps_to_solve is None:
-            self.steps_to_solve = int(self.num_timesteps)
-            self.wall_to_solve = train_wall
-            self.wall_to_solve_incl_eval = time.perf_counter() - self.t_start
-        if self.verbose:
-            print(f"[{type(self.model).__name__}] step {self.num_timesteps}: eval cost {cost:.4g}"
-                  f" (threshold {self.threshold})")
-        return solved
 
     def _on_training_start(self) -> None:
         if self.t_start is None:
@@ -256,18 +198,17 @@ class CostEvalCallback(BaseCallback):
         self._maybe_evaluate()
 
     def _maybe_evaluate(self) -> None:
-        if self.steps_to_solve is None and self.num_timesteps >= self._next_eval:
+        if self.num_timesteps >= self._next_eval:
             self.evaluate_now()
             while self._next_eval <= self.num_timesteps:
                 self._next_eval += self.eval_every
 
     def _on_step(self) -> bool:
-        return self.steps_to_solve is None
+        return True
 
     def _on_training_end(self) -> None:
-        if self.steps_to_solve is None:
-            self.num_timesteps = self.model.num_timesteps
-            self.evaluate_now()
+        self.num_timesteps = self.model.num_timesteps
+        self.evaluate_now()
 
 
 def train_sb3(
@@ -277,84 +218,59 @@ def train_sb3(
     seed: int,
     eval_every: int,
     eval_targets: np.ndarray | Sequence[Sequence[float]] | None,
-    threshold: float | None,
     hyperparams: dict[str, Any] | None = None,
-    tensorboard_log: str | None = None,
-    progress_bar: bool = False,
     *,
     env_kwargs: dict[str, Any] | None = None,
     eval_seed: int = 0,
-    evaluate: EvaluateFn | None = None,
-    tb_log_name: str | None = None,
     return_model: bool = False,
     n_eval_episodes: int | None = None,
     eval_max_steps: int | None = None,
-    solved_return: float | None = None,
 ) -> dict[str, Any]:
-    """Train an SB3 agent on ``env_id`` until solved or out of budget; return its record.
+    """Train an SB3 agent on ``env_id`` for ``budget_steps``, evaluated along the way; return
+    its record.
 
     :param algo: ``"sac"``, ``"td3"`` or ``"ppo"``.
     :param env_id: registered Gymnasium id, e.g. ``"mbtsr/TwoLinkArm-v0"``.
-    :param budget_steps: maximum env steps (PPO rounds up to whole rollouts of ``n_steps``).
+    :param budget_steps: env steps (PPO rounds up to whole rollouts of ``n_steps``).
     :param seed: seed of the SB3 model and of the training env's resets.
     :param eval_every: evaluation period in env steps.
     :param eval_targets: ``[k, 2]`` fixed evaluation targets (the agent's), or ``None`` for an
-        env without targets: then ``n_eval_episodes`` episodes, scored by the env's own return
-        (:func:`evaluate_episodes`).
-    :param threshold: solved threshold on the mean evaluation cost (> 0, the arm's cost); ``None``
-        trains the whole budget unless ``solved_return`` is given.
+        env without targets: then ``n_eval_episodes`` episodes, scored by the env's own return.
     :param hyperparams: SB3 keyword arguments (see :func:`make_sb3_model`); ``None``: the
         documented :func:`default_hyperparams`.
-    :param tensorboard_log: TensorBoard folder (``None``: no logs).
-    :param progress_bar: SB3's progress bar (needs tqdm and rich).
     :param env_kwargs: keyword arguments of ``gym.make`` (e.g. ``{"preset": "default"}``), used
         for both the training and the evaluation env.
     :param eval_seed: evaluation episode ``i`` resets with ``eval_seed + i``.
-    :param evaluate: evaluation function, default
-        :func:`agents.evaluation.evaluate_policy_cost`.
     :param return_model: also return the trained model under ``"model"`` (not serializable;
         for tests and notebooks).
     :param n_eval_episodes: evaluation episodes when ``eval_targets`` is ``None`` (>= 1).
-    :param eval_max_steps: cap on the steps of an evaluation episode when ``eval_targets`` is
-        ``None`` (``None``: the env's own limit).
-    :param solved_return: solved when the mean evaluation RETURN is ``>= solved_return`` (any
-        finite number; the same as ``threshold = -solved_return`` on the cost); exclusive with
-        ``threshold``.
-    :return: a JSON-serializable dict: ``curve`` ``[[env_steps, eval_cost], ...]``,
-        ``curve_train_wall`` (seconds, excl. evaluation, per curve point), ``solved``,
-        ``steps_to_solve`` (``None`` if not solved), ``wall_seconds_to_solve`` (excl.
-        evaluation), ``wall_seconds_to_solve_incl_eval``, ``env_steps`` (total),
-        ``train_wall_seconds`` / ``eval_wall_seconds`` / ``total_wall_seconds``,
-        ``hyperparams`` and the arguments. The curve's cost is minus the mean return.
+    :param eval_max_steps: cap on the steps of an evaluation episode (``None``: the env's own
+        limit).
+    :return: a JSON-serializable dict: ``curve`` ``[[env_steps, eval_cost], ...]`` (the cost is
+        minus the mean return), ``curve_train_wall`` (seconds, excl. evaluation, per curve
+        point), ``env_steps`` (total), ``train_wall_seconds`` / ``eval_wall_seconds`` /
+        ``total_wall_seconds``, ``hyperparams`` and the arguments.
     """
     _check_algo(algo)
     budget_steps = check_int("budget_steps", budget_steps, 1)
     eval_every = check_int("eval_every", eval_every, 1)
     seed = check_int("seed", seed, 0)
     eval_seed = check_int("eval_seed", eval_seed, 0)
+    if eval_max_steps is not None:
+        eval_max_steps = check_int("eval_max_steps", eval_max_steps, 1)
     if eval_targets is None:
         if n_eval_episodes is None:
             raise ValueError("give eval_targets or n_eval_episodes")
         n_eval_episodes = check_int("n_eval_episodes", n_eval_episodes, 1)
-        if evaluate is None:
-            evaluate = evaluate_episodes(n_eval_episodes, eval_max_steps)
         targets = None
     else:
-        if n_eval_episodes is not None or eval_max_steps is not None:
-            raise ValueError("n_eval_episodes and eval_max_steps are for eval_targets=None; "
-                             "with targets there is one episode per target")
+        if n_eval_episodes is not None:
+            raise ValueError("n_eval_episodes is for eval_targets=None; with targets there is "
+                             "one episode per target")
         targets = as_array("eval_targets", eval_targets, (None, None))
         if targets.shape[0] < 1:
             raise ValueError("eval_targets must hold at least one target, got shape [0, *]")
-    if threshold is not None:
-        if solved_return is not None:
-            raise ValueError("give threshold (a cost) or solved_return (a return), not both")
-        threshold = check_positive("threshold", threshold)
-    elif solved_return is not None:
-        solved_return = float(solved_return)
-        if not math.isfinite(solved_return):
-            raise ValueError(f"solved_return must be finite, got {solved_return!r}")
-        threshold = -solved_return
+        n_eval_episodes = int(targets.shape[0])
     if hyperparams is not None and not isinstance(hyperparams, dict):
         raise ValueError(f"hyperparams must be a dict or None, got {type(hyperparams).__name__}")
     hp = dict(default_hyperparams(algo) if hyperparams is None else hyperparams)
@@ -365,11 +281,10 @@ def train_sb3(
                                   float(hp.get("gamma", 0.99)))
     eval_env = gym.make(env_id, **env_kwargs)
     try:
-        model = make_sb3_model(algo, train_env, seed, hp, tensorboard_log)
-        callback = CostEvalCallback(eval_env, targets, eval_every, threshold, eval_seed,
-                                    evaluate=evaluate, t_start=t_start)
-        model.learn(total_timesteps=budget_steps, callback=callback, progress_bar=progress_bar,
-                    tb_log_name=tb_log_name or f"{algo}_seed{seed}")
+        model = make_sb3_model(algo, train_env, seed, hp)
+        callback = CostEvalCallback(eval_env, targets, eval_every, eval_seed, t_start,
+                                    n_episodes=n_eval_episodes, max_steps=eval_max_steps)
+        model.learn(total_timesteps=budget_steps, callback=callback)
         total = time.perf_counter() - t_start
     finally:
         train_env.close()
@@ -382,22 +297,15 @@ def train_sb3(
         "budget_steps": budget_steps,
         "eval_every": eval_every,
         "eval_seed": eval_seed,
-        "n_eval_targets": 0 if targets is None else int(targets.shape[0]),
-        "n_eval_episodes": int(targets.shape[0]) if targets is not None else n_eval_episodes,
-        "threshold": threshold,
-        "solved_return": solved_return,
+        "n_eval_targets": 0 if targets is None else n_eval_episodes,
+        "n_eval_episodes": n_eval_episodes,
         "hyperparams": hp,
         "curve": [[s, c] for s, c in callback.curve],
         "curve_train_wall": callback.train_wall,
-        "solved": callback.steps_to_solve is not None,
-        "steps_to_solve": callback.steps_to_solve,
-        "wall_seconds_to_solve": callback.wall_to_solve,
-        "wall_seconds_to_solve_incl_eval": callback.wall_to_solve_incl_eval,
         "env_steps": int(model.num_timesteps),
         "train_wall_seconds": total - callback.eval_seconds,
         "eval_wall_seconds": callback.eval_seconds,
         "total_wall_seconds": total,
-        "wall_time_note": "wall_seconds_to_solve excludes evaluation time",
     }
     if return_model:
         record["model"] = model

@@ -2,11 +2,9 @@
 
 - on the arm's targets the callback's evaluation cost is minus the return SB3's own
   ``evaluate_policy`` measures on the same targets and resets (raw observations for SAC,
-  ``VecNormalize`` for PPO); a cost threshold stops training at the first solved evaluation;
-  bad arguments are refused;
+  ``VecNormalize`` for PPO); bad arguments are refused;
 - ``train_sb3`` on an env without targets scores the deterministic policy by the env's own
-  return: equal to SB3's ``evaluate_policy`` on the same reset seeds, and ``solved_return`` stops
-  training at the first evaluation that reaches it (a negative cost threshold);
+  return: equal to SB3's ``evaluate_policy`` on the same reset seeds;
 - the suite's thresholds and censored summaries agree with hand-computed values;
 - ``scripts/bench_suite.py --sb3 --smoke`` runs end to end, writes its own JSON (never the agent
   runs' one), marks budget-censored results as lower bounds and resumes without re-running.
@@ -48,32 +46,18 @@ def _one_thread():
 @pytest.mark.parametrize("algo, budget, every, hyperparams", SMALL_RUNS)
 def test_callback_cost_is_minus_sb3_return(algo, budget, every, hyperparams):
     rec = train_sb3(algo, ARM, budget, seed=3, eval_every=every, eval_targets=TARGETS,
-                    threshold=None, hyperparams=hyperparams, eval_seed=EVAL_SEED,
+                    hyperparams=hyperparams, eval_seed=EVAL_SEED,
                     return_model=True)
     model = rec.pop("model")
     json.dumps(rec)  # the record is JSON-serializable
     assert [s for s, _ in rec["curve"]] == list(range(0, budget + 1, every))
-    assert rec["env_steps"] == budget and not rec["solved"] and rec["steps_to_solve"] is None
+    assert rec["env_steps"] == budget
 
     returns, lengths = sb3_returns(model, ScriptedResets(gym.make(ARM), EVAL_SEED, TARGETS),
                                    len(TARGETS), bool(hyperparams.get("normalize")))
     assert lengths == [100] * len(TARGETS)
     # the final curve point is the final policy; rewards pass through float32 in the VecEnv
     assert rec["curve"][-1][1] == pytest.approx(-np.mean(returns), rel=1e-5)
-
-
-def test_stops_at_first_solved_evaluation():
-    # the untrained policy's cost on these targets, then a threshold just above it: solved at 0
-    probe = train_sb3("td3", ARM, 1, seed=0, eval_every=1, eval_targets=TARGETS[:1],
-                      threshold=None, hyperparams={"learning_starts": 10}, eval_seed=EVAL_SEED)
-    cost0 = probe["curve"][0][1]
-    rec = train_sb3("td3", ARM, 10_000, seed=0, eval_every=50, eval_targets=TARGETS[:1],
-                    threshold=cost0 * 1.0001, hyperparams={"learning_starts": 10},
-                    eval_seed=EVAL_SEED)
-    assert rec["solved"] and rec["steps_to_solve"] == 0
-    assert rec["env_steps"] <= 1  # stopped at the first on_step after the solved evaluation
-    assert rec["curve"] == [[0, pytest.approx(cost0, rel=1e-12)]]
-    assert 0 <= rec["wall_seconds_to_solve"] <= rec["wall_seconds_to_solve_incl_eval"]
 
 
 @pytest.mark.parametrize(
@@ -85,15 +69,13 @@ def test_stops_at_first_solved_evaluation():
         ({"seed": -1}, "seed"),
         ({"eval_targets": [[0.1, np.nan]]}, "eval_targets"),
         ({"eval_targets": [0.1, 0.2]}, "eval_targets"),
-        ({"threshold": -1.0}, "threshold"),
-        ({"threshold": np.inf}, "threshold"),
         ({"hyperparams": {"no_such_kwarg": 1}}, "hyperparams"),
         ({"hyperparams": {"action_noise_std": 0.1}, "algo": "ppo"}, "action_noise_std"),
     ],
 )
 def test_bad_arguments(kwargs, msg):
     args = {"algo": "sac", "env_id": ARM, "budget_steps": 10, "seed": 0, "eval_every": 5,
-            "eval_targets": TARGETS, "threshold": 1.0}
+            "eval_targets": TARGETS}
     args.update(kwargs)
     with pytest.raises(ValueError, match=msg):
         train_sb3(**args)
@@ -113,31 +95,17 @@ def test_default_hyperparams_are_documented_choices():
 @pytest.mark.parametrize("algo, budget, every, hyperparams", SMALL_RUNS)
 def test_return_evaluation_is_sb3_return(algo, budget, every, hyperparams):
     rec = train_sb3(algo, IP, budget, seed=2, eval_every=every, eval_targets=None,
-                    threshold=None, hyperparams=hyperparams, eval_seed=EVAL_SEED,
+                    hyperparams=hyperparams, eval_seed=EVAL_SEED,
                     n_eval_episodes=3, eval_max_steps=200, env_kwargs={"max_episode_steps": 200},
                     return_model=True)
     model = rec.pop("model")
     json.dumps(rec)
     assert rec["n_eval_episodes"] == 3 and rec["n_eval_targets"] == 0
     assert [s for s, _ in rec["curve"]] == list(range(0, budget + 1, every))
-    assert not rec["solved"] and rec["steps_to_solve"] is None
 
     returns, _ = sb3_returns(model, ScriptedResets(gym.make(IP, max_episode_steps=200), EVAL_SEED),
                              3, bool(hyperparams.get("normalize")))
     assert rec["curve"][-1][1] == pytest.approx(-np.mean(returns), rel=1e-6)
-
-
-def test_solved_return_stops_at_first_solved_evaluation():
-    probe = train_sb3("sac", IP, 1, seed=0, eval_every=1, eval_targets=None, threshold=None,
-                      hyperparams={"learning_starts": 10}, eval_seed=EVAL_SEED,
-                      n_eval_episodes=2)
-    return0 = -probe["curve"][0][1]
-    assert return0 > 0  # IP pays +1 per step alive: the threshold on the cost is negative
-    rec = train_sb3("sac", IP, 5_000, seed=0, eval_every=50, eval_targets=None, threshold=None,
-                    hyperparams={"learning_starts": 10}, eval_seed=EVAL_SEED,
-                    n_eval_episodes=2, solved_return=return0)
-    assert rec["solved"] and rec["steps_to_solve"] == 0 and rec["env_steps"] <= 1
-    assert rec["threshold"] == -return0 and rec["solved_return"] == return0
 
 
 @pytest.mark.parametrize(
@@ -147,13 +115,11 @@ def test_solved_return_stops_at_first_solved_evaluation():
         ({"eval_targets": None, "n_eval_episodes": 0}, "n_eval_episodes"),
         ({"eval_targets": None, "n_eval_episodes": 2, "eval_max_steps": 0}, "max_steps"),
         ({"n_eval_episodes": 2}, "n_eval_episodes"),
-        ({"threshold": 1.0, "solved_return": 1.0}, "not both"),
-        ({"threshold": None, "solved_return": np.nan}, "solved_return"),
     ],
 )
 def test_bad_return_arguments(kwargs, msg):
     args = {"algo": "sac", "env_id": IP, "budget_steps": 10, "seed": 0, "eval_every": 5,
-            "eval_targets": [[0.1, 0.2]], "threshold": None}
+            "eval_targets": [[0.1, 0.2]]}
     args.update(kwargs)
     with pytest.raises(ValueError, match=msg):
         train_sb3(**args)

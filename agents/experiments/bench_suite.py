@@ -693,9 +693,9 @@ def run_sb3(name: str, algo: str, seed: int, *, steps: int, smoke: bool) -> dict
     common = dict(hyperparams=hp, env_kwargs=dict(task.make_kwargs), eval_seed=EVAL_SEED)
     if targets is not None:
         r = train_sb3(algo, task.env_id, steps, seed, every,
-                      [np.asarray(t, float).tolist() for t in targets], None, **common)
+                      [np.asarray(t, float).tolist() for t in targets], **common)
     else:
-        r = train_sb3(algo, task.env_id, steps, seed, every, None, None, **common,
+        r = train_sb3(algo, task.env_id, steps, seed, every, None, **common,
                       n_eval_episodes=EVAL_EPISODES)
     return {"task": name, "method": algo, "seed": seed, "budget_env_steps": steps,
             "env_steps": r["env_steps"],
