@@ -27,8 +27,7 @@ value checked against its field's type and coerced only where unambiguous; a run
 ``config.json`` loads through its ``agent`` section. A setting that has no effect under the others
 (a sampled-only field with another regularizer, a CEM field with iLQR, ...: ``_DEPENDENT``) is
 refused with the reason, unless it holds its default.
-Configs saved in the old flat format (``{"epochs_per_episode": 150, "hidden_width": 20, ...}``)
-load through :func:`from_flat` (``AgentConfig.from_dict`` detects them).
+Configs saved before the tree and its step budget (2026-12-02) are not read.
 
 Where the paper fixes a value it is used (sampled Jacobian propagation with perturbations of 0.1 x
 the per-dimension standard deviation, one perturbed copy resampled every step, the ``g``
@@ -62,7 +61,7 @@ from mbtsr.ensemble import ModelConfig
 from mbtsr.ilqr import ilqr
 from mbtsr.training import REGULARIZERS, RegularizationConfig, TrainConfig
 
-__all__ = ["AgentConfig", "CollectionConfig", "PlannerConfig", "EvaluationConfig", "from_flat",
+__all__ = ["AgentConfig", "CollectionConfig", "PlannerConfig", "EvaluationConfig",
            "read_config_file", "split_run_config", "in_file", "REGULARIZERS",
            "PLANNERS", "PROPAGATIONS", "EXCITATIONS"]
 
@@ -315,40 +314,6 @@ def _default_training() -> TrainConfig:
                        early_stopping="member", member_data="order", progress=False)
 
 
-def _legacy_training() -> TrainConfig:
-    """The agent's update before the step budget (150 epochs over all data): what configs saved
-    in the old flat format mean."""
-    return TrainConfig(epochs=150, lr=3e-3, batch=256, progress=False)
-
-
-@functools.cache
-def _then_defaults() -> AgentConfig:
-    """The defaults of the old flat format's time (the paper's ensemble, 150 epochs per update,
-    iLQR, torch's own threads): the base of configs saved in it."""
-    return AgentConfig(model=ModelConfig.paper(), training=_legacy_training(),
-                       planner=PlannerConfig(kind="ilqr"), torch_threads=0)
-
-
-#: every field of ``training`` a config saved before the step budget holds
-_TRAINING_BEFORE_STEPS = ("epochs", "lr", "batch", "weight_decay", "decoupled_weight_decay",
-                          "betas", "adam_eps", "shuffle", "seed", "progress")
-
-
-def _saved_before_the_step_budget(d: Mapping[str, Any]) -> Mapping[str, Any]:
-    """A config saved before the step budget (a ``training`` section complete in the fields of
-    that time, without ``steps``) meant epochs: its new fields get the values that keep that
-    meaning (``TrainConfig``'s own defaults: no budget, no hold-out, shared minibatches),
-    instead of the agent's step-budget defaults. Its model section names its sizes, so it keeps
-    the paper's ensemble by itself."""
-    training = d.get("training")
-    if not (isinstance(training, Mapping) and "steps" not in training
-            and all(k in training for k in _TRAINING_BEFORE_STEPS)):
-        return d
-    then = {f.name: _field_default(f) for f in dataclasses.fields(TrainConfig)
-            if f.name not in _TRAINING_BEFORE_STEPS}
-    return {**d, "training": {**then, **training}}
-
-
 def _default_regularization() -> RegularizationConfig:
     return RegularizationConfig.named("sampled", ltv_lambda=None)
 
@@ -522,9 +487,7 @@ class AgentConfig(_Checked):
         for a float field, ``"50"`` -> 50 for an integer field, not ``"2.5"``), an integral
         float is an integer (``50.0`` -> 50), ``"true"``/``"false"`` are booleans,
         ``"none"``/``"null"`` is ``None`` where the field takes ``None`` but no string, a list is
-        a tuple; anything else of the wrong type is refused. A dict in the old flat format
-        (before the tree, complete by nature: ``base`` is not used) is converted by
-        :func:`from_flat`.
+        a tuple; anything else of the wrong type is refused.
 
         :param d: the fields, nested or dotted.
         :param base: the config the changes apply to (default ``AgentConfig()``).
@@ -535,9 +498,7 @@ class AgentConfig(_Checked):
         if not isinstance(d, Mapping):
             raise ValueError(f"AgentConfig.from_dict needs a dict of AgentConfig fields, got "
                              f"{type(d).__name__} {d!r}")
-        if _is_flat(d):
-            return from_flat(d)
-        return (base or cls()).replace(_saved_before_the_step_budget(d))
+        return (base or cls()).replace(d)
 
     @classmethod
     def from_json(cls, text: str) -> AgentConfig:
@@ -819,10 +780,8 @@ def _closest(key: str) -> str:
 
 
 def _unknown(key: str) -> ValueError:
-    old = _FLAT_PATHS.get(key)
-    hint = (f" (a field before the tree: now {old!r})" if old and old != key
-            else f"; the closest valid field is {_closest(key)!r}")
-    return ValueError(f"unknown AgentConfig field {key!r}{hint}")
+    return ValueError(f"unknown AgentConfig field {key!r}; the closest valid field is "
+                      f"{_closest(key)!r}")
 
 
 def _prefixed(section: str, make: Any, *args: Any, **kwargs: Any) -> Any:
@@ -974,82 +933,3 @@ def split_run_config(d: Mapping[str, Any]) -> tuple[Mapping[str, Any], dict[str,
         raise ValueError(f"unknown key(s) {unknown} beside 'agent' (a run's config.json holds "
                          f"'agent' and {list(RUN_SECTIONS)})")
     return d["agent"], {k: v for k, v in d.items() if k != "agent"}
-
-
-# ---- the old flat format (before the tree): one function, tested in tests/test_config_tree.py --
-def _field_names(cls: type) -> set[str]:
-    return {f.name for f in dataclasses.fields(cls)}
-
-
-_FIELD_NAMES = _field_names(AgentConfig)
-_FLAT_PATHS = {
-    **{n: f"collection.{n}" for n in _field_names(CollectionConfig)},
-    **{n: f"model.{n}" for n in _field_names(ModelConfig)},
-    "epochs_per_episode": "training.epochs", "lr": "training.lr",
-    "weight_decay": "training.weight_decay",
-    "planner": "planner.kind",
-    **{n: f"planner.{n}" for n in _field_names(PlannerConfig) - {"kind", "cem"}},
-    **{f"cem_{n}": f"planner.cem.{n}" for n in ("samples", "elites", "iterations")},
-    **{f"eval_{n}": f"evaluation.{n}" for n in ("every", "episodes", "seed", "early_exit")},
-    **{n: f"evaluation.{n}" for n in ("solved_ratio", "solved_return", "stop_when_solved",
-                                       "oracle_cache_dir")},
-    **{n: n for n in _FIELD_NAMES - set(SECTIONS)},
-}
-_FLAT_REGULARIZATION = ("regularization", "jacprop_weight", "jacobian_penalty",
-                        "perturbation_sigma", "n_perturbed_copies", "ltv_lambda")
-
-
-_FLAT_KEYS = set(_FLAT_PATHS) | set(_FLAT_REGULARIZATION) | {"batch_size"}
-_FLAT_ONLY = _FLAT_KEYS - _FIELD_NAMES
-
-
-def _is_flat(d: Mapping[str, Any]) -> bool:
-    """Whether ``d`` is in the old flat format: a flat-only key, and no section given as a dict
-    or a dotted key (a dict that mixes both is read as a tree: the old key is then named with
-    its new place)."""
-    tree = any(isinstance(k, str) and "." in k for k in d) or any(
-        isinstance(d.get(name), Mapping) for name in SECTIONS)
-    return not tree and any(k in _FLAT_ONLY for k in d)
-
-
-def from_flat(flat: Mapping[str, Any]) -> AgentConfig:
-    """An :class:`AgentConfig` from the old flat dict (``AgentConfig.to_dict()`` before the tree,
-    e.g. ``{"epochs_per_episode": 150, "hidden_width": 20, "regularization": "sampled", ...}``;
-    missing keys take the defaults of that time: the paper's 4 x 1 x 20 ensemble
-    (``ModelConfig.paper()``) and 150 epochs per update, so an old config means what it meant).
-
-    ``batch_size=0`` becomes ``training.batch="trajectory"``; ``regularization`` with
-    ``jacprop_weight`` (sampled) or ``jacobian_penalty`` (exact/smooth), ``perturbation_sigma``,
-    ``n_perturbed_copies`` and ``ltv_lambda`` (``"auto"`` -> ``None``) become one
-    :class:`~mbtsr.training.RegularizationConfig`. The old format stored every field, used or
-    not: a stored value that the old agent ignored under the stored choices (e.g.
-    ``perturbation_sigma`` with ``regularization="none"``, ``cem_samples`` with the iLQR
-    planner; the tree refuses such settings) is not carried over.
-    """
-    d = dict(flat)
-    unknown = sorted(set(d) - _FLAT_KEYS)
-    if unknown:
-        raise ValueError(f"unknown AgentConfig field(s): {unknown}")
-    kind = d.pop("regularization", "sampled")
-    if kind not in REGULARIZERS:
-        raise ValueError(f"regularization must be one of {REGULARIZERS}, got {kind!r}")
-    penalty = d.pop("jacobian_penalty", 0.01)
-    weights = {"sampled": d.pop("jacprop_weight", 1.0), "exact": penalty, "smooth": penalty}
-    lam = d.pop("ltv_lambda", "auto")
-    changes: dict[str, Any] = {_FLAT_PATHS[k]: v for k, v in d.items()
-                               if k not in ("batch_size", "perturbation_sigma",
-                                            "n_perturbed_copies")}
-    changes.update({f"regularization.{k}_weight": weights[k] if k == kind else 0.0
-                    for k in REGULARIZERS[:3]})
-    changes.update({"regularization.sigma": d.get("perturbation_sigma", 0.1),
-                    "regularization.n_copies": d.get("n_perturbed_copies", 1),
-                    "regularization.ltv_lambda": None if lam == "auto" else lam})
-    if "batch_size" in d:
-        changes["training.batch"] = d["batch_size"] if d["batch_size"] != 0 else "trajectory"
-    then = _then_defaults()  # the defaults of that time: the paper's ensemble, 150 epochs
-    values = {**then.dotted(), **changes}
-    try:
-        ignored = _inactive(values)
-    except TypeError:  # a value of the wrong type: reported by replace, naming the field
-        ignored = {}
-    return then.replace({k: v for k, v in changes.items() if k not in ignored})

@@ -1,12 +1,10 @@
 """The AgentConfig tree: the library's own configs as its sections (no translation), JSON round
-trips, the old flat format (before the tree) loads to the same tree, errors name the dotted
-field, and an old-format checkpoint resumes exactly."""
+trips, and errors name the dotted field."""
 
 from __future__ import annotations
 
 import dataclasses
 import json
-from pathlib import Path
 
 import gymnasium as gym
 import pytest
@@ -14,38 +12,15 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 import envs  # noqa: F401  (registers mbtsr/TwoLinkArm-v0)
-from agents.checkpoint import load_checkpoint, save_checkpoint
 from agents.config import (
     SECTIONS,
     AgentConfig,
-    CollectionConfig,
     EvaluationConfig,
     PlannerConfig,
-    from_flat,
 )
 from agents.jacprop_agent import JacPropAgent
-from mbtsr.cem import CEMOptions
 from mbtsr.ensemble import EnsembleConfig, MemberSpec, ModelConfig, default_size
 from mbtsr.training import RegularizationConfig, TrainConfig
-
-REPO = Path(__file__).resolve().parents[1]
-
-#: ``AgentConfig().to_dict()`` before the tree (the old flat format, as checkpoints stored it)
-OLD_DEFAULTS = {
-    "n_excitation_episodes": 2, "excitation": "filtered_gaussian", "excitation_scale": 0.3,
-    "excitation_window": 8, "exploration_std": 0.1, "episode_steps": None, "formulation": "g",
-    "ensemble_size": 4, "hidden_width": 20, "hidden_layers": 1,
-    "activations": ["elu", "sigmoid", "tanh", "swish"], "epochs_per_episode": 150, "lr": 0.003,
-    "batch_size": 256, "weight_decay": 0.0, "regularization": "sampled", "jacprop_weight": 1.0,
-    "jacobian_penalty": 0.01, "perturbation_sigma": 0.1, "n_perturbed_copies": 1,
-    "renormalize": True, "ltv_lambda": "auto", "ltv_prior": 0.01, "planner": "ilqr",
-    "cem_samples": 200, "cem_elites": 20, "cem_iterations": 3, "replan_every": 1, "horizon": 30,
-    "ilqr_iterations": 2, "first_plan_iterations": 20, "terminal_weight": 1.0, "eval_every": 4,
-    "eval_episodes": 3, "eval_seed": 1000, "solved_ratio": 1.2, "solved_return": None,
-    "stop_when_solved": False, "eval_early_exit": True, "oracle_cache_dir": None, "seed": 0,
-    "run_dir": None, "checkpoint": True, "tensorboard": True, "video": False, "video_every": 5,
-    "jacobian_error": True, "progress": True, "torch_threads": 0,
-}
 
 
 def test_the_sections_are_the_library_configs():
@@ -64,47 +39,6 @@ def test_the_sections_are_the_library_configs():
         members=(MemberSpec("swish", width, layers),) * 4)
     assert AgentConfig(model=ModelConfig.paper()).model.ensemble_config(4, 2, seed=5) == \
         EnsembleConfig(state_dim=4, action_dim=2, seed=5)  # the paper's nominal ensemble
-
-
-#: ``AgentConfig().to_dict()`` of the tree before the scaled model and the step budget (as
-#: checkpoints of that time stored it)
-OLD_TREE = {
-    "collection": {"n_excitation_episodes": 2, "excitation": "filtered_gaussian",
-                   "excitation_scale": 0.3, "excitation_window": 8, "exploration_std": 0.1,
-                   "episode_steps": None},
-    "model": {"formulation": "g", "ensemble_size": 4, "hidden_width": 20, "hidden_layers": 1,
-              "activations": ["elu", "sigmoid", "tanh", "swish"]},
-    "training": {"epochs": 150, "lr": 0.003, "batch": 256, "weight_decay": 0.0,
-                 "decoupled_weight_decay": False, "betas": [0.9, 0.999], "adam_eps": 1e-08,
-                 "shuffle": True, "seed": 0, "progress": False},
-    "regularization": {"sampled_weight": 1.0, "sigma": 0.1, "n_copies": 1,
-                       "copies_batch": "shared", "exact_weight": 0.0, "smooth_weight": 0.0,
-                       "ltv_lambda": None, "ltv_affine": False},
-    "planner": {"horizon": 30, "replan_every": 1, "kind": "ilqr", "terminal_weight": 1.0,
-                "ilqr_iterations": 2, "first_plan_iterations": 20,
-                "cem": {"samples": 200, "elites": 20, "iterations": 3, "init_std": 0.5,
-                        "smoothing": 0.1, "tol_std": 0.001, "seed": 0,
-                        "max_state_norm": 100000000.0, "termination_cost": 0.0}},
-    "evaluation": {"every": 4, "episodes": 3, "seed": 1000, "early_exit": True,
-                   "solved_ratio": 1.2, "solved_return": None, "stop_when_solved": False,
-                   "oracle_cache_dir": None},
-    "seed": 0, "renormalize": True, "ltv_prior": 0.01, "run_dir": None, "checkpoint": True,
-    "tensorboard": True, "video": False, "video_every": 5, "jacobian_error": True,
-    "progress": True, "torch_threads": 0,
-}
-
-
-def test_an_old_tree_config_keeps_its_model_and_epoch_schedule():
-    """A config saved before the step budget (no ``training.steps`` and no
-    ``model.probabilistic``) loads to what it meant: the paper's ensemble trained 150 epochs per
-    update, CEM with one particle, planning on the mean."""
-    cfg = AgentConfig.from_dict(OLD_TREE)
-    assert cfg.training == TrainConfig(epochs=150, lr=3e-3, batch=256, progress=False)
-    assert cfg.training.steps is None
-    assert cfg.model == ModelConfig.paper()
-    assert cfg.planner == PlannerConfig(kind="ilqr")
-    assert cfg.planner.cem.particles == 1 and cfg.planner.propagation == "mean"
-    assert from_flat(OLD_DEFAULTS) == cfg  # the old flat format means the same
 
 
 def test_the_agent_uses_the_sections_as_they_are():
@@ -168,8 +102,8 @@ def test_unknown_fields_are_named():
         AgentConfig.from_dict({**AgentConfig().to_dict(), "model": {"depth": 2}})
     with pytest.raises(ValueError, match=r"unknown AgentConfig field 'planner\.depth'"):
         AgentConfig().replace({"planner.depth": 2})
-    with pytest.raises(ValueError, match=r"'horizon' \(a field before the tree: now "
-                                         r"'planner\.horizon'\)"):
+    with pytest.raises(ValueError, match=r"'horizon'; the closest valid field is "
+                                         r"'planner\.horizon'"):
         AgentConfig().replace({"horizon": 2})
 
 
@@ -179,100 +113,6 @@ def test_from_dict_and_from_json_refuse_a_non_dict(bad):
         AgentConfig.from_dict(bad)
     with pytest.raises(ValueError, match="AgentConfig.from_dict needs a dict"):
         AgentConfig.from_json(json.dumps(bad))
-
-
-# ---------------------------------------------------------------------------- the old flat format
-def test_the_old_flat_defaults_load_to_the_default_tree_of_their_time():
-    then = AgentConfig(model=ModelConfig.paper(), planner=PlannerConfig(kind="ilqr"),
-                       training=TrainConfig(epochs=150, lr=3e-3, batch=256, progress=False),
-                       torch_threads=0)
-    assert from_flat(OLD_DEFAULTS) == then
-    assert AgentConfig.from_dict(OLD_DEFAULTS) == then  # detected
-    assert from_flat({}) == then  # missing keys: the defaults of that time
-
-
-def test_every_old_flat_field_lands_on_its_tree_field():
-    old = {**OLD_DEFAULTS, "n_excitation_episodes": 3, "excitation": "multisine",
-           "excitation_scale": 0.5, "excitation_window": 4, "exploration_std": 0.0,
-           "episode_steps": 50, "formulation": "f", "ensemble_size": 2, "hidden_width": 7,
-           "hidden_layers": 2, "activations": ["tanh"], "epochs_per_episode": 11, "lr": 0.01,
-           "batch_size": 0, "weight_decay": 1e-4, "regularization": "smooth",
-           "jacprop_weight": 0.3, "jacobian_penalty": 0.2, "perturbation_sigma": 0.05,
-           "n_perturbed_copies": 2, "renormalize": False, "ltv_lambda": 4.0, "ltv_prior": 0.0,
-           "planner": "cem", "cem_samples": 50, "cem_elites": 5, "cem_iterations": 2,
-           "replan_every": 3, "horizon": 12, "ilqr_iterations": 4, "first_plan_iterations": 9,
-           "terminal_weight": 2.0, "eval_every": 2, "eval_episodes": 5, "eval_seed": 7,
-           "solved_ratio": 1.5, "solved_return": -10.0, "stop_when_solved": True,
-           "eval_early_exit": False, "oracle_cache_dir": "cache", "seed": 9, "run_dir": "r",
-           "checkpoint": False, "tensorboard": False, "video": True, "video_every": 2,
-           "jacobian_error": False, "progress": False, "torch_threads": 1}
-    expected = AgentConfig(  # settings the old agent ignored are not carried over: the window
-        # of the filtered Gaussian with multisine, sigma/copies/LTV settings with smooth, the
-        # oracle's solved_ratio and early exit with solved_return
-        collection=CollectionConfig(3, "multisine", 0.5, 8, 0.0, 50),
-        model=ModelConfig("f", 2, 7, 2, ("tanh",)),
-        training=TrainConfig(epochs=11, lr=0.01, batch="trajectory", weight_decay=1e-4,
-                             progress=False),
-        regularization=RegularizationConfig(smooth_weight=0.2, ltv_lambda=None),
-        planner=PlannerConfig(kind="cem", horizon=12, replan_every=3,  # iLQR's iterations
-                              first_plan_iterations=9, terminal_weight=2.0,
-                              cem=CEMOptions(samples=50, elites=5, iterations=2)),
-        evaluation=EvaluationConfig(every=2, episodes=5, seed=7, solved_return=-10.0,
-                                    stop_when_solved=True, oracle_cache_dir="cache"),
-        seed=9, renormalize=False, run_dir="r", checkpoint=False,
-        tensorboard=False, video=True, video_every=2, jacobian_error=False, progress=False,
-        torch_threads=1)
-    assert from_flat(old) == expected
-    # the weight follows the method: jacprop_weight for sampled, jacobian_penalty for exact
-    sampled = from_flat({**old, "regularization": "sampled", "excitation": "filtered_gaussian"})
-    assert sampled.regularization == RegularizationConfig(sampled_weight=0.3, sigma=0.05,
-                                                          n_copies=2, ltv_lambda=4.0)
-    assert (sampled.ltv_prior, sampled.collection.excitation_window) == (0.0, 4)
-    oracle = from_flat({**old, "solved_return": None}).evaluation  # the oracle's criterion
-    assert (oracle.solved_ratio, oracle.early_exit) == (1.5, False)
-    assert from_flat({**old, "regularization": "exact"}).regularization.exact_weight == 0.2
-    with pytest.raises(ValueError, match="unknown AgentConfig field"):
-        from_flat({**old, "hidden_widht": 3})
-
-
-def test_the_stored_benchmark_configs_load():
-    """docs/benchmark.json stores the old flat agent configs of its runs."""
-    saved = json.loads((REPO / "docs" / "benchmark.json").read_text())["methods"]
-    for method, kind in (("jacprop", "sampled"), ("none", "none")):
-        flat = saved[method]["agent_config"]
-        cfg = AgentConfig.from_dict(flat)
-        assert cfg.regularization.kind == kind
-        assert cfg.training.epochs == flat["epochs_per_episode"]
-        assert cfg.planner.horizon == flat["horizon"]
-        assert cfg.evaluation.solved_ratio == flat["solved_ratio"]
-
-
-def test_an_old_format_checkpoint_resumes_exactly(tmp_path):
-    """A checkpoint whose agent_config is the old flat JSON loads to the same tree, and the
-    next episode is bit-identical to resuming the new-format checkpoint."""
-    flat = {**OLD_DEFAULTS, "n_excitation_episodes": 1, "episode_steps": 20,
-            "ensemble_size": 2, "hidden_width": 8, "epochs_per_episode": 5, "horizon": 5,
-            "ilqr_iterations": 1, "first_plan_iterations": 3, "eval_every": 0,
-            "ltv_lambda": 2.0, "tensorboard": False, "progress": False, "torch_threads": 1,
-            "checkpoint": False}
-    cfg = from_flat(flat)
-    env = gym.make("mbtsr/TwoLinkArm-v0")
-    agent = JacPropAgent(env, cfg)
-    agent.learn(2, progress_bar=False)
-    new = agent.save(tmp_path / "new.pt")
-    payload = load_checkpoint(new)
-    assert json.loads(payload["agent_config"]) == cfg.to_dict()
-    payload["agent_config"] = json.dumps(flat)
-    old = save_checkpoint(tmp_path / "old.pt", payload)
-    rows = []
-    for path in (new, old):
-        resumed = JacPropAgent.load(path, env=gym.make("mbtsr/TwoLinkArm-v0"))
-        assert resumed.config == cfg
-        resumed.learn(1, progress_bar=False)
-        rows.append({k: v for k, v in resumed.logger_rows[-1].items()
-                     if not k.startswith("time")})
-    assert rows[0] == rows[1]
-    assert rows[0]["phase"] == "mpc"
 
 
 # ---------------------------------------------------------------------------- errors
@@ -555,7 +395,7 @@ def test_an_unknown_key_names_itself_and_its_closest_valid_field(path, data):
         AgentConfig.from_dict(nested({typo: 1}))
     message = str(err.value)
     assert f"unknown AgentConfig field {typo!r}" in message, message
-    if "a field before the tree" not in message and "not a section" not in message:
+    if "not a section" not in message:
         closest = message.split("the closest valid field is ")[1].strip("'")
         assert closest in DEFAULTS or closest in {p.rpartition(".")[0] for p in DEFAULTS}
 
