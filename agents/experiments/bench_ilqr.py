@@ -132,18 +132,16 @@ class Args:
 
 
 def load_ensemble(path: str, seed: int):
-    """The ensemble under test, or None if mbtsr.ensemble is not available.
+    """The ensemble under test and a note on where it came from.
 
     Without a path: the paper's 4-member ensemble with random weights, its input/output
     normalization set from 4 excitation rollouts of the arm, so that its one-step increments have
     the data's scale (an unnormalized random net diverges over 200 steps); only its timing is
     representative, not its accuracy.
     """
-    try:
-        from envs.collect import collect_trajectories
-        from mbtsr.ensemble import DynamicsEnsemble, EnsembleConfig, load_model
-    except ImportError as err:  # pragma: no cover - only before the model issue lands
-        return None, f"not available: {err}"
+    from envs.collect import collect_trajectories
+    from mbtsr.ensemble import DynamicsEnsemble, EnsembleConfig, load_model
+
     if path:
         return load_model(path), f"loaded from {path}"
     model = DynamicsEnsemble(EnsembleConfig(4, 2, seed=seed))
@@ -476,9 +474,8 @@ def run(args: Args) -> dict:
         "true_mujoco": MujocoDynamics(env),
         "analytic_casadi": arm.analytic_model(),
         "analytic_casadi_jit": arm.analytic_model(jit=True),
+        "ensemble": ensemble.freeze(),  # train -> freeze -> plan
     }
-    if ensemble is not None:
-        models["ensemble"] = ensemble.freeze()  # train -> freeze -> plan
 
     def make_cost(target):
         return quadratic_cost(arm.cost_Q, arm.cost_R, np.r_[target, 0.0, 0.0])
@@ -497,8 +494,6 @@ def run(args: Args) -> dict:
                 f"{name:20s} T={T}: {row.get('ms_per_iteration', float('nan')):.2f} ms/iter "
                 f"(CPU {row.get('cpu_ms_per_iteration', float('nan')):.2f})"
             )
-    if ensemble is None:
-        timing["ensemble"] = ensemble_note
 
     # ---- 2. convergence and cost vs IPOPT (analytic model; true model for iterations)
     comparison = {}
@@ -588,7 +583,7 @@ def run(args: Args) -> dict:
 
     # ---- 4. MPC real-time factor at the agent's default horizon
     mpc_models = {
-        "ensemble": models.get("ensemble"),
+        "ensemble": models["ensemble"],
         "analytic_casadi": models["analytic_casadi"],
         "analytic_casadi_jit": models["analytic_casadi_jit"],
         "true_mujoco_analytic_jacobians": HybridDynamics(
@@ -599,8 +594,6 @@ def run(args: Args) -> dict:
     mpc_results = {}
     x0, target = problems[0]
     for name, model in mpc_models.items():
-        if model is None:
-            continue
         mpc = MPC(
             ilqr,
             make_cost(target),
