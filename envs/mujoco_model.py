@@ -38,7 +38,7 @@ env's ``qacc_warmstart`` zeroed the two agree bit for bit (tested).
   joints, where MuJoCo's tangent space is ``[qpos, qvel]``). At ``|u_i| = 1`` MuJoCo differences
   one-sidedly inside ``ctrlrange``.
 - ``"fd"``: centred differences of whole env steps, all ``2 (n + m) T`` perturbed steps in ONE
-  batched ``mujoco.rollout`` call (threaded with ``nthread > 1``). Works for every integrator,
+  batched ``mujoco.rollout`` call. Works for every integrator,
   including RK4. Perturbations follow the raw coordinates (``qpos`` as stored).
 - ``"auto"`` (default): ``"transition_fd"`` where it applies, else ``"fd"``.
 
@@ -138,7 +138,6 @@ class MujocoDynamics:
     :param integrator: ``None`` (the env's), ``"euler"``, ``"rk4"``, ``"implicit"`` or
         ``"implicitfast"``.
     :param jacobian_method: ``"auto"``, ``"transition_fd"`` or ``"fd"``.
-    :param nthread: threads of ``mujoco.rollout`` for ``step`` and ``"fd"`` Jacobians.
     :param fd_eps: finite-difference step (absolute, per coordinate).
 
     ``linear_batch_cost = True`` tells iLQR that a batch of ``N`` steps costs ``N`` simulations
@@ -153,7 +152,6 @@ class MujocoDynamics:
         *,
         integrator: str | None = None,
         jacobian_method: str = "auto",
-        nthread: int = 1,
         fd_eps: float = 1e-6,
     ) -> None:
         base = _unwrap(env)
@@ -169,8 +167,6 @@ class MujocoDynamics:
                 f"env has {self.model.na} actuator activation state(s); MujocoDynamics supports "
                 "state = (qpos, qvel) only"
             )
-        if int(nthread) != nthread or nthread < 1:
-            raise ValueError(f"nthread must be an integer >= 1, got {nthread!r}")
         if not (math.isfinite(fd_eps) and fd_eps > 0):
             raise ValueError(f"fd_eps must be a finite number > 0, got {fd_eps!r}")
         self.frame_skip = int(base.frame_skip)
@@ -179,7 +175,6 @@ class MujocoDynamics:
         self.state_dim = self.nq + self.nv
         self.action_dim = self.model.nu
         self.fd_eps = float(fd_eps)
-        self.nthread = int(nthread)
         is_rk4 = self.model.opt.integrator == mujoco.mjtIntegrator.mjINT_RK4
         transition_ok = not is_rk4 and self.nq == self.nv
         if jacobian_method == "auto":
@@ -195,7 +190,7 @@ class MujocoDynamics:
                 f"nq={self.nq}, nv={self.nv}); use 'fd'"
             )
         self.jacobian_method = jacobian_method
-        self._datas = [mujoco.MjData(self.model) for _ in range(self.nthread)]
+        self._data = mujoco.MjData(self.model)
         # template full-physics state: the env's (mocap etc.), time 0
         data = mujoco.MjData(self.model)
         data.mocap_pos[:] = base.data.mocap_pos
@@ -206,7 +201,6 @@ class MujocoDynamics:
         mujoco.mj_getState(self.model, data, self._template, _SPEC)
         self._template[0] = 0.0
         self._qpos0 = mujoco.mj_stateSize(self.model, mujoco.mjtState.mjSTATE_TIME)
-        self._runner = rollout.Rollout(nthread=self.nthread) if self.nthread > 1 else None
         self._obs_scratch: dict[int, tuple] = {}  # id(env) -> (its model, a private MjData)
 
     def set_mocap(self, pos: np.ndarray, quat: np.ndarray | None = None) -> None:
@@ -223,8 +217,8 @@ class MujocoDynamics:
         state0 = np.empty((N, self._nstate))
         state0[:] = self._template
         state0[:, self._qpos0 : self._qpos0 + self.state_dim] = xs
-        if N <= _LOOP_MAX and self._runner is None:  # cheaper than rollout's wrapper
-            d, model, out = self._datas[0], self.model, np.empty((N, self.state_dim))
+        if N <= _LOOP_MAX:  # cheaper than rollout's wrapper
+            d, model, out = self._data, self.model, np.empty((N, self.state_dim))
             for i in range(N):
                 mujoco.mj_setState(model, d, state0[i], _SPEC)
                 d.qacc_warmstart[:] = 0.0
@@ -233,15 +227,9 @@ class MujocoDynamics:
                 out[i, : self.nq] = d.qpos
                 out[i, self.nq :] = d.qvel
             return out
-        control = us[:, None, :]
-        if self._runner is None:
-            states, _ = rollout.rollout(
-                self.model, self._datas[0], state0, control, nstep=self.frame_skip
-            )
-        else:
-            states, _ = self._runner.rollout(
-                self.model, self._datas, state0, control, nstep=self.frame_skip
-            )
+        states, _ = rollout.rollout(
+            self.model, self._data, state0, us[:, None, :], nstep=self.frame_skip
+        )
         return states[:, -1, self._qpos0 : self._qpos0 + self.state_dim]
 
     def step(self, x: np.ndarray, u: np.ndarray, t: int | None = None) -> np.ndarray:

@@ -119,21 +119,16 @@ def test_jacobians_match_central_differences_of_env_step(env_id, method):
         np.testing.assert_allclose(B[k], B_ref, rtol=0, atol=1e-6 * scale)
 
 
-def test_rk4_integrator_and_threads():
+def test_rk4_integrator():
     env = gym.make("mbtsr/TwoLinkArm-v0")
     env.reset(seed=3)
-    rk4 = MujocoDynamics(env, integrator="rk4", nthread=2)
+    rk4 = MujocoDynamics(env, integrator="rk4")
     assert rk4.jacobian_method == "fd"
     euler = MujocoDynamics(env)
     x, u = np.array([0.3, -0.2, 1.0, -1.5]), np.array([0.4, -0.3])
     # both integrate the same ODE: close, not equal; the env's model is unchanged
     assert 0 < np.abs(rk4.step(x, u) - euler.step(x, u)).max() < 1e-2
     assert env.unwrapped.model.opt.integrator == euler.model.opt.integrator
-    one = MujocoDynamics(env, integrator="rk4")
-    X = np.tile(x, (6, 1))
-    U = np.tile(u, (6, 1))
-    np.testing.assert_array_equal(rk4.step(X, U), one.step(X, U))
-    np.testing.assert_array_equal(rk4.jacobians(X, U)[0], one.jacobians(X, U)[0])
     with pytest.raises(ValueError, match="transition_fd"):
         MujocoDynamics(env, integrator="rk4", jacobian_method="transition_fd")
 
