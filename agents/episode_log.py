@@ -56,35 +56,30 @@ TIMING_COLUMNS: tuple[str, ...] = tuple(c for c in LOG_COLUMNS if c.startswith("
 class EpisodeLog:
     """Rows of per-episode scalars, mirrored to ``<run_dir>/episodes.csv`` and TensorBoard.
 
-    :param run_dir: folder for ``episodes.csv`` and ``tb/``; ``None`` keeps rows in memory only.
+    :param run_dir: folder for ``episodes.csv`` and ``tb/``.
     :param tensorboard: write TensorBoard scalars under ``<run_dir>/tb``.
     :param rows: rows restored from a checkpoint (a resumed run).
     """
 
     def __init__(
         self,
-        run_dir: str | Path | None,
+        run_dir: str | Path,
         *,
         tensorboard: bool = False,
         rows: Iterable[dict[str, Any]] = (),
     ) -> None:
-        self.run_dir = None if run_dir is None else Path(run_dir)
+        self.run_dir = Path(run_dir)
         self.rows: list[dict[str, Any]] = [dict(r) for r in rows]
         self._writer = None
-        if self.run_dir is not None:
-            self.run_dir.mkdir(parents=True, exist_ok=True)
-            self._write_csv()
-            if tensorboard:
-                from torch.utils.tensorboard import SummaryWriter
+        self.run_dir.mkdir(parents=True, exist_ok=True)
+        self._write_csv()
+        if tensorboard:
+            from torch.utils.tensorboard import SummaryWriter
 
-                # events at steps >= purge_step (episodes lost to a crash) are discarded
-                self._writer = SummaryWriter(
-                    log_dir=str(self.run_dir / "tb"), purge_step=len(self.rows)
-                )
-
-    @property
-    def csv_path(self) -> Path | None:
-        return None if self.run_dir is None else self.run_dir / "episodes.csv"
+            # events at steps >= purge_step (episodes lost to a crash) are discarded
+            self._writer = SummaryWriter(
+                log_dir=str(self.run_dir / "tb"), purge_step=len(self.rows)
+            )
 
     def append(self, row: dict[str, Any]) -> None:
         """Add one episode's row (keys from :data:`LOG_COLUMNS`) and write it out."""
@@ -92,8 +87,7 @@ class EpisodeLog:
         if unknown:
             raise ValueError(f"unknown log column(s): {unknown}")
         self.rows.append(dict(row))
-        if self.run_dir is not None:
-            self._write_csv()
+        self._write_csv()
         if self._writer is not None:
             step = int(row["episode"])
             for key, value in row.items():
@@ -105,12 +99,8 @@ class EpisodeLog:
                     self._writer.add_scalar(f"{group}/{key}", v, global_step=step)
             self._writer.flush()
 
-    def column(self, name: str) -> list[Any]:
-        """All values of one column (``None`` where absent)."""
-        return [r.get(name) for r in self.rows]
-
     def _write_csv(self) -> None:
-        atomic_write_text(self.csv_path, rows_to_csv(self.rows, LOG_COLUMNS))
+        atomic_write_text(self.run_dir / "episodes.csv", rows_to_csv(self.rows, LOG_COLUMNS))
 
     def close(self) -> None:
         if self._writer is not None:

@@ -29,6 +29,7 @@ import gymnasium as gym
 import numpy as np
 
 from agents.task import ObservationCost
+from envs import ARM_ID
 from mbtsr.costs import CasadiCost
 from mbtsr.episode import EpisodeRecord, as_policy, run_episode
 from mbtsr.ilqr import ILQROptions, ilqr
@@ -36,7 +37,6 @@ from mbtsr.mpc import MPC, MPCOptions
 from mbtsr.validation import as_array, check_callable, check_int
 
 __all__ = [
-    "ARM_ID",
     "EpisodeRecord",
     "MPCPolicy",
     "SB3Predictor",
@@ -56,8 +56,6 @@ __all__ = [
     "physics_fingerprint",
     "solved_threshold",
 ]
-
-ARM_ID = "mbtsr/TwoLinkArm-v0"
 
 
 def make_env(env: gym.Env | str, **kwargs: Any) -> tuple[gym.Env, bool]:

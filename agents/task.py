@@ -291,7 +291,6 @@ class ObservationCost:
             if c_term_obs.shape != (1, 1):
                 raise ValueError(
                     f"terminal_cost_fn must return a scalar, got shape {c_term_obs.shape}")
-            self.terminal_obs_function = ca.Function("terminal_obs", [o], [c_term_obs])
             c_term = ca.substitute(c_term_obs, o, o_of_s)
         self.terminal = ca.Function("cost_state_terminal", [s, p], [c_term])
 

@@ -26,6 +26,7 @@ SCRIPTS = REPO / "scripts"
 sys.path.insert(0, str(SCRIPTS))
 
 from agents.experiments import paper_common as pc  # noqa: E402
+from mbtsr.io import write_json_atomic  # noqa: E402
 
 #: script -> (number of configs in --quick, figures it draws, numeric result keys to check)
 QUICK = {
@@ -397,7 +398,7 @@ def test_claims_statistics_match_a_direct_computation(tmp_path):
     a, b = rng.normal(size=9), rng.normal(size=9)
     for name, vals in (("none", b), ("sampled", a)):
         for s, v in enumerate(vals):
-            pc.write_json(tmp_path / "robot" / "runs" / f"{name}__seed{s}.json",
+            write_json_atomic(tmp_path / "robot" / "runs" / f"{name}__seed{s}.json",
                           {"name": name, "seed": s, "status": "ok", "result": {"jac_err": v}})
     runs = exp_claims._load(tmp_path, "robot")
     r = exp_claims.evaluate(exp_claims.Comparison(12, "robot", "sampled", "none", "jac_err"),

@@ -73,11 +73,11 @@ os.environ.setdefault("MUJOCO_GL", "egl")
 import numpy as np  # noqa: E402
 
 from agents import tasks as _tasks  # noqa: E402
+from agents.config import PLANNERS  # noqa: E402
 from agents.experiments.paper_common import finite_or_none  # noqa: E402
 from mbtsr import cli  # noqa: E402
 from mbtsr.io import atomic_write_text, write_json_atomic  # noqa: E402
 
-PLANNERS = ("ilqr", "cem", "cem-ilqr")
 REGULARIZATIONS = ("none", "sampled", "exact", "smooth")
 #: a run within this fraction of the oracle's return (below it) counts as solved
 ORACLE_MARGIN = 0.05

@@ -16,7 +16,8 @@ from pathlib import Path
 
 import numpy as np
 
-from agents.experiments.paper_common import REPO, ExperimentArgs, parse_args, write_json
+from agents.experiments.paper_common import REPO, ExperimentArgs, parse_args
+from mbtsr.io import write_json_atomic
 
 
 @dataclass
@@ -151,7 +152,7 @@ def main(args: Args) -> list[dict]:
         r = evaluate(c, cache[c.experiment])
         if r is not None:
             rows.append(r)
-    write_json(root / "claims.json", rows)
+    write_json_atomic(root / "claims.json", rows)
     (root / "claims.md").write_text(markdown(rows))
     return rows
 

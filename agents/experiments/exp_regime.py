@@ -26,6 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from agents.experiments import paper_common as pc
+from mbtsr.io import write_json_atomic
 
 EXPERIMENT = "regime"
 METHOD_LABELS = {"none": "none", "sampled": "sampled JacProp", "exact": "exact LTV match",
@@ -428,9 +429,9 @@ def main(args: Args) -> dict:
         summary["paper_protocol"] = paper_protocol_summary(protocol)
         with open(out / "table.md", "a") as fh:
             fh.write("\n" + paper_protocol_table(summary["paper_protocol"]))
-    pc.write_json(out / "summary.json", summary)
+    write_json_atomic(out / "summary.json", summary)
     if args.json:
-        pc.write_json(args.json, summary)
+        write_json_atomic(args.json, summary)
     return summary
 
 

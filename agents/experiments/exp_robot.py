@@ -125,7 +125,8 @@ def report(records: list[dict], out, figures, args: Args) -> dict:
 def truth_diagnostics(args: Args) -> dict:
     """:func:`paper_common.robot_truth_diagnostics` over seeds ``0..mc-1``, with the median and
     quartiles of each quantity; written to ``<out>/truth.json``."""
-    from agents.experiments.paper_common import output_dirs, robot_truth_diagnostics, write_json
+    from agents.experiments.paper_common import output_dirs, robot_truth_diagnostics
+    from mbtsr.io import write_json_atomic
 
     out, _ = output_dirs(args, EXPERIMENT)
     cfg = pc.RobotData(n_val=args.n_val)
@@ -133,7 +134,7 @@ def truth_diagnostics(args: Args) -> dict:
     keys = list(per_seed[0])
     summary = {"per_seed": per_seed, "still_speed": args.still_speed,
                "summary": {k: pc.spread(np.array([p[k] for p in per_seed])) for k in keys}}
-    write_json(out / "truth.json", summary)
+    write_json_atomic(out / "truth.json", summary)
     return summary
 
 

@@ -30,6 +30,8 @@ from typing import Literal
 
 import numpy as np
 
+from mbtsr.io import write_json_atomic
+
 REPO = Path(__file__).resolve().parents[2]
 
 # ------------------------------------------------------------------------------------------------
@@ -143,13 +145,6 @@ def output_dirs(args, experiment: str) -> tuple[Path, Path]:
     return out, figures
 
 
-def write_json(path: str | os.PathLike, obj) -> None:
-    """Write ``obj`` as indented JSON (numpy values converted)."""
-    from mbtsr.runner import write_json_atomic
-
-    write_json_atomic(path, obj)
-
-
 def command_line() -> str:
     """The command that regenerates a result, as typed from the repository root."""
     script = Path(sys.argv[0])
@@ -181,7 +176,8 @@ def sweep_started(args, out: Path) -> dict:
     :func:`sweep_finished` logs: finished runs, library version and clocks at the start."""
     from mbtsr.runner import load_results
 
-    write_json(out / "args.json", {"args": dataclasses.asdict(args), "command": command_line()})
+    write_json_atomic(out / "args.json",
+                      {"args": dataclasses.asdict(args), "command": command_line()})
     return {"n_before": len(load_results(out)), "library": library_version(),
             "t0": time.perf_counter(), "c0": time.process_time()}
 
@@ -200,7 +196,7 @@ def sweep_finished(args, out: Path, started: dict, n_after: int) -> float:
                 "workers": args.workers, "backend": args.backend,
                 "load_avg_1min": round(os.getloadavg()[0], 2),
                 "library_at_start": started["library"], "library_at_end": library_version()})
-    write_json(log_path, log)
+    write_json_atomic(log_path, log)
     return wall
 
 
@@ -228,9 +224,9 @@ def run_experiment(
         raise SystemExit(f"no finished runs in {out}/runs; run without --report-only first")
     summary = report_fn(records, out, figures, args)
     summary = {"experiment": experiment, "n_records": len(records), **summary}
-    write_json(out / "summary.json", summary)
+    write_json_atomic(out / "summary.json", summary)
     if getattr(args, "json", ""):
-        write_json(args.json, summary)
+        write_json_atomic(args.json, summary)
     return summary
 
 
