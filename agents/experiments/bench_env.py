@@ -15,8 +15,6 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import os
-import platform
 import time
 from dataclasses import dataclass
 from typing import Literal
@@ -26,7 +24,7 @@ import mujoco
 import numpy as np
 
 import envs  # noqa: F401  (registers the envs, selects MUJOCO_GL before mujoco loads)
-from mbtsr.io import write_json_atomic
+from agents.experiments.paper_common import machine_info, write_result
 
 
 @dataclass(frozen=True)
@@ -148,16 +146,10 @@ def run(args: Args) -> dict:
         "analytic_casadi_jacobians_T100_per_s": analytic_jac_100_per_s,
         "mjd_transitionFD_centered_calls_per_s": fd_calls_per_s,
         "config": dataclasses.asdict(args),
-        "machine": {
-            "python": platform.python_version(),
-            "mujoco": mujoco.__version__,
-            "gymnasium": gym.__version__,
-            "cpus": os.cpu_count(),
-            "note": "best of repeats; 2 shared cores, timings noisy",
-        },
+        "machine": machine_info(mujoco=mujoco.__version__, gymnasium=gym.__version__,
+                                note="best of repeats; 2 shared cores, timings noisy"),
     }
     env.close()
     print(json.dumps(results, indent=2))
-    if args.json:
-        write_json_atomic(args.json, results, indent=2)
+    write_result(args.json, results, indent=2)
     return results

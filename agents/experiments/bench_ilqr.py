@@ -51,13 +51,11 @@ from __future__ import annotations
 import dataclasses
 import json
 import os
-import platform
 import subprocess
 import sys
 import tempfile
 import time
 from dataclasses import dataclass
-from pathlib import Path
 
 import gymnasium as gym
 import numpy as np
@@ -65,6 +63,7 @@ import torch
 
 import envs  # noqa: F401  (registers mbtsr/TwoLinkArm-v0)
 from agents.config import PlannerConfig
+from agents.experiments.paper_common import machine_info, write_result
 from envs.mujoco_model import HybridDynamics, MujocoDynamics
 from mbtsr.costs import quadratic_cost
 from mbtsr.episode import run_episode
@@ -439,23 +438,13 @@ def run(args: Args) -> dict:
     check_true_model_variants(args)  # before sections 1-6, not after them
     if args.true_model_only:
         results = {"args": dataclasses.asdict(args),
-                   "true_model_planning": true_model_planning(args),
-                   "machine": {"platform": platform.platform(), "cpu_count": os.cpu_count(),
-                               "load_average_end": os.getloadavg()}}
-        if args.json:
-            Path(args.json).parent.mkdir(parents=True, exist_ok=True)
-            Path(args.json).write_text(json.dumps(results, indent=2))
-            print(f"wrote {args.json}")
+                   "true_model_planning": true_model_planning(args), "machine": machine_info()}
+        write_result(args.json, results, indent=2)
         return results
     if args.scale_only:
         results = {"args": dataclasses.asdict(args), "planning_at_scale": planning_at_scale(args),
-                   "machine": {"platform": platform.platform(), "cpu_count": os.cpu_count(),
-                               "load_average_end": os.getloadavg(),
-                               "torch_threads": torch.get_num_threads()}}
-        if args.json:
-            Path(args.json).parent.mkdir(parents=True, exist_ok=True)
-            Path(args.json).write_text(json.dumps(results, indent=2))
-            print(f"wrote {args.json}")
+                   "machine": machine_info()}
+        write_result(args.json, results, indent=2)
         return results
     horizons = [int(h) for h in args.horizons.split(",")]
     load_start = os.getloadavg()
@@ -692,17 +681,8 @@ def run(args: Args) -> dict:
         "planning_at_scale": scale,
         "true_model_planning": true_models,
         "targets": targets,
-        "machine": {
-            "platform": platform.platform(),
-            "cpu_count": os.cpu_count(),
-            "load_average_start": load_start,
-            "load_average_end": os.getloadavg(),
-            "torch_threads": torch.get_num_threads(),
-        },
+        "machine": machine_info(load_start),
         "total_time_s": time.perf_counter() - t_start,
     }
-    if args.json:
-        Path(args.json).parent.mkdir(parents=True, exist_ok=True)
-        Path(args.json).write_text(json.dumps(results, indent=2))
-        print(f"wrote {args.json}")
+    write_result(args.json, results, indent=2)
     return results

@@ -23,7 +23,6 @@ os.environ.setdefault("MKL_NUM_THREADS", "1")
 
 import dataclasses  # noqa: E402
 import json  # noqa: E402
-import platform  # noqa: E402
 import time  # noqa: E402
 
 import numpy as np  # noqa: E402
@@ -31,7 +30,7 @@ import scipy  # noqa: E402
 import scipy.sparse as sp  # noqa: E402
 import scipy.sparse.linalg as spl  # noqa: E402
 
-from mbtsr.io import write_json_atomic  # noqa: E402
+from agents.experiments.paper_common import machine_info, write_result  # noqa: E402
 from mbtsr.ltv import fit_ltv, fit_ltv_tv, select_lambda  # noqa: E402
 
 
@@ -112,9 +111,8 @@ def run(args: Args) -> dict:
     horizons = [int(v) for v in args.horizons.split(",")]
     results: dict = {
         "config": dataclasses.asdict(args),
-        "machine": {"python": platform.python_version(), "numpy": np.__version__,
-                    "scipy": scipy.__version__, "cpu_count": os.cpu_count(),
-                    "threads": os.environ.get("OMP_NUM_THREADS")},
+        "machine": machine_info(numpy=np.__version__, scipy=scipy.__version__,
+                                threads=os.environ.get("OMP_NUM_THREADS")),
         "l2": [],
     }
 
@@ -231,6 +229,5 @@ def run(args: Args) -> dict:
             "met": ref["fit_s"] <= 0.010}
     print(json.dumps(results["exponent"]))
     print(json.dumps(results["targets"]))
-    if args.json:
-        write_json_atomic(args.json, results, indent=2)
+    write_result(args.json, results, indent=2)
     return results

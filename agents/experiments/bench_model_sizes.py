@@ -47,7 +47,6 @@ from __future__ import annotations
 
 import dataclasses
 import os
-import platform
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -55,11 +54,11 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from agents.experiments.paper_common import machine_info, pyplot, save_figure, write_result
 from agents.tasks import make_task
 from mbtsr import Trajectory
 from mbtsr.ensemble import DynamicsEnsemble, ModelConfig
 from mbtsr.excitation import unit_filtered_gaussian
-from mbtsr.io import write_json_atomic
 from mbtsr.training import TrainConfig, train_ensemble
 
 
@@ -311,10 +310,7 @@ def plot_sizes(paths: list[str], out: str) -> None:
     task) and CPU milliseconds per gradient step against the size, one line per task."""
     import json
 
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     fig, (ax_err, ax_time) = plt.subplots(1, 2, figsize=(10, 3.8))
     for path in paths:
@@ -337,8 +333,7 @@ def plot_sizes(paths: list[str], out: str) -> None:
         ax.set_xlabel("hidden layers x width (paper: 1 x 20, Adam 3e-3)")
         ax.grid(True, which="both", alpha=0.3)
     ax_err.legend(fontsize=8)
-    fig.tight_layout()
-    fig.savefig(out, dpi=120)
+    save_figure(fig, out, dpi=120)
     print(f"wrote {out}")
 
 
@@ -351,18 +346,12 @@ def run(args: Args) -> dict:
         return {}
     if args.study == "scaling":
         result = {"args": dataclasses.asdict(args), "results": scaling_study(args)}
-        if args.json:
-            write_json_atomic(args.json, result)
-            print(f"wrote {args.json}")
+        write_result(args.json, result)
         return result
     if args.study == "agent":
         result = {"args": dataclasses.asdict(args), "results": agent_study(args)}
-        result["machine"] = {"platform": platform.platform(), "cpu_count": os.cpu_count(),
-                             "load_average_start": load_start,
-                             "load_average_end": os.getloadavg()}
-        if args.json:
-            write_json_atomic(args.json, result)
-            print(f"wrote {args.json}")
+        result["machine"] = machine_info(load_start)
+        write_result(args.json, result)
         return result
     train = collect(args.task, args.n_train, args.seed)
     test = collect(args.task, args.n_test, args.seed + 1000)
@@ -436,11 +425,7 @@ def run(args: Args) -> dict:
     else:
         raise ValueError(f"--study must be sizes, training or agent, got {args.study!r}")
     result["results"] = rows
-    result["machine"] = {"platform": platform.platform(), "cpu_count": os.cpu_count(),
-                         "load_average_start": load_start, "load_average_end": os.getloadavg(),
-                         "torch_threads": torch.get_num_threads()}
+    result["machine"] = machine_info(load_start)
     result["total_time_s"] = time.perf_counter() - t_start
-    if args.json:
-        write_json_atomic(args.json, result)
-        print(f"wrote {args.json}")
+    write_result(args.json, result)
     return result

@@ -28,7 +28,6 @@ from __future__ import annotations
 import dataclasses
 import json
 import os
-import platform
 import sys
 import time
 
@@ -36,9 +35,9 @@ import numpy as np
 import torch
 from torch import nn
 
+from agents.experiments.paper_common import machine_info, write_result
 from mbtsr import Trajectory
 from mbtsr.ensemble import ACTIVATIONS, DynamicsEnsemble, EnsembleConfig, MemberSpec
-from mbtsr.io import write_json_atomic
 from mbtsr.ltv import fit_ltv
 from mbtsr.metrics import jacobian_error, prediction_rms
 from mbtsr.training import RegularizationConfig, TrainConfig, train_ensemble
@@ -172,7 +171,8 @@ def run(args: Args) -> dict:
 
 
     quiet = {"progress": False}
-    results: dict = {"config": dataclasses.asdict(args), "load_before": os.getloadavg()}
+    load_start = os.getloadavg()
+    results: dict = {"config": dataclasses.asdict(args)}
 
     # ---------------------------------------------------------------------------------------------
     # 1. batched K = 1, 4, 8 vs K separate modules in a loop (full batch of 1000, one step/epoch)
@@ -363,10 +363,7 @@ def run(args: Args) -> dict:
     }
     for t in results["targets"].values():
         t["met"] = bool(t["value"] <= t["max"]) if "max" in t else bool(t["value"] >= t["min"])
-    results["load_after"] = os.getloadavg()
-    results["platform"] = {"python": platform.python_version(), "torch": torch.__version__,
-                           "numpy": np.__version__, "cpus": os.cpu_count()}
+    results["machine"] = machine_info(load_start, torch=torch.__version__, numpy=np.__version__)
     print(json.dumps(results, indent=2))
-    if args.json:
-        write_json_atomic(args.json, results, indent=2)
+    write_result(args.json, results, indent=2)
     return results

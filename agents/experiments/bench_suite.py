@@ -59,7 +59,6 @@ import json
 import math
 import os
 import platform
-import subprocess
 import sys
 import time
 import warnings
@@ -74,7 +73,12 @@ import numpy as np  # noqa: E402
 
 from agents import tasks as _tasks  # noqa: E402
 from agents.config import PLANNERS  # noqa: E402
-from agents.experiments.paper_common import finite_or_none  # noqa: E402
+from agents.experiments.paper_common import (  # noqa: E402
+    finite_or_none,
+    library_version,
+    pyplot,
+    save_figure,
+)
 from mbtsr import cli  # noqa: E402
 from mbtsr.io import atomic_write_text, write_json_atomic  # noqa: E402
 
@@ -639,10 +643,7 @@ def settings_figure(base: list[dict[str, Any]], variant: list[dict[str, Any]],
     (blue), seeds thin and the median thick; the labels wrapped to the panel."""
     import textwrap
 
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     groups = paired_runs(base, variant)
     fig, axes = plt.subplots(1, len(groups), figsize=(4.3 * len(groups), 3.4), squeeze=False)
@@ -654,10 +655,7 @@ def settings_figure(base: list[dict[str, Any]], variant: list[dict[str, Any]],
         ax.set_xlabel("env steps")
         ax.set_ylabel("mean eval return")
         ax.legend(fontsize=7)
-    fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    save_figure(fig, path)
     return path
 
 
@@ -828,10 +826,7 @@ def figures(runs: list[dict[str, Any]], out: Path, baselines: dict[str, dict[str
     """Learning curves per task: every agent configuration (median over seeds, thick; seeds
     thin), PETS (black), SAC over its first budget (red), the zero action and the oracle
     (dotted grey lines); a second figure shows SAC over its whole 100,000 steps (log x)."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     names = [n for n in TASKS if any(r["task"] == n for r in runs + pets_runs + sb3_runs)]
     if not names:
@@ -873,10 +868,8 @@ def figures(runs: list[dict[str, Any]], out: Path, baselines: dict[str, dict[str
             ax.legend(fontsize=6)
         for ax in list(axes.flat)[len(names):]:
             ax.axis("off")
-        fig.tight_layout()
         p = out / ("bench_suite_sac_curves.png" if log_sac else "bench_suite_curves.png")
-        fig.savefig(p, dpi=110)
-        plt.close(fig)
+        save_figure(fig, p)
         paths.append(p)
     return paths
 
@@ -1146,12 +1139,10 @@ def _header(command_state: dict[str, Any], smoke: bool) -> None:
 
 
 def _git() -> str:
-    """The short commit of the checkout, with ``-dirty`` when tracked files are modified."""
-    def git(*cmd: str) -> str:
-        return subprocess.run(["git", "-C", str(REPO), *cmd], capture_output=True,
-                              text=True).stdout.strip()
-    return git("rev-parse", "--short", "HEAD") + (
-        "-dirty" if git("status", "--porcelain", "--untracked-files=no") else "")
+    """The short commit of the checkout, with ``-dirty`` when the code differs from it
+    (:func:`~agents.experiments.paper_common.library_version`)."""
+    v = library_version()
+    return v["commit"][:7] + ("-dirty" if v["library_dirty"] else "")
 
 
 def _load(path: Path) -> dict[str, Any]:

@@ -20,17 +20,16 @@ from pathlib import Path
 from typing import Literal
 
 import gymnasium as gym
-import matplotlib
 import numpy as np
 
 import envs  # noqa: F401  (registers the envs; sets MUJOCO_GL=egl before mujoco is loaded)
+from agents.experiments.paper_common import pyplot, save_figure
 from envs.collect import collect_trajectories, default_input_kwargs
 from envs.rendering import save_png_strip
 from mbtsr.io import write_json_atomic
 from mbtsr.trajectory import save_trajectories
 
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
+plt = pyplot()
 
 
 @dataclass(frozen=True)
@@ -107,9 +106,7 @@ def run(args: Args) -> dict:
         f"{args.n_traj} excitation trajectories ({args.input}, preset {args.preset}; "
         f"u = normalized torque, {attempts - args.n_traj} rejected)"
     )
-    fig.tight_layout()
-    fig.savefig(out / "excitation.png", dpi=110)
-    plt.close(fig)
+    save_figure(fig, out / "excitation.png")
 
     # 4. render a few frames of the first trajectory (replayed from its recorded seed and inputs)
     if args.render:

@@ -42,6 +42,7 @@ import torch
 from agents.experiments.bench_model_sizes import ltv_fit
 from agents.experiments.bench_suite import TASKS, make_agent
 from agents.experiments.exp_small_data import jacobian_rel_error, true_jacobians
+from agents.experiments.paper_common import pyplot, save_figure
 from mbtsr.io import write_json_atomic
 from mbtsr.trajectory import Trajectory
 from mbtsr.validation import check_int
@@ -247,10 +248,7 @@ def summarize(runs: dict[str, list[dict[str, Any]]]) -> dict[str, dict[str, Any]
 def plot(result: dict[str, Any], out: str) -> None:
     """The identified-direction Jacobian error of each run's model (after each update), of the
     labels and of the smooth fits, against env steps (log scale)."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     fig, ax = plt.subplots(figsize=(7, 4))
     colours = {"none": "C0", "sampled": "C1", "exact": "C2"}
@@ -271,6 +269,4 @@ def plot(result: dict[str, Any], out: str) -> None:
                  "the true MuJoCo model")
     ax.legend(fontsize=8)
     ax.grid(alpha=0.3, which="both")
-    fig.tight_layout()
-    fig.savefig(out, dpi=110)
-    plt.close(fig)
+    save_figure(fig, out)

@@ -48,7 +48,6 @@ from __future__ import annotations
 
 import dataclasses
 import os
-import platform
 import time
 from dataclasses import dataclass, field
 
@@ -56,6 +55,7 @@ import numpy as np
 import torch
 
 from agents.experiments.bench_model_sizes import collect, errors, ltv_fit
+from agents.experiments.paper_common import machine_info, pyplot, save_figure, write_result
 from agents.tasks import make_task
 from mbtsr.ensemble import ModelConfig
 from mbtsr.io import write_json_atomic
@@ -206,10 +206,7 @@ def markdown_table(cells: list[dict], regs: list[str]) -> str:
 def plot(cells: list[dict], records: list[dict], regs: list[str], out: str) -> None:
     """Per task: Jacobian error (top) and held-out error (bottom) against the episodes, median
     line and per-seed points per regularization, log y."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     tasks = list(dict.fromkeys(c["task"] for c in cells))
     fig, axes = plt.subplots(2, len(tasks), figsize=(3.2 * len(tasks), 5.6), squeeze=False)
@@ -237,8 +234,7 @@ def plot(cells: list[dict], records: list[dict], regs: list[str], out: str) -> N
             if j == 0:
                 ax.set_ylabel(label)
     axes[0, 0].legend(fontsize=8)
-    fig.tight_layout()
-    fig.savefig(out, dpi=110)
+    save_figure(fig, out)
     print(f"wrote {out}")
 
 
@@ -285,9 +281,7 @@ def label_study(args: Args) -> dict:
     result = {"args": dataclasses.asdict(args), "records": records,
               "median_jac_rel": {c: float(np.median(v)) for c, v in cells.items()},
               "wall_s": time.perf_counter() - t0}
-    if args.json:
-        write_json_atomic(args.json, result)
-        print(f"wrote {args.json}")
+    write_result(args.json, result)
     return result
 
 
@@ -348,9 +342,7 @@ def run(args: Args) -> dict:
     result = summarize(args, mcfg, regs, records, data_info, t0, load_start)
     print(result["table_markdown"])
     print(f"wall {result['wall_s']:.0f} s")
-    if args.json:
-        write_json_atomic(args.json, result)
-        print(f"wrote {args.json}")
+    write_result(args.json, result)
     if args.plot:
         plot(result["aggregate"], records, regs, args.plot)
     return result
@@ -366,6 +358,4 @@ def summarize(args: Args, mcfg: ModelConfig, regs: list[str], records: list[dict
                       "activation": mcfg.activations[0], "formulation": mcfg.formulation},
             "data": data_info, "records": records, "aggregate": cells,
             "table_markdown": table, "wall_s": time.perf_counter() - t0,
-            "machine": {"platform": platform.platform(), "cpu_count": os.cpu_count(),
-                        "torch_threads": torch.get_num_threads(),
-                        "load_average_start": load_start, "load_average_end": os.getloadavg()}}
+            "machine": machine_info(load_start)}

@@ -26,18 +26,17 @@ from pathlib import Path
 from typing import Literal
 
 import gymnasium as gym
-import matplotlib
 import numpy as np
 
 import envs  # noqa: F401  (registers mbtsr/TwoLinkArm-v0)
+from agents.experiments.paper_common import pyplot, save_figure
 from mbtsr.costs import quadratic_cost
 from mbtsr.episode import run_episode
 from mbtsr.ilqr import ILQROptions, ilqr
 from mbtsr.io import write_json_atomic
 from mbtsr.mpc import MPC, MPCOptions
 
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
+plt = pyplot()
 
 
 @dataclass(frozen=True)
@@ -219,9 +218,8 @@ def run(args: Args) -> dict:
         ax.set_xlabel("time [s]")
     axes[0, 0].legend(fontsize=8)
     fig.suptitle(f"iLQR with model '{model_name}': target {np.round(target, 2).tolist()}")
-    fig.tight_layout()
     png = out_dir / f"ilqr_with_model_{model_name}.png"
-    fig.savefig(png, dpi=100)
+    save_figure(fig, png, dpi=100)
     write_json_atomic(out_dir / f"ilqr_with_model_{model_name}.json", summary, indent=2)
     print(f"wrote {png}")
     return summary

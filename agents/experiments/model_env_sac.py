@@ -22,9 +22,9 @@ import torch
 import envs  # noqa: F401  (registers mbtsr/TwoLinkArm-v0)
 from agents import AgentConfig, JacPropAgent
 from agents.evaluation import evaluate_policy_costs, evaluation_targets
+from agents.experiments.paper_common import write_result
 from agents.model_env import ModelEnv
 from agents.sb3_baselines import make_sb3_model
-from mbtsr.io import write_json_atomic
 
 
 @dataclass(frozen=True)
@@ -89,7 +89,6 @@ def run(args: Args) -> dict:
             out["cost"][name] = real_cost(model, targets)
     for name, costs in out["cost"].items():
         print(f"{name:>26}: mean real cost {np.mean(costs):9.2f}  (return {-np.mean(costs):.2f})")
-    if args.json:
-        write_json_atomic(args.json, out)
+    write_result(args.json, out)
     return out
 

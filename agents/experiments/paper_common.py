@@ -156,8 +156,8 @@ def command_line() -> str:
 
 
 def library_version() -> dict:
-    """The git commit of the checkout and whether ``mbtsr/`` or ``envs/`` differ from it (the
-    results depend on the library code, so every sweep records it)."""
+    """The git commit of the checkout and whether ``mbtsr/``, ``envs/`` or ``agents/`` differ
+    from it (the results depend on that code, so every sweep and benchmark records it)."""
     import subprocess
 
     def git(*cmd: str) -> str:
@@ -168,7 +168,29 @@ def library_version() -> dict:
             return ""
 
     return {"commit": git("rev-parse", "HEAD"),
-            "library_dirty": bool(git("status", "--porcelain", "--", "mbtsr", "envs"))}
+            "library_dirty": bool(git("status", "--porcelain", "--", "mbtsr", "envs", "agents"))}
+
+
+def machine_info(load_start: tuple[float, ...] | None = None, **extra) -> dict:
+    """Where a timing was measured, for a result's ``"machine"``: platform, Python, cores, torch
+    threads (when torch is loaded), the load average (at ``load_start``, from
+    ``os.getloadavg()`` at the start, and now), :func:`library_version`, and ``extra``."""
+    import platform
+
+    info = {"platform": platform.platform(), "python": platform.python_version(),
+            "cpu_count": os.cpu_count()}
+    if "torch" in sys.modules:
+        info["torch_threads"] = sys.modules["torch"].get_num_threads()
+    if load_start is not None:
+        info["load_average_start"] = load_start
+    return {**info, "load_average_end": os.getloadavg(), **library_version(), **extra}
+
+
+def write_result(path: str | os.PathLike | None, result: dict, indent: int = 1) -> None:
+    """Write a script's ``--json`` result atomically and say so (nothing without a path)."""
+    if path:
+        write_json_atomic(path, result, indent=indent)
+        print(f"wrote {path}")
 
 
 def sweep_started(args, out: Path) -> dict:
@@ -317,10 +339,12 @@ def pyplot():
     return plt
 
 
-def save_figure(fig, path: Path) -> None:
+def save_figure(fig, path: str | os.PathLike, dpi: int = 110) -> None:
+    """Lay out (unless the figure has its own layout engine), save (folders created), close."""
     if fig.get_layout_engine() is None:  # a figure made with layout="constrained" keeps it
         fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    Path(path).parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=dpi)
     pyplot().close(fig)
 
 

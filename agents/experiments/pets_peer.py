@@ -711,10 +711,9 @@ def report(json_path: Path, figures: Path, suite_json: Path | None = None) -> li
     :param figures: output folder.
     :param suite_json: the agent's suite results (``docs/results/bench_suite.json``) or ``None``.
     """
-    import matplotlib
+    from agents.experiments.paper_common import pyplot, save_figure
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     results = load_results(json_path)
     figures.mkdir(parents=True, exist_ok=True)
@@ -761,10 +760,8 @@ def report(json_path: Path, figures: Path, suite_json: Path | None = None) -> li
         ax.set_ylabel("mean return, 3 eval episodes")
         ax.grid(alpha=0.3)
         ax.legend(fontsize=7, loc="center left", bbox_to_anchor=(1.01, 0.5))
-        fig.tight_layout()
         path = figures / f"pets_{task}.png"
-        fig.savefig(path, dpi=110)
-        plt.close(fig)
+        save_figure(fig, path)
         out.append(path)
     return out
 

@@ -216,7 +216,9 @@ def run(args: Args) -> dict:
     """Train (or resume) one run; write its folder, the JSON, the figures; return the summary."""
     from agents.checkpoint import CheckpointError, atomic_write_text
     from agents.evaluation import make_env
+    from agents.experiments.paper_common import write_result
     from agents.jacprop_agent import JacPropAgent
+    from mbtsr.io import write_json_atomic
 
     # 1. the run folder -----------------------------------------------------------------------
     cfg = args.agent
@@ -260,9 +262,8 @@ def run(args: Args) -> dict:
     summary = agent.summary()
     summary["wall_seconds_this_process"] = wall
     summary["run_dir"] = str(run_dir)
-    atomic_write_text(run_dir / "summary.json", json.dumps(summary, indent=2))
-    if args.json:
-        atomic_write_text(args.json, json.dumps(summary, indent=2))
+    write_json_atomic(run_dir / "summary.json", summary, indent=2)
+    write_result(args.json, summary, indent=2)
     if args.plots:
         plot_learning_curve(agent, run_dir / "learning_curve.png")
         plot_final_reach(agent, env, run_dir / "final_reach.png")
@@ -274,11 +275,11 @@ def run(args: Args) -> dict:
 
 def plot_learning_curve(agent, path: Path) -> None:
     """Episode cost (training rollouts) and evaluation cost vs episodes, with the oracle."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
     import numpy as np
+
+    from agents.experiments.paper_common import pyplot, save_figure
+
+    plt = pyplot()
 
     rows = agent.logger_rows
     ep = np.array([r["episode"] for r in rows]) + 1
@@ -304,20 +305,17 @@ def plot_learning_curve(agent, path: Path) -> None:
     ax.set_xlabel("episode")
     ax.set_title("model error before the update")
     ax.legend(fontsize=8)
-    fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
+    save_figure(fig, path, dpi=120)
 
 
 def plot_final_reach(agent, env, path: Path) -> None:
     """One evaluation reach of the final agent (and of the oracle) against its target."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
     import numpy as np
 
     from agents.evaluation import oracle_policy, run_episode
+    from agents.experiments.paper_common import pyplot, save_figure
+
+    plt = pyplot()
 
     target, seed = agent.evaluation_problem(0)
     options = None if target is None else {"target": target}
@@ -358,9 +356,7 @@ def plot_final_reach(agent, env, path: Path) -> None:
     axes[1].set_xlabel("time [s]" if agent.spec.dt else "step")
     axes[1].set_title("actions")
     axes[1].legend(fontsize=7)
-    fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
+    save_figure(fig, path, dpi=120)
 
 
 def print_summary(agent, summary: dict) -> None:
