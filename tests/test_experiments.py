@@ -165,7 +165,7 @@ def test_robot_data_covers_the_same_experiment_at_other_sample_rates():
     np.testing.assert_array_equal(tr.u, nominal["val"][0].u[::5])  # same signal, subsampled
     # the same continuous-time system: replaying the 0.1-s held input at the nominal rate
     # gives the 0.1-s samples (up to the Euler substep size, 0.002 vs 0.01 s)
-    env = pc.robot_env(pc.RobotData())
+    env = pc.arm_env(pc.RobotData())
     x, _, _ = rollout_open_loop(env, np.repeat(tr.u, 5, axis=0), reset_options={"state": tr.x[0]})
     assert np.abs(x[::5] - tr.x).max() < 0.01 * np.abs(tr.x).max()
     assert np.all(np.abs(x0[:, :2]) < 0.9 * np.pi)
@@ -375,7 +375,7 @@ def test_friction_free_arm_matches_the_analytic_twin_even_at_rest():
     u = np.array([0.1, -0.2])
     errs = {}
     for friction in (True, False):
-        env = pc.regime_env(pc.RegimeData(friction=friction))
+        env = pc.arm_env(pc.RegimeData(), friction)
         A, B = env.linearize(x, u)
         A_tw, B_tw = env.analytic_model().jacobians(x[None], u[None])
         errs[friction] = np.abs(np.concatenate([A - A_tw[0], B - B_tw[0]], 1)).max()

@@ -575,40 +575,47 @@ def held_filtered_gaussian(T: int, m: int, rng: np.random.Generator, *, dt: floa
     return u[idx]
 
 
-def robot_env(cfg: RobotData):
-    """The paper-preset arm with episodes as long as one trajectory."""
+def arm_env(cfg: ArmSampling, friction: bool = True):
+    """The paper-preset arm with episodes as long as one trajectory; ``friction=False`` removes
+    its Coulomb friction (``frictionloss = (0, 0)``; viscous friction kept)."""
     import envs  # noqa: F401 - registers the envs
     from envs.two_link_arm import TwoLinkArmEnv
 
-    return TwoLinkArmEnv(preset="paper", episode_steps=cfg.T, dt=cfg.dt)
+    params = None if friction else {"frictionloss": (0.0, 0.0)}
+    return TwoLinkArmEnv(preset="paper", episode_steps=cfg.T, dt=cfg.dt, params=params)
 
 
-def robot_dataset(cfg: RobotData, seed: int) -> dict:
-    """Train / validation / simulation trajectories of the paper arm for MC run ``seed``.
+def arm_dataset(cfg: ArmSampling, seed: int, n_train: int, *, window: int = 100,
+                friction: bool = True) -> dict:
+    """Train / validation / simulation trajectories of the paper arm (:func:`arm_env`) for MC
+    run ``seed``: the filtered Gaussian input of ``window`` taps (torque std kept at the env's
+    ``excitation_std``: scale = excitation_std * sqrt(window)) held on the ``dt`` grid,
+    trajectories redrawn while ``|q| >= 0.9 pi``, noise ``cfg.noise_std`` on the training states.
 
     :return: ``{"env": env, "train": [...], "val": [...], "sim": [...]}``.
     """
     from envs.collect import collect_trajectories
     from mbtsr.trajectory import Trajectory
 
-    env = robot_env(cfg)
-    scale = 10.0 * env.excitation_std  # 100-tap average: std = scale / 10 (about 1 N m)
+    env = arm_env(cfg, friction)
+    scale = math.sqrt(window) * env.excitation_std
 
     def collect(split: int, count: int, noise_std: float) -> list:
         trajs = collect_trajectories(
             env, count, cfg.T, input=held_filtered_gaussian,
-            input_kwargs={"dt": cfg.dt, "scale": scale}, seed=child_seed(seed, split),
-            reject_abs_q=0.9 * np.pi)
+            input_kwargs={"dt": cfg.dt, "scale": scale, "window": window},
+            seed=child_seed(seed, split), reject_abs_q=0.9 * np.pi)
         rng = seed_sequence(seed, split, 99)
         return [Trajectory(tr.x + noise_std * rng.standard_normal(tr.x.shape), tr.u, dt=tr.dt)
                 for tr in trajs]
 
-    return {
-        "env": env,
-        "train": collect(1, cfg.n_train, cfg.noise_std),
-        "val": collect(2, cfg.n_val, 0.0),
-        "sim": collect(3, cfg.n_sim, 0.0),
-    }
+    return {"env": env, "train": collect(1, n_train, cfg.noise_std),
+            "val": collect(2, cfg.n_val, 0.0), "sim": collect(3, cfg.n_sim, 0.0)}
+
+
+def robot_dataset(cfg: RobotData, seed: int) -> dict:
+    """:func:`arm_dataset` of the robot experiments (the paper's 100-tap window, friction on)."""
+    return arm_dataset(cfg, seed, cfg.n_train)
 
 
 # ------------------------------------------------------------------------------------------------
@@ -909,15 +916,6 @@ class RegimeData(ArmSampling):
     n_train_max: int = 10
 
 
-def regime_env(cfg: RegimeData):
-    """The paper-preset arm, friction on or off."""
-    import envs  # noqa: F401 - registers the envs
-    from envs.two_link_arm import TwoLinkArmEnv
-
-    params = None if cfg.friction else {"frictionloss": (0.0, 0.0)}
-    return TwoLinkArmEnv(preset="paper", episode_steps=cfg.T, dt=cfg.dt, params=params)
-
-
 _REGIME_CACHE: dict = {}
 
 
@@ -930,27 +928,12 @@ def regime_dataset(cfg: RegimeData, seed: int) -> dict:
     :return: ``{"env", "train", "val", "sim", "X", "U", "A", "B", "A_train", "B_train"}`` with
         ``A_train: [n_train_max, T, 4, 4]`` at the measured (noisy) training states.
     """
-    from envs.collect import collect_trajectories
-    from mbtsr.trajectory import Trajectory
-
     key = (cfg, int(seed))
     if key in _REGIME_CACHE:
         return _REGIME_CACHE[key]
-    env = regime_env(cfg)
-    window = EXCITATION_WINDOWS[cfg.window]
-    scale = math.sqrt(window) * env.excitation_std
-
-    def collect(split: int, count: int, noise_std: float) -> list:
-        trajs = collect_trajectories(
-            env, count, cfg.T, input=held_filtered_gaussian,
-            input_kwargs={"dt": cfg.dt, "scale": scale, "window": window},
-            seed=child_seed(seed, split), reject_abs_q=0.9 * np.pi)
-        rng = seed_sequence(seed, split, 99)
-        return [Trajectory(tr.x + noise_std * rng.standard_normal(tr.x.shape), tr.u, dt=tr.dt)
-                for tr in trajs]
-
-    d = {"env": env, "train": collect(1, cfg.n_train_max, cfg.noise_std),
-         "val": collect(2, cfg.n_val, 0.0), "sim": collect(3, cfg.n_sim, 0.0)}
+    d = arm_dataset(cfg, seed, cfg.n_train_max, window=EXCITATION_WINDOWS[cfg.window],
+                    friction=cfg.friction)
+    env = d["env"]
     d["X"], d["U"] = evaluation_points(d["val"], cfg.eval_stride)
     d["A"], d["B"] = env.linearize_trajectory(d["X"], d["U"])
     jac_train = [env.linearize_trajectory(tr.x[:-1], tr.u) for tr in d["train"]]
