@@ -19,14 +19,12 @@ training (:func:`paper_common.run_regime`).
 from __future__ import annotations
 
 import dataclasses
-import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 from agents.experiments import paper_common as pc
-from mbtsr.io import write_json_atomic
 
 EXPERIMENT = "regime"
 METHOD_LABELS = {"none": "none", "sampled": "sampled JacProp", "exact": "exact LTV match",
@@ -119,31 +117,6 @@ def make_configs(args: Args) -> dict[str, dict[str, dict]]:
                         "still_speed": args.still_speed, "n_log": args.n_log,
                         "paper_protocol": True}
     return out
-
-
-def run(args: Args, out: Path) -> list[dict]:
-    """The sweep, seed by seed (so that an interrupted sweep leaves every cell with the same
-    number of seeds, give or take the cells of the last seed), the shortest runs first."""
-    from mbtsr.runner import load_results, run_sweep
-
-    configs = make_configs(args)
-    started = pc.sweep_started(args, out)
-    t0 = started["t0"]
-    every = {**configs["main"], **configs["labels"], **configs["paper_protocol"]}
-    shortest = min(c["epochs"] for c in every.values())
-    # first the cheap shortest-run cells for every seed, then everything seed by seed: on a busy
-    # machine an interrupted sweep still has the whole short-run map at full seed count
-    for part, todo in (("short runs", {k: c for k, c in every.items()
-                                       if c["epochs"] == shortest}), ("all", every)):
-        for seed in range(args.mc):
-            run_sweep(pc.run_regime, todo, [seed], out, backend=args.backend,
-                      workers=args.workers, progress=False)
-            if not args.quick:
-                print(f"[regime] {part}: seed {seed} done, {time.perf_counter() - t0:.0f} s",
-                      flush=True)
-    recs = load_results(out)
-    pc.sweep_finished(args, out, started, len(recs))
-    return recs
 
 
 # ------------------------------------------------------------------------------------------------
@@ -413,15 +386,8 @@ def paper_protocol_table(s: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
-def main(args: Args) -> dict:
-    from mbtsr.runner import load_results
-
-    out, figures = pc.output_dirs(args, EXPERIMENT)
-    if not args.report_only:
-        run(args, out)
-    records = [r for r in load_results(out) if r.get("status") == "ok"]
-    if not records:
-        raise SystemExit(f"no finished runs in {out}")
+def report_all(records: list[dict], out: Path, figures: Path, args: Args) -> dict:
+    """:func:`report` of the map's runs, with the paper-protocol runs summarized apart."""
     protocol = [r for r in records if r["config"].get("paper_protocol")]
     records = [r for r in records if not r["config"].get("paper_protocol")]
     summary = report(records, out, figures, args, protocol)
@@ -429,10 +395,19 @@ def main(args: Args) -> dict:
         summary["paper_protocol"] = paper_protocol_summary(protocol)
         with open(out / "table.md", "a") as fh:
             fh.write("\n" + paper_protocol_table(summary["paper_protocol"]))
-    write_json_atomic(out / "summary.json", summary)
-    if args.json:
-        write_json_atomic(args.json, summary)
     return summary
+
+
+def main(args: Args) -> dict:
+    """The sweep, the shortest runs first: the cheap shortest-run cells for every seed, then
+    everything seed by seed (on a busy machine an interrupted sweep still has the whole
+    short-run map at full seed count); then the report."""
+    configs = make_configs(args)
+    every = {**configs["main"], **configs["labels"], **configs["paper_protocol"]}
+    shortest = min(c["epochs"] for c in every.values())
+    stages = [("short runs", {k: c for k, c in every.items() if c["epochs"] == shortest}),
+              ("all", every)]
+    return pc.run_experiment(args, EXPERIMENT, pc.run_regime, every, report_all, stages=stages)
 
 
 def cli(argv: list[str] | None = None) -> None:

@@ -228,18 +228,33 @@ def run_experiment(
     run_fn: Callable[[dict, int], dict],
     configs: dict[str, dict],
     report_fn: Callable[[list[dict], Path, Path, object], dict],
+    stages: Sequence[tuple[str, dict[str, dict]]] | None = None,
 ) -> dict:
     """Sweep ``run_fn`` over ``configs`` x ``range(args.mc)`` (unless ``--report-only``), then
-    report from the stored JSON alone. Returns the summary written to ``<out>/summary.json``."""
+    report from the stored JSON alone. Returns the summary written to ``<out>/summary.json``.
+
+    :param stages: ``[(label, configs), ...]`` to run one after another instead, each seed by
+        seed (an interrupted sweep then leaves every cell of a stage with the same number of
+        seeds, give or take the last seed's); ``None``: all ``configs`` in one sweep.
+    """
     from mbtsr.runner import load_results, run_sweep
 
     out, figures = output_dirs(args, experiment)
     if not args.report_only:
         started = sweep_started(args, out)
-        recs = run_sweep(run_fn, configs, range(args.mc), out, backend=args.backend,
-                         workers=args.workers, progress=not args.quick,
-                         address=args.address or None)
-        wall = sweep_finished(args, out, started, len(recs))
+        sweep = functools.partial(run_sweep, run_fn, out_dir=out, backend=args.backend,
+                                  workers=args.workers, address=args.address or None)
+        if stages is None:
+            n_after = len(sweep(configs, range(args.mc), progress=not args.quick))
+        else:
+            for label, todo in stages:
+                for seed in range(args.mc):
+                    sweep(todo, [seed], progress=False)
+                    if not args.quick:
+                        print(f"[{experiment}] {label}: seed {seed} done, "
+                              f"{time.perf_counter() - started['t0']:.0f} s", flush=True)
+            n_after = len(load_results(out))
+        wall = sweep_finished(args, out, started, n_after)
         print(f"[{experiment}] sweep finished in {wall:.1f} s")
     records = [r for r in load_results(out) if r["name"] in configs or args.report_only]
     if not records:
