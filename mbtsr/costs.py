@@ -331,14 +331,6 @@ class CasadiCost:
         """Parameter rows for absolute times ``t: [N]`` -> ``[N, p]`` (last row held)."""
         return _rows(self.check_params(params), np.asarray(t, dtype=np.int64))
 
-    def stage_expr(self, x, u, t: int, params: np.ndarray | None = None):
-        """Symbolic stage cost at the integer time ``t`` (parameters substituted)."""
-        return self.stage(x, u, float(t), self.params_at(np.array([t]), params)[0])
-
-    def terminal_expr(self, x, t: int, params: np.ndarray | None = None):
-        """Symbolic terminal cost at the integer time ``t`` (parameters substituted)."""
-        return self.terminal(x, self.params_at(np.array([t]), params)[0])
-
     # ------------------------------------------------------------------ evaluation (public)
     def stage_values(
         self, X: np.ndarray, U: np.ndarray, t0: int = 0, params: np.ndarray | None = None
@@ -351,18 +343,7 @@ class CasadiCost:
         """
         X, U = self._check_xu(X, U, len_x_extra=0)
         t0 = check_int("t0", t0, 0)
-        table = self.check_params(params)
-        batch, T = X.shape[:-2], X.shape[-2]
-        B = int(np.prod(batch, dtype=np.int64))
-        ls, _ = self._values(
-            X.reshape(B * T, self.n),
-            U.reshape(B * T, self.m),
-            np.tile(np.arange(t0, t0 + T), B),
-            np.zeros((0, self.n)),
-            t0 + T,
-            table,
-        )
-        return ls.reshape(*batch, T)
+        return self._batch_values(X, U, np.zeros((0, self.n)), t0, self.check_params(params))[0]
 
     def terminal_values(
         self, X: np.ndarray, t: int, params: np.ndarray | None = None
@@ -372,14 +353,8 @@ class CasadiCost:
         if X.ndim < 1 or X.shape[-1] != self.n:
             raise ValueError(f"X must have last dimension n={self.n}, got {list(X.shape)}")
         t = check_int("t", t, 0)
-        table = self.check_params(params)
-        batch = X.shape[:-1]
-        B = int(np.prod(batch, dtype=np.int64))
-        _, lT = self._values(
-            np.zeros((0, self.n)), np.zeros((0, self.m)), np.zeros(0), X.reshape(B, self.n), t,
-            table,
-        )
-        return lT.reshape(batch)
+        return self._batch_values(np.zeros((0, self.n)), np.zeros((0, self.m)), X, t,
+                                  self.check_params(params))[1]
 
     def total(
         self, X: np.ndarray, U: np.ndarray, t0: int = 0, params: np.ndarray | None = None
@@ -421,18 +396,7 @@ class CasadiCost:
     ) -> tuple[np.ndarray, np.ndarray]:
         """Stage costs ``[..., T]`` and terminal costs ``[...]`` of validated trajectories
         ``X: [..., T+1, n]``, ``U: [..., T, m]`` in one CasADi call."""
-        batch, T = U.shape[:-2], U.shape[-2]
-        B = int(np.prod(batch, dtype=np.int64))
-        Xf = np.ascontiguousarray(X, dtype=np.float64).reshape(B, T + 1, self.n)
-        ls, lT = self._values(
-            Xf[:, :-1].reshape(B * T, self.n),
-            np.ascontiguousarray(U, dtype=np.float64).reshape(B * T, self.m),
-            np.tile(np.arange(t0, t0 + T), B),
-            Xf[:, -1],
-            t0 + T,
-            table,
-        )
-        return ls.reshape(*batch, T), lT.reshape(batch)
+        return self._batch_values(X[..., :-1, :], U, X[..., -1, :], t0, table)
 
     def _derivatives(
         self, X: np.ndarray, U: np.ndarray, t0: int, table: np.ndarray
@@ -478,6 +442,22 @@ class CasadiCost:
         if U.shape[-2] < 1 and len_x_extra == 1:
             raise ValueError("U must hold at least one time step (T >= 1)")
         return X, U
+
+    def _batch_values(self, Xs, Us, XT, t0: int, table) -> tuple[np.ndarray, np.ndarray]:
+        """Stage costs ``[..., T]`` of ``Xs [..., T, n], Us [..., T, m]`` at times ``t0 ..
+        t0+T-1`` and terminal costs ``[...']`` of ``XT [...', n]`` at ``t0 + T`` (batches
+        flattened for :meth:`_values`, one CasADi call)."""
+        batch, T = Us.shape[:-2], Us.shape[-2]
+        B = int(np.prod(batch, dtype=np.int64))
+        ls, lT = self._values(
+            np.asarray(Xs, dtype=np.float64).reshape(B * T, self.n),
+            np.asarray(Us, dtype=np.float64).reshape(B * T, self.m),
+            np.tile(np.arange(t0, t0 + T), B),
+            np.asarray(XT, dtype=np.float64).reshape(-1, self.n),
+            t0 + T,
+            table,
+        )
+        return ls.reshape(*batch, T), lT.reshape(XT.shape[:-1])
 
     def _values(self, Xs, Us, ts, XT, tT: int, table) -> tuple[np.ndarray, np.ndarray]:
         """Stage values for the rows of ``Xs [N, n], Us [N, m]`` at times ``ts [N]`` and
