@@ -879,41 +879,6 @@ class DynamicsEnsemble(nn.Module):
         _, J = self.stacked_forward(xu, jac_rows=xu.shape[0])
         return self._config_order(J)
 
-    def member_parameters(self, k: int, *, grad: bool = False) -> dict[str, torch.Tensor]:
-        """Views of member ``k``'s (config index) unpadded parameters, or of their gradients.
-
-        Weights are ``[fan_in, fan_out]`` (``y = x @ W + b``): ``W1, b1, W2, b2, ..., Wo, bo``,
-        ``ln_gain*/ln_bias*`` with layer norm and ``Wv, bv, max_logvar, min_logvar``
-        (``[1, n]``) for probabilistic members.
-        """
-        if not 0 <= k < self.n_members:
-            raise ValueError(f"k must be in [0, {self.n_members}), got {k}")
-        spec = self.config.members[k]
-        pos = self._stacked_order.index(k)
-        for g in self.groups:
-            K = g.W1.shape[0]
-            if pos < K and g.depth == spec.depth:
-                break
-            pos -= K
-        w = spec.width
-        out = {}
-        for name, p in g.named_parameters():
-            if name.startswith("ln_") and not spec.layer_norm:
-                continue  # the group has layer-norm parameters, this member does not use them
-            t = p.grad if grad else p.data
-            if t is None:
-                out[name] = None
-                continue
-            t = t[pos]
-            if name in ("Wo", "Wv"):
-                t = t[:w]
-            elif name[0] == "W" and name != "W1":  # W2, W3, ... [W, W]
-                t = t[:w, :w]
-            elif name not in ("bo", "bv", "max_logvar", "min_logvar"):  # W1 [in, W], b*/ln_*
-                t = t[:, :w]
-            out[name] = t
-        return out
-
     # ---------------------------------------------------------------- planning surface
     def freeze(self) -> FrozenEnsemble:
         """An immutable float64 copy for planning (:class:`FrozenEnsemble`): weights copied
