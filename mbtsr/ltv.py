@@ -190,34 +190,6 @@ class LTVModel:
         out += np.einsum("tij,...tj->...ti", self.B[:Tp], u)
         return out + self.c[:Tp] if self.c is not None else out
 
-    def simulate(self, x0: np.ndarray, u: np.ndarray) -> np.ndarray:
-        """Free-run simulation from ``x0`` driven by ``u``.
-
-        :param x0: ``[n]`` (or ``[..., n]`` batch) initial state.
-        :param u: ``[T', m]`` (or ``[T', ..., m]``) inputs, ``T' <= T``.
-        :return: ``[T'+1, n]`` (or ``[T'+1, ..., n]``) states.
-        """
-        x0 = as_array("x0", x0)
-        u = as_array("u", u)
-        if x0.ndim < 1 or x0.shape[-1] != self.state_dim:
-            raise ValueError(f"x0 must be [..., n] with n={self.state_dim}, got {list(x0.shape)}")
-        if (
-            u.ndim != x0.ndim + 1
-            or u.shape[-1] != self.action_dim
-            or u.shape[1:-1] != x0.shape[:-1]
-        ):
-            raise ValueError(
-                f"u must be [T', ..., m] with m={self.action_dim} matching x0 {list(x0.shape)}, "
-                f"got {list(u.shape)}"
-            )
-        self._check_window(0, u.shape[0], "simulate")
-        xs = np.empty((u.shape[0] + 1, *x0.shape))
-        xs[0] = x0
-        c = self.c if self.c is not None else np.zeros((self.T, self.state_dim))
-        for t in range(u.shape[0]):
-            xs[t + 1] = xs[t] @ self.A[t].T + u[t] @ self.B[t].T + c[t]
-        return xs
-
     def sample_perturbed(
         self,
         x: np.ndarray,

@@ -347,7 +347,7 @@ def test_tv_with_huge_lambda_is_time_invariant_and_zero_lambda_is_per_time_ls():
 # ------------------------------------------------------------------------------------------
 
 
-def test_model_protocol_predict_simulate_jacobians():
+def test_model_protocol_predict_rollout_jacobians():
     T = 40
     A, B = smooth_system(T)
     x, u = simulate_ltv(A, B, N=1, noise=0.0, seed=81)
@@ -358,8 +358,7 @@ def test_model_protocol_predict_simulate_jacobians():
     by_step = np.stack([model.step(x[0, t], u[0, t], t) for t in range(T)])
     np.testing.assert_allclose(pred, by_step, rtol=1e-12)
     np.testing.assert_allclose(model.predict(x, u)[0], pred)  # episode dim
-    sim = model.simulate(x[0, 0], u[0])
-    np.testing.assert_allclose(sim, rollout(model, x[0, 0], u[0]), rtol=1e-12)
+    sim = rollout(model, x[0, 0], u[0])
     np.testing.assert_allclose(sim, x[0], atol=1e-4)  # noise-free data, tiny lambda
     Aj, Bj = model.jacobians(x[0, 5:15], u[0, 5:15], t=5)
     np.testing.assert_array_equal(Aj, model.A[5:15])
@@ -552,7 +551,7 @@ def test_model_rejects_bad_arrays_and_calls():
     with pytest.raises(ValueError, match="x must"):
         model.predict(np.zeros((3, 3)), np.zeros((3, 1)))
     with pytest.raises(ValueError, match="outside"):
-        model.simulate(np.zeros(2), np.zeros((4, 1)))
+        rollout(model, np.zeros(2), np.zeros((4, 1)))
     with pytest.raises(ValueError, match="n_copies"):
         model.sample_perturbed(np.zeros((3, 2)), np.zeros((3, 1)), n_copies=0)
     with pytest.raises(ValueError, match="sigma"):
