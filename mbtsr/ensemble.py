@@ -62,7 +62,7 @@ from torch.nn import functional as F  # noqa: N812
 from mbtsr._lqr_kernels import guard_row, policy_row, rollout_buffers
 from mbtsr.dynamics import check_step_inputs, check_step_shapes
 from mbtsr.fileformat import CheckpointError, torch_load_verified, torch_save_verified
-from mbtsr.trajectory import Trajectory
+from mbtsr.trajectory import Trajectory, as_trajectory_list
 from mbtsr.validation import as_array, check_int
 
 __all__ = [
@@ -1588,14 +1588,8 @@ class TrajectorySampling:
 
 def _pool_transitions(trajs, n: int, m: int) -> tuple[np.ndarray, np.ndarray]:
     """All transitions of ``trajs`` as ``xu [N, n+m]`` and ``x_next [N, n]`` (float64)."""
-    if isinstance(trajs, Trajectory):
-        trajs = [trajs]
-    trajs = list(trajs)
-    if not trajs:
-        raise ValueError("trajs must hold at least one Trajectory")
+    trajs = as_trajectory_list(trajs)
     for i, tr in enumerate(trajs):
-        if not isinstance(tr, Trajectory):
-            raise ValueError(f"trajs[{i}] must be a Trajectory, got {type(tr).__name__}")
         if tr.n != n or tr.m != m:
             raise ValueError(f"trajs[{i}] has (n, m) = ({tr.n}, {tr.m}), the model ({n}, {m})")
         as_array(f"trajs[{i}].x", tr.x)

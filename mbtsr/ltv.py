@@ -43,7 +43,7 @@ import scipy.linalg as sla
 from scipy.optimize import minimize_scalar
 
 from mbtsr.dynamics import check_step_inputs
-from mbtsr.trajectory import Trajectory
+from mbtsr.trajectory import Trajectory, stack_trajectories
 from mbtsr.validation import as_array, check_int, check_nonnegative, check_positive
 
 __all__ = ["LTVModel", "fit_ltv", "fit_ltv_tv", "select_lambda", "fuse_prior"]
@@ -246,17 +246,10 @@ def _episodes(data: object) -> tuple[np.ndarray, np.ndarray]:
     """Normalize ``data`` to ``X [N, T+1, n]``, ``U [N, T, m]`` (float64, validated)."""
     if isinstance(data, Trajectory):
         X, U = data.x[None], data.u[None]
-    elif (
-        isinstance(data, Sequence)
-        and len(data) > 0
-        and all(isinstance(d, Trajectory) for d in data)
+    elif isinstance(data, Sequence) and len(data) > 0 and all(
+        isinstance(d, Trajectory) for d in data
     ):
-        shapes = {(d.x.shape, d.u.shape) for d in data}
-        if len(shapes) != 1:
-            raise ValueError(
-                f"data: aligned trajectories must share T, n and m, got shapes {sorted(shapes)}"
-            )
-        X, U = np.stack([d.x for d in data]), np.stack([d.u for d in data])
+        X, U = stack_trajectories(data, "data")
     elif isinstance(data, tuple) and len(data) == 2:
         X = as_array("x", data[0])
         U = as_array("u", data[1])

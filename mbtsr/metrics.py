@@ -20,7 +20,7 @@ from collections.abc import Sequence
 import numpy as np
 
 from mbtsr.dynamics import DynamicsModel, rollout
-from mbtsr.trajectory import Trajectory
+from mbtsr.trajectory import Trajectory, as_trajectory_list
 from mbtsr.validation import as_array, check_int, check_positive
 
 __all__ = [
@@ -31,17 +31,6 @@ __all__ = [
     "jacobian_rms_per_entry",
     "jacobian_eigenvalues",
 ]
-
-
-def _trajectories(trajs: object) -> list[Trajectory]:
-    if isinstance(trajs, Trajectory):
-        return [trajs]
-    if not isinstance(trajs, Sequence) or len(trajs) == 0:
-        raise ValueError("trajs must be a Trajectory or a non-empty list of Trajectory")
-    for i, tr in enumerate(trajs):
-        if not isinstance(tr, Trajectory):
-            raise ValueError(f"trajs[{i}] must be a Trajectory, got {type(tr).__name__}")
-    return list(trajs)
 
 
 def _check_model_dims(model: DynamicsModel, trajs: list[Trajectory]) -> None:
@@ -77,7 +66,7 @@ def prediction_rms(
         instead of one number.
     :return: float, or ``[n]``; ``inf`` if a prediction is not finite.
     """
-    trajs = _trajectories(trajs)
+    trajs = as_trajectory_list(trajs)
     _check_model_dims(model, trajs)
     err = [tr.x[1:] - np.asarray(model.step(tr.x[:-1], tr.u), dtype=float) for tr in trajs]
     return _rms(np.concatenate(err), per_dimension)
@@ -102,7 +91,7 @@ def simulation_rms(
     :return: ``(rms, n_diverged)``. ``rms`` pools all trajectories, diverged ones included, and
         is ``inf`` when a simulation blew up to non-finite values.
     """
-    trajs = _trajectories(trajs)
+    trajs = as_trajectory_list(trajs)
     _check_model_dims(model, trajs)
     thr = check_positive("divergence_threshold", divergence_threshold)
     errs, n_diverged = [], 0
@@ -142,7 +131,7 @@ def k_step_rms(
     :raises ValueError: ``k`` is not an integer >= 1, or no trajectory has ``k`` steps.
     """
     check_int("k", k, 1)
-    trajs = _trajectories(trajs)
+    trajs = as_trajectory_list(trajs)
     _check_model_dims(model, trajs)
     long = [tr for tr in trajs if tr.T >= k]
     if not long:

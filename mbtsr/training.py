@@ -50,7 +50,7 @@ from torch.nn import functional as F  # noqa: N812
 from tqdm.auto import tqdm
 
 from mbtsr.ensemble import DynamicsEnsemble, _pool_transitions
-from mbtsr.trajectory import Trajectory
+from mbtsr.trajectory import Trajectory, as_trajectory_list
 from mbtsr.validation import check_int, check_nonnegative, check_positive
 
 __all__ = ["TrainConfig", "RegularizationConfig", "REGULARIZERS", "DEFAULT_WEIGHTS", "TrainHistory",
@@ -334,17 +334,6 @@ def holdout_mask(n: int, fraction: float) -> np.ndarray:
     return np.random.default_rng(HOLDOUT_SEED).random(int(n)) < fraction
 
 
-def _as_trajectory_list(name: str, trajs: object) -> list[Trajectory]:
-    if isinstance(trajs, Trajectory):
-        return [trajs]
-    if not isinstance(trajs, Sequence) or len(trajs) == 0:
-        raise ValueError(f"{name} must be a non-empty list of Trajectory")
-    for i, tr in enumerate(trajs):
-        if not isinstance(tr, Trajectory):
-            raise ValueError(f"{name}[{i}] must be a Trajectory, got {type(tr).__name__}")
-    return list(trajs)
-
-
 def _fit_ltv_models(trajs: list[Trajectory], reg: RegularizationConfig) -> list:
     from mbtsr.ltv import fit_ltv, select_lambda
 
@@ -529,7 +518,7 @@ def train_ensemble(
         raise ValueError(f"reg must be a RegularizationConfig, got {type(reg).__name__}")
     if callback is not None and not callable(callback):
         raise ValueError(f"callback must be callable or None, got {type(callback).__name__}")
-    trajs = _as_trajectory_list("trajs", trajs)
+    trajs = as_trajectory_list(trajs)
     n, m = model.state_dim, model.action_dim
     xu_np, x_next_np = _pool_transitions(trajs, n, m)  # validates dims and finiteness
     lengths = [tr.T for tr in trajs]
@@ -537,7 +526,7 @@ def train_ensemble(
     N = int(starts[-1])
     val_data = None
     if validation is not None:
-        validation = _as_trajectory_list("validation", validation)
+        validation = as_trajectory_list(validation, "validation")
         val_data = _pool_transitions(validation, n, m)
 
     if not model.is_normalized:

@@ -82,16 +82,33 @@ class Trajectory:
         return self.x[1:]
 
 
-def stack_trajectories(trajs: Sequence[Trajectory]) -> tuple[np.ndarray, np.ndarray]:
+def as_trajectory_list(trajs: object, name: str = "trajs") -> list[Trajectory]:
+    """``trajs``, a :class:`Trajectory` or a non-empty sequence of them, as a list; otherwise a
+    ``ValueError`` naming ``name`` (and the first entry that is not a Trajectory)."""
+    if isinstance(trajs, Trajectory):
+        return [trajs]
+    if not isinstance(trajs, Sequence) or len(trajs) == 0:
+        raise ValueError(f"{name} must be a Trajectory or a non-empty list of Trajectory")
+    for i, tr in enumerate(trajs):
+        if not isinstance(tr, Trajectory):
+            raise ValueError(f"{name}[{i}] must be a Trajectory, got {type(tr).__name__}")
+    return list(trajs)
+
+
+def stack_trajectories(
+    trajs: Sequence[Trajectory], name: str = "trajs"
+) -> tuple[np.ndarray, np.ndarray]:
     """Stack aligned trajectories into ``X [N, T+1, n]`` and ``U [N, T, m]``.
 
-    Raises ``ValueError`` if the trajectories differ in length or dimensions.
+    Raises ``ValueError`` (naming the argument ``name``) if the trajectories differ in length or
+    dimensions.
     """
     if len(trajs) == 0:
-        raise ValueError("trajs must hold at least one Trajectory")
+        raise ValueError(f"{name} must hold at least one Trajectory")
     shapes = {(t.x.shape, t.u.shape) for t in trajs}
     if len(shapes) != 1:
-        raise ValueError(f"trajs must share T, n and m to be stacked; got shapes {shapes}")
+        raise ValueError(f"{name} must share T, n and m to be stacked; got shapes "
+                         f"{sorted(shapes)}")
     return np.stack([t.x for t in trajs]), np.stack([t.u for t in trajs])
 
 
