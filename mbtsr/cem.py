@@ -118,10 +118,7 @@ class CEMOptions:
             if not isinstance(v, int | float) or not np.isfinite(v) or v < lo or v > hi:
                 raise ValueError(f"options.{name} must be a finite number in [{lo}, {hi}], "
                                  f"got {v!r}")
-        if isinstance(self.seed, bool) or not isinstance(self.seed, int | np.integer) or (
-            self.seed < 0
-        ):
-            raise ValueError(f"options.seed must be an integer >= 0, got {self.seed!r}")
+        check_int("options.seed", self.seed, 0)
         if not np.isfinite(self.termination_cost):
             raise ValueError("options.termination_cost must be finite")
 

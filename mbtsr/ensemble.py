@@ -63,7 +63,7 @@ from mbtsr._lqr_kernels import guard_row, policy_row, rollout_buffers
 from mbtsr.dynamics import check_step_inputs, check_step_shapes
 from mbtsr.fileformat import CheckpointError, torch_load_verified, torch_save_verified
 from mbtsr.trajectory import Trajectory, as_trajectory_list
-from mbtsr.validation import as_array, check_int
+from mbtsr.validation import as_array, check_bool, check_int
 
 __all__ = [
     "ModelConfig",
@@ -176,21 +176,12 @@ class MemberSpec:
             raise ValueError(
                 f"activation must be one of {sorted(ACTIVATIONS)}, got {self.activation!r}"
             )
-        if isinstance(self.width, bool) or not isinstance(self.width, (int, np.integer)):
-            raise ValueError(f"width must be an int >= 1, got {self.width!r}")
-        if self.width < 1:
-            raise ValueError(f"width must be an int >= 1, got {self.width!r}")
-        if isinstance(self.depth, bool) or not isinstance(self.depth, (int, np.integer)) or (
-                self.depth < 1):
-            raise ValueError(f"depth must be an int >= 1, got {self.depth!r}")
+        object.__setattr__(self, "width", check_int("width", self.width, 1))
+        object.__setattr__(self, "depth", check_int("depth", self.depth, 1))
         if not (np.isfinite(self.dropout) and 0.0 <= self.dropout < 1.0):
             raise ValueError(f"dropout must be in [0, 1), got {self.dropout!r}")
-        if not isinstance(self.layer_norm, (bool, np.bool_)):
-            raise ValueError(f"layer_norm must be a bool, got {self.layer_norm!r}")
-        object.__setattr__(self, "width", int(self.width))
-        object.__setattr__(self, "depth", int(self.depth))
         object.__setattr__(self, "dropout", float(self.dropout))
-        object.__setattr__(self, "layer_norm", bool(self.layer_norm))
+        object.__setattr__(self, "layer_norm", check_bool("layer_norm", self.layer_norm))
 
 
 def _paper_members() -> tuple[MemberSpec, ...]:
@@ -273,14 +264,9 @@ class EnsembleConfig:
             object.__setattr__(self, "tau", tuple(float(v) for v in tau))
         else:
             raise ValueError(f"tau must be a scalar or have shape [{n}], got {list(tau.shape)}")
-        if not isinstance(self.normalize, (bool, np.bool_)):
-            raise ValueError(f"normalize must be a bool, got {self.normalize!r}")
-        if isinstance(self.seed, bool) or not isinstance(self.seed, (int, np.integer)):
-            raise ValueError(f"seed must be an int, got {self.seed!r}")
-        object.__setattr__(self, "seed", int(self.seed))
-        if not isinstance(self.probabilistic, (bool, np.bool_)):
-            raise ValueError(f"probabilistic must be a bool, got {self.probabilistic!r}")
-        object.__setattr__(self, "probabilistic", bool(self.probabilistic))
+        check_bool("normalize", self.normalize)
+        object.__setattr__(self, "seed", check_int("seed", self.seed, None))
+        object.__setattr__(self, "probabilistic", check_bool("probabilistic", self.probabilistic))
 
     @property
     def n_members(self) -> int:
@@ -373,8 +359,7 @@ class ModelConfig:
                 f"activations must be a non-empty tuple of names from {sorted(ACTIVATIONS)}, "
                 f"got {self.activations!r}"
             )
-        if not isinstance(self.probabilistic, (bool, np.bool_)):
-            raise ValueError(f"probabilistic must be a bool, got {self.probabilistic!r}")
+        check_bool("probabilistic", self.probabilistic)
 
     @classmethod
     def paper(cls, **overrides) -> ModelConfig:
@@ -1537,8 +1522,7 @@ class TrajectorySampling:
         if not isinstance(frozen, FrozenEnsemble):
             raise ValueError(f"frozen must be a FrozenEnsemble, got {type(frozen).__name__}")
         check_int("seed", seed, 0)
-        if not isinstance(noise, (bool, np.bool_)):
-            raise ValueError(f"noise must be a bool, got {noise!r}")
+        check_bool("noise", noise)
         for name, value in (("frozen", frozen), ("state_dim", frozen.state_dim),
                             ("action_dim", frozen.action_dim), ("n_members", frozen.n_members),
                             ("seed", int(seed)), ("noise", bool(noise) and frozen.probabilistic)):

@@ -22,6 +22,8 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 
+from mbtsr.validation import check_int
+
 __all__ = ["EpisodeRecord", "as_policy", "run_episode"]
 
 Policy = Callable[[np.ndarray, int], np.ndarray]
@@ -118,12 +120,10 @@ def run_episode(
     space = env.action_space
     if not isinstance(space, gym.spaces.Box) or len(space.shape) != 1:
         raise ValueError(f"env.action_space must be a 1-D Box, got {space}")
-    if max_steps is not None and (
-        isinstance(max_steps, bool) or not isinstance(max_steps, int | np.integer) or max_steps < 0
-    ):
-        raise ValueError(f"max_steps must be an integer >= 0 or None, got {max_steps!r}")
-    if isinstance(seed, bool) or not (seed is None or isinstance(seed, int | np.integer)):
-        raise ValueError(f"seed must be an integer or None, got {seed!r}")
+    if max_steps is not None:
+        check_int("max_steps", max_steps, 0)
+    if seed is not None:
+        check_int("seed", seed, None)
     for name, fn in (("observe", observe), ("stop", stop)):
         if fn is not None and not callable(fn):
             raise TypeError(f"{name} must be callable or None, got {type(fn).__name__}")

@@ -48,7 +48,7 @@ import numpy as np
 from mbtsr import _lqr_kernels
 from mbtsr.costs import CasadiCost, truncated_total
 from mbtsr.dynamics import LinearDynamics, _rollout, check_planning_model, raw_step
-from mbtsr.validation import as_array, check_callable, check_int, options_from
+from mbtsr.validation import as_array, check_callable, check_int, check_nonnegative, options_from
 
 __all__ = ["ILQROptions", "ILQRResult", "ilqr", "check_control_bounds"]
 
@@ -110,9 +110,7 @@ class ILQROptions:
         if int(self.max_iter) != self.max_iter or self.max_iter < 1:
             raise ValueError(f"max_iter must be an integer >= 1, got {self.max_iter!r}")
         for name in ("tol_fun", "tol_fun_rel", "tol_grad", "lambda_init", "reduce_ratio_min"):
-            v = getattr(self, name)
-            if not np.isfinite(v) or v < 0:
-                raise ValueError(f"{name} must be a finite number >= 0, got {v!r}")
+            check_nonnegative(name, getattr(self, name))
         for name in ("lambda_max", "lambda_min", "max_state_norm", "boxqp_min_step"):
             v = getattr(self, name)
             if not v > 0:

@@ -153,8 +153,7 @@ class TrainConfig:
         if len(betas) != 2 or not all(np.isfinite(b) and 0 <= b < 1 for b in betas):
             raise ValueError(f"betas must be two numbers in [0, 1), got {self.betas!r}")
         object.__setattr__(self, "betas", (float(betas[0]), float(betas[1])))
-        if isinstance(self.seed, bool) or not isinstance(self.seed, (int, np.integer)):
-            raise ValueError(f"seed must be an int, got {self.seed!r}")
+        check_int("seed", self.seed, None)
         if self.steps is not None:
             check_int("steps", self.steps, 1)
         check_nonnegative("holdout", self.holdout)

@@ -17,6 +17,7 @@ import numpy as np
 __all__ = [
     "as_array",
     "call_user_fn",
+    "check_bool",
     "check_callable",
     "check_int",
     "check_finite",
@@ -80,12 +81,22 @@ def as_array(
     return arr
 
 
-def check_int(name: str, value: object, minimum: int) -> int:
-    """``value`` as an ``int`` if it is an integer (not a bool) ``>= minimum``, else a
-    ``ValueError`` naming ``name``."""
-    if isinstance(value, bool) or not isinstance(value, int | np.integer) or value < minimum:
-        raise ValueError(f"{name} must be an integer >= {minimum}, got {value!r}")
+def check_int(name: str, value: object, minimum: int | None) -> int:
+    """``value`` as an ``int`` if it is an integer (not a bool) ``>= minimum`` (any integer for
+    ``minimum=None``), else a ``ValueError`` naming ``name``."""
+    if isinstance(value, bool) or not isinstance(value, int | np.integer) or (
+            minimum is not None and value < minimum):
+        bound = "" if minimum is None else f" >= {minimum}"
+        raise ValueError(f"{name} must be an integer{bound}, got {value!r}")
     return int(value)
+
+
+def check_bool(name: str, value: object) -> bool:
+    """``value`` as a ``bool`` if it is one (Python or numpy), else a ``ValueError`` naming
+    ``name``."""
+    if not isinstance(value, bool | np.bool_):
+        raise ValueError(f"{name} must be a bool, got {value!r}")
+    return bool(value)
 
 
 def check_positive(name: str, value: float) -> float:
