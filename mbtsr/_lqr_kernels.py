@@ -38,7 +38,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-__all__ = ["backward_pass", "box_qp", "BOXQP_DEFAULTS"]
+__all__ = ["backward_pass", "BOXQP_DEFAULTS"]
 
 #: (max_iter, min_grad, min_rel_improve, step_dec, min_step, armijo): Tassa et al.'s boxQP,
 #: all floats (one compiled signature).
@@ -225,25 +225,6 @@ def _box_qp(H, g, lo, hi, x0, x, free, L, idx, b, prm):
     for i in range(m):
         free[i] = not ((x[i] <= lo[i] and grad[i] > 0) or (x[i] >= hi[i] and grad[i] < 0))
     return True
-
-
-@njit(cache=True)
-def box_qp(H, g, lo, hi, x0, prm):
-    """Box QP ``min 0.5 x^T H x + g^T x`` s.t. ``lo <= x <= hi`` by projected Newton.
-
-    :param H: ``[m, m]`` symmetric, positive definite on the free set.
-    :param g, lo, hi, x0: ``[m]`` (``x0``: warm start).
-    :param prm: ``BOXQP_DEFAULTS``-shaped tuple.
-    :return: ``(x [m], free [m] bool, ok)``.
-    """
-    m = g.shape[0]
-    x = np.empty(m)
-    free = np.empty(m, dtype=np.bool_)
-    L = np.empty((m, m))
-    idx = np.empty(m, dtype=np.int64)
-    b = np.empty(m)
-    ok = _box_qp(H, g, lo, hi, x0, x, free, L, idx, b, prm)
-    return x, free, ok
 
 
 @njit(cache=True)

@@ -155,7 +155,9 @@ def test_box_qp_matches_scipy_bvls(seed):
     # 0.5 x^T H x + g^T x = 0.5 ||C^T x + C^-1 g||^2 + const with H = C C^T
     C = np.linalg.cholesky(H)
     ref = lsq_linear(C.T, -np.linalg.solve(C, g), bounds=(lo, hi), method="bvls", tol=1e-14)
-    x, free, ok = kernels.box_qp(H, g, lo, hi, np.zeros(m), PRM)
+    x, free, L, idx, b = (np.empty(m), np.empty(m, dtype=np.bool_), np.empty((m, m)),
+                          np.empty(m, dtype=np.int64), np.empty(m))  # the kernel's buffers
+    ok = kernels._box_qp(H, g, lo, hi, np.zeros(m), x, free, L, idx, b, PRM)
     assert ok
     np.testing.assert_allclose(x, ref.x, rtol=0, atol=1e-7)
     x_np, free_np, ok_np = _box_qp(H, g, lo, hi, np.zeros(m), ILQROptions())
