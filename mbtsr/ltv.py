@@ -185,7 +185,11 @@ class LTVModel:
                 f"x and u disagree on the episode dim: {list(x.shape)} vs {list(u.shape)}"
             )
         self._check_window(0, Tp, "predict")
-        x = x[..., :Tp, :]
+        return self._predict(x[..., :Tp, :], u)
+
+    def _predict(self, x: np.ndarray, u: np.ndarray) -> np.ndarray:
+        """:meth:`predict` on validated ``x [..., T', n]`` (no trailing row), ``u [..., T', m]``."""
+        Tp = u.shape[-2]
         out = np.einsum("tij,...tj->...ti", self.A[:Tp], x)
         out += np.einsum("tij,...tj->...ti", self.B[:Tp], u)
         return out + self.c[:Tp] if self.c is not None else out
@@ -231,10 +235,16 @@ class LTVModel:
         su = u.std(axis=0) if std_u is None else as_array("std_u", std_u, (self.action_dim,))
         if np.any(sx < 0) or np.any(su < 0):
             raise ValueError("std_x and std_u must be >= 0")
-        rng = np.random.default_rng(seed)
-        x_t = x + sigma * sx * rng.standard_normal((n_copies, Tp, self.state_dim))
+        return self._sample_perturbed(x, u, sigma, n_copies, np.random.default_rng(seed), sx, su)
+
+    def _sample_perturbed(self, x, u, sigma: float, n_copies: int, rng: np.random.Generator,
+                          sx: np.ndarray, su: np.ndarray) -> tuple:
+        """:meth:`sample_perturbed` on validated input: ``x [T', n]`` or ``[T'+1, n]``,
+        ``u [T', m]``, the scales ``sx [n]``, ``su [m]`` given."""
+        Tp = u.shape[0]
+        x_t = x[:Tp] + sigma * sx * rng.standard_normal((n_copies, Tp, self.state_dim))
         u_t = u + sigma * su * rng.standard_normal((n_copies, Tp, self.action_dim))
-        return x_t, u_t, self.predict(x_t, u_t)
+        return x_t, u_t, self._predict(x_t, u_t)
 
 
 # --------------------------------------------------------------------------------------------

@@ -370,9 +370,9 @@ def _perturbed_copies(lm, tr: Trajectory, reg: RegularizationConfig, rng: np.ran
                       sx: np.ndarray, su: np.ndarray) -> tuple:
     """``lm.sample_perturbed(tr.x, tr.u, ...)`` with the per-trajectory scales ``sx, su``.
 
-    For :class:`mbtsr.ltv.LTVModel` (whose inputs were validated once, up front) the same
-    draws and the same arithmetic are done here without the per-call input validation, which
-    cost about a third of a training epoch with many short trajectories; any other model with
+    For :class:`mbtsr.ltv.LTVModel` (whose inputs were validated once, up front) its kernel
+    ``_sample_perturbed`` runs without the per-call input validation, which cost about a third
+    of a training epoch with many short trajectories; any other model with
     ``sample_perturbed`` is called as is.
     """
     from mbtsr.ltv import LTVModel
@@ -380,12 +380,25 @@ def _perturbed_copies(lm, tr: Trajectory, reg: RegularizationConfig, rng: np.ran
     if type(lm) is not LTVModel:
         return lm.sample_perturbed(tr.x, tr.u, sigma=reg.sigma, n_copies=reg.n_copies, seed=rng,
                                    std_x=sx, std_u=su)
-    T, C = tr.T, reg.n_copies
-    x_t = tr.x[:T] + reg.sigma * sx * rng.standard_normal((C, T, tr.n))
-    u_t = tr.u + reg.sigma * su * rng.standard_normal((C, T, tr.m))
-    out = np.einsum("tij,...tj->...ti", lm.A[:T], x_t)
-    out += np.einsum("tij,...tj->...ti", lm.B[:T], u_t)
-    return x_t, u_t, (out + lm.c[:T] if lm.c is not None else out)
+    return lm._sample_perturbed(tr.x, tr.u, reg.sigma, reg.n_copies, rng, sx, su)
+
+
+def _ltv_jacobian_rows(ltv_models: list, trajs: list[Trajectory]) -> torch.Tensor:
+    """``[N, n, n+m]`` the LTV Jacobian ``[A_t B_t]`` of every pooled training row (float32)."""
+    return torch.as_tensor(np.concatenate([
+        np.concatenate([np.asarray(lm.A)[:tr.T], np.asarray(lm.B)[:tr.T]], -1)
+        for lm, tr in zip(ltv_models, trajs)]), dtype=torch.float32)
+
+
+def _row_layout(starts: np.ndarray) -> tuple[torch.Tensor, float, float]:
+    """For pooled rows whose trajectories start at ``starts`` (``[count + 1]``, last ``N``):
+    the successor of every row ``[N]`` (-1 for the last transition of a trajectory), and the
+    mean numbers of rows and of successive pairs per trajectory (the scales ``S`` of the
+    minibatch penalties)."""
+    N, count = int(starts[-1]), len(starts) - 1
+    nxt = np.arange(1, N + 1)
+    nxt[starts[1:] - 1] = -1
+    return torch.as_tensor(nxt), N / count, (N - count) / count
 
 
 def _optimizer(model: DynamicsEnsemble, config: TrainConfig) -> torch.optim.Optimizer:
@@ -401,10 +414,8 @@ def _optimizer(model: DynamicsEnsemble, config: TrainConfig) -> torch.optim.Opti
     ]
     cls = torch.optim.AdamW if config.decoupled_weight_decay else torch.optim.Adam
     kw = {"lr": config.lr, "betas": config.betas, "eps": config.adam_eps}
-    try:  # one fused kernel per group: the cheapest update at these sizes (CPU, torch >= 2.4)
-        return cls(groups, fused=True, **kw)
-    except (RuntimeError, TypeError):  # pragma: no cover - older torch
-        return cls(groups, foreach=True, **kw)
+    # one fused kernel per group: the cheapest update at these sizes (CPU, torch >= 2.4)
+    return cls(groups, fused=True, **kw)
 
 
 def _check_optimizer_state(optimizer: torch.optim.Optimizer, state: object) -> None:
@@ -550,19 +561,10 @@ def train_ensemble(
     # per-trajectory perturbation scales (std over time, as sample_perturbed's default),
     # computed once instead of every epoch
     scales = [(tr.x[:-1].std(0), tr.u.std(0)) for tr in trajs]
-    J_ltv = None
-    if reg.exact:
-        J_ltv = torch.as_tensor(np.concatenate([
-            np.concatenate([np.asarray(lm.A)[:tr.T], np.asarray(lm.B)[:tr.T]], -1)
-            for lm, tr in zip(ltv_models, trajs)]), dtype=torch.float32)  # [N, n, n+m]
+    J_ltv = _ltv_jacobian_rows(ltv_models, trajs) if reg.exact else None
     trajectory_batches = config.batch == "trajectory"
-    next_index = None
-    if reg.smooth and not trajectory_batches:
-        nxt = np.arange(1, N + 1)
-        nxt[starts[1:] - 1] = -1  # last transition of each trajectory has no successor
-        next_index = torch.as_tensor(nxt)
-    mean_terms = N / len(trajs)  # S for minibatches: terms per trajectory
-    mean_pairs = (N - len(trajs)) / len(trajs)
+    successors, mean_terms, mean_pairs = _row_layout(starts)
+    next_index = successors if reg.smooth and not trajectory_batches else None
 
     # ---- optimizer and random streams
     optimizer = _optimizer(model, config)
@@ -796,11 +798,9 @@ def _train_steps(
     budget = config.steps or config.epochs * math.ceil(train_rows.numel() / b)
 
     # per-row LTV Jacobians [A B] (and affine terms), perturbation scales, successors
-    J_rows = c_rows = s_rows = next_index = None
+    J_rows = c_rows = s_rows = None
     if reg.needs_ltv:
-        J_rows = torch.as_tensor(np.concatenate([
-            np.concatenate([np.asarray(lm.A)[:tr.T], np.asarray(lm.B)[:tr.T]], -1)
-            for lm, tr in zip(ltv_models, trajs)]), dtype=torch.float32)  # [N, n, n+m]
+        J_rows = _ltv_jacobian_rows(ltv_models, trajs)
         if any(getattr(lm, "c", None) is not None for lm in ltv_models):
             c_rows = torch.as_tensor(np.concatenate([
                 np.asarray(lm.c)[:tr.T] if getattr(lm, "c", None) is not None
@@ -810,12 +810,7 @@ def _train_steps(
         s_rows = torch.as_tensor(np.concatenate([
             np.broadcast_to(np.concatenate([tr.x[:-1].std(0), tr.u.std(0)]), (tr.T, n + m))
             for tr in trajs]), dtype=torch.float32)
-    if reg.smooth:
-        nxt = np.arange(1, N + 1)
-        nxt[starts[1:] - 1] = -1
-        next_index = torch.as_tensor(nxt)
-    mean_terms = N / len(trajs)
-    mean_pairs = (N - len(trajs)) / len(trajs)
+    next_index, mean_terms, mean_pairs = _row_layout(starts)
     bound = model.config.probabilistic
 
     active = [k for k in ("sampled", "exact", "smooth") if getattr(reg, k)]
