@@ -494,6 +494,32 @@ def _hidden_names(depth: int) -> list[tuple[str, str]]:
     return [(f"W{layer}", f"b{layer}") for layer in range(1, depth + 1)]
 
 
+def _groups_forward(groups, xn, ops, jac_rows=0, masks=None):
+    """:func:`_group_forward` of every depth group, outputs concatenated over members.
+
+    :param groups: ``(g, p)`` (static description, arrays) per group, in stacked order.
+    :param xn: ``[B, in]`` shared by all members, or ``[K, B, in]`` one set per member
+        (stacked order).
+    :param masks: ``masks(g)`` -> the group's dropout masks or None (drawn group by group).
+    :return: ``(y [K, B, n], J [K, jac_rows, n, in] or None, logvar [K, B, n] or None)``.
+    """
+    ys, Js, lvs = [], [], []
+    start = 0
+    for g, p in groups:
+        K = p["W1"].shape[0]
+        xg = xn if xn.ndim == 2 else xn[start:start + K]
+        start += K
+        y, J, lv = _group_forward(p, g, xg, ops, jac_rows, None if masks is None else masks(g))
+        ys.append(y)
+        Js.append(J)
+        lvs.append(lv)
+
+    def cat(parts):
+        return parts[0] if len(parts) == 1 else ops.cat(parts, 0)
+
+    return cat(ys), cat(Js) if jac_rows else None, None if lvs[0] is None else cat(lvs)
+
+
 def _group_forward(p, g, xn, ops, jac_rows=0, dropout_masks=None):
     """Forward pass (and closed-form Jacobians) of one depth group of stacked members.
 
@@ -807,24 +833,15 @@ class DynamicsEnsemble(nn.Module):
             comparable to :meth:`normalized_residual` targets.
         """
         xn = xu if normalized else self.normalize_inputs(xu)
-        ys, Js, lvs = [], [], []
-        start = 0
-        for g in self.groups:
-            K = g.n_members
-            xg = xn if xn.dim() == 2 else xn[start:start + K]
-            start += K
-            masks = None
+
+        def masks(g):
             if self.training and any(g.dropout_p):
-                masks = g.dropout_masks(xn.shape[-2], self.dropout_generator)
-            y, J, lv = _group_forward(g.arrays(), g, xg, _TORCH_OPS, jac_rows, masks)
-            ys.append(y)
-            Js.append(J)
-            lvs.append(lv)
-        y = ys[0] if len(ys) == 1 else torch.cat(ys, 0)
-        lv = None if lvs[0] is None else lvs[0] if len(lvs) == 1 else torch.cat(lvs, 0)
-        J = None
+                return g.dropout_masks(xn.shape[-2], self.dropout_generator)
+            return None
+
+        y, J, lv = _groups_forward(((g, g.arrays()) for g in self.groups), xn, _TORCH_OPS,
+                                   jac_rows, masks)
         if jac_rows:
-            J = Js[0] if len(Js) == 1 else torch.cat(Js, 0)
             J = self.out_std[:, None] * J / self.in_std + self.skip_J
         return (y, J, lv) if logvar else (y, J)
 
@@ -1066,6 +1083,21 @@ def _rollout_policy_kernel(W_inT, Wh, bh, W_out, code, x0, X, U, k, K, alphas, l
     return Xn, Un, alive
 
 
+def _plan_hidden(plan: SimpleNamespace, z: np.ndarray, h: np.ndarray) -> np.ndarray:
+    """The hidden layers of a folded plan (:func:`_mean_step_plan`) in numpy, hidden-major
+    layout: first-layer pre-activations ``z [H, B]`` -> the last layer's activations, written
+    into ``h [H, B]`` (the one buffer of every layer; returned)."""
+    H, B = z.shape
+    for layer in range(plan.Wh.shape[0] + 1):
+        if layer:
+            z = plan.WhT_f[layer - 1] @ h.reshape(plan.K, plan.W, B)
+            z += plan.bhT[layer - 1]
+            z = z.reshape(H, B)
+        for act, a, b in plan.ops:
+            act(z[a:b], h[a:b])
+    return h
+
+
 def _mean_step_plan(runs, hidden: list[tuple[np.ndarray, np.ndarray]], Wo: np.ndarray,
                     bo: np.ndarray, skip_J: np.ndarray, n_members: int,
                     head: tuple[np.ndarray, np.ndarray] | None = None) -> SimpleNamespace:
@@ -1282,25 +1314,14 @@ class FrozenEnsemble:
         """``xu [B, n+m]`` (shared) or ``[K, B, n+m]`` (one batch per member, config order) ->
         ``(x_next [K, B, n], J [K, jac_rows, n, n+m] or None, logvar [K, B, n] or None)`` in
         config order, skip parts included, the log-variance in normalized units."""
-        per_member = xu.ndim == 3
-        if per_member and self._order is not None:
+        if xu.ndim == 3 and self._order is not None:
             xu = xu[self._order]  # stacked order
-        ys, Js, lvs = [], [], []
-        start = 0
-        for static, p in self._groups:
-            K = p["W1"].shape[0]
-            xg = xu[start:start + K] if per_member else xu
-            start += K
-            y, J, lv = _group_forward(p, static, xg, _NUMPY_OPS, jac_rows)
-            ys.append(y)
-            Js.append(J)
-            lvs.append(lv)
-        y = (ys[0] if len(ys) == 1 else np.concatenate(ys, 0)) + xu @ self._skip_J.T
-        J = lv = None
+        y, J, lv = _groups_forward(self._groups, xu, _NUMPY_OPS, jac_rows)
+        y = y + xu @ self._skip_J.T
         if jac_rows:
-            J = (Js[0] if len(Js) == 1 else np.concatenate(Js, 0)) + self._skip_J
-        if logvar and lvs[0] is not None:
-            lv = lvs[0] if len(lvs) == 1 else np.concatenate(lvs, 0)
+            J = J + self._skip_J
+        if not logvar:
+            lv = None
         if self._perm is not None:
             y = y[self._perm]
             J = None if J is None else J[self._perm]
@@ -1345,22 +1366,12 @@ class FrozenEnsemble:
         ``x [B, n]``, ``u [B, m]`` -> ``[B, n]``): one product per layer for all members, in
         the hidden-major layout of :func:`_mean_step_plan` (contiguous rows per activation)."""
         n, plan = self.state_dim, self._plan
-        B, K, W, H = x.shape[0], plan.K, plan.W, plan.H
+        B, H = x.shape[0], plan.H
         G = np.empty((H + 1 + n + self.action_dim, B))
         G[H] = 1.0
         G[H + 1:H + 1 + n] = x.T
         G[H + 1 + n:] = u.T
-        L = plan.Wh.shape[0]
-        z = plan.W_in @ G[H:]  # [H, B]
-        h = G[:H] if L == 0 else np.empty((H, B))
-        for layer in range(L + 1):
-            if layer:
-                z = plan.WhT_f[layer - 1] @ h.reshape(K, W, B)
-                z += plan.bhT[layer - 1]
-                z = z.reshape(H, B)
-                h = G[:H] if layer == L else np.empty((H, B))
-            for act, a, b in plan.ops:
-                act(z[a:b], h[a:b])
+        _plan_hidden(plan, plan.W_in @ G[H:], G[:H])
         return G.T @ plan.W_out
 
     def _member_rows(self, xu: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
@@ -1389,14 +1400,8 @@ class FrozenEnsemble:
         if self._order is not None:
             xk = xk[self._order]  # stacked order
         b, W, H = xk.shape[1], plan.W, plan.H
-        z = (plan.W1fT @ xk.swapaxes(1, 2) + plan.b1f).reshape(H, b)
-        h = np.empty((H, b))
-        for layer in range(plan.Wh.shape[0] + 1):
-            if layer:
-                z = (plan.WhT_f[layer - 1] @ h.reshape(K, W, b) + plan.bhT[layer - 1])
-                z = z.reshape(H, b)
-            for act, a, c in plan.ops:
-                act(z[a:c], h[a:c])
+        h = _plan_hidden(plan, (plan.W1fT @ xk.swapaxes(1, 2) + plan.b1f).reshape(H, b),
+                         np.empty((H, b)))
         hk = h.reshape(K, W, b).swapaxes(1, 2)  # [K, b, W]
         y = hk @ plan.Wo_m + plan.bo_m + xk @ self._skip_J.T
         lv = None
