@@ -29,9 +29,7 @@ from mbtsr.io import atomic_write_bytes, remove_stale_temp_files
 
 __all__ = [
     "CheckpointError",
-    "atomic_write_bytes",
     "read_verified",
-    "remove_stale_temp_files",
     "torch_load_verified",
     "torch_save_verified",
     "write_verified",

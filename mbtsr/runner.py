@@ -54,7 +54,7 @@ from typing import Any
 
 from mbtsr.io import json_default, write_json_atomic
 
-__all__ = ["RunSpec", "load_results", "run_sweep", "summarize", "write_json_atomic"]
+__all__ = ["RunSpec", "load_results", "run_sweep", "summarize"]
 
 RunFunction = Callable[[dict, int], dict]
 _NAME_RE = re.compile(r"^[A-Za-z0-9_.+-]+$")
