@@ -190,15 +190,11 @@ def _costs(
     terminated: Callable[[np.ndarray], np.ndarray] | None, termination_cost: float,
 ) -> np.ndarray:
     """``[S]`` trajectory costs (see the module docstring, step 3)."""
+    args = () if params is None else (params,)  # a cost without params takes no argument
     if terminated is None:
-        J = cost.total(X, U, t0) if params is None else cost.total(X, U, t0, params)
-        return np.asarray(J, dtype=float).reshape(X.shape[0])
-    if params is None:
-        stage = np.asarray(cost.stage_values(X[:, :-1], U, t0), dtype=float)
-        final = np.asarray(cost.terminal_values(X[:, -1], t0 + U.shape[1]), dtype=float)
-    else:
-        stage = np.asarray(cost.stage_values(X[:, :-1], U, t0, params), dtype=float)
-        final = np.asarray(cost.terminal_values(X[:, -1], t0 + U.shape[1], params), dtype=float)
+        return np.asarray(cost.total(X, U, t0, *args), dtype=float).reshape(X.shape[0])
+    stage = np.asarray(cost.stage_values(X[:, :-1], U, t0, *args), dtype=float)
+    final = np.asarray(cost.terminal_values(X[:, -1], t0 + U.shape[1], *args), dtype=float)
     done = np.asarray(terminated(X[:, 1:]))
     if done.shape != stage.shape:
         raise ValueError(f"terminated(X [S, T, n]) must return bool [S, T] = "
@@ -249,10 +245,9 @@ def cem(
             f"{type(model).__name__}")
     x0 = as_array("x0", x0, ndim=1)
     n = x0.shape[0]
-    for attr in ("state_dim",):
-        got = getattr(model, attr, n)
-        if got != n:
-            raise ValueError(f"model.{attr}={got} does not match x0 of dimension {n}")
+    got = getattr(model, "state_dim", n)
+    if got != n:
+        raise ValueError(f"model.state_dim={got} does not match x0 of dimension {n}")
     U0 = as_array("U0", U0, ndim=2)
     T, m = U0.shape
     if T < 1 or m < 1:

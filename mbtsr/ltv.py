@@ -941,16 +941,9 @@ def fit_ltv_tv(
                 f"step but {prob.p} parameters per output row; use lam > 0"
             )
         theta = _model_theta(_l2_model(prob, 0.0, 0.0))
-        stats = {
-            "iterations": 0,
-            "converged": True,
-            "polished": False,
-            "primal_residual": 0.0,
-            "dual_residual": 0.0,
-            "kkt_ratio": None,
-            "rho": 0.0,
-        }
-        return _tv_model(prob, theta, lam, np.ones(prob.T - 1, bool), stats)
+        return _tv_model(prob, theta, lam, np.ones(prob.T - 1, bool), iterations=0,
+                         converged=True, polished=False, primal=0.0, dual=0.0, kkt_ratio=None,
+                         rho=0.0)
     T, p, n = prob.T, prob.p, prob.n
     if rho is None:
         rho = 2.0 * float(np.mean(np.trace(prob.G, axis1=1, axis2=2))) / p
@@ -1029,16 +1022,8 @@ def fit_ltv_tv(
     if polished:
         dth = np.diff(theta, axis=0)
         active = np.einsum("tpi,tpi->t", dth, dth) > 0.0
-    stats = {
-        "iterations": it,
-        "converged": converged,
-        "polished": polished,
-        "primal_residual": r_norm,
-        "dual_residual": s_norm,
-        "kkt_ratio": kkt_ratio,
-        "rho": rho,
-    }
-    return _tv_model(prob, theta, lam, active, stats)
+    return _tv_model(prob, theta, lam, active, iterations=it, converged=converged,
+                     polished=polished, primal=r_norm, dual=s_norm, kkt_ratio=kkt_ratio, rho=rho)
 
 
 def _model_theta(model: LTVModel) -> np.ndarray:
@@ -1047,9 +1032,12 @@ def _model_theta(model: LTVModel) -> np.ndarray:
 
 
 def _tv_model(
-    prob: _Problem, theta: np.ndarray, lam: float, active: np.ndarray, stats: dict
+    prob: _Problem, theta: np.ndarray, lam: float, active: np.ndarray, *, iterations: int,
+    converged: bool, polished: bool, primal: float, dual: float, kkt_ratio: float | None,
+    rho: float,
 ) -> LTVModel:
-    """Wrap a TV solution: segment-wise least-squares covariance and diagnostics."""
+    """Wrap a TV solution: segment-wise least-squares covariance and diagnostics (the solver's
+    iteration count, convergence, residuals and penalty ``rho`` go into ``info``)."""
     T, p = prob.T, prob.p
     seg = _segments(np.concatenate([[0], np.flatnonzero(active) + 1]), T)
     n_seg = int(seg[-1]) + 1
@@ -1064,17 +1052,17 @@ def _tv_model(
     A, B, c = _split_theta(theta, prob.n, prob.m, prob.affine)
     dth = np.diff(theta, axis=0)
     info = {
-        "solver": "admm+newton" if stats["polished"] else "admm",
-        "iterations": int(stats["iterations"]),
-        "converged": bool(stats["converged"]),
-        "polished": bool(stats["polished"]),
+        "solver": "admm+newton" if polished else "admm",
+        "iterations": int(iterations),
+        "converged": bool(converged),
+        "polished": bool(polished),
         "change_points": [int(t) for t in np.flatnonzero(active) + 1] if lam > 0 else [],
         "jump_norms": np.sqrt(np.einsum("tpi,tpi->t", dth, dth)),
-        "primal_residual": float(stats["primal_residual"]),
-        "dual_residual": float(stats["dual_residual"]),
-        "kkt_ratio": stats["kkt_ratio"],
+        "primal_residual": float(primal),
+        "dual_residual": float(dual),
+        "kkt_ratio": kkt_ratio,
         "objective": _tv_objective(prob, theta, lam),
-        "rho": float(stats["rho"]),
+        "rho": float(rho),
         "rss": rss,
         "noise_var_rows": noise_rows,
     }
