@@ -1,6 +1,6 @@
 """Crash-safe, checksummed checkpoint files for the agent.
 
-A checkpoint is ONE file written atomically (:func:`mbtsr.fileformat.atomic_write_bytes`): a
+A checkpoint is ONE file written atomically (:func:`mbtsr.io.atomic_write_bytes`): a
 ``SIGKILL`` at any moment leaves either the previous complete checkpoint or the new complete one,
 never a torn file; the temporary file of an interrupted write is deleted at the next save or load.
 The file carries a format version and a SHA-256 of its content
@@ -33,18 +33,16 @@ from mbtsr.fileformat import (
     torch_load_verified,
     torch_save_verified,
 )
-from mbtsr.io import atomic_write_bytes, atomic_write_text, remove_stale_temp_files
+from mbtsr.io import atomic_write_text, remove_stale_temp_files
 
 __all__ = [
     "CheckpointError",
-    "atomic_write_bytes",
     "atomic_write_text",
     "check_same",
     "env_fingerprint",
     "save_checkpoint",
     "load_checkpoint",
     "numpy_rng_state",
-    "remove_stale_temp_files",
     "set_numpy_rng_state",
     "CHECKPOINT_FORMAT",
 ]

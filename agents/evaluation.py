@@ -29,7 +29,6 @@ import gymnasium as gym
 import numpy as np
 
 from agents.task import ObservationCost
-from envs import ARM_ID
 from mbtsr.costs import CasadiCost
 from mbtsr.episode import EpisodeRecord, as_policy, run_episode
 from mbtsr.ilqr import ILQROptions, ilqr
@@ -233,15 +232,20 @@ def mpc_policy(
 
 
 def evaluation_targets(
-    n: int = 10, seed: int = 0, env_id: str | gym.Env = ARM_ID
+    n: int = 10, seed: int = 0, env_id: str | gym.Env | None = None
 ) -> list[np.ndarray]:
     """``n`` targets drawn by the env's own target distribution: ``info["target"]`` after
     ``reset(seed=seed + i)``.
 
     :param n: number of targets (>= 1).
     :param seed: base seed (>= 0).
-    :param env_id: a registered id (or an instance) of an env that reports ``info["target"]``.
+    :param env_id: a registered id (or an instance) of an env that reports ``info["target"]``
+        (``None``: the home arm, ``envs.ARM_ID``).
     """
+    if env_id is None:
+        from envs import ARM_ID  # here, not at import: importing envs sets MUJOCO_GL
+
+        env_id = ARM_ID
     check_int("n", n, 1)
     _check_seed(seed)
     env, created = make_env(env_id)

@@ -12,7 +12,7 @@ not read, and raises :class:`CheckpointError` naming the file and what to do, in
 Writes are atomic (:func:`mbtsr.io.atomic_write`): the bytes go to a temporary file in the same
 folder, are flushed and ``fsync``-ed, then ``os.replace``-d over the target. A
 ``SIGKILL`` or a full disk at any moment leaves either the old complete file or the new one,
-plus possibly the temporary file, which :func:`remove_stale_temp_files` deletes at the next
+plus possibly the temporary file, which :func:`mbtsr.io.remove_stale_temp_files` deletes at the next
 start (only if the process that wrote it is gone).
 """
 

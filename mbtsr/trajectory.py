@@ -83,16 +83,19 @@ class Trajectory:
 
 
 def as_trajectory_list(trajs: object, name: str = "trajs") -> list[Trajectory]:
-    """``trajs``, a :class:`Trajectory` or a non-empty sequence of them, as a list; otherwise a
-    ``ValueError`` naming ``name`` (and the first entry that is not a Trajectory)."""
+    """``trajs``, a :class:`Trajectory` or a non-empty sequence (or iterable) of them, as a list;
+    otherwise a ``ValueError`` naming ``name`` (and the first entry that is not a Trajectory)."""
     if isinstance(trajs, Trajectory):
         return [trajs]
-    if not isinstance(trajs, Sequence) or len(trajs) == 0:
+    if not isinstance(trajs, Iterable) or isinstance(trajs, (str, bytes, np.ndarray)):
+        raise ValueError(f"{name} must be a Trajectory or a non-empty list of Trajectory")
+    trajs = list(trajs)
+    if not trajs:
         raise ValueError(f"{name} must be a Trajectory or a non-empty list of Trajectory")
     for i, tr in enumerate(trajs):
         if not isinstance(tr, Trajectory):
             raise ValueError(f"{name}[{i}] must be a Trajectory, got {type(tr).__name__}")
-    return list(trajs)
+    return trajs
 
 
 def stack_trajectories(

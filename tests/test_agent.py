@@ -23,7 +23,6 @@ from hypothesis import strategies as st
 
 import envs  # noqa: F401  (registers mbtsr/TwoLinkArm-v0)
 from agents.checkpoint import (
-    atomic_write_bytes,
     load_checkpoint,
     numpy_rng_state,
     save_checkpoint,
@@ -42,6 +41,7 @@ from agents.evaluation import (
 from agents.jacprop_agent import JacPropAgent
 from agents.task import ObservationCost, default_task_for_env, env_spec
 from mbtsr.ensemble import load_model
+from mbtsr.io import atomic_write_bytes
 from mbtsr.metrics import prediction_rms
 from mbtsr.trajectory import Trajectory, load_trajectories
 

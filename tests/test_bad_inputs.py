@@ -43,7 +43,7 @@ from mbtsr.metrics import jacobian_error, prediction_rms
 from mbtsr.runner import summarize
 from mbtsr.training import RegularizationConfig, TrainConfig, train_ensemble
 from mbtsr.trajectory import Trajectory, save_trajectories, stack_trajectories
-from mbtsr.validation import as_array
+from mbtsr.validation import as_array, check_bool, check_int
 
 torch.set_num_threads(1)
 
@@ -423,3 +423,28 @@ def test_agent_boundaries_name_the_argument():
             agent.predict(obs)
     with pytest.raises(FileNotFoundError, match="h14_missing.pt"):
         JacPropAgent.load("/nonexistent/h14_missing.pt")
+
+
+@given(st.one_of(st.integers(-10**6, 10**6), st.booleans(), st.floats(allow_nan=True),
+                 st.text(max_size=3), st.none()),
+       st.one_of(st.none(), st.integers(-5, 5)))
+def test_check_int_accepts_exactly_the_integers_at_or_above_the_minimum(value, minimum):
+    ok = (isinstance(value, int) and not isinstance(value, bool)
+          and (minimum is None or value >= minimum))
+    if ok:
+        assert check_int("k", value, minimum) == value
+        assert type(check_int("k", np.int64(value), minimum)) is int
+    else:
+        with pytest.raises(ValueError, match=r"^k must be an integer"):
+            check_int("k", value, minimum)
+
+
+@pytest.mark.parametrize("value", [True, False, np.True_, np.False_])
+def test_check_bool_returns_a_python_bool(value):
+    assert check_bool("flag", value) is bool(value)
+
+
+@pytest.mark.parametrize("value", [0, 1, 1.0, "yes", None, np.array([True])])
+def test_check_bool_refuses_what_is_not_a_bool(value):
+    with pytest.raises(ValueError, match=r"^flag must be a bool"):
+        check_bool("flag", value)

@@ -107,6 +107,18 @@ def test_unknown_fields_are_named():
         AgentConfig().replace({"horizon": 2})
 
 
+def test_a_config_saved_before_the_step_budget_is_refused_as_such():
+    """A whole saved config whose training section predates ``training.steps`` (2026-12-02) is
+    refused with a message that says so, not read under today's training defaults; a user's
+    partial dict that sets the epoch schedule is still read."""
+    old = AgentConfig().to_dict()
+    del old["training"]["steps"]
+    with pytest.raises(ValueError, match=r"saved before training\.steps existed"):
+        AgentConfig.from_dict(old)
+    cfg = AgentConfig.from_dict({"training": {"steps": None, "epochs": 30}})
+    assert cfg.training.epochs == 30 and cfg.training.steps is None
+
+
 @pytest.mark.parametrize("bad", [[1, 2], "horizon", 3, None])
 def test_from_dict_and_from_json_refuse_a_non_dict(bad):
     with pytest.raises(ValueError, match="AgentConfig.from_dict needs a dict"):

@@ -383,6 +383,14 @@ def test_friction_free_arm_matches_the_analytic_twin_even_at_rest():
     assert errs[True] > 100 * errs[False]
 
 
+@pytest.mark.parametrize("friction", [True, False])
+def test_arm_env_follows_the_configs_friction(friction):
+    """``arm_env(cfg)`` without an explicit ``friction`` takes the config's own: Coulomb friction
+    on the paper arm, none for ``RegimeData(friction=False)``."""
+    env = pc.arm_env(pc.RegimeData(friction=friction))
+    assert (np.asarray(env.unwrapped.model.dof_frictionloss) > 0).all() == friction
+
+
 def test_truth_diagnostics_best_constant_and_labels():
     d = pc.robot_truth_diagnostics(pc.RobotData(duration=1.0, n_val=2), 0)
     for k, v in d.items():

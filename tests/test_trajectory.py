@@ -139,3 +139,17 @@ def test_load_trajectories_on_a_file_that_is_not_an_archive(tmp_path):
     with pytest.raises(ValueError, match=r"text\.npz is neither an \.npz archive .* a pickle is "
                                          r"never loaded here"):
         load_trajectories(tmp_path / "text.npz")
+
+
+def test_as_trajectory_list_takes_one_a_list_or_an_iterable_and_names_what_is_wrong():
+    from mbtsr.trajectory import as_trajectory_list
+
+    trs = [Trajectory(np.zeros((3, 2)), np.zeros((2, 1)), dt=0.1) for _ in range(2)]
+    assert as_trajectory_list(trs[0]) == [trs[0]]
+    assert as_trajectory_list(trs) == trs
+    assert as_trajectory_list(t for t in trs) == trs  # a generator is read once, in order
+    for bad in ([], (), "x", np.zeros(3), None):
+        with pytest.raises(ValueError, match=r"^data must be a Trajectory or a non-empty"):
+            as_trajectory_list(bad, name="data")
+    with pytest.raises(ValueError, match=r"^data\[1\] must be a Trajectory, got int"):
+        as_trajectory_list([trs[0], 3], name="data")

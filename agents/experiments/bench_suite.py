@@ -1199,8 +1199,7 @@ def run(a: Args) -> dict[str, Any]:
                              f"{state.get('agent_settings', {})}, these are {settings}: give "
                              f"another --json")
         state["agent_settings"] = settings
-    _header(state, a.smoke)
-    if not a.report_only:
+        _header(state, a.smoke)  # a report keeps the stamps of the runs it reports
         done = {(r["task"], r["planner"], r["regularization"], r["seed"]) for r in state["runs"]}
         for seed in a.seeds:
             for name in a.tasks:

@@ -590,11 +590,15 @@ def held_filtered_gaussian(T: int, m: int, rng: np.random.Generator, *, dt: floa
     return u[idx]
 
 
-def arm_env(cfg: ArmSampling, friction: bool = True):
+def arm_env(cfg: ArmSampling, friction: bool | None = None):
     """The paper-preset arm with episodes as long as one trajectory; ``friction=False`` removes
-    its Coulomb friction (``frictionloss = (0, 0)``; viscous friction kept)."""
+    its Coulomb friction (``frictionloss = (0, 0)``; viscous friction kept); ``None``: the
+    config's own ``friction`` (on when it has none)."""
     import envs  # noqa: F401 - registers the envs
     from envs.two_link_arm import TwoLinkArmEnv
+
+    if friction is None:
+        friction = getattr(cfg, "friction", True)
 
     params = None if friction else {"frictionloss": (0.0, 0.0)}
     return TwoLinkArmEnv(preset="paper", episode_steps=cfg.T, dt=cfg.dt, params=params)
