@@ -248,6 +248,21 @@ def test_parse_args_quick_overrides_only_unset_fields(capsys):
         assert exc.value.code == 2 and err.count("\n") == 1 and bad[0] in err
 
 
+@pytest.mark.parametrize("bad", [
+    ["--windows", "shrt"], ["--n-trains", "1,x"], ["--epochs", "0"], ["--frictions", "of"],
+    ["--label-cells", "paper-of"], ["--activations", "relx"], ["--batch", "ful"],
+    ["--label-n-trains", ""]])
+def test_regime_options_are_checked_before_any_run(bad, capsys):
+    """A wrong comma-list value of the regime sweep stops at the command line (one line, exit
+    code 2, the flag named) instead of failing every run or being stored as given."""
+    from agents.experiments import exp_regime
+
+    with pytest.raises(SystemExit) as exc:
+        pc.parse_args(exp_regime.Args, ["--quick", *bad])
+    err = capsys.readouterr().err
+    assert exc.value.code == 2 and err.count("\n") == 1 and bad[0] in err
+
+
 def test_unknown_method_and_deviation_are_rejected():
     from agents.experiments import exp_deviations
 

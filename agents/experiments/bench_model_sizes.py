@@ -50,6 +50,7 @@ import os
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Literal
 
 import numpy as np
 import torch
@@ -68,8 +69,9 @@ class Args:
 
     task: str = "reacher"
     """suite task (agents.tasks.TASKS)"""
-    study: str = "sizes"
-    """sizes (ensembles of several sizes at fixed budgets) or training (designs at one size)"""
+    study: Literal["sizes", "training", "agent", "scaling", "plot"] = "sizes"
+    """sizes (ensembles of several sizes at fixed budgets), training (designs at one size),
+    agent (whole agent runs), scaling (update time as data grows) or plot (the sizes figure)"""
     sizes: str = "paper,paper@0.003,2x64,2x128,3x128,3x200,4x200"
     """comma-separated sizes LxW (swish), rule (the default size of the task's dimensions) or
     paper (4 x 1 x 20, mixed activations), each
@@ -422,8 +424,6 @@ def run(args: Args) -> dict:
                   f"{rows[name]['nrmse_median_dim']:.4f} rel_step "
                   f"{rows[name]['rel_step']:.4f} steps {hist.steps} "
                   f"({r['wall_s']:.1f} s)", flush=True)
-    else:
-        raise ValueError(f"--study must be sizes, training or agent, got {args.study!r}")
     result["results"] = rows
     result["machine"] = machine_info(load_start)
     result["total_time_s"] = time.perf_counter() - t_start

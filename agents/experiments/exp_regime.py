@@ -21,6 +21,7 @@ from __future__ import annotations
 import dataclasses
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Literal
 
 import numpy as np
 
@@ -49,7 +50,8 @@ class Args(pc.TrainingArgs):
     activations: str = field(default="tanh", metadata={
         "help": "ensemble members (comma list; paper: elu,sigmoid,tanh,swish)"})
     width: int = field(default=20, metadata={"help": "hidden units per member"})
-    batch: str = field(default="full", metadata={"help": "full (one step/epoch) or trajectory"})
+    batch: Literal["full", "trajectory"] = field(default="full", metadata={
+        "help": "full (one step/epoch) or trajectory"})
     exact_weight: float = field(default=0.01, metadata={"help": "weight of the LTV match"})
     prior_scale: float = field(default=1.0, metadata={
         "help": "prior covariance / LTV posterior covariance for the fused labels"})
@@ -63,6 +65,19 @@ class Args(pc.TrainingArgs):
 
     QUICK = {"mc": 2, "n_trains": "2", "epochs": "3,6", "duration": 1.0, "n_val": 2,
              "n_log": 2, "label_n_trains": "2"}
+
+    def check(self) -> None:
+        """The comma-list options, each named when it is wrong (before any run starts)."""
+        pc.comma_list("n-trains", self.n_trains, int)
+        pc.comma_list("epochs", self.epochs, int)
+        windows = pc.comma_list("windows", self.windows, allowed=list(pc.EXCITATION_WINDOWS))
+        frictions = pc.comma_list("frictions", self.frictions, allowed=["on", "off"])
+        pc.comma_list("label-n-trains", self.label_n_trains, int)
+        pc.comma_list("label-cells", self.label_cells, allowed=[
+            f"{w}-{f}" for w in windows for f in frictions])
+        from mbtsr.ensemble import ACTIVATIONS
+
+        pc.comma_list("activations", self.activations, allowed=list(ACTIVATIONS))
 
 
 def _ints(s: str) -> list[int]:

@@ -122,6 +122,9 @@ def run(args: Args) -> dict:
     else:
         from mbtsr.ensemble import load_model
 
+        if not Path(args.model).is_file():
+            raise ValueError(f"--model must be true, analytic, ltv or the path of a saved "
+                             f"ensemble; there is no file at {args.model}")
         model, model_name = load_model(args.model).freeze(), Path(args.model).stem
     print(f"model: {model_name} ({time.perf_counter() - tic:.2f} s to build)")
 

@@ -120,6 +120,28 @@ def _check_common(args) -> None:
         raise ValueError(f"--workers must be >= 1, got {args.workers}")
     if getattr(args, "backend", "process") not in ("process", "serial", "ray"):
         raise ValueError(f"--backend must be process, serial or ray, got {args.backend!r}")
+    if hasattr(args, "check"):  # the experiment's own option checks
+        args.check()
+
+
+def comma_list(flag: str, text: str, kind: type = str, allowed: Sequence | None = None,
+               minimum: int = 1) -> list:
+    """``"a,b"`` as ``[a, b]`` of ``kind``, or a ``ValueError`` naming ``--flag``: empty, not a
+    ``kind``, below ``minimum`` (ints), or not one of ``allowed``."""
+    items = [v.strip() for v in text.split(",") if v.strip()]
+    if not items:
+        raise ValueError(f"--{flag} must list at least one value, got {text!r}")
+    try:
+        values = [kind(v) for v in items]
+    except ValueError:
+        raise ValueError(f"--{flag} must be a comma list of {kind.__name__}s, got {text!r}"
+                         ) from None
+    for v in values:
+        if allowed is not None and v not in allowed:
+            raise ValueError(f"--{flag}: {v!r} is not one of {', '.join(map(str, allowed))}")
+        if kind is int and v < minimum:
+            raise ValueError(f"--{flag} values must be >= {minimum}, got {v}")
+    return values
 
 
 def output_dirs(args, experiment: str) -> tuple[Path, Path]:
@@ -258,7 +280,10 @@ def run_experiment(
         print(f"[{experiment}] sweep finished in {wall:.1f} s")
     records = [r for r in load_results(out) if r["name"] in configs or args.report_only]
     if not records:
-        raise SystemExit(f"no finished runs in {out}/runs; run without --report-only first")
+        failed = sorted((out / "errors").glob("*.json"))
+        raise SystemExit(f"no finished runs in {out}/runs: " + (
+            f"all {len(failed)} failed, tracebacks in {out}/errors" if failed and not
+            args.report_only else "run without --report-only first"))
     summary = report_fn(records, out, figures, args)
     summary = {"experiment": experiment, "n_records": len(records), **summary}
     write_json_atomic(out / "summary.json", summary)

@@ -378,6 +378,10 @@ def print_summary(agent, summary: dict) -> None:
     keys = ("episodes_to_solve", "env_steps_to_solve", "final_cost_ratio", "oracle_cost",
             "wall_seconds_per_phase")
     console.print({k: summary.get(k) for k in keys})
+    steps = summary.get("env_steps_to_solve")
+    console.print(f"solved at {steps} env steps" if steps is not None else
+                  "not solved within the budget", f"; run folder: {agent.config.run_dir}"
+                  if agent.config.run_dir else "", sep="")
 
 
 def _num(v) -> str:
