@@ -58,7 +58,13 @@ def _one_line(rich_text: str) -> str:
     if not title and len(sections) > 1 and len(sections[0]) == 1:
         title = sections.pop(0)[0]  # the plain title line
     body = sections[0] if sections else []
-    return re.sub(r"\s+", " ", " ".join(body) or title or "invalid arguments")
+    message = re.sub(r"\s+", " ", " ".join(body) or title or "invalid arguments")
+    for section in sections[1:2]:  # tyro's suggestions for a misspelt flag
+        if section[0].startswith("Perhaps you meant"):
+            flags = [line.split()[0] for line in section[1:] if line.startswith("--")]
+            if flags:
+                message += f"; did you mean {' or '.join(flags[:3])}?"
+    return message
 
 
 def _qualify(message: str, argv: Sequence[str]) -> str:

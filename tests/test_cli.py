@@ -60,7 +60,9 @@ def fields_of(cls, prefix: str = "") -> list[tuple[str, dataclasses.Field]]:
 
 
 def help_text(cls, capsys) -> str:
-    with pytest.raises(SystemExit) as exit_:
+    """The ``--help`` output, laid out 200 columns wide (a narrow terminal splits words)."""
+    with pytest.MonkeyPatch.context() as mp, pytest.raises(SystemExit) as exit_:
+        mp.setenv("COLUMNS", "200")
         parse(cls, args=["--help"], prog="x")
     assert exit_.value.code == 0
     return capsys.readouterr().out
@@ -90,6 +92,7 @@ def test_nested_fields_are_settable_and_documented(capsys):
     (["--bogus", "1"], "Unrecognized options: --bogus"),
     (["--seed"], "--seed"),
     (["--model.hidden-width", "0"], "hidden_width must be >= 1, got 0"),  # __post_init__
+    (["--model.hiden-width", "3"], "did you mean --model.hidden-width?"),  # tyro's suggestion
 ])
 def test_bad_arguments_give_one_line_and_exit_2(args, message, capsys):
     assert message in errors(Config, args, capsys)

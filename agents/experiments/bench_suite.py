@@ -256,7 +256,8 @@ def _check_baseline_settings(name: str, baseline: dict[str, Any], planner_cfg: A
         raise ValueError(
             f"the stored baseline of task {name!r} was computed with planner settings "
             f"{stored}, the task now plans with {now}: recompute it with "
-            f"`python scripts/bench_suite.py --baselines --tasks {name} --seeds`")
+            f"`python scripts/bench_suite.py --baselines --tasks {name} --seeds` (an empty "
+            f"--seeds: the baselines only)")
 
 
 def solved_return(oracle_return: float) -> float:
@@ -446,10 +447,13 @@ def check_agent_settings(settings: Any) -> dict[str, Any]:
                 f"agent setting {key!r} changes the planner the stored true-model oracle was "
                 f"computed with ({BASELINES_JSON.name}): set it in the task's entry of "
                 f"agents.experiments.bench_suite.TASKS and recompute the baseline with "
-                f"`python scripts/bench_suite.py --baselines --tasks <task> --seeds`")
+                f"`python scripts/bench_suite.py --baselines --tasks <task> --seeds` (an "
+                f"empty --seeds: the baselines only)")
         if key not in leaves:
-            raise ValueError(f"agent setting {key!r} is not an AgentConfig field (a dotted "
-                             f"leaf such as 'model.hidden_width' or 'planner.replan_every')")
+            from agents.config import _closest
+
+            raise ValueError(f"agent setting {key!r} is not an AgentConfig field; the closest "
+                             f"is {_closest(key)!r}")
     return flat
 
 
