@@ -38,6 +38,15 @@ def fail(message: str, prog: str | None = None) -> NoReturn:
     raise SystemExit(2)
 
 
+_ROLE = re.compile(r":(?:func|class|meth|data|mod|attr|obj):`~?([^`]+)`|``([^`]+)``")
+
+
+def _plain_help(text: str) -> str:
+    """``--help`` text (tyro's plain layout: it is not drawn in boxes when captured) with the
+    docstrings' reST markup (``x``, :func:`x`) as plain names."""
+    return _ROLE.sub(lambda m: m.group(1) or m.group(2), text)
+
+
 def _one_line(rich_text: str) -> str:
     """The message of a tyro error box: its first section, box art removed, lines joined.
 
@@ -140,18 +149,20 @@ def parse(
     for flag, values in (presets or {}).items():
         if flag in argv:
             default = dataclasses.replace(default or config_type(), **values)
-    err = io.StringIO()
+    err, out = io.StringIO(), io.StringIO()
     try:
-        with contextlib.redirect_stderr(err):
+        with contextlib.redirect_stderr(err), contextlib.redirect_stdout(out):
             config = tyro.cli(config_type, args=argv, description=description, prog=prog,
                               default=default)
     except SystemExit as exit_:
-        if exit_.code in (0, None):
+        if exit_.code in (0, None):  # --help
+            sys.stdout.write(_plain_help(out.getvalue()))
             sys.stderr.write(err.getvalue())
             raise
         fail(_qualify(_one_line(err.getvalue()), argv) + " (see --help)", prog)
     except (ValueError, TypeError) as e:  # the dataclass's own validation
         fail(str(e).splitlines()[0] if str(e) else type(e).__name__, prog)
+    sys.stdout.write(out.getvalue())
     sys.stderr.write(err.getvalue())  # tyro's warnings, if any
     for names, is_folder in ((outputs, False), (folders, True)):
         for dotted in names:

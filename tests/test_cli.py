@@ -14,7 +14,7 @@ from pathlib import Path
 
 import pytest
 
-from mbtsr.cli import check_output_path, main, parse
+from mbtsr.cli import _plain_help, check_output_path, main, parse
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.append(str(REPO))  # agents/experiments/ (until the editable install is refreshed)
@@ -85,6 +85,20 @@ def test_nested_fields_are_settable_and_documented(capsys):
         assert flag in text
     for doc in ("the seed", "output file", "width of each hidden layer"):
         assert doc in text
+
+
+@dataclass(frozen=True)
+class Marked:
+    steps: int | None = None
+    """Adam steps (``None``: the epoch schedule, :func:`mbtsr.training.train_ensemble`;
+    :class:`~agents.config.AgentConfig` has ``training.steps``)"""
+
+
+def test_help_shows_the_docstrings_markup_as_plain_names(capsys):
+    text = " ".join(help_text(Marked, capsys).split())
+    assert ("Adam steps (None: the epoch schedule, mbtsr.training.train_ensemble; "
+            "agents.config.AgentConfig has training.steps)") in text
+    assert "``" not in text and ":func:" not in text and ":class:" not in text
 
 
 @pytest.mark.parametrize("args, message", [
@@ -204,9 +218,10 @@ def test_a_preset_flag_changes_the_defaults_but_not_the_given_options():
 
 
 def _param_docs(cls) -> dict[str, str]:
-    """``{field: first three words}`` of the ``:param field:`` entries of a class docstring."""
+    """``{field: first three words}`` of the ``:param field:`` entries of a class docstring, as
+    ``--help`` shows them (reST markup as plain names)."""
     chunks = (cls.__doc__ or "").split(":param ")[1:]
-    return {k: " ".join(v.split()[:3]) for k, v in (c.split(":", 1) for c in chunks)}
+    return {k: " ".join(_plain_help(v).split()[:3]) for k, v in (c.split(":", 1) for c in chunks)}
 
 
 def _tree_docs(obj, prefix: str = "") -> list[tuple[str, str, bool]]:

@@ -1051,7 +1051,7 @@ class Args:
     seeds: tuple[int, ...] = (0, 1, 2, 3, 4)
     """seeds (seed-major schedule)"""
     tasks: tuple[str, ...] = tuple(TASKS)
-    """tasks to run (see the module docstring)"""
+    """tasks to run (agents.tasks.TASKS; the module docstring says what each measures)"""
     planners: tuple[str, ...] = ("cem-ilqr",)
     """planners to run (also: ilqr, cem)"""
     regularizations: tuple[str, ...] = ("none", "sampled")
@@ -1067,14 +1067,14 @@ class Args:
     baselines_json: str = str(BASELINES_JSON)
     """the stored baselines (zero action, oracle) per task"""
     figures: str = ""
-    """folder for the PNGs (default: none)"""
+    """folder for the PNGs ('': no figures)"""
     docs: str = ""
     """write the markdown report here (with --figures)"""
     oracle_cache: str = "runs/oracle_cache"
     """cache of the true-model oracle's costs"""
     checkpoints: str = ""
     """folder of per-run checkpoints (one subfolder per run, written after every episode); a
-    run with a checkpoint there continues from it (default: no checkpoints)"""
+    run with a checkpoint there continues from it ('': no checkpoints)"""
     stop_after_steps: int = 0
     """with --checkpoints: pause each run after the episode that completes this many new env
     steps, then go on to the next (unfinished runs continue at the next call; 0: to the
