@@ -498,12 +498,14 @@ class AgentConfig(_Checked):
         if not isinstance(d, Mapping):
             raise ValueError(f"AgentConfig.from_dict needs a dict of AgentConfig fields, got "
                              f"{type(d).__name__} {d!r}")
-        training = d.get("training")  # a whole config saved before the step budget:
-        if (isinstance(training, Mapping) and "epochs" in training and "steps" not in training
+        training = d.get("training")  # a whole config saved before the step budget?
+        if (base is None and isinstance(training, Mapping) and "epochs" in training
+                and "steps" not in training
                 and {"collection", "model", "planner", "evaluation"} <= d.keys()):
-            raise ValueError("this config was saved before training.steps existed (2026-12-02): "
-                             "configs from before the step budget are not read; start from "
-                             "today's defaults and set the fields you need")
+            raise ValueError("training.epochs without training.steps: set training.steps: null "
+                             "for the epoch schedule (a config saved before training.steps "
+                             "existed, 2026-12-02, is not read: its training meant other "
+                             "defaults)")
         return (base or cls()).replace(d)
 
     @classmethod

@@ -38,7 +38,7 @@ def fail(message: str, prog: str | None = None) -> NoReturn:
     raise SystemExit(2)
 
 
-_ROLE = re.compile(r":(?:func|class|meth|data|mod|attr|obj):`~?([^`]+)`|``([^`]+)``")
+_ROLE = re.compile(r":(?:py:)?(?:func|class|meth|data|mod|attr|obj):`~?([^`]+)`|``([^`]+)``")
 
 
 def _plain_help(text: str) -> str:
@@ -68,12 +68,27 @@ def _one_line(rich_text: str) -> str:
         title = sections.pop(0)[0]  # the plain title line
     body = sections[0] if sections else []
     message = re.sub(r"\s+", " ", " ".join(body) or title or "invalid arguments")
-    for section in sections[1:2]:  # tyro's suggestions for a misspelt flag
-        if section[0].startswith("Perhaps you meant"):
-            flags = [line.split()[0] for line in section[1:] if line.startswith("--")]
-            if flags:
-                message += f"; did you mean {' or '.join(flags[:3])}?"
-    return message
+    flags = _suggested_flags(rich_text)
+    return message + (f"; did you mean {' or '.join(flags)}?" if flags else "")
+
+
+def _suggested_flags(rich_text: str, most: int = 4) -> list[str]:
+    """The flags tyro suggests for misspelt ones ("Perhaps you meant:" / "Arguments similar to
+    --x:" sections): the least indented ``--flag`` of each entry, ``--no-`` twins left out."""
+    flags: list[str] = []
+    inside, indent = False, None
+    for line in rich_text.splitlines():
+        content = _BOX.sub("", line).rstrip()
+        if "Perhaps you meant" in content or "Arguments similar to" in content:
+            inside, indent = True, None
+        elif not content.strip() or re.fullmatch(r"\s*-{3,}", content):
+            inside = False
+        elif inside and (m := re.match(r"(\s*)(--[\w.-]+)", content)):
+            indent = len(m.group(1)) if indent is None else indent
+            if len(m.group(1)) == indent and not m.group(2).startswith("--no-") \
+                    and m.group(2) not in flags:
+                flags.append(m.group(2))
+    return flags[:most]
 
 
 def _qualify(message: str, argv: Sequence[str]) -> str:
@@ -159,8 +174,10 @@ def parse(
             sys.stdout.write(_plain_help(out.getvalue()))
             sys.stderr.write(err.getvalue())
             raise
+        sys.stdout.write(out.getvalue())  # what the config printed while it was parsed
         fail(_qualify(_one_line(err.getvalue()), argv) + " (see --help)", prog)
     except (ValueError, TypeError) as e:  # the dataclass's own validation
+        sys.stdout.write(out.getvalue())
         fail(str(e).splitlines()[0] if str(e) else type(e).__name__, prog)
     sys.stdout.write(out.getvalue())
     sys.stderr.write(err.getvalue())  # tyro's warnings, if any

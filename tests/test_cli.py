@@ -107,6 +107,7 @@ def test_help_shows_the_docstrings_markup_as_plain_names(capsys):
     (["--seed"], "--seed"),
     (["--model.hidden-width", "0"], "hidden_width must be >= 1, got 0"),  # __post_init__
     (["--model.hiden-width", "3"], "did you mean --model.hidden-width?"),  # tyro's suggestion
+    (["--sed", "3", "--modl.hidden-width", "3"], "did you mean --seed or --model.hidden-width?"),
 ])
 def test_bad_arguments_give_one_line_and_exit_2(args, message, capsys):
     assert message in errors(Config, args, capsys)
@@ -304,3 +305,25 @@ def test_every_experiment_help_lists_every_field_with_its_help(name, capsys):
         doc = f.metadata.get("help")
         assert doc, f"{name}.{f.name} has no help"
         assert " ".join(doc.split()[:3]) in text, f.name
+
+
+@pytest.mark.parametrize("summary, verdict", [
+    ({"env_steps_to_solve": 200, "solved_criterion": "oracle_ratio", "eval_curve": [{}]},
+     "solved at 200 env steps"),
+    ({"env_steps_to_solve": None, "solved_criterion": "oracle_ratio", "eval_curve": [{}]},
+     "not solved within the budget"),
+    ({"env_steps_to_solve": None, "solved_criterion": "mean_return", "eval_curve": []},
+     "not evaluated"),
+    ({"env_steps_to_solve": None, "solved_criterion": None, "eval_curve": [{}]},
+     "no solved criterion"),
+])
+def test_train_agent_summary_says_whether_and_when_the_run_solved(summary, verdict, capsys):
+    from types import SimpleNamespace
+
+    from agents.experiments.train_agent import print_summary
+
+    agent = SimpleNamespace(env_id="x", logger_rows=[],
+                            config=SimpleNamespace(run_dir="runs/x"))
+    print_summary(agent, summary)
+    out = " ".join(capsys.readouterr().out.split())
+    assert f"{verdict}" in out and "run folder: runs/x" in out

@@ -113,7 +113,7 @@ def test_a_config_saved_before_the_step_budget_is_refused_as_such():
     partial dict that sets the epoch schedule is still read."""
     old = AgentConfig().to_dict()
     del old["training"]["steps"]
-    with pytest.raises(ValueError, match=r"saved before training\.steps existed"):
+    with pytest.raises(ValueError, match=r"training\.epochs without training\.steps"):
         AgentConfig.from_dict(old)
     cfg = AgentConfig.from_dict({"training": {"steps": None, "epochs": 30}})
     assert cfg.training.epochs == 30 and cfg.training.steps is None

@@ -251,7 +251,7 @@ def test_parse_args_quick_overrides_only_unset_fields(capsys):
 @pytest.mark.parametrize("bad", [
     ["--windows", "shrt"], ["--n-trains", "1,x"], ["--epochs", "0"], ["--frictions", "of"],
     ["--label-cells", "paper-of"], ["--activations", "relx"], ["--batch", "ful"],
-    ["--label-n-trains", ""]])
+    ["--label-n-trains", ""], ["--n-trains", "1,2", "--label-n-trains", "3"]])
 def test_regime_options_are_checked_before_any_run(bad, capsys):
     """A wrong comma-list value of the regime sweep stops at the command line (one line, exit
     code 2, the flag named) instead of failing every run or being stored as given."""
@@ -261,6 +261,16 @@ def test_regime_options_are_checked_before_any_run(bad, capsys):
         pc.parse_args(exp_regime.Args, ["--quick", *bad])
     err = capsys.readouterr().err
     assert exc.value.code == 2 and err.count("\n") == 1 and bad[0] in err
+
+
+def test_regime_options_may_narrow_the_grid():
+    """One window, one friction or no label cells still parse (label cells outside the grid are
+    not run)."""
+    from agents.experiments import exp_regime
+
+    for argv in (["--windows", "short"], ["--frictions", "off"], ["--label-cells", ""],
+                 ["--n-trains", "1", "--label-cells", ""]):
+        pc.parse_args(exp_regime.Args, ["--quick", *argv])
 
 
 def test_unknown_method_and_deviation_are_rejected():

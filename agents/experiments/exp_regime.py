@@ -68,13 +68,14 @@ class Args(pc.TrainingArgs):
 
     def check(self) -> None:
         """The comma-list options, each named when it is wrong (before any run starts)."""
-        pc.comma_list("n-trains", self.n_trains, int)
+        n_trains = pc.comma_list("n-trains", self.n_trains, int)
         pc.comma_list("epochs", self.epochs, int)
-        windows = pc.comma_list("windows", self.windows, allowed=list(pc.EXCITATION_WINDOWS))
-        frictions = pc.comma_list("frictions", self.frictions, allowed=["on", "off"])
-        pc.comma_list("label-n-trains", self.label_n_trains, int)
-        pc.comma_list("label-cells", self.label_cells, allowed=[
-            f"{w}-{f}" for w in windows for f in frictions])
+        pc.comma_list("windows", self.windows, allowed=list(pc.EXCITATION_WINDOWS))
+        pc.comma_list("frictions", self.frictions, allowed=["on", "off"])
+        cells = pc.comma_list("label-cells", self.label_cells, empty=True, allowed=[  # '': none
+            f"{w}-{f}" for w in pc.EXCITATION_WINDOWS for f in ("on", "off")])
+        pc.comma_list("label-n-trains (a subset of --n-trains)", self.label_n_trains, int,
+                      allowed=n_trains if cells else None)
         from mbtsr.ensemble import ACTIVATIONS
 
         pc.comma_list("activations", self.activations, allowed=list(ACTIVATIONS))

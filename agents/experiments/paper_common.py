@@ -125,11 +125,11 @@ def _check_common(args) -> None:
 
 
 def comma_list(flag: str, text: str, kind: type = str, allowed: Sequence | None = None,
-               minimum: int = 1) -> list:
-    """``"a,b"`` as ``[a, b]`` of ``kind``, or a ``ValueError`` naming ``--flag``: empty, not a
-    ``kind``, below ``minimum`` (ints), or not one of ``allowed``."""
+               minimum: int = 1, empty: bool = False) -> list:
+    """``"a,b"`` as ``[a, b]`` of ``kind``, or a ``ValueError`` naming ``--flag``: empty (unless
+    ``empty``), not a ``kind``, below ``minimum`` (ints), or not one of ``allowed``."""
     items = [v.strip() for v in text.split(",") if v.strip()]
-    if not items:
+    if not items and not empty:
         raise ValueError(f"--{flag} must list at least one value, got {text!r}")
     try:
         values = [kind(v) for v in items]
@@ -280,7 +280,8 @@ def run_experiment(
         print(f"[{experiment}] sweep finished in {wall:.1f} s")
     records = [r for r in load_results(out) if r["name"] in configs or args.report_only]
     if not records:
-        failed = sorted((out / "errors").glob("*.json"))
+        failed = [p for p in (out / "errors").glob("*.json")
+                  if json.loads(p.read_text()).get("name") in configs]
         raise SystemExit(f"no finished runs in {out}/runs: " + (
             f"all {len(failed)} failed, tracebacks in {out}/errors" if failed and not
             args.report_only else "run without --report-only first"))

@@ -379,8 +379,15 @@ def print_summary(agent, summary: dict) -> None:
             "wall_seconds_per_phase")
     console.print({k: summary.get(k) for k in keys})
     steps = summary.get("env_steps_to_solve")
-    console.print(f"solved at {steps} env steps" if steps is not None else
-                  "not solved within the budget", f"; run folder: {agent.config.run_dir}"
+    if steps is not None:
+        verdict = f"solved at {steps} env steps"
+    elif summary.get("solved_criterion") is None:
+        verdict = "no solved criterion (no oracle and no evaluation.solved_return)"
+    elif not summary.get("eval_curve"):
+        verdict = "not evaluated"
+    else:
+        verdict = "not solved within the budget"
+    console.print(verdict, f"; run folder: {agent.config.run_dir}"
                   if agent.config.run_dir else "", sep="")
 
 
