@@ -499,14 +499,15 @@ class AgentConfig(_Checked):
             raise ValueError(f"AgentConfig.from_dict needs a dict of AgentConfig fields, got "
                              f"{type(d).__name__} {d!r}")
         training = d.get("training")  # a whole config saved before the step budget?
-        if (base is None and isinstance(training, Mapping) and "epochs" in training
-                and "steps" not in training
+        base = base or cls()
+        if (base.training.steps is not None and isinstance(training, Mapping)
+                and "epochs" in training and "steps" not in training
                 and {"collection", "model", "planner", "evaluation"} <= d.keys()):
             raise ValueError("training.epochs without training.steps: set training.steps: null "
                              "for the epoch schedule (a config saved before training.steps "
                              "existed, 2026-12-02, is not read: its training meant other "
                              "defaults)")
-        return (base or cls()).replace(d)
+        return base.replace(d)
 
     @classmethod
     def from_json(cls, text: str) -> AgentConfig:

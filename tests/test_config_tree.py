@@ -117,6 +117,9 @@ def test_a_config_saved_before_the_step_budget_is_refused_as_such():
         AgentConfig.from_dict(old)
     cfg = AgentConfig.from_dict({"training": {"steps": None, "epochs": 30}})
     assert cfg.training.epochs == 30 and cfg.training.steps is None
+    with pytest.raises(ValueError, match=r"training\.epochs without training\.steps"):
+        AgentConfig.from_dict(old, base=AgentConfig())  # as train_agent --config FILE does
+    assert AgentConfig.from_dict(old, base=cfg).training.epochs == old["training"]["epochs"]
 
 
 @pytest.mark.parametrize("bad", [[1, 2], "horizon", 3, None])
