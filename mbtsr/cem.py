@@ -185,20 +185,31 @@ def rollout_batch(
     return X, alive
 
 
-def _costs(
-    cost: Any, X: np.ndarray, U: np.ndarray, t0: int, params: Any,
-    terminated: Callable[[np.ndarray], np.ndarray] | None, termination_cost: float,
-) -> np.ndarray:
-    """``[S]`` trajectory costs (see the module docstring, step 3)."""
-    args = () if params is None else (params,)  # a cost without params takes no argument
+def _terminations(
+    terminated: Callable[[np.ndarray], np.ndarray] | None, X: np.ndarray,
+) -> np.ndarray | None:
+    """``done [S, T]`` of rollouts ``X [S, T+1, n]`` (``done[:, t]``: ``x_{t+1}`` is terminal;
+    ``None`` without a termination function), checked once for the cost and the bonus."""
     if terminated is None:
+        return None
+    done = np.asarray(terminated(X[:, 1:]))
+    if done.shape != X.shape[:1] + (X.shape[1] - 1,):
+        raise ValueError(f"terminated(X [S, T, n]) must return bool [S, T] = "
+                         f"{[X.shape[0], X.shape[1] - 1]}, got {list(done.shape)}")
+    return done
+
+
+def _costs(
+    cost: Any, X: np.ndarray, U: np.ndarray, t0: int, params: Any, done: np.ndarray | None,
+    termination_cost: float,
+) -> np.ndarray:
+    """``[S]`` trajectory costs (see the module docstring, step 3; ``done`` from
+    :func:`_terminations`)."""
+    args = () if params is None else (params,)  # a cost without params takes no argument
+    if done is None:
         return np.asarray(cost.total(X, U, t0, *args), dtype=float).reshape(X.shape[0])
     stage = np.asarray(cost.stage_values(X[:, :-1], U, t0, *args), dtype=float)
     final = np.asarray(cost.terminal_values(X[:, -1], t0 + U.shape[1], *args), dtype=float)
-    done = np.asarray(terminated(X[:, 1:]))
-    if done.shape != stage.shape:
-        raise ValueError(f"terminated(X [S, T, n]) must return bool [S, T] = "
-                         f"{list(stage.shape)}, got {list(done.shape)}")
     return truncated_total(stage, final, done, termination_cost)
 
 
@@ -282,8 +293,9 @@ def cem(
         X, alive = rollout_batch(model, x0, rows, int(t0), opts.max_state_norm)
         tc = time.perf_counter()
         J = np.full(rows.shape[0], np.inf)
+        done = _terminations(terminated, X[alive]) if alive.any() else None
         if alive.any():
-            J[alive] = _costs(cost, X[alive], rows[alive], int(t0), params, terminated,
+            J[alive] = _costs(cost, X[alive], rows[alive], int(t0), params, done,
                               opts.termination_cost)
         J[~np.isfinite(J)] = np.inf
         if opts.particles > 1:
@@ -293,7 +305,7 @@ def cem(
         task_J = J
         if explore:
             td = time.perf_counter()
-            D = _disagreements(model, cost, X, rows, alive, int(t0), params, opts, terminated)
+            D = _disagreements(model, cost, X, rows, alive, int(t0), params, opts, done)
             was = bonus
             J, bonus = _explore_scores(J, D, opts.explore_weight, bonus, opts.elites)
             if was is None and bonus is not None:
@@ -326,7 +338,8 @@ def cem(
     D = None
     if explore:
         D = float(_disagreements(model, cost, X_best, best_U[None], np.ones(1, bool), int(t0),
-                                 params, dataclasses.replace(opts, particles=1), terminated)[0])
+                                 params, dataclasses.replace(opts, particles=1),
+                                 _terminations(terminated, X_best))[0])
     timings["total"] = time.perf_counter() - t_start
     return CEMResult(
         X=X_best[0], U=best_U, cost=best_cost, status=status, iterations=it, trace=trace,
@@ -336,12 +349,13 @@ def cem(
 
 def _disagreements(
     model: Any, cost: Any, X: np.ndarray, rows: np.ndarray, alive: np.ndarray, t0: int,
-    params: Any, opts: CEMOptions, terminated: Callable[[np.ndarray], np.ndarray] | None,
+    params: Any, opts: CEMOptions, done: np.ndarray | None,
 ) -> np.ndarray:
     """``D [S]``: the members' disagreement summed along each sequence's rollout ``X [R, T+1,
     n]`` of ``rows [R, T, m]`` (``R = S x particles``, averaged over particles; 0 for dead
-    rollouts), on the state or on the stage cost (``opts.explore_on``); with ``terminated``
-    the steps after the first predicted termination do not count (as their stage costs)."""
+    rollouts), on the state or on the stage cost (``opts.explore_on``); with ``done`` (of the
+    alive rollouts, :func:`_terminations`) the steps after the first predicted termination do
+    not count (as their stage costs)."""
     D = np.zeros(rows.shape[0])
     if alive.any():
         Xa, Ua = X[alive, :-1], rows[alive]
@@ -353,8 +367,8 @@ def _disagreements(
                 Uk = np.broadcast_to(Ua, (P.shape[0], *Ua.shape))
                 args = () if params is None else (params,)
                 d = np.asarray(cost.stage_values(P, Uk, t0 + 1, *args), dtype=float).std(0)
-        if terminated is not None:
-            d = np.where(after_termination(terminated(X[alive, 1:])), 0.0, d)
+        if done is not None:
+            d = np.where(after_termination(done), 0.0, d)
         D[alive] = np.sum(d, axis=-1)
     D[~np.isfinite(D)] = 0.0
     if opts.particles > 1:
