@@ -1392,10 +1392,11 @@ class FrozenEnsemble:
             return y, None
         return y, self._out_std * np.exp(0.5 * lv.swapaxes(0, 1).reshape(b * K, n)[:B])
 
-    def _member_rows_plan(self, xk: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
+    def _member_rows_plan(self, xk: np.ndarray, logvar: bool = True
+                          ) -> tuple[np.ndarray, np.ndarray | None]:
         """Each member on its own rows with the folded plan: ``xk [K, b, n+m]`` (config order)
         -> ``(x_next [K, b, n], normalized logvar [K, b, n] or None)``; hidden-major layout,
-        one batched product per layer."""
+        one batched product per layer (the log-variance head only with ``logvar``)."""
         plan, K = self._plan, self.n_members
         if self._order is not None:
             xk = xk[self._order]  # stacked order
@@ -1405,7 +1406,7 @@ class FrozenEnsemble:
         hk = h.reshape(K, W, b).swapaxes(1, 2)  # [K, b, W]
         y = hk @ plan.Wo_m + plan.bo_m + xk @ self._skip_J.T
         lv = None
-        if plan.Wv_m is not None:
+        if logvar and plan.Wv_m is not None:
             g = self._groups[0][1]
             lv = _bounded_logvar(hk @ plan.Wv_m + plan.bv_m, g["max_logvar"], g["min_logvar"],
                                  _NUMPY_OPS)
@@ -1425,7 +1426,7 @@ class FrozenEnsemble:
     def member_predictions(self, x: np.ndarray, u: np.ndarray) -> np.ndarray:
         """Next state (the mean of a probabilistic member) of every member: ``x: [..., n]``,
         ``u: [..., m]`` -> ``[K, ..., n]``."""
-        return self._member_outputs(x, u)[0]
+        return self._member_outputs(x, u, std=False)[0]
 
     def member_std(self, x: np.ndarray, u: np.ndarray) -> np.ndarray:
         """Aleatoric std of every probabilistic member's prediction (``out_std *
@@ -1438,15 +1439,19 @@ class FrozenEnsemble:
                              "(EnsembleConfig(probabilistic=True))")
         return self._member_outputs(x, u)[1]
 
-    def _member_outputs(self, x, u) -> tuple[np.ndarray, np.ndarray | None]:
+    def _member_outputs(self, x, u, std: bool = True) -> tuple[np.ndarray, np.ndarray | None]:
+        """``(means [K, ..., n], stds [K, ..., n] or None)``; the log-variance head runs only
+        for ``std`` with probabilistic members."""
         x, u = check_step_inputs(x, u, self.state_dim, self.action_dim)
         lead = x.shape[:-1]
         xu = np.concatenate([x, u], -1).reshape(-1, self.state_dim + self.action_dim)
+        logvar = std and self.probabilistic
         with np.errstate(over="ignore"):
             if self._plan is None:
-                y, _, lv = self._members(xu, 0, logvar=self.probabilistic)
+                y, _, lv = self._members(xu, 0, logvar=logvar)
             else:  # every member on every row: one batched product per layer
-                y, lv = self._member_rows_plan(np.broadcast_to(xu, (self.n_members, *xu.shape)))
+                y, lv = self._member_rows_plan(np.broadcast_to(xu, (self.n_members, *xu.shape)),
+                                               logvar)
         shape = (self.n_members, *lead, self.state_dim)
         std = None if lv is None else (self._out_std * np.exp(0.5 * lv)).reshape(shape)
         return y.reshape(shape), std
