@@ -334,9 +334,10 @@ def test_agent_settings_reach_every_run_and_keep_their_json_apart(tmp_path, caps
                      ('{"planner": {"kind": "cem"}}', "suite's own"),
                      ('{"regularization": "exact"}', "suite's own"),
                      ('{"torch_threads": 2}', "suite's own"),
-                     ('{"planner": "cem"}', "not an AgentConfig field"),
-                     ('{"planner.cem": 5}', "not an AgentConfig field"),
-                     ('{"planner.replan_evry": 8}', "closest is 'planner.replan_every'"),
+                     ('{"planner": "cem"}', "unknown AgentConfig field"),
+                     ('{"planner.cem": 5}', "unknown AgentConfig field"),
+                     ('{"planner.replan_evry": 8}', "closest valid field is "
+                                                     "'planner.replan_every'"),
                      ('{"video": true}', "suite's own"),
                      ('{"model": {"hidden_width": 5}, "model.hidden_width": 6}', "given twice"),
                      # weights that would make the "none" runs another regularizer

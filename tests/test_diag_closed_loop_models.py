@@ -152,7 +152,7 @@ def test_run_writes_every_model_and_refuses_bad_folders(tmp_path, monkeypatch):
     monkeypatch.setattr(diag, "write_json_atomic",
                         lambda path, obj: (writes.append(len(obj["rows"])), write(path, obj)))
     result = run(args)
-    assert writes == [1, 2, 3, 4, 4]  # the file after every model, and at the end
+    assert writes == [0, 1, 2, 3, 4]  # the coverage at once, then after every model
     stored = json.loads(out.read_text())
     assert [(r["size"], r["init"]) for r in stored["rows"]] == [
         ("2x8", 0), ("2x8", 1), ("7m:2x8", 0), ("7m:2x8", 1)]

@@ -450,10 +450,9 @@ def check_agent_settings(settings: Any) -> dict[str, Any]:
                 f"`python scripts/bench_suite.py --baselines --tasks <task> --seeds` (an "
                 f"empty --seeds: the baselines only)")
         if key not in leaves:
-            from agents.config import _closest
+            from agents.config import _unknown
 
-            raise ValueError(f"agent setting {key!r} is not an AgentConfig field; the closest "
-                             f"is {_closest(key)!r}")
+            raise _unknown(key)
     return flat
 
 

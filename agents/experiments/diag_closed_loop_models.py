@@ -250,8 +250,9 @@ def run(args: Args) -> dict[str, Any]:
               f"dimensions > {args.move}, median {cov['median_displacement']:.4f}"
               + (f"; median closest distance to near {cov['closest_near']:.4f}"
                  if args.near else ""))
-    training = dataclasses.replace(AgentConfig().training, steps=args.steps, patience=20)
     rows: list[dict[str, Any]] = []
+    write_json_atomic(args.json, {"args": asdict(args), "coverage": data, "rows": rows})
+    training = dataclasses.replace(AgentConfig().training, steps=args.steps, patience=20)
     jobs = [(c, s, i) for c in args.checkpoints for s in args.sizes for i in args.inits]
     for ckpt, size, init in tqdm(jobs, desc="models"):
         train, test = runs[ckpt][:-args.test_episodes], runs[ckpt][-args.test_episodes:]
@@ -272,5 +273,4 @@ def run(args: Args) -> dict[str, Any]:
               f"cost_rank {np.median([r['cost_rank'] for r in got]):.2f} ({len(got)} models)"
               + (f", displacement predicted {np.median([r['disp_pred'] for r in got]):.4f} of "
                  f"{np.median([r['disp_true'] for r in got]):.4f}" if args.track else ""))
-    write_json_atomic(args.json, {"args": asdict(args), "coverage": data, "rows": rows})
     return {"args": asdict(args), "coverage": data, "rows": rows}

@@ -66,7 +66,7 @@ class Args(pc.TrainingArgs):
     QUICK = {"mc": 2, "n_trains": "2", "epochs": "3,6", "duration": 1.0, "n_val": 2,
              "n_log": 2, "label_n_trains": "2"}
 
-    def check(self) -> None:
+    def __post_init__(self) -> None:
         """The comma-list options, each named when it is wrong (before any run starts)."""
         n_trains = pc.comma_list("n-trains", self.n_trains, int)
         pc.comma_list("epochs", self.epochs, int)
@@ -81,14 +81,6 @@ class Args(pc.TrainingArgs):
         pc.comma_list("activations", self.activations, allowed=list(ACTIVATIONS))
 
 
-def _ints(s: str) -> list[int]:
-    return [int(v) for v in s.split(",") if v.strip()]
-
-
-def _strs(s: str) -> list[str]:
-    return [v.strip() for v in s.split(",") if v.strip()]
-
-
 def cell_name(method: str, n_train: int, epochs: int, window: str, friction: bool) -> str:
     return f"{method}.n{n_train}.e{epochs}.{window}.{'fric' if friction else 'nofric'}"
 
@@ -96,11 +88,13 @@ def cell_name(method: str, n_train: int, epochs: int, window: str, friction: boo
 def make_configs(args: Args) -> dict[str, dict[str, dict]]:
     """``{"main": {name: config}, "labels": {name: config}}``: the none/sampled grid and the
     label-variant cells (run after the main grid is complete for all seeds)."""
-    n_trains, epochs = _ints(args.n_trains), _ints(args.epochs)
-    frictions = [{"on": True, "off": False}[f] for f in _strs(args.frictions)]
-    label_cells = {tuple(c.split("-")) for c in _strs(args.label_cells)}
+    n_trains, epochs = pc.comma_list("", args.n_trains, int), pc.comma_list("", args.epochs, int)
+    frictions = [{"on": True, "off": False}[f] for f in pc.comma_list("", args.frictions)]
+    label_cells = {tuple(c.split("-")) for c in pc.comma_list("", args.label_cells, empty=True)}
+    label_n_trains = pc.comma_list("", args.label_n_trains, int)
+    activations = pc.comma_list("", args.activations)
     out: dict[str, dict[str, dict]] = {"main": {}, "labels": {}, "paper_protocol": {}}
-    for window in _strs(args.windows):
+    for window in pc.comma_list("", args.windows):
         for friction in frictions:
             data = dataclasses.asdict(pc.RegimeData(
                 window=window, friction=friction, duration=args.duration,
@@ -109,7 +103,7 @@ def make_configs(args: Args) -> dict[str, dict[str, dict]]:
             for n in n_trains:
                 methods = {"main": ["none", "sampled"],
                            "labels": ["oracle", "exact", "prior"]
-                           if label and n in _ints(args.label_n_trains) else []}
+                           if label and n in label_n_trains else []}
                 for e in epochs:
                     for part, ms in methods.items():
                         for m in ms:
@@ -118,12 +112,12 @@ def make_configs(args: Args) -> dict[str, dict[str, dict]]:
                                 "exact_weight": args.exact_weight,
                                 "prior_scale": args.prior_scale, "lr": args.lr,
                                 "batch": args.batch,
-                                "model": {"activations": _strs(args.activations),
+                                "model": {"activations": activations,
                                           "width": args.width},
                                 "still_speed": args.still_speed, "n_log": args.n_log}
             if args.paper_protocol and label:
                 for m in ("none", "sampled", "oracle"):
-                    n = _ints(args.label_n_trains)[0]
+                    n = label_n_trains[0]
                     e = min(epochs)
                     name = cell_name(m, n, e, window, friction)
                     out["paper_protocol"][f"paperprotocol.{name}"] = {

@@ -120,14 +120,12 @@ def _check_common(args) -> None:
         raise ValueError(f"--workers must be >= 1, got {args.workers}")
     if getattr(args, "backend", "process") not in ("process", "serial", "ray"):
         raise ValueError(f"--backend must be process, serial or ray, got {args.backend!r}")
-    if hasattr(args, "check"):  # the experiment's own option checks
-        args.check()
 
 
 def comma_list(flag: str, text: str, kind: type = str, allowed: Sequence | None = None,
-               minimum: int = 1, empty: bool = False) -> list:
+               empty: bool = False) -> list:
     """``"a,b"`` as ``[a, b]`` of ``kind``, or a ``ValueError`` naming ``--flag``: empty (unless
-    ``empty``), not a ``kind``, below ``minimum`` (ints), or not one of ``allowed``."""
+    ``empty``), not a ``kind``, an int below 1, or not one of ``allowed``."""
     items = [v.strip() for v in text.split(",") if v.strip()]
     if not items and not empty:
         raise ValueError(f"--{flag} must list at least one value, got {text!r}")
@@ -139,8 +137,8 @@ def comma_list(flag: str, text: str, kind: type = str, allowed: Sequence | None 
     for v in values:
         if allowed is not None and v not in allowed:
             raise ValueError(f"--{flag}: {v!r} is not one of {', '.join(map(str, allowed))}")
-        if kind is int and v < minimum:
-            raise ValueError(f"--{flag} values must be >= {minimum}, got {v}")
+        if kind is int and v < 1:
+            raise ValueError(f"--{flag} values must be >= 1, got {v}")
     return values
 
 
@@ -190,7 +188,8 @@ def library_version() -> dict:
             return ""
 
     return {"commit": git("rev-parse", "HEAD"),
-            "library_dirty": bool(git("status", "--porcelain", "--", "mbtsr", "envs", "agents"))}
+            "library_dirty": bool(git("status", "--porcelain", "--untracked-files=no", "--",
+                                      "mbtsr", "envs", "agents"))}
 
 
 def machine_info(load_start: tuple[float, ...] | None = None, **extra) -> dict:
@@ -288,8 +287,7 @@ def run_experiment(
     summary = report_fn(records, out, figures, args)
     summary = {"experiment": experiment, "n_records": len(records), **summary}
     write_json_atomic(out / "summary.json", summary)
-    if getattr(args, "json", ""):
-        write_json_atomic(args.json, summary)
+    write_result(getattr(args, "json", ""), summary)
     return summary
 
 
@@ -630,8 +628,7 @@ def arm_env(cfg: ArmSampling, friction: bool | None = None):
     return TwoLinkArmEnv(preset="paper", episode_steps=cfg.T, dt=cfg.dt, params=params)
 
 
-def arm_dataset(cfg: ArmSampling, seed: int, n_train: int, *, window: int = 100,
-                friction: bool = True) -> dict:
+def arm_dataset(cfg: ArmSampling, seed: int, n_train: int, *, window: int = 100) -> dict:
     """Train / validation / simulation trajectories of the paper arm (:func:`arm_env`) for MC
     run ``seed``: the filtered Gaussian input of ``window`` taps (torque std kept at the env's
     ``excitation_std``: scale = excitation_std * sqrt(window)) held on the ``dt`` grid,
@@ -642,7 +639,7 @@ def arm_dataset(cfg: ArmSampling, seed: int, n_train: int, *, window: int = 100,
     from envs.collect import collect_trajectories
     from mbtsr.trajectory import Trajectory
 
-    env = arm_env(cfg, friction)
+    env = arm_env(cfg)  # the config's own friction (on without one)
     scale = math.sqrt(window) * env.excitation_std
 
     def collect(split: int, count: int, noise_std: float) -> list:
@@ -976,8 +973,7 @@ def regime_dataset(cfg: RegimeData, seed: int) -> dict:
     key = (cfg, int(seed))
     if key in _REGIME_CACHE:
         return _REGIME_CACHE[key]
-    d = arm_dataset(cfg, seed, cfg.n_train_max, window=EXCITATION_WINDOWS[cfg.window],
-                    friction=cfg.friction)
+    d = arm_dataset(cfg, seed, cfg.n_train_max, window=EXCITATION_WINDOWS[cfg.window])
     env = d["env"]
     d["X"], d["U"] = evaluation_points(d["val"], cfg.eval_stride)
     d["A"], d["B"] = env.linearize_trajectory(d["X"], d["U"])
