@@ -157,6 +157,9 @@ def test_settings_labels_name_the_base_and_only_what_the_variant_changes():
     assert suite.settings_labels(p20, {"training.patience": 20})[1] == (
         "training.steps=default")
     assert suite.settings_labels(p20, dict(p20))[1] == "same"
+    # runs that differ by code, not settings, name themselves (a compared JSON's "label")
+    assert suite.settings_labels(p20, dict(p20), "sin/cos pitch") == (
+        "base (training.patience=20, training.steps=4000)", "sin/cos pitch")
 
 
 @pytest.mark.parametrize("extra", [[], ["--report-only", "--docs", "d.md"]])

@@ -42,7 +42,8 @@ finished runs)::
 
 Other agent settings run into their own JSON (``--agent-settings '{"training.patience": 20}'
 --json runs/p20.json``); ``--report-only --compare runs/p20.json --figures F`` pairs them seed by
-seed with the suite's runs (``--json``) and draws both curves.
+seed with the suite's runs (``--json``) and draws both curves (a top-level ``"label"`` in the
+compared JSON names runs that differ by code rather than by settings).
 
 A HalfCheetah run takes about 35 CPU minutes: ``--checkpoints runs/suite_ckpt`` checkpoints every
 run after each episode so that a killed run continues where it stopped (bit-identical to an
@@ -628,15 +629,18 @@ def settings_comparison(base: list[dict[str, Any]], variant: list[dict[str, Any]
     return out
 
 
-def settings_labels(base: dict[str, Any], variant: dict[str, Any]) -> tuple[str, str]:
+def settings_labels(base: dict[str, Any], variant: dict[str, Any],
+                    variant_label: str | None = None) -> tuple[str, str]:
     """Names of two sets of ``--agent-settings`` for the report: the base's (``"the suite's"``
-    for the defaults) and what the variant sets differently from it (``k=v, ...``)."""
+    for the defaults) and what the variant sets differently from it (``k=v, ...``), or
+    ``variant_label`` (a compared JSON's ``"label"``: runs that differ by code or task, not by
+    settings)."""
     def name(d: dict[str, Any]) -> str:
         return ", ".join(f"{k}={json.dumps(v)}" for k, v in sorted(d.items()))
 
     changed = {k: v for k, v in variant.items() if base.get(k, object()) != v}
     dropped = sorted(k for k in base if k not in variant)
-    label = name(changed) + "".join(f", {k}=default" for k in dropped)
+    label = variant_label or (name(changed) + "".join(f", {k}=default" for k in dropped))
     return (f"base ({name(base)})" if base else "the suite's"), (label.strip(", ") or "same")
 
 
@@ -1090,7 +1094,8 @@ class Args:
     compare: str = ""
     """with --report-only (instead of the suite's report): a JSON of runs with other
     --agent-settings, paired with --json's runs (task, planner, regularizer, budget, seed):
-    prints the paired finals and seconds and, with --figures, draws settings_<its name>.png"""
+    prints the paired finals and seconds and, with --figures, draws settings_<its name>.png
+    (its top-level "label", if any, names the variant)"""
     agent_settings: str = ""
     """a JSON object of dotted AgentConfig fields applied to every agent run on top of the
     task's (e.g. '{"planner.replan_every": 8}'); recorded in the JSON, which then holds only
@@ -1240,7 +1245,8 @@ def run(a: Args) -> dict[str, Any]:
             raise ValueError(f"--compare {a.compare}: none of its runs pairs with a run of "
                              f"{a.json} (same task, planner, regularizer, budget and seed)")
         base_label, settings = settings_labels(state.get("agent_settings") or {},
-                                               other.get("agent_settings") or {})
+                                               other.get("agent_settings") or {},
+                                               other.get("label"))
         for row in rows:
             print(f"{row['task']} {row['planner']}/{row['regularization']} seeds "
                   f"{row['seeds']}: {settings} {_fmt(row['final_median'][1], 4)} "
