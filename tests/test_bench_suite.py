@@ -157,9 +157,15 @@ def test_settings_labels_name_the_base_and_only_what_the_variant_changes():
     assert suite.settings_labels(p20, {"training.patience": 20})[1] == (
         "training.steps=default")
     assert suite.settings_labels(p20, dict(p20))[1] == "same"
-    # runs that differ by code, not settings, name themselves (a compared JSON's "label")
+    # runs that differ by code, not settings, name themselves (a compared JSON's "label"),
+    # and settings that also differ stay visible after the label
     assert suite.settings_labels(p20, dict(p20), "sin/cos pitch") == (
         "base (training.patience=20, training.steps=4000)", "sin/cos pitch")
+    assert suite.settings_labels(p20, {**p20, "training.patience": 5}, " v2 ")[1] == (
+        "v2; training.patience=5")
+    for bad in (2, ["a"], "", "  ", False):
+        with pytest.raises(ValueError, match="non-blank string"):
+            suite.settings_labels(p20, dict(p20), bad)
 
 
 @pytest.mark.parametrize("extra", [[], ["--report-only", "--docs", "d.md"]])
@@ -174,8 +180,12 @@ def test_compare_refuses_a_missing_file_and_runs_that_pair_with_none(tmp_path, c
     base, variant = tmp_path / "suite.json", tmp_path / "v.json"
     base.write_text(json.dumps({"runs": [_run("none", 0, None, -5.0, task="reacher")]}))
     variant.write_text(json.dumps({"runs": [_run("none", 1, None, -4.0, task="reacher")]}))
+    labelled = tmp_path / "labelled.json"
+    labelled.write_text(json.dumps({"label": 2, "runs": [_run("none", 0, None, -4.0,
+                                                                task="reacher")]}))
     for path, says in ((tmp_path / "nope.json", "not a readable JSON"),
-                       (variant, "none of its runs pairs")):
+                       (variant, "none of its runs pairs"),
+                       (labelled, f"--compare {labelled}: the compared JSON's \"label\"")):
         with pytest.raises(SystemExit):
             suite.main(["--report-only", "--json", str(base), "--compare", str(path)])
         assert says in capsys.readouterr().err

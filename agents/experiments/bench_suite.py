@@ -632,16 +632,27 @@ def settings_comparison(base: list[dict[str, Any]], variant: list[dict[str, Any]
 def settings_labels(base: dict[str, Any], variant: dict[str, Any],
                     variant_label: str | None = None) -> tuple[str, str]:
     """Names of two sets of ``--agent-settings`` for the report: the base's (``"the suite's"``
-    for the defaults) and what the variant sets differently from it (``k=v, ...``), or
-    ``variant_label`` (a compared JSON's ``"label"``: runs that differ by code or task, not by
-    settings)."""
+    for the defaults) and what the variant sets differently from it (``k=v, ...``), after
+    ``variant_label`` if given (a compared JSON's ``"label"``: runs that differ by code or
+    task, not only by settings).
+
+    :raises ValueError: if ``variant_label`` is given and is not a non-blank string.
+    """
     def name(d: dict[str, Any]) -> str:
         return ", ".join(f"{k}={json.dumps(v)}" for k, v in sorted(d.items()))
 
+    if variant_label is not None and not (isinstance(variant_label, str)
+                                          and variant_label.strip()):
+        raise ValueError(f"the compared JSON's \"label\" must be a non-blank string, got "
+                         f"{variant_label!r}")
     changed = {k: v for k, v in variant.items() if base.get(k, object()) != v}
     dropped = sorted(k for k in base if k not in variant)
-    label = variant_label or (name(changed) + "".join(f", {k}=default" for k in dropped))
-    return (f"base ({name(base)})" if base else "the suite's"), (label.strip(", ") or "same")
+    diff = (name(changed) + "".join(f", {k}=default" for k in dropped)).strip(", ")
+    if variant_label is not None:
+        label = variant_label.strip() + (f"; {diff}" if diff else "")
+    else:
+        label = diff or "same"
+    return (f"base ({name(base)})" if base else "the suite's"), label
 
 
 def settings_figure(base: list[dict[str, Any]], variant: list[dict[str, Any]],
@@ -1240,13 +1251,16 @@ def run(a: Args) -> dict[str, Any]:
             other = json.loads(Path(a.compare).read_text())
         except (OSError, json.JSONDecodeError) as e:
             raise ValueError(f"--compare {a.compare}: not a readable JSON of runs ({e})") from e
+        try:
+            base_label, settings = settings_labels(state.get("agent_settings") or {},
+                                                   other.get("agent_settings") or {},
+                                                   other.get("label"))
+        except ValueError as e:
+            raise ValueError(f"--compare {a.compare}: {e}") from None
         rows = settings_comparison(state["runs"], other.get("runs", []), baselines)
         if not rows:
             raise ValueError(f"--compare {a.compare}: none of its runs pairs with a run of "
                              f"{a.json} (same task, planner, regularizer, budget and seed)")
-        base_label, settings = settings_labels(state.get("agent_settings") or {},
-                                               other.get("agent_settings") or {},
-                                               other.get("label"))
         for row in rows:
             print(f"{row['task']} {row['planner']}/{row['regularization']} seeds "
                   f"{row['seeds']}: {settings} {_fmt(row['final_median'][1], 4)} "
