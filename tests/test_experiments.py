@@ -400,7 +400,7 @@ def test_friction_free_arm_matches_the_analytic_twin_even_at_rest():
     u = np.array([0.1, -0.2])
     errs = {}
     for friction in (True, False):
-        env = pc.arm_env(pc.RegimeData(), friction)
+        env = pc.arm_env(pc.RegimeData(friction=friction))
         A, B = env.linearize(x, u)
         A_tw, B_tw = env.analytic_model().jacobians(x[None], u[None])
         errs[friction] = np.abs(np.concatenate([A - A_tw[0], B - B_tw[0]], 1)).max()
@@ -410,8 +410,8 @@ def test_friction_free_arm_matches_the_analytic_twin_even_at_rest():
 
 @pytest.mark.parametrize("friction", [True, False])
 def test_arm_env_follows_the_configs_friction(friction):
-    """``arm_env(cfg)`` without an explicit ``friction`` takes the config's own: Coulomb friction
-    on the paper arm, none for ``RegimeData(friction=False)``."""
+    """``arm_env(cfg)`` takes the config's friction: Coulomb friction on the paper arm, none for
+    ``RegimeData(friction=False)``."""
     env = pc.arm_env(pc.RegimeData(friction=friction))
     assert (np.asarray(env.unwrapped.model.dof_frictionloss) > 0).all() == friction
 

@@ -614,17 +614,14 @@ def held_filtered_gaussian(T: int, m: int, rng: np.random.Generator, *, dt: floa
     return u[idx]
 
 
-def arm_env(cfg: ArmSampling, friction: bool | None = None):
-    """The paper-preset arm with episodes as long as one trajectory; ``friction=False`` removes
-    its Coulomb friction (``frictionloss = (0, 0)``; viscous friction kept); ``None``: the
-    config's own ``friction`` (on when it has none)."""
+def arm_env(cfg: ArmSampling):
+    """The paper-preset arm with episodes as long as one trajectory; a config with
+    ``friction=False`` (:class:`RegimeData`) removes its Coulomb friction (``frictionloss =
+    (0, 0)``; viscous friction kept); a config without the field keeps it."""
     import envs  # noqa: F401 - registers the envs
     from envs.two_link_arm import TwoLinkArmEnv
 
-    if friction is None:
-        friction = getattr(cfg, "friction", True)
-
-    params = None if friction else {"frictionloss": (0.0, 0.0)}
+    params = None if getattr(cfg, "friction", True) else {"frictionloss": (0.0, 0.0)}
     return TwoLinkArmEnv(preset="paper", episode_steps=cfg.T, dt=cfg.dt, params=params)
 
 
@@ -639,7 +636,7 @@ def arm_dataset(cfg: ArmSampling, seed: int, n_train: int, *, window: int = 100)
     from envs.collect import collect_trajectories
     from mbtsr.trajectory import Trajectory
 
-    env = arm_env(cfg)  # the config's own friction (on without one)
+    env = arm_env(cfg)
     scale = math.sqrt(window) * env.excitation_std
 
     def collect(split: int, count: int, noise_std: float) -> list:
