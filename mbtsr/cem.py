@@ -292,10 +292,11 @@ def cem(
         rows = cand if opts.particles == 1 else np.repeat(cand, opts.particles, axis=0)
         X, alive = rollout_batch(model, x0, rows, int(t0), opts.max_state_norm)
         tc = time.perf_counter()
-        J = np.full(rows.shape[0], np.inf)
-        done = _terminations(terminated, X[alive]) if alive.any() else None
+        J, done = np.full(rows.shape[0], np.inf), None
         if alive.any():
-            J[alive] = _costs(cost, X[alive], rows[alive], int(t0), params, done,
+            Xa = X[alive]  # one copy for the terminations and the costs
+            done = _terminations(terminated, Xa)
+            J[alive] = _costs(cost, Xa, rows[alive], int(t0), params, done,
                               opts.termination_cost)
         J[~np.isfinite(J)] = np.inf
         if opts.particles > 1:
