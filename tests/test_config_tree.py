@@ -324,9 +324,13 @@ def partial_changes(draw) -> dict:
     for k, invalid in INVALID_WHEN.items():
         if k in changes and invalid({**DEFAULTS, **changes}):
             del changes[k]
-    values = {**DEFAULTS, **changes}
-    return {k: v for k, v in changes.items()
-            if k not in ACTS_ONLY_WHEN or ACTS_ONLY_WHEN[k](values)}
+    while True:  # to a fixed point: dropping a field can leave another without effect
+        values = {**DEFAULTS, **changes}  # (explore_on after explore_weight at one member)
+        kept = {k: v for k, v in changes.items()
+                if k not in ACTS_ONLY_WHEN or ACTS_ONLY_WHEN[k](values)}
+        if kept == changes:
+            return kept
+        changes = kept
 
 
 def nested(changes: dict) -> dict:
