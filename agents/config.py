@@ -110,7 +110,14 @@ class CollectionConfig(_Checked):
     :param excitation_window: moving-average window (steps) of the filtered Gaussian input.
     :param exploration_std: std of Gaussian noise added to planned actions during training
         rollouts, as a fraction of the action half-range (0 disables it).
-    :param episode_steps: steps per rollout; ``None`` uses the env's ``TimeLimit``.
+    :param episode_steps: steps per episode (training rollouts and evaluation); ``None`` uses
+        the env's ``TimeLimit``.
+    :param rollout_steps: steps per TRAINING rollout when shorter than the episode (evaluation
+        keeps ``episode_steps``); ``None``: the episode's length. Shorter rollouts restart from
+        the env's initial states more often, so more of the data lies where the task starts: on
+        a system that falls into a state it hardly leaves (a cheetah on its back), a long
+        rollout spends most of its steps there (docs/troubleshooting.md). The model is updated
+        after every rollout, so a run of the same env steps makes more updates.
     :param exploration_window: moving-average window (steps) of the exploration noise,
         rescaled to its stationary std (1: white noise; longer windows move the system further
         from the plan at the same amplitude, as the excitation does). The filter starts from
@@ -133,6 +140,7 @@ class CollectionConfig(_Checked):
     excitation_window: int = 8
     exploration_std: float = 0.1
     episode_steps: int | None = None
+    rollout_steps: int | None = None
     exploration_window: int = 1
     explore_weight: float = 0.0
     explore_on: Literal["state", "cost"] = "state"
@@ -148,6 +156,8 @@ class CollectionConfig(_Checked):
         self._choice("explore_on", ("state", "cost"))
         if self.episode_steps is not None:
             self._int_at_least("episode_steps", 2)
+        if self.rollout_steps is not None:
+            self._int_at_least("rollout_steps", 2)
 
 
 @dataclass(frozen=True)

@@ -605,6 +605,27 @@ def test_solved_return_decides_from_the_envs_own_rewards():
     assert hard.summary()["episodes_to_solve"] is None
 
 
+def test_rollout_steps_shortens_training_rollouts_not_evaluation():
+    """``collection.rollout_steps``: every training rollout (excitation and MPC) is that long and
+    starts from a reset, the budget counts its steps, and the evaluation episodes keep the
+    episode's length (their returns equal a replay of that length)."""
+    env = gym.make("Pendulum-v1")
+    cfg = tiny_config({"collection.episode_steps": 15, "collection.rollout_steps": 6,
+                       "evaluation.every": 2, "evaluation.episodes": 1})
+    agent = JacPropAgent(env, cfg, cost_fn=pendulum_cost)
+    agent.learn(total_env_steps=20, progress_bar=False)
+    assert [t.T for t in agent.trajectories] == [6, 6, 6, 2]  # the last one cut by the budget
+    assert agent.env_steps == 20 and [r["phase"] for r in agent.logger_rows] == [
+        "excitation", "mpc", "mpc", "mpc"]
+    assert len({t.meta["seed"] for t in agent.trajectories}) == 4  # a reset per rollout
+    replay = agent.rollout_policy(gym.make("Pendulum-v1"), seed=cfg.evaluation.seed)
+    assert len(replay.rewards) == 15
+    assert agent.logger_rows[-1]["eval_returns"] == [pytest.approx(float(np.sum(replay.rewards)),
+                                                                   rel=1e-12)]
+    with pytest.raises(ValueError, match="collection.rollout_steps"):
+        tiny_config({"collection.rollout_steps": 1})
+
+
 def test_terminal_cost_is_the_users_function_of_the_predicted_observation():
     env = gym.make("Pendulum-v1")
 
