@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 
 import numpy as np
@@ -158,6 +159,9 @@ def test_run_writes_every_model_and_refuses_bad_folders(tmp_path, monkeypatch):
         ("2x8", 0), ("2x8", 1), ("7m:2x8", 0), ("7m:2x8", 1)]
     assert stored["rows"] == json.loads(json.dumps(result["rows"]))
     assert all(np.isfinite(r["cost_err"]) and r["steps"] <= 10 for r in stored["rows"])
+    whole = run(dataclasses.replace(args, sizes=("2x8",), patience=None, holdout=0.0,
+                                    steps=60))  # no early stopping: every model its budget
+    assert [r["steps"] for r in whole["rows"]] == [60, 60]
     with pytest.raises(ValueError, match="no data.npz"):
         run(Args(task="reacher", checkpoints=(str(tmp_path),), json=str(out)))
     with pytest.raises(ValueError, match="none to train on"):
@@ -185,6 +189,9 @@ def test_run_writes_every_model_and_refuses_bad_folders(tmp_path, monkeypatch):
     ({"sizes": ("rule", "5m:2x8")}, "sizes: '5m:2x8'"),
     ({"track": (17, 18), "near": (14,)}, "near needs as many dimensions as track"),
     ({"skip": -1}, "skip must be an integer >= 0"),
+    ({"patience": 0}, "patience must be an integer >= 1"),
+    ({"holdout": 1.0}, "holdout must be in"),
+    ({"holdout": 0.0}, "patience needs held-out data"),
 ])
 def test_bad_arguments_are_refused_before_any_work(bad, match):
     with pytest.raises(ValueError, match=match):

@@ -76,7 +76,12 @@ class Args:
     inits: tuple[int, ...] = (1, 2, 3)
     """weight-initialisation (and minibatch) seeds per size"""
     steps: int = 4000
-    """gradient-step budget (the agent's optimizer, 10 % hold-out, patience 20)"""
+    """gradient-step budget per model (the agent's optimizer)"""
+    patience: int | None = 20
+    """early stopping on the hold-out after this many evaluations without progress; None: the
+    whole budget"""
+    holdout: float = 0.1
+    """fraction of the training transitions held out (0: train on all; needs patience None)"""
     test_episodes: int = 5
     """the last episodes of each run, held out"""
     horizon: int = 30
@@ -111,6 +116,12 @@ class Args:
         for i in self.near:
             check_int("near entries", i, 0)
         check_int("skip", self.skip, 0)
+        if self.patience is not None:
+            check_int("patience", self.patience, 1)
+        if not (isinstance(self.holdout, float | int) and 0 <= self.holdout < 1):
+            raise ValueError(f"holdout must be in [0, 1), got {self.holdout!r}")
+        if self.patience is not None and self.holdout == 0:
+            raise ValueError("patience needs held-out data: holdout > 0, or patience None")
         if not self.inits:
             raise ValueError("inits: give at least one initialisation seed")
         for size in self.sizes:
@@ -252,7 +263,8 @@ def run(args: Args) -> dict[str, Any]:
                  if args.near else ""))
     rows: list[dict[str, Any]] = []
     write_json_atomic(args.json, {"args": asdict(args), "coverage": data, "rows": rows})
-    training = dataclasses.replace(AgentConfig().training, steps=args.steps, patience=20)
+    training = dataclasses.replace(AgentConfig().training, steps=args.steps,
+                                   patience=args.patience, holdout=args.holdout)
     jobs = [(c, s, i) for c in args.checkpoints for s in args.sizes for i in args.inits]
     for ckpt, size, init in tqdm(jobs, desc="models"):
         train, test = runs[ckpt][:-args.test_episodes], runs[ckpt][-args.test_episodes:]
