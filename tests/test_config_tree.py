@@ -183,6 +183,7 @@ LEAVES = {
     "collection.excitation_window": st.integers(1, 20),
     "collection.exploration_std": st.floats(0.0, 2.0),
     "collection.episode_steps": st.none() | st.integers(2, 500),
+    "collection.rollout_steps": st.none() | st.integers(2, 500),
     "collection.exploration_window": st.integers(1, 20),
     "collection.explore_weight": st.floats(0.0, 3.0),
     "collection.explore_on": st.sampled_from(["state", "cost"]),
