@@ -117,7 +117,10 @@ class CollectionConfig(_Checked):
         the env's initial states more often, so more of the data lies where the task starts: on
         a system that falls into a state it hardly leaves (a cheetah on its back), a long
         rollout spends most of its steps there (docs/troubleshooting.md). The model is updated
-        after every rollout, so a run of the same env steps makes more updates.
+        after every rollout, so a run of the same env steps makes more updates. Everything that
+        counts episodes counts these rollouts: the excitation (``n_excitation_episodes``
+        rollouts of this length), ``evaluation.every``, ``learn(episodes=...)``; for
+        evaluations at fixed env steps use ``evaluation.every_steps``.
     :param exploration_window: moving-average window (steps) of the exploration noise,
         rescaled to its stationary std (1: white noise; longer windows move the system further
         from the plan at the same amplitude, as the excitation does). The filter starts from
