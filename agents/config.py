@@ -161,6 +161,11 @@ class CollectionConfig(_Checked):
             self._int_at_least("episode_steps", 2)
         if self.rollout_steps is not None:
             self._int_at_least("rollout_steps", 2)
+            if self.episode_steps is not None and self.rollout_steps >= self.episode_steps:
+                raise ValueError(
+                    f"collection.rollout_steps={self.rollout_steps} has no effect: it must be "
+                    f"shorter than collection.episode_steps={self.episode_steps} (None: "
+                    "rollouts as long as the episode)")
 
 
 @dataclass(frozen=True)

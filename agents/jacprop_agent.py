@@ -122,6 +122,10 @@ class JacPropAgent(SB3Predictor):
         if not isinstance(config, AgentConfig):
             raise TypeError(f"config must be an AgentConfig, got {type(config).__name__}")
         spec = env_spec(env, config.collection.episode_steps)
+        if (config.collection.rollout_steps or 0) >= spec.episode_steps:
+            warnings.warn(f"collection.rollout_steps={config.collection.rollout_steps} has no "
+                          f"effect: the episode is {spec.episode_steps} steps long",
+                          stacklevel=2)
         if config.video and getattr(env, "render_mode", None) != "rgb_array":
             raise ValueError(
                 "config.video needs an env created with render_mode='rgb_array', got "

@@ -624,6 +624,12 @@ def test_rollout_steps_shortens_training_rollouts_not_evaluation():
                                                                    rel=1e-12)]
     with pytest.raises(ValueError, match="collection.rollout_steps"):
         tiny_config({"collection.rollout_steps": 1})
+    with pytest.raises(ValueError, match="rollout_steps=15 has no effect"):
+        tiny_config({"collection.episode_steps": 15, "collection.rollout_steps": 15})
+    with pytest.warns(UserWarning, match="rollout_steps=300 has no effect"):
+        JacPropAgent(gym.make("Pendulum-v1"), tiny_config({"collection.episode_steps": None,
+                                                           "collection.rollout_steps": 300}),
+                     cost_fn=pendulum_cost)  # Pendulum-v1's TimeLimit: 200 steps
 
 
 def test_terminal_cost_is_the_users_function_of_the_predicted_observation():

@@ -297,6 +297,9 @@ INVALID_WHEN = {
         v["training.steps"] is not None or v["training.holdout"] > 0
         or v["training.patience"] is not None or v["training.member_data"] != "shared"),
     "training.holdout": lambda v: v["training.holdout"] == 0 and v["training.patience"] is not None,
+    "collection.rollout_steps": lambda v: (
+        v["collection.rollout_steps"] is not None and v["collection.episode_steps"] is not None
+        and v["collection.rollout_steps"] >= v["collection.episode_steps"]),
 }
 def leaves(cfg: AgentConfig, tree: dict | None = None, prefix: str = "") -> dict:
     """``{dotted field: value}`` of every leaf, from ``to_dict`` (lists as tuples)."""

@@ -161,7 +161,9 @@ def test_run_writes_every_model_and_refuses_bad_folders(tmp_path, monkeypatch):
     assert all(np.isfinite(r["cost_err"]) and r["steps"] <= 10 for r in stored["rows"])
     whole = run(dataclasses.replace(args, sizes=("2x8",), patience=None, holdout=0.0,
                                     steps=60))  # no early stopping: every model its budget
-    assert [r["steps"] for r in whole["rows"]] == [60, 60]
+    assert [(r["steps"], r["n_holdout"], r["stopped_early"]) for r in whole["rows"]] == [
+        (60, 0, False), (60, 0, False)]
+    assert all(r["n_holdout"] > 0 for r in stored["rows"])  # the default holds 10 % out
     with pytest.raises(ValueError, match="no data.npz"):
         run(Args(task="reacher", checkpoints=(str(tmp_path),), json=str(out)))
     with pytest.raises(ValueError, match="none to train on"):
@@ -191,6 +193,7 @@ def test_run_writes_every_model_and_refuses_bad_folders(tmp_path, monkeypatch):
     ({"skip": -1}, "skip must be an integer >= 0"),
     ({"patience": 0}, "patience must be an integer >= 1"),
     ({"holdout": 1.0}, "holdout must be in"),
+    ({"holdout": True}, "holdout must be in"),
     ({"holdout": 0.0}, "patience needs held-out data"),
 ])
 def test_bad_arguments_are_refused_before_any_work(bad, match):

@@ -118,7 +118,8 @@ class Args:
         check_int("skip", self.skip, 0)
         if self.patience is not None:
             check_int("patience", self.patience, 1)
-        if not (isinstance(self.holdout, float | int) and 0 <= self.holdout < 1):
+        if not (isinstance(self.holdout, float | int) and not isinstance(self.holdout, bool)
+                and 0 <= self.holdout < 1):
             raise ValueError(f"holdout must be in [0, 1), got {self.holdout!r}")
         if self.patience is not None and self.holdout == 0:
             raise ValueError("patience needs held-out data: holdout > 0, or patience None")
@@ -273,6 +274,7 @@ def run(args: Args) -> dict[str, Any]:
         tic = time.process_time()
         hist = train_ensemble(model, train, dataclasses.replace(training, seed=init))
         rows.append({"checkpoint": ckpt, "size": size, "init": init, "steps": hist.steps,
+                     "n_holdout": hist.n_holdout, "stopped_early": hist.stopped_early,
                      "cpu_s": time.process_time() - tic,
                      **planning_errors(model.freeze().step, cost_of, train, test,
                                        horizon=args.horizon, stride=args.stride,

@@ -285,7 +285,9 @@ def plot_learning_curve(agent, path: Path) -> None:
     ep = np.array([r["episode"] for r in rows]) + 1
     fig, axes = plt.subplots(1, 2, figsize=(10, 3.8))
     ax = axes[0]
-    ax.semilogy(ep, [r["episode_cost"] for r in rows], "o-", label="training rollout")
+    short = agent.config.collection.rollout_steps
+    ax.semilogy(ep, [r["episode_cost"] for r in rows], "o-", label="training rollout" + (
+        f" (at most {short} steps; evaluation {agent.spec.episode_steps})" if short else ""))
     ev = np.array([np.nan if r.get("eval_cost") is None else r["eval_cost"] for r in rows])
     if np.any(np.isfinite(ev)):
         ax.semilogy(ep, ev, "s-", label="evaluation (mean of targets)")
