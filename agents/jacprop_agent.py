@@ -470,8 +470,9 @@ class JacPropAgent(SB3Predictor):
         # anything that draws from torch's global generator is reproducible per episode
         torch.manual_seed(torch_seed)
         excitation = ep < cfg.collection.n_excitation_episodes
-        T = min(spec.episode_steps, cfg.collection.rollout_steps or spec.episode_steps,
-                spec.episode_steps if max_steps is None else max_steps)
+        T = min(cfg.collection.rollout_steps or spec.episode_steps, spec.episode_steps)
+        if max_steps is not None:
+            T = min(T, max_steps)
         render = cfg.video and cfg.run_dir is not None and ep % cfg.video_every == 0
 
         # (a) rollout in the real env --------------------------------------------------------

@@ -58,7 +58,7 @@ from agents.config import AgentConfig
 from agents.experiments.bench_model_sizes import errors, model_config
 from agents.tasks import TASKS, make_task
 from mbtsr.io import write_json_atomic
-from mbtsr.training import train_ensemble
+from mbtsr.training import TrainConfig, train_ensemble
 from mbtsr.trajectory import Trajectory, load_trajectories
 from mbtsr.validation import check_int
 
@@ -116,17 +116,18 @@ class Args:
         for i in self.near:
             check_int("near entries", i, 0)
         check_int("skip", self.skip, 0)
-        if self.patience is not None:
-            check_int("patience", self.patience, 1)
-        if not (isinstance(self.holdout, float | int) and not isinstance(self.holdout, bool)
-                and 0 <= self.holdout < 1):
-            raise ValueError(f"holdout must be in [0, 1), got {self.holdout!r}")
+        self.training()  # the library's checks of steps, patience and holdout
         if self.patience is not None and self.holdout == 0:
             raise ValueError("patience needs held-out data: holdout > 0, or patience None")
         if not self.inits:
             raise ValueError("inits: give at least one initialisation seed")
         for size in self.sizes:
             members_and_size(size)
+
+    def training(self, seed: int = 0) -> TrainConfig:
+        """The agent's optimizer with this study's budget, patience and hold-out."""
+        return dataclasses.replace(AgentConfig().training, steps=self.steps,
+                                   patience=self.patience, holdout=self.holdout, seed=seed)
 
 
 def members_and_size(size: str) -> tuple[int, str]:
@@ -264,15 +265,13 @@ def run(args: Args) -> dict[str, Any]:
                  if args.near else ""))
     rows: list[dict[str, Any]] = []
     write_json_atomic(args.json, {"args": asdict(args), "coverage": data, "rows": rows})
-    training = dataclasses.replace(AgentConfig().training, steps=args.steps,
-                                   patience=args.patience, holdout=args.holdout)
     jobs = [(c, s, i) for c in args.checkpoints for s in args.sizes for i in args.inits]
     for ckpt, size, init in tqdm(jobs, desc="models"):
         train, test = runs[ckpt][:-args.test_episodes], runs[ckpt][-args.test_episodes:]
         members, name = members_and_size(size)
         model = model_config(name, members).build(n, m, seed=init)
         tic = time.process_time()
-        hist = train_ensemble(model, train, dataclasses.replace(training, seed=init))
+        hist = train_ensemble(model, train, args.training(init))
         rows.append({"checkpoint": ckpt, "size": size, "init": init, "steps": hist.steps,
                      "n_holdout": hist.n_holdout, "stopped_early": hist.stopped_early,
                      "cpu_s": time.process_time() - tic,
