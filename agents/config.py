@@ -121,6 +121,11 @@ class CollectionConfig(_Checked):
         counts episodes counts these rollouts: the excitation (``n_excitation_episodes``
         rollouts of this length), ``evaluation.every``, ``learn(episodes=...)``; for
         evaluations at fixed env steps use ``evaluation.every_steps``.
+    :param continue_rollouts: with ``rollout_steps``, a training rollout that stops at
+        ``rollout_steps`` hands the env's episode on: the next rollout continues it after the
+        model update instead of resetting (the env resets when its episode ends). The model is
+        then updated every ``rollout_steps`` env steps without the restarts, as MBPO trains its
+        model every 250 env steps. A resumed checkpoint starts from a reset.
     :param exploration_window: moving-average window (steps) of the exploration noise,
         rescaled to its stationary std (1: white noise; longer windows move the system further
         from the plan at the same amplitude, as the excitation does). The filter starts from
@@ -144,6 +149,7 @@ class CollectionConfig(_Checked):
     exploration_std: float = 0.1
     episode_steps: int | None = None
     rollout_steps: int | None = None
+    continue_rollouts: bool = False
     exploration_window: int = 1
     explore_weight: float = 0.0
     explore_on: Literal["state", "cost"] = "state"
@@ -166,6 +172,9 @@ class CollectionConfig(_Checked):
                     f"collection.rollout_steps={self.rollout_steps} has no effect: it must be "
                     f"shorter than collection.episode_steps={self.episode_steps} (None: "
                     "rollouts as long as the episode)")
+        if self.continue_rollouts and self.rollout_steps is None:
+            raise ValueError("collection.continue_rollouts=True needs collection.rollout_steps "
+                             "(rollouts shorter than the episode to continue)")
 
 
 @dataclass(frozen=True)

@@ -214,6 +214,8 @@ class JacPropAgent(SB3Predictor):
         self._eval_env: gym.Env | None = None
         self._log: EpisodeLog | None = None
         self._oracle_seconds = 0.0  # computing the oracle (once), booked apart from evaluation
+        # collection.continue_rollouts: ((obs, info), steps so far) of the env's running episode
+        self._handover: tuple[tuple[np.ndarray, dict], int] | None = None
 
     def _freeze(self) -> None:
         """Train -> freeze -> plan: the controller plans with an immutable float64 copy of the
@@ -470,7 +472,9 @@ class JacPropAgent(SB3Predictor):
         # anything that draws from torch's global generator is reproducible per episode
         torch.manual_seed(torch_seed)
         excitation = ep < cfg.collection.n_excitation_episodes
-        T = min(cfg.collection.rollout_steps or spec.episode_steps, spec.episode_steps)
+        start, done_steps = self._handover or (None, 0)  # collection.continue_rollouts
+        self._handover = None
+        T = min(cfg.collection.rollout_steps or spec.episode_steps, spec.episode_steps - done_steps)
         if max_steps is not None:
             T = min(T, max_steps)
         render = cfg.video and cfg.run_dir is not None and ep % cfg.video_every == 0
@@ -489,12 +493,15 @@ class JacPropAgent(SB3Predictor):
                 a, plan["U"] = self.explorer.predict(obs, plan["U"], episode_start=t == 0)
                 return a + noise[t]
 
-        rec = run_episode(self.env, act, seed=reset_seed, max_steps=T, render=render)
+        rec = run_episode(self.env, act, seed=reset_seed, max_steps=T, render=render, start=start)
         time_rollout = time.perf_counter() - t_start - rec.time_policy
         traj = Trajectory(
             self.state_map.state(rec.obs), rec.actions, spec.dt,
-            meta={"episode": ep, "seed": reset_seed},
+            meta={"episode": ep, "seed": None if start is not None else reset_seed},
         )
+        if (cfg.collection.continue_rollouts and not (rec.terminated or rec.truncated)
+                and done_steps + rec.T < spec.episode_steps):
+            self._handover = ((rec.obs[-1].copy(), dict(rec.info)), done_steps + rec.T)
         self.env_steps += traj.T
         if render:
             self._save_video(rec.frames, ep)

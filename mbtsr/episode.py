@@ -100,6 +100,7 @@ def run_episode(
     render: bool = False,
     observe: Callable[[Any, dict], np.ndarray] | None = None,
     stop: Callable[[np.ndarray], bool] | None = None,
+    start: tuple[Any, dict] | None = None,
 ) -> EpisodeRecord:
     """Reset ``env`` and run ``policy`` until termination, truncation, ``max_steps`` or
     ``stop``.
@@ -115,6 +116,9 @@ def run_episode(
     :param observe: ``(obs, info) -> y`` what the policy and ``stop`` see.
     :param stop: ``stop(y) -> bool`` checked on every ``y`` (the first included); true ends
         the episode with ``stopped=True``.
+    :param start: ``(obs, info)`` where an earlier call stopped at ``max_steps``: continue
+        that episode of ``env`` from there instead of resetting (``seed`` and ``options`` are
+        unused; ``t`` counts from 0 again).
     :return: :class:`EpisodeRecord`.
     """
     space = env.action_space
@@ -131,7 +135,10 @@ def run_episode(
     if callable(getattr(policy, "reset", None)) and not hasattr(policy, "predict"):
         policy.reset()
     low, high, m = space.low, space.high, space.shape[0]
-    obs, info = env.reset(seed=None if seed is None else int(seed), options=options)
+    if start is None:
+        obs, info = env.reset(seed=None if seed is None else int(seed), options=options)
+    else:
+        obs, info = start
     info0 = dict(info)
     y = obs if observe is None else observe(obs, info)
     obs_list, act_list, rew_list, times = [np.asarray(obs, dtype=float)], [], [], []

@@ -632,6 +632,30 @@ def test_rollout_steps_shortens_training_rollouts_not_evaluation():
                      cost_fn=pendulum_cost)  # Pendulum-v1's TimeLimit: 200 steps
 
 
+def test_continue_rollouts_hands_the_episode_on_across_updates():
+    """``collection.continue_rollouts``: rollouts of 6 steps continue one env episode of 15
+    (6 + 6 + 3, then a reset), with a model update between them. Replaying the first episode's
+    recorded actions from its reset in a fresh env reproduces every segment's states, so nothing
+    reset or skipped a step between the segments."""
+    cfg = tiny_config({"collection.episode_steps": 15, "collection.rollout_steps": 6,
+                       "collection.continue_rollouts": True, "evaluation.every": 0})
+    agent = JacPropAgent(gym.make("Pendulum-v1"), cfg, cost_fn=pendulum_cost)
+    agent.learn(total_env_steps=20, progress_bar=False)
+    trajs = agent.trajectories
+    assert [t.T for t in trajs] == [6, 6, 3, 5]
+    assert [t.meta["seed"] is None for t in trajs] == [False, True, True, False]
+    assert len(agent.logger_rows) == 4  # an update after every segment
+    U = np.concatenate([t.u for t in trajs[:3]])
+    rec = run_episode(gym.make("Pendulum-v1"), lambda obs, t: U[t], seed=trajs[0].meta["seed"],
+                      max_steps=15)
+    X = agent.state_map.state(rec.obs)
+    np.testing.assert_allclose(np.concatenate([trajs[0].x, trajs[1].x[1:], trajs[2].x[1:]]), X,
+                               rtol=1e-6, atol=1e-6)
+    np.testing.assert_array_equal(trajs[1].x[0], trajs[0].x[-1])
+    with pytest.raises(ValueError, match="continue_rollouts=True needs collection.rollout_steps"):
+        tiny_config({"collection.continue_rollouts": True})
+
+
 def test_terminal_cost_is_the_users_function_of_the_predicted_observation():
     env = gym.make("Pendulum-v1")
 

@@ -184,6 +184,7 @@ LEAVES = {
     "collection.exploration_std": st.floats(0.0, 2.0),
     "collection.episode_steps": st.none() | st.integers(2, 500),
     "collection.rollout_steps": st.none() | st.integers(2, 500),
+    "collection.continue_rollouts": st.booleans(),
     "collection.exploration_window": st.integers(1, 20),
     "collection.explore_weight": st.floats(0.0, 3.0),
     "collection.explore_on": st.sampled_from(["state", "cost"]),
@@ -300,6 +301,8 @@ INVALID_WHEN = {
     "collection.rollout_steps": lambda v: (
         v["collection.rollout_steps"] is not None and v["collection.episode_steps"] is not None
         and v["collection.rollout_steps"] >= v["collection.episode_steps"]),
+    "collection.continue_rollouts": lambda v: (v["collection.continue_rollouts"]
+                                               and v["collection.rollout_steps"] is None),
 }
 def leaves(cfg: AgentConfig, tree: dict | None = None, prefix: str = "") -> dict:
     """``{dotted field: value}`` of every leaf, from ``to_dict`` (lists as tuples)."""
