@@ -131,6 +131,10 @@ def run_episode(
     for name, fn in (("observe", observe), ("stop", stop)):
         if fn is not None and not callable(fn):
             raise TypeError(f"{name} must be callable or None, got {type(fn).__name__}")
+    if start is not None and not (isinstance(start, tuple) and len(start) == 2
+                                  and isinstance(start[1], dict)):
+        raise TypeError("start must be None or the (obs, info) pair of the env's running episode, "
+                        f"got {type(start).__name__}")
     act = as_policy(policy)
     if callable(getattr(policy, "reset", None)) and not hasattr(policy, "predict"):
         policy.reset()

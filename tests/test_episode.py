@@ -44,6 +44,22 @@ def test_equals_stepping_the_env_by_hand_and_records_the_clipped_actions(seed, T
     assert rec.policy_times.shape == (rec.T,) and rec.cost == pytest.approx(-R.sum())
 
 
+@settings(max_examples=10, deadline=None)
+@given(seed=st.integers(0, 2**16), cut=st.integers(1, 7))
+def test_start_continues_an_episode_as_if_it_had_not_stopped(seed, cut):
+    """Two calls, the second from the first's last ``(obs, info)``, equal one call: the states,
+    rewards and the TimeLimit's truncation at 8 steps (the env's step count carries on)."""
+    env = gym.make(LIN, n=3, m=2, episode_steps=8)
+    U = np.random.default_rng(seed).uniform(-1, 1, (10, 2))
+    whole = run_episode(env, lambda obs, t: U[t], seed=seed)
+    first = run_episode(env, lambda obs, t: U[t], seed=seed, max_steps=cut)
+    rest = run_episode(env, lambda obs, t: U[cut + t], seed=None,
+                       start=(first.obs[-1], first.info))
+    np.testing.assert_array_equal(np.concatenate([first.states, rest.states[1:]]), whole.states)
+    np.testing.assert_array_equal(np.concatenate([first.rewards, rest.rewards]), whole.rewards)
+    assert not first.truncated and rest.truncated and first.T + rest.T == 8
+
+
 def test_observe_stop_reset_and_sb3_state_threading():
     env = gym.make(LIN, n=2, m=1, episode_steps=30)
     seen = []
@@ -81,6 +97,7 @@ def test_observe_stop_reset_and_sb3_state_threading():
         ({"seed": "a"}, ValueError, "seed must be"),
         ({"observe": 1}, TypeError, "observe must be callable"),
         ({"stop": "x"}, TypeError, "stop must be callable"),
+        ({"start": np.zeros(2)}, TypeError, "start must be None or the .obs, info. pair"),
     ],
 )
 def test_bad_arguments_are_named(kwargs, exc, match):
