@@ -125,7 +125,8 @@ class CollectionConfig(_Checked):
         ``rollout_steps`` hands the env's episode on: the next rollout continues it after the
         model update instead of resetting (the env resets when its episode ends). The model is
         then updated every ``rollout_steps`` env steps without the restarts, as MBPO trains its
-        model every 250 env steps. A resumed checkpoint starts from a reset.
+        model every 250 env steps. Every ``learn`` call (and so a resumed checkpoint) starts
+        from a reset.
     :param exploration_window: moving-average window (steps) of the exploration noise,
         rescaled to its stationary std (1: white noise; longer windows move the system further
         from the plan at the same amplitude, as the excitation does). The filter starts from

@@ -323,6 +323,7 @@ class JacPropAgent(SB3Predictor):
                 self.config.run_dir, tensorboard=self.config.tensorboard, rows=self.logger_rows
             )
         bar = None
+        self._handover = None  # the env may have been used since: a learn call starts from a reset
         step_end = None if total_env_steps is None else self.env_steps + int(total_env_steps)
         if progress_bar is None:
             progress_bar = self.config.progress

@@ -652,6 +652,8 @@ def test_continue_rollouts_hands_the_episode_on_across_updates():
     np.testing.assert_allclose(np.concatenate([trajs[0].x, trajs[1].x[1:], trajs[2].x[1:]]), X,
                                rtol=1e-6, atol=1e-6)
     np.testing.assert_array_equal(trajs[1].x[0], trajs[0].x[-1])
+    agent.learn(total_env_steps=2, progress_bar=False)  # a new call: from a reset
+    assert agent.trajectories[-1].meta["seed"] is not None
     with pytest.raises(ValueError, match="continue_rollouts=True needs collection.rollout_steps"):
         tiny_config({"collection.continue_rollouts": True})
 

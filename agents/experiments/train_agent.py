@@ -286,8 +286,10 @@ def plot_learning_curve(agent, path: Path) -> None:
     fig, axes = plt.subplots(1, 2, figsize=(10, 3.8))
     ax = axes[0]
     short = agent.config.collection.rollout_steps
+    handed_on = ", episodes continued" if agent.config.collection.continue_rollouts else ""
     ax.semilogy(ep, [r["episode_cost"] for r in rows], "o-", label="training rollout" + (
-        f" (at most {short} steps; evaluation {agent.spec.episode_steps})" if short else ""))
+        f" (at most {short} steps{handed_on}; evaluation {agent.spec.episode_steps})"
+        if short else ""))
     ev = np.array([np.nan if r.get("eval_cost") is None else r["eval_cost"] for r in rows])
     if np.any(np.isfinite(ev)):
         ax.semilogy(ep, ev, "s-", label="evaluation (mean of targets)")
