@@ -116,8 +116,9 @@ class CollectionConfig(_Checked):
         keeps ``episode_steps``); ``None``: the episode's length. The model is updated after
         every rollout, so a run of the same env steps makes more updates, and each rollout
         restarts from a reset (unless ``continue_rollouts``). On HalfCheetah 200-step rollouts
-        raised the median return from 476.7 to 741.5, and most of that came from the updates,
-        not the resets (docs/benchmark.md, "Resets or updates?"). Everything that
+        raised the median return from 476.7 to 741.5; most of that came from the updates or
+        the shorter excitation (not separated), not from the resets (docs/benchmark.md,
+        "Resets or updates?"). Everything that
         counts episodes counts these rollouts: the excitation (``n_excitation_episodes``
         rollouts of this length), ``evaluation.every``, ``learn(episodes=...)``; for
         evaluations at fixed env steps use ``evaluation.every_steps``.
@@ -125,8 +126,11 @@ class CollectionConfig(_Checked):
         ``rollout_steps`` hands the env's episode on: the next rollout continues it after the
         model update instead of resetting (the env resets when its episode ends). The model is
         then updated every ``rollout_steps`` env steps without the restarts, as MBPO trains its
-        model every 250 env steps. Every ``learn`` call (and so a resumed checkpoint) starts
-        from a reset.
+        model every 250 env steps. Each continued rollout starts a new plan (cold start) and new
+        exploration noise, and a remainder shorter than ``rollout_steps`` at the episode's end
+        is a rollout (and an update) of its own. Every ``learn`` call (and so a resumed
+        checkpoint) starts from a reset, as does a rollout after the env was stepped or reset
+        by anything else (with a warning; detected by its ``TimeLimit``).
     :param exploration_window: moving-average window (steps) of the exploration noise,
         rescaled to its stationary std (1: white noise; longer windows move the system further
         from the plan at the same amplitude, as the excitation does). The filter starts from

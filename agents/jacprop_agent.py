@@ -214,8 +214,9 @@ class JacPropAgent(SB3Predictor):
         self._eval_env: gym.Env | None = None
         self._log: EpisodeLog | None = None
         self._oracle_seconds = 0.0  # computing the oracle (once), booked apart from evaluation
-        # collection.continue_rollouts: ((obs, info), steps so far) of the env's running episode
-        self._handover: tuple[tuple[np.ndarray, dict], int] | None = None
+        # collection.continue_rollouts: ((obs, info), steps so far, the TimeLimit's step count)
+        # of the env's running episode
+        self._handover: tuple[tuple[np.ndarray, dict], int, int | None] | None = None
 
     def _freeze(self) -> None:
         """Train -> freeze -> plan: the controller plans with an immutable float64 copy of the
@@ -473,8 +474,12 @@ class JacPropAgent(SB3Predictor):
         # anything that draws from torch's global generator is reproducible per episode
         torch.manual_seed(torch_seed)
         excitation = ep < cfg.collection.n_excitation_episodes
-        start, done_steps = self._handover or (None, 0)  # collection.continue_rollouts
+        start, done_steps, elapsed = self._handover or (None, 0, None)  # continue_rollouts
         self._handover = None
+        if start is not None and _elapsed_steps(self.env) != elapsed:
+            warnings.warn("collection.continue_rollouts: the env was stepped or reset since the "
+                          "last training rollout, so this one starts from a reset", stacklevel=3)
+            start, done_steps = None, 0
         T = min(cfg.collection.rollout_steps or spec.episode_steps, spec.episode_steps - done_steps)
         if max_steps is not None:
             T = min(T, max_steps)
@@ -502,7 +507,8 @@ class JacPropAgent(SB3Predictor):
         )
         if (cfg.collection.continue_rollouts and not (rec.terminated or rec.truncated)
                 and done_steps + rec.T < spec.episode_steps):
-            self._handover = ((rec.obs[-1].copy(), dict(rec.info)), done_steps + rec.T)
+            self._handover = ((rec.obs[-1].copy(), dict(rec.info)), done_steps + rec.T,
+                              _elapsed_steps(self.env))
         self.env_steps += traj.T
         if render:
             self._save_video(rec.frames, ep)
@@ -919,6 +925,8 @@ class JacPropAgent(SB3Predictor):
     ) -> EpisodeRecord:
         """One episode of :meth:`predict` (no exploration noise) in ``env``."""
         env = self.env if env is None else env
+        if env is self.env:
+            self._handover = None  # the next training rollout cannot continue this env's episode
         plan: dict[str, Any] = {"U": None}
 
         def act(obs: np.ndarray, t: int) -> np.ndarray:
@@ -1127,6 +1135,14 @@ class ReplanEvery(SB3Predictor):
         if K is None or not (np.all(np.isfinite(X)) and np.all(np.isfinite(K))):
             return np.zeros((H, X.shape[1] * (1 + self.policy.spec.act_dim)))
         return np.concatenate([X[1:], np.concatenate([K[1:], K[-1:]], axis=0)], axis=1)
+
+
+def _elapsed_steps(env: gym.Env | None) -> int | None:
+    """The step count of ``env``'s ``TimeLimit`` since its last reset (``None`` without one)."""
+    try:
+        return int(env.get_wrapper_attr("_elapsed_steps"))
+    except (AttributeError, TypeError, ValueError):
+        return None
 
 
 def _probe_observations(env: gym.Env | None, shape: tuple[int, ...]) -> np.ndarray:

@@ -37,7 +37,8 @@ class EpisodeRecord:
     ``states: [T+1, k]`` the env's ``info["state"]`` when it reports one; ``frames`` rendered
     images (``render=True``); ``policy_times: [T]`` seconds the policy took per step and the
     totals ``time_policy``/``time_env``; ``terminated``/``truncated`` as the env said,
-    ``stopped`` if ``stop`` ended it; ``info0`` the reset info, ``info`` the last one.
+    ``stopped`` if ``stop`` ended it; ``info0`` the first info (the reset's, or ``start``'s),
+    ``info`` the last.
     """
 
     obs: np.ndarray
@@ -102,8 +103,8 @@ def run_episode(
     stop: Callable[[np.ndarray], bool] | None = None,
     start: tuple[Any, dict] | None = None,
 ) -> EpisodeRecord:
-    """Reset ``env`` and run ``policy`` until termination, truncation, ``max_steps`` or
-    ``stop``.
+    """Reset ``env`` (or continue its episode from ``start``) and run ``policy`` until
+    termination, truncation, ``max_steps`` or ``stop``.
 
     :param env: a Gymnasium env with a 1-D ``Box`` action space.
     :param policy: ``(y, t) -> action`` or an SB3-style object (see :func:`as_policy`); ``y``
@@ -116,9 +117,10 @@ def run_episode(
     :param observe: ``(obs, info) -> y`` what the policy and ``stop`` see.
     :param stop: ``stop(y) -> bool`` checked on every ``y`` (the first included); true ends
         the episode with ``stopped=True``.
-    :param start: ``(obs, info)`` where an earlier call stopped at ``max_steps``: continue
-        that episode of ``env`` from there instead of resetting (``seed`` and ``options`` are
-        unused; ``t`` counts from 0 again).
+    :param start: ``(obs, info)`` where an earlier call stopped at ``max_steps`` (neither
+        terminated nor truncated, and ``env`` not used since): continue that episode of ``env``
+        from there instead of resetting (``seed`` and ``options`` are unused, ``info0`` is
+        this ``info``; ``t`` counts from 0 again and the policy starts anew, as at a reset).
     :return: :class:`EpisodeRecord`.
     """
     space = env.action_space
@@ -133,8 +135,11 @@ def run_episode(
             raise TypeError(f"{name} must be callable or None, got {type(fn).__name__}")
     if start is not None and not (isinstance(start, tuple) and len(start) == 2
                                   and isinstance(start[1], dict)):
+        what = (f"a tuple of {len(start)}" if isinstance(start, tuple) and len(start) != 2
+                else f"info of type {type(start[1]).__name__}" if isinstance(start, tuple)
+                else type(start).__name__)
         raise TypeError("start must be None or the (obs, info) pair of the env's running episode, "
-                        f"got {type(start).__name__}")
+                        f"got {what}")
     act = as_policy(policy)
     if callable(getattr(policy, "reset", None)) and not hasattr(policy, "predict"):
         policy.reset()

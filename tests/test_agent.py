@@ -644,18 +644,55 @@ def test_continue_rollouts_hands_the_episode_on_across_updates():
     trajs = agent.trajectories
     assert [t.T for t in trajs] == [6, 6, 3, 5]
     assert [t.meta["seed"] is None for t in trajs] == [False, True, True, False]
-    assert len(agent.logger_rows) == 4  # an update after every segment
+    assert len(agent.logger_rows) == 4 and all(r["train_steps"] > 0 for r in agent.logger_rows)
     U = np.concatenate([t.u for t in trajs[:3]])
     rec = run_episode(gym.make("Pendulum-v1"), lambda obs, t: U[t], seed=trajs[0].meta["seed"],
                       max_steps=15)
     X = agent.state_map.state(rec.obs)
     np.testing.assert_allclose(np.concatenate([trajs[0].x, trajs[1].x[1:], trajs[2].x[1:]]), X,
                                rtol=1e-6, atol=1e-6)
-    np.testing.assert_array_equal(trajs[1].x[0], trajs[0].x[-1])
     agent.learn(total_env_steps=2, progress_bar=False)  # a new call: from a reset
     assert agent.trajectories[-1].meta["seed"] is not None
     with pytest.raises(ValueError, match="continue_rollouts=True needs collection.rollout_steps"):
         tiny_config({"collection.continue_rollouts": True})
+
+
+class _EndsAfter(gym.Wrapper):
+    """Terminates every episode at its ``k``-th step."""
+
+    def __init__(self, env, k):
+        super().__init__(env)
+        self.k, self.t = k, 0
+
+    def reset(self, **kwargs):
+        self.t = 0
+        return self.env.reset(**kwargs)
+
+    def step(self, action):
+        obs, r, _, trunc, info = self.env.step(action)
+        self.t += 1
+        return obs, r, self.t >= self.k, trunc, info
+
+
+def test_continue_rollouts_resets_after_termination_or_a_foreign_reset():
+    """An episode that terminates is not continued, and neither is one whose env was reset by
+    someone else between two rollouts (a warning; the TimeLimit's step count tells)."""
+    cfg = tiny_config({"collection.episode_steps": 15, "collection.rollout_steps": 6,
+                       "collection.continue_rollouts": True, "evaluation.every": 0})
+    ends = JacPropAgent(_EndsAfter(gym.make("Pendulum-v1"), 4), cfg, cost_fn=pendulum_cost)
+    ends.learn(total_env_steps=12, progress_bar=False)
+    assert [t.T for t in ends.trajectories] == [4, 4, 4]
+    assert all(t.meta["seed"] is not None for t in ends.trajectories)
+
+    agent = JacPropAgent(gym.make("Pendulum-v1"), cfg, cost_fn=pendulum_cost)
+
+    def reset_once(info):
+        if info["row"]["episode"] == 0:
+            agent.env.reset(seed=5)
+
+    with pytest.warns(UserWarning, match="stepped or reset since the last training rollout"):
+        agent.learn(total_env_steps=12, callback=reset_once, progress_bar=False)
+    assert [t.meta["seed"] is None for t in agent.trajectories] == [False, False]
 
 
 def test_terminal_cost_is_the_users_function_of_the_predicted_observation():

@@ -98,6 +98,8 @@ def test_observe_stop_reset_and_sb3_state_threading():
         ({"observe": 1}, TypeError, "observe must be callable"),
         ({"stop": "x"}, TypeError, "stop must be callable"),
         ({"start": np.zeros(2)}, TypeError, "start must be None or the .obs, info. pair"),
+        ({"start": (np.zeros(2), {}, 0)}, TypeError, "got a tuple of 3"),
+        ({"start": (np.zeros(2), None)}, TypeError, "got info of type NoneType"),
     ],
 )
 def test_bad_arguments_are_named(kwargs, exc, match):

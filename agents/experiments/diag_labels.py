@@ -92,7 +92,10 @@ def replay_states(env: Any, traj: Trajectory, state_of: Any) -> np.ndarray:
     :raises ValueError: if the replay does not reproduce the recorded states (a non-deterministic
         env, or a trajectory that did not start at that reset).
     """
-    if traj.meta.get("seed") is None:
+    if "seed" not in traj.meta:
+        raise ValueError("the trajectory has no reset seed in its meta (the agent's own "
+                         "trajectories have one): nothing to replay from")
+    if traj.meta["seed"] is None:
         raise ValueError(f"episode {traj.meta.get('episode')} continued an earlier rollout "
                          "(collection.continue_rollouts): it has no reset seed to replay from")
     obs, _ = env.reset(seed=int(traj.meta["seed"]))
