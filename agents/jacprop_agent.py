@@ -20,7 +20,8 @@ of Dynamical Systems" (arXiv:1806.09919), Algorithm 1, run in an episodic loop. 
 The surface follows Stable-Baselines3: :meth:`JacPropAgent.learn`, :meth:`~JacPropAgent.predict`,
 :meth:`~JacPropAgent.save`, :meth:`JacPropAgent.load`. After every episode the agent writes an
 atomic checkpoint (data, model, Adam state, RNG states, config, log) from which
-:meth:`JacPropAgent.load` + :meth:`~JacPropAgent.learn` continue bit-identically.
+:meth:`JacPropAgent.load` + :meth:`~JacPropAgent.learn` continue bit-identically (except with
+``collection.continue_rollouts``: the env's running episode is not saved, so it restarts).
 """
 
 from __future__ import annotations
