@@ -18,6 +18,7 @@ import gymnasium as gym
 import numpy as np
 import pytest
 import torch
+from helpers_envs import TerminateAfter
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
@@ -657,29 +658,12 @@ def test_continue_rollouts_hands_the_episode_on_across_updates():
         tiny_config({"collection.continue_rollouts": True})
 
 
-class _EndsAfter(gym.Wrapper):
-    """Terminates every episode at its ``k``-th step."""
-
-    def __init__(self, env, k):
-        super().__init__(env)
-        self.k, self.t = k, 0
-
-    def reset(self, **kwargs):
-        self.t = 0
-        return self.env.reset(**kwargs)
-
-    def step(self, action):
-        obs, r, _, trunc, info = self.env.step(action)
-        self.t += 1
-        return obs, r, self.t >= self.k, trunc, info
-
-
 def test_continue_rollouts_resets_after_termination_or_a_foreign_reset():
     """An episode that terminates is not continued, and neither is one whose env was reset by
     someone else between two rollouts (a warning; the TimeLimit's step count tells)."""
     cfg = tiny_config({"collection.episode_steps": 15, "collection.rollout_steps": 6,
                        "collection.continue_rollouts": True, "evaluation.every": 0})
-    ends = JacPropAgent(_EndsAfter(gym.make("Pendulum-v1"), 4), cfg, cost_fn=pendulum_cost)
+    ends = JacPropAgent(TerminateAfter(gym.make("Pendulum-v1"), 4), cfg, cost_fn=pendulum_cost)
     ends.learn(total_env_steps=12, progress_bar=False)
     assert [t.T for t in ends.trajectories] == [4, 4, 4]
     assert all(t.meta["seed"] is not None for t in ends.trajectories)

@@ -27,6 +27,7 @@ import gymnasium as gym
 import numpy as np
 import pytest
 import torch
+from helpers_envs import TerminateAfter
 
 from agents.config import AgentConfig
 from agents.jacprop_agent import JacPropAgent
@@ -105,23 +106,6 @@ def test_reacher_goal_in_observation_uses_a_documented_fallback():
         agent.learn(1, progress_bar=False)
     assert "degenerate regressors" in agent.logger_rows[0]["ltv_fallback"]
     env.close()
-
-
-class TerminateAfter(gym.Wrapper):
-    """Terminates every episode after ``k`` steps (``terminated=True``)."""
-
-    def __init__(self, env: gym.Env, k: int) -> None:
-        super().__init__(env)
-        self.k, self.t = k, 0
-
-    def reset(self, **kwargs):
-        self.t = 0
-        return self.env.reset(**kwargs)
-
-    def step(self, action):
-        obs, r, term, trunc, info = self.env.step(action)
-        self.t += 1
-        return obs, r, term or self.t >= self.k, trunc, info
 
 
 @pytest.mark.parametrize("k", [1, 2, 3, 5])
