@@ -121,6 +121,21 @@ def test_comparisons_pair_the_seeds_both_regularizers_ran():
     assert c["wall_ratio"] == 1.0  # same seeds, same per-seed walls
 
 
+def test_comparisons_leave_runs_without_a_final_score_out_of_the_score_columns():
+    # a budget shorter than the first evaluation (HalfCheetah's smoke run) leaves no score
+    def run(reg, seed, score):
+        return {**_run(reg, seed, None, 1.0), "final_score": score, "curve": []}
+
+    none = [run("none", k, sc) for k, sc in enumerate([None, 200.0, 100.0])]
+    sampled = [run("sampled", k, sc) for k, sc in enumerate([150.0, None, 120.0])]
+    (c,) = suite.comparisons(none + sampled)
+    assert c["seeds"] == [0, 1, 2] and c["wins_ties_losses"] == "0/3/0"
+    assert c["final_score"] == "120 vs 100"  # seed 2 only: the one pair with both scores
+    assert c["final_scores_better_equal_worse"] == "1/0/0"
+    (c,) = suite.comparisons([run("none", 0, None), run("sampled", 0, None)])
+    assert c["final_score"] == "- vs -" and c["final_scores_better_equal_worse"] == "0/0/0"
+
+
 def test_settings_comparison_pairs_seeds_and_draws_both(tmp_path):
     base = [_run("none", k, None, f, task="reacher") for k, f in enumerate([-5.0, -6.0, -7.0])]
     base += [_run("sampled", 0, None, -1.0, task="reacher")]  # another regularizer: not paired

@@ -555,8 +555,12 @@ def comparisons(runs: list[dict[str, Any]]) -> list[dict[str, Any]]:
 
                 wins = sum(steps(x) < steps(y) for x, y in zip(R, N))
                 losses = sum(steps(x) > steps(y) for x, y in zip(R, N))
-                better = sum(x["final_score"] > y["final_score"] for x, y in zip(R, N))
-                worse = sum(x["final_score"] < y["final_score"] for x, y in zip(R, N))
+                # a run shorter than its first evaluation (a smoke budget under one episode)
+                # has no final score: the final-score columns pair the seeds that have both
+                scored = [(x, y) for x, y in zip(R, N)
+                          if None not in (x["final_score"], y["final_score"])]
+                better = sum(x["final_score"] > y["final_score"] for x, y in scored)
+                worse = sum(x["final_score"] < y["final_score"] for x, y in scored)
                 wall = [float(np.median([r["wall_seconds_per_phase"]["total"] for r in rs]))
                         for rs in (R, N)]
                 out.append({
@@ -566,9 +570,11 @@ def comparisons(runs: list[dict[str, Any]]) -> list[dict[str, Any]]:
                         for rs in (R, N)),
                     "wins_ties_losses": f"{wins}/{len(seeds) - wins - losses}/{losses}",
                     "final_score": " vs ".join(
-                        _fmt(float(np.median([r["final_score"] for r in rs]))) for rs in (R, N)),
+                        "-" if not scored else _fmt(float(np.median([p[i]["final_score"]
+                                                                     for p in scored])))
+                        for i in (0, 1)),
                     "final_scores_better_equal_worse": (
-                        f"{better}/{len(seeds) - better - worse}/{worse}"),
+                        f"{better}/{len(scored) - better - worse}/{worse}"),
                     "wall_ratio": wall[0] / wall[1],
                 })
     return out
