@@ -133,13 +133,17 @@ def run_episode(
     for name, fn in (("observe", observe), ("stop", stop)):
         if fn is not None and not callable(fn):
             raise TypeError(f"{name} must be callable or None, got {type(fn).__name__}")
-    if start is not None and not (isinstance(start, tuple) and len(start) == 2
-                                  and isinstance(start[1], dict)):
-        what = (f"a tuple of {len(start)}" if isinstance(start, tuple) and len(start) != 2
-                else f"info of type {type(start[1]).__name__}" if isinstance(start, tuple)
-                else type(start).__name__)
-        raise TypeError("start must be None or the (obs, info) pair of the env's running episode, "
-                        f"got {what}")
+    if start is not None:
+        what = None
+        if not isinstance(start, tuple):
+            what = type(start).__name__
+        elif len(start) != 2:
+            what = f"a tuple of {len(start)}"
+        elif not isinstance(start[1], dict):
+            what = f"info of type {type(start[1]).__name__}"
+        if what is not None:
+            raise TypeError("start must be None or the (obs, info) pair of the env's running "
+                            f"episode, got {what}")
     act = as_policy(policy)
     if callable(getattr(policy, "reset", None)) and not hasattr(policy, "predict"):
         policy.reset()
