@@ -34,12 +34,15 @@ batched over ``t``.
 
 from __future__ import annotations
 
+import functools
 import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
 import scipy.linalg as sla
+from scipy.linalg.lapack import dpbtrf as _dpbtrf
+from scipy.linalg.lapack import dpbtrs as _dpbtrs
 from scipy.optimize import minimize_scalar
 
 from mbtsr.dynamics import check_step_inputs
@@ -346,16 +349,29 @@ def _band(G: np.ndarray, lam2: float, ridge0: float = 0.0) -> np.ndarray:
     block diagonal and ``-1`` on the block off-diagonals.
     """
     T, p, _ = G.shape
-    ab = np.zeros((p + 1, T * p))
-    idx = np.arange(p)
-    for k in range(p):
-        ab[k].reshape(T, p)[:, : p - k] = G[:, idx[k:], idx[: p - k]]
+    k, j = _band_index(p)
+    ab = np.zeros((p + 1, T, p))
+    ab[k, :, j] = G[:, j + k, j].T  # band row k holds the k-th subdiagonal: H[tp+j+k, tp+j]
+    ab = ab.reshape(p + 1, T * p)
+    ab[0] += np.repeat(_penalty_diagonal(T, lam2, ridge0), p)
+    ab[p, : (T - 1) * p] = -lam2
+    return ab
+
+
+def _penalty_diagonal(T: int, lam2: float, ridge0: float) -> np.ndarray:
+    """``[T]`` the scalar of ``I`` in each diagonal block of ``lam2 D^T D + ridge0 e_0 e_0^T``."""
     d = np.full(T, 2.0 * lam2)
     d[0] = d[-1] = lam2
     d[0] += ridge0
-    ab[0] += np.repeat(d, p)
-    ab[p, : (T - 1) * p] = -lam2
-    return ab
+    return d
+
+
+@functools.lru_cache(maxsize=32)
+def _band_index(p: int) -> tuple[np.ndarray, np.ndarray]:
+    """``(k, j)`` of every entry ``(j + k, j)`` of a ``p x p`` block's lower triangle."""
+    k = np.concatenate([np.full(p - i, i) for i in range(p)])
+    j = np.concatenate([np.arange(p - i) for i in range(p)])
+    return k, j
 
 
 def _reverse_band(ab: np.ndarray) -> np.ndarray:
@@ -371,10 +387,9 @@ def _reverse_band(ab: np.ndarray) -> np.ndarray:
 def _diag_blocks_of_LLt(cb: np.ndarray, T: int, p: int) -> np.ndarray:
     """``[T, p, p]`` diagonal blocks ``L_tt L_tt^T`` of a banded Cholesky factor (the Schur
     complements of the elimination)."""
+    k, j = _band_index(p)
     L = np.zeros((T, p, p))
-    idx = np.arange(p)
-    for k in range(p):
-        L[:, idx[k:], idx[: p - k]] = cb[k].reshape(T, p)[:, : p - k]
+    L[:, j + k, j] = cb.reshape(p + 1, T, p)[k, :, j].T
     return L @ L.transpose(0, 2, 1)
 
 
@@ -384,11 +399,22 @@ class _NotPositiveDefinite(Exception):
 
 
 def _cholesky(ab: np.ndarray) -> np.ndarray:
-    try:
-        return sla.cholesky_banded(ab, lower=True, check_finite=False)
-    except np.linalg.LinAlgError as err:
-        digits = "".join(ch if ch.isdigit() else " " for ch in str(err)).split()
-        raise _NotPositiveDefinite(int(digits[0]) - 1 if digits else -1) from None
+    """Banded Cholesky factor (LAPACK ``dpbtrf`` called directly: at the agent's sizes scipy's
+    checking wrapper costs as much as the factorization)."""
+    cb, info = _dpbtrf(ab, lower=1)
+    if info > 0:
+        raise _NotPositiveDefinite(info - 1)
+    if info < 0:  # pragma: no cover - a malformed call, not a property of the data
+        raise ValueError(f"dpbtrf: illegal value in argument {-info}")
+    return cb
+
+
+def _cho_solve_band(cb: np.ndarray, rhs: np.ndarray) -> np.ndarray:
+    """Solve ``H X = rhs`` from :func:`_cholesky`'s factor (LAPACK ``dpbtrs``)."""
+    x, info = _dpbtrs(cb, rhs, lower=1)
+    if info != 0:  # pragma: no cover - a malformed call
+        raise ValueError(f"dpbtrs: illegal value in argument {-info}")
+    return x
 
 
 def _singular_message(prob: _Problem, lam: float, index: int) -> str:
@@ -449,8 +475,8 @@ def _solve_l2(prob: _Problem, lam: float, ridge0: float = 0.0) -> _L2Solution:
     lam2 = lam * lam
     Gsum = prob.G.sum(axis=0)
     try:
-        Gsum_cho = sla.cho_factor(Gsum, lower=True, check_finite=False)
-        Gsum_inv = sla.cho_solve(Gsum_cho, np.eye(p), check_finite=False)
+        Gsum_chol = np.linalg.cholesky(Gsum)
+        Gsum_inv = np.linalg.inv(Gsum)
         theta_bar = Gsum_inv @ prob.R.sum(axis=0)  # [p, n]
     except np.linalg.LinAlgError:
         Gsum_inv, theta_bar = None, np.zeros((p, n))
@@ -460,7 +486,7 @@ def _solve_l2(prob: _Problem, lam: float, ridge0: float = 0.0) -> _L2Solution:
         # log det H in the same limit: H -> blkdiag(G_t) + lam^2 (L kron I_p), L the path
         # Laplacian whose nonzero eigenvalues multiply to T, so that det H -> lam^(2 (T-1) p)
         # det(sum_t G_t) (the constant direction keeps (1/T) sum_t G_t, times T^p)
-        logdet = (2.0 * float(np.sum(np.log(np.diag(Gsum_cho[0]))))
+        logdet = (2.0 * float(np.sum(np.log(np.diag(Gsum_chol))))
                   + 2.0 * (T - 1) * p * float(np.log(lam)))
     else:
         ab = _band(prob.G, lam2, ridge0)
@@ -470,7 +496,7 @@ def _solve_l2(prob: _Problem, lam: float, ridge0: float = 0.0) -> _L2Solution:
             raise ValueError(_singular_message(prob, lam, err.index)) from None
         rhs = prob.R - prob.G @ theta_bar
         rhs[0] -= ridge0 * theta_bar
-        delta = sla.cho_solve_banded((cb, True), rhs.reshape(T * p, n), check_finite=False)
+        delta = _cho_solve_band(cb, rhs.reshape(T * p, n))
         theta = theta_bar + delta.reshape(T, p, n)
         logdet = 2.0 * float(np.sum(np.log(cb[0])))
     resid = prob.Y - np.einsum("jtp,tpi->jti", prob.Phi, theta)
@@ -496,10 +522,8 @@ def _marginal_blocks(prob: _Problem, sol: _L2Solution, lam: float, ridge0: float
     except _NotPositiveDefinite as err:  # pragma: no cover - H already factored forward
         raise ValueError(_singular_message(prob, lam, err.index)) from None
     backward = _diag_blocks_of_LLt(cb_rev, T, p)[::-1, ::-1, ::-1]
-    ends = np.where((np.arange(T) == 0) | (np.arange(T) == T - 1), 1.0, 2.0)
-    H_diag = prob.G + np.eye(p) * (ends * lam2)[:, None, None]
-    H_diag[0] += ridge0 * np.eye(p)
-    blocks = forward + backward - H_diag
+    blocks = forward + backward - prob.G  # minus H_tt = G_t + d_t I
+    blocks[:, np.arange(p), np.arange(p)] -= _penalty_diagonal(T, lam2, ridge0)[:, None]
     try:
         Sigma = np.linalg.inv(blocks)
     except np.linalg.LinAlgError:  # the factorization passed, a block of H^{-1} did not
@@ -958,7 +982,7 @@ def fit_ltv_tv(
 
     def theta_update(cb: np.ndarray, rho_: float, v: np.ndarray) -> np.ndarray:
         rhs = prob.R + 0.5 * rho_ * _diff_T(v)
-        th = sla.cho_solve_banded((cb, True), rhs.reshape(T * p, n), check_finite=False)
+        th = _cho_solve_band(cb, rhs.reshape(T * p, n))
         return th.reshape(T, p, n)
 
     cb = factor(rho)
