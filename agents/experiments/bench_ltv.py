@@ -45,9 +45,8 @@ class Args:
     lam: float = 10.0
     """L2 regularization weight"""
     repeats: int = 7
-    """timed repeats of the fast fit (median reported)"""
-    generic_repeats: int = 3
-    """timed repeats of the generic sparse solve (median reported)"""
+    """timed loops of the fit and of the generic solve, alternating (each >= 50 ms of calls);
+    the speed-up is the median of the 7 paired ratios"""
     generic_max_unknowns: int = 2_000_000
     """skip the generic solve above this many unknowns T n (n+m)"""
     noise: float = 0.05
@@ -77,9 +76,9 @@ def simulate(A, B, T, noise, rng):
     return x, u
 
 
-def generic_sparse_solve(x: np.ndarray, u: np.ndarray, lam: float) -> tuple[np.ndarray, float]:
-    """Assemble and solve the same problem generically; returns (k [T, n, p], assembly seconds)."""
-    t0 = time.perf_counter()
+def generic_normal_equations(x: np.ndarray, u: np.ndarray, lam: float):
+    """The same problem assembled generically: the sparse normal equations ``(N, r)`` of
+    ``[I kron phi_t^T ; lam D kron I] k = [x_{t+1} ; 0]`` in ``k = vec([A_t B_t]^T)``."""
     T, n = u.shape[0], x.shape[1]
     phi = np.concatenate([x[:-1], u], axis=1)
     p = phi.shape[1]
@@ -88,20 +87,40 @@ def generic_sparse_solve(x: np.ndarray, u: np.ndarray, lam: float) -> tuple[np.n
     D = sp.diags([-np.ones(T - 1), np.ones(T - 1)], [0, 1], shape=(T - 1, T))
     A_ls = sp.vstack([C, lam * sp.kron(D, sp.eye(n * p))]).tocsc()
     b = np.concatenate([x[1:].reshape(-1), np.zeros((T - 1) * n * p)])
-    normal, rhs = (A_ls.T @ A_ls).tocsc(), A_ls.T @ b
-    t_assembly = time.perf_counter() - t0
-    k = spl.spsolve(normal, rhs)
-    return k.reshape(T, n, p), t_assembly
+    return (A_ls.T @ A_ls).tocsc(), A_ls.T @ b
 
 
-def timings(fn, repeats: int) -> tuple[float, float]:
-    """(median, min) wall time of ``fn()`` over ``repeats`` calls."""
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
+def _calls_to_fill(fn, min_seconds: float) -> int:
+    """How many calls of ``fn()`` fill ``min_seconds`` (from one timed call)."""
+    t0 = time.perf_counter()
+    fn()
+    return max(1, int(np.ceil(min_seconds / max(time.perf_counter() - t0, 1e-9))))
+
+
+def _per_call(fn, calls: int) -> float:
+    fn()  # untimed: the first call after another function's pays for its memory and caches
+    t0 = time.perf_counter()
+    for _ in range(calls):
         fn()
-        times.append(time.perf_counter() - t0)
-    return float(np.median(times)), float(np.min(times))
+    return (time.perf_counter() - t0) / calls
+
+
+def timings(fn, repeats: int, min_seconds: float = 0.05) -> np.ndarray:
+    """``[repeats]`` seconds per call of ``fn()``, each from a loop of as many calls as fill
+    ``min_seconds`` (as ``timeit``: one call of a 1 ms function is at the mercy of the clock
+    and of other processes)."""
+    calls = _calls_to_fill(fn, min_seconds)
+    return np.array([_per_call(fn, calls) for _ in range(repeats)])
+
+
+def paired_timings(fn_a, fn_b, repeats: int,
+                   min_seconds: float = 0.05) -> tuple[np.ndarray, np.ndarray]:
+    """As :func:`timings` for two functions, their loops alternating (a, b, a, b, ...), so
+    that each ratio ``b_i / a_i`` compares the two at the same machine speed (a shared
+    machine's speed drifts by tens of percent between seconds)."""
+    calls_a, calls_b = _calls_to_fill(fn_a, min_seconds), _calls_to_fill(fn_b, min_seconds)
+    pairs = [(_per_call(fn_a, calls_a), _per_call(fn_b, calls_b)) for _ in range(repeats)]
+    return np.array([p[0] for p in pairs]), np.array([p[1] for p in pairs])
 
 
 def run(args: Args) -> dict:
@@ -121,29 +140,30 @@ def run(args: Args) -> dict:
         A, B = stable_system(n, m, rng)
         for T in horizons:
             x, u = simulate(A, B, T, args.noise, rng)
-            fit_ltv((x, u), args.lam)  # warm-up
-            t_fit, t_fit_min = timings(lambda x=x, u=u: fit_ltv((x, u), args.lam), args.repeats)
-            row = {"n": n, "m": m, "T": T, "fit_s": t_fit, "fit_min_s": t_fit_min}
+            fit = lambda x=x, u=u: fit_ltv((x, u), args.lam)  # noqa: E731
+            row = {"n": n, "m": m, "T": T}
             unknowns = T * n * (n + m)
-            if unknowns <= args.generic_max_unknowns:
-                solve_times, assembly_times = [], []
-                for _ in range(args.generic_repeats):
-                    t0 = time.perf_counter()
-                    k_ref, t_asm = generic_sparse_solve(x, u, args.lam)
-                    total = time.perf_counter() - t0
-                    solve_times.append(total - t_asm)
-                    assembly_times.append(t_asm)
+            if unknowns > args.generic_max_unknowns:
+                t_fit = timings(fit, args.repeats)
+                row["generic_solve_s"] = None
+            else:
+                normal, rhs = generic_normal_equations(x, u, args.lam)
+                t_fit, t_solve = paired_timings(
+                    fit, lambda a=normal, b=rhs: spl.spsolve(a, b), args.repeats)
+                t_asm = float(np.median(timings(
+                    lambda x=x, u=u: generic_normal_equations(x, u, args.lam), 3)))
+                k_ref = spl.spsolve(normal, rhs).reshape(T, n, n + m)
                 k_fast = fit_ltv((x, u), args.lam).params
                 row.update({
-                    "generic_solve_s": float(np.median(solve_times)),
-                    "generic_assembly_s": float(np.median(assembly_times)),
-                    "speedup_vs_solve": float(np.median(solve_times)) / t_fit,
-                    "speedup_vs_assembly_plus_solve": float(
-                        np.median(solve_times) + np.median(assembly_times)) / t_fit,
+                    "generic_solve_s": float(np.median(t_solve)),
+                    "generic_assembly_s": t_asm,
+                    "speedup_vs_solve": float(np.median(t_solve / t_fit)),
+                    "speedup_vs_solve_range": [float(np.min(t_solve / t_fit)),
+                                               float(np.max(t_solve / t_fit))],
+                    "speedup_vs_assembly_plus_solve": float(np.median((t_solve + t_asm) / t_fit)),
                     "rel_diff": float(np.linalg.norm(k_fast - k_ref) / np.linalg.norm(k_ref)),
                 })
-            else:
-                row["generic_solve_s"] = None
+            row.update(fit_s=float(np.median(t_fit)), fit_min_s=float(np.min(t_fit)))
             results["l2"].append(row)
             print(json.dumps(row))
 
