@@ -313,11 +313,6 @@ def finite_or_none(v: float | None) -> float | None:
     return v if math.isfinite(v) else None
 
 
-def rounded(a, digits: int = 5) -> list:
-    """A nested list of floats rounded to ``digits`` significant-ish decimals (small JSON)."""
-    return np.round(np.asarray(a, dtype=float), digits).tolist()
-
-
 def values(records: list[dict], name: str, key: str) -> np.ndarray:
     """``[runs]`` array of ``result[key]`` for the records of config ``name`` (None -> nan)."""
     out = [r["result"].get(key) for r in records if r["name"] == name]
