@@ -40,7 +40,6 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
-import scipy.linalg as sla
 from scipy.linalg.lapack import dpbtrf as _dpbtrf
 from scipy.linalg.lapack import dpbtrs as _dpbtrs
 from scipy.optimize import minimize_scalar
@@ -820,10 +819,10 @@ def _newton_segments(
         ab[0] += 1e-12 * np.mean(ab[0])
         g = grad.transpose(0, 2, 1).reshape(-1)
         try:
-            cb = sla.cholesky_banded(ab, lower=True, check_finite=False)
-        except np.linalg.LinAlgError:
+            cb = _cholesky(ab)
+        except _NotPositiveDefinite:
             return "fail", K
-        step = -sla.cho_solve_banded((cb, True), g, check_finite=False)
+        step = -_cho_solve_band(cb, g)
         decrement = -float(g @ step)
         if decrement <= 1e-22 * fscale:
             return "ok", K
