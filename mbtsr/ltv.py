@@ -370,6 +370,8 @@ def _band_index(p: int) -> tuple[np.ndarray, np.ndarray]:
     """``(k, j)`` of every entry ``(j + k, j)`` of a ``p x p`` block's lower triangle."""
     k = np.concatenate([np.full(p - i, i) for i in range(p)])
     j = np.concatenate([np.arange(p - i) for i in range(p)])
+    k.setflags(write=False)  # cached: shared by every call
+    j.setflags(write=False)
     return k, j
 
 
@@ -398,8 +400,8 @@ class _NotPositiveDefinite(Exception):
 
 
 def _cholesky(ab: np.ndarray) -> np.ndarray:
-    """Banded Cholesky factor (LAPACK ``dpbtrf`` called directly: at the agent's sizes scipy's
-    checking wrapper costs as much as the factorization)."""
+    """Banded Cholesky factor (LAPACK ``dpbtrf``, called directly: scipy's wrapper adds a few
+    microseconds of checks per call, which counts at small ``T``)."""
     cb, info = _dpbtrf(ab, lower=1)
     if info > 0:
         raise _NotPositiveDefinite(info - 1)

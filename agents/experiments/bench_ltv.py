@@ -45,8 +45,8 @@ class Args:
     lam: float = 10.0
     """L2 regularization weight"""
     repeats: int = 7
-    """timed loops of the fit and of the generic solve, alternating (each >= 50 ms of calls);
-    the speed-up is the median of the 7 paired ratios"""
+    """timed loops of the fit and of the generic solve, alternating (each about 50 ms of
+    calls); the speed-up is the median of the paired ratios"""
     generic_max_unknowns: int = 2_000_000
     """skip the generic solve above this many unknowns T n (n+m)"""
     noise: float = 0.05
@@ -91,7 +91,8 @@ def generic_normal_equations(x: np.ndarray, u: np.ndarray, lam: float):
 
 
 def _calls_to_fill(fn, min_seconds: float) -> int:
-    """How many calls of ``fn()`` fill ``min_seconds`` (from one timed call)."""
+    """How many calls of ``fn()`` fill ``min_seconds`` (from one timed call after a warm one)."""
+    fn()
     t0 = time.perf_counter()
     fn()
     return max(1, int(np.ceil(min_seconds / max(time.perf_counter() - t0, 1e-9))))
