@@ -348,10 +348,8 @@ def _band(G: np.ndarray, lam2: float, ridge0: float = 0.0) -> np.ndarray:
     block diagonal and ``-1`` on the block off-diagonals.
     """
     T, p, _ = G.shape
-    k, j = _band_index(p)
-    ab = np.zeros((p + 1, T, p))
-    ab[k, :, j] = G[:, j + k, j].T  # band row k holds the k-th subdiagonal: H[tp+j+k, tp+j]
-    ab = ab.reshape(p + 1, T * p)
+    ab = np.zeros((p + 1, T * p))
+    _put_diagonal_blocks(ab, G)
     ab[0] += np.repeat(_penalty_diagonal(T, lam2, ridge0), p)
     ab[p, : (T - 1) * p] = -lam2
     return ab
@@ -363,6 +361,15 @@ def _penalty_diagonal(T: int, lam2: float, ridge0: float) -> np.ndarray:
     d[0] = d[-1] = lam2
     d[0] += ridge0
     return d
+
+
+def _put_diagonal_blocks(ab: np.ndarray, blocks: np.ndarray) -> None:
+    """Write the lower triangles of the diagonal blocks ``blocks [T, p, p]`` into the lower band
+    storage ``ab [rows, T p]`` (row ``k`` holds the ``k``-th subdiagonal:
+    ``ab[k, t p + j] = blocks[t, j + k, j]``)."""
+    T, p, _ = blocks.shape
+    k, j = _band_index(p)
+    ab.reshape(ab.shape[0], T, p)[k, :, j] = blocks[:, j + k, j].T
 
 
 @functools.lru_cache(maxsize=32)
@@ -524,7 +531,8 @@ def _marginal_blocks(prob: _Problem, sol: _L2Solution, lam: float, ridge0: float
         raise ValueError(_singular_message(prob, lam, err.index)) from None
     backward = _diag_blocks_of_LLt(cb_rev, T, p)[::-1, ::-1, ::-1]
     blocks = forward + backward - prob.G  # minus H_tt = G_t + d_t I
-    blocks[:, np.arange(p), np.arange(p)] -= _penalty_diagonal(T, lam2, ridge0)[:, None]
+    i = np.arange(p)
+    blocks[:, i, i] -= _penalty_diagonal(T, lam2, ridge0)[:, None]
     try:
         Sigma = np.linalg.inv(blocks)
     except np.linalg.LinAlgError:  # the factorization passed, a block of H^{-1} did not
@@ -774,9 +782,8 @@ def _block_tridiag_band(diag: np.ndarray, lower: np.ndarray) -> np.ndarray:
     (``H[(s+1) q + a, s q + b] = lower[s, a, b]``)."""
     S, q, _ = diag.shape
     ab = np.zeros((2 * q, S * q))
+    _put_diagonal_blocks(ab, diag)
     idx = np.arange(q)
-    for k in range(q):
-        ab[k].reshape(S, q)[:, : q - k] = diag[:, idx[k:], idx[: q - k]]
     for k in range(1, 2 * q):
         b = idx[max(0, q - k) : min(q, 2 * q - k)]
         ab[k].reshape(S, q)[:-1, b] = lower[:, b + k - q, b]

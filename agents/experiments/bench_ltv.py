@@ -120,8 +120,9 @@ def paired_timings(fn_a, fn_b, repeats: int,
     that each ratio ``b_i / a_i`` compares the two at the same machine speed (a shared
     machine's speed drifts by tens of percent between seconds)."""
     calls_a, calls_b = _calls_to_fill(fn_a, min_seconds), _calls_to_fill(fn_b, min_seconds)
-    pairs = [(_per_call(fn_a, calls_a), _per_call(fn_b, calls_b)) for _ in range(repeats)]
-    return np.array([p[0] for p in pairs]), np.array([p[1] for p in pairs])
+    a, b = np.array([(_per_call(fn_a, calls_a), _per_call(fn_b, calls_b))
+                     for _ in range(repeats)]).T
+    return a, b
 
 
 def run(args: Args) -> dict:
