@@ -140,3 +140,12 @@ def test_the_checkers_themselves(tmp_path, monkeypatch):
     (tmp_path / "docs" / "notes" / "n.md").write_text("[r](results/r.json) [s](../results/s.json)")
     assert citations("docs/results") == {"robot", "q.json", "s.json"}
     assert citations("docs/notes/results") == {"p.json", "r.json"}
+
+
+def test_readme_states_the_command_ci_runs():
+    """CI runs the README's test command verbatim (``.ci/run``): the two must stay equal."""
+    ci = [line for line in (REPO / ".ci" / "run").read_text(encoding="utf-8").splitlines()
+          if line.startswith("pip install")]
+    assert len(ci) == 1, f".ci/run should hold one 'pip install ...' command line, got {ci}"
+    readme = (REPO / "README.md").read_text(encoding="utf-8").splitlines()
+    assert ci[0] in readme, f"README.md no longer contains CI's command line: {ci[0]!r}"
