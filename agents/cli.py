@@ -1,14 +1,11 @@
 """Command lines generated from config dataclasses (tyro), with one-line errors.
 
 A script declares its options once, as a dataclass whose field docstrings are the ``--help``
-text, and calls :func:`main` (or :func:`parse`). tyro reads the dataclasses as they are (nested
-ones become ``--model.hidden-width``-style flags, ``Literal`` types choices). On top of it, every
-bad command line ends the same way: ONE line ``<prog>: error: <message>`` on stderr, exit code 2.
-tyro builds the dataclasses without validating them and reports its parse errors as events
-(tyro's pinned ``on_parse_error`` hook), never as printed boxes; :func:`parse` then builds the
-tree again through the constructors, innermost first, so a rejected value is named by its flag's
-dotted path. A field that a config fixes (a ``FIXED`` class attribute of dotted names, as
-:attr:`agents.config.AgentConfig.FIXED`) is not offered.
+text, and calls :func:`main`. Every bad command line ends in ONE line ``<prog>: error: <message>``
+on stderr and exit code 2: tyro's parse errors arrive as events (its ``on_parse_error`` hook, tyro
+pinned), and tyro builds the dataclasses unchecked, so :func:`parse` builds them again, innermost
+first, naming a bad value by its flag's dotted path. Fields a config fixes (its ``FIXED``, dotted
+names, as :attr:`agents.config.AgentConfig.FIXED`) are not offered.
 """
 
 from __future__ import annotations
@@ -44,12 +41,8 @@ def _plain_help(text: str) -> str:
 
 
 def check_output_path(path: str | os.PathLike, *, name: str, folder: bool = False) -> Path:
-    """Check that ``path`` can be written (as a file, or a folder with ``folder=True``): the
-    nearest existing ancestor must be a writable folder, an existing ``path`` of the right kind.
-    Nothing is created.
-
-    :raises ValueError: naming ``name`` and the reason.
-    """
+    """``path``, checked that it can be written as a file (a folder with ``folder=True``),
+    creating nothing; :raises ValueError: naming ``name`` and the reason."""
     p = Path(path)
     if p.exists() and folder != p.is_dir():
         raise ValueError(f"{name}: {str(p)!r} " + (
@@ -65,8 +58,7 @@ def check_output_path(path: str | os.PathLike, *, name: str, folder: bool = Fals
 
 
 def _fields(cls: type) -> Iterator[tuple[dataclasses.Field, str, Any]]:
-    """``(field, its flag's name, type)`` of dataclass ``cls``; the name is ``""`` for a field
-    marked ``tyro.conf.arg(name="")`` (its nested flags carry no prefix)."""
+    """``(field, its flag's name, type)`` of dataclass ``cls`` (``""``: ``arg(name="")``)."""
     hints = typing.get_type_hints(cls, include_extras=True)
     for f in dataclasses.fields(cls):
         hint, *markers = typing.get_args(hints[f.name]) if typing.get_origin(
@@ -102,8 +94,8 @@ def _flags(cls: type, fixed: set[tuple[type, str]], prefix: str = "") -> list[st
 
 
 def _registry(fixed: set[tuple[type, str]]) -> Any:
-    """tyro's rules for dataclasses, with their fixed fields suppressed and an ``instantiate``
-    that stores the values unchecked (:func:`_validated` builds them)."""
+    """tyro's dataclass rule, with the ``fixed`` fields suppressed and the values stored
+    unchecked (:func:`_validated` builds them)."""
     from tyro.conf import Suppress
     from tyro.constructors import ConstructorRegistry, StructConstructorSpec
 
@@ -134,8 +126,8 @@ def _registry(fixed: set[tuple[type, str]]) -> Any:
 
 
 def _validated(obj: Any, path: str = "") -> Any:
-    """``obj`` built again through its constructors, innermost first; an error names the
-    field by its flag's dotted path (``model.hidden_width must ...``)."""
+    """``obj`` built again through its constructors, innermost first; an error names the field
+    by its flag's dotted path (``model.hidden_width must ...``)."""
     if not dataclasses.is_dataclass(obj):
         return obj
     values = {f.name: _validated(getattr(obj, f.name), _join(path, name))
@@ -190,18 +182,14 @@ def parse(
     presets: Mapping[str, Mapping[str, Any]] | None = None,
     default: T | None = None,
 ) -> T:
-    """Parse the command line into ``config_type`` (a dataclass) with tyro.
+    """The command line (``args``, default ``sys.argv[1:]``) as a validated ``config_type``;
+    ``--help`` exits 0, an error exits 2 after one line.
 
-    :param args: the arguments (default ``sys.argv[1:]``).
-    :param description: the ``--help`` text above the options (default: the class docstring).
-    :param prog: the program's name in messages (default: the script's file name).
-    :param outputs: dotted fields holding output FILE paths (``None``/empty: skipped), checked
-        with :func:`check_output_path` before returning.
-    :param folders: the same for output FOLDERS.
-    :param presets: ``{flag: {field: value}}``: when ``flag`` (e.g. ``"--quick"``) is given, these
-        values replace the defaults of the options not given (``--help`` shows them).
+    :param outputs: dotted fields holding output file paths, checked by :func:`check_output_path`
+        (``folders``: output folders); ``None``/empty values are skipped.
+    :param presets: ``{flag: {field: value}}``: with ``flag`` (``"--quick"``) given, these values
+        are the defaults of the options not given.
     :param default: an instance whose values are the defaults (e.g. a saved run's config).
-    :return: the validated config. ``--help`` prints and exits 0; any error exits 2 after one line.
     """
     import tyro
     from tyro import _errors
@@ -238,9 +226,8 @@ def parse(
 
 
 def call(run: Callable[[T], Any], config: T) -> Any:
-    """``run(config)``, a ``ValueError`` (a bad value the library named) or ``OSError`` (an
-    output the system refuses) reported like a bad option: one line, exit code 2
-    (``MBTSR_TRACEBACK=1`` re-raises it). Other exceptions keep their traceback."""
+    """``run(config)``, a ``ValueError`` (a bad value) or ``OSError`` (an output the system
+    refuses) reported like a bad option (``MBTSR_TRACEBACK=1`` re-raises it)."""
     try:
         return run(config)
     except (ValueError, OSError) as e:

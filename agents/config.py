@@ -2,14 +2,12 @@
 
 ``AgentConfig`` holds the sections ``collection``, ``model`` (:class:`mbtsr.ensemble.ModelConfig`),
 ``training`` (:class:`mbtsr.training.TrainConfig`), ``regularization``
-(:class:`mbtsr.training.RegularizationConfig`, THE knob of the project), ``planner`` and
-``evaluation``, and the bookkeeping fields. Short calls: ``AgentConfig(regularization="none",
-planner="cem")`` (a name for a section), ``cfg.replace({"planner.horizon": 50, "model":
-{"hidden_width": 32}}, seed=3)``, ``AgentConfig.load("arm.yaml")`` (changes to the defaults).
-One small generic layer validates the tree: every leaf against its type hint (values from files
-coerced where unambiguous), the ranges in ``_BOUNDS``, the fields the agent fixes (``FIXED``) and
-settings without effect under the others (``_DEPENDENT``). Errors name the dotted field, an
-unknown key its closest valid one. The fields are described in docs/agent.md.
+(:class:`mbtsr.training.RegularizationConfig`), ``planner`` and ``evaluation``, and bookkeeping.
+E.g. ``AgentConfig(regularization="none", planner="cem")`` (a name for a section),
+``cfg.replace({"planner.horizon": 50, "model": {"hidden_width": 32}}, seed=3)``,
+``AgentConfig.load("arm.yaml")``. A small generic layer validates the tree: every leaf against its
+type hint, the ranges in ``_BOUNDS``, ``AgentConfig.FIXED`` and ``_DEPENDENT``; errors name the
+dotted field. The fields are described in docs/agent.md.
 """
 
 from __future__ import annotations
@@ -46,14 +44,13 @@ EXCITATIONS = ("filtered_gaussian", "multisine")
 
 
 class _Section:
-    """Checks every field against its type hint and ``_BOUNDS`` (``{dotted field: (low, high,
-    low_open)}``; an int low: an integer minimum), then :meth:`_check`, naming the dotted path."""
+    """Checks every field against its type hint and ``_BOUNDS`` (``{dotted field: low or (low,
+    high, low_open)}``), then :meth:`_check`; errors name the dotted field."""
 
-    _path: ClassVar[str] = ""
-    _BOUNDS: ClassVar[dict[str, tuple]] = {}
+    _BOUNDS: ClassVar[dict[str, Any]] = {}
 
     def __post_init__(self) -> None:
-        at = f"{self._path}." if self._path else ""
+        at = next((f"{k}." for k, c in SECTIONS.items() if c is type(self)), "")
         for name, hint in _hints(type(self)).items():
             value = getattr(self, name)
             if not _is_section(hint):
@@ -64,26 +61,19 @@ class _Section:
             elif not isinstance(value, _Section):  # a library config: the tree checks its leaves
                 for dotted, v, h in _leaves(value, f"{at}{name}."):
                     _coerce(v, h, dotted, True)
-        for dotted, (low, high, low_open) in self._BOUNDS.items():
+        for dotted, bound in self._BOUNDS.items():
+            low, high, low_open = bound if isinstance(bound, tuple) else (bound, math.inf, False)
             v = functools.reduce(getattr, dotted.split("."), self)
-            if v is None:
-                continue
-            if isinstance(low, int) and v < low:
-                raise ValueError(f"{at}{dotted} must be an integer >= {low}, got {v!r}")
-            if not isinstance(low, int) and not (
-                    math.isfinite(v) and (v > low if low_open else v >= low) and v <= high):
-                where = (f"{'>' if low_open else '>='} {low}" if high == math.inf
-                         else f"in {'(' if low_open else '['}{low}, {high}]")
-                raise ValueError(f"{at}{dotted} must be a finite number {where}, got {v!r}")
+            if v is not None and not (math.isfinite(v) and v <= high
+                                      and (v > low if low_open else v >= low)):
+                kind = "an integer" if isinstance(low, int) else "a finite number"
+                top = f" and <= {high}" if high < math.inf else ""
+                raise ValueError(f"{at}{dotted} must be {kind} {'>' if low_open else '>='} {low}"
+                                 f"{top}, got {v!r}")
         self._check()
 
     def _check(self) -> None:
-        """Rules between fields (none by default)."""
-
-
-def _bounds(**lows: float | tuple) -> dict[str, tuple]:
-    """``_BOUNDS`` from ``name=low`` or ``name=(low, high, low_open)``."""
-    return {k: (v, math.inf, False) if not isinstance(v, tuple) else v for k, v in lows.items()}
+        """Rules between fields."""
 
 
 @dataclass(frozen=True)
@@ -94,23 +84,20 @@ class CollectionConfig(_Section):
     :param excitation: the excitation signal (filtered Gaussian noise: the paper's robot input).
     :param excitation_scale: excitation amplitude, a fraction of the action half-range.
     :param excitation_window: moving-average window (steps) of the filtered Gaussian input.
-    :param exploration_std: std of the noise added to planned actions in training rollouts, a
-        fraction of the action half-range (0: off).
+    :param exploration_std: std of the noise on training rollouts' actions, a fraction of the
+        action half-range (0: off).
     :param episode_steps: steps per episode (``None``: the env's ``TimeLimit``).
     :param rollout_steps: steps per TRAINING rollout, shorter than the episode (``None``: the
-        episode's); the model is updated after every rollout, and what counts episodes
-        (excitation, ``evaluation.every``, ``learn(episodes=...)``) counts these rollouts.
+        episode's); the model is updated after each, and what counts episodes counts these.
     :param continue_rollouts: the next rollout continues the env's episode after the model
         update instead of resetting it (needs ``rollout_steps``).
-    :param exploration_window: moving-average window (steps) of the exploration noise, rescaled
-        to its std (1: white noise).
+    :param exploration_window: moving-average window (steps) of the exploration noise (1: white).
     :param explore_weight: directed exploration: training rollouts rank CEM's samples by cost
-        minus this weight x the members' disagreement (:class:`mbtsr.cem.CEMOptions`). 0: off.
+        minus this weight x the members' disagreement (0: off).
     :param explore_on: what the disagreement is measured on: the next ``state`` or its ``cost``.
     """
 
-    _path: ClassVar[str] = "collection"
-    _BOUNDS: ClassVar[dict[str, tuple]] = _bounds(
+    _BOUNDS: ClassVar[dict[str, Any]] = dict(
         n_excitation_episodes=1, excitation_scale=(0.0, 1.0, True), excitation_window=1,
         exploration_std=0.0, exploration_window=1, explore_weight=0.0, episode_steps=2,
         rollout_steps=2)
@@ -160,8 +147,7 @@ class PlannerConfig(_Section):
         rollouts follows one member; use a multiple of ``model.ensemble_size``).
     """
 
-    _path: ClassVar[str] = "planner"
-    _BOUNDS: ClassVar[dict[str, tuple]] = _bounds(
+    _BOUNDS: ClassVar[dict[str, Any]] = dict(
         horizon=2, replan_every=1, ilqr_iterations=1, first_plan_iterations=1,
         terminal_weight=0.0)
     horizon: int = 30
@@ -191,15 +177,13 @@ class PlannerConfig(_Section):
         from mbtsr.cem_ilqr import CEMILQROptions, cem_ilqr
         from mbtsr.ilqr import ilqr
 
-        explore = {"seed": seed, "explore_weight": explore_weight, "explore_on": explore_on}
-        if self.kind == "ilqr":
-            if explore_weight:
-                raise ValueError("explore_weight needs a planner with CEM, got planner.kind='ilqr'")
-            return ilqr, None, self.ilqr_iterations
-        if self.kind == "cem":
-            return cem, dataclasses.replace(self.cem, **explore), self.cem.iterations
-        return cem_ilqr, CEMILQROptions(max_iter=self.ilqr_iterations, cem=dataclasses.replace(
-            self.proposal, **explore)), self.ilqr_iterations
+        if self.kind == "ilqr" and explore_weight:
+            raise ValueError("explore_weight needs a planner with CEM, got planner.kind='ilqr'")
+        opts = dataclasses.replace(self.cem if self.kind == "cem" else self.proposal, seed=seed,
+                                   explore_weight=explore_weight, explore_on=explore_on)
+        return {"ilqr": (ilqr, None, self.ilqr_iterations), "cem": (cem, opts, opts.iterations),
+                "cem-ilqr": (cem_ilqr, CEMILQROptions(max_iter=self.ilqr_iterations, cem=opts),
+                             self.ilqr_iterations)}[self.kind]
 
 
 @dataclass(frozen=True)
@@ -221,8 +205,7 @@ class EvaluationConfig(_Section):
     :param oracle_cache_dir: folder of the oracle's memoised costs (``None``: no cache).
     """
 
-    _path: ClassVar[str] = "evaluation"
-    _BOUNDS: ClassVar[dict[str, tuple]] = _bounds(
+    _BOUNDS: ClassVar[dict[str, Any]] = dict(
         every=0, every_steps=0, episodes=1, seed=0, solved_ratio=1.0, solved_return=-math.inf)
     every: int = 4
     every_steps: int = 0
@@ -282,7 +265,7 @@ class AgentConfig(_Section):
             ("seed", "the agent seeds every solve from seed"),
             ("explore_weight", "set collection.explore_weight (training rollouts only)"),
             ("explore_on", "set collection.explore_on (training rollouts only)"))}}
-    _BOUNDS: ClassVar[dict[str, tuple]] = _bounds(
+    _BOUNDS: ClassVar[dict[str, Any]] = dict(
         seed=0, ltv_prior=0.0, video_every=1, torch_threads=0,
         **{"training.epochs": 1, "regularization.ltv_lambda": (0.0, math.inf, True)})
     collection: CollectionConfig = field(default_factory=CollectionConfig)
@@ -324,17 +307,13 @@ class AgentConfig(_Section):
             if values[dotted] != own[dotted]:
                 raise ValueError(f"{dotted} must be {own[dotted]!r}: {why}, got "
                                  f"{values[dotted]!r}")
-        for dotted, reason in _inactive(values).items():
+        for dotted, reason in _inactive(self).items():
             raise ValueError(f"{dotted}={values[dotted]!r} has no effect: {reason}")
 
     def replace(self, changes: Mapping[str, Any] | None = None, /, **top: Any) -> AgentConfig:
-        """A copy with changes, validated again: ``changes`` maps dotted fields (``"planner.
-        horizon"``) or sections (``"model": {"hidden_width": 32}``, ``"planner": "cem"``) to
-        values, coerced as in :meth:`from_dict`; keywords set top-level fields.
-
-        :raises ValueError: naming the dotted field (unknown, with the closest valid one; of the
-            wrong type; out of range; fixed; or without effect under the other settings).
-        """
+        """A copy with changes, validated again: ``changes`` maps dotted fields or sections
+        (``{"model": {"hidden_width": 32}, "planner": "cem"}``) to values, coerced as in
+        :meth:`from_dict`; keywords set top-level fields. Errors name the dotted field."""
         return _replaced(self, {**(changes or {}), **top}, "")
 
     @classmethod
@@ -359,11 +338,10 @@ class AgentConfig(_Section):
 
     @classmethod
     def from_dict(cls, d: Mapping[str, Any], /, base: AgentConfig | None = None) -> AgentConfig:
-        """The CHANGES a (partial) nested or dotted dict gives to ``base`` (default
-        ``AgentConfig()``), as :meth:`replace`. A value is coerced to its field's type where
-        unambiguous: a number in a string (YAML 1.1 reads ``1e-3`` as one; not ``"2.5"`` for an
-        integer), ``50.0`` as an integer, ``"true"``/``"false"``, ``"none"``/``"null"`` where the
-        field takes no string, a list as a tuple, one name as a tuple of one.
+        """The CHANGES a partial (nested or dotted) dict gives to ``base`` (default: the
+        defaults), as :meth:`replace`. Values are coerced where unambiguous: a number in a string
+        (YAML 1.1 reads ``1e-3`` as one; not ``"2.5"`` for an int), ``50.0`` as an int,
+        ``"true"``, ``"null"`` (where no string fits), a list as a tuple, a name as a tuple of one.
         """
         if not isinstance(d, Mapping):
             raise ValueError(f"AgentConfig.from_dict needs a dict of AgentConfig fields, got "
@@ -446,10 +424,7 @@ def _describe(hint: Any) -> str:
 def _coerce(value: Any, hint: Any, name: str, strict: bool = False) -> Any:
     """``value`` as the type ``hint`` of field ``name``, coerced where unambiguous
     (:meth:`AgentConfig.from_dict`); ``strict``: the type check only (numpy scalars and paths
-    become Python's).
-
-    :raises ValueError: ``"<name> must be <type>, got <value>"``.
-    """
+    become Python's). :raises ValueError: ``"<name> must be <type>, got <value>"``."""
     origin, args = typing.get_origin(hint), typing.get_args(hint)
     bad = ValueError(f"{name} must be {_describe(hint)}, got {value!r}")
     word = value.strip().lower() if isinstance(value, str) and not strict else None
@@ -496,63 +471,50 @@ def _coerce(value: Any, hint: Any, name: str, strict: bool = False) -> Any:
     return value  # a type the tree does not use: unchecked
 
 
-#: settings that act only under others: (fields, needed(dotted values), what they need); a
-#: chosen value (neither the agent's default nor its section's) there, not needed, is refused
-_DEPENDENT: tuple[tuple[tuple[str, ...], Callable[[Mapping[str, Any]], bool], str], ...] = (
-    (("regularization.sigma", "regularization.n_copies", "regularization.copies_batch"),
-     lambda v: v["regularization.sampled_weight"] > 0,
-     "sampled Jacobian propagation (regularization.sampled_weight > 0)"),
-    (("regularization.ltv_lambda", "ltv_prior"),
-     lambda v: v["regularization.sampled_weight"] > 0 or v["regularization.exact_weight"] > 0,
-     "LTV fits, made for the sampled and exact regularizers only (their weights > 0)"),
-    (("planner.cem.",), lambda v: v["planner.kind"] == "cem", "planner.kind='cem'"),
-    (("planner.proposal.",), lambda v: v["planner.kind"] == "cem-ilqr",
-     "planner.kind='cem-ilqr' (its CEM proposal)"),
-    (("planner.replan_feedback",),
-     lambda v: v["planner.replan_every"] > 1 and v["planner.kind"] != "cem",
-     "iLQR's gains between re-plans (planner.replan_every > 1, planner.kind 'ilqr' or "
-     "'cem-ilqr')"),
-    (("planner.ilqr_iterations",), lambda v: v["planner.kind"] != "cem",
-     "a planner with iLQR (CEM runs planner.cem.iterations)"),
-    (("collection.excitation_window",), lambda v: v["collection.excitation"] == "filtered_gaussian",
-     "collection.excitation='filtered_gaussian'"),
-    (("collection.explore_on",), lambda v: v["collection.explore_weight"] > 0,
-     "directed exploration (collection.explore_weight > 0)"),
-    (("collection.explore_weight",),
-     lambda v: v["planner.kind"] != "ilqr" and v["model.ensemble_size"] > 1,
-     "a planner with CEM (planner.kind 'cem' or 'cem-ilqr') and model.ensemble_size > 1"),
-    (("collection.exploration_window",), lambda v: v["collection.exploration_std"] > 0,
-     "exploration noise (collection.exploration_std > 0)"),
-    (("training.epochs",), lambda v: v["training.steps"] is None,
-     "the epoch schedule (training.steps=None; training.steps is a budget of gradient steps)"),
-    (("training.early_stopping",), lambda v: v["training.patience"] is not None,
-     "early stopping (a training.patience)"),
-    (("video_every",), lambda v: bool(v["video"]), "video=true"),
-    (("evaluation.solved_ratio", "evaluation.early_exit"),
-     lambda v: v["evaluation.solved_return"] is None,
-     "the oracle's criterion (evaluation.solved_return=None)"),
-)
+#: settings that act only under others: ``{fields: when}`` (a field ending in "." stands for its
+#: section's fields); a chosen value there (neither the agent's default nor its section's) while
+#: ``when`` (an expression in the top-level fields) is false is refused
+_DEPENDENT = {
+    "regularization.sigma regularization.n_copies regularization.copies_batch":
+        "regularization.sampled_weight > 0",
+    "regularization.ltv_lambda ltv_prior":
+        "regularization.sampled_weight > 0 or regularization.exact_weight > 0",
+    "planner.cem.": "planner.kind == 'cem'",
+    "planner.proposal.": "planner.kind == 'cem-ilqr'",
+    "planner.replan_feedback": "planner.replan_every > 1 and planner.kind != 'cem'",
+    "planner.ilqr_iterations": "planner.kind != 'cem'",
+    "collection.excitation_window": "collection.excitation == 'filtered_gaussian'",
+    "collection.explore_on": "collection.explore_weight > 0",
+    "collection.explore_weight": "planner.kind != 'ilqr' and model.ensemble_size > 1",
+    "collection.exploration_window": "collection.exploration_std > 0",
+    "training.epochs": "training.steps is None",
+    "training.early_stopping": "training.patience is not None",
+    "video_every": "video == True",
+    "evaluation.solved_ratio evaluation.early_exit": "evaluation.solved_return is None",
+}
 
 
-def _inactive(values: Mapping[str, Any]) -> dict[str, str]:
-    """``{dotted field: reason}`` of the leaves in ``values`` that hold a chosen value (neither
-    the agent's default nor its section's) without effect under the others."""
-    agent, own, _ = _defaults()
-    return {name: f"it acts only with {needs}: remove it, or set that"
-            for fields, needed, needs in _DEPENDENT if not needed(values)
-            for name, value in values.items()
+def _inactive(cfg: AgentConfig) -> dict[str, str]:
+    """``{dotted field: why}`` of the leaves of ``cfg`` that hold a chosen value without effect
+    under the others (:data:`_DEPENDENT`)."""
+    (agent, own, _), top = _defaults(), {f.name: getattr(cfg, f.name) for f in
+                                         dataclasses.fields(cfg)}
+    return {name: f"it acts only when {when}: remove it, or set that"
+            for fields, when in _DEPENDENT.items() if not eval(when, {}, top)  # noqa: S307
+            for name, value in cfg.dotted().items()
             if value != agent[name] and value != own.get(name, agent[name])
-            and any(name == f or (f.endswith(".") and name.startswith(f)) for f in fields)}
+            and any(name == f or (f.endswith(".") and name.startswith(f))
+                    for f in fields.split())}
 
 
 def _unknown(key: str) -> ValueError:
     """The error of an unknown field, naming the closest valid one (whole path or last part)."""
-    tail = key.rpartition(".")[2]
+    def ratio(a: str, b: str) -> float:
+        return difflib.SequenceMatcher(None, a, b).ratio()
 
     def score(path: str) -> tuple[float, float]:
-        whole = difflib.SequenceMatcher(None, key, path).ratio()
-        return max(whole, difflib.SequenceMatcher(None, tail, path.rpartition(".")[2]).ratio()), \
-            whole
+        return max(ratio(key, path), ratio(key.rpartition(".")[2], path.rpartition(".")[2])), \
+            ratio(key, path)
 
     return ValueError(f"unknown AgentConfig field {key!r}; the closest valid field is "
                       f"{max(_defaults()[2], key=score)!r}")
@@ -630,11 +592,8 @@ class _UniqueKeyLoader(yaml.SafeLoader):
 
 
 def read_config_file(path: str | os.PathLike) -> dict[str, Any]:
-    """The dict in a JSON (``.json``) or YAML (any other name) file; plain data only.
-
-    :raises ValueError: naming the file: unreadable, not valid JSON/YAML (with the line), a key
-        given twice, empty, or not a dict.
-    """
+    """The dict in a JSON (``.json``) or YAML (any other name) file, plain data only; an error
+    names the file (unreadable, not valid JSON/YAML, a key given twice, empty, not a dict)."""
     p = Path(path)
     try:
         text = p.read_text(encoding="utf-8")
@@ -668,10 +627,7 @@ def in_file(path: str | os.PathLike, err: ValueError) -> ValueError:
 
 def split_run_config(d: Mapping[str, Any]) -> tuple[Mapping[str, Any], dict[str, Any]]:
     """``(agent fields, the other sections)`` of a run's ``config.json`` (``{"agent": {...},
-    "script": {...}, ...}``); any other dict is all agent fields.
-
-    :raises ValueError: for a key beside ``agent`` that a run's config.json does not hold.
-    """
+    "script": {...}, ...}``; an unknown section is an error); any other dict is all agent."""
     if not isinstance(d.get("agent"), Mapping):
         return d, {}
     if unknown := sorted(set(d) - {"agent", *RUN_SECTIONS}):

@@ -77,7 +77,7 @@ BAD_FILES = [  # (file name, content, the one line the script prints after "erro
     ("a.yaml", "model:\n  hiden_width: 3\n", "{p}: unknown AgentConfig field "
      "'model.hiden_width'; the closest valid field is 'model.hidden_width'"),
     ("a.yaml", "planner:\n  cem: {samples: 50}\n", "{p}: planner.cem.samples=50 has no effect: "
-     "it acts only with planner.kind='cem': remove it, or set that"),
+     "it acts only when planner.kind == 'cem': remove it, or set that"),
     ("a.yaml", "seed: 1\nseed: 2\n", "{p}: the key 'seed' is given twice (line 2)"),
     ("a.yaml", "model: [1, 2\n", "{p} is not valid YAML: expected ',' or ']', but got '<stream "
      "end>' (line 2, column 1)"),

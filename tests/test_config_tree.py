@@ -545,7 +545,7 @@ def test_a_section_given_twice_or_a_leaf_as_a_section_is_named():
 
 def test_step_budget_settings_without_effect_are_refused():
     with pytest.raises(ValueError, match=r"^training\.epochs=50 has no effect: it acts only "
-                                         r"with the epoch schedule \(training\.steps=None"):
+                                         r"when training\.steps is None: remove it"):
         AgentConfig.default({"training.epochs": 50})
     assert AgentConfig.default({"training.epochs": 50, "training.steps": None,
                                 "training.holdout": 0.1}).training.uses_step_loop
