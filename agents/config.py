@@ -378,6 +378,7 @@ def _hints(cls: type) -> dict[str, Any]:
     return {f.name: hints[f.name] for f in dataclasses.fields(cls)}
 
 
+@functools.cache
 def _is_section(hint: Any) -> bool:
     return isinstance(hint, type) and dataclasses.is_dataclass(hint)
 
@@ -421,12 +422,20 @@ def _describe(hint: Any) -> str:
             type(None): "null"}.get(hint, getattr(hint, "__name__", str(hint)))
 
 
+class _Bad(ValueError):
+    """``"<name> must be <type>, got <value>"``, worded when shown."""
+
+    def __str__(self) -> str:
+        name, hint, value = self.args
+        return f"{name} must be {_describe(hint)}, got {value!r}"
+
+
 def _coerce(value: Any, hint: Any, name: str, strict: bool = False) -> Any:
     """``value`` as the type ``hint`` of field ``name``, coerced where unambiguous
     (:meth:`AgentConfig.from_dict`); ``strict``: the type check only (numpy scalars and paths
     become Python's). :raises ValueError: ``"<name> must be <type>, got <value>"``."""
     origin, args = typing.get_origin(hint), typing.get_args(hint)
-    bad = ValueError(f"{name} must be {_describe(hint)}, got {value!r}")
+    bad = _Bad(name, hint, value)
     word = value.strip().lower() if isinstance(value, str) and not strict else None
     if origin in (typing.Union, types.UnionType):
         if value is None and type(None) in args:
@@ -494,14 +503,17 @@ _DEPENDENT = {
 }
 
 
+_WHEN = {when: compile(when, "_DEPENDENT", "eval") for when in _DEPENDENT.values()}
+
+
 def _inactive(cfg: AgentConfig) -> dict[str, str]:
     """``{dotted field: why}`` of the leaves of ``cfg`` that hold a chosen value without effect
     under the others (:data:`_DEPENDENT`)."""
-    (agent, own, _), top = _defaults(), {f.name: getattr(cfg, f.name) for f in
-                                         dataclasses.fields(cfg)}
+    (agent, own, _), values = _defaults(), cfg.dotted()
+    top = {f.name: getattr(cfg, f.name) for f in dataclasses.fields(cfg)}
     return {name: f"it acts only when {when}: remove it, or set that"
-            for fields, when in _DEPENDENT.items() if not eval(when, {}, top)  # noqa: S307
-            for name, value in cfg.dotted().items()
+            for fields, when in _DEPENDENT.items() if not eval(_WHEN[when], {}, top)  # noqa: S307
+            for name, value in values.items()
             if value != agent[name] and value != own.get(name, agent[name])
             and any(name == f or (f.endswith(".") and name.startswith(f))
                     for f in fields.split())}
@@ -529,7 +541,8 @@ def _build(path: str, make: Callable[..., Any], *args: Any, **kwargs: Any) -> An
         msg = str(err)
         if not path or msg.startswith((f"{path}.", f"{path} ")):
             raise
-        raise type(err)(f"{path}.{msg.removeprefix('options.')}") from None
+        raise (TypeError if isinstance(err, TypeError) else ValueError)(
+            f"{path}.{msg.removeprefix('options.')}") from None
 
 
 def _replaced(obj: Any, changes: Mapping[str, Any], prefix: str) -> Any:
