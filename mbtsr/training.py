@@ -85,7 +85,7 @@ class TrainConfig:
     :param epochs: passes over the data (``steps=None``). Paper: 1000 for g and 2000 for f, half
         of that with sampled Jacobian propagation.
     :param lr: Adam step size. The original used 0.02 (linear system, robot v1) and 0.01 (later
-        scripts); 0.01 is the default here (normalized data, see ``docs/models.md``).
+        scripts; normalized data, see ``docs/models.md``).
     :param batch: ``"trajectory"`` (one optimizer step per trajectory, like the original; epochs
         only) or an int minibatch size (transitions drawn without replacement across
         trajectories).
@@ -209,7 +209,7 @@ class RegularizationConfig:
     :param smooth_weight: weight of ``sum_t ||J_model(t+1) - J_model(t)||_F^2`` (the original's
         later "AD jacprop", paper eq. (reg)); needs no LTV model.
     :param ltv_lambda: ``lam`` of :func:`mbtsr.ltv.fit_ltv` (``lam^2`` = drift-to-noise variance
-        ratio, scale dependent); default ``sqrt(1000)``, the original's R2 = 1000 I, R1 = I.
+        ratio, scale dependent); the original's R2 = 1000 I, R1 = I is ``sqrt(1000)``.
         ``None`` picks it per trajectory with :func:`mbtsr.ltv.select_lambda`.
     :param ltv_affine: fit LTV models with an affine term ``c_t``.
     """
