@@ -28,11 +28,11 @@ after the epoch's data batches, as the original code did (it chained the perturb
 after the data as extra batches), so an epoch takes ``(1 + n_copies)`` times the baseline's
 steps. Compare methods with the baseline at equal optimizer steps (:attr:`TrainHistory.steps`).
 
-With a step budget (:attr:`TrainConfig.steps`) or a hold-out, early stopping or per-member data,
-the minibatch-step loop runs instead of epochs: every step draws a minibatch per member, the
-perturbed copies of that minibatch's transitions (fresh every step, labelled by their
-trajectory's LTV Jacobians), and a probabilistic member's data term is the Gaussian NLL; see
-:class:`TrainConfig`.
+One loop (:func:`_train_loop`) trains with either schedule, a plan of rounds of batches: the
+paper's epochs (:class:`_EpochPlan`), or a step budget (:attr:`TrainConfig.steps`, or a hold-out,
+early stopping or per-member data; :class:`_StepPlan`) in which every step draws a minibatch per
+member and fresh perturbed copies of its transitions, labelled by their trajectory's LTV
+Jacobians. A probabilistic member's data term is the Gaussian NLL; see :class:`TrainConfig`.
 """
 
 from __future__ import annotations
@@ -80,8 +80,8 @@ class TrainConfig:
     schedule (its cost grows with the data). ``steps=S``: a budget of ``S`` gradient steps on
     minibatches of ``batch`` transitions per call, independent of the data size. Either can
     hold out data, stop early and give the members their own data order or bootstrap sample
-    (then the minibatch-step loop runs, :attr:`uses_step_loop`; without them ``epochs`` runs
-    the paper's epoch loop, unchanged). See ``docs/models.md``, "Training with a step budget".
+    (then training takes the step budget, :attr:`uses_step_loop`; without them ``epochs`` is
+    the paper's epoch schedule). See ``docs/models.md``, "Training with a step budget".
 
     :param epochs: passes over the data (``steps=None``). Paper: 1000 for g and 2000 for f, half
         of that with sampled Jacobian propagation.
@@ -173,14 +173,14 @@ class TrainConfig:
             on = [f"{name}={getattr(self, name)!r}" for name, off in (
                 ("holdout", 0.0), ("patience", None), ("member_data", "shared"))
                 if getattr(self, name) != off]
-            raise ValueError(f"batch='trajectory' is the epoch loop's; {', '.join(on)} need an "
+            raise ValueError(f"batch='trajectory' is the epoch schedule's; {', '.join(on)} need an "
                              "int minibatch size")
 
     @property
     def uses_step_loop(self) -> bool:
-        """Whether training runs the minibatch-step loop: with a step budget, or with a hold-out,
-        early stopping or per-member data (then ``epochs`` passes over the training rows set
-        the budget). Otherwise it is the paper's epoch loop, unchanged."""
+        """Whether training takes the step budget: with ``steps``, or with a hold-out, early
+        stopping or per-member data (then ``epochs`` passes over the training rows set the
+        budget). Otherwise it takes the paper's epoch schedule."""
         return self.steps is not None or self.holdout > 0 or self.patience is not None or (
             self.member_data != "shared")
 
@@ -284,26 +284,24 @@ class RegularizationConfig:
 class TrainHistory:
     """What :func:`train_ensemble` returns.
 
-    :param train_loss: epochs: ``[epochs]`` data term (mean over members and training
-        transitions, normalized units; the Gaussian NLL for probabilistic members) accumulated
-        during each epoch. Steps: ``[evaluations]`` its mean over the steps since the previous
-        evaluation (NaN at step 0).
-    :param val_loss: epochs: ``[epochs]`` the squared error of the members' means on the
-        validation trajectories after each epoch (evaluation mode); steps: ``[evaluations]`` the
-        same on the hold-out rows (or ``validation``); empty without validation data.
-    :param penalties: ``{"sampled", "exact", "smooth"} -> [epochs or evaluations]`` mean
-        per-step value of each active regularizer (before its weight).
+    Training records one row per round: every epoch, or with a step budget at step 0 and
+    every ``eval_every`` steps (the rows' step counts are :attr:`eval_steps`).
+
+    :param train_loss: ``[rounds]`` the data term (mean over members and the round's training
+        transitions, normalized units; the Gaussian NLL for probabilistic members; NaN at step 0).
+    :param val_loss: ``[rounds]`` the members' mean squared error (evaluation mode) on the
+        validation trajectories or the held-out rows at the round's end; empty without them.
+    :param penalties: ``{"sampled", "exact", "smooth"} -> [rounds]`` mean per-step value of each
+        active regularizer (before its weight).
     :param wall_time: seconds spent in the call.
     :param optimizer_state: Adam's ``state_dict`` (a deep copy) to resume exactly.
     :param steps: optimizer steps taken.
     :param ltv_models: the LTV models used (one per training trajectory) or None.
     :param step_loss: ``[steps]`` the objective minimized at each optimizer step (summed over
         members, weights applied).
-    :param eval_steps: steps only: ``[evaluations]`` the step count at each evaluation.
-    :param val_member_loss: steps only: ``[evaluations, K]`` every member's validation loss
-        (config order).
-    :param val_ensemble_loss: steps only: ``[evaluations]`` the validation loss of the ensemble
-        mean.
+    :param eval_steps: ``[rounds]`` the step count at each round's end.
+    :param val_member_loss: ``[rounds, K]`` every member's validation loss (config order).
+    :param val_ensemble_loss: ``[rounds]`` the validation loss of the ensemble mean.
     :param best_steps: with early stopping, ``[K]`` the step count of every member's restored
         weights (config order); ``None`` otherwise.
     :param stopped_early: True when ``patience`` ended training before the step budget.
@@ -496,22 +494,20 @@ def _logvar_bound_penalty(model: DynamicsEnsemble) -> torch.Tensor | None:
 
 @dataclass
 class _Batch:
-    """Inputs and labels of one optimizer step. Tensors are shared by the members (rows on
-    dim 0) or one per member (``[K, ...]``, stacked order); ``b`` is the number of data rows.
+    """Inputs and labels of one optimizer step, shared by the members (``[rows, ...]``) or one
+    set per member (``[K, rows, ...]``, stacked order).
 
-    :param inputs: ``[R, n+m]`` or ``[K, R, n+m]`` normalized inputs: the ``b`` data rows first,
-        then any successor rows (smoothness), the perturbed copies last.
-    :param jac_rows: rows whose Jacobians the exact and smoothness terms need (the first ones).
-    :param target: ``[b, n]`` / ``[K, b, n]`` normalized targets of the data rows; None for a
-        step on copies alone (``copies_batch="own"``).
-    :param copy_target: ``[c, n]`` / ``[K, c, n]`` labels of the last ``c`` rows (the copies).
-    :param copy_share: the recorded sampled term is divided by it (``n_copies`` when every copy
-        takes its own step, so that an epoch's sum is a mean over copies).
-    :param J_ltv: ``[b, n, n+m]`` / ``[K, b, n, n+m]`` LTV Jacobians of the data rows (exact term).
-    :param exact_scale: ``S`` of the exact term (module docstring).
-    :param pairs: smoothness pairs ``(successors, firsts, mask)``: row selectors of the Jacobians
-        (slices or index tensors) and a ``[K, p]`` 0/1 weight of every pair or None (all count).
-    :param smooth_scale: ``S`` of the smoothness term.
+    :param inputs: ``[R, n+m]`` normalized: the ``b`` data rows first, then any successor rows
+        (smoothness), the perturbed copies last.
+    :param jac_rows: how many of the first rows need Jacobians (exact and smoothness terms).
+    :param target: ``[b, n]`` targets of the data rows; None: a step on copies alone.
+    :param copy_target: ``[c, n]`` labels of the last ``c`` rows (the copies).
+    :param copy_share: divides the recorded sampled term (``n_copies`` when each copy takes its
+        own step, so that an epoch's sum is a mean over the copies).
+    :param J_ltv: ``[b, n, n+m]`` LTV Jacobians of the data rows (exact term).
+    :param pairs: smoothness pairs ``(successors, firsts, mask)``: row selectors of the
+        Jacobians and a ``[K, p]`` 0/1 weight of every pair (None: all count).
+    :param exact_scale, smooth_scale: the terms' ``S`` (module docstring).
     """
 
     inputs: torch.Tensor
@@ -566,14 +562,13 @@ def _objective(model: DynamicsEnsemble, batch: _Batch, reg: RegularizationConfig
 
 
 def _train_loop(model: DynamicsEnsemble, optimizer: torch.optim.Optimizer,
-                rounds: Iterator[Iterable[_Batch]], reg: RegularizationConfig, report,
-                bar) -> tuple[int, list[float]]:
-    """THE training loop: the batches of every round (an epoch, or ``eval_every`` steps) each
-    take one optimizer step; the report records the terms, evaluates after every round and
-    may stop training (early stopping).
+                rounds: Iterator[Iterable[_Batch]], reg: RegularizationConfig,
+                report: _Report, bar: tqdm) -> tuple[int, list[float]]:
+    """The training loop of both schedules: every batch of every round (an epoch, or
+    ``eval_every`` steps) takes one optimizer step; the :class:`_Report` records the terms,
+    evaluates after every round and may stop training (early stopping).
 
-    :param rounds: the schedule (:class:`_EpochPlan` or :class:`_StepPlan`).
-    :param report: :class:`_EpochReport` or :class:`_EvalReport`.
+    :param rounds: the schedule's rounds of batches (:class:`_EpochPlan`, :class:`_StepPlan`).
     :return: ``(steps, [steps] objective of every step)``.
     """
     steps, step_loss = 0, []
@@ -603,15 +598,9 @@ def _train_loop(model: DynamicsEnsemble, optimizer: torch.optim.Optimizer,
 
 @dataclass
 class _Rows:
-    """The pooled training transitions as float32 tensors, built once per call.
-
-    :param xu_raw: ``[N, n+m]`` raw inputs.  :param xu: ``[N, n+m]`` the same normalized.
-    :param target: ``[N, n]`` normalized residual targets.
-    :param starts: ``[count + 1]`` first row of every trajectory (and ``N``).
-    :param successor: ``[N]`` the next row of the same trajectory, -1 for a last transition.
-    :param mean_terms, mean_pairs: mean rows and successive pairs per trajectory.
-    :param J_ltv: ``[N, n, n+m]`` LTV Jacobians ``[A_t B_t]`` of every row (or None).
-    """
+    """The pooled training transitions (float32), built once per call: raw and normalized
+    inputs ``[N, n+m]``, targets ``[N, n]``, the trajectories' first rows ``[count + 1]``
+    (:func:`_row_layout` the rest) and the LTV Jacobians ``[N, n, n+m]`` (or None)."""
 
     xu_raw: torch.Tensor
     xu: torch.Tensor
@@ -807,142 +796,82 @@ class _MemberStreams:
 # ---------------------------------------------------------------------------------------------
 
 
-def _in_eval_mode(model: DynamicsEnsemble, fn: Callable[[], object]) -> object:
-    """``fn()`` with the model in evaluation mode and without gradients."""
-    model.eval()
-    try:
-        with torch.no_grad():
-            return fn()
-    finally:
-        model.train()
-
-
-def _validation_errors(model: DynamicsEnsemble, val: tuple[torch.Tensor, torch.Tensor]
-                       ) -> tuple[torch.Tensor, torch.Tensor]:
-    """``(y [K, V, n], squared error norms [K, V])`` of the members on normalized validation
-    inputs and targets (evaluation mode)."""
-    yv, _ = _in_eval_mode(model, lambda: model.stacked_forward(val[0], normalized=True))
-    return yv, _squared_norm(yv - val[1], (-1,))
-
-
-class _EpochReport:
-    """Per epoch (a round of :class:`_EpochPlan`): the data term weighted by batch rows, each
-    penalty's mean over the data steps, the validation loss, ``callback(epoch, model)``."""
-
-    def __init__(self, model: DynamicsEnsemble, config: TrainConfig, active: list[str],
-                 n_rows: int, val: tuple | None, callback: Callable | None, bar) -> None:
-        E = config.epochs
-        self.model, self.n_rows, self.val, self.callback, self.bar = model, n_rows, val, \
-            callback, bar
-        self.progress = config.progress
-        self.train_loss = np.zeros(E)
-        self.val_loss = np.zeros(E) if val is not None else np.zeros(0)
-        self.penalties = {k: np.zeros(E) for k in active}
-        self.epoch = 0
-        self._clear()
-
-    def _clear(self) -> None:
-        self.data_sum, self.data_steps = 0.0, 0
-        self.pen_sum = dict.fromkeys(self.penalties, 0.0)
-
-    def begin(self) -> bool:
-        return False
-
-    def add(self, terms: dict[str, float], batch: _Batch) -> None:
-        if "data" in terms:
-            self.data_sum += terms["data"] * batch.target.shape[-2]
-            self.data_steps += 1
-        for k in self.pen_sum:
-            if k in terms:
-                self.pen_sum[k] += terms[k]
-
-    def end_round(self, steps: int) -> bool:
-        e = self.epoch
-        self.train_loss[e] = self.data_sum / self.n_rows
-        for k, v in self.pen_sum.items():
-            self.penalties[k][e] = v / self.data_steps
-        if self.val is not None:
-            self.val_loss[e] = float(_validation_errors(self.model, self.val)[1].mean())
-        if self.callback is not None:
-            _in_eval_mode(self.model, lambda: self.callback(e, self.model))
-        if self.progress and (e % 10 == 0 or e == len(self.train_loss) - 1):
-            post = {"loss": f"{self.train_loss[e]:.3g}"}
-            if self.val is not None:
-                post["val"] = f"{self.val_loss[e]:.3g}"
-            self.bar.set_postfix(post, refresh=False)
-        self.epoch += 1
-        self._clear()
-        return False
-
-    def finish(self) -> None:
-        pass
-
-    def history(self, **common) -> TrainHistory:
-        return TrainHistory(train_loss=self.train_loss, val_loss=self.val_loss,
-                            penalties=self.penalties, **common)
-
-
-class _EvalReport:
-    """Per evaluation (at step 0 and after every round of :class:`_StepPlan`): the terms'
-    means over the steps since the last one, every member's and the ensemble mean's validation
-    loss, ``callback(step, model)``; with ``patience``, early stopping that keeps the best
+class _Report:
+    """What training records, per round (an epoch, or ``eval_every`` steps; a step budget also
+    evaluates at step 0): the data term's mean over the round's transitions, each penalty's
+    mean over its data steps, every member's and the ensemble mean's validation loss, and
+    ``callback(epoch or step, model)``. With ``patience``: early stopping that keeps the best
     weights (per member or for the ensemble) and restores them at the end."""
 
     def __init__(self, model: DynamicsEnsemble, config: TrainConfig, active: list[str],
-                 val: tuple | None, callback: Callable | None, bar, budget: int) -> None:
+                 val: tuple | None, callback: Callable | None, bar, budget: int,
+                 per_epoch: bool) -> None:
         K = model.n_members
         self.model, self.config, self.active, self.val = model, config, active, val
-        self.callback, self.bar, self.budget = callback, bar, budget
+        self.callback, self.bar, self.budget, self.per_epoch = callback, bar, budget, per_epoch
         self.early = config.patience is not None and val is not None
         self.per_member = config.early_stopping == "member"
         self.best = np.full(K if self.per_member else 1, np.inf)
         self.best_step = np.zeros(K, int)
         self.snapshot = ({name: p.detach().clone() for name, p in model.named_parameters()}
                          if self.early else None)
-        self.members = _member_slices(model)
         self.since_progress, self.stopped = 0, False
-        self.window = {"data": [], **{k: [] for k in active}}
-        self.evals: list[dict] = []
+        self.rows: list[dict] = []
+        self._clear()
+
+    def _clear(self) -> None:
+        self.sums = dict.fromkeys(["data", *self.active], 0.0)
+        self.data_rows = self.data_steps = 0
 
     def begin(self) -> bool:
-        self.stopped = self._evaluate(0)
+        self.stopped = not self.per_epoch and self._evaluate(0)
         return self.stopped
 
     def add(self, terms: dict[str, float], batch: _Batch) -> None:
+        if batch.target is not None:
+            self.data_rows += batch.target.shape[-2]
+            self.data_steps += 1
         for k, v in terms.items():
-            self.window[k].append(v)
+            self.sums[k] += v * batch.target.shape[-2] if k == "data" else v
 
     def end_round(self, steps: int) -> bool:
         self.stopped = self._evaluate(steps) and steps < self.budget
-        if self.config.progress and self.evals[-1].get("ensemble") is not None:
-            self.bar.set_postfix({"val": f"{self.evals[-1]['ensemble']:.3g}"}, refresh=False)
+        if self.config.progress:
+            row = self.rows[-1]
+            self.bar.set_postfix({"loss": f"{row['train']:.3g}", **(
+                {"val": f"{row['val']:.3g}"} if "val" in row else {})}, refresh=False)
         return self.stopped
 
     def _evaluate(self, step: int) -> bool:
-        """Record the losses; update the best weights; True: patience ran out."""
-        model, K = self.model, self.model.n_members
-        row = {"step": step, **{k: float(np.mean(v)) if v else np.nan
-                                for k, v in self.window.items()}}
-        row["train"] = row.pop("data")
-        for v in self.window.values():
-            v.clear()
-        if self.val is not None:
-            yv, err = _validation_errors(model, self.val)
-            row["member"] = err.mean(-1).numpy().astype(float)
-            row["ensemble"] = float(_squared_norm(yv.mean(0) - self.val[1], (-1,)).mean())
-        self.evals.append(row)
-        if self.callback is not None:
-            _in_eval_mode(model, lambda: self.callback(step, model))
+        """Record the round; update the best weights; True: patience ran out."""
+        model, n = self.model, self.data_steps
+        row = {"step": step, "train": self.sums["data"] / self.data_rows if n else np.nan,
+               **{k: self.sums[k] / n if n else np.nan for k in self.active}}
+        self._clear()
+        self.rows.append(row)
+        model.eval()  # validation and callback: evaluation mode, no gradients
+        try:
+            with torch.no_grad():
+                if self.val is not None:
+                    yv, _ = model.stacked_forward(self.val[0], normalized=True)  # [K, V, n]
+                    err = _squared_norm(yv - self.val[1], (-1,))
+                    row.update(val=float(err.mean()), member=err.mean(-1).numpy().astype(float),
+                               ensemble=float(_squared_norm(yv.mean(0) - self.val[1],
+                                                            (-1,)).mean()))
+                if self.callback is not None:
+                    self.callback(len(self.rows) - 1 if self.per_epoch else step, model)
+        finally:
+            model.train()
         if not self.early:
             return False
         score = row["member"] if self.per_member else np.array([row["ensemble"]])
         better = score < self.best
         progress = bool(np.any(score < self.best * (1.0 - MIN_REL_IMPROVEMENT)))  # losses >= 0
         if better.any():
-            improved = np.flatnonzero(better) if self.per_member else range(K)
+            members = [(g, i) for g in model.groups for i in range(g.n_members)]  # stacked
             with torch.no_grad():
-                for k in improved:
-                    g, i = self.members[k]
+                for k in np.flatnonzero(better) if self.per_member else range(len(members)):
+                    g, i = members[k]
                     for name, p in g.named_parameters():
                         self.snapshot[_param_key(model, g, name)][i].copy_(p[i])
                     self.best_step[k] = step
@@ -956,26 +885,22 @@ class _EvalReport:
                 for name, p in self.model.named_parameters():
                     p.copy_(self.snapshot[name])
 
-    def history(self, n_train: int, n_holdout: int, **common) -> TrainHistory:
+    def history(self, **common) -> TrainHistory:
         order = np.argsort(self.model._stacked_order)  # stacked -> config order
-        evals, K = self.evals, self.model.n_members
-        has_val = self.val is not None
+        rows, K = self.rows, self.model.n_members
+
+        def column(key: str) -> np.ndarray:
+            return np.array([r[key] for r in rows]) if self.val is not None or key not in (
+                "val", "member", "ensemble") else np.zeros(0)
+
         return TrainHistory(
-            train_loss=np.array([e["train"] for e in evals]),
-            val_loss=np.array([e["member"].mean() for e in evals]) if has_val else np.zeros(0),
-            penalties={k: np.array([e[k] for e in evals]) for k in self.active},
-            eval_steps=np.array([e["step"] for e in evals], int),
-            val_member_loss=(np.stack([e["member"] for e in evals])[:, order] if has_val
-                             else np.zeros((0, K))),
-            val_ensemble_loss=(np.array([e["ensemble"] for e in evals]) if has_val
-                               else np.zeros(0)),
+            train_loss=column("train"), val_loss=column("val"),
+            penalties={k: column(k) for k in self.active},
+            eval_steps=np.array([r["step"] for r in rows], int),
+            val_member_loss=column("member").reshape(-1, K)[:, order],
+            val_ensemble_loss=column("ensemble"),
             best_steps=self.best_step[order] if self.early else None,
-            stopped_early=bool(self.stopped), n_train=n_train, n_holdout=n_holdout, **common)
-
-
-def _member_slices(model: DynamicsEnsemble) -> list[tuple[torch.nn.Module, int]]:
-    """``(group, position in group)`` of every member in stacked order."""
-    return [(g, i) for g in model.groups for i in range(g.n_members)]
+            stopped_early=bool(self.stopped), **common)
 
 
 def _param_key(model: DynamicsEnsemble, group: torch.nn.Module, name: str) -> str:
@@ -1069,10 +994,8 @@ def train_ensemble(
     model.dropout_generator = torch.Generator().manual_seed(int(config.seed) + 1)
     active = [k for k in ("sampled", "exact", "smooth") if getattr(reg, k)]
     bar = tqdm(total=0, desc="train_ensemble", disable=not config.progress, leave=False)
-    extra = {}
     if config.uses_step_loop:
-        held = holdout_mask(len(xu_np), config.holdout) if config.holdout > 0 else \
-            np.zeros(len(xu_np), bool)
+        held = holdout_mask(len(xu_np), config.holdout)
         if held.all():
             held[:] = False  # too little data to hold any out and still train
         if held.any():
@@ -1080,11 +1003,11 @@ def train_ensemble(
             val = (rows.xu[held_rows], rows.target[held_rows])
         train_rows = torch.as_tensor(np.flatnonzero(~held))
         plan = _StepPlan(model, rows, trajs, ltv_models, config, reg, train_rows)
-        report = _EvalReport(model, config, active, val, callback, bar, plan.budget)
-        extra = {"n_train": int(train_rows.numel()), "n_holdout": int(held.sum())}
     else:
+        held = np.zeros(len(xu_np), bool)
         plan = _EpochPlan(model, rows, trajs, ltv_models, config, reg)
-        report = _EpochReport(model, config, active, len(xu_np), val, callback, bar)
+    report = _Report(model, config, active, val, callback, bar, plan.budget,
+                     per_epoch=not config.uses_step_loop)
     bar.total = plan.budget
     model.train()
     try:
@@ -1095,4 +1018,5 @@ def train_ensemble(
     return report.history(
         wall_time=time.perf_counter() - t_start,
         optimizer_state=copy.deepcopy(optimizer.state_dict()), steps=steps,
-        ltv_models=ltv_models, step_loss=np.asarray(step_loss), **extra)
+        ltv_models=ltv_models, step_loss=np.asarray(step_loss), n_train=int((~held).sum()),
+        n_holdout=int(held.sum()))
