@@ -365,23 +365,6 @@ def _check_ltv_models(ltv_models: object, trajs: list[Trajectory]) -> list:
     return list(ltv_models)
 
 
-def _perturbed_copies(lm, tr: Trajectory, reg: RegularizationConfig, rng: np.random.Generator,
-                      sx: np.ndarray, su: np.ndarray) -> tuple:
-    """``lm.sample_perturbed(tr.x, tr.u, ...)`` with the per-trajectory scales ``sx, su``.
-
-    For :class:`mbtsr.ltv.LTVModel` (whose inputs were validated once, up front) its kernel
-    ``_sample_perturbed`` runs without the per-call input validation, which cost about a third
-    of a training epoch with many short trajectories; any other model with
-    ``sample_perturbed`` is called as is.
-    """
-    from mbtsr.ltv import LTVModel
-
-    if type(lm) is not LTVModel:
-        return lm.sample_perturbed(tr.x, tr.u, sigma=reg.sigma, n_copies=reg.n_copies, seed=rng,
-                                   std_x=sx, std_u=su)
-    return lm._sample_perturbed(tr.x, tr.u, reg.sigma, reg.n_copies, rng, sx, su)
-
-
 def _ltv_jacobian_rows(ltv_models: list, trajs: list[Trajectory]) -> torch.Tensor:
     """``[N, n, n+m]`` the LTV Jacobian ``[A_t B_t]`` of every pooled training row (float32)."""
     return torch.as_tensor(np.concatenate([
@@ -648,9 +631,16 @@ class _EpochPlan:
             yield itertools.chain(data, own)
 
     def _copies(self) -> tuple[torch.Tensor, torch.Tensor]:
-        """``[C, N, n+m]`` normalized inputs and ``[C, N, n]`` targets of the epoch's copies."""
-        reg, model = self.reg, self.model
-        copies = [_perturbed_copies(lm, tr, reg, self.rng, sx, su)
+        """``[C, N, n+m]`` normalized inputs and ``[C, N, n]`` targets of the epoch's copies,
+        ``sample_perturbed`` of every LTV model with its trajectory's scales. An
+        :class:`~mbtsr.ltv.LTVModel` (validated once, up front) runs its kernel without the
+        per-call validation (a third of an epoch with many short trajectories)."""
+        from mbtsr.ltv import LTVModel
+
+        reg, model, C = self.reg, self.model, self.reg.n_copies
+        copies = [lm._sample_perturbed(tr.x, tr.u, reg.sigma, C, self.rng, sx, su)
+                  if type(lm) is LTVModel else lm.sample_perturbed(
+                      tr.x, tr.u, sigma=reg.sigma, n_copies=C, seed=self.rng, std_x=sx, std_u=su)
                   for lm, tr, (sx, su) in zip(self.ltv_models, self.trajs, self.scales)]
         xt, ut, xnt = (np.concatenate([c[i] for c in copies], 1) for i in range(3))
         with torch.no_grad():
@@ -889,9 +879,8 @@ class _Report:
         order = np.argsort(self.model._stacked_order)  # stacked -> config order
         rows, K = self.rows, self.model.n_members
 
-        def column(key: str) -> np.ndarray:
-            return np.array([r[key] for r in rows]) if self.val is not None or key not in (
-                "val", "member", "ensemble") else np.zeros(0)
+        def column(key: str) -> np.ndarray:  # validation columns are empty without validation
+            return np.array([r[key] for r in rows if key in r])
 
         return TrainHistory(
             train_loss=column("train"), val_loss=column("val"),
