@@ -982,7 +982,6 @@ def train_ensemble(
             raise ValueError(f"optimizer_state does not fit this model/config: {err}") from None
     model.dropout_generator = torch.Generator().manual_seed(int(config.seed) + 1)
     active = [k for k in ("sampled", "exact", "smooth") if getattr(reg, k)]
-    bar = tqdm(total=0, desc="train_ensemble", disable=not config.progress, leave=False)
     if config.uses_step_loop:
         held = holdout_mask(len(xu_np), config.holdout)
         if held.all():
@@ -995,9 +994,10 @@ def train_ensemble(
     else:
         held = np.zeros(len(xu_np), bool)
         plan = _EpochPlan(model, rows, trajs, ltv_models, config, reg)
+    bar = tqdm(total=plan.budget, desc="train_ensemble", disable=not config.progress,
+               leave=False)
     report = _Report(model, config, active, val, callback, bar, plan.budget,
                      per_epoch=not config.uses_step_loop)
-    bar.total = plan.budget
     model.train()
     try:
         steps, step_loss = _train_loop(model, optimizer, iter(plan), reg, report, bar)
