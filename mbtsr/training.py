@@ -365,24 +365,6 @@ def _check_ltv_models(ltv_models: object, trajs: list[Trajectory]) -> list:
     return list(ltv_models)
 
 
-def _ltv_jacobian_rows(ltv_models: list, trajs: list[Trajectory]) -> torch.Tensor:
-    """``[N, n, n+m]`` the LTV Jacobian ``[A_t B_t]`` of every pooled training row (float32)."""
-    return torch.as_tensor(np.concatenate([
-        np.concatenate([np.asarray(lm.A)[:tr.T], np.asarray(lm.B)[:tr.T]], -1)
-        for lm, tr in zip(ltv_models, trajs)]), dtype=torch.float32)
-
-
-def _row_layout(starts: np.ndarray) -> tuple[torch.Tensor, float, float]:
-    """For pooled rows whose trajectories start at ``starts`` (``[count + 1]``, last ``N``):
-    the successor of every row ``[N]`` (-1 for the last transition of a trajectory), and the
-    mean numbers of rows and of successive pairs per trajectory (the scales ``S`` of the
-    minibatch penalties)."""
-    N, count = int(starts[-1]), len(starts) - 1
-    nxt = np.arange(1, N + 1)
-    nxt[starts[1:] - 1] = -1
-    return torch.as_tensor(nxt), N / count, (N - count) / count
-
-
 def _optimizer(model: DynamicsEnsemble, config: TrainConfig) -> torch.optim.Optimizer:
     """Adam (coupled L2 on weights) or AdamW (decoupled), weight matrices decayed only."""
     weights, others = [], []
@@ -579,42 +561,47 @@ def _train_loop(model: DynamicsEnsemble, optimizer: torch.optim.Optimizer,
 # ---------------------------------------------------------------------------------------------
 
 
-@dataclass
-class _Rows:
-    """The pooled training transitions (float32), built once per call: raw and normalized
-    inputs ``[N, n+m]``, targets ``[N, n]``, the trajectories' first rows ``[count + 1]``
-    (:func:`_row_layout` the rest) and the LTV Jacobians ``[N, n, n+m]`` (or None)."""
+class _Plan:
+    """What both schedules share: the pooled training transitions (float32, built once per
+    call; inputs raw and normalized ``[N, n+m]``, targets ``[N, n]``), every row's successor in
+    its trajectory (-1 at its end), the mean rows and pairs per trajectory (the minibatch
+    penalties' ``S``) and, if a term needs them, the rows' LTV Jacobians ``[N, n, n+m]``."""
 
-    xu_raw: torch.Tensor
-    xu: torch.Tensor
-    target: torch.Tensor
-    starts: np.ndarray
-    successor: torch.Tensor
-    mean_terms: float
-    mean_pairs: float
-    J_ltv: torch.Tensor | None
+    def __init__(self, model: DynamicsEnsemble, trajs: list[Trajectory], ltv_models: list | None,
+                 config: TrainConfig, reg: RegularizationConfig, data: tuple) -> None:
+        self.model, self.trajs, self.ltv_models, self.config, self.reg = (
+            model, trajs, ltv_models, config, reg)
+        self.xu_raw, self.xu, self.target = data
+        self.starts = np.concatenate([[0], np.cumsum([tr.T for tr in trajs])])
+        N, count = int(self.starts[-1]), len(trajs)
+        successor = np.arange(1, N + 1)
+        successor[self.starts[1:] - 1] = -1
+        self.successor = torch.as_tensor(successor)
+        self.mean_terms, self.mean_pairs = N / count, (N - count) / count
+        # per-trajectory perturbation scales (std over time, as sample_perturbed's default)
+        self.scales = [(tr.x[:-1].std(0), tr.u.std(0)) for tr in trajs]
+        self.J_ltv = torch.as_tensor(np.concatenate([
+            np.concatenate([np.asarray(lm.A)[:tr.T], np.asarray(lm.B)[:tr.T]], -1)
+            for lm, tr in zip(ltv_models, trajs)]), dtype=torch.float32) if reg.exact or (
+                reg.sampled and config.uses_step_loop) else None
 
 
-class _EpochPlan:
+class _EpochPlan(_Plan):
     """The paper's epoch schedule: ``epochs`` rounds, each a full pass over all transitions in
     batches of one trajectory or ``batch`` rows (reshuffled every epoch with ``shuffle``,
     members share them), with the perturbed copies of every trajectory resampled at the start
     of the epoch by its LTV model (numpy stream seeded ``config.seed``). With
     ``copies_batch="own"`` the epoch ends with one step per copy of each batch."""
 
-    def __init__(self, model: DynamicsEnsemble, rows: _Rows, trajs: list[Trajectory],
-                 ltv_models: list | None, config: TrainConfig, reg: RegularizationConfig
-                 ) -> None:
-        self.model, self.rows, self.trajs, self.ltv_models = model, rows, trajs, ltv_models
-        self.config, self.reg = config, reg
+    def __init__(self, *args) -> None:
+        super().__init__(*args)
+        config, reg = self.config, self.reg
         self.rng = np.random.default_rng(config.seed)
         self.gen = torch.Generator().manual_seed(int(config.seed))
-        # per-trajectory perturbation scales (std over time, as sample_perturbed's default)
-        self.scales = [(tr.x[:-1].std(0), tr.u.std(0)) for tr in trajs]
         self.per_trajectory = config.batch == "trajectory"
         self.own = reg.sampled and reg.copies_batch == "own"
-        N = int(rows.starts[-1])
-        n_batches = len(trajs) if self.per_trajectory else math.ceil(N / int(config.batch))
+        n_batches = (len(self.trajs) if self.per_trajectory
+                     else math.ceil(int(self.starts[-1]) / int(config.batch)))
         self.budget = config.epochs * n_batches * (1 + reg.n_copies if self.own else 1)
 
     def __iter__(self) -> Iterator[Iterable[_Batch]]:
@@ -650,7 +637,7 @@ class _EpochPlan:
 
     def _order(self) -> list:
         """The epoch's batches: row slices or index tensors."""
-        starts, config = self.rows.starts, self.config
+        starts, config = self.starts, self.config
         if self.per_trajectory:
             order = (torch.randperm(len(starts) - 1, generator=self.gen).tolist()
                      if config.shuffle else range(len(starts) - 1))
@@ -661,58 +648,56 @@ class _EpochPlan:
         return [slice(a, min(a + size, N)) for a in range(0, N, size)]  # views, no gather
 
     def _batch(self, idx: slice | torch.Tensor, copies: tuple | None) -> _Batch:
-        rows, reg = self.rows, self.reg
-        parts = [rows.xu[idx]]
+        reg = self.reg
+        parts = [self.xu[idx]]
         B = parts[0].shape[0]
         pairs, smooth_scale = None, B - 1
         if reg.smooth and self.per_trajectory:
             pairs = (slice(1, B), slice(0, B - 1), None) if B > 1 else None
         elif reg.smooth:  # a minibatch's pairs: its rows with their successors appended
-            nxt = rows.successor[idx]
+            nxt = self.successor[idx]
             valid = (nxt >= 0).nonzero().squeeze(-1)
-            parts.append(rows.xu[nxt[valid]])
+            parts.append(self.xu[nxt[valid]])
             pairs = (slice(B, B + valid.numel()), valid, None) if valid.numel() else None
-            smooth_scale = rows.mean_pairs
+            smooth_scale = self.mean_pairs
         jac_rows = sum(p.shape[0] for p in parts) if (reg.exact or reg.smooth) else 0
         copy_target = None
         if copies is not None:
             parts.append(copies[0][:, idx].reshape(-1, parts[0].shape[-1]))
-            copy_target = copies[1][:, idx].reshape(-1, rows.target.shape[-1])
+            copy_target = copies[1][:, idx].reshape(-1, self.target.shape[-1])
         return _Batch(
-            parts[0] if len(parts) == 1 else torch.cat(parts, 0), jac_rows, rows.target[idx],
-            copy_target, J_ltv=rows.J_ltv[idx] if reg.exact else None,
-            exact_scale=B if self.per_trajectory else rows.mean_terms, pairs=pairs,
+            parts[0] if len(parts) == 1 else torch.cat(parts, 0), jac_rows, self.target[idx],
+            copy_target, J_ltv=self.J_ltv[idx] if reg.exact else None,
+            exact_scale=B if self.per_trajectory else self.mean_terms, pairs=pairs,
             smooth_scale=smooth_scale)
 
 
-class _StepPlan:
+class _StepPlan(_Plan):
     """The step budget: ``config.steps`` steps (or ``epochs`` passes over the training rows)
     in rounds of ``eval_every``. Every step takes one minibatch per member
     (:class:`_MemberStreams` over the rows not held out), its rows' successors (smoothness,
     masked at a trajectory's end) and ``n_copies`` perturbed copies of its rows drawn afresh
     (torch stream seeded ``config.seed + 2``), labelled by their rows' LTV Jacobians."""
 
-    def __init__(self, model: DynamicsEnsemble, rows: _Rows, trajs: list[Trajectory],
-                 ltv_models: list | None, config: TrainConfig, reg: RegularizationConfig,
-                 train_rows: torch.Tensor) -> None:
-        n, m = model.state_dim, model.action_dim
-        self.model, self.rows, self.config, self.reg = model, rows, config, reg
-        self.streams = _MemberStreams(train_rows, model.n_members, config.batch,
+    def __init__(self, *args, train_rows: torch.Tensor) -> None:
+        super().__init__(*args)
+        config, trajs, ltv_models = self.config, self.trajs, self.ltv_models
+        self.streams = _MemberStreams(train_rows, self.model.n_members, config.batch,
                                       config.member_data,
                                       torch.Generator().manual_seed(int(config.seed)))
         self.noise_gen = torch.Generator().manual_seed(int(config.seed) + 2)
         self.budget = config.steps or config.epochs * math.ceil(
             train_rows.numel() / self.streams.batch)
-        self.c_rows = self.s_rows = None
-        if reg.sampled and any(getattr(lm, "c", None) is not None for lm in ltv_models):
+        self.c_rows = self.s_rows = None  # per-row affine LTV terms and perturbation scales
+        if self.reg.sampled and any(getattr(lm, "c", None) is not None for lm in ltv_models):
             self.c_rows = torch.as_tensor(np.concatenate([
                 np.asarray(lm.c)[:tr.T] if getattr(lm, "c", None) is not None
-                else np.zeros((tr.T, n)) for lm, tr in zip(ltv_models, trajs)]),
+                else np.zeros((tr.T, tr.n)) for lm, tr in zip(ltv_models, trajs)]),
                 dtype=torch.float32)
-        if reg.sampled:
+        if self.reg.sampled:
             self.s_rows = torch.as_tensor(np.concatenate([
-                np.broadcast_to(np.concatenate([tr.x[:-1].std(0), tr.u.std(0)]), (tr.T, n + m))
-                for tr in trajs]), dtype=torch.float32)
+                np.broadcast_to(np.concatenate(s), (tr.T, tr.n + tr.m))
+                for s, tr in zip(self.scales, trajs)]), dtype=torch.float32)
 
     def __iter__(self) -> Iterator[Iterable[_Batch]]:
         for start in range(0, self.budget, self.config.eval_every):
@@ -720,22 +705,22 @@ class _StepPlan:
                                                     self.budget - start)))
 
     def _batch(self) -> _Batch:
-        rows, reg, model = self.rows, self.reg, self.model
+        reg, model = self.reg, self.model
         idx = self.streams.next()  # [K, b]
         K, b = idx.shape
-        parts, pairs = [rows.xu[idx]], None
+        parts, pairs = [self.xu[idx]], None
         if reg.smooth:
-            nxt = rows.successor[idx]
-            parts.append(rows.xu[nxt.clamp(min=0)])
+            nxt = self.successor[idx]
+            parts.append(self.xu[nxt.clamp(min=0)])
             pairs = (slice(b, 2 * b), slice(0, b), (nxt >= 0).float())
         jac_rows = (2 * b if reg.smooth else b) if (reg.exact or reg.smooth) else 0
         copy_target = None
         if reg.sampled:
             C, n = reg.n_copies, model.state_dim
-            x0 = rows.xu_raw[idx]  # [K, b, n+m]
+            x0 = self.xu_raw[idx]  # [K, b, n+m]
             noise = torch.randn((C, *x0.shape), generator=self.noise_gen)
             xp = x0 + reg.sigma * self.s_rows[idx] * noise  # [C, K, b, n+m]
-            label = torch.einsum("kboi,ckbi->ckbo", rows.J_ltv[idx], xp)
+            label = torch.einsum("kboi,ckbi->ckbo", self.J_ltv[idx], xp)
             if self.c_rows is not None:
                 label = label + self.c_rows[idx]
             with torch.no_grad():
@@ -743,9 +728,9 @@ class _StepPlan:
                     K, C * b, n)
                 parts.append(model.normalize_inputs(xp).transpose(0, 1).reshape(K, C * b, -1))
         return _Batch(
-            parts[0] if len(parts) == 1 else torch.cat(parts, 1), jac_rows, rows.target[idx],
-            copy_target, J_ltv=rows.J_ltv[idx] if reg.exact else None,
-            exact_scale=rows.mean_terms, pairs=pairs, smooth_scale=rows.mean_pairs)
+            parts[0] if len(parts) == 1 else torch.cat(parts, 1), jac_rows, self.target[idx],
+            copy_target, J_ltv=self.J_ltv[idx] if reg.exact else None,
+            exact_scale=self.mean_terms, pairs=pairs, smooth_scale=self.mean_pairs)
 
 
 class _MemberStreams:
@@ -961,16 +946,13 @@ def train_ensemble(
     elif ltv_models is not None:
         ltv_models = _check_ltv_models(ltv_models, trajs)
 
-    starts = np.concatenate([[0], np.cumsum([tr.T for tr in trajs])])
     with torch.no_grad():  # inputs are normalized once here, not in every step
         def normalized(xu_raw: np.ndarray, x_next: np.ndarray) -> tuple:
             xu_raw = torch.as_tensor(xu_raw, dtype=torch.float32)
             return xu_raw, model.normalize_inputs(xu_raw), model.normalized_residual(
                 xu_raw, torch.as_tensor(x_next, dtype=torch.float32))
 
-        rows = _Rows(*normalized(xu_np, x_next_np), starts, *_row_layout(starts),
-                     J_ltv=_ltv_jacobian_rows(ltv_models, trajs) if reg.exact or (
-                         reg.sampled and config.uses_step_loop) else None)
+        data = normalized(xu_np, x_next_np)
         val = None if val_data is None else normalized(*val_data)[1:]
 
     optimizer = _optimizer(model, config)
@@ -988,12 +970,12 @@ def train_ensemble(
             held[:] = False  # too little data to hold any out and still train
         if held.any():
             held_rows = torch.as_tensor(np.flatnonzero(held))
-            val = (rows.xu[held_rows], rows.target[held_rows])
+            val = (data[1][held_rows], data[2][held_rows])
         train_rows = torch.as_tensor(np.flatnonzero(~held))
-        plan = _StepPlan(model, rows, trajs, ltv_models, config, reg, train_rows)
+        plan = _StepPlan(model, trajs, ltv_models, config, reg, data, train_rows=train_rows)
     else:
         held = np.zeros(len(xu_np), bool)
-        plan = _EpochPlan(model, rows, trajs, ltv_models, config, reg)
+        plan = _EpochPlan(model, trajs, ltv_models, config, reg, data)
     bar = tqdm(total=plan.budget, desc="train_ensemble", disable=not config.progress,
                leave=False)
     report = _Report(model, config, active, val, callback, bar, plan.budget,
