@@ -412,24 +412,18 @@ def _check_optimizer_state(optimizer: torch.optim.Optimizer, state: object) -> N
                         f"{got}, the parameter {list(param.shape)} (another architecture)")
 
 
-def _finite_term(name: str, value: float, step: int) -> float:
-    """``value`` of the loss term ``name``; a ``FloatingPointError`` naming it if it overflowed
+def _finite_term(name: str, value: float, step: int) -> None:
+    """A ``FloatingPointError`` naming the loss term ``name`` if its ``value`` overflowed
     (checked before the optimizer step, so the weights stay finite)."""
     if not math.isfinite(value):
         what = "data term" if name == "data" else f"{name!r} regularizer term"
         fix = ("lower lr or check the data scale" if name == "data" else
                f"lower reg.{name}_weight or lr, or check the data and LTV Jacobian scales")
         raise FloatingPointError(f"the {what} of the loss is {value} at step {step}; {fix}")
-    return value
 
 
 def _squared_norm(a: torch.Tensor, dims: tuple[int, ...]) -> torch.Tensor:
     return (a * a).sum(dims)
-
-
-def _sum_squared(y: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
-    """``sum (y - target)^2`` with ``y: [K, B, n]`` and ``target: [B, n]`` shared by members."""
-    return F.mse_loss(y, target.expand_as(y), reduction="sum")
 
 
 def _data_sum(y: torch.Tensor, target: torch.Tensor, logvar: torch.Tensor | None) -> torch.Tensor:
@@ -438,16 +432,14 @@ def _data_sum(y: torch.Tensor, target: torch.Tensor, logvar: torch.Tensor | None
     the constant ``log 2 pi`` and the factor 1/2, as mbrl-lib). ``target`` ``[B, n]`` (shared)
     or ``[K, B, n]``."""
     if logvar is None:
-        return _sum_squared(y, target)
+        return F.mse_loss(y, target.expand_as(y), reduction="sum")
     d = y - target
     return (d * d * torch.exp(-logvar) + logvar).sum()
 
 
-def _logvar_bound_penalty(model: DynamicsEnsemble) -> torch.Tensor | None:
-    """``LOGVAR_BOUND_WEIGHT * (sum max_logvar - sum min_logvar)`` over all members (PETS'
-    term that keeps the soft bounds tight), or None for deterministic members."""
-    if not model.config.probabilistic:
-        return None
+def _logvar_bound_penalty(model: DynamicsEnsemble) -> torch.Tensor:
+    """``LOGVAR_BOUND_WEIGHT * (sum max_logvar - sum min_logvar)`` over all (probabilistic)
+    members: PETS' term that keeps the soft bounds tight."""
     return LOGVAR_BOUND_WEIGHT * sum(g.max_logvar.sum() - g.min_logvar.sum()
                                      for g in model.groups)
 
