@@ -771,7 +771,7 @@ class _Report:
     weights (per member or for the ensemble) and restores them at the end."""
 
     def __init__(self, model: DynamicsEnsemble, config: TrainConfig, active: list[str],
-                 val: tuple | None, callback: Callable | None, bar, budget: int,
+                 val: tuple | None, callback: Callable | None, bar: tqdm, budget: int,
                  per_epoch: bool) -> None:
         K = model.n_members
         self.model, self.config, self.active, self.val = model, config, active, val
