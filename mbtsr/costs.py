@@ -125,7 +125,11 @@ class CostDerivatives:
         H[T, n:, :] = 0.0  # the terminal stage has no control: its u-block is a zero pad
         H[T, :n, n:] = 0.0
         H = 0.5 * (H + np.swapaxes(H, 1, 2))
-        w, V = np.linalg.eigh(H)
+        if T > 1 and (H[1:T] == H[0]).all():  # a constant Hessian (a quadratic cost): 2 eighs
+            w, V = np.linalg.eigh(H[[0, T]])
+            w, V = w[[*[0] * T, 1]], V[[*[0] * T, 1]]
+        else:
+            w, V = np.linalg.eigh(H)
         bad = w[:, 0] < 0.0  # ascending eigenvalues
         if not bad.any():
             return self
