@@ -22,8 +22,9 @@ def test_planning_bench_smoke_writes_every_field(tmp_path):
     assert row["env_id"] == "Reacher-v5" and row["control_period_ms"] == pytest.approx(20.0)
     assert row["precision"] == "float32" and row["planner"] == "cem-ilqr" and row["steps"] == 3
     for key in ("ms_per_step_median", "ms_per_step_p95", "cpu_ms_per_step_median",
-                "cpu_ms_per_step_p95", "cold_start_s", "return"):
+                "cpu_ms_per_step_p95", "cold_start_s"):
         assert np.isfinite(row[key]), key
+    assert row["cold_starts"] >= 1 and len(row["returns"]) >= 1
     assert row["ms_per_step_p95"] >= row["ms_per_step_median"] > 0
     assert row["fraction_of_period"] == pytest.approx(row["ms_per_step_median"] / 20.0)
     for kernel in ("cem_rollout", "jacobians"):
@@ -39,8 +40,8 @@ def test_planning_bench_smoke_writes_every_field(tmp_path):
 def test_planning_bench_refuses_bad_arguments():
     with pytest.raises(ValueError, match="unknown tasks"):
         run(Args(tasks=("no-such-task",), steps=3))
-    with pytest.raises(ValueError, match="steps must be >= 2"):
-        run(Args(steps=1))
+    with pytest.raises(ValueError, match="steps must be >= 1"):
+        run(Args(steps=0))
 
 
 def test_matmul_peak_is_a_rate():

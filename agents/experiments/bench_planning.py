@@ -6,12 +6,14 @@ default_size``; random weights with the normalization of excitation data from th
 since planning time does not depend on what the weights learned) frozen for planning
 (``freeze()``, float32 planning kernels), and the agent's default controller
 (``JacPropAgent.predict``: cem-ilqr, horizon and iterations of ``AgentConfig.planner``) driving
-the real env for ``steps`` steps from ``reset(seed)``. Reported per task:
+the real env from ``reset(seed)`` for ``steps`` warm MPC steps. Reported per task:
 
-* ms per MPC step, wall and this process's CPU time, median and p95 over the warm steps (the
-  first, cold step apart), and the median as a fraction of the env's control period ``dt``;
-* the return of those steps (same seed, same model: a fingerprint that a speed change kept the
-  planner's decisions);
+* ms per MPC step, wall and this process's CPU time, median and p95 over the warm steps (each
+  episode's cold first step apart: ``cold_start_s``, their median), and the median as a
+  fraction of the env's control period ``dt`` (with ``replan_every > 1`` most steps replay
+  the plan);
+* the returns of those episodes (seeds ``seed, seed + 1, ...``; the last one cut at ``steps``;
+  same seeds, same model: a fingerprint that a speed change kept the planner's decisions);
 * the planning kernels' arithmetic rate in their precision: CEM's batched open-loop rollouts
   (``proposal.samples`` sequences over the horizon) and iLQR's Jacobians along the horizon,
   GFLOP/s from counted multiply-adds, against this core's matmul peak measured in the same run
@@ -44,7 +46,8 @@ class Args:
     tasks: tuple[str, ...] = ()
     """suite tasks (default: every task of scripts/bench_suite.py)"""
     steps: int = 60
-    """env steps per task (the first, cold step is reported apart)"""
+    """warm MPC steps per task (an episode's first, cold step is reported apart; an episode that
+    ends is followed by the next seed's)"""
     seed: int = 0
     """seed of the env reset, the excitation data and the model's weights"""
     repeats: int = 5
@@ -144,29 +147,32 @@ def bench_task(name: str, args: Args, peaks: dict[str, float]) -> dict:
     agent._freeze()
     frozen = agent.planning_model
     obs, _ = env.reset(seed=args.seed)
-    plan, wall, cpu, ret = None, [], [], 0.0
-    for t in range(args.steps):
+    plan, wall, cpu, cold, returns, start = None, [], [], [], [0.0], True
+    while len(wall) < args.steps:  # warm steps; an episode that ends starts a cold one
         tic, cpu_tic = time.perf_counter(), time.process_time()
-        action, plan = agent.predict(obs, plan, episode_start=t == 0)
-        wall.append(time.perf_counter() - tic)
-        cpu.append(time.process_time() - cpu_tic)
+        action, plan = agent.predict(obs, plan, episode_start=start)
+        (cold if start else wall).append(time.perf_counter() - tic)
+        if not start:
+            cpu.append(time.process_time() - cpu_tic)
         obs, reward, terminated, truncated, _ = env.step(action)
-        ret += float(reward)
-        if terminated or truncated:
-            break
+        returns[-1] += float(reward)
+        start = terminated or truncated
+        if start:
+            obs, _ = env.reset(seed=args.seed + len(returns))
+            returns.append(0.0)
     period = 1e3 * float(env.unwrapped.dt)
-    warm_wall, warm_cpu = 1e3 * np.array(wall[1:] or wall), 1e3 * np.array(cpu[1:] or cpu)
+    warm_wall, warm_cpu = 1e3 * np.array(wall), 1e3 * np.array(cpu)
     row = {
         "env_id": env.spec.id if env.spec is not None else None,
         "control_period_ms": period, "model": f"{frozen.n_members}x{frozen._plan.Wh.shape[0] + 1}"
         f"x{frozen._plan.W}", "precision": frozen.precision, "planner": cfg.planner.kind,
         "horizon": cfg.planner.horizon, "replan_every": cfg.planner.replan_every,
-        "steps": len(wall), "cold_start_s": wall[0],
+        "steps": len(wall), "cold_starts": len(cold), "cold_start_s": float(np.median(cold)),
         "ms_per_step_median": float(np.median(warm_wall)),
         "ms_per_step_p95": float(np.percentile(warm_wall, 95)),
         "cpu_ms_per_step_median": float(np.median(warm_cpu)),
         "cpu_ms_per_step_p95": float(np.percentile(warm_cpu, 95)),
-        "return": ret,
+        "returns": returns[:-1] if start else returns,  # not the episode just reset
     }
     row["fraction_of_period"] = row["ms_per_step_median"] / period
     row["cpu_fraction_of_period"] = row["cpu_ms_per_step_median"] / period
@@ -185,7 +191,8 @@ def bench_task(name: str, args: Args, peaks: dict[str, float]) -> dict:
           f"(CPU {row['cpu_ms_per_step_median']:5.1f}), p95 {row['ms_per_step_p95']:6.1f} "
           f"(CPU {row['cpu_ms_per_step_p95']:5.1f}), period {period:.0f} ms; rollout "
           f"{kernels['cem_rollout']['gflops']:.1f} GFLOP/s, Jacobians "
-          f"{kernels['jacobians']['gflops']:.1f}; return {ret:.2f}", flush=True)
+          f"{kernels['jacobians']['gflops']:.1f}; returns {np.round(row['returns'], 2)}",
+          flush=True)
     return row
 
 
@@ -219,9 +226,8 @@ def run(args: Args) -> dict:
 
     from agents.experiments import bench_suite
 
-    if args.steps < 2:
-        raise ValueError(f"--steps must be >= 2 (the first step is the cold start), got "
-                         f"{args.steps}")
+    if args.steps < 1:
+        raise ValueError(f"--steps must be >= 1, got {args.steps}")
     if args.overrides and not isinstance(json.loads(args.overrides), dict):
         raise ValueError(f"--overrides must be a JSON object of dotted agent settings, got "
                          f"{args.overrides!r}")
