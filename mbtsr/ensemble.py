@@ -694,9 +694,10 @@ class DynamicsEnsemble(nn.Module):
     """An ensemble of K neural dynamics models ``x+ = s(x, u) + NN_k(x, u)`` computed in one batch.
 
     Torch surface (float32, for training): :meth:`forward_torch`, :meth:`member_jacobians_torch`.
-    Planning surface: :meth:`freeze` -> :class:`FrozenEnsemble` (float64 numpy, immutable). The
-    numpy methods :meth:`step`, :meth:`predict`, :meth:`jacobians`, :meth:`member_jacobians`,
-    :meth:`member_predictions` are conveniences that freeze on every call. Members are reported
+    Planning surface: :meth:`freeze` -> :class:`FrozenEnsemble` (numpy, immutable, float32
+    planning kernels). The numpy methods :meth:`step`, :meth:`predict`, :meth:`jacobians`,
+    :meth:`member_jacobians`, :meth:`member_predictions` are conveniences that freeze (in
+    float64) on every call. Members are reported
     in the order of ``config.members``.
 
     :param config: the architecture, see :class:`EnsembleConfig`.
