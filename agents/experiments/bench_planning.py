@@ -146,6 +146,9 @@ def bench_task(name: str, args: Args, peaks: dict[str, float]) -> dict:
     agent.model.set_normalization(_excitation(agent, env, args.seed))
     agent._freeze()
     frozen = agent.planning_model
+    if frozen._plan is None:  # layer norm or mixed depths: no folded planning kernels
+        raise ValueError(f"task {name!r}: the model has no folded planning kernels (layer norm "
+                         "or mixed depths); bench_planning times the folded ones")
     obs, _ = env.reset(seed=args.seed)
     plan, wall, cpu, cold, returns, start = None, [], [], [], [0.0], True
     while len(wall) < args.steps:  # warm steps; an episode that ends starts a cold one
