@@ -59,6 +59,7 @@ from typing import Any
 import numpy as np
 
 from mbtsr.costs import after_termination, truncated_total
+from mbtsr.dynamics import _rollout as _step_rollout
 from mbtsr.validation import as_array, check_callable, check_int, options_from
 
 __all__ = ["CEMOptions", "CEMResult", "cem"]
@@ -165,24 +166,15 @@ def _bounds(u_min: Any, u_max: Any, m: int) -> tuple[np.ndarray, np.ndarray]:
     return lo, hi
 
 
-def rollout_batch(
-    model: Any, x0: np.ndarray, U: np.ndarray, t0: int = 0, max_state_norm: float = np.inf
-) -> tuple[np.ndarray, np.ndarray]:
-    """Batched forward rollout: ``U [S, T, m]`` from ``x0 [n]`` -> ``(X [S, T+1, n], alive
-    [S])``; a rollout is dead once a state is non-finite or exceeds ``max_state_norm``."""
-    S, T, _ = U.shape
-    X = np.empty((S, T + 1, x0.shape[0]))
-    X[:, 0] = x0
-    alive = np.ones(S, dtype=bool)
-    with np.errstate(all="ignore"):
-        for t in range(T):
-            X[:, t + 1] = model.step(X[:, t], U[:, t], t0 + t)
-            bad = ~np.all(np.isfinite(X[:, t + 1]), axis=-1) | (
-                np.max(np.abs(X[:, t + 1]), axis=-1) > max_state_norm)
-            if bad.any():
-                alive &= ~bad
-                X[bad, t + 1] = X[bad, t]  # keep the rest of a dead rollout finite
-    return X, alive
+def _rollout(model: Any, x0: np.ndarray, U: np.ndarray, t0: int, max_state_norm: float
+             ) -> tuple[np.ndarray, np.ndarray]:
+    """Batched open-loop rollout ``U [S, T, m]`` from ``x0 [n]`` -> ``(X [S, T+1, n], alive
+    [S])`` (:func:`mbtsr.dynamics._rollout`'s semantics: dead rows are NaN from their first
+    non-finite state or one beyond ``max_state_norm``), through the model's own batched kernel
+    when it has one (:meth:`mbtsr.ensemble.FrozenEnsemble._rollout_open_loop`)."""
+    kernel = getattr(model, "_rollout_open_loop", None)
+    out = None if kernel is None else kernel(x0, U, max_state_norm)
+    return out if out is not None else _step_rollout(model, x0, U, t0, max_state_norm)
 
 
 def _terminations(
@@ -276,7 +268,7 @@ def cem(
 
     mu = np.clip(U0, lo, hi)
     std = np.broadcast_to(opts.init_std * half, (T, m)).copy()
-    best_U, best_J, best_cost = mu.copy(), np.inf, np.inf
+    best_U, best_J, best_cost, best_X = mu.copy(), np.inf, np.inf, None
     bonus = None  # c of the module docstring, set on the first iteration with a spread
     trace: list[dict] = []
     status, message = "max_iter", f"reached {opts.iterations} iterations"
@@ -290,7 +282,7 @@ def cem(
             cand[1] = best_U  # ... and the best so far are always candidates
         tr = time.perf_counter()
         rows = cand if opts.particles == 1 else np.repeat(cand, opts.particles, axis=0)
-        X, alive = rollout_batch(model, x0, rows, int(t0), opts.max_state_norm)
+        X, alive = _rollout(model, x0, rows, int(t0), opts.max_state_norm)
         tc = time.perf_counter()
         J, done = np.full(rows.shape[0], np.inf), None
         if alive.any():
@@ -315,6 +307,7 @@ def cem(
         order = np.argsort(J, kind="stable")
         if J[order[0]] < best_J:
             best_J, best_U = float(J[order[0]]), cand[order[0]].copy()
+            best_X = X[order[0] * opts.particles].copy()  # its (first particle's) rollout
             best_cost = float(task_J[order[0]])
         elite = order[: opts.elites]
         elite = elite[np.isfinite(J[elite])]
@@ -335,7 +328,9 @@ def cem(
             break
     if not np.isfinite(best_J):
         status, message = "failed", "every sampled rollout diverged"
-    X_best, _ = rollout_batch(model, x0, best_U[None], int(t0), opts.max_state_norm)
+    if best_X is None:  # every rollout diverged: the plan's own (NaN from its divergence)
+        best_X = _rollout(model, x0, best_U[None], int(t0), opts.max_state_norm)[0][0]
+    X_best = best_X[None]
     D = None
     if explore:
         D = float(_disagreements(model, cost, X_best, best_U[None], np.ones(1, bool), int(t0),

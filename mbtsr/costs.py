@@ -117,24 +117,29 @@ class CostDerivatives:
         approximation iLQR already makes of the dynamics.
         """
         T, m, n = self.lux.shape
-        H = np.empty((T + 1, n + m, n + m))
-        H[:, :n, :n] = self.lxx
-        H[:T, n:, n:] = self.luu
-        H[:T, n:, :n] = self.lux
-        H[:T, :n, n:] = np.swapaxes(self.lux, 1, 2)
-        H[T, n:, :] = 0.0  # the terminal stage has no control: its u-block is a zero pad
-        H[T, :n, n:] = 0.0
+        # a constant Hessian (a quadratic cost): decompose stage 0 and the terminal one only
+        const = T > 1 and all((a[1:T] == a[0]).all() for a in (self.lxx, self.luu, self.lux))
+        s = np.array([0, T]) if const else np.arange(T + 1)
+        k = s[:-1]  # the stages with a control (the terminal one, last, has none: zero pad)
+        H = np.zeros((s.size, n + m, n + m))
+        H[:, :n, :n] = self.lxx[s]
+        H[:-1, n:, n:] = self.luu[k]
+        H[:-1, n:, :n] = self.lux[k]
+        H[:-1, :n, n:] = np.swapaxes(self.lux[k], 1, 2)
         H = 0.5 * (H + np.swapaxes(H, 1, 2))
         w, V = np.linalg.eigh(H)
         bad = w[:, 0] < 0.0  # ascending eigenvalues
         if not bad.any():
             return self
-        Hp = (V[bad] * np.maximum(w[bad], 0.0)[:, None, :]) @ np.swapaxes(V[bad], 1, 2)
+        Hp = (V * np.maximum(w, 0.0)[:, None, :]) @ np.swapaxes(V, 1, 2)
+        if const:  # back to every stage
+            rows = np.r_[np.zeros(T, dtype=int), 1]
+            bad, Hp = bad[rows], Hp[rows]
         lxx, luu, lux = self.lxx.copy(), self.luu.copy(), self.lux.copy()
-        lxx[bad] = Hp[:, :n, :n]
+        lxx[bad] = Hp[bad, :n, :n]
         stages = np.flatnonzero(bad[:T])
-        luu[stages] = Hp[: stages.size, n:, n:]
-        lux[stages] = Hp[: stages.size, n:, :n]
+        luu[stages] = Hp[stages, n:, n:]
+        lux[stages] = Hp[stages, n:, :n]
         return CostDerivatives(self.lx, self.lu, lxx, luu, lux)
 
 

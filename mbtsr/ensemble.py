@@ -38,9 +38,11 @@ dropout and layer normalization. Jacobians are computed in closed form
 for Jacobian penalties by double backprop) and in float64 numpy.
 
 Train, then freeze, then plan: :meth:`DynamicsEnsemble.freeze` returns a :class:`FrozenEnsemble`,
-an immutable float64 copy (weights copied at that moment, normalization folded in, no torch) with
+an immutable numpy copy (weights copied at that moment, normalization folded in, no torch) with
 the dynamics protocol (``step``, ``jacobians``) and the member spread (``predict``,
 ``member_jacobians``). Planning uses only the frozen copy; nothing global tracks the training.
+Its ensemble-mean step and Jacobians, what planning spends its time on, run in float32 by default
+(``freeze("float64")``: the float64 reference; docs/ilqr.md, "Planning at the control rate").
 """
 
 from __future__ import annotations
@@ -83,6 +85,8 @@ __all__ = [
 FORMULATIONS = ("f", "g", "nominal", "scaled")
 LEAKY_RELU_SLOPE = 0.01
 LAYER_NORM_EPS = 1e-5
+#: planning precisions of :meth:`DynamicsEnsemble.freeze` and their numpy types
+PRECISIONS = {"float32": np.float32, "float64": np.float64}
 #: A dimension whose std is below REL_STD_FLOOR times its magnitude ``max |value|`` (for the
 #: residual targets: the magnitude of the next state) is constant up to float32 rounding (e.g. a
 #: constant input) and is not rescaled. Relative, so that data of any unit or scale normalize
@@ -691,9 +695,10 @@ class DynamicsEnsemble(nn.Module):
     """An ensemble of K neural dynamics models ``x+ = s(x, u) + NN_k(x, u)`` computed in one batch.
 
     Torch surface (float32, for training): :meth:`forward_torch`, :meth:`member_jacobians_torch`.
-    Planning surface: :meth:`freeze` -> :class:`FrozenEnsemble` (float64 numpy, immutable). The
-    numpy methods :meth:`step`, :meth:`predict`, :meth:`jacobians`, :meth:`member_jacobians`,
-    :meth:`member_predictions` are conveniences that freeze on every call. Members are reported
+    Planning surface: :meth:`freeze` -> :class:`FrozenEnsemble` (numpy, immutable, float32
+    planning kernels). The numpy methods :meth:`step`, :meth:`predict`, :meth:`jacobians`,
+    :meth:`member_jacobians`, :meth:`member_predictions` are conveniences that freeze (in
+    float64) on every call. Members are reported
     in the order of ``config.members``.
 
     :param config: the architecture, see :class:`EnsembleConfig`.
@@ -883,10 +888,13 @@ class DynamicsEnsemble(nn.Module):
         return self._config_order(J)
 
     # ---------------------------------------------------------------- planning surface
-    def freeze(self) -> FrozenEnsemble:
-        """An immutable float64 copy for planning (:class:`FrozenEnsemble`): weights copied
-        now, normalization folded in, no autograd. Freeze after each training round and plan
+    def freeze(self, precision: str = "float32") -> FrozenEnsemble:
+        """An immutable copy for planning (:class:`FrozenEnsemble`): weights copied now,
+        normalization folded in, no autograd. Freeze after each training round and plan
         (iLQR, MPC, CEM) with the frozen copy; the ensemble itself keeps training.
+
+        :param precision: ``"float32"`` or ``"float64"``: the arithmetic of the ensemble-mean
+            step and Jacobians (the planning kernels; see :class:`FrozenEnsemble`).
 
         :raises ValueError: naming the tensor, if a weight or normalization statistic is NaN/inf
             (a diverged training run) or a normalization std is not positive.
@@ -901,33 +909,35 @@ class DynamicsEnsemble(nn.Module):
             for name in ("in_std", "out_std"):
                 if not bool((getattr(self, name) > 0).all()):
                     raise ValueError(f"cannot freeze: {name} must be > 0")
-            return FrozenEnsemble(self)
+            return FrozenEnsemble(self, precision)
 
-    # Convenience for one-off numpy evaluation (metrics, tests): each call freezes a fresh copy
-    # (tens of microseconds); for repeated calls freeze once and use the frozen model.
+    # Convenience for one-off numpy evaluation (metrics, tests): each call freezes a fresh float64
+    # copy (tens of microseconds); for repeated calls freeze once and use the frozen model.
     def step(self, x: np.ndarray, u: np.ndarray, t: int | None = None) -> np.ndarray:
-        """``self.freeze().step(x, u, t)``: ensemble-mean next state ``[..., n]`` (float64)."""
-        return self.freeze().step(x, u, t)
+        """``self.freeze("float64").step(x, u, t)``: ensemble-mean next state ``[..., n]``."""
+        return self.freeze("float64").step(x, u, t)
 
     def member_predictions(self, x: np.ndarray, u: np.ndarray) -> np.ndarray:
-        """``self.freeze().member_predictions(x, u)``: ``[K, ..., n]``."""
-        return self.freeze().member_predictions(x, u)
+        """``self.freeze("float64").member_predictions(x, u)``: ``[K, ..., n]``."""
+        return self.freeze("float64").member_predictions(x, u)
 
     def predict(self, x: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """``self.freeze().predict(x, u)``: ensemble ``(mean, std)`` of the next state."""
-        return self.freeze().predict(x, u)
+        """``self.freeze("float64").predict(x, u)``: ensemble ``(mean, std)`` of the next state."""
+        return self.freeze("float64").predict(x, u)
 
     def member_std(self, x: np.ndarray, u: np.ndarray) -> np.ndarray:
-        """``self.freeze().member_std(x, u)``: ``[K, ..., n]`` (probabilistic members)."""
-        return self.freeze().member_std(x, u)
+        """``self.freeze("float64").member_std(x, u)``: ``[K, ..., n]`` (probabilistic members)."""
+        return self.freeze("float64").member_std(x, u)
 
     def member_jacobians(self, x: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """``self.freeze().member_jacobians(x, u)``: ``(A [K, T, n, n], B [K, T, n, m])``."""
-        return self.freeze().member_jacobians(x, u)
+        """``self.freeze("float64").member_jacobians(x, u)``: ``(A [K, T, n, n],
+        B [K, T, n, m])``."""
+        return self.freeze("float64").member_jacobians(x, u)
 
     def jacobians(self, x: np.ndarray, u: np.ndarray, t: int = 0) -> tuple[np.ndarray, np.ndarray]:
-        """``self.freeze().jacobians(x, u)``: ensemble-mean ``(A [T, n, n], B [T, n, m])``."""
-        return self.freeze().jacobians(x, u, t)
+        """``self.freeze("float64").jacobians(x, u)``: ensemble-mean ``(A [T, n, n],
+        B [T, n, m])``."""
+        return self.freeze("float64").jacobians(x, u, t)
 
 
 # --------------------------------------------------------------------------------------------
@@ -976,8 +986,9 @@ layer's (see :func:`_mean_step_plan`)::
 """
 
 _KERNEL_MAX_BATCH = 4  # rows up to which the compiled kernel beats numpy for small members
-# (measured: ~2x at 1-4 rows for 4 x 20 units; at 11 rows numpy's SIMD transcendental functions
-# are faster than scalar libm calls; for wide members BLAS wins from 3-4 rows on)
+# (measured in float32 for 4 x 20 units: 4.6 against 8.8 us at 1 row, 6.8 against 9.3 at 4, 12.0
+# against 10.2 at 8: numpy's SIMD transcendental functions beat scalar libm calls; for wide
+# members from 2 rows on, see FrozenEnsemble.kernel_rows)
 _KERNEL_CODE = {"elu": 0, "tanh": 1, "sigmoid": 1, "swish": 2, "relu": 3, "leaky_relu": 4}
 """Activation codes of the compiled kernel on the folded weights (sigmoid rows run as tanh)."""
 
@@ -1049,8 +1060,8 @@ def _mean_step_kernel(x, u, W_inT, Wh, bh, W_out, code, out):  # pragma: no cove
     ``bh [depth-1, K, W]``, ``W_out [H+1+n+m, n]``, ``code [H]`` (:data:`_KERNEL_CODE`) ->
     ``out [B, n]``. The arithmetic of the numpy path, one row at a time, without numpy's
     per-call overhead."""
-    z = np.empty(W_inT.shape[1])
-    z2 = np.empty(W_inT.shape[1])
+    z = np.empty_like(W_inT[0])
+    z2 = np.empty_like(W_inT[0])
     for b in range(x.shape[0]):
         _mean_step_row(x[b], u[b], W_inT, Wh, bh, W_out, code, z, z2, out[b])
     return out
@@ -1067,8 +1078,8 @@ def _rollout_policy_kernel(W_inT, Wh, bh, W_out, code, x0, X, U, k, K, alphas, l
     nominal state; rows exceeding ``max_norm`` are dead at the end)."""
     T, m = U.shape
     Xn, Un, alive = rollout_buffers(x0, T, m, alphas.shape[0])
-    z = np.empty(W_inT.shape[1])
-    z2 = np.empty(W_inT.shape[1])
+    z = np.empty_like(W_inT[0])
+    z2 = np.empty_like(W_inT[0])
     for a in range(alphas.shape[0]):
         biggest = 0.0
         for i in range(x0.shape[0]):
@@ -1101,7 +1112,8 @@ def _plan_hidden(plan: SimpleNamespace, z: np.ndarray, h: np.ndarray) -> np.ndar
 
 def _mean_step_plan(runs, hidden: list[tuple[np.ndarray, np.ndarray]], Wo: np.ndarray,
                     bo: np.ndarray, skip_J: np.ndarray, n_members: int,
-                    head: tuple[np.ndarray, np.ndarray] | None = None) -> SimpleNamespace:
+                    head: tuple[np.ndarray, np.ndarray] | None = None,
+                    dtype: type = np.float64) -> SimpleNamespace:
     """Folded weights of the ensemble-mean step of ONE depth group without layer norm.
 
     ``hidden = [(W1 [K, n+m, W], b1 [K, W]), (W2 [K, W, W], b2 [K, W]), ...]``, ``Wo [K, W, n]``,
@@ -1117,7 +1129,9 @@ def _mean_step_plan(runs, hidden: list[tuple[np.ndarray, np.ndarray]], Wo: np.nd
 
     The unfolded weights are kept for the closed-form Jacobians (:func:`_plan_jacobians`); the
     per-member folded output layers (and the log-variance head ``head = (Wv, bv)``) serve
-    trajectory sampling (:meth:`FrozenEnsemble._member_rows`).
+    trajectory sampling (:meth:`FrozenEnsemble._member_rows`). The arrays of the mean step and
+    of its Jacobians are stored in ``dtype`` (the planning precision); the per-member ones in
+    float64.
     """
     W1, b1 = hidden[0]
     K, _, W = W1.shape
@@ -1166,27 +1180,41 @@ def _mean_step_plan(runs, hidden: list[tuple[np.ndarray, np.ndarray]], Wo: np.nd
     if len(hidden) == 1:  # mean Jacobian J[b, (o, i)] = sum_h act'(z[h, b]) M[h, (o, i)]
         M = (Wo[:, :, :, None] * W1.swapaxes(1, 2)[:, :, None, :]).reshape(H, -1) / n_members
     ro = _readonly
+
+    def rd(a: np.ndarray) -> np.ndarray:  # the planning precision
+        return _readonly(a, dtype)
+
+    W_out = np.concatenate([Wo_f.reshape(H, n), bo_f[None], skip_J.T], 0)
     return SimpleNamespace(
-        K=K, W=W, H=H, ops=tuple(ops + swish_ops), code=code,
+        K=K, W=W, H=H, ops=tuple(ops + swish_ops), code=code, dtype=dtype,
         # folded (the step): kernel layout and numpy layout
-        W_inT=ro(W_inT), W_in=ro(W_inT.T), Wh=ro(Wh), WhT_f=ro(Wh.swapaxes(-1, -2)),
-        bh=ro(bh), bhT=ro(bh[..., None]),
-        W_out=ro(np.concatenate([Wo_f.reshape(H, n), bo_f[None], skip_J.T], 0)),
+        W_inT=rd(W_inT), W_in=rd(W_inT.T), Wh=rd(Wh), WhT_f=rd(Wh.swapaxes(-1, -2)),
+        bh=rd(bh), bhT=rd(bh[..., None]), W_out=rd(W_out), W_outT=rd(W_out.T),
         # folded, per member (trajectory sampling)
         W1fT=ro(folded[0][0].swapaxes(1, 2)), b1f=ro(folded[0][1][..., None]),
         Wo_m=ro(Wo_m), bo_m=ro(bo_m[:, None]),
         Wv_m=None if Wv_m is None else ro(Wv_m), bv_m=None if bv_m is None else ro(bv_m[:, None]),
         # unfolded (the Jacobians)
-        W1T_cat=ro(W1.transpose(0, 2, 1).reshape(H, -1)), b1=ro(b1.reshape(H, 1)),
-        WhT=ro(np.stack([w for w, _ in hidden[1:]]).swapaxes(-1, -2) if deep else Wh),
-        bh_u=ro(np.stack([b for _, b in hidden[1:]])[..., None] if deep else bh[..., None]),
-        W1T=ro(W1.swapaxes(1, 2)), WoT_mean=ro(Wo_mean.swapaxes(1, 2)),
-        M=None if M is None else ro(M), member_runs=tuple(runs),
+        W1T_cat=rd(W1.transpose(0, 2, 1).reshape(H, -1)), b1=rd(b1.reshape(H, 1)),
+        WhT=rd(np.stack([w for w, _ in hidden[1:]]).swapaxes(-1, -2) if deep else Wh),
+        bh_u=rd(np.stack([b for _, b in hidden[1:]])[..., None] if deep else bh[..., None]),
+        W1T=rd(W1.swapaxes(1, 2)), WoT_mean=rd(Wo_mean.swapaxes(1, 2)),
+        M=None if M is None else rd(M), member_runs=tuple(runs),
         row_runs=tuple((name, a * W, b * W) for name, a, b in runs),
     )
 
 
 def _value_and_derivative(z: np.ndarray, name: str) -> tuple[np.ndarray, np.ndarray]:
+    """``(act(z), act'(z))``; sigmoid and swish through numpy's vectorized ``tanh``
+    (``sigmoid(z) = 0.5 tanh(z/2) + 0.5``): in float32 about 20x faster than scipy's ``expit``
+    (7.5 ns per value here)."""
+    if name in ("sigmoid", "swish"):
+        s = np.tanh(0.5 * z)
+        s *= 0.5
+        s += 0.5
+        if name == "sigmoid":
+            return s, s * (1.0 - s)
+        return z * s, s * (1.0 + z * (1.0 - s))
     _, value, derivative = ACTIVATIONS[name]
     a = value(z)
     return a, derivative(z, a, np)
@@ -1201,12 +1229,12 @@ def _plan_jacobians(plan: SimpleNamespace, xu: np.ndarray, n: int) -> np.ndarray
     """
     T, p = xu.shape
     K, W = plan.K, plan.W
-    z = plan.W1T_cat @ xu.T + plan.b1  # [H, T], member k in rows k*W:(k+1)*W
+    z = plan.W1T_cat @ xu.T.astype(plan.dtype) + plan.b1  # [H, T], member k in rows k*W:(k+1)*W
     a, d = np.empty_like(z), np.empty_like(z)
     for name, r0, r1 in plan.row_runs:
         a[r0:r1], d[r0:r1] = _value_and_derivative(z[r0:r1], name)
     if plan.M is not None:
-        return (d.T @ plan.M).reshape(T, n, p)
+        return (d.T @ plan.M).reshape(T, n, p).astype(np.float64)
     ds = [d.reshape(K, W, T)]
     h = a.reshape(K, W, T)
     for layer in range(plan.WhT.shape[0]):
@@ -1219,17 +1247,17 @@ def _plan_jacobians(plan: SimpleNamespace, xu: np.ndarray, n: int) -> np.ndarray
     for layer in range(plan.WhT.shape[0] - 1, -1, -1):
         R = (R.reshape(K, T * n, W) @ plan.WhT[layer]).reshape(K, T, n, W)
         R *= ds[layer].swapaxes(1, 2)[:, :, None, :]
-    return (R.reshape(K, T * n, W) @ plan.W1T).sum(0).reshape(T, n, p)
+    return (R.reshape(K, T * n, W) @ plan.W1T).sum(0, dtype=np.float64).reshape(T, n, p)
 
 
-def _readonly(a: np.ndarray) -> np.ndarray:
-    a = np.ascontiguousarray(a, dtype=np.float64)
+def _readonly(a: np.ndarray, dtype: type = np.float64) -> np.ndarray:
+    a = np.ascontiguousarray(a, dtype=dtype)
     a.setflags(write=False)
     return a
 
 
 class FrozenEnsemble:
-    """An immutable float64 copy of a :class:`DynamicsEnsemble`: the model planning uses.
+    """An immutable numpy copy of a :class:`DynamicsEnsemble`: the model planning uses.
 
     Made by :meth:`DynamicsEnsemble.freeze` (after each training round); it holds plain numpy
     arrays (read-only) with the input/output normalization folded into the weights, no torch
@@ -1245,12 +1273,24 @@ class FrozenEnsemble:
     kernel for up to ``kernel_rows`` rows (the rollouts of iLQR), one batched product per layer
     for all members and vectorized activations for larger batches; other architectures (mixed
     depths, layer norm) run the generic batched forward pass. :meth:`jacobians` of the mean is
-    closed form, reverse mode for deep members (:func:`_plan_jacobians`).
+    closed form, reverse mode for deep members (:func:`_plan_jacobians`). CEM's batched
+    rollouts run in one call per solve (:meth:`_rollout_open_loop`).
+
+    ``precision`` (``"float32"``, the default of :meth:`DynamicsEnsemble.freeze`, or
+    ``"float64"``) is the arithmetic of the ensemble-mean step, its rollouts and its Jacobians
+    with the folded plan; inputs and results stay float64 (iLQR's backward pass and the costs
+    run in float64). float32 halves the products' time and makes numpy's vectorized ``tanh``
+    about 10x faster (measured on this project's machines: 0.4 against 4.9 ns per value);
+    the step then agrees with the float64 one to about 1e-6 relative. The member paths
+    (:meth:`member_predictions`, trajectory sampling) and architectures without the folded plan
+    run in float64.
     Public methods validate their inputs; ``_step`` is the unchecked kernel solver loops call
     (see :mod:`mbtsr.dynamics`). Not thread-safe only in the sense that numpy is not.
     """
 
-    def __init__(self, ensemble: DynamicsEnsemble) -> None:
+    def __init__(self, ensemble: DynamicsEnsemble, precision: str = "float32") -> None:
+        if precision not in PRECISIONS:
+            raise ValueError(f"precision must be one of {sorted(PRECISIONS)}, got {precision!r}")
         n, m = ensemble.state_dim, ensemble.action_dim
         stats = {k: getattr(ensemble, k).detach().double().numpy().copy()
                  for k in ("in_mean", "in_std", "out_mean", "out_std")}
@@ -1283,7 +1323,8 @@ class FrozenEnsemble:
             plan = _mean_step_plan(static.runs,
                                    [(p[w], p[b][:, 0]) for w, b in _hidden_names(static.depth)],
                                    p["Wo"], p["bo"][:, 0], skip_J, ensemble.n_members,
-                                   head=(p["Wv"], p["bv"][:, 0]) if "Wv" in p else None)
+                                   head=(p["Wv"], p["bv"][:, 0]) if "Wv" in p else None,
+                                   dtype=PRECISIONS[precision])
         perm = None if ensemble._to_config_order is None else ensemble._to_config_order.numpy()
         for name, value in (
             ("config", ensemble.config), ("state_dim", n), ("action_dim", m),
@@ -1291,6 +1332,7 @@ class FrozenEnsemble:
             ("_skip_J", _readonly(skip_J)), ("_perm", perm), ("_plan", plan),
             ("_order", None if perm is None else np.argsort(perm)),
             ("_out_std", _readonly(out_std)), ("probabilistic", ensemble.config.probabilistic),
+            ("precision", precision),
         ):
             object.__setattr__(self, name, value)
 
@@ -1299,16 +1341,18 @@ class FrozenEnsemble:
 
     def __repr__(self) -> str:
         return (f"FrozenEnsemble(state_dim={self.state_dim}, action_dim={self.action_dim}, "
-                f"n_members={self.n_members})")
+                f"n_members={self.n_members}, precision={self.precision!r})")
 
     @property
     def kernel_rows(self) -> int:
         """Batches up to this many rows run the compiled kernel (0 without the folded plan):
-        measured, it beats numpy up to 4 rows for small members (``width x depth <= 64``) and
-        up to 2 rows for wide ones (then BLAS's blocked products win)."""
+        measured, it beats numpy up to 4 rows for small members (``width x depth <= 64``); for
+        wider ones numpy's vectorized activations win from 2 rows on (the kernel's scalar
+        ``tanh`` is most of its time: in float32 at 3 x 112 units, 42 us for 2 rows against
+        numpy's 30 us, 82 against 35 for 4)."""
         if self._plan is None:
             return 0
-        return _KERNEL_MAX_BATCH if self._plan.W * (self._plan.Wh.shape[0] + 1) <= 64 else 2
+        return _KERNEL_MAX_BATCH if self._plan.W * (self._plan.Wh.shape[0] + 1) <= 64 else 1
 
     # ---------------------------------------------------------------- kernels (no checks)
     def _members(self, xu: np.ndarray, jac_rows: int, logvar: bool = False):
@@ -1354,13 +1398,43 @@ class FrozenEnsemble:
     def _rollout_policy(self, x0, X, U, k, K, alphas, lower, upper, max_norm):
         """iLQR's closed-loop line-search rollouts in one compiled call (see
         :func:`_rollout_policy_kernel`; arguments as ``mbtsr.ilqr._rollout_policy`` without
-        ``t0``), or ``None`` for architectures without the folded plan (the solver then steps
-        the model from Python)."""
+        ``t0``), or ``None`` for architectures without the folded plan and for more step sizes
+        than ``kernel_rows`` (the solver then steps the model from Python, batched)."""
         plan = self._plan
-        if plan is None:
+        if plan is None or alphas.shape[0] > self.kernel_rows:
             return None
         return _rollout_policy_kernel(plan.W_inT, plan.Wh, plan.bh, plan.W_out, plan.code, x0,
                                       X, U, k, K, alphas, lower, upper, float(max_norm))
+
+    def _rollout_open_loop(self, x0: np.ndarray, U: np.ndarray, max_norm: float
+                           ) -> tuple[np.ndarray, np.ndarray] | None:
+        """Open-loop rollouts of the ensemble mean, the batched kernel of CEM: ``x0 [n]``,
+        ``U [S, T, m]`` -> ``(X [S, T+1, n], alive [S])`` with the semantics of
+        :func:`mbtsr.dynamics._rollout` (a row is dead from its first state that is non-finite
+        or exceeds ``max_norm``; its states are NaN from there). The whole rollout runs in the
+        planning precision in one buffer ``[H+1+n+m, S]`` (:func:`_mean_step_plan`), the next
+        state written into it by the output product. ``None`` (the caller steps the model)
+        without the folded plan or for batches of the compiled kernel (``<= kernel_rows``)."""
+        plan = self._plan
+        S, T, m = U.shape
+        if plan is None or S <= self.kernel_rows:
+            return None
+        n, H = self.state_dim, plan.H
+        G = np.empty((T + 1, H + 1 + n + m, S), plan.dtype)  # one buffer per time step
+        G[:, H] = 1.0
+        G[0, H + 1:H + 1 + n] = x0[:, None]
+        G[:T, H + 1 + n:] = U.transpose(1, 2, 0)
+        with np.errstate(all="ignore"):
+            for t in range(T):
+                _plan_hidden(plan, plan.W_in @ G[t, H:], G[t, :H])
+                np.matmul(plan.W_outT, G[t], out=G[t + 1, H + 1:H + 1 + n])
+            X = G[:, H + 1:H + 1 + n].transpose(2, 0, 1).astype(np.float64)  # [S, T+1, n]
+            dead = ~(np.abs(X[:, 1:]).max(-1) < max_norm)  # NaN compares false
+        if dead.any():
+            dead = np.logical_or.accumulate(dead, axis=1)
+            X[:, 1:][dead] = np.nan
+            return X, ~dead[:, -1]
+        return X, np.ones(S, dtype=bool)
 
     def _step_numpy(self, x: np.ndarray, u: np.ndarray) -> np.ndarray:
         """The ensemble-mean step of the folded plan in numpy (the compiled kernel's reference;
@@ -1368,12 +1442,12 @@ class FrozenEnsemble:
         the hidden-major layout of :func:`_mean_step_plan` (contiguous rows per activation)."""
         n, plan = self.state_dim, self._plan
         B, H = x.shape[0], plan.H
-        G = np.empty((H + 1 + n + self.action_dim, B))
+        G = np.empty((H + 1 + n + self.action_dim, B), plan.dtype)
         G[H] = 1.0
         G[H + 1:H + 1 + n] = x.T
         G[H + 1 + n:] = u.T
         _plan_hidden(plan, plan.W_in @ G[H:], G[:H])
-        return G.T @ plan.W_out
+        return (plan.W_outT @ G).T.astype(np.float64)
 
     def _member_rows(self, xu: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
         """Row ``r`` of ``xu [B, n+m]`` through member ``r mod K`` only (trajectory sampling):

@@ -265,7 +265,7 @@ def ilqr(
 
     # ---- initial rollout: U0, else scaled copies alpha * U0 (largest first)
     U = np.clip(U0, lower, upper)
-    X, alive = _rollout(dynamics, x0, U[None], t0, opts.max_state_norm)
+    X, alive = _initial_rollout(dynamics, x0, U, t0, opts.max_state_norm)
     if not alive[0]:
         cands = np.clip(alphas[:, None, None] * U0[None], lower, upper)
         Xc, alive = _rollout(dynamics, x0, cands, t0, opts.max_state_norm)
@@ -486,6 +486,22 @@ def _trace(it, J, lam, alpha, expected, actual, grad_norm, accepted, t_it) -> di
         "accepted": bool(accepted),
         "time": time.perf_counter() - t_it,
     }
+
+
+def _initial_rollout(dynamics, x0, U, t0, max_norm):
+    """The open-loop rollout of ``U [T, m]`` -> ``(X [1, T+1, n], alive [1])``: through the
+    model's compiled closed-loop rollout with zero gains when it has one (an affine model, the
+    frozen ensemble: the same states, without ``T`` calls from Python), else (and for a
+    diverged rollout, whose states must be NaN from the divergence on) :func:`_rollout`."""
+    if type(dynamics) is LinearDynamics or getattr(dynamics, "_rollout_policy", None):
+        T, m = U.shape
+        n = x0.shape[0]
+        Xn, _, alive = _rollout_policy(dynamics, x0, np.zeros((T + 1, n)), U, np.zeros((T, m)),
+                                       np.zeros((T, m, n)), np.ones(1), np.full(m, -np.inf),
+                                       np.full(m, np.inf), t0, max_norm)
+        if alive[0]:
+            return Xn, alive
+    return _rollout(dynamics, x0, U[None], t0, max_norm)
 
 
 def _rollout_policy(dynamics, x0, X, U, k, K, alphas, lower, upper, t0, max_norm):

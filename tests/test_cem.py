@@ -9,9 +9,9 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from mbtsr.cem import CEMOptions, cem, rollout_batch
+from mbtsr.cem import CEMOptions, cem
 from mbtsr.costs import quadratic_cost
-from mbtsr.dynamics import LinearDynamics
+from mbtsr.dynamics import LinearDynamics, rollout
 from mbtsr.ilqr import ilqr
 
 DT = 0.1
@@ -230,7 +230,7 @@ def test_explore_weight_minimizes_cost_minus_scaled_disagreement():
     eps = np.random.default_rng(0).standard_normal((400, T, 1))
     cand = np.clip(U0[None] + 0.2 * 200.0 * eps, -200.0, 200.0)
     cand[0] = U0
-    J1 = np.array([cost.total(rollout_batch(model, X0, c[None])[0][0], c) for c in cand])
+    J1 = np.array([cost.total(rollout(model, X0, c), c) for c in cand])
     D1 = T + cand[:, :, 0].sum(1)
     scales = {}
     results = []

@@ -94,3 +94,31 @@ def test_a_cold_start_searches_longer():
     assert seen == [4, 4, 1]  # two cold-start horizons, then a warm start
     assert opts.for_cold_start().cem.iterations == 4
     assert CEMILQROptions(cold_proposal_iterations=1).for_cold_start().cem.iterations == 2
+
+
+def test_a_warm_proposal_samples_warm_samples_and_a_cold_one_all(monkeypatch):
+    import mbtsr.cem_ilqr as hybrid
+
+    cost, model = _dead_zone_problem()
+    seen = []
+    real = hybrid.cem
+
+    def spy(*args, options=None, **kw):
+        seen.append((options.samples, options.elites))
+        return real(*args, options=options, **kw)
+
+    monkeypatch.setattr(hybrid, "cem", spy)
+    opts = CEMILQROptions(cem=CEMOptions(samples=16, elites=6, iterations=1), warm_samples=4)
+    mpc = MPC(cem_ilqr, cost, model, T, u_min=-1, u_max=1,
+              options=MPCOptions(optimizer_options=opts, cold_start_fractions=()))
+    mpc.act(np.zeros(1), 0)
+    mpc.act(np.zeros(1), 1)
+    assert seen == [(16, 6), (4, 4)]  # cold: all samples; warm: warm_samples, elites capped
+    seen.clear()
+    cem_ilqr(cost, model, np.zeros(1), np.zeros((T, 1)), u_min=-1, u_max=1,
+             options=CEMILQROptions(cem=CEMOptions(samples=8, elites=2), warm_samples=None))
+    assert seen == [(8, 2)]
+    assert CEMILQROptions().warm_samples == 32 and CEMILQROptions().for_cold_start().warm_samples \
+        is None
+    with pytest.raises(ValueError, match="warm_samples"):
+        CEMILQROptions(warm_samples=1)

@@ -372,14 +372,17 @@ def _stage_hessians(d):
 
 
 @settings(max_examples=40, deadline=None)
-@given(st.integers(0, 2**31 - 1), st.integers(1, 4), st.integers(1, 3), st.integers(1, 5))
-def test_convexified_hessians_are_the_nearest_psd_matrices(seed, n, m, T):
+@given(st.integers(0, 2**31 - 1), st.integers(1, 4), st.integers(1, 3), st.integers(1, 5),
+       st.booleans())
+def test_convexified_hessians_are_the_nearest_psd_matrices(seed, n, m, T, constant):
     from scipy.linalg import polar
 
     from mbtsr.costs import CostDerivatives
 
     rng = np.random.default_rng(seed)
     G = rng.standard_normal((T + 1, n + m, n + m))
+    if constant:  # a quadratic cost's Hessian: one matrix at every stage (a separate path)
+        G[:T] = G[0]
     H = G + np.swapaxes(G, 1, 2)
     H[T, n:, :], H[T, :, n:] = 0.0, 0.0  # the terminal stage has only lxx
     d = CostDerivatives(lx=rng.standard_normal((T + 1, n)), lu=rng.standard_normal((T, m)),

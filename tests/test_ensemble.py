@@ -23,6 +23,7 @@ from mbtsr.ensemble import (
     DynamicsEnsemble,
     EnsembleConfig,
     MemberSpec,
+    ModelConfig,
     load_model,
     save_model,
 )
@@ -333,12 +334,12 @@ def test_set_normalization_uses_input_and_residual_statistics():
 def test_frozen_model_is_a_snapshot_and_a_new_freeze_sees_the_update():
     model = make_model(EnsembleConfig(1, 1).members, "g")
     x, u = sample_points()
-    frozen = model.freeze()
+    frozen = model.freeze("float64")
     before = frozen.step(x, u)
     with torch.no_grad():
         model.groups[0].bo.add_(1.0)  # as an optimizer step would
     np.testing.assert_array_equal(frozen.step(x, u), before)
-    after = model.freeze().step(x, u)
+    after = model.freeze("float64").step(x, u)
     np.testing.assert_allclose(after - before, np.broadcast_to(model.out_std.numpy(), after.shape),
                                rtol=1e-6)
 
@@ -523,7 +524,7 @@ def test_step_agrees_with_the_per_member_path(formulation, members):
     """``step`` (folded fast path: tanh-based sigmoid/swish, the mean, biases and skip inside the
     matrix products, deeper layers block-diagonal) equals the mean of the per-member float64
     predictions to rounding."""
-    model = make_model(members, formulation, perturb=0.5).freeze()
+    model = make_model(members, formulation, perturb=0.5).freeze("float64")
     assert (model._plan is None) == (len({s.depth for s in members}) > 1)
     rng = np.random.default_rng(7)
     for lead in [(11,), (), (3, 4), (0,)]:
@@ -569,22 +570,23 @@ def test_freeze_after_optimizer_steps_and_load_state_dict(make_optimizer):
     the copy frozen before the step is unchanged."""
     model = make_model(WIDE_MEMBERS, "g")
     x, u = sample_points(T=7)
-    old = model.freeze()
+    old = model.freeze("float64")
     before = old.step(x, u)
     opt = make_optimizer(model.parameters())
     loss = model.forward_torch(torch.tensor(x), torch.tensor(u)).square().sum()
     loss.backward()
     opt.step()
-    after = model.freeze().step(x, u)
+    after = model.freeze("float64").step(x, u)
     assert np.max(np.abs(after - before)) > 1e-3
     np.testing.assert_array_equal(old.step(x, u), before)
     fresh = DynamicsEnsemble(model.config)
     fresh.load_state_dict(model.state_dict())
-    _normwise_close(after, fresh.freeze().step(x, u), 1e-14)
-    _normwise_close(after, model.freeze().member_predictions(x, u).mean(0), 1e-14)
+    _normwise_close(after, fresh.freeze("float64").step(x, u), 1e-14)
+    _normwise_close(after, model.freeze("float64").member_predictions(x, u).mean(0), 1e-14)
     other = make_model(WIDE_MEMBERS, "g", seed=5)
     fresh.load_state_dict(other.state_dict())  # copies in place into the same tensors
-    _normwise_close(fresh.freeze().step(x, u), other.member_predictions(x, u).mean(0), 1e-14)
+    _normwise_close(fresh.freeze("float64").step(x, u), other.member_predictions(x, u).mean(0),
+                    1e-14)
 
 
 @pytest.mark.parametrize("members", [WIDE_MEMBERS, MIXED_MEMBERS, DEEP_MEMBERS],
@@ -593,7 +595,7 @@ def test_frozen_model_matches_the_torch_model_and_is_immutable_float64_numpy(mem
     """The frozen copy: outputs equal the torch (float32) forward pass, Jacobians equal torch
     autograd of it and finite differences of the frozen step; float64 numpy only, read-only."""
     model = make_model(members, "nominal")
-    frozen = model.freeze()
+    frozen = model.freeze("float64")
     assert (frozen.state_dim, frozen.action_dim, frozen.n_members) == (N_STATE, N_INPUT,
                                                                       len(members))
     x, u = sample_points(T=5)
@@ -646,7 +648,7 @@ def test_frozen_model_matches_the_torch_model_and_is_immutable_float64_numpy(mem
     ],
 )
 def test_frozen_model_names_bad_inputs(call, match):
-    frozen = make_model(WIDE_MEMBERS, "g").freeze()
+    frozen = make_model(WIDE_MEMBERS, "g").freeze("float64")
     x, u = sample_points()
     with pytest.raises(ValueError, match=match):
         call(frozen, x, u)
@@ -660,7 +662,7 @@ def test_planning_code_refuses_the_trainable_model():
     cost = quadratic_cost(np.eye(N_STATE), np.eye(N_INPUT))
     with pytest.raises(TypeError, match=r"model.freeze\(\)"):
         ilqr(cost, model, np.zeros(N_STATE), np.zeros((4, N_INPUT)))
-    res = ilqr(cost, model.freeze(), np.zeros(N_STATE), np.zeros((4, N_INPUT)),
+    res = ilqr(cost, model.freeze("float64"), np.zeros(N_STATE), np.zeros((4, N_INPUT)),
                options={"max_iter": 3})
     assert np.isfinite(res.U).all()
 
@@ -679,7 +681,7 @@ def test_freeze_names_a_non_finite_or_invalid_tensor(corrupt, match):
     with torch.no_grad():
         corrupt(model)
     with pytest.raises(ValueError, match=match):
-        model.freeze()
+        model.freeze("float64")
 
 
 def test_rollout_of_the_trainable_model_simulates_one_frozen_copy():
@@ -687,7 +689,7 @@ def test_rollout_of_the_trainable_model_simulates_one_frozen_copy():
 
     model = make_model(WIDE_MEMBERS, "g")
     x, u = sample_points(T=6)
-    frozen = model.freeze()
+    frozen = model.freeze()  # the planning copy, in its default precision
     want = [x[0]]
     for t in range(6):
         want.append(frozen.step(want[-1], u[t]))
@@ -701,7 +703,7 @@ def test_rollout_of_the_trainable_model_simulates_one_frozen_copy():
 def test_compiled_step_kernel_equals_the_numpy_step(members):
     """The compiled kernel (small batches) and the numpy path (large batches) of the frozen
     ensemble-mean step agree to rounding, also with saturated activations."""
-    frozen = make_model(members, "nominal", perturb=0.5).freeze()
+    frozen = make_model(members, "nominal", perturb=0.5).freeze("float64")
     rng = np.random.default_rng(11)
     for B in (1, 2, 3, 4):
         for scale in (1.0, 1e3, 1e12):
@@ -723,7 +725,7 @@ def test_compiled_line_search_rollouts_equal_the_python_rollouts(max_norm, membe
     solver's generic rollouts through ``step`` (same states, controls and dead rows)."""
     from mbtsr.ilqr import _rollout_policy
 
-    frozen = make_model(members, "g", perturb=0.5).freeze()
+    frozen = make_model(members, "g", perturb=0.5).freeze("float64")
 
     class StepOnly:  # the same model seen only through its step: the generic path
         state_dim, action_dim = frozen.state_dim, frozen.action_dim
@@ -798,7 +800,7 @@ def test_probabilistic_members_have_a_soft_bounded_log_variance():
         want = g.max_logvar - F.softplus(g.max_logvar - raw)
         want = g.min_logvar + F.softplus(want - g.min_logvar)
     torch.testing.assert_close(lv.detach(), want, rtol=1e-5, atol=1e-5)
-    frozen = model.freeze()
+    frozen = model.freeze("float64")
     std = frozen.member_std(x, u)
     want_std = model.out_std.numpy() * np.exp(0.5 * model._config_order(lv).detach().numpy())
     np.testing.assert_allclose(std, want_std, rtol=1e-4)
@@ -810,7 +812,7 @@ def test_probabilistic_members_have_a_soft_bounded_log_variance():
     np.testing.assert_allclose(np.concatenate(frozen.jacobians(x, u), -1),
                                finite_difference_jacobians(frozen, x, u).mean(0), atol=1e-7)
     with pytest.raises(ValueError, match="probabilistic"):
-        det.freeze().member_std(x, u)
+        det.freeze("float64").member_std(x, u)
 
 
 def test_refit_normalization_keeps_the_mean_and_the_variance_of_probabilistic_members():
@@ -841,7 +843,7 @@ def test_probabilistic_model_saves_and_old_configs_load(tmp_path):
 def test_trajectory_sampling_sends_row_r_to_member_r_mod_k(members, B):
     """Row ``r`` of a batch is member ``r mod K``'s prediction (config order, any group
     structure, batches not a multiple of K), with the batch shape kept."""
-    frozen = make_model(members, "nominal", perturb=0.5).freeze()
+    frozen = make_model(members, "nominal", perturb=0.5).freeze("float64")
     K = frozen.n_members
     ts = frozen.trajectory_sampling(seed=3)
     rng = np.random.default_rng(B)
@@ -864,7 +866,7 @@ def test_disagreement_is_the_member_variance_in_output_units(members, probabilis
     (deep) and the generic one (mixed); the batch shape is kept; the trajectory-sampling view
     gives the same; one member disagrees with nobody."""
     model = make_model(members, "g", perturb=0.5, probabilistic=probabilistic)
-    frozen = model.freeze()
+    frozen = model.freeze("float64")
     rng = np.random.default_rng(5)
     x, u = rng.normal(size=(3, 4, N_STATE)) * 2, rng.normal(size=(3, 4, N_INPUT))
     preds = frozen.member_predictions(x, u)  # [K, 3, 4, n]
@@ -877,14 +879,14 @@ def test_disagreement_is_the_member_variance_in_output_units(members, probabilis
     ts = frozen.trajectory_sampling(seed=1)  # what CEM's explore options call on the view
     np.testing.assert_array_equal(ts.disagreement(x, u), got)
     np.testing.assert_array_equal(ts.member_predictions(x, u), preds)
-    one = make_model([MemberSpec("tanh", 5)], "g").freeze()
+    one = make_model([MemberSpec("tanh", 5)], "g").freeze("float64")
     np.testing.assert_array_equal(one.disagreement(x, u), 0.0)
     with pytest.raises(ValueError, match="x"):
         frozen.disagreement(x[..., :2], u)
 
 
 def test_trajectory_sampling_of_probabilistic_members_samples_seeded_noise():
-    frozen = make_probabilistic().freeze()
+    frozen = make_probabilistic().freeze("float64")
     K = frozen.n_members
     B = 3 * K
     rng = np.random.default_rng(0)
@@ -922,3 +924,86 @@ def test_model_config_sizes_by_the_rule_and_keeps_the_paper_preset():
                           ({"probabilistic": 1}, "probabilistic must be a bool")):
         with pytest.raises(ValueError, match=match):
             ModelConfig(**kwargs)
+
+
+# ------------------------------------------------------------------------------------------
+# planning precision: float32 kernels against the float64 reference
+# ------------------------------------------------------------------------------------------
+
+
+def _default_sized(seed=0):
+    """The default-sized model (3 x 64 units here: numpy kernels from 2 rows on), normalized."""
+    model = ModelConfig().build(N_STATE, N_INPUT, seed=seed)
+    model.set_normalization([random_trajectory(40, N_STATE, N_INPUT, seed)])
+    return model
+
+
+@pytest.mark.parametrize("members", [None, WIDE_MEMBERS, DEEP_MEMBERS],
+                         ids=["default-size", "wide", "deep"])
+def test_float32_planning_kernels_match_the_float64_reference(members):
+    """Every planning kernel of a float32 freeze (step on 1 and many rows, Jacobians, CEM's
+    open-loop rollouts, iLQR's closed-loop rollouts) agrees with the float64 freeze to float32
+    rounding (normwise 1e-5: about 100 ulps through three layers), and returns float64."""
+    from mbtsr.dynamics import rollout
+    from mbtsr.ilqr import _rollout_policy
+
+    model = _default_sized() if members is None else make_model(members, "g", perturb=0.5)
+    f32, f64 = model.freeze(), model.freeze("float64")
+    assert f32.precision == "float32" and f64.precision == "float64"
+    rng = np.random.default_rng(3)
+    for B in (1, 2, 64):
+        x, u = rng.normal(size=(B, N_STATE)), rng.normal(size=(B, N_INPUT))
+        got = f32.step(x, u)
+        assert got.dtype == np.float64
+        _normwise_close(got, f64.step(x, u), 1e-5)
+    T = 12
+    x, u = rng.normal(size=(T, N_STATE)), rng.normal(size=(T, N_INPUT))
+    for a, b in zip(f32.jacobians(x, u), f64.jacobians(x, u)):
+        assert a.dtype == np.float64
+        _normwise_close(a, b, 1e-5)
+    U = rng.uniform(-1, 1, size=(16, T, N_INPUT))
+    out32, out64 = f32._rollout_open_loop(x[0], U, 1e8), f64._rollout_open_loop(x[0], U, 1e8)
+    if out32 is not None:
+        assert out32[1].all() and out64[1].all()
+        _normwise_close(out32[0], out64[0], 1e-5)
+    K = 0.1 * rng.normal(size=(T, N_INPUT, N_STATE))
+    k, alphas = rng.normal(size=(T, N_INPUT)), np.array([1.0, 0.3, 0.1])
+    X = rollout(f64, x[0], U[0])  # the nominal trajectory [T+1, n]
+    lo, hi = np.full(N_INPUT, -1.0), np.full(N_INPUT, 1.0)
+    got = _rollout_policy(f32, x[0], X, U[0], k, K, alphas, lo, hi, 0, 1e8)
+    want = _rollout_policy(f64, x[0], X, U[0], k, K, alphas, lo, hi, 0, 1e8)
+    np.testing.assert_array_equal(got[2], want[2])
+    _normwise_close(got[0], want[0], 1e-5)
+
+
+@pytest.mark.parametrize("cut", [False, True])
+def test_open_loop_rollout_kernel_equals_stepping_the_model(cut):
+    """CEM's batched rollout kernel (float64) gives the states of stepping the same model row
+    by row (``mbtsr.dynamics._rollout``), NaN from the same first state beyond ``max_norm``, and
+    the same dead rows; it declines batches of the compiled step kernel."""
+    from mbtsr.dynamics import _rollout
+
+    frozen = _default_sized(1).freeze("float64")
+    rng = np.random.default_rng(8)
+    x0, U = rng.normal(size=N_STATE), rng.uniform(-3, 3, size=(24, 10, N_INPUT))
+    max_norm = 1e8
+    if cut:  # half the rows exceed it at some step
+        max_norm = np.median(np.abs(frozen._rollout_open_loop(x0, U, np.inf)[0]).max((1, 2)))
+    X, alive = frozen._rollout_open_loop(x0, U, max_norm)
+
+    class StepOnly:  # the same model seen only through its step: the generic path
+        state_dim, action_dim = frozen.state_dim, frozen.action_dim
+        step = staticmethod(frozen.step)
+
+    want_X, want_alive = _rollout(StepOnly(), x0, U, 0, max_norm)
+    np.testing.assert_array_equal(alive, want_alive)
+    np.testing.assert_array_equal(np.isnan(X), np.isnan(want_X))
+    np.testing.assert_allclose(X, want_X, rtol=1e-12, atol=1e-12)
+    if cut:
+        assert 0 < alive.sum() < len(alive)
+    assert frozen._rollout_open_loop(x0, U[:frozen.kernel_rows], max_norm) is None
+
+
+def test_freeze_names_an_unknown_precision():
+    with pytest.raises(ValueError, match="precision must be one of"):
+        make_model(WIDE_MEMBERS, "g").freeze("float16")

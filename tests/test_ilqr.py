@@ -616,3 +616,22 @@ def test_property_bad_input_is_named_good_input_gives_finite_bounded_controls(se
     res = ilqr(cost, model, x0, U0, **kw)
     assert np.isfinite(res.U).all() and np.all(np.abs(res.U) <= 0.5)
     assert res.status in ("converged", "max_iter", "failed")
+
+
+def test_initial_rollout_through_the_compiled_kernel_equals_stepping():
+    """iLQR's first rollout through a model's compiled closed-loop rollout (zero gains) gives
+    the states of stepping the model, and falls back to them (NaN after the divergence) when
+    the rollout diverges."""
+    from mbtsr.dynamics import LinearDynamics, _rollout
+    from mbtsr.ilqr import _initial_rollout
+
+    rng = np.random.default_rng(2)
+    A, B = np.eye(3) + 0.1 * rng.normal(size=(3, 3)), rng.normal(size=(3, 2))
+    model = LinearDynamics(A, B)
+    x0, U = rng.normal(size=3), rng.uniform(-1, 1, size=(15, 2))
+    X, alive = _initial_rollout(model, x0, U, 0, 1e8)
+    want, want_alive = _rollout(model, x0, U[None], 0, 1e8)
+    np.testing.assert_allclose(X, want, rtol=1e-14, atol=1e-14)
+    assert alive.all() and want_alive.all()
+    X, alive = _initial_rollout(LinearDynamics(10 * A, B), x0, U, 0, 1e3)
+    assert not alive[0] and np.isnan(X[0, -1]).all() and np.isfinite(X[0, 0]).all()
