@@ -38,7 +38,9 @@ def fail(message: str, prog: str | None = None) -> NoReturn:
     raise SystemExit(2)
 
 
-_ROLE = re.compile(r":(?:py:)?(?:func|class|meth|data|mod|attr|obj):`~?([^`]+)`|``([^`]+)``")
+# no whitespace inside a mark: --help lays many options out in columns side by side, and a span
+# with spaces could pair the marks of two columns
+_ROLE = re.compile(r":(?:py:)?(?:func|class|meth|data|mod|attr|obj):`~?([^`\s]+)`|``([^`\s]+)``")
 
 
 def _plain_help(text: str) -> str:

@@ -227,7 +227,7 @@ def test_tiny_pets_run_in_the_venv_resumes_bit_for_bit(tmp_path):
     script = str(REPO / "scripts" / "pets_peer.py")
 
     def run(name: str, *extra: str) -> dict:
-        subprocess.run([str(VENV_PY), script, *common, "--json", str(tmp_path / f"{name}.json"),
+        subprocess.run([str(VENV_PY), script, *common, "--out", str(tmp_path / f"{name}.json"),
                         "--checkpoints", str(tmp_path / name), *extra], check=True,
                        capture_output=True, text=True, env={"OMP_NUM_THREADS": "1",
                                                             "PATH": "/usr/bin:/bin"})

@@ -142,7 +142,7 @@ def markdown(rows: list[dict]) -> str:
     return "\n".join(lines) + "\n"
 
 
-def main(args: Args) -> list[dict]:
+def run(args: Args) -> list[dict]:
     root = Path(args.results) if args.results else REPO / "docs" / "results"
     cache: dict[str, dict] = {}
     rows = []
@@ -157,6 +157,10 @@ def main(args: Args) -> list[dict]:
     return rows
 
 
-def cli(argv: list[str] | None = None) -> None:
-    """The script (``scripts/exp_claims.py``): parse the command line, run, print."""
-    print(markdown(main(parse_args(Args, argv))))
+def main(argv: list[str] | None = None) -> None:
+    """The command line (``python -m agents.experiments.exp_claims``): parse, run, print."""
+    print(markdown(run(parse_args(Args, argv))))
+
+
+if __name__ == "__main__":
+    main()
