@@ -902,15 +902,9 @@ def _steps_note(steps: float | None) -> str:
     return f" (agent at {steps:,.0f})" if steps is not None and math.isfinite(steps) else ""
 
 
-def write_markdown(state: dict[str, Any], path: Path, figure_dir: Path,
-                   baselines: dict[str, dict[str, Any]], sb3_runs: list[dict[str, Any]],
-                   pets_runs: list[dict[str, Any]]) -> None:
-    """The report (``docs/benchmark.md``): tasks and baselines, the reference methods next to
-    the best agent configuration, every configuration, each regularizer vs none, the figures;
-    everything below :data:`NOTES_MARKER` is kept."""
-    rel = os.path.relpath(figure_dir, path.parent)
-    refs = reference_rows(state, baselines, sb3_runs, pets_runs)
-    state["references"] = refs
+def _md_references(state: dict[str, Any], refs: list[dict[str, Any]], rel: str) -> list[str]:
+    """The report's head: the protocol, the tasks, baselines and reference methods, the agent
+    vs PETS at equal env steps and the learning-curve figures."""
     lines = [
         "# Benchmark suite",
         "",
@@ -978,7 +972,14 @@ def write_markdown(state: dict[str, Any], path: Path, figure_dir: Path,
         "agent's budget (red), the oracle and the zero action (dotted).",
         "",
         f"![SAC over 100,000 env steps]({rel}/bench_suite_sac_curves.png)",
-        "",
+        ""
+    ]
+    return lines
+
+
+def _md_configurations(state: dict[str, Any]) -> list[str]:
+    """The report's table of every agent configuration."""
+    lines = [
         "## Every agent configuration",
         "",
         "| task | planner | regularizer | solved | env steps to solve: median (per seed) | "
@@ -997,9 +998,12 @@ def write_markdown(state: dict[str, Any], path: Path, figure_dir: Path,
             f"{_fmt(r['normalized_median'])} ({', '.join(_fmt(v) for v in r['normalized'])}) | "
             f"{ph.get('training', 0):.0f} / {ph.get('ltv', 0):.1f} / {ph.get('planning', 0):.0f}"
             f" / {ph.get('eval', 0):.0f} / {ph.get('total', 0):.0f} |")
-    cmp = comparisons(with_solved(state["runs"], baselines))
-    state["comparisons"] = cmp
-    lines += [
+    return lines
+
+
+def _md_regularizers(cmp: list[dict[str, Any]]) -> list[str]:
+    """The report's comparison of each regularizer with none."""
+    lines = [
         "",
         "## JacProp: each regularizer vs none",
         "",
@@ -1017,6 +1021,21 @@ def write_markdown(state: dict[str, Any], path: Path, figure_dir: Path,
                      f"{', '.join(map(str, c['seeds']))} | {c['steps_to_solve']} | "
                      f"{c['wins_ties_losses']} | {c['final_score']} | "
                      f"{c['final_scores_better_equal_worse']} | {_fmt(c['wall_ratio'])} |")
+    return lines
+
+
+def write_markdown(state: dict[str, Any], path: Path, figure_dir: Path,
+                   baselines: dict[str, dict[str, Any]], sb3_runs: list[dict[str, Any]],
+                   pets_runs: list[dict[str, Any]]) -> None:
+    """The report (``docs/benchmark.md``): tasks and baselines, the reference methods next to
+    the best agent configuration, every configuration, each regularizer vs none, the figures;
+    everything below :data:`NOTES_MARKER` is kept."""
+    rel = os.path.relpath(figure_dir, path.parent)
+    refs = reference_rows(state, baselines, sb3_runs, pets_runs)
+    state["references"] = refs
+    state["comparisons"] = comparisons(with_solved(state["runs"], baselines))
+    lines = [*_md_references(state, refs, rel), *_md_configurations(state),
+             *_md_regularizers(state["comparisons"])]
     lines += [
         "",
         "## Compute",

@@ -4,7 +4,7 @@ For each comparison: the median and quartiles of both methods over all seeds, th
 quartiles of the per-seed paired difference (or ratio), and wins/total (seeds where the first
 method is lower). No training; reads ``docs/results/<experiment>/runs/*.json``.
 
-    python scripts/exp_claims.py            # writes docs/results/claims.json and claims.md
+    python scripts/exp_claims.py    # writes docs/results/claims.json and claims.md (or to --out)
 """
 
 from __future__ import annotations
@@ -152,8 +152,10 @@ def run(args: Args) -> list[dict]:
         r = evaluate(c, cache[c.experiment])
         if r is not None:
             rows.append(r)
-    write_json_atomic(root / "claims.json", rows)
-    (root / "claims.md").write_text(markdown(rows))
+    out = Path(args.out) if args.out else root  # --smoke: nothing to shrink, it only reads
+    out.mkdir(parents=True, exist_ok=True)
+    write_json_atomic(out / "claims.json", rows)
+    (out / "claims.md").write_text(markdown(rows))
     return rows
 
 

@@ -757,7 +757,6 @@ SMOKE = {"budget": 150, "eval_every": 50, "population": 14, "iterations": 2, "ep
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     """The command line (see ``--help``)."""
     p = argparse.ArgumentParser(
-        prog="pets_peer",
         description="mbrl-lib's PETS on the suite's tasks, costs and evaluation episodes. "
                     "Runs INSIDE the PETS venv (.venv-pets/, built by "
                     "`python scripts/setup_pets_venv.py`): the command re-executes itself with "
