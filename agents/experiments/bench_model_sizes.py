@@ -68,7 +68,7 @@ class Args:
     """Held-out one-step error and wall time of ensemble sizes and training designs."""
 
     task: str = "reacher"
-    """suite task (agents.tasks.TASKS)"""
+    """a task of the registry (agents.tasks.TASKS)"""
     study: Literal["sizes", "training", "agent", "scaling", "plot"] = "sizes"
     """sizes (ensembles of several sizes at fixed budgets), training (designs at one size),
     agent (whole agent runs), scaling (update time as data grows) or plot (the sizes figure)"""

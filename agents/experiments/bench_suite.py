@@ -401,13 +401,13 @@ def check_agent_settings(settings: Any) -> dict[str, Any]:
     section by name, ``{"planner": "cem"}``, is refused), if none is one the suite sets itself
     (``seed``, ``planner.kind``, the ``evaluation`` protocol, ``run_dir``/``checkpoint``,
     threads, logging and video) or one the stored baseline records (the planner's horizon,
-    terminal weight, iterations and sample sizes: change those in the task's entry of
-    :data:`TASKS` and recompute its baseline with ``--baselines``). Other planner settings
-    (``planner.replan_every``, CEM's ``particles`` or ``init_std``, ...) pass: those runs are
-    scored against the stored oracle, which plans with the task's settings alone, and the
-    report says so. Regularizer weights pass; :func:`agent_config` refuses a set that changes
-    a run's regularizer away from its ``--regularizations`` name. The
-    values are checked when :func:`run` builds every run's config, before the first run.
+    terminal weight, iterations and sample sizes: change those in the task's settings in
+    :data:`agents.tasks.SUITE` and recompute its baseline with ``--baselines``). Other planner
+    settings (``planner.replan_every``, CEM's ``particles`` or ``init_std``, ...) pass: those
+    runs are scored against the stored oracle, which plans with the task's settings alone, and
+    the report says so. Regularizer weights pass; :func:`agent_config` refuses a set that
+    changes a run's regularizer away from its ``--regularizations`` name. The values are
+    checked when :func:`run` builds every run's config, before the first run.
 
     :raises ValueError: naming the refused field and why.
     """
@@ -427,8 +427,8 @@ def check_agent_settings(settings: Any) -> dict[str, Any]:
         if key in _ORACLE_OWN:
             raise ValueError(
                 f"agent setting {key!r} changes the planner the stored true-model oracle was "
-                f"computed with ({BASELINES_JSON.name}): set it in the task's entry of "
-                f"agents.experiments.bench_suite.TASKS and recompute the baseline with "
+                f"computed with ({BASELINES_JSON.name}): set it in the task's settings in "
+                f"agents.tasks.SUITE and recompute the baseline with "
                 f"`python scripts/bench_suite.py --baselines --tasks <task> --seeds` (an "
                 f"empty --seeds: the baselines only)")
         if key not in leaves:
@@ -1071,7 +1071,7 @@ class Args:
     seeds: tuple[int, ...] = (0, 1, 2, 3, 4)
     """seeds (seed-major schedule)"""
     tasks: tuple[str, ...] = tuple(TASKS)
-    """tasks to run (agents.tasks.TASKS; the module docstring says what each measures)"""
+    """tasks to run (agents.tasks.SUITE; the module docstring says what each measures)"""
     planners: tuple[str, ...] = ("cem-ilqr",)
     """planners to run (also: ilqr, cem)"""
     regularizations: tuple[str, ...] = ("none", "sampled")

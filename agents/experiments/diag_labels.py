@@ -57,7 +57,7 @@ class Args:
     """Jacobian errors of the LTV labels and of the model along an agent run."""
 
     task: str = "reacher"
-    """a suite task (agents.experiments.bench_suite.TASKS)"""
+    """a suite task (agents.tasks.SUITE)"""
     regularizations: tuple[str, ...] = ("none", "exact")
     """one agent run each (none, sampled, exact)"""
     seed: int = 0

@@ -71,7 +71,7 @@ class Args:
     exact."""
 
     tasks: str = field(default=TASKS, metadata={
-        "help": "comma-separated suite tasks (agents.tasks.TASKS, MuJoCo envs)"})
+        "help": "comma-separated tasks of the registry (agents.tasks.TASKS, MuJoCo envs)"})
     episodes: str = field(default="1,2,5", metadata={
         "help": "comma-separated numbers of first episodes to train on"})
     episode_steps: int = field(default=200, metadata={
