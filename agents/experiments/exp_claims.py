@@ -16,15 +16,19 @@ from pathlib import Path
 
 import numpy as np
 
-from agents.experiments.paper_common import REPO, ExperimentArgs, parse_args
+from agents.experiments.paper_common import REPO, parse_args
 from mbtsr.io import write_json_atomic
 
 
 @dataclass
-class Args(ExperimentArgs):
+class Args:
     """Claim evidence (median [q1, q3], paired difference, wins/total) from the stored runs."""
 
     results: str = field(default="", metadata={"help": "results root (default docs/results)"})
+    out: str = field(default="", metadata={
+        "help": "folder of claims.json and claims.md (default: the results root)"})
+    smoke: bool = field(default=False, metadata={
+        "help": "accepted for the shared convention: the command trains nothing, it only reads"})
 
 
 @dataclass(frozen=True)
@@ -152,7 +156,7 @@ def run(args: Args) -> list[dict]:
         r = evaluate(c, cache[c.experiment])
         if r is not None:
             rows.append(r)
-    out = Path(args.out) if args.out else root  # --smoke: nothing to shrink, it only reads
+    out = Path(args.out) if args.out else root
     out.mkdir(parents=True, exist_ok=True)
     write_json_atomic(out / "claims.json", rows)
     (out / "claims.md").write_text(markdown(rows))
