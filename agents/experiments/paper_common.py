@@ -217,7 +217,7 @@ def machine_info(load_start: tuple[float, ...] | None = None, **extra) -> dict:
 
 
 def write_result(path: str | os.PathLike | None, result: dict, indent: int = 1) -> None:
-    """Write a script's ``--json`` result atomically and say so (nothing without a path)."""
+    """Write a command's ``--out`` JSON atomically and say so (nothing without a path)."""
     if path:
         write_json_atomic(path, result, indent=indent)
         print(f"wrote {path}")
