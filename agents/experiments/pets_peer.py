@@ -813,13 +813,15 @@ def _reexec_in_venv(argv: list[str]) -> None:
     (not for ``--report-only`` and ``--help``, which run in the main environment)."""
     import importlib.util
 
-    if {"--report-only", "-h", "--help"} & set(argv) or importlib.util.find_spec("mbrl"):
+    if {"--report-only", "-h", "--help"} & set(argv) or importlib.util.find_spec("mbrl") \
+            or Path(sys.executable) == VENV_PYTHON:  # in the venv: mbrl's ImportError says why
         return
     if not VENV_PYTHON.exists():
         sys.exit("mbrl is not importable here and the PETS venv is missing: build it with\n"
                  "    python scripts/setup_pets_venv.py")
     os.environ.setdefault("OMP_NUM_THREADS", "1")
-    os.environ["PYTHONPATH"] = os.pathsep.join([str(REPO), os.environ.get("PYTHONPATH", "")])
+    os.environ["PYTHONPATH"] = os.pathsep.join(
+        p for p in (str(REPO), os.environ.get("PYTHONPATH")) if p)
     os.execv(str(VENV_PYTHON), [str(VENV_PYTHON), "-m", __spec__.name, *argv])
 
 
