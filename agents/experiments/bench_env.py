@@ -31,6 +31,10 @@ from agents.experiments.paper_common import machine_info, write_result
 class Args:
     """Benchmark the two-link arm env: wrapper overhead and Jacobian cost."""
 
+    out: str | None = None
+    """write the results to this JSON file"""
+    smoke: bool = False
+    """tiny CI size: the options not given take SMOKE's values"""
     preset: Literal["default", "paper"] = "default"
     """arm preset (envs.two_link_arm_model.PRESETS)"""
     n_steps: int = 20000
@@ -41,10 +45,6 @@ class Args:
     """timing runs; the best (least disturbed by other processes) is reported"""
     seed: int = 0
     """seed of the random actions"""
-    out: str | None = None
-    """write the results to this JSON file"""
-    smoke: bool = False
-    """tiny CI size: the options not given take SMOKE's values"""
 
 
 #: --smoke: the tiny CI size (options given on the command line win)

@@ -38,6 +38,10 @@ from mbtsr.ltv import fit_ltv, fit_ltv_tv, select_lambda  # noqa: E402
 class Args:
     """Benchmark of LTV identification: fit_ltv vs a generic sparse solve, TV solver, lambda."""
 
+    out: str | None = None
+    """write the results to this JSON file"""
+    smoke: bool = False
+    """tiny CI size: the options not given take SMOKE's values"""
     sizes: str = "4x2,10x10"
     """(n, m) pairs, comma separated"""
     horizons: str = "200,1000,5000"
@@ -55,10 +59,6 @@ class Args:
     """horizon of the TV benchmark"""
     seed: int = 0
     """seed of the test systems and data"""
-    out: str | None = None
-    """write the results to this JSON file"""
-    smoke: bool = False
-    """tiny CI size: the options not given take SMOKE's values"""
 
 
 #: --smoke: the tiny CI size (options given on the command line win)

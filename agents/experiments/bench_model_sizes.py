@@ -67,6 +67,10 @@ from mbtsr.training import TrainConfig, train_ensemble
 class Args:
     """Held-out one-step error and wall time of ensemble sizes and training designs."""
 
+    out: str = ""
+    """write the results to this JSON file"""
+    smoke: bool = False
+    """tiny CI size: the options not given take SMOKE's values"""
     task: str = "reacher"
     """a task of the registry (agents.tasks.TASKS)"""
     study: Literal["sizes", "training", "agent", "scaling", "plot"] = "sizes"
@@ -97,10 +101,6 @@ class Args:
     """seed of the data and the models"""
     threads: int = 1
     """torch threads"""
-    out: str = ""
-    """write the results to this JSON file"""
-    smoke: bool = False
-    """tiny CI size: the options not given take SMOKE's values"""
     episodes: int = 40
     """episodes of the agent study"""
     agent_overrides: str = "{}"

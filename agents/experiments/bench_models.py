@@ -48,6 +48,10 @@ from mbtsr.training import RegularizationConfig, TrainConfig, train_ensemble
 class Args:
     """Benchmark of the neural dynamics ensembles and their training (issue 4)."""
 
+    out: str = ""
+    """write the results to this JSON file"""
+    smoke: bool = False
+    """tiny CI size: the options not given take SMOKE's values"""
     threads: int = 1
     """torch threads (BLAS threads: OMP_NUM_THREADS, default 1)"""
     epochs: int = 200
@@ -58,10 +62,6 @@ class Args:
     """epochs of the nominal robot training"""
     seed: int = 0
     """seed of the data and the models"""
-    out: str = ""
-    """write the results to this JSON file"""
-    smoke: bool = False
-    """tiny CI size: the options not given take SMOKE's values"""
 
 
 #: --smoke: the tiny CI size (options given on the command line win)

@@ -67,6 +67,10 @@ from mbtsr.validation import check_int
 class Args:
     """Held-out planning error of ensemble sizes on an agent run's own trajectories."""
 
+    out: str = "runs/diag_closed_loop_models.json"
+    """output JSON"""
+    smoke: bool = False
+    """tiny CI size: the options not given take SMOKE's values"""
     task: str = "pusher"
     """a task of agents.tasks (its cost scores the rollouts)"""
     checkpoints: tuple[str, ...] = ()
@@ -96,10 +100,6 @@ class Args:
     """observation dimensions whose closest distance to the tracked ones is reported"""
     skip: int = 2
     """first episodes of a run left out of the coverage (the agent's excitation)"""
-    out: str = "runs/diag_closed_loop_models.json"
-    """output JSON"""
-    smoke: bool = False
-    """tiny CI size: the options not given take SMOKE's values"""
 
     def __post_init__(self) -> None:
         if self.task not in TASKS:

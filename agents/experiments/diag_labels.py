@@ -56,6 +56,11 @@ MUJOCO_TASKS = ("reacher", "inverted-pendulum", "inverted-double-pendulum", "pus
 class Args:
     """Jacobian errors of the LTV labels and of the model along an agent run."""
 
+    out: str = "runs/diag_labels.json"
+    """output JSON (rewritten after every episode)"""
+    smoke: bool = False
+    """the suite's tiny model and planner and a short run (CI): the options not given take
+    SMOKE's values"""
     task: str = "reacher"
     """a suite task (agents.tasks.SUITE)"""
     regularizations: tuple[str, ...] = ("none", "exact")
@@ -64,11 +69,6 @@ class Args:
     """the agent's seed"""
     env_steps: int = 2000
     """each run's budget (the suite's Reacher budget)"""
-    out: str = "runs/diag_labels.json"
-    """output JSON (rewritten after every episode)"""
-    smoke: bool = False
-    """the suite's tiny model and planner and a short run (CI): the options not given take
-    SMOKE's values"""
     plot: str = ""
     """PNG of the identified-direction errors along the runs ('' for none)"""
 

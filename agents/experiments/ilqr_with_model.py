@@ -44,6 +44,10 @@ class Args:
     """Plan a reach of the two-link arm with iLQR on a chosen model and replay it (open loop and
     MPC) in the real env."""
 
+    out: str = "runs/ilqr_with_model"
+    """output directory"""
+    smoke: bool = False
+    """tiny CI size: the options not given take SMOKE's values"""
     model: str = "true"
     """true | analytic | ltv | PATH of a saved ensemble"""
     seed: int = 0
@@ -64,10 +68,6 @@ class Args:
     """excitation rollouts for --model ltv"""
     ltv_lam: float = 10.0
     """LTV smoothness weight lambda for --model ltv"""
-    out: str = "runs/ilqr_with_model"
-    """output directory"""
-    smoke: bool = False
-    """tiny CI size: the options not given take SMOKE's values"""
 
 
 #: --smoke: the tiny CI size (options given on the command line win)

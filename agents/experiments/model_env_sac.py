@@ -31,6 +31,10 @@ from agents.sb3_baselines import make_sb3_model
 class Args:
     """SAC in the learned model vs in the real env (mbtsr/TwoLinkArm-v0)."""
 
+    out: str | None = "runs/model_env_sac.json"
+    """Where to write the results (None: do not write)."""
+    smoke: bool = False
+    """tiny CI size: the options not given take SMOKE's values"""
     model_episodes: int = 6
     """Real episodes the agent learns its model from."""
     n_excitation_episodes: int = 2
@@ -45,10 +49,6 @@ class Args:
     """Also train SAC in the real env (for the model's real steps and for sac_steps)."""
     seed: int = 0
     """Seed of the agent, SAC, the ModelEnv and the random policy."""
-    out: str | None = "runs/model_env_sac.json"
-    """Where to write the results (None: do not write)."""
-    smoke: bool = False
-    """tiny CI size: the options not given take SMOKE's values"""
 
 
 #: --smoke: the tiny CI size (options given on the command line win)
