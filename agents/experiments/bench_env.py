@@ -25,6 +25,7 @@ import numpy as np
 
 import envs  # noqa: F401  (registers the envs, selects MUJOCO_GL before mujoco loads)
 from agents.experiments.paper_common import machine_info, write_result
+from mbtsr.cli import main as command
 
 
 @dataclass(frozen=True)
@@ -53,8 +54,6 @@ SMOKE = {"smoke": True, "n_steps": 500, "n_linearize": 10, "repeats": 1}
 
 def main(argv: list[str] | None = None) -> dict:
     """The command line (``--help``: the options)."""
-    from mbtsr.cli import main as command
-
     return command(Args, run, args=argv, outputs=("out",), presets={"--smoke": SMOKE})
 
 

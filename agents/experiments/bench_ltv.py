@@ -31,6 +31,7 @@ import scipy.sparse as sp  # noqa: E402
 import scipy.sparse.linalg as spl  # noqa: E402
 
 from agents.experiments.paper_common import machine_info, write_result  # noqa: E402
+from mbtsr.cli import main as command  # noqa: E402
 from mbtsr.ltv import fit_ltv, fit_ltv_tv, select_lambda  # noqa: E402
 
 
@@ -67,8 +68,6 @@ SMOKE = {"smoke": True, "sizes": "4x2", "horizons": "100,200", "repeats": 1, "tv
 
 def main(argv: list[str] | None = None) -> dict:
     """The command line (``--help``: the options)."""
-    from mbtsr.cli import main as command
-
     return command(Args, run, args=argv, outputs=("out",), presets={"--smoke": SMOKE})
 
 

@@ -58,6 +58,7 @@ import torch
 from agents.experiments.paper_common import machine_info, pyplot, save_figure, write_result
 from agents.tasks import make_task
 from mbtsr import Trajectory
+from mbtsr.cli import main as command
 from mbtsr.ensemble import DynamicsEnsemble, ModelConfig
 from mbtsr.excitation import unit_filtered_gaussian
 from mbtsr.training import TrainConfig, train_ensemble
@@ -119,7 +120,6 @@ SMOKE = {"smoke": True, "sizes": "2x16", "size": "2x16", "budgets": "20", "n_tra
 def main(argv: list[str] | None = None) -> dict:
     """The command line (``--help``: the options)."""
     from agents.experiments.paper_common import blas_threads_from_env
-    from mbtsr.cli import main as command
 
     blas_threads_from_env()  # one BLAS thread unless OMP_NUM_THREADS says otherwise
     return command(Args, run, args=argv, outputs=("out", "plot"), presets={"--smoke": SMOKE})

@@ -38,6 +38,7 @@ from torch import nn
 
 from agents.experiments.paper_common import machine_info, write_result
 from mbtsr import Trajectory
+from mbtsr.cli import main as command
 from mbtsr.ensemble import ACTIVATIONS, DynamicsEnsemble, EnsembleConfig, MemberSpec
 from mbtsr.ltv import fit_ltv
 from mbtsr.metrics import jacobian_error, prediction_rms
@@ -71,7 +72,6 @@ SMOKE = {"smoke": True, "epochs": 3, "repeats": 1, "robot_epochs": 10}
 def main(argv: list[str] | None = None) -> dict:
     """The command line (``--help``: the options)."""
     from agents.experiments.paper_common import blas_threads_from_env
-    from mbtsr.cli import main as command
 
     blas_threads_from_env()  # one BLAS thread unless OMP_NUM_THREADS says otherwise
     return command(Args, run, args=argv, outputs=("out",), presets={"--smoke": SMOKE})

@@ -26,6 +26,7 @@ import envs  # noqa: F401  (registers the envs; sets MUJOCO_GL=egl before mujoco
 from agents.experiments.paper_common import pyplot, save_figure
 from envs.collect import collect_trajectories, default_input_kwargs
 from envs.rendering import save_png_strip
+from mbtsr.cli import main as command
 from mbtsr.io import write_json_atomic
 from mbtsr.trajectory import save_trajectories
 
@@ -63,8 +64,6 @@ SMOKE = {"smoke": True, "n_traj": 2, "T": 50, "render": False,
 
 def main(argv: list[str] | None = None) -> dict:
     """The command line (``--help``: the options)."""
-    from mbtsr.cli import main as command
-
     return command(Args, run, args=argv, folders=("out",), presets={"--smoke": SMOKE})
 
 

@@ -57,6 +57,7 @@ from tqdm import tqdm
 from agents.config import AgentConfig
 from agents.experiments.bench_model_sizes import errors, model_config
 from agents.tasks import TASKS, make_task
+from mbtsr.cli import main as command
 from mbtsr.io import write_json_atomic
 from mbtsr.training import TrainConfig, train_ensemble
 from mbtsr.trajectory import Trajectory, load_trajectories
@@ -140,7 +141,6 @@ SMOKE = {"smoke": True, "sizes": ("2x16",), "inits": (1,), "steps": 20, "test_ep
 def main(argv: list[str] | None = None) -> dict:
     """The command line (``--help``: the options)."""
     from agents.experiments.paper_common import blas_threads_from_env
-    from mbtsr.cli import main as command
 
     blas_threads_from_env()  # one BLAS thread unless OMP_NUM_THREADS says otherwise
     return command(Args, run, args=argv, outputs=("out",), presets={"--smoke": SMOKE})

@@ -43,6 +43,7 @@ from agents.experiments.bench_model_sizes import ltv_fit
 from agents.experiments.bench_suite import TASKS, make_agent
 from agents.experiments.exp_small_data import jacobian_rel_error, true_jacobians
 from agents.experiments.paper_common import pyplot, save_figure
+from mbtsr.cli import main as command
 from mbtsr.io import write_json_atomic
 from mbtsr.trajectory import Trajectory
 from mbtsr.validation import check_int
@@ -94,7 +95,6 @@ SMOKE = {"smoke": True, "env_steps": 200, "out": "runs/diag_labels_smoke.json"}
 def main(argv: list[str] | None = None) -> dict:
     """The command line (``--help``: the options)."""
     from agents.experiments.paper_common import blas_threads_from_env
-    from mbtsr.cli import main as command
 
     blas_threads_from_env()  # one BLAS thread unless OMP_NUM_THREADS says otherwise
     return command(Args, run, args=argv, outputs=("out", "plot"), presets={"--smoke": SMOKE})

@@ -57,6 +57,7 @@ import torch
 from agents.experiments.bench_model_sizes import collect, errors, ltv_fit
 from agents.experiments.paper_common import machine_info, pyplot, save_figure, write_result
 from agents.tasks import make_task
+from mbtsr.cli import main as command
 from mbtsr.ensemble import ModelConfig
 from mbtsr.io import write_json_atomic
 from mbtsr.metrics import jacobian_error
@@ -114,7 +115,6 @@ SMOKE = {"smoke": True, "tasks": "inverted-pendulum", "episodes": "1,2", "n_test
 def main(argv: list[str] | None = None) -> dict:
     """The command line (``--help``: the options)."""
     from agents.experiments.paper_common import blas_threads_from_env
-    from mbtsr.cli import main as command
 
     blas_threads_from_env()  # one BLAS thread unless OMP_NUM_THREADS says otherwise
     return command(Args, run, args=argv, outputs=("out", "plot"), presets={"--smoke": SMOKE})

@@ -30,6 +30,7 @@ import numpy as np
 
 import envs  # noqa: F401  (registers mbtsr/TwoLinkArm-v0)
 from agents.experiments.paper_common import pyplot, save_figure
+from mbtsr.cli import main as command
 from mbtsr.costs import quadratic_cost
 from mbtsr.episode import run_episode
 from mbtsr.ilqr import ILQROptions, ilqr
@@ -77,8 +78,6 @@ SMOKE = {"smoke": True, "T": 20, "max_iter": 5, "mpc_horizon": 10, "mpc_iteratio
 
 def main(argv: list[str] | None = None) -> dict:
     """The command line (``--help``: the options)."""
-    from mbtsr.cli import main as command
-
     return command(Args, run, args=argv, folders=("out",), presets={"--smoke": SMOKE})
 
 

@@ -25,6 +25,7 @@ from agents.evaluation import evaluate_policy_costs, evaluation_targets
 from agents.experiments.paper_common import write_result
 from agents.model_env import ModelEnv
 from agents.sb3_baselines import make_sb3_model
+from mbtsr.cli import main as command
 
 
 @dataclass(frozen=True)
@@ -58,8 +59,6 @@ SMOKE = {"smoke": True, "model_episodes": 2, "n_excitation_episodes": 1, "sac_st
 
 def main(argv: list[str] | None = None) -> dict:
     """The command line (``--help``: the options)."""
-    from mbtsr.cli import main as command
-
     return command(Args, run, args=argv, outputs=("out",), presets={"--smoke": SMOKE})
 
 
