@@ -5,6 +5,7 @@ lists the shared flags ``--out`` (where results go) and ``--smoke`` (the tiny CI
 from __future__ import annotations
 
 import importlib
+import json
 import os
 import re
 import subprocess
@@ -61,3 +62,20 @@ def test_console_scripts_name_functions_that_exist():
     for target in scripts.values():
         module, _, attr = target.partition(":")
         assert callable(getattr(importlib.import_module(module), attr))
+
+
+@pytest.mark.parametrize("name,out", [("bench_env", "r.json"), ("bench_ltv", "r.json"),
+                                      ("collect_excitation", "folder")])
+def test_smoke_runs_end_to_end_and_writes_to_out(name, out, tmp_path, capsys):
+    """``--smoke`` (the module's SMOKE values) runs the command in seconds and ``--out`` is
+    where its results land (a JSON file or a folder)."""
+    module = importlib.import_module(f"agents.experiments.{name}")
+    path = tmp_path / out
+    result = module.main(["--smoke", "--out", str(path)])
+    assert result is not None and path.exists()
+    if path.suffix == ".json":
+        assert json.loads(path.read_text())["config"]["smoke"] is True
+    else:
+        assert any(path.iterdir())
+    args = module.Args(**{k: v for k, v in module.SMOKE.items()})
+    assert args.smoke and all(getattr(args, k) == v for k, v in module.SMOKE.items())
