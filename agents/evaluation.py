@@ -28,7 +28,7 @@ import casadi as ca
 import gymnasium as gym
 import numpy as np
 
-from agents.task import ObservationCost
+from agents.tasks import ObservationCost
 from mbtsr.costs import CasadiCost
 from mbtsr.episode import EpisodeRecord, as_policy, run_episode
 from mbtsr.ilqr import ILQROptions, ilqr
@@ -390,7 +390,7 @@ def oracle_policy(
         no true model, so no oracle (the agent then reports ``oracle_cost = None``); also when
         no cost is given and the env has no ``cost_Q``/``cost_R``.
     """
-    from agents.task import StateMap, default_task_for_env, env_spec
+    from agents.tasks import StateMap, default_task_for_env, env_spec
 
     if model not in ("dynamics_model", "analytic_model"):
         raise ValueError(f"model must be 'dynamics_model' or 'analytic_model', got {model!r}")

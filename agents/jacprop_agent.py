@@ -65,7 +65,7 @@ from agents.evaluation import (
     planner_cost,
     run_episode,
 )
-from agents.task import (
+from agents.tasks import (
     EnvSpec,
     ObservationCost,
     QuadraticTargetCost,
@@ -95,7 +95,7 @@ class JacPropAgent(SB3Predictor):
         space and a ``TimeLimit`` (or ``config.collection.episode_steps``).
     :param config: :class:`agents.config.AgentConfig`.
     :param cost_fn: stage cost ``cost_fn(obs, action) -> scalar`` written with CasADi
-        operations (see :mod:`agents.task`). ``None``: the env's own quadratic cost
+        operations (see :mod:`agents.tasks`). ``None``: the env's own quadratic cost
         (``env.unwrapped.cost_Q/cost_R``, as ``mbtsr/TwoLinkArm-v0`` provides).
     :param state_fn: ``obs -> model state`` (numpy); with ``obs_fn``.
     :param obs_fn: ``(state, obs_ref) -> obs`` (CasADi-compatible), the inverse map used to

@@ -1,11 +1,10 @@
-"""Benchmark iLQR and MPC on the two-link arm against IPOPT and crocoddyl (issue 13).
+"""Runs ``python -m agents.experiments.<this file's name>`` from a checkout (``--help``)."""
 
-    python scripts/bench_ilqr.py --json runs/bench_ilqr.json   # --help: the options
-"""
-
-
-from agents.cli import main
-from agents.experiments.bench_ilqr import Args, run
+import runpy
+import sys
+from pathlib import Path
 
 if __name__ == "__main__":
-    main(Args, run, outputs=("json",))
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # this checkout's packages
+    runpy.run_module(f"agents.experiments.{Path(__file__).stem}", run_name="__main__",
+                     alter_sys=True)

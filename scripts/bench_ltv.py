@@ -1,14 +1,10 @@
-"""Benchmark of LTV identification (issue 3): fit time vs a generic solver, scaling in T.
+"""Runs ``python -m agents.experiments.<this file's name>`` from a checkout (``--help``)."""
 
-    python scripts/bench_ltv.py --json runs/bench_ltv.json
-"""
-
-
-from agents.cli import main
-from agents.experiments.bench_ltv import (  # first: sets the BLAS threads before numpy loads
-    Args,
-    run,
-)
+import runpy
+import sys
+from pathlib import Path
 
 if __name__ == "__main__":
-    main(Args, run, outputs=("json",))
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # this checkout's packages
+    runpy.run_module(f"agents.experiments.{Path(__file__).stem}", run_name="__main__",
+                     alter_sys=True)

@@ -1,16 +1,10 @@
-"""Model sizing and training measurements on suite tasks (agents.experiments.bench_model_sizes).
+"""Runs ``python -m agents.experiments.<this file's name>`` from a checkout (``--help``)."""
 
-    python scripts/bench_model_sizes.py --task reacher --json runs/sizes_reacher.json
-"""
-
-import os
-
-for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
-    os.environ.setdefault(_var, "1")  # BLAS reads it when numpy loads; --threads sets torch's
-
-
-from agents.cli import main  # noqa: E402
-from agents.experiments.bench_model_sizes import Args, run  # noqa: E402
+import runpy
+import sys
+from pathlib import Path
 
 if __name__ == "__main__":
-    main(Args, run, outputs=("json",))
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # this checkout's packages
+    runpy.run_module(f"agents.experiments.{Path(__file__).stem}", run_name="__main__",
+                     alter_sys=True)

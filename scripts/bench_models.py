@@ -1,16 +1,10 @@
-"""Benchmark of the neural dynamics ensembles and their training (agents.experiments.bench_models).
+"""Runs ``python -m agents.experiments.<this file's name>`` from a checkout (``--help``)."""
 
-    python scripts/bench_models.py --json runs/bench_models.json
-"""
-
-import os
-
-for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
-    os.environ.setdefault(_var, "1")  # BLAS reads it when numpy loads; --threads sets torch's
-
-
-from agents.cli import main  # noqa: E402
-from agents.experiments.bench_models import Args, run  # noqa: E402
+import runpy
+import sys
+from pathlib import Path
 
 if __name__ == "__main__":
-    main(Args, run, outputs=("json",))
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # this checkout's packages
+    runpy.run_module(f"agents.experiments.{Path(__file__).stem}", run_name="__main__",
+                     alter_sys=True)

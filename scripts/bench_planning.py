@@ -1,11 +1,10 @@
-"""Planning at the control rate: ms per MPC step of the default planner per suite task (issue 45).
+"""Runs ``python -m agents.experiments.<this file's name>`` from a checkout (``--help``)."""
 
-    python scripts/bench_planning.py --json docs/results/bench_ilqr/planning_rate.json \
-        --figure docs/figures/planning_rate.png            # --help: the options
-"""
-
-from agents.experiments.bench_planning import Args, run
-from mbtsr.cli import main
+import runpy
+import sys
+from pathlib import Path
 
 if __name__ == "__main__":
-    main(Args, run, outputs=("json", "figure"))
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # this checkout's packages
+    runpy.run_module(f"agents.experiments.{Path(__file__).stem}", run_name="__main__",
+                     alter_sys=True)

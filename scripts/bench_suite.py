@@ -1,11 +1,10 @@
-"""The command line of agents.experiments.bench_suite (``--help`` lists the options).
+"""Runs ``python -m agents.experiments.<this file's name>`` from a checkout (``--help``)."""
 
-    python scripts/bench_suite.py --json docs/results/bench_suite.json --figures docs/figures
-    python scripts/bench_suite.py --smoke --json runs/bench_suite_smoke.json   # CI, ~1 min
-"""
-
-
-from agents.experiments.bench_suite import main
+import runpy
+import sys
+from pathlib import Path
 
 if __name__ == "__main__":
-    main()
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # this checkout's packages
+    runpy.run_module(f"agents.experiments.{Path(__file__).stem}", run_name="__main__",
+                     alter_sys=True)

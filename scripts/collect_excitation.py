@@ -1,13 +1,10 @@
-"""Collect excitation data from the two-link arm and plot it
-(agents.experiments.collect_excitation).
+"""Runs ``python -m agents.experiments.<this file's name>`` from a checkout (``--help``)."""
 
-    python scripts/collect_excitation.py                       # defaults: 5 x 200 steps
-    python scripts/collect_excitation.py --preset paper --n-traj 10 --out runs/paper_data
-"""
-
-
-from agents.cli import main
-from agents.experiments.collect_excitation import Args, run
+import runpy
+import sys
+from pathlib import Path
 
 if __name__ == "__main__":
-    main(Args, run, folders=("out",))
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # this checkout's packages
+    runpy.run_module(f"agents.experiments.{Path(__file__).stem}", run_name="__main__",
+                     alter_sys=True)

@@ -1,12 +1,10 @@
-"""SAC trained inside the learned model (agents.model_env.ModelEnv), evaluated in the real env
-(agents.experiments.model_env_sac).
+"""Runs ``python -m agents.experiments.<this file's name>`` from a checkout (``--help``)."""
 
-    python scripts/model_env_sac.py                        # 6 real episodes, 5000 model steps
-"""
-
-
-from agents.cli import main
-from agents.experiments.model_env_sac import Args, run
+import runpy
+import sys
+from pathlib import Path
 
 if __name__ == "__main__":
-    main(Args, run, outputs=("json",))
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # this checkout's packages
+    runpy.run_module(f"agents.experiments.{Path(__file__).stem}", run_name="__main__",
+                     alter_sys=True)

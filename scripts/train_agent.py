@@ -1,14 +1,10 @@
-"""Train the Algorithm-1 agent (JacProp model learning + iLQR MPC) on the two-link arm
-(agents.experiments.train_agent; every AgentConfig field is a flag, see --help).
+"""Runs ``python -m agents.experiments.<this file's name>`` from a checkout (``--help``)."""
 
-    python scripts/train_agent.py                       # embedded defaults, mbtsr/TwoLinkArm-v0
-    python scripts/train_agent.py --seed 3 --regularization exact --json bench.json
-    python scripts/train_agent.py --run-dir runs/x --resume   # continue a killed run exactly
-    python scripts/train_agent.py --config runs/x/config.json # run x again, in a new folder
-"""
-
-
-from agents.experiments.train_agent import main
+import runpy
+import sys
+from pathlib import Path
 
 if __name__ == "__main__":
-    main()
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # this checkout's packages
+    runpy.run_module(f"agents.experiments.{Path(__file__).stem}", run_name="__main__",
+                     alter_sys=True)

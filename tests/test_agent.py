@@ -40,7 +40,7 @@ from agents.evaluation import (
     solved_threshold,
 )
 from agents.jacprop_agent import JacPropAgent
-from agents.task import ObservationCost, default_task_for_env, env_spec
+from agents.tasks import ObservationCost, default_task_for_env, env_spec
 from mbtsr.ensemble import load_model
 from mbtsr.io import atomic_write_bytes
 from mbtsr.metrics import prediction_rms
@@ -353,7 +353,7 @@ def test_oracle_takes_the_agents_state_maps_and_refuses_conflicting_ones():
     equal to the arm's own map plan exactly as the default map; conflicting maps are refused."""
     import casadi as ca
 
-    from agents.task import StateMap
+    from agents.tasks import StateMap
 
     env = gym.make(ARM, episode_steps=10)
     obs, _ = env.reset(seed=0, options={"target": np.array([0.6, -0.4])})

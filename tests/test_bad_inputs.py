@@ -408,7 +408,7 @@ def test_select_lambda_handles_huge_grids_and_is_continuous_at_the_limit():
 def test_agent_boundaries_name_the_argument():
     from agents.config import AgentConfig
     from agents.jacprop_agent import JacPropAgent
-    from agents.task import env_spec
+    from agents.tasks import env_spec
 
     env = gym.make("mbtsr/TwoLinkArm-v0")
     with pytest.raises(ValueError, match="^episode_steps must"):

@@ -14,7 +14,7 @@ from agents.experiments.bench_planning import Args, matmul_peak, run
 def test_planning_bench_smoke_writes_every_field(tmp_path):
     path = tmp_path / "planning.json"
     fig = tmp_path / "planning.png"
-    run(Args(tasks=("reacher",), steps=3, repeats=1, smoke=True, json=str(path),
+    run(Args(tasks=("reacher",), steps=3, repeats=1, smoke=True, out=str(path),
              figure=str(fig)))
     out = json.loads(path.read_text())
     assert set(out["matmul_peak_gflops"]) == {"float32", "float64"}

@@ -19,6 +19,32 @@ from agents.experiments import bench_suite as suite
 REPO = Path(__file__).resolve().parents[1]
 
 
+def test_the_suite_and_pets_read_every_task_from_the_one_registry():
+    """Each suite task is a registry task (same env, cost, termination, state map as
+    ``make_task`` builds from its name and env keywords); the suite's budget, evaluation period
+    and settings and PETS' env, budget and re-plan period are that task's."""
+    from agents.experiments import pets_peer
+    from agents.tasks import SUITE, make_task
+
+    assert list(suite.TASKS) == list(SUITE) and set(pets_peer.TASKS) == set(SUITE)
+    fns = ("env_id", "cost_fn", "terminal_cost_fn", "termination_fn", "state_fn", "obs_fn")
+    for name, task in SUITE.items():
+        fresh = make_task(task.name, **task.make_kwargs)
+        assert [getattr(fresh, f) for f in fns] == [getattr(task, f) for f in fns], name
+        assert task.budget > 0 and 0 < task.eval_every <= task.budget
+        entry = suite.TASKS[name]
+        assert (entry["task"], entry["budget"], entry["eval_every"], entry["overrides"]) == (
+            task, task.budget, task.eval_every, task.settings)
+        cfg = suite.agent_config(name).dotted()
+        assert all(cfg[k] == v for k, v in task.settings.items()), name
+        pets = pets_peer.task_settings(name)
+        assert (pets["agent_task"], pets["make"], pets["budget_env_steps"]) == (
+            task.name, task.make_kwargs, task.budget)
+        assert pets["planner"]["replan_freq"] == task.settings.get("planner.replan_every", 1)
+    with pytest.raises(ValueError, match="unknown task 'arm-far'; known"):
+        make_task("arm-far")  # a suite name, not a registry task
+
+
 @pytest.mark.parametrize("name", list(suite.TASKS))
 def test_every_task_runs_a_few_steps_of_its_agent(name):
     agent = suite.make_agent(name, {"evaluation.every_steps": 0}, smoke=True)
@@ -32,7 +58,7 @@ def test_every_task_runs_a_few_steps_of_its_agent(name):
 
 def test_bench_suite_smoke(tmp_path):
     out, base = tmp_path / "suite.json", tmp_path / "baselines.json"
-    common = ["--smoke", "--seeds", "0", "--json", str(out), "--baselines-json", str(base),
+    common = ["--smoke", "--seeds", "0", "--out", str(out), "--baselines-json", str(base),
               "--oracle-cache", str(tmp_path / "oracle"), "--tasks", "arm-open-loop",
               "inverted-pendulum"]
     state = suite.main(common + ["--baselines", "--planners", "cem-ilqr", "ilqr",
@@ -94,7 +120,7 @@ def test_regenerating_the_report_keeps_the_hand_written_notes(tmp_path):
 @pytest.mark.parametrize("flag", ["--regularizations", "--planners", "--tasks", "--sb3"])
 def test_unknown_names_exit_2_with_one_line(flag, capsys):
     with pytest.raises(SystemExit) as e:
-        suite.main([flag, "bogus", "--json", "/tmp/never_written.json"])
+        suite.main([flag, "bogus", "--out", "/tmp/never_written.json"])
     assert e.value.code == 2
     err = capsys.readouterr().err.strip()
     assert flag in err and "\n" not in err
@@ -186,7 +212,7 @@ def test_settings_labels_name_the_base_and_only_what_the_variant_changes():
 @pytest.mark.parametrize("extra", [[], ["--report-only", "--docs", "d.md"]])
 def test_compare_needs_report_only_without_docs(tmp_path, extra):
     with pytest.raises(SystemExit) as e:
-        suite.main(["--compare", str(tmp_path / "v.json"), "--json", str(tmp_path / "x.json"),
+        suite.main(["--compare", str(tmp_path / "v.json"), "--out", str(tmp_path / "x.json"),
                     *extra])
     assert e.value.code == 2
 
@@ -202,7 +228,7 @@ def test_compare_refuses_a_missing_file_and_runs_that_pair_with_none(tmp_path, c
                        (variant, "none of its runs pairs"),
                        (labelled, f"--compare {labelled}: the compared JSON's \"label\"")):
         with pytest.raises(SystemExit):
-            suite.main(["--report-only", "--json", str(base), "--compare", str(path)])
+            suite.main(["--report-only", "--out", str(base), "--compare", str(path)])
         assert says in capsys.readouterr().err
 
 
@@ -306,8 +332,8 @@ def test_a_paused_checkpointed_run_ends_as_an_uninterrupted_one(tmp_path, monkey
     common = ["--smoke", "--seeds", "0", "--tasks", "reacher", "--regularizations", "sampled",
               "--oracle-cache", str(tmp_path / "oracle"), "--baselines-json",
               str(tmp_path / "none.json")]
-    straight = suite.main(common + ["--json", str(tmp_path / "a.json")])["runs"]
-    paused = common + ["--json", str(tmp_path / "b.json"), "--resume",
+    straight = suite.main(common + ["--out", str(tmp_path / "a.json")])["runs"]
+    paused = common + ["--out", str(tmp_path / "b.json"), "--resume",
                        "--checkpoints", str(tmp_path / "ckpt"), "--stop-after-steps", "120"]
     assert suite.main(paused)["runs"] == []  # 150 of 200 steps: paused, not recorded
     from agents.jacprop_agent import JacPropAgent
@@ -346,13 +372,13 @@ def test_agent_settings_reach_every_run_and_keep_their_json_apart(tmp_path, caps
               "--regularizations", "none"]
     # nested sections are flattened; a re-plan period beyond the smoke horizon lengthens it
     settings = {"model": {"hidden_width": 5}, "planner.replan_every": 8}
-    state = suite.main(common + ["--json", str(out), "--agent-settings", json.dumps(settings)])
+    state = suite.main(common + ["--out", str(out), "--agent-settings", json.dumps(settings)])
     (run,) = state["runs"]
     flat = {"model.hidden_width": 5, "planner.replan_every": 8}
     assert run["agent_settings"] == state["agent_settings"] == flat
     assert run["model"]["hidden_width"] == 5  # the setting reached the agent
     with pytest.raises(SystemExit) as e:
-        suite.main(common + ["--json", str(out), "--resume",
+        suite.main(common + ["--out", str(out), "--resume",
                              "--agent-settings", '{"model.hidden_width": 6}'])
     assert e.value.code == 2 and "holds runs with agent settings" in capsys.readouterr().err
     fresh = tmp_path / "fresh.json"
@@ -376,11 +402,11 @@ def test_agent_settings_reach_every_run_and_keep_their_json_apart(tmp_path, caps
                      ('{"planner.replan_feedback": true}', "inverted-pendulum with cem-ilqr"),
                      ("[1]", "JSON object"), ("nope", "not JSON")):
         with pytest.raises(SystemExit) as e:
-            suite.main(common + ["--json", str(fresh), "--agent-settings", bad])
+            suite.main(common + ["--out", str(fresh), "--agent-settings", bad])
         err = capsys.readouterr().err
         assert e.value.code == 2 and why in err, (bad, err)
         assert not fresh.exists()
     for only in (["--report-only"], ["--sb3", "sac"]):
         with pytest.raises(SystemExit) as e:
-            suite.main(only + ["--json", str(out), "--agent-settings", json.dumps(flat)])
+            suite.main(only + ["--out", str(out), "--agent-settings", json.dumps(flat)])
         assert e.value.code == 2 and "--report-only and --sb3 run none" in capsys.readouterr().err

@@ -196,7 +196,7 @@ def test_train_agent_checks_its_run_dir_before_any_work(tmp_path, capsys):
 
 
 def test_a_real_script_fails_in_one_line_without_traceback():
-    for args in (["--repeats", "many"], ["--json", "/"]):
+    for args in (["--repeats", "many"], ["--out", "/"]):
         proc = subprocess.run([sys.executable, str(REPO / "scripts" / "bench_ltv.py"), *args],
                               capture_output=True, text=True, timeout=120)
         assert proc.returncode == 2

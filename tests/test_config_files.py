@@ -90,8 +90,8 @@ BAD_FILES = [  # (file name, content, the one line the script prints after "erro
      "'agent' (a run's config.json holds 'agent' and ['script', 'command', 'ensemble', "
      "'env_spec'])"),
     ("a.json", '{"agent": {}, "script": {"episodez": 3}}', "{p}: unknown script setting(s) "
-     "['episodez'] (this script has ['config', 'env_id', 'episodes', 'json', 'plots', "
-     "'regularization', 'resume', 'summary_table'])"),
+     "['episodez'] (this script has ['config', 'env_id', 'episodes', 'out', 'plots', "
+     "'regularization', 'resume', 'smoke', 'summary_table'])"),
     ("missing.yaml", None, "{p}: no such file or directory"),
     ("folder.yaml", "/", "{p}: is a directory"),
 ]

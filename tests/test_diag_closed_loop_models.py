@@ -147,7 +147,7 @@ def test_run_writes_every_model_and_refuses_bad_folders(tmp_path, monkeypatch):
     save_run(tmp_path / "run0", episodes(4))
     out = tmp_path / "diag.json"
     args = Args(task="reacher", checkpoints=(str(tmp_path / "run0"),), sizes=("2x8", "7m:2x8"),
-                inits=(0, 1), steps=10, test_episodes=1, horizon=10, stride=5, json=str(out))
+                inits=(0, 1), steps=10, test_episodes=1, horizon=10, stride=5, out=str(out))
     writes = []
     write = diag.write_json_atomic
     monkeypatch.setattr(diag, "write_json_atomic",
@@ -165,18 +165,18 @@ def test_run_writes_every_model_and_refuses_bad_folders(tmp_path, monkeypatch):
         (60, 0, False), (60, 0, False)]
     assert all(r["n_holdout"] > 0 for r in stored["rows"])  # the default holds 10 % out
     with pytest.raises(ValueError, match="no data.npz"):
-        run(Args(task="reacher", checkpoints=(str(tmp_path),), json=str(out)))
+        run(Args(task="reacher", checkpoints=(str(tmp_path),), out=str(out)))
     with pytest.raises(ValueError, match="none to train on"):
         run(Args(task="reacher", checkpoints=(str(tmp_path / "run0"),), test_episodes=4,
-                 json=str(out)))
+                 out=str(out)))
     with pytest.raises(ValueError, match="at least one checkpoint"):
-        run(Args(task="reacher", json=str(out)))
+        run(Args(task="reacher", out=str(out)))
     with pytest.raises(ValueError, match="out of range for task 'reacher'"):
         run(Args(task="reacher", checkpoints=(str(tmp_path / "run0"),), track=(10,),
-                 json=str(out)))
+                 out=str(out)))
     with pytest.raises(ValueError, match="task 'pusher' has 23 and 7"):
         run(Args(task="pusher", checkpoints=(str(tmp_path / "run0"),), test_episodes=1,
-                 json=str(out)))
+                 out=str(out)))
 
 
 @pytest.mark.parametrize("bad, match", [
@@ -227,12 +227,12 @@ def test_coverage_counts_the_episodes_that_moved_and_the_closest_approach(tmp_pa
     save_trajectories(folder / "data.npz", [episode((9.0, 0.0), 3.0)] + trajs)
     out = tmp_path / "c.json"
     result = run(Args(task="reacher", checkpoints=(str(folder),), sizes=(), track=(2, 3),
-                      near=(4, 5), move=1.0, skip=1, test_episodes=9, json=str(out)))
+                      near=(4, 5), move=1.0, skip=1, test_episodes=9, out=str(out)))
     got = result["coverage"][str(folder)]
     assert got == cov and result["rows"] == []
     assert json.loads(out.read_text())["coverage"][str(folder)] == json.loads(json.dumps(cov))
     with pytest.raises(ValueError, match="--skip 4 leaves none for the coverage"):
         run(Args(task="reacher", checkpoints=(str(folder),), sizes=(), track=(2, 3), skip=4,
-                 json=str(out)))
+                 out=str(out)))
     with pytest.raises(ValueError, match="nothing to do"):
-        run(Args(task="reacher", checkpoints=(str(folder),), sizes=(), json=str(out)))
+        run(Args(task="reacher", checkpoints=(str(folder),), sizes=(), out=str(out)))

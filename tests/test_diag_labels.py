@@ -86,7 +86,7 @@ def test_a_tiny_run_records_every_episode(tmp_path):
     out = tmp_path / "labels.json"
     png = tmp_path / "labels.png"
     result = run(Args(task="reacher", regularizations=("none", "exact"), env_steps=100,
-                      json=str(out), plot=str(png)), smoke=True)
+                      out=str(out), plot=str(png), smoke=True))
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     stored = json.loads(out.read_text())
     assert stored["summary"] == result["summary"]

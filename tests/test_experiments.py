@@ -1,6 +1,6 @@
 """Smoke and behaviour tests of the paper-reproduction scripts (``scripts/exp_*.py``).
 
-Every ``--quick`` mode runs for real (real MuJoCo, real training, tiny budgets) into a temporary
+Every ``--smoke`` mode runs for real (real MuJoCo, real training, tiny budgets) into a temporary
 folder; the tests check the per-run JSON records, the figures and the summary, and that the
 report step redraws everything from the stored JSON alone (without rerunning anything). The
 shared helpers of ``agents.experiments.paper_common`` are checked against independent computations.
@@ -28,8 +28,8 @@ sys.path.insert(0, str(SCRIPTS))
 from agents.experiments import paper_common as pc  # noqa: E402
 from mbtsr.io import write_json_atomic  # noqa: E402
 
-#: script -> (number of configs in --quick, figures it draws, numeric result keys to check)
-QUICK = {
+#: script -> (number of configs in --smoke, figures it draws, numeric result keys to check)
+SMOKE = {
     "exp_linear.py": (4, ["linear_eigenvalues.png", "linear_errors.png", "linear_rounds.png"],
                       ["jac_err", "jac_rms_entry", "pred_rms", "sim_rms", "eig_match_err"]),
     "exp_weight_decay.py": (4, ["weight_decay_eigenvalues.png", "weight_decay_errors.png"],
@@ -54,14 +54,14 @@ def snapshot(folder: Path) -> dict[str, int]:
     return {p.name: p.stat().st_mtime_ns for p in sorted(folder.glob("*.json"))}
 
 
-@pytest.mark.parametrize("script", list(QUICK))
-def test_quick_mode_writes_runs_figures_and_redraws_from_json(script, tmp_path, capsys):
-    n_configs, figures, keys = QUICK[script]
+@pytest.mark.parametrize("script", list(SMOKE))
+def test_smoke_mode_writes_runs_figures_and_redraws_from_json(script, tmp_path, capsys):
+    n_configs, figures, keys = SMOKE[script]
     out = tmp_path / "out"
-    run_script(script, "--quick", "--out", str(out), "--backend", "serial")
+    run_script(script, "--smoke", "--out", str(out), "--backend", "serial")
 
     runs = sorted((out / "runs").glob("*.json"))
-    assert len(runs) == n_configs * 2  # --quick: 2 Monte-Carlo seeds per config
+    assert len(runs) == n_configs * 2  # --smoke: 2 Monte-Carlo seeds per config
     assert not (out / "errors").exists() or not list((out / "errors").iterdir())
     for path in runs:
         rec = json.loads(path.read_text())
@@ -73,14 +73,14 @@ def test_quick_mode_writes_runs_figures_and_redraws_from_json(script, tmp_path, 
         assert (out / "figures" / fig).stat().st_size > 5000
     summary = json.loads((out / "summary.json").read_text())
     assert summary["n_records"] == len(runs)
-    assert json.loads((out / "args.json").read_text())["args"]["quick"] is True
+    assert json.loads((out / "args.json").read_text())["args"]["smoke"] is True
 
     # the report step alone: redraws figures and summary from the JSON, reruns nothing
     before = snapshot(out / "runs")
     for fig in figures:
         (out / "figures" / fig).unlink()
     (out / "summary.json").unlink()
-    run_script(script, "--quick", "--out", str(out), "--report-only")
+    run_script(script, "--smoke", "--out", str(out), "--report-only")
     assert snapshot(out / "runs") == before
     for fig in figures:
         assert (out / "figures" / fig).stat().st_size > 5000
@@ -90,7 +90,7 @@ def test_quick_mode_writes_runs_figures_and_redraws_from_json(script, tmp_path, 
     if script != "exp_activations.py":  # the cheapest one checks resuming
         return
     # a second full invocation resumes: nothing is recomputed
-    run_script(script, "--quick", "--out", str(out), "--backend", "serial")
+    run_script(script, "--smoke", "--out", str(out), "--backend", "serial")
     assert snapshot(out / "runs") == before
     log = json.loads((out / "sweeps.json").read_text())
     assert log[-1]["runs_finished_before"] == log[-1]["runs_finished_after"] == len(runs)
@@ -100,7 +100,7 @@ def test_cli_with_process_pool(tmp_path):
     """The real command line with the forkserver process pool (module-level run functions)."""
     out = tmp_path / "lin"
     proc = subprocess.run(
-        [sys.executable, str(SCRIPTS / "exp_linear.py"), "--quick", "--mc", "1", "--rounds",
+        [sys.executable, str(SCRIPTS / "exp_linear.py"), "--smoke", "--mc", "1", "--rounds",
          "1", "--out", str(out), "--backend", "process", "--workers", "2"],
         capture_output=True, text=True, timeout=300, cwd=tmp_path,
         env={**os.environ, "OMP_NUM_THREADS": "1"})
@@ -114,7 +114,7 @@ def test_cli_with_process_pool(tmp_path):
 
 def test_report_only_without_runs_fails_clearly(tmp_path):
     with pytest.raises(SystemExit, match="no finished runs"):
-        run_script("exp_robot.py", "--quick", "--out", str(tmp_path), "--report-only")
+        run_script("exp_robot.py", "--smoke", "--out", str(tmp_path), "--report-only")
 
 
 # ------------------------------------------------------------------------------------------------
@@ -234,13 +234,13 @@ def test_stored_eigenvalues_round_trip(rows):
     np.testing.assert_allclose(back, z, atol=1e-6)
 
 
-def test_parse_args_quick_overrides_only_unset_fields(capsys):
+def test_parse_args_smoke_overrides_only_unset_fields(capsys):
     from agents.experiments import exp_robot
 
-    args = pc.parse_args(exp_robot.Args, ["--quick", "--mc", "3"])
-    assert args.mc == 3 and args.epoch_scale == exp_robot.Args.QUICK["epoch_scale"]
+    args = pc.parse_args(exp_robot.Args, ["--smoke", "--mc", "3"])
+    assert args.mc == 3 and args.epoch_scale == exp_robot.Args.SMOKE["epoch_scale"]
     full = pc.parse_args(exp_robot.Args, [])
-    assert full.mc == 35 and full.epoch_scale == 1.0 and not full.quick
+    assert full.mc == 35 and full.epoch_scale == 1.0 and not full.smoke
     for bad in (["--mc", "0"], ["--workers", "0"], ["--backend", "threads"]):
         with pytest.raises(SystemExit) as exc:  # a bad option: one line, exit code 2
             pc.parse_args(exp_robot.Args, bad)
@@ -258,7 +258,7 @@ def test_regime_options_are_checked_before_any_run(bad, capsys):
     from agents.experiments import exp_regime
 
     with pytest.raises(SystemExit) as exc:
-        pc.parse_args(exp_regime.Args, ["--quick", *bad])
+        pc.parse_args(exp_regime.Args, ["--smoke", *bad])
     err = capsys.readouterr().err
     assert exc.value.code == 2 and err.count("\n") == 1 and bad[0] in err
 
@@ -270,7 +270,7 @@ def test_regime_options_may_narrow_the_grid():
 
     for argv in (["--windows", "short"], ["--frictions", "off"], ["--label-cells", ""],
                  ["--n-trains", "1", "--label-cells", ""]):
-        pc.parse_args(exp_regime.Args, ["--quick", *argv])
+        pc.parse_args(exp_regime.Args, ["--smoke", *argv])
 
 
 def test_unknown_method_and_deviation_are_rejected():
@@ -287,9 +287,9 @@ def test_unknown_method_and_deviation_are_rejected():
 # the regime sweep (exp_regime) and the claim evidence (exp_claims)
 
 
-def test_regime_quick_runs_every_method_at_equal_steps_and_redraws(tmp_path):
+def test_regime_smoke_runs_every_method_at_equal_steps_and_redraws(tmp_path):
     out = tmp_path / "regime"
-    run_script("exp_regime.py", "--quick", "--out", str(out), "--backend", "serial")
+    run_script("exp_regime.py", "--smoke", "--out", str(out), "--backend", "serial")
     recs = [json.loads(p.read_text()) for p in sorted((out / "runs").glob("*.json"))]
     # 2 windows x 2 frictions x 1 trajectory count x 2 epoch counts x (none, sampled) plus
     # oracle / exact / prior on the paper-friction cells, plus none / sampled / oracle under the
@@ -322,7 +322,7 @@ def test_regime_quick_runs_every_method_at_equal_steps_and_redraws(tmp_path):
     summary = json.loads((out / "summary.json").read_text())
     assert summary["n_runs"] + 2 * 3 == len(recs)  # the map's runs; paper protocol apart
     fig.unlink()
-    run_script("exp_regime.py", "--quick", "--out", str(out), "--report-only")
+    run_script("exp_regime.py", "--smoke", "--out", str(out), "--report-only")
     assert fig.stat().st_size > 5000
     assert json.loads((out / "summary.json").read_text()) == summary
     assert "sampled: change, wins" in (out / "table.md").read_text()

@@ -23,7 +23,7 @@ import envs  # noqa: F401  (registers mbtsr/TwoLinkArm-v0)
 from agents.config import AgentConfig
 from agents.jacprop_agent import JacPropAgent
 from agents.model_env import ModelEnv
-from agents.task import default_task_for_env
+from agents.tasks import default_task_for_env
 from mbtsr.dynamics import LinearDynamics
 from mbtsr.ensemble import DynamicsEnsemble, EnsembleConfig, MemberSpec
 

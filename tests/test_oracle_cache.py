@@ -16,7 +16,7 @@ import pytest
 import envs  # noqa: F401  (registers mbtsr/TwoLinkArm-v0)
 import mbtsr
 from agents.evaluation import cached_costs, oracle_cache_key, physics_fingerprint
-from agents.task import QuadraticTargetCost, StateMap
+from agents.tasks import QuadraticTargetCost, StateMap
 from mbtsr.ilqr import ILQROptions
 
 ARM = "mbtsr/TwoLinkArm-v0"

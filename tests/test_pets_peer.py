@@ -227,7 +227,7 @@ def test_tiny_pets_run_in_the_venv_resumes_bit_for_bit(tmp_path):
     script = str(REPO / "scripts" / "pets_peer.py")
 
     def run(name: str, *extra: str) -> dict:
-        subprocess.run([str(VENV_PY), script, *common, "--json", str(tmp_path / f"{name}.json"),
+        subprocess.run([str(VENV_PY), script, *common, "--out", str(tmp_path / f"{name}.json"),
                         "--checkpoints", str(tmp_path / name), *extra], check=True,
                        capture_output=True, text=True, env={"OMP_NUM_THREADS": "1",
                                                             "PATH": "/usr/bin:/bin"})
@@ -263,3 +263,30 @@ def test_report_draws_the_agents_median_curves_beside_pets(tmp_path):
     pets_peer.upsert_run(path, _record("reacher", 0, [200, 400], True))
     (fig,) = pets_peer.report(path, tmp_path / "fig", suite)
     assert fig.name == "pets_reacher.png" and fig.stat().st_size > 1000
+
+
+def test_the_command_reexecutes_itself_in_the_venv_only_where_mbrl_is_missing(monkeypatch,
+                                                                             tmp_path):
+    """Outside the venv a run re-executes ``python -m agents.experiments.pets_peer`` with the
+    venv's python and this checkout on PYTHONPATH; the report, ``--help`` and the venv's own
+    python do not (a venv without mbrl would otherwise re-execute itself forever)."""
+    import importlib.util
+    import os
+
+    venv_python = tmp_path / "python"
+    venv_python.touch()
+    calls = []
+    monkeypatch.setattr(pets_peer, "VENV_PYTHON", venv_python)
+    monkeypatch.setattr(importlib.util, "find_spec", lambda name: None)
+    monkeypatch.setattr(os, "execv", lambda path, argv: calls.append((path, argv)))
+    monkeypatch.delenv("PYTHONPATH", raising=False)
+    for argv in (["--report-only"], ["--help"]):
+        pets_peer._reexec_in_venv(argv)
+    assert calls == []
+    pets_peer._reexec_in_venv(["--smoke"])
+    assert calls == [(str(venv_python), [str(venv_python), "-m", "agents.experiments.pets_peer",
+                                         "--smoke"])]
+    assert os.environ["PYTHONPATH"] == str(REPO)
+    monkeypatch.setattr(sys, "executable", str(venv_python))
+    pets_peer._reexec_in_venv(["--smoke"])
+    assert len(calls) == 1

@@ -132,7 +132,7 @@ def test_bad_return_arguments(kwargs, msg):
 
 def test_bench_suite_sb3_smoke(tmp_path):
     sb3_json = tmp_path / "sac.json"
-    args = ["--sb3", "sac", "--smoke", "--seeds", "0", "--json", str(tmp_path / "agent.json"),
+    args = ["--sb3", "sac", "--smoke", "--seeds", "0", "--out", str(tmp_path / "agent.json"),
             "--sb3-json", str(sb3_json), "--tasks", "inverted-pendulum", "arm-open-loop",
             "--baselines-json", str(tmp_path / "baselines.json")]
     state = suite.main(args)

@@ -99,7 +99,7 @@ def test_wins_total_counts_strict_wins_on_common_seeds():
 
 def test_smoke_run_writes_the_json_with_equal_optimizer_steps(tmp_path):
     out = tmp_path / "small.json"
-    args = Args(**{**SMOKE, "json": str(out), "plot": str(tmp_path / "small.png")})
+    args = Args(**{**SMOKE, "out": str(out), "plot": str(tmp_path / "small.png")})
     run(args)
     d = json.loads(out.read_text())
     for key in ("args", "model", "data", "records", "aggregate", "table_markdown", "wall_s"):
@@ -127,7 +127,7 @@ def test_label_study_and_states_leave_the_data_unchanged(tmp_path):
         np.testing.assert_array_equal(a.u, b.u)
         assert b.meta["state"].shape == (b.T + 1, 8)  # Reacher: nq = nv = 4
     out = tmp_path / "labels.json"
-    d = run(Args(**{**SMOKE, "study": "labels", "json": str(out)}))
+    d = run(Args(**{**SMOKE, "study": "labels", "out": str(out)}))
     assert len(d["records"]) == 2 and set(d["median_jac_rel"]) == {"inverted-pendulum 1",
                                                                    "inverted-pendulum 2"}
     assert all(np.isfinite(r["jac_rel"]) for r in d["records"]) and out.exists()

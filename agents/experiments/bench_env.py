@@ -8,7 +8,7 @@ Measures, in one process on the same compiled model:
 4. ``linearize`` calls/s, ``linearize_trajectory`` over T=100, the CasADi twin's mapped
    Jacobians over T=100, and the raw ``mjd_transitionFD`` call cost.
 
-Usage: ``python scripts/bench_env.py --json runs/bench_env.json`` (``--help``: the options).
+Usage: ``python scripts/bench_env.py --out runs/bench_env.json`` (``--help``: the options).
 """
 
 from __future__ import annotations
@@ -24,6 +24,7 @@ import mujoco
 import numpy as np
 
 import envs  # noqa: F401  (registers the envs, selects MUJOCO_GL before mujoco loads)
+from agents.cli import main as command
 from agents.experiments.paper_common import machine_info, write_result
 
 
@@ -31,6 +32,10 @@ from agents.experiments.paper_common import machine_info, write_result
 class Args:
     """Benchmark the two-link arm env: wrapper overhead and Jacobian cost."""
 
+    out: str | None = None
+    """write the results to this JSON file"""
+    smoke: bool = False
+    """tiny CI size: the options not given take SMOKE's values"""
     preset: Literal["default", "paper"] = "default"
     """arm preset (envs.two_link_arm_model.PRESETS)"""
     n_steps: int = 20000
@@ -41,8 +46,15 @@ class Args:
     """timing runs; the best (least disturbed by other processes) is reported"""
     seed: int = 0
     """seed of the random actions"""
-    json: str | None = None
-    """write the results to this JSON file"""
+
+
+#: --smoke: the tiny CI size (options given on the command line win)
+SMOKE = {"smoke": True, "n_steps": 500, "n_linearize": 10, "repeats": 1}
+
+
+def main(argv: list[str] | None = None) -> dict:
+    """The command line (``--help``: the options)."""
+    return command(Args, run, args=argv, outputs=("out",), presets={"--smoke": SMOKE})
 
 
 def best_rate(fn, count: int, repeats: int) -> float:
@@ -56,7 +68,7 @@ def best_rate(fn, count: int, repeats: int) -> float:
 
 
 def run(args: Args) -> dict:
-    """Run the benchmark; print and return the results (and write ``args.json``)."""
+    """Run the benchmark; print and return the results (and write ``args.out``)."""
     rng = np.random.default_rng(args.seed)
     actions = rng.uniform(-1, 1, size=(args.n_steps, 2)).astype(np.float32)
 
@@ -151,5 +163,9 @@ def run(args: Args) -> dict:
     }
     env.close()
     print(json.dumps(results, indent=2))
-    write_result(args.json, results, indent=2)
+    write_result(args.out, results, indent=2)
     return results
+
+
+if __name__ == "__main__":
+    main()

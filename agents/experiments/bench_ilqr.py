@@ -35,7 +35,7 @@ Targets (issue 13) are listed in the JSON with a pass flag each. Numbers are noi
 machine: every timing is the best of ``--repeats`` runs and the load average is recorded; the
 ratios are measured side by side in the same run.
 
-Usage: ``python scripts/bench_ilqr.py --json runs/bench_ilqr.json``
+Usage: ``python -m agents.experiments.bench_ilqr --out runs/bench_ilqr.json``
 """
 
 from __future__ import annotations
@@ -54,6 +54,7 @@ import numpy as np
 import torch
 
 import envs  # noqa: F401  (registers mbtsr/TwoLinkArm-v0)
+from agents.cli import main as command
 from agents.config import PlannerConfig
 from agents.experiments.paper_common import machine_info, write_result
 from envs.mujoco_model import HybridDynamics, MujocoDynamics
@@ -68,6 +69,10 @@ from mbtsr.mpc import MPC, MPCOptions
 class Args:
     """Benchmark of iLQR and MPC on the arm, against IPOPT and crocoddyl (issue 13)."""
 
+    out: str | None = None
+    """write the results to this JSON file"""
+    smoke: bool = False
+    """tiny CI size: the options not given take SMOKE's values"""
     preset: str = "default"
     """arm preset"""
     horizons: str = "100,200"
@@ -94,8 +99,6 @@ class Args:
     """seed of the start/target pairs and of the random ensemble"""
     threads: int = 1
     """torch threads"""
-    json: str | None = None
-    """write the results to this JSON file"""
     true_model_only: bool = False
     """run only section 6 (the true-model MPC of every benchmark-suite task)"""
     true_model_steps: int = 20
@@ -111,6 +114,17 @@ class Args:
     """section 6: the planners whose return on the suite's evaluation episodes is measured too
     (a whole oracle evaluation per task; the default planner's is in
     docs/results/bench_suite_baselines.json)"""
+
+
+#: --smoke: the tiny CI size (options given on the command line win)
+SMOKE = {"smoke": True, "horizons": "20", "timing_iterations": 2, "repeats": 1, "n_problems": 1,
+         "mpc_steps": 5, "peers": False, "true_model_steps": 1, "true_model_tasks": ("arm-far",),
+         "true_model_planners": ("ilqr",)}
+
+
+def main(argv: list[str] | None = None) -> dict:
+    """The command line (``--help``: the options)."""
+    return command(Args, run, args=argv, outputs=("out",), presets={"--smoke": SMOKE})
 
 
 def load_ensemble(path: str, seed: int):
@@ -354,13 +368,13 @@ def true_model_planning(args: Args) -> dict:
 
 
 def run(args: Args) -> dict:
-    """The whole benchmark; writes ``args.json`` if set and returns the results."""
+    """The whole benchmark; writes ``args.out`` if set and returns the results."""
     torch.set_num_threads(args.threads)
     check_true_model_variants(args)  # before sections 1-6, not after them
     if args.true_model_only:
         results = {"args": dataclasses.asdict(args),
                    "true_model_planning": true_model_planning(args), "machine": machine_info()}
-        write_result(args.json, results, indent=2)
+        write_result(args.out, results, indent=2)
         return results
     horizons = [int(h) for h in args.horizons.split(",")]
     load_start = os.getloadavg()
@@ -598,5 +612,9 @@ def run(args: Args) -> dict:
         "machine": machine_info(load_start),
         "total_time_s": time.perf_counter() - t_start,
     }
-    write_result(args.json, results, indent=2)
+    write_result(args.out, results, indent=2)
     return results
+
+
+if __name__ == "__main__":
+    main()

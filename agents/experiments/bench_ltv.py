@@ -10,7 +10,7 @@ T = 1000 on a system with one jump, and ``select_lambda`` at T = 1000.
 
 Targets: T = 1000, n = 4, m = 2 in <= 10 ms; exponent <= 1.15; >= 5x faster than generic.
 
-    python scripts/bench_ltv.py --json runs/bench_ltv.json   # --help: the options
+    python scripts/bench_ltv.py --out runs/bench_ltv.json   # --help: the options
 """
 
 from __future__ import annotations
@@ -30,6 +30,7 @@ import scipy  # noqa: E402
 import scipy.sparse as sp  # noqa: E402
 import scipy.sparse.linalg as spl  # noqa: E402
 
+from agents.cli import main as command  # noqa: E402
 from agents.experiments.paper_common import machine_info, write_result  # noqa: E402
 from mbtsr.ltv import fit_ltv, fit_ltv_tv, select_lambda  # noqa: E402
 
@@ -38,6 +39,10 @@ from mbtsr.ltv import fit_ltv, fit_ltv_tv, select_lambda  # noqa: E402
 class Args:
     """Benchmark of LTV identification: fit_ltv vs a generic sparse solve, TV solver, lambda."""
 
+    out: str | None = None
+    """write the results to this JSON file"""
+    smoke: bool = False
+    """tiny CI size: the options not given take SMOKE's values"""
     sizes: str = "4x2,10x10"
     """(n, m) pairs, comma separated"""
     horizons: str = "200,1000,5000"
@@ -55,8 +60,15 @@ class Args:
     """horizon of the TV benchmark"""
     seed: int = 0
     """seed of the test systems and data"""
-    json: str | None = None
-    """write the results to this JSON file"""
+
+
+#: --smoke: the tiny CI size (options given on the command line win)
+SMOKE = {"smoke": True, "sizes": "4x2", "horizons": "100,200", "repeats": 1, "tv_T": 100}
+
+
+def main(argv: list[str] | None = None) -> dict:
+    """The command line (``--help``: the options)."""
+    return command(Args, run, args=argv, outputs=("out",), presets={"--smoke": SMOKE})
 
 
 def stable_system(n: int, m: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
@@ -126,7 +138,7 @@ def paired_timings(fn_a, fn_b, repeats: int,
 
 
 def run(args: Args) -> dict:
-    """Run the benchmark; print and return the results (and write ``args.json``)."""
+    """Run the benchmark; print and return the results (and write ``args.out``)."""
     rng = np.random.default_rng(args.seed)
     sizes = [tuple(int(v) for v in s.split("x")) for s in args.sizes.split(",")]
     horizons = [int(v) for v in args.horizons.split(",")]
@@ -136,8 +148,19 @@ def run(args: Args) -> dict:
                                 threads=os.environ.get("OMP_NUM_THREADS")),
         "l2": [],
     }
+    l2_fits(args, sizes, horizons, rng, results)
+    tv_fit(args, rng, results)
+    automatic_lambda(args, rng, results)
+    targets(results)
+    write_result(args.out, results, indent=2)
+    return results
 
-    # ---- L2 fit vs generic sparse solve ---------------------------------------------------
+
+def l2_fits(args: Args, sizes: list[tuple[int, int]], horizons: list[int],
+            rng: np.random.Generator, results: dict) -> None:
+    """``results["l2"]``: the L2 fit vs a generic sparse solve per size and horizon;
+    ``results["exponent"]``: the scaling exponent in T (least-squares slope of log time vs
+    log T)."""
     for n, m in sizes:
         A, B = stable_system(n, m, rng)
         for T in horizons:
@@ -169,14 +192,17 @@ def run(args: Args) -> dict:
             results["l2"].append(row)
             print(json.dumps(row))
 
-    # ---- scaling exponent in T (least-squares slope of log time vs log T) --------------------
     results["exponent"] = {}
     for n, m in sizes:
         rows = [r for r in results["l2"] if (r["n"], r["m"]) == (n, m)]
         slope = np.polyfit(np.log([r["T"] for r in rows]), np.log([r["fit_s"] for r in rows]), 1)
         results["exponent"][f"{n}x{m}"] = float(slope[0])
 
-    # ---- TV fit at T = tv_T on a system with one jump ----------------------------------------
+
+
+def tv_fit(args: Args, rng: np.random.Generator, results: dict) -> None:
+    """``results["tv"]``, ``["tv_admm_only"]``: the TV fit at T = tv_T on a system with one
+    jump, with and without the polish."""
     n, m, T = 4, 2, args.tv_T
     A1, B1 = stable_system(n, m, rng)
     A2, B2 = stable_system(n, m, rng)
@@ -210,7 +236,11 @@ def run(args: Args) -> dict:
     print(json.dumps(results["tv"]))
     print(json.dumps(results["tv_admm_only"]))
 
-    # ---- automatic lambda at T = 1000 on a smoothly varying system -----------------------------
+
+
+def automatic_lambda(args: Args, rng: np.random.Generator, results: dict) -> None:
+    """``results["select_lambda_<method>"]``: the automatic lambda at T = 1000 on a smoothly
+    varying system, against the best lambda of its grid."""
     (A1, B1), (A2, B2) = stable_system(4, 2, rng), stable_system(4, 2, rng)
     w = (0.5 - 0.5 * np.cos(2 * np.pi * np.arange(1000) / 1000))[:, None, None]
     A_s, B_s = (1 - w) * A1 + w * A2, (1 - w) * B1 + w * B2  # norms stay <= 0.9: stable
@@ -235,7 +265,10 @@ def run(args: Args) -> dict:
         }
         print(json.dumps(results[f"select_lambda_{method}"]))
 
-    # ---- targets --------------------------------------------------------------------------------
+
+
+def targets(results: dict) -> None:
+    """``results["targets"]``: the scaling exponent, the speed-up and the 10 ms target."""
     speedups = [r["speedup_vs_solve"] for r in results["l2"] if "speedup_vs_solve" in r]
     results["targets"] = {
         "exponent_max": {"value": max(results["exponent"].values()), "target": "<= 1.15",
@@ -251,5 +284,7 @@ def run(args: Args) -> dict:
             "met": ref["fit_s"] <= 0.010}
     print(json.dumps(results["exponent"]))
     print(json.dumps(results["targets"]))
-    write_result(args.json, results, indent=2)
-    return results
+
+
+if __name__ == "__main__":
+    main()

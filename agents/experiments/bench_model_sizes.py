@@ -39,8 +39,8 @@ Errors on the held-out transitions, of the ensemble mean:
 * ``rel_step``: ``sqrt(sum ||error||^2 / sum ||x+ - x||^2)`` in raw units (the issue's "error
   relative to the true step").
 
-    python scripts/bench_model_sizes.py --task reacher --json runs/sizes_reacher.json
-    python scripts/bench_model_sizes.py --task pusher --study training --size 3x200 --json ...
+    python scripts/bench_model_sizes.py --task reacher --out runs/sizes_reacher.json
+    python scripts/bench_model_sizes.py --task pusher --study training --size 3x200 --out ...
 """
 
 from __future__ import annotations
@@ -55,6 +55,7 @@ from typing import Literal
 import numpy as np
 import torch
 
+from agents.cli import main as command
 from agents.experiments.paper_common import machine_info, pyplot, save_figure, write_result
 from agents.tasks import make_task
 from mbtsr import Trajectory
@@ -67,8 +68,12 @@ from mbtsr.training import TrainConfig, train_ensemble
 class Args:
     """Held-out one-step error and wall time of ensemble sizes and training designs."""
 
+    out: str = ""
+    """write the results to this JSON file"""
+    smoke: bool = False
+    """tiny CI size: the options not given take SMOKE's values"""
     task: str = "reacher"
-    """suite task (agents.tasks.TASKS)"""
+    """a task of the registry (agents.tasks.TASKS)"""
     study: Literal["sizes", "training", "agent", "scaling", "plot"] = "sizes"
     """sizes (ensembles of several sizes at fixed budgets), training (designs at one size),
     agent (whole agent runs), scaling (update time as data grows) or plot (the sizes figure)"""
@@ -97,8 +102,6 @@ class Args:
     """seed of the data and the models"""
     threads: int = 1
     """torch threads"""
-    json: str = ""
-    """write the results to this JSON file"""
     episodes: int = 40
     """episodes of the agent study"""
     agent_overrides: str = "{}"
@@ -107,6 +110,19 @@ class Args:
     """study plot: write the figure of the sizes JSONs given in plot_from to this PNG"""
     plot_from: str = ""
     """study plot: comma-separated JSON files of the sizes study (one per task)"""
+
+
+#: --smoke: the tiny CI size (options given on the command line win)
+SMOKE = {"smoke": True, "sizes": "2x16", "size": "2x16", "budgets": "20", "n_train": 200,
+         "n_test": 50, "eval_every": 10, "episodes": 2}
+
+
+def main(argv: list[str] | None = None) -> dict:
+    """The command line (``--help``: the options)."""
+    from agents.experiments.paper_common import blas_threads_from_env
+
+    blas_threads_from_env()  # one BLAS thread unless OMP_NUM_THREADS says otherwise
+    return command(Args, run, args=argv, outputs=("out", "plot"), presets={"--smoke": SMOKE})
 
 
 def collect(task_name: str, n: int, seed: int, *, episode_steps: int | None = None,
@@ -348,12 +364,12 @@ def run(args: Args) -> dict:
         return {}
     if args.study == "scaling":
         result = {"args": dataclasses.asdict(args), "results": scaling_study(args)}
-        write_result(args.json, result)
+        write_result(args.out, result)
         return result
     if args.study == "agent":
         result = {"args": dataclasses.asdict(args), "results": agent_study(args)}
         result["machine"] = machine_info(load_start)
-        write_result(args.json, result)
+        write_result(args.out, result)
         return result
     train = collect(args.task, args.n_train, args.seed)
     test = collect(args.task, args.n_test, args.seed + 1000)
@@ -427,5 +443,9 @@ def run(args: Args) -> dict:
     result["results"] = rows
     result["machine"] = machine_info(load_start)
     result["total_time_s"] = time.perf_counter() - t_start
-    write_result(args.json, result)
+    write_result(args.out, result)
     return result
+
+
+if __name__ == "__main__":
+    main()

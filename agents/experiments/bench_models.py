@@ -20,7 +20,7 @@ consistent mass matrix, RK4 at dt = 0.02 s with zero-order-hold torques that are
 Targets: batched K = 4 epoch <= 1.5 x the K = 1 epoch; batched K = 8 >= 2 x faster than the
 loop; nominal robot training <= 10 s on 2 cores.
 
-    python scripts/bench_models.py --json runs/bench_models.json
+    python scripts/bench_models.py --out runs/bench_models.json
 """
 
 from __future__ import annotations
@@ -30,11 +30,13 @@ import json
 import os
 import sys
 import time
+from typing import Any
 
 import numpy as np
 import torch
 from torch import nn
 
+from agents.cli import main as command
 from agents.experiments.paper_common import machine_info, write_result
 from mbtsr import Trajectory
 from mbtsr.ensemble import ACTIVATIONS, DynamicsEnsemble, EnsembleConfig, MemberSpec
@@ -47,6 +49,10 @@ from mbtsr.training import RegularizationConfig, TrainConfig, train_ensemble
 class Args:
     """Benchmark of the neural dynamics ensembles and their training (issue 4)."""
 
+    out: str = ""
+    """write the results to this JSON file"""
+    smoke: bool = False
+    """tiny CI size: the options not given take SMOKE's values"""
     threads: int = 1
     """torch threads (BLAS threads: OMP_NUM_THREADS, default 1)"""
     epochs: int = 200
@@ -57,8 +63,18 @@ class Args:
     """epochs of the nominal robot training"""
     seed: int = 0
     """seed of the data and the models"""
-    json: str = ""
-    """write the results to this JSON file"""
+
+
+#: --smoke: the tiny CI size (options given on the command line win)
+SMOKE = {"smoke": True, "epochs": 3, "repeats": 1, "robot_epochs": 10}
+
+
+def main(argv: list[str] | None = None) -> dict:
+    """The command line (``--help``: the options)."""
+    from agents.experiments.paper_common import blas_threads_from_env
+
+    blas_threads_from_env()  # one BLAS thread unless OMP_NUM_THREADS says otherwise
+    return command(Args, run, args=argv, outputs=("out",), presets={"--smoke": SMOKE})
 
 
 PAPER = ("elu", "sigmoid", "tanh", "swish")
@@ -126,29 +142,23 @@ def arm_trajectory(rng: np.random.Generator, T: int = 200, noise: float = 0.01) 
             return Trajectory(x + noise * rng.normal(size=x.shape), u, dt=DT)
 
 
-def run(args: Args) -> dict:
-    """Run the benchmark; print and return the results (and write ``args.json``).
+class _Bench:
+    """The data of one run and the timing helper (``cpu_ms``: the median process CPU ms of the
+    measurements timed with a key; on a shared machine CPU time is the steadier figure, wall
+    time what a user waits)."""
 
-    ``args.threads`` sets torch's threads; BLAS reads ``OMP_NUM_THREADS`` when numpy loads
-    (``scripts/bench_models.py`` sets it to 1 unless it is set).
-    """
-    torch.set_num_threads(args.threads)
-    rng = np.random.default_rng(args.seed)
-    data_1000 = [arm_trajectory(rng) for _ in range(5)]  # 1000 transitions
-    robot_train = data_1000[:3]  # the nominal setting: 3 x 200
-    robot_val = arm_trajectory(rng, noise=0.0)
-    xu_all = torch.tensor(np.concatenate([np.concatenate(tr.inputs, 1) for tr in data_1000]),
-                          dtype=torch.float32)
-    print(f"data: {len(data_1000)} trajectories, {xu_all.shape[0]} transitions; "
-          f"threads {args.threads}, load {os.getloadavg()}", file=sys.stderr)
+    def __init__(self, args: Args) -> None:
+        rng = np.random.default_rng(args.seed)
+        self.args = args
+        self.data = [arm_trajectory(rng) for _ in range(5)]  # 1000 transitions
+        self.train = self.data[:3]  # the nominal setting: 3 x 200
+        self.val = arm_trajectory(rng, noise=0.0)
+        self.xu = torch.tensor(np.concatenate([np.concatenate(tr.inputs, 1) for tr in self.data]),
+                               dtype=torch.float32)
+        self.cpu_ms: dict[str, float] = {}
 
-
-    CPU_MS: dict[str, float] = {}  # process CPU time of the same measurements (see cpu_ms below)
-
-
-    def median_ms(fn, repeats: int, per: int = 1, key: str = "") -> float:
-        """Median wall-clock ms per unit; the median process CPU ms is kept in ``CPU_MS[key]``
-        (on a shared machine CPU time is the steadier figure, wall time what a user waits)."""
+    def median_ms(self, fn, repeats: int, per: int = 1, key: str = "") -> float:
+        """Median wall-clock ms per unit of ``repeats`` calls of ``fn`` (``per`` units each)."""
         wall, cpu = [], []
         for _ in range(repeats):
             t0, c0 = time.perf_counter(), time.process_time()
@@ -156,147 +166,133 @@ def run(args: Args) -> dict:
             wall.append((time.perf_counter() - t0) * 1e3 / per)
             cpu.append((time.process_time() - c0) * 1e3 / per)
         if key:
-            CPU_MS[key] = float(np.median(cpu))
+            self.cpu_ms[key] = float(np.median(cpu))
         return float(np.median(wall))
 
-
-    def ensemble(members, seed=0) -> DynamicsEnsemble:
-        model = DynamicsEnsemble(EnsembleConfig(4, 2, members=tuple(members), seed=seed))
-        model.set_normalization(data_1000)
+    def ensemble(self, K: int = 4, members: list[MemberSpec] | None = None) -> DynamicsEnsemble:
+        """K paper members (activations in turn), normalized on all the data."""
+        members = members or [MemberSpec(PAPER[k % 4], 20, 1) for k in range(K)]
+        model = DynamicsEnsemble(EnsembleConfig(4, 2, members=tuple(members), seed=0))
+        model.set_normalization(self.data)
         return model
 
-
-    def members_of(K: int) -> list[MemberSpec]:
-        return [MemberSpec(PAPER[k % 4], 20, 1) for k in range(K)]
-
-
-    quiet = {"progress": False}
-    load_start = os.getloadavg()
-    results: dict = {"config": dataclasses.asdict(args)}
-
-    # ---------------------------------------------------------------------------------------------
-    # 1. batched K = 1, 4, 8 vs K separate modules in a loop (full batch of 1000, one step/epoch)
-    # ---------------------------------------------------------------------------------------------
-    # the same activation kernels as the ensemble (its tanh is 2 sigmoid(2z) - 1, faster than
-    # torch.tanh on these CPUs), so the comparison isolates the batching
-    ACT = {name: ACTIVATIONS[name][0] for name in PAPER}
+    def epochs(self, model: DynamicsEnsemble, data: list[Trajectory], epochs: int, *reg: Any,
+               **kw: Any):
+        """A call that trains ``model`` for ``epochs`` (full batch unless ``data`` is the
+        nominal setting's)."""
+        full = {"batch": 1000, "shuffle": False} if data is self.data else {}
+        cfg = TrainConfig(epochs=epochs, progress=False, **full)
+        return lambda: train_ensemble(model, data, cfg, *reg, **kw)
 
 
-    class Member(nn.Module):
-        def __init__(self, activation: str) -> None:
-            super().__init__()
-            self.hidden, self.out, self.act = nn.Linear(6, 20), nn.Linear(20, 4), ACT[activation]
+class _Member(nn.Module):
+    """One paper member as its own torch module, with the ensemble's activation kernels (its
+    tanh is 2 sigmoid(2z) - 1, faster than torch.tanh on these CPUs), so that the comparison
+    isolates the batching."""
 
-        def forward(self, xn):
-            return self.out(self.act(self.hidden(xn)))
+    def __init__(self, activation: str) -> None:
+        super().__init__()
+        self.hidden, self.out = nn.Linear(6, 20), nn.Linear(20, 4)
+        self.act = ACTIVATIONS[activation][0]
 
-
-    def loop_epochs(K: int, epochs: int):
-        """K separate modules, one Adam over all of them, one full-batch step per epoch."""
-        ref = ensemble(members_of(K))
-        with torch.no_grad():
-            xn = ref.normalize_inputs(xu_all)
-            x_next = torch.tensor(np.concatenate([tr.targets for tr in data_1000]),
-                                  dtype=torch.float32)
-            target = ref.normalized_residual(xu_all, x_next)
-        torch.manual_seed(args.seed)
-        modules = [Member(PAPER[k % 4]) for k in range(K)]
-        opt = torch.optim.Adam([p for mod in modules for p in mod.parameters()], lr=0.01,
-                               foreach=True)
-
-        def run():
-            for _ in range(epochs):
-                loss = sum(((mod(xn) - target) ** 2).sum(-1).mean() for mod in modules)
-                opt.zero_grad(set_to_none=True)
-                loss.backward()
-                opt.step()
-
-        return run
+    def forward(self, xn):
+        return self.out(self.act(self.hidden(xn)))
 
 
-    def batched_epochs(K: int, epochs: int):
-        model = ensemble(members_of(K))
-        cfg = TrainConfig(epochs=epochs, batch=1000, shuffle=False, **quiet)
-        return lambda: train_ensemble(model, data_1000, cfg)
+def _loop_epochs(b: _Bench, K: int, epochs: int):
+    """K separate modules, one Adam over all of them, one full-batch step per epoch."""
+    ref = b.ensemble(K)
+    with torch.no_grad():
+        xn = ref.normalize_inputs(b.xu)
+        x_next = torch.tensor(np.concatenate([tr.targets for tr in b.data]), dtype=torch.float32)
+        target = ref.normalized_residual(b.xu, x_next)
+    torch.manual_seed(b.args.seed)
+    modules = [_Member(PAPER[k % 4]) for k in range(K)]
+    opt = torch.optim.Adam([p for mod in modules for p in mod.parameters()], lr=0.01,
+                           foreach=True)
+
+    def run():
+        for _ in range(epochs):
+            loss = sum(((mod(xn) - target) ** 2).sum(-1).mean() for mod in modules)
+            opt.zero_grad(set_to_none=True)
+            loss.backward()
+            opt.step()
+
+    return run
 
 
-    epoch_ms = {}
+def epoch_times(b: _Bench) -> dict:
+    """1. batched K = 1, 4, 8 vs K separate modules in a loop (full batch of 1000, one step per
+    epoch), and the same K scaling in the paper's regime (3 trajectories x 200)."""
+    a, epoch_ms = b.args, {}
     for K in (1, 4, 8):
-        batched_epochs(K, 5)()  # warm-up
-        loop_epochs(K, 5)()
+        b.epochs(b.ensemble(K), b.data, 5)()  # warm-up
+        _loop_epochs(b, K, 5)()
         # interleave the repeats of the two variants so load changes hit both alike
-        runs = {f"batched_K{K}": batched_epochs(K, args.epochs),
-                f"loop_K{K}": loop_epochs(K, args.epochs)}
-        samples = {k: [] for k in runs}
-        cpu_samples = {k: [] for k in runs}
-        for _ in range(args.repeats):
+        runs = {f"batched_K{K}": b.epochs(b.ensemble(K), b.data, a.epochs),
+                f"loop_K{K}": _loop_epochs(b, K, a.epochs)}
+        samples: dict[str, list] = {k: [] for k in runs}
+        cpu_samples: dict[str, list] = {k: [] for k in runs}
+        for _ in range(a.repeats):
             for k, fn in runs.items():
-                samples[k].append(median_ms(fn, 1, args.epochs, key=k))
-                cpu_samples[k].append(CPU_MS[k])
+                samples[k].append(b.median_ms(fn, 1, a.epochs, key=k))
+                cpu_samples[k].append(b.cpu_ms[k])
         for k in runs:
             epoch_ms[k] = float(np.median(samples[k]))
-            CPU_MS[k] = float(np.median(cpu_samples[k]))
+            b.cpu_ms[k] = float(np.median(cpu_samples[k]))
         print(f"K={K}: batched {epoch_ms[f'batched_K{K}']:.3f} ms/epoch, "
               f"loop {epoch_ms[f'loop_K{K}']:.3f} ms/epoch", file=sys.stderr)
-
-
-    def same_activation_epochs(epochs: int):
-        model = ensemble([MemberSpec("elu", 20, 1)] * 4)
-        cfg = TrainConfig(epochs=epochs, batch=1000, shuffle=False, **quiet)
-        return lambda: train_ensemble(model, data_1000, cfg)
-
-
-    same_activation_epochs(5)()
-    epoch_ms["batched_K4_all_elu"] = median_ms(same_activation_epochs(args.epochs), args.repeats,
-                                               args.epochs, key="batched_K4_all_elu")
-    results["epoch_ms_full_batch_1000"] = epoch_ms
-    results["epoch_cpu_ms_full_batch_1000"] = {k: CPU_MS[k] for k in epoch_ms}
-
-    # the same K scaling in the paper's training regime: 3 trajectories x 200, one step each
+    elu = [MemberSpec("elu", 20, 1)] * 4
+    b.epochs(b.ensemble(members=elu), b.data, 5)()  # warm-up
+    epoch_ms["batched_K4_all_elu"] = b.median_ms(b.epochs(b.ensemble(members=elu), b.data,
+                                                          a.epochs), a.repeats, a.epochs,
+                                                 key="batched_K4_all_elu")
     nominal_k = {}
     for K in (1, 4, 8):
-        model = ensemble(members_of(K))
-        cfg = TrainConfig(epochs=args.epochs, **quiet)
-        train_ensemble(model, robot_train, TrainConfig(epochs=3, **quiet))
-        nominal_k[f"batched_K{K}"] = median_ms(
-            lambda model=model, cfg=cfg: train_ensemble(model, robot_train, cfg), args.repeats,
-            args.epochs, key=f"nominal_K{K}")
-    results["epoch_ms_nominal_3x200"] = nominal_k
-    results["epoch_cpu_ms_nominal_3x200"] = {k: CPU_MS[f"nominal_{k[-2:]}"] for k in nominal_k}
+        model = b.ensemble(K)
+        b.epochs(model, b.train, 3)()
+        nominal_k[f"batched_K{K}"] = b.median_ms(b.epochs(model, b.train, a.epochs), a.repeats,
+                                                 a.epochs, key=f"nominal_K{K}")
     print(f"nominal setting: {nominal_k}", file=sys.stderr)
+    return {"epoch_ms_full_batch_1000": epoch_ms,
+            "epoch_cpu_ms_full_batch_1000": {k: b.cpu_ms[k] for k in epoch_ms},
+            "epoch_ms_nominal_3x200": nominal_k,
+            "epoch_cpu_ms_nominal_3x200": {k: b.cpu_ms[f"nominal_{k[-2:]}"] for k in nominal_k}}
 
-    # ---------------------------------------------------------------------------------------------
-    # 2. Jacobians and the protocol surface at iLQR sizes
-    # ---------------------------------------------------------------------------------------------
-    model4 = ensemble(members_of(4))
+
+def jacobian_times(b: _Bench) -> dict:
+    """2. Jacobians and the protocol surface at iLQR sizes."""
+    model4 = b.ensemble(4)
     frozen4 = model4.freeze()  # the planning model: numpy surface without a freeze per call
-    x1000, u1000 = (np.concatenate(p) for p in zip(*[tr.inputs for tr in data_1000]))
-    x200, u200 = robot_train[0].inputs
-    n_rep = 50
+    x1000, u1000 = (np.concatenate(p) for p in zip(*[tr.inputs for tr in b.data]))
+    x200, u200 = b.train[0].inputs
+    n = 50
     jac = {
-        "member_jacobians_4x1000_numpy_ms": median_ms(
-            lambda: [frozen4.member_jacobians(x1000, u1000) for _ in range(n_rep)], 5, n_rep),
-        "mean_jacobians_4x1000_numpy_ms": median_ms(
-            lambda: [frozen4.jacobians(x1000, u1000) for _ in range(n_rep)], 5, n_rep),
-        "member_jacobians_4x1000_torch_ms": median_ms(
+        "member_jacobians_4x1000_numpy_ms": b.median_ms(
+            lambda: [frozen4.member_jacobians(x1000, u1000) for _ in range(n)], 5, n),
+        "mean_jacobians_4x1000_numpy_ms": b.median_ms(
+            lambda: [frozen4.jacobians(x1000, u1000) for _ in range(n)], 5, n),
+        "member_jacobians_4x1000_torch_ms": b.median_ms(
             lambda: [model4.member_jacobians_torch(torch.tensor(x1000), torch.tensor(u1000))
-                     for _ in range(n_rep)], 5, n_rep),
-        "mean_jacobians_4x200_numpy_us": 1e3 * median_ms(
-            lambda: [frozen4.jacobians(x200, u200) for _ in range(n_rep)], 5, n_rep),
-        "step_1_point_us": 1e3 * median_ms(
-            lambda: [frozen4.step(x200[0], u200[0]) for _ in range(20 * n_rep)], 5, 20 * n_rep),
-        "step_200_points_us": 1e3 * median_ms(
-            lambda: [frozen4.step(x200, u200) for _ in range(n_rep)], 5, n_rep),
+                     for _ in range(n)], 5, n),
+        "mean_jacobians_4x200_numpy_us": 1e3 * b.median_ms(
+            lambda: [frozen4.jacobians(x200, u200) for _ in range(n)], 5, n),
+        "step_1_point_us": 1e3 * b.median_ms(
+            lambda: [frozen4.step(x200[0], u200[0]) for _ in range(20 * n)], 5, 20 * n),
+        "step_200_points_us": 1e3 * b.median_ms(
+            lambda: [frozen4.step(x200, u200) for _ in range(n)], 5, n),
     }
-    results["jacobians"] = jac
     print(f"jacobians: {jac}", file=sys.stderr)
+    return {"jacobians": jac}
 
-    # ---------------------------------------------------------------------------------------------
-    # 3. regularizer cost per epoch in the nominal setting (3 x 200, one step per trajectory)
-    # ---------------------------------------------------------------------------------------------
+
+def regularizer_times(b: _Bench) -> dict:
+    """3. regularizer cost per epoch in the nominal setting (3 x 200, one step per
+    trajectory), the LTV models fitted once outside the timing."""
+    a = b.args
     t0 = time.perf_counter()
-    ltv_models = [fit_ltv(tr, RegularizationConfig().ltv_lambda) for tr in robot_train]
-    ltv_fit_ms = (time.perf_counter() - t0) * 1e3 / len(robot_train)
+    ltv_models = [fit_ltv(tr, RegularizationConfig().ltv_lambda) for tr in b.train]
+    ltv_fit_ms = (time.perf_counter() - t0) * 1e3 / len(b.train)
     regs = {
         "none": RegularizationConfig(),
         "sampled": RegularizationConfig.paper(),
@@ -306,64 +302,76 @@ def run(args: Args) -> dict:
     }
     reg_ms = {}
     for name, reg in regs.items():
-        model = ensemble(members_of(4))
-        cfg = TrainConfig(epochs=args.epochs, **quiet)
-        train_ensemble(model, robot_train, TrainConfig(epochs=3, **quiet), reg,
-                       ltv_models=ltv_models)
-        reg_ms[name] = median_ms(
-            lambda model=model, cfg=cfg, reg=reg: train_ensemble(model, robot_train, cfg, reg,
-                                                                 ltv_models=ltv_models),
-            args.repeats, args.epochs, key=f"reg_{name}")
+        model = b.ensemble(4)
+        b.epochs(model, b.train, 3, reg, ltv_models=ltv_models)()
+        reg_ms[name] = b.median_ms(b.epochs(model, b.train, a.epochs, reg, ltv_models=ltv_models),
+                                   a.repeats, a.epochs, key=f"reg_{name}")
         print(f"{name}: {reg_ms[name]:.3f} ms/epoch", file=sys.stderr)
-    results["nominal_epoch_ms"] = reg_ms
-    results["regularizer_epoch_ratio"] = {k: v / reg_ms["none"] for k, v in reg_ms.items()}
-    results["nominal_epoch_cpu_ms"] = {k: CPU_MS[f"reg_{k}"] for k in reg_ms}
-    results["ltv_fit_ms_per_trajectory"] = ltv_fit_ms
+    return {"nominal_epoch_ms": reg_ms,
+            "regularizer_epoch_ratio": {k: v / reg_ms["none"] for k, v in reg_ms.items()},
+            "nominal_epoch_cpu_ms": {k: b.cpu_ms[f"reg_{k}"] for k in reg_ms},
+            "ltv_fit_ms_per_trajectory": ltv_fit_ms}
 
-    # ---------------------------------------------------------------------------------------------
-    # 4. the paper's nominal robot model, sampled Jacobian propagation, 2000 epochs
-    # ---------------------------------------------------------------------------------------------
-    J_true = arm_jacobians(*robot_val.inputs)
+
+def robot_training(b: _Bench) -> dict:
+    """4. the paper's nominal robot model, sampled Jacobian propagation (and none), trained for
+    ``robot_epochs``, with its held-out prediction and Jacobian errors."""
+    a = b.args
+    J_true = arm_jacobians(*b.val.inputs)
     robot = {}
     for name, reg in (("sampled", RegularizationConfig.paper()), ("none", RegularizationConfig())):
-        model = DynamicsEnsemble(EnsembleConfig(4, 2, seed=args.seed))
+        model = DynamicsEnsemble(EnsembleConfig(4, 2, seed=a.seed))
         t0, c0 = time.perf_counter(), time.process_time()
-        hist = train_ensemble(model, robot_train, TrainConfig(epochs=args.robot_epochs,
-                                                               seed=args.seed, **quiet), reg)
-        seconds, cpu_seconds = time.perf_counter() - t0, time.process_time() - c0
+        hist = train_ensemble(model, b.train, TrainConfig(epochs=a.robot_epochs, seed=a.seed,
+                                                          progress=False), reg)
         robot[name] = {
-            "seconds": seconds,
-            "cpu_seconds": cpu_seconds,
-            "steps": hist.steps,
-            "final_train_loss": float(hist.train_loss[-1]),
-            "val_prediction_rms": prediction_rms(model, [robot_val]),
-            "val_jacobian_error": jacobian_error(J_true, model.member_jacobians(*robot_val.inputs)),
+            "seconds": time.perf_counter() - t0, "cpu_seconds": time.process_time() - c0,
+            "steps": hist.steps, "final_train_loss": float(hist.train_loss[-1]),
+            "val_prediction_rms": prediction_rms(model, [b.val]),
+            "val_jacobian_error": jacobian_error(J_true, model.member_jacobians(*b.val.inputs)),
         }
         print(f"robot {name}: {robot[name]}", file=sys.stderr)
-    results["nominal_robot_training"] = robot
+    return {"nominal_robot_training": robot}
 
-    # ---------------------------------------------------------------------------------------------
-    # targets and output
-    # ---------------------------------------------------------------------------------------------
-    cpu = results["epoch_cpu_ms_full_batch_1000"]
+
+def _target(value: float, cpu_value: float, **bound: float) -> dict:
+    met = value <= bound["max"] if "max" in bound else value >= bound["min"]
+    return {"value": value, "cpu_time_value": cpu_value, **bound, "met": bool(met)}
+
+
+def run(args: Args) -> dict:
+    """Run the benchmark; print and return the results (and write ``args.out``).
+
+    ``args.threads`` sets torch's threads; BLAS reads ``OMP_NUM_THREADS`` (the command sets one
+    thread unless it is set).
+    """
+    torch.set_num_threads(args.threads)
+    b = _Bench(args)
+    print(f"data: {len(b.data)} trajectories, {b.xu.shape[0]} transitions; "
+          f"threads {args.threads}, load {os.getloadavg()}", file=sys.stderr)
+    load_start = os.getloadavg()
+    results: dict = {"config": dataclasses.asdict(args)}
+    for section in (epoch_times, jacobian_times, regularizer_times, robot_training):
+        results.update(section(b))
+    epoch_ms, cpu = results["epoch_ms_full_batch_1000"], results["epoch_cpu_ms_full_batch_1000"]
+    nominal_k, robot = results["epoch_ms_nominal_3x200"], results["nominal_robot_training"]
     results["diagnostics"] = {
         "nominal_3x200_batched_K4_over_K1": nominal_k["batched_K4"] / nominal_k["batched_K1"],
         "full_batch_K4_all_elu_over_K1": epoch_ms["batched_K4_all_elu"] / epoch_ms["batched_K1"],
     }
     results["targets"] = {
-        "batched_K4_over_K1": {"value": epoch_ms["batched_K4"] / epoch_ms["batched_K1"],
-                               "cpu_time_value": cpu["batched_K4"] / cpu["batched_K1"],
-                               "max": 1.5},
-        "loop_K8_over_batched_K8": {"value": epoch_ms["loop_K8"] / epoch_ms["batched_K8"],
-                                    "cpu_time_value": cpu["loop_K8"] / cpu["batched_K8"],
-                                    "min": 2.0},
-        "nominal_robot_training_seconds": {"value": robot["sampled"]["seconds"],
-                                           "cpu_time_value": robot["sampled"]["cpu_seconds"],
-                                           "max": 10.0},
+        "batched_K4_over_K1": _target(epoch_ms["batched_K4"] / epoch_ms["batched_K1"],
+                                      cpu["batched_K4"] / cpu["batched_K1"], max=1.5),
+        "loop_K8_over_batched_K8": _target(epoch_ms["loop_K8"] / epoch_ms["batched_K8"],
+                                           cpu["loop_K8"] / cpu["batched_K8"], min=2.0),
+        "nominal_robot_training_seconds": _target(robot["sampled"]["seconds"],
+                                                  robot["sampled"]["cpu_seconds"], max=10.0),
     }
-    for t in results["targets"].values():
-        t["met"] = bool(t["value"] <= t["max"]) if "max" in t else bool(t["value"] >= t["min"])
     results["machine"] = machine_info(load_start, torch=torch.__version__, numpy=np.__version__)
     print(json.dumps(results, indent=2))
-    write_result(args.json, results, indent=2)
+    write_result(args.out, results, indent=2)
     return results
+
+
+if __name__ == "__main__":
+    main()

@@ -22,8 +22,9 @@ the real env from ``reset(seed)`` for ``steps`` warm MPC steps. Reported per tas
 The machine's load is recorded; on a shared machine the wall time is the CPU time stretched by
 the other processes, so compare the CPU figures between runs.
 
-Usage: ``python scripts/bench_planning.py --json docs/results/bench_ilqr/planning_rate.json
---figure docs/figures/planning_rate.png`` (``--tasks reacher --steps 5 --smoke``: seconds).
+Usage: ``python -m agents.experiments.bench_planning --out
+docs/results/bench_ilqr/planning_rate.json --figure docs/figures/planning_rate.png``
+(``--smoke``: seconds).
 """
 
 from __future__ import annotations
@@ -36,6 +37,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from agents.cli import main as command
 from agents.experiments.paper_common import machine_info, pyplot, save_figure, write_result
 
 
@@ -43,6 +45,11 @@ from agents.experiments.paper_common import machine_info, pyplot, save_figure, w
 class Args:
     """Planning at the control rate: ms per MPC step of the default planner per suite task."""
 
+    out: str | None = None
+    """write the results to this JSON file"""
+    smoke: bool = False
+    """tiny CI size: tiny model and planner (the suite's smoke settings) on Reacher, few steps;
+    checks the bench runs, times nothing"""
     tasks: tuple[str, ...] = ()
     """suite tasks (default: every task of scripts/bench_suite.py)"""
     steps: int = 60
@@ -55,12 +62,17 @@ class Args:
     overrides: str = ""
     """agent settings on top of each task's, a JSON object of dotted fields (e.g.
     '{"planner.proposal.samples": 32}'): a planner variant, timed the same way"""
-    smoke: bool = False
-    """tiny model and planner (the suite's smoke settings): checks the bench runs, times nothing"""
-    json: str | None = None
-    """write the results to this JSON file"""
     figure: str | None = None
     """write the ms-per-step figure (PNG) here"""
+
+
+#: --smoke: the tiny CI size (options given on the command line win)
+SMOKE = {"smoke": True, "tasks": ("reacher",), "steps": 3, "repeats": 1}
+
+
+def main(argv: list[str] | None = None) -> dict:
+    """The command line (``--help``: the options)."""
+    return command(Args, run, args=argv, outputs=("out", "figure"), presets={"--smoke": SMOKE})
 
 
 def matmul_peak(dtype: type, size: int = 1024, repeats: int = 5) -> float:
@@ -226,7 +238,7 @@ def figure(result: dict, path: str) -> None:
 
 
 def run(args: Args) -> dict:
-    """The whole bench; writes ``args.json`` / ``args.figure`` if set and returns the result."""
+    """The whole bench; writes ``args.out`` / ``args.figure`` if set and returns the result."""
     import torch
 
     from agents.experiments import bench_suite
@@ -249,7 +261,11 @@ def run(args: Args) -> dict:
               "tasks": {name: bench_task(name, args, peaks)
                         for name in args.tasks or tuple(bench_suite.TASKS)}}
     result["machine"] = machine_info(load)
-    write_result(args.json, result)
+    write_result(args.out, result)
     if args.figure:
         figure(result, args.figure)
     return result
+
+
+if __name__ == "__main__":
+    main()

@@ -1,8 +1,8 @@
 """Benchmark suite: the agent on standard MuJoCo tasks and the project's arm, measured against
 doing nothing, the true-model oracle, SB3 SAC and PETS, at equal env steps.
 
-Every task (:data:`TASKS`) is a reusable :class:`agents.tasks.Task` (its env, a cost written
-from the observation and action, its termination) plus the suite's budget in env steps. One
+Every task is a reusable :class:`agents.tasks.Task` of :data:`agents.tasks.SUITE` (its env, a
+cost written from the observation and action, its termination, the suite's budget in env steps). One
 evaluation protocol for every method: 3 fixed episodes reset with seeds 1000, 1001, 1002 (the
 arm also draws its targets from them), the score is the mean of the env's own summed rewards.
 
@@ -33,16 +33,16 @@ SB3 SAC for a fixed 100,000 env steps, evaluated 20 times on the same episodes (
 scheduled seed-major, each finished run is appended to the JSON at once (``--resume`` skips
 finished runs)::
 
-    python scripts/bench_suite.py --baselines --report-only --json docs/results/bench_suite.json
-    python scripts/bench_suite.py --json docs/results/bench_suite.json --resume
-    python scripts/bench_suite.py --sb3 sac --seeds 0 --json docs/results/bench_suite.json
-    python scripts/bench_suite.py --report-only --json docs/results/bench_suite.json \\
+    python scripts/bench_suite.py --baselines --report-only --out docs/results/bench_suite.json
+    python scripts/bench_suite.py --out docs/results/bench_suite.json --resume
+    python scripts/bench_suite.py --sb3 sac --seeds 0 --out docs/results/bench_suite.json
+    python scripts/bench_suite.py --report-only --out docs/results/bench_suite.json \\
         --figures docs/figures --docs docs/benchmark.md
-    python scripts/bench_suite.py --smoke --json runs/bench_suite_smoke.json   # CI, ~1 min
+    python scripts/bench_suite.py --smoke --out runs/bench_suite_smoke.json   # CI, ~1 min
 
 Other agent settings run into their own JSON (``--agent-settings '{"training.patience": 20}'
---json runs/p20.json``); ``--report-only --compare runs/p20.json --figures F`` pairs them seed by
-seed with the suite's runs (``--json``) and draws both curves (a top-level ``"label"`` in the
+--out runs/p20.json``); ``--report-only --compare runs/p20.json --figures F`` pairs them seed by
+seed with the suite's runs (``--out``) and draws both curves (a top-level ``"label"`` in the
 compared JSON names runs that differ by code rather than by settings).
 
 A HalfCheetah run takes about 35 CPU minutes: ``--checkpoints runs/suite_ckpt`` checkpoints every
@@ -51,7 +51,7 @@ uninterrupted one), and ``--stop-after-steps N`` works through long runs in sess
 steps each, rounded up to whole episodes (add ``--resume``)::
 
     python scripts/bench_suite.py --tasks half-cheetah --resume --checkpoints runs/suite_ckpt \\
-        --stop-after-steps 3000 --json docs/results/bench_suite.json
+        --stop-after-steps 3000 --out docs/results/bench_suite.json
 """
 
 from __future__ import annotations
@@ -73,7 +73,6 @@ os.environ.setdefault("MUJOCO_GL", "egl")
 import numpy as np  # noqa: E402
 
 from agents import cli  # noqa: E402
-from agents import tasks as _tasks  # noqa: E402
 from agents.config import PLANNERS  # noqa: E402
 from agents.experiments.paper_common import (  # noqa: E402
     finite_or_none,
@@ -81,6 +80,7 @@ from agents.experiments.paper_common import (  # noqa: E402
     pyplot,
     save_figure,
 )
+from agents.tasks import SUITE  # noqa: E402
 from mbtsr.io import atomic_write_text, write_json_atomic  # noqa: E402
 
 REGULARIZATIONS = ("none", "sampled", "exact", "smooth")
@@ -92,30 +92,11 @@ EVAL_EPISODES, EVAL_SEED = 3, 1000
 BASELINES_JSON = REPO / "docs" / "results" / "bench_suite_baselines.json"
 
 
-def _task(task: _tasks.Task, budget: int, eval_every: int, **overrides: Any) -> dict[str, Any]:
-    """A suite entry: a reusable :class:`agents.tasks.Task`, its budget in env steps, the env
-    steps between evaluations (the learning curve's resolution; an evaluation costs 3 episodes)
-    and the agent settings the task needs (dotted ``AgentConfig`` fields)."""
-    return {"task": task, "budget": budget, "eval_every": eval_every, "overrides": overrides}
-
-
-#: the tasks, their budgets, evaluation periods and task-specific settings (stated before runs)
+#: the suite's tasks (:data:`agents.tasks.SUITE` holds them: env, cost, budget, evaluation
+#: period, task-specific agent settings), as this module reads them
 TASKS: dict[str, dict[str, Any]] = {
-    "arm-far": _task(_tasks.two_link_arm(target_limit=0.85 * math.pi), 800, 200),
-    "arm-open-loop": _task(_tasks.two_link_arm(), 800, 200, **{"planner.replan_every": 10}),
-    "reacher": _task(_tasks.reacher(), 2000, 250),
-    "inverted-pendulum": _task(_tasks.inverted_pendulum(max_episode_steps=200), 2000, 250),
-    # horizon 15: the learned model's k-step error explodes between 10 and 20 steps (4,746
-    # near-upright steps: 0.55 rad/s at 5 steps, 2.1 at 10, 27 at 20) and at 20 or 30 steps the
-    # learned-model MPC falls within 17-61 steps; the terminal weight 100 stands in for the cost
-    # beyond the shortened horizon (without it even the true model falls on episode 1001 at
-    # horizons 10-20). Chosen on the true model and on fixed data, not on suite runs:
-    # docs/results/idp_state_and_horizon.json
-    "inverted-double-pendulum": _task(_tasks.inverted_double_pendulum(), 5000, 1000,
-                                      **{"planner.horizon": 15, "planner.terminal_weight": 100.0}),
-    "pusher": _task(_tasks.pusher(), 3000, 300),
-    "half-cheetah": _task(_tasks.half_cheetah(), 10000, 5000),
-}
+    name: {"task": t, "budget": t.budget, "eval_every": t.eval_every, "overrides": t.settings}
+    for name, t in SUITE.items()}
 
 #: tiny budgets of the smoke mode (CI); planner settings only reach the planner they act in
 SMOKE_OVERRIDES = {
@@ -420,13 +401,13 @@ def check_agent_settings(settings: Any) -> dict[str, Any]:
     section by name, ``{"planner": "cem"}``, is refused), if none is one the suite sets itself
     (``seed``, ``planner.kind``, the ``evaluation`` protocol, ``run_dir``/``checkpoint``,
     threads, logging and video) or one the stored baseline records (the planner's horizon,
-    terminal weight, iterations and sample sizes: change those in the task's entry of
-    :data:`TASKS` and recompute its baseline with ``--baselines``). Other planner settings
-    (``planner.replan_every``, CEM's ``particles`` or ``init_std``, ...) pass: those runs are
-    scored against the stored oracle, which plans with the task's settings alone, and the
-    report says so. Regularizer weights pass; :func:`agent_config` refuses a set that changes
-    a run's regularizer away from its ``--regularizations`` name. The
-    values are checked when :func:`run` builds every run's config, before the first run.
+    terminal weight, iterations and sample sizes: change those in the task's settings in
+    :data:`agents.tasks.SUITE` and recompute its baseline with ``--baselines``). Other planner
+    settings (``planner.replan_every``, CEM's ``particles`` or ``init_std``, ...) pass: those
+    runs are scored against the stored oracle, which plans with the task's settings alone, and
+    the report says so. Regularizer weights pass; :func:`agent_config` refuses a set that
+    changes a run's regularizer away from its ``--regularizations`` name. The values are
+    checked when :func:`run` builds every run's config, before the first run.
 
     :raises ValueError: naming the refused field and why.
     """
@@ -446,8 +427,8 @@ def check_agent_settings(settings: Any) -> dict[str, Any]:
         if key in _ORACLE_OWN:
             raise ValueError(
                 f"agent setting {key!r} changes the planner the stored true-model oracle was "
-                f"computed with ({BASELINES_JSON.name}): set it in the task's entry of "
-                f"agents.experiments.bench_suite.TASKS and recompute the baseline with "
+                f"computed with ({BASELINES_JSON.name}): set it in the task's settings in "
+                f"agents.tasks.SUITE and recompute the baseline with "
                 f"`python scripts/bench_suite.py --baselines --tasks <task> --seeds` (an "
                 f"empty --seeds: the baselines only)")
         if key not in leaves:
@@ -921,15 +902,9 @@ def _steps_note(steps: float | None) -> str:
     return f" (agent at {steps:,.0f})" if steps is not None and math.isfinite(steps) else ""
 
 
-def write_markdown(state: dict[str, Any], path: Path, figure_dir: Path,
-                   baselines: dict[str, dict[str, Any]], sb3_runs: list[dict[str, Any]],
-                   pets_runs: list[dict[str, Any]]) -> None:
-    """The report (``docs/benchmark.md``): tasks and baselines, the reference methods next to
-    the best agent configuration, every configuration, each regularizer vs none, the figures;
-    everything below :data:`NOTES_MARKER` is kept."""
-    rel = os.path.relpath(figure_dir, path.parent)
-    refs = reference_rows(state, baselines, sb3_runs, pets_runs)
-    state["references"] = refs
+def _md_references(state: dict[str, Any], refs: list[dict[str, Any]], rel: str) -> list[str]:
+    """The report's head: the protocol, the tasks, baselines and reference methods, the agent
+    vs PETS at equal env steps and the learning-curve figures."""
     lines = [
         "# Benchmark suite",
         "",
@@ -997,7 +972,14 @@ def write_markdown(state: dict[str, Any], path: Path, figure_dir: Path,
         "agent's budget (red), the oracle and the zero action (dotted).",
         "",
         f"![SAC over 100,000 env steps]({rel}/bench_suite_sac_curves.png)",
-        "",
+        ""
+    ]
+    return lines
+
+
+def _md_configurations(state: dict[str, Any]) -> list[str]:
+    """The report's table of every agent configuration."""
+    lines = [
         "## Every agent configuration",
         "",
         "| task | planner | regularizer | solved | env steps to solve: median (per seed) | "
@@ -1016,9 +998,12 @@ def write_markdown(state: dict[str, Any], path: Path, figure_dir: Path,
             f"{_fmt(r['normalized_median'])} ({', '.join(_fmt(v) for v in r['normalized'])}) | "
             f"{ph.get('training', 0):.0f} / {ph.get('ltv', 0):.1f} / {ph.get('planning', 0):.0f}"
             f" / {ph.get('eval', 0):.0f} / {ph.get('total', 0):.0f} |")
-    cmp = comparisons(with_solved(state["runs"], baselines))
-    state["comparisons"] = cmp
-    lines += [
+    return lines
+
+
+def _md_regularizers(cmp: list[dict[str, Any]]) -> list[str]:
+    """The report's comparison of each regularizer with none."""
+    lines = [
         "",
         "## JacProp: each regularizer vs none",
         "",
@@ -1036,6 +1021,21 @@ def write_markdown(state: dict[str, Any], path: Path, figure_dir: Path,
                      f"{', '.join(map(str, c['seeds']))} | {c['steps_to_solve']} | "
                      f"{c['wins_ties_losses']} | {c['final_score']} | "
                      f"{c['final_scores_better_equal_worse']} | {_fmt(c['wall_ratio'])} |")
+    return lines
+
+
+def write_markdown(state: dict[str, Any], path: Path, figure_dir: Path,
+                   baselines: dict[str, dict[str, Any]], sb3_runs: list[dict[str, Any]],
+                   pets_runs: list[dict[str, Any]]) -> None:
+    """The report (``docs/benchmark.md``): tasks and baselines, the reference methods next to
+    the best agent configuration, every configuration, each regularizer vs none, the figures;
+    everything below :data:`NOTES_MARKER` is kept."""
+    rel = os.path.relpath(figure_dir, path.parent)
+    refs = reference_rows(state, baselines, sb3_runs, pets_runs)
+    state["references"] = refs
+    state["comparisons"] = comparisons(with_solved(state["runs"], baselines))
+    lines = [*_md_references(state, refs, rel), *_md_configurations(state),
+             *_md_regularizers(state["comparisons"])]
     lines += [
         "",
         "## Compute",
@@ -1066,12 +1066,12 @@ class Args:
     """Benchmark suite: the agent on standard MuJoCo tasks against doing nothing, the
     true-model oracle, SB3 SAC and PETS."""
 
-    json: str = "runs/bench_suite.json"
+    out: str = "runs/bench_suite.json"
     """the agent runs' JSON (every finished run is appended at once)"""
     seeds: tuple[int, ...] = (0, 1, 2, 3, 4)
     """seeds (seed-major schedule)"""
     tasks: tuple[str, ...] = tuple(TASKS)
-    """tasks to run (agents.tasks.TASKS; the module docstring says what each measures)"""
+    """tasks to run (agents.tasks.SUITE; the module docstring says what each measures)"""
     planners: tuple[str, ...] = ("cem-ilqr",)
     """planners to run (also: ilqr, cem)"""
     regularizations: tuple[str, ...] = ("none", "sampled")
@@ -1079,7 +1079,7 @@ class Args:
     smoke: bool = False
     """tiny budgets (CI)"""
     resume: bool = False
-    """skip runs already in --json"""
+    """skip runs already in --out"""
     report_only: bool = False
     """no new agent runs: aggregate, draw and report the ones in the JSON files"""
     baselines: bool = False
@@ -1110,13 +1110,13 @@ class Args:
     """PETS' runs (scripts/pets_peer.py; read by the report)"""
     compare: str = ""
     """with --report-only (instead of the suite's report): a JSON of runs with other
-    --agent-settings, paired with --json's runs (task, planner, regularizer, budget, seed):
+    --agent-settings, paired with --out's runs (task, planner, regularizer, budget, seed):
     prints the paired finals and seconds and, with --figures, draws settings_<its name>.png
     (its top-level "label", if any, names the variant)"""
     agent_settings: str = ""
     """a JSON object of dotted AgentConfig fields applied to every agent run on top of the
     task's (e.g. '{"planner.replan_every": 8}'); recorded in the JSON, which then holds only
-    runs of these settings (use another --json)"""
+    runs of these settings (use another --out)"""
 
     def __post_init__(self) -> None:
         unknown = sorted(set(self.tasks) - set(TASKS))
@@ -1149,9 +1149,10 @@ class Args:
 
 
 def main(argv: list[str] | None = None) -> dict[str, Any]:
-    """The command line (``scripts/bench_suite.py``): :class:`Args` -> :func:`run`."""
+    """The command line (``python -m agents.experiments.bench_suite``, ``mbtsr-bench``):
+    :class:`Args` -> :func:`run`."""
     return cli.main(Args, run, args=argv,
-                    outputs=("json", "docs", "sb3_json", "baselines_json"),
+                    outputs=("out", "docs", "sb3_json", "baselines_json"),
                     folders=("figures",))
 
 
@@ -1205,7 +1206,7 @@ def run(a: Args) -> dict[str, Any]:
                     print(f"{name} {algo} seed {seed}: final {rec['curve'][-1]['score']:.4g}, "
                           f"{rec['wall_seconds']:.0f} s", flush=True)
         return state
-    path = Path(a.json)
+    path = Path(a.out)
     state = _load(path) if (a.resume or a.report_only) else {"runs": []}
     settings = check_agent_settings(json.loads(a.agent_settings)) if a.agent_settings else {}
     if not a.report_only:
@@ -1222,7 +1223,7 @@ def run(a: Args) -> dict[str, Any]:
         if state["runs"] and state.get("agent_settings", {}) != settings:
             raise ValueError(f"{path} holds runs with agent settings "
                              f"{state.get('agent_settings', {})}, these are {settings}: give "
-                             f"another --json")
+                             f"another --out")
         state["agent_settings"] = settings
         _header(state, a.smoke)  # a report keeps the stamps of the runs it reports
         done = {(r["task"], r["planner"], r["regularization"], r["seed"]) for r in state["runs"]}
@@ -1266,7 +1267,7 @@ def run(a: Args) -> dict[str, Any]:
         rows = settings_comparison(state["runs"], other.get("runs", []), baselines)
         if not rows:
             raise ValueError(f"--compare {a.compare}: none of its runs pairs with a run of "
-                             f"{a.json} (same task, planner, regularizer, budget and seed)")
+                             f"{a.out} (same task, planner, regularizer, budget and seed)")
         for row in rows:
             print(f"{row['task']} {row['planner']}/{row['regularization']} seeds "
                   f"{row['seeds']}: {settings} {_fmt(row['final_median'][1], 4)} "
@@ -1293,3 +1294,12 @@ def run(a: Args) -> dict[str, Any]:
                            pets_runs)
             write_json_atomic(path, state)
     return state
+
+
+def console() -> None:
+    """The console script ``mbtsr-bench``: :func:`main`, exit code 0 (errors: 2)."""
+    main()
+
+
+if __name__ == "__main__":
+    main()

@@ -23,6 +23,7 @@ import gymnasium as gym
 import numpy as np
 
 import envs  # noqa: F401  (registers the envs; sets MUJOCO_GL=egl before mujoco is loaded)
+from agents.cli import main as command
 from agents.experiments.paper_common import pyplot, save_figure
 from envs.collect import collect_trajectories, default_input_kwargs
 from envs.rendering import save_png_strip
@@ -38,6 +39,8 @@ class Args:
 
     out: str = "runs/excitation"
     """output directory"""
+    smoke: bool = False
+    """tiny CI size: the options not given take SMOKE's values"""
     seed: int = 0
     """master seed (same seed, same data)"""
     n_traj: int = 5
@@ -52,6 +55,16 @@ class Args:
     """redraw trajectories reaching |q| >= this (<= 0: keep all)"""
     render: bool = True
     """render a PNG strip of the first trajectory"""
+
+
+#: --smoke: the tiny CI size (options given on the command line win)
+SMOKE = {"smoke": True, "n_traj": 2, "T": 50, "render": False,
+         "out": "runs/smoke/excitation"}
+
+
+def main(argv: list[str] | None = None) -> dict:
+    """The command line (``--help``: the options)."""
+    return command(Args, run, args=argv, folders=("out",), presets={"--smoke": SMOKE})
 
 
 def run(args: Args) -> dict:
@@ -134,3 +147,7 @@ def run(args: Args) -> dict:
         f"in {time.perf_counter() - start:.1f} s"
     )
     return config
+
+
+if __name__ == "__main__":
+    main()

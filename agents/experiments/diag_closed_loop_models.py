@@ -36,7 +36,7 @@ initialisations exceeds the differences between sizes (docs/benchmark.md, "Does 
 lift Pusher's plateau?").
 
     python scripts/diag_closed_loop_models.py --task pusher \
-        --checkpoints runs/ckpt/pusher_cem-ilqr_none_seed0 --json runs/diag.json
+        --checkpoints runs/ckpt/pusher_cem-ilqr_none_seed0 --out runs/diag.json
 """
 
 from __future__ import annotations
@@ -54,6 +54,7 @@ import torch
 from scipy.stats import spearmanr
 from tqdm import tqdm
 
+from agents.cli import main as command
 from agents.config import AgentConfig
 from agents.experiments.bench_model_sizes import errors, model_config
 from agents.tasks import TASKS, make_task
@@ -67,6 +68,10 @@ from mbtsr.validation import check_int
 class Args:
     """Held-out planning error of ensemble sizes on an agent run's own trajectories."""
 
+    out: str = "runs/diag_closed_loop_models.json"
+    """output JSON"""
+    smoke: bool = False
+    """tiny CI size: the options not given take SMOKE's values"""
     task: str = "pusher"
     """a task of agents.tasks (its cost scores the rollouts)"""
     checkpoints: tuple[str, ...] = ()
@@ -96,8 +101,6 @@ class Args:
     """observation dimensions whose closest distance to the tracked ones is reported"""
     skip: int = 2
     """first episodes of a run left out of the coverage (the agent's excitation)"""
-    json: str = "runs/diag_closed_loop_models.json"
-    """output JSON"""
 
     def __post_init__(self) -> None:
         if self.task not in TASKS:
@@ -128,6 +131,19 @@ class Args:
         """The agent's optimizer with this study's budget, patience and hold-out."""
         return dataclasses.replace(AgentConfig().training, steps=self.steps,
                                    patience=self.patience, holdout=self.holdout, seed=seed)
+
+
+#: --smoke: the tiny CI size (options given on the command line win)
+SMOKE = {"smoke": True, "sizes": ("2x16",), "inits": (1,), "steps": 20, "test_episodes": 1,
+         "horizon": 5, "stride": 5}
+
+
+def main(argv: list[str] | None = None) -> dict:
+    """The command line (``--help``: the options)."""
+    from agents.experiments.paper_common import blas_threads_from_env
+
+    blas_threads_from_env()  # one BLAS thread unless OMP_NUM_THREADS says otherwise
+    return command(Args, run, args=argv, outputs=("out",), presets={"--smoke": SMOKE})
 
 
 def members_and_size(size: str) -> tuple[int, str]:
@@ -264,7 +280,7 @@ def run(args: Args) -> dict[str, Any]:
               + (f"; median closest distance to near {cov['closest_near']:.4f}"
                  if args.near else ""))
     rows: list[dict[str, Any]] = []
-    write_json_atomic(args.json, {"args": asdict(args), "coverage": data, "rows": rows})
+    write_json_atomic(args.out, {"args": asdict(args), "coverage": data, "rows": rows})
     jobs = [(c, s, i) for c in args.checkpoints for s in args.sizes for i in args.inits]
     for ckpt, size, init in tqdm(jobs, desc="models"):
         train, test = runs[ckpt][:-args.test_episodes], runs[ckpt][-args.test_episodes:]
@@ -278,7 +294,7 @@ def run(args: Args) -> dict[str, Any]:
                      **planning_errors(model.freeze().step, cost_of, train, test,
                                        horizon=args.horizon, stride=args.stride,
                                        track=args.track, move=args.move)})
-        write_json_atomic(args.json, {"args": asdict(args), "coverage": data, "rows": rows})
+        write_json_atomic(args.out, {"args": asdict(args), "coverage": data, "rows": rows})
     for size in args.sizes:
         got = [r for r in rows if r["size"] == size]
         print(f"{size:>10}: cost_err median {np.median([r['cost_err'] for r in got]):.2f}, "
@@ -287,3 +303,7 @@ def run(args: Args) -> dict[str, Any]:
               + (f", displacement predicted {np.median([r['disp_pred'] for r in got]):.4f} of "
                  f"{np.median([r['disp_true'] for r in got]):.4f}" if args.track else ""))
     return {"args": asdict(args), "coverage": data, "rows": rows}
+
+
+if __name__ == "__main__":
+    main()

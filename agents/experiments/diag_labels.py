@@ -26,7 +26,7 @@ Each episode's row also holds the agent's log fields ``one_step_rms``, ``train_s
 ``eval_return``; the agent's evaluation stops early once it cannot reach the oracle's solved
 threshold (the agent's default early exit), and then ``eval_return`` is ``None``.
 
-    python scripts/diag_labels.py --task reacher --regularizations none exact --json runs/l.json
+    python scripts/diag_labels.py --task reacher --regularizations none exact --out runs/l.json
 """
 
 from __future__ import annotations
@@ -39,6 +39,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from agents.cli import main as command
 from agents.experiments.bench_model_sizes import ltv_fit
 from agents.experiments.bench_suite import TASKS, make_agent
 from agents.experiments.exp_small_data import jacobian_rel_error, true_jacobians
@@ -56,16 +57,19 @@ MUJOCO_TASKS = ("reacher", "inverted-pendulum", "inverted-double-pendulum", "pus
 class Args:
     """Jacobian errors of the LTV labels and of the model along an agent run."""
 
+    out: str = "runs/diag_labels.json"
+    """output JSON (rewritten after every episode)"""
+    smoke: bool = False
+    """the suite's tiny model and planner and a short run (CI): the options not given take
+    SMOKE's values"""
     task: str = "reacher"
-    """a suite task (agents.experiments.bench_suite.TASKS)"""
+    """a suite task (agents.tasks.SUITE)"""
     regularizations: tuple[str, ...] = ("none", "exact")
     """one agent run each (none, sampled, exact)"""
     seed: int = 0
     """the agent's seed"""
     env_steps: int = 2000
     """each run's budget (the suite's Reacher budget)"""
-    json: str = "runs/diag_labels.json"
-    """output JSON (rewritten after every episode)"""
     plot: str = ""
     """PNG of the identified-direction errors along the runs ('' for none)"""
 
@@ -82,6 +86,18 @@ class Args:
                              f"{self.regularizations!r}")
         check_int("seed", self.seed, 0)
         check_int("env_steps", self.env_steps, 2)
+
+
+#: --smoke: the tiny CI size (options given on the command line win)
+SMOKE = {"smoke": True, "env_steps": 200, "out": "runs/diag_labels_smoke.json"}
+
+
+def main(argv: list[str] | None = None) -> dict:
+    """The command line (``--help``: the options)."""
+    from agents.experiments.paper_common import blas_threads_from_env
+
+    blas_threads_from_env()  # one BLAS thread unless OMP_NUM_THREADS says otherwise
+    return command(Args, run, args=argv, outputs=("out", "plot"), presets={"--smoke": SMOKE})
 
 
 def replay_states(env: Any, traj: Trajectory, state_of: Any) -> np.ndarray:
@@ -174,16 +190,13 @@ def directions(task: str, states: np.ndarray, tol: float = 1e-9
     return basis(C[:, :, ~const]), basis(C[:, :, const])
 
 
-def run(args: Args, *, smoke: bool = False) -> dict[str, Any]:
-    """One agent run per regularization; see the module docstring.
-
-    :param smoke: the suite's tiny model and planner (tests).
-    """
+def run(args: Args) -> dict[str, Any]:
+    """One agent run per regularization; see the module docstring."""
     torch.set_num_threads(1)
     result: dict[str, Any] = {"args": asdict(args), "runs": {}}
     for reg in args.regularizations:
         agent = make_agent(args.task, {"seed": args.seed, "planner.kind": "cem-ilqr",
-                                       "regularization": reg}, smoke=smoke)
+                                       "regularization": reg}, smoke=args.smoke)
         replay = TASKS[args.task]["task"].make_env()
         rows: list[dict[str, Any]] = []
         previous: dict[str, Any] = {"model": None}
@@ -220,13 +233,13 @@ def run(args: Args, *, smoke: bool = False) -> dict[str, Any]:
             previous["model"] = copy.deepcopy(agent.model)
             row["cpu_s"] = time.process_time() - tic
             rows.append(row)
-            write_json_atomic(args.json, result)
+            write_json_atomic(args.out, result)
 
         agent.learn(total_env_steps=args.env_steps, callback=record, progress_bar=False)
         replay.close()
         agent.env.close()
     result["summary"] = summarize(result["runs"])
-    write_json_atomic(args.json, result)
+    write_json_atomic(args.out, result)
     if args.plot:
         plot(result, args.plot)
     for reg, s in result["summary"].items():
@@ -276,3 +289,7 @@ def plot(result: dict[str, Any], out: str) -> None:
     ax.legend(fontsize=8)
     ax.grid(alpha=0.3, which="both")
     save_figure(fig, out)
+
+
+if __name__ == "__main__":
+    main()

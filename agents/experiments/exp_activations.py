@@ -34,7 +34,7 @@ class Args(pc.TrainingArgs):
         "help": "comma-separated epochs at which the error is recorded"})
     width: int = field(default=20, metadata={"help": "hidden units"})
 
-    QUICK = {"mc": 2, "checkpoints": "2,5,10", "n_val": 2}
+    SMOKE = {"mc": 2, "checkpoints": "2,5,10", "n_val": 2}
 
 
 def make_configs(args: Args) -> dict[str, dict]:
@@ -96,8 +96,8 @@ def report(records: list[dict], out, figures, args: Args) -> dict:
     return summary
 
 
-def cli(argv: list[str] | None = None) -> None:
-    """The script (``scripts/exp_activations.py``): parse the command line, run, print."""
+def main(argv: list[str] | None = None) -> None:
+    """The command line (``python -m agents.experiments.exp_activations``): parse, run, print."""
     args = pc.parse_args(Args, argv)
     summary = pc.run_experiment(args, EXPERIMENT, pc.run_activations, make_configs(args),
                                 report)
@@ -105,3 +105,7 @@ def cli(argv: list[str] | None = None) -> None:
         meds = " ".join(f"{s.get('median', float('nan')):7.3f}" for s in per_c)
         print(f"{a:11s} median log10 pred RMS at {summary['checkpoints']}: {meds}  "
               f"mean rank {np.round(summary['mean_rank'][a], 2).tolist()}")
+
+
+if __name__ == "__main__":
+    main()

@@ -4,7 +4,7 @@ For each comparison: the median and quartiles of both methods over all seeds, th
 quartiles of the per-seed paired difference (or ratio), and wins/total (seeds where the first
 method is lower). No training; reads ``docs/results/<experiment>/runs/*.json``.
 
-    python scripts/exp_claims.py            # writes docs/results/claims.json and claims.md
+    python scripts/exp_claims.py    # writes docs/results/claims.json and claims.md (or to --out)
 """
 
 from __future__ import annotations
@@ -16,15 +16,19 @@ from pathlib import Path
 
 import numpy as np
 
-from agents.experiments.paper_common import REPO, ExperimentArgs, parse_args
+from agents.experiments.paper_common import REPO, parse_args
 from mbtsr.io import write_json_atomic
 
 
 @dataclass
-class Args(ExperimentArgs):
+class Args:
     """Claim evidence (median [q1, q3], paired difference, wins/total) from the stored runs."""
 
     results: str = field(default="", metadata={"help": "results root (default docs/results)"})
+    out: str = field(default="", metadata={
+        "help": "folder of claims.json and claims.md (default: the results root)"})
+    smoke: bool = field(default=False, metadata={
+        "help": "accepted for the shared convention: the command trains nothing, it only reads"})
 
 
 @dataclass(frozen=True)
@@ -142,7 +146,7 @@ def markdown(rows: list[dict]) -> str:
     return "\n".join(lines) + "\n"
 
 
-def main(args: Args) -> list[dict]:
+def run(args: Args) -> list[dict]:
     root = Path(args.results) if args.results else REPO / "docs" / "results"
     cache: dict[str, dict] = {}
     rows = []
@@ -152,11 +156,17 @@ def main(args: Args) -> list[dict]:
         r = evaluate(c, cache[c.experiment])
         if r is not None:
             rows.append(r)
-    write_json_atomic(root / "claims.json", rows)
-    (root / "claims.md").write_text(markdown(rows))
+    out = Path(args.out) if args.out else root
+    out.mkdir(parents=True, exist_ok=True)
+    write_json_atomic(out / "claims.json", rows)
+    (out / "claims.md").write_text(markdown(rows))
     return rows
 
 
-def cli(argv: list[str] | None = None) -> None:
-    """The script (``scripts/exp_claims.py``): parse the command line, run, print."""
-    print(markdown(main(parse_args(Args, argv))))
+def main(argv: list[str] | None = None) -> None:
+    """The command line (``python -m agents.experiments.exp_claims``): parse, run, print."""
+    print(markdown(run(parse_args(Args, argv))))
+
+
+if __name__ == "__main__":
+    main()

@@ -57,7 +57,7 @@ class Args(pc.TrainingArgs):
     epoch_scale: float = field(default=1.0, metadata={"help": "multiplies the epochs"})
     alpha: float = field(default=0.05, metadata={"help": "significance level of a direction"})
 
-    QUICK = {"mc": 2, "epoch_scale": 0.01, "n_val": 2,
+    SMOKE = {"mc": 2, "epoch_scale": 0.01, "n_val": 2,
              "deviations": "nominal,dt_slow"}
 
 
@@ -183,8 +183,12 @@ def _cell(comp: dict, alpha: float) -> str:
     return f"{direction(comp, alpha)} ({d:+.2f}{'' if p is None else f', p={p:.2g}'})"
 
 
-def cli(argv: list[str] | None = None) -> None:
-    """The script (``scripts/exp_deviations.py``): parse the command line, run, print."""
+def main(argv: list[str] | None = None) -> None:
+    """The command line (``python -m agents.experiments.exp_deviations``): parse, run, print."""
     args = pc.parse_args(Args, argv)
     summary = pc.run_experiment(args, EXPERIMENT, pc.run_robot, make_configs(args), report)
     print(summary["markdown"])
+
+
+if __name__ == "__main__":
+    main()

@@ -40,7 +40,7 @@ class Args(pc.LinearRoundsArgs):
     original_bug: bool = field(default=True, metadata={
         "help": "also run none/sampled on data with the original's last-state bug"})
 
-    QUICK = {"mc": 2, "rounds": 1, "epochs_per_round": 5, "n_val": 2, "original_bug": False}
+    SMOKE = {"mc": 2, "rounds": 1, "epochs_per_round": 5, "n_val": 2, "original_bug": False}
 
 
 def make_configs(args: Args) -> dict[str, dict]:
@@ -154,9 +154,13 @@ def report(records: list[dict], out, figures, args: Args) -> dict:
     return summary
 
 
-def cli(argv: list[str] | None = None) -> None:
-    """The script (``scripts/exp_linear.py``): parse the command line, run, print."""
+def main(argv: list[str] | None = None) -> None:
+    """The command line (``python -m agents.experiments.exp_linear``): parse, run, print."""
     args = pc.parse_args(Args, argv)
     summary = pc.run_experiment(args, EXPERIMENT, pc.run_linear, make_configs(args), report)
     pc.print_medians(summary["configs"], {"jac_rms_entry": "jac_rms_entry:.4f",
                                           "pred": "pred_rms:.4f", "sim": "sim_rms:.3f"}, 12)
+
+
+if __name__ == "__main__":
+    main()

@@ -63,7 +63,7 @@ class Args(pc.TrainingArgs):
                 "one step per trajectory) for none, sampled and oracle labels"})
     duration: float = field(default=4.0, metadata={"help": "trajectory length [s]"})
 
-    QUICK = {"mc": 2, "n_trains": "2", "epochs": "3,6", "duration": 1.0, "n_val": 2,
+    SMOKE = {"mc": 2, "n_trains": "2", "epochs": "3,6", "duration": 1.0, "n_val": 2,
              "n_log": 2, "label_n_trains": "2"}
 
     def __post_init__(self) -> None:
@@ -408,7 +408,7 @@ def report_all(records: list[dict], out: Path, figures: Path, args: Args) -> dic
     return summary
 
 
-def main(args: Args) -> dict:
+def run(args: Args) -> dict:
     """The sweep, the shortest runs first: the cheap shortest-run cells for every seed, then
     everything seed by seed (on a busy machine an interrupted sweep still has the whole
     short-run map at full seed count); then the report."""
@@ -420,12 +420,16 @@ def main(args: Args) -> dict:
     return pc.run_experiment(args, EXPERIMENT, pc.run_regime, every, report_all, stages=stages)
 
 
-def cli(argv: list[str] | None = None) -> None:
-    """The script (``scripts/exp_regime.py``): parse the command line, run, print."""
+def main(argv: list[str] | None = None) -> None:
+    """The command line (``python -m agents.experiments.exp_regime``): parse, run, print."""
     args = pc.parse_args(Args, argv)
-    summary = main(args)
+    summary = run(args)
     for name, row in summary["cells"].items():
         s = row.get("sampled")
         if s:
             print(f"{name:40s} none {row['none_jac_err']:.3f} sampled {s['median_pct']:+.1f}% "
                   f"({s['wins']}/{s['total']})")
+
+
+if __name__ == "__main__":
+    main()

@@ -57,7 +57,7 @@ class Args(pc.TrainingArgs):
     still_speed: float = field(default=0.05, metadata={
         "help": "joint speed [rad/s] below which a point counts as near-zero velocity"})
 
-    QUICK = {"mc": 2, "epoch_scale": 0.01, "n_val": 2, "epoch_controls": False,
+    SMOKE = {"mc": 2, "epoch_scale": 0.01, "n_val": 2, "epoch_controls": False,
              "own_batch_control": False}
 
 
@@ -142,8 +142,8 @@ def args_formulation(records: list[dict]) -> str:
     return ", ".join(sorted({r["config"]["formulation"] for r in records}))
 
 
-def cli(argv: list[str] | None = None) -> None:
-    """The script (``scripts/exp_robot.py``): parse the command line, run, print."""
+def main(argv: list[str] | None = None) -> None:
+    """The command line (``python -m agents.experiments.exp_robot``): parse, run, print."""
     args = pc.parse_args(Args, argv)
     if args.truth_diagnostics:
         for k, v in truth_diagnostics(args)["summary"].items():
@@ -156,3 +156,7 @@ def cli(argv: list[str] | None = None) -> None:
         print(f"{name:8s} log10 pred {med['log10_pred_rms']:.3f} log10 sim "
               f"{med['log10_sim_rms']:.3f} jac {med['jac_err']:.3f} diverged "
               f"{s['diverged_simulations']}/{s['n_simulations']}")
+
+
+if __name__ == "__main__":
+    main()

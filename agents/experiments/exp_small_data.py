@@ -54,6 +54,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
+from agents.cli import main as command
 from agents.experiments.bench_model_sizes import collect, errors, ltv_fit
 from agents.experiments.paper_common import machine_info, pyplot, save_figure, write_result
 from agents.tasks import make_task
@@ -71,7 +72,7 @@ class Args:
     exact."""
 
     tasks: str = field(default=TASKS, metadata={
-        "help": "comma-separated suite tasks (agents.tasks.TASKS, MuJoCo envs)"})
+        "help": "comma-separated tasks of the registry (agents.tasks.TASKS, MuJoCo envs)"})
     episodes: str = field(default="1,2,5", metadata={
         "help": "comma-separated numbers of first episodes to train on"})
     episode_steps: int = field(default=200, metadata={
@@ -95,7 +96,7 @@ class Args:
     layers: int = field(default=3, metadata={"help": "hidden layers per member"})
     width: int = field(default=200, metadata={"help": "hidden units per layer"})
     threads: int = field(default=1, metadata={"help": "torch threads"})
-    json: str = field(default="docs/results/small_data.json", metadata={
+    out: str = field(default="docs/results/small_data.json", metadata={
         "help": "write the results to this JSON file ('' for none)"})
     plot: str = field(default="docs/figures/small_data.png", metadata={
         "help": "write the figure to this PNG ('' for none)"})
@@ -108,7 +109,15 @@ class Args:
 #: what --smoke changes (seconds; nothing to conclude); options given on the command line win
 SMOKE = {"smoke": True, "tasks": "inverted-pendulum", "episodes": "1,2", "n_test": 40,
          "jac_points": 8, "seeds": 1, "steps": 5, "width": 16, "layers": 2, "members": 2,
-         "json": "runs/small_data_smoke.json", "plot": ""}
+         "out": "runs/small_data_smoke.json", "plot": ""}
+
+
+def main(argv: list[str] | None = None) -> dict:
+    """The command line (``--help``: the options)."""
+    from agents.experiments.paper_common import blas_threads_from_env
+
+    blas_threads_from_env()  # one BLAS thread unless OMP_NUM_THREADS says otherwise
+    return command(Args, run, args=argv, outputs=("out", "plot"), presets={"--smoke": SMOKE})
 
 
 def true_jacobians(task_name: str, x: np.ndarray, u: np.ndarray
@@ -281,7 +290,7 @@ def label_study(args: Args) -> dict:
     result = {"args": dataclasses.asdict(args), "records": records,
               "median_jac_rel": {c: float(np.median(v)) for c, v in cells.items()},
               "wall_s": time.perf_counter() - t0}
-    write_result(args.json, result)
+    write_result(args.out, result)
     return result
 
 
@@ -336,13 +345,13 @@ def run(args: Args) -> dict:
                     print(f"{task} seed {seed} {k} ep ({N} tr) {reg:8s}: jac {rec['jac_rel']:.3f} "
                           f"held-out {rec['rel_step']:.3f}  ({t_train:.1f} s)", flush=True)
             print(f"{task} seed {seed}: {time.perf_counter() - tic:.0f} s", flush=True)
-            if args.json:  # what ran so far, in case the run is cut short
-                write_json_atomic(args.json, summarize(args, mcfg, regs, records, data_info,
+            if args.out:  # what ran so far, in case the run is cut short
+                write_json_atomic(args.out, summarize(args, mcfg, regs, records, data_info,
                                                        t0, load_start))
     result = summarize(args, mcfg, regs, records, data_info, t0, load_start)
     print(result["table_markdown"])
     print(f"wall {result['wall_s']:.0f} s")
-    write_result(args.json, result)
+    write_result(args.out, result)
     if args.plot:
         plot(result["aggregate"], records, regs, args.plot)
     return result
@@ -359,3 +368,7 @@ def summarize(args: Args, mcfg: ModelConfig, regs: list[str], records: list[dict
             "data": data_info, "records": records, "aggregate": cells,
             "table_markdown": table, "wall_s": time.perf_counter() - t0,
             "machine": machine_info(load_start)}
+
+
+if __name__ == "__main__":
+    main()

@@ -35,7 +35,7 @@ class Args(pc.LinearRoundsArgs):
     original_bug: bool = field(default=True, metadata={
         "help": "also run on data with the original's last-state bug (no / strong decay)"})
 
-    QUICK = {"mc": 2, "rounds": 1, "epochs_per_round": 5, "n_val": 2, "weight_decay_mid": 0.0,
+    SMOKE = {"mc": 2, "rounds": 1, "epochs_per_round": 5, "n_val": 2, "weight_decay_mid": 0.0,
              "original_bug": False}
 
 
@@ -142,10 +142,14 @@ def report(records: list[dict], out, figures, args: Args) -> dict:
     return summary
 
 
-def cli(argv: list[str] | None = None) -> None:
-    """The script (``scripts/exp_weight_decay.py``): parse the command line, run, print."""
+def main(argv: list[str] | None = None) -> None:
+    """The command line (``python -m agents.experiments.exp_weight_decay``): parse, run, print."""
     args = pc.parse_args(Args, argv)
     summary = pc.run_experiment(args, EXPERIMENT, pc.run_linear, make_configs(args), report)
     pc.print_medians(summary["configs"], {
         "mean|l|": "eig_mean_abs:.3f", "mean|l-1|": "eig_mean_dist_to_1:.3f",
         "eig err": "eig_match_err:.3f", "jac": "jac_rms_entry:.4f"}, 14)
+
+
+if __name__ == "__main__":
+    main()

@@ -21,6 +21,7 @@ import torch
 
 import envs  # noqa: F401  (registers mbtsr/TwoLinkArm-v0)
 from agents import AgentConfig, JacPropAgent
+from agents.cli import main as command
 from agents.evaluation import evaluate_policy_costs, evaluation_targets
 from agents.experiments.paper_common import write_result
 from agents.model_env import ModelEnv
@@ -31,6 +32,10 @@ from agents.sb3_baselines import make_sb3_model
 class Args:
     """SAC in the learned model vs in the real env (mbtsr/TwoLinkArm-v0)."""
 
+    out: str | None = "runs/model_env_sac.json"
+    """Where to write the results (None: do not write)."""
+    smoke: bool = False
+    """tiny CI size: the options not given take SMOKE's values"""
     model_episodes: int = 6
     """Real episodes the agent learns its model from."""
     n_excitation_episodes: int = 2
@@ -45,8 +50,16 @@ class Args:
     """Also train SAC in the real env (for the model's real steps and for sac_steps)."""
     seed: int = 0
     """Seed of the agent, SAC, the ModelEnv and the random policy."""
-    json: str | None = "runs/model_env_sac.json"
-    """Where to write the results (None: do not write)."""
+
+
+#: --smoke: the tiny CI size (options given on the command line win)
+SMOKE = {"smoke": True, "model_episodes": 2, "n_excitation_episodes": 1, "sac_steps": 200,
+         "eval_episodes": 1, "real_baselines": False, "out": "runs/model_env_sac_smoke.json"}
+
+
+def main(argv: list[str] | None = None) -> dict:
+    """The command line (``--help``: the options)."""
+    return command(Args, run, args=argv, outputs=("out",), presets={"--smoke": SMOKE})
 
 
 def real_cost(policy, targets) -> list[float]:
@@ -89,6 +102,9 @@ def run(args: Args) -> dict:
             out["cost"][name] = real_cost(model, targets)
     for name, costs in out["cost"].items():
         print(f"{name:>26}: mean real cost {np.mean(costs):9.2f}  (return {-np.mean(costs):.2f})")
-    write_result(args.json, out)
+    write_result(args.out, out)
     return out
 
+
+if __name__ == "__main__":
+    main()

@@ -43,8 +43,8 @@ class SweepArgs:
     """The command-line fields of every script that runs a sweep through
     :func:`mbtsr.runner.run_sweep` (the paper's experiments)."""
 
-    quick: bool = field(default=False, metadata={
-        "help": "tiny smoke-test run (options not given take the script's QUICK values)"})
+    smoke: bool = field(default=False, metadata={
+        "help": "tiny smoke-test run (options not given take the script's SMOKE values)"})
     workers: int = field(default=2, metadata={"help": "parallel worker processes"})
     backend: Literal["process", "serial", "ray"] = field(default="process", metadata={
         "help": "mbtsr.runner backend"})
@@ -61,9 +61,10 @@ class ExperimentArgs(SweepArgs):
     this, redefines ``mc`` with its own default and adds its own fields."""
 
     mc: int = field(default=1, metadata={"help": "Monte-Carlo runs"})
-    out: str = field(default="", metadata={"help": "results folder"})
+    out: str = field(default="", metadata={
+        "help": "results folder (runs, summary.json; default docs/results/<experiment>, "
+                "with --smoke runs/smoke/<experiment>)"})
     figures: str = field(default="", metadata={"help": "figure folder"})
-    json: str = field(default="", metadata={"help": "also write the summary JSON here"})
 
 
 @dataclass
@@ -98,14 +99,14 @@ def print_medians(configs: dict[str, dict], columns: dict[str, str], width: int)
 def parse_args(args_cls: type, argv: Sequence[str] | None = None):
     """The experiment's command line, generated from the dataclass ``args_cls`` by tyro
     (:func:`agents.cli.parse`): every field is a flag documented by its ``help`` metadata, booleans
-    are ``--flag/--no-flag``; with ``--quick`` the class attribute ``QUICK`` (field overrides)
+    are ``--flag/--no-flag``; with ``--smoke`` the class attribute ``SMOKE`` (field overrides)
     supplies the defaults, so options given explicitly win. A bad option or value prints one line
     and exits with code 2.
     """
     from agents.cli import fail, parse
 
-    quick = {"quick": True, **getattr(args_cls, "QUICK", {})}
-    args = parse(args_cls, args=argv, presets={"--quick": quick})
+    smoke = {"smoke": True, **getattr(args_cls, "SMOKE", {})}
+    args = parse(args_cls, args=argv, presets={"--smoke": smoke})
     try:
         _check_common(args)
     except ValueError as err:
@@ -145,24 +146,32 @@ def comma_list(flag: str, text: str, kind: type = str, allowed: Sequence | None 
 def output_dirs(args, experiment: str) -> tuple[Path, Path]:
     """``(out, figures)``: results folder and figure folder of a run.
 
-    Defaults: full runs write ``docs/results/<experiment>`` and ``docs/figures``; ``--quick``
-    runs write ``runs/quick/<experiment>`` (git-ignored) and its ``figures`` sub-folder.
+    Defaults: full runs write ``docs/results/<experiment>`` and ``docs/figures``; ``--smoke``
+    runs write ``runs/smoke/<experiment>`` (git-ignored) and its ``figures`` sub-folder.
     """
     if args.out:
         out = Path(args.out)
-    elif args.quick:
-        out = REPO / "runs" / "quick" / experiment
+    elif args.smoke:
+        out = REPO / "runs" / "smoke" / experiment
     else:
         out = REPO / "docs" / "results" / experiment
     if args.figures:
         figures = Path(args.figures)
-    elif args.quick or args.out:
+    elif args.smoke or args.out:
         figures = out / "figures"
     else:
         figures = REPO / "docs" / "figures"
     out.mkdir(parents=True, exist_ok=True)
     figures.mkdir(parents=True, exist_ok=True)
     return out, figures
+
+
+def blas_threads_from_env() -> None:
+    """A command's BLAS threads: ``OMP_NUM_THREADS``, else 1 (numpy's BLAS has loaded by the
+    time a command parses its flags, so the limit is set through threadpoolctl)."""
+    from threadpoolctl import threadpool_limits
+
+    threadpool_limits(int(os.environ.get("OMP_NUM_THREADS", "1")))
 
 
 def command_line() -> str:
@@ -208,7 +217,7 @@ def machine_info(load_start: tuple[float, ...] | None = None, **extra) -> dict:
 
 
 def write_result(path: str | os.PathLike | None, result: dict, indent: int = 1) -> None:
-    """Write a script's ``--json`` result atomically and say so (nothing without a path)."""
+    """Write a command's ``--out`` JSON atomically and say so (nothing without a path)."""
     if path:
         write_json_atomic(path, result, indent=indent)
         print(f"wrote {path}")
@@ -266,12 +275,12 @@ def run_experiment(
         sweep = functools.partial(run_sweep, run_fn, out_dir=out, backend=args.backend,
                                   workers=args.workers, address=args.address or None)
         if stages is None:
-            n_after = len(sweep(configs, range(args.mc), progress=not args.quick))
+            n_after = len(sweep(configs, range(args.mc), progress=not args.smoke))
         else:
             for label, todo in stages:
                 for seed in range(args.mc):
                     sweep(todo, [seed], progress=False)
-                    if not args.quick:
+                    if not args.smoke:
                         print(f"[{experiment}] {label}: seed {seed} done, "
                               f"{time.perf_counter() - started['t0']:.0f} s", flush=True)
             n_after = len(load_results(out))
@@ -287,7 +296,6 @@ def run_experiment(
     summary = report_fn(records, out, figures, args)
     summary = {"experiment": experiment, "n_records": len(records), **summary}
     write_json_atomic(out / "summary.json", summary)
-    write_result(getattr(args, "json", ""), summary)
     return summary
 
 

@@ -3,11 +3,13 @@ the benchmark suite's tasks, costs and evaluation episodes.
 
 mbrl 0.2.0's pins clash with this project's, so the runs happen in a venv of their own
 (``python scripts/setup_pets_venv.py`` builds ``.venv-pets/``); this module imports only the
-standard library and numpy at the top, so the report (:func:`report`) runs in the project's main
-environment and the driver (:func:`run_task`) inside the PETS venv::
+standard library, numpy and :mod:`agents.tasks` (casadi) at the top, so the report
+(:func:`report`) runs in the project's main environment and the driver (:func:`run_task`) inside
+the PETS venv; the command re-executes itself there when mbrl is not importable::
 
-    .venv-pets/bin/python scripts/pets_peer.py --tasks reacher --seeds 0 1 2 --resume
-    python scripts/pets_peer.py --report-only          # figures + table from the JSON
+    python -m agents.experiments.pets_peer --tasks reacher --seeds 0 1 2 --resume
+    python -m agents.experiments.pets_peer --report-only   # figures + table from the JSON
+    python -m agents.experiments.pets_peer --smoke          # CI size: one short Reacher run
 
 What is mbrl's and what is ours:
 
@@ -34,7 +36,6 @@ from __future__ import annotations
 import argparse
 import copy
 import json
-import math
 import os
 import sys
 import time
@@ -43,6 +44,8 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+
+from agents.tasks import SUITE
 
 REPO = Path(__file__).resolve().parents[2]
 DEFAULT_JSON = REPO / "docs" / "results" / "bench_suite_pets.json"
@@ -69,137 +72,115 @@ COMMON: dict[str, Any] = {
 }
 
 
-def _arm_task(make: dict[str, Any], replan_every: int = 1) -> dict[str, Any]:
-    """The project's arm (``mbtsr/TwoLinkArm-v0``, 100-step episodes, the suite's budget of 800
-    env steps): mbrl has no override for it; pets_reacher's, its reaching task at the same
-    0.02 s step, replanning as the suite's task does."""
+#: mbrl's published PETS overrides (exp/pets/overrides/<name>.yaml): training, horizon, CEM
+PUBLISHED: dict[str, dict[str, Any]] = {
+    "pets_reacher": {
+        "training": {"model_lr": 4e-4, "model_wd": 1.7e-4, "model_batch_size": 32,
+                     "validation_ratio": 0.05, "num_epochs_train_model": 25, "patience": 25},
+        "planning_horizon": 15, "cem_published": {"population_size": 350, "num_iterations": 5,
+                                                  "elite_ratio": 0.1, "alpha": 0.1}},
+    "pets_inv_pendulum": {  # model_lr: the published file reads `00143` (a typo)
+        "training": {"model_lr": 1.43e-3, "model_wd": 3.3e-5, "model_batch_size": 256,
+                     "validation_ratio": 0.2, "num_epochs_train_model": 31, "patience": 50},
+        "planning_horizon": 45, "cem_published": {"population_size": 480, "num_iterations": 5,
+                                                  "elite_ratio": 0.078, "alpha": 0.134484}},
+    "pets_pusher": {
+        "training": {"model_lr": 1e-5, "model_wd": 5e-4, "model_batch_size": 32,
+                     "validation_ratio": 0.0, "num_epochs_train_model": 25, "patience": 25},
+        "planning_horizon": 25, "cem_published": {"population_size": 350, "num_iterations": 5,
+                                                  "elite_ratio": 0.1, "alpha": 0.1}},
+    "pets_halfcheetah": {
+        "training": {"model_lr": 2.8e-4, "model_wd": 1e-4, "model_batch_size": 32,
+                     "validation_ratio": 0.0, "num_epochs_train_model": 12, "patience": 12},
+        "planning_horizon": 30, "cem_published": {"population_size": 400, "num_iterations": 5,
+                                                  "elite_ratio": 0.16, "alpha": 0.12}},
+}
+_OUR_REWARD = "learned_rewards true -> false: the reward is the suite's cost"
+
+
+def _task(override: str, published: str, eval_every: int, eval_note: str, exploration: int,
+          train_every: int, changes: list[str], **extra: Any) -> dict[str, Any]:
+    """A PETS task: mbrl's ``override`` (:data:`PUBLISHED`), ``published`` naming it in the
+    record, its evaluation period, initial random steps, training period and changes."""
+    return {"eval_every": eval_every, "eval_note": eval_note, "published": published,
+            **copy.deepcopy(PUBLISHED[override]), "initial_exploration_steps": exploration,
+            "train_every": train_every, "changes": changes, **extra}
+
+
+def _arm_task(replan_every: int = 1) -> dict[str, Any]:
+    """The project's arm (``mbtsr/TwoLinkArm-v0``, 100-step episodes): mbrl has no override for
+    it; pets_reacher's, its reaching task at the same 0.02 s step, replanning as the suite's
+    task does."""
     changes = ["no published override: pets_reacher's settings; one random episode (100 steps) "
                "of initial exploration, the model trained after every episode",
                "the reward is the env's own quadratic cost (cost_Q, cost_R: "
-               "agents.task.QuadraticTargetCost)"]
+               "agents.tasks.QuadraticTargetCost)"]
     if replan_every != 1:
         changes.append(f"replan_freq 1 -> {replan_every}: the suite's task executes "
                        f"{replan_every} planned actions per plan")
-    return {
-        "task": "two-link-arm", "make": make, "budget_env_steps": 800, "eval_every": 400,
-        "eval_note": "every 400 env steps (4 training episodes of 100 steps)",
-        "published": "pets_reacher (mbrl has no override for the project's arm)",
-        "training": {"model_lr": 4e-4, "model_wd": 1.7e-4, "model_batch_size": 32,
-                     "validation_ratio": 0.05, "num_epochs_train_model": 25, "patience": 25},
-        "initial_exploration_steps": 100, "train_every": 100, "planning_horizon": 15,
-        "planner": {"replan_freq": replan_every},
-        "cem_published": {"population_size": 350, "num_iterations": 5, "elite_ratio": 0.1,
-                          "alpha": 0.1},
-        "changes": changes,
-    }
+    return _task("pets_reacher", "pets_reacher (mbrl has no override for the project's arm)",
+                 400, "every 400 env steps (4 training episodes of 100 steps)", 100, 100,
+                 changes, planner={"replan_freq": replan_every})
 
 
-#: per task: the suite's env and budget, mbrl's published PETS override it follows, the
-#: published values, what was changed (``changes``) and the CEM actually used (``cem``)
+#: per task of :data:`agents.tasks.SUITE` (its env, cost and budget): mbrl's published PETS
+#: override it follows, the published values, what was changed (``changes``) and the CEM
+#: actually used (``cem``)
 TASKS: dict[str, dict[str, Any]] = {
-    "reacher": {
-        "make": {}, "budget_env_steps": 2000, "eval_every": 200,
-        "eval_note": "every 200 env steps (4 training episodes): after every 50-step episode "
-                     "would triple the planning work",
-        "published": "pets_reacher",
-        "training": {"model_lr": 4e-4, "model_wd": 1.7e-4, "model_batch_size": 32,
-                     "validation_ratio": 0.05, "num_epochs_train_model": 25, "patience": 25},
-        "initial_exploration_steps": 50, "train_every": 50, "planning_horizon": 15,
-        "cem_published": {"population_size": 350, "num_iterations": 5, "elite_ratio": 0.1,
-                          "alpha": 0.1},
-        "changes": ["trial_length 1000 -> the suite's 50-step episodes: one random episode "
-                    "(50 steps) of initial exploration, the model trained after every episode "
-                    "(published freq_train_model 250)",
-                    "no_delta_list [0] dropped (it indexes the pets_reacher observation, not "
-                    "Reacher-v5's)",
-                    "learned_rewards true -> false: the reward is the suite's cost"],
-    },
-    "inverted-pendulum": {
-        "make": {"max_episode_steps": 200}, "budget_env_steps": 2000, "eval_every": 500,
-        "eval_note": "every 500 env steps: an evaluation plans up to 600 steps at horizon 45",
-        "published": "pets_inv_pendulum",
-        "training": {"model_lr": 1.43e-3, "model_wd": 3.3e-5, "model_batch_size": 256,
-                     "validation_ratio": 0.2, "num_epochs_train_model": 31, "patience": 50},
-        "initial_exploration_steps": 200, "train_every": 200, "planning_horizon": 45,
-        "cem_published": {"population_size": 480, "num_iterations": 5, "elite_ratio": 0.078,
-                          "alpha": 0.134484},
-        "changes": ["model_lr: the published file reads `00143` (a typo); 1.43e-3 used",
-                    "trial_length 1000 -> the suite's 200-step episodes: 200 random steps of "
-                    "initial exploration, training every 200 env steps (published 250)",
-                    "learned_rewards true -> false: the reward is the suite's cost"],
-    },
-    "inverted-double-pendulum": {
-        "make": {}, "budget_env_steps": 5000, "eval_every": 2500,
-        "eval_note": "at 2,500 and 5,000 env steps only: an evaluation plans up to 3,000 "
-                     "steps at horizon 45",
-        "published": "pets_inv_pendulum (mbrl has no double-pendulum override)",
-        "training": {"model_lr": 1.43e-3, "model_wd": 3.3e-5, "model_batch_size": 256,
-                     "validation_ratio": 0.2, "num_epochs_train_model": 31, "patience": 50},
-        "initial_exploration_steps": 1000, "train_every": 250, "planning_horizon": 45,
-        "cem_published": {"population_size": 480, "num_iterations": 5, "elite_ratio": 0.078,
-                          "alpha": 0.134484},
-        "changes": ["no published PETS override for InvertedDoublePendulum: pets_inv_pendulum's "
-                    "settings (model_lr `00143` read as 1.43e-3)",
-                    "learned_rewards true -> false: the reward is the suite's cost"],
-    },
-    "pusher": {
-        "make": {}, "budget_env_steps": 3000, "eval_every": 750,
-        "eval_note": "every 750 env steps: an evaluation plans 300 steps",
-        "published": "pets_pusher",
-        "training": {"model_lr": 1e-5, "model_wd": 5e-4, "model_batch_size": 32,
-                     "validation_ratio": 0.0, "num_epochs_train_model": 25, "patience": 25},
-        "initial_exploration_steps": 100, "train_every": 100, "planning_horizon": 25,
-        "cem_published": {"population_size": 350, "num_iterations": 5, "elite_ratio": 0.1,
-                          "alpha": 0.1},
-        "changes": ["trial_length 150 -> the suite's 100-step episodes: one random episode of "
-                    "initial exploration, the model trained after every episode (published: "
-                    "every 150 steps = every episode)",
-                    "learned_rewards true -> false: the reward is the suite's cost"],
-    },
-    "arm-far": _arm_task({"target_limit": 0.85 * math.pi}),
-    "arm-open-loop": _arm_task({}, replan_every=10),
-    "half-cheetah": {
-        "make": {}, "budget_env_steps": 10000, "eval_every": 5000,
-        "eval_note": "at 5,000 and 10,000 env steps only: an evaluation plans 3,000 steps",
-        "published": "pets_halfcheetah",
-        "training": {"model_lr": 2.8e-4, "model_wd": 1e-4, "model_batch_size": 32,
-                     "validation_ratio": 0.0, "num_epochs_train_model": 12, "patience": 12},
-        "initial_exploration_steps": 1000, "train_every": 1000, "planning_horizon": 30,
-        "cem_published": {"population_size": 400, "num_iterations": 5, "elite_ratio": 0.16,
-                          "alpha": 0.12},
-        "changes": ["obs_process_fn and no_delta_list [0] dropped: they index the "
-                    "pets_halfcheetah observation (x-velocity first), not HalfCheetah-v5's",
-                    "learned_rewards false (as published): the reward is the suite's cost"],
-    },
+    "reacher": _task(
+        "pets_reacher", "pets_reacher", 200, "every 200 env steps (4 training episodes): after "
+        "every 50-step episode would triple the planning work", 50, 50,
+        ["trial_length 1000 -> the suite's 50-step episodes: one random episode (50 steps) of "
+         "initial exploration, the model trained after every episode (published "
+         "freq_train_model 250)", "no_delta_list [0] dropped (it indexes the pets_reacher "
+         "observation, not Reacher-v5's)", _OUR_REWARD]),
+    "inverted-pendulum": _task(
+        "pets_inv_pendulum", "pets_inv_pendulum", 500,
+        "every 500 env steps: an evaluation plans up to 600 steps at horizon 45", 200, 200,
+        ["model_lr: the published file reads `00143` (a typo); 1.43e-3 used",
+         "trial_length 1000 -> the suite's 200-step episodes: 200 random steps of initial "
+         "exploration, training every 200 env steps (published 250)", _OUR_REWARD]),
+    "inverted-double-pendulum": _task(
+        "pets_inv_pendulum", "pets_inv_pendulum (mbrl has no double-pendulum override)", 2500,
+        "at 2,500 and 5,000 env steps only: an evaluation plans up to 3,000 steps at horizon 45",
+        1000, 250, ["no published PETS override for InvertedDoublePendulum: pets_inv_pendulum's "
+                    "settings (model_lr `00143` read as 1.43e-3)", _OUR_REWARD]),
+    "pusher": _task(
+        "pets_pusher", "pets_pusher", 750, "every 750 env steps: an evaluation plans 300 steps",
+        100, 100, ["trial_length 150 -> the suite's 100-step episodes: one random episode of "
+                   "initial exploration, the model trained after every episode (published: "
+                   "every 150 steps = every episode)", _OUR_REWARD]),
+    "arm-far": _arm_task(),
+    "arm-open-loop": _arm_task(SUITE["arm-open-loop"].settings["planner.replan_every"]),
+    "half-cheetah": _task(
+        "pets_halfcheetah", "pets_halfcheetah", 5000,
+        "at 5,000 and 10,000 env steps only: an evaluation plans 3,000 steps", 1000, 1000,
+        ["obs_process_fn and no_delta_list [0] dropped: they index the pets_halfcheetah "
+         "observation (x-velocity first), not HalfCheetah-v5's",
+         "learned_rewards false (as published): the reward is the suite's cost"]),
 }
 
 _SHRINK_WHY = ("CEM shrunk to fit a shared 2-core CPU (one torch thread): the published CEM "
                "measured {pub} s per env step here, so the run's {steps} planned steps "
                "(training + evaluation) would take about {hours} h per seed")
+_AS_REACHER = "CEM shrunk as on Reacher (same settings and step)"
 
-#: the CEM actually used per task where it differs from the published one, with the reason
-#: (planning time per env step measured on this shared 2-core CPU, one torch thread, load 2-3)
-CEM_SHRINK: dict[str, dict[str, Any]] = {
-    "reacher": {"cem": {"population_size": 105, "num_iterations": 3},
-                "reason": _SHRINK_WHY.format(pub=3.4, steps="~3,450", hours=3.3)},
-    "pusher": {"cem": {"population_size": 105, "num_iterations": 3},
-               "reason": _SHRINK_WHY.format(pub=6.8, steps="~4,700", hours=9)},
-    "inverted-pendulum": {"cem": {"population_size": 105, "num_iterations": 3},
-                          "reason": _SHRINK_WHY.format(pub="~8 (estimated from 105 x 3: 2.5)",
-                                                       steps="up to ~5,000", hours=11)},
-    "inverted-double-pendulum": {
-        "cem": {"population_size": 105, "num_iterations": 3},
-        "reason": _SHRINK_WHY.format(pub="~12 (estimated from 105 x 3: 3.7)",
-                                     steps="up to ~20,000", hours=65)},
-    "arm-far": {"cem": {"population_size": 105, "num_iterations": 3},
-                "reason": "CEM shrunk as on Reacher (same settings and step): " +
-                _SHRINK_WHY.format(pub=3.4, steps="~1,400", hours=1.3)},
-    "arm-open-loop": {"cem": {"population_size": 105, "num_iterations": 3},
-                      "reason": "CEM shrunk as on Reacher (same settings and step)"},
-    "half-cheetah": {"cem": {"population_size": 105, "num_iterations": 3},
-                     "reason": _SHRINK_WHY.format(pub="~10 (estimated from 105 x 3: 1.6)",
-                                                  steps="~25,000", hours=70)},
-}
+#: the CEM actually used per task where it differs from the published one (the same for every
+#: task), with the reason (planning time per env step measured on this shared 2-core CPU, one
+#: torch thread, load 2-3)
+CEM_SHRINK: dict[str, dict[str, Any]] = {name: {
+    "cem": {"population_size": 105, "num_iterations": 3}, "reason": reason} for name, reason in {
+    "reacher": _SHRINK_WHY.format(pub=3.4, steps="~3,450", hours=3.3),
+    "pusher": _SHRINK_WHY.format(pub=6.8, steps="~4,700", hours=9),
+    "inverted-pendulum": _SHRINK_WHY.format(pub="~8 (estimated from 105 x 3: 2.5)",
+                                            steps="up to ~5,000", hours=11),
+    "inverted-double-pendulum": _SHRINK_WHY.format(pub="~12 (estimated from 105 x 3: 3.7)",
+                                                   steps="up to ~20,000", hours=65),
+    "arm-far": _AS_REACHER + ": " + _SHRINK_WHY.format(pub=3.4, steps="~1,400", hours=1.3),
+    "arm-open-loop": _AS_REACHER,
+    "half-cheetah": _SHRINK_WHY.format(pub="~10 (estimated from 105 x 3: 1.6)",
+                                       steps="~25,000", hours=70),
+}.items()}
 
 #: the settings that must match for a checkpoint to be continued (free text may change)
 RESUME_KEYS = ("agent_task", "make", "budget_env_steps", "eval_every", "eval_seed",
@@ -228,7 +209,7 @@ def task_settings(name: str, *, cem: dict[str, Any] | None = None,
     """
     if name not in TASKS:
         raise ValueError(f"unknown task {name!r}; known: {sorted(TASKS)}")
-    t = copy.deepcopy(TASKS[name])
+    t, task = copy.deepcopy(TASKS[name]), SUITE[name]
     used = {**t["cem_published"], **CEM_SHRINK.get(name, {}).get("cem", {}), **(cem or {})}
     shrinks: list[str] = []
     members, particles = COMMON["model"]["ensemble_size"], COMMON["planner"]["num_particles"]
@@ -253,8 +234,8 @@ def task_settings(name: str, *, cem: dict[str, Any] | None = None,
         training["num_epochs_train_model"] = int(epochs)
         shrinks.append(f"num_epochs_train_model -> {epochs}")
     out = {
-        "task": name, "agent_task": t.get("task", name), "make": t["make"],
-        "budget_env_steps": int(budget if budget is not None else t["budget_env_steps"]),
+        "task": name, "agent_task": task.name, "make": dict(task.make_kwargs),
+        "budget_env_steps": int(budget if budget is not None else task.budget),
         "eval_every": int(eval_every if eval_every is not None else t["eval_every"]),
         "eval_seed": EVAL_SEED, "eval_episodes": EVAL_EPISODES,
         "eval_note": t["eval_note"] if eval_every is None else "set on the command line",
@@ -277,8 +258,8 @@ def task_settings(name: str, *, cem: dict[str, Any] | None = None,
         else "none (mbrl.env.termination_fns.no_termination)",
         "torch_threads": 1,
     }
-    if budget is not None and budget != t["budget_env_steps"]:
-        out["shrinks"].append(f"budget {t['budget_env_steps']} -> {budget} env steps")
+    if budget is not None and budget != task.budget:
+        out["shrinks"].append(f"budget {task.budget} -> {budget} env steps")
     return out
 
 
@@ -767,18 +748,25 @@ def report(json_path: Path, figures: Path, suite_json: Path | None = None) -> li
 
 
 # ------------------------------------------------------------------ command line
+#: --smoke: the tiny CI size (one short Reacher run; options given on the command line win)
+SMOKE = {"budget": 150, "eval_every": 50, "population": 14, "iterations": 2, "epochs": 2,
+         "horizon": 5, "out": REPO / "runs" / "pets_peer_smoke.json",
+         "checkpoints": REPO / "runs" / "pets_peer_smoke"}
+
+
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     """The command line (see ``--help``)."""
     p = argparse.ArgumentParser(
-        prog="pets_peer.py",
         description="mbrl-lib's PETS on the suite's tasks, costs and evaluation episodes. "
                     "Runs INSIDE the PETS venv (.venv-pets/, built by "
-                    "`python scripts/setup_pets_venv.py`); scripts/pets_peer.py re-executes "
-                    "itself with .venv-pets/bin/python when mbrl is not importable. "
+                    "`python scripts/setup_pets_venv.py`): the command re-executes itself with "
+                    ".venv-pets/bin/python when mbrl is not importable. "
                     "--report-only runs in the main environment.")
     p.add_argument("--tasks", nargs="+", default=["reacher"], choices=list(TASKS))
     p.add_argument("--seeds", nargs="+", type=int, default=[0])
-    p.add_argument("--json", type=Path, default=DEFAULT_JSON, help="results JSON")
+    p.add_argument("--out", type=Path, default=DEFAULT_JSON, help="results JSON")
+    p.add_argument("--smoke", action="store_true",
+                   help=f"tiny CI size: the options not given take these values: {SMOKE}")
     p.add_argument("--figures", type=Path, default=DEFAULT_FIGURES, help="figure folder")
     p.add_argument("--checkpoints", type=Path, default=DEFAULT_CKPT,
                    help="checkpoint folder (one subfolder per run)")
@@ -798,6 +786,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--particles", type=int, default=None, help="particles (smoke runs)")
     p.add_argument("--stop-after", type=int, default=None,
                    help="stop each run after this many new evaluation points (resumable)")
+    if "--smoke" in (sys.argv[1:] if argv is None else argv):
+        p.set_defaults(**SMOKE)
     return p.parse_args(argv)
 
 
@@ -818,12 +808,29 @@ def settings_from_args(task: str, args: argparse.Namespace) -> dict[str, Any]:
     return s
 
 
+def _reexec_in_venv(argv: list[str]) -> None:
+    """Re-execute this command with the PETS venv's python when mbrl is not importable here
+    (not for ``--report-only`` and ``--help``, which run in the main environment)."""
+    import importlib.util
+
+    if {"--report-only", "-h", "--help"} & set(argv) or importlib.util.find_spec("mbrl") \
+            or Path(sys.executable) == VENV_PYTHON:  # in the venv: mbrl's ImportError says why
+        return
+    if not VENV_PYTHON.exists():
+        sys.exit("mbrl is not importable here and the PETS venv is missing: build it with\n"
+                 "    python scripts/setup_pets_venv.py")
+    os.environ.setdefault("OMP_NUM_THREADS", "1")
+    os.environ["PYTHONPATH"] = os.pathsep.join(
+        p for p in (str(REPO), os.environ.get("PYTHONPATH")) if p)
+    os.execv(str(VENV_PYTHON), [str(VENV_PYTHON), "-m", __spec__.name, *argv])
+
+
 def main(argv: list[str] | None = None) -> int:
     """Run the tasks x seeds (task-major: every seed of a task before the next task), or only
     the report."""
     args = parse_args(argv)
     if args.report_only:
-        for f in report(args.json, args.figures, args.suite_json):
+        for f in report(args.out, args.figures, args.suite_json):
             print("figure:", f.relative_to(REPO) if f.is_relative_to(REPO) else f)
         return 0
     os.environ.setdefault("OMP_NUM_THREADS", "1")
@@ -834,7 +841,12 @@ def main(argv: list[str] | None = None) -> int:
     warnings.filterwarnings("ignore", category=UserWarning)
     for task in args.tasks:
         for seed in args.seeds:
-            run_task(task, seed, settings_from_args(task, args), args.json, args.checkpoints,
+            run_task(task, seed, settings_from_args(task, args), args.out, args.checkpoints,
                      resume=args.resume, log=lambda s: print(s, flush=True),
                      stop_after=args.stop_after)
     return 0
+
+
+if __name__ == "__main__":
+    _reexec_in_venv(sys.argv[1:])
+    sys.exit(main())

@@ -4,7 +4,7 @@ The project's main job (Bagge Carlson et al., "Tangent-Space Regularization for 
 Models of Dynamical Systems", arXiv:1806.09919, Algorithm 1 in an episodic loop)::
 
     python scripts/train_agent.py                       # embedded defaults, mbtsr/TwoLinkArm-v0
-    python scripts/train_agent.py --seed 3 --regularization exact --json bench.json
+    python scripts/train_agent.py --seed 3 --regularization exact --out bench.json
     python scripts/train_agent.py --regularization none --model.hidden-width 32 --planner.kind cem
     python scripts/train_agent.py --run-dir runs/x --resume   # continue a killed run exactly
     python scripts/train_agent.py --config runs/x/config.json # rerun run x (a new folder)
@@ -22,7 +22,7 @@ JSON file of AgentConfig fields written by hand (changes to these defaults, see
 The run folder receives ``config.json``, ``episodes.csv``, ``checkpoint.pt`` (resume),
 ``model.pt`` (the learned ensemble, :func:`mbtsr.ensemble.load_model`), ``data.npz`` (all
 trajectories), ``tb/`` (TensorBoard), ``learning_curve.png``, ``final_reach.png`` and
-``summary.json``. ``--json PATH`` writes the benchmark numbers: episodes_to_solve,
+``summary.json``. ``--out PATH`` writes the benchmark numbers: episodes_to_solve,
 env_steps_to_solve, the final cost ratio to the oracle and the wall seconds per phase.
 """
 
@@ -62,8 +62,11 @@ class Args:
     """total training episodes of the run (a resumed run counts the done ones)"""
     resume: bool = False
     """continue from <run-dir>/checkpoint.pt with the configuration saved there"""
-    json: str = ""
-    """write the benchmark JSON here"""
+    out: str = ""
+    """write the benchmark JSON here (the run folder is --run-dir)"""
+    smoke: bool = False
+    """tiny CI run (2 short episodes, a tiny model and planner): the options not given take
+    SMOKE's values"""
     plots: bool = True
     """learning curve and final-reach PNGs"""
     summary_table: bool = True
@@ -93,6 +96,17 @@ class Args:
         if self.regularization != "weights":
             agent = agent.replace(regularization=_named(self.regularization, agent.regularization))
         object.__setattr__(self, "agent", agent)
+
+
+#: --smoke: the tiny CI size (options given on the command line win)
+SMOKE = {"smoke": True, "episodes": 2, "plots": False, "summary_table": False,
+         "agent": Args().agent.replace({
+             "collection.episode_steps": 25, "collection.n_excitation_episodes": 1,
+             "training.steps": 20, "training.batch": 32, "model.ensemble_size": 2,
+             "model.hidden_width": 12, "planner.horizon": 6, "planner.ilqr_iterations": 1,
+             "planner.first_plan_iterations": 4, "evaluation.every": 1,
+             "evaluation.episodes": 1, "evaluation.oracle_cache_dir": None, "progress": False,
+             "tensorboard": False, "torch_threads": 1})}
 
 
 def _named(kind: str, reg: RegularizationConfig) -> RegularizationConfig:
@@ -139,8 +153,9 @@ def from_file(path: str) -> Args:
         cfg = AgentConfig.from_dict(agent, base=base.agent)
         script = run.get("script", {})
         names = {f.name for f in dataclasses.fields(Args)} - {"agent"}
-        if not isinstance(script, dict) or set(script) - names:
-            bad = sorted(set(script) - names) if isinstance(script, dict) else script
+        known = names | {"json"}  # json: --out's former name, in the records of older runs
+        if not isinstance(script, dict) or set(script) - known:
+            bad = sorted(set(script) - known) if isinstance(script, dict) else script
             raise ValueError(f"unknown script setting(s) {bad} (this script has "
                              f"{sorted(names)})")
         if run:  # a run's record: its folder holds that run
@@ -167,7 +182,8 @@ def parse(argv: list[str] | None = None) -> Args:
             default = from_file(path)
         except ValueError as err:
             cli.fail(f"--config {err}")
-    args = cli.parse(Args, args=argv, outputs=("json",), default=default)
+    args = cli.parse(Args, args=argv, outputs=("out",), default=default,
+                     presets={"--smoke": SMOKE})
     if args.config and args.resume:
         cli.fail("--config starts a new run and --resume continues one with the configuration "
                  "saved in its checkpoint: give one of them")
@@ -208,8 +224,14 @@ def parse(argv: list[str] | None = None) -> Args:
 
 
 def main(argv: list[str] | None = None) -> dict:
-    """The script: :func:`parse`, then :func:`run` (errors: one line, exit code 2)."""
+    """The command line (``python -m agents.experiments.train_agent``, ``mbtsr-train``):
+    :func:`parse`, then :func:`run` (errors: one line, exit code 2)."""
     return cli.call(run, parse(argv))
+
+
+def console() -> None:
+    """The console script ``mbtsr-train``: :func:`main`, exit code 0 (errors: 2)."""
+    main()
 
 
 def run(args: Args) -> dict:
@@ -263,7 +285,7 @@ def run(args: Args) -> dict:
     summary["wall_seconds_this_process"] = wall
     summary["run_dir"] = str(run_dir)
     write_json_atomic(run_dir / "summary.json", summary, indent=2)
-    write_result(args.json, summary, indent=2)
+    write_result(args.out, summary, indent=2)
     if args.plots:
         plot_learning_curve(agent, run_dir / "learning_curve.png")
         plot_final_reach(agent, env, run_dir / "final_reach.png")
@@ -404,3 +426,6 @@ def _num(v) -> str:
         return str(v)
     return "-" if f != f else f"{f:.4g}"
 
+
+if __name__ == "__main__":
+    main()
