@@ -133,7 +133,7 @@ def check_planning_model(model: object, n: int, m: int) -> Callable:
     if hasattr(model, "freeze"):
         raise TypeError(
             f"model is a trainable {type(model).__name__}: plan with its frozen copy, "
-            "model.freeze() (immutable, float64, no autograd)"
+            "model.freeze() (immutable, numpy, no autograd)"
         )
     if not (callable(getattr(model, "step", None)) and callable(getattr(model, "jacobians", None))):
         raise TypeError(

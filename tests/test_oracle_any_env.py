@@ -239,7 +239,7 @@ def test_affine_observations_are_detected_and_give_the_same_lifted_model():
 
 
 def test_true_model_variants_parse_and_refuse():
-    """bench_ilqr's section 7 measures planner kinds and named planner settings alike, and
+    """bench_ilqr's true-model section measures planner kinds and named planner settings alike, and
     refuses variants that are not planner settings with a message naming them."""
     from agents.experiments.bench_ilqr import Args, _true_model_variants
 
