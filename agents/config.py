@@ -1,17 +1,16 @@
 """Configuration of the Algorithm-1 agent: one tree of frozen dataclasses, validated when built.
 
 ``AgentConfig`` holds the sections ``collection``, ``model`` (:class:`mbtsr.ensemble.ModelConfig`),
-``training`` (:class:`mbtsr.training.TrainConfig`), ``regularization``
-(:class:`mbtsr.training.RegularizationConfig`), ``planner`` and ``evaluation``, and bookkeeping.
-E.g. ``AgentConfig(regularization="none", planner="cem")`` (a name for a section),
+``training``, ``regularization`` (:mod:`mbtsr.training`), ``planner``, ``evaluation`` and
+bookkeeping: ``AgentConfig(regularization="none", planner="cem")`` (a name for a section),
 ``cfg.replace({"planner.horizon": 50, "model": {"hidden_width": 32}}, seed=3)``,
-``AgentConfig.load("arm.yaml")``. A small generic layer validates the tree: every leaf against its
-type hint, the ranges in ``_BOUNDS``, ``AgentConfig.FIXED`` and ``_DEPENDENT``; errors name the
-dotted field. The fields are described in docs/agent.md.
+``AgentConfig.load("arm.yaml")``. A generic layer checks every leaf against its type hint, the
+ranges in ``_BOUNDS``, ``AgentConfig.FIXED`` and ``_DEPENDENT``; errors name the dotted field.
 """
 
 from __future__ import annotations
 
+import ast
 import contextlib
 import dataclasses
 import difflib
@@ -19,7 +18,9 @@ import functools
 import json
 import math
 import numbers
+import operator
 import os
+import re
 import types
 import typing
 from collections.abc import Callable, Iterator, Mapping
@@ -32,15 +33,12 @@ import yaml
 
 from mbtsr.cem import CEMOptions
 from mbtsr.ensemble import ModelConfig
-from mbtsr.training import REGULARIZERS, RegularizationConfig, TrainConfig
+from mbtsr.training import RegularizationConfig, TrainConfig
 
 __all__ = ["AgentConfig", "CollectionConfig", "PlannerConfig", "EvaluationConfig",
-           "read_config_file", "split_run_config", "in_file", "REGULARIZERS",
-           "PLANNERS", "PROPAGATIONS", "EXCITATIONS"]
+           "read_config_file", "split_run_config", "in_file", "PLANNERS"]
 
 PLANNERS = ("ilqr", "cem", "cem-ilqr")
-PROPAGATIONS = ("mean", "ts")
-EXCITATIONS = ("filtered_gaussian", "multisine")
 
 
 class _Section:
@@ -302,13 +300,17 @@ class AgentConfig(_Section):
                 f"training.patience={self.training.patience!r} has no effect: early stopping "
                 "needs held-out data (training.holdout > 0): set training.patience=None to "
                 "train the whole budget, or a hold-out")
-        own = _defaults()[1]
+        agent, own, _ = _defaults()
         for dotted, why in self.FIXED.items():
             if values[dotted] != own[dotted]:
                 raise ValueError(f"{dotted} must be {own[dotted]!r}: {why}, got "
                                  f"{values[dotted]!r}")
-        for dotted, reason in _inactive(self).items():
-            raise ValueError(f"{dotted}={values[dotted]!r} has no effect: {reason}")
+        for fields, when in _DEPENDENT.items():
+            chosen = [n for n, v in values.items() if v not in (agent[n], own.get(n, agent[n]))
+                      and any(n == f or f[-1] == "." and n.startswith(f) for f in fields.split())]
+            if chosen and not _holds(when, values):
+                raise ValueError(f"{chosen[0]}={values[chosen[0]]!r} has no effect: it acts only "
+                                 f"when {when}: remove it, or set that")
 
     def replace(self, changes: Mapping[str, Any] | None = None, /, **top: Any) -> AgentConfig:
         """A copy with changes, validated again: ``changes`` maps dotted fields or sections
@@ -422,67 +424,47 @@ def _describe(hint: Any) -> str:
             type(None): "null"}.get(hint, getattr(hint, "__name__", str(hint)))
 
 
-class _Bad(ValueError):
-    """``"<name> must be <type>, got <value>"``, worded when shown."""
-
-    def __str__(self) -> str:
-        name, hint, value = self.args
-        return f"{name} must be {_describe(hint)}, got {value!r}"
-
-
 def _coerce(value: Any, hint: Any, name: str, strict: bool = False) -> Any:
-    """``value`` as the type ``hint`` of field ``name``, coerced where unambiguous
-    (:meth:`AgentConfig.from_dict`); ``strict``: the type check only (numpy scalars and paths
-    become Python's). :raises ValueError: ``"<name> must be <type>, got <value>"``."""
-    origin, args = typing.get_origin(hint), typing.get_args(hint)
-    bad = _Bad(name, hint, value)
-    word = value.strip().lower() if isinstance(value, str) and not strict else None
-    if origin in (typing.Union, types.UnionType):
-        if value is None and type(None) in args:
-            return None
-        for option in sorted(args, key=lambda a: typing.get_origin(a) is not Literal):
+    """``value`` as the type ``hint`` of field ``name``; numpy scalars and paths become Python's.
+    Unless ``strict`` (:meth:`AgentConfig.from_dict`), coerced where unambiguous: a string where
+    no string fits is read as a JSON scalar (``"1e-3"``, ``"True"``, ``"none"`` as null), a list
+    is a tuple, one name a tuple of one, an integral number an int.
+    :raises ValueError: ``"<name> must be <type>, got <value>"``."""
+    union = typing.get_origin(hint) in (typing.Union, types.UnionType)
+    given, options = value, typing.get_args(hint) if union else (hint,)
+    if not strict and isinstance(value, str) and not any(
+            o is str or value in typing.get_args(o) for o in options):
+        with contextlib.suppress(ValueError):
+            value = json.loads({"none": "null"}.get(w := value.strip().lower(), w))
+    for option in options:
+        origin, args = typing.get_origin(option), typing.get_args(option)
+        number = isinstance(value, numbers.Real) and not isinstance(value, (bool, np.bool_))
+        if origin is tuple and isinstance(value, tuple if strict else (tuple, list, str)):
+            value = (value,) if isinstance(value, str) else value
+            items = (args[0],) * len(value) if args[-1] is Ellipsis else args
             with contextlib.suppress(ValueError):
-                if option is not type(None):
-                    return _coerce(value, option, name, strict)
-        if type(None) in args and str not in args and word in ("none", "null"):
-            return None
-        raise bad
-    if origin is Literal and isinstance(value, str) and value in args:
-        return value
-    if origin is tuple:
-        value = (value,) if word is not None and args[-1] is Ellipsis else value  # one name
-        if not isinstance(value, tuple if strict else (tuple, list)):
-            raise bad
-        items = (args[0],) * len(value) if args[-1] is Ellipsis else args
-        if len(items) != len(value):
-            raise bad
-        try:
-            return tuple(_coerce(v, h, name, strict) for v, h in zip(value, items))
-        except ValueError:
-            raise bad from None
-    number = None
-    if hint in (int, float) and not isinstance(value, (bool, np.bool_)):
-        if hint is int and isinstance(value, numbers.Integral):
+                if len(items) == len(value):
+                    return tuple(_coerce(v, h, name, strict) for v, h in zip(value, items))
+        elif value is None and option is type(None) or origin is Literal and value in args \
+                and isinstance(value, str):
+            return value
+        elif option is bool and isinstance(value, (bool, np.bool_)):
+            return bool(value)
+        elif option is float and number:
+            return float(value)
+        elif option is int and number and (isinstance(value, numbers.Integral) or not strict
+                                           and float(value).is_integer()):
             return int(value)
-        if isinstance(value, numbers.Real) or word is not None:
-            with contextlib.suppress(ValueError):
-                number = float(value)
-    if hint is float and number is not None:
-        return number
-    if hint is int and number is not None and not strict and number.is_integer():
-        return int(number)
-    if hint is bool and (isinstance(value, (bool, np.bool_)) or word in ("true", "false")):
-        return bool(value) if word is None else word == "true"
-    if hint is str and isinstance(value, (str, os.PathLike)):
-        return os.fspath(value)
-    if hint in (bool, int, float, str) or origin is Literal:
-        raise bad
-    return value  # a type the tree does not use: unchecked
+        elif option is str and isinstance(value, (str, os.PathLike)):
+            return os.fspath(value)
+        elif option not in (bool, int, float, str, type(None)) and origin not in (Literal, tuple):
+            return value  # a type the tree does not use: unchecked
+    raise ValueError(f"{name} must be {_describe(hint)}, got {given!r}")
 
 
 #: settings that act only under others: ``{fields: when}`` (a field ending in "." stands for its
 #: section's fields); a chosen value there (neither the agent's default nor its section's) while
-#: ``when`` (an expression in the top-level fields) is false is refused
+#: the condition ``when`` (:func:`_holds`) is false is refused
 _DEPENDENT = {
     "regularization.sigma regularization.n_copies regularization.copies_batch":
         "regularization.sampled_weight > 0",
@@ -503,20 +485,17 @@ _DEPENDENT = {
 }
 
 
-_WHEN = {when: compile(when, "_DEPENDENT", "eval") for when in _DEPENDENT.values()}
+_ATOM = re.compile(r"(\S+) (==|!=|>|is not|is) (.+)")
+_OPS = {"==": operator.eq, "!=": operator.ne, ">": operator.gt, "is": operator.is_,
+        "is not": operator.is_not}
 
 
-def _inactive(cfg: AgentConfig) -> dict[str, str]:
-    """``{dotted field: why}`` of the leaves of ``cfg`` that hold a chosen value without effect
-    under the others (:data:`_DEPENDENT`)."""
-    (agent, own, _), values = _defaults(), cfg.dotted()
-    top = {f.name: getattr(cfg, f.name) for f in dataclasses.fields(cfg)}
-    return {name: f"it acts only when {when}: remove it, or set that"
-            for fields, when in _DEPENDENT.items() if not eval(_WHEN[when], {}, top)  # noqa: S307
-            for name, value in values.items()
-            if value != agent[name] and value != own.get(name, agent[name])
-            and any(name == f or (f.endswith(".") and name.startswith(f))
-                    for f in fields.split())}
+def _holds(when: str, values: Mapping[str, Any]) -> bool:
+    """Whether the condition ``when`` holds for the dotted ``values``: comparisons of a field with
+    a Python literal, joined by ``and``, then by ``or`` (``"a > 0 and b != 'x' or c is None"``)."""
+    return any(all(_OPS[m[2]](values[m[1]], ast.literal_eval(m[3]))
+                   for m in map(_ATOM.fullmatch, part.split(" and ")))
+               for part in when.split(" or "))
 
 
 def _unknown(key: str) -> ValueError:
