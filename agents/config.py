@@ -88,7 +88,7 @@ class CollectionConfig(_Section):
     :param rollout_steps: steps per TRAINING rollout, shorter than the episode (``None``: the
         episode's); the model is updated after each, and what counts episodes counts these.
     :param continue_rollouts: the next rollout continues the env's episode after the model
-        update instead of resetting it (needs ``rollout_steps``).
+        update instead of resetting it.
     :param exploration_window: moving-average window (steps) of the exploration noise (1: white).
     :param explore_weight: directed exploration: training rollouts rank CEM's samples by cost
         minus this weight x the members' disagreement (0: off).
@@ -130,7 +130,7 @@ class PlannerConfig(_Section):
     :param replan_every: execute every plan for this many steps before re-solving (also the
         oracle's).
     :param replan_feedback: between re-plans, follow iLQR's local policy ``U_t + K_t (x_t -
-        X_t)`` instead of the open-loop controls (needs ``replan_every > 1`` and iLQR).
+        X_t)`` instead of the open-loop controls.
     :param kind: ``ilqr`` (iLQR on the model's Jacobians, the paper's controller), ``cem`` (PETS'
         cross-entropy method: forward predictions only) or ``cem-ilqr`` (CEM proposes, iLQR
         refines; docs/ilqr.md).
@@ -140,9 +140,9 @@ class PlannerConfig(_Section):
     :param first_plan_iterations: iLQR (or CEM) iterations for the plan at an episode's start.
     :param cem: the CEM settings of ``kind=cem`` (:class:`mbtsr.cem.CEMOptions`).
     :param proposal: the CEM settings of ``kind=cem-ilqr``'s proposal.
-    :param propagation: CEM's rollouts on the ensemble: ``mean`` (the mean model, as iLQR) or
-        ``ts`` (PETS' trajectory sampling, ``kind=cem`` only: each of the ``cem.particles``
-        rollouts follows one member; use a multiple of ``model.ensemble_size``).
+    :param propagation: CEM's rollouts on the ensemble: ``mean`` (the mean model) or ``ts`` (PETS'
+        trajectory sampling: each of the ``cem.particles`` follows one member; use a multiple of
+        ``model.ensemble_size``).
     """
 
     _BOUNDS: ClassVar[dict[str, Any]] = dict(
@@ -341,10 +341,8 @@ class AgentConfig(_Section):
     @classmethod
     def from_dict(cls, d: Mapping[str, Any], /, base: AgentConfig | None = None) -> AgentConfig:
         """The CHANGES a partial (nested or dotted) dict gives to ``base`` (default: the
-        defaults), as :meth:`replace`. Values are coerced where unambiguous: a number in a string
-        (YAML 1.1 reads ``1e-3`` as one; not ``"2.5"`` for an int), ``50.0`` as an int,
-        ``"true"``, ``"null"`` (where no string fits), a list as a tuple, a name as a tuple of one.
-        """
+        defaults), as :meth:`replace`, values coerced where unambiguous (:func:`_coerce`: YAML 1.1
+        reads ``1e-3`` as a string)."""
         if not isinstance(d, Mapping):
             raise ValueError(f"AgentConfig.from_dict needs a dict of AgentConfig fields, got "
                              f"{type(d).__name__} {d!r}")
@@ -358,11 +356,6 @@ class AgentConfig(_Section):
         return base.replace(d)
 
     @classmethod
-    def from_json(cls, text: str) -> AgentConfig:
-        """:meth:`from_dict` of a JSON object (a key given twice is an error)."""
-        return cls.from_dict(json.loads(text, object_pairs_hook=_unique))
-
-    @classmethod
     def load(cls, path: str | os.PathLike, base: AgentConfig | None = None) -> AgentConfig:
         """The config in a JSON or YAML file (a run's ``config.json``: its ``agent`` section),
         as changes to ``base``; an error names the file."""
@@ -372,7 +365,6 @@ class AgentConfig(_Section):
             raise in_file(path, err) from None
 
 
-# ---- the generic layer: the tree's fields, their types and defaults ------------------------------
 @functools.cache
 def _hints(cls: type) -> dict[str, Any]:
     """The resolved type of every field of dataclass ``cls``."""
@@ -500,12 +492,10 @@ def _holds(when: str, values: Mapping[str, Any]) -> bool:
 
 def _unknown(key: str) -> ValueError:
     """The error of an unknown field, naming the closest valid one (whole path or last part)."""
-    def ratio(a: str, b: str) -> float:
-        return difflib.SequenceMatcher(None, a, b).ratio()
-
-    def score(path: str) -> tuple[float, float]:
-        return max(ratio(key, path), ratio(key.rpartition(".")[2], path.rpartition(".")[2])), \
-            ratio(key, path)
+    def score(path: str) -> tuple[float, float]:  # the closer of the whole and the last part
+        whole, last = (difflib.SequenceMatcher(None, a, b).ratio() for a, b in (
+            (key, path), (key.rpartition(".")[2], path.rpartition(".")[2])))
+        return max(whole, last), whole
 
     return ValueError(f"unknown AgentConfig field {key!r}; the closest valid field is "
                       f"{max(_defaults()[2], key=score)!r}")
@@ -559,7 +549,6 @@ def _replaced(obj: Any, changes: Mapping[str, Any], prefix: str) -> Any:
     return _build(prefix[:-1], dataclasses.replace, obj, **direct)
 
 
-# ---- files: JSON and YAML, a run's config.json --------------------------------------------------
 #: the sections of a run's ``config.json`` beside ``agent`` (written by train_agent)
 RUN_SECTIONS = ("script", "command", "ensemble", "env_spec")
 
