@@ -68,14 +68,10 @@ def _fields(cls: type) -> Iterator[tuple[dataclasses.Field, str, Any]]:
 
 def _fixed(cls: type) -> set[tuple[type, str]]:
     """``(dataclass, field)`` of every field that a config in ``cls``'s tree fixes."""
-    out = set()
-    for dotted in getattr(cls, "FIXED", ()):
-        *heads, last = dotted.split(".")
-        out.add((functools.reduce(lambda c, h: {f.name: t for f, _, t in _fields(c)}[h],
-                                  heads, cls), last))
-    for _, _, hint in _fields(cls):
-        out |= _fixed(hint) if dataclasses.is_dataclass(hint) else set()
-    return out
+    hints = typing.get_type_hints(cls)
+    out = {(functools.reduce(lambda c, h: typing.get_type_hints(c)[h], heads, cls), last)
+           for *heads, last in (d.split(".") for d in getattr(cls, "FIXED", ()))}
+    return out.union(*(_fixed(h) for h in hints.values() if dataclasses.is_dataclass(h)))
 
 
 def _registry(fixed: set[tuple[type, str]]) -> Any:
