@@ -419,15 +419,16 @@ def _describe(hint: Any) -> str:
 def _coerce(value: Any, hint: Any, name: str, strict: bool = False) -> Any:
     """``value`` as the type ``hint`` of field ``name``; numpy scalars and paths become Python's.
     Unless ``strict`` (:meth:`AgentConfig.from_dict`), coerced where unambiguous: a string where
-    no string fits is read as a JSON scalar (``"1e-3"``, ``"True"``, ``"none"`` as null), a list
+    no string fits is read as a number, ``true``/``false`` or ``none``/``null`` (any case), a list
     is a tuple, one name a tuple of one, an integral number an int.
     :raises ValueError: ``"<name> must be <type>, got <value>"``."""
     union = typing.get_origin(hint) in (typing.Union, types.UnionType)
     given, options = value, typing.get_args(hint) if union else (hint,)
     if not strict and isinstance(value, str) and not any(
-            o is str or value in typing.get_args(o) for o in options):
+            o is str or str in typing.get_args(o) or value in typing.get_args(o) for o in options):
+        w, words = value.strip().lower(), {"true": True, "false": False, "none": None, "null": None}
         with contextlib.suppress(ValueError):
-            value = json.loads({"none": "null"}.get(w := value.strip().lower(), w))
+            value = words[w] if w in words else int(w) if w.lstrip("+-").isdigit() else float(w)
     for option in options:
         origin, args = typing.get_origin(option), typing.get_args(option)
         number = isinstance(value, numbers.Real) and not isinstance(value, (bool, np.bool_))
