@@ -204,7 +204,7 @@ def test_a_real_script_fails_naming_the_flag_without_traceback():
     for args in (["--repeats", "many"], ["--out", "/"]):
         proc = subprocess.run([sys.executable, str(REPO / "scripts" / "bench_ltv.py"), *args],
                               capture_output=True, text=True, timeout=120,
-                              env={**os.environ, "COLUMNS": "200"})
+                              env={**os.environ, "COLUMNS": "200", "PYTHONPATH": str(REPO)})
         assert proc.returncode == 2 and "Traceback" not in proc.stderr, proc.stderr
         assert args[0] in proc.stderr, proc.stderr
     assert proc.stderr.startswith("bench_ltv.py: error: --out: ")  # a bad value: one line
