@@ -16,7 +16,7 @@ import os
 import re
 import sys
 import typing
-from collections.abc import Callable, Iterator, Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Annotated, Any, NoReturn, TypeVar
 
@@ -54,16 +54,6 @@ def check_output_path(path: str | os.PathLike, *, name: str, folder: bool = Fals
     if not os.access(target, os.W_OK | os.X_OK):
         raise ValueError(f"{name}: cannot write in {str(target)!r}")
     return p
-
-
-def _fields(cls: type) -> Iterator[tuple[dataclasses.Field, str, Any]]:
-    """``(field, its flag's dotted name part, type)`` of dataclass ``cls`` (``""``:
-    ``tyro.conf.arg(name="")``, the field's flags carry no prefix)."""
-    hints = typing.get_type_hints(cls, include_extras=True)
-    for f in dataclasses.fields(cls):
-        hint, *markers = typing.get_args(hints[f.name]) if typing.get_origin(
-            hints[f.name]) is Annotated else (hints[f.name],)
-        yield f, "" if any(getattr(m, "name", None) == "" for m in markers) else f.name, hint
 
 
 def _fixed(cls: type) -> set[tuple[type, str]]:
@@ -113,8 +103,10 @@ def _validated(obj: Any, path: str = "") -> Any:
     by its flag's dotted path (``model.hidden_width must ...``)."""
     if not dataclasses.is_dataclass(obj):
         return obj
-    values = {f.name: _validated(getattr(obj, f.name), ".".join(p for p in (path, name) if p))
-              for f, name, _ in _fields(type(obj)) if f.init}
+    hints = typing.get_type_hints(type(obj), include_extras=True)
+    values = {f.name: _validated(getattr(obj, f.name), path if any(  # tyro.conf.arg(name="")
+        getattr(m, "name", None) == "" for m in getattr(hints[f.name], "__metadata__", ()))
+        else ".".join(p for p in (path, f.name) if p)) for f in dataclasses.fields(obj) if f.init}
     try:
         return type(obj)(**values)
     except (ValueError, TypeError) as err:
