@@ -3,13 +3,14 @@
 
 "Solved" (issue 6): the mean episode cost of a policy over ``n`` evaluation episodes with
 random targets is within ``ratio`` (1.2) times the mean cost of MPC with the TRUE model (the
-oracle, :func:`oracle_cost`) on the same targets and the same initial states. The episode cost
+oracle, :func:`oracle_policy`) on the same targets and the same initial states. The episode cost
 is ``-sum(rewards)``, the env's own measure, so any policy (the JacProp agent, an SB3 baseline,
 a hand-written controller) is scored the same way::
 
     targets = evaluation_targets(10, seed=1000)
-    oracle = oracle_cost("mbtsr/TwoLinkArm-v0", targets, PlannerConfig(kind="ilqr"), seed=1000)
-    mine = evaluate_policy_cost(sb3_model, "mbtsr/TwoLinkArm-v0", targets, seed=1000)
+    env = gym.make("mbtsr/TwoLinkArm-v0")
+    oracle = evaluate_policy_cost(oracle_policy(env, PlannerConfig()), env, targets, seed=1000)
+    mine = evaluate_policy_cost(sb3_model, env, targets, seed=1000)
     solved = mine <= solved_threshold(oracle)
 
 Episode ``i`` is reset with ``seed + i`` and ``options={"target": targets[i]}``.
@@ -38,6 +39,7 @@ from mbtsr.ilqr import ILQROptions
 from mbtsr.validation import check_int
 
 __all__ = [
+    "NOT_EVALUATED",
     "EpisodeRecord",
     "Evaluator",
     "make_env",
@@ -46,13 +48,18 @@ __all__ = [
     "evaluate_policy_costs",
     "evaluate_policy_cost",
     "oracle_policy",
-    "oracle_cost",
     "has_true_model",
     "cached_costs",
     "oracle_cache_key",
     "physics_fingerprint",
     "solved_threshold",
 ]
+
+
+#: the evaluation fields of an episode's log row without an evaluation
+NOT_EVALUATED: dict[str, Any] = {
+    "eval_cost": None, "eval_return": None, "eval_returns": None, "oracle_cost": None,
+    "cost_ratio": None, "eval_episodes_run": 0, "solved": False}
 
 
 def make_env(env: gym.Env | str, **kwargs: Any) -> tuple[gym.Env, bool]:
@@ -256,37 +263,6 @@ def _oracle_state_fn(obs: np.ndarray) -> np.ndarray:
                      "from an observation")
 
 
-def oracle_cost(
-    env: gym.Env | str,
-    targets: Sequence[np.ndarray] | None,
-    planner: PlannerConfig | None = None,
-    *,
-    seed: int = 0,
-    return_costs: bool = False,
-    n_episodes: int | None = None,
-    max_steps: int | None = None,
-    **policy_options: Any,
-) -> float | np.ndarray:
-    """Mean episode cost of MPC with the TRUE model on ``targets``: :func:`oracle_policy`
-    (``planner``, and ``policy_options``: its other keyword arguments, e.g. ``cost_fn``,
-    ``terminal_cost_fn``) scored by :func:`evaluate_policy_costs` (the same ``seed`` gives the
-    same initial states).
-
-    :param return_costs: return the per-episode costs ``[n]`` instead of the mean.
-    :param targets: ``None`` with ``n_episodes``: envs without targets (Reacher-v5,
-        InvertedPendulum-v5).
-    :param max_steps: cap on the steps per episode (default: the env's own limit).
-    """
-    env, created = make_env(env)
-    try:
-        policy = oracle_policy(env, planner, **policy_options)
-        costs = evaluate_policy_costs(policy, env, targets, seed, n_episodes=n_episodes,
-                                      max_steps=max_steps)
-    finally:
-        if created:
-            env.close()
-    return costs if return_costs else float(np.mean(costs))
-
 def cached_costs(
     cache_dir: str | os.PathLike | None, key: dict[str, Any], compute: Callable[[], np.ndarray]
 ) -> np.ndarray:
@@ -485,6 +461,17 @@ class Evaluator:
         out.update(oracle_cost=float(np.mean(oracle)), cost_ratio=ratio,
                    solved=bool(complete and ratio <= ev.solved_ratio))
         return out
+
+    def add_final_score(self, row: dict[str, Any], policy: Any) -> None:
+        """Evaluate ``policy`` as the final score of a ``learn`` call: its fields and seconds
+        (evaluation, oracle) are added to the last episode's log ``row`` (in place)."""
+        tic = time.perf_counter()
+        row.update(self.evaluate(policy))
+        dt = time.perf_counter() - tic
+        oracle = self.take_oracle_seconds()
+        row["time_oracle"] += oracle
+        row["time_eval"] += dt - oracle
+        row["time_total"] += dt
 
     def oracle_policy(self, env: gym.Env) -> ReplanEvery:
         """The oracle's controller on ``env`` (:func:`oracle_policy` with the agent's planner,

@@ -56,7 +56,7 @@ from agents.checkpoint import (
 from agents.collection import Collector, save_video
 from agents.config import AgentConfig
 from agents.episode_log import EpisodeLog, summarize
-from agents.evaluation import EpisodeRecord, Evaluator, run_episode
+from agents.evaluation import NOT_EVALUATED, EpisodeRecord, Evaluator, run_episode
 from agents.labels import JacobianLabeler, check_ltv_memory
 from agents.model_training import ModelTrainer, model_errors
 from agents.planning import MPCPolicy, ReplanEvery, SB3Predictor, make_policy, planner_cost
@@ -158,9 +158,6 @@ class JacPropAgent(SB3Predictor):
                                    state_map=self.state_map, terminal_cost_fn=terminal_cost_fn,
                                    termination_fn=self.termination_fn)
         self.freeze()
-        self.has_linearize = env is not None and (
-            hasattr(env.unwrapped, "linearize_trajectory") or hasattr(env.unwrapped, "linearize")
-        )
         # the learning state (all of it goes into the checkpoint)
         self.rng = np.random.default_rng(config.seed)
         self.trajectories: list[Trajectory] = []
@@ -276,7 +273,7 @@ class JacPropAgent(SB3Predictor):
                     step_end is not None and self.env_steps >= step_end)
                 if ends and row["eval_returns"] is None and self.evaluator.due(
                         self.episodes_done, self.env_steps, last=True):
-                    self._final_evaluation(row)
+                    self.evaluator.add_final_score(row, self)
                 self.logger_rows.append(row)
                 self.episodes_done += 1
                 if self.config.checkpoint:
@@ -383,8 +380,8 @@ class JacPropAgent(SB3Predictor):
         if render:
             save_video(rec.frames, cfg.run_dir, ep, self.spec.dt)
         # model quality on the NEW data, before the update (generalisation)
-        true_env = self.env.unwrapped if cfg.jacobian_error and self.has_linearize else None
-        one_step, jac = model_errors(self.model, traj, true_env)
+        one_step, jac = model_errors(self.model, traj,
+                                     self.env.unwrapped if cfg.jacobian_error else None)
 
         # (b) the JacProp labels: an LTV model of the new trajectory
         tic = time.perf_counter()
@@ -400,9 +397,7 @@ class JacPropAgent(SB3Predictor):
 
         # evaluation: the MPC policy on the updated model vs the oracle
         tic = time.perf_counter()
-        ev: dict[str, Any] = {"eval_cost": None, "eval_return": None, "eval_returns": None,
-                              "oracle_cost": None, "cost_ratio": None, "eval_episodes_run": 0,
-                              "solved": False}
+        ev = NOT_EVALUATED
         if self.evaluator.due(ep, self.env_steps, steps=len(rec.actions)):
             ev = self.evaluator.evaluate(self)
         time_oracle = self.evaluator.take_oracle_seconds()
@@ -429,16 +424,6 @@ class JacPropAgent(SB3Predictor):
             "time_oracle": time_oracle,
             "time_total": time.perf_counter() - t_start,
         }
-
-    def _final_evaluation(self, row: dict[str, Any]) -> None:
-        """The final score of a ``learn`` call, added to its last episode's ``row``."""
-        tic = time.perf_counter()
-        row.update(self.evaluator.evaluate(self))
-        dt = time.perf_counter() - tic
-        oracle = self.evaluator.take_oracle_seconds()
-        row["time_oracle"] += oracle
-        row["time_eval"] += dt - oracle
-        row["time_total"] += dt
 
     # ------------------------------------------------------------------ evaluation
     def evaluation_problem(self, i: int) -> tuple[np.ndarray | None, int]:

@@ -63,10 +63,10 @@ def model_errors(model: DynamicsEnsemble, traj: Trajectory,
                  true_env: Any = None) -> tuple[float, float]:
     """One-step RMS of the ensemble mean on ``traj`` and the paper's Jacobian error (eq.
     jacerr) against ``true_env.linearize_trajectory`` (or ``linearize``); NaN before the model
-    has seen data, or without ``true_env``.
+    has seen data, or without ``true_env`` or its linearization.
 
-    :param true_env: an unwrapped env with ``linearize_trajectory(x [T, n], u [T, m])`` or
-        ``linearize(x, u)``, or ``None``.
+    :param true_env: an unwrapped env, ideally with ``linearize_trajectory(x [T, n], u [T, m])``
+        or ``linearize(x, u)``, or ``None``.
     :return: ``(one_step_rms, jacobian_error)``.
     """
     from mbtsr.metrics import jacobian_error, prediction_rms
@@ -74,7 +74,7 @@ def model_errors(model: DynamicsEnsemble, traj: Trajectory,
     if not model.is_normalized:
         return math.nan, math.nan
     one_step = float(prediction_rms(model, traj))
-    if true_env is None:
+    if not (hasattr(true_env, "linearize_trajectory") or hasattr(true_env, "linearize")):
         return one_step, math.nan
     x, u = traj.inputs
     if hasattr(true_env, "linearize_trajectory"):

@@ -314,20 +314,31 @@ class ReplanEvery(SB3Predictor):
     def _act(self, observation: Any, state: Any) -> tuple[np.ndarray, Any]:
         if self.k == 1:
             return self.policy.predict(observation, state)
-        if state is not None and not isinstance(state, ReplanState):
-            raise ValueError(f"state must be the ReplanState the previous call returned, got "
-                             f"{type(state).__name__}")
+        if state is not None:
+            self._check(state)
         if state is None or state.age >= self.k:
             action, rest = self.policy.predict(observation, None if state is None else state.plan)
             return action, ReplanState(rest, 1, *self._reference())
         spec = self.policy.spec
+        obs = as_array("observation", observation, (spec.obs_dim,))
         u = state.plan[0]
         if state.gains is not None:
-            x = self.policy.model_state(as_array("observation", observation, (spec.obs_dim,)))
-            corrected = u + state.gains[0] @ (x - state.states[0])
+            corrected = u + state.gains[0] @ (self.policy.model_state(obs) - state.states[0])
             if np.all(np.isfinite(corrected)):
                 u = corrected
         return np.clip(u, spec.u_min, spec.u_max), state.shifted()
+
+    def _check(self, state: Any) -> None:
+        """Refuse a state that is not a :class:`ReplanState` of this policy's sizes."""
+        if not isinstance(state, ReplanState):
+            raise ValueError(f"state must be the ReplanState the previous call returned, got "
+                             f"{type(state).__name__}")
+        H, m = self.policy.horizon, self.policy.spec.act_dim
+        if np.shape(state.plan) != (H, m) or not np.all(np.isfinite(state.plan)):
+            raise ValueError(f"state.plan must be a finite [H={H}, m={m}] plan, got shape "
+                             f"{list(np.shape(state.plan))}")
+        if isinstance(state.age, bool) or not isinstance(state.age, int) or state.age < 1:
+            raise ValueError(f"state.age must be an integer >= 1, got {state.age!r}")
 
     def _reference(self) -> tuple[np.ndarray | None, np.ndarray | None]:
         """``(states [H, n], gains [H, m, n])`` of the last solve for the steps after the

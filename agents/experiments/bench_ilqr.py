@@ -312,7 +312,7 @@ def planning_at_scale(args: Args) -> dict:
                                       torch_threads=args.threads)
             agent = JacPropAgent(env, cfg, **task.agent_kwargs())
             agent.model.set_normalization(data)
-            agent._freeze()
+            agent.freeze()
             obs, _ = env.reset(seed=args.seed)
             plan, times = None, []
             for t in range(args.scale_steps):
@@ -593,6 +593,7 @@ def run(args: Args) -> dict:
             options=MPCOptions(
                 iterations_per_step=args.mpc_iterations,
                 first_step_iterations=args.mpc_first_iterations,
+                optimizer_options=ILQROptions(tol_fun_rel=1e-6),  # the documented runs'
             ),
         )
         best, best_ct = None, None

@@ -158,7 +158,8 @@ def run(args: Args) -> dict:
         horizon=args.mpc_horizon,
         u_min=-1.0,
         u_max=1.0,
-        options=MPCOptions(iterations_per_step=args.mpc_iterations, first_step_iterations=30),
+        options=MPCOptions(iterations_per_step=args.mpc_iterations, first_step_iterations=30,
+                           optimizer_options=ILQROptions(tol_fun_rel=1e-6)),  # documented runs'
         params=cost.reference(goal),
     )
     mpc_out = run_episode(env, mpc, seed=args.seed, options=options, observe=_state)
