@@ -41,7 +41,7 @@ def test_same_inputs_same_key_and_each_input_changes_it(monkeypatch):
     assert _key() == base  # a fresh env instance, the same physics
     assert _key(planner={**PLANNER, "horizon": 5}) != base
     assert _key(optimizer_options=ILQROptions(lambda_init=2.0)) != base
-    assert _key(optimizer_options=ILQROptions()) == base  # the default is what agents.planning.solver uses
+    assert _key(optimizer_options=ILQROptions()) == base  # planning.solver's default
     assert _key(task=_task(2.0)) != base
     assert _key(episode_steps=6) != base
     assert _key(n_episodes=3) != base
