@@ -243,3 +243,25 @@ def test_task_setup_refuses_a_map_that_indexes_the_batch_and_a_missing_cost():
     assert check_state_map(StateMap(), env, spec).shape == (3,)
     with pytest.raises(ValueError, match="cost_fn is required"):
         resolve_task(env, None, None, None)
+
+
+@pytest.mark.parametrize("kind", ["ilqr", "cem", "cem-ilqr"])
+def test_oracle_plans_with_the_planners_kind_and_one_particle(kind):
+    """The oracle is the agent's planner on the true model: the same optimizer and iteration
+    counts from the same PlannerConfig; CEM's particles are 1 (one true model)."""
+    from agents.evaluation import oracle_policy
+
+    env = gym.make(ARM, episode_steps=5)
+    planner = PlannerConfig(kind=kind, horizon=6, replan_every=2, first_plan_iterations=3,
+                            cem=CEMOptions(samples=16, elites=4, iterations=2, particles=3))
+    oracle = oracle_policy(env, planner, seed=4)
+    mpc = oracle.policy.mpc
+    expected = {"ilqr": ilqr, "cem": cem, "cem-ilqr": cem_ilqr}[kind]
+    assert mpc.optimizer is expected and mpc.horizon == oracle.policy.horizon == 6
+    assert oracle.k == 2 and mpc.options.first_step_iterations == 3
+    if kind == "cem":
+        assert mpc.options.optimizer_options.particles == 1
+        assert mpc.options.optimizer_options.seed == 4
+    obs, _ = env.reset(seed=0)
+    action, state = oracle.predict(obs, None, episode_start=True)
+    assert isinstance(state, ReplanState) and np.all(np.isfinite(action))
