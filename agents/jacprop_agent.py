@@ -268,7 +268,8 @@ class JacPropAgent(SB3Predictor):
                     step_end is None or self.env_steps < step_end):
                 done += 1
                 before = self.env_steps
-                row = self._episode(None if step_end is None else step_end - self.env_steps)
+                row = self._episode(
+                    max_steps=None if step_end is None else step_end - self.env_steps)
                 ends = (episodes is not None and done >= episodes) or (
                     step_end is not None and self.env_steps >= step_end)
                 if ends and row["eval_returns"] is None and self.evaluator.due(
