@@ -330,9 +330,10 @@ class ModelConfig:
     :param formulation: ``"g"`` (``x+ = x + g(x, u)``, paper Objective 2) or ``"f"``
         (``x+ = f(x, u)``, Objective 1).
     :param ensemble_size: number of ensemble members (their mean is the model).
-    :param hidden_width: hidden units per layer of each member; ``None``: :func:`default_size`.
-    :param hidden_layers: hidden layers per member (any integer >= 1); ``None``:
-        :func:`default_size`.
+    :param hidden_width: hidden units per layer of each member; ``None``: sized by the task's
+        dimensions (:func:`default_size`).
+    :param hidden_layers: hidden layers per member (any integer >= 1); ``None``: sized by the
+        task's dimensions (:func:`default_size`).
     :param activations: member ``k`` uses ``activations[k % len(activations)]``.
     :param probabilistic: members with a bounded log-variance head trained by Gaussian NLL
         (PETS; :class:`EnsembleConfig`).

@@ -28,19 +28,20 @@ after the epoch's data batches, as the original code did (it chained the perturb
 after the data as extra batches), so an epoch takes ``(1 + n_copies)`` times the baseline's
 steps. Compare methods with the baseline at equal optimizer steps (:attr:`TrainHistory.steps`).
 
-With a step budget (:attr:`TrainConfig.steps`) or a hold-out, early stopping or per-member data,
-the minibatch-step loop runs instead of epochs: every step draws a minibatch per member, the
-perturbed copies of that minibatch's transitions (fresh every step, labelled by their
-trajectory's LTV Jacobians), and a probabilistic member's data term is the Gaussian NLL; see
-:class:`TrainConfig`.
+One loop (:func:`_train_loop`) trains with either schedule, a plan of rounds of batches: the
+paper's epochs (:class:`_EpochPlan`), or a step budget (:attr:`TrainConfig.steps`, or a hold-out,
+early stopping or per-member data; :class:`_StepPlan`) in which every step draws a minibatch per
+member and fresh perturbed copies of its transitions, labelled by their trajectory's LTV
+Jacobians. A probabilistic member's data term is the Gaussian NLL; see :class:`TrainConfig`.
 """
 
 from __future__ import annotations
 
 import copy
+import itertools
 import math
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass, field
 from typing import Literal
 
@@ -79,13 +80,13 @@ class TrainConfig:
     schedule (its cost grows with the data). ``steps=S``: a budget of ``S`` gradient steps on
     minibatches of ``batch`` transitions per call, independent of the data size. Either can
     hold out data, stop early and give the members their own data order or bootstrap sample
-    (then the minibatch-step loop runs, :attr:`uses_step_loop`; without them ``epochs`` runs
-    the paper's epoch loop, unchanged). See ``docs/models.md``, "Training with a step budget".
+    (then training takes the step budget, :attr:`uses_step_loop`; without them ``epochs`` is
+    the paper's epoch schedule). See ``docs/models.md``, "Training with a step budget".
 
     :param epochs: passes over the data (``steps=None``). Paper: 1000 for g and 2000 for f, half
         of that with sampled Jacobian propagation.
     :param lr: Adam step size. The original used 0.02 (linear system, robot v1) and 0.01 (later
-        scripts); 0.01 is the default here (normalized data, see ``docs/models.md``).
+        scripts; normalized data, see ``docs/models.md``).
     :param batch: ``"trajectory"`` (one optimizer step per trajectory, like the original; epochs
         only) or an int minibatch size (transitions drawn without replacement across
         trajectories).
@@ -172,14 +173,14 @@ class TrainConfig:
             on = [f"{name}={getattr(self, name)!r}" for name, off in (
                 ("holdout", 0.0), ("patience", None), ("member_data", "shared"))
                 if getattr(self, name) != off]
-            raise ValueError(f"batch='trajectory' is the epoch loop's; {', '.join(on)} need an "
+            raise ValueError(f"batch='trajectory' is the epoch schedule's; {', '.join(on)} need an "
                              "int minibatch size")
 
     @property
     def uses_step_loop(self) -> bool:
-        """Whether training runs the minibatch-step loop: with a step budget, or with a hold-out,
-        early stopping or per-member data (then ``epochs`` passes over the training rows set
-        the budget). Otherwise it is the paper's epoch loop, unchanged."""
+        """Whether training takes the step budget: with ``steps``, or with a hold-out, early
+        stopping or per-member data (then ``epochs`` passes over the training rows set the
+        budget). Otherwise it takes the paper's epoch schedule."""
         return self.steps is not None or self.holdout > 0 or self.patience is not None or (
             self.member_data != "shared")
 
@@ -209,7 +210,7 @@ class RegularizationConfig:
     :param smooth_weight: weight of ``sum_t ||J_model(t+1) - J_model(t)||_F^2`` (the original's
         later "AD jacprop", paper eq. (reg)); needs no LTV model.
     :param ltv_lambda: ``lam`` of :func:`mbtsr.ltv.fit_ltv` (``lam^2`` = drift-to-noise variance
-        ratio, scale dependent); default ``sqrt(1000)``, the original's R2 = 1000 I, R1 = I.
+        ratio, scale dependent); the original's R2 = 1000 I, R1 = I is ``sqrt(1000)``.
         ``None`` picks it per trajectory with :func:`mbtsr.ltv.select_lambda`.
     :param ltv_affine: fit LTV models with an affine term ``c_t``.
     """
@@ -283,26 +284,24 @@ class RegularizationConfig:
 class TrainHistory:
     """What :func:`train_ensemble` returns.
 
-    :param train_loss: epochs: ``[epochs]`` data term (mean over members and training
-        transitions, normalized units; the Gaussian NLL for probabilistic members) accumulated
-        during each epoch. Steps: ``[evaluations]`` its mean over the steps since the previous
-        evaluation (NaN at step 0).
-    :param val_loss: epochs: ``[epochs]`` the squared error of the members' means on the
-        validation trajectories after each epoch (evaluation mode); steps: ``[evaluations]`` the
-        same on the hold-out rows (or ``validation``); empty without validation data.
-    :param penalties: ``{"sampled", "exact", "smooth"} -> [epochs or evaluations]`` mean
-        per-step value of each active regularizer (before its weight).
+    Training records one row per round: every epoch, or with a step budget at step 0 and
+    every ``eval_every`` steps (the rows' step counts are :attr:`eval_steps`).
+
+    :param train_loss: ``[rounds]`` the data term (mean over members and the round's training
+        transitions, normalized units; the Gaussian NLL for probabilistic members; NaN at step 0).
+    :param val_loss: ``[rounds]`` the members' mean squared error (evaluation mode) on the
+        validation trajectories or the held-out rows at the round's end; empty without them.
+    :param penalties: ``{"sampled", "exact", "smooth"} -> [rounds]`` mean per-step value of each
+        active regularizer (before its weight).
     :param wall_time: seconds spent in the call.
     :param optimizer_state: Adam's ``state_dict`` (a deep copy) to resume exactly.
     :param steps: optimizer steps taken.
     :param ltv_models: the LTV models used (one per training trajectory) or None.
     :param step_loss: ``[steps]`` the objective minimized at each optimizer step (summed over
         members, weights applied).
-    :param eval_steps: steps only: ``[evaluations]`` the step count at each evaluation.
-    :param val_member_loss: steps only: ``[evaluations, K]`` every member's validation loss
-        (config order).
-    :param val_ensemble_loss: steps only: ``[evaluations]`` the validation loss of the ensemble
-        mean.
+    :param eval_steps: ``[rounds]`` the step count at each round's end.
+    :param val_member_loss: ``[rounds, K]`` every member's validation loss (config order).
+    :param val_ensemble_loss: ``[rounds]`` the validation loss of the ensemble mean.
     :param best_steps: with early stopping, ``[K]`` the step count of every member's restored
         weights (config order); ``None`` otherwise.
     :param stopped_early: True when ``patience`` ended training before the step budget.
@@ -366,41 +365,6 @@ def _check_ltv_models(ltv_models: object, trajs: list[Trajectory]) -> list:
     return list(ltv_models)
 
 
-def _perturbed_copies(lm, tr: Trajectory, reg: RegularizationConfig, rng: np.random.Generator,
-                      sx: np.ndarray, su: np.ndarray) -> tuple:
-    """``lm.sample_perturbed(tr.x, tr.u, ...)`` with the per-trajectory scales ``sx, su``.
-
-    For :class:`mbtsr.ltv.LTVModel` (whose inputs were validated once, up front) its kernel
-    ``_sample_perturbed`` runs without the per-call input validation, which cost about a third
-    of a training epoch with many short trajectories; any other model with
-    ``sample_perturbed`` is called as is.
-    """
-    from mbtsr.ltv import LTVModel
-
-    if type(lm) is not LTVModel:
-        return lm.sample_perturbed(tr.x, tr.u, sigma=reg.sigma, n_copies=reg.n_copies, seed=rng,
-                                   std_x=sx, std_u=su)
-    return lm._sample_perturbed(tr.x, tr.u, reg.sigma, reg.n_copies, rng, sx, su)
-
-
-def _ltv_jacobian_rows(ltv_models: list, trajs: list[Trajectory]) -> torch.Tensor:
-    """``[N, n, n+m]`` the LTV Jacobian ``[A_t B_t]`` of every pooled training row (float32)."""
-    return torch.as_tensor(np.concatenate([
-        np.concatenate([np.asarray(lm.A)[:tr.T], np.asarray(lm.B)[:tr.T]], -1)
-        for lm, tr in zip(ltv_models, trajs)]), dtype=torch.float32)
-
-
-def _row_layout(starts: np.ndarray) -> tuple[torch.Tensor, float, float]:
-    """For pooled rows whose trajectories start at ``starts`` (``[count + 1]``, last ``N``):
-    the successor of every row ``[N]`` (-1 for the last transition of a trajectory), and the
-    mean numbers of rows and of successive pairs per trajectory (the scales ``S`` of the
-    minibatch penalties)."""
-    N, count = int(starts[-1]), len(starts) - 1
-    nxt = np.arange(1, N + 1)
-    nxt[starts[1:] - 1] = -1
-    return torch.as_tensor(nxt), N / count, (N - count) / count
-
-
 def _optimizer(model: DynamicsEnsemble, config: TrainConfig) -> torch.optim.Optimizer:
     """Adam (coupled L2 on weights) or AdamW (decoupled), weight matrices decayed only."""
     weights, others = [], []
@@ -448,24 +412,18 @@ def _check_optimizer_state(optimizer: torch.optim.Optimizer, state: object) -> N
                         f"{got}, the parameter {list(param.shape)} (another architecture)")
 
 
-def _finite_term(name: str, value: float, epoch: int) -> float:
-    """``value`` of the loss term ``name``; a ``FloatingPointError`` naming it if it overflowed
+def _finite_term(name: str, value: float, step: int) -> None:
+    """A ``FloatingPointError`` naming the loss term ``name`` if its ``value`` overflowed
     (checked before the optimizer step, so the weights stay finite)."""
     if not math.isfinite(value):
         what = "data term" if name == "data" else f"{name!r} regularizer term"
         fix = ("lower lr or check the data scale" if name == "data" else
                f"lower reg.{name}_weight or lr, or check the data and LTV Jacobian scales")
-        raise FloatingPointError(f"the {what} of the loss is {value} at epoch {epoch}; {fix}")
-    return value
+        raise FloatingPointError(f"the {what} of the loss is {value} at step {step}; {fix}")
 
 
 def _squared_norm(a: torch.Tensor, dims: tuple[int, ...]) -> torch.Tensor:
     return (a * a).sum(dims)
-
-
-def _sum_squared(y: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
-    """``sum (y - target)^2`` with ``y: [K, B, n]`` and ``target: [B, n]`` shared by members."""
-    return F.mse_loss(y, target.expand_as(y), reduction="sum")
 
 
 def _data_sum(y: torch.Tensor, target: torch.Tensor, logvar: torch.Tensor | None) -> torch.Tensor:
@@ -474,256 +432,297 @@ def _data_sum(y: torch.Tensor, target: torch.Tensor, logvar: torch.Tensor | None
     the constant ``log 2 pi`` and the factor 1/2, as mbrl-lib). ``target`` ``[B, n]`` (shared)
     or ``[K, B, n]``."""
     if logvar is None:
-        return _sum_squared(y, target)
+        return F.mse_loss(y, target.expand_as(y), reduction="sum")
     d = y - target
     return (d * d * torch.exp(-logvar) + logvar).sum()
 
 
-def _logvar_bound_penalty(model: DynamicsEnsemble) -> torch.Tensor | None:
-    """``LOGVAR_BOUND_WEIGHT * (sum max_logvar - sum min_logvar)`` over all members (PETS'
-    term that keeps the soft bounds tight), or None for deterministic members."""
-    if not model.config.probabilistic:
-        return None
+def _logvar_bound_penalty(model: DynamicsEnsemble) -> torch.Tensor:
+    """``LOGVAR_BOUND_WEIGHT * (sum max_logvar - sum min_logvar)`` over all (probabilistic)
+    members: PETS' term that keeps the soft bounds tight."""
     return LOGVAR_BOUND_WEIGHT * sum(g.max_logvar.sum() - g.min_logvar.sum()
                                      for g in model.groups)
 
 
-def train_ensemble(
-    model: DynamicsEnsemble,
-    trajs: Sequence[Trajectory] | Trajectory,
-    config: TrainConfig = TrainConfig(),  # noqa: B008 - frozen dataclass
-    reg: RegularizationConfig = RegularizationConfig(),  # noqa: B008
-    validation: Sequence[Trajectory] | None = None,
-    ltv_models: Sequence | None = None,
-    optimizer_state: dict | None = None,
-    callback: Callable[[int, DynamicsEnsemble], None] | None = None,
-) -> TrainHistory:
-    """Fit all members of ``model`` to ``trajs`` (in place) with optional tangent-space
-    regularization (see the module docstring for the objective).
+# ---------------------------------------------------------------------------------------------
+# one optimizer step: a batch and the objective's terms
+# ---------------------------------------------------------------------------------------------
 
-    Calling it again on grown data warm-starts from the current weights; pass the previous
-    ``history.optimizer_state`` to resume Adam exactly. Normalization statistics are set from
-    ``trajs`` on the first call only.
 
-    :param model: the ensemble to train.
-    :param trajs: training trajectories (each ``x: [T+1, n]``, ``u: [T, m]``).
-    :param config: optimizer and schedule.
-    :param reg: regularizers and their weights.
-    :param validation: trajectories for the per-epoch validation loss.
-    :param ltv_models: one LTV model per training trajectory (``A [>=T, n, n]``,
-        ``B [>=T, n, m]``, ``sample_perturbed``); fitted with :func:`mbtsr.ltv.fit_ltv` if None
-        and a regularizer needs them.
-    :param optimizer_state: an Adam ``state_dict`` from a previous call.
-    :param callback: optional diagnostic ``callback(epoch, model)`` called after every epoch
-        with the model in evaluation mode (e.g. to log Jacobian errors during training; off by
-        default). It must not change the weights; it draws no random numbers of the training.
-    :return: :class:`TrainHistory`.
+@dataclass
+class _Batch:
+    """Inputs and labels of one optimizer step, shared by the members (``[rows, ...]``) or one
+    set per member (``[K, rows, ...]``, stacked order).
+
+    :param inputs: ``[R, n+m]`` normalized: the ``b`` data rows first, then any successor rows
+        (smoothness), the perturbed copies last.
+    :param jac_rows: how many of the first rows need Jacobians (exact and smoothness terms).
+    :param target: ``[b, n]`` targets of the data rows; None: a step on copies alone.
+    :param copy_target: ``[c, n]`` labels of the last ``c`` rows (the copies).
+    :param copy_share: divides the recorded sampled term (``n_copies`` when each copy takes its
+        own step, so that an epoch's sum is a mean over the copies).
+    :param J_ltv: ``[b, n, n+m]`` LTV Jacobians of the data rows (exact term).
+    :param pairs: smoothness pairs ``(successors, firsts, mask)``: row selectors of the
+        Jacobians and a ``[K, p]`` 0/1 weight of every pair (None: all count).
+    :param exact_scale, smooth_scale: the terms' ``S`` (module docstring).
     """
-    t_start = time.perf_counter()
-    if not isinstance(model, DynamicsEnsemble):
-        raise ValueError(f"model must be a DynamicsEnsemble, got {type(model).__name__}")
-    if not isinstance(config, TrainConfig):
-        raise ValueError(f"config must be a TrainConfig, got {type(config).__name__}")
-    if not isinstance(reg, RegularizationConfig):
-        raise ValueError(f"reg must be a RegularizationConfig, got {type(reg).__name__}")
-    if callback is not None and not callable(callback):
-        raise ValueError(f"callback must be callable or None, got {type(callback).__name__}")
-    trajs = as_trajectory_list(trajs)
-    n, m = model.state_dim, model.action_dim
-    xu_np, x_next_np = _pool_transitions(trajs, n, m)  # validates dims and finiteness
-    lengths = [tr.T for tr in trajs]
-    starts = np.concatenate([[0], np.cumsum(lengths)])
-    N = int(starts[-1])
-    val_data = None
-    if validation is not None:
-        validation = as_trajectory_list(validation, "validation")
-        val_data = _pool_transitions(validation, n, m)
 
-    if not model.is_normalized:
-        model.set_normalization(trajs)
-    if reg.needs_ltv:
-        ltv_models = (_fit_ltv_models(trajs, reg) if ltv_models is None
-                      else _check_ltv_models(ltv_models, trajs))
-    elif ltv_models is not None:
-        ltv_models = _check_ltv_models(ltv_models, trajs)
+    inputs: torch.Tensor
+    jac_rows: int = 0
+    target: torch.Tensor | None = None
+    copy_target: torch.Tensor | None = None
+    copy_share: int = 1
+    J_ltv: torch.Tensor | None = None
+    exact_scale: float = 1.0
+    pairs: tuple | None = None
+    smooth_scale: float = 1.0
 
-    # ---- tensors (float32, pooled over trajectories)
-    with torch.no_grad():  # inputs are normalized once here, not in every step
-        xu_raw = torch.as_tensor(xu_np, dtype=torch.float32)
-        xu = model.normalize_inputs(xu_raw)
-        target = model.normalized_residual(
-            xu_raw, torch.as_tensor(x_next_np, dtype=torch.float32))
-        if val_data is not None:
-            xu_val_raw = torch.as_tensor(val_data[0], dtype=torch.float32)
-            xu_val = model.normalize_inputs(xu_val_raw)
-            target_val = model.normalized_residual(
-                xu_val_raw, torch.as_tensor(val_data[1], dtype=torch.float32))
-    # per-trajectory perturbation scales (std over time, as sample_perturbed's default),
-    # computed once instead of every epoch
-    scales = [(tr.x[:-1].std(0), tr.u.std(0)) for tr in trajs]
-    J_ltv = _ltv_jacobian_rows(ltv_models, trajs) if reg.exact else None
-    trajectory_batches = config.batch == "trajectory"
-    successors, mean_terms, mean_pairs = _row_layout(starts)
-    next_index = successors if reg.smooth and not trajectory_batches else None
 
-    # ---- optimizer and random streams
-    optimizer = _optimizer(model, config)
-    if optimizer_state is not None:
-        _check_optimizer_state(optimizer, optimizer_state)
-        try:
-            optimizer.load_state_dict(optimizer_state)
-        except (ValueError, KeyError, TypeError, RuntimeError) as err:
-            raise ValueError(f"optimizer_state does not fit this model/config: {err}") from None
-    rng = np.random.default_rng(config.seed)
-    batch_gen = torch.Generator().manual_seed(int(config.seed))
-    model.dropout_generator = torch.Generator().manual_seed(int(config.seed) + 1)
-    if config.uses_step_loop:
-        if config.patience is not None and config.holdout == 0 and val_data is None:
-            raise ValueError("config.patience needs held-out data: config.holdout > 0 or "
-                             "validation trajectories")
-        return _train_steps(model, trajs, config, reg, ltv_models, optimizer, callback, t_start,
-                            xu_raw=xu_raw, xu=xu, target=target, starts=starts,
-                            val=None if val_data is None else (xu_val, target_val))
+def _objective(model: DynamicsEnsemble, batch: _Batch, reg: RegularizationConfig
+               ) -> tuple[torch.Tensor, dict[str, float]]:
+    """The loss of one step (module docstring), summed over members, and the value of every
+    term present (before its weight, divided by the number of members for the data and
+    sampled terms, mean over members for the Jacobian terms). Each term is written here once.
 
-    probabilistic = model.config.probabilistic
-    E = config.epochs
-    train_loss = np.zeros(E)
-    val_loss = np.zeros(E) if val_data is not None else np.zeros(0)
-    active = [k for k in ("sampled", "exact", "smooth") if getattr(reg, k)]
-    penalties = {k: np.zeros(E) for k in active}
-    steps = 0
-    step_loss: list[float] = []
+    :return: ``(loss, {"data"?, "sampled"?, "exact"?, "smooth"?: float})``.
+    """
+    y, J, lv = model.stacked_forward(batch.inputs, jac_rows=batch.jac_rows, normalized=True,
+                                     logvar=True)
     K = model.n_members
-    model.train()
-    bar = tqdm(range(E), desc="train_ensemble", disable=not config.progress, leave=False)
-    try:
-        for epoch in bar:
-            xu_pert = target_pert = None
-            if reg.sampled:
-                copies = [_perturbed_copies(lm, tr, reg, rng, sx, su)
-                          for lm, tr, (sx, su) in zip(ltv_models, trajs, scales)]
-                xt = np.concatenate([c[0] for c in copies], 1)  # [C, N, n]
-                ut = np.concatenate([c[1] for c in copies], 1)
-                xnt = np.concatenate([c[2] for c in copies], 1)
-                with torch.no_grad():
-                    xu_pert = torch.as_tensor(np.concatenate([xt, ut], -1), dtype=torch.float32)
-                    target_pert = model.normalized_residual(
-                        xu_pert, torch.as_tensor(xnt, dtype=torch.float32))
-                    xu_pert = model.normalize_inputs(xu_pert)
-            if trajectory_batches:
-                order = (torch.randperm(len(trajs), generator=batch_gen).tolist()
-                         if config.shuffle else range(len(trajs)))
-                batches = [slice(int(starts[i]), int(starts[i + 1])) for i in order]
-            else:
-                size = int(config.batch)
-                if config.shuffle:
-                    batches = list(torch.split(torch.randperm(N, generator=batch_gen), size))
-                else:  # contiguous ranges index by views, without gathering
-                    batches = [slice(a, min(a + size, N)) for a in range(0, N, size)]
-            data_sum = 0.0
-            pen_sum = dict.fromkeys(active, 0.0)
-            own_copies = xu_pert is not None and reg.copies_batch == "own"
-            for idx in batches:
-                parts = [xu[idx]]
-                B = parts[0].shape[0]
-                succ_valid = None
-                if next_index is not None:  # minibatch smoothness: add successors
-                    nxt_i = next_index[idx]
-                    succ_valid = (nxt_i >= 0).nonzero().squeeze(-1)
-                    parts.append(xu[nxt_i[succ_valid]])
-                jac_rows = sum(p.shape[0] for p in parts) if (reg.exact or reg.smooth) else 0
-                if xu_pert is not None and not own_copies:
-                    parts.append(xu_pert[:, idx].reshape(-1, n + m))
-                inputs = parts[0] if len(parts) == 1 else torch.cat(parts, 0)
-                y, J, lv = model.stacked_forward(inputs, jac_rows=jac_rows, normalized=True,
-                                                 logvar=True)
-                # sum over members of (mean over points of the squared error norm / the NLL)
-                loss = _data_sum(y[:, :B], target[idx], None if lv is None else lv[:, :B]) / B
-                data_sum += _finite_term("data", float(loss.detach()), epoch) / K * B
-                if reg.sampled and not own_copies:
-                    tp = target_pert[:, idx].reshape(-1, n)
-                    first = inputs.shape[0] - tp.shape[0]
-                    pen = _data_sum(y[:, first:], tp,
-                                    None if lv is None else lv[:, first:]) / tp.shape[0]
-                    loss = loss + reg.sampled_weight * pen
-                    pen_sum["sampled"] += _finite_term("sampled", float(pen.detach()), epoch) / K
-                if probabilistic:
-                    loss = loss + _logvar_bound_penalty(model)
-                if reg.exact:
-                    scale = B if trajectory_batches else mean_terms
-                    pen = _squared_norm(J[:, :B] - J_ltv[idx], (-1, -2)).mean(-1) * scale
-                    loss = loss + reg.exact_weight * pen.sum()
-                    pen_sum["exact"] += _finite_term("exact", float(pen.detach().mean()), epoch)
-                if reg.smooth:
-                    if trajectory_batches:
-                        dJ = J[:, 1:B] - J[:, : B - 1]
-                        scale = B - 1
-                    else:
-                        dJ = J[:, B:jac_rows] - J[:, succ_valid]
-                        scale = mean_pairs
-                    if dJ.shape[1] > 0:
-                        pen = _squared_norm(dJ, (-1, -2)).mean(-1) * scale
-                        loss = loss + reg.smooth_weight * pen.sum()
-                        pen_sum["smooth"] += _finite_term("smooth", float(pen.detach().mean()),
-                                                          epoch)
+    terms, loss = {}, None
+    if batch.target is not None:  # sum over members of the mean over points
+        b = batch.target.shape[-2]
+        loss = _data_sum(y[:, :b], batch.target, None if lv is None else lv[:, :b]) / b
+        terms["data"] = float(loss.detach()) / K
+    if batch.copy_target is not None:
+        c = batch.copy_target.shape[-2]
+        first = y.shape[1] - c
+        pen = _data_sum(y[:, first:], batch.copy_target, None if lv is None else lv[:, first:])
+        pen = pen / c
+        loss = reg.sampled_weight * pen if loss is None else loss + reg.sampled_weight * pen
+        terms["sampled"] = float(pen.detach()) / K / batch.copy_share
+    if lv is not None:
+        loss = loss + _logvar_bound_penalty(model)
+    if batch.J_ltv is not None:
+        pen = _squared_norm(J[:, :batch.J_ltv.shape[-3]] - batch.J_ltv, (-1, -2)).mean(-1)
+        pen = pen * batch.exact_scale
+        loss = loss + reg.exact_weight * pen.sum()
+        terms["exact"] = float(pen.detach().mean())
+    if batch.pairs is not None:
+        successors, firsts, mask = batch.pairs
+        d = _squared_norm(J[:, successors] - J[:, firsts], (-1, -2))
+        pen = d.mean(-1) if mask is None else (d * mask).sum(-1) / mask.sum(-1).clamp(min=1.0)
+        pen = pen * batch.smooth_scale
+        loss = loss + reg.smooth_weight * pen.sum()
+        terms["smooth"] = float(pen.detach().mean())
+    return loss, terms
+
+
+def _train_loop(model: DynamicsEnsemble, optimizer: torch.optim.Optimizer,
+                rounds: Iterator[Iterable[_Batch]], reg: RegularizationConfig,
+                report: _Report, bar: tqdm) -> tuple[int, list[float]]:
+    """The training loop of both schedules: every batch of every round (an epoch, or
+    ``eval_every`` steps) takes one optimizer step; the :class:`_Report` records the terms,
+    evaluates after every round and may stop training (early stopping).
+
+    :param rounds: the schedule's rounds of batches (:class:`_EpochPlan`, :class:`_StepPlan`).
+    :return: ``(steps, [steps] objective of every step)``.
+    """
+    steps, step_loss = 0, []
+    if not report.begin():
+        for batches in rounds:
+            for batch in batches:
+                loss, terms = _objective(model, batch, reg)
+                for name, value in terms.items():
+                    _finite_term(name, value, steps)
                 optimizer.zero_grad(set_to_none=True)
                 loss.backward()
                 optimizer.step()
                 step_loss.append(float(loss.detach()))
                 steps += 1
-            if own_copies:  # the original's extra batches: one step per copy of each batch
-                for idx in batches:
-                    for c in range(reg.n_copies):
-                        y, _, lv = model.stacked_forward(xu_pert[c, idx], normalized=True,
-                                                         logvar=True)
-                        tp = target_pert[c, idx]
-                        pen = _data_sum(y, tp, lv) / tp.shape[0]
-                        loss = reg.sampled_weight * pen
-                        if probabilistic:
-                            loss = loss + _logvar_bound_penalty(model)
-                        pen_sum["sampled"] += _finite_term(
-                            "sampled", float(pen.detach()), epoch) / K / reg.n_copies
-                        optimizer.zero_grad(set_to_none=True)
-                        loss.backward()
-                        optimizer.step()
-                        step_loss.append(float(loss.detach()))
-                        steps += 1
-            train_loss[epoch] = data_sum / N
-            if not np.isfinite(train_loss[epoch]):
-                raise FloatingPointError(
-                    f"training diverged at epoch {epoch} (non-finite loss); lower lr or check "
-                    "the data scale")
-            for k in active:
-                penalties[k][epoch] = pen_sum[k] / len(batches)
-            if val_data is not None:
-                model.eval()
-                with torch.no_grad():
-                    yv, _ = model.stacked_forward(xu_val, normalized=True)
-                    val_loss[epoch] = float(_squared_norm(yv - target_val, (-1,)).mean())
-                model.train()
-            if callback is not None:
-                model.eval()
-                with torch.no_grad():
-                    callback(epoch, model)
-                model.train()
-            if config.progress and (epoch % 10 == 0 or epoch == E - 1):
-                post = {"loss": f"{train_loss[epoch]:.3g}"}
-                if val_data is not None:
-                    post["val"] = f"{val_loss[epoch]:.3g}"
-                bar.set_postfix(post, refresh=False)
-    finally:
-        bar.close()
-        model.eval()
-    return TrainHistory(
-        train_loss=train_loss,
-        val_loss=val_loss,
-        penalties=penalties,
-        wall_time=time.perf_counter() - t_start,
-        optimizer_state=copy.deepcopy(optimizer.state_dict()),
-        steps=steps,
-        ltv_models=ltv_models,
-        step_loss=np.asarray(step_loss),
-    )
+                report.add(terms, batch)
+                bar.update(1)
+            if report.end_round(steps):
+                break
+    report.finish()
+    return steps, step_loss
+
+
+# ---------------------------------------------------------------------------------------------
+# the training data and the two schedules
+# ---------------------------------------------------------------------------------------------
+
+
+class _Plan:
+    """What both schedules share: the pooled training transitions (float32, built once per
+    call; inputs raw and normalized ``[N, n+m]``, targets ``[N, n]``), every row's successor in
+    its trajectory (-1 at its end), the mean rows and pairs per trajectory (the minibatch
+    penalties' ``S``) and, if a term needs them, the rows' LTV Jacobians ``[N, n, n+m]``."""
+
+    def __init__(self, model: DynamicsEnsemble, trajs: list[Trajectory], ltv_models: list | None,
+                 config: TrainConfig, reg: RegularizationConfig, data: tuple) -> None:
+        self.model, self.trajs, self.ltv_models, self.config, self.reg = (
+            model, trajs, ltv_models, config, reg)
+        self.xu_raw, self.xu, self.target = data
+        self.starts = np.concatenate([[0], np.cumsum([tr.T for tr in trajs])])
+        N, count = int(self.starts[-1]), len(trajs)
+        successor = np.arange(1, N + 1)
+        successor[self.starts[1:] - 1] = -1
+        self.successor = torch.as_tensor(successor)
+        self.mean_terms, self.mean_pairs = N / count, (N - count) / count
+        # per-trajectory perturbation scales (std over time, as sample_perturbed's default)
+        self.scales = [(tr.x[:-1].std(0), tr.u.std(0)) for tr in trajs]
+        self.J_ltv = torch.as_tensor(np.concatenate([
+            np.concatenate([np.asarray(lm.A)[:tr.T], np.asarray(lm.B)[:tr.T]], -1)
+            for lm, tr in zip(ltv_models, trajs)]), dtype=torch.float32) if reg.exact or (
+                reg.sampled and config.uses_step_loop) else None
+
+
+class _EpochPlan(_Plan):
+    """The paper's epoch schedule: ``epochs`` rounds, each a full pass over all transitions in
+    batches of one trajectory or ``batch`` rows (reshuffled every epoch with ``shuffle``,
+    members share them), with the perturbed copies of every trajectory resampled at the start
+    of the epoch by its LTV model (numpy stream seeded ``config.seed``). With
+    ``copies_batch="own"`` the epoch ends with one step per copy of each batch."""
+
+    def __init__(self, *args) -> None:
+        super().__init__(*args)
+        config, reg = self.config, self.reg
+        self.rng = np.random.default_rng(config.seed)
+        self.gen = torch.Generator().manual_seed(int(config.seed))
+        self.per_trajectory = config.batch == "trajectory"
+        self.own = reg.sampled and reg.copies_batch == "own"
+        n_batches = (len(self.trajs) if self.per_trajectory
+                     else math.ceil(int(self.starts[-1]) / int(config.batch)))
+        self.budget = config.epochs * n_batches * (1 + reg.n_copies if self.own else 1)
+
+    def __iter__(self) -> Iterator[Iterable[_Batch]]:
+        for _ in range(self.config.epochs):
+            copies = self._copies() if self.reg.sampled else None
+            order = self._order()
+            data = (self._batch(idx, None if self.own else copies) for idx in order)
+            if not self.own:
+                yield data
+                continue
+            own = (_Batch(copies[0][c, idx], target=None, copy_target=copies[1][c, idx],
+                          copy_share=self.reg.n_copies)
+                   for idx in order for c in range(self.reg.n_copies))
+            yield itertools.chain(data, own)
+
+    def _copies(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """``[C, N, n+m]`` normalized inputs and ``[C, N, n]`` targets of the epoch's copies,
+        ``sample_perturbed`` of every LTV model with its trajectory's scales. An
+        :class:`~mbtsr.ltv.LTVModel` (validated once, up front) runs its kernel without the
+        per-call validation (a third of an epoch with many short trajectories)."""
+        from mbtsr.ltv import LTVModel
+
+        reg, model, C = self.reg, self.model, self.reg.n_copies
+        copies = [lm._sample_perturbed(tr.x, tr.u, reg.sigma, C, self.rng, sx, su)
+                  if type(lm) is LTVModel else lm.sample_perturbed(
+                      tr.x, tr.u, sigma=reg.sigma, n_copies=C, seed=self.rng, std_x=sx, std_u=su)
+                  for lm, tr, (sx, su) in zip(self.ltv_models, self.trajs, self.scales)]
+        xt, ut, xnt = (np.concatenate([c[i] for c in copies], 1) for i in range(3))
+        with torch.no_grad():
+            xu = torch.as_tensor(np.concatenate([xt, ut], -1), dtype=torch.float32)
+            target = model.normalized_residual(xu, torch.as_tensor(xnt, dtype=torch.float32))
+            return model.normalize_inputs(xu), target
+
+    def _order(self) -> list:
+        """The epoch's batches: row slices or index tensors."""
+        starts, config = self.starts, self.config
+        if self.per_trajectory:
+            order = (torch.randperm(len(starts) - 1, generator=self.gen).tolist()
+                     if config.shuffle else range(len(starts) - 1))
+            return [slice(int(starts[i]), int(starts[i + 1])) for i in order]
+        N, size = int(starts[-1]), int(config.batch)
+        if config.shuffle:
+            return list(torch.split(torch.randperm(N, generator=self.gen), size))
+        return [slice(a, min(a + size, N)) for a in range(0, N, size)]  # views, no gather
+
+    def _batch(self, idx: slice | torch.Tensor, copies: tuple | None) -> _Batch:
+        reg = self.reg
+        parts = [self.xu[idx]]
+        B = parts[0].shape[0]
+        pairs, smooth_scale = None, B - 1
+        if reg.smooth and self.per_trajectory:
+            pairs = (slice(1, B), slice(0, B - 1), None) if B > 1 else None
+        elif reg.smooth:  # a minibatch's pairs: its rows with their successors appended
+            nxt = self.successor[idx]
+            valid = (nxt >= 0).nonzero().squeeze(-1)
+            parts.append(self.xu[nxt[valid]])
+            pairs = (slice(B, B + valid.numel()), valid, None) if valid.numel() else None
+            smooth_scale = self.mean_pairs
+        jac_rows = sum(p.shape[0] for p in parts) if (reg.exact or reg.smooth) else 0
+        copy_target = None
+        if copies is not None:
+            parts.append(copies[0][:, idx].reshape(-1, parts[0].shape[-1]))
+            copy_target = copies[1][:, idx].reshape(-1, self.target.shape[-1])
+        return _Batch(
+            parts[0] if len(parts) == 1 else torch.cat(parts, 0), jac_rows, self.target[idx],
+            copy_target, J_ltv=self.J_ltv[idx] if reg.exact else None,
+            exact_scale=B if self.per_trajectory else self.mean_terms, pairs=pairs,
+            smooth_scale=smooth_scale)
+
+
+class _StepPlan(_Plan):
+    """The step budget: ``config.steps`` steps (or ``epochs`` passes over the training rows)
+    in rounds of ``eval_every``. Every step takes one minibatch per member
+    (:class:`_MemberStreams` over the rows not held out), its rows' successors (smoothness,
+    masked at a trajectory's end) and ``n_copies`` perturbed copies of its rows drawn afresh
+    (torch stream seeded ``config.seed + 2``), labelled by their rows' LTV Jacobians."""
+
+    def __init__(self, *args, train_rows: torch.Tensor) -> None:
+        super().__init__(*args)
+        config, trajs, ltv_models = self.config, self.trajs, self.ltv_models
+        self.streams = _MemberStreams(train_rows, self.model.n_members, config.batch,
+                                      config.member_data,
+                                      torch.Generator().manual_seed(int(config.seed)))
+        self.noise_gen = torch.Generator().manual_seed(int(config.seed) + 2)
+        self.budget = config.steps or config.epochs * math.ceil(
+            train_rows.numel() / self.streams.batch)
+        self.c_rows = self.s_rows = None  # per-row affine LTV terms and perturbation scales
+        if self.reg.sampled and any(getattr(lm, "c", None) is not None for lm in ltv_models):
+            self.c_rows = torch.as_tensor(np.concatenate([
+                np.asarray(lm.c)[:tr.T] if getattr(lm, "c", None) is not None
+                else np.zeros((tr.T, tr.n)) for lm, tr in zip(ltv_models, trajs)]),
+                dtype=torch.float32)
+        if self.reg.sampled:
+            self.s_rows = torch.as_tensor(np.concatenate([
+                np.broadcast_to(np.concatenate(s), (tr.T, tr.n + tr.m))
+                for s, tr in zip(self.scales, trajs)]), dtype=torch.float32)
+
+    def __iter__(self) -> Iterator[Iterable[_Batch]]:
+        for start in range(0, self.budget, self.config.eval_every):
+            yield (self._batch() for _ in range(min(self.config.eval_every,
+                                                    self.budget - start)))
+
+    def _batch(self) -> _Batch:
+        reg, model = self.reg, self.model
+        idx = self.streams.next()  # [K, b]
+        K, b = idx.shape
+        parts, pairs = [self.xu[idx]], None
+        if reg.smooth:
+            nxt = self.successor[idx]
+            parts.append(self.xu[nxt.clamp(min=0)])
+            pairs = (slice(b, 2 * b), slice(0, b), (nxt >= 0).float())
+        jac_rows = (2 * b if reg.smooth else b) if (reg.exact or reg.smooth) else 0
+        copy_target = None
+        if reg.sampled:
+            C, n = reg.n_copies, model.state_dim
+            x0 = self.xu_raw[idx]  # [K, b, n+m]
+            noise = torch.randn((C, *x0.shape), generator=self.noise_gen)
+            xp = x0 + reg.sigma * self.s_rows[idx] * noise  # [C, K, b, n+m]
+            label = torch.einsum("kboi,ckbi->ckbo", self.J_ltv[idx], xp)
+            if self.c_rows is not None:
+                label = label + self.c_rows[idx]
+            with torch.no_grad():
+                copy_target = model.normalized_residual(xp, label).transpose(0, 1).reshape(
+                    K, C * b, n)
+                parts.append(model.normalize_inputs(xp).transpose(0, 1).reshape(K, C * b, -1))
+        return _Batch(
+            parts[0] if len(parts) == 1 else torch.cat(parts, 1), jac_rows, self.target[idx],
+            copy_target, J_ltv=self.J_ltv[idx] if reg.exact else None,
+            exact_scale=self.mean_terms, pairs=pairs, smooth_scale=self.mean_pairs)
 
 
 class _MemberStreams:
@@ -759,200 +758,228 @@ class _MemberStreams:
         return idx.expand(self.K, -1) if idx.shape[0] == 1 else idx
 
 
-def _member_slices(model: DynamicsEnsemble) -> list[tuple[torch.nn.Module, int]]:
-    """``(group, position in group)`` of every member in stacked order."""
-    return [(g, i) for g in model.groups for i in range(g.n_members)]
+# ---------------------------------------------------------------------------------------------
+# what is recorded: per epoch, or per evaluation (with early stopping)
+# ---------------------------------------------------------------------------------------------
 
 
-def _train_steps(
-    model: DynamicsEnsemble, trajs: list[Trajectory], config: TrainConfig,
-    reg: RegularizationConfig, ltv_models: list | None, optimizer: torch.optim.Optimizer,
-    callback: Callable[[int, DynamicsEnsemble], None] | None, t_start: float, *,
-    xu_raw: torch.Tensor, xu: torch.Tensor, target: torch.Tensor, starts: np.ndarray,
-    val: tuple[torch.Tensor, torch.Tensor] | None,
-) -> TrainHistory:
-    """:func:`train_ensemble`'s minibatch-step loop (``config.uses_step_loop``): a budget of
-    ``config.steps`` steps (or ``epochs`` passes over the training rows), see
-    :class:`TrainConfig`. Members in stacked order inside.
+class _Report:
+    """What training records, per round (an epoch, or ``eval_every`` steps; a step budget also
+    evaluates at step 0): the data term's mean over the round's transitions, each penalty's
+    mean over its data steps, every member's and the ensemble mean's validation loss, and
+    ``callback(epoch or step, model)``. With ``patience``: early stopping that keeps the best
+    weights (per member or for the ensemble) and restores them at the end."""
 
-    :param xu_raw: ``[N, n+m]`` raw inputs of all transitions (float32).
-    :param xu: ``[N, n+m]`` the same normalized.  :param target: ``[N, n]`` normalized targets.
-    :param starts: ``[len(trajs) + 1]`` first row of every trajectory (and ``N``).
-    :param val: normalized validation inputs and targets (``validation``), or None; held-out
-        rows replace them when ``config.holdout > 0``.
-    """
-    n, m = model.state_dim, model.action_dim
-    N, K = xu.shape[0], model.n_members
-    held = holdout_mask(N, config.holdout) if config.holdout > 0 else np.zeros(N, bool)
-    if held.all():
-        held[:] = False  # too little data to hold any out and still train
-    train_rows = torch.as_tensor(np.flatnonzero(~held))
-    if held.any():
-        val = (xu[torch.as_tensor(np.flatnonzero(held))],
-               target[torch.as_tensor(np.flatnonzero(held))])
-    early = config.patience is not None and val is not None
-    gen = torch.Generator().manual_seed(int(config.seed))
-    noise_gen = torch.Generator().manual_seed(int(config.seed) + 2)
-    streams = _MemberStreams(train_rows, K, config.batch, config.member_data, gen)
-    b = streams.batch
-    budget = config.steps or config.epochs * math.ceil(train_rows.numel() / b)
+    def __init__(self, model: DynamicsEnsemble, config: TrainConfig, active: list[str],
+                 val: tuple | None, callback: Callable | None, bar: tqdm, budget: int,
+                 per_epoch: bool) -> None:
+        K = model.n_members
+        self.model, self.config, self.active, self.val = model, config, active, val
+        self.callback, self.bar, self.budget, self.per_epoch = callback, bar, budget, per_epoch
+        self.early = config.patience is not None and val is not None
+        self.per_member = config.early_stopping == "member"
+        self.best = np.full(K if self.per_member else 1, np.inf)
+        self.best_step = np.zeros(K, int)
+        self.snapshot = ({name: p.detach().clone() for name, p in model.named_parameters()}
+                         if self.early else None)
+        self.since_progress, self.stopped = 0, False
+        self.rows: list[dict] = []
+        self._clear()
 
-    # per-row LTV Jacobians [A B] (and affine terms), perturbation scales, successors
-    J_rows = c_rows = s_rows = None
-    if reg.needs_ltv:
-        J_rows = _ltv_jacobian_rows(ltv_models, trajs)
-        if any(getattr(lm, "c", None) is not None for lm in ltv_models):
-            c_rows = torch.as_tensor(np.concatenate([
-                np.asarray(lm.c)[:tr.T] if getattr(lm, "c", None) is not None
-                else np.zeros((tr.T, n)) for lm, tr in zip(ltv_models, trajs)]),
-                dtype=torch.float32)
-    if reg.sampled:
-        s_rows = torch.as_tensor(np.concatenate([
-            np.broadcast_to(np.concatenate([tr.x[:-1].std(0), tr.u.std(0)]), (tr.T, n + m))
-            for tr in trajs]), dtype=torch.float32)
-    next_index, mean_terms, mean_pairs = _row_layout(starts)
-    bound = model.config.probabilistic
+    def _clear(self) -> None:
+        self.sums = dict.fromkeys(["data", *self.active], 0.0)
+        self.data_rows = self.data_steps = 0
 
-    active = [k for k in ("sampled", "exact", "smooth") if getattr(reg, k)]
-    evals: list[dict] = []
-    best = np.full(K if config.early_stopping == "member" else 1, np.inf)
-    best_step = np.zeros(K, int)
-    snapshot = ({name: p.detach().clone() for name, p in model.named_parameters()}
-                if early else None)
-    members = _member_slices(model)
-    since_progress = 0
-    stopped = False
-    window = {"data": [], **{k: [] for k in active}}
-    step_loss: list[float] = []
+    def begin(self) -> bool:
+        self.stopped = not self.per_epoch and self._evaluate(0)
+        return self.stopped
 
-    def evaluate(step: int) -> bool:
-        """Record the validation losses; update the best weights; True: patience ran out."""
-        nonlocal since_progress
-        row = {"step": step, "train": float(np.mean(window["data"])) if window["data"]
-               else np.nan, **{k: float(np.mean(window[k])) if window[k] else np.nan
-                               for k in active}}
-        for v in window.values():
-            v.clear()
-        if val is not None:
-            model.eval()
+    def add(self, terms: dict[str, float], batch: _Batch) -> None:
+        if batch.target is not None:
+            self.data_rows += batch.target.shape[-2]
+            self.data_steps += 1
+        for k, v in terms.items():
+            self.sums[k] += v * batch.target.shape[-2] if k == "data" else v
+
+    def end_round(self, steps: int) -> bool:
+        self.stopped = self._evaluate(steps) and steps < self.budget
+        if self.config.progress:
+            row = self.rows[-1]
+            self.bar.set_postfix({"loss": f"{row['train']:.3g}", **(
+                {"val": f"{row['val']:.3g}"} if "val" in row else {})}, refresh=False)
+        return self.stopped
+
+    def _evaluate(self, step: int) -> bool:
+        """Record the round; update the best weights; True: patience ran out."""
+        model, n = self.model, self.data_steps
+        row = {"step": step, "train": self.sums["data"] / self.data_rows if n else np.nan,
+               **{k: self.sums[k] / n if n else np.nan for k in self.active}}
+        self._clear()
+        self.rows.append(row)
+        model.eval()  # validation and callback: evaluation mode, no gradients
+        try:
             with torch.no_grad():
-                yv, _ = model.stacked_forward(val[0], normalized=True)
-                member = _squared_norm(yv - val[1], (-1,)).mean(-1).numpy().astype(float)
-                ensemble = float(_squared_norm(yv.mean(0) - val[1], (-1,)).mean())
+                if self.val is not None:
+                    yv, _ = model.stacked_forward(self.val[0], normalized=True)  # [K, V, n]
+                    err = _squared_norm(yv - self.val[1], (-1,))
+                    row.update(val=float(err.mean()), member=err.mean(-1).numpy().astype(float),
+                               ensemble=float(_squared_norm(yv.mean(0) - self.val[1],
+                                                            (-1,)).mean()))
+                if self.callback is not None:
+                    self.callback(len(self.rows) - 1 if self.per_epoch else step, model)
+        finally:
             model.train()
-            row.update(member=member, ensemble=ensemble)
-        evals.append(row)
-        if callback is not None:
-            model.eval()
-            with torch.no_grad():
-                callback(step, model)
-            model.train()
-        if not early:
+        if not self.early:
             return False
-        score = row["member"] if config.early_stopping == "member" else np.array([ensemble])
-        better = score < best
-        progress = bool(np.any(score < best * (1.0 - MIN_REL_IMPROVEMENT)))  # losses >= 0
+        score = row["member"] if self.per_member else np.array([row["ensemble"]])
+        better = score < self.best
+        progress = bool(np.any(score < self.best * (1.0 - MIN_REL_IMPROVEMENT)))  # losses >= 0
         if better.any():
-            improved = np.flatnonzero(better) if config.early_stopping == "member" else range(K)
+            members = [(g, i) for g in model.groups for i in range(g.n_members)]  # stacked
             with torch.no_grad():
-                for k in improved:
+                for k in np.flatnonzero(better) if self.per_member else range(len(members)):
                     g, i = members[k]
                     for name, p in g.named_parameters():
-                        snapshot[_param_key(model, g, name)][i].copy_(p[i])
-                    best_step[k] = step
-            best[better] = score[better]
-        since_progress = 0 if progress else since_progress + 1
-        return since_progress >= config.patience
+                        self.snapshot[_param_key(model, g, name)][i].copy_(p[i])
+                    self.best_step[k] = step
+            self.best[better] = score[better]
+        self.since_progress = 0 if progress else self.since_progress + 1
+        return self.since_progress >= self.config.patience
 
-    model.train()
-    bar = tqdm(total=budget, desc="train_ensemble", disable=not config.progress,
-               leave=False)
-    steps = 0
-    try:
-        stopped = evaluate(0)
-        while steps < budget and not stopped:
-            idx = streams.next()  # [K, b]
-            parts = [xu[idx]]
-            valid = None
-            if reg.smooth:
-                nxt = next_index[idx]
-                valid = (nxt >= 0).float()
-                parts.append(xu[nxt.clamp(min=0)])
-            jac_rows = (2 * b if reg.smooth else b) if (reg.exact or reg.smooth) else 0
-            tp = None
-            if reg.sampled:
-                C = reg.n_copies
-                x0 = xu_raw[idx]  # [K, b, n+m]
-                noise = torch.randn((C, *x0.shape), generator=noise_gen)
-                xp = x0 + reg.sigma * s_rows[idx] * noise  # [C, K, b, n+m]
-                label = torch.einsum("kboi,ckbi->ckbo", J_rows[idx], xp)
-                if c_rows is not None:
-                    label = label + c_rows[idx]
-                with torch.no_grad():
-                    tp = model.normalized_residual(xp, label).transpose(0, 1).reshape(K, C * b, n)
-                    parts.append(model.normalize_inputs(xp).transpose(0, 1).reshape(K, C * b,
-                                                                                     n + m))
-            inputs = torch.cat(parts, 1)
-            y, J, lv = model.stacked_forward(inputs, jac_rows=jac_rows, normalized=True,
-                                             logvar=True)
-            loss = _data_sum(y[:, :b], target[idx], None if lv is None else lv[:, :b]) / b
-            window["data"].append(_finite_term("data", float(loss.detach()), steps) / K)
-            if tp is not None:
-                first = inputs.shape[1] - tp.shape[1]
-                pen = _data_sum(y[:, first:], tp, None if lv is None else lv[:, first:])
-                pen = pen / tp.shape[1]
-                loss = loss + reg.sampled_weight * pen
-                window["sampled"].append(_finite_term("sampled", float(pen.detach()), steps) / K)
-            if bound:
-                loss = loss + _logvar_bound_penalty(model)
-            if reg.exact:
-                pen = _squared_norm(J[:, :b] - J_rows[idx], (-1, -2)).mean(-1) * mean_terms
-                loss = loss + reg.exact_weight * pen.sum()
-                window["exact"].append(_finite_term("exact", float(pen.detach().mean()), steps))
-            if reg.smooth:
-                dJ = _squared_norm(J[:, b:2 * b] - J[:, :b], (-1, -2)) * valid
-                pen = dJ.sum(-1) / valid.sum(-1).clamp(min=1.0) * mean_pairs
-                loss = loss + reg.smooth_weight * pen.sum()
-                window["smooth"].append(_finite_term("smooth", float(pen.detach().mean()), steps))
-            optimizer.zero_grad(set_to_none=True)
-            loss.backward()
-            optimizer.step()
-            step_loss.append(float(loss.detach()))
-            steps += 1
-            bar.update(1)
-            if steps % config.eval_every == 0 or steps == budget:
-                stopped = evaluate(steps) and steps < budget
-                if config.progress and evals[-1].get("ensemble") is not None:
-                    bar.set_postfix({"val": f"{evals[-1]['ensemble']:.3g}"}, refresh=False)
-        if early:
+    def finish(self) -> None:
+        if self.early:
             with torch.no_grad():
-                for name, p in model.named_parameters():
-                    p.copy_(snapshot[name])
-    finally:
-        bar.close()
-        model.eval()
-    order = np.argsort(model._stacked_order)  # stacked -> config order
-    has_val = val is not None
-    return TrainHistory(
-        train_loss=np.array([e["train"] for e in evals]),
-        val_loss=np.array([e["member"].mean() for e in evals]) if has_val else np.zeros(0),
-        penalties={k: np.array([e[k] for e in evals]) for k in active},
-        wall_time=time.perf_counter() - t_start,
-        optimizer_state=copy.deepcopy(optimizer.state_dict()),
-        steps=steps,
-        ltv_models=ltv_models,
-        step_loss=np.asarray(step_loss),
-        eval_steps=np.array([e["step"] for e in evals], int),
-        val_member_loss=(np.stack([e["member"] for e in evals])[:, order] if has_val
-                         else np.zeros((0, K))),
-        val_ensemble_loss=np.array([e["ensemble"] for e in evals]) if has_val else np.zeros(0),
-        best_steps=best_step[order] if early else None,
-        stopped_early=bool(stopped),
-        n_train=int(train_rows.numel()),
-        n_holdout=int(held.sum()),
-    )
+                for name, p in self.model.named_parameters():
+                    p.copy_(self.snapshot[name])
+
+    def history(self, **common) -> TrainHistory:
+        order = np.argsort(self.model._stacked_order)  # stacked -> config order
+        rows, K = self.rows, self.model.n_members
+
+        def column(key: str) -> np.ndarray:  # validation columns are empty without validation
+            return np.array([r[key] for r in rows if key in r])
+
+        return TrainHistory(
+            train_loss=column("train"), val_loss=column("val"),
+            penalties={k: column(k) for k in self.active},
+            eval_steps=np.array([r["step"] for r in rows], int),
+            val_member_loss=column("member").reshape(-1, K)[:, order],
+            val_ensemble_loss=column("ensemble"),
+            best_steps=self.best_step[order] if self.early else None,
+            stopped_early=bool(self.stopped), **common)
 
 
 def _param_key(model: DynamicsEnsemble, group: torch.nn.Module, name: str) -> str:
     """The model-level parameter name of ``group``'s parameter ``name``."""
     return f"groups.{list(model.groups).index(group)}.{name}"
+
+
+# ---------------------------------------------------------------------------------------------
+# the public entry point
+# ---------------------------------------------------------------------------------------------
+
+
+def train_ensemble(
+    model: DynamicsEnsemble,
+    trajs: Sequence[Trajectory] | Trajectory,
+    config: TrainConfig = TrainConfig(),  # noqa: B008 - frozen dataclass
+    reg: RegularizationConfig = RegularizationConfig(),  # noqa: B008
+    validation: Sequence[Trajectory] | None = None,
+    ltv_models: Sequence | None = None,
+    optimizer_state: dict | None = None,
+    callback: Callable[[int, DynamicsEnsemble], None] | None = None,
+) -> TrainHistory:
+    """Fit all members of ``model`` to ``trajs`` (in place) with optional tangent-space
+    regularization (see the module docstring for the objective).
+
+    Calling it again on grown data warm-starts from the current weights; pass the previous
+    ``history.optimizer_state`` to resume Adam exactly. Normalization statistics are set from
+    ``trajs`` on the first call only.
+
+    :param model: the ensemble to train.
+    :param trajs: training trajectories (each ``x: [T+1, n]``, ``u: [T, m]``).
+    :param config: optimizer and schedule.
+    :param reg: regularizers and their weights.
+    :param validation: trajectories for the validation loss.
+    :param ltv_models: one LTV model per training trajectory (``A [>=T, n, n]``,
+        ``B [>=T, n, m]``, ``sample_perturbed``); fitted with :func:`mbtsr.ltv.fit_ltv` if None
+        and a regularizer needs them.
+    :param optimizer_state: an Adam ``state_dict`` from a previous call.
+    :param callback: optional diagnostic ``callback(epoch, model)`` called after every epoch
+        (a step budget: ``callback(step, model)`` at every evaluation) with the model in
+        evaluation mode (e.g. to log Jacobian errors during training; off by default). It must
+        not change the weights; it draws no random numbers of the training.
+    :return: :class:`TrainHistory`.
+    """
+    t_start = time.perf_counter()
+    if not isinstance(model, DynamicsEnsemble):
+        raise ValueError(f"model must be a DynamicsEnsemble, got {type(model).__name__}")
+    if not isinstance(config, TrainConfig):
+        raise ValueError(f"config must be a TrainConfig, got {type(config).__name__}")
+    if not isinstance(reg, RegularizationConfig):
+        raise ValueError(f"reg must be a RegularizationConfig, got {type(reg).__name__}")
+    if callback is not None and not callable(callback):
+        raise ValueError(f"callback must be callable or None, got {type(callback).__name__}")
+    trajs = as_trajectory_list(trajs)
+    n, m = model.state_dim, model.action_dim
+    xu_np, x_next_np = _pool_transitions(trajs, n, m)  # validates dims and finiteness
+    val_data = None
+    if validation is not None:
+        val_data = _pool_transitions(as_trajectory_list(validation, "validation"), n, m)
+    if config.uses_step_loop and config.patience is not None and config.holdout == 0 \
+            and val_data is None:
+        raise ValueError("config.patience needs held-out data: config.holdout > 0 or "
+                         "validation trajectories")
+    if not model.is_normalized:
+        model.set_normalization(trajs)
+    if reg.needs_ltv:
+        ltv_models = (_fit_ltv_models(trajs, reg) if ltv_models is None
+                      else _check_ltv_models(ltv_models, trajs))
+    elif ltv_models is not None:
+        ltv_models = _check_ltv_models(ltv_models, trajs)
+
+    with torch.no_grad():  # inputs are normalized once here, not in every step
+        def normalized(xu_raw: np.ndarray, x_next: np.ndarray) -> tuple:
+            xu_raw = torch.as_tensor(xu_raw, dtype=torch.float32)
+            return xu_raw, model.normalize_inputs(xu_raw), model.normalized_residual(
+                xu_raw, torch.as_tensor(x_next, dtype=torch.float32))
+
+        data = normalized(xu_np, x_next_np)
+        val = None if val_data is None else normalized(*val_data)[1:]
+
+    optimizer = _optimizer(model, config)
+    if optimizer_state is not None:
+        _check_optimizer_state(optimizer, optimizer_state)
+        try:
+            optimizer.load_state_dict(optimizer_state)
+        except (ValueError, KeyError, TypeError, RuntimeError) as err:
+            raise ValueError(f"optimizer_state does not fit this model/config: {err}") from None
+    model.dropout_generator = torch.Generator().manual_seed(int(config.seed) + 1)
+    active = [k for k in ("sampled", "exact", "smooth") if getattr(reg, k)]
+    if config.uses_step_loop:
+        held = holdout_mask(len(xu_np), config.holdout)
+        if held.all():
+            held[:] = False  # too little data to hold any out and still train
+        if held.any():
+            held_rows = torch.as_tensor(np.flatnonzero(held))
+            val = (data[1][held_rows], data[2][held_rows])
+        train_rows = torch.as_tensor(np.flatnonzero(~held))
+        plan = _StepPlan(model, trajs, ltv_models, config, reg, data, train_rows=train_rows)
+    else:
+        held = np.zeros(len(xu_np), bool)
+        plan = _EpochPlan(model, trajs, ltv_models, config, reg, data)
+    bar = tqdm(total=plan.budget, desc="train_ensemble", disable=not config.progress,
+               leave=False)
+    report = _Report(model, config, active, val, callback, bar, plan.budget,
+                     per_epoch=not config.uses_step_loop)
+    model.train()
+    try:
+        steps, step_loss = _train_loop(model, optimizer, iter(plan), reg, report, bar)
+    finally:
+        bar.close()
+        model.eval()
+    return report.history(
+        wall_time=time.perf_counter() - t_start,
+        optimizer_state=copy.deepcopy(optimizer.state_dict()), steps=steps,
+        ltv_models=ltv_models, step_loss=np.asarray(step_loss), n_train=int((~held).sum()),
+        n_holdout=int(held.sum()))

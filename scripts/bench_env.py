@@ -4,8 +4,8 @@
 """
 
 
+from agents.cli import main
 from agents.experiments.bench_env import Args, run
-from mbtsr.cli import main
 
 if __name__ == "__main__":
     main(Args, run, outputs=("json",))

@@ -4,11 +4,11 @@
 """
 
 
+from agents.cli import main
 from agents.experiments.bench_ltv import (  # first: sets the BLAS threads before numpy loads
     Args,
     run,
 )
-from mbtsr.cli import main
 
 if __name__ == "__main__":
     main(Args, run, outputs=("json",))

@@ -6,8 +6,8 @@
 """
 
 
+from agents.cli import main
 from agents.experiments.collect_excitation import Args, run
-from mbtsr.cli import main
 
 if __name__ == "__main__":
     main(Args, run, folders=("out",))

@@ -5,8 +5,8 @@
 """
 
 
+from agents.cli import main
 from agents.experiments.model_env_sac import Args, run
-from mbtsr.cli import main
 
 if __name__ == "__main__":
     main(Args, run, outputs=("json",))

@@ -157,6 +157,6 @@ def build(args: Args) -> int:
 
 if __name__ == "__main__":
     sys.path.insert(0, str(REPO))
-    from mbtsr.cli import main
+    from agents.cli import main
 
     sys.exit(main(Args, build))

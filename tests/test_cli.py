@@ -1,4 +1,4 @@
-"""Generated CLIs (mbtsr.cli over tyro): every config field in --help with its docstring, nested
+"""Generated CLIs (agents.cli over tyro): every config field in --help with its docstring, nested
 fields settable, bad arguments end in ONE line on stderr with exit code 2 (no traceback), output
 paths checked before any work."""
 
@@ -14,7 +14,7 @@ from pathlib import Path
 
 import pytest
 
-from mbtsr.cli import _plain_help, check_output_path, main, parse
+from agents.cli import _plain_help, check_output_path, main, parse
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.append(str(REPO))  # agents/experiments/ (until the editable install is refreshed)
@@ -103,10 +103,10 @@ def test_help_shows_the_docstrings_markup_as_plain_names(capsys):
 
 @pytest.mark.parametrize("args, message", [
     (["--seed", "x"], "--seed"),
-    (["--bogus", "1"], "Unrecognized options: --bogus"),
+    (["--bogus", "1"], "unrecognized option(s) --bogus"),
     (["--seed"], "--seed"),
     (["--model.hidden-width", "0"], "hidden_width must be >= 1, got 0"),  # __post_init__
-    (["--model.hiden-width", "3"], "did you mean --model.hidden-width?"),  # tyro's suggestion
+    (["--model.hiden-width", "3"], "did you mean --model.hidden-width?"),
 ])
 def test_bad_arguments_give_one_line_and_exit_2(args, message, capsys):
     assert message in errors(Config, args, capsys)
@@ -115,7 +115,7 @@ def test_bad_arguments_give_one_line_and_exit_2(args, message, capsys):
 def test_every_misspelt_flag_gets_its_suggestion(capsys):
     message = errors(Config, ["--sed", "3", "--modl.hidden-width", "3"], capsys)
     suggested = message.split("did you mean ")[1].split("?")[0].split(" or ")
-    assert sorted(suggested) == ["--model.hidden-width", "--seed"]  # in tyro's order
+    assert suggested == ["--seed", "--model.hidden-width"]  # in the command line's order
 
 
 def test_output_paths_are_checked_before_any_work(tmp_path, capsys):
@@ -245,7 +245,8 @@ def _tree_docs(obj, prefix: str = "") -> list[tuple[str, str, bool]]:
 
 def test_train_agent_help_lists_every_agent_config_field_with_its_doc(capsys):
     """Every field of the tree is a flag named by its dotted path (no --agent. prefix), with the
-    first words of its documentation; the sections' own docs head their groups."""
+    first words of its documentation; the sections' own docs head their groups. The fields the
+    agent fixes are not offered, and refused as unknown options."""
     import re
 
     from agents.config import AgentConfig
@@ -255,11 +256,35 @@ def test_train_agent_help_lists_every_agent_config_field_with_its_doc(capsys):
     fields = _tree_docs(AgentConfig())
     assert len(fields) >= 70 and ("planner.cem.samples", "action sequences sampled",
                                  False) in fields
+    assert {"training.seed", "planner.cem.seed", "regularization.ltv_affine"} <= set(
+        AgentConfig.FIXED)
     for name, doc, section in fields:
+        flag = "--" + name.replace("_", "-")
+        offered = re.search(re.escape(flag) + r"(?![\w.-])", text)
+        if name in AgentConfig.FIXED:
+            assert not offered, flag
+            with pytest.raises(SystemExit):
+                train_agent.parse([flag, "1"])
+            assert f"unrecognized option(s) {flag}" in capsys.readouterr().err
+            continue
         if not section:
-            flag = "--" + name.replace("_", "-")
-            assert re.search(re.escape(flag) + r"(?![\w.-])", text), flag
+            assert offered, flag
         assert doc in text, (name, doc)
+
+
+@pytest.mark.parametrize("flag, says", [
+    ("--training.lr", "the default here"),  # the agent's lr is not TrainConfig's
+    ("--model.hidden-width", "None: default_size"),  # read as "the default size"
+    ("--planner.kind", "the default"),  # train_agent plans with ilqr
+    ("--planner.replan-every", "the default"),
+])
+def test_train_agent_help_does_not_restate_defaults(flag, says, capsys):
+    """The CLI prints each flag's default; a help text that names another is a contradiction."""
+    from agents.experiments import train_agent
+
+    text = help_text(train_agent.Args, capsys)
+    entry = text.split(f"  {flag} ", 1)[1].split("(default: ", 1)[0]
+    assert says not in " ".join(entry.split()), entry
 
 
 def test_train_agent_sets_nested_fields_and_the_regularizer_by_name():

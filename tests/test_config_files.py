@@ -77,8 +77,7 @@ BAD_FILES = [  # (file name, content, the one line the script prints after "erro
     ("a.yaml", "model:\n  hiden_width: 3\n", "{p}: unknown AgentConfig field "
      "'model.hiden_width'; the closest valid field is 'model.hidden_width'"),
     ("a.yaml", "planner:\n  cem: {samples: 50}\n", "{p}: planner.cem.samples=50 has no effect: "
-     "it is a setting of planner.kind='cem', which is not the planner: remove it, or set "
-     "planner.kind='cem'"),
+     "it acts only when planner.kind == 'cem': remove it, or set that"),
     ("a.yaml", "seed: 1\nseed: 2\n", "{p}: the key 'seed' is given twice (line 2)"),
     ("a.yaml", "model: [1, 2\n", "{p} is not valid YAML: expected ',' or ']', but got '<stream "
      "end>' (line 2, column 1)"),
@@ -93,7 +92,8 @@ BAD_FILES = [  # (file name, content, the one line the script prints after "erro
     ("a.json", '{"agent": {}, "script": {"episodez": 3}}', "{p}: unknown script setting(s) "
      "['episodez'] (this script has ['config', 'env_id', 'episodes', 'json', 'plots', "
      "'regularization', 'resume', 'summary_table'])"),
-    ("missing.yaml", None, "{p}: no such file"),
+    ("missing.yaml", None, "{p}: no such file or directory"),
+    ("folder.yaml", "/", "{p}: is a directory"),
 ]
 
 
@@ -101,7 +101,9 @@ BAD_FILES = [  # (file name, content, the one line the script prints after "erro
 def test_a_bad_file_is_one_line_naming_the_file_and_the_problem(tmp_path, capsys, name, content,
                                                                  message):
     path = tmp_path / name
-    if content is not None:
+    if content == "/":
+        path.mkdir()
+    elif content is not None:
         path.write_text(content)
     with pytest.raises(SystemExit) as exc:
         train_agent.parse(["--config", str(path)])

@@ -173,6 +173,18 @@ def test_sections_reject_the_wrong_type_and_training_seed():
         AgentConfig().replace({"planner.proposal.explore_weight": 1.0})
 
 
+@pytest.mark.parametrize("dotted", sorted(AgentConfig.FIXED))
+def test_a_fixed_field_is_refused_naming_itself_and_why(dotted):
+    """The fields the agent sets itself keep their section's default; another value is refused
+    (also where the field would act, e.g. planner.cem.seed with planner.kind='cem')."""
+    other = {"seed": 3, "explore_weight": 1.0, "explore_on": "cost", "ltv_affine": True}
+    changes = {dotted: other[dotted.rpartition(".")[2]], "planner.kind": "cem"}
+    with pytest.raises(ValueError) as err:
+        AgentConfig.default(changes)
+    assert str(err.value).startswith(f"{dotted} must be "), str(err.value)
+    assert str(err.value).endswith(f"{AgentConfig.FIXED[dotted]}, got {changes[dotted]!r}")
+
+
 # ---------------------------------------------------------------------------- partial dicts
 #: valid values of every leaf of the tree (cross-field rules kept: replan_every <= 2 <= horizon,
 #: elites <= 20 <= samples; training.seed, planner.cem.seed and ltv_affine are fixed)
@@ -544,7 +556,8 @@ def test_a_section_given_twice_or_a_leaf_as_a_section_is_named():
 
 
 def test_step_budget_settings_without_effect_are_refused():
-    with pytest.raises(ValueError, match=r"^training\.epochs=50 has no effect: training\.steps"):
+    with pytest.raises(ValueError, match=r"^training\.epochs=50 has no effect: it acts only "
+                                         r"when training\.steps is None: remove it"):
         AgentConfig.default({"training.epochs": 50})
     assert AgentConfig.default({"training.epochs": 50, "training.steps": None,
                                 "training.holdout": 0.1}).training.uses_step_loop

@@ -207,6 +207,13 @@ def test_validation_loss_matches_independent_computation():
     x_next = np.concatenate([v.x[1:] for v in val])
     np.testing.assert_allclose(hist.val_loss[-1], normalized_sq_error(model, x, u, x_next),
                                rtol=1e-4)
+    # the epochs record the same per-member and ensemble losses as a step budget
+    pred = model.member_predictions(x, u)
+    member = np.mean(np.sum(((pred - x_next) / model.out_std.numpy()) ** 2, -1), -1)
+    np.testing.assert_allclose(hist.val_member_loss[-1], member, rtol=1e-4)
+    ensemble = np.mean(np.sum(((pred.mean(0) - x_next) / model.out_std.numpy()) ** 2, -1))
+    np.testing.assert_allclose(hist.val_ensemble_loss[-1], ensemble, rtol=1e-4)
+    assert hist.eval_steps.tolist() == [2, 4, 6, 8, 10] and hist.n_train == 80
 
 
 # ------------------------------------------------------------------------------------------
@@ -717,7 +724,7 @@ def test_sampled_jacprop_with_a_step_budget_lowers_the_jacobian_error():
     ({"steps": 10, "batch": 8, "eval_every": 0}, "eval_every"),
     ({"steps": 10, "batch": 8, "member_data": "bagging"}, "member_data must be one of"),
     ({"steps": 10, "batch": 8, "early_stopping": "all"}, "early_stopping must be one of"),
-    ({"holdout": 0.1}, "batch='trajectory' is the epoch loop's; holdout=0.1 need an int"),
+    ({"holdout": 0.1}, "batch='trajectory' is the epoch schedule's; holdout=0.1 need an int"),
     ({"steps": 5, "member_data": "order"}, "member_data='order' need an int minibatch size"),
 ])
 def test_step_budget_settings_are_validated(kwargs, match):
@@ -741,3 +748,31 @@ def test_epochs_with_early_stopping_run_the_step_loop_for_epochs_passes():
     assert cfg.uses_step_loop and not TrainConfig(epochs=3, batch=16).uses_step_loop
     hist = train_ensemble(small_model(), trajs, cfg)
     assert hist.steps == 3 * int(np.ceil(hist.n_train / 16)) and hist.n_holdout > 0
+
+
+@pytest.mark.parametrize("reg, exact", [(RegularizationConfig(), True),
+                                        (RegularizationConfig(exact_weight=0.1), True),
+                                        (RegularizationConfig(smooth_weight=0.1), False)])
+def test_the_epoch_schedule_is_a_step_budget_of_the_same_loop(reg, exact):
+    """``epochs=E`` with shared shuffled minibatches of ``b`` rows (``N`` a multiple of ``b``)
+    and ``steps=E N / b`` draw the same permutations from the same seed, so the one loop takes
+    the same batches: bit-identical step losses, weights and per-epoch records. The smoothness
+    term's pairs are gathered by the epochs and masked by the step budget: the step losses
+    agree to float rounding."""
+    A, B = random_stable_system(3, 2, 0.1, seed=1)
+    trajs = [linear_trajectory(A, B, 30, seed=s, noise=0.05) for s in (0, 1)]  # N = 60
+    epochs, steps = small_model(), small_model()
+    h_e = train_ensemble(epochs, trajs, TrainConfig(epochs=4, batch=20, seed=3, **QUIET), reg)
+    h_s = train_ensemble(steps, trajs, TrainConfig(steps=12, batch=20, eval_every=3, seed=3,
+                                                   **QUIET), reg)
+    assert h_e.steps == h_s.steps == 12
+    assert h_e.eval_steps.tolist() == h_s.eval_steps[1:].tolist() == [3, 6, 9, 12]
+    if exact:
+        np.testing.assert_array_equal(h_e.step_loss, h_s.step_loss)
+        np.testing.assert_array_equal(h_e.train_loss, h_s.train_loss[1:])
+        for p_e, p_s in zip(epochs.parameters(), steps.parameters()):
+            torch.testing.assert_close(p_e, p_s, rtol=0, atol=0)
+    else:
+        np.testing.assert_allclose(h_e.step_loss, h_s.step_loss, rtol=1e-5)
+        np.testing.assert_allclose(h_e.penalties["smooth"], h_s.penalties["smooth"][1:],
+                                   rtol=1e-5)

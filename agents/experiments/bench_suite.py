@@ -72,6 +72,7 @@ os.environ.setdefault("MUJOCO_GL", "egl")
 
 import numpy as np  # noqa: E402
 
+from agents import cli  # noqa: E402
 from agents import tasks as _tasks  # noqa: E402
 from agents.config import PLANNERS  # noqa: E402
 from agents.experiments.paper_common import (  # noqa: E402
@@ -80,7 +81,6 @@ from agents.experiments.paper_common import (  # noqa: E402
     pyplot,
     save_figure,
 )
-from mbtsr import cli  # noqa: E402
 from mbtsr.io import atomic_write_text, write_json_atomic  # noqa: E402
 
 REGULARIZATIONS = ("none", "sampled", "exact", "smooth")

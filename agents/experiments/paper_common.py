@@ -97,12 +97,12 @@ def print_medians(configs: dict[str, dict], columns: dict[str, str], width: int)
 
 def parse_args(args_cls: type, argv: Sequence[str] | None = None):
     """The experiment's command line, generated from the dataclass ``args_cls`` by tyro
-    (:func:`mbtsr.cli.parse`): every field is a flag documented by its ``help`` metadata, booleans
+    (:func:`agents.cli.parse`): every field is a flag documented by its ``help`` metadata, booleans
     are ``--flag/--no-flag``; with ``--quick`` the class attribute ``QUICK`` (field overrides)
     supplies the defaults, so options given explicitly win. A bad option or value prints one line
     and exits with code 2.
     """
-    from mbtsr.cli import fail, parse
+    from agents.cli import fail, parse
 
     quick = {"quick": True, **getattr(args_cls, "QUICK", {})}
     args = parse(args_cls, args=argv, presets={"--quick": quick})

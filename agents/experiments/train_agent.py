@@ -39,8 +39,8 @@ from typing import Annotated, Literal
 
 import tyro
 
+from agents import cli
 from agents.config import AgentConfig, EvaluationConfig, PlannerConfig
-from mbtsr import cli
 from mbtsr.ensemble import ModelConfig
 from mbtsr.training import RegularizationConfig
 
