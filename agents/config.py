@@ -168,21 +168,6 @@ class PlannerConfig(_Section):
             raise ValueError(f"planner.replan_every must be <= planner.horizon={self.horizon}, "
                              f"got {self.replan_every}")
 
-    def optimizer(self, seed: int = 0, explore_weight: float = 0.0, explore_on: str = "state"
-                  ) -> tuple[Callable[..., Any], Any, int]:
-        """``(optimizer, options, iterations per step)`` for :class:`mbtsr.mpc.MPC` (to go)."""
-        from mbtsr.cem import cem
-        from mbtsr.cem_ilqr import CEMILQROptions, cem_ilqr
-        from mbtsr.ilqr import ilqr
-
-        if self.kind == "ilqr" and explore_weight:
-            raise ValueError("explore_weight needs a planner with CEM, got planner.kind='ilqr'")
-        opts = dataclasses.replace(self.cem if self.kind == "cem" else self.proposal, seed=seed,
-                                   explore_weight=explore_weight, explore_on=explore_on)
-        return {"ilqr": (ilqr, None, self.ilqr_iterations), "cem": (cem, opts, opts.iterations),
-                "cem-ilqr": (cem_ilqr, CEMILQROptions(max_iter=self.ilqr_iterations, cem=opts),
-                             self.ilqr_iterations)}[self.kind]
-
 
 @dataclass(frozen=True)
 class EvaluationConfig(_Section):

@@ -51,9 +51,9 @@ def test_the_agent_uses_the_sections_as_they_are():
     assert agent.ensemble_config.members == (
         MemberSpec("tanh", 9, 1), MemberSpec("elu", 9, 1), MemberSpec("tanh", 9, 1))
     assert agent.ensemble_config.seed == 5
-    assert agent._train_configs(3) == (dataclasses.replace(cfg.training, seed=3),
+    assert agent.trainer.configs(3) == (dataclasses.replace(cfg.training, seed=3),
                                        cfg.regularization)
-    assert agent._train_configs(3)[1] == RegularizationConfig(exact_weight=0.01, ltv_lambda=2.0)
+    assert agent.trainer.configs(3)[1] == RegularizationConfig(exact_weight=0.01, ltv_lambda=2.0)
 
 
 def test_model_config_builds_the_ensemble():

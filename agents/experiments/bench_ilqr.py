@@ -523,6 +523,7 @@ def run(args: Args) -> dict:
             options=MPCOptions(
                 iterations_per_step=args.mpc_iterations,
                 first_step_iterations=args.mpc_first_iterations,
+                optimizer_options=ILQROptions(tol_fun_rel=1e-6),  # the documented runs'
             ),
         )
         best, best_ct = None, None

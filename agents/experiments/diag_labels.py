@@ -213,7 +213,7 @@ def run(args: Args) -> dict[str, Any]:
             states = replay_states(replay, traj, agent.state_map.state)
             A, B, P = true_jacobians(args.task, states, u)
             W, U = directions(args.task, states)
-            lam = agent.ltv_lambdas[-1] if reg != "none" else agent._ltv_lambda(traj)
+            lam = agent.ltv_lambdas[-1] if reg != "none" else agent.labeler.select_lambda(traj)
             fit = ltv_fit(traj, lam)
             row: dict[str, Any] = {
                 "episode": len(agent.trajectories) - 1, "env_steps": agent.env_steps,
