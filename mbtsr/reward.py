@@ -15,18 +15,22 @@ plan's stage costs sum to minus its predicted return (a reward that the env comp
 state: the observation, or a task's ``state_fn(obs)``. The terminal cost is
 ``-terminal_weight * r_hat(x_T, 0)`` (a written task's default: the stage cost at zero action).
 
-**Model.** ``K`` one-hidden-layer tanh MLPs on normalized inputs, trained together (one batched
-Adam step per minibatch, each member its own minibatches) with a step budget and hold-out early
-stopping (each member keeps its best hold-out weights). Their mean is itself one wide hidden
-layer: :class:`FrozenReward` folds the normalization and the ``1/K`` into
-``r_hat(z) = c + w . tanh(W^T z + b)``, ``z = [s, a]``, ``W [n+m, K*H]``, so values, gradients
-and Hessians are a few matrix products, batched, without a loop over members:
+**Model.** ``K`` members, each a one-hidden-layer tanh MLP plus a quadratic form of the
+normalized inputs (control costs are quadratic in the action: the term learns them exactly,
+which the MLP alone did not, held-out R^2 0.964 -> 0.998 on Pusher-v5), trained together (one
+batched AdamW step per minibatch, each member its own minibatches, cosine learning rate) with a
+step budget and hold-out early stopping (each member keeps its best hold-out weights). Their
+mean is again one wide layer and one quadratic form: :class:`FrozenReward` folds the
+normalization and the ``1/K`` into ``r_hat(z) = c + w . tanh(W^T z + b) + (z - z0)^T P (z -
+z0)``, ``z = [s, a]``, ``W [n+m, K*H]``, so values, gradients and Hessians are a few matrix
+products, batched, without a loop over members:
 
-* gradient ``dr/dz = W (w * (1 - h^2))``, ``h = tanh(W^T z + b)``;
-* Hessian ``d2r/dz2 = W diag(w * tanh''(W^T z + b)) W^T``, a sum of one rank-one term per unit.
+* gradient ``dr/dz = W (w * (1 - h^2)) + 2 P (z - z0)``, ``h = tanh(W^T z + b)``;
+* Hessian ``d2r/dz2 = W diag(w * tanh''(W^T z + b)) W^T + 2 P``: one rank-one term per unit.
   The cost's Hessian keeps the units whose term is convex in the cost (``-w tanh'' > 0``) and
-  drops the others: positive semidefinite by construction, exact where the cost is convex unit
-  by unit (the counterpart of the Gauss-Newton approximation iLQR makes of the dynamics).
+  the convex part of ``-2 P`` and drops the rest: positive semidefinite by construction, exact
+  where the cost is convex term by term (the counterpart of the Gauss-Newton approximation
+  iLQR makes of the dynamics).
 
 The cost is a :class:`mbtsr.costs.CasadiCost` through its two kernels (batched values and
 derivatives), so iLQR, CEM, CEM-iLQR and the MPC take it unchanged. It has no symbolic form
@@ -106,7 +110,8 @@ class RewardFit:
 
 
 class RewardModel:
-    """An ensemble of one-hidden-layer tanh MLPs ``r_k(s, a)`` trained on observed rewards.
+    """An ensemble of one-hidden-layer tanh MLPs plus quadratic forms, ``r_k(s, a)``, trained
+    on observed rewards (see the module docstring).
 
     :param state_dim: ``n``, the planner's state size.
     :param action_dim: ``m``.
@@ -252,14 +257,17 @@ class FrozenReward:
         self.z0 = np.zeros(d) if z0 is None else as_array("z0", z0, (d,))
         lam, V = np.linalg.eigh(2.0 * self.P)  # the term's Hessian, and its concave part
         self._P_concave = (V * np.minimum(lam, 0.0)) @ V.T
-        for a in (self.W, self.b, self.w, self.P, self.z0, self._P_concave):
+        self._b_centred = self.b + self.z0 @ self.W  # W^T z + b = W^T (z - z0) + _b_centred
+        for a in (self.W, self.b, self.w, self.P, self.z0, self._P_concave, self._b_centred):
             a.flags.writeable = False
 
     def _terms(self, x: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, ...]:
         """``x [N, n]``, ``u [N, m]`` -> ``r [N]``, hidden ``h [N, U]``, ``z - z0 [N, d]``,
         ``P (z - z0) [N, d]``."""
         e = np.concatenate([x, u], axis=-1) - self.z0
-        h = np.tanh(x @ self.W[: self.n] + u @ self.W[self.n:] + self.b)
+        h = e @ self.W  # in place from here: fresh [N, U] arrays cost more than the arithmetic
+        h += self._b_centred
+        np.tanh(h, out=h)
         Pe = e @ self.P
         return h @ self.w + self.c + (Pe * e).sum(-1), h, e, Pe
 
