@@ -41,7 +41,7 @@ parameter vector it accepts (the agent passes the observation).
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 
 import numpy as np
 import torch
@@ -206,6 +206,29 @@ class RewardModel:
                     v.copy_(best_params[k])
         hold = None if not n_hold else best.numpy().astype(float) * sr**2
         return RewardFit(steps=step, holdout_mse=hold, seconds=time.perf_counter() - tic)
+
+    def state_dict(self) -> dict:
+        """Everything :meth:`from_state_dict` needs (sizes, config, weights, normalization,
+        number of fits), as plain Python and torch tensors (for a checkpoint)."""
+        return {"state_dim": self.n, "action_dim": self.m, "config": asdict(self.config),
+                "params": {k: v.detach().clone() for k, v in self.params.items()},
+                "normalization": None if self.normalization is None
+                else [np.asarray(a, dtype=float).tolist() for a in self.normalization],
+                "fits": self.fits}
+
+    @classmethod
+    def from_state_dict(cls, state: dict) -> RewardModel:
+        """The model of :meth:`state_dict`; a later :meth:`fit` continues as the saved one
+        would have."""
+        model = cls(state["state_dim"], state["action_dim"], RewardConfig(**state["config"]))
+        with torch.no_grad():
+            for k, v in model.params.items():
+                v.copy_(torch.as_tensor(state["params"][k]))
+        norm = state["normalization"]
+        model.normalization = None if norm is None else (
+            np.asarray(norm[0]), np.asarray(norm[1]), float(norm[2]), float(norm[3]))
+        model.fits = int(state["fits"])
+        return model
 
     def freeze(self) -> FrozenReward:
         """The ensemble mean as one numpy float64 layer (:class:`FrozenReward`)."""
