@@ -74,7 +74,7 @@ class RewardConfig:
     """
 
     members: int = 5
-    hidden: int = 64
+    hidden: int = 32
     steps: int = 2000
     batch: int = 256
     lr: float = 1e-2
