@@ -47,6 +47,7 @@ import numpy as np
 import torch
 
 from mbtsr.costs import CasadiCost, CostDerivatives
+from mbtsr.training import holdout_mask
 from mbtsr.validation import as_array, check_int, check_nonnegative, check_positive
 
 __all__ = ["RewardConfig", "RewardFit", "RewardModel", "FrozenReward", "LearnedRewardCost"]
@@ -67,10 +68,11 @@ class RewardConfig:
     :param lr: initial learning rate (cosine decay to 0 over the budget).
     :param weight_decay: decoupled weight decay (AdamW).
     :param holdout: fraction of the transitions held out for early stopping (0: train on all,
-        keep the last weights).
+        keep the last weights); the rows of :func:`mbtsr.training.holdout_mask`, as for the
+        dynamics.
     :param eval_every: steps between hold-out evaluations.
     :param patience: stop after this many evaluations without progress of any member.
-    :param seed: seed of the initial weights, the hold-out split and the minibatches.
+    :param seed: seed of the initial weights and the minibatches.
     """
 
     members: int = 5
@@ -160,10 +162,11 @@ class RewardModel:
         A = as_array("actions", actions, (S.shape[0], self.m))
         r = as_array("rewards", rewards, (S.shape[0],))
         cfg, N = self.config, S.shape[0]
-        n_hold = int(cfg.holdout * N)
-        if N < 1 or (cfg.holdout > 0 and n_hold < 1):
-            raise ValueError(f"got {N} transitions; holdout={cfg.holdout} needs at least "
-                             f"{int(np.ceil(1 / cfg.holdout)) if cfg.holdout else 1}")
+        held = holdout_mask(N, cfg.holdout)  # a row stays held out (or not) as data grows
+        n_hold = int(held.sum())
+        if N - n_hold < 1 or (cfg.holdout > 0 and n_hold < 1):
+            raise ValueError(f"{N} transitions are too few for a hold-out of {cfg.holdout} "
+                             f"({n_hold} held out): give more, or holdout=0")
         Z = np.hstack([S, A])
         if self.normalization is None:
             self.normalization = (Z.mean(0), np.maximum(Z.std(0), 1e-6),
@@ -171,10 +174,9 @@ class RewardModel:
         mz, sz, mr, sr = self.normalization
         rng = np.random.default_rng([cfg.seed, self.fits])
         self.fits += 1
-        order = rng.permutation(N)
-        Zn = torch.as_tensor((Z[order] - mz) / sz, dtype=torch.float32)
-        yn = torch.as_tensor((r[order] - mr) / sr, dtype=torch.float32)
-        Zt, yt, Zh, yh = Zn[n_hold:], yn[n_hold:], Zn[:n_hold], yn[:n_hold]
+        Zn = torch.as_tensor((Z - mz) / sz, dtype=torch.float32)
+        yn = torch.as_tensor((r - mr) / sr, dtype=torch.float32)
+        Zt, yt, Zh, yh = Zn[~held], yn[~held], Zn[held], yn[held]
         K, B = cfg.members, min(cfg.batch, N - n_hold)
         opt = torch.optim.AdamW(list(self.params.values()), lr=cfg.lr,
                                 weight_decay=cfg.weight_decay)

@@ -16,6 +16,7 @@ from mbtsr.dynamics import LinearDynamics, rollout
 from mbtsr.ilqr import ILQROptions, ilqr
 from mbtsr.mpc import MPC, MPCOptions
 from mbtsr.reward import FrozenReward, LearnedRewardCost, RewardConfig, RewardModel
+from mbtsr.training import holdout_mask
 
 N_X, N_U, DT = 4, 2, 0.1
 A = np.block([[np.eye(2), DT * np.eye(2)], [np.zeros((2, 2)), np.eye(2)]])
@@ -102,8 +103,7 @@ def test_early_stopping_ends_before_the_budget_and_keeps_the_best_weights():
     model = RewardModel(2, 1, cfg)
     fit = model.fit(S, U, r)
     assert fit.steps < cfg.steps and fit.holdout_mse.shape == (2,)
-    order = np.random.default_rng([cfg.seed, 0]).permutation(400)  # the fit's hold-out split
-    hold = order[: int(cfg.holdout * 400)]
+    hold = holdout_mask(400, cfg.holdout)  # the fit's hold-out rows
     mz, sz, mr, sr = model.normalization
     z = torch.as_tensor((np.hstack([S, U])[hold] - mz) / sz, dtype=torch.float32)
     with torch.no_grad():
@@ -206,8 +206,8 @@ def test_bad_inputs_get_clear_errors():
         model.fit(np.zeros((10, 3)), np.zeros((9, 2)), np.zeros(10))
     with pytest.raises(ValueError, match="non-finite"):
         model.fit(np.zeros((10, 3)), np.zeros((10, 2)), np.full(10, np.nan))
-    with pytest.raises(ValueError, match="needs at least 5"):
-        model.fit(np.zeros((4, 3)), np.zeros((4, 2)), np.zeros(4))
+    with pytest.raises(ValueError, match="too few for a hold-out"):
+        model.fit(np.zeros((2, 3)), np.zeros((2, 2)), np.zeros(2))
 
 
 # ---------------------------------------------------------------------- planning
