@@ -298,11 +298,14 @@ class FrozenReward:
 
     def predict(self, x: np.ndarray, u: np.ndarray) -> np.ndarray:
         """Predicted rewards: ``x [..., n]``, ``u [..., m]`` -> ``[...]``."""
+        return self._predict(*self._check(x, u))
+
+    def _check(self, x: object, u: object) -> tuple[np.ndarray, np.ndarray]:
         x, u = as_array("x", x), as_array("u", u)
         if x.ndim < 1 or x.shape[-1] != self.n or u.shape != x.shape[:-1] + (self.m,):
             raise ValueError(f"x must be [..., {self.n}] and u [..., {self.m}] with the same "
                              f"leading dims, got {list(x.shape)} and {list(u.shape)}")
-        return self._predict(x, u)
+        return x, u
 
     def _predict(self, x: np.ndarray, u: np.ndarray) -> np.ndarray:
         """:meth:`predict` without checks."""
@@ -316,6 +319,9 @@ class FrozenReward:
         :param concave: keep only the concave parts of the Hessian (so ``-H`` is PSD; the
             cost's approximation, see the module docstring); ``False``: the exact Hessian.
         """
+        x, u = self._check(x, u)
+        if x.ndim != 2:
+            raise ValueError(f"x must be [N, {self.n}] (one batch dim), got {list(x.shape)}")
         r, h, _, Pe = self._terms(x, u)
         s = 1.0 - h * h
         g = (s * self.w) @ self.W.T + 2.0 * Pe

@@ -189,6 +189,8 @@ def test_bad_inputs_get_clear_errors():
     fr = random_frozen(5)
     with pytest.raises(ValueError, match=r"x must be \[\.\.\., 3\]"):
         fr.predict(np.zeros((2, 4)), np.zeros((2, 2)))
+    with pytest.raises(ValueError, match="one batch dim"):
+        fr.derivatives(np.zeros((2, 2, 3)), np.zeros((2, 2, 2)))
     with pytest.raises(ValueError, match="P must be symmetric"):
         FrozenReward(fr.W, fr.b, fr.w, 0.0, 3, P=np.triu(np.ones((5, 5))))
     with pytest.raises(TypeError, match="FrozenReward"):
