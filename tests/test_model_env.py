@@ -168,8 +168,10 @@ def test_from_agent_uses_the_agents_model_cost_and_spaces():
     np.testing.assert_array_equal(obs, real_obs)  # drawn from the env's reset distribution
     a = np.array([0.3, -0.4], np.float32)
     nxt, r, *_ = menv.step(a)
-    x_next = agent.model.step(obs[:4], a.astype(float))
+    x_next = agent.model.freeze().step(obs[:4], a.astype(float))  # the planner's float32 kernels
     np.testing.assert_allclose(nxt, np.concatenate([x_next, obs[4:]]), rtol=0, atol=1e-12)
+    x_ref = agent.model.step(obs[:4], a.astype(float))  # the float64 reference
+    np.testing.assert_allclose(x_next, x_ref, rtol=0, atol=1e-6 * np.abs(x_ref).max())
     cost, _ = default_task_for_env(env)
     assert r == pytest.approx(-float(cost(nxt, a.astype(float))), rel=1e-12)
     assert menv.max_episode_steps == agent.spec.episode_steps
