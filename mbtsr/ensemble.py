@@ -1144,32 +1144,18 @@ def _readonly(a: np.ndarray, dtype: type = np.float64) -> np.ndarray:
 class FrozenEnsemble:
     """An immutable numpy copy of a :class:`DynamicsEnsemble`: the model planning uses.
 
-    Made by :meth:`DynamicsEnsemble.freeze` (after each training round); it holds plain numpy
-    arrays (read-only) with the input/output normalization folded into the weights, no torch
-    tensors, no autograd, no cache: later training of the ensemble does not change it. It has
-    the :class:`mbtsr.dynamics.DynamicsModel` protocol (``step``, ``jacobians``,
+    Made by :meth:`DynamicsEnsemble.freeze` (after each training round): read-only numpy arrays
+    with the input/output normalization folded into the weights; later training does not change
+    it. It has the :class:`mbtsr.dynamics.DynamicsModel` protocol (``step``, ``jacobians``,
     ``state_dim``, ``action_dim``) and the member spread (:meth:`predict`,
-    :meth:`member_predictions`, :meth:`member_jacobians`, :meth:`member_std` for probabilistic
-    members). Members are in config order. :meth:`trajectory_sampling` is the view CEM plans
-    with when each particle follows one member (PETS' TS-inf).
-
-    The ensemble-mean :meth:`step` of one depth group without layer norm (any depth, width and
-    activations; see :func:`_mean_step_plan`) runs on pre-folded weights: one batched product
-    per layer for all members and vectorized activations; other architectures (mixed
-    depths, layer norm) run the generic batched forward pass. :meth:`jacobians` of the mean is
-    closed form, reverse mode for deep members (:func:`_plan_jacobians`). CEM's batched
-    rollouts run in one call per solve (:meth:`_rollout_open_loop`).
-
-    ``precision`` (``"float32"``, the default of :meth:`DynamicsEnsemble.freeze`, or
-    ``"float64"``) is the arithmetic of the ensemble-mean step, its rollouts and its Jacobians
-    with the folded plan; inputs and results stay float64 (iLQR's backward pass and the costs
-    run in float64). float32 halves the products' time and makes numpy's vectorized ``tanh``
-    about 10x faster (measured on this project's machines: 0.4 against 4.9 ns per value);
-    the step then agrees with the float64 one to about 1e-6 relative. The member paths
-    (:meth:`member_predictions`, trajectory sampling) and architectures without the folded plan
-    run in float64.
-    Public methods validate their inputs; ``_step`` is the unchecked kernel solver loops call
-    (see :mod:`mbtsr.dynamics`). Not thread-safe only in the sense that numpy is not.
+    :meth:`member_predictions`, :meth:`member_jacobians`, :meth:`member_std`); members are in
+    config order; :meth:`trajectory_sampling` is PETS' TS-inf view. One depth group without layer
+    norm runs the folded plan (:func:`_mean_step_plan`: one batched product per layer, closed-form
+    Jacobians, CEM's rollouts in one call, :meth:`_rollout_open_loop`); other architectures the
+    generic batched forward pass. ``precision`` (``"float32"``, the default, or ``"float64"``,
+    the reference) is the arithmetic of the folded mean step, rollouts and Jacobians; inputs and
+    results stay float64 (docs/ilqr.md, "Planning at the control rate"). Public methods validate
+    their inputs; ``_step`` is the unchecked kernel solver loops call (see :mod:`mbtsr.dynamics`).
     """
 
     def __init__(self, ensemble: DynamicsEnsemble, precision: str = "float32") -> None:
