@@ -37,7 +37,11 @@ from mbtsr.io import atomic_write_text, remove_stale_temp_files
 
 __all__ = [
     "CheckpointError",
+    "agent_payload",
+    "restore_agent",
+    "write_run",
     "atomic_write_text",
+    "check_resumable",
     "check_same",
     "env_fingerprint",
     "save_checkpoint",
@@ -93,6 +97,126 @@ def load_checkpoint(path: str | os.PathLike) -> dict[str, Any]:
     if not isinstance(payload, dict) or payload.get("format") != CHECKPOINT_FORMAT:
         raise CheckpointError(f"{path} is not an agent checkpoint of format {CHECKPOINT_FORMAT}")
     return payload
+
+
+def agent_payload(agent: Any) -> dict[str, Any]:
+    """Everything a :class:`agents.jacprop_agent.JacPropAgent` needs to continue learning
+    bit-identically or to act: config, env spec and fingerprint, the serialisable task, model
+    weights, Adam state, data, JacProp labels, counters, RNG states, log and the evaluator's
+    targets and oracle costs (a dict for :func:`save_checkpoint`)."""
+    from agents.tasks import QuadraticTargetCost
+
+    task: dict[str, Any] = {"cost": None, "state_map": None}
+    if isinstance(agent.cost_fn, QuadraticTargetCost):
+        task["cost"] = agent.cost_fn.to_dict()
+    if agent.state_map.serializable:
+        task["state_map"] = agent.state_map.to_dict()
+    ev = agent.evaluator
+    return {
+        "agent_config": json.dumps(agent.config.to_dict()),
+        "env_spec": json.dumps(agent.spec.to_dict()),
+        "env_fingerprint": None if agent.env is None else json.dumps(env_fingerprint(agent.env)),
+        "task": json.dumps(task),
+        "ensemble_config": agent.ensemble_config.to_json(),
+        "model_state": {k: v.detach().clone() for k, v in agent.model.state_dict().items()},
+        "optimizer_state": agent.trainer.optimizer_state,
+        "trajectories": [
+            {"x": t.x, "u": t.u, "meta": json.dumps(t.meta)} for t in agent.trajectories
+        ],
+        **agent.labeler.state_dict(),
+        "episodes_done": agent.episodes_done,
+        "env_steps": agent.env_steps,
+        "rng": numpy_rng_state(agent.rng),
+        "torch_rng": torch.get_rng_state(),
+        "log": json.dumps(agent.logger_rows),
+        "eval_targets": None if ev.eval_targets is None else [
+            np.asarray(t) for t in ev.eval_targets],
+        "oracle_costs": None if ev.oracle_costs is None else np.asarray(ev.oracle_costs),
+    }
+
+
+def restore_agent(agent: Any, p: dict[str, Any]) -> None:
+    """Load :func:`agent_payload`'s fields (as :func:`load_checkpoint` returns them) into a
+    freshly constructed agent of the same config and task; the RNGs (numpy's and torch's global
+    one) continue where the checkpoint left them."""
+    from mbtsr.trajectory import Trajectory
+
+    agent.model.load_state_dict(p["model_state"])
+    agent.freeze()
+    agent.trainer.optimizer_state = p["optimizer_state"]
+    agent.trajectories = [
+        Trajectory(d["x"].numpy(), d["u"].numpy(), agent.spec.dt, meta=json.loads(d["meta"]))
+        for d in p["trajectories"]
+    ]
+    agent.labeler.load_state_dict(p)
+    agent.episodes_done = int(p["episodes_done"])
+    agent.env_steps = int(p["env_steps"])
+    set_numpy_rng_state(agent.rng, p["rng"])
+    torch.set_rng_state(p["torch_rng"])
+    agent.logger_rows = json.loads(p["log"])
+    ev = agent.evaluator
+    ev.eval_targets = None if p["eval_targets"] is None else [
+        t.numpy() for t in p["eval_targets"]]
+    ev.oracle_costs = None if p["oracle_costs"] is None else p["oracle_costs"].numpy()
+
+
+def check_resumable(
+    payload: dict[str, Any], path: str | os.PathLike, config: Any, env: Any, *,
+    cost_fn: Any = None, state_fn: Any = None,
+) -> tuple[Any, dict[str, Any]]:
+    """Check that a loaded checkpoint can be restored with the given env and task functions.
+
+    :param config: the checkpoint's :class:`agents.config.AgentConfig` (episode length).
+    :param env: the env to continue in, or ``None`` (act only).
+    :return: ``(spec, task)``: the saved :class:`agents.tasks.EnvSpec` and serialised task.
+    :raises ValueError: the env's dimensions or bounds differ, or a custom ``state_fn`` or
+        ``cost_fn`` the agent was built with is missing.
+    :raises CheckpointError: the env's fingerprint differs (naming the field).
+    """
+    from agents.tasks import EnvSpec, default_task_for_env, env_spec
+
+    spec = EnvSpec.from_dict(json.loads(payload["env_spec"]))
+    if env is not None:
+        got = env_spec(env, config.collection.episode_steps)
+        if (got.obs_dim, got.act_dim) != (spec.obs_dim, spec.act_dim) or not (
+            np.array_equal(got.u_min, spec.u_min) and np.array_equal(got.u_max, spec.u_max)
+        ):
+            raise ValueError(
+                f"env does not match the saved agent: obs_dim/act_dim/bounds "
+                f"{(got.obs_dim, got.act_dim, got.u_min, got.u_max)} vs "
+                f"{(spec.obs_dim, spec.act_dim, spec.u_min, spec.u_max)}"
+            )
+        if payload.get("env_fingerprint"):
+            check_same(json.loads(payload["env_fingerprint"]), env_fingerprint(env),
+                       what="env", path=path)
+    task = json.loads(payload["task"])
+    if task.get("state_map") is None and state_fn is None:
+        saved_n = json.loads(payload["ensemble_config"])["state_dim"]
+        raise ValueError(
+            f"the agent was saved with a custom state_fn/obs_fn (model state of dimension "
+            f"{saved_n}); functions are not saved: pass the same state_fn= and obs_fn= to "
+            "load (with the task's other functions: for a task of agents.tasks, "
+            "JacPropAgent.load(path, env, **task.agent_kwargs()))"
+        )
+    if task.get("cost") is None and cost_fn is None and (
+        env is None or default_task_for_env(env) is None
+    ):
+        raise ValueError("the agent was built with a custom cost_fn: pass cost_fn= to load")
+    return spec, task
+
+
+def write_run(agent: Any, run_dir: str | os.PathLike) -> None:
+    """The run folder after an episode: ``checkpoint.pt`` (the source of truth) and its
+    conveniences ``model.pt``, ``data.npz`` and ``summary.json`` (each written atomically)."""
+    from mbtsr.ensemble import save_model
+    from mbtsr.trajectory import save_trajectories
+
+    run_dir = Path(run_dir)
+    run_dir.mkdir(parents=True, exist_ok=True)
+    agent.save(run_dir / "checkpoint.pt")
+    save_model(agent.model, run_dir / "model.pt")
+    save_trajectories(run_dir / "data.npz", agent.trajectories)
+    atomic_write_text(run_dir / "summary.json", json.dumps(agent.summary(), indent=2))
 
 
 def env_fingerprint(env: Any) -> dict[str, Any]:

@@ -1,17 +1,16 @@
 """Configuration of the Algorithm-1 agent: one tree of frozen dataclasses, validated when built.
 
 ``AgentConfig`` holds the sections ``collection``, ``model`` (:class:`mbtsr.ensemble.ModelConfig`),
-``training`` (:class:`mbtsr.training.TrainConfig`), ``regularization``
-(:class:`mbtsr.training.RegularizationConfig`), ``planner`` and ``evaluation``, and bookkeeping.
-E.g. ``AgentConfig(regularization="none", planner="cem")`` (a name for a section),
+``training``, ``regularization`` (:mod:`mbtsr.training`), ``planner``, ``evaluation`` and
+bookkeeping: ``AgentConfig(regularization="none", planner="cem")`` (a name for a section),
 ``cfg.replace({"planner.horizon": 50, "model": {"hidden_width": 32}}, seed=3)``,
-``AgentConfig.load("arm.yaml")``. A small generic layer validates the tree: every leaf against its
-type hint, the ranges in ``_BOUNDS``, ``AgentConfig.FIXED`` and ``_DEPENDENT``; errors name the
-dotted field. The fields are described in docs/agent.md.
+``AgentConfig.load("arm.yaml")``. A generic layer checks every leaf against its type hint, the
+ranges in ``_BOUNDS``, ``AgentConfig.FIXED`` and ``_DEPENDENT``; errors name the dotted field.
 """
 
 from __future__ import annotations
 
+import ast
 import contextlib
 import dataclasses
 import difflib
@@ -19,7 +18,9 @@ import functools
 import json
 import math
 import numbers
+import operator
 import os
+import re
 import types
 import typing
 from collections.abc import Callable, Iterator, Mapping
@@ -32,15 +33,12 @@ import yaml
 
 from mbtsr.cem import CEMOptions
 from mbtsr.ensemble import ModelConfig
-from mbtsr.training import REGULARIZERS, RegularizationConfig, TrainConfig
+from mbtsr.training import RegularizationConfig, TrainConfig
 
 __all__ = ["AgentConfig", "CollectionConfig", "PlannerConfig", "EvaluationConfig",
-           "read_config_file", "split_run_config", "in_file", "REGULARIZERS",
-           "PLANNERS", "PROPAGATIONS", "EXCITATIONS"]
+           "read_config_file", "split_run_config", "in_file", "PLANNERS"]
 
 PLANNERS = ("ilqr", "cem", "cem-ilqr")
-PROPAGATIONS = ("mean", "ts")
-EXCITATIONS = ("filtered_gaussian", "multisine")
 
 
 class _Section:
@@ -90,7 +88,7 @@ class CollectionConfig(_Section):
     :param rollout_steps: steps per TRAINING rollout, shorter than the episode (``None``: the
         episode's); the model is updated after each, and what counts episodes counts these.
     :param continue_rollouts: the next rollout continues the env's episode after the model
-        update instead of resetting it (needs ``rollout_steps``).
+        update instead of resetting it.
     :param exploration_window: moving-average window (steps) of the exploration noise (1: white).
     :param explore_weight: directed exploration: training rollouts rank CEM's samples by cost
         minus this weight x the members' disagreement (0: off).
@@ -132,7 +130,7 @@ class PlannerConfig(_Section):
     :param replan_every: execute every plan for this many steps before re-solving (also the
         oracle's).
     :param replan_feedback: between re-plans, follow iLQR's local policy ``U_t + K_t (x_t -
-        X_t)`` instead of the open-loop controls (needs ``replan_every > 1`` and iLQR).
+        X_t)`` instead of the open-loop controls.
     :param kind: ``ilqr`` (iLQR on the model's Jacobians, the paper's controller), ``cem`` (PETS'
         cross-entropy method: forward predictions only) or ``cem-ilqr`` (CEM proposes, iLQR
         refines; docs/ilqr.md).
@@ -142,9 +140,9 @@ class PlannerConfig(_Section):
     :param first_plan_iterations: iLQR (or CEM) iterations for the plan at an episode's start.
     :param cem: the CEM settings of ``kind=cem`` (:class:`mbtsr.cem.CEMOptions`).
     :param proposal: the CEM settings of ``kind=cem-ilqr``'s proposal.
-    :param propagation: CEM's rollouts on the ensemble: ``mean`` (the mean model, as iLQR) or
-        ``ts`` (PETS' trajectory sampling, ``kind=cem`` only: each of the ``cem.particles``
-        rollouts follows one member; use a multiple of ``model.ensemble_size``).
+    :param propagation: CEM's rollouts on the ensemble: ``mean`` (the mean model) or ``ts`` (PETS'
+        trajectory sampling: each of the ``cem.particles`` follows one member; use a multiple of
+        ``model.ensemble_size``).
     """
 
     _BOUNDS: ClassVar[dict[str, Any]] = dict(
@@ -169,21 +167,6 @@ class PlannerConfig(_Section):
         if self.replan_every > self.horizon:
             raise ValueError(f"planner.replan_every must be <= planner.horizon={self.horizon}, "
                              f"got {self.replan_every}")
-
-    def optimizer(self, seed: int = 0, explore_weight: float = 0.0, explore_on: str = "state"
-                  ) -> tuple[Callable[..., Any], Any, int]:
-        """``(optimizer, options, iterations per step)`` for :class:`mbtsr.mpc.MPC` (to go)."""
-        from mbtsr.cem import cem
-        from mbtsr.cem_ilqr import CEMILQROptions, cem_ilqr
-        from mbtsr.ilqr import ilqr
-
-        if self.kind == "ilqr" and explore_weight:
-            raise ValueError("explore_weight needs a planner with CEM, got planner.kind='ilqr'")
-        opts = dataclasses.replace(self.cem if self.kind == "cem" else self.proposal, seed=seed,
-                                   explore_weight=explore_weight, explore_on=explore_on)
-        return {"ilqr": (ilqr, None, self.ilqr_iterations), "cem": (cem, opts, opts.iterations),
-                "cem-ilqr": (cem_ilqr, CEMILQROptions(max_iter=self.ilqr_iterations, cem=opts),
-                             self.ilqr_iterations)}[self.kind]
 
 
 @dataclass(frozen=True)
@@ -302,13 +285,17 @@ class AgentConfig(_Section):
                 f"training.patience={self.training.patience!r} has no effect: early stopping "
                 "needs held-out data (training.holdout > 0): set training.patience=None to "
                 "train the whole budget, or a hold-out")
-        own = _defaults()[1]
+        agent, own, _ = _defaults()
         for dotted, why in self.FIXED.items():
             if values[dotted] != own[dotted]:
                 raise ValueError(f"{dotted} must be {own[dotted]!r}: {why}, got "
                                  f"{values[dotted]!r}")
-        for dotted, reason in _inactive(self).items():
-            raise ValueError(f"{dotted}={values[dotted]!r} has no effect: {reason}")
+        for fields, when in _DEPENDENT.items():
+            chosen = [n for n, v in values.items() if v not in (agent[n], own.get(n, agent[n]))
+                      and any(n == f or f[-1] == "." and n.startswith(f) for f in fields.split())]
+            if chosen and not _holds(when, values):
+                raise ValueError(f"{chosen[0]}={values[chosen[0]]!r} has no effect: it acts only "
+                                 f"when {when}: remove it, or set that")
 
     def replace(self, changes: Mapping[str, Any] | None = None, /, **top: Any) -> AgentConfig:
         """A copy with changes, validated again: ``changes`` maps dotted fields or sections
@@ -339,10 +326,8 @@ class AgentConfig(_Section):
     @classmethod
     def from_dict(cls, d: Mapping[str, Any], /, base: AgentConfig | None = None) -> AgentConfig:
         """The CHANGES a partial (nested or dotted) dict gives to ``base`` (default: the
-        defaults), as :meth:`replace`. Values are coerced where unambiguous: a number in a string
-        (YAML 1.1 reads ``1e-3`` as one; not ``"2.5"`` for an int), ``50.0`` as an int,
-        ``"true"``, ``"null"`` (where no string fits), a list as a tuple, a name as a tuple of one.
-        """
+        defaults), as :meth:`replace`, values coerced where unambiguous (:func:`_coerce`: YAML 1.1
+        reads ``1e-3`` as a string)."""
         if not isinstance(d, Mapping):
             raise ValueError(f"AgentConfig.from_dict needs a dict of AgentConfig fields, got "
                              f"{type(d).__name__} {d!r}")
@@ -356,11 +341,6 @@ class AgentConfig(_Section):
         return base.replace(d)
 
     @classmethod
-    def from_json(cls, text: str) -> AgentConfig:
-        """:meth:`from_dict` of a JSON object (a key given twice is an error)."""
-        return cls.from_dict(json.loads(text, object_pairs_hook=_unique))
-
-    @classmethod
     def load(cls, path: str | os.PathLike, base: AgentConfig | None = None) -> AgentConfig:
         """The config in a JSON or YAML file (a run's ``config.json``: its ``agent`` section),
         as changes to ``base``; an error names the file."""
@@ -370,7 +350,6 @@ class AgentConfig(_Section):
             raise in_file(path, err) from None
 
 
-# ---- the generic layer: the tree's fields, their types and defaults ------------------------------
 @functools.cache
 def _hints(cls: type) -> dict[str, Any]:
     """The resolved type of every field of dataclass ``cls``."""
@@ -422,67 +401,48 @@ def _describe(hint: Any) -> str:
             type(None): "null"}.get(hint, getattr(hint, "__name__", str(hint)))
 
 
-class _Bad(ValueError):
-    """``"<name> must be <type>, got <value>"``, worded when shown."""
-
-    def __str__(self) -> str:
-        name, hint, value = self.args
-        return f"{name} must be {_describe(hint)}, got {value!r}"
-
-
 def _coerce(value: Any, hint: Any, name: str, strict: bool = False) -> Any:
-    """``value`` as the type ``hint`` of field ``name``, coerced where unambiguous
-    (:meth:`AgentConfig.from_dict`); ``strict``: the type check only (numpy scalars and paths
-    become Python's). :raises ValueError: ``"<name> must be <type>, got <value>"``."""
-    origin, args = typing.get_origin(hint), typing.get_args(hint)
-    bad = _Bad(name, hint, value)
-    word = value.strip().lower() if isinstance(value, str) and not strict else None
-    if origin in (typing.Union, types.UnionType):
-        if value is None and type(None) in args:
-            return None
-        for option in sorted(args, key=lambda a: typing.get_origin(a) is not Literal):
+    """``value`` as the type ``hint`` of field ``name``; numpy scalars and paths become Python's.
+    Unless ``strict`` (:meth:`AgentConfig.from_dict`), coerced where unambiguous: a string where
+    no string fits is read as a number, ``true``/``false`` or ``none``/``null`` (any case), a list
+    is a tuple, one name a tuple of one, an integral number an int.
+    :raises ValueError: ``"<name> must be <type>, got <value>"``."""
+    union = typing.get_origin(hint) in (typing.Union, types.UnionType)
+    given, options = value, typing.get_args(hint) if union else (hint,)
+    if not strict and isinstance(value, str) and not any(
+            o is str or str in typing.get_args(o) or value in typing.get_args(o) for o in options):
+        w, words = value.strip().lower(), {"true": True, "false": False, "none": None, "null": None}
+        with contextlib.suppress(ValueError):
+            value = words[w] if w in words else int(w) if w.lstrip("+-").isdigit() else float(w)
+    for option in options:
+        origin, args = typing.get_origin(option), typing.get_args(option)
+        number = isinstance(value, numbers.Real) and not isinstance(value, (bool, np.bool_))
+        if origin is tuple and isinstance(value, tuple if strict else (tuple, list, str)):
+            value = (value,) if isinstance(value, str) else value
+            items = (args[0],) * len(value) if args[-1] is Ellipsis else args
             with contextlib.suppress(ValueError):
-                if option is not type(None):
-                    return _coerce(value, option, name, strict)
-        if type(None) in args and str not in args and word in ("none", "null"):
-            return None
-        raise bad
-    if origin is Literal and isinstance(value, str) and value in args:
-        return value
-    if origin is tuple:
-        value = (value,) if word is not None and args[-1] is Ellipsis else value  # one name
-        if not isinstance(value, tuple if strict else (tuple, list)):
-            raise bad
-        items = (args[0],) * len(value) if args[-1] is Ellipsis else args
-        if len(items) != len(value):
-            raise bad
-        try:
-            return tuple(_coerce(v, h, name, strict) for v, h in zip(value, items))
-        except ValueError:
-            raise bad from None
-    number = None
-    if hint in (int, float) and not isinstance(value, (bool, np.bool_)):
-        if hint is int and isinstance(value, numbers.Integral):
+                if len(items) == len(value):
+                    return tuple(_coerce(v, h, name, strict) for v, h in zip(value, items))
+        elif value is None and option is type(None) or origin is Literal and value in args \
+                and isinstance(value, str):
+            return value
+        elif option is bool and isinstance(value, (bool, np.bool_)):
+            return bool(value)
+        elif option is float and number:
+            return float(value)
+        elif option is int and number and (isinstance(value, numbers.Integral) or not strict
+                                           and float(value).is_integer()):
             return int(value)
-        if isinstance(value, numbers.Real) or word is not None:
-            with contextlib.suppress(ValueError):
-                number = float(value)
-    if hint is float and number is not None:
-        return number
-    if hint is int and number is not None and not strict and number.is_integer():
-        return int(number)
-    if hint is bool and (isinstance(value, (bool, np.bool_)) or word in ("true", "false")):
-        return bool(value) if word is None else word == "true"
-    if hint is str and isinstance(value, (str, os.PathLike)):
-        return os.fspath(value)
-    if hint in (bool, int, float, str) or origin is Literal:
-        raise bad
-    return value  # a type the tree does not use: unchecked
+        elif option is str and isinstance(value, (str, os.PathLike)):
+            return os.fspath(value)
+        elif option not in (bool, int, float, str, type(None)) and origin not in (Literal, tuple):
+            return value  # a type the tree does not use: unchecked
+    raise ValueError(f"{name} must be {_describe(hint)}, got {given!r}")
 
 
 #: settings that act only under others: ``{fields: when}`` (a field ending in "." stands for its
 #: section's fields); a chosen value there (neither the agent's default nor its section's) while
-#: ``when`` (an expression in the top-level fields) is false is refused
+#: the condition ``when`` (:func:`_holds`) is false is refused
 _DEPENDENT = {
     "regularization.sigma regularization.n_copies regularization.copies_batch":
         "regularization.sampled_weight > 0",
@@ -503,30 +463,25 @@ _DEPENDENT = {
 }
 
 
-_WHEN = {when: compile(when, "_DEPENDENT", "eval") for when in _DEPENDENT.values()}
+_ATOM = re.compile(r"(\S+) (==|!=|>|is not|is) (.+)")
+_OPS = {"==": operator.eq, "!=": operator.ne, ">": operator.gt, "is": operator.is_,
+        "is not": operator.is_not}
 
 
-def _inactive(cfg: AgentConfig) -> dict[str, str]:
-    """``{dotted field: why}`` of the leaves of ``cfg`` that hold a chosen value without effect
-    under the others (:data:`_DEPENDENT`)."""
-    (agent, own, _), values = _defaults(), cfg.dotted()
-    top = {f.name: getattr(cfg, f.name) for f in dataclasses.fields(cfg)}
-    return {name: f"it acts only when {when}: remove it, or set that"
-            for fields, when in _DEPENDENT.items() if not eval(_WHEN[when], {}, top)  # noqa: S307
-            for name, value in values.items()
-            if value != agent[name] and value != own.get(name, agent[name])
-            and any(name == f or (f.endswith(".") and name.startswith(f))
-                    for f in fields.split())}
+def _holds(when: str, values: Mapping[str, Any]) -> bool:
+    """Whether the condition ``when`` holds for the dotted ``values``: comparisons of a field with
+    a Python literal, joined by ``and``, then by ``or`` (``"a > 0 and b != 'x' or c is None"``)."""
+    return any(all(_OPS[m[2]](values[m[1]], ast.literal_eval(m[3]))
+                   for m in map(_ATOM.fullmatch, part.split(" and ")))
+               for part in when.split(" or "))
 
 
 def _unknown(key: str) -> ValueError:
     """The error of an unknown field, naming the closest valid one (whole path or last part)."""
-    def ratio(a: str, b: str) -> float:
-        return difflib.SequenceMatcher(None, a, b).ratio()
-
-    def score(path: str) -> tuple[float, float]:
-        return max(ratio(key, path), ratio(key.rpartition(".")[2], path.rpartition(".")[2])), \
-            ratio(key, path)
+    def score(path: str) -> tuple[float, float]:  # the closer of the whole and the last part
+        whole, last = (difflib.SequenceMatcher(None, a, b).ratio() for a, b in (
+            (key, path), (key.rpartition(".")[2], path.rpartition(".")[2])))
+        return max(whole, last), whole
 
     return ValueError(f"unknown AgentConfig field {key!r}; the closest valid field is "
                       f"{max(_defaults()[2], key=score)!r}")
@@ -580,7 +535,6 @@ def _replaced(obj: Any, changes: Mapping[str, Any], prefix: str) -> Any:
     return _build(prefix[:-1], dataclasses.replace, obj, **direct)
 
 
-# ---- files: JSON and YAML, a run's config.json --------------------------------------------------
 #: the sections of a run's ``config.json`` beside ``agent`` (written by train_agent)
 RUN_SECTIONS = ("script", "command", "ensemble", "env_spec")
 

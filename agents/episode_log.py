@@ -17,7 +17,7 @@ from typing import Any
 
 from agents.checkpoint import atomic_write_text
 
-__all__ = ["EpisodeLog", "LOG_COLUMNS", "TIMING_COLUMNS"]
+__all__ = ["EpisodeLog", "LOG_COLUMNS", "TIMING_COLUMNS", "summarize"]
 
 #: columns of the per-episode CSV, in order
 LOG_COLUMNS: tuple[str, ...] = (
@@ -106,6 +106,49 @@ class EpisodeLog:
         if self._writer is not None:
             self._writer.close()
             self._writer = None
+
+
+def summarize(rows: Sequence[dict[str, Any]], config: Any, *, env_id: str | None,
+              episodes_done: int, env_steps: int, oracle_cost: float | None) -> dict[str, Any]:
+    """Benchmark numbers of a run from its rows: episodes/env steps to the first solved
+    evaluation, the last and best cost ratio to the oracle and return, the evaluation curve,
+    wall seconds per phase.
+
+    :param config: the run's :class:`agents.config.AgentConfig` (its ``evaluation`` criteria).
+    :param oracle_cost: the oracle's mean evaluation cost (``None``: no oracle).
+    """
+    ev = config.evaluation
+    solved = [r for r in rows if r.get("solved")]
+    evals = [r for r in rows if r.get("cost_ratio") is not None]
+    rets = [r for r in rows if r.get("eval_return") is not None]
+    phases = {c[len("time_"):]: float(sum(r.get(c, 0.0) for r in rows)) for c in TIMING_COLUMNS}
+    return {
+        "env_id": env_id,
+        "episodes_done": episodes_done,
+        "env_steps": env_steps,
+        "episodes_to_solve": solved[0]["episode"] + 1 if solved else None,
+        "env_steps_to_solve": solved[0]["env_steps"] if solved else None,
+        "final_cost_ratio": evals[-1]["cost_ratio"] if evals else None,
+        "best_cost_ratio": min(r["cost_ratio"] for r in evals) if evals else None,
+        "final_eval_cost": evals[-1]["eval_cost"] if evals else None,
+        "final_eval_return": rets[-1]["eval_return"] if rets else None,
+        "final_eval_returns": rets[-1]["eval_returns"] if rets else None,
+        "best_eval_return": max(r["eval_return"] for r in rets) if rets else None,
+        "eval_curve": [
+            {"episode": r["episode"], "env_steps": r["env_steps"],
+             "eval_return": r.get("eval_return"), "eval_returns": r.get("eval_returns"),
+             "cost_ratio": r.get("cost_ratio")}
+            for r in rows if r.get("eval_returns") is not None
+        ],
+        "solved_return": ev.solved_return,
+        "solved_criterion": ("mean_return" if ev.solved_return is not None
+                             else "oracle_ratio" if oracle_cost is not None else None),
+        "oracle_cost": oracle_cost,
+        "solved_ratio": ev.solved_ratio,
+        "wall_seconds_per_phase": phases,
+        "eval_fraction_of_wall": phases["eval"] / phases["total"] if phases.get("total") else None,
+        "config": config.to_dict(),
+    }
 
 
 def rows_to_csv(rows: Sequence[dict[str, Any]], columns: Sequence[str]) -> str:

@@ -1,14 +1,16 @@
-"""Evaluation protocol for reach tasks: fixed random targets, episode cost, and the oracle.
+"""Evaluation protocol: fixed episodes, episode cost, the oracle, and the agent's
+:class:`Evaluator`.
 
 "Solved" (issue 6): the mean episode cost of a policy over ``n`` evaluation episodes with
 random targets is within ``ratio`` (1.2) times the mean cost of MPC with the TRUE model (the
-oracle, :func:`oracle_cost`) on the same targets and the same initial states. The episode cost
+oracle, :func:`oracle_policy`) on the same targets and the same initial states. The episode cost
 is ``-sum(rewards)``, the env's own measure, so any policy (the JacProp agent, an SB3 baseline,
 a hand-written controller) is scored the same way::
 
     targets = evaluation_targets(10, seed=1000)
-    oracle = oracle_cost("mbtsr/TwoLinkArm-v0", targets, horizon=30, seed=1000)
-    mine = evaluate_policy_cost(sb3_model, "mbtsr/TwoLinkArm-v0", targets, seed=1000)
+    env = gym.make("mbtsr/TwoLinkArm-v0")
+    oracle = evaluate_policy_cost(oracle_policy(env, PlannerConfig()), env, targets, seed=1000)
+    mine = evaluate_policy_cost(sb3_model, env, targets, seed=1000)
     solved = mine <= solved_threshold(oracle)
 
 Episode ``i`` is reset with ``seed + i`` and ``options={"target": targets[i]}``.
@@ -16,45 +18,48 @@ Episode ``i`` is reset with ``seed + i`` and ``options={"target": targets[i]}``.
 
 from __future__ import annotations
 
-import abc
+import dataclasses
 import hashlib
 import json
+import math
 import os
+import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
-import casadi as ca
 import gymnasium as gym
 import numpy as np
 
-from agents.tasks import ObservationCost
-from mbtsr.costs import CasadiCost
+from agents.config import AgentConfig, PlannerConfig
+from agents.planning import ReplanEvery, make_policy
+from agents.tasks import ObservationCost, QuadraticTargetCost
 from mbtsr.episode import EpisodeRecord, as_policy, run_episode
-from mbtsr.ilqr import ILQROptions, ilqr
-from mbtsr.mpc import MPC, MPCOptions
-from mbtsr.validation import as_array, check_callable, check_int
+from mbtsr.ilqr import ILQROptions
+from mbtsr.validation import check_int
 
 __all__ = [
+    "NOT_EVALUATED",
     "EpisodeRecord",
-    "MPCPolicy",
-    "SB3Predictor",
+    "Evaluator",
     "make_env",
-    "mpc_policy",
-    "planner_cost",
     "run_episode",
     "evaluation_targets",
     "evaluate_policy_costs",
     "evaluate_policy_cost",
     "oracle_policy",
-    "oracle_cost",
     "has_true_model",
-    "TrueStatePolicy",
     "cached_costs",
     "oracle_cache_key",
     "physics_fingerprint",
     "solved_threshold",
 ]
+
+
+#: the evaluation fields of an episode's log row without an evaluation
+NOT_EVALUATED: dict[str, Any] = {
+    "eval_cost": None, "eval_return": None, "eval_returns": None, "oracle_cost": None,
+    "cost_ratio": None, "eval_episodes_run": 0, "solved": False}
 
 
 def make_env(env: gym.Env | str, **kwargs: Any) -> tuple[gym.Env, bool]:
@@ -67,168 +72,6 @@ def make_env(env: gym.Env | str, **kwargs: Any) -> tuple[gym.Env, bool]:
     if env.startswith("mbtsr/"):
         import envs  # noqa: F401  (registers the mbtsr/ ids)
     return gym.make(env, **kwargs), True
-
-
-def planner_cost(task_cost: ObservationCost, terminal_weight: float = 1.0) -> CasadiCost:
-    """The planner's :class:`mbtsr.costs.CasadiCost` of a task, compiled once: stage
-    ``cost_fn(obs_fn(s, p), a)`` and terminal ``terminal_weight * cost_fn(obs_fn(s, p), 0)`` on
-    the model state ``s``, with the reference observation ``p = obs [obs_dim]`` as the cost
-    parameter (for the arm only its target entries matter). A new target is a new ``params``,
-    not a new function."""
-    n, m, d = task_cost.state_dim, task_cost.spec.act_dim, task_cost.spec.obs_dim
-    s, a, p, t = ca.SX.sym("s", n), ca.SX.sym("a", m), ca.SX.sym("p", d), ca.SX.sym("t")
-    stage = ca.Function("stage", [s, a, t, p], [task_cost.stage(s, a, p)])
-    terminal = ca.Function(
-        "terminal", [s, p], [float(terminal_weight) * task_cost.terminal(s, p)]
-    )
-    return CasadiCost(stage, terminal, n, m)
-
-
-class SB3Predictor(abc.ABC):
-    """Stable-Baselines3's ``predict`` over ``_act(observation, state)``: the MPC policies and
-    the agent. ``episode_start`` forces a cold start (``state=None``); ``deterministic`` is
-    unused (MPC is deterministic), kept for SB3 compatibility."""
-
-    @abc.abstractmethod
-    def _act(self, observation: Any, state: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
-        """One step from ``observation`` with the recurrent ``state`` (``None``: cold start)."""
-
-    def predict(
-        self,
-        observation: np.ndarray,
-        state: np.ndarray | None = None,
-        episode_start: np.ndarray | bool | None = None,
-        deterministic: bool = True,
-    ) -> tuple[np.ndarray, np.ndarray]:
-        """One step (Stable-Baselines3 signature).
-
-        :param observation: ``[obs_dim]`` current observation.
-        :param state: the recurrent state returned by the previous call (the remaining plan),
-            or ``None`` (cold start, also forced by ``episode_start``).
-        :param episode_start: ``True`` at the first step of an episode.
-        :param deterministic: unused (MPC is deterministic); kept for SB3 compatibility.
-        :return: ``(action [m], next_state)``.
-        """
-        if episode_start is not None and bool(np.any(episode_start)):
-            state = None
-        return self._act(observation, state)
-
-
-class MPCPolicy(SB3Predictor):
-    """Stable-Baselines3's ``predict`` on observations for an :class:`mbtsr.mpc.MPC`.
-
-    Maps the observation to the model state (``task_cost.state_map``) and to the cost
-    parameters (the observation itself: see :func:`planner_cost`), solves from there, and
-    returns the first action with the rest of the plan, shifted by one step, as the recurrent
-    ``state`` (the warm start of the next call), so ``predict`` is a pure function of its
-    arguments. The same adapter serves the agent (frozen learned model) and the oracle (true
-    model).
-
-    :param mpc: the controller (its cost from :func:`planner_cost`).
-    :param task_cost: the task (observation/state maps, env spec).
-    :param termination_fn: ``obs [..., obs_dim] -> bool [...]``, where the env would end the
-        episode, or ``None``. The optimizer (iLQR or CEM) then scores plans on the episode's
-        own cost: stage costs after a predicted termination are dropped
-        (:func:`mbtsr.costs.truncated_total`).
-    """
-
-    def __init__(self, mpc: MPC, task_cost: ObservationCost,
-                 termination_fn: Callable[[np.ndarray], np.ndarray] | None = None) -> None:
-        if not isinstance(mpc, MPC):
-            raise TypeError(f"mpc must be a mbtsr.mpc.MPC, got {type(mpc).__name__}")
-        if termination_fn is not None:
-            check_callable("termination_fn", termination_fn, "obs -> bool")
-        self.mpc = mpc
-        self.task_cost = task_cost
-        self.spec = task_cost.spec
-        self.state_map = task_cost.state_map
-        self.termination_fn = termination_fn
-        self.last_result = None
-        self._obs_maps: dict[int, ca.Function] = {}  # obs_of_state mapped over N states
-        if termination_fn is not None:
-            s, p = ca.SX.sym("s", task_cost.state_dim), ca.SX.sym("p", self.spec.obs_dim)
-            self._obs_of_state = ca.Function("obs_of_state", [s, p], [
-                ca.SX(self.state_map.observation(s, p))])
-
-    @property
-    def model(self) -> Any:
-        """The planning model."""
-        return self.mpc.model
-
-    def _act(self, observation: Any, state: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
-        """One MPC step: ``state`` is the ``[H, m]`` plan returned by the previous call (the
-        warm start) or ``None`` (a cold start); returns ``(action [m], next_state [H, m])``."""
-        obs = as_array("observation", observation, (self.spec.obs_dim,))
-        if state is not None:
-            state = np.asarray(state, dtype=float)
-            if state.shape != (self.mpc.horizon, self.spec.act_dim):
-                raise ValueError(
-                    f"state must be the [H={self.mpc.horizon}, m={self.spec.act_dim}] plan "
-                    f"returned by predict, got {list(state.shape)}"
-                )
-        res = self.mpc.solve(self.model_state(obs), 0, params=obs, warm_start=state,
-                             **self._solve_kwargs(obs))
-        self.last_result = res
-        U = np.asarray(res.U, dtype=float)
-        action = np.clip(U[0], self.spec.u_min, self.spec.u_max)
-        return action, np.concatenate([U[1:], U[-1:]], axis=0)
-
-    def model_state(self, obs: np.ndarray) -> np.ndarray:
-        """The planner's start state for this observation (the task's state map)."""
-        return self.state_map.state(obs)
-
-    def _solve_kwargs(self, obs: np.ndarray) -> dict[str, Any]:
-        """Extra keyword arguments of the optimizer for this observation: the predicted
-        termination ``terminated(X [..., n]) -> bool [...]`` on model states, through the
-        observation map (the current observation fills what the state leaves out)."""
-        if self.termination_fn is None:
-            return {}
-        fn, obs_ref = self.termination_fn, np.asarray(obs, dtype=float)
-
-        def terminated(X: np.ndarray) -> np.ndarray:
-            flat = X.reshape(-1, X.shape[-1])
-            N = flat.shape[0]
-            if N not in self._obs_maps:  # the line search calls with a few fixed batch sizes
-                self._obs_maps[N] = self._obs_of_state.map(N)
-            obs = np.asarray(self._obs_maps[N](flat.T, np.repeat(obs_ref[:, None], N, axis=1))).T
-            return np.asarray(fn(obs), dtype=bool).reshape(X.shape[:-1])
-
-        return {"terminated": terminated}
-
-
-def mpc_policy(
-    model: Any,
-    task_cost: ObservationCost,
-    *,
-    horizon: int,
-    iterations: int,
-    first_plan_iterations: int,
-    terminal_weight: float = 1.0,
-    cost: CasadiCost | None = None,
-    optimizer: Callable[..., Any] = ilqr,
-    optimizer_options: Any = None,
-    termination_fn: Callable[[np.ndarray], np.ndarray] | None = None,
-) -> MPCPolicy:
-    """The agent's and the oracle's controller: :class:`MPCPolicy` around
-    ``MPC(optimizer, planner_cost(task_cost), model, horizon)`` with the env's action box.
-
-    :param model: a planning model (a frozen ensemble, the true model).
-    :param cost: the compiled :func:`planner_cost` to reuse (built when ``None``).
-    :param optimizer_options: ``None``: iLQR's own defaults (``ILQROptions()``).
-    :param termination_fn: see :class:`MPCPolicy`.
-    """
-    spec = task_cost.spec
-    cost = planner_cost(task_cost, terminal_weight) if cost is None else cost
-    if optimizer_options is None and optimizer is ilqr:
-        optimizer_options = ILQROptions()
-    mpc = MPC(
-        optimizer, cost, model, horizon, u_min=spec.u_min, u_max=spec.u_max,
-        options=MPCOptions(
-            iterations_per_step=iterations, first_step_iterations=first_plan_iterations,
-            optimizer_options=optimizer_options, warm_start_lambda=False,
-        ),
-    )
-    return MPCPolicy(mpc, task_cost, termination_fn)
 
 
 def evaluation_targets(
@@ -318,27 +161,6 @@ def evaluate_policy_cost(policy: Any, env: gym.Env | str, *args: Any, **kwargs: 
     return float(np.mean(evaluate_policy_costs(policy, env, *args, **kwargs)))
 
 
-class TrueStatePolicy(MPCPolicy):
-    """:class:`MPCPolicy` that plans from the env's TRUE physical state instead of the
-    observation: the oracle of a Gymnasium MuJoCo env. Each call reads ``qpos, qvel`` of the live
-    ``env`` (after ``reset`` its initial state; mocap poses too, e.g. a target marker) and
-    starts the plan at ``model.lift(x) = [x, observation(x)]`` (an
-    :class:`envs.mujoco_model.ObservedDynamics`). Only valid inside episodes of that ``env``."""
-
-    def __init__(self, mpc: MPC, task_cost: ObservationCost, env: gym.Env,
-                 termination_fn: Callable[[np.ndarray], np.ndarray] | None = None) -> None:
-        super().__init__(mpc, task_cost, termination_fn)
-        self.env = env
-
-    def model_state(self, obs: np.ndarray) -> np.ndarray:
-        from envs.mujoco_model import state_of
-
-        dyn, base = self.model.dynamics, self.env.unwrapped
-        if dyn.model.nmocap:
-            dyn.set_mocap(base.data.mocap_pos, base.data.mocap_quat)
-        return self.model.lift(state_of(self.env))
-
-
 def _is_mujoco_env(env: gym.Env) -> bool:
     from gymnasium.envs.mujoco.mujoco_env import MujocoEnv
 
@@ -353,25 +175,22 @@ def has_true_model(env: gym.Env) -> bool:
 
 def oracle_policy(
     env: gym.Env,
-    horizon: int,
+    planner: PlannerConfig | None = None,
     *,
-    iterations: int = 2,
-    first_plan_iterations: int = 20,
-    terminal_weight: float = 1.0,
+    seed: int = 0,
     model: str = "dynamics_model",
     cost_fn: Callable | None = None,
     state_map: Any = None,
     terminal_cost_fn: Callable | None = None,
     termination_fn: Callable | None = None,
-    optimizer: Callable[..., Any] = ilqr,
-    optimizer_options: Any = None,
     state_fn: Callable | None = None,
     obs_fn: Callable | None = None,
-) -> MPCPolicy:
+) -> ReplanEvery:
     """MPC on the TRUE model of ``env``, with the env's own quadratic cost unless
-    ``cost_fn``/``state_map`` are given. Same controller (:func:`mpc_policy`: ``optimizer``
-    with ``optimizer_options``, ``iterations`` per step; the agent passes its own planner's) as
-    the agent, only the model differs. The true model is
+    ``cost_fn``/``state_map`` are given: the agent's controller (:func:`agents.planning.make_policy`
+    with the same ``planner``: kind, horizon, iterations, terminal weight, ``replan_every``;
+    CEM's ``particles`` set to 1, since one true model would repeat the same rollout), only the
+    model differs. The true model is
 
     * ``env.unwrapped.dynamics_model()`` (or ``analytic_model()``) when the env offers one (the
       arm); its state must be the agent's model state (the arm: ``obs[:4]``, via ``state_map``);
@@ -379,19 +198,25 @@ def oracle_policy(
       :class:`envs.mujoco_model.MujocoDynamics` lifted to ``z = [qpos, qvel, observation]`` by
       :class:`envs.mujoco_model.ObservedDynamics`: the task's ``cost_fn(obs, a)`` (and
       ``terminal_cost_fn``) is evaluated on the env's own observation of the predicted state,
-      and the plan starts from the env's true ``qpos, qvel`` (:class:`TrueStatePolicy`, so the
-      returned policy only works on this ``env``). ``state_map`` is ignored there (the true
-      state needs no map).
+      and the plan starts from the env's true ``qpos, qvel``
+      (:class:`agents.planning.TrueStatePolicy`, so the returned policy only works on this
+      ``env``). ``state_map`` is ignored there (the true state needs no map).
 
     ``termination_fn`` (the task's, on observations) is respected as by the agent's MPC.
     ``state_fn``/``obs_fn`` (the agent's arguments) build ``state_map`` when it is not given.
 
+    :param planner: the planner settings (``None``: ``PlannerConfig()``).
+    :param seed: seeds CEM's samples (the agent passes its ``config.seed``).
     :raises ValueError: an env that has neither (not MuJoCo, no ``dynamics_model()``): it has
         no true model, so no oracle (the agent then reports ``oracle_cost = None``); also when
         no cost is given and the env has no ``cost_Q``/``cost_R``.
     """
     from agents.tasks import StateMap, default_task_for_env, env_spec
 
+    planner = PlannerConfig() if planner is None else planner
+    if not isinstance(planner, PlannerConfig):
+        raise TypeError(f"planner must be an agents.config.PlannerConfig, got "
+                        f"{type(planner).__name__}")
     if model not in ("dynamics_model", "analytic_model"):
         raise ValueError(f"model must be 'dynamics_model' or 'analytic_model', got {model!r}")
     factory = getattr(env.unwrapped, model, None)
@@ -411,10 +236,7 @@ def oracle_policy(
             raise ValueError("the env has no cost_Q/cost_R; give cost_fn and state_map")
         cost_fn, default_map = default
         state_map = state_map or default_map
-    kwargs = {"horizon": horizon, "iterations": iterations,
-              "first_plan_iterations": first_plan_iterations, "terminal_weight": terminal_weight,
-              "termination_fn": termination_fn, "optimizer": optimizer,
-              "optimizer_options": optimizer_options}
+    true_state_env = None
     if factory is None:  # any Gymnasium MuJoCo env: plan on [qpos, qvel, observation]
         from envs.mujoco_model import MujocoDynamics, ObservedDynamics
 
@@ -425,54 +247,20 @@ def oracle_policy(
                 f"has {spec.obs_dim}"
             )
         n = true_model.n
-        obs_map = StateMap(state_fn=_oracle_state_fn, obs_fn=lambda s, ref: s[n:])
-        task_cost = ObservationCost(cost_fn, obs_map, spec, true_model.state_dim,
-                                    terminal_cost_fn=terminal_cost_fn)
-        policy = mpc_policy(true_model, task_cost, **kwargs)
-        return TrueStatePolicy(policy.mpc, task_cost, env, termination_fn)
-    true_model = factory()
-    if state_map is None:
-        state_map = StateMap()
+        state_map = StateMap(state_fn=_oracle_state_fn, obs_fn=lambda s, ref: s[n:])
+        true_state_env = env
+    else:
+        true_model = factory()
+        state_map = StateMap() if state_map is None else state_map
     task_cost = ObservationCost(cost_fn, state_map, spec, true_model.state_dim,
                                 terminal_cost_fn=terminal_cost_fn)
-    return mpc_policy(true_model, task_cost, **kwargs)
-
+    return make_policy(planner, true_model, task_cost, seed=seed, termination_fn=termination_fn,
+                       particles=1 if planner.cem.particles > 1 else None,
+                       true_state_env=true_state_env)
 
 def _oracle_state_fn(obs: np.ndarray) -> np.ndarray:
     raise ValueError("the MuJoCo oracle reads its state from the env (TrueStatePolicy), not "
                      "from an observation")
-
-
-def oracle_cost(
-    env: gym.Env | str,
-    targets: Sequence[np.ndarray] | None,
-    horizon: int,
-    *,
-    seed: int = 0,
-    return_costs: bool = False,
-    n_episodes: int | None = None,
-    max_steps: int | None = None,
-    **policy_options: Any,
-) -> float | np.ndarray:
-    """Mean episode cost of MPC with the TRUE model on ``targets``: :func:`oracle_policy`
-    (``policy_options``: its keyword arguments, e.g. ``iterations``, ``cost_fn``,
-    ``terminal_cost_fn``) scored by :func:`evaluate_policy_costs` (the same ``seed`` gives the
-    same initial states).
-
-    :param return_costs: return the per-episode costs ``[n]`` instead of the mean.
-    :param targets: ``None`` with ``n_episodes``: envs without targets (Reacher-v5,
-        InvertedPendulum-v5).
-    :param max_steps: cap on the steps per episode (default: the env's own limit).
-    """
-    env, created = make_env(env)
-    try:
-        policy = oracle_policy(env, horizon, **policy_options)
-        costs = evaluate_policy_costs(policy, env, targets, seed, n_episodes=n_episodes,
-                                      max_steps=max_steps)
-    finally:
-        if created:
-            env.close()
-    return costs if return_costs else float(np.mean(costs))
 
 
 def cached_costs(
@@ -528,10 +316,9 @@ def oracle_cache_key(
     constructor arguments, time step, spaces), the task (``task``: the cost's and the state map's
     ``to_dict()``), the evaluation targets,
     seed, episode count and length, the planner settings (``planner``: horizon, iterations,
-    ...; ``optimizer_options``: iLQR's, default ``ILQROptions()`` as :func:`mpc_policy` uses)
-    and ``mbtsr.__version__`` (a release invalidates every entry)."""
-    import dataclasses
-
+    ...; ``optimizer_options``: iLQR's, default ``ILQROptions()`` as
+    :func:`agents.planning.solver` uses) and ``mbtsr.__version__`` (a release invalidates every
+    entry)."""
     import mbtsr
     from agents.checkpoint import env_fingerprint
 
@@ -569,3 +356,172 @@ def solved_threshold(oracle: float, ratio: float = 1.2) -> float:
 
 def _check_seed(seed: Any) -> None:
     check_int("seed", seed, 0)
+
+
+class Evaluator:
+    """The agent's evaluation: its policy on fixed episodes (targets and reset seeds from
+    ``config.evaluation``) in a copy of the training env, scored against the oracle (the same
+    planner on the env's TRUE model, :func:`oracle_policy`), whose costs are computed once and
+    kept (and shared between runs through ``evaluation.oracle_cache_dir``).
+
+    :param env: the training env (the evaluation env is ``gym.make(env.spec)``).
+    :param config: the agent's config (its ``evaluation``, ``planner``, ``seed`` and
+        ``collection.n_excitation_episodes`` are used).
+    :param episode_steps: the episode length.
+    :param task: the task's functions for the oracle: ``cost_fn``, ``state_map``,
+        ``terminal_cost_fn``, ``termination_fn``.
+
+    ``eval_targets`` (``[episodes]`` targets, ``None`` for envs without targets) and
+    ``oracle_costs`` (``[episodes]``) are its state (checkpointed by the agent).
+    """
+
+    def __init__(self, env: gym.Env | None, config: AgentConfig, episode_steps: int,
+                 **task: Any) -> None:
+        self.env, self.config, self.episode_steps, self.task = env, config, episode_steps, task
+        self.eval_targets: list[np.ndarray] | None = None
+        self.oracle_costs: np.ndarray | None = None
+        self.oracle_seconds = 0.0  # computing the oracle, booked apart from the evaluation
+        self._env: gym.Env | None = None
+
+    def due(self, episode: int, env_steps: int, *, steps: int = 0, last: bool = False) -> bool:
+        """Whether to evaluate after ``episode``: every ``evaluation.every``-th episode from the
+        last excitation episode on, every episode that crossed a multiple of
+        ``evaluation.every_steps`` env steps (its ``steps`` steps ended at ``env_steps``), and
+        with ``last`` (the final score of a ``learn`` call)."""
+        ev, first = self.config.evaluation, self.config.collection.n_excitation_episodes - 1
+        if (ev.every == 0 and ev.every_steps == 0) or episode < first:
+            return False
+        k = ev.every_steps
+        return (last or (ev.every > 0 and (episode - first) % ev.every == 0)
+                or (k > 0 and env_steps // k > (env_steps - steps) // k))
+
+    def eval_env(self) -> gym.Env:
+        """The evaluation env, ``gym.make(env.spec)`` (made once)."""
+        if self._env is None:
+            spec = getattr(self.env, "spec", None)
+            if spec is None:
+                raise ValueError("evaluation needs an env made by gym.make (env.spec is None)")
+            self._env = gym.make(spec)
+        return self._env
+
+    def targets(self) -> list[np.ndarray] | None:
+        """The evaluation targets (drawn once; ``None`` for an env without targets)."""
+        if self.eval_targets is None:
+            env, ev = self.eval_env(), self.config.evaluation
+            _, info = env.reset(seed=ev.seed)
+            if "target" in info:
+                self.eval_targets = evaluation_targets(ev.episodes, ev.seed, env)
+        return self.eval_targets
+
+    def problem(self, i: int) -> tuple[np.ndarray | None, int]:
+        """``(target or None, reset seed)`` of evaluation episode ``i``."""
+        targets = self.targets()
+        return None if targets is None else targets[i], self.config.evaluation.seed + i
+
+    def setup(self) -> tuple[gym.Env, dict[str, Any]]:
+        """``(env, keyword arguments)`` that :func:`evaluate_policy_costs` scores a policy with
+        on these episodes (with ``self.eval_targets`` and ``evaluation.seed``)."""
+        env, targets = self.eval_env(), self.targets()
+        kwargs: dict[str, Any] = {"max_steps": self.episode_steps}
+        if targets is None:
+            kwargs["n_episodes"] = self.config.evaluation.episodes
+        return env, kwargs
+
+    def evaluate(self, policy: Any) -> dict[str, Any]:
+        """Score ``policy`` (SB3-style ``predict``) on the evaluation episodes.
+
+        :return: the log fields ``eval_cost`` (mean cost, ``None`` if stopped early),
+            ``eval_return`` (mean return) and ``eval_returns`` (per episode), ``oracle_cost``,
+            ``cost_ratio`` (``sum(agent) / sum(oracle)`` over the oracle's episodes, a lower
+            bound when the evaluation stopped early), ``eval_episodes_run`` and ``solved``.
+        """
+        ev = self.config.evaluation
+        env, kwargs = self.setup()
+        oracle = None if ev.solved_return is not None else self.oracle(env, kwargs)
+        stop_above = None
+        if oracle is not None and ev.early_exit and np.all(oracle >= 0):
+            stop_above = ev.solved_ratio * float(np.sum(oracle))
+        costs = evaluate_policy_costs(policy, env, self.eval_targets, ev.seed,
+                                      stop_above=stop_above, **kwargs)
+        complete = len(costs) == ev.episodes
+        returns = [float(-c) for c in costs]
+        out: dict[str, Any] = {
+            "eval_cost": float(np.mean(costs)) if complete else None,
+            "eval_return": float(np.mean(returns)) if complete else None,
+            "eval_returns": returns, "oracle_cost": None, "cost_ratio": None,
+            "eval_episodes_run": len(costs), "solved": False,
+        }
+        if ev.solved_return is not None:
+            out["solved"] = bool(complete and out["eval_return"] >= ev.solved_return)
+            return out
+        if oracle is None:
+            return out
+        total = float(np.sum(oracle))
+        ratio = float(np.sum(costs)) / total if total > 0 else math.inf
+        out.update(oracle_cost=float(np.mean(oracle)), cost_ratio=ratio,
+                   solved=bool(complete and ratio <= ev.solved_ratio))
+        return out
+
+    def add_final_score(self, row: dict[str, Any], policy: Any) -> None:
+        """Evaluate ``policy`` as the final score of a ``learn`` call: its fields and seconds
+        (evaluation, oracle) are added to the last episode's log ``row`` (in place)."""
+        tic = time.perf_counter()
+        row.update(self.evaluate(policy))
+        dt = time.perf_counter() - tic
+        oracle = self.take_oracle_seconds()
+        row["time_oracle"] += oracle
+        row["time_eval"] += dt - oracle
+        row["time_total"] += dt
+
+    def oracle_policy(self, env: gym.Env) -> ReplanEvery:
+        """The oracle's controller on ``env`` (:func:`oracle_policy` with the agent's planner,
+        seed and task functions)."""
+        return oracle_policy(env, self.config.planner, seed=self.config.seed, **self.task)
+
+    def oracle(self, env: gym.Env | None = None,
+               kwargs: dict[str, Any] | None = None) -> np.ndarray | None:
+        """Per-episode costs of the oracle (computed once, then kept; ``None``: the env has
+        no true model). The seconds spent computing it add to ``oracle_seconds``."""
+        if env is None:
+            env, kwargs = self.setup()
+        if self.oracle_costs is not None or not has_true_model(env):
+            return self.oracle_costs
+        cfg, task = self.config, self.task
+
+        def compute() -> np.ndarray:
+            tic = time.perf_counter()
+            try:
+                return evaluate_policy_costs(self.oracle_policy(env), env, self.eval_targets,
+                                             cfg.evaluation.seed, **kwargs)
+            finally:
+                self.oracle_seconds += time.perf_counter() - tic
+
+        key: dict[str, Any] = {}
+        cache_dir = cfg.evaluation.oracle_cache_dir
+        cost_fn, state_map = task["cost_fn"], task["state_map"]
+        if not (isinstance(cost_fn, QuadraticTargetCost) and state_map.serializable
+                and task["terminal_cost_fn"] is None and task["termination_fn"] is None
+                and _is_mujoco_env(env)):
+            cache_dir = None  # user functions (or non-MuJoCo physics) cannot be part of a key
+        if cache_dir is not None:
+            key = oracle_cache_key(
+                env, {"cost": cost_fn.to_dict(), "state_map": state_map.to_dict()},
+                self.eval_targets, cfg.evaluation.seed, n_episodes=cfg.evaluation.episodes,
+                episode_steps=self.episode_steps,
+                planner={**dataclasses.asdict(cfg.planner), "seed": cfg.seed},
+            )
+        self.oracle_costs = cached_costs(cache_dir, key, compute)
+        return self.oracle_costs
+
+    def take_oracle_seconds(self) -> float:
+        """The oracle seconds not yet booked to an episode (and reset them to 0)."""
+        seconds, self.oracle_seconds = self.oracle_seconds, 0.0
+        return seconds
+
+    def compute_oracle(self) -> float | None:
+        """Compute (or fetch from the cache) the oracle's costs now, outside ``learn`` (the
+        seconds are booked to no episode); return their mean (``None``: no true model)."""
+        pending = self.oracle_seconds
+        costs = self.oracle()
+        self.oracle_seconds = pending
+        return None if costs is None else float(np.mean(costs))

@@ -54,8 +54,8 @@ class MPCOptions:
         :meth:`MPC.reset`, or when the warm start is unusable).
     :param optimizer_options: options of the optimizer (an :class:`mbtsr.ilqr.ILQROptions`,
         a :class:`mbtsr.cem.CEMOptions` or a dict of their fields); the iteration cap
-        (``max_iter`` / ``iterations``) is overridden by the two counts above. ``None``: for
-        iLQR ``ILQROptions(tol_fun_rel=1e-6)``, for other optimizers their defaults.
+        (``max_iter`` / ``iterations``) is overridden by the two counts above. ``None``: the
+        optimizer's defaults (for iLQR ``ILQROptions()``, as the agent's planner uses).
     :param warm_start_lambda: (iLQR) start each solve from the previous solve's regularisation,
         capped at ``lambda_init`` (instead of ``lambda_init`` every time).
     :param cold_start_fractions: a cold start first solves these fractions of the horizon, in
@@ -256,8 +256,7 @@ def _resolve_options(optimizer: Callable[..., Any], options: Any) -> Any:
     """The optimizer's base options: iLQR's and CEM's as their options dataclasses (a dict is
     checked here, once), other optimizers' as given (``None``: a dict)."""
     if optimizer is ilqr:
-        return (ILQROptions(tol_fun_rel=1e-6) if options is None
-                else options_from(ILQROptions, options))
+        return ILQROptions() if options is None else options_from(ILQROptions, options)
     from mbtsr import cem as cem_module  # the sibling solver; imported lazily
 
     if optimizer is cem_module.cem:

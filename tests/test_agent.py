@@ -9,6 +9,7 @@ default (non-slow) tests of this file take well under a minute on 2 cores.
 from __future__ import annotations
 
 import csv
+import dataclasses
 import json
 import math
 import os
@@ -29,17 +30,17 @@ from agents.checkpoint import (
     save_checkpoint,
     set_numpy_rng_state,
 )
-from agents.config import AgentConfig
+from agents.config import AgentConfig, PlannerConfig
 from agents.episode_log import LOG_COLUMNS, EpisodeLog
 from agents.evaluation import (
     evaluate_policy_costs,
     evaluation_targets,
     oracle_policy,
-    planner_cost,
     run_episode,
     solved_threshold,
 )
 from agents.jacprop_agent import JacPropAgent
+from agents.planning import ReplanState, planner_cost
 from agents.tasks import ObservationCost, default_task_for_env, env_spec
 from mbtsr.ensemble import load_model
 from mbtsr.io import atomic_write_bytes
@@ -334,7 +335,8 @@ def test_evaluate_policy_costs_matches_a_hand_loop_and_stops_early():
 def test_oracle_mpc_with_the_true_model_reaches_the_target():
     env = gym.make(ARM, episode_steps=40)
     target = np.array([0.6, -0.4])
-    policy = oracle_policy(env, horizon=15, iterations=2, first_plan_iterations=15)
+    policy = oracle_policy(env, PlannerConfig(kind="ilqr", horizon=15, ilqr_iterations=2,
+                                              first_plan_iterations=15))
     oracle = evaluate_policy_costs(policy, env, [target], seed=0)[0]
     idle = evaluate_policy_costs(lambda o: np.zeros(2), env, [target], seed=0)[0]
     rec_state = {"U": None}
@@ -364,7 +366,8 @@ def test_oracle_takes_the_agents_state_maps_and_refuses_conflicting_ones():
     def obs_fn(s, ref):
         return ca.vertcat(s, ref[4:6])
 
-    kw = {"horizon": 8, "iterations": 2, "first_plan_iterations": 5}
+    kw = {"planner": PlannerConfig(kind="ilqr", horizon=8, ilqr_iterations=2,
+                                   first_plan_iterations=5)}
     a_default, _ = oracle_policy(env, **kw).predict(obs, None, episode_start=True)
     a_maps, _ = oracle_policy(env, state_fn=state_fn, obs_fn=obs_fn, **kw).predict(
         obs, None, episode_start=True)
@@ -382,12 +385,12 @@ def test_exploration_noise_has_the_stated_std_and_memory(window):
     env = gym.make(ARM, episode_steps=30)
     agent = JacPropAgent(env, tiny_config({"collection.exploration_std": 0.2,
                                            "collection.exploration_window": window}))
-    noise = agent._exploration_noise(20000, seed=7)[window:]  # after the filter's ramp-up
+    noise = agent.collector.exploration_noise(20000, seed=7)[window:]  # after the filter's ramp-up
     half = 0.5 * (agent.spec.u_max - agent.spec.u_min)
     np.testing.assert_allclose(noise.std(0), 0.2 * half, rtol=0.1)
     lag1 = [np.corrcoef(noise[1:, j], noise[:-1, j])[0, 1] for j in range(noise.shape[1])]
     np.testing.assert_allclose(lag1, (window - 1) / window, atol=0.03)
-    again = agent._exploration_noise(20000, seed=7)[window:]
+    again = agent.collector.exploration_noise(20000, seed=7)[window:]
     np.testing.assert_array_equal(noise, again)  # same seed, same noise
 
 
@@ -729,7 +732,7 @@ def test_cem_planner_runs_the_same_mpc_and_respects_the_termination_fn():
     ended = JacPropAgent(env, cfg, cost_fn=pendulum_cost,
                          termination_fn=lambda o: np.ones(o.shape[:-1], dtype=bool))
     ended.model.load_state_dict(agent.model.state_dict())
-    ended._freeze()  # train -> freeze -> plan, as learn() does after its training round
+    ended.freeze()  # train -> freeze -> plan, as learn() does after its training round
     ended.predict(obs)
     res = ended.policy.last_result
     first_stage = float(agent.task_cost.stage(agent.state_map.state(obs), res.U[0], obs))
@@ -989,7 +992,6 @@ def test_evaluation_every_steps_follows_the_env_steps():
 def test_replan_feedback_plays_a_failed_solves_plan_open_loop(broken):
     """A solve whose ``X`` or ``K`` is not finite (a failed solve) gives no correction: the
     steps until the next solve play its controls ``U_i`` open loop, never a NaN action."""
-    import dataclasses
 
     env, agent = _feedback_agent("ilqr")
     solves = []
@@ -1022,11 +1024,16 @@ def test_replan_every_checks_the_observation_and_state_between_solves():
     for bad, why in ((obs[:2], "shape"), (np.array([np.nan, 0.0, 0.0]), "finite")):
         with pytest.raises(ValueError, match=why):
             agent.predict(bad, state)
-    nan_plan, nan_age, wide = state.copy(), state.copy(), np.pad(state, ((0, 0), (0, 2)))
-    nan_plan[0, 0], nan_age[-1, 0] = np.nan, np.nan
-    for bad_state in (state[0], state[:1], state[:-1], state[:, :0], state[:, :2], nan_plan,
-                      nan_age, wide):
-        with pytest.raises(ValueError, match="state (must|contains .* non-finite)"):
+    assert isinstance(state, ReplanState) and state.age == 1
+    H, n = agent.config.planner.horizon, agent.state_dim
+    assert state.plan.shape == (H, 1) and state.states.shape == (H, n)
+    assert state.gains.shape == (H, 1, n)
+    nan_plan = state.plan.copy()
+    nan_plan[0, 0] = np.nan
+    for bad_state in (state.plan, dataclasses.replace(state, plan=state.plan[:-1]),
+                      dataclasses.replace(state, plan=nan_plan),
+                      dataclasses.replace(state, age=0), dataclasses.replace(state, age=1.5)):
+        with pytest.raises(ValueError, match="state(.plan|.age)? must"):
             agent.predict(obs, bad_state)
     action, _ = agent.predict(obs, state)
     assert action.shape == (1,) and np.all(np.isfinite(action))

@@ -51,9 +51,9 @@ def test_the_agent_uses_the_sections_as_they_are():
     assert agent.ensemble_config.members == (
         MemberSpec("tanh", 9, 1), MemberSpec("elu", 9, 1), MemberSpec("tanh", 9, 1))
     assert agent.ensemble_config.seed == 5
-    assert agent._train_configs(3) == (dataclasses.replace(cfg.training, seed=3),
+    assert agent.trainer.configs(3) == (dataclasses.replace(cfg.training, seed=3),
                                        cfg.regularization)
-    assert agent._train_configs(3)[1] == RegularizationConfig(exact_weight=0.01, ltv_lambda=2.0)
+    assert agent.trainer.configs(3)[1] == RegularizationConfig(exact_weight=0.01, ltv_lambda=2.0)
 
 
 def test_model_config_builds_the_ensemble():
@@ -123,11 +123,11 @@ def test_a_config_saved_before_the_step_budget_is_refused_as_such():
 
 
 @pytest.mark.parametrize("bad", [[1, 2], "horizon", 3, None])
-def test_from_dict_and_from_json_refuse_a_non_dict(bad):
+def test_from_dict_refuses_a_non_dict(bad):
     with pytest.raises(ValueError, match="AgentConfig.from_dict needs a dict"):
         AgentConfig.from_dict(bad)
     with pytest.raises(ValueError, match="AgentConfig.from_dict needs a dict"):
-        AgentConfig.from_json(json.dumps(bad))
+        AgentConfig.from_dict(json.loads(json.dumps(bad)))
 
 
 # ---------------------------------------------------------------------------- errors
@@ -388,7 +388,6 @@ def test_a_partial_dict_loads_as_exactly_its_changes_and_round_trips(changes):
     assert AgentConfig.default(cfg.changes()) == cfg
     text = cfg.to_json()
     assert isinstance(json.loads(text)["model"], dict)  # nested, not flat
-    assert AgentConfig.from_json(text) == cfg
     assert AgentConfig.from_dict(json.loads(text)) == cfg
     assert AgentConfig.from_dict(yaml.safe_load(yaml.safe_dump(cfg.to_dict()))) == cfg
 
@@ -457,7 +456,7 @@ def test_names_and_sections_mix():
 @pytest.mark.parametrize("load", [
     lambda v: AgentConfig.from_dict({"training": {"lr": v}}),
     lambda v: AgentConfig().replace({"training.lr": v}),
-    lambda v: AgentConfig.from_json(json.dumps({"training": {"lr": v}})),
+    lambda v: AgentConfig.from_dict(json.loads(json.dumps({"training": {"lr": v}}))),
 ])
 def test_a_number_in_a_string_is_parsed_and_a_word_refused(load):
     assert load("1e-3").training.lr == 0.001  # YAML 1.1 reads an unquoted 1e-3 as a string

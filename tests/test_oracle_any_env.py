@@ -15,7 +15,7 @@ import gymnasium as gym
 import numpy as np
 import pytest
 
-from agents.config import AgentConfig
+from agents.config import AgentConfig, PlannerConfig
 from agents.evaluation import evaluate_policy_costs, has_true_model, oracle_policy
 from agents.tasks import inverted_pendulum, reacher
 from envs.mujoco_model import MujocoDynamics, ObservedDynamics, state_of
@@ -23,7 +23,8 @@ from mbtsr.episode import as_policy, run_episode
 
 reacher_cost, reacher_terminal = reacher().cost_fn, reacher().terminal_cost_fn
 pendulum_cost = inverted_pendulum().cost_fn
-TINY = {"horizon": 4, "iterations": 1, "first_plan_iterations": 3}
+TINY = {"planner": PlannerConfig(kind="ilqr", horizon=4, ilqr_iterations=1,
+                                  first_plan_iterations=3)}
 
 
 @pytest.mark.parametrize("env_id", ["Reacher-v5", "InvertedPendulum-v5"])
@@ -78,7 +79,7 @@ def test_reacher_oracle_without_glue_starts_from_the_true_state():
     obs, _ = env.reset(seed=1000)
     x0 = state_of(env)
     policy.predict(obs, episode_start=True)
-    X = np.asarray(policy.last_result.X)
+    X = np.asarray(policy.policy.last_result.X)  # the MPC policy inside ReplanEvery
     np.testing.assert_array_equal(X[0, :8], x0)  # the plan starts at the env's qpos|qvel
     costs = evaluate_policy_costs(policy, env, None, 1000, n_episodes=2, max_steps=5)
     assert costs.shape == (2,) and np.isfinite(costs).all()
@@ -87,8 +88,8 @@ def test_reacher_oracle_without_glue_starts_from_the_true_state():
 
 def test_true_model_mpc_keeps_the_inverted_pendulum_up():
     env = gym.make("InvertedPendulum-v5")
-    policy = oracle_policy(env, horizon=10, iterations=1, first_plan_iterations=5,
-                           cost_fn=pendulum_cost)
+    policy = oracle_policy(env, PlannerConfig(kind="ilqr", horizon=10, ilqr_iterations=1,
+                                              first_plan_iterations=5), cost_fn=pendulum_cost)
     steps = 40
     for seed in (1000, 1001):
         zero = run_episode(env, lambda obs, t: np.zeros(1), seed=seed, max_steps=steps)
@@ -118,11 +119,10 @@ def test_agent_oracle_any_mujoco_env(env_id, cost, terminal):
     assert mean is not None and np.isfinite(mean)
     assert agent.oracle_costs.shape == (2,)
     # the same episodes by hand: same seeds (eval_seed + i), the agent's planner
-    optimizer, options, iterations = cfg.planner.optimizer(cfg.seed)
-    policy = oracle_policy(gym.make(env_id, max_episode_steps=6), 4, iterations=iterations,
-                           first_plan_iterations=3, cost_fn=cost, terminal_cost_fn=terminal,
-                           optimizer=optimizer, optimizer_options=options)
-    by_hand = evaluate_policy_costs(policy, policy.env, None, cfg.evaluation.seed, n_episodes=2,
+    env2 = gym.make(env_id, max_episode_steps=6)
+    policy = oracle_policy(env2, cfg.planner, seed=cfg.seed, cost_fn=cost,
+                           terminal_cost_fn=terminal)
+    by_hand = evaluate_policy_costs(policy, env2, None, cfg.evaluation.seed, n_episodes=2,
                                     max_steps=6)
     np.testing.assert_allclose(agent.oracle_costs, by_hand, rtol=0, atol=1e-9)
     env.close()
@@ -143,7 +143,7 @@ def test_env_without_true_model():
         return ca.sumsqr(obs) + ca.sumsqr(a)
 
     with pytest.raises(ValueError, match="no true model"):
-        oracle_policy(env, 4, cost_fn=cost)
+        oracle_policy(env, cost_fn=cost)
     cfg = AgentConfig.default({"evaluation.every": 0}, progress=False, tensorboard=False,
                               checkpoint=False)
     agent = JacPropAgent(env, cfg, cost_fn=cost)
@@ -177,7 +177,8 @@ def test_true_model_mpc_keeps_the_double_pendulum_up():
 
     task = inverted_double_pendulum(max_episode_steps=60)
     env = task.make_env()
-    policy = oracle_policy(env, 30, iterations=2, first_plan_iterations=20, **task.agent_kwargs())
+    planner = PlannerConfig(kind="ilqr", horizon=30, ilqr_iterations=2, first_plan_iterations=20)
+    policy = oracle_policy(env, planner, **task.agent_kwargs())
     rec = run_episode(env, as_policy(policy), seed=1000)
     assert len(rec.actions) == 60 and not rec.terminated
     tip_height = 0.6 * rec.obs[:, 3] + 0.6 * (rec.obs[:, 3] * rec.obs[:, 4]

@@ -41,7 +41,7 @@ def test_same_inputs_same_key_and_each_input_changes_it(monkeypatch):
     assert _key() == base  # a fresh env instance, the same physics
     assert _key(planner={**PLANNER, "horizon": 5}) != base
     assert _key(optimizer_options=ILQROptions(lambda_init=2.0)) != base
-    assert _key(optimizer_options=ILQROptions()) == base  # the default is what mpc_policy uses
+    assert _key(optimizer_options=ILQROptions()) == base  # planning.solver's default
     assert _key(task=_task(2.0)) != base
     assert _key(episode_steps=6) != base
     assert _key(n_episodes=3) != base
@@ -77,18 +77,19 @@ def test_cached_costs_computes_once_per_key(tmp_path):
 
 
 def test_agent_oracle_hits_the_cache(tmp_path, monkeypatch):
+    import agents.evaluation as evaluation
     import agents.jacprop_agent as jp
     from agents.config import AgentConfig
 
     runs = []
-    real = jp.evaluate_policy_costs
+    real = evaluation.evaluate_policy_costs
 
     def counted(policy, *args, **kwargs):
         if type(policy).__name__ == "ReplanEvery":  # the oracle (the agent's own is not run)
             runs.append(1)
         return real(policy, *args, **kwargs)
 
-    monkeypatch.setattr(jp, "evaluate_policy_costs", counted)
+    monkeypatch.setattr(evaluation, "evaluate_policy_costs", counted)
     cfg = AgentConfig.default({"planner.horizon": 4, "planner.ilqr_iterations": 1,
                                "planner.first_plan_iterations": 3, "evaluation.episodes": 1,
                                "evaluation.every": 0,

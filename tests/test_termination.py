@@ -176,8 +176,9 @@ def test_mpc_policy_refuses_a_termination_fn_that_is_not_callable():
     import gymnasium as gym
 
     import envs  # noqa: F401  (registers mbtsr/TwoLinkArm-v0)
+    from agents.config import PlannerConfig
     from agents.evaluation import oracle_policy
 
     env = gym.make("mbtsr/TwoLinkArm-v0")
     with pytest.raises(TypeError, match="termination_fn"):
-        oracle_policy(env, 5, termination_fn=3)
+        oracle_policy(env, PlannerConfig(kind="ilqr", horizon=5), termination_fn=3)

@@ -157,7 +157,7 @@ def bench_task(name: str, args: Args, peaks: dict[str, float]) -> dict:
     agent = bench_suite.make_agent(name, overrides, smoke=args.smoke)
     env, cfg = agent.env, agent.config
     agent.model.set_normalization(_excitation(agent, env, args.seed))
-    agent._freeze()
+    agent.freeze()
     frozen = agent.planning_model
     if frozen._plan is None:  # layer norm or mixed depths: no folded planning kernels
         raise ValueError(f"task {name!r}: the model has no folded planning kernels (layer norm "

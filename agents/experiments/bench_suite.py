@@ -187,7 +187,7 @@ def task_baselines(name: str, *, smoke: bool = False,
 
     torch.set_num_threads(1)
     agent = make_agent(name, overrides, smoke=smoke)
-    env, kwargs = agent._eval_setup()
+    env, kwargs = agent.evaluator.setup()
     m = agent.spec.act_dim
     zero = -evaluate_policy_costs(lambda obs: np.zeros(m), env, agent.eval_targets,
                                   EVAL_SEED, **kwargs)
@@ -690,8 +690,7 @@ def run_sb3(name: str, algo: str, seed: int, *, steps: int, smoke: bool) -> dict
                   if algo != "ppo" else {"n_steps": 128, "batch_size": 32, "n_epochs": 1})
     every = max(steps // 20, 1) if algo != "ppo" else hp.get("n_steps", 2048)
     agent = make_agent(name, smoke=smoke)  # the evaluation targets of the arm tasks
-    agent._ensure_eval_targets()
-    targets = agent.eval_targets
+    targets = agent.evaluator.targets()
     agent.env.close()
     common = dict(hyperparams=hp, env_kwargs=dict(task.make_kwargs), eval_seed=EVAL_SEED)
     if targets is not None:

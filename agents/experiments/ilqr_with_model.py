@@ -183,8 +183,9 @@ def run(args: Args) -> dict:
 
     # ---- 4. MPC on the model in the env
     mpc = MPC(ilqr, cost, model, horizon=args.mpc_horizon, u_min=-1.0, u_max=1.0,
-              options=MPCOptions(iterations_per_step=args.mpc_iterations,
-                                 first_step_iterations=30), params=cost.reference(goal))
+              options=MPCOptions(iterations_per_step=args.mpc_iterations, first_step_iterations=30,
+                                 optimizer_options=ILQROptions(tol_fun_rel=1e-6)),  # as documented
+              params=cost.reference(goal))
     mpc_out = run_episode(env, mpc, seed=args.seed, options=options, observe=_state)
     compute_times = np.asarray(mpc.compute_times)
 

@@ -338,7 +338,7 @@ def plot_final_reach(agent, env, path: Path) -> None:
     """One evaluation reach of the final agent (and of the oracle) against its target."""
     import numpy as np
 
-    from agents.evaluation import oracle_policy, run_episode
+    from agents.evaluation import run_episode
     from agents.experiments.paper_common import pyplot, save_figure
 
     plt = pyplot()
@@ -348,17 +348,8 @@ def plot_final_reach(agent, env, path: Path) -> None:
     rec = agent.rollout_policy(env, seed=seed, options=options)
     curves = [("agent", rec)]
     if hasattr(env.unwrapped, "dynamics_model") and target is not None:
-        plan = agent.config.planner
-        oracle = oracle_policy(env, plan.horizon, iterations=plan.ilqr_iterations,
-                               first_plan_iterations=plan.first_plan_iterations,
-                               terminal_weight=plan.terminal_weight)
-        state = {"U": None}
-
-        def act(obs, t):
-            a, state["U"] = oracle.predict(obs, state["U"], episode_start=t == 0)
-            return a
-
-        curves.append(("oracle", run_episode(env, act, seed=seed, options=options)))
+        oracle = agent.oracle_policy(env)  # the agent's planner (kind too) on the true model
+        curves.append(("oracle", run_episode(env, oracle, seed=seed, options=options)))
     dt = agent.spec.dt or 1.0
     fig, axes = plt.subplots(1, 2, figsize=(10, 3.8))
     for name, r in curves:

@@ -1,0 +1,357 @@
+"""Planner settings become an MPC policy in ONE place: :func:`make_policy`.
+
+A :class:`~agents.config.PlannerConfig` (kind, horizon, iterations, CEM settings, ``replan_every``,
+``replan_feedback``), the task's cost and a planning model (the agent's frozen ensemble or an
+env's TRUE model, for the oracle) give a policy with Stable-Baselines3's
+``predict(obs, state, episode_start)``:
+
+* :class:`MPCPolicy`: one :class:`mbtsr.mpc.MPC` solve per call from the observation's model
+  state; its recurrent ``state`` is the rest of the plan ``[H, m]``;
+* :class:`TrueStatePolicy`: the same, planning from a live MuJoCo env's TRUE state (the oracle);
+* :class:`ReplanEvery`: executes each plan for ``replan_every`` steps; its state is a
+  :class:`ReplanState` (plan, age, and with ``replan_feedback`` the plan's states and gains).
+
+Every value flows one way, from the config into the built objects (the horizon too): nothing is
+read back from an MPC or an optimizer's options.
+
+iLQR's options are :class:`mbtsr.ilqr.ILQROptions`' own defaults (``tol_fun_rel=0``, as the
+documented agent and oracle numbers were produced), the same as :class:`mbtsr.mpc.MPC`'s.
+"""
+
+from __future__ import annotations
+
+import abc
+import dataclasses
+from collections.abc import Callable
+from typing import Any
+
+import casadi as ca
+import gymnasium as gym
+import numpy as np
+
+from agents.config import PlannerConfig
+from agents.tasks import ObservationCost
+from mbtsr.cem import cem
+from mbtsr.cem_ilqr import CEMILQROptions, cem_ilqr
+from mbtsr.costs import CasadiCost
+from mbtsr.ilqr import ILQROptions, ilqr
+from mbtsr.mpc import MPC, MPCOptions
+from mbtsr.validation import as_array, check_callable
+
+__all__ = ["MPCPolicy", "ReplanEvery", "ReplanState", "SB3Predictor", "TrueStatePolicy",
+           "make_policy", "planner_cost", "solver"]
+
+
+def planner_cost(task_cost: ObservationCost, terminal_weight: float = 1.0) -> CasadiCost:
+    """The planner's :class:`mbtsr.costs.CasadiCost` of a task, compiled once: stage
+    ``cost_fn(obs_fn(s, p), a)`` and terminal ``terminal_weight * cost_fn(obs_fn(s, p), 0)`` on
+    the model state ``s``, with the reference observation ``p = obs [obs_dim]`` as the cost
+    parameter (for the arm only its target entries matter). A new target is a new ``params``,
+    not a new function."""
+    n, m, d = task_cost.state_dim, task_cost.spec.act_dim, task_cost.spec.obs_dim
+    s, a, p, t = ca.SX.sym("s", n), ca.SX.sym("a", m), ca.SX.sym("p", d), ca.SX.sym("t")
+    stage = ca.Function("stage", [s, a, t, p], [task_cost.stage(s, a, p)])
+    terminal = ca.Function(
+        "terminal", [s, p], [float(terminal_weight) * task_cost.terminal(s, p)]
+    )
+    return CasadiCost(stage, terminal, n, m)
+
+
+def solver(
+    planner: PlannerConfig, seed: int = 0, *, explore_weight: float = 0.0,
+    explore_on: str = "state", particles: int | None = None,
+) -> tuple[Callable[..., Any], Any, int]:
+    """``(optimizer, options, iterations per MPC step)`` of :class:`mbtsr.mpc.MPC` for
+    ``planner.kind``, built from the config's plain fields.
+
+    :param seed: seeds CEM's samples (the agent's and the oracle's ``config.seed``).
+    :param explore_weight: CEM's disagreement bonus (training rollouts; refused for iLQR).
+    :param explore_on: what the bonus measures (``"state"`` or ``"cost"``).
+    :param particles: replaces ``planner.cem.particles`` (``kind="cem"``; the oracle's 1).
+    """
+    explore = {"explore_weight": explore_weight, "explore_on": explore_on}
+    if planner.kind == "ilqr":
+        if explore_weight:
+            raise ValueError("explore_weight needs a planner with CEM ('cem' or 'cem-ilqr'), "
+                             "got planner.kind='ilqr'")
+        return ilqr, ILQROptions(), planner.ilqr_iterations
+    if planner.kind == "cem":
+        options = dataclasses.replace(planner.cem, seed=seed, **explore)
+        if particles is not None:
+            options = dataclasses.replace(options, particles=particles)
+        return cem, options, options.iterations
+    proposal = dataclasses.replace(planner.proposal, seed=seed, **explore)
+    return (cem_ilqr, CEMILQROptions(max_iter=planner.ilqr_iterations, cem=proposal),
+            planner.ilqr_iterations)
+
+
+def make_policy(
+    planner: PlannerConfig,
+    model: Any,
+    task_cost: ObservationCost,
+    *,
+    seed: int = 0,
+    cost: CasadiCost | None = None,
+    termination_fn: Callable[[np.ndarray], np.ndarray] | None = None,
+    explore_weight: float = 0.0,
+    explore_on: str = "state",
+    particles: int | None = None,
+    true_state_env: gym.Env | None = None,
+) -> ReplanEvery:
+    """The agent's and the oracle's controller: ``MPC(solver(planner), cost, model,
+    planner.horizon)`` in the env's action box, as an SB3-style policy that re-plans every
+    ``planner.replan_every`` steps.
+
+    :param planner: the planner settings.
+    :param model: a planning model (a frozen ensemble, a true model).
+    :param task_cost: the task (cost, state maps, env spec).
+    :param seed: see :func:`solver`.
+    :param cost: the compiled :func:`planner_cost` to reuse (built when ``None``).
+    :param termination_fn: see :class:`MPCPolicy`.
+    :param explore_weight: / ``explore_on`` / ``particles``: see :func:`solver`.
+    :param true_state_env: plan from this MuJoCo env's true state (:class:`TrueStatePolicy`).
+    """
+    optimizer, options, iterations = solver(planner, seed, explore_weight=explore_weight,
+                                            explore_on=explore_on, particles=particles)
+    spec = task_cost.spec
+    if cost is None:
+        cost = planner_cost(task_cost, planner.terminal_weight)
+    mpc = MPC(
+        optimizer, cost, model, planner.horizon, u_min=spec.u_min, u_max=spec.u_max,
+        options=MPCOptions(
+            iterations_per_step=iterations, first_step_iterations=planner.first_plan_iterations,
+            optimizer_options=options, warm_start_lambda=False,
+        ),
+    )
+    if true_state_env is None:
+        policy = MPCPolicy(mpc, task_cost, planner.horizon, termination_fn)
+    else:
+        policy = TrueStatePolicy(mpc, task_cost, planner.horizon, true_state_env,
+                                 termination_fn)
+    return ReplanEvery(policy, planner.replan_every, planner.replan_feedback)
+
+
+class SB3Predictor(abc.ABC):
+    """Stable-Baselines3's ``predict`` over ``_act(observation, state)``: the MPC policies and
+    the agent. ``episode_start`` forces a cold start (``state=None``); ``deterministic`` is
+    unused (MPC is deterministic), kept for SB3 compatibility."""
+
+    @abc.abstractmethod
+    def _act(self, observation: Any, state: Any) -> tuple[np.ndarray, Any]:
+        """One step from ``observation`` with the recurrent ``state`` (``None``: cold start)."""
+
+    def predict(
+        self,
+        observation: np.ndarray,
+        state: Any = None,
+        episode_start: np.ndarray | bool | None = None,
+        deterministic: bool = True,
+    ) -> tuple[np.ndarray, Any]:
+        """One step (Stable-Baselines3 signature).
+
+        :param observation: ``[obs_dim]`` current observation.
+        :param state: the recurrent state returned by the previous call (the remaining plan),
+            or ``None`` (cold start, also forced by ``episode_start``).
+        :param episode_start: ``True`` at the first step of an episode.
+        :param deterministic: unused (MPC is deterministic); kept for SB3 compatibility.
+        :return: ``(action [m], next_state)``.
+        """
+        if episode_start is not None and bool(np.any(episode_start)):
+            state = None
+        return self._act(observation, state)
+
+
+class MPCPolicy(SB3Predictor):
+    """Stable-Baselines3's ``predict`` on observations for an :class:`mbtsr.mpc.MPC`.
+
+    Maps the observation to the model state (``task_cost.state_map``) and to the cost
+    parameters (the observation itself: see :func:`planner_cost`), solves from there, and
+    returns the first action with the rest of the plan, shifted by one step, as the recurrent
+    ``state`` ``[H, m]`` (the warm start of the next call), so ``predict`` is a pure function of
+    its arguments. Built by :func:`make_policy`.
+
+    :param mpc: the controller (its cost from :func:`planner_cost`).
+    :param task_cost: the task (observation/state maps, env spec).
+    :param horizon: the plan length ``H`` (``planner.horizon``, the MPC's).
+    :param termination_fn: ``obs [..., obs_dim] -> bool [...]``, where the env would end the
+        episode, or ``None``. The optimizer (iLQR or CEM) then scores plans on the episode's
+        own cost: stage costs after a predicted termination are dropped
+        (:func:`mbtsr.costs.truncated_total`).
+    """
+
+    def __init__(self, mpc: MPC, task_cost: ObservationCost, horizon: int,
+                 termination_fn: Callable[[np.ndarray], np.ndarray] | None = None) -> None:
+        if not isinstance(mpc, MPC):
+            raise TypeError(f"mpc must be a mbtsr.mpc.MPC, got {type(mpc).__name__}")
+        if termination_fn is not None:
+            check_callable("termination_fn", termination_fn, "obs -> bool")
+        self.mpc, self.horizon = mpc, int(horizon)
+        self.task_cost = task_cost
+        self.spec = task_cost.spec
+        self.state_map = task_cost.state_map
+        self.termination_fn = termination_fn
+        self.last_result = None
+        self._obs_maps: dict[int, ca.Function] = {}  # obs_of_state mapped over N states
+        if termination_fn is not None:
+            s, p = ca.SX.sym("s", task_cost.state_dim), ca.SX.sym("p", self.spec.obs_dim)
+            self._obs_of_state = ca.Function("obs_of_state", [s, p], [
+                ca.SX(self.state_map.observation(s, p))])
+
+    @property
+    def model(self) -> Any:
+        """The planning model."""
+        return self.mpc.model
+
+    def _act(self, observation: Any, state: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+        """One MPC step: ``state`` is the ``[H, m]`` plan returned by the previous call (the
+        warm start) or ``None`` (a cold start); returns ``(action [m], next_state [H, m])``."""
+        obs = as_array("observation", observation, (self.spec.obs_dim,))
+        if state is not None:
+            state = np.asarray(state, dtype=float)
+            if state.shape != (self.horizon, self.spec.act_dim):
+                raise ValueError(
+                    f"state must be the [H={self.horizon}, m={self.spec.act_dim}] plan "
+                    f"returned by predict, got {list(state.shape)}"
+                )
+        res = self.mpc.solve(self.model_state(obs), 0, params=obs, warm_start=state,
+                             **self._solve_kwargs(obs))
+        self.last_result = res
+        U = np.asarray(res.U, dtype=float)
+        action = np.clip(U[0], self.spec.u_min, self.spec.u_max)
+        return action, np.concatenate([U[1:], U[-1:]], axis=0)
+
+    def model_state(self, obs: np.ndarray) -> np.ndarray:
+        """The planner's start state for this observation (the task's state map)."""
+        return self.state_map.state(obs)
+
+    def _solve_kwargs(self, obs: np.ndarray) -> dict[str, Any]:
+        """Extra keyword arguments of the optimizer for this observation: the predicted
+        termination ``terminated(X [..., n]) -> bool [...]`` on model states, through the
+        observation map (the current observation fills what the state leaves out)."""
+        if self.termination_fn is None:
+            return {}
+        fn, obs_ref = self.termination_fn, np.asarray(obs, dtype=float)
+
+        def terminated(X: np.ndarray) -> np.ndarray:
+            flat = X.reshape(-1, X.shape[-1])
+            N = flat.shape[0]
+            if N not in self._obs_maps:  # the line search calls with a few fixed batch sizes
+                self._obs_maps[N] = self._obs_of_state.map(N)
+            obs = np.asarray(self._obs_maps[N](flat.T, np.repeat(obs_ref[:, None], N, axis=1))).T
+            return np.asarray(fn(obs), dtype=bool).reshape(X.shape[:-1])
+
+        return {"terminated": terminated}
+
+
+class TrueStatePolicy(MPCPolicy):
+    """:class:`MPCPolicy` that plans from the env's TRUE physical state instead of the
+    observation: the oracle of a Gymnasium MuJoCo env. Each call reads ``qpos, qvel`` of the live
+    ``env`` (after ``reset`` its initial state; mocap poses too, e.g. a target marker) and
+    starts the plan at ``model.lift(x) = [x, observation(x)]`` (an
+    :class:`envs.mujoco_model.ObservedDynamics`). Only valid inside episodes of that ``env``."""
+
+    def __init__(self, mpc: MPC, task_cost: ObservationCost, horizon: int, env: gym.Env,
+                 termination_fn: Callable[[np.ndarray], np.ndarray] | None = None) -> None:
+        super().__init__(mpc, task_cost, horizon, termination_fn)
+        self.env = env
+
+    def model_state(self, obs: np.ndarray) -> np.ndarray:
+        from envs.mujoco_model import state_of
+
+        dyn, base = self.model.dynamics, self.env.unwrapped
+        if dyn.model.nmocap:
+            dyn.set_mocap(base.data.mocap_pos, base.data.mocap_quat)
+        return self.model.lift(state_of(self.env))
+
+
+@dataclasses.dataclass(frozen=True)
+class ReplanState:
+    """The recurrent state of :class:`ReplanEvery` between two solves.
+
+    :param plan: ``[H, m]`` the rest of the last plan (row 0 is played next).
+    :param age: steps played since the last solve (``1 <= age``).
+    :param states: ``[H, n]`` the last solve's predicted model states ``X_t`` for the plan's
+        rows, or ``None`` (no feedback: open loop).
+    :param gains: ``[H, m, n]`` iLQR's feedback gains ``K_t`` for the plan's rows, or ``None``.
+    """
+
+    plan: np.ndarray
+    age: int
+    states: np.ndarray | None = None
+    gains: np.ndarray | None = None
+
+    def shifted(self) -> ReplanState:
+        """The state one step later: every array shifted by one row (the last repeated)."""
+        def shift(a: np.ndarray | None) -> np.ndarray | None:
+            return None if a is None else np.concatenate([a[1:], a[-1:]], axis=0)
+
+        return ReplanState(shift(self.plan), self.age + 1, shift(self.states),
+                           shift(self.gains))
+
+
+class ReplanEvery(SB3Predictor):
+    """Feedback-limited MPC: each plan of ``policy`` is executed for ``k`` steps before the
+    next solve (warm-started with the rest of the plan). ``k = 1`` is ``policy`` itself (its
+    state is the plan ``[H, m]``); otherwise the state is a :class:`ReplanState`.
+
+    Between solves the plan's controls ``U_t`` are played open loop or, with ``feedback``,
+    through iLQR's local policy ``u_t = clip(U_t + K_t (x_t - X_t))``: ``x_t`` is the
+    planner's start state for the observation (``policy.model_state``: the learned model's
+    state, or the oracle's true state), ``X`` and ``K`` are the last solve's: ``K`` from its
+    last backward pass, linearized about the trajectory before its final line search, ``X``
+    the accepted trajectory. A solve without gains (CEM) or with a non-finite ``X`` or ``K``
+    (a failed solve) plays open loop, and so does a correction that comes out non-finite
+    (a model state far off the plan).
+
+    :param policy: the :class:`MPCPolicy` re-solved every ``k`` steps.
+    :param k: steps per plan (``planner.replan_every``).
+    :param feedback: follow the local policy between solves (``planner.replan_feedback``).
+    """
+
+    def __init__(self, policy: MPCPolicy, k: int, feedback: bool = False) -> None:
+        self.policy, self.k, self.feedback = policy, int(k), bool(feedback)
+
+    def _act(self, observation: Any, state: Any) -> tuple[np.ndarray, Any]:
+        if self.k == 1:
+            return self.policy.predict(observation, state)
+        if state is not None:
+            self._check(state)
+        if state is None or state.age >= self.k:
+            action, rest = self.policy.predict(observation, None if state is None else state.plan)
+            return action, ReplanState(rest, 1, *self._reference())
+        spec = self.policy.spec
+        obs = as_array("observation", observation, (spec.obs_dim,))
+        u = state.plan[0]
+        if state.gains is not None:
+            corrected = u + state.gains[0] @ (self.policy.model_state(obs) - state.states[0])
+            if np.all(np.isfinite(corrected)):
+                u = corrected
+        return np.clip(u, spec.u_min, spec.u_max), state.shifted()
+
+    def _check(self, state: Any) -> None:
+        """Refuse a state that is not a :class:`ReplanState` of this policy's sizes."""
+        if not isinstance(state, ReplanState):
+            raise ValueError(f"state must be the ReplanState the previous call returned, got "
+                             f"{type(state).__name__}")
+        H, m = self.policy.horizon, self.policy.spec.act_dim
+        if np.shape(state.plan) != (H, m) or not np.all(np.isfinite(state.plan)):
+            raise ValueError(f"state.plan must be a finite [H={H}, m={m}] plan, got shape "
+                             f"{list(np.shape(state.plan))}")
+        if isinstance(state.age, bool) or not isinstance(state.age, int) or state.age < 1:
+            raise ValueError(f"state.age must be an integer >= 1, got {state.age!r}")
+
+    def _reference(self) -> tuple[np.ndarray | None, np.ndarray | None]:
+        """``(states [H, n], gains [H, m, n])`` of the last solve for the steps after the
+        first, shifted as the plan (the last row repeated); ``(None, None)``, which plays open
+        loop, without ``feedback``, when the solve has no gains (CEM) or when its ``X`` or ``K``
+        is not finite."""
+        res = self.policy.last_result
+        K = getattr(res, "K", None)
+        if not self.feedback or K is None:
+            return None, None
+        X = np.asarray(res.X, dtype=float)
+        H, n, m = X.shape[0] - 1, X.shape[1], self.policy.spec.act_dim
+        K = np.asarray(K, dtype=float).reshape(H, m, n)
+        if not (np.all(np.isfinite(X)) and np.all(np.isfinite(K))):
+            return None, None
+        return X[1:], np.concatenate([K[1:], K[-1:]], axis=0)
