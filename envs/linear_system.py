@@ -44,7 +44,7 @@ def random_stable_system(
 
 
 class LinearSystemEnv(gym.Env):
-    """Random stable linear system; the module docstring is the manual.
+    """Random stable linear system; docs/environments.md is the manual.
 
     :param n: state dimension.
     :param m: input dimension.

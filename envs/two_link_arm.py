@@ -115,7 +115,7 @@ def _diag_weights(name: str, value: object, size: int) -> np.ndarray:
 
 
 class TwoLinkArmEnv(MujocoEnv, utils.EzPickle):
-    """Two-link arm reach task; the module docstring is the manual.
+    """Two-link arm reach task; docs/environments.md is the manual.
 
     :param preset: ``"default"`` or ``"paper"``.
     :param episode_steps: steps before truncation (>= 1).
