@@ -1,48 +1,19 @@
 """Neural-network dynamics ensembles: K members evaluated and trained in ONE batched computation.
 
-The paper's nominal model (Bagge Carlson et al., Sec. "Nominal model") is an ensemble of 4
-single-hidden-layer networks with 20 units and the activations elu, sigmoid, tanh and swish, all
-trained on the same data with different random initialisations. Each member models
-
-    x+ = s(x, u) + NN_k(x, u)
-
-where the *skip part* ``s`` is fixed by the formulation (paper Objectives 1 and 2 and Sec.
-"Weight decay"):
-
-=============  ==========================  ========================================
-formulation    s(x, u)                     Jacobian of s, ``[n, n+m]``
-=============  ==========================  ========================================
-``"f"``        0                           0
-``"g"``        x                           [I  0]
-``"nominal"``  A0 x + B0 u                 [A0 B0]
-``"scaled"``   tau * x (tau scalar/[n])    [diag(tau) 0]
-=============  ==========================  ========================================
-
-Normalization (``EnsembleConfig.normalize``, default on; the original code had none): the
-network sees standardized inputs and produces a standardized *residual*::
+Each member models ``x+ = s(x, u) + NN_k(x, u)``, the *skip part* ``s`` fixed by the formulation
+(:data:`FORMULATIONS`: ``"f"`` 0, ``"g"`` x, ``"nominal"`` ``A0 x + B0 u``, ``"scaled"``
+``tau * x``), the network on standardized inputs and residuals (``EnsembleConfig.normalize``)::
 
     NN_k(x, u) = out_mean + out_std * net_k(([x, u] - in_mean) / in_std)
 
-``in_mean/in_std`` are per-dimension statistics of ``[x_t, u_t]`` and ``out_mean/out_std`` of the
-residual targets ``x_{t+1} - s(x_t, u_t)`` over all transitions given to
-:meth:`DynamicsEnsemble.set_normalization` (called once by training if unset, then frozen so a warm
-start does not change the function the weights represent). Weight decay shrinks the weights of
-``net_k``, so it pulls the model Jacobian toward the skip Jacobian (0 for f, I for g, ...) as in the
-paper's analysis, but its strength acts on normalized units: a raw Jacobian entry ``(i, j)`` is
-``out_std[i] / in_std[j]`` times the normalized one.
-
-Members may differ in activation, width (padded to the widest member with a fixed zero mask),
-depth (1 or 2 hidden layers; members are grouped by depth, one batched computation per group),
-dropout and layer normalization. Jacobians are computed in closed form
-(``W_out^T diag(act'(z)) W_1^T`` chains), batched over points and members, in torch (differentiable,
-for Jacobian penalties by double backprop) and in float64 numpy.
-
-Train, then freeze, then plan: :meth:`DynamicsEnsemble.freeze` returns a :class:`FrozenEnsemble`,
-an immutable numpy copy (weights copied at that moment, normalization folded in, no torch) with
-the dynamics protocol (``step``, ``jacobians``) and the member spread (``predict``,
-``member_jacobians``). Planning uses only the frozen copy; nothing global tracks the training.
-Its ensemble-mean step and Jacobians, what planning spends its time on, run in float32 by default
-(``freeze("float64")``: the float64 reference; docs/ilqr.md, "Planning at the control rate").
+with statistics set once by :meth:`DynamicsEnsemble.set_normalization`. The paper's nominal
+model is 4 single-hidden-layer members of 20 units (elu, sigmoid, tanh, swish); members may
+differ in activation, width (padded with a fixed zero mask), depth (grouped, one batched
+computation per group), dropout and layer norm. Jacobians are closed form, batched over points
+and members, in torch (differentiable, for Jacobian penalties) and numpy. Train, then freeze,
+then plan: :meth:`DynamicsEnsemble.freeze` returns the immutable numpy :class:`FrozenEnsemble`
+that planning uses (float32 by default; ``freeze("float64")`` the reference). The formulations'
+Jacobians, the normalization and its effect on weight decay: docs/models.md.
 """
 
 from __future__ import annotations
