@@ -108,7 +108,7 @@ def true_jacobians(task_name: str, x: np.ndarray, u: np.ndarray
 def jacobian_rel_error(A: np.ndarray, B: np.ndarray, P: np.ndarray, A_hat: np.ndarray,
                        B_hat: np.ndarray) -> dict:
     """Relative Frobenius errors of model Jacobians ``A_hat, B_hat`` against the true ``A, B``
-    with tangent projector ``P`` (module docstring): ``jac_rel``, the median over the points of
+    with tangent projector ``P`` (docs/small_data.md): ``jac_rel``, the median over the points of
     ``||[A_hat_t P_t - A_t, B_hat_t - B_t]||_F / ||[A_t, B_t]||_F``; ``jac_rel_pooled``, the
     sums over the points in both norms (dominated by the few points of stiff contacts, whose
     true Jacobians are 100 to 1000 times the others); ``jac_rel_A``, ``jac_rel_B``: the pointwise
