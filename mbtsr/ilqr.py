@@ -15,25 +15,9 @@ derivatives of ``f``), Levenberg-Marquardt regularisation with the adaptive sche
 (projected Newton) for the feed-forward term with clamped feedback rows zeroed, and a
 backtracking line search on the ratio of actual to expected improvement.
 
-Implementation notes
---------------------
-* One batched ``dynamics.jacobians(X[:-1], U, t0)`` call and one mapped cost-derivative call per
-  iteration in which the trajectory changed (a rejected step reuses them).
-* The backward pass is ONE compiled call per pass (:func:`mbtsr._lqr_kernels.backward_pass`,
-  numba): the Riccati recursion, the box QP and the PD checks run without Python per time step.
-  A numpy recursion in plain linear algebra, ``tests/lqr_reference.py``, is the reference the
-  tests compare the kernel against.
-* The forward pass rolls out ALL line-search step sizes as one batch (``T`` batched ``step``
-  calls per iteration, not ``T x n_alpha``) and accepts the largest acceptable step. A model
-  whose step cost grows linearly with the batch (a simulator; it says so with
-  ``linear_batch_cost = True``) gets the step sizes in chunks of 2, 2, 3 and the rest, largest
-  first, stopping at the first chunk with an acceptable step: the same accepted step for
-  about half the simulation (measured in MPC on the arm: the accepted step is usually the
-  2nd-5th). So does an affine model (:class:`mbtsr.dynamics.LinearDynamics`, rolled out in one
-  compiled call), whose line search is dominated by the cost of the rollouts.
-* A rollout that produces NaN/inf or a state beyond ``max_state_norm`` is rejected; the solver
-  then raises the regularisation and keeps the best (current) iterate, so the returned controls
-  are always finite and within the bounds.
+The algorithm step by step (batched Jacobians, the compiled backward pass and its numpy
+reference ``tests/lqr_reference.py``, the batched or chunked line search, the regularisation
+schedule, the stopping rules, what a diverged rollout does): docs/ilqr.md, "iLQR".
 """
 
 from __future__ import annotations
