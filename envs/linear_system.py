@@ -1,45 +1,9 @@
 """``mbtsr/LinearSystem-v0``: the paper's random stable discrete-time linear system.
 
-## Description
-``x_{t+1} = A x_t + B u_t`` with ``(A, B)`` from :func:`random_stable_system`, the paper's
-Algorithm 2 (Bagge Carlson et al., "Tangent-Space Regularization for Neural-Network Models of
-Dynamical Systems", section 5.1), as in the original code (original_implementation.md section 4)::
-
-    A0 ~ N(0, 1)^{n x n};  Ac = A0 - A0^T - dt I  (skew minus a little: eigenvalues i w - dt)
-    A = expm(dt Ac)        (so every eigenvalue has modulus exp(-dt^2), ~0.9996 at dt = 0.02)
-    B = dt * N(0, 1)^{n x m}
-
-The system is the same for the same ``system_seed`` (default 1, the paper's); the true Jacobian
-is ``[A B]`` everywhere.
-
-## Spaces
-- observation = physical state ``x``: ``Box(-inf, inf, (n,), float64)``; ``info["state"]``.
-- action ``u``: ``Box(-action_bound, action_bound, (m,), float64)``, default bound 50 (the
-  paper's input, a 5-tap average of ``10 N(0, 1)``, has std 4.47, so 50 is > 11 sigma). Actions
-  outside the box are clipped; wrong shape or NaN/inf raises ``ValueError``.
-
-## Reward
-``reward_t = -(x_{t+1}^T x_{t+1} + r u_t^T u_t)`` with ``r = control_cost`` (default 1e-3): the
-regulation problem to 0; ``env.unwrapped.cost_Q = I_n``, ``cost_R = r I_m``.
-
-## Starting state
-``x_0 ~ N(0, I_n)`` from the reset seed (the original code's ``randn(nx)``);
-``reset(options={"state": x0})`` sets it exactly.
-
-## Episode end
-No termination; truncation after ``episode_steps`` (default 200, the paper's trajectory length).
-
-## Arguments
-``gymnasium.make("mbtsr/LinearSystem-v0", n=10, m=10, dt=0.02, system_seed=1,
-episode_steps=200, action_bound=50.0, control_cost=1e-3)``; ``dt <= 0`` -> ``ValueError``.
-
-## Model access (on ``env.unwrapped``)
-``A`` ``[n, n]``, ``B`` ``[n, m]``, ``linearize(x, u) -> (A, B)``,
-``linearize_trajectory(X [T, n], U [T, m]) -> (A [T, n, n], B [T, n, m])``,
-``dynamics_model() -> mbtsr.dynamics.LinearDynamics(A, B)``.
-
-## Version history
-- v0: initial version.
+``x_{t+1} = A x_t + B u_t`` with ``(A, B)`` from :func:`random_stable_system` (the paper's
+Algorithm 2), the same for the same ``system_seed``; reward ``-(x_{t+1}^T x_{t+1} + r u^T u)``.
+Spaces, reward, start state, episode end, arguments and model access (``A``, ``B``,
+``linearize``, ``dynamics_model``): docs/environments.md, "mbtsr/LinearSystem-v0".
 """
 
 from __future__ import annotations
@@ -80,7 +44,7 @@ def random_stable_system(
 
 
 class LinearSystemEnv(gym.Env):
-    """Random stable linear system; the module docstring is the manual.
+    """Random stable linear system; docs/environments.md is the manual.
 
     :param n: state dimension.
     :param m: input dimension.

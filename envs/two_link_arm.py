@@ -1,112 +1,13 @@
 """``mbtsr/TwoLinkArm-v0``: a two-link arm in a vertical plane reaching a target configuration.
 
-## Description
 A planar two-link arm (shoulder and elbow hinges) swings in the vertical x-z plane under gravity,
-with viscous and Coulomb (dry) joint friction and torque-limited motors, simulated by MuJoCo
-(``envs/assets/two_link_arm.xml``). Each episode draws a target joint configuration; the task is
-to bring the arm there and hold it. It is the robot benchmark of Bagge Carlson et al.,
-"Tangent-Space Regularization for Neural-Network Models of Dynamical Systems" (section 5), with a
-reach task on top so that a controller can be scored.
-
-``q = 0`` is the arm hanging straight down (the stable equilibrium); a positive angle turns a link
-towards +x (to the right in the ``side`` camera); ``q2`` is relative to link 1.
-
-## Physical state, action space
-- physical state ``x = [q1, q2, q1dot, q2dot]`` (rad, rad/s), ``n = 4``; ``info["state"]``.
-- action ``a`` in ``Box(-1, 1, (2,), float32)``: normalized joint torques,
-  ``tau = torque_limit * a`` (``env.unwrapped.torque_limit``, N m). Actions outside the box are
-  clipped (``np.clip``) before they are applied and costed; an action of the wrong shape or with
-  NaN/inf raises ``ValueError``.
-
-## Observation space
-``Box(-inf, inf, (6,), float64)``: ``[q1, q2, q1dot, q2dot, target_q1, target_q2]``. Angles are
-not wrapped (there is no joint-limit constraint, see below).
-
-## Rewards
-``reward_t = -( (x_{t+1} - x_goal)^T Q (x_{t+1} - x_goal) + a_t^T R a_t )`` with
-``x_goal = [target_q1, target_q2, 0, 0]``, the state *after* the step and the clipped normalized
-action. Defaults (``env.unwrapped.cost_Q`` ``[4, 4]``, ``cost_R`` ``[2, 2]``)::
-
-    Q = diag(1, 1, 0.01, 0.01)      R = diag(0.01, 0.01)
-
-so a 1 rad angle error costs 1 per step, 1 rad/s of speed 0.01 and a saturated motor 0.01.
-``info`` carries ``cost_state`` and ``cost_action``. Override with ``cost_Q=..., cost_R=...``
-(diagonal, nonnegative).
-
-## Starting state
-At rest hanging down plus seeded noise: ``q, qdot ~ U(-init_noise, init_noise)`` (default
-0.05 rad, rad/s). The target is drawn first, ``U(-target_limit, target_limit)^2`` (default
-``pi/2``). ``reset(options={"target": [q1, q2], "state": x0})`` sets either exactly; the random
-draws still happen, so the other one is the same as without the option. A target with
-``|q_i| >= joint_limit`` raises ``ValueError``.
-
-## Joint limits
-``joint_limit = 0.9 pi`` (the original code rejected trajectories with ``|q| >= 0.9 pi``). It is
-NOT a MuJoCo constraint (that would make the dynamics non-smooth); it bounds the targets and is
-the default rejection threshold of ``envs.collect.collect_trajectories``.
-
-## Episode end
-No termination; truncation after ``episode_steps`` (default 100 steps = 2 s), or earlier when the
-simulation diverges: if MuJoCo reports an instability during a step (``mjWARN_BADQACC``,
-``BADQPOS`` or ``BADQVEL``; MuJoCo then resets the arm to rest) or a joint speed exceeds
-``VELOCITY_LIMIT`` (1e3 rad/s), the step returns ``truncated=True`` with ``info["unstable"] =
-True`` and the reason in ``info["instability"]``; that step's observation is not a physical
-successor state (do not learn from it). ``info["unstable"]`` is ``False`` on every other step.
-
-## Simulation
-Euler integrator (MuJoCo's, which treats joint damping implicitly; ``mjd_transitionFD`` refuses
-RK4), ``timestep = 0.002`` s x ``frame_skip = 10`` = ``dt = 0.02`` s per env step (a short
-substep keeps Euler accurate and the friction constraint sharp; 10 substeps also amortize the
-Python cost of a step). Dry friction is MuJoCo's ``frictionloss`` with ``solreffriction``
-timeconst ``2 * timestep``. Contacts and solver warmstart are disabled, so a step is a pure
-function of ``(x, a)``.
-
-## Presets (``preset=``), all constants in ``envs.two_link_arm_model.PRESETS``
-| constant | ``"default"`` (a plausible real arm) | ``"paper"`` (the original code's robot) |
-|---|---|---|
-| link mass m1, m2 [kg] | 1.2, 0.6 (uniform rods) | 0.2, 0.2 (point masses at link ends) |
-| link length l1, l2 [m] | 0.30, 0.25 | 1, 1 |
-| centre of mass r1, r2 [m] | 0.15, 0.125 | 1, 1 |
-| inertia about COM [kg m^2] | m l^2/12: 0.009, 0.003125 | 1e-9 (MuJoCo needs > 0) |
-| armature [kg m^2] | 0.05, 0.02 (geared motors) | 0 |
-| viscous damping [N m s/rad] | 0.2, 0.1 | 2, 2 |
-| Coulomb friction [N m] | 0.2, 0.1 | 0.1, 0.1 |
-| torque limit [N m] | 8, 3 | 3, 3 |
-| gravity [m/s^2] | 9.81 | 1.82 |
-| excitation std (normalized) | 0.15 | 1/3 (= 1 N m as in the paper) |
-
-The paper preset has no inertia typo: ``M11 = (m1+m2) l1^2 + m2 l2^2 + 2 m2 l1 l2 cos q2``.
-Unknown preset -> ``ValueError`` listing the valid ones.
-
-## Arguments
-``gymnasium.make("mbtsr/TwoLinkArm-v0", preset="default", episode_steps=100, render_mode=None,
-dt=None, params=None, target_limit=pi/2, joint_limit=0.9*pi, init_noise=0.05, cost_Q=None,
-cost_R=None, width=320, height=240)``. ``dt`` overrides the control period (``timestep = dt /
-frame_skip``; ``dt <= 0`` or ``dt > MAX_DT = 0.1`` s -> ``ValueError``: the Euler substeps
-get too coarse, and at 0.5 s the default arm diverges); ``params`` overrides any
-:class:`~envs.two_link_arm_model.ArmParams` field, e.g. ``{"link_mass": (2.0, 1.0)}``.
-
-## Model access (on ``env.unwrapped``)
-- ``dynamics_model()`` -> :class:`envs.mujoco_model.MujocoDynamics` (the true model, the same
-  class as for any Gymnasium MuJoCo env; state ``[q, qdot]``, batched ``step``).
-- ``linearize(x, u) -> (A [4, 4], B [4, 2])``: Jacobians of ONE env step w.r.t. the physical
-  state and the normalized action, by that model's one route: ``mujoco.mjd_transitionFD``
-  (centred) chained over the ``frame_skip`` substeps, ``A = A_k ... A_1``,
-  ``B = sum_j A_k ... A_{j+1} B_j``. For hinge joints MuJoCo's tangent-space state
-  ``[dq, dqdot]`` is ``[q, qdot]``. At ``|u_i| = 1`` MuJoCo differences one-sidedly inside the
-  control range; beyond it ``B`` is 0.
-- ``linearize_trajectory(X [T, 4], U [T, 2]) -> (A [T, 4, 4], B [T, 4, 2])``.
-- ``analytic_model()`` -> :class:`envs.two_link_arm_model.TwoLinkArmCasadi`: the analytic
-  alternative (CasADi, exact symbolic Jacobians; equal to MuJoCo's where both joints move,
-  smooth ``tanh`` friction near zero velocity).
-
-## Rendering
-``render_mode="rgb_array"`` only (a ``"human"`` window aborts a headless process); ``import envs``
-sets ``MUJOCO_GL=egl`` unless already set. The target is drawn as a red sphere at the fingertip
-position of the target configuration.
-
-## Version history
-- v0: initial version.
+with viscous and Coulomb joint friction and torque-limited motors, simulated by MuJoCo
+(``envs/assets/two_link_arm.xml``): the robot benchmark of Bagge Carlson et al. (section 5) with
+a reach task on top. State ``[q1, q2, q1dot, q2dot]``, action ``Box(-1, 1, (2,))`` (normalized
+torques), observation the state and the target ``[target_q1, target_q2]``; reward the negative
+quadratic cost of the next state and the action. Spaces, reward, start state, episode end,
+presets, arguments, model access (``dynamics_model``, ``linearize``, ``analytic_model``) and
+rendering: docs/environments.md, "mbtsr/TwoLinkArm-v0".
 """
 
 from __future__ import annotations
@@ -214,7 +115,7 @@ def _diag_weights(name: str, value: object, size: int) -> np.ndarray:
 
 
 class TwoLinkArmEnv(MujocoEnv, utils.EzPickle):
-    """Two-link arm reach task; the module docstring is the manual.
+    """Two-link arm reach task; docs/environments.md is the manual.
 
     :param preset: ``"default"`` or ``"paper"``.
     :param episode_steps: steps before truncation (>= 1).

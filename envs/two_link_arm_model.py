@@ -18,27 +18,10 @@ With point masses at the link ends (``r_i = l_i``, ``I_i = 0``, no armature) thi
 the paper's original code *without* its inertia typo: ``M11 = (m1+m2) l1^2 + m2 l2^2 +
 2 m2 l1 l2 c2``.
 
-**Coulomb friction.** MuJoCo models dry friction (joint ``frictionloss``) as a soft constraint
-solved together with the acceleration: away from zero velocity it is exactly ``-fc sign(qd)``;
-near zero velocity it acts like soft stiction. The analytic model uses the smooth approximation
-``fc * tanh(qd / v_s)`` with ``v_s = friction_velocity`` (0.01 rad/s, the original code's
-``tanh(100 v)``).
-
-**Time stepping** replicates MuJoCo's Euler integrator over the ``frame_skip`` substeps of one
-env step (substep ``h = timestep``): joint damping is treated implicitly, everything else
-explicitly, ``(M + h D) qdd = tau - c - g - D qd - fc tanh(qd / v_s)``, then ``qd+ = qd + h qdd``
-and ``q+ = q + h qd+`` (semi-implicit position update). The explicit tanh is stable without
-oscillation for both presets: ``h * lambda_max(K^1/2 (M + h D)^-1 K^1/2)`` with the friction
-slope ``K = diag(fc / v_s)`` is at most 0.82 (default) and 0.52 (paper), below 1.
-
-**Agreement with the MuJoCo env** (tested in ``tests/test_two_link_arm.py``, numbers in
-``docs/environments.md``): when both joints keep ``|qd| >= 0.2`` rad/s through all substeps of a
-step (MuJoCo's friction is then exactly ``-fc sign(qd)`` and ``tanh(20)`` equals 1 to 1e-17),
-one-step states agree to 1e-10 (measured 2e-15) and Jacobians to 1e-7 of their largest entry
-(measured 2e-9, the error of MuJoCo's finite differences). Near zero velocity the two friction
-models differ (MuJoCo: soft stiction, here: tanh) by at most ``2 fc`` per joint; the one-step
-velocity error is bounded by ``dt * ||(M + h D)^-1||_2 * 2 ||fc||`` (measured at most 14 % of
-it: 0.021 rad/s default, 0.0077 rad/s paper, for ``|qd| <= 0.02``).
+Coulomb friction is smoothed to ``fc * tanh(qd / v_s)`` (MuJoCo: a soft constraint); time
+stepping replicates MuJoCo's Euler substeps with implicit damping. The stability bound, the
+agreement with the MuJoCo env (tested in ``tests/test_two_link_arm.py``) and the near-zero
+velocity error: docs/environments.md, "analytic_model(): the CasADi twin".
 """
 
 from __future__ import annotations

@@ -30,20 +30,10 @@ and returns ``X [T+1, n]``, ``U [T, m]`` (finite, inside the bounds), ``cost``, 
    ``elites`` lowest costs (``a = smoothing``).
 
 Directed exploration (``explore_weight = w > 0``, for training rollouts): samples are ranked by
-``J_s - c D_s`` instead of ``J_s``, where ``D_s = sum_t d(x_t, u_t)`` is the model's member
-disagreement along the rollout (averaged over a sequence's particles; with ``terminated``,
-only up to the first predicted termination) and ``c = w std(J) / std(D)`` over the finite
-samples of the first iteration that has at least ``elites`` of them and a spread in both, fixed
-for the solve (until then, and for a flat cost, the ranking is by ``J`` alone): one spread of
-disagreement is worth ``w`` spreads of cost, on any task's cost scale. ``explore_on`` chooses
-``d``: ``"state"``, the members' variance of the next state
-(:meth:`mbtsr.ensemble.FrozenEnsemble.disagreement`), or ``"cost"``, the members' spread
-(std) of the stage cost of their predicted next states, ``std_k l(f_k(x_t, u_t), u_t, t+1)``
-(the stage cost also for the last state: the terminal cost is not used), which counts only
-disagreement the task's cost sees. Either runs every member on every sampled state (about one
-more ensemble-mean rollout; the cost measure also evaluates the stage cost once per member;
-``timings["disagreement"]``). The result's ``cost``
-stays the task cost ``J`` of the chosen sequence.
+``J_s - c D_s``, ``D_s`` the members' disagreement along the rollout (``explore_on``: ``"state"``
+or ``"cost"``), ``c = w std(J) / std(D)`` fixed on the solve's first iteration with a spread in
+both (docs/agent.md, "Directed exploration"); ``timings["disagreement"]`` its time. The
+result's ``cost`` stays the task cost ``J`` of the chosen sequence.
 
 It stops at ``iterations`` or when ``max sigma < tol_std`` (status ``"converged"``).
 """

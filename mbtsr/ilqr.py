@@ -15,25 +15,9 @@ derivatives of ``f``), Levenberg-Marquardt regularisation with the adaptive sche
 (projected Newton) for the feed-forward term with clamped feedback rows zeroed, and a
 backtracking line search on the ratio of actual to expected improvement.
 
-Implementation notes
---------------------
-* One batched ``dynamics.jacobians(X[:-1], U, t0)`` call and one mapped cost-derivative call per
-  iteration in which the trajectory changed (a rejected step reuses them).
-* The backward pass is ONE compiled call per pass (:func:`mbtsr._lqr_kernels.backward_pass`,
-  numba): the Riccati recursion, the box QP and the PD checks run without Python per time step.
-  A numpy recursion in plain linear algebra, ``tests/lqr_reference.py``, is the reference the
-  tests compare the kernel against.
-* The forward pass rolls out ALL line-search step sizes as one batch (``T`` batched ``step``
-  calls per iteration, not ``T x n_alpha``) and accepts the largest acceptable step. A model
-  whose step cost grows linearly with the batch (a simulator; it says so with
-  ``linear_batch_cost = True``) gets the step sizes in chunks of 2, 2, 3 and the rest, largest
-  first, stopping at the first chunk with an acceptable step: the same accepted step for
-  about half the simulation (measured in MPC on the arm: the accepted step is usually the
-  2nd-5th). So does an affine model (:class:`mbtsr.dynamics.LinearDynamics`, rolled out in one
-  compiled call), whose line search is dominated by the cost of the rollouts.
-* A rollout that produces NaN/inf or a state beyond ``max_state_norm`` is rejected; the solver
-  then raises the regularisation and keeps the best (current) iterate, so the returned controls
-  are always finite and within the bounds.
+The algorithm step by step (batched Jacobians, the compiled backward pass and its numpy
+reference ``tests/lqr_reference.py``, the batched or chunked line search, the regularisation
+schedule, the stopping rules, what a diverged rollout does): docs/ilqr.md, "iLQR".
 """
 
 from __future__ import annotations
@@ -490,10 +474,10 @@ def _trace(it, J, lam, alpha, expected, actual, grad_norm, accepted, t_it) -> di
 
 def _initial_rollout(dynamics, x0, U, t0, max_norm):
     """The open-loop rollout of ``U [T, m]`` -> ``(X [1, T+1, n], alive [1])``: through the
-    model's compiled closed-loop rollout with zero gains when it has one (an affine model, the
-    frozen ensemble: the same states, without ``T`` calls from Python), else (and for a
-    diverged rollout, whose states must be NaN from the divergence on) :func:`_rollout`."""
-    if type(dynamics) is LinearDynamics or getattr(dynamics, "_rollout_policy", None):
+    compiled closed-loop rollout with zero gains for an affine model (the same states, without
+    ``T`` calls from Python), else (and for a diverged rollout, whose states must be NaN from
+    the divergence on) :func:`_rollout`."""
+    if type(dynamics) is LinearDynamics:
         T, m = U.shape
         n = x0.shape[0]
         Xn, _, alive = _rollout_policy(dynamics, x0, np.zeros((T + 1, n)), U, np.zeros((T, m)),
@@ -512,15 +496,8 @@ def _rollout_policy(dynamics, x0, X, U, k, K, alphas, lower, upper, t0, max_norm
     A row that turns non-finite is marked dead and continues from the nominal state (so the
     model never sees NaN); rows exceeding ``max_norm`` are marked dead at the end.
     An affine model (:class:`mbtsr.dynamics.LinearDynamics`) is rolled out in one compiled call
-    (:func:`mbtsr._lqr_kernels.rollout_policy_affine`, same semantics); so is a model that
-    offers ``_rollout_policy(x0, X, U, k, K, alphas, lower, upper, max_norm)`` (the frozen
-    ensemble; it may return ``None`` to decline).
+    (:func:`mbtsr._lqr_kernels.rollout_policy_affine`, same semantics).
     """
-    kernel = getattr(dynamics, "_rollout_policy", None)  # a model's compiled rollouts
-    if kernel is not None:
-        out = kernel(x0, X, U, k, K, alphas, lower, upper, max_norm)
-        if out is not None:
-            return out
     if type(dynamics) is LinearDynamics:
         A, B, c = (
             np.ascontiguousarray(a, dtype=float)[None]

@@ -8,31 +8,17 @@ loss; regularizers of Sec. III, switchable and combinable, each with its weight)
         + w_exact  * S * mean_{t in b} ||J_k(t) - [A_t B_t]||_F^2          exact matching
         + w_smooth * S * mean_{t, t+1 in b} ||J_k(t+1) - J_k(t)||_F^2      smoothness ("AD")
 
-``y_k`` is the member's normalized network output and ``r`` the normalized residual target
-(``EnsembleConfig.normalize``), so the data term is the original's "sum over state dimensions,
-mean over samples". ``J_k`` is the member's Jacobian of the FULL map in raw units (skip part
-included), ``[A_t B_t]`` the Jacobian of the trajectory's LTV model (:func:`mbtsr.ltv.fit_ltv`).
-``S`` turns the mean into the paper's sum over time: with ``batch="trajectory"`` it is the number
-of terms in the batch (so the penalty is exactly ``w sum_t``, as in the original's AD loss); with
-minibatches it is the mean number of terms per training trajectory, which keeps the meaning of
-``w`` independent of the batch size. The members' objectives are summed (they share no weights).
-
-Sampled Jacobian propagation (paper Alg. 1): one LTV model per training trajectory, fitted once
-per :func:`train_ensemble` call (or passed in); every epoch ``n_copies`` fresh perturbed copies
-``x~ = x + eps_x, u~ = u + eps_u, eps ~ N(0, (sigma * std over time)^2)`` of every trajectory are
-labelled ``x~+ = A_t x~ + B_t u~`` by that model (:meth:`mbtsr.ltv.LTVModel.sample_perturbed`).
-Where the copies go is :attr:`RegularizationConfig.copies_batch`: ``"shared"`` (default) puts
-them in the batch of their original transitions (same optimizer step, so the optimizer steps per
-epoch equal the baseline's); ``"own"`` gives every copy of every batch its own optimizer step
-after the epoch's data batches, as the original code did (it chained the perturbed trajectories
-after the data as extra batches), so an epoch takes ``(1 + n_copies)`` times the baseline's
-steps. Compare methods with the baseline at equal optimizer steps (:attr:`TrainHistory.steps`).
+``y_k`` is the member's normalized network output, ``r`` the normalized residual target,
+``J_k`` the member's Jacobian of the FULL map in raw units, ``[A_t B_t]`` the Jacobian of the
+trajectory's LTV model (:func:`mbtsr.ltv.fit_ltv`), ``r~`` the LTV labels of perturbed copies
+(:meth:`mbtsr.ltv.LTVModel.sample_perturbed`; :attr:`RegularizationConfig.copies_batch`) and
+``S`` turns the mean into the paper's sum over time; the members' objectives are summed. Each
+term, ``S`` and the measured effect: docs/models.md, "Tangent-space regularization".
 
 One loop (:func:`_train_loop`) trains with either schedule, a plan of rounds of batches: the
 paper's epochs (:class:`_EpochPlan`), or a step budget (:attr:`TrainConfig.steps`, or a hold-out,
-early stopping or per-member data; :class:`_StepPlan`) in which every step draws a minibatch per
-member and fresh perturbed copies of its transitions, labelled by their trajectory's LTV
-Jacobians. A probabilistic member's data term is the Gaussian NLL; see :class:`TrainConfig`.
+early stopping or per-member data; :class:`_StepPlan`). A probabilistic member's data term is
+the Gaussian NLL; see :class:`TrainConfig`.
 """
 
 from __future__ import annotations

@@ -23,7 +23,7 @@ sys.path.append(str(REPO))  # agents/experiments/ (until the editable install is
 #: every experiments module behind a script in scripts/
 EXPERIMENTS = ["bench_env", "bench_ilqr", "bench_ltv", "bench_model_sizes", "bench_models",
                "bench_planning",
-               "bench_suite", "collect_excitation", "diag_closed_loop_models", "exp_small_data",
+               "bench_suite", "collect_excitation", "exp_small_data",
                "ilqr_with_model", "model_env_sac"]
 
 

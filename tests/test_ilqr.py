@@ -635,3 +635,35 @@ def test_initial_rollout_through_the_compiled_kernel_equals_stepping():
     assert alive.all() and want_alive.all()
     X, alive = _initial_rollout(LinearDynamics(10 * A, B), x0, U, 0, 1e3)
     assert not alive[0] and np.isnan(X[0, -1]).all() and np.isfinite(X[0, 0]).all()
+
+
+@pytest.mark.parametrize("max_norm", [1e8, 6.0, 1e-3])
+def test_compiled_affine_line_search_rollouts_equal_the_python_rollouts(max_norm):
+    """iLQR's closed-loop rollouts of an affine model in one compiled call
+    (``rollout_policy_affine``) equal the solver's generic rollouts through ``step`` (same
+    states, controls and dead rows), also when rows diverge to non-finite states."""
+    from mbtsr.ilqr import _rollout_policy
+
+    rng = np.random.default_rng(5)
+    n, m, T = 4, 2, 9
+    for scale in (1.0, 1e200):  # 1e200: rows overflow to inf and continue from the nominal
+        model = LinearDynamics(scale * (np.eye(n) + 0.3 * rng.normal(size=(n, n))),
+                               rng.normal(size=(n, m)))
+
+        class StepOnly:  # the same model seen only through its step: the generic path
+            state_dim, action_dim = n, m
+            step = staticmethod(model.step)
+
+        X = rng.normal(size=(T + 1, n))
+        U, k = rng.normal(size=(T, m)), rng.normal(size=(T, m))
+        K = 0.3 * rng.normal(size=(T, m, n))
+        alphas = np.array([1.0, 0.5, 0.1, 0.01])
+        lower, upper = np.array([-1.0, -np.inf]), np.array([0.5, np.inf])
+        with np.errstate(all="ignore"):
+            got = _rollout_policy(model, X[0], X, U, k, K, alphas, lower, upper, 0, max_norm)
+            want = _rollout_policy(StepOnly(), X[0], X, U, k, K, alphas, lower, upper, 0,
+                                   max_norm)
+        for g, w in zip(got, want):
+            np.testing.assert_allclose(g, w, rtol=1e-13, atol=1e-13)
+        if max_norm < 10:
+            assert not got[2].all()  # some rows were declared dead, identically

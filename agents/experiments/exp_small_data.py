@@ -1,44 +1,10 @@
 """The small-data regime on purpose (issue 21, item 4): a deliberately wide ensemble trained on
-the first 1, 2 and 5 episodes of each suite task, without and with tangent-space regularization.
-
-Data (per task and seed ``s``): the open-loop excitation of
-:func:`agents.experiments.bench_model_sizes.collect` (episode 0 i.i.d. uniform actions, episode 1
-a low-pass filtered Gaussian, alternating; reset seeds drawn from ``s``), the episodes capped at
-``episode_steps``; the models train on the FIRST 1, 2 and 5 of them (nested). Held-out: ``n_test``
-transitions of other episodes (seed ``s + 10000``), with the MuJoCo state of every observation.
-
-Model: ``members`` x ``layers`` x ``width`` (default 4 x 3 x 200, swish, the ``g`` form
-``x+ = x + g(x, u)``), one initialization per seed shared by the regularizations; each is trained
-for exactly ``steps`` Adam steps (minibatches of ``batch`` transitions, or all of them when there
-are fewer; no hold-out, no early stopping), the same :class:`~mbtsr.training.TrainConfig` for
-all, only the :class:`~mbtsr.training.RegularizationConfig` differs: ``none``, ``sampled`` (the
-paper's sampled Jacobian propagation, weight 1, perturbed copies in the same minibatch, so the
-optimizer steps are equal) and ``exact`` (Jacobian matching, weight 0.01), both labelled by one
-smooth LTV fit per training episode (:func:`~agents.experiments.bench_model_sizes.ltv_fit`,
-``lam`` = ``ltv_lambda``).
-
-Metrics on the held-out transitions, of the ensemble mean:
-
-* ``rel_step``: held-out one-step error relative to the true step, ``sqrt(sum ||x+_hat - x+||^2 /
-  sum ||x+ - x||^2)`` (:func:`~agents.experiments.bench_model_sizes.errors`, with its ``nrmse``);
-* ``jac_rel``: relative Frobenius error of the Jacobians ``d(next obs) / d(obs, action)`` against
-  the true MuJoCo model at ``jac_points`` held-out points, pooled over the points::
-
-      sqrt( sum_t ||[A_hat_t P_t - A_t, B_hat_t - B_t]||_F^2 / sum_t ||[A_t, B_t]||_F^2 )
-
-  with the true ``A_t = C(x+) A_x C(x)^+``, ``B_t = C(x+) B_x`` (``A_x, B_x`` the Jacobians of the
-  MuJoCo step in the state ``x = [qpos, qvel]``, :class:`envs.mujoco_model.MujocoDynamics`;
-  ``C = d obs / dx``, :meth:`envs.mujoco_model.ObservedDynamics.observation_jacobian`) and
-  ``P_t = C(x) C(x)^+`` the projector onto the tangent space of the observation manifold:
-  where the observation is redundant (Reacher's ``cos q, sin q``; Pusher's body positions) a
-  network's Jacobian is only defined by the data along that tangent space, and the comparison is
-  made there. For an invertible affine observation (the inverted pendulum's ``[qpos, qvel]``,
-  HalfCheetah's ``[qpos[1:], qvel]``) ``P = I`` and this is the plain comparison;
-  ``jac_rel_A`` and ``jac_rel_B`` are the two blocks alone.
-
-Aggregates per (task, episodes): the median over seeds of each metric for every regularization,
-the median of the per-seed ratio method / none, and wins/total (seeds where the method's error
-is strictly below ``none``'s, same seed: same data, same initialization).
+the first 1, 2 and 5 episodes of each suite task, without and with tangent-space regularization
+(``none``, ``sampled``, ``exact``), at an equal number of Adam steps, one initialization per seed
+shared by the regularizations. Metrics on held-out transitions, of the ensemble mean: the
+one-step error relative to the true step (``rel_step``) and the Jacobian error against the true
+MuJoCo model on the observation manifold's tangent space (``jac_rel``). Data, model, training,
+metrics and aggregates: docs/small_data.md, "What was run".
 
     OMP_NUM_THREADS=1 python scripts/exp_small_data.py
     python scripts/exp_small_data.py --smoke
@@ -142,7 +108,7 @@ def true_jacobians(task_name: str, x: np.ndarray, u: np.ndarray
 def jacobian_rel_error(A: np.ndarray, B: np.ndarray, P: np.ndarray, A_hat: np.ndarray,
                        B_hat: np.ndarray) -> dict:
     """Relative Frobenius errors of model Jacobians ``A_hat, B_hat`` against the true ``A, B``
-    with tangent projector ``P`` (module docstring): ``jac_rel``, the median over the points of
+    with tangent projector ``P`` (docs/small_data.md): ``jac_rel``, the median over the points of
     ``||[A_hat_t P_t - A_t, B_hat_t - B_t]||_F / ||[A_t, B_t]||_F``; ``jac_rel_pooled``, the
     sums over the points in both norms (dominated by the few points of stiff contacts, whose
     true Jacobians are 100 to 1000 times the others); ``jac_rel_A``, ``jac_rel_B``: the pointwise

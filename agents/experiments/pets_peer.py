@@ -11,20 +11,9 @@ the PETS venv; the command re-executes itself there when mbrl is not importable:
     python -m agents.experiments.pets_peer --report-only   # figures + table from the JSON
     python -m agents.experiments.pets_peer --smoke          # CI size: one short Reacher run
 
-What is mbrl's and what is ours:
-
-* mbrl's: the model (``GaussianMLP``: 7 members x 4 layers x 200 SiLU units, mean and log-variance
-  heads, Gaussian NLL; wrapped in ``OneDTransitionRewardModel`` with input normalization and
-  delta targets), its ``ModelTrainer`` (Adam, bootstrapped members, elites chosen on the
-  validation or training score), ``ModelEnv`` (trajectory sampling with ``random_model``
-  propagation, 20 particles, rewards after a predicted termination dropped),
-  ``TrajectoryOptimizerAgent`` with its ``CEMOptimizer`` (given its settings directly: mbrl's
-  wheel lacks ``conf/action_optimizer/cem.yaml``) and its ``ReplayBuffer``.
-* ours: the reward, ``reward_fn(act, next_obs) = -cost`` with the task's CasADi cost
-  (:mod:`agents.tasks`, evaluated numerically on the batch), the task's termination rule (or
-  none), the loop (random exploration, training schedule, evaluation points), the evaluation
-  protocol of the suite (``env = task.make_env()``, episode ``i`` reset with seed ``1000 + i``,
-  3 episodes, score = mean of the env's own summed rewards) and the JSON.
+What is mbrl's (model, trainer, model env, CEM agent, replay buffer) and what is ours (the
+reward from the task's CasADi cost, the termination rule, the loop, the suite's evaluation
+protocol, the JSON): docs/pets_peer.md, "What runs".
 
 Per-task settings follow mbrl's published PETS overrides (``exp/pets`` with ``pets_reacher``,
 ``pets_pusher``, ``pets_inv_pendulum``, ``pets_halfcheetah``); every change, and every shrink of
