@@ -376,6 +376,47 @@ def backward_pass(A, B, lx, lu, lxx, luu, lux, lo, hi, lam, reg_type, has_limits
 
 
 @njit(cache=True)
+def policy_row(U, k, K, X, t, alpha, lower, upper, x, u_out):  # pragma: no cover - compiled
+    """``u_out[m] = clip(U_t + alpha k_t + K_t (x - X_t), lower, upper)``: one step of iLQR's
+    line-search policy for one rollout (shared by the compiled rollouts)."""
+    m, n = K.shape[1], K.shape[2]
+    for j in range(m):
+        v = U[t, j] + alpha * k[t, j]
+        for i in range(n):
+            v += K[t, j, i] * (x[i] - X[t, i])
+        u_out[j] = min(max(v, lower[j]), upper[j])
+
+
+@njit(cache=True)
+def guard_row(x_next, x_nominal, biggest):  # pragma: no cover - compiled
+    """A non-finite ``x_next [n]`` is replaced by ``x_nominal`` (so the model never sees NaN).
+
+    :return: ``(finite, max(biggest, max |x_next|))``: whether the row stays alive, and the
+        running largest magnitude of the rollout (shared by the compiled rollouts)."""
+    finite = True
+    for i in range(x_next.shape[0]):
+        if not np.isfinite(x_next[i]):
+            finite = False
+    if not finite:
+        for i in range(x_next.shape[0]):
+            x_next[i] = x_nominal[i]
+    for i in range(x_next.shape[0]):
+        biggest = max(biggest, abs(x_next[i]))
+    return finite, biggest
+
+
+@njit(cache=True)
+def rollout_buffers(x0, T, m, N):  # pragma: no cover - compiled
+    """``(Xn [N, T+1, n], Un [N, T, m], alive [N])`` of ``N`` rollouts, ``Xn[:, 0] = x0``."""
+    n = x0.shape[0]
+    Xn = np.empty((N, T + 1, n))
+    for a in range(N):
+        for i in range(n):
+            Xn[a, 0, i] = x0[i]
+    return Xn, np.empty((N, T, m)), np.ones(N, dtype=np.bool_)
+
+
+@njit(cache=True)
 def rollout_policy_affine(A, B, c, x0, X, U, k, K, alphas, lower, upper, max_norm):
     """Closed-loop rollouts of an affine model for all step sizes, in one compiled call.
 
@@ -391,19 +432,12 @@ def rollout_policy_affine(A, B, c, x0, X, U, k, K, alphas, lower, upper, max_nor
     T, m = U.shape
     n = x0.shape[0]
     TA = A.shape[0]
-    N = alphas.shape[0]
-    Xn, Un, alive = np.empty((N, T + 1, n)), np.empty((N, T, m)), np.ones(N, dtype=np.bool_)
-    for a in range(N):
+    Xn, Un, alive = rollout_buffers(x0, T, m, alphas.shape[0])
+    for a in range(alphas.shape[0]):
         biggest = 0.0
-        Xn[a, 0] = x0
         for t in range(T):
             s = t if TA > 1 else 0
-            for j in range(m):  # the line-search policy
-                v = U[t, j] + alphas[a] * k[t, j]
-                for i in range(n):
-                    v += K[t, j, i] * (Xn[a, t, i] - X[t, i])
-                Un[a, t, j] = min(max(v, lower[j]), upper[j])
-            finite = True
+            policy_row(U, k, K, X, t, alphas[a], lower, upper, Xn[a, t], Un[a, t])
             for i in range(n):
                 v = c[s, i]
                 for j in range(n):
@@ -411,12 +445,8 @@ def rollout_policy_affine(A, B, c, x0, X, U, k, K, alphas, lower, upper, max_nor
                 for j in range(m):
                     v += B[s, i, j] * Un[a, t, j]
                 Xn[a, t + 1, i] = v
-                finite &= np.isfinite(v)
-            if not finite:  # dead; continue from the nominal state (never feed NaN on)
-                alive[a] = False
-                Xn[a, t + 1] = X[t + 1]
-            for i in range(n):
-                biggest = max(biggest, abs(Xn[a, t + 1, i]))
+            finite, biggest = guard_row(Xn[a, t + 1], X[t + 1], biggest)
+            alive[a] &= finite
         if not biggest <= max_norm:
             alive[a] = False
         for i in range(n):

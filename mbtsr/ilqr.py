@@ -474,10 +474,10 @@ def _trace(it, J, lam, alpha, expected, actual, grad_norm, accepted, t_it) -> di
 
 def _initial_rollout(dynamics, x0, U, t0, max_norm):
     """The open-loop rollout of ``U [T, m]`` -> ``(X [1, T+1, n], alive [1])``: through the
-    compiled closed-loop rollout with zero gains for an affine model (the same states, without
-    ``T`` calls from Python), else (and for a diverged rollout, whose states must be NaN from
-    the divergence on) :func:`_rollout`."""
-    if type(dynamics) is LinearDynamics:
+    model's compiled closed-loop rollout with zero gains when it has one (an affine model, the
+    frozen ensemble: the same states, without ``T`` calls from Python), else (and for a
+    diverged rollout, whose states must be NaN from the divergence on) :func:`_rollout`."""
+    if type(dynamics) is LinearDynamics or getattr(dynamics, "_rollout_policy", None):
         T, m = U.shape
         n = x0.shape[0]
         Xn, _, alive = _rollout_policy(dynamics, x0, np.zeros((T + 1, n)), U, np.zeros((T, m)),
@@ -496,8 +496,15 @@ def _rollout_policy(dynamics, x0, X, U, k, K, alphas, lower, upper, t0, max_norm
     A row that turns non-finite is marked dead and continues from the nominal state (so the
     model never sees NaN); rows exceeding ``max_norm`` are marked dead at the end.
     An affine model (:class:`mbtsr.dynamics.LinearDynamics`) is rolled out in one compiled call
-    (:func:`mbtsr._lqr_kernels.rollout_policy_affine`, same semantics).
+    (:func:`mbtsr._lqr_kernels.rollout_policy_affine`, same semantics); so is a model that
+    offers ``_rollout_policy(x0, X, U, k, K, alphas, lower, upper, max_norm)`` (the frozen
+    ensemble; it may return ``None`` to decline).
     """
+    kernel = getattr(dynamics, "_rollout_policy", None)  # a model's compiled rollouts
+    if kernel is not None:
+        out = kernel(x0, X, U, k, K, alphas, lower, upper, max_norm)
+        if out is not None:
+            return out
     if type(dynamics) is LinearDynamics:
         A, B, c = (
             np.ascontiguousarray(a, dtype=float)[None]

@@ -628,6 +628,7 @@ def test_frozen_model_matches_the_torch_model_and_is_immutable_float64_numpy(mem
     if frozen._plan is not None:
         arrays += [v for v in vars(frozen._plan).values()
                    if isinstance(v, np.ndarray) and v.dtype.kind == "f"]
+        assert not frozen._plan.code.flags.writeable
     assert all(isinstance(a, np.ndarray) and a.dtype == np.float64 for a in arrays)
     with pytest.raises(ValueError, match="read-only"):
         arrays[0][...] = 0.0
@@ -699,20 +700,50 @@ def test_rollout_of_the_trainable_model_simulates_one_frozen_copy():
     "members", [[MemberSpec(a, 6) for a in ACTIVATIONS], WIDE_MEMBERS, DEEP_MEMBERS],
     ids=["all-activations", "wide-padded", "deep"],
 )
-def test_folded_step_equals_the_member_mean(members):
-    """The folded numpy ensemble-mean step of the frozen model equals the mean of the members'
-    predictions to rounding, on 1 to 4 rows, also with saturated activations and strided rows."""
+def test_compiled_step_kernel_equals_the_numpy_step(members):
+    """The compiled kernel (small batches) and the numpy path (large batches) of the frozen
+    ensemble-mean step agree to rounding, also with saturated activations."""
     frozen = make_model(members, "nominal", perturb=0.5).freeze("float64")
     rng = np.random.default_rng(11)
     for B in (1, 2, 3, 4):
         for scale in (1.0, 1e3, 1e12):
             x = rng.normal(size=(B, N_STATE)) * 3 * scale
             u = rng.normal(size=(B, N_INPUT)) * scale
-            _normwise_close(frozen._step(x, u), frozen.member_predictions(x, u).mean(0), 1e-13)
+            got = frozen._step(x, u)
+            want = frozen._step_numpy(x, u)
+            _normwise_close(got, want, 1e-14)
+            _normwise_close(got, frozen.member_predictions(x, u).mean(0), 1e-13)
     x = rng.normal(size=(7, 3, N_STATE))[:, 1]  # a strided view, as in batched rollouts
     u = rng.normal(size=(7, N_INPUT))
-    _normwise_close(frozen._step(x[:3], u[:3]), frozen.member_predictions(x[:3], u[:3]).mean(0),
-                    1e-13)
+    _normwise_close(frozen._step(x[:3], u[:3]), frozen._step_numpy(x[:3], u[:3]), 1e-14)
+
+
+@pytest.mark.parametrize("members", [WIDE_MEMBERS, DEEP_MEMBERS], ids=["wide", "deep"])
+@pytest.mark.parametrize("max_norm", [1e8, 6.0])
+def test_compiled_line_search_rollouts_equal_the_python_rollouts(max_norm, members):
+    """iLQR's closed-loop rollouts through the frozen ensemble's compiled kernel equal the
+    solver's generic rollouts through ``step`` (same states, controls and dead rows)."""
+    from mbtsr.ilqr import _rollout_policy
+
+    frozen = make_model(members, "g", perturb=0.5).freeze("float64")
+
+    class StepOnly:  # the same model seen only through its step: the generic path
+        state_dim, action_dim = frozen.state_dim, frozen.action_dim
+        step = staticmethod(frozen.step)
+
+    rng = np.random.default_rng(5)
+    T = 9
+    X = rng.normal(size=(T + 1, N_STATE))
+    U, k = rng.normal(size=(T, N_INPUT)), rng.normal(size=(T, N_INPUT))
+    K = 0.3 * rng.normal(size=(T, N_INPUT, N_STATE))
+    alphas = np.array([1.0, 0.5, 0.1, 0.01])
+    lower, upper = np.array([-1.0, -np.inf]), np.array([0.5, np.inf])
+    got = _rollout_policy(frozen, X[0], X, U, k, K, alphas, lower, upper, 0, max_norm)
+    want = _rollout_policy(StepOnly(), X[0], X, U, k, K, alphas, lower, upper, 0, max_norm)
+    for g, w in zip(got, want):
+        np.testing.assert_allclose(g, w, rtol=1e-13, atol=1e-13)
+    if max_norm < 10:
+        assert not got[2].all()  # some rows were declared dead, identically
 
 
 # ------------------------------------------------------------------------------------------
@@ -901,7 +932,7 @@ def test_model_config_sizes_by_the_rule_and_keeps_the_paper_preset():
 
 
 def _default_sized(seed=0):
-    """The default-sized model (3 x 64 units here), normalized."""
+    """The default-sized model (3 x 64 units here: numpy kernels from 2 rows on), normalized."""
     model = ModelConfig().build(N_STATE, N_INPUT, seed=seed)
     model.set_normalization([random_trajectory(40, N_STATE, N_INPUT, seed)])
     return model
@@ -949,7 +980,7 @@ def test_float32_planning_kernels_match_the_float64_reference(members):
 def test_open_loop_rollout_kernel_equals_stepping_the_model(cut):
     """CEM's batched rollout kernel (float64) gives the states of stepping the same model row
     by row (``mbtsr.dynamics._rollout``), NaN from the same first state beyond ``max_norm``, and
-    the same dead rows."""
+    the same dead rows; it declines batches of the compiled step kernel."""
     from mbtsr.dynamics import _rollout
 
     frozen = _default_sized(1).freeze("float64")
@@ -970,6 +1001,7 @@ def test_open_loop_rollout_kernel_equals_stepping_the_model(cut):
     np.testing.assert_allclose(X, want_X, rtol=1e-12, atol=1e-12)
     if cut:
         assert 0 < alive.sum() < len(alive)
+    assert frozen._rollout_open_loop(x0, U[:frozen.kernel_rows], max_norm) is None
 
 
 def test_freeze_names_an_unknown_precision():

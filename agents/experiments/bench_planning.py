@@ -106,6 +106,7 @@ def kernel_rates(frozen, samples: int, horizon: int, repeats: int) -> dict:
     plan, n, m = frozen._plan, frozen.state_dim, frozen.action_dim
     K, W, L, p = plan.K, plan.W, plan.Wh.shape[0] + 1, n + m
     step_flops = 2.0 * K * (p * W + (L - 1) * W * W + W * n)
+    samples = max(samples, frozen.kernel_rows + 1)  # fewer rows run the compiled row kernel
     rng = np.random.default_rng(0)
     x0 = rng.standard_normal(n)
     U = rng.uniform(-1.0, 1.0, (samples, horizon, m))
