@@ -1,41 +1,6 @@
 """Benchmark iLQR and MPC on the two-link arm reach task, against IPOPT and crocoddyl.
 
-Measures, in one run:
-1. ms per iLQR iteration at horizons T (default 100 and 200) with (a) the true MuJoCo model
-   (``envs.mujoco_model.MujocoDynamics``: mujoco.rollout steps, mjd_transitionFD Jacobians), (b)
-   the analytic CasADi model, (c) a 4-member NN ensemble (``--ensemble PATH`` or a randomly
-   initialised ``DynamicsEnsemble``, frozen for planning), with the time per phase (Jacobians,
-   cost derivatives, backward pass, forward pass, line-search costs);
-2. on the analytic model (the one IPOPT uses): iterations to converge, final cost / IPOPT's cost,
-   wall time / IPOPT's wall time, for the default tolerances and for ``tol_fun_rel = 1e-4`` and
-   ``1e-3``, and the time until iLQR's cost is within 1 % of IPOPT's;
-3. peers: crocoddyl's ``SolverBoxFDDP`` side by side (``agents.experiments.peers_crocoddyl``) on a
-   box-LQ problem (n=4, m=2, T=200) and the friction-free arm reach (pinocchio model from the
-   project's MJCF): ms per iteration, iterations and time to converge, final costs (both
-   evaluated with the same mbtsr cost). Without the optional extra
-   (``pip install -c constraints.txt -e ".[peers]"``) it prints
-   "crocoddyl: skipped (not installed)" and runs the rest;
-4. the MPC real-time factor (control period 0.02 s / compute time per MPC step) at the agent's
-   default horizon and iterations (``AgentConfig.planner``) for the ensemble, the analytic model
-   and the
-   true MuJoCo arm (MuJoCo steps with the analytic twin's exact Jacobians, and with MuJoCo's own
-   finite-difference Jacobians for reference), and the final reach error;
-5. the cold (first-ever) compile time of the numba backward pass, in a fresh process with an
-   empty cache;
-6. the true-model MPC of every benchmark-suite task (``scripts/bench_suite.py``'s oracle: the
-   task's cost and termination on :class:`envs.mujoco_model.MujocoDynamics`): ms per MPC step
-   of the default planner (cem-ilqr) and of iLQR alone, warm-started, and the cold start
-   (wall and this process's CPU time); with ``--true-model-returns ilqr`` also that planner's
-   return on the suite's evaluation episodes (the oracle of ``bench_suite.task_baselines`` with that
-   planner), so that speed and strength are measured together. ``--true-model-variants``
-   adds named planner settings (horizon, samples, iterations), each timed and scored the same
-   way. ``--true-model-only`` runs just this section.
-
-Targets (issue 13) are listed in the JSON with a pass flag each. Numbers are noisy on a shared
-machine: every timing is the best of ``--repeats`` runs and the load average is recorded; the
-ratios are measured side by side in the same run.
-
-Usage: ``python -m agents.experiments.bench_ilqr --out runs/bench_ilqr.json``
+What it measures and how to run it: docs/experiments.md, section ``bench_ilqr``.
 """
 
 from __future__ import annotations

@@ -1,57 +1,7 @@
 """Benchmark suite: the agent on standard MuJoCo tasks and the project's arm, measured against
 doing nothing, the true-model oracle, SB3 SAC and PETS, at equal env steps.
 
-Every task is a reusable :class:`agents.tasks.Task` of :data:`agents.tasks.SUITE` (its env, a
-cost written from the observation and action, its termination, the suite's budget in env steps). One
-evaluation protocol for every method: 3 fixed episodes reset with seeds 1000, 1001, 1002 (the
-arm also draws its targets from them), the score is the mean of the env's own summed rewards.
-
-=========================  ==============================================  ============
-task                       what makes it hard                              budget
-=========================  ==============================================  ============
-arm-far                    targets across the workspace (0.85 pi)          800 steps
-arm-open-loop              each plan runs open loop for 10 steps           800 steps
-reacher                    Reacher-v5, goal in the observation             2,000 steps
-inverted-pendulum          InvertedPendulum-v5 (200-step episodes)         2,000 steps
-inverted-double-pendulum   InvertedDoublePendulum-v5, unstable, falls      5,000 steps
-pusher                     Pusher-v5, contacts decide (PETS' manipulation) 3,000 steps
-half-cheetah               HalfCheetah-v5, locomotion (PETS', MBPO's)      10,000 steps
-=========================  ==============================================  ============
-
-Per task, computed once and stored (``--baselines``, :data:`BASELINES_JSON`): the return of the
-zero action and of the true-model oracle (the agent's own MPC on the TRUE MuJoCo dynamics, the
-agent's default planner, :meth:`agents.jacprop_agent.JacPropAgent.compute_oracle`) with its
-planning milliseconds per step. From them:
-
-* **solved** (fixed before any run): mean evaluation return within 5 % of the oracle's,
-  ``R >= R_oracle - 0.05 |R_oracle|`` (the arm: cost <= 1.05 x the oracle's);
-* **normalized score** ``(R - R_zero) / (R_oracle - R_zero)``: 0 is doing nothing, 1 the oracle.
-
-Reference methods, run by their own commands into their own JSON files and read by the report:
-SB3 SAC for a fixed 100,000 env steps, evaluated 20 times on the same episodes (``--sb3 sac``,
-:func:`run_sb3`), and PETS itself (mbrl-lib, ``scripts/pets_peer.py``, its own venv). Runs are
-scheduled seed-major, each finished run is appended to the JSON at once (``--resume`` skips
-finished runs)::
-
-    python scripts/bench_suite.py --baselines --report-only --out docs/results/bench_suite.json
-    python scripts/bench_suite.py --out docs/results/bench_suite.json --resume
-    python scripts/bench_suite.py --sb3 sac --seeds 0 --out docs/results/bench_suite.json
-    python scripts/bench_suite.py --report-only --out docs/results/bench_suite.json \\
-        --figures docs/figures --docs docs/benchmark.md
-    python scripts/bench_suite.py --smoke --out runs/bench_suite_smoke.json   # CI, ~1 min
-
-Other agent settings run into their own JSON (``--agent-settings '{"training.patience": 20}'
---out runs/p20.json``); ``--report-only --compare runs/p20.json --figures F`` pairs them seed by
-seed with the suite's runs (``--out``) and draws both curves (a top-level ``"label"`` in the
-compared JSON names runs that differ by code rather than by settings).
-
-A HalfCheetah run takes about 35 CPU minutes: ``--checkpoints runs/suite_ckpt`` checkpoints every
-run after each episode so that a killed run continues where it stopped (bit-identical to an
-uninterrupted one), and ``--stop-after-steps N`` works through long runs in sessions of N env
-steps each, rounded up to whole episodes (add ``--resume``)::
-
-    python scripts/bench_suite.py --tasks half-cheetah --resume --checkpoints runs/suite_ckpt \\
-        --stop-after-steps 3000 --out docs/results/bench_suite.json
+What it measures and how to run it: docs/experiments.md, section ``bench_suite``.
 """
 
 from __future__ import annotations

@@ -1,19 +1,7 @@
 """Regime sweep of the robot Jacobian claim: where does sampled Jacobian propagation lower the
 two-link arm's Jacobian error, and why not elsewhere?
 
-Grid (issue 16): training trajectories {1, 3, 10} x epochs {1000, 5000} x excitation window
-{short (10 taps), paper (100 taps)} x Coulomb friction {on, off}; methods none / sampled
-JacProp on every cell, and on the label cells (default: paper window, friction on, 3 trajectories,
-both epoch counts) the exact LTV-matching penalty and two label variants:
-``oracle`` (the perturbed copies labelled with the TRUE Jacobians, an upper bound of what
-sampled JacProp can give) and ``prior`` (LTV labels fused with the network as a prior after
-half the epochs, the original's ``useprior``). Every method of a cell takes the same number of
-optimizer steps (full-batch steps, one per epoch, perturbed copies in the same batch).
-
-Diagnostics per run: the Jacobian error split into moving points and points with a joint
-speed below ``still_speed`` (stiction), and into position and velocity rows; the labels'
-Jacobian error at the training points against the network's own error there, logged during
-training (:func:`paper_common.run_regime`).
+What it measures and how to run it: docs/experiments.md, section ``exp_regime``.
 """
 
 from __future__ import annotations
