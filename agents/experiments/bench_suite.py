@@ -490,8 +490,6 @@ def comparisons(runs: list[dict[str, Any]]) -> list[dict[str, Any]]:
                 # has no final score: the final-score columns pair the seeds that have both
                 scored = [(x, y) for x, y in zip(R, N)
                           if None not in (x["final_score"], y["final_score"])]
-                better = sum(x["final_score"] > y["final_score"] for x, y in scored)
-                worse = sum(x["final_score"] < y["final_score"] for x, y in scored)
                 wall = [float(np.median([r["wall_seconds_per_phase"]["total"] for r in rs]))
                         for rs in (R, N)]
                 out.append({
@@ -504,8 +502,8 @@ def comparisons(runs: list[dict[str, Any]]) -> list[dict[str, Any]]:
                         "-" if not scored else _fmt(float(np.median([p[i]["final_score"]
                                                                      for p in scored])))
                         for i in (0, 1)),
-                    "final_scores_better_equal_worse": (
-                        f"{better}/{len(scored) - better - worse}/{worse}"),
+                    "final_scores_better_equal_worse": _better_equal_worse(
+                        [(y["final_score"], x["final_score"]) for x, y in scored]),
                     "wall_ratio": wall[0] / wall[1],
                 })
     return out
@@ -531,6 +529,12 @@ def paired_runs(base: list[dict[str, Any]], variant: list[dict[str, Any]]
     return out
 
 
+def _better_equal_worse(pairs: list[tuple[float, float]]) -> str:
+    """``"b/e/w"``: how many ``(base, other)`` pairs have ``other`` above, equal to, below."""
+    better, worse = sum(o > b for b, o in pairs), sum(o < b for b, o in pairs)
+    return f"{better}/{len(pairs) - better - worse}/{worse}"
+
+
 def _median_or_none(vals: list[float | None]) -> float | None:
     vals = [v for v in vals if v is not None]
     return float(np.median(vals)) if vals else None
@@ -547,8 +551,6 @@ def settings_comparison(base: list[dict[str, Any]], variant: list[dict[str, Any]
     out = []
     for k, pairs in paired_runs(base, variant).items():
         finals = [[p[i]["final_score"] for p in pairs] for i in (0, 1)]
-        better = sum(v > b for b, v in zip(*finals))
-        worse = sum(v < b for b, v in zip(*finals))
         out.append({
             "task": k[0], "planner": k[1], "regularization": k[2],
             "seeds": [p[0]["seed"] for p in pairs],
@@ -556,7 +558,7 @@ def settings_comparison(base: list[dict[str, Any]], variant: list[dict[str, Any]
             "normalized_median": [med([normalized(v, baselines.get(k[0])) for v in f])
                                   for f in finals],
             "finals": finals,
-            "better_equal_worse": f"{better}/{len(pairs) - better - worse}/{worse}",
+            "better_equal_worse": _better_equal_worse(list(zip(*finals))),
             "seconds": (kind := "cpu_seconds" if all(
                 r.get("cpu_seconds") for p in pairs for r in p) else "wall_seconds"),
             "seconds_median": [med([r[kind] for r in rs]) for rs in zip(*pairs)],
@@ -1068,15 +1070,10 @@ class Args:
     runs of these settings (use another --out)"""
 
     def __post_init__(self) -> None:
-        unknown = sorted(set(self.tasks) - set(TASKS))
-        if unknown or not self.tasks:
-            raise ValueError(f"--tasks must name some of {list(TASKS)}, got {list(self.tasks)}")
-        bad = sorted(set(self.sb3) - set(SB3_METHODS))
-        if bad:
-            raise ValueError(f"--sb3 must name some of {list(SB3_METHODS)}, got {list(self.sb3)}")
-        for name, given, known in (("planners", self.planners, PLANNERS),
+        for name, given, known in (("tasks", self.tasks, TASKS), ("sb3", self.sb3, SB3_METHODS),
+                                   ("planners", self.planners, PLANNERS),
                                    ("regularizations", self.regularizations, REGULARIZATIONS)):
-            if not given or set(given) - set(known):
+            if (not given and name != "sb3") or set(given) - set(known):
                 raise ValueError(f"--{name} must name some of {list(known)}, got {list(given)}")
         if self.agent_settings:
             if self.report_only or self.sb3:
