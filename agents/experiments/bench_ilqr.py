@@ -280,15 +280,12 @@ def check_true_model_variants(args: Args) -> None:
 
 
 def true_model_planning(args: Args) -> dict:
-    """Section 6: ms per MPC step on the TRUE model of every benchmark-suite task (the oracle of
-    ``scripts/bench_suite.py``: the task's cost, termination and planner settings, evaluation
-    episode 1000) for each planner variant (:func:`_true_model_variants`; by default the agent's
-    planner cem-ilqr and iLQR alone): the cold start (the first plan of an episode) and the
-    median of ``true_model_steps`` warm-started steps; for the variants named in
-    ``true_model_returns`` (and every ``true_model_variants`` entry) also the return on the
-    suite's evaluation episodes, so that speed and strength are measured together. The timed
-    controller is the scored one (:meth:`JacPropAgent.oracle_policy`); with ``replan_every > 1``
-    most steps only replay the plan, so ``cpu_ms_per_step_mean`` is the cost per step there."""
+    """Section 6 (docs/experiments.md, ``bench_ilqr``): ms per MPC step on the TRUE model of every
+    benchmark-suite task for each planner variant (:func:`_true_model_variants`), cold and warm,
+    and the return where ``true_model_returns`` asks for it (the timing episode resets with seed
+    1000). The timed controller is the scored
+    one (:meth:`JacPropAgent.oracle_policy`); with ``replan_every > 1`` most steps only replay
+    the plan, so ``cpu_ms_per_step_mean`` is the cost per step there."""
     from agents.experiments import bench_suite
     from mbtsr.episode import as_policy
 

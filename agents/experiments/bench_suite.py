@@ -676,8 +676,7 @@ def reference_rows(state: dict[str, Any], baselines: dict[str, dict[str, Any]],
     (>= 10: the target; a SAC run that never reaches it is a lower bound) and over the agent's
     own steps to that return (the lower-median seed's first evaluation at or above it: with
     the median final as the return, at least that seed reaches it; ``None`` if it never does),
-    and the agent vs
-    PETS at equal env steps with the wall-time ratio."""
+    and the agent vs PETS at equal env steps with the wall-time ratio."""
     rows = []
     table = state.get("table", [])
     for name in TASKS:
