@@ -1,29 +1,7 @@
 """Build the virtual environment of the PETS peer (mbrl-lib 0.2.0) from the registry.
 
-mbrl's pins clash with this project's (hydra-core 1.0.3, which fails to import on Python 3.11,
-and gymnasium 0.26.3, which has no ``*-v5`` MuJoCo envs), so PETS runs in a venv of its own,
-outside git (``.venv-pets/`` by default)::
-
-    python scripts/setup_pets_venv.py              # build or complete .venv-pets/
-    python scripts/setup_pets_venv.py --check      # only verify it (exit 1 if broken)
-
-Steps (each skipped when already satisfied, so the script is idempotent):
-
-1. ``python -m venv .venv-pets``;
-2. ``torch==2.13.0`` FIRST: pip takes this machine's CPU wheel (mbrl's metadata does not list
-   torch; a plain ``torch`` requirement would pull a multi-GB CUDA build);
-3. ``mbrl==0.2.0`` with ``--no-deps``, then the runtime dependencies its PETS code imports
-   (termcolor, tqdm, imageio, matplotlib, tensorboard): its ``jupyter``, ``pytest`` and
-   ``sk-video`` requirements serve notebooks, its tests and video export, none of which the
-   peer uses;
-4. workaround 1: ``hydra-core`` 1.3 / ``omegaconf`` 2.3 instead of the pinned hydra-core 1.0.3
-   (whose ``hydra/conf/__init__.py`` has mutable dataclass defaults that Python 3.11 rejects);
-   mbrl's ``hydra.utils.instantiate`` calls work unchanged with 1.3;
-5. workaround 2: ``gymnasium==1.4.0`` and ``mujoco==4.0.0`` (the project's versions) instead of
-   the pinned gymnasium 0.26.3;
-6. ``casadi==3.8.2`` and numpy for the suite's task definitions (:mod:`agents.tasks`);
-7. a check inside the venv: mbrl's PETS components import, hydra instantiates mbrl's CEM
-   optimizer, and ``Reacher-v5`` steps.
+Why a venv of its own, what it installs and which pins it works around: docs/pets_peer.md,
+"Setting up and running". Idempotent; ``--check`` only verifies the venv (exit 1 if broken).
 """
 
 from __future__ import annotations

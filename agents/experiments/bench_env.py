@@ -1,14 +1,6 @@
 """Benchmark the two-link arm env: wrapper overhead and Jacobian cost.
 
-Measures, in one process on the same compiled model:
-1. env steps/s through ``gymnasium.make("mbtsr/TwoLinkArm-v0")`` (all default wrappers),
-2. raw MuJoCo steps/s per CONTROL step: a Python loop of ``mj_step(m, d, nstep=frame_skip)``
-   (and, for reference, a loop of single ``mj_step`` calls),
-3. their ratio (target: env <= 3x the raw loop per control step),
-4. ``linearize`` calls/s, ``linearize_trajectory`` over T=100, the CasADi twin's mapped
-   Jacobians over T=100, and the raw ``mjd_transitionFD`` call cost.
-
-Usage: ``python scripts/bench_env.py --out runs/bench_env.json`` (``--help``: the options).
+What it measures and how to run it: docs/experiments.md, section ``bench_env``.
 """
 
 from __future__ import annotations

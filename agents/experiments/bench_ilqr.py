@@ -1,41 +1,6 @@
 """Benchmark iLQR and MPC on the two-link arm reach task, against IPOPT and crocoddyl.
 
-Measures, in one run:
-1. ms per iLQR iteration at horizons T (default 100 and 200) with (a) the true MuJoCo model
-   (``envs.mujoco_model.MujocoDynamics``: mujoco.rollout steps, mjd_transitionFD Jacobians), (b)
-   the analytic CasADi model, (c) a 4-member NN ensemble (``--ensemble PATH`` or a randomly
-   initialised ``DynamicsEnsemble``, frozen for planning), with the time per phase (Jacobians,
-   cost derivatives, backward pass, forward pass, line-search costs);
-2. on the analytic model (the one IPOPT uses): iterations to converge, final cost / IPOPT's cost,
-   wall time / IPOPT's wall time, for the default tolerances and for ``tol_fun_rel = 1e-4`` and
-   ``1e-3``, and the time until iLQR's cost is within 1 % of IPOPT's;
-3. peers: crocoddyl's ``SolverBoxFDDP`` side by side (``agents.experiments.peers_crocoddyl``) on a
-   box-LQ problem (n=4, m=2, T=200) and the friction-free arm reach (pinocchio model from the
-   project's MJCF): ms per iteration, iterations and time to converge, final costs (both
-   evaluated with the same mbtsr cost). Without the optional extra
-   (``pip install -c constraints.txt -e ".[peers]"``) it prints
-   "crocoddyl: skipped (not installed)" and runs the rest;
-4. the MPC real-time factor (control period 0.02 s / compute time per MPC step) at the agent's
-   default horizon and iterations (``AgentConfig.planner``) for the ensemble, the analytic model
-   and the
-   true MuJoCo arm (MuJoCo steps with the analytic twin's exact Jacobians, and with MuJoCo's own
-   finite-difference Jacobians for reference), and the final reach error;
-5. the cold (first-ever) compile time of the numba backward pass, in a fresh process with an
-   empty cache;
-6. the true-model MPC of every benchmark-suite task (``scripts/bench_suite.py``'s oracle: the
-   task's cost and termination on :class:`envs.mujoco_model.MujocoDynamics`): ms per MPC step
-   of the default planner (cem-ilqr) and of iLQR alone, warm-started, and the cold start
-   (wall and this process's CPU time); with ``--true-model-returns ilqr`` also that planner's
-   return on the suite's evaluation episodes (the oracle of ``bench_suite.task_baselines`` with that
-   planner), so that speed and strength are measured together. ``--true-model-variants``
-   adds named planner settings (horizon, samples, iterations), each timed and scored the same
-   way. ``--true-model-only`` runs just this section.
-
-Targets (issue 13) are listed in the JSON with a pass flag each. Numbers are noisy on a shared
-machine: every timing is the best of ``--repeats`` runs and the load average is recorded; the
-ratios are measured side by side in the same run.
-
-Usage: ``python -m agents.experiments.bench_ilqr --out runs/bench_ilqr.json``
+What it measures and how to run it: docs/experiments.md, section ``bench_ilqr``.
 """
 
 from __future__ import annotations
@@ -315,15 +280,12 @@ def check_true_model_variants(args: Args) -> None:
 
 
 def true_model_planning(args: Args) -> dict:
-    """Section 6: ms per MPC step on the TRUE model of every benchmark-suite task (the oracle of
-    ``scripts/bench_suite.py``: the task's cost, termination and planner settings, evaluation
-    episode 1000) for each planner variant (:func:`_true_model_variants`; by default the agent's
-    planner cem-ilqr and iLQR alone): the cold start (the first plan of an episode) and the
-    median of ``true_model_steps`` warm-started steps; for the variants named in
-    ``true_model_returns`` (and every ``true_model_variants`` entry) also the return on the
-    suite's evaluation episodes, so that speed and strength are measured together. The timed
-    controller is the scored one (:meth:`JacPropAgent.oracle_policy`); with ``replan_every > 1``
-    most steps only replay the plan, so ``cpu_ms_per_step_mean`` is the cost per step there."""
+    """Section 6 (docs/experiments.md, ``bench_ilqr``): ms per MPC step on the TRUE model of every
+    benchmark-suite task for each planner variant (:func:`_true_model_variants`), cold and warm,
+    and the return where ``true_model_returns`` asks for it (the timed episode resets with seed
+    1000). The timed controller is the scored one (:meth:`JacPropAgent.oracle_policy`); with
+    ``replan_every > 1`` most steps only replay the plan, so ``cpu_ms_per_step_mean`` is the
+    cost per step there."""
     from agents.experiments import bench_suite
     from mbtsr.episode import as_policy
 

@@ -1,16 +1,6 @@
 """Benchmark of LTV identification (issue 3).
 
-For (n, m) in {(4, 2), (10, 10)} and T in {200, 1000, 5000}: the time of ``fit_ltv`` (banded
-Cholesky, covariances included) against a generic scipy solve of the same quadratic problem
-(the original's row-major parameter vector k_t = vec([A_t B_t]^T), the sparse least-squares
-matrix [I kron phi_t^T ; lam D kron I] assembled with scipy.sparse and its normal equations
-solved by ``scipy.sparse.linalg.spsolve``), their ratio, the agreement of the two solutions, and
-the fitted scaling exponent of the fit time in T. Then the TV solver's time and iterations at
-T = 1000 on a system with one jump, and ``select_lambda`` at T = 1000.
-
-Targets: T = 1000, n = 4, m = 2 in <= 10 ms; exponent <= 1.15; >= 5x faster than generic.
-
-    python scripts/bench_ltv.py --out runs/bench_ltv.json   # --help: the options
+What it measures and how to run it: docs/experiments.md, section ``bench_ltv``.
 """
 
 from __future__ import annotations

@@ -1,46 +1,6 @@
 """Model sizing and training measurements on standard MuJoCo tasks (issue 21, items 1-2).
 
-Data: open-loop excitation of a suite task's env (``agents.tasks``), the model state being the
-observation (the agent's custom-env path): alternating episodes of i.i.d. uniform actions over
-the action box ("random") and a low-pass filtered Gaussian (the agent's excitation, window 8, half
-the half-range, "smooth"), ``n_train`` training transitions and ``n_test`` held-out transitions
-from other episodes (other reset seeds).
-
-Four studies (``--study``; ``plot`` draws ``docs/figures/model_sizes.png`` from the sizes
-JSONs):
-
-* ``sizes``: ensembles of 4 members of several sizes (``LxW`` = L hidden layers of W units, swish;
-  ``paper`` = the paper's 4 x 1 x 20 with elu/sigmoid/tanh/swish) trained at fixed gradient-step
-  budgets (minibatches of ``batch``, Adam ``lr``, no regularizer, no early stopping, shared
-  minibatches), the held-out one-step error recorded every ``eval_every`` steps, and the wall and
-  CPU time per gradient step; plus the frozen planning model's cost at each size on the task's
-  dimensions (ensemble-mean step of 200 rows, Jacobians at 30 points).
-* ``training``: at one size, the training designs side by side on the same data and budget:
-  the whole budget, hold-out + early stopping per member or on the ensemble mean, members with
-  their own data order or bootstrap, probabilistic members;
-* ``scaling``: the wall time of one ``train_ensemble`` call with the agent's default training
-  (a step budget, hold-out, early stopping off so that every call takes the whole budget) and
-  sampled Jacobian propagation, on the first 250, 1000 and ``n_train`` transitions, the sizes
-  interleaved over 3 repetitions (medians): an update's cost against the data size;
-* ``agent``: the agent itself (``JacPropAgent`` with its defaults and the task's cost, plus
-  ``--agent-overrides``) for ``episodes`` episodes on one torch thread: the wall seconds of every
-  update (``time_training``: normalization refit, training, freeze) and of the other phases,
-  the update time at episode 20 over that at episode 5 (medians of episodes 4-6 and 19-21), the
-  run's total, and its evaluation returns.
-
-Errors on the held-out transitions, of the ensemble mean:
-
-* ``nrmse``: ``sqrt(mean over points and moving dimensions of (error_d / std_d)^2)`` with
-  ``std_d`` the std of the one-step change ``x+ - x`` of dimension ``d`` in the training data
-  (dimensions that never change, such as a goal position, are left out): 1 is the error of
-  predicting the mean change; ``nrmse_median_dim``: the median over dimensions of that RMSE per
-  dimension (a few dimensions the excitation hardly moves, as Pusher's object, dominate the
-  mean);
-* ``rel_step``: ``sqrt(sum ||error||^2 / sum ||x+ - x||^2)`` in raw units (the issue's "error
-  relative to the true step").
-
-    python scripts/bench_model_sizes.py --task reacher --out runs/sizes_reacher.json
-    python scripts/bench_model_sizes.py --task pusher --study training --size 3x200 --out ...
+What it measures and how to run it: docs/experiments.md, section ``bench_model_sizes``.
 """
 
 from __future__ import annotations

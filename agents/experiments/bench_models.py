@@ -1,26 +1,6 @@
 """Benchmark of the neural dynamics ensembles and their training (issue 4).
 
-All in one run, on data of the paper's two-link robot (the original code's dynamics with
-m = 0.2, l = 1, viscous friction 2, Coulomb friction 0.1 tanh(100 v), g = 1.82, a physically
-consistent mass matrix, RK4 at dt = 0.02 s with zero-order-hold torques that are a causal
-100-tap moving average of 10 N(0, 1), start [-0.4, 0, 0, 0], measurement noise 0.01):
-
-1. ms per epoch of full-batch training on 1000 transitions for K = 1, 4, 8 members, batched
-   (``train_ensemble``, one step per epoch) and as K separate torch modules in a Python loop
-   (same data, loss and Adam);
-2. ms for the Jacobians of 4 members at 1000 points (float64 numpy path, ensemble mean and per
-   member; and the differentiable torch path), plus ``step``/``jacobians`` at iLQR sizes;
-3. ms per epoch of the nominal setting (3 trajectories x 200, one step per trajectory) without
-   regularization, with sampled Jacobian propagation, the exact penalty and the smoothness
-   penalty, and their ratios to no regularization (LTV models fitted once, outside the timing);
-4. seconds to train the paper's nominal robot model: 4 x 20 ensemble, 3 trajectories x 200,
-   2000 epochs, sampled Jacobian propagation (the whole ``train_ensemble`` call, LTV fits
-   included), with its Jacobian error on a held-out trajectory.
-
-Targets: batched K = 4 epoch <= 1.5 x the K = 1 epoch; batched K = 8 >= 2 x faster than the
-loop; nominal robot training <= 10 s on 2 cores.
-
-    python scripts/bench_models.py --out runs/bench_models.json
+What it measures and how to run it: docs/experiments.md, section ``bench_models``.
 """
 
 from __future__ import annotations

@@ -1,30 +1,6 @@
 """Planning at the control rate (issue 45): the default planner on the default learned model.
 
-Per benchmark-suite task (``scripts/bench_suite.py``'s :data:`~agents.experiments.bench_suite.
-TASKS`, their planner settings): the agent's default-sized ensemble (``mbtsr.ensemble.
-default_size``; random weights with the normalization of excitation data from the task's env,
-since planning time does not depend on what the weights learned) frozen for planning
-(``freeze()``, float32 planning kernels), and the agent's default controller
-(``JacPropAgent.predict``: cem-ilqr, horizon and iterations of ``AgentConfig.planner``) driving
-the real env from ``reset(seed)`` for ``steps`` warm MPC steps. Reported per task:
-
-* ms per MPC step, wall and this process's CPU time, median and p95 over the warm steps (each
-  episode's cold first step apart: ``cold_start_s``, their median), and the median as a
-  fraction of the env's control period ``dt`` (with ``replan_every > 1`` most steps replay
-  the plan);
-* the returns of those episodes (seeds ``seed, seed + 1, ...``; the last one cut at ``steps``;
-  same seeds, same model: a fingerprint that a speed change kept the planner's decisions);
-* the planning kernels' arithmetic rate in their precision: CEM's batched open-loop rollouts
-  (``proposal.samples`` sequences over the horizon) and iLQR's Jacobians along the horizon,
-  GFLOP/s from counted multiply-adds, against this core's matmul peak measured in the same run
-  (a 1024 x 1024 product, one thread).
-
-The machine's load is recorded; on a shared machine the wall time is the CPU time stretched by
-the other processes, so compare the CPU figures between runs.
-
-Usage: ``python -m agents.experiments.bench_planning --out
-docs/results/bench_ilqr/planning_rate.json --figure docs/figures/planning_rate.png``
-(``--smoke``: seconds).
+What it measures and how to run it: docs/experiments.md, section ``bench_planning``.
 """
 
 from __future__ import annotations

@@ -1,57 +1,7 @@
 """Benchmark suite: the agent on standard MuJoCo tasks and the project's arm, measured against
 doing nothing, the true-model oracle, SB3 SAC and PETS, at equal env steps.
 
-Every task is a reusable :class:`agents.tasks.Task` of :data:`agents.tasks.SUITE` (its env, a
-cost written from the observation and action, its termination, the suite's budget in env steps). One
-evaluation protocol for every method: 3 fixed episodes reset with seeds 1000, 1001, 1002 (the
-arm also draws its targets from them), the score is the mean of the env's own summed rewards.
-
-=========================  ==============================================  ============
-task                       what makes it hard                              budget
-=========================  ==============================================  ============
-arm-far                    targets across the workspace (0.85 pi)          800 steps
-arm-open-loop              each plan runs open loop for 10 steps           800 steps
-reacher                    Reacher-v5, goal in the observation             2,000 steps
-inverted-pendulum          InvertedPendulum-v5 (200-step episodes)         2,000 steps
-inverted-double-pendulum   InvertedDoublePendulum-v5, unstable, falls      5,000 steps
-pusher                     Pusher-v5, contacts decide (PETS' manipulation) 3,000 steps
-half-cheetah               HalfCheetah-v5, locomotion (PETS', MBPO's)      10,000 steps
-=========================  ==============================================  ============
-
-Per task, computed once and stored (``--baselines``, :data:`BASELINES_JSON`): the return of the
-zero action and of the true-model oracle (the agent's own MPC on the TRUE MuJoCo dynamics, the
-agent's default planner, :meth:`agents.jacprop_agent.JacPropAgent.compute_oracle`) with its
-planning milliseconds per step. From them:
-
-* **solved** (fixed before any run): mean evaluation return within 5 % of the oracle's,
-  ``R >= R_oracle - 0.05 |R_oracle|`` (the arm: cost <= 1.05 x the oracle's);
-* **normalized score** ``(R - R_zero) / (R_oracle - R_zero)``: 0 is doing nothing, 1 the oracle.
-
-Reference methods, run by their own commands into their own JSON files and read by the report:
-SB3 SAC for a fixed 100,000 env steps, evaluated 20 times on the same episodes (``--sb3 sac``,
-:func:`run_sb3`), and PETS itself (mbrl-lib, ``scripts/pets_peer.py``, its own venv). Runs are
-scheduled seed-major, each finished run is appended to the JSON at once (``--resume`` skips
-finished runs)::
-
-    python scripts/bench_suite.py --baselines --report-only --out docs/results/bench_suite.json
-    python scripts/bench_suite.py --out docs/results/bench_suite.json --resume
-    python scripts/bench_suite.py --sb3 sac --seeds 0 --out docs/results/bench_suite.json
-    python scripts/bench_suite.py --report-only --out docs/results/bench_suite.json \\
-        --figures docs/figures --docs docs/benchmark.md
-    python scripts/bench_suite.py --smoke --out runs/bench_suite_smoke.json   # CI, ~1 min
-
-Other agent settings run into their own JSON (``--agent-settings '{"training.patience": 20}'
---out runs/p20.json``); ``--report-only --compare runs/p20.json --figures F`` pairs them seed by
-seed with the suite's runs (``--out``) and draws both curves (a top-level ``"label"`` in the
-compared JSON names runs that differ by code rather than by settings).
-
-A HalfCheetah run takes about 35 CPU minutes: ``--checkpoints runs/suite_ckpt`` checkpoints every
-run after each episode so that a killed run continues where it stopped (bit-identical to an
-uninterrupted one), and ``--stop-after-steps N`` works through long runs in sessions of N env
-steps each, rounded up to whole episodes (add ``--resume``)::
-
-    python scripts/bench_suite.py --tasks half-cheetah --resume --checkpoints runs/suite_ckpt \\
-        --stop-after-steps 3000 --out docs/results/bench_suite.json
+What it measures and how to run it: docs/experiments.md, section ``bench_suite``.
 """
 
 from __future__ import annotations
@@ -540,8 +490,6 @@ def comparisons(runs: list[dict[str, Any]]) -> list[dict[str, Any]]:
                 # has no final score: the final-score columns pair the seeds that have both
                 scored = [(x, y) for x, y in zip(R, N)
                           if None not in (x["final_score"], y["final_score"])]
-                better = sum(x["final_score"] > y["final_score"] for x, y in scored)
-                worse = sum(x["final_score"] < y["final_score"] for x, y in scored)
                 wall = [float(np.median([r["wall_seconds_per_phase"]["total"] for r in rs]))
                         for rs in (R, N)]
                 out.append({
@@ -554,8 +502,8 @@ def comparisons(runs: list[dict[str, Any]]) -> list[dict[str, Any]]:
                         "-" if not scored else _fmt(float(np.median([p[i]["final_score"]
                                                                      for p in scored])))
                         for i in (0, 1)),
-                    "final_scores_better_equal_worse": (
-                        f"{better}/{len(scored) - better - worse}/{worse}"),
+                    "final_scores_better_equal_worse": _better_equal_worse(
+                        [(y["final_score"], x["final_score"]) for x, y in scored]),
                     "wall_ratio": wall[0] / wall[1],
                 })
     return out
@@ -581,6 +529,12 @@ def paired_runs(base: list[dict[str, Any]], variant: list[dict[str, Any]]
     return out
 
 
+def _better_equal_worse(pairs: list[tuple[float, float]]) -> str:
+    """``"b/e/w"``: how many ``(base, other)`` pairs have ``other`` above, equal to, below."""
+    better, worse = sum(o > b for b, o in pairs), sum(o < b for b, o in pairs)
+    return f"{better}/{len(pairs) - better - worse}/{worse}"
+
+
 def _median_or_none(vals: list[float | None]) -> float | None:
     vals = [v for v in vals if v is not None]
     return float(np.median(vals)) if vals else None
@@ -597,8 +551,6 @@ def settings_comparison(base: list[dict[str, Any]], variant: list[dict[str, Any]
     out = []
     for k, pairs in paired_runs(base, variant).items():
         finals = [[p[i]["final_score"] for p in pairs] for i in (0, 1)]
-        better = sum(v > b for b, v in zip(*finals))
-        worse = sum(v < b for b, v in zip(*finals))
         out.append({
             "task": k[0], "planner": k[1], "regularization": k[2],
             "seeds": [p[0]["seed"] for p in pairs],
@@ -606,7 +558,7 @@ def settings_comparison(base: list[dict[str, Any]], variant: list[dict[str, Any]
             "normalized_median": [med([normalized(v, baselines.get(k[0])) for v in f])
                                   for f in finals],
             "finals": finals,
-            "better_equal_worse": f"{better}/{len(pairs) - better - worse}/{worse}",
+            "better_equal_worse": _better_equal_worse(list(zip(*finals))),
             "seconds": (kind := "cpu_seconds" if all(
                 r.get("cpu_seconds") for p in pairs for r in p) else "wall_seconds"),
             "seconds_median": [med([r[kind] for r in rs]) for rs in zip(*pairs)],
@@ -724,8 +676,7 @@ def reference_rows(state: dict[str, Any], baselines: dict[str, dict[str, Any]],
     (>= 10: the target; a SAC run that never reaches it is a lower bound) and over the agent's
     own steps to that return (the lower-median seed's first evaluation at or above it: with
     the median final as the return, at least that seed reaches it; ``None`` if it never does),
-    and the agent vs
-    PETS at equal env steps with the wall-time ratio."""
+    and the agent vs PETS at equal env steps with the wall-time ratio."""
     rows = []
     table = state.get("table", [])
     for name in TASKS:
@@ -1118,15 +1069,10 @@ class Args:
     runs of these settings (use another --out)"""
 
     def __post_init__(self) -> None:
-        unknown = sorted(set(self.tasks) - set(TASKS))
-        if unknown or not self.tasks:
-            raise ValueError(f"--tasks must name some of {list(TASKS)}, got {list(self.tasks)}")
-        bad = sorted(set(self.sb3) - set(SB3_METHODS))
-        if bad:
-            raise ValueError(f"--sb3 must name some of {list(SB3_METHODS)}, got {list(self.sb3)}")
-        for name, given, known in (("planners", self.planners, PLANNERS),
+        for name, given, known in (("tasks", self.tasks, TASKS), ("sb3", self.sb3, SB3_METHODS),
+                                   ("planners", self.planners, PLANNERS),
                                    ("regularizations", self.regularizations, REGULARIZATIONS)):
-            if not given or set(given) - set(known):
+            if (not given and name != "sb3") or set(given) - set(known):
                 raise ValueError(f"--{name} must name some of {list(known)}, got {list(given)}")
         if self.agent_settings:
             if self.report_only or self.sb3:

@@ -1,13 +1,6 @@
 """Collect excitation data from the two-link arm and plot it.
 
-Drives ``mbtsr/TwoLinkArm-v0`` open loop with the paper's low-pass filtered Gaussian input (or a
-multisine), rejects trajectories that leave ``|q| < 0.9 pi`` as the original code did, and writes
-to ``--out``: ``trajectories.npz`` (:func:`mbtsr.trajectory.load_trajectories` reads it),
-``config.json`` (the resolved arguments and per-trajectory seeds/targets), ``excitation.png``
-(states and inputs over time) and ``arm.png`` (rendered frames of the first trajectory).
-
-    python scripts/collect_excitation.py                       # defaults: 5 x 200 steps
-    python scripts/collect_excitation.py --preset paper --n-traj 10 --out runs/paper_data
+What it measures and how to run it: docs/experiments.md, section ``collect_excitation``.
 """
 
 from __future__ import annotations

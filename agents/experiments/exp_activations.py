@@ -1,15 +1,6 @@
 """Comparison of activation functions (paper appendix A, Fig. "activations").
 
-Distribution over Monte-Carlo runs of the log one-step prediction error on validation data after
-20, 500 and 1500 epochs, for single networks with elu, sigmoid, tanh, swish, relu and leaky relu
-(20 units, one hidden layer, formulation g, no regularization) on the robot task of
-``exp_robot.py``. The paper does not state the task or formulation of this comparison; the robot
-with g (the nominal model) is our choice. The six networks of one run are trained as one
-batched 6-member ensemble: they share no weights and Adam is per-parameter, so this is the same
-as training them one by one on the same batches, only faster. The paper used 200 runs.
-
-The paper's claim: relu and leaky relu are worse suited for the task (hence left out of the
-nominal ensemble).
+What it measures and how to run it: docs/experiments.md, section ``exp_activations``.
 """
 
 from __future__ import annotations

@@ -1,10 +1,6 @@
 """Recompute the evidence of every claim row of docs/RESULTS.md from the per-run JSON alone.
 
-For each comparison: the median and quartiles of both methods over all seeds, the median and
-quartiles of the per-seed paired difference (or ratio), and wins/total (seeds where the first
-method is lower). No training; reads ``docs/results/<experiment>/runs/*.json``.
-
-    python scripts/exp_claims.py    # writes docs/results/claims.json and claims.md (or to --out)
+What it measures and how to run it: docs/experiments.md, section ``exp_claims``.
 """
 
 from __future__ import annotations

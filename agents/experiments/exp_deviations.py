@@ -1,19 +1,7 @@
 """Deviations from the nominal model (paper appendix B): for each deviation, the direction of
 change of prediction, simulation and Jacobian error against the nominal model, for f and g.
 
-Nominal: the robot task of ``exp_robot.py`` and the paper's ensemble (4 x 20 units, one hidden
-layer, elu/sigmoid/tanh/swish) trained with sampled Jacobian propagation (1 perturbed copy,
-sigma 0.1; epochs: 500 for g, 1000 for f, half the paper's nominal as the paper does with
-JacProp). Deviations (one at a time): sampling 5x slower (dt 0.1 s) and 5x faster (0.004 s) --
-the same 4-s experiments and input signals sampled at another rate; neurons x2 (40) and x0.5
-(10); one more hidden layer; dropout 20 %; layer normalization; measurement noise x10 (0.1
-instead of 0.01 on the training states); ensemble size x3 (12 members); 5 perturbed copies
-instead of 1. Runs with the same seed share data and initial-weight seed, so differences are
-paired; a direction is reported when a two-sided Wilcoxon signed-rank test on the paired
-differences gives p < 0.05, otherwise "~" (no significant change).
-
-Errors at another sample rate are per step of another length, so for the sample-rate rows
-the meaningful comparison is f against g at that rate (the paper's claims), also reported.
+What it measures and how to run it: docs/experiments.md, section ``exp_deviations``.
 """
 
 from __future__ import annotations

@@ -1,14 +1,7 @@
 """Random stable linear systems: learned Jacobian eigenvalues and errors without and with
 tangent-space regularization (paper Sec. V-B, Algorithm 2, Fig. "jacpropeig").
 
-Each Monte-Carlo run draws a new 10x10 system (Algorithm 2) and its data (original code
-section 4), then trains the paper's nominal g-ensemble (4 x 20 units, elu/sigmoid/tanh/swish)
-the way the original README experiment did: 3 training rounds, one new trajectory per round,
-200 epochs per round, warm-started. Methods: no regularization, sampled Jacobian propagation
-(the paper's), exact matching of the model Jacobian to the LTV Jacobian, and the exact
-smoothness penalty of paper eq. (reg). Two extra configs reinstate the original code's data bug
-(last state of every training trajectory left at 0) to test whether it explains the original's
-Jacobian errors (RMS per entry after round 3: ~0.074 without, ~0.041 with sampled JacProp).
+What it measures and how to run it: docs/experiments.md, section ``exp_linear``.
 """
 
 from __future__ import annotations

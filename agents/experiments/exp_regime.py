@@ -1,19 +1,7 @@
 """Regime sweep of the robot Jacobian claim: where does sampled Jacobian propagation lower the
 two-link arm's Jacobian error, and why not elsewhere?
 
-Grid (issue 16): training trajectories {1, 3, 10} x epochs {1000, 5000} x excitation window
-{short (10 taps), paper (100 taps)} x Coulomb friction {on, off}; methods none / sampled
-JacProp on every cell, and on the label cells (default: paper window, friction on, 3 trajectories,
-both epoch counts) the exact LTV-matching penalty and two label variants:
-``oracle`` (the perturbed copies labelled with the TRUE Jacobians, an upper bound of what
-sampled JacProp can give) and ``prior`` (LTV labels fused with the network as a prior after
-half the epochs, the original's ``useprior``). Every method of a cell takes the same number of
-optimizer steps (full-batch steps, one per epoch, perturbed copies in the same batch).
-
-Diagnostics per run: the Jacobian error split into moving points and points with a joint
-speed below ``still_speed`` (stiction), and into position and velocity rows; the labels'
-Jacobian error at the training points against the network's own error there, logged during
-training (:func:`paper_common.run_regime`).
+What it measures and how to run it: docs/experiments.md, section ``exp_regime``.
 """
 
 from __future__ import annotations
@@ -133,19 +121,21 @@ def make_configs(args: Args) -> dict[str, dict[str, dict]]:
 # report
 
 
+def _cell_of(record: dict) -> tuple:
+    """A run's cell: ``(window, friction, n_train, epochs)``."""
+    c = record["config"]
+    return c["data"]["window"], c["data"]["friction"], c["n_train"], c["epochs"]
+
+
 def _cells(records: list[dict]) -> list[tuple]:
-    keys = {(r["config"]["data"]["window"], r["config"]["data"]["friction"],
-             r["config"]["n_train"], r["config"]["epochs"]) for r in records}
-    return sorted(keys, key=lambda k: (k[0] != "short", not k[1], k[2], k[3]))
+    return sorted({_cell_of(r) for r in records},
+                  key=lambda k: (k[0] != "short", not k[1], k[2], k[3]))
 
 
 def _by_seed(records: list[dict], method: str, cell: tuple, key: str) -> dict[int, float]:
-    w, f, n, e = cell
     out = {}
     for r in records:
-        c = r["config"]
-        if (c["method"] == method and c["data"]["window"] == w and c["data"]["friction"] == f
-                and c["n_train"] == n and c["epochs"] == e):
+        if r["config"]["method"] == method and _cell_of(r) == cell:
             v = r["result"].get(key)
             if v is not None:
                 out[r["seed"]] = float(v)
@@ -208,9 +198,7 @@ def variants_map(ax, records, protocol: list[dict]) -> None:
 
 
 def _cell_records(records: list[dict], cell: tuple) -> list[dict]:
-    w, f, n, e = cell
-    return [r for r in records if (r["config"]["data"]["window"], r["config"]["data"]["friction"],
-                                   r["config"]["n_train"], r["config"]["epochs"]) == cell]
+    return [r for r in records if _cell_of(r) == cell]
 
 
 def regime_map(ax, records, method: str, title: str) -> None:
@@ -255,9 +243,7 @@ def diagnostics_figure(records: list[dict], path: Path) -> None:
         for j, rows in enumerate(("pos", "vel")):
             for method, style in (("none", "-"), ("sampled", ":")):
                 logs = [r["result"]["net_train_jac"] for r in records
-                        if r["config"]["method"] == method and (
-                            r["config"]["data"]["window"], r["config"]["data"]["friction"],
-                            r["config"]["n_train"], r["config"]["epochs"]) == cell]
+                        if r["config"]["method"] == method and _cell_of(r) == cell]
                 if logs:
                     ep = logs[0]["epoch"]
                     med = np.median(np.array([lg[rows] for lg in logs]), 0)
@@ -324,11 +310,8 @@ def _final_train_err(records: list[dict], cell: tuple, rows: str,
                      method: str = "none") -> float | None:
     """Median over seeds of the network's own Jacobian error at the training points at the
     end of training (``rows``: "pos" or "vel")."""
-    w, f, n, e = cell
     v = [r["result"]["net_train_jac"][rows][-1] for r in records
-         if r["config"]["method"] == method and r["config"]["data"]["window"] == w
-         and r["config"]["data"]["friction"] == f and r["config"]["n_train"] == n
-         and r["config"]["epochs"] == e]
+         if r["config"]["method"] == method and _cell_of(r) == cell]
     return float(np.median(v)) if v else None
 
 

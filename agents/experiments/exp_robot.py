@@ -1,16 +1,7 @@
 """The two-link robot: prediction, simulation and Jacobian errors without and with
 tangent-space regularization (paper Sec. V-C, Figs. "valerr" and "jacerr").
 
-Each Monte-Carlo run collects 3 training trajectories (4 s, dt 0.02 s, low-pass filtered
-Gaussian torques, measurement noise 0.01) from ``mbtsr/TwoLinkArm-v0`` with the paper preset,
-trains the paper's nominal g-ensemble (4 x 20 units, elu/sigmoid/tanh/swish; 1000 epochs, 500
-with sampled JacProp as the paper says) with each method, and evaluates on noise-free
-validation trajectories: one-step prediction RMS, simulation RMS from the known initial state
-(3 trajectories; divergence counted), and the paper's Jacobian error eq. (jacerr) of the
-ensemble-mean Jacobian against the simulator's exact Jacobian (MuJoCo finite differences of one
-env step). Methods: none, sampled Jacobian propagation (the paper's), the exact LTV-matching
-penalty and the exact smoothness penalty of eq. (reg) (weight 0.01 as the original's two-link
-"AD" script). The paper used 35 Monte-Carlo runs.
+What it measures and how to run it: docs/experiments.md, section ``exp_robot``.
 """
 
 from __future__ import annotations

@@ -6,8 +6,7 @@ one-step error relative to the true step (``rel_step``) and the Jacobian error a
 MuJoCo model on the observation manifold's tangent space (``jac_rel``). Data, model, training,
 metrics and aggregates: docs/small_data.md, "What was run".
 
-    OMP_NUM_THREADS=1 python scripts/exp_small_data.py
-    python scripts/exp_small_data.py --smoke
+What it measures and how to run it: docs/experiments.md, section ``exp_small_data``.
 """
 
 from __future__ import annotations

@@ -1,15 +1,7 @@
 """Weight decay and the f / g formulations on random stable linear systems (paper Sec. IV and
 Fig. "wd": rows without/with weight decay, columns f/g, all with sampled Jacobian propagation).
 
-The claim checked: L2 weight decay pulls the eigenvalues of the learned state Jacobian toward 0
-for f (x+ = NN(x, u); harmful, the true eigenvalues sit near the unit circle close to 1) and
-toward 1 for g (x+ = x + NN(x, u); harmless or helpful). Data and training follow the original
-README weight-decay study (original_implementation.md section 4): the system and data of
-``exp_linear.py``, 3 rounds x 200 epochs, sampled JacProp, weight decay 0 and 0.1 (coupled L2 on
-the weight matrices, as the original's ADAM ``expdecay``); 0.01 is added as an intermediate
-strength. Note that here the networks see standardized inputs and outputs (the original did
-not), so the decay acts on normalized weights: it pulls the Jacobian toward the skip part, 0 for
-f and I for g, in either case.
+What it measures and how to run it: docs/experiments.md, section ``exp_weight_decay``.
 """
 
 from __future__ import annotations

@@ -1,20 +1,6 @@
 """Plug a dynamics model into iLQR: plan a reach on the two-link arm and run it in the env.
 
-The model is any object with the ``DynamicsModel`` protocol:
-
-- ``--model true``: the MuJoCo arm itself (``env.dynamics_model()``, finite-difference Jacobians);
-- ``--model analytic``: the analytic CasADi twin (``env.analytic_model()``);
-- ``--model ltv``: an LTV model fitted (``mbtsr.ltv.fit_ltv``) on excitation rollouts that start
-  at the same state (valid only near those rollouts: a local, time-indexed model);
-- ``--model PATH``: a saved NN ensemble (``mbtsr.ensemble.load_model``).
-
-Steps: (1) plan ``T`` steps with iLQR on the model from the episode's start state; (2) run the
-plan in the env open loop, and (3) with the plan's feedback gains ``u = U_t + K_t (x - X_t)``;
-(4) run receding-horizon MPC on the model in the env. It prints a summary (episode costs =
-``-sum(rewards)`` of the env) and saves ``ilqr_with_model_<model>.png`` (planned vs executed joint
-angles, speeds, actions and cumulative costs) and a JSON summary into ``--out``.
-
-Usage: ``python scripts/ilqr_with_model.py --model true --seed 0 --out runs/ilqr``
+What it measures and how to run it: docs/experiments.md, section ``ilqr_with_model``.
 """
 
 from __future__ import annotations

@@ -1,12 +1,6 @@
 """SAC trained inside the learned model (``agents.model_env.ModelEnv``), evaluated in the real env.
 
-1. ``JacPropAgent`` learns an ensemble from ``model_episodes`` real episodes (the first
-   ``n_excitation_episodes`` excitation, then its own MPC);
-2. SB3 SAC trains for ``sac_steps`` steps inside ``ModelEnv.from_agent(agent)`` (no real steps);
-3. the SAC policy, a uniformly random policy and SAC trained in the real env (for the real steps
-   the model used, and for ``sac_steps`` real steps) are evaluated on the same real episodes.
-
-Usage: ``python scripts/model_env_sac.py --help``.
+What it measures and how to run it: docs/experiments.md, section ``model_env_sac``.
 """
 
 from __future__ import annotations

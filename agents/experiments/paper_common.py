@@ -1,17 +1,6 @@
 """Shared code of the paper experiments (``agents.experiments.exp_*``, run by ``scripts/exp_*.py``).
 
-Bagge Carlson, Johansson and Robertsson, "Tangent-Space Regularization for Neural-Network Models
-of Dynamical Systems" (arXiv:1806.09919). Every experiment script reads top to bottom:
-
-1. parse a dataclass of arguments from the command line (:func:`parse_args`);
-2. run the Monte-Carlo sweep through :func:`mbtsr.runner.run_sweep` (one JSON per run, resumable);
-3. a separate report step that reads the per-run JSON only and redraws figures and a summary
-   (``--report-only`` repeats just this step).
-
-This module holds what the scripts share: the command-line plumbing, data generation for the
-random linear systems (paper Algorithm 2, original code section 4) and for the two-link robot,
-the nominal model and training settings (paper Sec. "Nominal model"), the metric bundle, and the
-plotting helpers.
+How the experiment scripts are laid out: docs/experiments.md, section ``paper_common``.
 """
 
 from __future__ import annotations

@@ -1,26 +1,6 @@
 """Crocoddyl twins of the iLQR benchmark problems (optional extra: ``pip install -e ".[peers]"``).
 
-Two problems, each built once for mbtsr and once for crocoddyl's ``SolverBoxFDDP`` so that both
-solvers minimise the same function under the same dynamics and box limits:
-
-1. :func:`box_lq_problem`: a box-constrained linear-quadratic problem, ``n = 4``, ``m = 2``,
-   ``T = 200`` (two coupled, lightly damped oscillators, exact zero-order-hold discretisation,
-   controls saturating at the start). Crocoddyl: ``ActionModelLQR`` with ``u_lb, u_ub``.
-2. :func:`arm_reach_problem`: the two-link arm's reach task WITHOUT friction (joint damping and
-   Coulomb friction 0), one semi-implicit Euler step of ``dt = 0.02`` s per control step (frame
-   skip 1: crocoddyl's ``IntegratedActionModelEuler`` holds the control over one Euler step).
-   mbtsr plans on the analytic CasADi twin with these settings; crocoddyl on a pinocchio model
-   built from the project's MJCF (``pin.buildModelFromMJCF(envs/assets/two_link_arm.xml)``: the
-   same masses, inertias, armature; ABA agrees with the twin's dynamics to round-off, checked in
-   :func:`check_pinocchio_matches_twin`; crocoddyl's forward dynamics ignores pinocchio's
-   ``armature`` and takes its own, so it is moved there). Control: crocoddyl's is the torque
-   ``tau`` bounded by ``+-torque_limit``, mbtsr's the normalized action ``tau / torque_limit``
-   in ``[-1, 1]``; the cost weights are converted so that the costs are equal.
-
-Costs. mbtsr: ``sum_t (x_t - g)^T Q (x_t - g) + u_t^T R u_t + (x_T - g)^T Qf (x_T - g)``.
-Crocoddyl's residual costs are ``0.5 r^T W r`` (and, for integrated models, times ``dt``), so
-``W = 2 Q / dt`` etc. Every reported final cost is the mbtsr cost of the returned controls rolled
-out through the same model, so the two numbers are directly comparable.
+What it measures and how to run it: docs/experiments.md, section ``peers_crocoddyl``.
 """
 
 from __future__ import annotations

@@ -1,23 +1,7 @@
 """PETS as a peer: mbrl-lib's own PETS (probabilistic ensemble + CEM with trajectory sampling) on
 the benchmark suite's tasks, costs and evaluation episodes.
 
-mbrl 0.2.0's pins clash with this project's, so the runs happen in a venv of their own
-(``python scripts/setup_pets_venv.py`` builds ``.venv-pets/``); this module imports only the
-standard library, numpy and :mod:`agents.tasks` (casadi) at the top, so the report
-(:func:`report`) runs in the project's main environment and the driver (:func:`run_task`) inside
-the PETS venv; the command re-executes itself there when mbrl is not importable::
-
-    python -m agents.experiments.pets_peer --tasks reacher --seeds 0 1 2 --resume
-    python -m agents.experiments.pets_peer --report-only   # figures + table from the JSON
-    python -m agents.experiments.pets_peer --smoke          # CI size: one short Reacher run
-
-What is mbrl's (model, trainer, model env, CEM agent, replay buffer) and what is ours (the
-reward from the task's CasADi cost, the termination rule, the loop, the suite's evaluation
-protocol, the JSON): docs/pets_peer.md, "What runs".
-
-Per-task settings follow mbrl's published PETS overrides (``exp/pets`` with ``pets_reacher``,
-``pets_pusher``, ``pets_inv_pendulum``, ``pets_halfcheetah``); every change, and every shrink of
-the CEM to fit a 2-core CPU, is recorded in the record's ``settings``.
+What it measures and how to run it: docs/experiments.md, section ``pets_peer``.
 """
 
 from __future__ import annotations

@@ -1,29 +1,6 @@
 """Train the Algorithm-1 agent (JacProp model learning + iLQR MPC) on the two-link arm.
 
-The project's main job (Bagge Carlson et al., "Tangent-Space Regularization for Neural-Network
-Models of Dynamical Systems", arXiv:1806.09919, Algorithm 1 in an episodic loop)::
-
-    python scripts/train_agent.py                       # embedded defaults, mbtsr/TwoLinkArm-v0
-    python scripts/train_agent.py --seed 3 --regularization exact --out bench.json
-    python scripts/train_agent.py --regularization none --model.hidden-width 32 --planner.kind cem
-    python scripts/train_agent.py --run-dir runs/x --resume   # continue a killed run exactly
-    python scripts/train_agent.py --config runs/x/config.json # rerun run x (a new folder)
-    python scripts/train_agent.py --config arm.yaml --seed 3  # a file, flags on top
-
-Every field of the :class:`agents.config.AgentConfig` tree is a flag named by its dotted path
-(``--training.steps 200``, ``--model.formulation f``, ``--regularization.sigma 0.2``,
-``--evaluation.every 2``, ``--seed 3``, ``--no-tensorboard`` ...; ``--help`` lists them with
-their documentation). ``--regularization NAME`` picks the regularizer by name (its default weight,
-or the ``--regularization.<name>-weight`` given). ``--resume`` takes the configuration saved in
-the checkpoint; flags given with it must agree. ``--config PATH`` starts from a file: a run's
-``config.json`` (its agent and script settings: the same run again, in a new folder) or a YAML or
-JSON file of AgentConfig fields written by hand (changes to these defaults, see
-:meth:`agents.config.AgentConfig.from_dict`); the flags given with it apply on top.
-The run folder receives ``config.json``, ``episodes.csv``, ``checkpoint.pt`` (resume),
-``model.pt`` (the learned ensemble, :func:`mbtsr.ensemble.load_model`), ``data.npz`` (all
-trajectories), ``tb/`` (TensorBoard), ``learning_curve.png``, ``final_reach.png`` and
-``summary.json``. ``--out PATH`` writes the benchmark numbers: episodes_to_solve,
-env_steps_to_solve, the final cost ratio to the oracle and the wall seconds per phase.
+What it measures and how to run it: docs/experiments.md, section ``train_agent``.
 """
 
 from __future__ import annotations
