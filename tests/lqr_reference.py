@@ -13,6 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.linalg import lapack
 
+from mbtsr.dynamics import LinearDynamics
 from mbtsr.ilqr import ILQROptions
 
 
@@ -234,3 +235,19 @@ def _box_qp(H, g, lower, upper, x0, opts: ILQROptions):
     grad = g + H @ x
     clamped = ((x <= lower) & (grad > 0)) | ((x >= upper) & (grad < 0))
     return x, ~clamped, True
+
+
+class NaNOffNominal:
+    """A linear model that returns NaN as soon as any control differs from 0."""
+
+    def __init__(self, A, B):
+        self.lin = LinearDynamics(A, B)
+        self.state_dim, self.action_dim = B.shape
+
+    def step(self, x, u, t=None):
+        out = self.lin.step(x, u)
+        out[np.any(u != 0, axis=-1)] = np.nan
+        return out
+
+    def jacobians(self, x, u, t=0):
+        return self.lin.jacobians(x, u)

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
-from lqr_reference import _active_set_guess, _box_qp
+from lqr_reference import NaNOffNominal, _active_set_guess, _box_qp
 from scipy.optimize import lsq_linear
 
 from mbtsr.costs import CasadiCost, quadratic_cost
@@ -383,22 +383,6 @@ def test_pendulum_matches_ipopt(theta_goal):
 
 
 # ---------------------------------------------------------------------- failure handling
-class NaNOffNominal:
-    """A linear model that returns NaN as soon as any control differs from 0."""
-
-    def __init__(self, A, B):
-        self.lin = LinearDynamics(A, B)
-        self.state_dim, self.action_dim = B.shape
-
-    def step(self, x, u, t=None):
-        out = self.lin.step(x, u)
-        out[np.any(u != 0, axis=-1)] = np.nan
-        return out
-
-    def jacobians(self, x, u, t=0):
-        return self.lin.jacobians(x, u)
-
-
 class Exploding(NaNOffNominal):
     """Returns astronomically large (then overflowing) states for non-zero controls."""
 

@@ -9,6 +9,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
+from lqr_reference import NaNOffNominal
 
 from mbtsr.cem import cem
 from mbtsr.costs import quadratic_cost, truncated_total
@@ -111,21 +112,9 @@ def test_ilqr_reports_a_plan_no_step_improves_under_the_episode_cost_as_converge
         assert res.X.max() <= 3.0 and np.isfinite(res.cost)
 
     # but a plan whose every step diverges (a model that is NaN off it) still fails
-    class NaNOffZero:
-        state_dim = action_dim = 1
-        lin = LinearDynamics(np.eye(1), np.eye(1))
-
-        def step(self, x, u, t=None):
-            out = self.lin.step(x, u)
-            out[np.any(u != 0, axis=-1)] = np.nan
-            return out
-
-        def jacobians(self, x, u, t=0):
-            return self.lin.jacobians(x, u)
-
     cost = quadratic_cost(np.eye(1), 0.01 * np.eye(1), np.array([5.0]), Qf=np.eye(1))
-    res = ilqr(cost, NaNOffZero(), np.zeros(1), np.zeros((10, 1)), u_min=-1, u_max=1,
-               terminated=lambda X: X[..., 0] > 3.0)
+    res = ilqr(cost, NaNOffNominal(np.eye(1), np.eye(1)), np.zeros(1), np.zeros((10, 1)),
+               u_min=-1, u_max=1, terminated=lambda X: X[..., 0] > 3.0)
     assert res.status == "failed" and "lambda_max" in res.message
 
 

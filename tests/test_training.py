@@ -57,6 +57,18 @@ def small_model(n=3, m=2, seed=0, **kw):
     members = kw.pop("members", (MemberSpec("tanh", 8), MemberSpec("elu", 6, 2)))
     return DynamicsEnsemble(EnsembleConfig(n, m, members=members, seed=seed, **kw))
 
+def two_trajectory_problem():
+    """``(n, m, trajs, ltv, model)``: two noisy 30-step trajectories of a 3 x 2 stable linear
+    system, their LTV fits and a small model normalized on them."""
+    n, m = 3, 2
+    A, B = random_stable_system(n, m, 0.1, seed=1)
+    trajs = [linear_trajectory(A, B, 30, seed=s, noise=0.05) for s in (0, 1)]
+    ltv = [fit_ltv(tr, 3.0) for tr in trajs]
+    model = small_model(n, m)
+    model.set_normalization(trajs)
+    return n, m, trajs, ltv, model
+
+
 
 # ------------------------------------------------------------------------------------------
 # the paper's claim on a random stable linear system
@@ -126,12 +138,7 @@ def test_recorded_losses_and_penalties_match_independent_computation(batch):
     """One optimizer step with a negligible step size, so every recorded term is the value at the
     initial weights; recomputed from the float64 predictions and Jacobians. Two trajectories:
     the smoothness pairs must not cross the trajectory boundary."""
-    n, m = 3, 2
-    A, B = random_stable_system(n, m, 0.1, seed=1)
-    trajs = [linear_trajectory(A, B, 30, seed=s, noise=0.05) for s in (0, 1)]
-    ltv = [fit_ltv(tr, 3.0) for tr in trajs]
-    model = small_model(n, m)
-    model.set_normalization(trajs)
+    n, m, trajs, ltv, model = two_trajectory_problem()
     reg = RegularizationConfig(sampled_weight=1.0, sigma=0.3, n_copies=2, exact_weight=0.5,
                                smooth_weight=2.0)
     cfg = TrainConfig(epochs=1, lr=1e-12, batch="trajectory" if batch == "trajectory" else 60,
@@ -513,12 +520,7 @@ def test_step_budget_recorded_terms_match_independent_computation():
     exact and smoothness penalties are the values at the initial weights, recomputed from the
     float64 predictions and Jacobians (pairs never cross the trajectory boundary; a penalty of
     a minibatch is scaled to the mean terms per trajectory)."""
-    n, m = 3, 2
-    A, B = random_stable_system(n, m, 0.1, seed=1)
-    trajs = [linear_trajectory(A, B, 30, seed=s, noise=0.05) for s in (0, 1)]
-    ltv = [fit_ltv(tr, 3.0) for tr in trajs]
-    model = small_model(n, m)
-    model.set_normalization(trajs)
+    n, m, trajs, ltv, model = two_trajectory_problem()
     data = np.mean([normalized_sq_error(model, tr.x[:-1], tr.u, tr.x[1:]) for tr in trajs])
     J = [np.concatenate(model.member_jacobians(tr.x[:-1], tr.u), -1) for tr in trajs]
     J_ltv = [np.concatenate([lm.A, lm.B], -1) for lm in ltv]
