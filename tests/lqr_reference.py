@@ -238,15 +238,20 @@ def _box_qp(H, g, lower, upper, x0, opts: ILQROptions):
 
 
 class NaNOffNominal:
-    """A linear model that returns NaN as soon as any control differs from 0."""
+    """A linear model that returns NaN as soon as any control differs from 0, or, with
+    ``beyond``, wherever the next state's largest ``|x_i|`` exceeds it."""
 
-    def __init__(self, A, B):
+    def __init__(self, A, B, beyond: float | None = None):
         self.lin = LinearDynamics(A, B)
         self.state_dim, self.action_dim = B.shape
+        self.beyond = beyond
 
     def step(self, x, u, t=None):
         out = self.lin.step(x, u)
-        out[np.any(u != 0, axis=-1)] = np.nan
+        if self.beyond is None:
+            out[np.any(u != 0, axis=-1)] = np.nan
+        else:
+            out[np.abs(out).max(axis=-1) > self.beyond] = np.nan
         return out
 
     def jacobians(self, x, u, t=0):

@@ -530,25 +530,12 @@ def test_a_model_or_cost_that_turns_nan_mid_solve_ends_failed_with_the_best_fini
     """The model returns NaN once the state leaves a ball; the cost turns NaN beyond another.
     The solve never returns a NaN control, and its cost is that of the returned iterate."""
     A, B = _stable_system(10)
-    lin = LinearDynamics(A, B)
-
-    class NaNOutside:
-        state_dim, action_dim = N_X, N_U
-
-        def step(self, x, u, t=None):
-            out = lin.step(x, u)
-            out[np.abs(out).max(axis=-1) > 2.0] = np.nan
-            return out
-
-        def jacobians(self, x, u, t=0):
-            return lin.jacobians(x, u)
-
     x, u = ca.SX.sym("x", N_X), ca.SX.sym("u", N_U)
     nan_cost = CasadiCost.from_expressions(
         x, u, ca.sumsqr(x - 3.0) + ca.sumsqr(u) + ca.sqrt(1.95 - x[0]), ca.sumsqr(x - 3.0)
     )
     for cost in (quadratic_cost(np.eye(N_X), 0.01 * np.eye(N_U), np.full(N_X, 3.0)), nan_cost):
-        res = ilqr(cost, NaNOutside(), np.ones(N_X), np.zeros((10, N_U)), u_min=-2, u_max=2,
+        res = ilqr(cost, NaNOffNominal(A, B, beyond=2.0), np.ones(N_X), np.zeros((10, N_U)), u_min=-2, u_max=2,
                    options={"max_iter": 40})
         assert np.isfinite(res.U).all() and np.all(np.abs(res.U) <= 2.0)
         assert np.isfinite(res.X).all()

@@ -7,6 +7,7 @@ from __future__ import annotations
 import gymnasium as gym
 import numpy as np
 import pytest
+from lqr_reference import NaNOffNominal
 
 import envs  # noqa: F401  (registers the envs)
 from mbtsr.costs import quadratic_cost
@@ -255,19 +256,8 @@ def test_a_model_that_turns_nan_gives_finite_actions_inside_the_box():
     A, B = _system()
     lin = LinearDynamics(A, B)
 
-    class NaNAway:
-        state_dim, action_dim = N_X, N_U
-
-        def step(self, x, u, t=None):
-            out = lin.step(x, u)
-            out[np.abs(out).max(axis=-1) > 0.8] = np.nan
-            return out
-
-        def jacobians(self, x, u, t=0):
-            return lin.jacobians(x, u)
-
     cost = quadratic_cost(np.eye(N_X), 0.01 * np.eye(N_U), np.full(N_X, 2.0))
-    mpc = MPC(ilqr, cost, NaNAway(), 8, u_min=-1.0, u_max=1.0)
+    mpc = MPC(ilqr, cost, NaNOffNominal(A, B, beyond=0.8), 8, u_min=-1.0, u_max=1.0)
     x = np.full(N_X, 0.5)
     for t in range(6):
         a = mpc.act(x, t)
