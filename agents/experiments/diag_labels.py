@@ -235,7 +235,7 @@ def run(args: Args) -> dict[str, Any]:
             rows.append(row)
             write_json_atomic(args.out, result)
 
-        agent.learn(total_env_steps=args.env_steps, callback=record, progress_bar=False)
+        agent.learn(total_timesteps=args.env_steps, callback=record, progress_bar=False)
         replay.close()
         agent.env.close()
     result["summary"] = summarize(result["runs"])
