@@ -49,14 +49,16 @@ class Callbacks:
         self.locals: dict[str, Any] = {}
         self.stopped = False  # an SB3 callback's on_step returned False
 
-    def start(self, agent: Any) -> None:
-        """``init_callback`` and ``on_training_start`` of the SB3 callbacks."""
+    def start(self, agent: Any, total_timesteps: int | None) -> None:
+        """``init_callback`` and ``on_training_start`` of the SB3 callbacks (``locals`` with
+        the agent as ``self`` and this call's ``total_timesteps``)."""
         if self.sb3_list is not None:
-            self.locals = {"self": agent, "total_timesteps": None}
+            self.locals = {"self": agent, "total_timesteps": total_timesteps}
             self.sb3_list.init_callback(agent)
             self.sb3_list.on_training_start(self.locals, {})
 
     def rollout_start(self, episode: int) -> None:
+        """``on_rollout_start`` before episode ``episode``'s rollout."""
         if self.sb3_list is not None:
             self.sb3_list.update_locals({"episode": episode})
             self.sb3_list.on_rollout_start()
@@ -94,5 +96,6 @@ class Callbacks:
         return go
 
     def end(self) -> None:
+        """``on_training_end``."""
         if self.sb3_list is not None:
             self.sb3_list.on_training_end()

@@ -272,7 +272,7 @@ class JacPropAgent(SB3Predictor):
         bar = _progress_bar(episodes, total_timesteps,
                             self.config.progress if progress_bar is None else progress_bar)
         start_steps, t0 = self.env_steps, time.perf_counter()
-        callbacks.start(self)
+        callbacks.start(self, total_timesteps)
         try:
             done = 0
             while (episodes is None or done < episodes) and (
