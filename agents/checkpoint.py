@@ -114,6 +114,7 @@ def agent_payload(agent: Any) -> dict[str, Any]:
     fns = user_functions(agent)
     task["functions"] = sorted(k for k, f in fns.items() if f is not None)
     task["registry"] = registry_task(agent.env_id, fns)
+    task["env_id"] = agent.env_id
     ev = agent.evaluator
     return {
         "agent_config": json.dumps(agent.config.to_dict()),

@@ -425,6 +425,7 @@ class JacPropAgent(SB3Predictor):
                 "was built with"
             )
         restore_agent(agent, payload)
+        agent.env_id = agent.env_id or task.get("env_id")  # an act-only agent keeps its task's
         return agent
 
     # ------------------------------------------------------------------ one episode

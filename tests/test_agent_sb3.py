@@ -134,6 +134,8 @@ def test_load_restores_a_registered_tasks_functions_by_itself(tmp_path):
         assert loaded.cost_fn is task.cost_fn
         obs = np.array([0.0, 0.05, 0.0, -0.1])
         np.testing.assert_array_equal(loaded.predict(obs)[0], agent.predict(obs)[0])
+    resaved = JacPropAgent.load(JacPropAgent.load(path).save(tmp_path / "b.pt"))  # env-less
+    assert resaved.termination_fn is task.termination_fn
     loaded.learn(5, progress_bar=False)
     assert loaded.env_steps == agent.env_steps + 5
 
