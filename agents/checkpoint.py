@@ -111,6 +111,10 @@ def agent_payload(agent: Any) -> dict[str, Any]:
         task["cost"] = agent.cost_fn.to_dict()
     if agent.state_map.serializable:
         task["state_map"] = agent.state_map.to_dict()
+    fns = user_functions(agent)
+    task["functions"] = sorted(k for k, f in fns.items() if f is not None)
+    task["registry"] = registry_task(agent.env_id, fns)
+    task["env_id"] = agent.env_id
     ev = agent.evaluator
     return {
         "agent_config": json.dumps(agent.config.to_dict()),
@@ -160,20 +164,55 @@ def restore_agent(agent: Any, p: dict[str, Any]) -> None:
     ev.oracle_costs = None if p["oracle_costs"] is None else p["oracle_costs"].numpy()
 
 
+FUNCTION_NAMES = ("cost_fn", "terminal_cost_fn", "termination_fn", "state_fn", "obs_fn")
+
+
+def user_functions(agent: Any) -> dict[str, Any]:
+    """The agent's task functions that a checkpoint cannot hold (``None`` for those it does
+    not have or that are saved as data: the env's quadratic cost, a prefix state map)."""
+    from agents.tasks import QuadraticTargetCost
+
+    custom_map = not agent.state_map.serializable
+    return {
+        "cost_fn": None if isinstance(agent.cost_fn, QuadraticTargetCost) else agent.cost_fn,
+        "terminal_cost_fn": agent.terminal_cost_fn,
+        "termination_fn": agent.termination_fn,
+        "state_fn": agent.state_map._state_fn if custom_map else None,
+        "obs_fn": agent.state_map._obs_fn if custom_map else None,
+    }
+
+
+def registry_task(env_id: str | None, fns: dict[str, Any]) -> str | None:
+    """The name of the :data:`agents.tasks.TASKS` task on ``env_id`` whose functions are
+    exactly ``fns`` (the same objects; ``None`` where the task has none), else ``None``."""
+    from agents.tasks import TASKS
+
+    for name, make in TASKS.items():
+        task = make()
+        kwargs = task.agent_kwargs()
+        if task.env_id == env_id and all(fns[k] is kwargs[k] for k in FUNCTION_NAMES):
+            return name
+    return None
+
+
 def check_resumable(
-    payload: dict[str, Any], path: str | os.PathLike, config: Any, env: Any, *,
-    cost_fn: Any = None, state_fn: Any = None,
-) -> tuple[Any, dict[str, Any]]:
-    """Check that a loaded checkpoint can be restored with the given env and task functions.
+    payload: dict[str, Any], path: str | os.PathLike, config: Any, env: Any,
+    fns: dict[str, Any],
+) -> tuple[Any, dict[str, Any], dict[str, Any]]:
+    """Check that a loaded checkpoint can be restored with the given env and task functions,
+    completing the functions of a registered task (:data:`agents.tasks.TASKS`) from the
+    registry.
 
     :param config: the checkpoint's :class:`agents.config.AgentConfig` (episode length).
     :param env: the env to continue in, or ``None`` (act only).
-    :return: ``(spec, task)``: the saved :class:`agents.tasks.EnvSpec` and serialised task.
-    :raises ValueError: the env's dimensions or bounds differ, or a custom ``state_fn`` or
-        ``cost_fn`` the agent was built with is missing.
+    :param fns: the task functions given to ``load`` by name (:data:`FUNCTION_NAMES`).
+    :return: ``(spec, task, fns)``: the saved :class:`agents.tasks.EnvSpec`, serialised task
+        and the functions to build the agent with.
+    :raises ValueError: the env's dimensions or bounds differ, or a function the agent was
+        built with is neither given nor in the registry (naming it).
     :raises CheckpointError: the env's fingerprint differs (naming the field).
     """
-    from agents.tasks import EnvSpec, default_task_for_env, env_spec
+    from agents.tasks import EnvSpec, env_spec, make_task
 
     spec = EnvSpec.from_dict(json.loads(payload["env_spec"]))
     if env is not None:
@@ -190,19 +229,21 @@ def check_resumable(
             check_same(json.loads(payload["env_fingerprint"]), env_fingerprint(env),
                        what="env", path=path)
     task = json.loads(payload["task"])
-    if task.get("state_map") is None and state_fn is None:
-        saved_n = json.loads(payload["ensemble_config"])["state_dim"]
+    fns = dict(fns)
+    needed = task.get("functions")
+    if needed is None:  # a checkpoint from before the list was saved
+        needed = (["cost_fn"] if task.get("cost") is None else []) + (
+            ["state_fn", "obs_fn"] if task.get("state_map") is None else [])
+    if task.get("registry"):
+        saved = make_task(task["registry"]).agent_kwargs()
+        fns = {k: saved[k] if fns[k] is None and k in needed else fns[k] for k in fns}
+    missing = [k for k in FUNCTION_NAMES if k in needed and fns[k] is None]
+    if missing:
         raise ValueError(
-            f"the agent was saved with a custom state_fn/obs_fn (model state of dimension "
-            f"{saved_n}); functions are not saved: pass the same state_fn= and obs_fn= to "
-            "load (with the task's other functions: for a task of agents.tasks, "
-            "JacPropAgent.load(path, env, **task.agent_kwargs()))"
-        )
-    if task.get("cost") is None and cost_fn is None and (
-        env is None or default_task_for_env(env) is None
-    ):
-        raise ValueError("the agent was built with a custom cost_fn: pass cost_fn= to load")
-    return spec, task
+            f"the agent was built with its own {', '.join(missing)}, which a checkpoint cannot "
+            f"hold: pass {', '.join(f'{k}=' for k in missing)} to load (for a task of "
+            "agents.tasks: JacPropAgent.load(path, env, **task.agent_kwargs()))")
+    return spec, task, fns
 
 
 def write_run(agent: Any, run_dir: str | os.PathLike) -> None:

@@ -75,6 +75,7 @@ class Collector:
         signal_seed: int,
         max_steps: int | None = None,
         render: bool = False,
+        stop: Any = None,
     ) -> tuple[EpisodeRecord, Trajectory]:
         """One training rollout: the excitation signal (``policy=None``) or ``policy``'s
         actions (SB3-style ``predict``) plus exploration noise, ``collection.rollout_steps``
@@ -83,6 +84,8 @@ class Collector:
         :param episode: the agent's episode index (the trajectory's ``meta``).
         :param reset_seed: the env's reset seed; ``signal_seed``: the excitation's or noise's.
         :param render: keep rendered frames in the record.
+        :param stop: ``stop(obs) -> bool`` of :func:`mbtsr.episode.run_episode` (the agent's
+            per-step callbacks), or ``None``.
         :return: ``(record, trajectory)``: the env's record and the model-state trajectory
             (``x [T+1, n]``, ``u [T, m]``).
         """
@@ -109,7 +112,8 @@ class Collector:
                 a, plan["state"] = policy.predict(obs, plan["state"], episode_start=t == 0)
                 return a + noise[t]
 
-        rec = run_episode(self.env, act, seed=reset_seed, max_steps=T, render=render, start=start)
+        rec = run_episode(self.env, act, seed=reset_seed, max_steps=T, render=render, start=start,
+                          stop=stop)
         traj = Trajectory(
             self.state_map.state(rec.obs), rec.actions, spec.dt,
             meta={"episode": episode, "seed": None if start is not None else reset_seed},

@@ -1,9 +1,11 @@
-"""Per-episode log of the agent: an in-memory list of rows, a CSV file and TensorBoard scalars.
+"""Per-episode log of the agent: an in-memory list of rows, a CSV file and TensorBoard scalars
+(under Stable-Baselines3's tags, indexed by env steps: :func:`sb3_scalars`).
 
 The CSV is rewritten atomically after every episode from the rows in memory, so after a resume
 (rows restored from the checkpoint) it holds exactly the episodes of the checkpoint, never a
 half-written line or the rows of an episode that was lost to a crash. TensorBoard events of lost
-episodes are dropped with ``SummaryWriter(purge_step=...)``.
+episodes are dropped with ``SummaryWriter(purge_step=...)``. The CSV's ``env_steps`` column is
+the TensorBoard step (SB3's ``time/total_timesteps``).
 """
 
 from __future__ import annotations
@@ -15,9 +17,11 @@ from collections.abc import Iterable, Sequence
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from agents.checkpoint import atomic_write_text
 
-__all__ = ["EpisodeLog", "LOG_COLUMNS", "TIMING_COLUMNS", "summarize"]
+__all__ = ["EpisodeLog", "LOG_COLUMNS", "TIMING_COLUMNS", "sb3_scalars", "summarize"]
 
 #: columns of the per-episode CSV, in order
 LOG_COLUMNS: tuple[str, ...] = (
@@ -76,27 +80,24 @@ class EpisodeLog:
         if tensorboard:
             from torch.utils.tensorboard import SummaryWriter
 
-            # events at steps >= purge_step (episodes lost to a crash) are discarded
-            self._writer = SummaryWriter(
-                log_dir=str(self.run_dir / "tb"), purge_step=len(self.rows)
-            )
+            # events at env steps >= purge_step (episodes lost to a crash) are discarded
+            done = int(self.rows[-1]["env_steps"]) if self.rows else 0
+            self._writer = SummaryWriter(log_dir=str(self.run_dir / "tb"), purge_step=done + 1)
 
-    def append(self, row: dict[str, Any]) -> None:
-        """Add one episode's row (keys from :data:`LOG_COLUMNS`) and write it out."""
+    def append(self, row: dict[str, Any], extra: dict[str, float] | None = None) -> None:
+        """Add one episode's row (keys from :data:`LOG_COLUMNS`) and write it out; TensorBoard
+        gets :func:`sb3_scalars` of the rows and ``extra`` (more ``tag: value`` pairs, e.g. what
+        SB3 callbacks recorded) at the row's env step."""
         unknown = sorted(set(row) - set(LOG_COLUMNS))
         if unknown:
             raise ValueError(f"unknown log column(s): {unknown}")
         self.rows.append(dict(row))
         self._write_csv()
         if self._writer is not None:
-            step = int(row["episode"])
-            for key, value in row.items():
-                if key in ("episode", "phase") or value is None or isinstance(value, str | list):
-                    continue
-                v = float(value)
-                if math.isfinite(v):
-                    group = "time" if key.startswith("time_") else "agent"
-                    self._writer.add_scalar(f"{group}/{key}", v, global_step=step)
+            step = int(row["env_steps"])
+            for tag, value in {**sb3_scalars(self.rows), **(extra or {})}.items():
+                if isinstance(value, int | float) and math.isfinite(float(value)):
+                    self._writer.add_scalar(tag, float(value), global_step=step)
             self._writer.flush()
 
     def _write_csv(self) -> None:
@@ -106,6 +107,40 @@ class EpisodeLog:
         if self._writer is not None:
             self._writer.close()
             self._writer = None
+
+
+#: TensorBoard groups of the row's columns under Stable-Baselines3's names (``time/...`` for the
+#: timing columns)
+_TRAIN = ("train_loss", "val_loss", "train_steps", "one_step_rms", "jacobian_error",
+          "ltv_lambda", "model_cost")
+_EVAL = ("eval_cost", "oracle_cost", "cost_ratio", "eval_episodes_run")
+
+
+def sb3_scalars(rows: Sequence[dict[str, Any]], window: int = 100) -> dict[str, Any]:
+    """The scalars of the last row under Stable-Baselines3's tags, so that the agent's curves
+    and an SB3 run's overlay in TensorBoard by env step: ``rollout/ep_rew_mean`` and
+    ``rollout/ep_len_mean`` (mean return and length of the last ``window`` training episodes,
+    as SB3's ``stats_window_size``), ``rollout/episodes``, ``time/total_timesteps``,
+    ``eval/mean_reward`` (the evaluation's mean return), ``eval/<column>`` for the oracle
+    comparison, ``train/<column>`` for the model's losses and errors and ``time/<column>``
+    for the wall seconds.
+
+    :param rows: the log rows so far (``[episodes]``; the last one is reported).
+    """
+    last, recent = rows[-1], rows[-window:]
+    first = len(rows) - len(recent)
+    starts = [rows[first - 1]["env_steps"] if first else 0] + [r["env_steps"] for r in recent]
+    out = {
+        "rollout/ep_rew_mean": -float(np.mean([r["episode_cost"] for r in recent])),
+        "rollout/ep_len_mean": float(np.mean(np.diff(starts))),
+        "rollout/episodes": len(rows),
+        "time/total_timesteps": last["env_steps"],
+        "eval/mean_reward": last.get("eval_return"),
+        **{f"train/{k}": last.get(k) for k in _TRAIN},
+        **{f"eval/{k}": last.get(k) for k in _EVAL if last.get("eval_episodes_run")},
+        **{f"time/{k}": last.get(k) for k in TIMING_COLUMNS},
+    }
+    return {k: v for k, v in out.items() if v is not None}
 
 
 def summarize(rows: Sequence[dict[str, Any]], config: Any, *, env_id: str | None,

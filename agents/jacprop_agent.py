@@ -44,7 +44,9 @@ import gymnasium as gym
 import numpy as np
 import threadpoolctl
 import torch
+from stable_baselines3.common.logger import Logger
 
+from agents.callbacks import Callbacks
 from agents.checkpoint import (
     agent_payload,
     check_resumable,
@@ -160,11 +162,15 @@ class JacPropAgent(SB3Predictor):
         self.freeze()
         # the learning state (all of it goes into the checkpoint)
         self.rng = np.random.default_rng(config.seed)
+        # predict(deterministic=False)'s noise: its own stream, so acting leaves learning as is
+        self.predict_rng = np.random.default_rng((config.seed, 1))
         self.trajectories: list[Trajectory] = []
         self.episodes_done = 0
         self.env_steps = 0
         self.logger_rows: list[dict[str, Any]] = []
         self._log: EpisodeLog | None = None
+        self._rollout_steps = 0  # env steps of the running rollout (SB3 callbacks' count)
+        self._sb3_logger: Logger | None = None
 
     def freeze(self) -> None:
         """Train -> freeze -> plan: the controller plans with an immutable float64 copy of the
@@ -222,33 +228,36 @@ class JacPropAgent(SB3Predictor):
     # ------------------------------------------------------------------ public surface
     def learn(
         self,
-        episodes: int | None = None,
-        callback: Callable[[dict[str, Any]], bool | None] | None = None,
+        total_timesteps: int | None = None,
+        callback: Any = None,
         progress_bar: bool | None = None,
         *,
-        total_env_steps: int | None = None,
+        episodes: int | None = None,
     ) -> JacPropAgent:
         """Run Algorithm 1 (rollout, LTV fit, perturbed data, regularised warm-started model
-        update, planning) for a budget of episodes or env steps, logging and checkpointing
-        after every episode.
+        update, planning) for a budget of env steps (as SB3) or of episodes, logging and
+        checkpointing after every episode.
 
-        :param episodes: number of episodes to run now (a loaded agent continues its count).
-        :param callback: called after every episode with ``{"agent", "row"}``; returning
-            ``False`` stops learning (as in Stable-Baselines3).
+        :param total_timesteps: env steps to run now (a loaded agent continues its count); the
+            last episode is cut short (truncated) so that the budget is exact.
+        :param callback: SB3 callbacks (a ``BaseCallback``, ``CallbackList`` or list; their
+            ``on_step`` runs after every env step, ``False`` ends the rollout after that step
+            and learning after its episode's update) and/or functions called after every episode
+            with ``{"agent", "row"}`` (``False`` stops learning); see :mod:`agents.callbacks`.
         :param progress_bar: show a tqdm progress bar (``None``: ``config.progress``).
-        :param total_env_steps: budget of env steps for this call (as SB3's
-            ``learn(total_timesteps)``); the last episode is cut short (truncated) so that the
-            budget is exact. With ``episodes`` too, whichever is reached first stops.
+        :param episodes: a budget of episodes instead (with ``total_timesteps`` too, whichever
+            is reached first stops).
         :return: ``self``.
         """
-        for name, value in (("episodes", episodes), ("total_env_steps", total_env_steps)):
+        for name, value in (("total_timesteps", total_timesteps), ("episodes", episodes)):
             if value is not None and (isinstance(value, bool) or not isinstance(
                     value, int | np.integer) or value < 0):
                 raise ValueError(f"{name} must be an integer >= 0, got {value!r}")
-        if episodes is None and total_env_steps is None:
-            raise ValueError("give episodes or total_env_steps")
+        if episodes is None and total_timesteps is None:
+            raise ValueError("give total_timesteps (env steps) or episodes=")
         if self.env is None:
             raise ValueError("this agent was loaded without an env; load(path, env=...) to learn")
+        callbacks = Callbacks(callback)
         if self.config.torch_threads:
             torch.set_num_threads(self.config.torch_threads)
             # numpy's BLAS too: the frozen model's small products on 2 BLAS threads on a busy
@@ -259,18 +268,22 @@ class JacPropAgent(SB3Predictor):
                 self.config.run_dir, tensorboard=self.config.tensorboard, rows=self.logger_rows
             )
         self.collector.forget()  # the env may have been used since: a learn call starts anew
-        step_end = None if total_env_steps is None else self.env_steps + int(total_env_steps)
-        bar = _progress_bar(episodes, total_env_steps,
+        step_end = None if total_timesteps is None else self.env_steps + int(total_timesteps)
+        bar = _progress_bar(episodes, total_timesteps,
                             self.config.progress if progress_bar is None else progress_bar)
+        start_steps, t0 = self.env_steps, time.perf_counter()
+        callbacks.start(self, total_timesteps)
         try:
             done = 0
             while (episodes is None or done < episodes) and (
                     step_end is None or self.env_steps < step_end):
                 done += 1
                 before = self.env_steps
+                callbacks.rollout_start(self.episodes_done)
                 row = self._episode(
-                    max_steps=None if step_end is None else step_end - self.env_steps)
-                ends = (episodes is not None and done >= episodes) or (
+                    max_steps=None if step_end is None else step_end - self.env_steps,
+                    stop=callbacks.step_hook(self._count_step))
+                ends = callbacks.stopped or (episodes is not None and done >= episodes) or (
                     step_end is not None and self.env_steps >= step_end)
                 if ends and row["eval_returns"] is None and self.evaluator.due(
                         self.episodes_done, self.env_steps, last=True):
@@ -279,18 +292,21 @@ class JacPropAgent(SB3Predictor):
                 self.episodes_done += 1
                 if self.config.checkpoint:
                     write_run(self, self.config.run_dir)
+                fps = (self.env_steps - start_steps) / max(time.perf_counter() - t0, 1e-9)
                 if self._log is not None:
-                    self._log.append(row)
+                    self._log.append(row, extra={**self.logger.name_to_value, "time/fps": fps})
+                self.logger.dump(self.env_steps)
                 if bar is not None:
                     bar.update(1 if episodes is not None else self.env_steps - before)
                     ratio = row.get("cost_ratio")
                     bar.set_postfix(cost=f"{row['episode_cost']:.3g}",
                                     ratio="-" if ratio is None else f"{float(ratio):.3g}")
-                if callback is not None and callback({"agent": self, "row": row}) is False:
+                if not callbacks.episode_end(self, row):
                     break
                 if self.config.evaluation.stop_when_solved and row.get("solved"):
                     break
         finally:
+            callbacks.end()
             if bar is not None:
                 bar.close()
             if self._log is not None:
@@ -298,12 +314,62 @@ class JacPropAgent(SB3Predictor):
                 self._log = None
         return self
 
+    # ------------------------------------------------------------------ what SB3 callbacks read
+    @property
+    def num_timesteps(self) -> int:
+        """Env steps so far, the current rollout's included (SB3's ``num_timesteps``)."""
+        return self.env_steps + self._rollout_steps
+
+    def _count_step(self) -> None:
+        self._rollout_steps += 1
+
+    def get_env(self) -> gym.Env | None:
+        """The training env (SB3's ``get_env``; a plain Gymnasium env, not a ``VecEnv``)."""
+        return self.env
+
+    @property
+    def logger(self) -> Logger:
+        """An SB3 ``Logger`` for callbacks: what they ``record`` goes to TensorBoard with the
+        agent's scalars at the end of the episode, at its env step (no other output)."""
+        if self._sb3_logger is None:
+            self._sb3_logger = Logger(folder=None, output_formats=[])
+        return self._sb3_logger
+
     def _act(self, observation: Any, state: Any) -> tuple[np.ndarray, Any]:
         """Action of the MPC controller on the learned model (Algorithm 1, step (e)); ``state``
         is the warm-start plan ``[H, m]`` of the previous call (with
         ``planner.replan_every > 1`` a :class:`agents.planning.ReplanState`), ``None`` a cold
         full-horizon plan. Exploration noise is only added in :meth:`learn`."""
         return self.actor.predict(observation, state)
+
+    def predict(
+        self,
+        observation: np.ndarray,
+        state: Any = None,
+        episode_start: np.ndarray | bool | None = None,
+        deterministic: bool = True,
+    ) -> tuple[np.ndarray, Any]:
+        """The MPC action on the learned model (Stable-Baselines3 signature).
+
+        :param observation: ``[obs_dim]``, or a batch ``[B, obs_dim]`` (planned row by row).
+        :param state: the previous call's recurrent state (the remaining plan; for a batch the
+            list of the rows'), or ``None`` (a cold full-horizon plan).
+        :param episode_start: ``True`` (for a batch ``[B]`` flags) at an episode's first step:
+            a cold start.
+        :param deterministic: ``False`` adds exploration noise: white Gaussian with std
+            ``collection.exploration_std`` x half the action range (the per-step spread of the
+            training rollouts' noise, without their ``exploration_window`` correlation) from
+            :attr:`predict_rng` (seeded by ``config.seed``, apart from learning's generator),
+            clipped to the action box.
+        :return: ``(action [act_dim], state)``, for a batch ``(actions [B, act_dim], states)``.
+        """
+        action, state = super().predict(observation, state, episode_start)
+        if not deterministic:
+            spec = self.spec
+            std = self.config.collection.exploration_std * 0.5 * (spec.u_max - spec.u_min)
+            action = np.clip(action + std * self.predict_rng.standard_normal(action.shape),
+                             spec.u_min, spec.u_max)
+        return action, state
 
     def save(self, path: str | Path) -> Path:
         """Save everything needed to continue learning or to act (one atomic file)."""
@@ -329,11 +395,12 @@ class JacPropAgent(SB3Predictor):
         :param path: the file (or a run folder holding ``checkpoint.pt``).
         :param env: the env to continue learning in (``None``: act only, via :meth:`predict`).
             Its spaces must match the saved ones.
-        :param cost_fn: needed again if the agent was built with a custom ``cost_fn``
-            (functions are not serialised; the built-in env cost is).
-        :param state_fn: with ``obs_fn``, needed again if the agent was built with them.
+        :param cost_fn: / ``state_fn``, ``obs_fn``, ``terminal_cost_fn``, ``termination_fn``:
+            the task's functions, which a checkpoint cannot hold. Not needed for a task of the
+            registry (:data:`agents.tasks.TASKS`, recognised at save by its env id and
+            functions: they are taken from there) nor for the env's built-in cost; otherwise
+            a missing one is named in a ``ValueError``. A given function wins.
         :param run_dir: where :meth:`learn` writes from now on (default: the saved config's).
-        :param terminal_cost_fn: / ``termination_fn``: as at construction (not serialised).
         """
         path = Path(path)
         if path.is_dir():
@@ -343,12 +410,14 @@ class JacPropAgent(SB3Predictor):
         if run_dir is not None:
             cfg["run_dir"] = str(run_dir)
         config = AgentConfig.from_dict(cfg)
-        spec, task = check_resumable(payload, path, config, env, cost_fn=cost_fn,
-                                     state_fn=state_fn)
+        spec, task, fns = check_resumable(payload, path, config, env, {
+            "cost_fn": cost_fn, "state_fn": state_fn, "obs_fn": obs_fn,
+            "terminal_cost_fn": terminal_cost_fn, "termination_fn": termination_fn})
         saved_n = json.loads(payload["ensemble_config"])["state_dim"]
         agent = cls.__new__(cls)
-        agent._setup(env, config, spec, cost_fn, state_fn, obs_fn, saved_task=task,
-                     terminal_cost_fn=terminal_cost_fn, termination_fn=termination_fn)
+        agent._setup(env, config, spec, fns["cost_fn"], fns["state_fn"], fns["obs_fn"],
+                     saved_task=task, terminal_cost_fn=fns["terminal_cost_fn"],
+                     termination_fn=fns["termination_fn"])
         if agent.state_dim != saved_n:
             raise ValueError(
                 f"state_fn gives a model state of dimension {agent.state_dim}, but the saved "
@@ -356,10 +425,12 @@ class JacPropAgent(SB3Predictor):
                 "was built with"
             )
         restore_agent(agent, payload)
+        agent.env_id = agent.env_id or task.get("env_id")  # an act-only agent keeps its task's
         return agent
 
     # ------------------------------------------------------------------ one episode
-    def _episode(self, max_steps: int | None = None) -> dict[str, Any]:
+    def _episode(self, max_steps: int | None = None, stop: Callable | None = None
+                 ) -> dict[str, Any]:
         """One episode of Algorithm 1; returns its log row."""
         cfg, ep = self.config, self.episodes_done
         t_start = time.perf_counter()
@@ -375,9 +446,10 @@ class JacPropAgent(SB3Predictor):
         # (a) rollout in the real env
         rec, traj = self.collector.rollout(
             None if excitation else self.explorer, episode=ep, reset_seed=reset_seed,
-            signal_seed=signal_seed, max_steps=max_steps, render=render)
+            signal_seed=signal_seed, max_steps=max_steps, render=render, stop=stop)
         time_rollout = time.perf_counter() - t_start - rec.time_policy
         self.env_steps += traj.T
+        self._rollout_steps = 0
         if render:
             save_video(rec.frames, cfg.run_dir, ep, self.spec.dt)
         # model quality on the NEW data, before the update (generalisation)

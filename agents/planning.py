@@ -133,8 +133,9 @@ def make_policy(
 
 class SB3Predictor(abc.ABC):
     """Stable-Baselines3's ``predict`` over ``_act(observation, state)``: the MPC policies and
-    the agent. ``episode_start`` forces a cold start (``state=None``); ``deterministic`` is
-    unused (MPC is deterministic), kept for SB3 compatibility."""
+    the agent. A batch ``[B, obs_dim]`` is planned row by row, each row with its own recurrent
+    state. ``episode_start`` forces a cold start (``state=None``); ``deterministic`` is unused
+    here (MPC is deterministic; the agent adds its exploration noise when it is ``False``)."""
 
     @abc.abstractmethod
     def _act(self, observation: Any, state: Any) -> tuple[np.ndarray, Any]:
@@ -149,16 +150,29 @@ class SB3Predictor(abc.ABC):
     ) -> tuple[np.ndarray, Any]:
         """One step (Stable-Baselines3 signature).
 
-        :param observation: ``[obs_dim]`` current observation.
-        :param state: the recurrent state returned by the previous call (the remaining plan),
-            or ``None`` (cold start, also forced by ``episode_start``).
-        :param episode_start: ``True`` at the first step of an episode.
+        :param observation: ``[obs_dim]``, or a batch ``[B, obs_dim]``.
+        :param state: the recurrent state returned by the previous call (the remaining plan;
+            for a batch, the list of the rows' states), or ``None`` (cold start).
+        :param episode_start: ``True`` at the first step of an episode (for a batch ``[B]``
+            flags, one per row): a cold start.
         :param deterministic: unused (MPC is deterministic); kept for SB3 compatibility.
-        :return: ``(action [m], next_state)``.
+        :return: ``(action [m], next_state)``, for a batch ``(actions [B, m], [B] states)``.
         """
-        if episode_start is not None and bool(np.any(episode_start)):
-            state = None
-        return self._act(observation, state)
+        obs = np.asarray(observation)
+        if obs.ndim != 2:
+            if episode_start is not None and bool(np.any(episode_start)):
+                state = None
+            return self._act(observation, state)
+        B = obs.shape[0]
+        starts = np.broadcast_to(np.asarray(
+            False if episode_start is None else episode_start, dtype=bool).reshape(-1), (B,))
+        if state is None:
+            state = [None] * B
+        elif not isinstance(state, list | tuple) or len(state) != B:
+            raise ValueError(f"for a batch of {B} observations, state must be the list of "
+                             f"{B} states returned by predict (or None)")
+        out = [self._act(obs[i], None if starts[i] else state[i]) for i in range(B)]
+        return np.stack([a for a, _ in out]), [s for _, s in out]
 
 
 class MPCPolicy(SB3Predictor):

@@ -405,9 +405,9 @@ def arm_run(tmp_path_factory):
                       run_dir=str(run_dir), tensorboard=True, seed=3)
     agent = JacPropAgent(env, cfg)
     heldout = heldout_trajectories(ARM, lambda o: o[:, :4], [901, 902], 30, 0.3)
-    agent.learn(1, progress_bar=False)
+    agent.learn(episodes=1, progress_bar=False)
     err_first = prediction_rms(agent.model, heldout)
-    agent.learn(2, progress_bar=False)
+    agent.learn(episodes=2, progress_bar=False)
     err_last = prediction_rms(agent.model, heldout)
     return agent, run_dir, err_first, err_last
 
@@ -457,14 +457,14 @@ def test_save_load_round_trip_gives_identical_predictions(arm_run, tmp_path):
     assert loaded.episodes_done == 3 and len(loaded.trajectories) == 3
     assert json.dumps(loaded.logger_rows) == json.dumps(agent.logger_rows)  # NaN-safe
     with pytest.raises(ValueError, match="loaded without an env"):
-        loaded.learn(1)
+        loaded.learn(episodes=1)
     with pytest.raises(ValueError, match="does not match"):
         JacPropAgent.load(path, env=gym.make("Pendulum-v1"))
 
 
 @settings(max_examples=20, deadline=None,
           suppress_health_check=[HealthCheck.function_scoped_fixture])
-@given(shape=st.sampled_from([(5,), (7,), (2, 6), ()]))
+@given(shape=st.sampled_from([(5,), (7,), (2, 5), (2, 2, 6), ()]))  # [B, 6]: a batch
 def test_predict_rejects_observations_of_the_wrong_shape(arm_run, shape):
     agent = arm_run[0]
     with pytest.raises(ValueError, match="observation"):
@@ -481,7 +481,7 @@ def test_video_of_an_episode_is_written(tmp_path):
     env = gym.make(ARM, episode_steps=8, render_mode="rgb_array", width=64, height=48)
     agent = JacPropAgent(env, tiny_config({"collection.episode_steps": 8, "training.steps": 2},
                                           run_dir=str(tmp_path), video=True, video_every=1))
-    agent.learn(1, progress_bar=False)
+    agent.learn(episodes=1, progress_bar=False)
     videos = list((tmp_path / "videos").iterdir())
     assert len(videos) == 1 and videos[0].stem == "episode_0000"
     assert videos[0].stat().st_size > 0
@@ -496,9 +496,9 @@ def test_tiny_pendulum_run_with_a_user_cost(tmp_path):
     agent = JacPropAgent(env, cfg, cost_fn=pendulum_cost)
     assert agent.state_dim == 3 and agent.spec.u_max[0] == 2.0
     heldout = heldout_trajectories("Pendulum-v1", lambda o: o, [501, 502], 40, 0.5)
-    agent.learn(1, progress_bar=False)
+    agent.learn(episodes=1, progress_bar=False)
     err_first = prediction_rms(agent.model, heldout)
-    agent.learn(2, progress_bar=False)
+    agent.learn(episodes=2, progress_bar=False)
     err_last = prediction_rms(agent.model, heldout)
     assert err_last < 0.8 * err_first
     rows = agent.logger_rows
@@ -508,7 +508,7 @@ def test_tiny_pendulum_run_with_a_user_cost(tmp_path):
                for i, r in enumerate(rows))
     action, _ = agent.predict(env.reset(seed=0)[0])
     assert action.shape == (1,) and -2.0 <= action[0] <= 2.0
-    with pytest.raises(ValueError, match="custom cost_fn"):
+    with pytest.raises(ValueError, match=r"its own cost_fn, .*pass cost_fn= to load"):
         JacPropAgent.load(tmp_path / "checkpoint.pt", env=env)
     again = JacPropAgent.load(tmp_path / "checkpoint.pt", env=env, cost_fn=pendulum_cost)
     np.testing.assert_array_equal(again.predict(np.array([1.0, 0.0, 0.0]))[0],
@@ -522,7 +522,7 @@ def test_default_agent_solves_the_arm_within_30_episodes(tmp_path):
     cfg = AgentConfig.default({"evaluation.stop_when_solved": True}, run_dir=str(tmp_path),
                               progress=False, torch_threads=1)
     agent = JacPropAgent(env, cfg)
-    agent.learn(30, progress_bar=False)
+    agent.learn(episodes=30, progress_bar=False)
     summary = agent.summary()
     assert summary["episodes_to_solve"] is not None, summary
     assert summary["final_cost_ratio"] <= 1.2
@@ -557,10 +557,12 @@ def test_load_explains_a_missing_state_fn(tmp_path):
     env = gym.make("Pendulum-v1")
     agent = JacPropAgent(env, tiny_config({"collection.episode_steps": 10}), cost_fn=pendulum_cost,
                          state_fn=_pendulum_angle_state, obs_fn=_pendulum_obs_of_state)
-    agent.learn(1, progress_bar=False)
+    agent.learn(episodes=1, progress_bar=False)
     path = agent.save(tmp_path / "a.pt")
-    with pytest.raises(ValueError, match="custom state_fn/obs_fn.*pass the same state_fn="):
+    with pytest.raises(ValueError, match=r"its own state_fn, obs_fn,.*pass state_fn=, obs_fn="):
         JacPropAgent.load(path, env=env, cost_fn=pendulum_cost)
+    with pytest.raises(ValueError, match=r"its own cost_fn, state_fn, obs_fn,"):
+        JacPropAgent.load(path)  # an unregistered task: every missing function is named
     with pytest.raises(ValueError, match="dimension 3.*trained on dimension 2"):
         JacPropAgent.load(path, env=env, cost_fn=pendulum_cost, state_fn=lambda o: np.asarray(o),
                           obs_fn=lambda s, r: s)
@@ -574,14 +576,16 @@ def test_load_explains_a_missing_state_fn(tmp_path):
 def test_learn_with_an_env_step_budget_cuts_the_last_episode():
     env = gym.make("Pendulum-v1")
     agent = JacPropAgent(env, tiny_config({"collection.episode_steps": 20}), cost_fn=pendulum_cost)
-    agent.learn(total_env_steps=45, progress_bar=False)
+    agent.learn(total_timesteps=45, progress_bar=False)
     assert [t.T for t in agent.trajectories] == [20, 20, 5]
     assert agent.env_steps == 45 == agent.logger_rows[-1]["env_steps"]
-    agent.learn(1, progress_bar=False, total_env_steps=100)  # the episode count stops first
+    agent.learn(100, episodes=1, progress_bar=False)  # the episode count stops first
     assert agent.env_steps == 65
-    with pytest.raises(ValueError, match="total_env_steps"):
-        agent.learn(total_env_steps=-1)
-    with pytest.raises(ValueError, match="give episodes or total_env_steps"):
+    agent.learn(7, progress_bar=False)  # SB3's positional total_timesteps: exactly 7 steps
+    assert agent.env_steps == 72 and agent.trajectories[-1].T == 7
+    with pytest.raises(ValueError, match="total_timesteps"):
+        agent.learn(total_timesteps=-1)
+    with pytest.raises(ValueError, match="give total_timesteps"):
         agent.learn()
 
 
@@ -592,7 +596,7 @@ def test_solved_return_decides_from_the_envs_own_rewards():
     cfg = tiny_config({"collection.episode_steps": 15, "evaluation.every": 1,
                        "evaluation.episodes": 2, "evaluation.seed": 7})
     easy = JacPropAgent(env, cfg.replace({"evaluation.solved_return": -1e9}), cost_fn=pendulum_cost)
-    easy.learn(2, progress_bar=False)
+    easy.learn(episodes=2, progress_bar=False)
     row = easy.logger_rows[0]
     assert row["solved"] and len(row["eval_returns"]) == 2
     assert row["eval_return"] == pytest.approx(np.mean(row["eval_returns"]))
@@ -604,7 +608,7 @@ def test_solved_return_decides_from_the_envs_own_rewards():
     replay = [float(np.sum(easy.rollout_policy(eval_env, seed=7 + i).rewards)) for i in range(2)]
     np.testing.assert_allclose(easy.logger_rows[-1]["eval_returns"], replay, rtol=1e-12)
     hard = JacPropAgent(env, cfg.replace({"evaluation.solved_return": 0.0}), cost_fn=pendulum_cost)
-    hard.learn(2, progress_bar=False)  # Pendulum's rewards are <= 0 and not all 0
+    hard.learn(episodes=2, progress_bar=False)  # Pendulum's rewards are <= 0 and not all 0
     assert not any(r["solved"] for r in hard.logger_rows)
     assert hard.summary()["episodes_to_solve"] is None
 
@@ -617,7 +621,7 @@ def test_rollout_steps_shortens_training_rollouts_not_evaluation():
     cfg = tiny_config({"collection.episode_steps": 15, "collection.rollout_steps": 6,
                        "evaluation.every": 2, "evaluation.episodes": 1})
     agent = JacPropAgent(env, cfg, cost_fn=pendulum_cost)
-    agent.learn(total_env_steps=20, progress_bar=False)
+    agent.learn(total_timesteps=20, progress_bar=False)
     assert [t.T for t in agent.trajectories] == [6, 6, 6, 2]  # the last one cut by the budget
     assert agent.env_steps == 20 and [r["phase"] for r in agent.logger_rows] == [
         "excitation", "mpc", "mpc", "mpc"]
@@ -644,7 +648,7 @@ def test_continue_rollouts_hands_the_episode_on_across_updates():
     cfg = tiny_config({"collection.episode_steps": 15, "collection.rollout_steps": 6,
                        "collection.continue_rollouts": True, "evaluation.every": 0})
     agent = JacPropAgent(gym.make("Pendulum-v1"), cfg, cost_fn=pendulum_cost)
-    agent.learn(total_env_steps=20, progress_bar=False)
+    agent.learn(total_timesteps=20, progress_bar=False)
     trajs = agent.trajectories
     assert [t.T for t in trajs] == [6, 6, 3, 5]
     assert [t.meta["seed"] is None for t in trajs] == [False, True, True, False]
@@ -655,7 +659,7 @@ def test_continue_rollouts_hands_the_episode_on_across_updates():
     X = agent.state_map.state(rec.obs)
     np.testing.assert_allclose(np.concatenate([trajs[0].x, trajs[1].x[1:], trajs[2].x[1:]]), X,
                                rtol=1e-6, atol=1e-6)
-    agent.learn(total_env_steps=2, progress_bar=False)  # a new call: from a reset
+    agent.learn(total_timesteps=2, progress_bar=False)  # a new call: from a reset
     assert agent.trajectories[-1].meta["seed"] is not None
     with pytest.raises(ValueError, match="continue_rollouts=True needs collection.rollout_steps"):
         tiny_config({"collection.continue_rollouts": True})
@@ -667,7 +671,7 @@ def test_continue_rollouts_resets_after_termination_or_a_foreign_reset():
     cfg = tiny_config({"collection.episode_steps": 15, "collection.rollout_steps": 6,
                        "collection.continue_rollouts": True, "evaluation.every": 0})
     ends = JacPropAgent(TerminateAfter(gym.make("Pendulum-v1"), 4), cfg, cost_fn=pendulum_cost)
-    ends.learn(total_env_steps=12, progress_bar=False)
+    ends.learn(total_timesteps=12, progress_bar=False)
     assert [t.T for t in ends.trajectories] == [4, 4, 4]
     assert all(t.meta["seed"] is not None for t in ends.trajectories)
 
@@ -678,7 +682,7 @@ def test_continue_rollouts_resets_after_termination_or_a_foreign_reset():
             agent.env.reset(seed=5)
 
     with pytest.warns(UserWarning, match="stepped or reset since the last training rollout"):
-        agent.learn(total_env_steps=12, callback=reset_once, progress_bar=False)
+        agent.learn(total_timesteps=12, callback=reset_once, progress_bar=False)
     assert [t.meta["seed"] is None for t in agent.trajectories] == [False, False]
 
 
@@ -721,7 +725,7 @@ def test_cem_planner_runs_the_same_mpc_and_respects_the_termination_fn():
     cfg = tiny_config({"planner.cem.samples": 16, "planner.cem.elites": 4,
                        "planner.cem.iterations": 1, "collection.episode_steps": 12}, planner="cem")
     agent = JacPropAgent(env, cfg, cost_fn=pendulum_cost)
-    agent.learn(2, progress_bar=False)
+    agent.learn(episodes=2, progress_bar=False)
     assert agent.logger_rows[-1]["phase"] == "mpc"
     obs = env.reset(seed=0)[0]
     a1, plan = agent.predict(obs)
@@ -751,7 +755,7 @@ def test_cem_with_trajectory_sampling_scores_plans_under_every_member(probabilis
                        "planner.propagation": "ts", "model.probabilistic": probabilistic,
                        "collection.episode_steps": 12}, planner="cem")
     agent = JacPropAgent(env, cfg, cost_fn=pendulum_cost)
-    agent.learn(2, progress_bar=False)
+    agent.learn(episodes=2, progress_bar=False)
     ts = agent.policy.model
     assert type(ts).__name__ == "TrajectorySampling" and ts.noise == probabilistic
     obs = env.reset(seed=0)[0]
@@ -789,13 +793,13 @@ def test_explore_weight_steers_training_rollouts_and_not_evaluation(explore_on):
     assert agent.explorer.policy.mpc.options.optimizer_options.cem.explore_on == explore_on
     assert agent.actor.policy.mpc.options.optimizer_options.cem.explore_weight == 0.0
     for a in (plain, agent):
-        a.learn(1, progress_bar=False)  # the excitation episode and the update
+        a.learn(episodes=1, progress_bar=False)  # the excitation episode and the update
     obs = env.reset(seed=3)[0]
     np.testing.assert_array_equal(agent.predict(obs)[0], plain.predict(obs)[0])
     explored = agent.explorer.predict(obs, None, episode_start=True)[1]
     assert not np.allclose(explored, plain.predict(obs)[1])
     for a in (plain, agent):
-        a.learn(1, progress_bar=False)  # one training rollout with the planner
+        a.learn(episodes=1, progress_bar=False)  # one training rollout with the planner
     assert agent.logger_rows[-1]["phase"] == "mpc"
     np.testing.assert_array_equal(agent.trajectories[0].u, plain.trajectories[0].u)
     assert not np.allclose(agent.trajectories[1].u, plain.trajectories[1].u)
@@ -806,7 +810,7 @@ def test_explore_weight_steers_training_rollouts_and_not_evaluation(explore_on):
          "planner.cem.particles": 2, "planner.propagation": "ts",
          "collection.explore_weight": 1.0, "collection.explore_on": explore_on},
         planner="cem"), cost_fn=pendulum_cost)
-    ts.learn(2, progress_bar=False)
+    ts.learn(episodes=2, progress_bar=False)
     assert ts.logger_rows[-1]["phase"] == "mpc"
     assert type(ts.explorer.policy.mpc.model).__name__ == "TrajectorySampling"
     ts.explorer.predict(env.reset(seed=0)[0], None, episode_start=True)
@@ -819,7 +823,7 @@ def test_refit_normalization_keeps_the_function_and_follows_the_data():
     env = gym.make("Pendulum-v1")
     agent = JacPropAgent(env, tiny_config({"collection.episode_steps": 20}, renormalize=False),
                          cost_fn=pendulum_cost)
-    agent.learn(1, progress_bar=False)
+    agent.learn(episodes=1, progress_bar=False)
     model = agent.model
     more = heldout_trajectories("Pendulum-v1", lambda o: o, [7, 8], 30, 1.0)
     x = np.concatenate([t.x[:-1] for t in more])
@@ -844,7 +848,7 @@ def test_replan_every_executes_each_plan_open_loop():
     agent = JacPropAgent(env, tiny_config({"collection.episode_steps": 12,
                                            "planner.replan_every": 3}),
                          cost_fn=pendulum_cost)
-    agent.learn(1, progress_bar=False)
+    agent.learn(episodes=1, progress_bar=False)
     solves = []
     original = agent.policy.mpc.solve
 
@@ -868,7 +872,7 @@ def _feedback_agent(kind: str) -> tuple[gym.Env, JacPropAgent]:
                                            "planner.replan_every": 3,
                                            "planner.replan_feedback": True}),
                          cost_fn=pendulum_cost)
-    agent.learn(1, progress_bar=False)
+    agent.learn(episodes=1, progress_bar=False)
     return env, agent
 
 
@@ -937,9 +941,9 @@ def test_evaluation_schedule_every_k_episodes_and_at_the_end_of_learn():
     agent = JacPropAgent(env, tiny_config({"collection.episode_steps": 10, "evaluation.every": 4,
                                            "evaluation.episodes": 1}),
                          cost_fn=pendulum_cost)
-    agent.learn(3, progress_bar=False)
+    agent.learn(episodes=3, progress_bar=False)
     assert [r["episode"] for r in agent.logger_rows if r["eval_returns"]] == [0, 2]
-    agent.learn(total_env_steps=25, progress_bar=False)  # episodes 3, 4, 5 (5 steps)
+    agent.learn(total_timesteps=25, progress_bar=False)  # episodes 3, 4, 5 (5 steps)
     assert [r["episode"] for r in agent.logger_rows if r["eval_returns"]] == [0, 2, 4, 5]
     assert agent.logger_rows[-1]["env_steps"] == 55
 
@@ -956,7 +960,7 @@ def test_oracle_time_is_booked_once_in_its_own_phase():
         agent = JacPropAgent(gym.make("mbtsr/TwoLinkArm-v0"), tiny_config(changes, seed=0))
         if early:
             agent.compute_oracle()
-        agent.learn(1)
+        agent.learn(episodes=1)
         rows[early] = agent.logger_rows[0]
     assert rows[False]["time_oracle"] > 0 and rows[True]["time_oracle"] == 0
     for r in rows.values():
@@ -969,9 +973,9 @@ def test_config_progress_false_shows_no_progress_bar(capsys):
     """``AgentConfig.progress`` (``--no-progress``) is what ``learn`` follows by default."""
     agent = JacPropAgent(gym.make("mbtsr/TwoLinkArm-v0"),
                          tiny_config({"collection.episode_steps": 5}, progress=False))
-    agent.learn(1)
+    agent.learn(episodes=1)
     assert "JacProp agent" not in capsys.readouterr().err
-    agent.learn(1, progress_bar=True)  # an explicit argument still wins
+    agent.learn(episodes=1, progress_bar=True)  # an explicit argument still wins
     assert "JacProp agent" in capsys.readouterr().err
 
 
@@ -981,7 +985,7 @@ def test_evaluation_every_steps_follows_the_env_steps():
     env = gym.make("Pendulum-v1")
     agent = JacPropAgent(env, tiny_config({"evaluation.every": 0, "evaluation.every_steps": 50,
                                            "evaluation.episodes": 1}), cost_fn=pendulum_cost)
-    agent.learn(5, progress_bar=False)
+    agent.learn(episodes=5, progress_bar=False)
     assert [r["env_steps"] for r in agent.logger_rows if r["eval_returns"] is not None] == [
         60, 120, 150]
     with pytest.raises(ValueError, match="evaluation.every_steps"):

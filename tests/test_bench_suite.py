@@ -51,7 +51,7 @@ def test_every_task_runs_a_few_steps_of_its_agent(name):
     obs = agent.env.reset(seed=0)[0]
     c = agent.task_cost.on_observations(obs[None], np.zeros((1, agent.spec.act_dim)))
     assert np.isfinite(c).all()
-    agent.learn(total_env_steps=25, progress_bar=False)
+    agent.learn(total_timesteps=25, progress_bar=False)
     assert agent.env_steps == 25
     agent.env.close()
 

@@ -61,7 +61,7 @@ def run_two_episodes(env: gym.Env) -> JacPropAgent:
     agent = JacPropAgent(env, smoke_config(), cost_fn=generic_cost)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)  # logged LTV fallbacks are expected
-        agent.learn(2, progress_bar=False)
+        agent.learn(episodes=2, progress_bar=False)
     return agent
 
 
@@ -103,7 +103,7 @@ def test_reacher_goal_in_observation_uses_a_documented_fallback():
     env = gym.make("Reacher-v5", max_episode_steps=20)
     agent = JacPropAgent(env, smoke_config(), cost_fn=generic_cost)
     with pytest.warns(RuntimeWarning, match="degenerate regressors"):
-        agent.learn(1, progress_bar=False)
+        agent.learn(episodes=1, progress_bar=False)
     assert "degenerate regressors" in agent.logger_rows[0]["ltv_fallback"]
     env.close()
 
@@ -142,7 +142,7 @@ def test_high_dimensional_env_is_refused_with_a_message_naming_the_options(env_i
 def test_high_dimensional_env_runs_without_ltv(env_id):
     env = gym.make(env_id, max_episode_steps=10)
     agent = JacPropAgent(env, smoke_config(regularization="none"), cost_fn=generic_cost)
-    agent.learn(2, progress_bar=False)
+    agent.learn(episodes=2, progress_bar=False)
     assert agent.env_steps > 0 and np.isfinite(agent.logger_rows[-1]["one_step_rms"])
     env.close()
 

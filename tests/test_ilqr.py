@@ -535,8 +535,8 @@ def test_a_model_or_cost_that_turns_nan_mid_solve_ends_failed_with_the_best_fini
         x, u, ca.sumsqr(x - 3.0) + ca.sumsqr(u) + ca.sqrt(1.95 - x[0]), ca.sumsqr(x - 3.0)
     )
     for cost in (quadratic_cost(np.eye(N_X), 0.01 * np.eye(N_U), np.full(N_X, 3.0)), nan_cost):
-        res = ilqr(cost, NaNOffNominal(A, B, beyond=2.0), np.ones(N_X), np.zeros((10, N_U)), u_min=-2, u_max=2,
-                   options={"max_iter": 40})
+        res = ilqr(cost, NaNOffNominal(A, B, beyond=2.0), np.ones(N_X), np.zeros((10, N_U)),
+                   u_min=-2, u_max=2, options={"max_iter": 40})
         assert np.isfinite(res.U).all() and np.all(np.abs(res.U) <= 2.0)
         assert np.isfinite(res.X).all()
         assert res.cost == pytest.approx(cost.total(res.X, res.U), rel=1e-12)

@@ -261,7 +261,7 @@ def agent_study(args: Args) -> dict:
               f"return {r.get('eval_return')}", flush=True)
 
     tic = time.perf_counter()
-    agent.learn(args.episodes, callback=show, progress_bar=False)
+    agent.learn(episodes=args.episodes, callback=show, progress_bar=False)
     wall = time.perf_counter() - tic
     log = agent.logger_rows
     upd = np.array([r["time_training"] for r in log])

@@ -288,7 +288,7 @@ def run_one(name: str, planner: str, reg: str, seed: int, *, smoke: bool,
 
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)  # logged LTV fallbacks
-        agent.learn(total_env_steps=max(budget - start, 0), callback=after_episode,
+        agent.learn(total_timesteps=max(budget - start, 0), callback=after_episode,
                     progress_bar=False)
     # the run's own work, whatever else runs
     cpu_seconds = spent["cpu_seconds"] + time.process_time() - cpu_tic

@@ -74,7 +74,7 @@ def run(args: Args) -> dict:
     cfg = AgentConfig(seed=args.seed, progress=False, tensorboard=False).replace(
         {"collection.n_excitation_episodes": args.n_excitation_episodes, "evaluation.every": 0})
     agent = JacPropAgent(gym.make("mbtsr/TwoLinkArm-v0"), cfg)
-    agent.learn(args.model_episodes, progress_bar=False)
+    agent.learn(episodes=args.model_episodes, progress_bar=False)
     menv = ModelEnv.from_agent(agent, member=args.member)
     menv.reset(seed=args.seed)
     sac_model, wall = sac(menv, args.sac_steps, args.seed)

@@ -254,7 +254,7 @@ def run(args: Args) -> dict:
     # 3. Algorithm 1: episodes of rollout -> LTV fit -> regularised model update -> planning --
     remaining = max(0, args.episodes - agent.episodes_done)
     t0 = time.perf_counter()
-    agent.learn(remaining, progress_bar=agent.config.progress)
+    agent.learn(episodes=remaining, progress_bar=agent.config.progress)
     wall = time.perf_counter() - t0
 
     # 4. results: summary, benchmark JSON, figures --------------------------------------------
