@@ -104,9 +104,12 @@ def agent_payload(agent: Any) -> dict[str, Any]:
     bit-identically or to act: config, env spec and fingerprint, the serialisable task, model
     weights, Adam state, data, JacProp labels, counters, RNG states, log and the evaluator's
     targets and oracle costs (a dict for :func:`save_checkpoint`)."""
+    from agents.task_setup import LearnedTask
     from agents.tasks import QuadraticTargetCost
 
-    task: dict[str, Any] = {"cost": None, "state_map": None}
+    learned = isinstance(agent.task_cost, LearnedTask)
+    task: dict[str, Any] = {"cost": None, "state_map": None, "registry": agent.task.registry,
+                            "learned": learned}
     if isinstance(agent.cost_fn, QuadraticTargetCost):
         task["cost"] = agent.cost_fn.to_dict()
     if agent.state_map.serializable:
@@ -132,6 +135,7 @@ def agent_payload(agent: Any) -> dict[str, Any]:
         "eval_targets": None if ev.eval_targets is None else [
             np.asarray(t) for t in ev.eval_targets],
         "oracle_costs": None if ev.oracle_costs is None else np.asarray(ev.oracle_costs),
+        "reward_model": agent.task_cost.model.state_dict() if learned else None,
     }
 
 
@@ -139,9 +143,12 @@ def restore_agent(agent: Any, p: dict[str, Any]) -> None:
     """Load :func:`agent_payload`'s fields (as :func:`load_checkpoint` returns them) into a
     freshly constructed agent of the same config and task; the RNGs (numpy's and torch's global
     one) continue where the checkpoint left them."""
+    from mbtsr.reward import RewardModel
     from mbtsr.trajectory import Trajectory
 
     agent.model.load_state_dict(p["model_state"])
+    if p.get("reward_model") is not None:
+        agent.task_cost.model = RewardModel.from_state_dict(p["reward_model"])
     agent.freeze()
     agent.trainer.optimizer_state = p["optimizer_state"]
     agent.trajectories = [
@@ -190,7 +197,7 @@ def check_resumable(
             check_same(json.loads(payload["env_fingerprint"]), env_fingerprint(env),
                        what="env", path=path)
     task = json.loads(payload["task"])
-    if task.get("state_map") is None and state_fn is None:
+    if task.get("state_map") is None and state_fn is None and task.get("registry") is None:
         saved_n = json.loads(payload["ensemble_config"])["state_dim"]
         raise ValueError(
             f"the agent was saved with a custom state_fn/obs_fn (model state of dimension "
@@ -198,7 +205,8 @@ def check_resumable(
             "load (with the task's other functions: for a task of agents.tasks, "
             "JacPropAgent.load(path, env, **task.agent_kwargs()))"
         )
-    if task.get("cost") is None and cost_fn is None and (
+    if task.get("cost") is None and cost_fn is None and not (
+        task.get("learned") or task.get("registry")) and (
         env is None or default_task_for_env(env) is None
     ):
         raise ValueError("the agent was built with a custom cost_fn: pass cost_fn= to load")
