@@ -154,3 +154,34 @@ def test_without_a_written_cost_the_evaluation_has_no_oracle():
     row = agent.logger_rows[-1]
     assert row["oracle_cost"] is None and row["cost_ratio"] is None
     assert np.isfinite(row["eval_cost"]) and agent.compute_oracle() is None
+
+
+def test_model_env_of_a_learned_reward_agent_rewards_with_the_learned_reward():
+    from agents.model_env import ModelEnv
+
+    agent = JacPropAgent(gym.make("Pendulum-v1"), _config()).learn(episodes=2)
+    menv = ModelEnv.from_agent(agent)
+    obs, _ = menv.reset(seed=0)
+    a = np.array([0.5], dtype=np.float32)
+    _, r, *_ = menv.step(a)
+    expected = agent.task_cost.frozen().predict(agent.state_map.state(obs), a.astype(float))
+    assert r == pytest.approx(float(expected), rel=1e-9)
+
+
+def test_a_constant_input_of_the_first_fit_is_not_rescaled():
+    """An input that was constant in the first data (a contact force at rest) keeps unit scale:
+    a small value later moves the learned reward little (a 1e-6 std floor made 1e-3 a
+    thousand standard deviations)."""
+    from mbtsr.reward import RewardConfig, RewardModel
+
+    rng = np.random.default_rng(0)
+    S = np.column_stack([rng.normal(size=400), np.zeros(400)])
+    A = rng.normal(size=(400, 1))
+    r = -S[:, 0] ** 2 - 0.1 * A[:, 0] ** 2
+    model = RewardModel(2, 1, RewardConfig(steps=300, seed=0))
+    model.fit(S, A, r)
+    frozen = model.freeze()
+    x = np.column_stack([rng.normal(size=50), np.zeros(50)])
+    u = rng.normal(size=(50, 1))
+    moved = x + np.array([0.0, 1e-3])
+    assert np.max(np.abs(frozen.predict(moved, u) - frozen.predict(x, u))) < 0.01 * r.std()
