@@ -185,3 +185,17 @@ def test_a_constant_input_of_the_first_fit_is_not_rescaled():
     u = rng.normal(size=(50, 1))
     moved = x + np.array([0.0, 1e-3])
     assert np.max(np.abs(frozen.predict(moved, u) - frozen.predict(x, u))) < 0.01 * r.std()
+
+
+def test_a_registry_agent_loads_without_its_functions(tmp_path):
+    """The registry task's name is saved: load needs neither the cost nor the state maps
+    (InvertedDoublePendulum's model state is 6 joint numbers, not the 9 observations)."""
+    agent = JacPropAgent(gym.make("InvertedDoublePendulum-v5"), _config()).learn(episodes=1)
+    assert agent.state_dim == 6
+    agent.save(tmp_path / "idp.pt")
+    for env in (gym.make("InvertedDoublePendulum-v5"), None):
+        loaded = JacPropAgent.load(tmp_path / "idp.pt", env)
+        assert loaded.task.source == "registry" and loaded.state_dim == 6
+        assert loaded.termination_fn is agent.termination_fn
+        obs = agent.env.reset(seed=1)[0]
+        np.testing.assert_array_equal(loaded.predict(obs)[0], agent.predict(obs)[0])
