@@ -12,14 +12,7 @@ from dataclasses import dataclass
 import gymnasium as gym
 import numpy as np
 
-from agents.tasks import (
-    TASKS,
-    EnvSpec,
-    QuadraticTargetCost,
-    StateMap,
-    Task,
-    default_task_for_env,
-)
+from agents.tasks import TASKS, EnvSpec, QuadraticTargetCost, StateMap, Task, default_task_for_env
 from mbtsr.reward import FrozenReward, LearnedRewardCost, RewardConfig, RewardFit, RewardModel
 from mbtsr.training import holdout_mask
 from mbtsr.trajectory import Trajectory
@@ -53,11 +46,7 @@ class ResolvedTask:
 
 def registry_task(env_id: str | None) -> Task | None:
     """The task of :data:`agents.tasks.TASKS` whose env id is ``env_id`` (``None``: none)."""
-    for make in TASKS.values():
-        task = make()
-        if env_id is not None and task.env_id == env_id:
-            return task
-    return None
+    return next((t for t in (make() for make in TASKS.values()) if t.env_id == env_id), None)
 
 
 def resolve_task(
