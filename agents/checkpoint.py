@@ -104,9 +104,11 @@ def agent_payload(agent: Any) -> dict[str, Any]:
     bit-identically or to act: config, env spec and fingerprint, the serialisable task, model
     weights, Adam state, data, JacProp labels, counters, RNG states, log and the evaluator's
     targets and oracle costs (a dict for :func:`save_checkpoint`)."""
+    from agents.task_setup import LearnedTask
     from agents.tasks import QuadraticTargetCost
 
-    task: dict[str, Any] = {"cost": None, "state_map": None}
+    learned = isinstance(agent.task_cost, LearnedTask)
+    task: dict[str, Any] = {"cost": None, "state_map": None, "learned": learned}
     if isinstance(agent.cost_fn, QuadraticTargetCost):
         task["cost"] = agent.cost_fn.to_dict()
     if agent.state_map.serializable:
@@ -136,6 +138,7 @@ def agent_payload(agent: Any) -> dict[str, Any]:
         "eval_targets": None if ev.eval_targets is None else [
             np.asarray(t) for t in ev.eval_targets],
         "oracle_costs": None if ev.oracle_costs is None else np.asarray(ev.oracle_costs),
+        "reward_model": agent.task_cost.model.state_dict() if learned else None,
     }
 
 
@@ -143,9 +146,12 @@ def restore_agent(agent: Any, p: dict[str, Any]) -> None:
     """Load :func:`agent_payload`'s fields (as :func:`load_checkpoint` returns them) into a
     freshly constructed agent of the same config and task; the RNGs (numpy's and torch's global
     one) continue where the checkpoint left them."""
+    from mbtsr.reward import RewardModel
     from mbtsr.trajectory import Trajectory
 
     agent.model.load_state_dict(p["model_state"])
+    if p.get("reward_model") is not None:
+        agent.task_cost.model = RewardModel.from_state_dict(p["reward_model"])
     agent.freeze()
     agent.trainer.optimizer_state = p["optimizer_state"]
     agent.trajectories = [
@@ -229,15 +235,14 @@ def check_resumable(
             check_same(json.loads(payload["env_fingerprint"]), env_fingerprint(env),
                        what="env", path=path)
     task = json.loads(payload["task"])
-    fns = dict(fns)
     needed = task.get("functions")
     if needed is None:  # a checkpoint from before the list was saved
         needed = (["cost_fn"] if task.get("cost") is None else []) + (
             ["state_fn", "obs_fn"] if task.get("state_map") is None else [])
-    if task.get("registry"):
-        saved = make_task(task["registry"]).agent_kwargs()
-        fns = {k: saved[k] if fns[k] is None and k in needed else fns[k] for k in fns}
-    missing = [k for k in FUNCTION_NAMES if k in needed and fns[k] is None]
+    # a registry task's functions come from the registry (agents.task_setup.resolve_task)
+    saved = make_task(task["registry"]).agent_kwargs() if task.get("registry") else {}
+    missing = [k for k in FUNCTION_NAMES
+               if k in needed and fns[k] is None and saved.get(k) is None]
     if missing:
         raise ValueError(
             f"the agent was built with its own {', '.join(missing)}, which a checkpoint cannot "

@@ -33,6 +33,7 @@ import yaml
 
 from mbtsr.cem import CEMOptions
 from mbtsr.ensemble import ModelConfig
+from mbtsr.reward import RewardConfig
 from mbtsr.training import RegularizationConfig, TrainConfig
 
 __all__ = ["AgentConfig", "CollectionConfig", "PlannerConfig", "EvaluationConfig",
@@ -205,7 +206,7 @@ class EvaluationConfig(_Section):
 SECTIONS: dict[str, type] = {
     "collection": CollectionConfig, "model": ModelConfig, "training": TrainConfig,
     "regularization": RegularizationConfig, "planner": PlannerConfig,
-    "evaluation": EvaluationConfig}
+    "evaluation": EvaluationConfig, "reward": RewardConfig}
 _NAMED: dict[str, Callable[[str], Any]] = {  # the sections a name can stand for
     "regularization": lambda name: RegularizationConfig.named(name, ltv_lambda=None),
     "planner": lambda name: PlannerConfig(kind=name)}
@@ -225,6 +226,8 @@ class AgentConfig(_Section):
         approximates), ``smooth`` (LTV-free); ``ltv_lambda`` ``None``: chosen per trajectory.
     :param planner: the MPC planner on the learned model.
     :param evaluation: evaluation episodes and the "solved" criterion.
+    :param reward: the reward model learned when the task has no written cost (an env that
+        :mod:`agents.tasks` does not know, without ``cost_fn``).
     :param seed: master seed; every random draw of a run derives from it.
     :param renormalize: recompute the model's normalization from ALL data before every update.
     :param ltv_prior: fuse each LTV fit with the ensemble's Jacobians as a prior of variance the
@@ -243,6 +246,7 @@ class AgentConfig(_Section):
     #: command line does not offer them (:mod:`agents.cli`)
     FIXED: ClassVar[dict[str, str]] = {
         "training.seed": "the agent seeds every update from seed",
+        "reward.seed": "the agent seeds the reward model from seed",
         "regularization.ltv_affine": "the agent's LTV fits have no affine term",
         **{f"planner.{s}.{f}": why for s in ("cem", "proposal") for f, why in (
             ("seed", "the agent seeds every solve from seed"),
@@ -260,6 +264,7 @@ class AgentConfig(_Section):
         "regularization"]("sampled"))
     planner: PlannerConfig = field(default_factory=PlannerConfig)
     evaluation: EvaluationConfig = field(default_factory=EvaluationConfig)
+    reward: RewardConfig = field(default_factory=RewardConfig)
     seed: int = 0
     renormalize: bool = True
     ltv_prior: float = 0.01

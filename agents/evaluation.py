@@ -481,10 +481,12 @@ class Evaluator:
     def oracle(self, env: gym.Env | None = None,
                kwargs: dict[str, Any] | None = None) -> np.ndarray | None:
         """Per-episode costs of the oracle (computed once, then kept; ``None``: the env has
-        no true model). The seconds spent computing it add to ``oracle_seconds``."""
+        no true model, or the task no written cost: a learned reward has no oracle). The
+        seconds spent computing it add to ``oracle_seconds``."""
         if env is None:
             env, kwargs = self.setup()
-        if self.oracle_costs is not None or not has_true_model(env):
+        if (self.oracle_costs is not None or not has_true_model(env)
+                or self.task["cost_fn"] is None):  # a learned reward: no written cost to plan on
             return self.oracle_costs
         cfg, task = self.config, self.task
 

@@ -33,6 +33,7 @@ the oracle) and :mod:`agents.checkpoint` (the payload and the run folder).
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import time
 import warnings
@@ -62,7 +63,7 @@ from agents.evaluation import NOT_EVALUATED, EpisodeRecord, Evaluator, run_episo
 from agents.labels import JacobianLabeler, check_ltv_memory
 from agents.model_training import ModelTrainer, model_errors
 from agents.planning import MPCPolicy, ReplanEvery, SB3Predictor, make_policy, planner_cost
-from agents.task_setup import check_state_map, checked_termination_fn, resolve_task
+from agents.task_setup import LearnedTask, check_state_map, checked_termination_fn, resolve_task
 from agents.tasks import EnvSpec, ObservationCost, env_spec
 from mbtsr.ensemble import DynamicsEnsemble
 from mbtsr.ltv import LTVModel
@@ -80,8 +81,12 @@ class JacPropAgent(SB3Predictor):
         space and a ``TimeLimit`` (or ``config.collection.episode_steps``).
     :param config: :class:`agents.config.AgentConfig`.
     :param cost_fn: stage cost ``cost_fn(obs, action) -> scalar`` written with CasADi
-        operations (see :mod:`agents.tasks`). ``None``: the env's own quadratic cost
-        (``env.unwrapped.cost_Q/cost_R``, as ``mbtsr/TwoLinkArm-v0`` provides).
+        operations, the exact way to state a task. ``None``: the task of
+        :data:`agents.tasks.TASKS` for the env's id (its cost, terminal cost, termination and
+        state maps, where not given), else the env's own quadratic cost
+        (``env.unwrapped.cost_Q/cost_R``, as ``mbtsr/TwoLinkArm-v0`` provides), else a reward
+        learned from the env's rewards (``config.reward``, refit after every model update;
+        the evaluation then has no oracle).
     :param state_fn: ``obs -> model state`` (numpy); with ``obs_fn``.
     :param obs_fn: ``(state, obs_ref) -> obs`` (CasADi-compatible), the inverse map used to
         evaluate ``cost_fn`` on predicted states.
@@ -89,6 +94,7 @@ class JacPropAgent(SB3Predictor):
         observation (x ``config.planner.terminal_weight``; default: the stage cost at zero action).
     :param termination_fn: ``obs [..., obs_dim] -> bool [...]`` (numpy): where the env would
         terminate; the planner (iLQR or CEM) adds no cost after a predicted termination.
+        Without one the planner does not know that episodes end (see docs/troubleshooting.md).
     :raises ValueError: at construction for non-Box spaces, an unbounded action space, a cost
         or maps that do not fit the env's dimensions, a bad config.
     """
@@ -137,14 +143,21 @@ class JacPropAgent(SB3Predictor):
     ) -> None:
         self.env, self.config, self.spec = env, config, spec
         self.env_id = getattr(getattr(env, "spec", None), "id", None) if env is not None else None
-        # the task: cost on (obs, action) and the obs <-> model-state maps
-        self.cost_fn, self.state_map = resolve_task(env, cost_fn, state_fn, obs_fn, saved_task)
+        # the task: cost on (obs, action) (or a learned reward) and the obs <-> state maps
+        self.task = resolve_task(env, cost_fn, state_fn, obs_fn, saved_task,
+                                 terminal_cost_fn=terminal_cost_fn, termination_fn=termination_fn)
+        self.cost_fn, self.state_map = self.task.cost_fn, self.task.state_map
         self.state_dim = int(check_state_map(self.state_map, env, spec).size)
         check_ltv_memory(config.regularization, self.state_dim, spec.act_dim)
-        self.task_cost = ObservationCost(
-            self.cost_fn, self.state_map, spec, self.state_dim, terminal_cost_fn=terminal_cost_fn)
-        self.terminal_cost_fn = terminal_cost_fn
-        self.termination_fn = checked_termination_fn(termination_fn, env, spec)
+        self.terminal_cost_fn = self.task.terminal_cost_fn
+        self.task_cost: ObservationCost | LearnedTask
+        if self.cost_fn is None:
+            self.task_cost = LearnedTask(self.state_map, spec, self.state_dim,
+                                         dataclasses.replace(config.reward, seed=config.seed))
+        else:
+            self.task_cost = ObservationCost(self.cost_fn, self.state_map, spec, self.state_dim,
+                                             terminal_cost_fn=self.terminal_cost_fn)
+        self.termination_fn = checked_termination_fn(self.task.termination_fn, env, spec)
         self.planner_cost = planner_cost(self.task_cost, config.planner.terminal_weight)
         # the model: an ensemble of small networks, Objective 1 (f) or 2 (g)
         self.ensemble_config = config.model.ensemble_config(self.state_dim, spec.act_dim,
@@ -157,7 +170,8 @@ class JacPropAgent(SB3Predictor):
         self.trainer = ModelTrainer(self.model, config.training, config.regularization,
                                     config.renormalize)
         self.evaluator = Evaluator(env, config, spec.episode_steps, cost_fn=self.cost_fn,
-                                   state_map=self.state_map, terminal_cost_fn=terminal_cost_fn,
+                                   state_map=self.state_map,
+                                   terminal_cost_fn=self.terminal_cost_fn,
                                    termination_fn=self.termination_fn)
         self.freeze()
         # the learning state (all of it goes into the checkpoint)
@@ -181,6 +195,8 @@ class JacPropAgent(SB3Predictor):
         cfg = self.config
         self.planning_model = self.model.freeze()
         model = self.planning_model
+        if isinstance(self.task_cost, LearnedTask):  # the reward learned so far
+            self.planner_cost = planner_cost(self.task_cost, cfg.planner.terminal_weight)
         if cfg.planner.propagation == "ts":
             model = self.planning_model.trajectory_sampling(seed=cfg.seed)
         common = {"seed": cfg.seed, "cost": self.planner_cost,
@@ -459,12 +475,15 @@ class JacPropAgent(SB3Predictor):
         # (b) the JacProp labels: an LTV model of the new trajectory
         tic = time.perf_counter()
         lam, ltv_note = self.labeler.add(traj, self.model, self.trajectories, ep)
+        traj.meta["rewards"] = np.asarray(rec.rewards, dtype=float).tolist()  # r_t of (x_t, u_t)
         self.trajectories.append(traj)
         time_ltv = time.perf_counter() - tic
 
         # (c) + (d) regularised warm-started update on all data, then (e) a new planner
         tic = time.perf_counter()
         history = self.trainer.train(self.trajectories, self.labeler.models, train_seed)
+        if isinstance(self.task_cost, LearnedTask):  # the reward, warm-started on all data
+            self.task_cost.fit(self.trajectories)
         self.freeze()
         time_training = time.perf_counter() - tic
 

@@ -268,8 +268,15 @@ class ModelEnv(gym.Env):
             def termination_fn(obs, action, next_obs):
                 return bool(np.asarray(task_done(next_obs)).reshape(()))
         frozen = agent.model.freeze() if hasattr(agent.model, "freeze") else agent.model
-        cost = agent.task_cost.obs_function  # casadi Function (obs, a) -> cost
         state_map = agent.state_map
+        cost_on = "next"
+        if agent.cost_fn is None:  # a learned reward: r_hat(s_t, a_t), on the step's start
+            reward, cost_on = agent.task_cost.frozen(), "current"
+
+            def cost(o: np.ndarray, a: np.ndarray) -> np.ndarray:
+                return -reward.predict(state_map.state(o), np.asarray(a, dtype=float))
+        else:
+            cost = agent.task_cost.obs_function  # casadi Function (obs, a) -> cost
         return cls(
             frozen,
             obs_space,
@@ -282,4 +289,5 @@ class ModelEnv(gym.Env):
             termination_fn=termination_fn,
             member=member,
             max_episode_steps=spec.episode_steps,
+            cost_on=cost_on,
         )

@@ -30,6 +30,7 @@ import gymnasium as gym
 import numpy as np
 
 from agents.config import PlannerConfig
+from agents.task_setup import LearnedTask
 from agents.tasks import ObservationCost
 from mbtsr.cem import cem
 from mbtsr.cem_ilqr import CEMILQROptions, cem_ilqr
@@ -42,12 +43,16 @@ __all__ = ["MPCPolicy", "ReplanEvery", "ReplanState", "SB3Predictor", "TrueState
            "make_policy", "planner_cost", "solver"]
 
 
-def planner_cost(task_cost: ObservationCost, terminal_weight: float = 1.0) -> CasadiCost:
-    """The planner's :class:`mbtsr.costs.CasadiCost` of a task, compiled once: stage
+def planner_cost(task_cost: ObservationCost | LearnedTask, terminal_weight: float = 1.0
+                 ) -> CasadiCost:
+    """The planner's :class:`mbtsr.costs.CasadiCost` of a task (of a
+    :class:`~agents.task_setup.LearnedTask`: its current learned reward's), compiled once: stage
     ``cost_fn(obs_fn(s, p), a)`` and terminal ``terminal_weight * cost_fn(obs_fn(s, p), 0)`` on
     the model state ``s``, with the reference observation ``p = obs [obs_dim]`` as the cost
     parameter (for the arm only its target entries matter). A new target is a new ``params``,
     not a new function."""
+    if isinstance(task_cost, LearnedTask):
+        return task_cost.planner_cost(terminal_weight)
     n, m, d = task_cost.state_dim, task_cost.spec.act_dim, task_cost.spec.obs_dim
     s, a, p, t = ca.SX.sym("s", n), ca.SX.sym("a", m), ca.SX.sym("p", d), ca.SX.sym("t")
     stage = ca.Function("stage", [s, a, t, p], [task_cost.stage(s, a, p)])

@@ -1,20 +1,52 @@
 """The agent's task from its constructor arguments: the cost and the observation <-> model-state
-maps (given, saved with a checkpoint, or the env's own), checked on probe observations before
+maps (given, saved with a checkpoint, the registry's task for the env's id, the env's own, or
+a reward learned from the env's rewards), checked on probe observations before
 any learning starts, so that a wrong function fails at construction with a clear message.
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable
-from typing import Any
+from dataclasses import dataclass
 
 import gymnasium as gym
 import numpy as np
 
-from agents.tasks import EnvSpec, QuadraticTargetCost, StateMap, default_task_for_env
+from agents.tasks import TASKS, EnvSpec, QuadraticTargetCost, StateMap, Task, default_task_for_env
+from mbtsr.reward import FrozenReward, LearnedRewardCost, RewardConfig, RewardFit, RewardModel
+from mbtsr.training import holdout_mask
+from mbtsr.trajectory import Trajectory
 from mbtsr.validation import call_user_fn, check_callable
 
-__all__ = ["check_state_map", "checked_termination_fn", "probe_observations", "resolve_task"]
+__all__ = ["LearnedTask", "ResolvedTask", "check_state_map", "checked_termination_fn",
+           "probe_observations", "registry_task", "resolve_task"]
+
+
+@dataclass(frozen=True)
+class ResolvedTask:
+    """The agent's task after :func:`resolve_task`.
+
+    :param cost_fn: the stage cost on ``(obs, action)`` (CasADi operations), or ``None``: the
+        reward is learned from the env's rewards (:class:`LearnedTask`).
+    :param state_map: observation <-> model state.
+    :param terminal_cost_fn: / ``termination_fn``: the given ones, else the registry task's.
+    :param source: where the cost comes from: ``"given"``, ``"saved"``, ``"registry"`` (a task
+        of :data:`agents.tasks.TASKS`, see ``registry``), ``"env"`` (``cost_Q``/``cost_R``) or
+        ``"learned"``.
+    :param registry: the name of the registry task (``source="registry"``), else ``None``.
+    """
+
+    cost_fn: Callable | None
+    state_map: StateMap
+    terminal_cost_fn: Callable | None = None
+    termination_fn: Callable | None = None
+    source: str = "given"
+    registry: str | None = None
+
+
+def registry_task(env_id: str | None) -> Task | None:
+    """The task of :data:`agents.tasks.TASKS` whose env id is ``env_id`` (``None``: none)."""
+    return next((t for t in (make() for make in TASKS.values()) if t.env_id == env_id), None)
 
 
 def resolve_task(
@@ -23,30 +55,96 @@ def resolve_task(
     state_fn: Callable | None,
     obs_fn: Callable | None,
     saved_task: dict | None = None,
-) -> tuple[Any, StateMap]:
-    """``(cost_fn, state_map)``: the given functions, else the saved task's (a checkpoint's
-    ``to_dict()`` of a :class:`~agents.tasks.QuadraticTargetCost` and a
-    :class:`~agents.tasks.StateMap`), else the env's own quadratic cost.
+    *,
+    terminal_cost_fn: Callable | None = None,
+    termination_fn: Callable | None = None,
+) -> ResolvedTask:
+    """The task from the constructor's arguments, first match wins:
 
-    :raises ValueError: no cost given and none saved or built into the env.
+    1. ``cost_fn`` given: it (with ``state_fn``/``obs_fn``);
+    2. a saved :class:`~agents.tasks.QuadraticTargetCost` (a checkpoint's task);
+    3. the task of :data:`agents.tasks.TASKS` for the env's id (or the saved task's
+       ``registry`` name): its cost, terminal cost, termination and state maps, each only where
+       the caller gave none;
+    4. the env's own quadratic cost (``env.unwrapped.cost_Q``/``cost_R``);
+    5. none: ``cost_fn=None``, the agent learns the reward from the env's rewards.
     """
-    if cost_fn is None and saved_task is not None and saved_task.get("cost") is not None:
-        cost_fn = QuadraticTargetCost.from_dict(saved_task["cost"])
+    own = {"terminal_cost_fn": terminal_cost_fn, "termination_fn": termination_fn}
+    if cost_fn is not None:
+        return ResolvedTask(cost_fn, StateMap(state_fn, obs_fn), **own)
+    saved_task = saved_task or {}
+    if saved_task.get("cost") is not None:
+        cost = QuadraticTargetCost.from_dict(saved_task["cost"])
         if state_fn is None and saved_task.get("state_map") is not None:
-            return cost_fn, StateMap.from_dict(saved_task["state_map"])
-        return cost_fn, StateMap(state_fn, obs_fn)
-    if cost_fn is None:
-        default = default_task_for_env(env) if env is not None else None
-        if default is None:
-            env_id = getattr(getattr(env, "spec", None), "id", None)
-            where = "the saved agent" if env is None else f"env {env_id or env!r}"
-            raise ValueError(
-                f"cost_fn is required: {where} has no built-in cost (env.unwrapped.cost_Q "
-                "and cost_R); pass cost_fn(obs, action) written with casadi operations"
-            )
-        cost_fn, default_map = default
-        return cost_fn, default_map if state_fn is None else StateMap(state_fn, obs_fn)
-    return cost_fn, StateMap(state_fn, obs_fn)
+            return ResolvedTask(cost, StateMap.from_dict(saved_task["state_map"]), **own,
+                                source="saved")
+        return ResolvedTask(cost, StateMap(state_fn, obs_fn), **own, source="saved")
+    env_id = getattr(getattr(env, "spec", None), "id", None)
+    task = (TASKS[saved_task["registry"]]() if saved_task.get("registry") in TASKS
+            else registry_task(env_id))
+    if task is not None and task.cost_fn is not None:
+        maps = (state_fn, obs_fn) if state_fn is not None else (task.state_fn, task.obs_fn)
+        return ResolvedTask(
+            task.cost_fn, StateMap(*maps),
+            terminal_cost_fn if terminal_cost_fn is not None else task.terminal_cost_fn,
+            termination_fn if termination_fn is not None else task.termination_fn,
+            source="registry", registry=task.name)
+    default = default_task_for_env(env) if env is not None else None
+    if default is not None:
+        cost, default_map = default
+        return ResolvedTask(cost, default_map if state_fn is None else StateMap(state_fn, obs_fn),
+                            **own, source="env")
+    return ResolvedTask(None, StateMap(state_fn, obs_fn), **own, source="learned")
+
+
+class LearnedTask:
+    """Stands where :class:`~agents.tasks.ObservationCost` does for an env without a written
+    cost: the planner's cost is ``-r_hat(s, a)`` of a :class:`~mbtsr.reward.RewardModel`
+    trained on the env's rewards (:class:`~mbtsr.reward.LearnedRewardCost`), on the model state
+    ``s = state_map.state(obs)``; before its first fit the reward is 0 everywhere.
+
+    :param state_map: observation <-> model state.
+    :param spec: the env's :class:`~agents.tasks.EnvSpec`.
+    :param state_dim: the model state's size ``n``.
+    :param config: the reward model's settings (seeded by the caller).
+    """
+
+    cost_fn = None
+    terminal_cost_fn = None
+
+    def __init__(self, state_map: StateMap, spec: EnvSpec, state_dim: int,
+                 config: RewardConfig) -> None:
+        self.state_map, self.spec, self.state_dim = state_map, spec, int(state_dim)
+        self.model = RewardModel(self.state_dim, spec.act_dim, config)
+
+    def frozen(self) -> FrozenReward:
+        """The current reward as a :class:`~mbtsr.reward.FrozenReward` (0 before a fit)."""
+        if self.model.normalization is None:
+            d = self.state_dim + self.spec.act_dim
+            return FrozenReward(np.zeros((d, 1)), np.zeros(1), np.zeros(1), 0.0, self.state_dim)
+        return self.model.freeze()
+
+    def planner_cost(self, terminal_weight: float) -> LearnedRewardCost:
+        """The planner's cost (the observation is its ignored parameter, as for a written
+        cost)."""
+        return LearnedRewardCost(self.frozen(), terminal_weight=terminal_weight,
+                                 param_dim=self.spec.obs_dim)
+
+    def fit(self, trajectories: list[Trajectory]) -> RewardFit | None:
+        """Fit (warm start) on every transition ``(s_t, a_t) -> r_t`` of ``trajectories``
+        (rewards in ``meta["rewards"]``); ``None`` while they hold too few for the hold-out."""
+        S = np.concatenate([t.x[:-1] for t in trajectories])
+        A = np.concatenate([t.u for t in trajectories])
+        r = np.concatenate([np.asarray(t.meta["rewards"], dtype=float) for t in trajectories])
+        held = int(holdout_mask(len(r), self.model.config.holdout).sum())
+        if len(r) - held < 1 or (self.model.config.holdout > 0 and held < 1):
+            return None
+        return self.model.fit(S, A, r)
+
+    def on_observations(self, obs: np.ndarray, actions: np.ndarray) -> np.ndarray:
+        """Per-step learned cost ``-r_hat`` of a recorded episode: ``obs [T, obs_dim]``,
+        ``actions [T, m]`` -> ``[T]``."""
+        return -self.frozen().predict(self.state_map.state(obs), np.asarray(actions, float))
 
 
 def probe_observations(env: gym.Env | None, shape: tuple[int, ...]) -> np.ndarray:

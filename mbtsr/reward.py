@@ -47,6 +47,7 @@ import numpy as np
 import torch
 
 from mbtsr.costs import CasadiCost, CostDerivatives
+from mbtsr.ensemble import REL_STD_FLOOR
 from mbtsr.training import holdout_mask
 from mbtsr.validation import as_array, check_int, check_nonnegative, check_positive
 
@@ -168,9 +169,10 @@ class RewardModel:
             raise ValueError(f"{N} transitions are too few for a hold-out of {cfg.holdout} "
                              f"({n_hold} held out): give more, or holdout=0")
         Z = np.hstack([S, A])
-        if self.normalization is None:
-            self.normalization = (Z.mean(0), np.maximum(Z.std(0), 1e-6),
-                                  r.mean(), max(float(r.std()), 1e-6))
+        if self.normalization is None:  # a constant input is not rescaled (as the dynamics)
+            std, scale = Z.std(0), np.abs(Z).max(0)
+            std = np.where((std <= REL_STD_FLOOR * scale) | (std == 0), 1.0, std)
+            self.normalization = (Z.mean(0), std, r.mean(), max(float(r.std()), 1e-6))
         mz, sz, mr, sr = self.normalization
         rng = np.random.default_rng([cfg.seed, self.fits])
         self.fits += 1

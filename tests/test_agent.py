@@ -191,10 +191,9 @@ def test_construction_rejects_costs_that_do_not_fit_the_env(cost_fn, message):
         JacPropAgent(gym.make("Pendulum-v1"), tiny_config(), cost_fn=cost_fn)
 
 
-def test_construction_rejects_missing_cost_bad_maps_and_video_without_rgb():
+def test_construction_rejects_bad_maps_and_video_without_rgb():
     env = gym.make("Pendulum-v1")
-    with pytest.raises(ValueError, match="cost_fn is required"):
-        JacPropAgent(env, tiny_config())
+    assert JacPropAgent(env, tiny_config()).task.source == "learned"  # no cost: a learned reward
     with pytest.raises(ValueError, match="without obs_fn"):
         JacPropAgent(env, tiny_config(), cost_fn=pendulum_cost,
                      state_fn=lambda o: np.arctan2(o[..., 1], o[..., 0])[..., None])

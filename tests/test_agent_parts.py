@@ -234,15 +234,15 @@ def test_evaluator_schedule_and_scores_like_evaluate_policy_costs():
 
 
 # ----------------------------------------------------------------- task checks
-def test_task_setup_refuses_a_map_that_indexes_the_batch_and_a_missing_cost():
+def test_task_setup_refuses_a_map_that_indexes_the_batch_and_learns_a_missing_cost():
     env = gym.make("Pendulum-v1")
     spec = env_spec(env)
     with pytest.raises(ValueError, match=r"obs\[\.\.\., i\]"):
         check_state_map(StateMap(lambda o: np.stack([o[0], o[1]]), lambda s, r: ca.vertcat(
             s, r[2])), env, spec)
     assert check_state_map(StateMap(), env, spec).shape == (3,)
-    with pytest.raises(ValueError, match="cost_fn is required"):
-        resolve_task(env, None, None, None)
+    learned = resolve_task(env, None, None, None)  # no cost anywhere: a learned reward
+    assert learned.cost_fn is None and learned.source == "learned"
 
 
 @pytest.mark.parametrize("kind", ["ilqr", "cem", "cem-ilqr"])

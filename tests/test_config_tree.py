@@ -275,6 +275,15 @@ LEAVES = {
     "jacobian_error": st.booleans(),
     "progress": st.booleans(),
     "torch_threads": st.integers(0, 8),
+    "reward.members": st.integers(1, 8),
+    "reward.hidden": st.integers(1, 64),
+    "reward.steps": st.integers(1, 5000),
+    "reward.batch": st.integers(1, 1024),
+    "reward.lr": st.floats(1e-5, 1.0),
+    "reward.weight_decay": st.floats(0.0, 1.0),
+    "reward.holdout": st.floats(0.0, 0.9),
+    "reward.eval_every": st.integers(1, 500),
+    "reward.patience": st.integers(1, 20),
 }
 #: the documented rule: these fields act only when ... (docs/agent.md, "Settings without effect")
 ACTS_ONLY_WHEN = {
@@ -380,7 +389,7 @@ def test_a_partial_dict_loads_as_exactly_its_changes_and_round_trips(changes):
     fixed = {"training.seed", "planner.cem.seed", "planner.proposal.seed",
              "planner.cem.explore_weight", "planner.proposal.explore_weight",
              "planner.cem.explore_on", "planner.proposal.explore_on",
-             "regularization.ltv_affine"}
+             "regularization.ltv_affine", "reward.seed"}
     assert set(LEAVES) | fixed == set(DEFAULTS)  # the strategies cover the whole tree
     cfg = AgentConfig.from_dict(nested(changes))
     assert_exactly(cfg, changes)

@@ -1,0 +1,201 @@
+"""Any Gymnasium env with no other argument (issue 44): a registry task by the env's id, else a
+reward learned from the env's rewards; the CI smoke over every MuJoCo v5 env Gymnasium ships
+and its classic-control envs with Box actions."""
+
+from __future__ import annotations
+
+import casadi as ca
+import gymnasium as gym
+import numpy as np
+import pytest
+import torch
+
+from agents import AgentConfig, JacPropAgent
+from agents.task_setup import LearnedTask
+from agents.tasks import inverted_pendulum, reacher
+from mbtsr.reward import LearnedRewardCost
+
+#: tiny model, planner, training and reward budgets (bench_suite's SMOKE_OVERRIDES and a reward)
+SMOKE = {
+    "training.steps": 3, "planner.horizon": 5, "planner.first_plan_iterations": 2,
+    "planner.ilqr_iterations": 1, "planner.proposal.samples": 8, "planner.proposal.elites": 2,
+    "planner.proposal.iterations": 1, "model.ensemble_size": 2, "model.hidden_width": 8,
+    "reward.steps": 5, "reward.members": 2, "reward.hidden": 8,
+    "collection.episode_steps": 10, "collection.n_excitation_episodes": 1,
+    "evaluation.every": 0, "progress": False, "tensorboard": False, "checkpoint": False,
+    "jacobian_error": False,
+}
+
+#: the documented settings an env needs (docs/troubleshooting.md, "A large observation"): the
+#: LTV labels of a 348-dimensional state would not fit in memory
+NEEDS = {"Humanoid-v5": {"regularization": "smooth"},
+         "HumanoidStandup-v5": {"regularization": "smooth"}}
+
+MUJOCO_V5 = sorted(
+    k for k, v in gym.envs.registry.items()
+    if k.endswith("-v5") and isinstance(v.entry_point, str)
+    and v.entry_point.startswith("gymnasium.envs.mujoco"))
+
+
+def _config(env_id: str = "", **extra: object) -> AgentConfig:
+    return AgentConfig.default({**SMOKE, **NEEDS.get(env_id, {}), **extra})
+
+
+def test_the_smoke_covers_every_mujoco_v5_env():
+    assert len(MUJOCO_V5) >= 11 and {"Reacher-v5", "Humanoid-v5", "Ant-v5"} <= set(MUJOCO_V5)
+
+
+@pytest.mark.parametrize("env_id", [*MUJOCO_V5, "Pendulum-v1", "MountainCarContinuous-v0"])
+def test_any_env_learns_with_no_other_argument(env_id):
+    agent = JacPropAgent(gym.make(env_id), _config(env_id))
+    agent.learn(episodes=2)
+    rows = agent.logger_rows
+    assert [r["episode"] for r in rows] == [0, 1] and rows[1]["phase"] == "mpc"
+    for r in rows:
+        assert np.isfinite(r["episode_cost"]) and np.isfinite(r["model_cost"])
+    action, _ = agent.predict(agent.env.reset(seed=3)[0])
+    assert np.all(np.isfinite(action)) and agent.env.action_space.contains(
+        action.astype(agent.env.action_space.dtype))
+    if agent.task.source == "learned":  # the reward saw every transition so far
+        assert agent.task_cost.model.fits == 2
+        assert sum(len(t.meta["rewards"]) for t in agent.trajectories) == agent.env_steps
+
+
+def test_a_registry_env_by_its_id_uses_the_registrys_task():
+    agent = JacPropAgent(gym.make("Reacher-v5"))  # no other argument
+    task = reacher()
+    assert agent.task.source == "registry" and agent.task.registry == "reacher"
+    assert agent.cost_fn is task.cost_fn and agent.terminal_cost_fn is task.terminal_cost_fn
+    rng = np.random.default_rng(0)
+    obs, act = rng.normal(size=(6, 10)), rng.uniform(-1, 1, (6, 2))
+    expected = [float(task.cost_fn(ca.DM(o), ca.DM(a))) for o, a in zip(obs, act)]
+    np.testing.assert_allclose(agent.task_cost.on_observations(obs, act), expected, rtol=1e-12)
+    # the planner's terminal cost is the task's, at the planner's terminal weight
+    s, p = ca.DM(obs[0]), ca.DM(obs[0])
+    w = agent.config.planner.terminal_weight
+    np.testing.assert_allclose(float(agent.planner_cost.terminal(s, p)),
+                               w * float(task.terminal_cost_fn(ca.DM(obs[0]))), rtol=1e-12)
+
+
+def test_the_registrys_termination_and_a_users_functions():
+    agent = JacPropAgent(gym.make("InvertedPendulum-v5"), _config())
+    assert agent.termination_fn is inverted_pendulum().termination_fn
+
+    def cost(obs, a):
+        return ca.sumsqr(obs) + ca.sumsqr(a)
+
+    def never(obs):
+        return np.zeros(np.shape(obs)[:-1], bool)
+
+    mine = JacPropAgent(gym.make("InvertedPendulum-v5"), _config(), cost_fn=cost,
+                        termination_fn=never)
+    assert mine.task.source == "given" and mine.cost_fn is cost
+    assert mine.termination_fn is never
+
+
+def test_an_unknown_env_learns_its_reward_and_plans_on_it():
+    """Pendulum-v1: after a few episodes the learned cost ranks held-out steps as the env's
+    rewards do, and the planner's cost is that learned reward."""
+    cfg = _config(**{"collection.episode_steps": 100, "collection.n_excitation_episodes": 3,
+                     "collection.excitation_scale": 1.0, "reward.steps": 1500,
+                     "reward.members": 3, "reward.hidden": 32})
+    agent = JacPropAgent(gym.make("Pendulum-v1"), cfg)
+    assert agent.task.source == "learned" and agent.cost_fn is None
+    before = agent.planner_cost
+    assert isinstance(before, LearnedRewardCost)
+    assert np.all(before.reward.predict(np.ones((4, 3)), np.ones((4, 1))) == 0)  # no data: 0
+    agent.learn(episodes=3)
+    cost = agent.planner_cost
+    assert isinstance(cost, LearnedRewardCost) and cost is not before
+    assert agent.actor.policy.mpc.cost is cost
+    # held-out: an episode of random actions from another start
+    env = gym.make("Pendulum-v1")
+    obs, _ = env.reset(seed=12345)
+    rng = np.random.default_rng(7)
+    O, A, R = [], [], []
+    for _ in range(200):
+        a = rng.uniform(-2, 2, 1)
+        O.append(obs)
+        A.append(a)
+        obs, r, *_ = env.step(a.astype(np.float32))
+        R.append(r)
+    learned = agent.task_cost.on_observations(np.array(O), np.array(A))
+    corr = np.corrcoef(learned, -np.array(R))[0, 1]
+    assert corr > 0.9, corr
+    # the planner's stage cost is -r_hat of the reward model
+    X, U = np.array(O)[:5], np.array(A)[:5]
+    stage = cost.stage_values(X[None], U[None], params=np.array(O[0]))
+    np.testing.assert_allclose(np.ravel(stage), learned[:5], rtol=1e-10)
+
+
+def test_a_learned_reward_resumes_bit_identically(tmp_path):
+    def fresh() -> JacPropAgent:
+        return JacPropAgent(gym.make("Pendulum-v1"), _config())
+
+    whole = fresh().learn(episodes=3)
+    part = fresh().learn(episodes=2)
+    part.save(tmp_path / "a.pt")
+    resumed = JacPropAgent.load(tmp_path / "a.pt", gym.make("Pendulum-v1")).learn(episodes=1)
+    assert [r["episode_cost"] for r in resumed.logger_rows] == [
+        r["episode_cost"] for r in whole.logger_rows]
+    for k, v in whole.task_cost.model.state_dict()["params"].items():
+        assert torch.equal(v, resumed.task_cost.model.state_dict()["params"][k]), k
+    # without an env: acts on the saved learned reward
+    actor = JacPropAgent.load(tmp_path / "a.pt")
+    assert isinstance(actor.task_cost, LearnedTask) and actor.task_cost.model.fits == 2
+    obs = np.array([1.0, 0.0, 0.0])
+    np.testing.assert_array_equal(actor.predict(obs)[0], part.predict(obs)[0])
+
+
+def test_without_a_written_cost_the_evaluation_has_no_oracle():
+    agent = JacPropAgent(gym.make("Swimmer-v5"),
+                         _config(**{"evaluation.every": 1, "evaluation.episodes": 1}))
+    agent.learn(episodes=1)
+    row = agent.logger_rows[-1]
+    assert row["oracle_cost"] is None and row["cost_ratio"] is None
+    assert np.isfinite(row["eval_cost"]) and agent.compute_oracle() is None
+
+
+def test_model_env_of_a_learned_reward_agent_rewards_with_the_learned_reward():
+    from agents.model_env import ModelEnv
+
+    agent = JacPropAgent(gym.make("Pendulum-v1"), _config()).learn(episodes=2)
+    menv = ModelEnv.from_agent(agent)
+    obs, _ = menv.reset(seed=0)
+    a = np.array([0.5], dtype=np.float32)
+    _, r, *_ = menv.step(a)
+    expected = agent.task_cost.frozen().predict(agent.state_map.state(obs), a.astype(float))
+    assert r == pytest.approx(float(expected), rel=1e-9)
+
+
+def test_a_constant_input_of_the_first_fit_is_not_rescaled():
+    """An input that was constant in the first data (a contact force at rest) keeps unit scale:
+    a small value later moves the learned reward little (a 1e-6 std floor made 1e-3 a
+    thousand standard deviations)."""
+    from mbtsr.reward import RewardConfig, RewardModel
+
+    rng = np.random.default_rng(0)
+    S = np.column_stack([rng.normal(size=400), np.zeros(400)])
+    A = rng.normal(size=(400, 1))
+    r = -S[:, 0] ** 2 - 0.1 * A[:, 0] ** 2
+    model = RewardModel(2, 1, RewardConfig(steps=300, seed=0))
+    model.fit(S, A, r)
+    frozen = model.freeze()
+    x = np.column_stack([rng.normal(size=50), np.zeros(50)])
+    u = rng.normal(size=(50, 1))
+    moved = x + np.array([0.0, 1e-3])
+    assert np.max(np.abs(frozen.predict(moved, u) - frozen.predict(x, u))) < 0.01 * r.std()
+
+
+def test_a_registry_agent_loads_without_its_functions(tmp_path):
+    """The registry task's name is saved: load needs neither the cost nor the state maps
+    (InvertedDoublePendulum's model state is 6 joint numbers, not the 9 observations)."""
+    agent = JacPropAgent(gym.make("InvertedDoublePendulum-v5"), _config()).learn(episodes=1)
+    assert agent.state_dim == 6
+    agent.save(tmp_path / "idp.pt")
+    for env in (gym.make("InvertedDoublePendulum-v5"), None):
+        loaded = JacPropAgent.load(tmp_path / "idp.pt", env)
+        assert loaded.task.source == "registry" and loaded.state_dim == 6
+        assert loaded.termination_fn is agent.termination_fn
+        obs = agent.env.reset(seed=1)[0]
+        np.testing.assert_array_equal(loaded.predict(obs)[0], agent.predict(obs)[0])
