@@ -133,6 +133,7 @@ def agent_payload(agent: Any) -> dict[str, Any]:
         "episodes_done": agent.episodes_done,
         "env_steps": agent.env_steps,
         "rng": numpy_rng_state(agent.rng),
+        "predict_rng": numpy_rng_state(agent.predict_rng),
         "torch_rng": torch.get_rng_state(),
         "log": json.dumps(agent.logger_rows),
         "eval_targets": None if ev.eval_targets is None else [
@@ -162,6 +163,8 @@ def restore_agent(agent: Any, p: dict[str, Any]) -> None:
     agent.episodes_done = int(p["episodes_done"])
     agent.env_steps = int(p["env_steps"])
     set_numpy_rng_state(agent.rng, p["rng"])
+    if "predict_rng" in p:  # checkpoints from before predict(deterministic=False) had none
+        set_numpy_rng_state(agent.predict_rng, p["predict_rng"])
     torch.set_rng_state(p["torch_rng"])
     agent.logger_rows = json.loads(p["log"])
     ev = agent.evaluator

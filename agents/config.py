@@ -141,6 +141,9 @@ class PlannerConfig(_Section):
     :param first_plan_iterations: iLQR (or CEM) iterations for the plan at an episode's start.
     :param cem: the CEM settings of ``kind=cem`` (:class:`mbtsr.cem.CEMOptions`).
     :param proposal: the CEM settings of ``kind=cem-ilqr``'s proposal.
+    :param warm_samples: the proposal's samples once warm-started (``None``: ``proposal.samples``;
+        at most that many; a cold start samples ``proposal.samples``;
+        :class:`mbtsr.cem_ilqr.CEMILQROptions`).
     :param propagation: CEM's rollouts on the ensemble: ``mean`` (the mean model) or ``ts`` (PETS'
         trajectory sampling: each of the ``cem.particles`` follows one member; use a multiple of
         ``model.ensemble_size``).
@@ -148,7 +151,7 @@ class PlannerConfig(_Section):
 
     _BOUNDS: ClassVar[dict[str, Any]] = dict(
         horizon=2, replan_every=1, ilqr_iterations=1, first_plan_iterations=1,
-        terminal_weight=0.0)
+        terminal_weight=0.0, warm_samples=2)
     horizon: int = 30
     replan_every: int = 1
     replan_feedback: bool = False
@@ -159,6 +162,7 @@ class PlannerConfig(_Section):
     cem: CEMOptions = field(default_factory=lambda: CEMOptions(iterations=3))
     proposal: CEMOptions = field(
         default_factory=lambda: CEMOptions(samples=64, elites=8, iterations=2))
+    warm_samples: int | None = 32
     propagation: Literal["mean", "ts"] = "mean"
 
     def _check(self) -> None:
@@ -454,7 +458,7 @@ _DEPENDENT = {
     "regularization.ltv_lambda ltv_prior":
         "regularization.sampled_weight > 0 or regularization.exact_weight > 0",
     "planner.cem.": "planner.kind == 'cem'",
-    "planner.proposal.": "planner.kind == 'cem-ilqr'",
+    "planner.proposal. planner.warm_samples": "planner.kind == 'cem-ilqr'",
     "planner.replan_feedback": "planner.replan_every > 1 and planner.kind != 'cem'",
     "planner.ilqr_iterations": "planner.kind != 'cem'",
     "collection.excitation_window": "collection.excitation == 'filtered_gaussian'",

@@ -421,11 +421,14 @@ class Evaluator:
     def setup(self) -> tuple[gym.Env, dict[str, Any]]:
         """``(env, keyword arguments)`` that :func:`evaluate_policy_costs` scores a policy with
         on these episodes (with ``self.eval_targets`` and ``evaluation.seed``)."""
-        env, targets = self.eval_env(), self.targets()
+        return self.eval_env(), self.episode_kwargs()
+
+    def episode_kwargs(self) -> dict[str, Any]:
+        """The keyword arguments of :meth:`setup` (episode length, number of episodes)."""
         kwargs: dict[str, Any] = {"max_steps": self.episode_steps}
-        if targets is None:
+        if self.targets() is None:
             kwargs["n_episodes"] = self.config.evaluation.episodes
-        return env, kwargs
+        return kwargs
 
     def evaluate(self, policy: Any) -> dict[str, Any]:
         """Score ``policy`` (SB3-style ``predict``) on the evaluation episodes.
@@ -485,6 +488,8 @@ class Evaluator:
         seconds spent computing it add to ``oracle_seconds``."""
         if env is None:
             env, kwargs = self.setup()
+        elif kwargs is None:
+            kwargs = self.episode_kwargs()
         if (self.oracle_costs is not None or not has_true_model(env)
                 or self.task["cost_fn"] is None):  # a learned reward: no written cost to plan on
             return self.oracle_costs

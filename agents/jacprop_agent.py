@@ -187,11 +187,12 @@ class JacPropAgent(SB3Predictor):
         self._sb3_logger: Logger | None = None
 
     def freeze(self) -> None:
-        """Train -> freeze -> plan: the controller plans with an immutable float64 copy of the
-        ensemble, taken after each training round (and at construction / load): the MPC of
-        ``config.planner`` (:func:`agents.planning.make_policy`) on the ensemble mean, or CEM
-        on its trajectory-sampling view (``config.planner.propagation="ts"``). Training
-        rollouts use ``collection.explore_weight``'s directed exploration when it is > 0."""
+        """Train -> freeze -> plan: the controller plans with an immutable numpy copy of the
+        ensemble (float32 planning kernels), taken after each training round (and at
+        construction / load): the MPC of ``config.planner`` (:func:`agents.planning.make_policy`)
+        on the ensemble mean, or CEM on its trajectory-sampling view
+        (``config.planner.propagation="ts"``). Training rollouts use
+        ``collection.explore_weight``'s directed exploration when it is > 0."""
         cfg = self.config
         self.planning_model = self.model.freeze()
         model = self.planning_model

@@ -86,7 +86,8 @@ def solver(
             options = dataclasses.replace(options, particles=particles)
         return cem, options, options.iterations
     proposal = dataclasses.replace(planner.proposal, seed=seed, **explore)
-    return (cem_ilqr, CEMILQROptions(max_iter=planner.ilqr_iterations, cem=proposal),
+    return (cem_ilqr, CEMILQROptions(max_iter=planner.ilqr_iterations, cem=proposal,
+                                     warm_samples=planner.warm_samples),
             planner.ilqr_iterations)
 
 
@@ -169,8 +170,11 @@ class SB3Predictor(abc.ABC):
                 state = None
             return self._act(observation, state)
         B = obs.shape[0]
-        starts = np.broadcast_to(np.asarray(
-            False if episode_start is None else episode_start, dtype=bool).reshape(-1), (B,))
+        starts = np.asarray(False if episode_start is None else episode_start, dtype=bool)
+        if starts.size not in (1, B):
+            raise ValueError(f"for a batch of {B} observations, episode_start must be one flag "
+                             f"or {B} flags, got {starts.size}")
+        starts = np.broadcast_to(starts.reshape(-1), (B,))
         if state is None:
             state = [None] * B
         elif not isinstance(state, list | tuple) or len(state) != B:

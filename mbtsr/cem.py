@@ -327,8 +327,13 @@ def cem(
                                  params, dataclasses.replace(opts, particles=1),
                                  _terminations(terminated, X_best))[0])
     timings["total"] = time.perf_counter() - t_start
+    X_out = X_best[0].copy()
+    dead = ~np.isfinite(X_out).all(axis=-1)
+    if dead.any():  # a diverged rollout holds its last finite state (X stays finite)
+        first = int(np.argmax(dead))
+        X_out[first:] = X_out[first - 1]
     return CEMResult(
-        X=X_best[0], U=best_U, cost=best_cost, status=status, iterations=it, trace=trace,
+        X=X_out, U=best_U, cost=best_cost, status=status, iterations=it, trace=trace,
         message=message, std=std, timings=timings, disagreement=D,
     )
 

@@ -160,10 +160,10 @@ def rollout(model: DynamicsModel, x0: np.ndarray, u: np.ndarray, t0: int = 0) ->
         (a diverged simulation is reported, not hidden).
 
     A trainable model (one with ``freeze``, e.g. a :class:`mbtsr.ensemble.DynamicsEnsemble`)
-    is frozen once and its frozen copy simulated.
+    is frozen once, in float64 (a metric, not planning), and its frozen copy simulated.
     """
     if callable(getattr(model, "freeze", None)):
-        model = model.freeze()
+        model = model.freeze("float64")
     x0 = as_array("x0", x0)
     u = as_array("u", u)
     if u.ndim < 2 or x0.ndim < 1 or u.shape[1:-1] != x0.shape[:-1]:

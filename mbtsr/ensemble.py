@@ -1350,8 +1350,9 @@ class FrozenEnsemble:
     @property
     def linear_batch_cost(self) -> bool:
         """True with the compiled rollouts (their cost grows with the number of step sizes,
-        so iLQR rolls the step sizes out in chunks, largest first; see :mod:`mbtsr.ilqr`)."""
-        return self._plan is not None
+        so iLQR rolls the step sizes out in chunks, largest first; see :mod:`mbtsr.ilqr`); a
+        model whose kernel serves one row only rolls them out in one batched numpy call."""
+        return self._plan is not None and self.kernel_rows > 1
 
     def _rollout_policy(self, x0, X, U, k, K, alphas, lower, upper, max_norm):
         """iLQR's closed-loop line-search rollouts in one compiled call (see

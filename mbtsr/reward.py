@@ -48,14 +48,10 @@ import torch
 
 from mbtsr.costs import CasadiCost, CostDerivatives
 from mbtsr.ensemble import REL_STD_FLOOR
-from mbtsr.training import holdout_mask
+from mbtsr.training import MIN_REL_IMPROVEMENT, holdout_mask
 from mbtsr.validation import as_array, check_int, check_nonnegative, check_positive
 
 __all__ = ["RewardConfig", "RewardFit", "RewardModel", "FrozenReward", "LearnedRewardCost"]
-
-MIN_REL_IMPROVEMENT = 0.01
-"""Early stopping: a hold-out loss counts as progress when it falls by more than this fraction
-of the member's best (as :mod:`mbtsr.training`)."""
 
 
 @dataclass(frozen=True)

@@ -113,6 +113,8 @@ def test_batch_predict_equals_per_row_predict_with_a_state_per_row():
     np.testing.assert_array_equal(acts2[2], agent.predict(nxt[2], rows[2][1])[0])
     with pytest.raises(ValueError, match="list of 3 states"):
         agent.predict(obs, states[:2])
+    with pytest.raises(ValueError, match="episode_start must be one flag or 3 flags, got 2"):
+        agent.predict(obs, states, episode_start=[True, False])
     # deterministic=False: the planned action plus the exploration noise, within the box
     a_det, _ = agent.predict(obs[0])
     noisy = np.stack([agent.predict(obs[0], deterministic=False)[0] for _ in range(200)])
@@ -121,6 +123,20 @@ def test_batch_predict_equals_per_row_predict_with_a_state_per_row():
     std = agent.config.collection.exploration_std * 0.5 * (high - low)
     free = noisy[(noisy > low) & (noisy < high)] - a_det
     assert abs(np.std(free) / std[0] - 1.0) < 0.25  # 200 draws: std within 25 %
+
+
+def test_the_acting_noise_resumes_its_stream_after_save_and_load(tmp_path):
+    """predict(deterministic=False)'s generator is checkpointed: a loaded agent draws the
+    noise the saved one would have drawn next."""
+    agent = pendulum_agent()
+    agent.learn(episodes=2, progress_bar=False)
+    obs = np.zeros(4)
+    agent.predict(obs, deterministic=False)
+    agent.save(tmp_path / "a.pt")
+    loaded = JacPropAgent.load(tmp_path / "a.pt", agent.env)
+    for _ in range(3):
+        np.testing.assert_array_equal(loaded.predict(obs, deterministic=False)[0],
+                                      agent.predict(obs, deterministic=False)[0])
 
 
 def test_load_restores_a_registered_tasks_functions_by_itself(tmp_path):

@@ -315,7 +315,10 @@ def test_a_stored_baseline_of_other_planner_settings_is_refused():
     _check_baseline_settings("inverted-double-pendulum", stored, cfg)  # same settings: fine
     _check_baseline_settings("x", stored, PlannerConfig(kind="ilqr", horizon=15,
                                                         terminal_weight=100.0))  # kind aside
-    _check_baseline_settings("x", {"planner": {"kind": "cem-ilqr", "horizon": 15}}, cfg)
+    old = dataclasses.replace(cfg, warm_samples=None)  # warm solves sampled all 64 before
+    _check_baseline_settings("x", {"planner": {"kind": "cem-ilqr", "horizon": 15}}, old)
+    with pytest.raises(ValueError, match=r"'warm_samples': None.*'warm_samples': 32"):
+        _check_baseline_settings("x", {"planner": {"kind": "cem-ilqr", "horizon": 15}}, cfg)
     with pytest.raises(ValueError, match=r"horizon.*--baselines --tasks inverted-double"):
         _check_baseline_settings("inverted-double-pendulum", stored, PlannerConfig())
     # the proposal's samples are part of the oracle too (stored since 2026-12-03)

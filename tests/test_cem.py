@@ -106,6 +106,8 @@ def test_diverging_model_gives_failed_status_with_finite_controls():
     res = cem(cost, model, X0, U0, u_min=-1, u_max=1, options={"iterations": 2})
     assert res.status == "failed" and res.cost == np.inf
     assert np.all(np.isfinite(res.U)) and np.all(np.abs(res.U) <= 1)
+    assert np.all(np.isfinite(res.X))  # the diverged rollout holds its last finite state
+    np.testing.assert_array_equal(res.X[0], X0)
 
 
 @pytest.mark.parametrize("bad, match", [

@@ -255,6 +255,7 @@ LEAVES = {
     "planner.proposal.max_state_norm": st.floats(0.0, 1e10),
     "planner.proposal.termination_cost": st.floats(-1e3, 1e3),
     "planner.proposal.particles": st.integers(1, 8),
+    "planner.warm_samples": st.none() | st.integers(2, 64),
     "evaluation.every": st.integers(0, 10),
     "evaluation.every_steps": st.integers(0, 5000),
     "evaluation.episodes": st.integers(1, 10),
@@ -297,6 +298,7 @@ ACTS_ONLY_WHEN = {
     **{k: (lambda v: v["planner.kind"] == "cem") for k in LEAVES if k.startswith("planner.cem.")},
     **{k: (lambda v: v["planner.kind"] == "cem-ilqr") for k in LEAVES
        if k.startswith("planner.proposal.")},
+    "planner.warm_samples": lambda v: v["planner.kind"] == "cem-ilqr",
     "planner.ilqr_iterations": lambda v: v["planner.kind"] != "cem",
     "planner.replan_feedback": lambda v: (v["planner.replan_every"] > 1
                                           and v["planner.kind"] != "cem"),

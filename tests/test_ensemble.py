@@ -689,7 +689,7 @@ def test_rollout_of_the_trainable_model_simulates_one_frozen_copy():
 
     model = make_model(WIDE_MEMBERS, "g")
     x, u = sample_points(T=6)
-    frozen = model.freeze()  # the planning copy, in its default precision
+    frozen = model.freeze("float64")  # a metric's copy: float64, as the ensemble's own methods
     want = [x[0]]
     for t in range(6):
         want.append(frozen.step(want[-1], u[t]))

@@ -300,7 +300,8 @@ def test_returned_controls_always_respect_the_box(seed, lower, width, scale):
     X0 = np.vstack([x0, np.zeros((15, N_X))])
     for t in range(15):
         X0[t + 1] = A @ X0[t] + B @ U_clipped[t]
-    assert res.cost <= cost.total(X0, U_clipped) + 1e-12
+    J0 = cost.total(X0, U_clipped)  # the same rollout in another operation order: rounding
+    assert res.cost <= J0 + 1e-12 * max(1.0, abs(J0))
     assert res.status != "failed"
 
 

@@ -362,7 +362,7 @@ def run(args: Args) -> dict:
                 "nrmse_curve": {"steps": hist.eval_steps.tolist(), "nrmse": curve.tolist()},
                 "best_nrmse": float(curve.min()),
                 "best_step": int(hist.eval_steps[int(curve.argmin())]),
-                **errors(r["model"].freeze().step, train, test),
+                **errors(r["model"].freeze("float64").step, train, test),
                 "ms_per_step": r["ms_per_step"], "cpu_ms_per_step": r["cpu_ms_per_step"],
                 "train_wall_s": r["wall_s"],
                 "planning": planning_cost(r["model"], args.seed),
@@ -391,7 +391,8 @@ def run(args: Args) -> dict:
             r = train_one(cfg, train, test, n, m, args.seed,
                           TrainConfig(**{**base, **tkw}))
             hist = r["hist"]
-            rows[name] = {**errors(r["model"].freeze().step, train, test), "steps": hist.steps,
+            rows[name] = {**errors(r["model"].freeze("float64").step, train, test),
+                          "steps": hist.steps,
                           "stopped_early": hist.stopped_early,
                           "best_steps": None if hist.best_steps is None
                           else hist.best_steps.tolist(),

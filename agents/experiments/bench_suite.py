@@ -162,6 +162,7 @@ def _planner_settings(cfg: Any) -> dict[str, Any]:
     return {"kind": cfg.kind, "horizon": cfg.horizon, "terminal_weight": cfg.terminal_weight,
             "ilqr_iterations": cfg.ilqr_iterations,
             "first_plan_iterations": cfg.first_plan_iterations,
+            "warm_samples": cfg.warm_samples,
             **{part: {k: getattr(getattr(cfg, part), k) for k in ("samples", "elites",
                                                                  "iterations")}
                for part in ("proposal", "cem")}}
@@ -181,7 +182,9 @@ def _check_baseline_settings(name: str, baseline: dict[str, Any], planner_cfg: A
 
     :raises ValueError: naming the task, both settings and the command that recomputes it.
     """
-    stored = {k: v for k, v in baseline.get("planner", {}).items() if k != "kind"}
+    # a baseline stored before warm_samples existed sampled cem.samples when warm (None)
+    stored = {"warm_samples": None,
+              **{k: v for k, v in baseline.get("planner", {}).items() if k != "kind"}}
     now = {k: v for k, v in _planner_settings(planner_cfg).items()
            if k != "kind" and k in stored}
     if stored != now:

@@ -298,8 +298,8 @@ def run(args: Args) -> dict:
                     hist = train_ensemble(model, train, tcfg, RegularizationConfig.named(reg),
                                           ltv_models=ltvs[:k])
                     t_train = time.perf_counter() - t_train
-                    err = errors(model.freeze().step, train, test)
-                    A_hat, B_hat = model.freeze().jacobians(obs[pts], u[pts])
+                    err = errors(model.freeze("float64").step, train, test)
+                    A_hat, B_hat = model.freeze("float64").jacobians(obs[pts], u[pts])
                     rec = {"task": task, "episodes": k, "seed": seed, "reg": reg,
                            "transitions": N, "optimizer_steps": int(hist.steps),
                            "train_wall_s": t_train,
