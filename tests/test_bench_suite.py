@@ -343,6 +343,7 @@ def test_a_paused_checkpointed_run_ends_as_an_uninterrupted_one(tmp_path, monkey
               str(tmp_path / "none.json")]
     straight = suite.main(common + ["--out", str(tmp_path / "a.json")])["runs"]
     assert straight[0]["git_sessions"] == [suite._git()]  # without checkpoints too
+    assert straight[0]["versions"]["numpy"] == np.__version__
     paused = common + ["--out", str(tmp_path / "b.json"), "--resume",
                        "--checkpoints", str(tmp_path / "ckpt"), "--stop-after-steps", "120"]
     assert suite.main(paused)["runs"] == []  # 150 of 200 steps: paused, not recorded

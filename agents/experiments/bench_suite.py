@@ -314,6 +314,7 @@ def run_one(name: str, planner: str, reg: str, seed: int, *, smoke: bool,
         "wall_seconds_per_phase": s["wall_seconds_per_phase"],
         "wall_seconds": wall_seconds, "cpu_seconds": cpu_seconds,
         "git_sessions": spent["git"],  # the commit(s) the run was produced at
+        "versions": _versions(),  # constraints.txt pins them; a drifted venv shows here
     }
 
 
@@ -1124,6 +1125,23 @@ def _git() -> str:
     (:func:`~agents.experiments.paper_common.library_version`)."""
     v = library_version()
     return v["commit"][:7] + ("-dirty" if v["library_dirty"] else "")
+
+
+#: the packages whose numerics a run's numbers depend on
+_NUMERIC_PACKAGES = ("torch", "numpy", "scipy", "mujoco", "numba", "casadi")
+
+
+def _versions() -> dict[str, str]:
+    """The installed versions of :data:`_NUMERIC_PACKAGES` (``"missing"``: not installed)."""
+    from importlib.metadata import PackageNotFoundError, version
+
+    def one(name: str) -> str:
+        try:
+            return version(name)
+        except PackageNotFoundError:
+            return "missing"
+
+    return {name: one(name) for name in _NUMERIC_PACKAGES}
 
 
 def _load(path: Path) -> dict[str, Any]:
