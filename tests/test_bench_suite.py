@@ -112,7 +112,7 @@ def test_regenerating_the_report_keeps_the_hand_written_notes(tmp_path):
     state["git"] = "def"
     suite.write_markdown(state, doc, tmp_path, {}, [], [])
     text = doc.read_text()
-    assert "git def" in text and "git abc" not in text
+    assert "git def; the agent runs at -." in text and "git abc" not in text
     assert text.count(suite.NOTES_MARKER) == 1
     assert text.endswith("\nWhat the numbers say, by hand.\n")
 
@@ -304,6 +304,15 @@ def test_solved_is_read_from_the_curve_against_the_stored_oracle():
     assert suite.with_solved([run], {})[0] is run  # no baseline: the run's own value
 
 
+def test_the_report_names_the_commits_its_runs_were_produced_at():
+    """The report's "git" is the commit of the last call (a --resume or a regenerated report
+    may come later): the commits of the runs themselves are named too, each with its count."""
+    runs = [{"git_sessions": ["abc"]}, {"git_sessions": ["abc", "def-dirty"]},
+            {"git_sessions": ["abc", "abc"]}, {}]
+    assert suite._run_commits(runs) == "abc (3 runs), def-dirty (1 run), unrecorded (1 run)"
+    assert suite._run_commits([]) == "-"
+
+
 def test_a_stored_baseline_of_other_planner_settings_is_refused():
     """The oracle's return sets the solved threshold: one computed with another horizon or
     terminal weight than the task's settings now is refused, naming the command to recompute."""
@@ -336,6 +345,8 @@ def test_a_paused_checkpointed_run_ends_as_an_uninterrupted_one(tmp_path, monkey
               "--oracle-cache", str(tmp_path / "oracle"), "--baselines-json",
               str(tmp_path / "none.json")]
     straight = suite.main(common + ["--out", str(tmp_path / "a.json")])["runs"]
+    assert straight[0]["git_sessions"] == [suite._git()]  # without checkpoints too
+    assert straight[0]["versions"]["numpy"] == np.__version__
     paused = common + ["--out", str(tmp_path / "b.json"), "--resume",
                        "--checkpoints", str(tmp_path / "ckpt"), "--stop-after-steps", "120"]
     assert suite.main(paused)["runs"] == []  # 150 of 200 steps: paused, not recorded
