@@ -520,7 +520,7 @@ class CasadiCost:
         P = table if table.shape[0] == 1 else _rows(table, ts)
         stage, terminal = self._row_maps("values")
         (ls,) = stage(Xs.shape[0], Xs, Us, ts[:, None], P)
-        (lT,) = terminal(XT.shape[0], XT, _rows(table, np.array([tT])))
+        (lT,) = terminal(XT.shape[0], XT, table[min(tT, table.shape[0] - 1)][None])
         return ls, lT
 
 

@@ -369,9 +369,11 @@ def ilqr(
             )
             timings["forward"] += time.perf_counter() - tic
             tic = time.perf_counter()
-            live = np.zeros(len(alphas), dtype=bool)
-            live[chunk] = alive[chunk]
-            if live.any():
+            if alive[chunk].all():  # slices: no copies of the rollouts
+                Jn[chunk] = total(Xn[chunk], Un[chunk])
+            elif alive[chunk].any():
+                live = np.zeros(len(alphas), dtype=bool)
+                live[chunk] = alive[chunk]
                 Jn[live] = total(Xn[live], Un[live])
             timings["line_search_cost"] += time.perf_counter() - tic
             actual = J - Jn
