@@ -2,9 +2,10 @@
 
 The user writes a stage cost ``l(x, u, t)`` and a terminal cost ``l_T(x)`` with CasADi symbols;
 this module derives ``l_x, l_u, l_xx, l_uu, l_ux`` symbolically once and evaluates them along a
-whole trajectory in ONE call of a mapped CasADi function (``Function.map``), optionally
-JIT-compiled. The same symbolic functions are used by :func:`mbtsr.ipopt_reference.solve_ipopt`,
-so iLQR and IPOPT optimise exactly the same objective::
+whole trajectory (or a batch of them) with a mapped CasADi function (``Function.map`` over
+blocks of rows), optionally JIT-compiled as a whole. The same symbolic functions are used by
+:func:`mbtsr.ipopt_reference.solve_ipopt`, so iLQR and IPOPT optimise exactly the same
+objective::
 
     J(X, U) = sum_{t=0}^{T-1} l(x_t, u_t, t0 + t) + l_T(x_T)        X: [T+1, n], U: [T, m]
 
@@ -23,9 +24,10 @@ Validation happens once at the public boundary: the public methods check shapes 
 the solver validates the parameters once (:meth:`CasadiCost.check_params`) and then calls the
 private kernels ``_total`` / ``_derivatives``, which check nothing.
 
-Layout trick: numpy arrays are handed to CasADi without copies through ``Function.buffer``. A
-C-ordered numpy ``[N, n]`` array has the memory layout of a column-major CasADi ``[n, N]``
-matrix, so time-major trajectories map onto ``Function.map(N)`` inputs directly.
+Layout trick: numpy arrays are bound to CasADi once through ``Function.buffer``. A C-ordered
+numpy ``[N, n]`` array has the memory layout of a column-major CasADi ``[n, N]`` matrix, so
+time-major rows are copied into the bound ``[rows, n]`` blocks of a ``Function.map(rows)``
+and read back with plain numpy slice assignments (:class:`_RowMap`).
 """
 
 from __future__ import annotations
@@ -218,8 +220,8 @@ class CasadiCost:
     ``p_t`` the parameter row at time ``t`` (see the module docstring).
 
     Build it from ``casadi.Function`` objects (this constructor) or from symbolic expressions
-    (:meth:`from_expressions`). Derivative and value functions are generated lazily per
-    trajectory length and cached; parameters never cause a rebuild.
+    (:meth:`from_expressions`). Derivative and value functions are generated (and compiled)
+    once, on first use, for any trajectory length or batch; parameters never cause a rebuild.
 
     :param stage: ``casadi.Function`` ``(x[n], u[m], t[1]) -> l`` or
         ``(x[n], u[m], t[1], p[p]) -> l`` (scalar output).
@@ -419,7 +421,7 @@ class CasadiCost:
     def derivatives(
         self, X: np.ndarray, U: np.ndarray, t0: int = 0, params: np.ndarray | None = None
     ) -> CostDerivatives:
-        """Cost derivatives along a trajectory, in one mapped CasADi call.
+        """Cost derivatives along a trajectory (mapped CasADi calls, see :class:`_RowMap`).
 
         :param X: ``[T+1, n]`` states; ``U``: ``[T, m]`` inputs; ``t0``: time of ``X[0]``.
         :param params: ``[p]`` or ``[N_ref, p]`` parameters (default: the cost's own).
