@@ -148,39 +148,12 @@ class CostDerivatives:
 _ROWS = 256  # rows per call of a mapped stage function (one compiled shape per cost)
 
 
-class _BufferedFunction:
-    """A CasADi function called through ``Function.buffer`` on numpy arrays (no copies).
-
-    Inputs and outputs are C-contiguous float64 numpy arrays whose memory layout equals the
-    column-major CasADi matrices, e.g. numpy ``[N, n]`` <-> CasADi ``[n, N]``.
-    """
-
-    def __init__(self, fn: ca.Function, out_shapes: list[tuple[int, ...]]) -> None:
-        self.fn = fn
-        self.buffer, self.trigger = fn.buffer()
-        self.out_shapes = out_shapes
-
-    def into(self, args: list[np.ndarray], outs: list[np.ndarray]) -> None:
-        """Evaluate on ``args`` into ``outs`` (both kept alive by the caller until return)."""
-        for i, a in enumerate(args):
-            self.buffer.set_arg(i, memoryview(a))
-        for i, o in enumerate(outs):
-            self.buffer.set_res(i, memoryview(o))
-        self.trigger()
-
-    def __call__(self, *args: np.ndarray) -> list[np.ndarray]:
-        # zeros, not empty: CasADi does not write the structurally zero part of an output (e.g.
-        # the gradient of a terminal cost that does not depend on x)
-        outs = [np.zeros(s) for s in self.out_shapes]
-        self.into(list(args), outs)
-        return outs
-
-
 class _RowMap:
     """``fn`` (one row: inputs ``[w_i]``) evaluated on ``N`` rows by one compiled
-    ``fn.map(rows)``, ``rows`` rows per call, through persistent buffers bound to CasADi once:
-    one CasADi function per cost whatever ``N``, no per-call binding, and (JIT-compiled) no
-    per-row call overhead of CasADi's virtual machine (the C loop calls the row function).
+    ``fn.map(rows)``, ``rows`` rows per call, through persistent buffers bound to CasADi once
+    with ``Function.buffer`` (numpy ``[rows, w]`` C order = CasADi ``[w, rows]``): one CasADi
+    function per cost whatever ``N``, no per-call binding, and (JIT-compiled) no per-row call
+    overhead of CasADi's virtual machine (the C loop calls the row function).
 
     :param out_shapes: numpy shape of one row of each output (e.g. ``(m, n)`` for ``lux``).
     """
@@ -195,9 +168,12 @@ class _RowMap:
         self.ins = [np.zeros((rows, w)) for w in widths]
         # zeros: CasADi does not write the structurally zero part of an output
         self.outs = [np.zeros((rows, *s)) for s in out_shapes]
-        self.fn = _BufferedFunction(ca.Function(f"{fn.name()}_rows", sym, mapped.call(sym), opts),
-                                    [o.shape for o in self.outs])
-        self.fn.into(self.ins, self.outs)  # binds the buffers (and checks the function runs)
+        self.fn = ca.Function(f"{fn.name()}_rows", sym, mapped.call(sym), opts)
+        self.buffer, self.trigger = self.fn.buffer()
+        for i, a in enumerate(self.ins):  # the arrays live as long as self
+            self.buffer.set_arg(i, memoryview(a))
+        for i, o in enumerate(self.outs):
+            self.buffer.set_res(i, memoryview(o))
 
     def __call__(self, N: int, *args: np.ndarray) -> list[np.ndarray]:
         """``args``: ``[N, w_i]`` or ``[1, w_i]`` (the same row for all) -> ``[N, *out_shape]``."""
@@ -207,7 +183,7 @@ class _RowMap:
             r = min(C, N - s)
             for buf, a in zip(self.ins, args):
                 buf[:r] = a if a.shape[0] == 1 else a[s:s + r]
-            self.fn.trigger()
+            self.trigger()
             for o, res in zip(outs, self.outs):
                 o[s:s + r] = res[:r]
         return outs
@@ -279,7 +255,7 @@ class CasadiCost:
         l, lT = self.stage(x, u, t, p), self.terminal(x, p)
         lx, lu = ca.gradient(l, x), ca.gradient(l, u)
         # outputs are stored transposed where it matters so that the column-major CasADi
-        # block [rows, cols] lands in numpy as [..., rows, cols] (see _BufferedFunction)
+        # block [rows, cols] lands in numpy as [..., rows, cols] (see _RowMap)
         self._stage_derivs = ca.Function(
             "stage_derivs",
             [x, u, t, p],
