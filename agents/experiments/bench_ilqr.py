@@ -158,9 +158,9 @@ def time_to_within(res, wall, threshold):
 
 def peer_comparison(args, problems) -> dict:
     """mbtsr iLQR and crocoddyl BoxFDDP on the same problems, timed in alternating pairs
-    (``max(args.repeats, 5)`` pairs, the order flipped every pair, so that both solvers see the
+    (``max(args.repeats, 9)`` pairs, the order flipped every pair, so that both solvers see the
     same machine load): the ratios are medians over the pairs, the solver figures those of the
-    least disturbed run (least CPU time)."""
+    least disturbed run (least wall time)."""
     from agents.experiments import peers_crocoddyl as peers_mod
 
     if not peers_mod.HAVE_CROCODDYL:
@@ -184,14 +184,14 @@ def peer_comparison(args, problems) -> dict:
         ours()  # warm-up: builds the cost's mapped functions, loads numba's cache
         peers_mod.solve_crocoddyl(prob)
         pairs = []
-        for i in range(max(args.repeats, 5)):
+        for i in range(max(args.repeats, 9)):
             if i % 2:
                 croc, mine = peers_mod.solve_crocoddyl(prob), ours()
             else:
                 mine, croc = ours(), peers_mod.solve_crocoddyl(prob)
             pairs.append((mine, croc))
-        res, wall, cpu = min((mine for mine, _ in pairs), key=lambda r: r[2])
-        croc = min((c for _, c in pairs), key=lambda c: c["cpu_time_s"])
+        res, wall, cpu = min((mine for mine, _ in pairs), key=lambda r: r[1])
+        croc = min((c for _, c in pairs), key=lambda c: c["wall_time_s"])
         its = max(res.iterations, 1)
         ms_iter, cpu_ms_iter = wall / its * 1e3, cpu / its * 1e3
 
