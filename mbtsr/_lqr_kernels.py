@@ -472,3 +472,32 @@ def policy_controls(Xn, X, ff, K, t, lower, upper, Un):
             for i in range(n):
                 v += K[t, j, i] * (Xn[a, t, i] - X[t, i])
             Un[a, t, j] = min(max(v, lower[j]), upper[j])
+
+
+@njit(cache=True)
+def _finite_flat(a):  # pragma: no cover - compiled
+    for v in a:
+        if not np.isfinite(v):
+            return False
+    return True
+
+
+@njit(cache=True)
+def all_finite(A, B, lx, lu, lxx, luu, lux):  # pragma: no cover - compiled
+    """True when every entry of the (C-contiguous) Jacobians and cost derivatives is finite."""
+    return (_finite_flat(A.ravel()) and _finite_flat(B.ravel()) and _finite_flat(lx.ravel())
+            and _finite_flat(lu.ravel()) and _finite_flat(lxx.ravel())
+            and _finite_flat(luu.ravel()) and _finite_flat(lux.ravel()))
+
+
+@njit(cache=True)
+def grad_norm(k, U):  # pragma: no cover - compiled
+    """``mean_t max_j |k_tj| / (|U_tj| + 1)`` of ``k, U [T, m]`` (iLQR's gradient measure)."""
+    T, m = k.shape
+    total = 0.0
+    for t in range(T):
+        best = -np.inf
+        for j in range(m):
+            best = max(best, abs(k[t, j]) / (abs(U[t, j]) + 1.0))
+        total += best
+    return total / T

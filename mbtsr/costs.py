@@ -2,9 +2,10 @@
 
 The user writes a stage cost ``l(x, u, t)`` and a terminal cost ``l_T(x)`` with CasADi symbols;
 this module derives ``l_x, l_u, l_xx, l_uu, l_ux`` symbolically once and evaluates them along a
-whole trajectory in ONE call of a mapped CasADi function (``Function.map``), optionally
-JIT-compiled. The same symbolic functions are used by :func:`mbtsr.ipopt_reference.solve_ipopt`,
-so iLQR and IPOPT optimise exactly the same objective::
+whole trajectory (or a batch of them) with a mapped CasADi function (``Function.map`` over
+blocks of rows), optionally JIT-compiled as a whole. The same symbolic functions are used by
+:func:`mbtsr.ipopt_reference.solve_ipopt`, so iLQR and IPOPT optimise exactly the same
+objective::
 
     J(X, U) = sum_{t=0}^{T-1} l(x_t, u_t, t0 + t) + l_T(x_T)        X: [T+1, n], U: [T, m]
 
@@ -23,9 +24,10 @@ Validation happens once at the public boundary: the public methods check shapes 
 the solver validates the parameters once (:meth:`CasadiCost.check_params`) and then calls the
 private kernels ``_total`` / ``_derivatives``, which check nothing.
 
-Layout trick: numpy arrays are handed to CasADi without copies through ``Function.buffer``. A
-C-ordered numpy ``[N, n]`` array has the memory layout of a column-major CasADi ``[n, N]``
-matrix, so time-major trajectories map onto ``Function.map(N)`` inputs directly.
+Layout trick: numpy arrays are bound to CasADi once through ``Function.buffer``. A C-ordered
+numpy ``[N, n]`` array has the memory layout of a column-major CasADi ``[n, N]`` matrix, so
+time-major rows are copied into the bound ``[rows, n]`` blocks of a ``Function.map(rows)``
+and read back with plain numpy slice assignments (:class:`_RowMap`).
 """
 
 from __future__ import annotations
@@ -143,28 +145,47 @@ class CostDerivatives:
         return CostDerivatives(self.lx, self.lu, lxx, luu, lux)
 
 
-class _BufferedFunction:
-    """A CasADi function called through ``Function.buffer`` on numpy arrays (no copies).
+_ROWS = 256  # rows per call of a mapped stage function (one compiled shape per cost)
 
-    Inputs and outputs are C-contiguous float64 numpy arrays whose memory layout equals the
-    column-major CasADi matrices, e.g. numpy ``[N, n]`` <-> CasADi ``[n, N]``.
+
+class _RowMap:
+    """``fn`` (one row: inputs ``[w_i]``) evaluated on ``N`` rows by one compiled
+    ``fn.map(rows)``, ``rows`` rows per call, through persistent buffers bound to CasADi once
+    with ``Function.buffer`` (numpy ``[rows, w]`` C order = CasADi ``[w, rows]``): one CasADi
+    function per cost whatever ``N``, no per-call binding, and (JIT-compiled) no per-row call
+    overhead of CasADi's virtual machine (the C loop calls the row function).
+
+    :param out_shapes: numpy shape of one row of each output (e.g. ``(m, n)`` for ``lux``).
     """
 
-    def __init__(self, fn: ca.Function, out_shapes: list[tuple[int, ...]]) -> None:
-        self.fn = fn
-        self.buffer, self.trigger = fn.buffer()
-        self.out_shapes = out_shapes
-
-    def __call__(self, *args: np.ndarray) -> list[np.ndarray]:
-        # the arrays must stay alive until trigger() returns; they are locals of this frame.
-        # zeros, not empty: CasADi does not write the structurally zero part of an output (e.g.
-        # the gradient of a terminal cost that does not depend on x)
-        outs = [np.zeros(s) for s in self.out_shapes]
-        for i, a in enumerate(args):
+    def __init__(self, fn: ca.Function, rows: int, out_shapes: list[tuple[int, ...]],
+                 jit: bool) -> None:
+        mapped = fn.map(rows)
+        sym = mapped.mx_in()
+        opts = casadi_jit_options("-O2") if jit else {}
+        self.rows, self.out_shapes = rows, out_shapes
+        widths = [fn.size1_in(i) * fn.size2_in(i) for i in range(fn.n_in())]
+        self.ins = [np.zeros((rows, w)) for w in widths]
+        # zeros: CasADi does not write the structurally zero part of an output
+        self.outs = [np.zeros((rows, *s)) for s in out_shapes]
+        self.fn = ca.Function(f"{fn.name()}_rows", sym, mapped.call(sym), opts)
+        self.buffer, self.trigger = self.fn.buffer()
+        for i, a in enumerate(self.ins):  # the arrays live as long as self
             self.buffer.set_arg(i, memoryview(a))
-        for i, o in enumerate(outs):
+        for i, o in enumerate(self.outs):
             self.buffer.set_res(i, memoryview(o))
-        self.trigger()
+
+    def __call__(self, N: int, *args: np.ndarray) -> list[np.ndarray]:
+        """``args``: ``[N, w_i]`` or ``[1, w_i]`` (the same row for all) -> ``[N, *out_shape]``."""
+        C = self.rows
+        outs = [np.empty((N, *s)) for s in self.out_shapes]
+        for s in range(0, N, C):
+            r = min(C, N - s)
+            for buf, a in zip(self.ins, args):
+                buf[:r] = a if a.shape[0] == 1 else a[s:s + r]
+            self.trigger()
+            for o, res in zip(outs, self.outs):
+                o[s:s + r] = res[:r]
         return outs
 
 
@@ -175,8 +196,8 @@ class CasadiCost:
     ``p_t`` the parameter row at time ``t`` (see the module docstring).
 
     Build it from ``casadi.Function`` objects (this constructor) or from symbolic expressions
-    (:meth:`from_expressions`). Derivative and value functions are generated lazily per
-    trajectory length and cached; parameters never cause a rebuild.
+    (:meth:`from_expressions`). Derivative and value functions are generated (and compiled)
+    once, on first use, for any trajectory length or batch; parameters never cause a rebuild.
 
     :param stage: ``casadi.Function`` ``(x[n], u[m], t[1]) -> l`` or
         ``(x[n], u[m], t[1], p[p]) -> l`` (scalar output).
@@ -231,11 +252,10 @@ class CasadiCost:
                     raise
         self.stage = ca.Function("stage", [x, u, t, p], [l_expr], ["x", "u", "t", "p"], ["l"])
         self.terminal = ca.Function("terminal", [x, p], [lT_expr], ["x", "p"], ["lT"])
-        opts = casadi_jit_options("-O2") if self.jit else {}
         l, lT = self.stage(x, u, t, p), self.terminal(x, p)
         lx, lu = ca.gradient(l, x), ca.gradient(l, u)
         # outputs are stored transposed where it matters so that the column-major CasADi
-        # block [rows, cols] lands in numpy as [..., rows, cols] (see _BufferedFunction)
+        # block [rows, cols] lands in numpy as [..., rows, cols] (see _RowMap)
         self._stage_derivs = ca.Function(
             "stage_derivs",
             [x, u, t, p],
@@ -246,16 +266,16 @@ class CasadiCost:
                 ca.densify(ca.jacobian(lu, u)).T,
                 ca.densify(ca.jacobian(lu, x)).T,
             ],
-            opts,
         )
         lTx = ca.gradient(lT, x)
         self._terminal_derivs = ca.Function(
-            "terminal_derivs", [x, p], [ca.densify(lTx), ca.densify(ca.jacobian(lTx, x)).T], opts
+            "terminal_derivs", [x, p], [ca.densify(lTx), ca.densify(ca.jacobian(lTx, x)).T]
         )
-        self._stage_value = ca.Function("stage_value", [x, u, t, p], [ca.densify(l)], opts)
-        self._terminal_value = ca.Function("terminal_value", [x, p], [ca.densify(lT)], opts)
-        self._derivs_cache: dict[int, _BufferedFunction] = {}
-        self._values_cache: dict[tuple[int, int], _BufferedFunction] = {}
+        self._stage_value = ca.Function("stage_value", [x, u, t, p], [ca.densify(l)])
+        self._terminal_value = ca.Function("terminal_value", [x, p], [ca.densify(lT)])
+        # the row maps of these four functions, built (and JIT-compiled) on first use
+        self._derivs_cache: dict[str, tuple[_RowMap, _RowMap]] = {}
+        self._values_cache: dict[str, tuple[_RowMap, _RowMap]] = {}
 
     # ------------------------------------------------------------------ construction helpers
     @classmethod
@@ -377,7 +397,7 @@ class CasadiCost:
     def derivatives(
         self, X: np.ndarray, U: np.ndarray, t0: int = 0, params: np.ndarray | None = None
     ) -> CostDerivatives:
-        """Cost derivatives along a trajectory, in one mapped CasADi call.
+        """Cost derivatives along a trajectory (mapped CasADi calls, see :class:`_RowMap`).
 
         :param X: ``[T+1, n]`` states; ``U``: ``[T, m]`` inputs; ``t0``: time of ``X[0]``.
         :param params: ``[p]`` or ``[N_ref, p]`` parameters (default: the cost's own).
@@ -408,28 +428,35 @@ class CasadiCost:
     ) -> CostDerivatives:
         """:meth:`derivatives` on validated float64 input and a :meth:`check_params` table."""
         T = U.shape[0]
-        fn = self._derivs_cache.get(T)
-        if fn is None:
-            fn = self._build_derivs(T)
-            self._derivs_cache[T] = fn
         times = np.arange(t0, t0 + T + 1)
-        P = np.ascontiguousarray(_rows(table, times))
-        X = np.ascontiguousarray(X, dtype=np.float64)
-        lx, lu, lxx, luu, lux, lxT, lxxT = fn(
-            X[:-1],
-            np.ascontiguousarray(U, dtype=np.float64),
-            times[:-1].astype(np.float64),
-            P[:-1],
-            X[-1],
-            P[-1],
-        )
+        P = table if table.shape[0] == 1 else _rows(table, times)
+        stage, terminal = self._row_maps("derivs")
+        lx, lu, lxx, luu, lux = stage(T, X[:-1], U, times[:-1, None], P[:-1] if len(P) > 1 else P)
+        lxT, lxxT = terminal(1, X[-1:], P[-1:])
         return CostDerivatives(
-            lx=np.concatenate([lx, lxT[None]]),
+            lx=np.concatenate([lx, lxT]),
             lu=lu,
-            lxx=np.concatenate([lxx, lxxT[None]]),
+            lxx=np.concatenate([lxx, lxxT]),
             luu=luu,
             lux=lux,
         )
+
+    def _row_maps(self, kind: str) -> tuple[_RowMap, _RowMap]:
+        """The stage and terminal :class:`_RowMap` of ``kind`` ``"derivs"`` or ``"values"``
+        (built, and JIT-compiled with ``jit``, on first use; parameters never rebuild them)."""
+        cache = self._derivs_cache if kind == "derivs" else self._values_cache
+        maps = cache.get(kind)
+        if maps is None:
+            n, m = self.n, self.m
+            if kind == "derivs":
+                shapes = [(n,), (m,), (n, n), (m, m), (m, n)]
+                maps = (_RowMap(self._stage_derivs, _ROWS, shapes, self.jit),
+                        _RowMap(self._terminal_derivs, 1, [(n,), (n, n)], self.jit))
+            else:
+                maps = (_RowMap(self._stage_value, _ROWS, [()], self.jit),
+                        _RowMap(self._terminal_value, 16, [()], self.jit))
+            cache[kind] = maps
+        return maps
 
     # ------------------------------------------------------------------ internals
     def _check_xu(self, X, U, len_x_extra: int) -> tuple[np.ndarray, np.ndarray]:
@@ -466,46 +493,13 @@ class CasadiCost:
 
     def _values(self, Xs, Us, ts, XT, tT: int, table) -> tuple[np.ndarray, np.ndarray]:
         """Stage values for the rows of ``Xs [N, n], Us [N, m]`` at times ``ts [N]`` and
-        terminal values for the rows of ``XT [NT, n]`` at time ``tT``; one CasADi call."""
-        N, NT = Xs.shape[0], XT.shape[0]
-        fn = self._values_cache.get((N, NT))
-        if fn is None:
-            fn = self._build_values(N, NT)
-            self._values_cache[(N, NT)] = fn
-        P = np.ascontiguousarray(_rows(table, ts)) if N else np.zeros((0, self.param_dim))
-        PT = np.ascontiguousarray(
-            np.broadcast_to(_rows(table, np.array([tT]))[0], (NT, self.param_dim))
-        )
-        ls, lT = fn(
-            np.ascontiguousarray(Xs),
-            np.ascontiguousarray(Us),
-            np.asarray(ts, dtype=np.float64),
-            P,
-            np.ascontiguousarray(XT),
-            PT,
-        )
+        terminal values for the rows of ``XT [NT, n]`` at time ``tT``."""
+        ts = np.asarray(ts)
+        P = table if table.shape[0] == 1 else _rows(table, ts)
+        stage, terminal = self._row_maps("values")
+        (ls,) = stage(Xs.shape[0], Xs, Us, ts[:, None], P)
+        (lT,) = terminal(XT.shape[0], XT, table[min(tT, table.shape[0] - 1)][None])
         return ls, lT
-
-    def _build_values(self, N: int, NT: int) -> _BufferedFunction:
-        n, m, p = self.n, self.m, self.param_dim
-        Xs, Us = ca.MX.sym("X", n, N), ca.MX.sym("U", m, N)
-        ts, Ps = ca.MX.sym("t", 1, N), ca.MX.sym("P", p, N)
-        XT, PT = ca.MX.sym("XT", n, NT), ca.MX.sym("PT", p, NT)
-        ls = self._stage_value.map(N)(Xs, Us, ts, Ps) if N else ca.MX(1, 0)
-        lT = self._terminal_value.map(NT)(XT, PT) if NT else ca.MX(1, 0)
-        fn = ca.Function(f"values_{N}_{NT}", [Xs, Us, ts, Ps, XT, PT], [ls, lT])
-        return _BufferedFunction(fn, [(N,), (NT,)])
-
-    def _build_derivs(self, T: int) -> _BufferedFunction:
-        n, m, p = self.n, self.m, self.param_dim
-        Xs, Us = ca.MX.sym("X", n, T), ca.MX.sym("U", m, T)
-        ts, Ps = ca.MX.sym("t", 1, T), ca.MX.sym("P", p, T)
-        xT, pT = ca.MX.sym("xT", n), ca.MX.sym("pT", p)
-        stage = self._stage_derivs.map(T)(Xs, Us, ts, Ps)
-        term = self._terminal_derivs(xT, pT)
-        fn = ca.Function(f"derivs_{T}", [Xs, Us, ts, Ps, xT, pT], [*stage, *term])
-        shapes = [(T, n), (T, m), (T, n, n), (T, m, m), (T, m, n), (n,), (n, n)]
-        return _BufferedFunction(fn, shapes)
 
 
 class QuadraticCost(CasadiCost):

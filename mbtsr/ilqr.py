@@ -30,7 +30,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from mbtsr import _lqr_kernels
-from mbtsr.costs import CasadiCost, truncated_total
+from mbtsr.costs import CasadiCost, CostDerivatives, truncated_total
 from mbtsr.dynamics import LinearDynamics, _rollout, check_planning_model, raw_step
 from mbtsr.validation import as_array, check_callable, check_int, check_nonnegative, options_from
 
@@ -295,7 +295,7 @@ def ilqr(
     status, message = "", ""
     need_derivs = True
     it = 0
-    problem = None
+    problem = hessians = None
     if not math.isfinite(J):
         status, message = "failed", "the cost of the initial trajectory is not finite"
     while not status and it < opts.max_iter:
@@ -314,22 +314,17 @@ def ilqr(
             tic = time.perf_counter()
             derivs = cost._derivatives(X, U, t0, table)
             if opts.convexify_cost:
-                derivs = derivs.convexified()
+                derivs, hessians = _convexified(derivs, hessians)
             timings["cost_derivatives"] += time.perf_counter() - tic
-            finite = (
-                np.isfinite(A).all()
-                and np.isfinite(B).all()
-                and all(np.isfinite(d).all() for d in derivs)
-            )
-            if not finite:
-                status = "failed"
-                message = "non-finite Jacobians or cost derivatives at the current trajectory"
-                break
-            problem = (  # C-contiguous float64: one compiled signature of the kernel
+            problem = (  # C-contiguous float64: one compiled signature of the kernels
                 *(np.ascontiguousarray(a, dtype=float) for a in (A, B, *derivs)),
                 lower - U,
                 upper - U,
             )
+            if not _lqr_kernels.all_finite(*problem[:7]):
+                status = "failed"
+                message = "non-finite Jacobians or cost derivatives at the current trajectory"
+                break
             need_derivs = False
 
         # ---- backward pass, raising lambda until every Quu_reg is positive definite
@@ -351,7 +346,7 @@ def ilqr(
             message = "backward pass not positive definite up to lambda_max"
             break
         k, K, dV1, dV2 = bp
-        grad_norm = float(np.mean(np.max(np.abs(k) / (np.abs(U) + 1.0), axis=1)))
+        grad_norm = _lqr_kernels.grad_norm(k, U)
         if grad_norm < opts.tol_grad and lam < 1e-5:
             dlam = min(dlam / f, 1.0 / f)
             lam = max(lam * dlam, opts.lambda_min) if lam > 0 else lam
@@ -374,9 +369,11 @@ def ilqr(
             )
             timings["forward"] += time.perf_counter() - tic
             tic = time.perf_counter()
-            live = np.zeros(len(alphas), dtype=bool)
-            live[chunk] = alive[chunk]
-            if live.any():
+            if alive[chunk].all():  # slices: no copies of the rollouts
+                Jn[chunk] = total(Xn[chunk], Un[chunk])
+            elif alive[chunk].any():
+                live = np.zeros(len(alphas), dtype=bool)
+                live[chunk] = alive[chunk]
                 Jn[live] = total(Xn[live], Un[live])
             timings["line_search_cost"] += time.perf_counter() - tic
             actual = J - Jn
@@ -456,6 +453,17 @@ def _boxqp_params(opts: ILQROptions) -> tuple[float, ...]:
         float(opts.boxqp_min_step),
         float(opts.boxqp_armijo),
     )
+
+
+def _convexified(derivs: CostDerivatives, memo: tuple | None) -> tuple[CostDerivatives, tuple]:
+    """``derivs.convexified()``, reusing the last projection when the Hessians are equal to
+    the last ones (a constant-Hessian cost: no eigendecompositions after the first iteration).
+    ``memo``: ``None`` or the ``(raw, projected)`` Hessian triples of the last call."""
+    raw = (derivs.lxx, derivs.luu, derivs.lux)
+    if memo is not None and all(np.array_equal(a, b) for a, b in zip(raw, memo[0])):
+        return CostDerivatives(derivs.lx, derivs.lu, *memo[1]), memo
+    out = derivs.convexified()
+    return out, (raw, (out.lxx, out.luu, out.lux))
 
 
 def _trace(it, J, lam, alpha, expected, actual, grad_norm, accepted, t_it) -> dict:
