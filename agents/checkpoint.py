@@ -39,6 +39,7 @@ __all__ = [
     "CheckpointError",
     "agent_payload",
     "restore_agent",
+    "load_agent",
     "write_run",
     "atomic_write_text",
     "check_resumable",
@@ -341,3 +342,40 @@ def _to_torch(obj: Any) -> Any:
     if isinstance(obj, (list, tuple)):
         return type(obj)(_to_torch(v) for v in obj)
     return obj
+
+
+def load_agent(cls: type, path: str | os.PathLike, env: Any, fns: dict[str, Any], *,
+               run_dir: str | os.PathLike | None = None) -> Any:
+    """The body of :meth:`agents.jacprop_agent.JacPropAgent.load`: read the checkpoint at
+    ``path`` (a file or a run folder holding ``checkpoint.pt``), check it against ``env`` and
+    the task functions ``fns`` (:func:`check_resumable`), build an agent of class ``cls``
+    (:func:`agents.task_setup.build_agent`) and restore its state (:func:`restore_agent`).
+
+    :param run_dir: overrides the saved config's ``run_dir``.
+    :raises ValueError: as :func:`check_resumable`, or ``state_fn`` gives a model state of
+        another dimension than the saved model's.
+    """
+    from agents.config import AgentConfig
+    from agents.task_setup import build_agent
+
+    path = Path(path)
+    if path.is_dir():
+        path = path / "checkpoint.pt"
+    payload = load_checkpoint(path)
+    cfg = json.loads(payload["agent_config"])
+    if run_dir is not None:
+        cfg["run_dir"] = str(run_dir)
+    config = AgentConfig.from_dict(cfg)
+    spec, task, fns = check_resumable(payload, path, config, env, fns)
+    saved_n = json.loads(payload["ensemble_config"])["state_dim"]
+    agent = cls.__new__(cls)
+    build_agent(agent, env, config, spec, fns, saved_task=task)
+    if agent.state_dim != saved_n:
+        raise ValueError(
+            f"state_fn gives a model state of dimension {agent.state_dim}, but the saved "
+            f"agent's model was trained on dimension {saved_n}: pass the state_fn/obs_fn it "
+            "was built with"
+        )
+    restore_agent(agent, payload)
+    agent.env_id = agent.env_id or task.get("env_id")  # an act-only agent keeps its task's
+    return agent

@@ -13,15 +13,17 @@ from __future__ import annotations
 import csv
 import io
 import math
+import time
 from collections.abc import Iterable, Sequence
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from agents.checkpoint import atomic_write_text
+from agents.checkpoint import atomic_write_text, write_run
 
-__all__ = ["EpisodeLog", "LOG_COLUMNS", "TIMING_COLUMNS", "sb3_scalars", "summarize"]
+__all__ = ["EpisodeLog", "LOG_COLUMNS", "TIMING_COLUMNS", "check_budget", "end_episode",
+           "make_progress_bar", "sb3_scalars", "summarize"]
 
 #: columns of the per-episode CSV, in order
 LOG_COLUMNS: tuple[str, ...] = (
@@ -204,3 +206,58 @@ def _fmt(v: Any) -> str:
     if isinstance(v, float):
         return repr(v)
     return str(v)
+
+
+# ---------------------------------------------------------------------- JacPropAgent.learn's loop
+def check_budget(total_timesteps: Any, episodes: Any, env: Any) -> None:
+    """Check :meth:`agents.jacprop_agent.JacPropAgent.learn`'s budget and env.
+
+    :raises ValueError: a budget that is not an integer >= 0, no budget at all, or no env (an
+        act-only loaded agent)."""
+    for name, value in (("total_timesteps", total_timesteps), ("episodes", episodes)):
+        if value is not None and (isinstance(value, bool) or not isinstance(
+                value, int | np.integer) or value < 0):
+            raise ValueError(f"{name} must be an integer >= 0, got {value!r}")
+    if episodes is None and total_timesteps is None:
+        raise ValueError("give total_timesteps (env steps) or episodes=")
+    if env is None:
+        raise ValueError("this agent was loaded without an env; load(path, env=...) to learn")
+
+
+def make_progress_bar(episodes: int | None, steps: int | None, show: bool) -> Any:
+    """A tqdm bar over ``episodes`` (else env ``steps``), or ``None``."""
+    if not show or not (episodes or steps):
+        return None
+    from tqdm.auto import tqdm
+
+    if episodes is not None:
+        return tqdm(total=episodes, desc="JacProp agent", unit="episode")
+    return tqdm(total=steps, desc="JacProp agent", unit="step")
+
+
+def end_episode(agent: Any, row: dict[str, Any], log: EpisodeLog | None, *, last: bool,
+                fps_since: tuple[int, float], bar: Any = None, bar_step: int = 1) -> None:
+    """The agent's bookkeeping after an episode of ``learn``: the final score (``last``: the
+    episode ends ``learn``, and evaluation is due then), the row appended to
+    ``agent.logger_rows``, the episode counted, the run folder written
+    (``config.checkpoint``), the row and the SB3 logger's records (with ``time/fps``) to
+    ``log`` and the SB3 logger dumped, the progress ``bar`` advanced by ``bar_step``.
+
+    :param fps_since: ``(env_steps, perf_counter time)`` at the start of ``learn``.
+    """
+    if last and row["eval_returns"] is None and agent.evaluator.due(
+            agent.episodes_done, agent.env_steps, last=True):
+        agent.evaluator.add_final_score(row, agent)
+    agent.logger_rows.append(row)
+    agent.episodes_done += 1
+    if agent.config.checkpoint:
+        write_run(agent, agent.config.run_dir)
+    fps = (agent.env_steps - fps_since[0]) / max(time.perf_counter() - fps_since[1], 1e-9)
+    if log is not None:
+        log.append(row, extra={**agent.logger.name_to_value, "time/fps": fps})
+    agent.logger.dump(agent.env_steps)
+    if bar is not None:
+        bar.update(bar_step)
+        ratio = row.get("cost_ratio")
+        bar.set_postfix(cost=f"{row['episode_cost']:.3g}",
+                        ratio="-" if ratio is None else f"{float(ratio):.3g}")

@@ -23,17 +23,17 @@ atomic checkpoint (data, model, Adam state, RNG states, config, log) from which
 :meth:`JacPropAgent.load` + :meth:`~JacPropAgent.learn` continue bit-identically (except with
 ``collection.continue_rollouts``: the env's running episode is not saved, so it restarts).
 
-The agent only wires its parts, each an object it holds and calls: a
-:class:`~agents.collection.Collector` (rollouts, excitation, exploration noise), a
-:class:`~agents.labels.JacobianLabeler` (LTV fits and fallbacks), a
+The agent only wires its parts (built by :func:`agents.task_setup.build_agent`), each an object
+it holds and calls: a :class:`~agents.collection.Collector` (rollouts, excitation, exploration
+noise), a :class:`~agents.labels.JacobianLabeler` (LTV fits and fallbacks), a
 :class:`~agents.model_training.ModelTrainer` (warm-started updates), the planner built by
 :func:`agents.planning.make_policy`, an :class:`~agents.evaluation.Evaluator` (fixed episodes,
-the oracle) and :mod:`agents.checkpoint` (the payload and the run folder).
+the oracle), :mod:`agents.checkpoint` (the payload, the run folder, loading) and
+:mod:`agents.episode_log` (the log rows and the bookkeeping after each episode).
 """
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import time
 import warnings
@@ -48,26 +48,16 @@ import torch
 from stable_baselines3.common.logger import Logger
 
 from agents.callbacks import Callbacks
-from agents.checkpoint import (
-    agent_payload,
-    check_resumable,
-    load_checkpoint,
-    restore_agent,
-    save_checkpoint,
-    write_run,
-)
-from agents.collection import Collector, save_video
+from agents.checkpoint import agent_payload, load_agent, save_checkpoint
+from agents.collection import save_video
 from agents.config import AgentConfig
-from agents.episode_log import EpisodeLog, summarize
-from agents.evaluation import NOT_EVALUATED, EpisodeRecord, Evaluator, run_episode
-from agents.labels import JacobianLabeler, check_ltv_memory
-from agents.model_training import ModelTrainer, model_errors
+from agents.episode_log import EpisodeLog, check_budget, end_episode, make_progress_bar, summarize
+from agents.evaluation import NOT_EVALUATED, EpisodeRecord, run_episode
+from agents.model_training import model_errors
 from agents.planning import MPCPolicy, ReplanEvery, SB3Predictor, make_policy, planner_cost
-from agents.task_setup import LearnedTask, check_state_map, checked_termination_fn, resolve_task
-from agents.tasks import EnvSpec, ObservationCost, env_spec
-from mbtsr.ensemble import DynamicsEnsemble
+from agents.task_setup import LearnedTask, build_agent
+from agents.tasks import env_spec
 from mbtsr.ltv import LTVModel
-from mbtsr.trajectory import Trajectory
 
 __all__ = ["JacPropAgent"]
 
@@ -125,66 +115,9 @@ class JacPropAgent(SB3Predictor):
             )
         if config.checkpoint and config.run_dir is None:
             config = config.replace(checkpoint=False)
-        self._setup(env, config, spec, cost_fn, state_fn, obs_fn,
-                    terminal_cost_fn=terminal_cost_fn, termination_fn=termination_fn)
-
-    def _setup(
-        self,
-        env: gym.Env | None,
-        config: AgentConfig,
-        spec: EnvSpec,
-        cost_fn: CostFn | None,
-        state_fn: Callable | None,
-        obs_fn: CostFn | None,
-        *,
-        saved_task: dict | None = None,
-        terminal_cost_fn: Callable[[Any], Any] | None = None,
-        termination_fn: Callable[[np.ndarray], np.ndarray] | None = None,
-    ) -> None:
-        self.env, self.config, self.spec = env, config, spec
-        self.env_id = getattr(getattr(env, "spec", None), "id", None) if env is not None else None
-        # the task: cost on (obs, action) (or a learned reward) and the obs <-> state maps
-        self.task = resolve_task(env, cost_fn, state_fn, obs_fn, saved_task,
-                                 terminal_cost_fn=terminal_cost_fn, termination_fn=termination_fn)
-        self.cost_fn, self.state_map = self.task.cost_fn, self.task.state_map
-        self.state_dim = int(check_state_map(self.state_map, env, spec).size)
-        check_ltv_memory(config.regularization, self.state_dim, spec.act_dim)
-        self.terminal_cost_fn = self.task.terminal_cost_fn
-        self.task_cost: ObservationCost | LearnedTask
-        if self.cost_fn is None:
-            self.task_cost = LearnedTask(self.state_map, spec, self.state_dim,
-                                         dataclasses.replace(config.reward, seed=config.seed))
-        else:
-            self.task_cost = ObservationCost(self.cost_fn, self.state_map, spec, self.state_dim,
-                                             terminal_cost_fn=self.terminal_cost_fn)
-        self.termination_fn = checked_termination_fn(self.task.termination_fn, env, spec)
-        self.planner_cost = planner_cost(self.task_cost, config.planner.terminal_weight)
-        # the model: an ensemble of small networks, Objective 1 (f) or 2 (g)
-        self.ensemble_config = config.model.ensemble_config(self.state_dim, spec.act_dim,
-                                                            config.seed)
-        self.model = DynamicsEnsemble(self.ensemble_config)
-        # the parts
-        self.collector = Collector(env, spec, config.collection, self.state_map)
-        self.labeler = JacobianLabeler(self.state_dim, spec.act_dim, config.regularization,
-                                       config.ltv_prior)
-        self.trainer = ModelTrainer(self.model, config.training, config.regularization,
-                                    config.renormalize)
-        self.evaluator = Evaluator(env, config, spec.episode_steps, cost_fn=self.cost_fn,
-                                   state_map=self.state_map,
-                                   terminal_cost_fn=self.terminal_cost_fn,
-                                   termination_fn=self.termination_fn)
-        self.freeze()
-        # the learning state (all of it goes into the checkpoint)
-        self.rng = np.random.default_rng(config.seed)
-        # predict(deterministic=False)'s noise: its own stream, so acting leaves learning as is
-        self.predict_rng = np.random.default_rng((config.seed, 1))
-        self.trajectories: list[Trajectory] = []
-        self.episodes_done = 0
-        self.env_steps = 0
-        self.logger_rows: list[dict[str, Any]] = []
-        self._log: EpisodeLog | None = None
-        self._rollout_steps = 0  # env steps of the running rollout (SB3 callbacks' count)
-        self._sb3_logger: Logger | None = None
+        build_agent(self, env, config, spec, {
+            "cost_fn": cost_fn, "state_fn": state_fn, "obs_fn": obs_fn,
+            "terminal_cost_fn": terminal_cost_fn, "termination_fn": termination_fn})
 
     def freeze(self) -> None:
         """Train -> freeze -> plan: the controller plans with an immutable numpy copy of the
@@ -266,14 +199,7 @@ class JacPropAgent(SB3Predictor):
             is reached first stops).
         :return: ``self``.
         """
-        for name, value in (("total_timesteps", total_timesteps), ("episodes", episodes)):
-            if value is not None and (isinstance(value, bool) or not isinstance(
-                    value, int | np.integer) or value < 0):
-                raise ValueError(f"{name} must be an integer >= 0, got {value!r}")
-        if episodes is None and total_timesteps is None:
-            raise ValueError("give total_timesteps (env steps) or episodes=")
-        if self.env is None:
-            raise ValueError("this agent was loaded without an env; load(path, env=...) to learn")
+        check_budget(total_timesteps, episodes, self.env)
         callbacks = Callbacks(callback)
         if self.config.torch_threads:
             torch.set_num_threads(self.config.torch_threads)
@@ -286,9 +212,9 @@ class JacPropAgent(SB3Predictor):
             )
         self.collector.forget()  # the env may have been used since: a learn call starts anew
         step_end = None if total_timesteps is None else self.env_steps + int(total_timesteps)
-        bar = _progress_bar(episodes, total_timesteps,
-                            self.config.progress if progress_bar is None else progress_bar)
-        start_steps, t0 = self.env_steps, time.perf_counter()
+        bar = make_progress_bar(episodes, total_timesteps,
+                                self.config.progress if progress_bar is None else progress_bar)
+        since = (self.env_steps, time.perf_counter())
         callbacks.start(self, total_timesteps)
         try:
             done = 0
@@ -300,24 +226,10 @@ class JacPropAgent(SB3Predictor):
                 row = self._episode(
                     max_steps=None if step_end is None else step_end - self.env_steps,
                     stop=callbacks.step_hook(self._count_step))
-                ends = callbacks.stopped or (episodes is not None and done >= episodes) or (
+                last = callbacks.stopped or (episodes is not None and done >= episodes) or (
                     step_end is not None and self.env_steps >= step_end)
-                if ends and row["eval_returns"] is None and self.evaluator.due(
-                        self.episodes_done, self.env_steps, last=True):
-                    self.evaluator.add_final_score(row, self)
-                self.logger_rows.append(row)
-                self.episodes_done += 1
-                if self.config.checkpoint:
-                    write_run(self, self.config.run_dir)
-                fps = (self.env_steps - start_steps) / max(time.perf_counter() - t0, 1e-9)
-                if self._log is not None:
-                    self._log.append(row, extra={**self.logger.name_to_value, "time/fps": fps})
-                self.logger.dump(self.env_steps)
-                if bar is not None:
-                    bar.update(1 if episodes is not None else self.env_steps - before)
-                    ratio = row.get("cost_ratio")
-                    bar.set_postfix(cost=f"{row['episode_cost']:.3g}",
-                                    ratio="-" if ratio is None else f"{float(ratio):.3g}")
+                end_episode(self, row, self._log, last=last, fps_since=since, bar=bar,
+                            bar_step=1 if episodes is not None else self.env_steps - before)
                 if not callbacks.episode_end(self, row):
                     break
                 if self.config.evaluation.stop_when_solved and row.get("solved"):
@@ -419,31 +331,10 @@ class JacPropAgent(SB3Predictor):
             a missing one is named in a ``ValueError``. A given function wins.
         :param run_dir: where :meth:`learn` writes from now on (default: the saved config's).
         """
-        path = Path(path)
-        if path.is_dir():
-            path = path / "checkpoint.pt"
-        payload = load_checkpoint(path)
-        cfg = json.loads(payload["agent_config"])
-        if run_dir is not None:
-            cfg["run_dir"] = str(run_dir)
-        config = AgentConfig.from_dict(cfg)
-        spec, task, fns = check_resumable(payload, path, config, env, {
+        return load_agent(cls, path, env, {
             "cost_fn": cost_fn, "state_fn": state_fn, "obs_fn": obs_fn,
-            "terminal_cost_fn": terminal_cost_fn, "termination_fn": termination_fn})
-        saved_n = json.loads(payload["ensemble_config"])["state_dim"]
-        agent = cls.__new__(cls)
-        agent._setup(env, config, spec, fns["cost_fn"], fns["state_fn"], fns["obs_fn"],
-                     saved_task=task, terminal_cost_fn=fns["terminal_cost_fn"],
-                     termination_fn=fns["termination_fn"])
-        if agent.state_dim != saved_n:
-            raise ValueError(
-                f"state_fn gives a model state of dimension {agent.state_dim}, but the saved "
-                f"agent's model was trained on dimension {saved_n}: pass the state_fn/obs_fn it "
-                "was built with"
-            )
-        restore_agent(agent, payload)
-        agent.env_id = agent.env_id or task.get("env_id")  # an act-only agent keeps its task's
-        return agent
+            "terminal_cost_fn": terminal_cost_fn, "termination_fn": termination_fn},
+            run_dir=run_dir)
 
     # ------------------------------------------------------------------ one episode
     def _episode(self, max_steps: int | None = None, stop: Callable | None = None
@@ -558,17 +449,6 @@ class JacPropAgent(SB3Predictor):
             "ensemble": json.loads(self.ensemble_config.to_json()),
             "env_spec": self.spec.to_dict(),
         }
-
-
-def _progress_bar(episodes: int | None, steps: int | None, show: bool) -> Any:
-    """A tqdm bar over ``episodes`` (else env ``steps``), or ``None``."""
-    if not show or not (episodes or steps):
-        return None
-    from tqdm.auto import tqdm
-
-    if episodes is not None:
-        return tqdm(total=episodes, desc="JacProp agent", unit="episode")
-    return tqdm(total=steps, desc="JacProp agent", unit="step")
 
 
 def _last(values: Any) -> float | None:

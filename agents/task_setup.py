@@ -6,8 +6,10 @@ any learning starts, so that a wrong function fails at construction with a clear
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Any
 
 import gymnasium as gym
 import numpy as np
@@ -18,8 +20,8 @@ from mbtsr.training import holdout_mask
 from mbtsr.trajectory import Trajectory
 from mbtsr.validation import call_user_fn, check_callable
 
-__all__ = ["LearnedTask", "ResolvedTask", "check_state_map", "checked_termination_fn",
-           "probe_observations", "registry_task", "resolve_task"]
+__all__ = ["LearnedTask", "ResolvedTask", "build_agent", "check_state_map",
+           "checked_termination_fn", "probe_observations", "registry_task", "resolve_task"]
 
 
 @dataclass(frozen=True)
@@ -208,3 +210,70 @@ def checked_termination_fn(
             f"termination_fn(obs [..., obs_dim]) must return one bool per observation [...]; for "
             f"[2, 3, {spec.obs_dim}] it returned shape {list(out.shape)}")
     return fn
+
+
+def build_agent(agent: Any, env: gym.Env | None, config: Any, spec: EnvSpec,
+                fns: dict[str, Any], saved_task: dict | None = None) -> None:
+    """Give a :class:`agents.jacprop_agent.JacPropAgent` its task, model, parts and a fresh
+    learning state (construction, and :func:`agents.checkpoint.load_agent` before restoring).
+
+    :param agent: the agent whose attributes are set.
+    :param env: the env (``None``: an act-only loaded agent).
+    :param config: its :class:`agents.config.AgentConfig`.
+    :param spec: the env's :class:`agents.tasks.EnvSpec`.
+    :param fns: the task functions by name (``cost_fn``, ``state_fn``, ``obs_fn``,
+        ``terminal_cost_fn``, ``termination_fn``; ``None`` where not given).
+    :param saved_task: a checkpoint's serialised task, or ``None``.
+    """
+    # the parts import this module (planning: LearnedTask), so they are imported here
+    from agents.collection import Collector
+    from agents.evaluation import Evaluator
+    from agents.labels import JacobianLabeler, check_ltv_memory
+    from agents.model_training import ModelTrainer
+    from agents.planning import planner_cost
+    from agents.tasks import ObservationCost
+    from mbtsr.ensemble import DynamicsEnsemble
+
+    agent.env, agent.config, agent.spec = env, config, spec
+    agent.env_id = getattr(getattr(env, "spec", None), "id", None) if env is not None else None
+    # the task: cost on (obs, action) (or a learned reward) and the obs <-> state maps
+    agent.task = resolve_task(env, fns["cost_fn"], fns["state_fn"], fns["obs_fn"], saved_task,
+                              terminal_cost_fn=fns["terminal_cost_fn"],
+                              termination_fn=fns["termination_fn"])
+    agent.cost_fn, agent.state_map = agent.task.cost_fn, agent.task.state_map
+    agent.state_dim = state_dim = int(check_state_map(agent.state_map, env, spec).size)
+    check_ltv_memory(config.regularization, state_dim, spec.act_dim)
+    agent.terminal_cost_fn = agent.task.terminal_cost_fn
+    if agent.cost_fn is None:
+        agent.task_cost = LearnedTask(agent.state_map, spec, state_dim,
+                                      dataclasses.replace(config.reward, seed=config.seed))
+    else:
+        agent.task_cost = ObservationCost(agent.cost_fn, agent.state_map, spec, state_dim,
+                                          terminal_cost_fn=agent.terminal_cost_fn)
+    agent.termination_fn = checked_termination_fn(agent.task.termination_fn, env, spec)
+    agent.planner_cost = planner_cost(agent.task_cost, config.planner.terminal_weight)
+    # the model: an ensemble of small networks, Objective 1 (f) or 2 (g)
+    agent.ensemble_config = config.model.ensemble_config(state_dim, spec.act_dim, config.seed)
+    agent.model = DynamicsEnsemble(agent.ensemble_config)
+    # the parts
+    agent.collector = Collector(env, spec, config.collection, agent.state_map)
+    agent.labeler = JacobianLabeler(state_dim, spec.act_dim, config.regularization,
+                                    config.ltv_prior)
+    agent.trainer = ModelTrainer(agent.model, config.training, config.regularization,
+                                 config.renormalize)
+    agent.evaluator = Evaluator(env, config, spec.episode_steps, cost_fn=agent.cost_fn,
+                                state_map=agent.state_map,
+                                terminal_cost_fn=agent.terminal_cost_fn,
+                                termination_fn=agent.termination_fn)
+    agent.freeze()
+    # the learning state (all of it goes into the checkpoint)
+    agent.rng = np.random.default_rng(config.seed)
+    # predict(deterministic=False)'s noise: its own stream, so acting leaves learning as is
+    agent.predict_rng = np.random.default_rng((config.seed, 1))
+    agent.trajectories = []
+    agent.episodes_done = 0
+    agent.env_steps = 0
+    agent.logger_rows = []
+    agent._log = None
+    agent._rollout_steps = 0  # env steps of the running rollout (SB3 callbacks' count)
+    agent._sb3_logger = None
