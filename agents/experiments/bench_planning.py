@@ -228,6 +228,11 @@ def run(args: Args) -> dict:
     if unknown:
         raise ValueError(f"unknown tasks {unknown}; known: {sorted(bench_suite.TASKS)}")
     torch.set_num_threads(1)
+    # one core: numpy's BLAS too (the issue's targets are per core; without this the larger
+    # models' products ran on both cores, CPU time twice the wall time)
+    from threadpoolctl import threadpool_limits
+
+    threadpool_limits(1, user_api="blas")
     load = os.getloadavg()
     peaks = {name: matmul_peak(dtype, repeats=args.repeats)
              for name, dtype in (("float32", np.float32), ("float64", np.float64))}
