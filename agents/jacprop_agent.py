@@ -271,34 +271,18 @@ class JacPropAgent(SB3Predictor):
         full-horizon plan. Exploration noise is only added in :meth:`learn`."""
         return self.actor.predict(observation, state)
 
-    def predict(
-        self,
-        observation: np.ndarray,
-        state: Any = None,
-        episode_start: np.ndarray | bool | None = None,
-        deterministic: bool = True,
-    ) -> tuple[np.ndarray, Any]:
-        """The MPC action on the learned model (Stable-Baselines3 signature).
-
-        :param observation: ``[obs_dim]``, or a batch ``[B, obs_dim]`` (planned row by row).
-        :param state: the previous call's recurrent state (the remaining plan; for a batch the
-            list of the rows'), or ``None`` (a cold full-horizon plan).
-        :param episode_start: ``True`` (for a batch ``[B]`` flags) at an episode's first step:
-            a cold start.
-        :param deterministic: ``False`` adds exploration noise: white Gaussian with std
-            ``collection.exploration_std`` x half the action range (the per-step spread of the
-            training rollouts' noise, without their ``exploration_window`` correlation) from
-            :attr:`predict_rng` (seeded by ``config.seed``, apart from learning's generator),
-            clipped to the action box.
-        :return: ``(action [act_dim], state)``, for a batch ``(actions [B, act_dim], states)``.
-        """
-        action, state = super().predict(observation, state, episode_start)
-        if not deterministic:
-            spec = self.spec
-            std = self.config.collection.exploration_std * 0.5 * (spec.u_max - spec.u_min)
-            action = np.clip(action + std * self.predict_rng.standard_normal(action.shape),
-                             spec.u_min, spec.u_max)
-        return action, state
+    def _explore(self, action: np.ndarray) -> np.ndarray:
+        """``predict(..., deterministic=False)``'s exploration noise: white Gaussian with std
+        ``collection.exploration_std`` x half the action range (the per-step spread of the
+        training rollouts' noise, without their ``exploration_window`` correlation) from
+        :attr:`predict_rng` (seeded by ``config.seed``, apart from learning's generator,
+        checkpointed), clipped to the action box. ``predict`` itself is
+        :meth:`agents.planning.SB3Predictor.predict`: one observation ``[obs_dim]`` or a batch
+        ``[B, obs_dim]`` (planned row by row, a state per row)."""
+        spec = self.spec
+        std = self.config.collection.exploration_std * 0.5 * (spec.u_max - spec.u_min)
+        return np.clip(action + std * self.predict_rng.standard_normal(action.shape),
+                       spec.u_min, spec.u_max)
 
     def save(self, path: str | Path) -> Path:
         """Save everything needed to continue learning or to act (one atomic file)."""

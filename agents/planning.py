@@ -140,8 +140,8 @@ def make_policy(
 class SB3Predictor(abc.ABC):
     """Stable-Baselines3's ``predict`` over ``_act(observation, state)``: the MPC policies and
     the agent. A batch ``[B, obs_dim]`` is planned row by row, each row with its own recurrent
-    state. ``episode_start`` forces a cold start (``state=None``); ``deterministic`` is unused
-    here (MPC is deterministic; the agent adds its exploration noise when it is ``False``)."""
+    state. ``episode_start`` forces a cold start (``state=None``); ``deterministic=False`` adds
+    :meth:`_explore`'s noise (none for MPC; the agent's exploration noise)."""
 
     @abc.abstractmethod
     def _act(self, observation: Any, state: Any) -> tuple[np.ndarray, Any]:
@@ -161,14 +161,17 @@ class SB3Predictor(abc.ABC):
             for a batch, the list of the rows' states), or ``None`` (cold start).
         :param episode_start: ``True`` at the first step of an episode (for a batch ``[B]``
             flags, one per row): a cold start.
-        :param deterministic: unused (MPC is deterministic); kept for SB3 compatibility.
+        :param deterministic: ``False`` adds the policy's exploration noise (:meth:`_explore`:
+            none for an MPC policy; the agent's is documented at
+            :meth:`agents.jacprop_agent.JacPropAgent._explore`).
         :return: ``(action [m], next_state)``, for a batch ``(actions [B, m], [B] states)``.
         """
         obs = np.asarray(observation)
         if obs.ndim != 2:
             if episode_start is not None and bool(np.any(episode_start)):
                 state = None
-            return self._act(observation, state)
+            action, state = self._act(observation, state)
+            return (action if deterministic else self._explore(action)), state
         B = obs.shape[0]
         starts = np.asarray(False if episode_start is None else episode_start, dtype=bool)
         if starts.size not in (1, B):
@@ -181,7 +184,13 @@ class SB3Predictor(abc.ABC):
             raise ValueError(f"for a batch of {B} observations, state must be the list of "
                              f"{B} states returned by predict (or None)")
         out = [self._act(obs[i], None if starts[i] else state[i]) for i in range(B)]
-        return np.stack([a for a, _ in out]), [s for _, s in out]
+        actions = np.stack([a for a, _ in out])
+        return (actions if deterministic else self._explore(actions)), [s for _, s in out]
+
+    def _explore(self, action: np.ndarray) -> np.ndarray:
+        """``action`` (``[m]`` or ``[B, m]``) with exploration noise, for
+        ``deterministic=False``: unchanged here (MPC is deterministic)."""
+        return action
 
 
 class MPCPolicy(SB3Predictor):
