@@ -108,7 +108,7 @@ class CollectionConfig(_Section):
     episode_steps: int | None = None
     rollout_steps: int | None = None
     continue_rollouts: bool = False
-    exploration_window: int = 1
+    exploration_window: int = 8
     explore_weight: float = 0.0
     explore_on: Literal["state", "cost"] = "state"
 
@@ -262,7 +262,7 @@ class AgentConfig(_Section):
     collection: CollectionConfig = field(default_factory=CollectionConfig)
     model: ModelConfig = field(default_factory=ModelConfig)
     training: TrainConfig = field(default_factory=lambda: TrainConfig(
-        steps=500, lr=1e-3, batch=256, holdout=0.1, eval_every=50, patience=5,
+        steps=4000, lr=1e-3, batch=256, holdout=0.1, eval_every=50, patience=20,
         early_stopping="member", member_data="order", progress=False))
     regularization: RegularizationConfig = field(default_factory=lambda: _NAMED[
         "regularization"]("sampled"))

@@ -39,7 +39,7 @@ import time
 import warnings
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import gymnasium as gym
 import numpy as np
@@ -76,7 +76,8 @@ class JacPropAgent(SB3Predictor):
         state maps, where not given), else the env's own quadratic cost
         (``env.unwrapped.cost_Q/cost_R``, as ``mbtsr/TwoLinkArm-v0`` provides), else a reward
         learned from the env's rewards (``config.reward``, refit after every model update;
-        the evaluation then has no oracle).
+        the evaluation then has no oracle). ``"learned"``: learn the reward even for an env
+        that :data:`agents.tasks.TASKS` knows.
     :param state_fn: ``obs -> model state`` (numpy); with ``obs_fn``.
     :param obs_fn: ``(state, obs_ref) -> obs`` (CasADi-compatible), the inverse map used to
         evaluate ``cost_fn`` on predicted states.
@@ -93,7 +94,7 @@ class JacPropAgent(SB3Predictor):
         self,
         env: gym.Env,
         config: AgentConfig | None = None,
-        cost_fn: CostFn | None = None,
+        cost_fn: CostFn | Literal["learned"] | None = None,
         state_fn: Callable[[np.ndarray], np.ndarray] | None = None,
         obs_fn: CostFn | None = None,
         *,

@@ -53,7 +53,7 @@ def registry_task(env_id: str | None) -> Task | None:
 
 def resolve_task(
     env: gym.Env | None,
-    cost_fn: Callable | None,
+    cost_fn: Callable | str | None,
     state_fn: Callable | None,
     obs_fn: Callable | None,
     saved_task: dict | None = None,
@@ -63,6 +63,8 @@ def resolve_task(
 ) -> ResolvedTask:
     """The task from the constructor's arguments, first match wins:
 
+    0. ``cost_fn="learned"`` (or a checkpoint of a learned reward): learn the reward, even for
+       an env that :data:`agents.tasks.TASKS` knows;
     1. ``cost_fn`` given: it (with ``state_fn``/``obs_fn``);
     2. a saved :class:`~agents.tasks.QuadraticTargetCost` (a checkpoint's task);
     3. the task of :data:`agents.tasks.TASKS` for the env's id (or the saved task's
@@ -72,9 +74,16 @@ def resolve_task(
     5. none: ``cost_fn=None``, the agent learns the reward from the env's rewards.
     """
     own = {"terminal_cost_fn": terminal_cost_fn, "termination_fn": termination_fn}
+    saved_task = saved_task or {}
+    if isinstance(cost_fn, str) or saved_task.get("learned"):
+        if cost_fn not in ("learned", None):
+            raise ValueError(f"cost_fn must be a callable, None or 'learned', got {cost_fn!r}")
+        if terminal_cost_fn is not None:
+            raise ValueError("terminal_cost_fn needs a written cost_fn: a learned reward has "
+                             "no terminal cost")
+        return ResolvedTask(None, StateMap(state_fn, obs_fn), **own, source="learned")
     if cost_fn is not None:
         return ResolvedTask(cost_fn, StateMap(state_fn, obs_fn), **own)
-    saved_task = saved_task or {}
     if saved_task.get("cost") is not None:
         cost = QuadraticTargetCost.from_dict(saved_task["cost"])
         if state_fn is None and saved_task.get("state_map") is not None:

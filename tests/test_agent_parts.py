@@ -245,6 +245,35 @@ def test_task_setup_refuses_a_map_that_indexes_the_batch_and_learns_a_missing_co
     assert learned.cost_fn is None and learned.source == "learned"
 
 
+def test_cost_fn_learned_learns_the_reward_of_a_known_env_and_survives_save_and_load(tmp_path):
+    """``cost_fn="learned"`` on an env of agents.tasks: a reward model, not the registry's
+    cost; the termination given is kept, a terminal cost is refused, and a saved agent loads as
+    a learned-reward agent (not as the registry task of its env id)."""
+    from agents import JacPropAgent
+    from agents.tasks import inverted_pendulum
+
+    env = gym.make("InvertedPendulum-v5", max_episode_steps=20)
+    assert resolve_task(env, None, None, None).source == "registry"
+    done = inverted_pendulum().termination_fn
+    task = resolve_task(env, "learned", None, None, termination_fn=done)
+    assert (task.source, task.cost_fn, task.termination_fn) == ("learned", None, done)
+    with pytest.raises(ValueError, match="terminal_cost_fn needs a written cost_fn"):
+        resolve_task(env, "learned", None, None, terminal_cost_fn=lambda o: ca.sumsqr(o))
+    with pytest.raises(ValueError, match="'learn'"):
+        resolve_task(env, "learn", None, None)
+    cfg = AgentConfig.default({"model.ensemble_size": 1, "model.hidden_width": 8,
+                               "training.steps": 5, "planner.horizon": 3,
+                               "evaluation.episodes": 1, "reward.steps": 20})
+    agent = JacPropAgent(env, cfg, cost_fn="learned", termination_fn=done)
+    agent.learn(total_timesteps=40)
+    assert agent.task.source == "learned" and agent.cost_fn is None
+    agent.save(tmp_path / "a.pt")
+    loaded = JacPropAgent.load(tmp_path / "a.pt", env, termination_fn=done)
+    assert loaded.task.source == "learned"
+    obs = env.reset(seed=3)[0]
+    np.testing.assert_array_equal(loaded.predict(obs)[0], agent.predict(obs)[0])
+
+
 @pytest.mark.parametrize("kind", ["ilqr", "cem", "cem-ilqr"])
 def test_oracle_plans_with_the_planners_kind_and_one_particle(kind):
     """The oracle is the agent's planner on the true model: the same optimizer and iteration

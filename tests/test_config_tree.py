@@ -29,8 +29,8 @@ def test_the_sections_are_the_library_configs():
     assert type(cfg.regularization) is RegularizationConfig
     assert {name: type(getattr(cfg, name)) for name in SECTIONS} == SECTIONS
     # the paper's sampled JacProp; a step budget with early stopping; a model sized by the task
-    assert cfg.training == TrainConfig(steps=500, lr=1e-3, batch=256, holdout=0.1,
-                                       eval_every=50, patience=5, early_stopping="member",
+    assert cfg.training == TrainConfig(steps=4000, lr=1e-3, batch=256, holdout=0.1,
+                                       eval_every=50, patience=20, early_stopping="member",
                                        member_data="order", progress=False)
     assert cfg.regularization == RegularizationConfig(sampled_weight=1.0, ltv_lambda=None)
     layers, width = default_size(11, 2)
@@ -527,7 +527,7 @@ def test_a_section_built_with_a_value_of_the_wrong_type_is_refused_by_the_tree()
     ({"planner": {"kind": "ilqr", "cem": {"elites": 5}}}, "planner.cem.elites"),
     ({"collection": {"excitation": "multisine", "excitation_window": 3}},
      "collection.excitation_window"),
-    ({"collection": {"exploration_std": 0.0, "exploration_window": 8}},
+    ({"collection": {"exploration_std": 0.0, "exploration_window": 4}},
      "collection.exploration_window"),
     ({"video_every": 2}, "video_every"),
     ({"planner.kind": "ilqr", "collection.explore_weight": 1.0}, "collection.explore_weight"),
@@ -571,7 +571,7 @@ def test_step_budget_settings_without_effect_are_refused():
         AgentConfig.default({"training.epochs": 50})
     assert AgentConfig.default({"training.epochs": 50, "training.steps": None,
                                 "training.holdout": 0.1}).training.uses_step_loop
-    with pytest.raises(ValueError, match=r"^training\.patience=5 has no effect: early stopping "
+    with pytest.raises(ValueError, match=r"^training\.patience=20 has no effect: early stopping "
                                          r"needs held-out data"):
         AgentConfig.default({"training.holdout": 0.0})
     assert AgentConfig.default({"training.holdout": 0.0, "training.patience": None})

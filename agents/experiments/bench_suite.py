@@ -14,9 +14,10 @@ import sys
 import time
 import warnings
 from collections import Counter
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 REPO = Path(__file__).resolve().parents[2]
 os.environ.setdefault("MUJOCO_GL", "egl")
@@ -106,14 +107,25 @@ def agent_config(name: str, overrides: dict[str, Any] | None = None, *, smoke: b
     return cfg
 
 
-def make_agent(name: str, overrides: dict[str, Any] | None = None, *, smoke: bool = False
-               ) -> Any:
-    """The agent of task ``name`` on a new env, configured by :func:`agent_config`."""
+#: ``--form``: how the agent is given the task (its oracle plans on the written cost):
+#: ``written`` the task's functions; ``raw`` its cost on the raw observation (no state maps);
+#: ``learned`` no cost (a reward learned from the env's rewards), the rest of the task kept
+FORMS: dict[str, Callable[[dict[str, Any]], dict[str, Any]]] = {
+    "written": lambda kw: kw,
+    "raw": lambda kw: {**kw, "state_fn": None, "obs_fn": None},
+    "learned": lambda kw: {**kw, "cost_fn": "learned", "terminal_cost_fn": None},
+}
+
+
+def make_agent(name: str, overrides: dict[str, Any] | None = None, *, smoke: bool = False,
+               form: str = "written") -> Any:
+    """The agent of task ``name`` on a new env, configured by :func:`agent_config`, given the
+    task in ``form`` (:data:`FORMS`)."""
     from agents.jacprop_agent import JacPropAgent
 
     task = TASKS[name]["task"]
     return JacPropAgent(task.make_env(), agent_config(name, overrides, smoke=smoke),
-                        **task.agent_kwargs())
+                        **FORMS[form](task.agent_kwargs()))
 
 
 # ---------------------------------------------------------------------------------------------
@@ -222,7 +234,8 @@ def load_baselines(path: Path = BASELINES_JSON) -> dict[str, dict[str, Any]]:
 def run_one(name: str, planner: str, reg: str, seed: int, *, smoke: bool,
             oracle_cache: str, baseline: dict[str, Any] | None,
             checkpoint_dir: Path | None = None, stop_after: int | None = None,
-            agent_settings: dict[str, Any] | None = None) -> dict[str, Any] | None:
+            agent_settings: dict[str, Any] | None = None, form: str = "written"
+            ) -> dict[str, Any] | None:
     """One agent run of task ``name`` for its budget; returns its record (curve of mean
     evaluation returns, env steps to solve against the baseline's threshold, wall per phase).
 
@@ -235,6 +248,7 @@ def run_one(name: str, planner: str, reg: str, seed: int, *, smoke: bool,
         ``checkpoint_dir``) if the budget is not reached.
     :param agent_settings: dotted ``AgentConfig`` fields on top of the task's
         (:func:`check_agent_settings`); recorded in the run.
+    :param form: how the agent is given the task (:data:`FORMS`); recorded in the run.
     :raises ValueError: ``stop_after`` without ``checkpoint_dir``; a checkpoint of other
         settings (:class:`~mbtsr.fileformat.CheckpointError`, naming the first).
     """
@@ -255,7 +269,7 @@ def run_one(name: str, planner: str, reg: str, seed: int, *, smoke: bool,
         overrides["evaluation.solved_return"] = solved_return(baseline["oracle_return"])
     if checkpoint_dir is not None:
         overrides.update({"run_dir": str(checkpoint_dir), "checkpoint": True})
-    agent = make_agent(name, overrides, smoke=smoke)
+    agent = make_agent(name, overrides, smoke=smoke, form=form)
     if baseline is not None and not smoke:
         _check_baseline_settings(name, baseline, agent.config.planner)
     # earlier sessions of this run: their time and commits
@@ -264,7 +278,7 @@ def run_one(name: str, planner: str, reg: str, seed: int, *, smoke: bool,
     if checkpoint_dir is not None and (Path(checkpoint_dir) / "checkpoint.pt").is_file():
         fresh = agent
         agent = JacPropAgent.load(checkpoint_dir, fresh.env, run_dir=str(checkpoint_dir),
-                                  **TASKS[name]["task"].agent_kwargs())
+                                  **FORMS[form](TASKS[name]["task"].agent_kwargs()))
         saved, now = agent.config.dotted(), fresh.config.dotted()
         for key in _SESSION_SETTINGS:  # paths and bookkeeping may change between sessions
             saved.pop(key), now.pop(key)
@@ -314,6 +328,7 @@ def run_one(name: str, planner: str, reg: str, seed: int, *, smoke: bool,
                     for r in agent.logger_rows],
         "model": agent.config.to_dict()["model"],
         **({"agent_settings": agent_settings} if agent_settings else {}),
+        **({"form": form} if form != "written" else {}),
         "wall_seconds_per_phase": s["wall_seconds_per_phase"],
         "wall_seconds": wall_seconds, "cpu_seconds": cpu_seconds,
         "git_sessions": spent["git"],  # the commit(s) the run was produced at
@@ -1081,6 +1096,11 @@ class Args:
     """a JSON object of dotted AgentConfig fields applied to every agent run on top of the
     task's (e.g. '{"planner.replan_every": 8}'); recorded in the JSON, which then holds only
     runs of these settings (use another --out)"""
+    form: Literal["written", "raw", "learned"] = "written"
+    """how the agent is given the task (the oracle always plans on its written cost): the
+    task's functions; 'raw': its cost on the raw observation (no model-state maps); 'learned':
+    no cost, a reward learned from the env's rewards (termination and maps kept). A JSON holds
+    the runs of one form"""
 
     def __post_init__(self) -> None:
         for name, given, known in (("tasks", self.tasks, TASKS), ("sb3", self.sb3, SB3_METHODS),
@@ -1196,11 +1216,14 @@ def run(a: Args) -> dict[str, Any]:
                                             "regularization": reg}, smoke=a.smoke)
                     except ValueError as e:
                         raise ValueError(f"{what}: {e}") from e
-        if state["runs"] and state.get("agent_settings", {}) != settings:
+        if state["runs"] and (state.get("agent_settings", {}), state.get("form", "written")
+                              ) != (settings, a.form):
             raise ValueError(f"{path} holds runs with agent settings "
-                             f"{state.get('agent_settings', {})}, these are {settings}: give "
-                             f"another --out")
+                             f"{state.get('agent_settings', {})} and form "
+                             f"{state.get('form', 'written')!r}, these are {settings} and "
+                             f"{a.form!r}: give another --out")
         state["agent_settings"] = settings
+        state["form"] = a.form
         _header(state, a.smoke)  # a report keeps the stamps of the runs it reports
         done = {(r["task"], r["planner"], r["regularization"], r["seed"]) for r in state["runs"]}
         for seed in a.seeds:
@@ -1216,7 +1239,7 @@ def run(a: Args) -> dict[str, Any]:
                                       baseline=load_baselines(bpath).get(name),
                                       checkpoint_dir=ckpt,
                                       stop_after=a.stop_after_steps or None,
-                                      agent_settings=settings)
+                                      agent_settings=settings, form=a.form)
                         if rec is None:
                             print(f"{name} {planner}/{reg} seed {seed}: paused, continues from "
                                   f"{ckpt}", flush=True)
