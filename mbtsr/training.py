@@ -1,24 +1,10 @@
 """Training of :class:`~mbtsr.ensemble.DynamicsEnsemble` with tangent-space regularization.
 
-Objective of member ``k`` for one optimizer step on a batch ``b`` of transitions (paper Sec. II
-loss; regularizers of Sec. III, switchable and combinable, each with its weight)::
-
-    L_k = mean_{t in b} ||y_k(t) - r(t)||^2                               data
-        + w_sampled * mean_{copies, t in b} ||y_k(t~) - r~(t)||^2           sampled JacProp
-        + w_exact  * S * mean_{t in b} ||J_k(t) - [A_t B_t]||_F^2          exact matching
-        + w_smooth * S * mean_{t, t+1 in b} ||J_k(t+1) - J_k(t)||_F^2      smoothness ("AD")
-
-``y_k`` is the member's normalized network output, ``r`` the normalized residual target,
-``J_k`` the member's Jacobian of the FULL map in raw units, ``[A_t B_t]`` the Jacobian of the
-trajectory's LTV model (:func:`mbtsr.ltv.fit_ltv`), ``r~`` the LTV labels of perturbed copies
-(:meth:`mbtsr.ltv.LTVModel.sample_perturbed`; :attr:`RegularizationConfig.copies_batch`) and
-``S`` turns the mean into the paper's sum over time; the members' objectives are summed. Each
-term, ``S`` and the measured effect: docs/models.md, "Tangent-space regularization".
-
-One loop (:func:`_train_loop`) trains with either schedule, a plan of rounds of batches: the
-paper's epochs (:class:`_EpochPlan`), or a step budget (:attr:`TrainConfig.steps`, or a hold-out,
-early stopping or per-member data; :class:`_StepPlan`). A probabilistic member's data term is
-the Gaussian NLL; see :class:`TrainConfig`.
+The objective (data term, sampled Jacobian propagation, exact matching, smoothness) and both
+schedules (the paper's epochs, a step budget with hold-out and early stopping): docs/models.md,
+"Training" to "Tangent-space regularization". One loop (:func:`_train_loop`) runs either
+schedule, a plan of rounds of batches (:class:`_EpochPlan`, :class:`_StepPlan`); every term of
+the objective is written once (:func:`_objective`).
 """
 
 from __future__ import annotations
@@ -60,56 +46,33 @@ HOLDOUT_SEED = 20260901
 
 @dataclass(frozen=True)
 class TrainConfig:
-    """Optimizer and schedule (Adam, paper Sec. "Nominal model").
+    """Optimizer (Adam) and schedule: ``epochs`` passes over all data (the paper's, the
+    default) or a budget of ``steps``; a hold-out, early stopping or per-member data take the
+    step budget (:attr:`uses_step_loop`). Defaults and sources: docs/models.md, "Training".
 
-    Two schedules. ``steps=None`` (default): ``epochs`` passes over all data, the paper's
-    schedule (its cost grows with the data). ``steps=S``: a budget of ``S`` gradient steps on
-    minibatches of ``batch`` transitions per call, independent of the data size. Either can
-    hold out data, stop early and give the members their own data order or bootstrap sample
-    (then training takes the step budget, :attr:`uses_step_loop`; without them ``epochs`` is
-    the paper's epoch schedule). See ``docs/models.md``, "Training with a step budget".
-
-    :param epochs: passes over the data (``steps=None``). Paper: 1000 for g and 2000 for f, half
-        of that with sampled Jacobian propagation.
-    :param lr: Adam step size. The original used 0.02 (linear system, robot v1) and 0.01 (later
-        scripts; normalized data, see ``docs/models.md``).
-    :param batch: ``"trajectory"`` (one optimizer step per trajectory, like the original; epochs
-        only) or an int minibatch size (transitions drawn without replacement across
-        trajectories).
-    :param weight_decay: L2 weight decay on weight matrices only (not biases or layer-norm
-        parameters). Coupled (added to the gradient before Adam, as in the original) unless
-        ``decoupled_weight_decay``.
+    :param epochs: passes over the data (``steps=None``; paper 1000 for g, 2000 for f).
+    :param lr: Adam step size.
+    :param batch: ``"trajectory"`` (one step per trajectory; epochs only) or an int minibatch
+        size.
+    :param weight_decay: L2 decay of weight matrices only, coupled unless
+        ``decoupled_weight_decay`` (AdamW).
     :param decoupled_weight_decay: AdamW-style decay ``W <- W - lr * weight_decay * W``.
     :param betas: Adam's ``(beta1, beta2)``.
-    :param adam_eps: Adam's epsilon (original: 1e-8; some scripts 1e-2).
-    :param shuffle: reshuffle the batch order every epoch (epochs only; a step budget always
-        draws random minibatches).
+    :param adam_eps: Adam's epsilon.
+    :param shuffle: reshuffle the batch order every epoch (epochs only).
     :param seed: seeds batch order, perturbation sampling, bootstrap resampling and dropout.
     :param progress: show a tqdm progress bar.
-    :param steps: gradient-step budget per call (``None``: ``epochs``). Each step takes one
-        minibatch per member (an epoch-free stream: a random permutation of the member's
-        training rows, redrawn when used up); sampled Jacobian propagation perturbs the
-        minibatch's transitions afresh at every step. ``holdout``, ``patience`` and
-        ``member_data`` work with either schedule (with ``steps=None`` the budget is ``epochs``
-        passes over the training rows, ``epochs * ceil(rows / batch)`` steps).
-    :param holdout: fraction of the transitions held out of training to measure the validation
-        loss. The split is a fixed function of the transition's index (the
-        ``j``-th uniform of a stream seeded with :data:`HOLDOUT_SEED`), so data appended by later
-        calls never moves an old transition between the sets: a warm-started model is never
-        validated on data it trained on. Perturbed copies of held-out transitions are not
-        trained on either.
-    :param eval_every: steps between validation evaluations of the step loop (also at step 0
-        and at the end).
+    :param steps: gradient-step budget per call (``None``: ``epochs`` passes, as
+        ``epochs * ceil(rows / batch)`` steps when the step loop runs).
+    :param holdout: fraction of transitions held out for the validation loss, a prefix-stable
+        function of the index (:func:`holdout_mask`).
+    :param eval_every: steps between validation evaluations (also at step 0 and the end).
     :param patience: stop after this many evaluations without an improvement of more than
-        :data:`MIN_REL_IMPROVEMENT` and restore the best weights seen (``None``: train the whole
-        budget, restore nothing). Needs ``holdout > 0`` or ``validation`` data.
-    :param early_stopping: ``"member"``: every member keeps its own best weights by its own
-        validation loss, and training stops when no member improves; ``"ensemble"``: one
-        snapshot by the validation loss of the ensemble mean.
-    :param member_data: ``"shared"``: all members see the same minibatches (the paper's);
-        ``"order"``: every member draws its own minibatch stream (same data, different order);
-        ``"bootstrap"``: every member trains on its own bootstrap resample of the training rows
-        (drawn once per call, as PETS).
+        :data:`MIN_REL_IMPROVEMENT` and restore the best weights (needs held-out data).
+    :param early_stopping: ``"member"`` (each member its own best weights) or ``"ensemble"``
+        (one snapshot by the ensemble mean's loss).
+    :param member_data: ``"shared"`` minibatches, ``"order"`` (own stream per member) or
+        ``"bootstrap"`` (own resample per member, drawn once per call).
     """
 
     epochs: int = 1000
@@ -184,20 +147,15 @@ class RegularizationConfig:
     """Tangent-space regularizers; each is on when its weight is > 0, and they combine.
 
     :param sampled_weight: weight of the loss on LTV-labelled perturbed copies (sampled Jacobian
-        propagation, the paper's method; paper value 1 = copies count like data).
+        propagation; paper 1).
     :param sigma: perturbation std relative to each dimension's std over time (paper: 0.1).
     :param n_copies: perturbed copies per trajectory per epoch (paper: 1).
-    :param copies_batch: ``"shared"``: the perturbed copies join the batch of their original
-        transitions (one optimizer step per batch, as the baseline); ``"own"``: each copy of
-        each batch is its own optimizer step after the epoch's data batches (the original
-        code's behaviour; ``1 + n_copies`` times the steps per epoch), its loss
-        ``sampled_weight * mean ||y(x~) - r~||^2`` alone.
+    :param copies_batch: ``"shared"``: copies join their transitions' batch; ``"own"``: each
+        copy of each batch is its own step after the epoch's data batches (the original's).
     :param exact_weight: weight of ``sum_t ||J_model(t) - J_LTV(t)||_F^2`` (double backprop).
-    :param smooth_weight: weight of ``sum_t ||J_model(t+1) - J_model(t)||_F^2`` (the original's
-        later "AD jacprop", paper eq. (reg)); needs no LTV model.
-    :param ltv_lambda: ``lam`` of :func:`mbtsr.ltv.fit_ltv` (``lam^2`` = drift-to-noise variance
-        ratio, scale dependent); the original's R2 = 1000 I, R1 = I is ``sqrt(1000)``.
-        ``None`` picks it per trajectory with :func:`mbtsr.ltv.select_lambda`.
+    :param smooth_weight: weight of ``sum_t ||J_model(t+1) - J_model(t)||_F^2`` (no LTV model).
+    :param ltv_lambda: ``lam`` of :func:`mbtsr.ltv.fit_ltv` (default the original's
+        ``sqrt(1000)``); ``None`` picks it per trajectory with :func:`mbtsr.ltv.select_lambda`.
     :param ltv_affine: fit LTV models with an affine term ``c_t``.
     """
 
