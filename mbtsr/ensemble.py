@@ -167,9 +167,7 @@ class EnsembleConfig:
 
     def __post_init__(self) -> None:
         for name in ("state_dim", "action_dim"):
-            v = getattr(self, name)
-            check_int(name, v, 1)
-            object.__setattr__(self, name, int(v))
+            object.__setattr__(self, name, check_int(name, getattr(self, name), 1))
         n, m = self.state_dim, self.action_dim
         members = tuple(self.members)
         if len(members) == 0:

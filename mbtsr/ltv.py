@@ -274,21 +274,10 @@ class _Problem:
     m: int
     affine: bool
 
-    @property
-    def T(self) -> int:  # noqa: N802
-        return self.G.shape[0]
-
-    @property
-    def p(self) -> int:
-        return self.G.shape[1]
-
-    @property
-    def N(self) -> int:  # noqa: N802
-        return self.Phi.shape[0]
-
-    @property
-    def M(self) -> int:  # noqa: N802 - measurements per output row
-        return self.N * self.T
+    def __post_init__(self) -> None:  # sizes; M: measurements per output row
+        N, T, p = self.Phi.shape  # noqa: N806
+        for name, value in (("N", N), ("T", T), ("p", p), ("M", N * T)):
+            object.__setattr__(self, name, value)
 
 
 def _problem(data: object, affine: bool) -> _Problem:

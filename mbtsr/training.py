@@ -876,11 +876,10 @@ def train_ensemble(
                          "validation trajectories")
     if not model.is_normalized:
         model.set_normalization(trajs)
-    if reg.needs_ltv:
-        ltv_models = (_fit_ltv_models(trajs, reg) if ltv_models is None
-                      else _check_ltv_models(ltv_models, trajs))
-    elif ltv_models is not None:
+    if ltv_models is not None:
         ltv_models = _check_ltv_models(ltv_models, trajs)
+    elif reg.needs_ltv:
+        ltv_models = _fit_ltv_models(trajs, reg)
 
     with torch.no_grad():  # inputs are normalized once here, not in every step
         def normalized(xu_raw: np.ndarray, x_next: np.ndarray) -> tuple:
