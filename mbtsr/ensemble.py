@@ -46,10 +46,8 @@ LEAKY_RELU_SLOPE = 0.01
 LAYER_NORM_EPS = 1e-5
 #: planning precisions of :meth:`DynamicsEnsemble.freeze` and their numpy types
 PRECISIONS = {"float32": np.float32, "float64": np.float64}
-#: A dimension whose std is below REL_STD_FLOOR times its magnitude ``max |value|`` (for the
-#: residual targets: the magnitude of the next state) is constant up to float32 rounding (e.g. a
-#: constant input) and is not rescaled. Relative, so that data of any unit or scale normalize
-#: the same way (an absolute floor of 1e-8 left data scaled by 1e-6 unnormalized).
+#: a dimension whose std is below REL_STD_FLOOR times its magnitude ``max |value|`` is not
+#: rescaled (docs/models.md, "Normalization")
 REL_STD_FLOOR = 1e-6
 
 
@@ -893,9 +891,6 @@ _FAST_VALUE = {
 sigmoid and swish run as ``tanh(z/2)`` (:func:`_mean_step_plan`)."""
 
 _KERNEL_MAX_BATCH = 4  # rows up to which the compiled kernel beats numpy for small members
-# (measured in float32 for 4 x 20 units: 4.6 against 8.8 us at 1 row, 6.8 against 9.3 at 4, 12.0
-# against 10.2 at 8: numpy's SIMD transcendental functions beat scalar libm calls; for wide
-# members from 2 rows on, see FrozenEnsemble.kernel_rows)
 _KERNEL_CODE = {"elu": 0, "tanh": 1, "sigmoid": 1, "swish": 2, "relu": 3, "leaky_relu": 4}
 """Activation codes of the compiled kernel on the folded weights (sigmoid rows run as tanh)."""
 
@@ -1498,9 +1493,8 @@ class TrajectorySampling:
         """Next state of row ``r`` under member ``r mod K`` (rows of the flattened batch):
         ``x: [..., n]``, ``u: [..., m]`` -> ``[..., n]``; ``t`` keys the noise."""
         x, u = check_step_inputs(x, u, self.state_dim, self.action_dim)
-        if t is not None and (isinstance(t, bool) or not isinstance(t, (int, np.integer))
-                              or t < 0):
-            raise ValueError(f"t must be an integer time index >= 0 or None, got {t!r}")
+        if t is not None:
+            check_int("t", t, 0)
         with np.errstate(over="ignore"):
             return self._step(x, u, t)
 
