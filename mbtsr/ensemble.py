@@ -24,7 +24,7 @@ from mbtsr._lqr_kernels import guard_row, policy_row, rollout_buffers
 from mbtsr.dynamics import check_step_inputs, check_step_shapes
 from mbtsr.fileformat import CheckpointError, torch_load_verified, torch_save_verified
 from mbtsr.trajectory import Trajectory, as_trajectory_list
-from mbtsr.validation import as_array, check_bool, check_int
+from mbtsr.validation import as_array, check_bool, check_choice, check_int
 
 __all__ = [
     "ModelConfig",
@@ -107,10 +107,7 @@ class MemberSpec:
     layer_norm: bool = False
 
     def __post_init__(self) -> None:
-        if self.activation not in ACTIVATIONS:
-            raise ValueError(
-                f"activation must be one of {sorted(ACTIVATIONS)}, got {self.activation!r}"
-            )
+        check_choice("activation", self.activation, ACTIVATIONS)
         object.__setattr__(self, "width", check_int("width", self.width, 1))
         object.__setattr__(self, "depth", check_int("depth", self.depth, 1))
         if not (np.isfinite(self.dropout) and 0.0 <= self.dropout < 1.0):
@@ -174,8 +171,7 @@ class EnsembleConfig:
             if not isinstance(spec, MemberSpec):
                 raise ValueError(f"members[{i}] must be a MemberSpec, got {type(spec).__name__}")
         object.__setattr__(self, "members", members)
-        if self.formulation not in FORMULATIONS:
-            raise ValueError(f"formulation must be one of {FORMULATIONS}, got {self.formulation!r}")
+        check_choice("formulation", self.formulation, FORMULATIONS)
         if self.formulation == "nominal":
             if self.A0 is None or self.B0 is None:
                 raise ValueError("formulation 'nominal' needs A0 [n, n] and B0 [n, m]")
@@ -265,8 +261,7 @@ class ModelConfig:
     def __post_init__(self) -> None:
         acts = (self.activations,) if isinstance(self.activations, str) else self.activations
         object.__setattr__(self, "activations", tuple(acts))
-        if self.formulation not in ("g", "f"):
-            raise ValueError(f"formulation must be one of ('g', 'f'), got {self.formulation!r}")
+        check_choice("formulation", self.formulation, ("g", "f"))
         check_int("ensemble_size", self.ensemble_size, 1)
         for name in ("hidden_width", "hidden_layers"):
             if getattr(self, name) is not None:
@@ -1164,8 +1159,7 @@ class FrozenEnsemble:
     """
 
     def __init__(self, ensemble: DynamicsEnsemble, precision: str = "float32") -> None:
-        if precision not in PRECISIONS:
-            raise ValueError(f"precision must be one of {sorted(PRECISIONS)}, got {precision!r}")
+        check_choice("precision", precision, PRECISIONS)
         n, m = ensemble.state_dim, ensemble.action_dim
         stats = {k: getattr(ensemble, k).detach().double().numpy().copy()
                  for k in ("in_mean", "in_std", "out_mean", "out_std")}

@@ -20,7 +20,7 @@ from scipy.optimize import minimize_scalar
 
 from mbtsr.dynamics import check_step_inputs
 from mbtsr.trajectory import Trajectory, stack_trajectories
-from mbtsr.validation import as_array, check_int, check_nonnegative, check_positive
+from mbtsr.validation import as_array, check_choice, check_int, check_nonnegative, check_positive
 
 __all__ = ["LTVModel", "fit_ltv", "fit_ltv_tv", "select_lambda", "fuse_prior"]
 
@@ -623,8 +623,7 @@ def select_lambda(
         numerically singular are skipped (listed in ``skipped``, one warning; all singular is an
         error); a minimizer at the edge of the usable grid warns.
     """
-    if method not in ("marginal_likelihood", "gcv"):
-        raise ValueError(f"method must be 'marginal_likelihood' or 'gcv', got {method!r}")
+    check_choice("method", method, ("marginal_likelihood", "gcv"))
     prob = _problem(data, affine)
     if prob.M <= prob.p:
         raise ValueError(

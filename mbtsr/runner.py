@@ -35,7 +35,7 @@ from pathlib import Path
 from typing import Any
 
 from mbtsr.io import json_default, write_json_atomic
-from mbtsr.validation import check_int
+from mbtsr.validation import check_choice, check_int
 
 __all__ = ["RunSpec", "load_results", "run_sweep", "summarize"]
 
@@ -195,8 +195,7 @@ def run_sweep(
         starts a private local Ray instance for the sweep and removes it afterwards.
     :return: the records of all finished runs in (config, seed) order.
     """
-    if backend not in ("process", "serial", "ray"):
-        raise ValueError(f"backend must be 'process', 'serial' or 'ray', got {backend!r}")
+    check_choice("backend", backend, ("process", "serial", "ray"))
     if not callable(fn):
         raise ValueError(f"fn must be a callable (config, seed) -> dict, got {type(fn).__name__}")
     if address is not None and backend != "ray":

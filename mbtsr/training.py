@@ -24,7 +24,7 @@ from tqdm.auto import tqdm
 
 from mbtsr.ensemble import DynamicsEnsemble, _pool_transitions
 from mbtsr.trajectory import Trajectory, as_trajectory_list
-from mbtsr.validation import check_int, check_nonnegative, check_positive
+from mbtsr.validation import check_choice, check_int, check_nonnegative, check_positive
 
 __all__ = ["TrainConfig", "RegularizationConfig", "REGULARIZERS", "DEFAULT_WEIGHTS", "TrainHistory",
            "MEMBER_DATA", "EARLY_STOPPING", "holdout_mask", "train_ensemble"]
@@ -112,12 +112,8 @@ class TrainConfig:
         check_int("eval_every", self.eval_every, 1)
         if self.patience is not None:
             check_int("patience", self.patience, 1)
-        if self.early_stopping not in EARLY_STOPPING:
-            raise ValueError(f"early_stopping must be one of {EARLY_STOPPING}, got "
-                             f"{self.early_stopping!r}")
-        if self.member_data not in MEMBER_DATA:
-            raise ValueError(f"member_data must be one of {MEMBER_DATA}, got "
-                             f"{self.member_data!r}")
+        check_choice("early_stopping", self.early_stopping, EARLY_STOPPING)
+        check_choice("member_data", self.member_data, MEMBER_DATA)
         if self.batch == "trajectory" and self.uses_step_loop:
             on = [f"{name}={getattr(self, name)!r}" for name, off in (
                 ("holdout", 0.0), ("patience", None), ("member_data", "shared"))
@@ -171,8 +167,7 @@ class RegularizationConfig:
     def __post_init__(self) -> None:
         for name in ("sampled_weight", "exact_weight", "smooth_weight", "sigma"):
             check_nonnegative(name, getattr(self, name))
-        if self.copies_batch not in ("shared", "own"):
-            raise ValueError(f"copies_batch must be 'shared' or 'own', got {self.copies_batch!r}")
+        check_choice("copies_batch", self.copies_batch, ("shared", "own"))
         check_int("n_copies", self.n_copies, 1)
         if self.ltv_lambda is not None:
             check_nonnegative("ltv_lambda", self.ltv_lambda)
@@ -191,8 +186,7 @@ class RegularizationConfig:
         ``fields`` sets the remaining fields (``sigma``, ``n_copies``, ``ltv_lambda`` ...).
         ``RegularizationConfig.named("none")`` is the unregularized baseline.
         """
-        if kind not in REGULARIZERS:
-            raise ValueError(f"regularization must be one of {REGULARIZERS}, got {kind!r}")
+        check_choice("regularization", kind, REGULARIZERS)
         if kind == "none":
             if weight is not None:
                 raise ValueError(f"regularization 'none' takes no weight, got {weight!r}")
