@@ -92,12 +92,9 @@ class MemberSpec:
 
     :param activation: one of :data:`ACTIVATIONS` (elu, sigmoid, tanh, swish, relu, leaky_relu).
     :param width: hidden units per layer (paper: 20).
-    :param depth: number of hidden layers, any integer >= 1 (paper, arXiv v1: 1; the original
-        code after 2018-10 and the paper appendix "Number of layers": 2; PETS: 4).
-    :param dropout: dropout probability on hidden units during training, in ``[0, 1)`` (paper
-        appendix "Dropout": 0.2 studied). Inverted dropout; off in evaluation and Jacobians.
-    :param layer_norm: layer normalization (with gain and bias) of each hidden pre-activation
-        (paper appendix "Layer normalization").
+    :param depth: number of hidden layers, any integer >= 1 (paper: 1).
+    :param dropout: inverted dropout probability on hidden units during training, in ``[0, 1)``.
+    :param layer_norm: layer normalization (with gain and bias) of each hidden pre-activation.
     """
 
     activation: str = "elu"
@@ -133,16 +130,14 @@ class EnsembleConfig:
     :param action_dim: m.
     :param members: one :class:`MemberSpec` per member; default the paper's nominal ensemble of
         four 20-unit single-layer networks with elu, sigmoid, tanh and swish.
-    :param formulation: ``"f"`` (x+ = NN), ``"g"`` (x+ = x + NN, paper Objective 2, the default),
-        ``"nominal"`` (x+ = A0 x + B0 u + NN) or ``"scaled"`` (x+ = tau x + NN); paper Sec.
-        "Weight decay".
+    :param formulation: ``"f"`` (x+ = NN), ``"g"`` (x+ = x + NN, the default), ``"nominal"``
+        (x+ = A0 x + B0 u + NN) or ``"scaled"`` (x+ = tau x + NN).
     :param A0: ``[n, n]`` nominal state matrix (formulation ``"nominal"`` only).
     :param B0: ``[n, m]`` nominal input matrix (formulation ``"nominal"`` only).
     :param tau: skip scale of formulation ``"scaled"``, a scalar or ``[n]`` (a diagonal).
-    :param normalize: standardize network inputs ``[x, u]`` and residual outputs with statistics
-        of the training data (see the module docstring); ``False`` feeds raw data as the
-        original code did.
-    :param seed: seed of the weight initialisation (glorot-uniform weights, zero biases, as Flux).
+    :param normalize: standardize network inputs ``[x, u]`` and residual outputs (``False``:
+        raw data, as the original code).
+    :param seed: seed of the weight initialisation (glorot-uniform weights, zero biases).
     :param probabilistic: every member also has a soft-bounded log-variance head (PETS;
         docs/models.md, "Probabilistic members"); the mean is the model.
 

@@ -40,9 +40,7 @@ class LTVModel:
     :param B: ``[T, n, m]`` input matrices.
     :param c: ``[T, n]`` affine terms, or ``None`` for a linear model.
     :param cov: ``[T, n, p, p]`` posterior covariance of output row ``i``'s parameters
-        ``k_t^(i) = [A_t[i, :], B_t[i, :], (c_t[i])]``, ``p = n + m (+1)``. For :func:`fit_ltv`
-        it is ``noise_var_rows[i] * (H^{-1})_tt`` (``H`` the normal-equation matrix above and
-        ``noise_var_rows`` in ``info``), i.e. in absolute units, ready for :func:`fuse_prior`.
+        ``k_t^(i) = [A_t[i, :], B_t[i, :], (c_t[i])]``, ``p = n + m (+1)``, in absolute units.
     :param lam: regularization weight used in the fit.
     :param noise_var: pooled estimate of the one-step noise variance (mean over output rows).
     :param info: solver diagnostics (see the fitting functions).
@@ -533,8 +531,7 @@ def fit_ltv(data: object, lam: float, *, affine: bool = False, P0: float | None 
 
         sum_{t,j} ||x^j_{t+1} - A_t x^j_t - B_t u^j_t (- c_t)||^2 + lam^2 sum_t ||k_{t+1} - k_t||^2
 
-    with ``k_t = [A_t B_t (c_t)]``, by a banded Cholesky solve of the block-tridiagonal normal
-    equations shared by all output rows (``O(T (n+m)^3)``).
+    by a banded Cholesky solve (``O(T (n+m)^3)``; docs/ltv.md, "The smooth (L2) fit").
 
     :param data: a :class:`~mbtsr.trajectory.Trajectory`, a list of aligned trajectories (same
         ``T``; every episode contributes a measurement at every ``t``), or a tuple ``(x, u)``
