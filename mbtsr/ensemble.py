@@ -851,10 +851,6 @@ def _fast_elu(z, h):
     np.maximum(h, z, out=h)  # expm1(z) >= z for z <= 0, and 0 < z for z > 0
 
 
-def _fast_tanh(z, h):
-    np.tanh(z, out=h)
-
-
 def _fast_swish_rest(z, h):
     h += 1.0  # swish rows: h holds tanh(z'), z' = z/2: swish(z) = z' (tanh(z') + 1)
     h *= z
@@ -873,9 +869,9 @@ _FAST_VALUE = {
     "elu": _fast_elu,
     "relu": _fast_relu,
     "leaky_relu": _fast_leaky_relu,
-    "sigmoid": _fast_tanh,
-    "swish": _fast_tanh,
-    "tanh": _fast_tanh,
+    "sigmoid": np.tanh,
+    "swish": np.tanh,
+    "tanh": np.tanh,
 }
 """Value-only activations of the folded ensemble-mean step: ``f(z, h)`` writes into ``h``;
 sigmoid and swish run as ``tanh(z/2)`` (:func:`_mean_step_plan`)."""
@@ -1053,7 +1049,7 @@ def _mean_step_plan(runs, hidden: list[tuple[np.ndarray, np.ndarray]], Wo: np.nd
     code = np.zeros(H, np.int64)
     for name, a, b in runs:
         f, first, stop = _FAST_VALUE[name], a * W, b * W
-        if f is _fast_tanh and ops and ops[-1][0] is _fast_tanh and ops[-1][2] == first:
+        if f is np.tanh and ops and ops[-1][0] is np.tanh and ops[-1][2] == first:
             ops[-1] = (f, ops[-1][1], stop)  # one tanh call over consecutive tanh-family rows
         else:
             ops.append((f, first, stop))

@@ -828,11 +828,7 @@ def train_ensemble(
     callback: Callable[[int, DynamicsEnsemble], None] | None = None,
 ) -> TrainHistory:
     """Fit all members of ``model`` to ``trajs`` (in place) with optional tangent-space
-    regularization (see the module docstring for the objective).
-
-    Calling it again on grown data warm-starts from the current weights; pass the previous
-    ``history.optimizer_state`` to resume Adam exactly. Normalization statistics are set from
-    ``trajs`` on the first call only.
+    regularization; a second call warm-starts (normalization is set on the first call only).
 
     :param model: the ensemble to train.
     :param trajs: training trajectories (each ``x: [T+1, n]``, ``u: [T, m]``).
@@ -843,10 +839,9 @@ def train_ensemble(
         ``B [>=T, n, m]``, ``sample_perturbed``); fitted with :func:`mbtsr.ltv.fit_ltv` if None
         and a regularizer needs them.
     :param optimizer_state: an Adam ``state_dict`` from a previous call.
-    :param callback: optional diagnostic ``callback(epoch, model)`` called after every epoch
-        (a step budget: ``callback(step, model)`` at every evaluation) with the model in
-        evaluation mode (e.g. to log Jacobian errors during training; off by default). It must
-        not change the weights; it draws no random numbers of the training.
+    :param callback: optional diagnostic ``callback(epoch, model)`` after every epoch (a step
+        budget: ``callback(step, model)`` at every evaluation), the model in evaluation mode;
+        it must not change the weights.
     :return: :class:`TrainHistory`.
     """
     t_start = time.perf_counter()
