@@ -1243,16 +1243,14 @@ class FrozenEnsemble:
 
     @property
     def linear_batch_cost(self) -> bool:
-        """True with the compiled rollouts (their cost grows with the number of step sizes,
-        so iLQR rolls the step sizes out in chunks, largest first; see :mod:`mbtsr.ilqr`); a
-        model whose kernel serves one row only rolls them out in one batched numpy call."""
+        """True with the compiled rollouts, whose cost grows with the number of step sizes
+        (iLQR then rolls them out in chunks; :mod:`mbtsr.ilqr`)."""
         return self._plan is not None and self.kernel_rows > 1
 
     def _rollout_policy(self, x0, X, U, k, K, alphas, lower, upper, max_norm):
-        """iLQR's closed-loop line-search rollouts in one compiled call (see
-        :func:`_rollout_policy_kernel`; arguments as ``mbtsr.ilqr._rollout_policy`` without
-        ``t0``), or ``None`` for architectures without the folded plan and for more step sizes
-        than ``kernel_rows`` (the solver then steps the model from Python, batched)."""
+        """iLQR's line-search rollouts in one compiled call (:func:`_rollout_policy_kernel`;
+        arguments as ``mbtsr.ilqr._rollout_policy`` without ``t0``), or ``None`` (no folded plan,
+        or more step sizes than ``kernel_rows``: the solver steps the model, batched)."""
         plan = self._plan
         if plan is None or alphas.shape[0] > self.kernel_rows:
             return None
@@ -1263,11 +1261,9 @@ class FrozenEnsemble:
                            ) -> tuple[np.ndarray, np.ndarray] | None:
         """Open-loop rollouts of the ensemble mean, the batched kernel of CEM: ``x0 [n]``,
         ``U [S, T, m]`` -> ``(X [S, T+1, n], alive [S])`` with the semantics of
-        :func:`mbtsr.dynamics._rollout` (a row is dead from its first state that is non-finite
-        or exceeds ``max_norm``; its states are NaN from there). The whole rollout runs in the
-        planning precision in one buffer ``[H+1+n+m, S]`` (:func:`_mean_step_plan`), the next
-        state written into it by the output product. ``None`` (the caller steps the model)
-        without the folded plan or for batches of the compiled kernel (``<= kernel_rows``)."""
+        :func:`mbtsr.dynamics._rollout`, in the planning precision in one buffer per step
+        (:func:`_mean_step_plan`). ``None`` (the caller steps the model) without the folded
+        plan or for batches of the compiled kernel (``<= kernel_rows``)."""
         plan = self._plan
         S, T, m = U.shape
         if plan is None or S <= self.kernel_rows:
