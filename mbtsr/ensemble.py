@@ -1,19 +1,7 @@
-"""Neural-network dynamics ensembles: K members evaluated and trained in ONE batched computation.
-
-Each member models ``x+ = s(x, u) + NN_k(x, u)``, the *skip part* ``s`` fixed by the formulation
-(:data:`FORMULATIONS`: ``"f"`` 0, ``"g"`` x, ``"nominal"`` ``A0 x + B0 u``, ``"scaled"``
-``tau * x``), the network on standardized inputs and residuals (``EnsembleConfig.normalize``)::
-
-    NN_k(x, u) = out_mean + out_std * net_k(([x, u] - in_mean) / in_std)
-
-with statistics set once by :meth:`DynamicsEnsemble.set_normalization`. The paper's nominal
-model is 4 single-hidden-layer members of 20 units (elu, sigmoid, tanh, swish); members may
-differ in activation, width (padded with a fixed zero mask), depth (grouped, one batched
-computation per group), dropout and layer norm. Jacobians are closed form, batched over points
-and members, in torch (differentiable, for Jacobian penalties) and numpy. Train, then freeze,
-then plan: :meth:`DynamicsEnsemble.freeze` returns the immutable numpy :class:`FrozenEnsemble`
-that planning uses (float32 by default; ``freeze("float64")`` the reference). The formulations'
-Jacobians, the normalization and its effect on weight decay: docs/models.md.
+"""Neural-network dynamics ensembles: K members ``x+ = s(x, u) + NN_k(x, u)`` evaluated and
+trained in ONE batched computation, with closed-form Jacobians in torch (differentiable) and
+numpy; :meth:`DynamicsEnsemble.freeze` gives the immutable :class:`FrozenEnsemble` planning
+uses. Formulations, members, normalization, the folded planning kernels: docs/models.md.
 """
 
 from __future__ import annotations
@@ -36,7 +24,7 @@ from mbtsr._lqr_kernels import guard_row, policy_row, rollout_buffers
 from mbtsr.dynamics import check_step_inputs, check_step_shapes
 from mbtsr.fileformat import CheckpointError, torch_load_verified, torch_save_verified
 from mbtsr.trajectory import Trajectory, as_trajectory_list
-from mbtsr.validation import as_array, check_bool, check_int
+from mbtsr.validation import as_array, check_bool, check_choice, check_int
 
 __all__ = [
     "ModelConfig",
@@ -58,42 +46,14 @@ LEAKY_RELU_SLOPE = 0.01
 LAYER_NORM_EPS = 1e-5
 #: planning precisions of :meth:`DynamicsEnsemble.freeze` and their numpy types
 PRECISIONS = {"float32": np.float32, "float64": np.float64}
-#: A dimension whose std is below REL_STD_FLOOR times its magnitude ``max |value|`` (for the
-#: residual targets: the magnitude of the next state) is constant up to float32 rounding (e.g. a
-#: constant input) and is not rescaled. Relative, so that data of any unit or scale normalize
-#: the same way (an absolute floor of 1e-8 left data scaled by 1e-6 unnormalized).
+#: a dimension whose std is below REL_STD_FLOOR times its magnitude ``max |value|`` is not
+#: rescaled (docs/models.md, "Normalization")
 REL_STD_FLOOR = 1e-6
-
-
-# --------------------------------------------------------------------------------------------
-# Activations: value act(z) and derivative act'(z) given (z, act(z)). Torch values use the fused
-# built-ins; torch derivatives are differentiable (Jacobian penalties back-propagate through them).
-# --------------------------------------------------------------------------------------------
-
-
-def _d_elu(z, a, xp):
-    return xp.where(z > 0, 1.0, a + 1.0)
-
-
-def _d_sigmoid(z, a, xp):
-    return a * (1.0 - a)
-
-
-def _d_tanh(z, a, xp):
-    return 1.0 - a * a
 
 
 def _d_swish(z, a, xp):
     s = torch.sigmoid(z) if xp is torch else expit(z)
     return s * (1.0 + z * (1.0 - s))
-
-
-def _d_relu(z, a, xp):
-    return (z > 0) * 1.0
-
-
-def _d_leaky_relu(z, a, xp):
-    return xp.where(z > 0, 1.0, LEAKY_RELU_SLOPE)
 
 
 def _tanh_via_sigmoid(z: torch.Tensor) -> torch.Tensor:
@@ -103,19 +63,19 @@ def _tanh_via_sigmoid(z: torch.Tensor) -> torch.Tensor:
 
 
 ACTIVATIONS: dict[str, tuple[Callable, Callable, Callable]] = {
-    "elu": (F.elu, lambda z: np.where(z > 0, z, np.expm1(np.minimum(z, 0.0))), _d_elu),
-    "sigmoid": (torch.sigmoid, expit, _d_sigmoid),
-    "tanh": (_tanh_via_sigmoid, np.tanh, _d_tanh),
+    "elu": (F.elu, lambda z: np.where(z > 0, z, np.expm1(np.minimum(z, 0.0))),
+            lambda z, a, xp: xp.where(z > 0, 1.0, a + 1.0)),
+    "sigmoid": (torch.sigmoid, expit, lambda z, a, xp: a * (1.0 - a)),
+    "tanh": (_tanh_via_sigmoid, np.tanh, lambda z, a, xp: 1.0 - a * a),
     "swish": (F.silu, lambda z: z * expit(z), _d_swish),
-    "relu": (F.relu, lambda z: np.maximum(z, 0.0), _d_relu),
-    "leaky_relu": (
-        lambda z: F.leaky_relu(z, LEAKY_RELU_SLOPE),
-        lambda z: np.where(z > 0, z, LEAKY_RELU_SLOPE * z),
-        _d_leaky_relu,
-    ),
+    "relu": (F.relu, lambda z: np.maximum(z, 0.0), lambda z, a, xp: (z > 0) * 1.0),
+    "leaky_relu": (lambda z: F.leaky_relu(z, LEAKY_RELU_SLOPE),
+                   lambda z: np.where(z > 0, z, LEAKY_RELU_SLOPE * z),
+                   lambda z, a, xp: xp.where(z > 0, 1.0, LEAKY_RELU_SLOPE)),
 }
-"""Supported activations: name -> (torch value, numpy value, derivative ``d(z, act(z), xp)``).
-``swish(z) = z * sigmoid(z)`` (silu), ``elu`` with alpha 1, ``leaky_relu`` with slope 0.01."""
+"""Supported activations: name -> (torch value, numpy value, derivative ``d(z, act(z), xp)``;
+torch derivatives are differentiable). ``swish`` is silu, ``elu`` alpha 1, ``leaky_relu``
+slope 0.01."""
 
 PAPER_ACTIVATIONS = ("elu", "sigmoid", "tanh", "swish")
 """The paper's nominal ensemble: one member of each of these activations."""
@@ -132,12 +92,9 @@ class MemberSpec:
 
     :param activation: one of :data:`ACTIVATIONS` (elu, sigmoid, tanh, swish, relu, leaky_relu).
     :param width: hidden units per layer (paper: 20).
-    :param depth: number of hidden layers, any integer >= 1 (paper, arXiv v1: 1; the original
-        code after 2018-10 and the paper appendix "Number of layers": 2; PETS: 4).
-    :param dropout: dropout probability on hidden units during training, in ``[0, 1)`` (paper
-        appendix "Dropout": 0.2 studied). Inverted dropout; off in evaluation and Jacobians.
-    :param layer_norm: layer normalization (with gain and bias) of each hidden pre-activation
-        (paper appendix "Layer normalization").
+    :param depth: number of hidden layers, any integer >= 1 (paper: 1).
+    :param dropout: inverted dropout probability on hidden units during training, in ``[0, 1)``.
+    :param layer_norm: layer normalization (with gain and bias) of each hidden pre-activation.
     """
 
     activation: str = "elu"
@@ -147,10 +104,7 @@ class MemberSpec:
     layer_norm: bool = False
 
     def __post_init__(self) -> None:
-        if self.activation not in ACTIVATIONS:
-            raise ValueError(
-                f"activation must be one of {sorted(ACTIVATIONS)}, got {self.activation!r}"
-            )
+        check_choice("activation", self.activation, ACTIVATIONS)
         object.__setattr__(self, "width", check_int("width", self.width, 1))
         object.__setattr__(self, "depth", check_int("depth", self.depth, 1))
         if not (np.isfinite(self.dropout) and 0.0 <= self.dropout < 1.0):
@@ -176,22 +130,16 @@ class EnsembleConfig:
     :param action_dim: m.
     :param members: one :class:`MemberSpec` per member; default the paper's nominal ensemble of
         four 20-unit single-layer networks with elu, sigmoid, tanh and swish.
-    :param formulation: ``"f"`` (x+ = NN), ``"g"`` (x+ = x + NN, paper Objective 2, the default),
-        ``"nominal"`` (x+ = A0 x + B0 u + NN) or ``"scaled"`` (x+ = tau x + NN); paper Sec.
-        "Weight decay".
+    :param formulation: ``"f"`` (x+ = NN), ``"g"`` (x+ = x + NN, the default), ``"nominal"``
+        (x+ = A0 x + B0 u + NN) or ``"scaled"`` (x+ = tau x + NN).
     :param A0: ``[n, n]`` nominal state matrix (formulation ``"nominal"`` only).
     :param B0: ``[n, m]`` nominal input matrix (formulation ``"nominal"`` only).
     :param tau: skip scale of formulation ``"scaled"``, a scalar or ``[n]`` (a diagonal).
-    :param normalize: standardize network inputs ``[x, u]`` and residual outputs with statistics
-        of the training data (see the module docstring); ``False`` feeds raw data as the
-        original code did.
-    :param seed: seed of the weight initialisation (glorot-uniform weights, zero biases, as Flux).
-    :param probabilistic: every member also has a log-variance head (PETS' probabilistic
-        members, mbrl-lib ``GaussianMLP``): ``logvar = min_lv + softplus(max_lv - softplus(max_lv
-        - raw) - min_lv)`` of a second output layer on the last hidden layer, soft-bounded
-        between learned per-member bounds (initially -10 and 0.5, normalized units); trained
-        with the Gaussian negative log-likelihood (:mod:`mbtsr.training`). The mean is the
-        model (its Jacobian is what the regularizers act on and what planners see).
+    :param normalize: standardize network inputs ``[x, u]`` and residual outputs (``False``:
+        raw data, as the original code).
+    :param seed: seed of the weight initialisation (glorot-uniform weights, zero biases).
+    :param probabilistic: every member also has a soft-bounded log-variance head (PETS;
+        docs/models.md, "Probabilistic members"); the mean is the model.
 
     Arrays are stored as tuples so the config is hashable and JSON-serializable.
     """
@@ -209,9 +157,7 @@ class EnsembleConfig:
 
     def __post_init__(self) -> None:
         for name in ("state_dim", "action_dim"):
-            v = getattr(self, name)
-            check_int(name, v, 1)
-            object.__setattr__(self, name, int(v))
+            object.__setattr__(self, name, check_int(name, getattr(self, name), 1))
         n, m = self.state_dim, self.action_dim
         members = tuple(self.members)
         if len(members) == 0:
@@ -220,8 +166,7 @@ class EnsembleConfig:
             if not isinstance(spec, MemberSpec):
                 raise ValueError(f"members[{i}] must be a MemberSpec, got {type(spec).__name__}")
         object.__setattr__(self, "members", members)
-        if self.formulation not in FORMULATIONS:
-            raise ValueError(f"formulation must be one of {FORMULATIONS}, got {self.formulation!r}")
+        check_choice("formulation", self.formulation, FORMULATIONS)
         if self.formulation == "nominal":
             if self.A0 is None or self.B0 is None:
                 raise ValueError("formulation 'nominal' needs A0 [n, n] and B0 [n, m]")
@@ -273,18 +218,9 @@ class EnsembleConfig:
 
 
 def default_size(state_dim: int, action_dim: int) -> tuple[int, int]:
-    """The sizing rule of :class:`ModelConfig`: ``(hidden_layers, hidden_width)`` for a model of
-    ``n = state_dim`` states and ``m = action_dim`` inputs::
-
-        hidden_layers = 3,   hidden_width = 32 sqrt(n + m), rounded to a multiple of 16,
-                             within [64, 256]
-
-    (``docs/models.md``, "Sizing": on Reacher, InvertedDoublePendulum, HalfCheetah and Pusher
-    with ``n + m`` from 10 to 30, the held-out one-step error of the paper's 4 x 1 x 20 was
-    1.1-4.2x that of three layers of about 100-180 units, and four layers of 200 units lowered
-    it by at most 20 % more at 2-4x the cost per gradient step; the third layer mattered most
-    at small step budgets). Examples: the two-link arm (6 inputs) 3 x 80, Reacher (12) 3 x 112,
-    HalfCheetah (23) 3 x 160, Pusher (30) 3 x 176.
+    """The sizing rule of :class:`ModelConfig`: ``(hidden_layers, hidden_width)`` = ``(3,
+    32 sqrt(n + m))``, the width rounded to a multiple of 16 within [64, 256] (docs/models.md,
+    "Sizing", has the measurements).
     """
     p = int(state_dim) + int(action_dim)
     width = 16 * int(round(32.0 * np.sqrt(p) / 16.0))
@@ -295,12 +231,8 @@ def default_size(state_dim: int, action_dim: int) -> tuple[int, int]:
 class ModelConfig:
     """An ensemble architecture before the data's dimensions are known (the agent's ``model``).
 
-    :class:`EnsembleConfig` needs ``state_dim``/``action_dim`` (and a seed), which a learner only
-    knows once it sees its env; this config holds everything else and :meth:`build` adds them.
-    It covers the formulations that need no nominal matrices (``"g"``, ``"f"``) and uniform
-    members (one width and depth, activations cycled). ``hidden_width``/``hidden_layers`` left
-    at ``None`` follow the task's dimensions by :func:`default_size`; :meth:`paper` is the
-    paper's nominal ensemble (4 members x 1 hidden layer x 20 units, elu/sigmoid/tanh/swish).
+    :meth:`build` adds the dimensions and seed; formulations ``"g"``/``"f"``, uniform members
+    (activations cycled); :meth:`paper` is the paper's nominal ensemble.
 
     :param formulation: ``"g"`` (``x+ = x + g(x, u)``, paper Objective 2) or ``"f"``
         (``x+ = f(x, u)``, Objective 1).
@@ -324,8 +256,7 @@ class ModelConfig:
     def __post_init__(self) -> None:
         acts = (self.activations,) if isinstance(self.activations, str) else self.activations
         object.__setattr__(self, "activations", tuple(acts))
-        if self.formulation not in ("g", "f"):
-            raise ValueError(f"formulation must be one of ('g', 'f'), got {self.formulation!r}")
+        check_choice("formulation", self.formulation, ("g", "f"))
         check_int("ensemble_size", self.ensemble_size, 1)
         for name in ("hidden_width", "hidden_layers"):
             if getattr(self, name) is not None:
@@ -496,6 +427,18 @@ def _groups_forward(groups, xn, ops, jac_rows=0, masks=None):
     return cat(ys), cat(Js) if jac_rows else None, None if lvs[0] is None else cat(lvs)
 
 
+def _zero_padded(p: dict, depth: int, T: Callable) -> dict:
+    """``p`` with the weights of padded units exactly zero in and out (``T`` transposes)."""
+    mask, p = p["mask"], dict(p)
+    p["W1"] = p["W1"] * mask
+    for w, _ in _hidden_names(depth)[1:]:
+        p[w] = p[w] * T(mask) * mask
+    for w in ("Wo", "Wv"):
+        if w in p:
+            p[w] = p[w] * T(mask)
+    return p
+
+
 def _group_forward(p, g, xn, ops, jac_rows=0, dropout_masks=None):
     """Forward pass (and closed-form Jacobians) of one depth group of stacked members.
 
@@ -515,14 +458,12 @@ def _group_forward(p, g, xn, ops, jac_rows=0, dropout_masks=None):
         w.r.t. ``xn`` (or None), ``logvar: [K, B, n]`` (probabilistic members) or None.
     """
     mask = p.get("mask")
+    if g.padded:
+        p = _zero_padded(p, g.depth, ops.T)
     names = _hidden_names(g.depth)
     W_hidden = [p[w] for w, _ in names]
     b_hidden = [p[b] for _, b in names]
     Wo, Wv = p["Wo"], p.get("Wv")
-    if g.padded:  # padded units have exactly zero weights in and out
-        W_hidden = [W_hidden[0] * mask] + [W * ops.T(mask) * mask for W in W_hidden[1:]]
-        Wo = Wo * ops.T(mask)
-        Wv = None if Wv is None else Wv * ops.T(mask)
     fast_jacobian = g.depth == 1 and not g.layer_norm
     h, J = xn, None
     for layer, (W, b) in enumerate(zip(W_hidden, b_hidden)):
@@ -665,12 +606,9 @@ def _member_init(spec: MemberSpec, in_dim: int, out_dim: int, gen: torch.Generat
 class DynamicsEnsemble(nn.Module):
     """An ensemble of K neural dynamics models ``x+ = s(x, u) + NN_k(x, u)`` computed in one batch.
 
-    Torch surface (float32, for training): :meth:`forward_torch`, :meth:`member_jacobians_torch`.
-    Planning surface: :meth:`freeze` -> :class:`FrozenEnsemble` (numpy, immutable, float32
-    planning kernels). The numpy methods :meth:`step`, :meth:`predict`, :meth:`jacobians`,
-    :meth:`member_jacobians`, :meth:`member_predictions` are conveniences that freeze (in
-    float64) on every call. Members are reported
-    in the order of ``config.members``.
+    Torch (float32, training): :meth:`forward_torch`, :meth:`member_jacobians_torch`; planning:
+    :meth:`freeze`; the numpy methods freeze in float64 on every call. Members are reported in
+    the order of ``config.members``.
 
     :param config: the architecture, see :class:`EnsembleConfig`.
     """
@@ -727,13 +665,10 @@ class DynamicsEnsemble(nn.Module):
 
     # ---------------------------------------------------------------- normalization
     def set_normalization(self, trajs: Trajectory | Sequence[Trajectory]) -> None:
-        """Set input/output statistics from data (see the module docstring).
-
-        Inputs: per-dimension mean and (population) std of ``[x_t, u_t]``; outputs: the same for
-        the residual targets ``x_{t+1} - s(x_t, u_t)``; all transitions pooled. A std below
-        ``REL_STD_FLOOR`` times the dimension's magnitude (constant up to float32 rounding) is
-        replaced by 1. With ``config.normalize=False`` the statistics stay
-        identity and the model is only marked as set.
+        """Set input/output statistics from data (docs/models.md, "Normalization"): mean and
+        population std of ``[x_t, u_t]`` and of the residual targets ``x_{t+1} - s(x_t, u_t)``,
+        a std below ``REL_STD_FLOOR`` times the magnitude replaced by 1; with
+        ``config.normalize=False`` the statistics stay identity and the model is only marked set.
 
         :param trajs: a :class:`~mbtsr.trajectory.Trajectory` or a list of them.
         """
@@ -751,12 +686,8 @@ class DynamicsEnsemble(nn.Module):
     def refit_normalization(self, trajs: Trajectory | Sequence[Trajectory]) -> None:
         """Recompute the statistics from ``trajs`` (as :meth:`set_normalization`) WITHOUT
         changing the function the ensemble represents: the first layer and the output layer
-        of every member absorb the change (``W1' = diag(s'/s) W1``,
-        ``b1' = b1 + ((m' - m) / s) W1``, ``Wo' = Wo o_s / o_s'``,
-        ``bo' = (bo o_s + o_m - o_m') / o_s'``), computed in float64. Predictions agree to
-        float32 rounding; the training that follows then works in the scales of all data so
-        far instead of those of the first episode. Adam's moment estimates are not rescaled.
-        Unset statistics are simply set.
+        of every member absorb the change (computed in float64; predictions agree to float32
+        rounding; Adam's moments are not rescaled). Unset statistics are simply set.
 
         :param trajs: a :class:`~mbtsr.trajectory.Trajectory` or a list of them.
         """
@@ -861,8 +792,7 @@ class DynamicsEnsemble(nn.Module):
     # ---------------------------------------------------------------- planning surface
     def freeze(self, precision: str = "float32") -> FrozenEnsemble:
         """An immutable copy for planning (:class:`FrozenEnsemble`): weights copied now,
-        normalization folded in, no autograd. Freeze after each training round and plan
-        (iLQR, MPC, CEM) with the frozen copy; the ensemble itself keeps training.
+        normalization folded in, no autograd.
 
         :param precision: ``"float32"`` or ``"float64"``: the arithmetic of the ensemble-mean
             step and Jacobians (the planning kernels; see :class:`FrozenEnsemble`).
@@ -882,8 +812,7 @@ class DynamicsEnsemble(nn.Module):
                     raise ValueError(f"cannot freeze: {name} must be > 0")
             return FrozenEnsemble(self, precision)
 
-    # Convenience for one-off numpy evaluation (metrics, tests): each call freezes a fresh float64
-    # copy (tens of microseconds); for repeated calls freeze once and use the frozen model.
+    # one-off numpy evaluation (metrics, tests): each call freezes a fresh float64 copy
     def step(self, x: np.ndarray, u: np.ndarray, t: int | None = None) -> np.ndarray:
         """``self.freeze("float64").step(x, u, t)``: ensemble-mean next state ``[..., n]``."""
         return self.freeze("float64").step(x, u, t)
@@ -922,10 +851,6 @@ def _fast_elu(z, h):
     np.maximum(h, z, out=h)  # expm1(z) >= z for z <= 0, and 0 < z for z > 0
 
 
-def _fast_tanh(z, h):
-    np.tanh(z, out=h)
-
-
 def _fast_swish_rest(z, h):
     h += 1.0  # swish rows: h holds tanh(z'), z' = z/2: swish(z) = z' (tanh(z') + 1)
     h *= z
@@ -944,22 +869,14 @@ _FAST_VALUE = {
     "elu": _fast_elu,
     "relu": _fast_relu,
     "leaky_relu": _fast_leaky_relu,
-    "sigmoid": _fast_tanh,
-    "swish": _fast_tanh,
-    "tanh": _fast_tanh,
+    "sigmoid": np.tanh,
+    "swish": np.tanh,
+    "tanh": np.tanh,
 }
-"""Value-only activations of the folded ensemble-mean step: ``f(z, h)`` writes into ``h``.
-Sigmoid, swish and tanh all run as numpy's vectorized tanh (no overflow for any finite input),
-with the halving of ``z`` folded into the layer's weights and sigmoid's affine part into the next
-layer's (see :func:`_mean_step_plan`)::
-
-    sigmoid(z) = 0.5 tanh(z') + 0.5,     swish(z) = z sigmoid(z) = z' (tanh(z') + 1),  z' = z/2.
-"""
+"""Value-only activations of the folded ensemble-mean step: ``f(z, h)`` writes into ``h``;
+sigmoid and swish run as ``tanh(z/2)`` (:func:`_mean_step_plan`)."""
 
 _KERNEL_MAX_BATCH = 4  # rows up to which the compiled kernel beats numpy for small members
-# (measured in float32 for 4 x 20 units: 4.6 against 8.8 us at 1 row, 6.8 against 9.3 at 4, 12.0
-# against 10.2 at 8: numpy's SIMD transcendental functions beat scalar libm calls; for wide
-# members from 2 rows on, see FrozenEnsemble.kernel_rows)
 _KERNEL_CODE = {"elu": 0, "tanh": 1, "sigmoid": 1, "swish": 2, "relu": 3, "leaky_relu": 4}
 """Activation codes of the compiled kernel on the folded weights (sigmoid rows run as tanh)."""
 
@@ -1089,20 +1006,13 @@ def _mean_step_plan(runs, hidden: list[tuple[np.ndarray, np.ndarray]], Wo: np.nd
 
     ``hidden = [(W1 [K, n+m, W], b1 [K, W]), (W2 [K, W, W], b2 [K, W]), ...]``, ``Wo [K, W, n]``,
     ``bo [K, n]`` already hold the normalization (raw units in and out) and zero padded units;
-    ``runs`` are the members' activations ``(name, first, stop)``. With ``H = K*W`` hidden units
-    per layer, one buffer ``G = [h; 1; x^T; u^T]: [H+1+n+m, B]`` carries everything: the first
-    layer of all members is one product ``z = W_in @ G[H:]`` (``W_in = [b1, W1^T]: [H, 1+n+m]``,
-    member ``k`` in rows ``k*W:(k+1)*W``); a deeper layer one batched product
-    ``[K, W, W] @ [K, W, B]`` (block diagonal over members); the output one product
-    ``G^T @ W_out`` with ``W_out = [Wo / K; mean bo; skip_J^T]`` (the mean and the skip part
-    folded in). Sigmoid and swish rows run as ``tanh(z/2)``: the halving is folded into their
-    layer's weights, sigmoid's affine part ``0.5 t + 0.5`` into the weights that consume it.
-
-    The unfolded weights are kept for the closed-form Jacobians (:func:`_plan_jacobians`); the
-    per-member folded output layers (and the log-variance head ``head = (Wv, bv)``) serve
-    trajectory sampling (:meth:`FrozenEnsemble._member_rows`). The arrays of the mean step and
-    of its Jacobians are stored in ``dtype`` (the planning precision); the per-member ones in
-    float64.
+    ``runs`` are the members' activations ``(name, first, stop)``. With ``H = K*W``, one buffer
+    ``G = [h; 1; x^T; u^T]: [H+1+n+m, B]`` carries a step: layer 1 is ``W_in @ G[H:]``, deeper
+    layers block-diagonal batched products, the output ``G^T @ W_out``, ``W_out = [Wo / K;
+    mean bo; skip_J^T]``; sigmoid/swish rows run as ``tanh(z/2)`` (docs/models.md, "The frozen
+    ensemble-mean step"). Unfolded weights serve the Jacobians (:func:`_plan_jacobians`),
+    per-member folded output layers (and ``head = (Wv, bv)``) trajectory sampling. Mean-step
+    and Jacobian arrays are in ``dtype``, per-member ones float64.
     """
     W1, b1 = hidden[0]
     K, _, W = W1.shape
@@ -1139,7 +1049,7 @@ def _mean_step_plan(runs, hidden: list[tuple[np.ndarray, np.ndarray]], Wo: np.nd
     code = np.zeros(H, np.int64)
     for name, a, b in runs:
         f, first, stop = _FAST_VALUE[name], a * W, b * W
-        if f is _fast_tanh and ops and ops[-1][0] is _fast_tanh and ops[-1][2] == first:
+        if f is np.tanh and ops and ops[-1][0] is np.tanh and ops[-1][2] == first:
             ops[-1] = (f, ops[-1][1], stop)  # one tanh call over consecutive tanh-family rows
         else:
             ops.append((f, first, stop))
@@ -1230,25 +1140,17 @@ def _readonly(a: np.ndarray, dtype: type = np.float64) -> np.ndarray:
 class FrozenEnsemble:
     """An immutable numpy copy of a :class:`DynamicsEnsemble`: the model planning uses.
 
-    Made by :meth:`DynamicsEnsemble.freeze` (after each training round): read-only numpy arrays
-    with the input/output normalization folded into the weights; later training does not change
-    it. It has the :class:`mbtsr.dynamics.DynamicsModel` protocol (``step``, ``jacobians``,
-    ``state_dim``, ``action_dim``) and the member spread (:meth:`predict`,
-    :meth:`member_predictions`, :meth:`member_jacobians`, :meth:`member_std`); members are in
-    config order; :meth:`trajectory_sampling` is PETS' TS-inf view. One depth group without layer
-    norm runs the folded plan (:func:`_mean_step_plan`: a compiled (numba) kernel for up to
-    ``kernel_rows`` rows, iLQR's rollouts; one batched product per layer for larger batches;
-    closed-form Jacobians; CEM's rollouts in one call, :meth:`_rollout_open_loop`); other
-    architectures the generic batched forward pass. ``precision`` (``"float32"``, the default, or
-    ``"float64"``, the reference) is the arithmetic of the folded mean step, rollouts and
-    Jacobians; inputs and results stay float64 (docs/ilqr.md, "Planning at the control rate").
-    Public methods validate their inputs; ``_step`` is the unchecked kernel solver loops call
-    (see :mod:`mbtsr.dynamics`).
+    Made by :meth:`DynamicsEnsemble.freeze`: read-only arrays, normalization folded in. The
+    :class:`mbtsr.dynamics.DynamicsModel` protocol plus the member spread; members in config
+    order. One depth group without layer norm runs the folded plan (:func:`_mean_step_plan`: a
+    compiled kernel up to ``kernel_rows`` rows, numpy beyond), other architectures the generic
+    forward pass. ``precision`` is the arithmetic of the folded step, rollouts and Jacobians;
+    inputs and results stay float64 (docs/ilqr.md, "Planning at the control rate"). ``_step``
+    is the unchecked kernel solver loops call (:mod:`mbtsr.dynamics`).
     """
 
     def __init__(self, ensemble: DynamicsEnsemble, precision: str = "float32") -> None:
-        if precision not in PRECISIONS:
-            raise ValueError(f"precision must be one of {sorted(PRECISIONS)}, got {precision!r}")
+        check_choice("precision", precision, PRECISIONS)
         n, m = ensemble.state_dim, ensemble.action_dim
         stats = {k: getattr(ensemble, k).detach().double().numpy().copy()
                  for k in ("in_mean", "in_std", "out_mean", "out_std")}
@@ -1258,14 +1160,8 @@ class FrozenEnsemble:
         groups = []
         for g in ensemble.groups:
             p = {k: v.detach().double().numpy().copy() for k, v in g.arrays().items()}
-            if g.padded:  # padded units get exactly zero weights in and out
-                mask = p["mask"]
-                p["W1"] = p["W1"] * mask
-                for w, _ in _hidden_names(g.depth)[1:]:
-                    p[w] = p[w] * mask.swapaxes(-1, -2) * mask
-                for w in ("Wo", "Wv"):
-                    if w in p:
-                        p[w] = p[w] * mask.swapaxes(-1, -2)
+            if g.padded:
+                p = _zero_padded(p, g.depth, lambda a: a.swapaxes(-1, -2))
             # ((xu - in_mean) / in_std) @ W1 + b1 = xu @ (W1 / in_std) + (b1 - (in_mean/in_std) W1)
             p["b1"] = p["b1"] - ((in_mean / in_std) @ p["W1"])[:, None, :]
             p["W1"] = p["W1"] / in_std[None, :, None]
@@ -1304,10 +1200,8 @@ class FrozenEnsemble:
     @property
     def kernel_rows(self) -> int:
         """Batches up to this many rows run the compiled kernel (0 without the folded plan):
-        measured, it beats numpy up to 4 rows for small members (``width x depth <= 64``); for
-        wider ones numpy's vectorized activations win from 2 rows on (the kernel's scalar
-        ``tanh`` is most of its time: in float32 at 3 x 112 units, 42 us for 2 rows against
-        numpy's 30 us, 82 against 35 for 4)."""
+        4 for small members (``width x depth <= 64``), else 1 (measured: numpy's vectorized
+        activations win from 2 rows on for wider members)."""
         if self._plan is None:
             return 0
         return _KERNEL_MAX_BATCH if self._plan.W * (self._plan.Wh.shape[0] + 1) <= 64 else 1
@@ -1349,16 +1243,14 @@ class FrozenEnsemble:
 
     @property
     def linear_batch_cost(self) -> bool:
-        """True with the compiled rollouts (their cost grows with the number of step sizes,
-        so iLQR rolls the step sizes out in chunks, largest first; see :mod:`mbtsr.ilqr`); a
-        model whose kernel serves one row only rolls them out in one batched numpy call."""
+        """True with the compiled rollouts, whose cost grows with the number of step sizes
+        (iLQR then rolls them out in chunks; :mod:`mbtsr.ilqr`)."""
         return self._plan is not None and self.kernel_rows > 1
 
     def _rollout_policy(self, x0, X, U, k, K, alphas, lower, upper, max_norm):
-        """iLQR's closed-loop line-search rollouts in one compiled call (see
-        :func:`_rollout_policy_kernel`; arguments as ``mbtsr.ilqr._rollout_policy`` without
-        ``t0``), or ``None`` for architectures without the folded plan and for more step sizes
-        than ``kernel_rows`` (the solver then steps the model from Python, batched)."""
+        """iLQR's line-search rollouts in one compiled call (:func:`_rollout_policy_kernel`;
+        arguments as ``mbtsr.ilqr._rollout_policy`` without ``t0``), or ``None`` (no folded plan,
+        or more step sizes than ``kernel_rows``: the solver steps the model, batched)."""
         plan = self._plan
         if plan is None or alphas.shape[0] > self.kernel_rows:
             return None
@@ -1369,11 +1261,9 @@ class FrozenEnsemble:
                            ) -> tuple[np.ndarray, np.ndarray] | None:
         """Open-loop rollouts of the ensemble mean, the batched kernel of CEM: ``x0 [n]``,
         ``U [S, T, m]`` -> ``(X [S, T+1, n], alive [S])`` with the semantics of
-        :func:`mbtsr.dynamics._rollout` (a row is dead from its first state that is non-finite
-        or exceeds ``max_norm``; its states are NaN from there). The whole rollout runs in the
-        planning precision in one buffer ``[H+1+n+m, S]`` (:func:`_mean_step_plan`), the next
-        state written into it by the output product. ``None`` (the caller steps the model)
-        without the folded plan or for batches of the compiled kernel (``<= kernel_rows``)."""
+        :func:`mbtsr.dynamics._rollout`, in the planning precision in one buffer per step
+        (:func:`_mean_step_plan`). ``None`` (the caller steps the model) without the folded
+        plan or for batches of the compiled kernel (``<= kernel_rows``)."""
         plan = self._plan
         S, T, m = U.shape
         if plan is None or S <= self.kernel_rows:
@@ -1513,12 +1403,15 @@ class FrozenEnsemble:
         :param x: ``[T, n]`` states.  :param u: ``[T, m]`` inputs.
         :return: ``(A [K, T, n, n], B [K, T, n, m])``.
         """
-        n, m = self.state_dim, self.action_dim
-        x = as_array("x", x, (None, n))
-        u = as_array("u", u, (x.shape[0], m))
+        xu = self._points(x, u)
         with np.errstate(over="ignore"):
-            _, J, _ = self._members(np.concatenate([x, u], -1), x.shape[0])
-        return J[..., :n], J[..., n:]
+            _, J, _ = self._members(xu, xu.shape[0])
+        return J[..., :self.state_dim], J[..., self.state_dim:]
+
+    def _points(self, x: np.ndarray, u: np.ndarray) -> np.ndarray:
+        """Checked ``x [T, n]``, ``u [T, m]`` as ``xu [T, n+m]``."""
+        x = as_array("x", x, (None, self.state_dim))
+        return np.concatenate([x, as_array("u", u, (x.shape[0], self.action_dim))], -1)
 
     def jacobians(self, x: np.ndarray, u: np.ndarray, t: int = 0) -> tuple[np.ndarray, np.ndarray]:
         """Ensemble-mean Jacobians of the full map: ``x: [T, n]``, ``u: [T, m]`` ->
@@ -1527,11 +1420,9 @@ class FrozenEnsemble:
         if plan is None:
             A, B = self.member_jacobians(x, u)
             return A.mean(0), B.mean(0)
-        n, m = self.state_dim, self.action_dim
-        x = as_array("x", x, (None, n))
-        u = as_array("u", u, (x.shape[0], m))
+        n = self.state_dim
         with np.errstate(over="ignore"):
-            J = _plan_jacobians(plan, np.concatenate([x, u], -1), n) + self._skip_J
+            J = _plan_jacobians(plan, self._points(x, u), n) + self._skip_J
         return J[..., :n], J[..., n:]
 
     def trajectory_sampling(self, seed: int = 0, noise: bool = True) -> TrajectorySampling:
@@ -1541,20 +1432,10 @@ class FrozenEnsemble:
 
 
 class TrajectorySampling:
-    """Trajectory sampling on a :class:`FrozenEnsemble` (PETS' TS-inf, Chua et al. 2018): a
-    planning-model view whose batched :meth:`step` sends row ``r`` of a batch to member
-    ``r mod K`` only, so that in a batched rollout every row (a particle) follows one member
-    for the whole horizon. With :class:`mbtsr.cem.CEMOptions` ``particles = P`` the CEM solver
-    rolls each action sequence out as ``P`` consecutive rows and averages their costs: a
-    sequence is scored under every member (``P`` a multiple of ``K``: each member equally
-    often). Probabilistic members with ``noise`` also sample their aleatoric noise, ``mean +
-    std * eps`` with ``eps`` drawn from ``default_rng([seed, t])`` (``t`` the absolute time of
-    the step, ``0`` when ``None``): the same seed gives the same numbers, and the noise of a
-    particle at a time step is the same in every CEM iteration (common random numbers).
-
-    It has no Jacobians (``jacobians`` raises): gradient planners use the ensemble mean, the
-    :class:`FrozenEnsemble` itself. One batched product per layer for all members, each on
-    its own rows (a step costs ``1/K`` of the ensemble-mean step of the same batch).
+    """Trajectory sampling on a :class:`FrozenEnsemble` (PETS' TS-inf): a planning-model view
+    whose batched :meth:`step` sends row ``r`` to member ``r mod K``; probabilistic members with
+    ``noise`` add ``std * eps``, ``eps`` from ``default_rng([seed, t])`` (``t`` 0 when None).
+    No Jacobians (docs/models.md, "Planning with the ensemble").
 
     :param frozen: the frozen ensemble.
     :param seed: seed of the aleatoric noise (an int >= 0).
@@ -1593,9 +1474,8 @@ class TrajectorySampling:
         """Next state of row ``r`` under member ``r mod K`` (rows of the flattened batch):
         ``x: [..., n]``, ``u: [..., m]`` -> ``[..., n]``; ``t`` keys the noise."""
         x, u = check_step_inputs(x, u, self.state_dim, self.action_dim)
-        if t is not None and (isinstance(t, bool) or not isinstance(t, (int, np.integer))
-                              or t < 0):
-            raise ValueError(f"t must be an integer time index >= 0 or None, got {t!r}")
+        if t is not None:
+            check_int("t", t, 0)
         with np.errstate(over="ignore"):
             return self._step(x, u, t)
 

@@ -1,15 +1,6 @@
-"""The one env-rollout loop: :func:`run_episode`.
-
-Evaluation, data collection, MPC episodes and video rendering all run an episode the same way::
-
-    rec = run_episode(env, policy, seed=0)                   # policy(obs, t) -> action
-    rec = run_episode(env, mpc, seed=0, observe=lambda obs, info: info["state"])
-    rec = run_episode(env, sb3_model, seed=0)                # anything with SB3's predict
-
-It takes any Gymnasium env object (no import of ``envs`` or ``agents``), clips the action into
-the action space, hands the env exactly the recorded action (in the space's dtype) and records
-observations, actions, rewards, the env's ``info["state"]`` when it reports one, optional frames
-and the wall time of the policy per step.
+"""The one env-rollout loop, :func:`run_episode` (evaluation, data collection, MPC episodes,
+video): any Gymnasium env, a policy ``(obs, t) -> action`` or anything with SB3's ``predict``;
+the action is clipped into the space and the env gets exactly the recorded action.
 """
 
 from __future__ import annotations

@@ -18,24 +18,12 @@ import math
 
 import numpy as np
 
-from mbtsr.validation import check_int
+from mbtsr.validation import check_int, check_positive
 
 __all__ = ["filtered_gaussian", "multisine", "filtered_gaussian_std", "multisine_std",
            "unit_filtered_gaussian"]
 
 SeedLike = int | np.random.SeedSequence | np.random.Generator
-
-
-def _check_float(name: str, value: object, *, positive: bool = True) -> float:
-    try:
-        v = float(value)  # type: ignore[arg-type]
-    except (TypeError, ValueError):
-        raise ValueError(f"{name} must be a number, got {value!r}") from None
-    if not math.isfinite(v) or (v <= 0 if positive else v < 0):
-        raise ValueError(
-            f"{name} must be a finite number {'>' if positive else '>='} 0, got {value!r}"
-        )
-    return v
 
 
 def filtered_gaussian_std(window: int, scale: float) -> float:
@@ -68,7 +56,7 @@ def filtered_gaussian(
     """
     T, m = check_int("T", T, 1), check_int("m", m, 1)  # noqa: N806
     window = check_int("window", window, 1)
-    scale = _check_float("scale", scale)
+    scale = check_positive("scale", scale)
     rng = np.random.default_rng(seed)
     white = scale * rng.standard_normal((T, m))
     if window == 1:
@@ -127,10 +115,10 @@ def multisine(
     n_sines = check_int("n_sines", n_sines, 1)
     if n_sines > n_grid:
         raise ValueError(f"n_sines must be <= n_grid={n_grid}, got {n_sines}")
-    f_min, f_max = _check_float("f_min", f_min), _check_float("f_max", f_max)
+    f_min, f_max = check_positive("f_min", f_min), check_positive("f_max", f_max)
     if not f_min <= f_max <= 0.5:
         raise ValueError(f"need 0 < f_min <= f_max <= 0.5, got f_min={f_min}, f_max={f_max}")
-    amplitude = _check_float("amplitude", amplitude)
+    amplitude = check_positive("amplitude", amplitude)
     rng = np.random.default_rng(seed)
     grid = np.logspace(math.log10(f_min), math.log10(f_max), n_grid)
     freqs = np.stack([rng.choice(grid, size=n_sines, replace=False) for _ in range(m)])  # [m, k]

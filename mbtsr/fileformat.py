@@ -1,19 +1,7 @@
-"""Checksummed, versioned, atomically written files (checkpoints and saved models).
-
-A file written by :func:`write_verified` is one header line followed by the payload bytes::
-
-    MBTSR1 kind=<kind> version=<int> size=<payload bytes> sha256=<hex>\\n<payload>
-
-so that reading it back (:func:`read_verified`) detects a truncated file, a flipped bit, a file
-of another kind (a model where a checkpoint is expected) and a format version this code does
-not read, and raises :class:`CheckpointError` naming the file and what to do, instead of a raw
-``torch``/``zipfile`` error or, worse, silently loading damaged numbers.
-
-Writes are atomic (:func:`mbtsr.io.atomic_write`): the bytes go to a temporary file in the same
-folder, are flushed and ``fsync``-ed, then ``os.replace``-d over the target. A
-``SIGKILL`` or a full disk at any moment leaves either the old complete file or the new one,
-plus possibly the temporary file, which :func:`mbtsr.io.remove_stale_temp_files` deletes at the next
-start (only if the process that wrote it is gone).
+"""Checksummed, versioned, atomically written files (checkpoints and saved models): one header
+line ``MBTSR1 kind=<kind> version=<int> size=<payload bytes> sha256=<hex>\\n`` then the payload;
+reading refuses a truncated, damaged, other-kind or other-version file with a
+:class:`CheckpointError` (docs/troubleshooting.md, "Checkpoints and saved models").
 """
 
 from __future__ import annotations

@@ -1,10 +1,6 @@
-"""Atomic file writes: the one helper every writer of results, models and media uses.
-
-The payload goes to a temporary file in the target's folder (same file system, same suffix so
-that format-by-extension writers such as imageio work), is flushed and ``fsync``-ed, then
-``os.replace``-d over the target, and the folder entry is ``fsync``-ed. A crash or ``SIGKILL`` at
-any moment leaves either the old complete file or the new complete one, never a torn file; a
-failed write leaves the old file and removes the temporary one.
+"""Atomic file writes, the one helper every writer of results, models and media uses: a
+temporary file in the target's folder (same suffix), flushed, ``fsync``-ed and ``os.replace``-d
+over the target, so a crash leaves the old complete file or the new one, never a torn file.
 """
 
 from __future__ import annotations

@@ -1,14 +1,6 @@
-"""IPOPT reference solution of the same optimal-control problem iLQR solves.
-
-Direct multiple shooting with CasADi ``Opti``: the states ``X [n, T+1]`` and controls
-``U [m, T]`` are both decision variables, tied by the equality constraints
-``x_{t+1} = F(x_t, u_t)`` with the model's one-step CasADi function ``F`` (for the arm:
-``TwoLinkArmCasadi.casadi_step``), the box bounds on ``u`` are simple bounds, and the objective
-is the :class:`mbtsr.costs.CasadiCost` (the same symbolic functions iLQR differentiates). IPOPT
-uses the exact Hessian of the Lagrangian from CasADi's AD.
-
-It serves to validate iLQR's optimum (a local optimum of the same problem) and as the baseline
-of ``scripts/bench_ilqr.py``.
+"""IPOPT reference solution of the optimal-control problem iLQR solves: direct multiple shooting
+with CasADi ``Opti`` on the model's one-step CasADi function and the same
+:class:`mbtsr.costs.CasadiCost`, exact Hessian (docs/ilqr.md, "IPOPT reference").
 """
 
 from __future__ import annotations

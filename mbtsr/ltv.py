@@ -1,35 +1,9 @@
-"""Linear time-varying (LTV) identification along trajectories.
-
-The paper (Bagge Carlson et al., "Tangent-Space Regularization for Neural-Network Models of
-Dynamical Systems", eq. (2) and Algorithm 1) regularizes a neural model with the Jacobians of an
-LTV model ::
-
-    x_{t+1} = A_t x_t + B_t u_t (+ c_t)        t = 0 .. T-1
-
-fitted along each rollout. Write ``phi_t = [x_t; u_t; (1)]`` (``p = n + m (+1)`` regressors) and
-``k_t = [A_t B_t (c_t)]`` (``[n, p]``). Output row ``i`` of ``k_t`` only enters output ``i`` of the
-residual, so every row is a separate regression with the SAME regressors; all rows share one
-normal-equation matrix and are solved together as ``n`` right-hand sides.
-
-Smooth fit (:func:`fit_ltv`), the exact minimizer of ::
-
-    sum_{t, j} ||x^j_{t+1} - k_t phi^j_t||^2 + lam^2 sum_t ||k_{t+1} - k_t||_F^2
-
-over aligned episodes ``j = 1..N``. In information form the normal equations of one output row
-are ``H theta = r`` with ``H`` block tridiagonal, ``T`` blocks of ``p x p``::
-
-    H_tt = G_t + lam^2 d_t I,  H_{t,t+1} = -lam^2 I,  G_t = sum_j phi^j_t phi^j_t^T,
-    d_t = 1 at both ends, 2 inside.
-
-``H`` is banded with half-bandwidth ``p``; it is factored by LAPACK's banded Cholesky
-(``O(T p^3)``) and solved for all ``n`` rows at once (``O(T p^2 n)``). This is the MAP of the
-random-walk state-space model ``k_{t+1} = k_t + w_t``, ``Cov(w) = sigma^2 / lam^2 I``,
-``Cov(e) = sigma^2 I`` with a diffuse prior on ``k_0`` (the Kalman/RTS smoother of the original
-code computes the same quantity in covariance form). The diagonal blocks of ``H^{-1}`` (the
-smoothed covariances, up to ``sigma^2``) come from a forward and a backward banded Cholesky:
-with ``F_t`` (``Bk_t``) the Schur complement of block ``t`` after eliminating all earlier (later)
-blocks, ``(H^{-1})_tt = (F_t + Bk_t - H_tt)^{-1}``: a two-filter smoother in information form,
-batched over ``t``.
+"""Linear time-varying (LTV) identification along trajectories: ``x_{t+1} = A_t x_t + B_t u_t
+(+ c_t)``, smooth (:func:`fit_ltv`, :func:`select_lambda`) and piecewise (:func:`fit_ltv_tv`)
+fits and prior fusion (:func:`fuse_prior`). The objectives, the banded information-form solver
+and the covariances: docs/ltv.md. Notation: ``phi_t = [x_t; u_t; (1)]`` (``p`` regressors),
+``k_t = [A_t B_t (c_t)]`` (``[n, p]``), ``G_t = sum_j phi^j_t phi^j_t^T``, ``H`` the block
+tridiagonal normal-equation matrix shared by all output rows.
 """
 
 from __future__ import annotations
@@ -46,7 +20,7 @@ from scipy.optimize import minimize_scalar
 
 from mbtsr.dynamics import check_step_inputs
 from mbtsr.trajectory import Trajectory, stack_trajectories
-from mbtsr.validation import as_array, check_int, check_nonnegative, check_positive
+from mbtsr.validation import as_array, check_choice, check_int, check_nonnegative, check_positive
 
 __all__ = ["LTVModel", "fit_ltv", "fit_ltv_tv", "select_lambda", "fuse_prior"]
 
@@ -66,9 +40,7 @@ class LTVModel:
     :param B: ``[T, n, m]`` input matrices.
     :param c: ``[T, n]`` affine terms, or ``None`` for a linear model.
     :param cov: ``[T, n, p, p]`` posterior covariance of output row ``i``'s parameters
-        ``k_t^(i) = [A_t[i, :], B_t[i, :], (c_t[i])]``, ``p = n + m (+1)``. For :func:`fit_ltv`
-        it is ``noise_var_rows[i] * (H^{-1})_tt`` (``H`` the normal-equation matrix above and
-        ``noise_var_rows`` in ``info``), i.e. in absolute units, ready for :func:`fuse_prior`.
+        ``k_t^(i) = [A_t[i, :], B_t[i, :], (c_t[i])]``, ``p = n + m (+1)``, in absolute units.
     :param lam: regularization weight used in the fit.
     :param noise_var: pooled estimate of the one-step noise variance (mean over output rows).
     :param info: solver diagnostics (see the fitting functions).
@@ -93,13 +65,10 @@ class LTVModel:
         cov = as_array("cov", self.cov, (T, n, p, p), finite=False)
         if T < 1:
             raise ValueError("an LTV model needs T >= 1 time steps")
-        for arr in (A, B, c, cov):
+        for name, arr in (("A", A), ("B", B), ("c", c), ("cov", cov)):
             if arr is not None:
                 arr.setflags(write=False)
-        object.__setattr__(self, "A", A)
-        object.__setattr__(self, "B", B)
-        object.__setattr__(self, "c", c)
-        object.__setattr__(self, "cov", cov)
+            object.__setattr__(self, name, arr)
         object.__setattr__(self, "lam", float(self.lam))
         object.__setattr__(self, "noise_var", float(self.noise_var))
 
@@ -303,21 +272,10 @@ class _Problem:
     m: int
     affine: bool
 
-    @property
-    def T(self) -> int:  # noqa: N802
-        return self.G.shape[0]
-
-    @property
-    def p(self) -> int:
-        return self.G.shape[1]
-
-    @property
-    def N(self) -> int:  # noqa: N802
-        return self.Phi.shape[0]
-
-    @property
-    def M(self) -> int:  # noqa: N802 - measurements per output row
-        return self.N * self.T
+    def __post_init__(self) -> None:  # sizes; M: measurements per output row
+        N, T, p = self.Phi.shape  # noqa: N806
+        for name, value in (("N", N), ("T", T), ("p", p), ("M", N * T)):
+            object.__setattr__(self, name, value)
 
 
 def _problem(data: object, affine: bool) -> _Problem:
@@ -573,8 +531,7 @@ def fit_ltv(data: object, lam: float, *, affine: bool = False, P0: float | None 
 
         sum_{t,j} ||x^j_{t+1} - A_t x^j_t - B_t u^j_t (- c_t)||^2 + lam^2 sum_t ||k_{t+1} - k_t||^2
 
-    with ``k_t = [A_t B_t (c_t)]``, by a banded Cholesky solve of the block-tridiagonal normal
-    equations shared by all output rows (``O(T (n+m)^3)``).
+    by a banded Cholesky solve (``O(T (n+m)^3)``; docs/ltv.md, "The smooth (L2) fit").
 
     :param data: a :class:`~mbtsr.trajectory.Trajectory`, a list of aligned trajectories (same
         ``T``; every episode contributes a measurement at every ``t``), or a tuple ``(x, u)``
@@ -594,17 +551,16 @@ def fit_ltv(data: object, lam: float, *, affine: bool = False, P0: float | None 
     ridge0 = 0.0
     if P0 is not None:
         ridge0 = 1.0 / check_positive("P0", P0)
-    prob = _problem(data, affine)
+    return _l2_model(_problem(data, affine), lam, ridge0)
+
+
+def _l2_model(prob: _Problem, lam: float, ridge0: float) -> LTVModel:
     if lam == 0.0 and ridge0 == 0.0 and prob.N < prob.p:
         raise ValueError(
             f"lam=0 leaves the problem under-determined: {prob.N} measurement(s) per time step "
             f"but {prob.p} parameters per output row; use lam > 0 or at least {prob.p} aligned "
             "episodes"
         )
-    return _l2_model(prob, lam, ridge0)
-
-
-def _l2_model(prob: _Problem, lam: float, ridge0: float) -> LTVModel:
     sol = _solve_l2(prob, lam, ridge0)
     Sigma = _marginal_blocks(prob, sol, lam, ridge0)
     edf = float(np.einsum("tpq,tqp->", Sigma, prob.G))
@@ -650,31 +606,21 @@ def select_lambda(
     affine: bool = False,
     refine: bool = True,
 ) -> tuple[float, dict]:
-    """Choose ``lam`` for :func:`fit_ltv` from the data.
+    """Choose ``lam`` for :func:`fit_ltv` from the data (docs/ltv.md, "Automatic lambda").
 
-    ``method="marginal_likelihood"``: minimize the negative diffuse log marginal likelihood of
-    the state-space model ``k_{t+1} = k_t + w_t, Cov(w) = sigma_i^2/lam^2 I``,
-    ``x_{t+1,i} = phi_t^T k_t^(i) + e, Var(e) = sigma_i^2`` with each output row's noise
-    variance ``sigma_i^2`` profiled out (the likelihood a Kalman filter gives, computed exactly
-    from the banded factorization). ``method="gcv"``: minimize
-    ``sum_i log GCV_i = sum_i [log(rss_i / M) - 2 log(1 - edf / M)]`` (generalized
-    cross-validation per output row; the log makes rows of different scale count equally).
-
+    :param method: ``"marginal_likelihood"`` (the random-walk model's diffuse log marginal
+        likelihood, noise variances profiled out) or ``"gcv"`` (generalized cross-validation
+        per output row).
     :param lambdas: grid of candidates ``> 0``; default 36 log-spaced values from
         ``1e-3 s`` to ``1e4 s`` with ``s = sqrt(mean_t tr(G_t) / p)`` the regressor scale.
     :param refine: refine the best grid point by a bounded 1-D search in ``log lam`` between its
         grid neighbours.
     :return: ``(lam, curve)`` with ``curve = {"lambdas", "score" (lower is better; NaN where
-        skipped), "method", "grid_best", "at_boundary", "skipped"}``. A grid point whose fit is
-        numerically singular in float64 (a ``lam`` just below the range where the fit switches
-        to its ``lam -> inf`` limit, or a tiny ``lam`` with few measurements) is skipped, listed
-        in ``skipped`` and reported in one warning; only a grid where every point is singular is
-        an error. A minimizer on the boundary of the usable grid usually means the criterion is
-        still decreasing (``lam -> inf``: the data look time-invariant; ``lam -> 0``:
-        overfitting, e.g. deterministic, coloured model error); a warning is issued.
+        skipped), "method", "grid_best", "at_boundary", "skipped"}``. Grid points whose fit is
+        numerically singular are skipped (listed in ``skipped``, one warning; all singular is an
+        error); a minimizer at the edge of the usable grid warns.
     """
-    if method not in ("marginal_likelihood", "gcv"):
-        raise ValueError(f"method must be 'marginal_likelihood' or 'gcv', got {method!r}")
+    check_choice("method", method, ("marginal_likelihood", "gcv"))
     prob = _problem(data, affine)
     if prob.M <= prob.p:
         raise ValueError(
@@ -855,15 +801,10 @@ def _newton_segments(
 def _polish(
     prob: _Problem, lam: float, theta: np.ndarray, active: np.ndarray, max_rounds: int = 5
 ) -> tuple[np.ndarray, float] | None:
-    """Solve the TV problem exactly by an active-set method started from the ADMM iterate.
-
-    With the change points fixed, ``k`` is constant on each segment ``s`` and the objective
-    ``sum_s [tr(K_s^T G_s K_s) - 2 tr(K_s^T R_s)] + lam sum_j ||K_j - K_{j-1}||_F`` is smooth
-    while no jump vanishes: damped Newton (block-tridiagonal Hessian, banded Cholesky). A jump
-    that collapses is removed. The result is the global minimizer iff the dual
-    ``v_t = sum_{s<=t} 2 (G_s k_s - R_s)`` (from the stationarity
-    ``2 Phi^T (Phi k - y) + D^T v = 0``) satisfies ``||v_t|| <= lam`` at every inactive ``t``;
-    violators that are local maxima of ``||v_t||`` become change points otherwise.
+    """Solve the TV problem exactly on the ADMM iterate's active set: damped Newton with ``k``
+    constant per segment (:func:`_newton_segments`), collapsed jumps dropped, certified by the
+    dual ``v_t = sum_{s<=t} 2 (G_s k_s - R_s)``, ``||v_t|| <= lam`` at every inactive ``t``;
+    violators that are local maxima of ``||v_t||`` become change points (docs/ltv.md, TV fit).
 
     :return: ``(theta [T, p, n], max_t ||v_t|| / lam over inactive t)`` or ``None``.
     """
@@ -933,14 +874,8 @@ def fit_ltv_tv(
 
         minimize  sum_{t,j} ||x^j_{t+1} - k_t phi^j_t||^2 + lam sum_t ||k_{t+1} - k_t||_F
 
-    (a group lasso / total variation on the whole parameter difference, as LTVModels'
-    ``fit_admm``). Solved by ADMM on ``z_t = k_{t+1} - k_t`` with over-relaxation (1.6) and
-    residual balancing of ``rho``; the ``k``-update is the same banded solve as
-    :func:`fit_ltv` with ``lam^2 = rho / 2`` (factored again only when ``rho`` changes).
-    With ``polish=True``, whenever the ADMM active set (the ``t`` with ``z_t != 0``) has been
-    stable for 50 iterations, the problem is solved exactly on that active set by Newton's
-    method and the result is accepted if the dual certificate ``||v_t|| <= lam`` holds at every
-    inactive ``t`` (then it is the global minimizer to Newton precision).
+    by ADMM on ``z_t = k_{t+1} - k_t`` (the ``k``-update the banded solve of :func:`fit_ltv`
+    with ``lam^2 = rho / 2``) and a certified Newton polish (docs/ltv.md, "The piecewise fit").
 
     :param lam: weight of the group penalty ``>= 0`` (note: ``lam``, not ``lam^2``).
     :param tol: relative tolerance on the primal ``||D k - z||`` and dual
@@ -967,12 +902,7 @@ def fit_ltv_tv(
     if rho is not None:
         rho = check_positive("rho", rho)
     if lam == 0.0:
-        if prob.N < prob.p:
-            raise ValueError(
-                f"lam=0 leaves the problem under-determined: {prob.N} measurement(s) per time "
-                f"step but {prob.p} parameters per output row; use lam > 0"
-            )
-        theta = _model_theta(_l2_model(prob, 0.0, 0.0))
+        theta = _l2_model(prob, 0.0, 0.0).params.transpose(0, 2, 1)
         return _tv_model(prob, theta, lam, np.ones(prob.T - 1, bool), iterations=0,
                          converged=True, polished=False, primal=0.0, dual=0.0, kkt_ratio=None,
                          rho=0.0)
@@ -1058,11 +988,6 @@ def fit_ltv_tv(
                      polished=polished, primal=r_norm, dual=s_norm, kkt_ratio=kkt_ratio, rho=rho)
 
 
-def _model_theta(model: LTVModel) -> np.ndarray:
-    """``[T, p, n]`` parameters of ``model`` (transpose of :attr:`LTVModel.params`)."""
-    return model.params.transpose(0, 2, 1)
-
-
 def _tv_model(
     prob: _Problem, theta: np.ndarray, lam: float, active: np.ndarray, *, iterations: int,
     converged: bool, polished: bool, primal: float, dual: float, kkt_ratio: float | None,
@@ -1115,14 +1040,7 @@ def fuse_prior(
     c_prior: np.ndarray | None = None,
 ) -> LTVModel:
     """Fuse the fit with an independent Gaussian prior on the Jacobians, per time step and per
-    output row (the original's ``KalmanModel(model, prior, ...)``, a product of Gaussians that
-    ignores correlations across time)::
-
-        K = P_t H^T (H P_t H^T + P_prior,t)^{-1}
-        k_t <- k_t + K (k_prior,t - H k_t),   P_t <- P_t - K H P_t
-
-    where ``H`` selects the parameters the prior covers (all of them, or ``[A B]`` only when
-    the model is affine and no ``c_prior`` is given: a flat prior on ``c_t``).
+    output row (a Kalman update, ``H`` selecting ``[A B (c)]``; docs/ltv.md, "Prior fusion").
 
     :param model: a fitted :class:`LTVModel` (its ``cov`` is in absolute units).
     :param A_prior: ``[T, n, n]`` prior means, e.g. the NN ensemble's Jacobians.
@@ -1170,9 +1088,7 @@ def fuse_prior(
     k_new = k + np.einsum("tipq,tiq->tip", K, innov)
     P_new = P - K @ PHt.transpose(0, 1, 3, 2)
     P_new = 0.5 * (P_new + P_new.transpose(0, 1, 3, 2))
-    A = k_new[:, :, :n]
-    B = k_new[:, :, n : n + m]
-    c = k_new[:, :, n + m] if model.affine else None
+    A, B, c = _split_theta(k_new.transpose(0, 2, 1), n, m, model.affine)
     info = dict(model.info)
     info["fused_prior"] = True
     return LTVModel(A, B, c, P_new, lam=model.lam, noise_var=model.noise_var, info=info)

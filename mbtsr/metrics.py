@@ -1,16 +1,5 @@
-"""The paper's evaluation metrics (Bagge Carlson et al., Sec. "Evaluation").
-
-They take any :class:`mbtsr.dynamics.DynamicsModel` (for the ensemble: the ensemble mean) and
-trajectories; all arithmetic is float64.
-
-* :func:`prediction_rms`: one-step prediction error ``x_{t+1} - f(x_t, u_t)``;
-* :func:`simulation_rms`: free-run simulation from the known ``x_0`` driven by the recorded
-  inputs, with a divergence count;
-* :func:`jacobian_error`: the paper's eq. (jacerr),
-  ``sqrt(1/T sum_t ||J_t - mean_E Jhat_t||_F^2)``;
-* :func:`jacobian_rms_per_entry`: the original code's variant (``eval_jac``), the same error as an
-  RMS over the ``n (n+m)`` entries: ``jacobian_error / sqrt(n (n+m))``;
-* :func:`jacobian_eigenvalues`: eigenvalues of the state Jacobian ``A_t`` at given points.
+"""The paper's evaluation metrics (Sec. "Evaluation"; table in docs/models.md, "Metrics") for
+any :class:`mbtsr.dynamics.DynamicsModel` (an ensemble by its mean), in float64.
 """
 
 from __future__ import annotations
@@ -33,7 +22,9 @@ __all__ = [
 ]
 
 
-def _check_model_dims(model: DynamicsModel, trajs: list[Trajectory]) -> None:
+def _checked_trajs(model: DynamicsModel, trajs: object) -> list[Trajectory]:
+    """``trajs`` as a list, checked against the model's dimensions."""
+    trajs = as_trajectory_list(trajs)
     n, m = getattr(model, "state_dim", None), getattr(model, "action_dim", None)
     if n is None or m is None or not hasattr(model, "step"):
         raise ValueError("model must implement the DynamicsModel protocol (step, state_dim, "
@@ -41,6 +32,7 @@ def _check_model_dims(model: DynamicsModel, trajs: list[Trajectory]) -> None:
     for i, tr in enumerate(trajs):
         if (tr.n, tr.m) != (n, m):
             raise ValueError(f"trajs[{i}] has (n, m) = ({tr.n}, {tr.m}), the model ({n}, {m})")
+    return trajs
 
 
 def _rms(err: np.ndarray, per_dimension: bool) -> float | np.ndarray:
@@ -55,10 +47,8 @@ def _rms(err: np.ndarray, per_dimension: bool) -> float | np.ndarray:
 def prediction_rms(
     model: DynamicsModel, trajs: Trajectory | Sequence[Trajectory], *, per_dimension: bool = False
 ) -> float | np.ndarray:
-    """One-step prediction RMS over all transitions of ``trajs``.
-
-    ``sqrt(mean_{traj, t, i} (x_{t+1,i} - f(x_t, u_t)_i)^2)``, with ``f = model.step`` called once
-    per trajectory on all its transitions (``t=None``: for time-invariant models).
+    """One-step prediction RMS ``sqrt(mean (x_{t+1} - f(x_t, u_t))^2)`` over all transitions
+    (``model.step`` once per trajectory, ``t=None``: time-invariant models).
 
     :param model: a dynamics model (an ensemble is evaluated by its mean).
     :param trajs: trajectories (``x: [T+1, n]``, ``u: [T, m]``).
@@ -66,8 +56,7 @@ def prediction_rms(
         instead of one number.
     :return: float, or ``[n]``; ``inf`` if a prediction is not finite.
     """
-    trajs = as_trajectory_list(trajs)
-    _check_model_dims(model, trajs)
+    trajs = _checked_trajs(model, trajs)
     err = [tr.x[1:] - np.asarray(model.step(tr.x[:-1], tr.u), dtype=float) for tr in trajs]
     return _rms(np.concatenate(err), per_dimension)
 
@@ -79,20 +68,16 @@ def simulation_rms(
     divergence_threshold: float = 100.0,
     per_dimension: bool = False,
 ) -> tuple[float | np.ndarray, int]:
-    """Simulation RMS: free run from the recorded ``x_0`` driven by the recorded inputs.
-
-    Aligned trajectories (same ``T``) are simulated together as one batch. The error is taken
-    over the simulated states ``t = 1..T``. A simulation counts as *diverged* if it becomes
-    non-finite or if some state leaves the truth by more than ``divergence_threshold`` times that
-    state dimension's std over time in the recorded trajectory (std 0 counts as 1).
+    """Simulation RMS over ``t = 1..T`` of a free run from the recorded ``x_0`` driven by the
+    recorded inputs (aligned trajectories as one batch). Diverged: non-finite, or a state
+    further from the truth than ``divergence_threshold`` times its std over time (0 counts 1).
 
     :param divergence_threshold: ``> 0``, in units of the per-dimension std (default 100).
     :param per_dimension: return the RMS per state dimension ``[n]``.
     :return: ``(rms, n_diverged)``. ``rms`` pools all trajectories, diverged ones included, and
         is ``inf`` when a simulation blew up to non-finite values.
     """
-    trajs = as_trajectory_list(trajs)
-    _check_model_dims(model, trajs)
+    trajs = _checked_trajs(model, trajs)
     thr = check_positive("divergence_threshold", divergence_threshold)
     errs, n_diverged = [], 0
     for T in sorted({tr.T for tr in trajs}):
@@ -118,12 +103,8 @@ def k_step_rms(
     *,
     per_dimension: bool = False,
 ) -> float | np.ndarray:
-    """Open-loop prediction RMS ``k`` steps ahead, from every start of every trajectory.
-
-    ``sqrt(mean_{traj, t, i} (x_{t+k,i} - f^k(x_t; u_t, ..., u_{t+k-1})_i)^2)`` over the starts
-    ``t = 0..T-k`` of the trajectories with ``T >= k`` (all starts propagate as one batch).
-    ``k = 1`` is :func:`prediction_rms`; how the error grows with ``k`` says how long a plan the
-    model supports (``docs/troubleshooting.md``).
+    """Open-loop prediction RMS ``k`` steps ahead from every start ``t = 0..T-k`` of the
+    trajectories with ``T >= k`` (one batch); ``k = 1`` is :func:`prediction_rms`.
 
     :param k: steps ahead, ``>= 1``.
     :param per_dimension: return the RMS per state dimension ``[n]``.
@@ -131,8 +112,7 @@ def k_step_rms(
     :raises ValueError: ``k`` is not an integer >= 1, or no trajectory has ``k`` steps.
     """
     check_int("k", k, 1)
-    trajs = as_trajectory_list(trajs)
-    _check_model_dims(model, trajs)
+    trajs = _checked_trajs(model, trajs)
     long = [tr for tr in trajs if tr.T >= k]
     if not long:
         raise ValueError(f"no trajectory has k={k} steps (the longest has "
@@ -190,13 +170,8 @@ def jacobian_error(J_true: object, J_hat: object) -> float:
 
 
 def jacobian_rms_per_entry(J_true: object, J_hat: object) -> float:
-    """The original code's Jacobian error (``eval_jac``): RMS over points and entries::
-
-        sqrt( mean_t mean_{i,j} (J_t - mean_E Jhat_t)_{ij}^2 ) = jacobian_error / sqrt(n (n+m))
-
-    Arguments as :func:`jacobian_error`. (The original evaluated every third validation point;
-    pick the points you pass accordingly.)
-    """
+    """The original code's Jacobian error (``eval_jac``), the RMS over points and entries:
+    ``jacobian_error / sqrt(n (n+m))``; arguments as :func:`jacobian_error`."""
     J = _as_jacobian("J_true", J_true, allow_members=False)
     return jacobian_error(J, J_hat) / float(np.sqrt(J.shape[-1] * J.shape[-2]))
 

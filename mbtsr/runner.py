@@ -1,30 +1,12 @@
-"""Monte-Carlo runner: run a function over configurations x seeds, one JSON file per run.
-
-Used by the SB3 benchmark and the paper experiments. Each finished run is written atomically to
-``out_dir/runs/<config>__seed<seed>.json``, so an interrupted sweep resumes without redoing
-finished work; a failed run goes to ``out_dir/errors/`` with its traceback and is retried on the
-next call. Three backends:
-
-- ``"serial"``: in this process (debugging, tiny sweeps);
-- ``"process"`` (default): a pool of local worker processes (``forkserver`` start method), one
-  torch/BLAS thread per worker, which on a 2-core machine matches Ray for these workloads;
-- ``"ray"``: Ray tasks (``pip install -c constraints.txt -e ".[ray]"``), on a local Ray instance
-  started for the sweep or on an existing cluster (``address=``), for going past one machine.
-
-A run never takes the sweep down with it: an exception, a worker process that dies (``SIGKILL``,
-``os._exit``, a segfault in native code) or a run function that cannot be loaded on a worker is
-recorded as a failed run with its error, and the other runs go on. Pool workers exit when the
-driver process dies, so a killed sweep leaves no orphans.
-
-The run function must be a module-level function taking ``(config: dict, seed: int)`` and
-returning a JSON-serializable ``dict``. The pool's workers see the driver's ``sys.path``; Ray
-workers get the project's packages (``mbtsr``, ``agents``, ``envs`` and the run function's own
-package) shipped in the job's ``runtime_env``, and a run function from a single-file module
-outside any installed package is shipped by value.
+"""Monte-Carlo runner: run a module-level ``fn(config: dict, seed: int) -> dict`` over
+configurations x seeds, one JSON file per run (``out_dir/runs/<config>__seed<seed>.json``,
+written atomically; failed runs in ``out_dir/errors/``, retried next call), so an interrupted
+sweep resumes. Backends ``"serial"``, ``"process"`` (a forkserver pool, one thread per worker)
+and ``"ray"``; a run that raises or whose worker dies is recorded as failed and the others go
+on. Failure handling and Ray clusters: docs/troubleshooting.md, "Sweeps".
 
 Example::
 
-    from mbtsr.runner import run_sweep
     records = run_sweep(my_experiment, {"none": {"reg": 0.0}, "jacprop": {"reg": 1.0}},
                         seeds=range(10), out_dir="results/linear")
 """
@@ -53,6 +35,7 @@ from pathlib import Path
 from typing import Any
 
 from mbtsr.io import json_default, write_json_atomic
+from mbtsr.validation import check_choice, check_int
 
 __all__ = ["RunSpec", "load_results", "run_sweep", "summarize"]
 
@@ -212,8 +195,7 @@ def run_sweep(
         starts a private local Ray instance for the sweep and removes it afterwards.
     :return: the records of all finished runs in (config, seed) order.
     """
-    if backend not in ("process", "serial", "ray"):
-        raise ValueError(f"backend must be 'process', 'serial' or 'ray', got {backend!r}")
+    check_choice("backend", backend, ("process", "serial", "ray"))
     if not callable(fn):
         raise ValueError(f"fn must be a callable (config, seed) -> dict, got {type(fn).__name__}")
     if address is not None and backend != "ray":
@@ -229,9 +211,8 @@ def run_sweep(
         raise ValueError("seeds must contain at least one seed")
     if len(set(seeds)) != len(seeds):
         raise ValueError("seeds must be distinct")
-    if workers is not None and (isinstance(workers, bool) or int(workers) != workers
-                                or workers < 1):
-        raise ValueError(f"workers must be an integer >= 1, got {workers!r}")
+    if workers is not None:
+        check_int("workers", workers, 1)
     out = Path(out_dir)
     if out.exists() and not out.is_dir():
         raise ValueError(f"out_dir {out} exists and is not a folder")

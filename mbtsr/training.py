@@ -1,24 +1,10 @@
 """Training of :class:`~mbtsr.ensemble.DynamicsEnsemble` with tangent-space regularization.
 
-Objective of member ``k`` for one optimizer step on a batch ``b`` of transitions (paper Sec. II
-loss; regularizers of Sec. III, switchable and combinable, each with its weight)::
-
-    L_k = mean_{t in b} ||y_k(t) - r(t)||^2                               data
-        + w_sampled * mean_{copies, t in b} ||y_k(t~) - r~(t)||^2           sampled JacProp
-        + w_exact  * S * mean_{t in b} ||J_k(t) - [A_t B_t]||_F^2          exact matching
-        + w_smooth * S * mean_{t, t+1 in b} ||J_k(t+1) - J_k(t)||_F^2      smoothness ("AD")
-
-``y_k`` is the member's normalized network output, ``r`` the normalized residual target,
-``J_k`` the member's Jacobian of the FULL map in raw units, ``[A_t B_t]`` the Jacobian of the
-trajectory's LTV model (:func:`mbtsr.ltv.fit_ltv`), ``r~`` the LTV labels of perturbed copies
-(:meth:`mbtsr.ltv.LTVModel.sample_perturbed`; :attr:`RegularizationConfig.copies_batch`) and
-``S`` turns the mean into the paper's sum over time; the members' objectives are summed. Each
-term, ``S`` and the measured effect: docs/models.md, "Tangent-space regularization".
-
-One loop (:func:`_train_loop`) trains with either schedule, a plan of rounds of batches: the
-paper's epochs (:class:`_EpochPlan`), or a step budget (:attr:`TrainConfig.steps`, or a hold-out,
-early stopping or per-member data; :class:`_StepPlan`). A probabilistic member's data term is
-the Gaussian NLL; see :class:`TrainConfig`.
+The objective (data term, sampled Jacobian propagation, exact matching, smoothness) and both
+schedules (the paper's epochs, a step budget with hold-out and early stopping): docs/models.md,
+"Training" to "Tangent-space regularization". One loop (:func:`_train_loop`) runs either
+schedule, a plan of rounds of batches (:class:`_EpochPlan`, :class:`_StepPlan`); every term of
+the objective is written once (:func:`_objective`).
 """
 
 from __future__ import annotations
@@ -38,7 +24,7 @@ from tqdm.auto import tqdm
 
 from mbtsr.ensemble import DynamicsEnsemble, _pool_transitions
 from mbtsr.trajectory import Trajectory, as_trajectory_list
-from mbtsr.validation import check_int, check_nonnegative, check_positive
+from mbtsr.validation import check_choice, check_int, check_nonnegative, check_positive
 
 __all__ = ["TrainConfig", "RegularizationConfig", "REGULARIZERS", "DEFAULT_WEIGHTS", "TrainHistory",
            "MEMBER_DATA", "EARLY_STOPPING", "holdout_mask", "train_ensemble"]
@@ -60,56 +46,33 @@ HOLDOUT_SEED = 20260901
 
 @dataclass(frozen=True)
 class TrainConfig:
-    """Optimizer and schedule (Adam, paper Sec. "Nominal model").
+    """Optimizer (Adam) and schedule: ``epochs`` passes over all data (the paper's, the
+    default) or a budget of ``steps``; a hold-out, early stopping or per-member data take the
+    step budget (:attr:`uses_step_loop`). Defaults and sources: docs/models.md, "Training".
 
-    Two schedules. ``steps=None`` (default): ``epochs`` passes over all data, the paper's
-    schedule (its cost grows with the data). ``steps=S``: a budget of ``S`` gradient steps on
-    minibatches of ``batch`` transitions per call, independent of the data size. Either can
-    hold out data, stop early and give the members their own data order or bootstrap sample
-    (then training takes the step budget, :attr:`uses_step_loop`; without them ``epochs`` is
-    the paper's epoch schedule). See ``docs/models.md``, "Training with a step budget".
-
-    :param epochs: passes over the data (``steps=None``). Paper: 1000 for g and 2000 for f, half
-        of that with sampled Jacobian propagation.
-    :param lr: Adam step size. The original used 0.02 (linear system, robot v1) and 0.01 (later
-        scripts; normalized data, see ``docs/models.md``).
-    :param batch: ``"trajectory"`` (one optimizer step per trajectory, like the original; epochs
-        only) or an int minibatch size (transitions drawn without replacement across
-        trajectories).
-    :param weight_decay: L2 weight decay on weight matrices only (not biases or layer-norm
-        parameters). Coupled (added to the gradient before Adam, as in the original) unless
-        ``decoupled_weight_decay``.
+    :param epochs: passes over the data (``steps=None``; paper 1000 for g, 2000 for f).
+    :param lr: Adam step size.
+    :param batch: ``"trajectory"`` (one step per trajectory; epochs only) or an int minibatch
+        size.
+    :param weight_decay: L2 decay of weight matrices only, coupled unless
+        ``decoupled_weight_decay`` (AdamW).
     :param decoupled_weight_decay: AdamW-style decay ``W <- W - lr * weight_decay * W``.
     :param betas: Adam's ``(beta1, beta2)``.
-    :param adam_eps: Adam's epsilon (original: 1e-8; some scripts 1e-2).
-    :param shuffle: reshuffle the batch order every epoch (epochs only; a step budget always
-        draws random minibatches).
+    :param adam_eps: Adam's epsilon.
+    :param shuffle: reshuffle the batch order every epoch (epochs only).
     :param seed: seeds batch order, perturbation sampling, bootstrap resampling and dropout.
     :param progress: show a tqdm progress bar.
-    :param steps: gradient-step budget per call (``None``: ``epochs``). Each step takes one
-        minibatch per member (an epoch-free stream: a random permutation of the member's
-        training rows, redrawn when used up); sampled Jacobian propagation perturbs the
-        minibatch's transitions afresh at every step. ``holdout``, ``patience`` and
-        ``member_data`` work with either schedule (with ``steps=None`` the budget is ``epochs``
-        passes over the training rows, ``epochs * ceil(rows / batch)`` steps).
-    :param holdout: fraction of the transitions held out of training to measure the validation
-        loss. The split is a fixed function of the transition's index (the
-        ``j``-th uniform of a stream seeded with :data:`HOLDOUT_SEED`), so data appended by later
-        calls never moves an old transition between the sets: a warm-started model is never
-        validated on data it trained on. Perturbed copies of held-out transitions are not
-        trained on either.
-    :param eval_every: steps between validation evaluations of the step loop (also at step 0
-        and at the end).
+    :param steps: gradient-step budget per call (``None``: ``epochs`` passes, as
+        ``epochs * ceil(rows / batch)`` steps when the step loop runs).
+    :param holdout: fraction of transitions held out for the validation loss, a prefix-stable
+        function of the index (:func:`holdout_mask`).
+    :param eval_every: steps between validation evaluations (also at step 0 and the end).
     :param patience: stop after this many evaluations without an improvement of more than
-        :data:`MIN_REL_IMPROVEMENT` and restore the best weights seen (``None``: train the whole
-        budget, restore nothing). Needs ``holdout > 0`` or ``validation`` data.
-    :param early_stopping: ``"member"``: every member keeps its own best weights by its own
-        validation loss, and training stops when no member improves; ``"ensemble"``: one
-        snapshot by the validation loss of the ensemble mean.
-    :param member_data: ``"shared"``: all members see the same minibatches (the paper's);
-        ``"order"``: every member draws its own minibatch stream (same data, different order);
-        ``"bootstrap"``: every member trains on its own bootstrap resample of the training rows
-        (drawn once per call, as PETS).
+        :data:`MIN_REL_IMPROVEMENT` and restore the best weights (needs held-out data).
+    :param early_stopping: ``"member"`` (each member its own best weights) or ``"ensemble"``
+        (one snapshot by the ensemble mean's loss).
+    :param member_data: ``"shared"`` minibatches, ``"order"`` (own stream per member) or
+        ``"bootstrap"`` (own resample per member, drawn once per call).
     """
 
     epochs: int = 1000
@@ -149,12 +112,8 @@ class TrainConfig:
         check_int("eval_every", self.eval_every, 1)
         if self.patience is not None:
             check_int("patience", self.patience, 1)
-        if self.early_stopping not in EARLY_STOPPING:
-            raise ValueError(f"early_stopping must be one of {EARLY_STOPPING}, got "
-                             f"{self.early_stopping!r}")
-        if self.member_data not in MEMBER_DATA:
-            raise ValueError(f"member_data must be one of {MEMBER_DATA}, got "
-                             f"{self.member_data!r}")
+        check_choice("early_stopping", self.early_stopping, EARLY_STOPPING)
+        check_choice("member_data", self.member_data, MEMBER_DATA)
         if self.batch == "trajectory" and self.uses_step_loop:
             on = [f"{name}={getattr(self, name)!r}" for name, off in (
                 ("holdout", 0.0), ("patience", None), ("member_data", "shared"))
@@ -184,20 +143,15 @@ class RegularizationConfig:
     """Tangent-space regularizers; each is on when its weight is > 0, and they combine.
 
     :param sampled_weight: weight of the loss on LTV-labelled perturbed copies (sampled Jacobian
-        propagation, the paper's method; paper value 1 = copies count like data).
+        propagation; paper 1).
     :param sigma: perturbation std relative to each dimension's std over time (paper: 0.1).
     :param n_copies: perturbed copies per trajectory per epoch (paper: 1).
-    :param copies_batch: ``"shared"``: the perturbed copies join the batch of their original
-        transitions (one optimizer step per batch, as the baseline); ``"own"``: each copy of
-        each batch is its own optimizer step after the epoch's data batches (the original
-        code's behaviour; ``1 + n_copies`` times the steps per epoch), its loss
-        ``sampled_weight * mean ||y(x~) - r~||^2`` alone.
+    :param copies_batch: ``"shared"``: copies join their transitions' batch; ``"own"``: each
+        copy of each batch is its own step after the epoch's data batches (the original's).
     :param exact_weight: weight of ``sum_t ||J_model(t) - J_LTV(t)||_F^2`` (double backprop).
-    :param smooth_weight: weight of ``sum_t ||J_model(t+1) - J_model(t)||_F^2`` (the original's
-        later "AD jacprop", paper eq. (reg)); needs no LTV model.
-    :param ltv_lambda: ``lam`` of :func:`mbtsr.ltv.fit_ltv` (``lam^2`` = drift-to-noise variance
-        ratio, scale dependent); the original's R2 = 1000 I, R1 = I is ``sqrt(1000)``.
-        ``None`` picks it per trajectory with :func:`mbtsr.ltv.select_lambda`.
+    :param smooth_weight: weight of ``sum_t ||J_model(t+1) - J_model(t)||_F^2`` (no LTV model).
+    :param ltv_lambda: ``lam`` of :func:`mbtsr.ltv.fit_ltv` (default the original's
+        ``sqrt(1000)``); ``None`` picks it per trajectory with :func:`mbtsr.ltv.select_lambda`.
     :param ltv_affine: fit LTV models with an affine term ``c_t``.
     """
 
@@ -213,8 +167,7 @@ class RegularizationConfig:
     def __post_init__(self) -> None:
         for name in ("sampled_weight", "exact_weight", "smooth_weight", "sigma"):
             check_nonnegative(name, getattr(self, name))
-        if self.copies_batch not in ("shared", "own"):
-            raise ValueError(f"copies_batch must be 'shared' or 'own', got {self.copies_batch!r}")
+        check_choice("copies_batch", self.copies_batch, ("shared", "own"))
         check_int("n_copies", self.n_copies, 1)
         if self.ltv_lambda is not None:
             check_nonnegative("ltv_lambda", self.ltv_lambda)
@@ -233,8 +186,7 @@ class RegularizationConfig:
         ``fields`` sets the remaining fields (``sigma``, ``n_copies``, ``ltv_lambda`` ...).
         ``RegularizationConfig.named("none")`` is the unregularized baseline.
         """
-        if kind not in REGULARIZERS:
-            raise ValueError(f"regularization must be one of {REGULARIZERS}, got {kind!r}")
+        check_choice("regularization", kind, REGULARIZERS)
         if kind == "none":
             if weight is not None:
                 raise ValueError(f"regularization 'none' takes no weight, got {weight!r}")
@@ -876,11 +828,7 @@ def train_ensemble(
     callback: Callable[[int, DynamicsEnsemble], None] | None = None,
 ) -> TrainHistory:
     """Fit all members of ``model`` to ``trajs`` (in place) with optional tangent-space
-    regularization (see the module docstring for the objective).
-
-    Calling it again on grown data warm-starts from the current weights; pass the previous
-    ``history.optimizer_state`` to resume Adam exactly. Normalization statistics are set from
-    ``trajs`` on the first call only.
+    regularization; a second call warm-starts (normalization is set on the first call only).
 
     :param model: the ensemble to train.
     :param trajs: training trajectories (each ``x: [T+1, n]``, ``u: [T, m]``).
@@ -891,10 +839,9 @@ def train_ensemble(
         ``B [>=T, n, m]``, ``sample_perturbed``); fitted with :func:`mbtsr.ltv.fit_ltv` if None
         and a regularizer needs them.
     :param optimizer_state: an Adam ``state_dict`` from a previous call.
-    :param callback: optional diagnostic ``callback(epoch, model)`` called after every epoch
-        (a step budget: ``callback(step, model)`` at every evaluation) with the model in
-        evaluation mode (e.g. to log Jacobian errors during training; off by default). It must
-        not change the weights; it draws no random numbers of the training.
+    :param callback: optional diagnostic ``callback(epoch, model)`` after every epoch (a step
+        budget: ``callback(step, model)`` at every evaluation), the model in evaluation mode;
+        it must not change the weights.
     :return: :class:`TrainHistory`.
     """
     t_start = time.perf_counter()
@@ -918,11 +865,10 @@ def train_ensemble(
                          "validation trajectories")
     if not model.is_normalized:
         model.set_normalization(trajs)
-    if reg.needs_ltv:
-        ltv_models = (_fit_ltv_models(trajs, reg) if ltv_models is None
-                      else _check_ltv_models(ltv_models, trajs))
-    elif ltv_models is not None:
+    if ltv_models is not None:
         ltv_models = _check_ltv_models(ltv_models, trajs)
+    elif reg.needs_ltv:
+        ltv_models = _fit_ltv_models(trajs, reg)
 
     with torch.no_grad():  # inputs are normalized once here, not in every step
         def normalized(xu_raw: np.ndarray, x_next: np.ndarray) -> tuple:

@@ -120,10 +120,7 @@ def save_trajectories(path: str | os.PathLike, trajs: Iterable[Trajectory]) -> N
 
     Metadata is not stored; only ``x``, ``u`` and ``dt``.
     """
-    trajs = list(trajs)
-    if not trajs or not all(isinstance(t, Trajectory) for t in trajs):
-        raise ValueError("trajs must be a non-empty list of Trajectory")
-    path = Path(path)
+    trajs = as_trajectory_list(trajs)
     arrays: dict[str, np.ndarray] = {"count": np.array(len(trajs))}
     for i, t in enumerate(trajs):
         arrays[f"x{i}"] = t.x

@@ -19,6 +19,7 @@ __all__ = [
     "call_user_fn",
     "check_bool",
     "check_callable",
+    "check_choice",
     "check_int",
     "check_finite",
     "check_positive",
@@ -89,6 +90,13 @@ def check_int(name: str, value: object, minimum: int | None) -> int:
         bound = "" if minimum is None else f" >= {minimum}"
         raise ValueError(f"{name} must be an integer{bound}, got {value!r}")
     return int(value)
+
+
+def check_choice(name: str, value: Any, choices: Sequence | Mapping) -> Any:
+    """``value`` if it is one of ``choices``, else a ``ValueError`` naming ``name`` and them."""
+    if value not in choices:
+        raise ValueError(f"{name} must be one of {tuple(choices)}, got {value!r}")
+    return value
 
 
 def check_bool(name: str, value: object) -> bool:
