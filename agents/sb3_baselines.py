@@ -28,11 +28,11 @@ __all__ = [
     "CostEvalCallback",
     "default_hyperparams",
     "make_sb3_model",
-    "make_training_env",
     "train_sb3",
 ]
 
 ALGOS: dict[str, type[BaseAlgorithm]] = {"sac": SAC, "td3": TD3, "ppo": PPO}
+
 
 def default_hyperparams(algo: str) -> dict[str, Any]:
     """The hyperparameters the benchmark uses for ``algo`` (JSON-serializable): SB3's defaults
@@ -46,20 +46,6 @@ def default_hyperparams(algo: str) -> dict[str, Any]:
     return {"td3": {"action_noise_std": 0.1}, "ppo": {"normalize": True}}.get(algo, {})
 
 
-def make_training_env(
-    env_id: str, env_kwargs: dict[str, Any] | None = None, normalize: bool = False,
-    gamma: float = 0.99,
-) -> VecEnv:
-    """One ``Monitor``-ed env in a ``DummyVecEnv`` (faster than subprocesses on 2 cores),
-    wrapped in ``VecNormalize`` (observations and rewards, discount ``gamma``) if
-    ``normalize``."""
-    kwargs = dict(env_kwargs or {})
-    venv: VecEnv = DummyVecEnv([lambda: Monitor(gym.make(env_id, **kwargs))])
-    if normalize:
-        venv = VecNormalize(venv, norm_obs=True, norm_reward=True, gamma=gamma)
-    return venv
-
-
 def make_sb3_model(
     algo: str,
     env: gym.Env | VecEnv,
@@ -70,7 +56,7 @@ def make_sb3_model(
 
     :param hyperparams: keyword arguments of the SB3 class, plus two keys of this module:
         ``action_noise_std`` (sac/td3) adds ``NormalActionNoise`` with that std on every action
-        dimension; ``normalize`` is consumed by :func:`make_training_env` and ignored here.
+        dimension; ``normalize`` is consumed by :func:`train_sb3` and ignored here.
         ``None``: :func:`default_hyperparams`.
     """
     _check_algo(algo)
@@ -245,8 +231,12 @@ def train_sb3(
     env_kwargs = dict(env_kwargs or {})
 
     t_start = time.perf_counter()
-    train_env = make_training_env(env_id, env_kwargs, bool(hp.get("normalize", False)),
-                                  float(hp.get("gamma", 0.99)))
+    # one Monitor-ed env in a DummyVecEnv (faster than subprocesses on 2 cores), normalized
+    # (observations and rewards) with hyperparams["normalize"]
+    train_env: VecEnv = DummyVecEnv([lambda: Monitor(gym.make(env_id, **env_kwargs))])
+    if hp.get("normalize", False):
+        train_env = VecNormalize(train_env, norm_obs=True, norm_reward=True,
+                                 gamma=float(hp.get("gamma", 0.99)))
     eval_env = gym.make(env_id, **env_kwargs)
     try:
         model = make_sb3_model(algo, train_env, seed, hp)
