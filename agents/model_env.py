@@ -1,24 +1,8 @@
-"""The learned dynamics model as a Gymnasium environment (mbrl-lib's ``ModelEnv``, MBPO's pattern).
+"""The learned dynamics model as a Gymnasium environment (mbrl-lib's ``ModelEnv``, MBPO's pattern):
+a model-free learner (SB3 SAC, PPO, ...) trains inside the frozen model instead of the real env.
 
-A model-free learner (SB3 SAC, PPO, ...) trains inside the frozen model instead of the real env:
-
-* ``reset`` draws a start observation from recorded start observations (``start_obs``) or from a
-  user function ``reset_fn(rng) -> obs``; ``reset(options={"obs": obs0})`` starts exactly there.
-* ``step(a)`` maps the observation to the model state (``state_fn``), predicts the next state with
-  the ensemble mean (``member="mean"``) or one sampled member (``"step"``: a new member every
-  step, MBPO/PETS-TS1; ``"episode"``: one member per episode, PETS-TSinf), and maps it back to an
-  observation (``obs_fn(next_state, obs)``, which supplies what the model does not predict, such
-  as a target);
-* ``reward = -cost_fn(next_obs, a)`` (the convention of ``mbtsr/TwoLinkArm-v0``, whose reward is
-  the cost of the state after the step) or ``-cost_fn(obs, a)`` with ``cost_on="current"``;
-* ``terminated = termination_fn(obs, a, next_obs)`` (the task's; default never), and also when the
-  model's prediction is not finite (``info["model_diverged"]``: the observation stays the last
-  finite one); ``truncated`` after ``max_episode_steps``.
-
-The model is anything with ``state_dim``, ``action_dim`` and a batched
-``step(x [..., n], u [..., m]) -> [..., n]`` (a frozen :class:`mbtsr.ensemble.DynamicsEnsemble`,
-:class:`mbtsr.dynamics.LinearDynamics`, the true MuJoCo arm); the sampled-member modes also need
-``member_predictions(x, u) -> [K, ..., n]``. The env never trains or changes the model. Every
+What each argument does (starts, member sampling, reward, termination): docs/agent.md, section
+"The learned model as a Gymnasium env". The env never trains or changes the model; every
 random draw comes from ``self.np_random``, seeded by ``reset(seed=...)``.
 """
 
@@ -30,7 +14,7 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 
-from mbtsr.validation import check_callable
+from mbtsr.validation import as_array, check_callable, check_int
 
 __all__ = ["ModelEnv"]
 
@@ -54,7 +38,8 @@ class ModelEnv(gym.Env):
     :param obs_fn: ``(state [n], obs_ref [obs_dim]) -> obs [obs_dim]``; default identity. Give
         both maps or neither.
     :param termination_fn: ``(obs, action, next_obs) -> bool``; default: never terminates.
-    :param member: ``"mean"``, ``"step"`` or ``"episode"`` (see the module docstring).
+    :param member: ``"mean"`` (the ensemble mean), ``"step"`` (a random member every step) or
+        ``"episode"`` (one random member per episode).
     :param cost_on: ``"next"`` (reward ``-cost_fn(next_obs, a)``) or ``"current"``.
     :param max_episode_steps: truncation length (>= 1), or ``None`` for no truncation.
     """
@@ -104,13 +89,8 @@ class ModelEnv(gym.Env):
             raise ValueError("give both state_fn and obs_fn or neither")
         if (start_obs is None) == (reset_fn is None):
             raise ValueError("give exactly one of start_obs and reset_fn")
-        if max_episode_steps is not None and (
-            isinstance(max_episode_steps, bool) or int(max_episode_steps) != max_episode_steps
-            or max_episode_steps < 1
-        ):
-            raise ValueError(
-                f"max_episode_steps must be an integer >= 1, got {max_episode_steps!r}"
-            )
+        if max_episode_steps is not None:
+            max_episode_steps = check_int("max_episode_steps", max_episode_steps, 1)
         self.model = model
         self.observation_space = observation_space
         self.action_space = action_space
@@ -121,7 +101,7 @@ class ModelEnv(gym.Env):
         self.termination_fn = termination_fn
         self.member = member
         self.cost_on = cost_on
-        self.max_episode_steps = None if max_episode_steps is None else int(max_episode_steps)
+        self.max_episode_steps = max_episode_steps
         self.obs_dim = int(observation_space.shape[0])
         self._u_low = np.asarray(action_space.low, dtype=np.float64)
         self._u_high = np.asarray(action_space.high, dtype=np.float64)
@@ -130,17 +110,10 @@ class ModelEnv(gym.Env):
                 f"model.action_dim = {model.action_dim} does not match action_space "
                 f"{action_space.shape}"
             )
-        if start_obs is not None:
-            start = np.asarray(start_obs, dtype=np.float64)
-            if start.ndim != 2 or start.shape[0] < 1 or start.shape[1] != self.obs_dim:
-                raise ValueError(
-                    f"start_obs must be [N >= 1, {self.obs_dim}], got shape {list(start.shape)}"
-                )
-            if not np.isfinite(start).all():
-                raise ValueError("start_obs must be finite")
-            self.start_obs: np.ndarray | None = start
-        else:
-            self.start_obs = None
+        self.start_obs = None if start_obs is None else as_array(
+            "start_obs", start_obs, (None, self.obs_dim))
+        if self.start_obs is not None and not len(self.start_obs):
+            raise ValueError("start_obs must hold at least one observation, got shape [0, *]")
         probe = self.start_obs[0] if self.start_obs is not None else np.zeros(self.obs_dim)
         s = self._state(probe)
         if s.shape != (int(model.state_dim),):

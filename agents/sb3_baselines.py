@@ -1,26 +1,9 @@
-"""Stable-Baselines3 model-free baselines (SAC, TD3, PPO) on exactly the agent's task.
-
-The baselines ask how many real environment steps, and how much wall time, a model-free agent
-needs compared with the Algorithm-1 agent of Bagge Carlson et al. (arXiv:1806.09919); the
-suite's SAC rows (``scripts/bench_suite.py --sb3 sac``) train them on every task's own return.
-To make the comparison mean something the baselines use everything the agent uses:
-
-- the same env id and keyword arguments (preset), hence the same episode length and the same
-  reward ``r = -cost`` (the env's ``(x - x_goal)^T Q (x - x_goal) + a^T R a``);
-- the same fixed evaluation targets and reset seeds, through the same function
-  (:func:`agents.evaluation.evaluate_policy_cost`) with the DETERMINISTIC policy, every
-  ``eval_every`` env steps (:class:`CostEvalCallback`).
-
-Hyperparameters (:func:`default_hyperparams`): Stable-Baselines3 defaults, with the
-rl-baselines3-zoo MuJoCo changes that are not about the budget: TD3 explores with Gaussian
-action noise of std 0.1 (SB3's TD3 has no exploration noise by default) and PPO normalizes
-observations and rewards (``VecNormalize``), as the zoo does for every MuJoCo env. The zoo's
-``learning_starts=10000`` for SAC and TD3 is NOT used: it would put a floor of 10 000 random
-steps under "steps to solve" that says nothing about learning, and would flatter the
-model-based agent.
-
-Wall time is counted EXCLUDING evaluation time (model construction, data collection and
-gradient steps only); the time including evaluation is reported next to it.
+"""Stable-Baselines3 model-free baselines (SAC, TD3, PPO) on exactly the agent's task, for the
+suite's SAC rows (``scripts/bench_suite.py --sb3 sac``): the same env id and keyword arguments
+(hence episode length and reward), the same evaluation episodes through the same function
+(:func:`agents.evaluation.evaluate_policy_cost`, deterministic policy) every ``eval_every`` env
+steps (:class:`CostEvalCallback`). Hyperparameters: :func:`default_hyperparams`. Wall time is
+counted without the evaluations (the total including them is reported beside it).
 """
 
 from __future__ import annotations
@@ -45,39 +28,22 @@ __all__ = [
     "CostEvalCallback",
     "default_hyperparams",
     "make_sb3_model",
-    "make_training_env",
     "train_sb3",
 ]
 
 ALGOS: dict[str, type[BaseAlgorithm]] = {"sac": SAC, "td3": TD3, "ppo": PPO}
 
-def default_hyperparams(algo: str) -> dict[str, Any]:
-    """The hyperparameters the benchmark uses for ``algo`` (JSON-serializable).
 
-    SB3 defaults (SAC: lr 3e-4, batch 256, [256, 256], learning_starts 100, train_freq 1,
-    gamma 0.99; TD3: lr 1e-3, batch 256, [400, 300], policy_delay 2, learning_starts 100;
-    PPO: n_steps 2048, batch 64, 10 epochs, lr 3e-4, gae 0.95, gamma 0.99, [64, 64]) with the
-    rl-baselines3-zoo MuJoCo changes that are not about the budget: TD3 explores with Gaussian
-    action noise of std 0.1 (``action_noise_std``; SB3's TD3 has none by default) and PPO
-    normalizes observations and rewards (``normalize``, a ``VecNormalize`` wrapper). The zoo's
-    ``learning_starts=10000`` (SAC, TD3) is not used (see the module docstring).
+def default_hyperparams(algo: str) -> dict[str, Any]:
+    """The hyperparameters the benchmark uses for ``algo`` (JSON-serializable): SB3's defaults
+    with the rl-baselines3-zoo MuJoCo changes that are not about the budget: TD3 explores with
+    Gaussian action noise of std 0.1 (``action_noise_std``; SB3's TD3 has none) and PPO
+    normalizes observations and rewards (``normalize``: ``VecNormalize``). The zoo's
+    ``learning_starts=10000`` (SAC, TD3) is not used: it would put a floor of 10,000 random steps
+    under "steps to solve" that says nothing about learning and flatter the model-based agent.
     """
     _check_algo(algo)
     return {"td3": {"action_noise_std": 0.1}, "ppo": {"normalize": True}}.get(algo, {})
-
-
-def make_training_env(
-    env_id: str, env_kwargs: dict[str, Any] | None = None, normalize: bool = False,
-    gamma: float = 0.99,
-) -> VecEnv:
-    """One ``Monitor``-ed env in a ``DummyVecEnv`` (faster than subprocesses on 2 cores),
-    wrapped in ``VecNormalize`` (observations and rewards, discount ``gamma``) if
-    ``normalize``."""
-    kwargs = dict(env_kwargs or {})
-    venv: VecEnv = DummyVecEnv([lambda: Monitor(gym.make(env_id, **kwargs))])
-    if normalize:
-        venv = VecNormalize(venv, norm_obs=True, norm_reward=True, gamma=gamma)
-    return venv
 
 
 def make_sb3_model(
@@ -90,7 +56,7 @@ def make_sb3_model(
 
     :param hyperparams: keyword arguments of the SB3 class, plus two keys of this module:
         ``action_noise_std`` (sac/td3) adds ``NormalActionNoise`` with that std on every action
-        dimension; ``normalize`` is consumed by :func:`make_training_env` and ignored here.
+        dimension; ``normalize`` is consumed by :func:`train_sb3` and ignored here.
         ``None``: :func:`default_hyperparams`.
     """
     _check_algo(algo)
@@ -103,11 +69,6 @@ def make_sb3_model(
         check_positive("hyperparams['action_noise_std']", noise_std)
         m = env.action_space.shape[0]
         kwargs["action_noise"] = NormalActionNoise(np.zeros(m), float(noise_std) * np.ones(m))
-    if "policy_kwargs" in kwargs and "net_arch" in kwargs["policy_kwargs"]:
-        kwargs["policy_kwargs"] = dict(kwargs["policy_kwargs"])
-        net_arch = kwargs["policy_kwargs"]["net_arch"]
-        if isinstance(net_arch, (list, tuple)):
-            kwargs["policy_kwargs"]["net_arch"] = list(net_arch)
     try:
         return ALGOS[algo](
             "MlpPolicy", env, seed=int(seed), device="cpu", verbose=0, **kwargs,
@@ -117,20 +78,13 @@ def make_sb3_model(
 
 
 class CostEvalCallback(BaseCallback):
-    """Evaluate the deterministic policy every ``eval_every`` env steps.
-
-    The evaluation cost is the mean episode cost (= minus the mean undiscounted return) of the
-    deterministic policy (:func:`agents.evaluation.evaluate_policy_cost`), in a separate raw env
-    (when training uses ``VecNormalize`` the policy sees observations normalized with the
-    current running statistics; the cost is always the env's own). Evaluations happen at the
-    start of a rollout, i.e. after the gradient updates on all data so far: for SAC/TD3
-    (``train_freq=1``) every step boundary, for PPO after every ``n_steps`` rollout and its
-    update. The first evaluation is at step 0 (the untrained policy), the last at the end of
-    training.
+    """Evaluate the deterministic policy every ``eval_every`` env steps, at the start of a
+    rollout (after the gradient updates on all data so far), at step 0 and at the end: the mean
+    episode cost (minus the mean return, :func:`agents.evaluation.evaluate_policy_cost`) in a
+    separate raw env (a ``VecNormalize``-d policy sees its running statistics' normalization).
 
     After training: ``curve`` ``[(env_steps, eval_cost), ...]``; ``train_wall``, wall seconds
-    since ``t_start`` EXCLUDING evaluation, at each curve point; ``eval_seconds``, the total
-    time spent evaluating.
+    since ``t_start`` without the evaluations, per curve point; ``eval_seconds`` in total.
 
     :param eval_env: a separate env instance used only for evaluation.
     :param eval_targets: ``[k, 2]`` goal joint angles, one per evaluation episode, or ``None``
@@ -277,8 +231,12 @@ def train_sb3(
     env_kwargs = dict(env_kwargs or {})
 
     t_start = time.perf_counter()
-    train_env = make_training_env(env_id, env_kwargs, bool(hp.get("normalize", False)),
-                                  float(hp.get("gamma", 0.99)))
+    # one Monitor-ed env in a DummyVecEnv (faster than subprocesses on 2 cores), normalized
+    # (observations and rewards) with hyperparams["normalize"]
+    train_env: VecEnv = DummyVecEnv([lambda: Monitor(gym.make(env_id, **env_kwargs))])
+    if hp.get("normalize", False):
+        train_env = VecNormalize(train_env, norm_obs=True, norm_reward=True,
+                                 gamma=float(hp.get("gamma", 0.99)))
     eval_env = gym.make(env_id, **env_kwargs)
     try:
         model = make_sb3_model(algo, train_env, seed, hp)

@@ -14,8 +14,9 @@ import sys
 import time
 import warnings
 from collections import Counter
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
+from itertools import product
 from pathlib import Path
 from typing import Any, Literal
 
@@ -25,7 +26,7 @@ os.environ.setdefault("MUJOCO_GL", "egl")
 import numpy as np  # noqa: E402
 
 from agents import cli  # noqa: E402
-from agents.config import PLANNERS  # noqa: E402
+from agents.config import PLANNERS, PlannerConfig  # noqa: E402
 from agents.experiments.paper_common import (  # noqa: E402
     finite_or_none,
     library_version,
@@ -134,12 +135,9 @@ def make_agent(name: str, overrides: dict[str, Any] | None = None, *, smoke: boo
 
 def task_baselines(name: str, *, smoke: bool = False,
                    overrides: dict[str, Any] | None = None) -> dict[str, Any]:
-    """Zero action and the true-model oracle on task ``name``'s evaluation episodes.
-
-    The oracle is the agent's own MPC (its default planner, horizon and iterations, the task's
-    cost and termination) on the TRUE MuJoCo dynamics
-    (:meth:`agents.jacprop_agent.JacPropAgent.compute_oracle`), so its return is what the agent
-    would reach with a perfect model. ``ms_per_step``: its mean planning time per MPC step.
+    """Zero action and the true-model oracle (the agent's own MPC on the TRUE dynamics,
+    :meth:`agents.jacprop_agent.JacPropAgent.compute_oracle`) on task ``name``'s evaluation
+    episodes, with the oracle's planning time per MPC step (an upper bound).
 
     :param overrides: other planner settings (dotted ``AgentConfig`` fields such as
         ``"planner.kind"`` or ``"planner.horizon"``), on top of the task's own.
@@ -337,14 +335,9 @@ def run_one(name: str, planner: str, reg: str, seed: int, *, smoke: bool,
 
 
 #: agent settings a suite run may not take from ``--agent-settings``: the suite's own (per run,
-#: by protocol, bookkeeping) and the planner settings the stored baseline records (a run
-#: planning otherwise would be scored against an oracle it does not match)
+#: by protocol, bookkeeping)
 _SUITE_OWN = ("seed", "planner.kind", "run_dir", "checkpoint", "evaluation", "torch_threads",
               "progress", "tensorboard", "jacobian_error", "video", "video_every")
-_ORACLE_OWN = ("planner.horizon", "planner.terminal_weight", "planner.ilqr_iterations",
-               "planner.first_plan_iterations", "planner.proposal.samples",
-               "planner.proposal.elites", "planner.proposal.iterations", "planner.cem.samples",
-               "planner.cem.elites", "planner.cem.iterations")
 
 
 def _flatten(settings: dict[str, Any], prefix: str = "") -> dict[str, Any]:
@@ -366,18 +359,17 @@ def _flatten(settings: dict[str, Any], prefix: str = "") -> dict[str, Any]:
     return out
 
 
+#: ... and the planner settings the stored baseline records (a run planning otherwise would be
+#: scored against an oracle it does not match)
+_ORACLE_OWN = tuple(f"planner.{k}" for k in _flatten(_planner_settings(PlannerConfig()))
+                    if k != "kind")
+
+
 def check_agent_settings(settings: Any) -> dict[str, Any]:
-    """``settings`` as dotted ``AgentConfig`` leaf fields (nested sections flattened; a whole
-    section by name, ``{"planner": "cem"}``, is refused), if none is one the suite sets itself
-    (``seed``, ``planner.kind``, the ``evaluation`` protocol, ``run_dir``/``checkpoint``,
-    threads, logging and video) or one the stored baseline records (the planner's horizon,
-    terminal weight, iterations and sample sizes: change those in the task's settings in
-    :data:`agents.tasks.SUITE` and recompute its baseline with ``--baselines``). Other planner
-    settings (``planner.replan_every``, CEM's ``particles`` or ``init_std``, ...) pass: those
-    runs are scored against the stored oracle, which plans with the task's settings alone, and
-    the report says so. Regularizer weights pass; :func:`agent_config` refuses a set that
-    changes a run's regularizer away from its ``--regularizations`` name. The values are
-    checked when :func:`run` builds every run's config, before the first run.
+    """``settings`` as dotted ``AgentConfig`` leaf fields (nested sections flattened), if none
+    is the suite's own (:data:`_SUITE_OWN`) or one the stored oracle plans with
+    (:data:`_ORACLE_OWN`: set those in the task's settings and recompute its baseline). The
+    values are checked when :func:`run` builds every run's config, before the first run.
 
     :raises ValueError: naming the refused field and why.
     """
@@ -445,6 +437,15 @@ def _runs_of(runs: list[dict[str, Any]], name: str, planner: str, reg: str
                    == (name, planner, reg)), key=lambda r: r["seed"])
 
 
+def _groups(runs: list[dict[str, Any]], tasks: Any = TASKS
+            ) -> Iterator[tuple[str, str, str, list[dict[str, Any]]]]:
+    """``(task, planner, regularizer, its runs by seed)`` per configuration ``runs`` hold, in
+    the order of ``tasks``, :data:`PLANNERS` and :data:`REGULARIZATIONS`."""
+    for name, planner, reg in product(tasks, PLANNERS, REGULARIZATIONS):
+        if rs := _runs_of(runs, name, planner, reg):
+            yield name, planner, reg, rs
+
+
 def aggregate(runs: list[dict[str, Any]], baselines: dict[str, dict[str, Any]]
               ) -> list[dict[str, Any]]:
     """One row per task x planner x regularizer: solved, median env steps to solve (censored,
@@ -452,31 +453,26 @@ def aggregate(runs: list[dict[str, Any]], baselines: dict[str, dict[str, Any]]
     per phase."""
     runs = with_solved(runs, baselines)
     rows = []
-    for name in TASKS:
-        for planner in PLANNERS:
-            for reg in REGULARIZATIONS:
-                rs = _runs_of(runs, name, planner, reg)
-                if not rs:
-                    continue
-                finals = [r["final_score"] for r in rs]
-                norms = [normalized(f, baselines.get(name)) for f in finals]
-                rows.append({
-                    "task": name, "planner": planner, "regularization": reg,
-                    "seeds": [r["seed"] for r in rs],
-                    "solved": f"{sum(r['env_steps_to_solve'] is not None for r in rs)}/{len(rs)}",
-                    "env_steps_to_solve_median": _median_censored(
-                        [r["env_steps_to_solve"] for r in rs],
-                        min(r["budget_env_steps"] for r in rs)),
-                    "env_steps_to_solve": [r["env_steps_to_solve"] for r in rs],
-                    "final_score_median": _median_or_none(finals),
-                    "final_scores": finals,
-                    "normalized_median": _median_or_none(norms),
-                    "normalized": norms,
-                    "wall_median_per_phase": {
-                        k: float(np.median([r["wall_seconds_per_phase"][k] for r in rs]))
-                        for k in rs[0]["wall_seconds_per_phase"]},
-                    "budget_env_steps": min(r["budget_env_steps"] for r in rs),
-                })
+    for name, planner, reg, rs in _groups(runs):
+        finals = [r["final_score"] for r in rs]
+        norms = [normalized(f, baselines.get(name)) for f in finals]
+        steps = [r["env_steps_to_solve"] for r in rs]
+        budget = min(r["budget_env_steps"] for r in rs)
+        rows.append({
+            "task": name, "planner": planner, "regularization": reg,
+            "seeds": [r["seed"] for r in rs],
+            "solved": f"{sum(v is not None for v in steps)}/{len(rs)}",
+            "env_steps_to_solve_median": _median_censored(steps, budget),
+            "env_steps_to_solve": steps,
+            "final_score_median": _median_or_none(finals),
+            "final_scores": finals,
+            "normalized_median": _median_or_none(norms),
+            "normalized": norms,
+            "wall_median_per_phase": {
+                k: float(np.median([r["wall_seconds_per_phase"][k] for r in rs]))
+                for k in rs[0]["wall_seconds_per_phase"]},
+            "budget_env_steps": budget,
+        })
     return rows
 
 
@@ -486,46 +482,40 @@ def comparisons(runs: list[dict[str, Any]]) -> list[dict[str, Any]]:
     steps to solve; unsolved counts as more than the budget), median final return, better /
     equal / worse final return per seed, and the ratio of the median wall times."""
     out = []
-    for name in TASKS:
-        for planner in PLANNERS:
-            by: dict[str, dict[int, dict[str, Any]]] = {}
-            for r in runs:
-                if r["task"] == name and r["planner"] == planner:
-                    by.setdefault(r["regularization"], {})[r["seed"]] = r
-            for reg in (g for g in REGULARIZATIONS[1:] if g in by and "none" in by):
-                seeds = sorted(set(by[reg]) & set(by["none"]))
-                if not seeds:
-                    continue
-                R = [by[reg][k] for k in seeds]
-                N = [by["none"][k] for k in seeds]
-                budget = min(r["budget_env_steps"] for r in R + N)
-
-                def steps(r: dict[str, Any]) -> float:
-                    v = r["env_steps_to_solve"]
-                    return math.inf if v is None else v
-
-                wins = sum(steps(x) < steps(y) for x, y in zip(R, N))
-                losses = sum(steps(x) > steps(y) for x, y in zip(R, N))
-                # a run shorter than its first evaluation (a smoke budget under one episode)
-                # has no final score: the final-score columns pair the seeds that have both
-                scored = [(x, y) for x, y in zip(R, N)
-                          if None not in (x["final_score"], y["final_score"])]
-                wall = [float(np.median([r["wall_seconds_per_phase"]["total"] for r in rs]))
-                        for rs in (R, N)]
-                out.append({
-                    "task": name, "planner": planner, "regularization": reg, "seeds": seeds,
-                    "steps_to_solve": " vs ".join(
-                        _median_censored([r["env_steps_to_solve"] for r in rs], budget)
-                        for rs in (R, N)),
-                    "wins_ties_losses": f"{wins}/{len(seeds) - wins - losses}/{losses}",
-                    "final_score": " vs ".join(
-                        "-" if not scored else _fmt(float(np.median([p[i]["final_score"]
-                                                                     for p in scored])))
-                        for i in (0, 1)),
-                    "final_scores_better_equal_worse": _better_equal_worse(
-                        [(y["final_score"], x["final_score"]) for x, y in scored]),
-                    "wall_ratio": wall[0] / wall[1],
-                })
+    for name, planner in product(TASKS, PLANNERS):
+        by: dict[str, dict[int, dict[str, Any]]] = {}
+        for r in runs:
+            if r["task"] == name and r["planner"] == planner:
+                by.setdefault(r["regularization"], {})[r["seed"]] = r
+        for reg in (g for g in REGULARIZATIONS[1:] if g in by and "none" in by):
+            seeds = sorted(set(by[reg]) & set(by["none"]))
+            if not seeds:
+                continue
+            R, N = ([by[g][k] for k in seeds] for g in (reg, "none"))
+            budget = min(r["budget_env_steps"] for r in R + N)
+            # fewer steps to solve is better: minus the steps (an unsolved run: -inf), none's first
+            minus_steps = [[-math.inf if r["env_steps_to_solve"] is None
+                            else -r["env_steps_to_solve"] for r in rs] for rs in (N, R)]
+            # a run shorter than its first evaluation (a smoke budget under one episode) has
+            # no final score: the final-score columns pair the seeds that have both
+            scored = [(x, y) for x, y in zip(R, N)
+                      if None not in (x["final_score"], y["final_score"])]
+            wall = [float(np.median([r["wall_seconds_per_phase"]["total"] for r in rs]))
+                    for rs in (R, N)]
+            out.append({
+                "task": name, "planner": planner, "regularization": reg, "seeds": seeds,
+                "steps_to_solve": " vs ".join(
+                    _median_censored([r["env_steps_to_solve"] for r in rs], budget)
+                    for rs in (R, N)),
+                "wins_ties_losses": _better_equal_worse(list(zip(*minus_steps))),
+                "final_score": " vs ".join(
+                    "-" if not scored else _fmt(float(np.median([p[i]["final_score"]
+                                                                 for p in scored])))
+                    for i in (0, 1)),
+                "final_scores_better_equal_worse": _better_equal_worse(
+                    [(y["final_score"], x["final_score"]) for x, y in scored]),
+                "wall_ratio": wall[0] / wall[1],
+            })
     return out
 
 
@@ -664,13 +654,9 @@ def run_sb3(name: str, algo: str, seed: int, *, steps: int, smoke: bool) -> dict
     agent = make_agent(name, smoke=smoke)  # the evaluation targets of the arm tasks
     targets = agent.evaluator.targets()
     agent.env.close()
-    common = dict(hyperparams=hp, env_kwargs=dict(task.make_kwargs), eval_seed=EVAL_SEED)
-    if targets is not None:
-        r = train_sb3(algo, task.env_id, steps, seed, every,
-                      [np.asarray(t, float).tolist() for t in targets], **common)
-    else:
-        r = train_sb3(algo, task.env_id, steps, seed, every, None, **common,
-                      n_eval_episodes=EVAL_EPISODES)
+    r = train_sb3(algo, task.env_id, steps, seed, every, targets, hyperparams=hp,
+                  env_kwargs=dict(task.make_kwargs), eval_seed=EVAL_SEED,
+                  n_eval_episodes=EVAL_EPISODES if targets is None else None)
     return {"task": name, "method": algo, "seed": seed, "budget_env_steps": steps,
             "env_steps": r["env_steps"],
             "curve": [{"env_steps": int(st), "score": -float(c)} for st, c in r["curve"]],
@@ -815,12 +801,9 @@ def figures(runs: list[dict[str, Any]], out: Path, baselines: dict[str, dict[str
                                  squeeze=False)
         for ax, name in zip(axes.flat, names):
             budget = TASKS[name]["budget"]
-            for planner in PLANNERS:
-                for reg in REGULARIZATIONS:
-                    rs = _runs_of(runs, name, planner, reg)
-                    if rs and not log_sac:
-                        _plot_runs(ax, rs, color=_COLORS[reg], ls=_STYLES[planner],
-                                   label=f"agent {planner}/{reg} ({len(rs)})")
+            for _, planner, reg, rs in _groups([] if log_sac else runs, (name,)):
+                _plot_runs(ax, rs, color=_COLORS[reg], ls=_STYLES[planner],
+                           label=f"agent {planner}/{reg} ({len(rs)})")
             for r in (p for p in pets_runs if p["task"] == name and not log_sac):
                 ax.plot([c["env_steps"] for c in r["curve"]], [c["score"] for c in r["curve"]],
                         color="k", lw=1.0, alpha=0.8,
@@ -1080,9 +1063,7 @@ class Args:
     budget)"""
     sb3: tuple[str, ...] = ()
     """run these SB3 methods (e.g. --sb3 sac) on --tasks x --seeds INSTEAD of the agent, for
-    --sb3-steps each, into --sb3-json"""
-    sb3_steps: int = SB3_STEPS
-    """SB3 budget in env steps, evaluated 20 times along the way"""
+    SB3_STEPS env steps each (evaluated 20 times), into --sb3-json"""
     sb3_json: str = "docs/results/bench_suite_sac.json"
     """the SB3 runs' JSON (read by the report)"""
     pets_json: str = "docs/results/bench_suite_pets.json"
@@ -1119,8 +1100,6 @@ class Args:
         if self.compare and (not self.report_only or self.docs):
             raise ValueError("--compare reports stored runs instead of the suite's report: give "
                              "it with --report-only and without --docs")
-        if self.sb3_steps < 1:
-            raise ValueError(f"--sb3-steps must be >= 1, got {self.sb3_steps}")
         if self.stop_after_steps < 0 or (self.stop_after_steps and not self.checkpoints):
             raise ValueError("--stop-after-steps must be >= 0 and needs --checkpoints (a run "
                              f"stopped early continues from its checkpoint), got "
@@ -1173,114 +1152,26 @@ def _load(path: Path) -> dict[str, Any]:
 
 def run(a: Args) -> dict[str, Any]:
     """Baselines (``--baselines``), then the agent runs (or the SB3 runs with ``--sb3``), each
-    appended to its JSON at once; then figures and the report."""
+    appended to its JSON at once; then figures and the report (or ``--compare``'s)."""
     bpath = Path(a.baselines_json)
     if a.baselines:
         stored = _load(bpath)
         stored.setdefault("tasks", {})
         _header(stored, a.smoke)
         for name in a.tasks:
-            stored["tasks"][name] = task_baselines(name, smoke=a.smoke)
+            stored["tasks"][name] = b = task_baselines(name, smoke=a.smoke)
             write_json_atomic(bpath, stored)
-            b = stored["tasks"][name]
             print(f"{name}: zero {b['zero_return']:.4g}, oracle {b['oracle_return']:.4g} "
                   f"({b['oracle_seconds']:.0f} s)", flush=True)
-    baselines = load_baselines(bpath)
     if a.sb3 and not a.report_only:
-        spath = Path(a.sb3_json)
-        state = _load(spath) if a.resume else {"runs": []}
-        _header(state, a.smoke)
-        done = {(r["task"], r["method"], r["seed"]) for r in state["runs"]}
-        for seed in a.seeds:
-            for name in a.tasks:
-                for algo in a.sb3:
-                    if (name, algo, seed) in done:
-                        continue
-                    rec = run_sb3(name, algo, seed, steps=a.sb3_steps, smoke=a.smoke)
-                    state["runs"].append(rec)
-                    write_json_atomic(spath, state)
-                    print(f"{name} {algo} seed {seed}: final {rec['curve'][-1]['score']:.4g}, "
-                          f"{rec['wall_seconds']:.0f} s", flush=True)
-        return state
+        return _run_sb3(a)
     path = Path(a.out)
     state = _load(path) if (a.resume or a.report_only) else {"runs": []}
-    settings = check_agent_settings(json.loads(a.agent_settings)) if a.agent_settings else {}
     if not a.report_only:
-        for name in a.tasks:  # every run's config is valid before the first run starts
-            for planner in a.planners:
-                for reg in a.regularizations:
-                    what = f"the config of {name} with {planner}/{reg}" + (
-                        " and --agent-settings" if settings else "")
-                    try:
-                        agent_config(name, {**settings, "planner.kind": planner,
-                                            "regularization": reg}, smoke=a.smoke)
-                    except ValueError as e:
-                        raise ValueError(f"{what}: {e}") from e
-        if state["runs"] and (state.get("agent_settings", {}), state.get("form", "written")
-                              ) != (settings, a.form):
-            raise ValueError(f"{path} holds runs with agent settings "
-                             f"{state.get('agent_settings', {})} and form "
-                             f"{state.get('form', 'written')!r}, these are {settings} and "
-                             f"{a.form!r}: give another --out")
-        state["agent_settings"] = settings
-        state["form"] = a.form
-        _header(state, a.smoke)  # a report keeps the stamps of the runs it reports
-        done = {(r["task"], r["planner"], r["regularization"], r["seed"]) for r in state["runs"]}
-        for seed in a.seeds:
-            for name in a.tasks:
-                for planner in a.planners:
-                    for reg in a.regularizations:
-                        if (name, planner, reg, seed) in done:
-                            continue
-                        ckpt = (Path(a.checkpoints) / f"{name}_{planner}_{reg}_seed{seed}"
-                                if a.checkpoints else None)
-                        rec = run_one(name, planner, reg, seed, smoke=a.smoke,
-                                      oracle_cache=a.oracle_cache,  # baselines may land late
-                                      baseline=load_baselines(bpath).get(name),
-                                      checkpoint_dir=ckpt,
-                                      stop_after=a.stop_after_steps or None,
-                                      agent_settings=settings, form=a.form)
-                        if rec is None:
-                            print(f"{name} {planner}/{reg} seed {seed}: paused, continues from "
-                                  f"{ckpt}", flush=True)
-                            continue
-                        state["runs"].append(rec)
-                        state["table"] = aggregate(state["runs"], baselines)
-                        write_json_atomic(path, state)
-                        print(f"{name} {planner}/{reg} seed {seed}: final "
-                              f"{_fmt(rec['final_score'], 4)}, solved at "
-                              f"{rec['env_steps_to_solve']}, {rec['wall_seconds']:.0f} s",
-                              flush=True)
+        _run_agents(a, state, path, bpath)
     baselines = load_baselines(bpath)
     if a.compare:
-        try:
-            other = json.loads(Path(a.compare).read_text())
-        except (OSError, json.JSONDecodeError) as e:
-            raise ValueError(f"--compare {a.compare}: not a readable JSON of runs ({e})") from e
-        try:
-            base_label, settings = settings_labels(state.get("agent_settings") or {},
-                                                   other.get("agent_settings") or {},
-                                                   other.get("label"))
-        except ValueError as e:
-            raise ValueError(f"--compare {a.compare}: {e}") from None
-        rows = settings_comparison(state["runs"], other.get("runs", []), baselines)
-        if not rows:
-            raise ValueError(f"--compare {a.compare}: none of its runs pairs with a run of "
-                             f"{a.out} (same task, planner, regularizer, budget and seed)")
-        for row in rows:
-            print(f"{row['task']} {row['planner']}/{row['regularization']} seeds "
-                  f"{row['seeds']}: {settings} {_fmt(row['final_median'][1], 4)} "
-                  f"({_fmt(row['normalized_median'][1])}) vs {base_label} "
-                  f"{_fmt(row['final_median'][0], 4)} ({_fmt(row['normalized_median'][0])}); "
-                  f"better/equal/worse {row['better_equal_worse']}; {row['seconds']} "
-                  f"{_fmt(row['seconds_median'][1])} vs {_fmt(row['seconds_median'][0])}, "
-                  f"training {_fmt(row['training_seconds_median'][1])} vs "
-                  f"{_fmt(row['training_seconds_median'][0])}")
-        if a.figures and rows:
-            settings_figure(state["runs"], other["runs"], settings,
-                            Path(a.figures) / f"settings_{Path(a.compare).stem}.png",
-                            base_label=base_label)
-        return {**state, "settings_comparison": rows}
+        return _compare(a, state, baselines)
     state["table"] = aggregate(state["runs"], baselines)
     state["compute_seconds"] = float(sum(r["wall_seconds"] for r in state["runs"]))
     write_json_atomic(path, state)
@@ -1293,6 +1184,102 @@ def run(a: Args) -> dict[str, Any]:
                            pets_runs)
             write_json_atomic(path, state)
     return state
+
+
+def _run_sb3(a: Args) -> dict[str, Any]:
+    """The SB3 runs of ``--sb3`` on --tasks x --seeds (seed-major), each appended to
+    ``--sb3-json`` at once (``--resume``: skipping the ones there)."""
+    spath = Path(a.sb3_json)
+    state = _load(spath) if a.resume else {"runs": []}
+    _header(state, a.smoke)
+    done = {(r["task"], r["method"], r["seed"]) for r in state["runs"]}
+    for seed, name, algo in product(a.seeds, a.tasks, a.sb3):
+        if (name, algo, seed) not in done:
+            rec = run_sb3(name, algo, seed, steps=SB3_STEPS, smoke=a.smoke)
+            state["runs"].append(rec)
+            write_json_atomic(spath, state)
+            print(f"{name} {algo} seed {seed}: final {rec['curve'][-1]['score']:.4g}, "
+                  f"{rec['wall_seconds']:.0f} s", flush=True)
+    return state
+
+
+def _run_agents(a: Args, state: dict[str, Any], path: Path, bpath: Path) -> None:
+    """The agent runs of --tasks x --planners x --regularizations x --seeds (seed-major) not yet
+    in ``state``, each appended to it and written to ``path`` at once; every run's config is
+    checked before the first run starts."""
+    settings = check_agent_settings(json.loads(a.agent_settings)) if a.agent_settings else {}
+    for name, planner, reg in product(a.tasks, a.planners, a.regularizations):
+        try:
+            agent_config(name, {**settings, "planner.kind": planner, "regularization": reg},
+                         smoke=a.smoke)
+        except ValueError as e:
+            raise ValueError(f"the config of {name} with {planner}/{reg}"
+                             + (" and --agent-settings" if settings else "") + f": {e}") from e
+    if state["runs"] and (state.get("agent_settings", {}), state.get("form", "written")
+                          ) != (settings, a.form):
+        raise ValueError(f"{path} holds runs with agent settings "
+                         f"{state.get('agent_settings', {})} and form "
+                         f"{state.get('form', 'written')!r}, these are {settings} and "
+                         f"{a.form!r}: give another --out")
+    state["agent_settings"] = settings
+    state["form"] = a.form
+    _header(state, a.smoke)  # a report keeps the stamps of the runs it reports
+    done = {(r["task"], r["planner"], r["regularization"], r["seed"]) for r in state["runs"]}
+    for seed, name, planner, reg in product(a.seeds, a.tasks, a.planners, a.regularizations):
+        if (name, planner, reg, seed) in done:
+            continue
+        ckpt = (Path(a.checkpoints) / f"{name}_{planner}_{reg}_seed{seed}"
+                if a.checkpoints else None)
+        rec = run_one(name, planner, reg, seed, smoke=a.smoke, oracle_cache=a.oracle_cache,
+                      baseline=load_baselines(bpath).get(name),  # baselines may land late
+                      checkpoint_dir=ckpt, stop_after=a.stop_after_steps or None,
+                      agent_settings=settings, form=a.form)
+        if rec is None:
+            print(f"{name} {planner}/{reg} seed {seed}: paused, continues from {ckpt}",
+                  flush=True)
+            continue
+        state["runs"].append(rec)
+        state["table"] = aggregate(state["runs"], load_baselines(bpath))
+        write_json_atomic(path, state)
+        print(f"{name} {planner}/{reg} seed {seed}: final {_fmt(rec['final_score'], 4)}, "
+              f"solved at {rec['env_steps_to_solve']}, {rec['wall_seconds']:.0f} s", flush=True)
+
+
+def _compare(a: Args, state: dict[str, Any], baselines: dict[str, dict[str, Any]]
+             ) -> dict[str, Any]:
+    """``--compare``: prints the runs of its JSON paired with ``state``'s
+    (:func:`settings_comparison`) and, with ``--figures``, draws them (:func:`settings_figure`).
+
+    :raises ValueError: an unreadable JSON, a bad ``"label"``, no run that pairs.
+    """
+    try:
+        other = json.loads(Path(a.compare).read_text())
+    except (OSError, json.JSONDecodeError) as e:
+        raise ValueError(f"--compare {a.compare}: not a readable JSON of runs ({e})") from e
+    try:
+        base_label, label = settings_labels(state.get("agent_settings") or {},
+                                            other.get("agent_settings") or {},
+                                            other.get("label"))
+    except ValueError as e:
+        raise ValueError(f"--compare {a.compare}: {e}") from None
+    rows = settings_comparison(state["runs"], other.get("runs", []), baselines)
+    if not rows:
+        raise ValueError(f"--compare {a.compare}: none of its runs pairs with a run of "
+                         f"{a.out} (same task, planner, regularizer, budget and seed)")
+    for row in rows:
+        print(f"{row['task']} {row['planner']}/{row['regularization']} seeds "
+              f"{row['seeds']}: {label} {_fmt(row['final_median'][1], 4)} "
+              f"({_fmt(row['normalized_median'][1])}) vs {base_label} "
+              f"{_fmt(row['final_median'][0], 4)} ({_fmt(row['normalized_median'][0])}); "
+              f"better/equal/worse {row['better_equal_worse']}; {row['seconds']} "
+              f"{_fmt(row['seconds_median'][1])} vs {_fmt(row['seconds_median'][0])}, "
+              f"training {_fmt(row['training_seconds_median'][1])} vs "
+              f"{_fmt(row['training_seconds_median'][0])}")
+    if a.figures:
+        settings_figure(state["runs"], other["runs"], label,
+                        Path(a.figures) / f"settings_{Path(a.compare).stem}.png",
+                        base_label=base_label)
+    return {**state, "settings_comparison": rows}
 
 
 def console() -> None:

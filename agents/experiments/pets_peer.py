@@ -9,6 +9,7 @@ from __future__ import annotations
 import argparse
 import copy
 import json
+import math
 import os
 import sys
 import time
@@ -189,9 +190,8 @@ def task_settings(name: str, *, cem: dict[str, Any] | None = None,
     if used["population_size"] * particles % members:
         # mbrl's random_model propagation splits the population x particles batch evenly over
         # the members (GaussianMLP raises otherwise): round the population up
-        fixed = used["population_size"]
-        while fixed * particles % members:
-            fixed += 1
+        step = members // math.gcd(particles, members)
+        fixed = -(-used["population_size"] // step) * step
         shrinks.append(f"CEM population_size {used['population_size']} -> {fixed}: mbrl's "
                        f"random_model propagation needs population x {particles} particles to "
                        f"be a multiple of the {members} members")
@@ -308,10 +308,7 @@ def load_results(path: str | os.PathLike) -> dict[str, Any]:
 
 def find_run(results: dict[str, Any], task: str, seed: int) -> dict[str, Any] | None:
     """The record of ``(task, seed)`` in ``results``, or ``None``."""
-    for r in results["runs"]:
-        if r["task"] == task and r["seed"] == seed:
-            return r
-    return None
+    return next((r for r in results["runs"] if (r["task"], r["seed"]) == (task, seed)), None)
 
 
 def upsert_run(path: str | os.PathLike, record: dict[str, Any],
@@ -646,12 +643,8 @@ def suite_oracle(suite_json: Path | None, task: str) -> float | None:
     """The true-model oracle's mean return on ``task`` in the suite's stored baselines beside
     its JSON (``bench_suite_baselines.json``, written by ``bench_suite.py --baselines``), or
     ``None``."""
-    if suite_json is None:
-        return None
-    path = Path(suite_json).with_name("bench_suite_baselines.json")
-    if not path.is_file():
-        return None
-    b = json.loads(path.read_text()).get("tasks", {}).get(task)
+    path = suite_json and Path(suite_json).with_name("bench_suite_baselines.json")
+    b = json.loads(path.read_text()).get("tasks", {}).get(task) if path and path.is_file() else None
     return None if b is None else float(b["oracle_return"])
 
 
@@ -756,7 +749,6 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
                    help="env steps between evaluation points (default: per task)")
     p.add_argument("--epochs", type=int, default=None, help="training epochs (smoke runs)")
     p.add_argument("--horizon", type=int, default=None, help="planning horizon (smoke runs)")
-    p.add_argument("--particles", type=int, default=None, help="particles (smoke runs)")
     p.add_argument("--stop-after", type=int, default=None,
                    help="stop each run after this many new evaluation points (resumable)")
     if "--smoke" in (sys.argv[1:] if argv is None else argv):
@@ -774,10 +766,6 @@ def settings_from_args(task: str, args: argparse.Namespace) -> dict[str, Any]:
         s["shrinks"].append(f"planning_horizon {s['planner']['planning_horizon']} -> "
                             f"{args.horizon}")
         s["planner"]["planning_horizon"] = args.horizon
-    if args.particles is not None:
-        s["shrinks"].append(f"num_particles {s['planner']['num_particles']} -> "
-                            f"{args.particles}")
-        s["planner"]["num_particles"] = args.particles
     return s
 
 
