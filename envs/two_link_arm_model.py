@@ -1,27 +1,8 @@
 """Physical constants of the two-link arm and its analytic CasADi twin.
 
-The arm swings in a vertical plane; ``q = 0`` is hanging straight down. With ``s1 = sin q1``,
-``c2 = cos q2``, ``s12 = sin(q1 + q2)`` and per link ``i``: mass ``m_i``, length ``l_i``, distance
-``r_i`` from the joint to the link's centre of mass and inertia ``I_i`` about that centre, the
-equations of motion are (Spong, Hutchinson & Vidyasagar, *Robot Modeling and Control*, ch. 7)::
-
-    M(q) qdd + c(q, qd) + g(q) = tau - D qd - fc * tanh(qd / v_s)
-
-    M11 = I1 + m1 r1^2 + I2 + m2 (l1^2 + r2^2 + 2 l1 r2 c2) + a1
-    M12 = I2 + m2 (r2^2 + l1 r2 c2)
-    M22 = I2 + m2 r2^2 + a2                       (a_i: motor armature, reflected rotor inertia)
-    c   = h [-(2 qd1 qd2 + qd2^2), qd1^2],  h = m2 l1 r2 sin q2
-    g   = gravity * [(m1 r1 + m2 l1) s1 + m2 r2 s12, m2 r2 s12]
-    tau = torque_limit * a                        (a: the normalized action in [-1, 1]^2)
-
-With point masses at the link ends (``r_i = l_i``, ``I_i = 0``, no armature) this is the robot of
-the paper's original code *without* its inertia typo: ``M11 = (m1+m2) l1^2 + m2 l2^2 +
-2 m2 l1 l2 c2``.
-
-Coulomb friction is smoothed to ``fc * tanh(qd / v_s)`` (MuJoCo: a soft constraint); time
-stepping replicates MuJoCo's Euler substeps with implicit damping. The stability bound, the
-agreement with the MuJoCo env (tested in ``tests/test_two_link_arm.py``) and the near-zero
-velocity error: docs/environments.md, "analytic_model(): the CasADi twin".
+``q = 0`` is hanging straight down. The equations of motion (Spong et al., ch. 7), the Euler
+substeps, the tanh Coulomb smoothing and the agreement with the MuJoCo env: docs/environments.md,
+"analytic_model(): the CasADi twin".
 """
 
 from __future__ import annotations

@@ -1,33 +1,15 @@
 """CasADi-assisted trajectory costs for iLQR, MPC and the IPOPT reference.
 
-The user writes a stage cost ``l(x, u, t)`` and a terminal cost ``l_T(x)`` with CasADi symbols;
-this module derives ``l_x, l_u, l_xx, l_uu, l_ux`` symbolically once and evaluates them along a
-whole trajectory (or a batch of them) with a mapped CasADi function (``Function.map`` over
-blocks of rows), optionally JIT-compiled as a whole. The same symbolic functions are used by
-:func:`mbtsr.ipopt_reference.solve_ipopt`, so iLQR and IPOPT optimise exactly the same
-objective::
+The user writes a stage cost ``l(x, u, t[, p])`` and a terminal cost ``l_T(x[, p])`` with CasADi
+symbols; this module derives ``l_x, l_u, l_xx, l_uu, l_ux`` once and evaluates them along a
+trajectory or a batch with one mapped CasADi function (:class:`_RowMap`)::
 
     J(X, U) = sum_{t=0}^{T-1} l(x_t, u_t, t0 + t) + l_T(x_T)        X: [T+1, n], U: [T, m]
 
-Parameters at call time (as in trajax, ``cost(x, u, t, params)``): a target, a reference
-trajectory or time-varying weights are a *parameter* ``p`` of ONE compiled cost, passed to every
-evaluation (``cost.total(X, U, t0, params)``, ``cost.derivatives(X, U, t0, params)``,
-``ilqr(..., params=...)``), never baked into a new CasADi function. ``params`` is a vector ``[p]``
-(the same at every time) or a table ``[N_ref, p]`` whose row ``min(t, N_ref - 1)`` is used at
-absolute time ``t`` (the last row is held beyond the end of the table, so a receding-horizon
-controller can look past the end of a reference). The stage function takes ``p`` as its fourth
-input, the terminal function as its second (each may ignore it); the terminal cost receives the
-row at time ``t0 + T``. A cost may carry default parameters (``quadratic_cost`` stores its goal
-there); ``params`` given at call time replace them.
-
-Validation happens once at the public boundary: the public methods check shapes and finiteness;
-the solver validates the parameters once (:meth:`CasadiCost.check_params`) and then calls the
-private kernels ``_total`` / ``_derivatives``, which check nothing.
-
-Layout trick: numpy arrays are bound to CasADi once through ``Function.buffer``. A C-ordered
-numpy ``[N, n]`` array has the memory layout of a column-major CasADi ``[n, N]`` matrix, so
-time-major rows are copied into the bound ``[rows, n]`` blocks of a ``Function.map(rows)``
-and read back with plain numpy slice assignments (:class:`_RowMap`).
+``params`` (``[p]``, or a table ``[N_ref, p]`` whose row ``min(t, N_ref - 1)`` applies at time
+``t``) are passed at call time, never compiled in. The public methods check their input; the
+solvers validate the parameters once (:meth:`CasadiCost.check_params`) and call the unchecked
+kernels ``_total`` / ``_derivatives``. The manual: docs/ilqr.md, "Costs".
 """
 
 from __future__ import annotations
@@ -112,11 +94,7 @@ class CostDerivatives:
         set to 0, eigenvectors kept (the nearest PSD matrix in the Frobenius norm). Stages that
         are already PSD are returned bit for bit. Gradients are unchanged.
 
-        Why: a cost that is not convex in the planner's state (a product of observations such as
-        ``cos(q1 + q2) = c1 c2 - s1 s2``, a pole's height near hanging) makes the Riccati
-        recursion's value Hessian indefinite, and iLQR then takes steps its own quadratic model
-        cannot trust. The projection is the cost's counterpart of the Gauss-Newton
-        approximation iLQR already makes of the dynamics.
+        Why: docs/ilqr.md, "Costs that are not convex".
         """
         T, m, n = self.lux.shape
         # a constant Hessian (a quadratic cost): decompose stage 0 and the terminal one only

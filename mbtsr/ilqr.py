@@ -44,9 +44,8 @@ class ILQROptions:
     :param max_iter: iteration cap (every iteration counts, accepted or not).
     :param tol_fun: converged when an accepted step lowers the cost by less than this (absolute).
     :param tol_fun_rel: also converged when an accepted step lowers the cost by less than
-        ``tol_fun_rel * |J|`` (relative; 0 disables it, the authors' behaviour). Useful on
-        models with stiff, nearly non-smooth parts (e.g. tanh friction), where iLQR reaches
-        the optimum to ~0.1 % in tens of iterations and then creeps with tiny steps.
+        ``tol_fun_rel * |J|`` (relative; 0 disables it, the authors' behaviour; see
+        docs/ilqr.md, "Tolerances").
     :param tol_grad: converged when ``mean_t max_j |k_tj| / (|u_tj| + 1) < tol_grad`` while
         ``lambda < 1e-5``.
     :param lambda_init: initial Levenberg-Marquardt regularisation (0 gives a pure Newton step,
@@ -63,9 +62,7 @@ class ILQROptions:
         terminates, instead of its terminal cost (see :func:`mbtsr.costs.truncated_total`).
     :param convexify_cost: project each stage's cost Hessian onto the positive semidefinite
         cone before the backward pass (:meth:`mbtsr.costs.CostDerivatives.convexified`; a
-        no-op for convex costs). Off, a cost that is not convex in the state (a pole's height
-        written from ``sin``/``cos`` observations) gives indefinite value Hessians and
-        untrustworthy steps (InvertedDoublePendulum-v5's true-model MPC fell within 10 steps).
+        no-op for convex costs; why: docs/ilqr.md, "Costs that are not convex").
     :param boxqp_*: projected-Newton box-QP settings (Tassa et al.'s ``boxQP`` defaults).
     """
 
@@ -206,12 +203,9 @@ def ilqr(
         :mod:`mbtsr.costs`); ``None``: the cost's defaults.
     :param t0: absolute time index of ``x0`` (passed to the cost and to time-varying models).
     :param options: :class:`ILQROptions` (or a dict of its fields).
-    :param terminated: ``X [..., n] -> bool [...]``: model states where the episode ends (the
-        task's termination function). The line search then accepts steps on the episode's
-        own cost: stage costs after the first predicted termination are dropped and
-        ``options.termination_cost`` is paid once (:func:`mbtsr.costs.truncated_total`, as
-        :func:`mbtsr.cem.cem`); the search direction still comes from the smooth cost. A plan
-        that no (finite) step improves under the episode's cost ends ``"converged"``.
+    :param terminated: ``X [..., n] -> bool [...]``: model states where the episode ends; the
+        line search then scores steps on the episode's own cost
+        (:func:`mbtsr.costs.truncated_total`; docs/ilqr.md, "Predicted termination").
     :return: :class:`ILQRResult`. Its ``U`` is always finite and inside the bounds: a solve that
         meets NaN/inf (model, Jacobians, cost) stops with status ``"failed"`` and the best
         finite iterate.

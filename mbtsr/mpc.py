@@ -1,30 +1,10 @@
 """Receding-horizon control (MPC) with any trajectory optimizer on any planning model.
 
-At every control step ``t`` the controller solves the finite-horizon problem ::
-
-    min_U  sum_{k=0}^{H-1} l(x_k, u_k, t + k, p) + l_T(x_H, p),   x_0 = current state
-
-with a few iterations of ``optimizer`` (:func:`mbtsr.ilqr.ilqr` by default; the CEM solver has
-the same signature), warm-started from the previous plan shifted by the elapsed steps (the last
-control repeated at the end) and, for iLQR, from the previous regularisation; it applies the
-first control. The cost receives the absolute time ``t + k``, so time-indexed references are
-followed in step with the environment; ``p`` are the cost parameters (a target, a reference:
-see :mod:`mbtsr.costs`), given per call or as the controller's default.
-
-The optimizer signature (shared by every solver)::
-
-    result = optimizer(cost, model, x0[n], U0[T, m], *, u_min, u_max, params=None, t0=0,
-                       options=None)
-    # result.X [T+1, n], result.U [T, m] (finite, inside the bounds), result.cost,
-    # result.status ("converged" | "max_iter" | "failed"), result.iterations
-
-The model is a *planning* model: ``ensemble.freeze()``, or a true / analytic / linear / LTV
-model. Everything is validated once, here; per step only the state and time are checked.
-
-An MPC is a policy for :func:`mbtsr.episode.run_episode` (it is called as ``mpc(x, t)`` and
-reset before each episode)::
-
-    rec = run_episode(env, mpc, seed=0, observe=lambda obs, info: info["state"])
+At every control step ``t`` the controller solves ``min_U sum_k l(x_k, u_k, t + k, p) + l_T(x_H,
+p)`` from the current state with a few iterations of ``optimizer`` (the shared signature of
+:func:`mbtsr.ilqr.ilqr`, :func:`mbtsr.cem.cem`, :func:`mbtsr.cem_ilqr.cem_ilqr`), warm-started
+from the previous plan shifted by the elapsed steps, and applies the first control. The manual
+(warm and cold starts, ``solve`` vs ``act``): docs/ilqr.md, "MPC".
 """
 
 from __future__ import annotations
@@ -60,13 +40,8 @@ class MPCOptions:
         capped at ``lambda_init`` (instead of ``lambda_init`` every time).
     :param cold_start_fractions: a cold start first solves these fractions of the horizon, in
         order, each warm-started from the previous solve's plan extended by its last control,
-        then the whole horizon (each with ``first_step_iterations``). On an unstable system the
-        open-loop rollout of a long cold plan falls far from where the solution lies (the
-        double pendulum's poles fall within 10 of 30 steps) and iLQR converges to a poor local
-        optimum; short horizons start near the solution and each longer one extends it
-        (measured: InvertedDoublePendulum-v5 from a reset state, horizon 30 from zeros: a
-        falling plan after 93 iterations; 8 -> 15 -> 30: the upright plan in 16). ``()``: no
-        continuation.
+        then the whole horizon (each with ``first_step_iterations``; why: docs/ilqr.md, "MPC").
+        ``()``: no continuation.
     """
 
     iterations_per_step: int = 3
@@ -95,7 +70,7 @@ class MPCOptions:
 class MPC:
     """Receding-horizon controller: ``MPC(optimizer, cost, model, horizon)``.
 
-    :param optimizer: a trajectory optimizer with the shared signature (module docstring),
+    :param optimizer: a trajectory optimizer with the shared signature (docs/ilqr.md, "MPC"),
         e.g. :func:`mbtsr.ilqr.ilqr` or ``mbtsr.cem.cem``.
     :param cost: the task cost (:class:`mbtsr.costs.CasadiCost`), evaluated at absolute times.
     :param model: a planning model (:mod:`mbtsr.dynamics` protocol; a learned ensemble's
