@@ -22,7 +22,7 @@ import numpy as np
 from mbtsr.episode import run_episode
 from mbtsr.excitation import filtered_gaussian, multisine
 from mbtsr.trajectory import Trajectory
-from mbtsr.validation import as_array, check_int
+from mbtsr.validation import as_array, check_int, check_positive
 
 __all__ = ["collect_trajectories", "default_input_kwargs", "rollout_open_loop"]
 
@@ -161,9 +161,7 @@ def collect_trajectories(
 
     abort = None
     if reject_abs_q is not None:
-        limit = float(reject_abs_q)
-        if not math.isfinite(limit) or limit <= 0:
-            raise ValueError(f"reject_abs_q must be a finite number > 0, got {reject_abs_q!r}")
+        limit = check_positive("reject_abs_q", reject_abs_q)
         model = getattr(base, "model", None)
         if model is None or not hasattr(model, "nq"):
             raise ValueError(

@@ -16,7 +16,7 @@ import numpy as np
 from mujoco import rollout
 
 from mbtsr.dynamics import check_step_inputs
-from mbtsr.validation import as_array
+from mbtsr.validation import as_array, check_positive
 
 __all__ = [
     "HybridDynamics",
@@ -121,8 +121,7 @@ class MujocoDynamics:
                 f"env has {self.model.na} actuator activation state(s); MujocoDynamics supports "
                 "state = (qpos, qvel) only"
             )
-        if not (math.isfinite(fd_eps) and fd_eps > 0):
-            raise ValueError(f"fd_eps must be a finite number > 0, got {fd_eps!r}")
+        check_positive("fd_eps", fd_eps)
         self.frame_skip = int(base.frame_skip)
         self.dt = float(self.model.opt.timestep) * self.frame_skip
         self.nq, self.nv = self.model.nq, self.model.nv
@@ -328,8 +327,7 @@ class ObservedDynamics:
     def __init__(self, dynamics: MujocoDynamics, env, *, fd_eps: float = 1e-6) -> None:
         if not isinstance(dynamics, MujocoDynamics):
             raise TypeError(f"dynamics must be a MujocoDynamics, got {type(dynamics).__name__}")
-        if not (math.isfinite(fd_eps) and fd_eps > 0):
-            raise ValueError(f"fd_eps must be a finite number > 0, got {fd_eps!r}")
+        check_positive("fd_eps", fd_eps)
         self.dynamics, self.env, self.fd_eps = dynamics, env, float(fd_eps)
         self.n = dynamics.state_dim
         self.obs_dim = int(np.asarray(dynamics.observation(env, np.zeros(self.n))).shape[0])

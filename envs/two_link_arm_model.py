@@ -15,7 +15,7 @@ import numpy as np
 
 from mbtsr.costs import casadi_jit_options
 from mbtsr.dynamics import check_step_inputs
-from mbtsr.validation import as_array
+from mbtsr.validation import as_array, check_nonnegative, check_positive
 
 __all__ = [
     "ArmParams",
@@ -131,24 +131,15 @@ def validate_params(p: ArmParams) -> ArmParams:
         "torque_limit": True,
     }
     clean = {k: _check_pair(k, getattr(p, k), positive=pos) for k, pos in pairs.items()}
-    gravity = float(p.gravity)
-    if not math.isfinite(gravity) or gravity < 0:
-        raise ValueError(f"gravity must be a finite number >= 0, got {p.gravity!r}")
-    timestep = float(p.timestep)
-    if not math.isfinite(timestep) or timestep <= 0:
-        raise ValueError(f"timestep must be a finite number > 0, got {p.timestep!r}")
     if int(p.frame_skip) != p.frame_skip or p.frame_skip < 1:
         raise ValueError(f"frame_skip must be an integer >= 1, got {p.frame_skip!r}")
-    v_s = float(p.friction_velocity)
-    if not math.isfinite(v_s) or v_s <= 0:
-        raise ValueError(f"friction_velocity must be a finite number > 0, got {v_s!r}")
     return replace(
         p,
         **clean,
-        gravity=gravity,
-        timestep=timestep,
+        gravity=check_nonnegative("gravity", p.gravity),
+        timestep=check_positive("timestep", p.timestep),
         frame_skip=int(p.frame_skip),
-        friction_velocity=v_s,
+        friction_velocity=check_positive("friction_velocity", p.friction_velocity),
     )
 
 
@@ -167,10 +158,7 @@ def arm_params(preset: str = "default", *, dt: float | None = None, **overrides)
         raise ValueError(f"unknown arm parameter(s) {sorted(unknown)}; valid: {sorted(valid)}")
     p = replace(PRESETS[preset], **overrides)
     if dt is not None:
-        dt = float(dt)
-        if not math.isfinite(dt) or dt <= 0:
-            raise ValueError(f"dt must be a finite number > 0, got {dt!r}")
-        p = replace(p, timestep=dt / int(p.frame_skip))
+        p = replace(p, timestep=check_positive("dt", dt) / int(p.frame_skip))
     return validate_params(p)
 
 

@@ -18,7 +18,7 @@ import numpy as np
 
 from mbtsr.cem import CEMOptions, cem
 from mbtsr.ilqr import ILQROptions, ILQRResult, ilqr
-from mbtsr.validation import check_int, options_from
+from mbtsr.validation import check_int, check_nonnegative, options_from
 
 __all__ = ["CEMILQROptions", "cem_ilqr"]
 
@@ -64,10 +64,8 @@ class CEMILQROptions:
             raise TypeError(f"cem must be a CEMOptions, got {type(self.cem).__name__}")
         if not isinstance(self.ilqr, ILQROptions):
             raise TypeError(f"ilqr must be an ILQROptions, got {type(self.ilqr).__name__}")
-        if self.lambda_init is not None and not (np.isfinite(self.lambda_init)
-                                                 and self.lambda_init >= 0):
-            raise ValueError(f"lambda_init must be None or a finite number >= 0, got "
-                             f"{self.lambda_init!r}")
+        if self.lambda_init is not None:
+            check_nonnegative("lambda_init", self.lambda_init)
 
 
 def cem_ilqr(

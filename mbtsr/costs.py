@@ -21,7 +21,7 @@ from dataclasses import dataclass
 import casadi as ca
 import numpy as np
 
-from mbtsr.validation import as_array, check_int
+from mbtsr.validation import as_array, check_int, check_positive
 
 __all__ = [
     "CasadiCost",
@@ -63,8 +63,7 @@ def smooth_norm(v, eps: float):
     :param eps: smoothing radius > 0.
     :return: a CasADi scalar expression for symbolic input, else a float.
     """
-    if not np.isfinite(eps) or eps <= 0:
-        raise ValueError(f"eps must be a finite number > 0, got {eps!r}")
+    check_positive("eps", eps)
     if isinstance(v, (ca.SX, ca.MX, ca.DM)):
         return ca.sqrt(ca.dot(v, v) + eps**2) - eps
     v = as_array("v", v, ndim=1)
