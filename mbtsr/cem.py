@@ -18,6 +18,7 @@ import numpy as np
 
 from mbtsr.costs import after_termination, truncated_total
 from mbtsr.dynamics import _rollout as _step_rollout
+from mbtsr.ilqr import check_control_bounds
 from mbtsr.validation import as_array, check_callable, check_int, options_from
 
 __all__ = ["CEMOptions", "CEMResult", "cem"]
@@ -116,14 +117,6 @@ class CEMResult:
     disagreement: float | None = None
 
 
-def _bounds(u_min: Any, u_max: Any, m: int) -> tuple[np.ndarray, np.ndarray]:
-    lo = np.broadcast_to(as_array("u_min", u_min, finite=False), (m,)).astype(float)
-    hi = np.broadcast_to(as_array("u_max", u_max, finite=False), (m,)).astype(float)
-    if np.any(hi <= lo):
-        raise ValueError(f"u_max must be > u_min, got u_min={lo}, u_max={hi}")
-    return lo, hi
-
-
 def _rollout(model: Any, x0: np.ndarray, U: np.ndarray, t0: int, max_state_norm: float
              ) -> tuple[np.ndarray, np.ndarray]:
     """Batched open-loop rollout ``U [S, T, m]`` from ``x0 [n]`` -> ``(X [S, T+1, n], alive
@@ -216,9 +209,11 @@ def cem(
     if getattr(model, "action_dim", m) != m:
         raise ValueError(f"model.action_dim={model.action_dim} does not match U0's m={m}")
     check_int("t0", t0, 0)
-    lo, hi = _bounds(u_min, u_max, m)
+    lo, hi = check_control_bounds(u_min, u_max, m)
     if not (np.all(np.isfinite(lo)) and np.all(np.isfinite(hi))):
         raise ValueError("cem needs finite u_min and u_max (it samples inside the box)")
+    if np.any(hi <= lo):
+        raise ValueError(f"u_max must be > u_min, got u_min={lo}, u_max={hi}")
     half = 0.5 * (hi - lo)
     rng = np.random.default_rng(int(opts.seed))
     t_start = time.perf_counter()

@@ -213,10 +213,6 @@ def ilqr(
     opts = options_from(ILQROptions, options)
     if not isinstance(cost, CasadiCost):
         raise TypeError(f"cost must be a mbtsr.costs.CasadiCost, got {type(cost).__name__}")
-    if not (callable(getattr(dynamics, "step", None))
-            and callable(getattr(dynamics, "jacobians", None))):
-        raise TypeError("dynamics must have step(x, u, t) and jacobians(x, u, t0) methods, got "
-                        f"{type(dynamics).__name__}")
     n, m = cost.n, cost.m
     check_planning_model(dynamics, n, m)
     table = cost.check_params(params)
@@ -439,14 +435,8 @@ def _line_search_chunks(n_alpha: int, linear_batch_cost: bool) -> list[slice]:
 
 def _boxqp_params(opts: ILQROptions) -> tuple[float, ...]:
     """Box-QP settings as the float tuple of :data:`mbtsr._lqr_kernels.BOXQP_DEFAULTS`."""
-    return (
-        float(opts.boxqp_max_iter),
-        float(opts.boxqp_min_grad),
-        float(opts.boxqp_min_rel_improve),
-        float(opts.boxqp_step_dec),
-        float(opts.boxqp_min_step),
-        float(opts.boxqp_armijo),
-    )
+    names = ("max_iter", "min_grad", "min_rel_improve", "step_dec", "min_step", "armijo")
+    return tuple(float(getattr(opts, f"boxqp_{name}")) for name in names)
 
 
 def _convexified(derivs: CostDerivatives, memo: tuple | None) -> tuple[CostDerivatives, tuple]:
