@@ -319,15 +319,7 @@ class CasadiCost:
         return self._as_table(params)
 
     def _as_table(self, params: object) -> np.ndarray:
-        table = as_array("params", params)
-        if table.ndim == 1:
-            table = table[None]
-        if table.ndim != 2 or table.shape[1] != self.param_dim or table.shape[0] < 1:
-            raise ValueError(
-                f"params must be [{self.param_dim}] or [N_ref, {self.param_dim}] with N_ref >= 1, "
-                f"got {list(np.shape(params))}"
-            )
-        return np.ascontiguousarray(table)
+        return np.ascontiguousarray(_table("params", params, self.param_dim, "N_ref", ""))
 
     def params_at(self, t: np.ndarray, params: np.ndarray | None = None) -> np.ndarray:
         """Parameter rows for absolute times ``t: [N]`` -> ``[N, p]`` (last row held)."""
@@ -498,21 +490,23 @@ class QuadraticCost(CasadiCost):
         return _reference_table(x_goal, u_ref, self.n, self.m)
 
 
+def _table(name: str, value: object, k: int, rows: str, note: str) -> np.ndarray:
+    """``value`` as a table ``[N, k]`` with ``N >= 1`` (a vector ``[k]`` is one row)."""
+    table = as_array(name, value)
+    if table.ndim == 1:
+        table = table[None]
+    if table.ndim != 2 or table.shape[1] != k or table.shape[0] < 1:
+        raise ValueError(f"{name} must be [{k}] or [{rows}, {k}] with {rows} >= 1{note}, got "
+                         f"{list(np.shape(value))}")
+    return table
+
+
 def _reference_table(x_goal, u_ref, n: int, m: int) -> np.ndarray:
-    xg = as_array("x_goal", x_goal)
-    if xg.ndim == 1:
-        xg = xg[None]
-    if xg.ndim != 2 or xg.shape[1] != n or xg.shape[0] < 1:
-        raise ValueError(f"x_goal must be [{n}] or [N, {n}] (n from Q), got {list(xg.shape)}")
-    ur = np.zeros((1, m)) if u_ref is None else as_array("u_ref", u_ref)
-    if ur.ndim == 1:
-        ur = ur[None]
-    if ur.ndim != 2 or ur.shape[1] != m or ur.shape[0] < 1:
-        raise ValueError(f"u_ref must be [{m}] or [N, {m}] (m from R), got {list(ur.shape)}")
+    xg = _table("x_goal", x_goal, n, "N", " (n from Q)")
+    ur = np.zeros((1, m)) if u_ref is None else _table("u_ref", u_ref, m, "N", " (m from R)")
     N = max(xg.shape[0], ur.shape[0])
-    xg = np.concatenate([xg, np.repeat(xg[-1:], N - xg.shape[0], axis=0)])
-    ur = np.concatenate([ur, np.repeat(ur[-1:], N - ur.shape[0], axis=0)])
-    return np.hstack([xg, ur])
+    return np.hstack([np.concatenate([t, np.repeat(t[-1:], N - t.shape[0], axis=0)])
+                      for t in (xg, ur)])
 
 
 def after_termination(done: np.ndarray) -> np.ndarray:
