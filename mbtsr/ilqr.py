@@ -213,6 +213,10 @@ def ilqr(
     opts = options_from(ILQROptions, options)
     if not isinstance(cost, CasadiCost):
         raise TypeError(f"cost must be a mbtsr.costs.CasadiCost, got {type(cost).__name__}")
+    if not (callable(getattr(dynamics, "step", None))
+            and callable(getattr(dynamics, "jacobians", None))):
+        raise TypeError("dynamics must have step(x, u, t) and jacobians(x, u, t0) methods, got "
+                        f"{type(dynamics).__name__}")
     n, m = cost.n, cost.m
     check_planning_model(dynamics, n, m)
     table = cost.check_params(params)
