@@ -1,14 +1,8 @@
 """Collect open-loop excitation trajectories from a Gymnasium env.
 
-``collect_trajectories`` resets the env, drives it open-loop with an excitation signal
-(:mod:`mbtsr.excitation` or your own) and records ``Trajectory(x [T+1, n], u [T, m])`` with the
-physical state from ``info["state"]`` (the observation if the env has no such key) and the actions
-actually applied (clipped into the action space). Optionally it rejects and redraws trajectories
-that leave the joint limits, as the paper's original code did (``|q| >= 0.9 pi``).
-
-Randomness: one ``numpy`` generator seeded with ``seed`` draws, per attempt, the env's reset seed
-and the input's seed, so the same ``seed`` gives bit-identical trajectories, and trajectory ``i``
-does not depend on how the inputs of trajectory ``i-1`` looked beyond the number of rejections.
+``collect_trajectories`` drives the env open-loop with an excitation signal (:mod:`mbtsr.excitation`
+or your own) and records ``Trajectory(x [T+1, n], u [T, m])``; same ``seed``, bit-identical
+trajectories. The manual: docs/environments.md, "Data collection".
 """
 
 from __future__ import annotations
@@ -31,15 +25,9 @@ _BUILTIN: dict[str, InputFn] = {"filtered_gaussian": filtered_gaussian, "multisi
 
 
 def default_input_kwargs(env: gym.Env, input: str) -> dict:  # noqa: A002 - the public name
-    """Default excitation settings for ``env``.
-
-    If the env defines ``excitation_std`` (the two-link arm does, per preset, in normalized
-    action units: the arm moves substantially without the input saturating constantly), the
-    built-in signals are scaled to that std: ``filtered_gaussian(window=100, scale=std*10)``
-    (the paper's 100-tap average), ``multisine(amplitude=std / sqrt(n_sines / 2))``. Otherwise
-    the signal's own defaults apply (for the linear system: ``filtered_gaussian(window=5,
-    scale=10)``, the paper's input, via ``excitation_kwargs`` on the env).
-    """
+    """Default excitation settings for ``env``: the env's ``excitation_kwargs[input]``, else
+    the built-in signal scaled to the env's ``excitation_std`` (docs/environments.md, "Data
+    collection"), else ``{}`` (the signal's own defaults)."""
     base = env.unwrapped
     own = getattr(base, "excitation_kwargs", None)
     if isinstance(own, Mapping) and input in own:

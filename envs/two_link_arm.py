@@ -269,13 +269,9 @@ class TwoLinkArmEnv(MujocoEnv, utils.EzPickle):
         return sum(int(w[k].number) for k in _INSTABILITY_WARNINGS)
 
     def step(self, action):
-        """Apply the normalized torque ``action`` ``[2]`` for ``dt`` seconds.
-
-        If the simulation diverges during the step (a MuJoCo instability warning, after which
-        MuJoCo resets the arm, or a joint speed above ``VELOCITY_LIMIT``) the step returns
-        ``truncated=True`` and ``info["unstable"] = True`` with the reason in
-        ``info["instability"]``; the observation is then not a physical successor state.
-        """
+        """Apply the normalized torque ``action`` ``[2]`` for ``dt`` seconds; a diverged
+        simulation truncates with ``info["unstable"]`` (docs/environments.md, "Start state,
+        targets, episode end")."""
         a = as_array("action", action, (2,))
         a = np.clip(a, -1.0, 1.0)
         warnings_before = self._instability_warnings()
@@ -326,12 +322,8 @@ class TwoLinkArmEnv(MujocoEnv, utils.EzPickle):
         return self._mujoco_model
 
     def linearize(self, x: object, u: object) -> tuple[np.ndarray, np.ndarray]:
-        """Jacobians of one env step at ``(x [4], u [2])``: ``A [4, 4]``, ``B [4, 2]``.
-
-        The one route to the true Jacobians, :meth:`envs.mujoco_model.MujocoDynamics.jacobians`
-        (``mjd_transitionFD`` chained over the substeps, on the model's own ``MjData``); the
-        env's simulation state is untouched.
-        """
+        """Jacobians of one env step at ``(x [4], u [2])``: ``A [4, 4]``, ``B [4, 2]``, by
+        :meth:`envs.mujoco_model.MujocoDynamics.jacobians` (the env's state is untouched)."""
         x = as_array("x", x, (4,))
         u = as_array("u", u, (2,))
         A, B = self._true_model().jacobians(x[None], u[None])

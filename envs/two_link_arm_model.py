@@ -222,20 +222,13 @@ def euler_substep(x: ca.SX, a: ca.SX, p: ArmParams) -> ca.SX:
 
 
 class TwoLinkArmCasadi:
-    """Analytic CasADi twin of ``mbtsr/TwoLinkArm-v0``; implements ``mbtsr.dynamics.DynamicsModel``.
-
-    Actions are the env's normalized actions (torque / torque_limit); they are *not* clipped
-    here, so that optimizers see a smooth model: keep ``|a| <= 1`` (as the env does) for the
-    two to agree.
+    """Analytic CasADi twin of ``mbtsr/TwoLinkArm-v0`` (a ``mbtsr.dynamics.DynamicsModel``; its
+    attributes: docs/environments.md, "analytic_model()"). Actions are not clipped here (a
+    smooth model): keep ``|a| <= 1``, as the env does, for the two to agree.
 
     :param params: the arm's constants (``arm_params(preset)``).
-    :param jit: compile ``step`` and ``jacobians`` to C (CasADi JIT with the system compiler,
-        1-3 s once per instance): 4x faster steps and 9x faster Jacobians, same numbers to
-        round-off (tested). Planning-speed option; needs a C compiler.
-
-    Attributes: ``casadi_step`` ``F(x[4], a[2]) -> x_next[4]`` (one env step, ``frame_skip``
-    substeps), ``casadi_continuous`` ``f(x[4], a[2]) -> xdot[4]``, ``casadi_jacobians``
-    ``J(x, a) -> (A[4,4], B[4,2])``, ``state_dim = 4``, ``action_dim = 2``, ``dt``, ``params``.
+    :param jit: compile ``step`` and ``jacobians`` to C (1-3 s once per instance; 4x faster
+        steps, 9x faster Jacobians, same numbers to round-off; needs a C compiler).
     """
 
     state_dim = 4

@@ -169,12 +169,9 @@ class _RowMap:
 class CasadiCost:
     """A trajectory cost defined by CasADi functions, with derivatives from CasADi AD.
 
-    ``J = sum_t l(x_t, u_t, t, p_t) + l_T(x_T, p_T)`` with ``t`` the absolute time index and
-    ``p_t`` the parameter row at time ``t`` (see the module docstring).
-
-    Build it from ``casadi.Function`` objects (this constructor) or from symbolic expressions
-    (:meth:`from_expressions`). Derivative and value functions are generated (and compiled)
-    once, on first use, for any trajectory length or batch; parameters never cause a rebuild.
+    ``J = sum_t l(x_t, u_t, t, p_t) + l_T(x_T, p_T)`` (``t`` absolute, ``p_t`` the parameter
+    row at time ``t``). Build it from ``casadi.Function`` objects (this constructor) or from
+    expressions (:meth:`from_expressions`); its mapped functions are built once, on first use.
 
     :param stage: ``casadi.Function`` ``(x[n], u[m], t[1]) -> l`` or
         ``(x[n], u[m], t[1], p[p]) -> l`` (scalar output).
@@ -277,13 +274,7 @@ class CasadiCost:
         :param p: ``[p, 1]`` parameter symbol (values are given at call time, or as the
             default ``params``: ``[p]`` or ``[N_ref, p]``).
 
-        Example (a reaching cost whose target is a parameter)::
-
-            x, u, p = ca.SX.sym("x", 4), ca.SX.sym("u", 2), ca.SX.sym("p", 2)
-            cost = CasadiCost.from_expressions(
-                x, u, smooth_norm(x[:2] - p, 0.05) + 1e-2 * ca.sumsqr(u),
-                10 * ca.sumsqr(x[:2] - p), p=p)
-            cost.total(X, U, params=target)   # any target, same compiled functions
+        An example: docs/ilqr.md, "Costs".
         """
         sym = type(x)
         if not isinstance(x, (ca.SX, ca.MX)) or not isinstance(u, sym):
@@ -554,13 +545,9 @@ def quadratic_cost(
     *,
     jit: bool = False,
 ) -> QuadraticCost:
-    """Quadratic tracking cost, the reach task's objective (negated env reward)::
-
-        l(x, u, t, p) = (x - x_goal_t)^T Q (x - x_goal_t) + (u - u_ref_t)^T R (u - u_ref_t)
-        l_T(x, p)     = (x - x_goal_T)^T Qf (x - x_goal_T)
-
-    with ``p_t = [x_goal_t, u_ref_t]``. No factor 1/2, so ``-l`` equals the arm env's reward
-    ``-((x-x_g)^T Q (x-x_g) + a^T R a)``.
+    """Quadratic tracking cost ``l = (x - x_goal_t)^T Q (x - x_goal_t) + (u - u_ref_t)^T R (u -
+    u_ref_t)``, ``l_T`` with ``Qf``, parameters ``p_t = [x_goal_t, u_ref_t]``; no factor 1/2, so
+    ``-l`` is the arm env's reward (docs/ilqr.md, "Costs").
 
     :param Q: ``[n, n]`` symmetric positive semi-definite state weight.
     :param R: ``[m, m]`` symmetric positive semi-definite input weight.
