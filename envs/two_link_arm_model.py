@@ -262,16 +262,7 @@ class TwoLinkArmCasadi:
                 which: ca.Function(f"{fn.name()}_jit", [x, a], fn.call([x, a]), opts)
                 for which, fn in self._kernels.items()
             }
-        self._maps: dict[tuple[str, int], ca.Function] = {}
         self._buffers: dict[tuple[str, int], tuple] = {}
-
-    def _mapped(self, which: str, n: int) -> ca.Function:
-        key = (which, n)
-        if key not in self._maps:
-            if len(self._maps) > 16:
-                self._maps.clear()
-            self._maps[key] = self._kernels[which].map(n)
-        return self._maps[key]
 
     def _buffer(self, which: str, n: int) -> tuple:
         """Zero-copy evaluation of the ``n``-fold map of ``casadi_step`` (``which="step"``) or
@@ -286,7 +277,7 @@ class TwoLinkArmCasadi:
         if entry is None:
             if len(self._buffers) > 16:
                 self._buffers.clear()
-            fn = self._mapped(which, n)
+            fn = self._kernels[which].map(n)
             buf, evaluate = fn.buffer()
             x_in, u_in = np.zeros((n, 4)), np.zeros((n, 2))
             buf.set_arg(0, memoryview(x_in))
