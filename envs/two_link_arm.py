@@ -36,16 +36,12 @@ __all__ = [
 
 ASSET_PATH = Path(__file__).resolve().parent / "assets" / "two_link_arm.xml"
 
-#: Std of the normalized excitation input per preset, used by envs.collect as the default
-#: input scale: the arm moves substantially, leaves the joint limits rarely and the input
-#: saturates rarely (|a| > 1 at ~3 sigma or beyond).
+#: Std of the normalized excitation input per preset (envs.collect's default input scale)
 EXCITATION_STD = {"default": 0.15, "paper": 1.0 / 3.0}
 
 FD_EPS = 1e-6  # mjd_transitionFD perturbation (centred differences)
 
-#: Largest control period accepted [s] (5 x the default 0.02 s): with 10 Euler substeps the
-#: default arm diverges under random torques at dt = 0.5 s, and already at dt = 0.3 s its
-#: trajectories are too coarse for the reach task.
+#: Largest control period accepted [s] (docs/environments.md, "Presets")
 MAX_DT = 0.1
 #: A joint speed above this [rad/s] means the simulation diverged (the real arms stay < 50).
 VELOCITY_LIMIT = 1e3

@@ -77,9 +77,7 @@ def _rod(mass: float, length: float) -> float:
 
 
 PRESETS: dict[str, ArmParams] = {
-    # A plausible small real arm: aluminium-tube links modelled as uniform rods, geared motors
-    # (armature, viscous and dry friction of a few % of the torque limit), real gravity. The
-    # shoulder can hold the stretched-out arm horizontally (needs 4.27 N m of 8 N m).
+    # a plausible small real arm (docs/environments.md, "Presets")
     "default": ArmParams(
         link_mass=(1.2, 0.6),
         link_length=(0.30, 0.25),
@@ -91,10 +89,7 @@ PRESETS: dict[str, ArmParams] = {
         torque_limit=(8.0, 3.0),
         gravity=9.81,
     ),
-    # The robot of the paper's original code (original_implementation.md section 3): point
-    # masses 0.2 kg at the ends of 1 m links, viscous 2, Coulomb 0.1, g = 1.82, dt = 0.02,
-    # without the code's M11 typo. Torque limit 3 N m: the paper's excitation (std ~1 N m) fits
-    # within +-3 sigma.
+    # the robot of the paper's original code, without its M11 typo
     "paper": ArmParams(
         link_mass=(0.2, 0.2),
         link_length=(1.0, 1.0),

@@ -64,8 +64,7 @@ class CEMOptions:
             raise ValueError(f"options.explore_on must be 'state' or 'cost', got "
                              f"{self.explore_on!r}")
         for name in ("samples", "elites", "iterations", "particles"):
-            v = getattr(self, name)
-            check_int(f"options.{name}", v, 1)
+            check_int(f"options.{name}", getattr(self, name), 1)
         if self.samples < 2:
             raise ValueError(f"options.samples must be >= 2, got {self.samples}")
         if self.elites > self.samples:

@@ -56,8 +56,7 @@ class CEMILQROptions:
 
     def __post_init__(self) -> None:
         for name in ("max_iter", "cold_proposal_iterations"):
-            v = getattr(self, name)
-            check_int(name, v, 1)
+            check_int(name, getattr(self, name), 1)
         if self.warm_samples is not None:
             check_int("warm_samples", self.warm_samples, 2)
         if not isinstance(self.cem, CEMOptions):

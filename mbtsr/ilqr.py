@@ -1,23 +1,9 @@
 """Iterative LQR with box control limits (control-limited DDP) on any dynamics model.
 
-Solves ::
-
-    min_U  J(X, U) = sum_{t=0}^{T-1} l(x_t, u_t, t0 + t) + l_T(x_T)
-    s.t.   x_{t+1} = f(x_t, u_t),  x_0 given,  u_min <= u_t <= u_max
-
-for any ``f`` with the :class:`mbtsr.dynamics.DynamicsModel` protocol (the true MuJoCo arm, the
-analytic CasADi arm, an LTV model, a learned ensemble) and a :class:`mbtsr.costs.CasadiCost`.
-
-The algorithm is the control-limited DDP of Tassa, Mansard and Todorov, "Control-Limited
-Differential Dynamic Programming", ICRA 2014, with the defaults of the paper authors' iLQG
-implementation (DifferentialDynamicProgramming.jl): first-order dynamics (iLQR: no second
-derivatives of ``f``), Levenberg-Marquardt regularisation with the adaptive schedule, a box-QP
-(projected Newton) for the feed-forward term with clamped feedback rows zeroed, and a
-backtracking line search on the ratio of actual to expected improvement.
-
-The algorithm step by step (batched Jacobians, the compiled backward pass and its numpy
-reference ``tests/lqr_reference.py``, the batched or chunked line search, the regularisation
-schedule, the stopping rules, what a diverged rollout does): docs/ilqr.md, "iLQR".
+Solves ``min_U sum_t l(x_t, u_t, t0 + t) + l_T(x_T)`` s.t. ``x_{t+1} = f(x_t, u_t)``, ``u_min <=
+u_t <= u_max`` for any :class:`mbtsr.dynamics.DynamicsModel` and :class:`mbtsr.costs.CasadiCost`,
+with the control-limited DDP of Tassa, Mansard and Todorov (ICRA 2014) and the defaults of their
+iLQG. The algorithm step by step: docs/ilqr.md, "iLQR".
 """
 
 from __future__ import annotations

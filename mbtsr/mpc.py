@@ -52,8 +52,7 @@ class MPCOptions:
 
     def __post_init__(self) -> None:
         for name in ("iterations_per_step", "first_step_iterations"):
-            v = getattr(self, name)
-            check_int(name, v, 1)
+            check_int(name, getattr(self, name), 1)
         fr = tuple(float(f) for f in self.cold_start_fractions)
         if any(not 0.0 < f < 1.0 for f in fr) or list(fr) != sorted(fr):
             raise ValueError(f"cold_start_fractions must be increasing numbers in (0, 1), got "

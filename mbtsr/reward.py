@@ -301,11 +301,8 @@ class FrozenReward:
 class LearnedRewardCost(CasadiCost):
     """The planning cost of a learned reward: stage ``l(x, u, t) = -r_hat(x, u)``, terminal
     ``l_T(x) = -terminal_weight * r_hat(x, 0)``; derivatives in closed form with a PSD Hessian
-    (:meth:`FrozenReward.derivatives`).
-
-    A :class:`mbtsr.costs.CasadiCost` by its kernels (``_batch_values``, ``_derivatives``): the
-    public methods (``total``, ``stage_values``, ``terminal_values``, ``derivatives``,
-    ``check_params``) and the planners work unchanged. No symbolic ``stage``/``terminal``.
+    (:meth:`FrozenReward.derivatives`). A :class:`mbtsr.costs.CasadiCost` by its kernels
+    (``_batch_values``, ``_derivatives``), with no symbolic ``stage``/``terminal``.
 
     :param reward: a :class:`FrozenReward`.
     :param terminal_weight: weight (>= 0) of the terminal cost.
