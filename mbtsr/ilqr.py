@@ -230,29 +230,13 @@ def ilqr(
     # ---- initial rollout: U0, else scaled copies alpha * U0 (largest first)
     U = np.clip(U0, lower, upper)
     X, alive = _initial_rollout(dynamics, x0, U, t0, opts.max_state_norm)
+    X = X[0]  # if every rollout diverges: the result's, NaN from the first diverged state on
     if not alive[0]:
         cands = np.clip(alphas[:, None, None] * U0[None], lower, upper)
         Xc, alive = _rollout(dynamics, x0, cands, t0, opts.max_state_norm)
-        if not alive.any():
-            zeros_K, zeros_k = np.zeros((T, m, n)), np.zeros((T, m))
-            return ILQRResult(
-                X=X[0],  # NaN from the first diverged state on
-                U=U,
-                K=zeros_K,
-                k=zeros_k,
-                cost=float("inf"),
-                trace=[],
-                status="failed",
-                iterations=0,
-                lam=opts.lambda_init,
-                message="initial rollout diverged (non-finite or |x| > max_state_norm) for "
-                "every scaled copy alpha * U0",
-                timings={**timings, "total": time.perf_counter() - t_start},
-            )
-        i = int(np.argmax(alive))
-        X, U = Xc[i], cands[i]
-    else:
-        X = X[0]
+        if alive.any():
+            i = int(np.argmax(alive))
+            X, U = Xc[i], cands[i]
 
     def total(X: np.ndarray, U: np.ndarray) -> np.ndarray:
         if terminated is None:
@@ -266,7 +250,7 @@ def ilqr(
         return truncated_total(stage.reshape(S, T), final.reshape(S), done.reshape(S, T),
                                opts.termination_cost).reshape(stage.shape[:-1])
 
-    J = float(total(X, U))
+    J = float(total(X, U)) if alive.any() else math.inf
 
     lam, dlam = float(opts.lambda_init), 1.0
     f = opts.lambda_factor
@@ -276,7 +260,10 @@ def ilqr(
     need_derivs = True
     it = 0
     problem = hessians = None
-    if not math.isfinite(J):
+    if not alive.any():
+        status, message = "failed", ("initial rollout diverged (non-finite or |x| > "
+                                     "max_state_norm) for every scaled copy alpha * U0")
+    elif not math.isfinite(J):
         status, message = "failed", "the cost of the initial trajectory is not finite"
     while not status and it < opts.max_iter:
         it += 1
