@@ -125,11 +125,7 @@ def collect_trajectories(
             f"episode_steps >= {T}"
         )
     m = env.action_space.shape[0]
-    if isinstance(input, str):
-        if input not in _BUILTIN:
-            raise ValueError(
-                f"input must be one of {sorted(_BUILTIN)} or a callable, got {input!r}"
-            )
+    if isinstance(input, str) and input in _BUILTIN:
         kwargs = default_input_kwargs(env, input) if input_kwargs is None else dict(input_kwargs)
         signal = _BUILTIN[input]
 
@@ -145,7 +141,7 @@ def collect_trajectories(
 
         input_name = getattr(input, "__name__", "callable")
     else:
-        raise ValueError(f"input must be a string or a callable, got {type(input).__name__}")
+        raise ValueError(f"input must be one of {sorted(_BUILTIN)} or a callable, got {input!r}")
 
     abort = None
     if reject_abs_q is not None:

@@ -207,7 +207,7 @@ class TwoLinkArmEnv(MujocoEnv, utils.EzPickle):
         self._target = np.zeros(2)
         self._goal = np.zeros(4)
         self._t = 0
-        self._analytic: dict[bool, TwoLinkArmCasadi] | None = None
+        self._analytic: dict[bool, TwoLinkArmCasadi] = {}
         self._mujoco_model: MujocoDynamics | None = None
 
     # --- MujocoEnv hooks -------------------------------------------------------------------
@@ -344,8 +344,6 @@ class TwoLinkArmEnv(MujocoEnv, utils.EzPickle):
     def analytic_model(self, jit: bool = False) -> TwoLinkArmCasadi:
         """The analytic CasADi twin of this env's arm (built once per ``jit`` value, cached);
         ``jit=True`` compiles it to C for planning speed (see ``TwoLinkArmCasadi``)."""
-        if self._analytic is None:
-            self._analytic = {}
         if bool(jit) not in self._analytic:
             self._analytic[bool(jit)] = TwoLinkArmCasadi(self.params, jit=jit)
         return self._analytic[bool(jit)]

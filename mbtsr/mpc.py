@@ -137,17 +137,12 @@ class MPC:
         base = self._base_options
         if cold and hasattr(base, "for_cold_start"):
             base = base.for_cold_start()
-        key = "max_iter"
-        if dataclasses.is_dataclass(base):
-            names = {f.name for f in dataclasses.fields(base)}
-            key = "max_iter" if "max_iter" in names else "iterations"
-        extra: dict[str, Any] = {key: int(iterations)}
+        iterations_only = dataclasses.is_dataclass(base) and not hasattr(base, "max_iter")
+        extra: dict[str, Any] = {"iterations" if iterations_only else "max_iter": int(iterations)}
         if lam is not None:
             init = base.get("lambda_init") if isinstance(base, Mapping) else getattr(
                 base, "lambda_init", None)
             extra["lambda_init"] = min(lam, ILQROptions.lambda_init if init is None else init)
-        if base is None:
-            return extra
         if isinstance(base, Mapping):
             return {**base, **extra}
         return dataclasses.replace(base, **extra)
