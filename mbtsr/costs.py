@@ -438,28 +438,18 @@ class CasadiCost:
     def _batch_values(self, Xs, Us, XT, t0: int, table) -> tuple[np.ndarray, np.ndarray]:
         """Stage costs ``[..., T]`` of ``Xs [..., T, n], Us [..., T, m]`` at times ``t0 ..
         t0+T-1`` and terminal costs ``[...']`` of ``XT [...', n]`` at ``t0 + T`` (batches
-        flattened for :meth:`_values`, one CasADi call)."""
+        flattened: one mapped call for each)."""
         batch, T = Us.shape[:-2], Us.shape[-2]
         B = int(np.prod(batch, dtype=np.int64))
-        ls, lT = self._values(
-            np.asarray(Xs, dtype=np.float64).reshape(B * T, self.n),
-            np.asarray(Us, dtype=np.float64).reshape(B * T, self.m),
-            np.tile(np.arange(t0, t0 + T), B),
-            np.asarray(XT, dtype=np.float64).reshape(-1, self.n),
-            t0 + T,
-            table,
-        )
-        return ls.reshape(*batch, T), lT.reshape(XT.shape[:-1])
-
-    def _values(self, Xs, Us, ts, XT, tT: int, table) -> tuple[np.ndarray, np.ndarray]:
-        """Stage values for the rows of ``Xs [N, n], Us [N, m]`` at times ``ts [N]`` and
-        terminal values for the rows of ``XT [NT, n]`` at time ``tT``."""
-        ts = np.asarray(ts)
-        P = table if table.shape[0] == 1 else _rows(table, ts)
+        N, ts = B * T, np.tile(np.arange(t0, t0 + T), B)
+        XT = np.asarray(XT, dtype=np.float64)
         stage, terminal = self._row_maps("values")
-        (ls,) = stage(Xs.shape[0], Xs, Us, ts[:, None], P)
-        (lT,) = terminal(XT.shape[0], XT, table[min(tT, table.shape[0] - 1)][None])
-        return ls, lT
+        (ls,) = stage(N, np.asarray(Xs, dtype=np.float64).reshape(N, self.n),
+                      np.asarray(Us, dtype=np.float64).reshape(N, self.m), ts[:, None],
+                      table if table.shape[0] == 1 else _rows(table, ts))
+        XTs = XT.reshape(-1, self.n)
+        (lT,) = terminal(XTs.shape[0], XTs, table[min(t0 + T, table.shape[0] - 1)][None])
+        return ls.reshape(*batch, T), lT.reshape(XT.shape[:-1])
 
 
 class QuadraticCost(CasadiCost):
