@@ -94,8 +94,7 @@ class MujocoDynamics:
     :param jacobian_method: ``"auto"``, ``"transition_fd"`` or ``"fd"``.
     :param fd_eps: finite-difference step (absolute, per coordinate).
 
-    ``linear_batch_cost = True`` tells iLQR that a batch of ``N`` steps costs ``N`` simulations
-    (its line search then rolls out the step sizes in chunks, see :mod:`mbtsr.ilqr`).
+    ``linear_batch_cost``: a batch of ``N`` steps costs ``N`` simulations (docs/ilqr.md, step 4).
     """
 
     linear_batch_cost = True

@@ -463,11 +463,9 @@ def _rollout_policy(dynamics, x0, X, U, k, K, alphas, lower, upper, t0, max_norm
     ``u_t = clip(U_t + alpha k_t + K_t (x_t - X_t))``; ``X: [T+1, n]``, ``U, k: [T, m]``,
     ``K: [T, m, n]``, ``alphas: [A]`` -> ``(Xn [A, T+1, n], Un [A, T, m], alive [A])``.
     A row that turns non-finite is marked dead and continues from the nominal state (so the
-    model never sees NaN); rows exceeding ``max_norm`` are marked dead at the end.
-    An affine model (:class:`mbtsr.dynamics.LinearDynamics`) is rolled out in one compiled call
-    (:func:`mbtsr._lqr_kernels.rollout_policy_affine`, same semantics); so is a model that
-    offers ``_rollout_policy(x0, X, U, k, K, alphas, lower, upper, max_norm)`` (the frozen
-    ensemble; it may return ``None`` to decline).
+    model never sees NaN); rows exceeding ``max_norm`` are marked dead at the end. An affine
+    model, or one with its own ``_rollout_policy`` (the frozen ensemble; ``None`` declines),
+    rolls out in one compiled call with the same semantics.
     """
     kernel = getattr(dynamics, "_rollout_policy", None)  # a model's compiled rollouts
     if kernel is not None:

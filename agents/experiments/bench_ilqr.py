@@ -93,13 +93,10 @@ def main(argv: list[str] | None = None) -> dict:
 
 
 def load_ensemble(path: str, seed: int):
-    """The ensemble under test and a note on where it came from.
-
-    Without a path: the paper's 4-member ensemble with random weights, its input/output
-    normalization set from 4 excitation rollouts of the arm, so that its one-step increments have
-    the data's scale (an unnormalized random net diverges over 200 steps); only its timing is
-    representative, not its accuracy.
-    """
+    """The ensemble under test and a note on where it came from; without a path the paper's
+    4-member ensemble with random weights, normalized on 4 excitation rollouts of the arm (an
+    unnormalized random net diverges over 200 steps): its timing is representative, not its
+    accuracy."""
     from envs.collect import collect_trajectories
     from mbtsr.ensemble import DynamicsEnsemble, EnsembleConfig, load_model
 
