@@ -142,16 +142,10 @@ class MujocoDynamics:
                 f"nq={self.nq}, nv={self.nv}); use 'fd'"
             )
         self.jacobian_method = jacobian_method
-        self._data = mujoco.MjData(self.model)
-        # template full-physics state: the env's (mocap etc.), time 0
-        data = mujoco.MjData(self.model)
-        data.mocap_pos[:] = base.data.mocap_pos
-        data.mocap_quat[:] = base.data.mocap_quat
-        self._scratch = data
+        self._data, self._scratch = mujoco.MjData(self.model), mujoco.MjData(self.model)
         self._nstate = mujoco.mj_stateSize(self.model, _SPEC)
-        self._template = np.empty(self._nstate)
-        mujoco.mj_getState(self.model, data, self._template, _SPEC)
-        self._template[0] = 0.0
+        self._template = np.empty(self._nstate)  # full-physics state: the env's mocap, time 0
+        self.set_mocap(base.data.mocap_pos, base.data.mocap_quat)
         self._qpos0 = mujoco.mj_stateSize(self.model, mujoco.mjtState.mjSTATE_TIME)
         self._obs_scratch: dict[int, tuple] = {}  # id(env) -> (its model, a private MjData)
 

@@ -204,10 +204,10 @@ class MPC:
         tic = time.perf_counter()
         x = as_array("x", x, (self.cost.n,))
         t = check_int("t", t, 0)
-        shift = None if self._t_plan is None else t - self._t_plan
-        if self.plan is None or shift is None or not 0 <= shift < self.horizon:
+        if self.plan is None or not 0 <= t - self._t_plan < self.horizon:
             res = self._cold_solve(x, t, params)
         else:
+            shift = t - self._t_plan
             U0 = np.concatenate([self.plan[shift:], np.repeat(self.plan[-1:], shift, axis=0)])
             lam = self._lam if self.options.warm_start_lambda else None
             res = self._solve(x, t, params, U0, self.options.iterations_per_step, lam)
