@@ -185,12 +185,10 @@ class MujocoDynamics:
                 and x.shape[-1:] == (n,) and u.shape[-1:] == (m,)
                 and x.shape[:-1] == u.shape[:-1]):
             x, u = check_step_inputs(x, u, n, m)
-        batch = x.shape[:-1]
-        xs = x.reshape(-1, n).astype(float, copy=False)
-        us = u.reshape(-1, m).astype(float, copy=False)
-        if not math.isfinite(xs.sum() + us.sum()):
+        x, u = x.astype(float, copy=False), u.astype(float, copy=False)
+        if not math.isfinite(x.sum() + u.sum()):
             check_step_inputs(x, u, n, m)  # names x or u
-        return self._rollout_final(xs, us).reshape(*batch, n)
+        return self._step(x, u)
 
     def _step(self, x: np.ndarray, u: np.ndarray, t: int | None = None) -> np.ndarray:
         """:meth:`step` without input checks (for solvers that validated once): float64

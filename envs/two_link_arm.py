@@ -226,15 +226,6 @@ class TwoLinkArmEnv(MujocoEnv, utils.EzPickle):
     def _obs(self, x: np.ndarray) -> np.ndarray:
         return np.concatenate((x, self._target))
 
-    def _check_target(self, target: object) -> np.ndarray:
-        target = as_array("options['target']", target, (2,))
-        if np.any(np.abs(target) >= self.joint_limit):
-            raise ValueError(
-                f"options['target'] must satisfy |q| < joint_limit={self.joint_limit:.4f} rad, "
-                f"got {target.tolist()}"
-            )
-        return target
-
     def reset(self, *, seed: int | None = None, options: dict | None = None):
         """Reset; ``options`` may hold ``"target"`` ``[2]`` and/or ``"state"`` ``[4]``."""
         super(MujocoEnv, self).reset(seed=seed)  # gymnasium.Env.reset: seeds np_random
@@ -246,7 +237,10 @@ class TwoLinkArmEnv(MujocoEnv, utils.EzPickle):
         target = self.np_random.uniform(-self.target_limit, self.target_limit, size=2)
         x0 = self.np_random.uniform(-self.init_noise, self.init_noise, size=4)
         if "target" in options:
-            target = self._check_target(options["target"])
+            target = as_array("options['target']", options["target"], (2,))
+            if np.any(np.abs(target) >= self.joint_limit):
+                raise ValueError(f"options['target'] must satisfy |q| < joint_limit="
+                                 f"{self.joint_limit:.4f} rad, got {target.tolist()}")
         if "state" in options:
             x0 = as_array("options['state']", options["state"], (4,))
         mujoco.mj_resetData(self.model, self.data)
