@@ -283,12 +283,9 @@ class TwoLinkArmCasadi:
     def step(self, x: np.ndarray, u: np.ndarray, t: int | None = None) -> np.ndarray:
         """Next state in one mapped call: ``x: [..., 4]``, ``u: [..., 2]`` -> ``[..., 4]``."""
         if not (isinstance(x, np.ndarray) and isinstance(u, np.ndarray)
-                and x.dtype.kind in "fiub" and u.dtype.kind in "fiub"):
-            x, u = check_step_inputs(x, u, 4, 2)  # converts (and checks) anything else
-        batch = x.shape[:-1]
-        if x.shape[-1:] != (4,) or u.shape[-1:] != (2,) or batch != u.shape[:-1]:
-            check_step_inputs(x, u, 4, 2)  # raises the precise message
-            raise ValueError("x and u must be arrays [..., 4] and [..., 2]")
+                and x.dtype.kind in "fiub" and u.dtype.kind in "fiub" and x.shape[-1:] == (4,)
+                and u.shape[-1:] == (2,) and x.shape[:-1] == u.shape[:-1]):
+            x, u = check_step_inputs(x, u, 4, 2)  # converts anything else, or names the problem
         if not math.isfinite(x.sum() + u.sum()):  # NaN/inf (or an overflowing sum)
             check_step_inputs(x, u, 4, 2)  # names x or u and the first bad index
         return self._step(x, u, t)

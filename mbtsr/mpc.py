@@ -17,6 +17,8 @@ from typing import Any
 
 import numpy as np
 
+from mbtsr.cem import CEMOptions, cem
+from mbtsr.cem_ilqr import CEMILQROptions, cem_ilqr
 from mbtsr.costs import CasadiCost
 from mbtsr.dynamics import check_planning_model
 from mbtsr.ilqr import ILQROptions, check_control_bounds, ilqr
@@ -224,14 +226,7 @@ class MPC:
 def _resolve_options(optimizer: Callable[..., Any], options: Any) -> Any:
     """The optimizer's base options: iLQR's and CEM's as their options dataclasses (a dict is
     checked here, once), other optimizers' as given (``None``: a dict)."""
-    if optimizer is ilqr:
-        return ILQROptions() if options is None else options_from(ILQROptions, options)
-    from mbtsr import cem as cem_module  # the sibling solver; imported lazily
-
-    if optimizer is cem_module.cem:
-        return options_from(cem_module.CEMOptions, options)
-    from mbtsr import cem_ilqr as hybrid
-
-    if optimizer is hybrid.cem_ilqr:
-        return options_from(hybrid.CEMILQROptions, options)
+    for solver, cls in ((ilqr, ILQROptions), (cem, CEMOptions), (cem_ilqr, CEMILQROptions)):
+        if optimizer is solver:
+            return options_from(cls, options)
     return {} if options is None else options
