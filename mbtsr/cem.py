@@ -198,9 +198,8 @@ def cem(
             f"{type(model).__name__}")
     x0 = as_array("x0", x0, ndim=1)
     n = x0.shape[0]
-    got = getattr(model, "state_dim", n)
-    if got != n:
-        raise ValueError(f"model.state_dim={got} does not match x0 of dimension {n}")
+    if getattr(model, "state_dim", n) != n:
+        raise ValueError(f"model.state_dim={model.state_dim} does not match x0 of dimension {n}")
     U0 = as_array("U0", U0, ndim=2)
     T, m = U0.shape
     if T < 1 or m < 1:

@@ -145,8 +145,7 @@ def solve_ilqr_timed(cost, model, x0, T, options, u_min=-1.0, u_max=1.0):
 
 def time_to_within(res, wall, threshold):
     """Seconds until the iLQR trace first reaches ``cost <= threshold`` (None if never)."""
-    setup = wall - sum(tr["time"] for tr in res.trace)
-    elapsed = setup
+    elapsed = wall - sum(tr["time"] for tr in res.trace)  # the setup before the iterations
     for tr in res.trace:
         elapsed += tr["time"]
         if tr["cost"] <= threshold:
