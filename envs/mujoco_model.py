@@ -120,13 +120,12 @@ class MujocoDynamics:
                 f"env has {self.model.na} actuator activation state(s); MujocoDynamics supports "
                 "state = (qpos, qvel) only"
             )
-        check_positive("fd_eps", fd_eps)
+        self.fd_eps = check_positive("fd_eps", fd_eps)
         self.frame_skip = int(base.frame_skip)
         self.dt = float(self.model.opt.timestep) * self.frame_skip
         self.nq, self.nv = self.model.nq, self.model.nv
         self.state_dim = self.nq + self.nv
         self.action_dim = self.model.nu
-        self.fd_eps = float(fd_eps)
         is_rk4 = self.model.opt.integrator == mujoco.mjtIntegrator.mjINT_RK4
         transition_ok = not is_rk4 and self.nq == self.nv
         if jacobian_method == "auto":
@@ -318,8 +317,7 @@ class ObservedDynamics:
     def __init__(self, dynamics: MujocoDynamics, env, *, fd_eps: float = 1e-6) -> None:
         if not isinstance(dynamics, MujocoDynamics):
             raise TypeError(f"dynamics must be a MujocoDynamics, got {type(dynamics).__name__}")
-        check_positive("fd_eps", fd_eps)
-        self.dynamics, self.env, self.fd_eps = dynamics, env, float(fd_eps)
+        self.dynamics, self.env, self.fd_eps = dynamics, env, check_positive("fd_eps", fd_eps)
         self.n = dynamics.state_dim
         self.obs_dim = int(np.asarray(dynamics.observation(env, np.zeros(self.n))).shape[0])
         self.state_dim = self.n + self.obs_dim

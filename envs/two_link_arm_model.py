@@ -106,10 +106,9 @@ PRESETS: dict[str, ArmParams] = {
 
 def _check_pair(name: str, value: object, *, positive: bool) -> tuple[float, float]:
     arr = as_array(name, value, (2,))
-    if positive and np.any(arr <= 0):
-        raise ValueError(f"{name} must be > 0 for both links, got {arr.tolist()}")
-    if not positive and np.any(arr < 0):
-        raise ValueError(f"{name} must be >= 0 for both links, got {arr.tolist()}")
+    if np.any(arr <= 0 if positive else arr < 0):
+        raise ValueError(f"{name} must be {'>' if positive else '>='} 0 for both links, got "
+                         f"{arr.tolist()}")
     return (float(arr[0]), float(arr[1]))
 
 
