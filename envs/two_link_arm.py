@@ -262,8 +262,7 @@ class TwoLinkArmEnv(MujocoEnv, utils.EzPickle):
         """Apply the normalized torque ``action`` ``[2]`` for ``dt`` seconds; a diverged
         simulation truncates with ``info["unstable"]`` (docs/environments.md, "Start state,
         targets, episode end")."""
-        a = as_array("action", action, (2,))
-        a = np.clip(a, -1.0, 1.0)
+        a = np.clip(as_array("action", action, (2,)), -1.0, 1.0)
         warnings_before = self._instability_warnings()
         self.data.ctrl[:] = a
         mujoco.mj_step(self.model, self.data, nstep=self.frame_skip)
