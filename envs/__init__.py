@@ -1,12 +1,8 @@
-"""Gymnasium environments of mbtsr, registered on ``import envs``.
+"""Gymnasium environments of mbtsr, registered on ``import envs``: ``mbtsr/TwoLinkArm-v0``
+(:mod:`envs.two_link_arm`) and ``mbtsr/LinearSystem-v0`` (:mod:`envs.linear_system`).
 
-- ``mbtsr/TwoLinkArm-v0`` (:mod:`envs.two_link_arm`): a MuJoCo two-link arm in a vertical plane,
-  reach task, exact one-step Jacobians, analytic CasADi twin.
-- ``mbtsr/LinearSystem-v0`` (:mod:`envs.linear_system`): the paper's random stable linear system.
-
-Headless rendering: ``MUJOCO_GL`` must be chosen before ``mujoco`` is first imported, so this
-package sets ``MUJOCO_GL=egl`` (unless already set) before anything imports it. Import ``envs``
-before ``mujoco`` in programs that render.
+``MUJOCO_GL=egl`` (unless already set) for headless rendering: import ``envs`` before ``mujoco``
+(docs/environments.md).
 """
 
 import os

@@ -1,14 +1,8 @@
 """Collect open-loop excitation trajectories from a Gymnasium env.
 
-``collect_trajectories`` resets the env, drives it open-loop with an excitation signal
-(:mod:`mbtsr.excitation` or your own) and records ``Trajectory(x [T+1, n], u [T, m])`` with the
-physical state from ``info["state"]`` (the observation if the env has no such key) and the actions
-actually applied (clipped into the action space). Optionally it rejects and redraws trajectories
-that leave the joint limits, as the paper's original code did (``|q| >= 0.9 pi``).
-
-Randomness: one ``numpy`` generator seeded with ``seed`` draws, per attempt, the env's reset seed
-and the input's seed, so the same ``seed`` gives bit-identical trajectories, and trajectory ``i``
-does not depend on how the inputs of trajectory ``i-1`` looked beyond the number of rejections.
+``collect_trajectories`` drives the env open-loop with an excitation signal (:mod:`mbtsr.excitation`
+or your own) and records ``Trajectory(x [T+1, n], u [T, m])``; same ``seed``, bit-identical
+trajectories. The manual: docs/environments.md, "Data collection".
 """
 
 from __future__ import annotations
@@ -22,7 +16,7 @@ import numpy as np
 from mbtsr.episode import run_episode
 from mbtsr.excitation import filtered_gaussian, multisine
 from mbtsr.trajectory import Trajectory
-from mbtsr.validation import as_array, check_int
+from mbtsr.validation import as_array, check_int, check_positive
 
 __all__ = ["collect_trajectories", "default_input_kwargs", "rollout_open_loop"]
 
@@ -31,15 +25,9 @@ _BUILTIN: dict[str, InputFn] = {"filtered_gaussian": filtered_gaussian, "multisi
 
 
 def default_input_kwargs(env: gym.Env, input: str) -> dict:  # noqa: A002 - the public name
-    """Default excitation settings for ``env``.
-
-    If the env defines ``excitation_std`` (the two-link arm does, per preset, in normalized
-    action units: the arm moves substantially without the input saturating constantly), the
-    built-in signals are scaled to that std: ``filtered_gaussian(window=100, scale=std*10)``
-    (the paper's 100-tap average), ``multisine(amplitude=std / sqrt(n_sines / 2))``. Otherwise
-    the signal's own defaults apply (for the linear system: ``filtered_gaussian(window=5,
-    scale=10)``, the paper's input, via ``excitation_kwargs`` on the env).
-    """
+    """Default excitation settings for ``env``: the env's ``excitation_kwargs[input]``, else
+    the built-in signal scaled to the env's ``excitation_std`` (docs/environments.md, "Data
+    collection"), else ``{}`` (the signal's own defaults)."""
     base = env.unwrapped
     own = getattr(base, "excitation_kwargs", None)
     if isinstance(own, Mapping) and input in own:
@@ -137,11 +125,7 @@ def collect_trajectories(
             f"episode_steps >= {T}"
         )
     m = env.action_space.shape[0]
-    if isinstance(input, str):
-        if input not in _BUILTIN:
-            raise ValueError(
-                f"input must be one of {sorted(_BUILTIN)} or a callable, got {input!r}"
-            )
+    if isinstance(input, str) and input in _BUILTIN:
         kwargs = default_input_kwargs(env, input) if input_kwargs is None else dict(input_kwargs)
         signal = _BUILTIN[input]
 
@@ -157,13 +141,11 @@ def collect_trajectories(
 
         input_name = getattr(input, "__name__", "callable")
     else:
-        raise ValueError(f"input must be a string or a callable, got {type(input).__name__}")
+        raise ValueError(f"input must be one of {sorted(_BUILTIN)} or a callable, got {input!r}")
 
     abort = None
     if reject_abs_q is not None:
-        limit = float(reject_abs_q)
-        if not math.isfinite(limit) or limit <= 0:
-            raise ValueError(f"reject_abs_q must be a finite number > 0, got {reject_abs_q!r}")
+        limit = check_positive("reject_abs_q", reject_abs_q)
         model = getattr(base, "model", None)
         if model is None or not hasattr(model, "nq"):
             raise ValueError(

@@ -101,12 +101,7 @@ class LinearSystemEnv(gym.Env):
 
     def step(self, action):
         """``x <- A x + B clip(u)``."""
-        u = np.asarray(action, dtype=np.float64)
-        if u.shape != (self.m,):
-            raise ValueError(f"action must have shape ({self.m},), got {u.shape}")
-        if not np.isfinite(u).all():
-            raise ValueError(f"action must be finite, got {u.tolist()}")
-        u = np.clip(u, -self.action_bound, self.action_bound)
+        u = np.clip(as_array("action", action, (self.m,)), -self.action_bound, self.action_bound)
         self._x = self.A @ self._x + self.B @ u
         self._t += 1
         cost_state = float(self._x @ self._x)

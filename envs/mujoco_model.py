@@ -1,55 +1,9 @@
 """The true dynamics of any Gymnasium MuJoCo env as a planning model.
 
-:class:`MujocoDynamics` turns a ``gymnasium.envs.mujoco.MujocoEnv`` (Reacher-v5,
-InvertedPendulum-v5, HalfCheetah-v5, ``mbtsr/TwoLinkArm-v0``, ...) into an object with the
-planning-model protocol of :mod:`mbtsr.dynamics`::
-
-    step(x[..., n], u[..., m], t=None) -> x_next[..., n]          # batched, one C call
-    jacobians(x[T, n], u[T, m], t=0) -> (A[T, n, n], B[T, n, m])    # one call per trajectory
-
-**State.** ``x = concat(qpos, qvel)``, ``n = nq + nv``; ``u`` is the env's action
-(``data.ctrl``, ``m = nu``), clamped by MuJoCo to ``ctrlrange`` as in the env. One ``step`` is one
-``env.step``: ``frame_skip`` substeps of the env's integrator with the control held. Everything
-else in MuJoCo's full physics state (mocap bodies, e.g. the arm's target marker; ``act`` must be
-empty) is taken from the env at construction and held fixed.
-
-**State and observation.** The observation is a function of the state that each env defines in
-its ``_get_obs`` (Reacher: ``[cos q, sin q, target, qvel, fingertip - target]``; the arm:
-``[x, target]``, i.e. the arm's physical state is the first 4 entries and equals ``x``).
-:meth:`MujocoDynamics.observation` evaluates that map for any ``x`` with the env's own code, and
-:func:`state_of` reads ``x`` from a live env. Where an observation holds body positions (Reacher's
-``fingertip - target``), ``env.step`` returns MuJoCo's kinematics from before the last substep
-while the map computes them at ``x`` (``mj_forward``); they differ by one substep's motion
-(about 2e-6 on Reacher).
-
-**Solver warm start.** ``step`` is a pure function of ``(x, u)``: every call starts MuJoCo's
-constraint solver cold. ``env.step`` warm-starts it from the previous step, which moves the
-result by the solver tolerance where constraints act (measured 1e-7 on Reacher-v5); with the
-env's ``qacc_warmstart`` zeroed the two agree bit for bit (tested).
-
-**Integrator.** The env's own (Reacher: RK4, the arm: Euler), or any MuJoCo integrator passed as
-``integrator=`` (on a private copy of the model; the env is never modified).
-
-**Jacobians** (``jacobian_method``):
-
-- ``"transition_fd"``: MuJoCo's ``mjd_transitionFD`` (centred differences inside the solver,
-  exact chain rule over the substeps: ``A = A_k ... A_1``, ``B = sum_j A_k ... A_{j+1} B_j``).
-  Needs an integrator other than RK4 (MuJoCo refuses RK4 there) and ``nq == nv`` (hinge/slide
-  joints, where MuJoCo's tangent space is ``[qpos, qvel]``). At ``|u_i| = 1`` MuJoCo differences
-  one-sidedly inside ``ctrlrange``.
-- ``"fd"``: centred differences of whole env steps, all ``2 (n + m) T`` perturbed steps in ONE
-  batched ``mujoco.rollout`` call. Works for every integrator,
-  including RK4. Perturbations follow the raw coordinates (``qpos`` as stored).
-- ``"auto"`` (default): ``"transition_fd"`` where it applies, else ``"fd"``.
-
-**Cost on observations** (:class:`ObservedDynamics`): a planner whose cost is written on the
-env's observation plans on the lifted state ``z = [x, observation(x)]``; the observation part is
-recomputed by the env's own ``_get_obs`` after every step and linearised by centred differences
-(so iLQR sees the cost's exact derivatives in the observation and the map's first derivative,
-the Gauss-Newton approximation it already makes for the dynamics).
-
-A model with the same ``step`` but other Jacobians (e.g. the arm's analytic twin, exact where
-it matches MuJoCo) is :class:`HybridDynamics`.
+:class:`MujocoDynamics` (state ``concat(qpos, qvel)``, one ``step`` = one ``env.step``, batched;
+``mjd_transitionFD`` or batched finite-difference Jacobians), :class:`ObservedDynamics` (the
+env's observation carried in the state, for costs written on observations) and
+:class:`HybridDynamics`. The manual: docs/environments.md, "The true model of any MuJoCo env".
 """
 
 from __future__ import annotations
@@ -62,7 +16,7 @@ import numpy as np
 from mujoco import rollout
 
 from mbtsr.dynamics import check_step_inputs
-from mbtsr.validation import as_array
+from mbtsr.validation import as_array, check_positive
 
 __all__ = [
     "HybridDynamics",
@@ -132,7 +86,7 @@ def transition_jacobians(
 
 
 class MujocoDynamics:
-    """True dynamics of a Gymnasium MuJoCo env (see the module doc).
+    """True dynamics of a Gymnasium MuJoCo env (docs/environments.md).
 
     :param env: a ``MujocoEnv`` (or a wrapper of one); its model is copied, not shared.
     :param integrator: ``None`` (the env's), ``"euler"``, ``"rk4"``, ``"implicit"`` or
@@ -140,8 +94,7 @@ class MujocoDynamics:
     :param jacobian_method: ``"auto"``, ``"transition_fd"`` or ``"fd"``.
     :param fd_eps: finite-difference step (absolute, per coordinate).
 
-    ``linear_batch_cost = True`` tells iLQR that a batch of ``N`` steps costs ``N`` simulations
-    (its line search then rolls out the step sizes in chunks, see :mod:`mbtsr.ilqr`).
+    ``linear_batch_cost``: a batch of ``N`` steps costs ``N`` simulations (docs/ilqr.md, step 4).
     """
 
     linear_batch_cost = True
@@ -167,14 +120,12 @@ class MujocoDynamics:
                 f"env has {self.model.na} actuator activation state(s); MujocoDynamics supports "
                 "state = (qpos, qvel) only"
             )
-        if not (math.isfinite(fd_eps) and fd_eps > 0):
-            raise ValueError(f"fd_eps must be a finite number > 0, got {fd_eps!r}")
+        self.fd_eps = check_positive("fd_eps", fd_eps)
         self.frame_skip = int(base.frame_skip)
         self.dt = float(self.model.opt.timestep) * self.frame_skip
         self.nq, self.nv = self.model.nq, self.model.nv
         self.state_dim = self.nq + self.nv
         self.action_dim = self.model.nu
-        self.fd_eps = float(fd_eps)
         is_rk4 = self.model.opt.integrator == mujoco.mjtIntegrator.mjINT_RK4
         transition_ok = not is_rk4 and self.nq == self.nv
         if jacobian_method == "auto":
@@ -190,16 +141,10 @@ class MujocoDynamics:
                 f"nq={self.nq}, nv={self.nv}); use 'fd'"
             )
         self.jacobian_method = jacobian_method
-        self._data = mujoco.MjData(self.model)
-        # template full-physics state: the env's (mocap etc.), time 0
-        data = mujoco.MjData(self.model)
-        data.mocap_pos[:] = base.data.mocap_pos
-        data.mocap_quat[:] = base.data.mocap_quat
-        self._scratch = data
+        self._data, self._scratch = mujoco.MjData(self.model), mujoco.MjData(self.model)
         self._nstate = mujoco.mj_stateSize(self.model, _SPEC)
-        self._template = np.empty(self._nstate)
-        mujoco.mj_getState(self.model, data, self._template, _SPEC)
-        self._template[0] = 0.0
+        self._template = np.empty(self._nstate)  # full-physics state: the env's mocap, time 0
+        self.set_mocap(base.data.mocap_pos, base.data.mocap_quat)
         self._qpos0 = mujoco.mj_stateSize(self.model, mujoco.mjtState.mjSTATE_TIME)
         self._obs_scratch: dict[int, tuple] = {}  # id(env) -> (its model, a private MjData)
 
@@ -239,12 +184,10 @@ class MujocoDynamics:
                 and x.shape[-1:] == (n,) and u.shape[-1:] == (m,)
                 and x.shape[:-1] == u.shape[:-1]):
             x, u = check_step_inputs(x, u, n, m)
-        batch = x.shape[:-1]
-        xs = x.reshape(-1, n).astype(float, copy=False)
-        us = u.reshape(-1, m).astype(float, copy=False)
-        if not math.isfinite(xs.sum() + us.sum()):
+        x, u = x.astype(float, copy=False), u.astype(float, copy=False)
+        if not math.isfinite(x.sum() + u.sum()):
             check_step_inputs(x, u, n, m)  # names x or u
-        return self._rollout_final(xs, us).reshape(*batch, n)
+        return self._step(x, u)
 
     def _step(self, x: np.ndarray, u: np.ndarray, t: int | None = None) -> np.ndarray:
         """:meth:`step` without input checks (for solvers that validated once): float64
@@ -360,21 +303,10 @@ class HybridDynamics:
 class ObservedDynamics:
     """A :class:`MujocoDynamics` with the env's observation carried in the state.
 
-    State ``z = [x (n), obs (d)]`` with ``x = concat(qpos, qvel)`` and ``obs = observation(x)``
-    (the env's ``_get_obs``); ``step(z, u) = [x', observation(x')]`` with ``x' = f(x, u)``, so a
-    cost written on observations is a cost on ``z[n:]`` (an ordinary CasADi expression, see
-    :func:`agents.evaluation.oracle_policy`). The observation part of the input state is not
-    read by ``step``.
-
-    Jacobians: ``A_z = [[A, 0], [C A, 0]]``, ``B_z = [B; C B]`` with ``A, B`` the model's and
-    ``C = d observation / dx`` at ``x'`` by centred differences (step ``fd_eps`` per raw
-    coordinate).
-
-    Affine observations (HalfCheetah's ``[qpos[1:], qvel]``, InvertedPendulum's ``[qpos,
-    qvel]``): when ``observation(x) = C x + c`` holds exactly at random states far apart (checked
-    once at construction, velocities beyond the usual clipping thresholds included), ``C`` and
-    ``c`` are kept and the observation of a batch is one matrix product instead of a loop of
-    the env's ``_get_obs`` (``affine`` is ``(C, c)``, else ``None``).
+    State ``z = [x (n), obs (d)]``, ``obs = observation(x)`` (the env's ``_get_obs``);
+    ``step(z, u) = [x', observation(x')]``; ``A_z = [[A, 0], [C A, 0]]``, ``B_z = [B; C B]``,
+    ``C = d observation / dx`` at ``x'``; ``affine`` is ``(C, c)`` for an affine observation,
+    else ``None`` (docs/environments.md, "The true model of any MuJoCo env").
 
     :param dynamics: the true model. :param env: the env whose ``_get_obs`` defines the map
         (only read: its ``data`` is swapped for a copy during each evaluation, then restored).
@@ -385,9 +317,7 @@ class ObservedDynamics:
     def __init__(self, dynamics: MujocoDynamics, env, *, fd_eps: float = 1e-6) -> None:
         if not isinstance(dynamics, MujocoDynamics):
             raise TypeError(f"dynamics must be a MujocoDynamics, got {type(dynamics).__name__}")
-        if not (math.isfinite(fd_eps) and fd_eps > 0):
-            raise ValueError(f"fd_eps must be a finite number > 0, got {fd_eps!r}")
-        self.dynamics, self.env, self.fd_eps = dynamics, env, float(fd_eps)
+        self.dynamics, self.env, self.fd_eps = dynamics, env, check_positive("fd_eps", fd_eps)
         self.n = dynamics.state_dim
         self.obs_dim = int(np.asarray(dynamics.observation(env, np.zeros(self.n))).shape[0])
         self.state_dim = self.n + self.obs_dim

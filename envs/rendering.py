@@ -63,13 +63,9 @@ def _check_frames(frames: Sequence[np.ndarray]) -> list[np.ndarray]:
 
 
 def save_video(frames: Sequence[np.ndarray], path: str | os.PathLike, fps: float = 50) -> Path:
-    """Write ``frames`` to ``path`` as an H.264 ``.mp4`` (imageio-ffmpeg) or a ``.gif`` (Pillow).
-
-    MP4 is the default format of the agent's episode videos: ``imageio-ffmpeg`` is a core
-    dependency and ships its own ffmpeg binary. Odd frame sizes are padded by one edge row/column
-    (H.264 with ``yuv420p`` needs even sizes); RGBA frames lose their alpha channel. GIF stays as
-    the fallback: when ``.mp4`` is asked for but ffmpeg cannot be found, the frames are written to
-    the same path with the suffix ``.gif`` and a warning says so.
+    """Write ``frames`` to ``path`` as an H.264 ``.mp4`` (imageio-ffmpeg) or a ``.gif`` (Pillow);
+    without ffmpeg an ``.mp4`` becomes a ``.gif`` with a warning (docs/environments.md,
+    "Rendering").
 
     :param frames: ``[H, W, 3|4]`` images, all the same shape.
     :param path: ends in ``.mp4`` or ``.gif``; written atomically (temp file then rename).

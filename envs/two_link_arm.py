@@ -36,16 +36,12 @@ __all__ = [
 
 ASSET_PATH = Path(__file__).resolve().parent / "assets" / "two_link_arm.xml"
 
-#: Std of the normalized excitation input per preset, used by envs.collect as the default
-#: input scale: the arm moves substantially, leaves the joint limits rarely and the input
-#: saturates rarely (|a| > 1 at ~3 sigma or beyond).
+#: Std of the normalized excitation input per preset (envs.collect's default input scale)
 EXCITATION_STD = {"default": 0.15, "paper": 1.0 / 3.0}
 
 FD_EPS = 1e-6  # mjd_transitionFD perturbation (centred differences)
 
-#: Largest control period accepted [s] (5 x the default 0.02 s): with 10 Euler substeps the
-#: default arm diverges under random torques at dt = 0.5 s, and already at dt = 0.3 s its
-#: trajectories are too coarse for the reach task.
+#: Largest control period accepted [s] (docs/environments.md, "Presets")
 MAX_DT = 0.1
 #: A joint speed above this [rad/s] means the simulation diverged (the real arms stay < 50).
 VELOCITY_LIMIT = 1e3
@@ -211,7 +207,7 @@ class TwoLinkArmEnv(MujocoEnv, utils.EzPickle):
         self._target = np.zeros(2)
         self._goal = np.zeros(4)
         self._t = 0
-        self._analytic: dict[bool, TwoLinkArmCasadi] | None = None
+        self._analytic: dict[bool, TwoLinkArmCasadi] = {}
         self._mujoco_model: MujocoDynamics | None = None
 
     # --- MujocoEnv hooks -------------------------------------------------------------------
@@ -230,15 +226,6 @@ class TwoLinkArmEnv(MujocoEnv, utils.EzPickle):
     def _obs(self, x: np.ndarray) -> np.ndarray:
         return np.concatenate((x, self._target))
 
-    def _check_target(self, target: object) -> np.ndarray:
-        target = as_array("options['target']", target, (2,))
-        if np.any(np.abs(target) >= self.joint_limit):
-            raise ValueError(
-                f"options['target'] must satisfy |q| < joint_limit={self.joint_limit:.4f} rad, "
-                f"got {target.tolist()}"
-            )
-        return target
-
     def reset(self, *, seed: int | None = None, options: dict | None = None):
         """Reset; ``options`` may hold ``"target"`` ``[2]`` and/or ``"state"`` ``[4]``."""
         super(MujocoEnv, self).reset(seed=seed)  # gymnasium.Env.reset: seeds np_random
@@ -250,7 +237,10 @@ class TwoLinkArmEnv(MujocoEnv, utils.EzPickle):
         target = self.np_random.uniform(-self.target_limit, self.target_limit, size=2)
         x0 = self.np_random.uniform(-self.init_noise, self.init_noise, size=4)
         if "target" in options:
-            target = self._check_target(options["target"])
+            target = as_array("options['target']", options["target"], (2,))
+            if np.any(np.abs(target) >= self.joint_limit):
+                raise ValueError(f"options['target'] must satisfy |q| < joint_limit="
+                                 f"{self.joint_limit:.4f} rad, got {target.tolist()}")
         if "state" in options:
             x0 = as_array("options['state']", options["state"], (4,))
         mujoco.mj_resetData(self.model, self.data)
@@ -269,15 +259,10 @@ class TwoLinkArmEnv(MujocoEnv, utils.EzPickle):
         return sum(int(w[k].number) for k in _INSTABILITY_WARNINGS)
 
     def step(self, action):
-        """Apply the normalized torque ``action`` ``[2]`` for ``dt`` seconds.
-
-        If the simulation diverges during the step (a MuJoCo instability warning, after which
-        MuJoCo resets the arm, or a joint speed above ``VELOCITY_LIMIT``) the step returns
-        ``truncated=True`` and ``info["unstable"] = True`` with the reason in
-        ``info["instability"]``; the observation is then not a physical successor state.
-        """
-        a = as_array("action", action, (2,))
-        a = np.clip(a, -1.0, 1.0)
+        """Apply the normalized torque ``action`` ``[2]`` for ``dt`` seconds; a diverged
+        simulation truncates with ``info["unstable"]`` (docs/environments.md, "Start state,
+        targets, episode end")."""
+        a = np.clip(as_array("action", action, (2,)), -1.0, 1.0)
         warnings_before = self._instability_warnings()
         self.data.ctrl[:] = a
         mujoco.mj_step(self.model, self.data, nstep=self.frame_skip)
@@ -326,12 +311,8 @@ class TwoLinkArmEnv(MujocoEnv, utils.EzPickle):
         return self._mujoco_model
 
     def linearize(self, x: object, u: object) -> tuple[np.ndarray, np.ndarray]:
-        """Jacobians of one env step at ``(x [4], u [2])``: ``A [4, 4]``, ``B [4, 2]``.
-
-        The one route to the true Jacobians, :meth:`envs.mujoco_model.MujocoDynamics.jacobians`
-        (``mjd_transitionFD`` chained over the substeps, on the model's own ``MjData``); the
-        env's simulation state is untouched.
-        """
+        """Jacobians of one env step at ``(x [4], u [2])``: ``A [4, 4]``, ``B [4, 2]``, by
+        :meth:`envs.mujoco_model.MujocoDynamics.jacobians` (the env's state is untouched)."""
         x = as_array("x", x, (4,))
         u = as_array("u", u, (2,))
         A, B = self._true_model().jacobians(x[None], u[None])
@@ -356,8 +337,6 @@ class TwoLinkArmEnv(MujocoEnv, utils.EzPickle):
     def analytic_model(self, jit: bool = False) -> TwoLinkArmCasadi:
         """The analytic CasADi twin of this env's arm (built once per ``jit`` value, cached);
         ``jit=True`` compiles it to C for planning speed (see ``TwoLinkArmCasadi``)."""
-        if self._analytic is None:
-            self._analytic = {}
         if bool(jit) not in self._analytic:
             self._analytic[bool(jit)] = TwoLinkArmCasadi(self.params, jit=jit)
         return self._analytic[bool(jit)]

@@ -1,27 +1,8 @@
 """Physical constants of the two-link arm and its analytic CasADi twin.
 
-The arm swings in a vertical plane; ``q = 0`` is hanging straight down. With ``s1 = sin q1``,
-``c2 = cos q2``, ``s12 = sin(q1 + q2)`` and per link ``i``: mass ``m_i``, length ``l_i``, distance
-``r_i`` from the joint to the link's centre of mass and inertia ``I_i`` about that centre, the
-equations of motion are (Spong, Hutchinson & Vidyasagar, *Robot Modeling and Control*, ch. 7)::
-
-    M(q) qdd + c(q, qd) + g(q) = tau - D qd - fc * tanh(qd / v_s)
-
-    M11 = I1 + m1 r1^2 + I2 + m2 (l1^2 + r2^2 + 2 l1 r2 c2) + a1
-    M12 = I2 + m2 (r2^2 + l1 r2 c2)
-    M22 = I2 + m2 r2^2 + a2                       (a_i: motor armature, reflected rotor inertia)
-    c   = h [-(2 qd1 qd2 + qd2^2), qd1^2],  h = m2 l1 r2 sin q2
-    g   = gravity * [(m1 r1 + m2 l1) s1 + m2 r2 s12, m2 r2 s12]
-    tau = torque_limit * a                        (a: the normalized action in [-1, 1]^2)
-
-With point masses at the link ends (``r_i = l_i``, ``I_i = 0``, no armature) this is the robot of
-the paper's original code *without* its inertia typo: ``M11 = (m1+m2) l1^2 + m2 l2^2 +
-2 m2 l1 l2 c2``.
-
-Coulomb friction is smoothed to ``fc * tanh(qd / v_s)`` (MuJoCo: a soft constraint); time
-stepping replicates MuJoCo's Euler substeps with implicit damping. The stability bound, the
-agreement with the MuJoCo env (tested in ``tests/test_two_link_arm.py``) and the near-zero
-velocity error: docs/environments.md, "analytic_model(): the CasADi twin".
+``q = 0`` is hanging straight down. The equations of motion (Spong et al., ch. 7), the Euler
+substeps, the tanh Coulomb smoothing and the agreement with the MuJoCo env: docs/environments.md,
+"analytic_model(): the CasADi twin".
 """
 
 from __future__ import annotations
@@ -34,7 +15,7 @@ import numpy as np
 
 from mbtsr.costs import casadi_jit_options
 from mbtsr.dynamics import check_step_inputs
-from mbtsr.validation import as_array
+from mbtsr.validation import as_array, check_nonnegative, check_positive
 
 __all__ = [
     "ArmParams",
@@ -96,9 +77,7 @@ def _rod(mass: float, length: float) -> float:
 
 
 PRESETS: dict[str, ArmParams] = {
-    # A plausible small real arm: aluminium-tube links modelled as uniform rods, geared motors
-    # (armature, viscous and dry friction of a few % of the torque limit), real gravity. The
-    # shoulder can hold the stretched-out arm horizontally (needs 4.27 N m of 8 N m).
+    # a plausible small real arm (docs/environments.md, "Presets")
     "default": ArmParams(
         link_mass=(1.2, 0.6),
         link_length=(0.30, 0.25),
@@ -110,10 +89,7 @@ PRESETS: dict[str, ArmParams] = {
         torque_limit=(8.0, 3.0),
         gravity=9.81,
     ),
-    # The robot of the paper's original code (original_implementation.md section 3): point
-    # masses 0.2 kg at the ends of 1 m links, viscous 2, Coulomb 0.1, g = 1.82, dt = 0.02,
-    # without the code's M11 typo. Torque limit 3 N m: the paper's excitation (std ~1 N m) fits
-    # within +-3 sigma.
+    # the robot of the paper's original code, without its M11 typo
     "paper": ArmParams(
         link_mass=(0.2, 0.2),
         link_length=(1.0, 1.0),
@@ -130,10 +106,9 @@ PRESETS: dict[str, ArmParams] = {
 
 def _check_pair(name: str, value: object, *, positive: bool) -> tuple[float, float]:
     arr = as_array(name, value, (2,))
-    if positive and np.any(arr <= 0):
-        raise ValueError(f"{name} must be > 0 for both links, got {arr.tolist()}")
-    if not positive and np.any(arr < 0):
-        raise ValueError(f"{name} must be >= 0 for both links, got {arr.tolist()}")
+    if np.any(arr <= 0 if positive else arr < 0):
+        raise ValueError(f"{name} must be {'>' if positive else '>='} 0 for both links, got "
+                         f"{arr.tolist()}")
     return (float(arr[0]), float(arr[1]))
 
 
@@ -150,24 +125,15 @@ def validate_params(p: ArmParams) -> ArmParams:
         "torque_limit": True,
     }
     clean = {k: _check_pair(k, getattr(p, k), positive=pos) for k, pos in pairs.items()}
-    gravity = float(p.gravity)
-    if not math.isfinite(gravity) or gravity < 0:
-        raise ValueError(f"gravity must be a finite number >= 0, got {p.gravity!r}")
-    timestep = float(p.timestep)
-    if not math.isfinite(timestep) or timestep <= 0:
-        raise ValueError(f"timestep must be a finite number > 0, got {p.timestep!r}")
     if int(p.frame_skip) != p.frame_skip or p.frame_skip < 1:
         raise ValueError(f"frame_skip must be an integer >= 1, got {p.frame_skip!r}")
-    v_s = float(p.friction_velocity)
-    if not math.isfinite(v_s) or v_s <= 0:
-        raise ValueError(f"friction_velocity must be a finite number > 0, got {v_s!r}")
     return replace(
         p,
         **clean,
-        gravity=gravity,
-        timestep=timestep,
+        gravity=check_nonnegative("gravity", p.gravity),
+        timestep=check_positive("timestep", p.timestep),
         frame_skip=int(p.frame_skip),
-        friction_velocity=v_s,
+        friction_velocity=check_positive("friction_velocity", p.friction_velocity),
     )
 
 
@@ -186,10 +152,7 @@ def arm_params(preset: str = "default", *, dt: float | None = None, **overrides)
         raise ValueError(f"unknown arm parameter(s) {sorted(unknown)}; valid: {sorted(valid)}")
     p = replace(PRESETS[preset], **overrides)
     if dt is not None:
-        dt = float(dt)
-        if not math.isfinite(dt) or dt <= 0:
-            raise ValueError(f"dt must be a finite number > 0, got {dt!r}")
-        p = replace(p, timestep=dt / int(p.frame_skip))
+        p = replace(p, timestep=check_positive("dt", dt) / int(p.frame_skip))
     return validate_params(p)
 
 
@@ -253,20 +216,13 @@ def euler_substep(x: ca.SX, a: ca.SX, p: ArmParams) -> ca.SX:
 
 
 class TwoLinkArmCasadi:
-    """Analytic CasADi twin of ``mbtsr/TwoLinkArm-v0``; implements ``mbtsr.dynamics.DynamicsModel``.
-
-    Actions are the env's normalized actions (torque / torque_limit); they are *not* clipped
-    here, so that optimizers see a smooth model: keep ``|a| <= 1`` (as the env does) for the
-    two to agree.
+    """Analytic CasADi twin of ``mbtsr/TwoLinkArm-v0`` (a ``mbtsr.dynamics.DynamicsModel``; its
+    attributes: docs/environments.md, "analytic_model()"). Actions are not clipped here (a
+    smooth model): keep ``|a| <= 1``, as the env does, for the two to agree.
 
     :param params: the arm's constants (``arm_params(preset)``).
-    :param jit: compile ``step`` and ``jacobians`` to C (CasADi JIT with the system compiler,
-        1-3 s once per instance): 4x faster steps and 9x faster Jacobians, same numbers to
-        round-off (tested). Planning-speed option; needs a C compiler.
-
-    Attributes: ``casadi_step`` ``F(x[4], a[2]) -> x_next[4]`` (one env step, ``frame_skip``
-    substeps), ``casadi_continuous`` ``f(x[4], a[2]) -> xdot[4]``, ``casadi_jacobians``
-    ``J(x, a) -> (A[4,4], B[4,2])``, ``state_dim = 4``, ``action_dim = 2``, ``dt``, ``params``.
+    :param jit: compile ``step`` and ``jacobians`` to C (1-3 s once per instance; 4x faster
+        steps, 9x faster Jacobians, same numbers to round-off; needs a C compiler).
     """
 
     state_dim = 4
@@ -300,16 +256,7 @@ class TwoLinkArmCasadi:
                 which: ca.Function(f"{fn.name()}_jit", [x, a], fn.call([x, a]), opts)
                 for which, fn in self._kernels.items()
             }
-        self._maps: dict[tuple[str, int], ca.Function] = {}
         self._buffers: dict[tuple[str, int], tuple] = {}
-
-    def _mapped(self, which: str, n: int) -> ca.Function:
-        key = (which, n)
-        if key not in self._maps:
-            if len(self._maps) > 16:
-                self._maps.clear()
-            self._maps[key] = self._kernels[which].map(n)
-        return self._maps[key]
 
     def _buffer(self, which: str, n: int) -> tuple:
         """Zero-copy evaluation of the ``n``-fold map of ``casadi_step`` (``which="step"``) or
@@ -324,7 +271,7 @@ class TwoLinkArmCasadi:
         if entry is None:
             if len(self._buffers) > 16:
                 self._buffers.clear()
-            fn = self._mapped(which, n)
+            fn = self._kernels[which].map(n)
             buf, evaluate = fn.buffer()
             x_in, u_in = np.zeros((n, 4)), np.zeros((n, 2))
             buf.set_arg(0, memoryview(x_in))
@@ -335,12 +282,9 @@ class TwoLinkArmCasadi:
     def step(self, x: np.ndarray, u: np.ndarray, t: int | None = None) -> np.ndarray:
         """Next state in one mapped call: ``x: [..., 4]``, ``u: [..., 2]`` -> ``[..., 4]``."""
         if not (isinstance(x, np.ndarray) and isinstance(u, np.ndarray)
-                and x.dtype.kind in "fiub" and u.dtype.kind in "fiub"):
-            x, u = check_step_inputs(x, u, 4, 2)  # converts (and checks) anything else
-        batch = x.shape[:-1]
-        if x.shape[-1:] != (4,) or u.shape[-1:] != (2,) or batch != u.shape[:-1]:
-            check_step_inputs(x, u, 4, 2)  # raises the precise message
-            raise ValueError("x and u must be arrays [..., 4] and [..., 2]")
+                and x.dtype.kind in "fiub" and u.dtype.kind in "fiub" and x.shape[-1:] == (4,)
+                and u.shape[-1:] == (2,) and x.shape[:-1] == u.shape[:-1]):
+            x, u = check_step_inputs(x, u, 4, 2)  # converts anything else, or names the problem
         if not math.isfinite(x.sum() + u.sum()):  # NaN/inf (or an overflowing sum)
             check_step_inputs(x, u, 4, 2)  # names x or u and the first bad index
         return self._step(x, u, t)

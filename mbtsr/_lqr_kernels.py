@@ -16,21 +16,10 @@ Per time step ``t = T-1 .. 0`` with the value ``(v_x, V_xx)`` of step ``t+1``::
     v_x  = Q_x  + K^T Q_uu k + K^T Q_u + Q_ux^T k
     V_xx = Q_xx + K^T Q_uu K + K^T Q_ux + Q_ux^T K                   (symmetrised)
 
-The box QP is solved as in the reference: the unconstrained minimiser if it lies in the box,
-else an active-set guess checked by its KKT conditions, else Bertsekas' projected Newton
-(Tassa et al. 2014 ``boxQP``) warm-started at ``k_{t+1}``. Matrices are small (``m, n`` <= ~20),
-so Cholesky factorisations are written out (no LAPACK call overhead) and double as the positive
-definiteness check.
-
-Why numba and not CasADi-generated code: the box QP has data-dependent control flow (which
-controls are clamped, projected-Newton iterations with a backtracking line search, a fallback
-from the active-set guess), which numba compiles from the same Python as the numpy reference,
-while a CasADi expression graph would have to unroll every branch with ``if_else`` for a fixed
-worst-case iteration count. (A CasADi-generated version was not built or measured.)
-
-Compilation: ``numba.njit(cache=True)``; the first call in a fresh environment compiles (a few
-seconds, measured in ``tests/test_lqr_kernels.py``), later processes load the cache from
-``__pycache__``.
+The box QP: the unconstrained minimiser if it lies in the box, else an active-set guess checked
+by its KKT conditions, else Bertsekas' projected Newton (Tassa et al. 2014 ``boxQP``)
+warm-started at ``k_{t+1}``. ``numba.njit(cache=True)``; why numba, and the compile time:
+docs/ilqr.md, "Performance".
 """
 
 from __future__ import annotations

@@ -1,41 +1,9 @@
 """Cross-entropy method (CEM) trajectory optimisation, the sampling planner of PETS.
 
-Chua et al., "Deep Reinforcement Learning in a Handful of Trials using Probabilistic Dynamics
-Models" (NeurIPS 2018) plan with CEM on a learned ensemble: sample action sequences from a
-Gaussian, roll every sample through the model's forward predictions, refit the Gaussian to the
-lowest-cost ("elite") samples, repeat. It never uses the model's Jacobians, which makes it the
-control for the paper's argument: iLQR consumes the learned Jacobians, CEM does not.
-
-:func:`cem` has the optimiser signature every planner in mbtsr shares (``docs/interfaces``)::
-
-    result = cem(cost, model, x0[n], U0[T, m], u_min=..., u_max=..., params=None, t0=0,
-                 options=None)
-
-and returns ``X [T+1, n]``, ``U [T, m]`` (finite, inside the bounds), ``cost``, ``status``,
-``iterations`` like :func:`mbtsr.ilqr.ilqr`. Same seed, same result. Per iteration:
-
-1. ``U_s = clip(mu + sigma * eps_s)``, ``eps ~ N(0, I)``, ``s < samples``; the current mean
-   and the best sequence found so far are always candidates (so a warm start is never lost
-   and the returned cost never increases over iterations);
-2. ``X_s`` = the batched forward rollout ``model.step(X[:, t], U_s[:, t], t0 + t)``; a
-   non-finite or diverged rollout costs ``inf``. With ``particles = P > 1`` every sequence is
-   rolled out as ``P`` consecutive rows (``s P, ..., s P + P - 1``) and its cost is the mean of
-   their costs (``inf`` if any diverged): with a trajectory-sampling model
-   (:meth:`mbtsr.ensemble.FrozenEnsemble.trajectory_sampling`, row ``r`` follows member
-   ``r mod K``) a sequence is scored under the members of the ensemble, PETS' TS-inf;
-3. ``J_s = sum_t l(x_t, u_t) + l_T(x_T)``; with ``terminated`` the stage costs after the first
-   predicted termination are dropped (the episode would have ended), plus an optional
-   ``termination_cost``;
-4. ``mu <- (1 - a) mu_elite + a mu``, ``sigma <- (1 - a) sigma_elite + a sigma`` over the
-   ``elites`` lowest costs (``a = smoothing``).
-
-Directed exploration (``explore_weight = w > 0``, for training rollouts): samples are ranked by
-``J_s - c D_s``, ``D_s`` the members' disagreement along the rollout (``explore_on``: ``"state"``
-or ``"cost"``), ``c = w std(J) / std(D)`` fixed on the solve's first iteration with a spread in
-both (docs/agent.md, "Directed exploration"); ``timings["disagreement"]`` its time. The
-result's ``cost`` stays the task cost ``J`` of the chosen sequence.
-
-It stops at ``iterations`` or when ``max sigma < tol_std`` (status ``"converged"``).
+Sample action sequences from a Gaussian, roll every sample through the model's batched forward
+predictions (never its Jacobians), refit the Gaussian to the lowest-cost ("elite") samples,
+repeat. Same signature as :func:`mbtsr.ilqr.ilqr`; same seed, same result. The algorithm step by
+step (particles, predicted termination, directed exploration): docs/ilqr.md, "CEM".
 """
 
 from __future__ import annotations
@@ -50,6 +18,7 @@ import numpy as np
 
 from mbtsr.costs import after_termination, truncated_total
 from mbtsr.dynamics import _rollout as _step_rollout
+from mbtsr.ilqr import check_control_bounds
 from mbtsr.validation import as_array, check_callable, check_int, options_from
 
 __all__ = ["CEMOptions", "CEMResult", "cem"]
@@ -69,12 +38,12 @@ class CEMOptions:
     :param max_state_norm: a rollout whose ``max |x|`` exceeds this costs ``inf``.
     :param termination_cost: cost added once at a predicted termination (see ``terminated``).
     :param particles: rollouts per action sequence, their costs averaged (1: one rollout;
-        PETS: 20 with trajectory sampling; see step 2 of the module docstring).
+        PETS: 20 with trajectory sampling; docs/ilqr.md, "CEM", step 2).
     :param explore_weight: weight ``w`` of the disagreement bonus (0: off; see the module
         docstring); needs a model with ``disagreement(X, U)`` (``explore_on="state"``) or
         ``member_predictions(X, U)`` (``"cost"``): an ensemble.
     :param explore_on: ``"state"`` or ``"cost"``: what the members' disagreement is measured
-        on (module docstring).
+        on (docs/agent.md, "Directed exploration").
     """
 
     samples: int = 200
@@ -95,8 +64,7 @@ class CEMOptions:
             raise ValueError(f"options.explore_on must be 'state' or 'cost', got "
                              f"{self.explore_on!r}")
         for name in ("samples", "elites", "iterations", "particles"):
-            v = getattr(self, name)
-            check_int(f"options.{name}", v, 1)
+            check_int(f"options.{name}", getattr(self, name), 1)
         if self.samples < 2:
             raise ValueError(f"options.samples must be >= 2, got {self.samples}")
         if self.elites > self.samples:
@@ -148,14 +116,6 @@ class CEMResult:
     disagreement: float | None = None
 
 
-def _bounds(u_min: Any, u_max: Any, m: int) -> tuple[np.ndarray, np.ndarray]:
-    lo = np.broadcast_to(as_array("u_min", u_min, finite=False), (m,)).astype(float)
-    hi = np.broadcast_to(as_array("u_max", u_max, finite=False), (m,)).astype(float)
-    if np.any(hi <= lo):
-        raise ValueError(f"u_max must be > u_min, got u_min={lo}, u_max={hi}")
-    return lo, hi
-
-
 def _rollout(model: Any, x0: np.ndarray, U: np.ndarray, t0: int, max_state_norm: float
              ) -> tuple[np.ndarray, np.ndarray]:
     """Batched open-loop rollout ``U [S, T, m]`` from ``x0 [n]`` -> ``(X [S, T+1, n], alive
@@ -185,7 +145,7 @@ def _costs(
     cost: Any, X: np.ndarray, U: np.ndarray, t0: int, params: Any, done: np.ndarray | None,
     termination_cost: float,
 ) -> np.ndarray:
-    """``[S]`` trajectory costs (see the module docstring, step 3; ``done`` from
+    """``[S]`` trajectory costs (docs/ilqr.md, "CEM", step 3; ``done`` from
     :func:`_terminations`)."""
     args = () if params is None else (params,)  # a cost without params takes no argument
     if done is None:
@@ -209,7 +169,7 @@ def cem(
     terminated: Callable[[np.ndarray], np.ndarray] | None = None,
 ) -> CEMResult:
     """Minimise ``J(U) = sum_t l(x_t, u_t, t0+t) + l_T(x_T)`` over ``U`` in the box with CEM,
-    using only ``model.step`` (see the module docstring).
+    using only ``model.step`` (docs/ilqr.md, "CEM").
 
     :param cost: an object with ``total(X [..., T+1, n], U [..., T, m], t0[, params]) ->
         [...]`` (e.g. :class:`mbtsr.costs.CasadiCost`); with ``terminated`` also
@@ -238,9 +198,8 @@ def cem(
             f"{type(model).__name__}")
     x0 = as_array("x0", x0, ndim=1)
     n = x0.shape[0]
-    got = getattr(model, "state_dim", n)
-    if got != n:
-        raise ValueError(f"model.state_dim={got} does not match x0 of dimension {n}")
+    if getattr(model, "state_dim", n) != n:
+        raise ValueError(f"model.state_dim={model.state_dim} does not match x0 of dimension {n}")
     U0 = as_array("U0", U0, ndim=2)
     T, m = U0.shape
     if T < 1 or m < 1:
@@ -248,9 +207,11 @@ def cem(
     if getattr(model, "action_dim", m) != m:
         raise ValueError(f"model.action_dim={model.action_dim} does not match U0's m={m}")
     check_int("t0", t0, 0)
-    lo, hi = _bounds(u_min, u_max, m)
+    lo, hi = check_control_bounds(u_min, u_max, m)
     if not (np.all(np.isfinite(lo)) and np.all(np.isfinite(hi))):
         raise ValueError("cem needs finite u_min and u_max (it samples inside the box)")
+    if np.any(hi <= lo):
+        raise ValueError(f"u_max must be > u_min, got u_min={lo}, u_max={hi}")
     half = 0.5 * (hi - lo)
     rng = np.random.default_rng(int(opts.seed))
     t_start = time.perf_counter()
@@ -259,7 +220,7 @@ def cem(
     mu = np.clip(U0, lo, hi)
     std = np.broadcast_to(opts.init_std * half, (T, m)).copy()
     best_U, best_J, best_cost, best_X = mu.copy(), np.inf, np.inf, None
-    bonus = None  # c of the module docstring, set on the first iteration with a spread
+    bonus = None  # c of directed exploration, set on the first iteration with a spread
     trace: list[dict] = []
     status, message = "max_iter", f"reached {opts.iterations} iterations"
     it = 0
@@ -370,7 +331,7 @@ def _disagreements(
 def _explore_scores(
     J: np.ndarray, D: np.ndarray, weight: float, bonus: float | None, min_finite: int,
 ) -> tuple[np.ndarray, float | None]:
-    """``(J - c D [S], c)``: the ranking scores of directed exploration (module docstring),
+    """``(J - c D [S], c)``: the ranking scores of directed exploration (docs/agent.md),
     ``c`` fixed on the first call with at least ``min_finite`` (and 2) finite costs and a
     spread in both ``J`` and ``D`` over them (``None`` until then: the scores are ``J``)."""
     if bonus is None:

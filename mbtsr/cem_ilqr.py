@@ -1,26 +1,10 @@
 """CEM proposes, iLQR refines: the default planner of the agent and of its true-model oracle.
 
-Each solve runs a few iterations of the cross-entropy method (:func:`mbtsr.cem.cem`) around
-the initial plan ``U0`` (the MPC's shifted previous plan with ``warm_samples`` samples, or zeros
-at a cold start with more iterations of all ``cem.samples``), then
-iLQR (:func:`mbtsr.ilqr.ilqr`) from CEM's best sequence. CEM never returns a plan worse than
-``U0`` (the mean and the best so far are always candidates), and iLQR's line search accepts only
-steps that lower the cost, so the result is never worse than ``U0`` or CEM's proposal.
-
-Why both (measured on the TRUE MuJoCo models, issue 20):
-
-* iLQR alone follows the local gradient. Where contacts decide (Pusher-v5: the fingertip must
-  reach the object before pushing it changes the cost; HalfCheetah-v5: feet on the ground)
-  the gradient is zero or misleading, and iLQR's plans stall: HalfCheetah return 480 over 200
-  steps, Pusher -38.8 on its first evaluation episode.
-* CEM alone searches globally but has no feedback: on InvertedDoublePendulum-v5 its open-loop
-  samples cannot find the narrow set of balancing sequences (the poles fall within 40-100
-  steps with 50-100 samples), where iLQR balances indefinitely.
-* CEM then iLQR: HalfCheetah 1,105 over 200 steps, Pusher -30.5, the double pendulum balanced.
-
-Same signature as every optimizer of :class:`mbtsr.mpc.MPC`; the MPC sets ``max_iter`` (the
-iLQR iterations of the solve). The CEM samples are seeded from ``cem.seed + t0``, so every
-MPC step draws new samples and the same episode gives the same numbers.
+Each solve runs a few iterations of :func:`mbtsr.cem.cem` around ``U0`` (``warm_samples``
+samples when warm-started; a cold start runs more iterations of all ``cem.samples``), then
+:func:`mbtsr.ilqr.ilqr` from CEM's best sequence: the result is never worse than ``U0`` or the
+proposal. The CEM samples are seeded from ``cem.seed + t0``. Why both, with measurements:
+docs/ilqr.md, "The default planner: CEM proposes, iLQR refines".
 """
 
 from __future__ import annotations
@@ -34,7 +18,7 @@ import numpy as np
 
 from mbtsr.cem import CEMOptions, cem
 from mbtsr.ilqr import ILQROptions, ILQRResult, ilqr
-from mbtsr.validation import check_int, options_from
+from mbtsr.validation import check_int, check_nonnegative, options_from
 
 __all__ = ["CEMILQROptions", "cem_ilqr"]
 
@@ -49,15 +33,10 @@ class CEMILQROptions:
     :param lambda_init: iLQR's initial regularisation (``None``: ``ilqr.lambda_init``); the
         MPC sets it when it warm-starts the regularisation.
     :param cold_proposal_iterations: CEM iterations of a cold start (:meth:`for_cold_start`,
-        which the MPC calls): with no plan to refine, CEM decides the strategy (Pusher-v5's
-        first evaluation episode on the true model: 2 iterations -38.9, 6 iterations -30.5).
+        which the MPC calls; with no plan to refine, CEM decides the strategy).
     :param warm_samples: CEM samples of a warm-started proposal, at most ``cem.samples``
-        (``None``: ``cem.samples``; elites at most as many); a cold start
-        (:meth:`for_cold_start`) samples ``cem.samples``. The warm start already holds the
-        previous solve's refined plan, and the proposal's rollouts are most of a planning
-        step's arithmetic: 32 of 64 brought the default planner on the default learned model
-        within the control period on Reacher-v5, Pusher-v5 and HalfCheetah-v5 (CPU time,
-        docs/ilqr.md, "Planning at the control rate").
+        (``None``: ``cem.samples``; elites at most as many); a cold start samples
+        ``cem.samples`` (why 32: docs/ilqr.md, "Planning at the control rate").
     """
 
     max_iter: int = 2
@@ -77,18 +56,15 @@ class CEMILQROptions:
 
     def __post_init__(self) -> None:
         for name in ("max_iter", "cold_proposal_iterations"):
-            v = getattr(self, name)
-            check_int(name, v, 1)
+            check_int(name, getattr(self, name), 1)
         if self.warm_samples is not None:
             check_int("warm_samples", self.warm_samples, 2)
         if not isinstance(self.cem, CEMOptions):
             raise TypeError(f"cem must be a CEMOptions, got {type(self.cem).__name__}")
         if not isinstance(self.ilqr, ILQROptions):
             raise TypeError(f"ilqr must be an ILQROptions, got {type(self.ilqr).__name__}")
-        if self.lambda_init is not None and not (np.isfinite(self.lambda_init)
-                                                 and self.lambda_init >= 0):
-            raise ValueError(f"lambda_init must be None or a finite number >= 0, got "
-                             f"{self.lambda_init!r}")
+        if self.lambda_init is not None:
+            check_nonnegative("lambda_init", self.lambda_init)
 
 
 def cem_ilqr(

@@ -1,33 +1,15 @@
 """CasADi-assisted trajectory costs for iLQR, MPC and the IPOPT reference.
 
-The user writes a stage cost ``l(x, u, t)`` and a terminal cost ``l_T(x)`` with CasADi symbols;
-this module derives ``l_x, l_u, l_xx, l_uu, l_ux`` symbolically once and evaluates them along a
-whole trajectory (or a batch of them) with a mapped CasADi function (``Function.map`` over
-blocks of rows), optionally JIT-compiled as a whole. The same symbolic functions are used by
-:func:`mbtsr.ipopt_reference.solve_ipopt`, so iLQR and IPOPT optimise exactly the same
-objective::
+The user writes a stage cost ``l(x, u, t[, p])`` and a terminal cost ``l_T(x[, p])`` with CasADi
+symbols; this module derives ``l_x, l_u, l_xx, l_uu, l_ux`` once and evaluates them along a
+trajectory or a batch with one mapped CasADi function (:class:`_RowMap`)::
 
     J(X, U) = sum_{t=0}^{T-1} l(x_t, u_t, t0 + t) + l_T(x_T)        X: [T+1, n], U: [T, m]
 
-Parameters at call time (as in trajax, ``cost(x, u, t, params)``): a target, a reference
-trajectory or time-varying weights are a *parameter* ``p`` of ONE compiled cost, passed to every
-evaluation (``cost.total(X, U, t0, params)``, ``cost.derivatives(X, U, t0, params)``,
-``ilqr(..., params=...)``), never baked into a new CasADi function. ``params`` is a vector ``[p]``
-(the same at every time) or a table ``[N_ref, p]`` whose row ``min(t, N_ref - 1)`` is used at
-absolute time ``t`` (the last row is held beyond the end of the table, so a receding-horizon
-controller can look past the end of a reference). The stage function takes ``p`` as its fourth
-input, the terminal function as its second (each may ignore it); the terminal cost receives the
-row at time ``t0 + T``. A cost may carry default parameters (``quadratic_cost`` stores its goal
-there); ``params`` given at call time replace them.
-
-Validation happens once at the public boundary: the public methods check shapes and finiteness;
-the solver validates the parameters once (:meth:`CasadiCost.check_params`) and then calls the
-private kernels ``_total`` / ``_derivatives``, which check nothing.
-
-Layout trick: numpy arrays are bound to CasADi once through ``Function.buffer``. A C-ordered
-numpy ``[N, n]`` array has the memory layout of a column-major CasADi ``[n, N]`` matrix, so
-time-major rows are copied into the bound ``[rows, n]`` blocks of a ``Function.map(rows)``
-and read back with plain numpy slice assignments (:class:`_RowMap`).
+``params`` (``[p]``, or a table ``[N_ref, p]`` whose row ``min(t, N_ref - 1)`` applies at time
+``t``) are passed at call time, never compiled in. The public methods check their input; the
+solvers validate the parameters once (:meth:`CasadiCost.check_params`) and call the unchecked
+kernels ``_total`` / ``_derivatives``. The manual: docs/ilqr.md, "Costs".
 """
 
 from __future__ import annotations
@@ -39,7 +21,7 @@ from dataclasses import dataclass
 import casadi as ca
 import numpy as np
 
-from mbtsr.validation import as_array, check_int
+from mbtsr.validation import as_array, check_int, check_positive
 
 __all__ = [
     "CasadiCost",
@@ -81,8 +63,7 @@ def smooth_norm(v, eps: float):
     :param eps: smoothing radius > 0.
     :return: a CasADi scalar expression for symbolic input, else a float.
     """
-    if not np.isfinite(eps) or eps <= 0:
-        raise ValueError(f"eps must be a finite number > 0, got {eps!r}")
+    check_positive("eps", eps)
     if isinstance(v, (ca.SX, ca.MX, ca.DM)):
         return ca.sqrt(ca.dot(v, v) + eps**2) - eps
     v = as_array("v", v, ndim=1)
@@ -112,11 +93,7 @@ class CostDerivatives:
         set to 0, eigenvectors kept (the nearest PSD matrix in the Frobenius norm). Stages that
         are already PSD are returned bit for bit. Gradients are unchanged.
 
-        Why: a cost that is not convex in the planner's state (a product of observations such as
-        ``cos(q1 + q2) = c1 c2 - s1 s2``, a pole's height near hanging) makes the Riccati
-        recursion's value Hessian indefinite, and iLQR then takes steps its own quadratic model
-        cannot trust. The projection is the cost's counterpart of the Gauss-Newton
-        approximation iLQR already makes of the dynamics.
+        Why: docs/ilqr.md, "Costs that are not convex".
         """
         T, m, n = self.lux.shape
         # a constant Hessian (a quadratic cost): decompose stage 0 and the terminal one only
@@ -192,12 +169,9 @@ class _RowMap:
 class CasadiCost:
     """A trajectory cost defined by CasADi functions, with derivatives from CasADi AD.
 
-    ``J = sum_t l(x_t, u_t, t, p_t) + l_T(x_T, p_T)`` with ``t`` the absolute time index and
-    ``p_t`` the parameter row at time ``t`` (see the module docstring).
-
-    Build it from ``casadi.Function`` objects (this constructor) or from symbolic expressions
-    (:meth:`from_expressions`). Derivative and value functions are generated (and compiled)
-    once, on first use, for any trajectory length or batch; parameters never cause a rebuild.
+    ``J = sum_t l(x_t, u_t, t, p_t) + l_T(x_T, p_T)`` (``t`` absolute, ``p_t`` the parameter
+    row at time ``t``). Build it from ``casadi.Function`` objects (this constructor) or from
+    expressions (:meth:`from_expressions`); its mapped functions are built once, on first use.
 
     :param stage: ``casadi.Function`` ``(x[n], u[m], t[1]) -> l`` or
         ``(x[n], u[m], t[1], p[p]) -> l`` (scalar output).
@@ -300,13 +274,7 @@ class CasadiCost:
         :param p: ``[p, 1]`` parameter symbol (values are given at call time, or as the
             default ``params``: ``[p]`` or ``[N_ref, p]``).
 
-        Example (a reaching cost whose target is a parameter)::
-
-            x, u, p = ca.SX.sym("x", 4), ca.SX.sym("u", 2), ca.SX.sym("p", 2)
-            cost = CasadiCost.from_expressions(
-                x, u, smooth_norm(x[:2] - p, 0.05) + 1e-2 * ca.sumsqr(u),
-                10 * ca.sumsqr(x[:2] - p), p=p)
-            cost.total(X, U, params=target)   # any target, same compiled functions
+        An example: docs/ilqr.md, "Costs".
         """
         sym = type(x)
         if not isinstance(x, (ca.SX, ca.MX)) or not isinstance(u, sym):
@@ -342,15 +310,7 @@ class CasadiCost:
         return self._as_table(params)
 
     def _as_table(self, params: object) -> np.ndarray:
-        table = as_array("params", params)
-        if table.ndim == 1:
-            table = table[None]
-        if table.ndim != 2 or table.shape[1] != self.param_dim or table.shape[0] < 1:
-            raise ValueError(
-                f"params must be [{self.param_dim}] or [N_ref, {self.param_dim}] with N_ref >= 1, "
-                f"got {list(np.shape(params))}"
-            )
-        return np.ascontiguousarray(table)
+        return np.ascontiguousarray(_table("params", params, self.param_dim, "N_ref", ""))
 
     def params_at(self, t: np.ndarray, params: np.ndarray | None = None) -> np.ndarray:
         """Parameter rows for absolute times ``t: [N]`` -> ``[N, p]`` (last row held)."""
@@ -478,28 +438,18 @@ class CasadiCost:
     def _batch_values(self, Xs, Us, XT, t0: int, table) -> tuple[np.ndarray, np.ndarray]:
         """Stage costs ``[..., T]`` of ``Xs [..., T, n], Us [..., T, m]`` at times ``t0 ..
         t0+T-1`` and terminal costs ``[...']`` of ``XT [...', n]`` at ``t0 + T`` (batches
-        flattened for :meth:`_values`, one CasADi call)."""
+        flattened: one mapped call for each)."""
         batch, T = Us.shape[:-2], Us.shape[-2]
         B = int(np.prod(batch, dtype=np.int64))
-        ls, lT = self._values(
-            np.asarray(Xs, dtype=np.float64).reshape(B * T, self.n),
-            np.asarray(Us, dtype=np.float64).reshape(B * T, self.m),
-            np.tile(np.arange(t0, t0 + T), B),
-            np.asarray(XT, dtype=np.float64).reshape(-1, self.n),
-            t0 + T,
-            table,
-        )
-        return ls.reshape(*batch, T), lT.reshape(XT.shape[:-1])
-
-    def _values(self, Xs, Us, ts, XT, tT: int, table) -> tuple[np.ndarray, np.ndarray]:
-        """Stage values for the rows of ``Xs [N, n], Us [N, m]`` at times ``ts [N]`` and
-        terminal values for the rows of ``XT [NT, n]`` at time ``tT``."""
-        ts = np.asarray(ts)
-        P = table if table.shape[0] == 1 else _rows(table, ts)
+        N, ts = B * T, np.tile(np.arange(t0, t0 + T), B)
+        XT = np.asarray(XT, dtype=np.float64)
         stage, terminal = self._row_maps("values")
-        (ls,) = stage(Xs.shape[0], Xs, Us, ts[:, None], P)
-        (lT,) = terminal(XT.shape[0], XT, table[min(tT, table.shape[0] - 1)][None])
-        return ls, lT
+        (ls,) = stage(N, np.asarray(Xs, dtype=np.float64).reshape(N, self.n),
+                      np.asarray(Us, dtype=np.float64).reshape(N, self.m), ts[:, None],
+                      table if table.shape[0] == 1 else _rows(table, ts))
+        XTs = XT.reshape(-1, self.n)
+        (lT,) = terminal(XTs.shape[0], XTs, table[min(t0 + T, table.shape[0] - 1)][None])
+        return ls.reshape(*batch, T), lT.reshape(XT.shape[:-1])
 
 
 class QuadraticCost(CasadiCost):
@@ -521,21 +471,23 @@ class QuadraticCost(CasadiCost):
         return _reference_table(x_goal, u_ref, self.n, self.m)
 
 
+def _table(name: str, value: object, k: int, rows: str, note: str) -> np.ndarray:
+    """``value`` as a table ``[N, k]`` with ``N >= 1`` (a vector ``[k]`` is one row)."""
+    table = as_array(name, value)
+    if table.ndim == 1:
+        table = table[None]
+    if table.ndim != 2 or table.shape[1] != k or table.shape[0] < 1:
+        raise ValueError(f"{name} must be [{k}] or [{rows}, {k}] with {rows} >= 1{note}, got "
+                         f"{list(np.shape(value))}")
+    return table
+
+
 def _reference_table(x_goal, u_ref, n: int, m: int) -> np.ndarray:
-    xg = as_array("x_goal", x_goal)
-    if xg.ndim == 1:
-        xg = xg[None]
-    if xg.ndim != 2 or xg.shape[1] != n or xg.shape[0] < 1:
-        raise ValueError(f"x_goal must be [{n}] or [N, {n}] (n from Q), got {list(xg.shape)}")
-    ur = np.zeros((1, m)) if u_ref is None else as_array("u_ref", u_ref)
-    if ur.ndim == 1:
-        ur = ur[None]
-    if ur.ndim != 2 or ur.shape[1] != m or ur.shape[0] < 1:
-        raise ValueError(f"u_ref must be [{m}] or [N, {m}] (m from R), got {list(ur.shape)}")
+    xg = _table("x_goal", x_goal, n, "N", " (n from Q)")
+    ur = np.zeros((1, m)) if u_ref is None else _table("u_ref", u_ref, m, "N", " (m from R)")
     N = max(xg.shape[0], ur.shape[0])
-    xg = np.concatenate([xg, np.repeat(xg[-1:], N - xg.shape[0], axis=0)])
-    ur = np.concatenate([ur, np.repeat(ur[-1:], N - ur.shape[0], axis=0)])
-    return np.hstack([xg, ur])
+    return np.hstack([np.concatenate([t, np.repeat(t[-1:], N - t.shape[0], axis=0)])
+                      for t in (xg, ur)])
 
 
 def after_termination(done: np.ndarray) -> np.ndarray:
@@ -583,13 +535,9 @@ def quadratic_cost(
     *,
     jit: bool = False,
 ) -> QuadraticCost:
-    """Quadratic tracking cost, the reach task's objective (negated env reward)::
-
-        l(x, u, t, p) = (x - x_goal_t)^T Q (x - x_goal_t) + (u - u_ref_t)^T R (u - u_ref_t)
-        l_T(x, p)     = (x - x_goal_T)^T Qf (x - x_goal_T)
-
-    with ``p_t = [x_goal_t, u_ref_t]``. No factor 1/2, so ``-l`` equals the arm env's reward
-    ``-((x-x_g)^T Q (x-x_g) + a^T R a)``.
+    """Quadratic tracking cost ``l = (x - x_goal_t)^T Q (x - x_goal_t) + (u - u_ref_t)^T R (u -
+    u_ref_t)``, ``l_T`` with ``Qf``, parameters ``p_t = [x_goal_t, u_ref_t]``; no factor 1/2, so
+    ``-l`` is the arm env's reward (docs/ilqr.md, "Costs").
 
     :param Q: ``[n, n]`` symmetric positive semi-definite state weight.
     :param R: ``[m, m]`` symmetric positive semi-definite input weight.

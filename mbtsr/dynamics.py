@@ -1,23 +1,9 @@
 """The discrete-time dynamics-model protocol at the centre of mbtsr.
 
-Everything that can be planned through (the MuJoCo arm, its analytic CasADi twin, an LTV model,
-a linear system, a learned neural-network ensemble) offers the same small surface, so iLQR,
-metrics and experiments never care what is behind it::
-
-    step(x[..., n], u[..., m], t=None) -> x_next[..., n]        # batched over leading dims
-    jacobians(x[T, n], u[T, m], t=0) -> (A[T, n, n], B[T, n, m])  # one batched call
-
-``t`` is the time index of the first row. Time-invariant models ignore it; time-varying models
-(an LTV model fitted along a trajectory) use it to pick ``A_t, B_t``. For ``step`` a batched call
-uses the same ``t`` for every row.
-
-Validation once, at the boundary: the public ``step`` checks its inputs. A model may also offer
-``_step(x, u, t)``, the same map on inputs already known to be float64 arrays of the right shape
-and finite; solvers check the model once (:func:`check_planning_model`) and their inner loops call
-:func:`raw_step` (``_step`` when present, else ``step``). A learned ensemble is planned through its
-frozen copy (``model.freeze()``): planning code refuses an object that still has ``freeze``.
-
-:func:`rollout` is the one model-rollout routine (solvers use its kernel ``_rollout``).
+Everything that can be planned through (the MuJoCo arm, its analytic twin, an LTV model, a linear
+system, a learned ensemble's ``freeze()``) offers ``step(x [..., n], u [..., m], t=None)`` and
+``jacobians(x [T, n], u [T, m], t=0) -> (A [T, n, n], B [T, n, m])``; ``_step`` (optional) is
+``step`` without input checks. The protocol: docs/architecture.md, "The dynamics protocol".
 """
 
 from __future__ import annotations
@@ -107,7 +93,7 @@ class LinearDynamics:
         return self._step(x, u, t)
 
     def _step(self, x: np.ndarray, u: np.ndarray, t: int | None = None) -> np.ndarray:
-        """:meth:`step` without input checks (solver loops, see the module docstring)."""
+        """:meth:`step` without input checks (solver loops)."""
         return x @ self.A.T + u @ self.B.T + self.c
 
     def jacobians(

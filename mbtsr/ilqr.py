@@ -1,23 +1,9 @@
 """Iterative LQR with box control limits (control-limited DDP) on any dynamics model.
 
-Solves ::
-
-    min_U  J(X, U) = sum_{t=0}^{T-1} l(x_t, u_t, t0 + t) + l_T(x_T)
-    s.t.   x_{t+1} = f(x_t, u_t),  x_0 given,  u_min <= u_t <= u_max
-
-for any ``f`` with the :class:`mbtsr.dynamics.DynamicsModel` protocol (the true MuJoCo arm, the
-analytic CasADi arm, an LTV model, a learned ensemble) and a :class:`mbtsr.costs.CasadiCost`.
-
-The algorithm is the control-limited DDP of Tassa, Mansard and Todorov, "Control-Limited
-Differential Dynamic Programming", ICRA 2014, with the defaults of the paper authors' iLQG
-implementation (DifferentialDynamicProgramming.jl): first-order dynamics (iLQR: no second
-derivatives of ``f``), Levenberg-Marquardt regularisation with the adaptive schedule, a box-QP
-(projected Newton) for the feed-forward term with clamped feedback rows zeroed, and a
-backtracking line search on the ratio of actual to expected improvement.
-
-The algorithm step by step (batched Jacobians, the compiled backward pass and its numpy
-reference ``tests/lqr_reference.py``, the batched or chunked line search, the regularisation
-schedule, the stopping rules, what a diverged rollout does): docs/ilqr.md, "iLQR".
+Solves ``min_U sum_t l(x_t, u_t, t0 + t) + l_T(x_T)`` s.t. ``x_{t+1} = f(x_t, u_t)``, ``u_min <=
+u_t <= u_max`` for any :class:`mbtsr.dynamics.DynamicsModel` and :class:`mbtsr.costs.CasadiCost`,
+with the control-limited DDP of Tassa, Mansard and Todorov (ICRA 2014) and the defaults of their
+iLQG. The algorithm step by step: docs/ilqr.md, "iLQR".
 """
 
 from __future__ import annotations
@@ -44,9 +30,8 @@ class ILQROptions:
     :param max_iter: iteration cap (every iteration counts, accepted or not).
     :param tol_fun: converged when an accepted step lowers the cost by less than this (absolute).
     :param tol_fun_rel: also converged when an accepted step lowers the cost by less than
-        ``tol_fun_rel * |J|`` (relative; 0 disables it, the authors' behaviour). Useful on
-        models with stiff, nearly non-smooth parts (e.g. tanh friction), where iLQR reaches
-        the optimum to ~0.1 % in tens of iterations and then creeps with tiny steps.
+        ``tol_fun_rel * |J|`` (relative; 0 disables it, the authors' behaviour; see
+        docs/ilqr.md, "Tolerances").
     :param tol_grad: converged when ``mean_t max_j |k_tj| / (|u_tj| + 1) < tol_grad`` while
         ``lambda < 1e-5``.
     :param lambda_init: initial Levenberg-Marquardt regularisation (0 gives a pure Newton step,
@@ -63,9 +48,7 @@ class ILQROptions:
         terminates, instead of its terminal cost (see :func:`mbtsr.costs.truncated_total`).
     :param convexify_cost: project each stage's cost Hessian onto the positive semidefinite
         cone before the backward pass (:meth:`mbtsr.costs.CostDerivatives.convexified`; a
-        no-op for convex costs). Off, a cost that is not convex in the state (a pole's height
-        written from ``sin``/``cos`` observations) gives indefinite value Hessians and
-        untrustworthy steps (InvertedDoublePendulum-v5's true-model MPC fell within 10 steps).
+        no-op for convex costs; why: docs/ilqr.md, "Costs that are not convex").
     :param boxqp_*: projected-Newton box-QP settings (Tassa et al.'s ``boxQP`` defaults).
     """
 
@@ -206,12 +189,9 @@ def ilqr(
         :mod:`mbtsr.costs`); ``None``: the cost's defaults.
     :param t0: absolute time index of ``x0`` (passed to the cost and to time-varying models).
     :param options: :class:`ILQROptions` (or a dict of its fields).
-    :param terminated: ``X [..., n] -> bool [...]``: model states where the episode ends (the
-        task's termination function). The line search then accepts steps on the episode's
-        own cost: stage costs after the first predicted termination are dropped and
-        ``options.termination_cost`` is paid once (:func:`mbtsr.costs.truncated_total`, as
-        :func:`mbtsr.cem.cem`); the search direction still comes from the smooth cost. A plan
-        that no (finite) step improves under the episode's cost ends ``"converged"``.
+    :param terminated: ``X [..., n] -> bool [...]``: model states where the episode ends; the
+        line search then scores steps on the episode's own cost
+        (:func:`mbtsr.costs.truncated_total`; docs/ilqr.md, "Predicted termination").
     :return: :class:`ILQRResult`. Its ``U`` is always finite and inside the bounds: a solve that
         meets NaN/inf (model, Jacobians, cost) stops with status ``"failed"`` and the best
         finite iterate.
@@ -250,29 +230,13 @@ def ilqr(
     # ---- initial rollout: U0, else scaled copies alpha * U0 (largest first)
     U = np.clip(U0, lower, upper)
     X, alive = _initial_rollout(dynamics, x0, U, t0, opts.max_state_norm)
+    X = X[0]  # if every rollout diverges: the result's, NaN from the first diverged state on
     if not alive[0]:
         cands = np.clip(alphas[:, None, None] * U0[None], lower, upper)
         Xc, alive = _rollout(dynamics, x0, cands, t0, opts.max_state_norm)
-        if not alive.any():
-            zeros_K, zeros_k = np.zeros((T, m, n)), np.zeros((T, m))
-            return ILQRResult(
-                X=X[0],  # NaN from the first diverged state on
-                U=U,
-                K=zeros_K,
-                k=zeros_k,
-                cost=float("inf"),
-                trace=[],
-                status="failed",
-                iterations=0,
-                lam=opts.lambda_init,
-                message="initial rollout diverged (non-finite or |x| > max_state_norm) for "
-                "every scaled copy alpha * U0",
-                timings={**timings, "total": time.perf_counter() - t_start},
-            )
-        i = int(np.argmax(alive))
-        X, U = Xc[i], cands[i]
-    else:
-        X = X[0]
+        if alive.any():
+            i = int(np.argmax(alive))
+            X, U = Xc[i], cands[i]
 
     def total(X: np.ndarray, U: np.ndarray) -> np.ndarray:
         if terminated is None:
@@ -286,7 +250,7 @@ def ilqr(
         return truncated_total(stage.reshape(S, T), final.reshape(S), done.reshape(S, T),
                                opts.termination_cost).reshape(stage.shape[:-1])
 
-    J = float(total(X, U))
+    J = float(total(X, U)) if alive.any() else math.inf
 
     lam, dlam = float(opts.lambda_init), 1.0
     f = opts.lambda_factor
@@ -296,7 +260,10 @@ def ilqr(
     need_derivs = True
     it = 0
     problem = hessians = None
-    if not math.isfinite(J):
+    if not alive.any():
+        status, message = "failed", ("initial rollout diverged (non-finite or |x| > "
+                                     "max_state_norm) for every scaled copy alpha * U0")
+    elif not math.isfinite(J):
         status, message = "failed", "the cost of the initial trajectory is not finite"
     while not status and it < opts.max_iter:
         it += 1
@@ -445,14 +412,8 @@ def _line_search_chunks(n_alpha: int, linear_batch_cost: bool) -> list[slice]:
 
 def _boxqp_params(opts: ILQROptions) -> tuple[float, ...]:
     """Box-QP settings as the float tuple of :data:`mbtsr._lqr_kernels.BOXQP_DEFAULTS`."""
-    return (
-        float(opts.boxqp_max_iter),
-        float(opts.boxqp_min_grad),
-        float(opts.boxqp_min_rel_improve),
-        float(opts.boxqp_step_dec),
-        float(opts.boxqp_min_step),
-        float(opts.boxqp_armijo),
-    )
+    names = ("max_iter", "min_grad", "min_rel_improve", "step_dec", "min_step", "armijo")
+    return tuple(float(getattr(opts, f"boxqp_{name}")) for name in names)
 
 
 def _convexified(derivs: CostDerivatives, memo: tuple | None) -> tuple[CostDerivatives, tuple]:
@@ -502,11 +463,9 @@ def _rollout_policy(dynamics, x0, X, U, k, K, alphas, lower, upper, t0, max_norm
     ``u_t = clip(U_t + alpha k_t + K_t (x_t - X_t))``; ``X: [T+1, n]``, ``U, k: [T, m]``,
     ``K: [T, m, n]``, ``alphas: [A]`` -> ``(Xn [A, T+1, n], Un [A, T, m], alive [A])``.
     A row that turns non-finite is marked dead and continues from the nominal state (so the
-    model never sees NaN); rows exceeding ``max_norm`` are marked dead at the end.
-    An affine model (:class:`mbtsr.dynamics.LinearDynamics`) is rolled out in one compiled call
-    (:func:`mbtsr._lqr_kernels.rollout_policy_affine`, same semantics); so is a model that
-    offers ``_rollout_policy(x0, X, U, k, K, alphas, lower, upper, max_norm)`` (the frozen
-    ensemble; it may return ``None`` to decline).
+    model never sees NaN); rows exceeding ``max_norm`` are marked dead at the end. An affine
+    model, or one with its own ``_rollout_policy`` (the frozen ensemble; ``None`` declines),
+    rolls out in one compiled call with the same semantics.
     """
     kernel = getattr(dynamics, "_rollout_policy", None)  # a model's compiled rollouts
     if kernel is not None:

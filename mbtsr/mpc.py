@@ -1,30 +1,10 @@
 """Receding-horizon control (MPC) with any trajectory optimizer on any planning model.
 
-At every control step ``t`` the controller solves the finite-horizon problem ::
-
-    min_U  sum_{k=0}^{H-1} l(x_k, u_k, t + k, p) + l_T(x_H, p),   x_0 = current state
-
-with a few iterations of ``optimizer`` (:func:`mbtsr.ilqr.ilqr` by default; the CEM solver has
-the same signature), warm-started from the previous plan shifted by the elapsed steps (the last
-control repeated at the end) and, for iLQR, from the previous regularisation; it applies the
-first control. The cost receives the absolute time ``t + k``, so time-indexed references are
-followed in step with the environment; ``p`` are the cost parameters (a target, a reference:
-see :mod:`mbtsr.costs`), given per call or as the controller's default.
-
-The optimizer signature (shared by every solver)::
-
-    result = optimizer(cost, model, x0[n], U0[T, m], *, u_min, u_max, params=None, t0=0,
-                       options=None)
-    # result.X [T+1, n], result.U [T, m] (finite, inside the bounds), result.cost,
-    # result.status ("converged" | "max_iter" | "failed"), result.iterations
-
-The model is a *planning* model: ``ensemble.freeze()``, or a true / analytic / linear / LTV
-model. Everything is validated once, here; per step only the state and time are checked.
-
-An MPC is a policy for :func:`mbtsr.episode.run_episode` (it is called as ``mpc(x, t)`` and
-reset before each episode)::
-
-    rec = run_episode(env, mpc, seed=0, observe=lambda obs, info: info["state"])
+At every control step ``t`` the controller solves ``min_U sum_k l(x_k, u_k, t + k, p) + l_T(x_H,
+p)`` from the current state with a few iterations of ``optimizer`` (the shared signature of
+:func:`mbtsr.ilqr.ilqr`, :func:`mbtsr.cem.cem`, :func:`mbtsr.cem_ilqr.cem_ilqr`), warm-started
+from the previous plan shifted by the elapsed steps, and applies the first control. The manual
+(warm and cold starts, ``solve`` vs ``act``): docs/ilqr.md, "MPC".
 """
 
 from __future__ import annotations
@@ -37,6 +17,8 @@ from typing import Any
 
 import numpy as np
 
+from mbtsr.cem import CEMOptions, cem
+from mbtsr.cem_ilqr import CEMILQROptions, cem_ilqr
 from mbtsr.costs import CasadiCost
 from mbtsr.dynamics import check_planning_model
 from mbtsr.ilqr import ILQROptions, check_control_bounds, ilqr
@@ -60,13 +42,8 @@ class MPCOptions:
         capped at ``lambda_init`` (instead of ``lambda_init`` every time).
     :param cold_start_fractions: a cold start first solves these fractions of the horizon, in
         order, each warm-started from the previous solve's plan extended by its last control,
-        then the whole horizon (each with ``first_step_iterations``). On an unstable system the
-        open-loop rollout of a long cold plan falls far from where the solution lies (the
-        double pendulum's poles fall within 10 of 30 steps) and iLQR converges to a poor local
-        optimum; short horizons start near the solution and each longer one extends it
-        (measured: InvertedDoublePendulum-v5 from a reset state, horizon 30 from zeros: a
-        falling plan after 93 iterations; 8 -> 15 -> 30: the upright plan in 16). ``()``: no
-        continuation.
+        then the whole horizon (each with ``first_step_iterations``; why: docs/ilqr.md, "MPC").
+        ``()``: no continuation.
     """
 
     iterations_per_step: int = 3
@@ -77,8 +54,7 @@ class MPCOptions:
 
     def __post_init__(self) -> None:
         for name in ("iterations_per_step", "first_step_iterations"):
-            v = getattr(self, name)
-            check_int(name, v, 1)
+            check_int(name, getattr(self, name), 1)
         fr = tuple(float(f) for f in self.cold_start_fractions)
         if any(not 0.0 < f < 1.0 for f in fr) or list(fr) != sorted(fr):
             raise ValueError(f"cold_start_fractions must be increasing numbers in (0, 1), got "
@@ -95,7 +71,7 @@ class MPCOptions:
 class MPC:
     """Receding-horizon controller: ``MPC(optimizer, cost, model, horizon)``.
 
-    :param optimizer: a trajectory optimizer with the shared signature (module docstring),
+    :param optimizer: a trajectory optimizer with the shared signature (docs/ilqr.md, "MPC"),
         e.g. :func:`mbtsr.ilqr.ilqr` or ``mbtsr.cem.cem``.
     :param cost: the task cost (:class:`mbtsr.costs.CasadiCost`), evaluated at absolute times.
     :param model: a planning model (:mod:`mbtsr.dynamics` protocol; a learned ensemble's
@@ -163,17 +139,12 @@ class MPC:
         base = self._base_options
         if cold and hasattr(base, "for_cold_start"):
             base = base.for_cold_start()
-        key = "max_iter"
-        if dataclasses.is_dataclass(base):
-            names = {f.name for f in dataclasses.fields(base)}
-            key = "max_iter" if "max_iter" in names else "iterations"
-        extra: dict[str, Any] = {key: int(iterations)}
+        iterations_only = dataclasses.is_dataclass(base) and not hasattr(base, "max_iter")
+        extra: dict[str, Any] = {"iterations" if iterations_only else "max_iter": int(iterations)}
         if lam is not None:
             init = base.get("lambda_init") if isinstance(base, Mapping) else getattr(
                 base, "lambda_init", None)
             extra["lambda_init"] = min(lam, ILQROptions.lambda_init if init is None else init)
-        if base is None:
-            return extra
         if isinstance(base, Mapping):
             return {**base, **extra}
         return dataclasses.replace(base, **extra)
@@ -235,10 +206,10 @@ class MPC:
         tic = time.perf_counter()
         x = as_array("x", x, (self.cost.n,))
         t = check_int("t", t, 0)
-        shift = None if self._t_plan is None else t - self._t_plan
-        if self.plan is None or shift is None or not 0 <= shift < self.horizon:
+        if self.plan is None or not 0 <= t - self._t_plan < self.horizon:
             res = self._cold_solve(x, t, params)
         else:
+            shift = t - self._t_plan
             U0 = np.concatenate([self.plan[shift:], np.repeat(self.plan[-1:], shift, axis=0)])
             lam = self._lam if self.options.warm_start_lambda else None
             res = self._solve(x, t, params, U0, self.options.iterations_per_step, lam)
@@ -255,14 +226,7 @@ class MPC:
 def _resolve_options(optimizer: Callable[..., Any], options: Any) -> Any:
     """The optimizer's base options: iLQR's and CEM's as their options dataclasses (a dict is
     checked here, once), other optimizers' as given (``None``: a dict)."""
-    if optimizer is ilqr:
-        return ILQROptions() if options is None else options_from(ILQROptions, options)
-    from mbtsr import cem as cem_module  # the sibling solver; imported lazily
-
-    if optimizer is cem_module.cem:
-        return options_from(cem_module.CEMOptions, options)
-    from mbtsr import cem_ilqr as hybrid
-
-    if optimizer is hybrid.cem_ilqr:
-        return options_from(hybrid.CEMILQROptions, options)
+    for solver, cls in ((ilqr, ILQROptions), (cem, CEMOptions), (cem_ilqr, CEMILQROptions)):
+        if optimizer is solver:
+            return options_from(cls, options)
     return {} if options is None else options

@@ -1,41 +1,9 @@
 """A learned reward that the planners use like a written cost.
 
-For an env whose reward nobody wrote down, the agent learns ``r_hat(s, a)`` from the env's own
-rewards and plans on the cost ``l(x_t, u_t, t) = -r_hat(x_t, u_t)``::
-
-    model = RewardModel(state_dim, action_dim, RewardConfig(seed=0))
-    model.fit(S, A, r)              # S [N, n] model states s_t, A [N, m] actions a_t, r [N] r_t
-    cost = model.cost()             # a CasadiCost for ilqr / cem / cem_ilqr / MPC
-    ilqr(cost, dynamics, x0, U0, ...)
-
-**Convention.** ``r_t`` is the reward the env returns for the step from ``s_t`` with ``a_t``;
-the model learns it as a function of ``(s_t, a_t)``, what a planner's stage ``t`` holds, so a
-plan's stage costs sum to minus its predicted return (a reward that the env computes on
-``s_{t+1}``, such as an alive bonus, is learned through the dynamics). ``s`` is the planner's
-state: the observation, or a task's ``state_fn(obs)``. The terminal cost is
-``-terminal_weight * r_hat(x_T, 0)`` (a written task's default: the stage cost at zero action).
-
-**Model.** ``K`` members, each a one-hidden-layer tanh MLP plus a quadratic form of the
-normalized inputs (control costs are quadratic in the action: the term learns them exactly,
-which the MLP alone did not: held-out R^2 0.964 -> 0.997 on Pusher-v5), trained together (one
-batched AdamW step per minibatch, each member its own minibatches, cosine learning rate) with a
-step budget and hold-out early stopping (each member keeps its best hold-out weights). Their
-mean is again one wide layer and one quadratic form: :class:`FrozenReward` folds the
-normalization and the ``1/K`` into ``r_hat(z) = c + w . tanh(W^T z + b) + (z - z0)^T P (z -
-z0)``, ``z = [s, a]``, ``W [n+m, K*H]``, so values, gradients and Hessians are a few matrix
-products, batched, without a loop over members:
-
-* gradient ``dr/dz = W (w * (1 - h^2)) + 2 P (z - z0)``, ``h = tanh(W^T z + b)``;
-* Hessian ``d2r/dz2 = W diag(w * tanh''(W^T z + b)) W^T + 2 P``: one rank-one term per unit.
-  The cost's Hessian keeps the units whose term is convex in the cost (``-w tanh'' > 0``) and
-  the convex part of ``-2 P`` and drops the rest: positive semidefinite by construction, exact
-  where the cost is convex term by term (the counterpart of the Gauss-Newton approximation
-  iLQR makes of the dynamics).
-
-The cost is a :class:`mbtsr.costs.CasadiCost` through its two kernels (batched values and
-derivatives), so iLQR, CEM, CEM-iLQR and the MPC take it unchanged. It has no symbolic form
-(not for :mod:`mbtsr.ipopt_reference`) and ignores parameters: ``param_dim`` sets the size of the
-parameter vector it accepts (the agent passes the observation).
+:class:`RewardModel` learns ``r_hat(s, a)`` from the env's own rewards; its ``cost()`` is the
+planning cost ``l(x_t, u_t, t) = -r_hat(x_t, u_t)`` (:class:`LearnedRewardCost`, closed-form
+derivatives with a PSD Hessian). The convention, the model and its frozen form: docs/agent.md,
+"The learned reward".
 """
 
 from __future__ import annotations
@@ -110,7 +78,7 @@ class RewardFit:
 
 class RewardModel:
     """An ensemble of one-hidden-layer tanh MLPs plus quadratic forms, ``r_k(s, a)``, trained
-    on observed rewards (see the module docstring).
+    on observed rewards (docs/agent.md, "The learned reward").
 
     :param state_dim: ``n``, the planner's state size.
     :param action_dim: ``m``.
@@ -315,7 +283,7 @@ class FrozenReward:
         ``r [N]``, ``g [N, n+m]``, ``H [N, n+m, n+m]``.
 
         :param concave: keep only the concave parts of the Hessian (so ``-H`` is PSD; the
-            cost's approximation, see the module docstring); ``False``: the exact Hessian.
+            cost's approximation, docs/agent.md); ``False``: the exact Hessian.
         """
         x, u = self._check(x, u)
         if x.ndim != 2:
@@ -333,11 +301,8 @@ class FrozenReward:
 class LearnedRewardCost(CasadiCost):
     """The planning cost of a learned reward: stage ``l(x, u, t) = -r_hat(x, u)``, terminal
     ``l_T(x) = -terminal_weight * r_hat(x, 0)``; derivatives in closed form with a PSD Hessian
-    (:meth:`FrozenReward.derivatives`).
-
-    A :class:`mbtsr.costs.CasadiCost` by its kernels (``_batch_values``, ``_derivatives``): the
-    public methods (``total``, ``stage_values``, ``terminal_values``, ``derivatives``,
-    ``check_params``) and the planners work unchanged. No symbolic ``stage``/``terminal``.
+    (:meth:`FrozenReward.derivatives`). A :class:`mbtsr.costs.CasadiCost` by its kernels
+    (``_batch_values``, ``_derivatives``), with no symbolic ``stage``/``terminal``.
 
     :param reward: a :class:`FrozenReward`.
     :param terminal_weight: weight (>= 0) of the terminal cost.

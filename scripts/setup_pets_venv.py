@@ -6,6 +6,7 @@ Why a venv of its own, what it installs and which pins it works around: docs/pet
 
 from __future__ import annotations
 
+import json
 import subprocess
 import sys
 import time
@@ -48,11 +49,6 @@ print("mbrl", mbrl.__version__, "| torch", torch.__version__, "| hydra", hydra._
 """
 
 
-def venv_python(venv_dir: Path) -> Path:
-    """The interpreter of the venv at ``venv_dir``."""
-    return venv_dir / "bin" / "python"
-
-
 def installed(py: Path, dists: list[str]) -> dict[str, str | None]:
     """Installed versions of ``dists`` in the interpreter ``py`` (``None``: not installed)."""
     code = ("import importlib.metadata as m, json, sys\nout = {}\n"
@@ -60,8 +56,6 @@ def installed(py: Path, dists: list[str]) -> dict[str, str | None]:
             "    except m.PackageNotFoundError: out[d] = None\nprint(json.dumps(out))")
     res = subprocess.run([str(py), "-c", code, *dists], capture_output=True, text=True,
                          check=True)
-    import json
-
     return json.loads(res.stdout)
 
 
@@ -70,12 +64,6 @@ def satisfied(have: dict[str, str | None], want: dict[str, str | None]) -> bool:
     a local version label such as torch's ``+cpu`` is ignored)."""
     return all(have.get(d) is not None and (v is None or str(have[d]).split("+")[0] == v)
                for d, v in want.items())
-
-
-def run(cmd: list[str]) -> int:
-    """Run ``cmd``, echo it, stream its output; return its exit code."""
-    print("  $", " ".join(cmd), flush=True)
-    return subprocess.run(cmd).returncode
 
 
 def check(py: Path) -> bool:
@@ -102,7 +90,7 @@ class Args:
 def build(args: Args) -> int:
     """Build (or only ``--check``) the PETS venv; return the process exit code."""
     t0 = time.perf_counter()
-    py = venv_python(args.venv)
+    py = args.venv / "bin" / "python"
     if args.check:
         return 0 if py.exists() and check(py) else 1
     if py.exists():
@@ -116,9 +104,9 @@ def build(args: Args) -> int:
             print(f"{name}: already installed ({', '.join(f'{d} {have[d]}' for d in want)})",
                   flush=True)
             continue
-        print(f"{name}: installing", flush=True)
-        code = run([str(py), "-m", "pip", "install", "--disable-pip-version-check",
-                    *pip_args])
+        cmd = [str(py), "-m", "pip", "install", "--disable-pip-version-check", *pip_args]
+        print(f"{name}: installing\n  $", " ".join(cmd), flush=True)
+        code = subprocess.run(cmd).returncode
         have = installed(py, list(want))
         if code != 0 or not satisfied(have, want):
             print(f"FAILED at step {name!r}: pip exit code {code}, installed {have}, "

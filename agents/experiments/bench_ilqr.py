@@ -93,13 +93,10 @@ def main(argv: list[str] | None = None) -> dict:
 
 
 def load_ensemble(path: str, seed: int):
-    """The ensemble under test and a note on where it came from.
-
-    Without a path: the paper's 4-member ensemble with random weights, its input/output
-    normalization set from 4 excitation rollouts of the arm, so that its one-step increments have
-    the data's scale (an unnormalized random net diverges over 200 steps); only its timing is
-    representative, not its accuracy.
-    """
+    """The ensemble under test and a note on where it came from; without a path the paper's
+    4-member ensemble with random weights, normalized on 4 excitation rollouts of the arm (an
+    unnormalized random net diverges over 200 steps): its timing is representative, not its
+    accuracy."""
     from envs.collect import collect_trajectories
     from mbtsr.ensemble import DynamicsEnsemble, EnsembleConfig, load_model
 
@@ -109,6 +106,15 @@ def load_ensemble(path: str, seed: int):
     data_env = gym.make("mbtsr/TwoLinkArm-v0", episode_steps=100)
     model.set_normalization(collect_trajectories(data_env, 4, 100, seed=seed))
     return model, "random weights, 4 members (paper), normalization from 4 excitation rollouts"
+
+
+def per_iteration(res, wall: float, cpu: float) -> dict:
+    """Iterations, status and ms per iteration (wall, CPU and per phase) of an iLQR result."""
+    its = max(res.iterations, 1)
+    phases = {k: v / its * 1e3 for k, v in res.timings.items() if k != "total"}
+    return {"iterations": res.iterations, "status": res.status,
+            "ms_per_iteration": wall / its * 1e3, "cpu_ms_per_iteration": cpu / its * 1e3,
+            "ms_per_phase_per_iteration": phases}
 
 
 def time_ilqr(cost, model, x0, T, iterations, repeats):
@@ -125,17 +131,9 @@ def time_ilqr(cost, model, x0, T, iterations, repeats):
         per_iter = res.timings["total"] / res.iterations * 1e3
         if best is None or per_iter < best["ms_per_iteration"]:
             n_jac = 1 + sum(tr["accepted"] for tr in res.trace[:-1])
-            best = {
-                "ms_per_iteration": per_iter,
-                "cpu_ms_per_iteration": cpu / res.iterations * 1e3,
-                "iterations": res.iterations,
-                "accepted": int(sum(tr["accepted"] for tr in res.trace)),
-                "status": res.status,
-                "ms_per_phase_per_iteration": {
-                    k: v / res.iterations * 1e3 for k, v in res.timings.items() if k != "total"
-                },
-                "ms_per_jacobian_call": res.timings["jacobians"] / n_jac * 1e3,
-            }
+            best = {**per_iteration(res, res.timings["total"], cpu),
+                    "accepted": int(sum(tr["accepted"] for tr in res.trace)),
+                    "ms_per_jacobian_call": res.timings["jacobians"] / n_jac * 1e3}
     return best
 
 
@@ -147,8 +145,7 @@ def solve_ilqr_timed(cost, model, x0, T, options, u_min=-1.0, u_max=1.0):
 
 def time_to_within(res, wall, threshold):
     """Seconds until the iLQR trace first reaches ``cost <= threshold`` (None if never)."""
-    setup = wall - sum(tr["time"] for tr in res.trace)
-    elapsed = setup
+    elapsed = wall - sum(tr["time"] for tr in res.trace)  # the setup before the iterations
     for tr in res.trace:
         elapsed += tr["time"]
         if tr["cost"] <= threshold:
@@ -192,25 +189,13 @@ def peer_comparison(args, problems) -> dict:
             pairs.append((mine, croc))
         res, wall, cpu = min((mine for mine, _ in pairs), key=lambda r: r[1])
         croc = min((c for _, c in pairs), key=lambda c: c["wall_time_s"])
-        its = max(res.iterations, 1)
-        ms_iter, cpu_ms_iter = wall / its * 1e3, cpu / its * 1e3
+        stats = per_iteration(res, wall, cpu)
 
         def median_ratio(mine_of, croc_of, pairs=pairs):
             return float(np.median([mine_of(m) / croc_of(c) for m, c in pairs]))
 
         out[prob.name] = {
-            "mbtsr": {
-                "cost": res.cost,
-                "iterations": res.iterations,
-                "status": res.status,
-                "wall_time_s": wall,
-                "ms_per_iteration": ms_iter,
-                "cpu_time_s": cpu,
-                "cpu_ms_per_iteration": cpu_ms_iter,
-                "ms_per_phase_per_iteration": {
-                    k: v / its * 1e3 for k, v in res.timings.items() if k != "total"
-                },
-            },
+            "mbtsr": {"cost": res.cost, "wall_time_s": wall, "cpu_time_s": cpu, **stats},
             "crocoddyl": croc,
             "pairs": len(pairs),
             "per_iteration_ratio": median_ratio(
@@ -224,7 +209,8 @@ def peer_comparison(args, problems) -> dict:
         }
         r = out[prob.name]
         print(
-            f"{prob.name}: mbtsr {ms_iter:.3f} ms/it x {res.iterations} it, cost {res.cost:.10g}; "
+            f"{prob.name}: mbtsr {stats['ms_per_iteration']:.3f} ms/it x {res.iterations} it, "
+            f"cost {res.cost:.10g}; "
             f"crocoddyl {croc['ms_per_iteration']:.3f} ms/it x {croc['iterations']} it, cost "
             f"{croc['cost']:.10g}; median of {len(pairs)} alternating pairs: per-iteration "
             f"ratio {r['per_iteration_ratio']:.2f}, time-to-converge ratio "

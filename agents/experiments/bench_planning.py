@@ -103,29 +103,6 @@ def kernel_rates(frozen, samples: int, horizon: int, repeats: int) -> dict:
     return out
 
 
-def _excitation(agent, env, seed: int, episodes: int = 5, steps: int = 50) -> list:
-    """Filtered-Gaussian excitation trajectories in the agent's model state."""
-    from mbtsr.excitation import filtered_gaussian
-    from mbtsr.trajectory import Trajectory
-
-    rng = np.random.default_rng(seed)
-    lo, hi = env.action_space.low, env.action_space.high
-    data = []
-    for i in range(episodes):
-        obs, _ = env.reset(seed=seed + i)
-        U = lo + (hi - lo) * 0.5 * (1.0 + np.clip(
-            filtered_gaussian(steps, len(lo), window=8, scale=1.0, seed=rng), -1.0, 1.0))
-        obs_seq = [obs]
-        for u in U:
-            obs, _, terminated, truncated, _ = env.step(u)
-            obs_seq.append(obs)
-            if terminated or truncated:
-                break
-        X = np.array([agent.state_map.state(o) for o in obs_seq])
-        data.append(Trajectory(X, U[: len(X) - 1], float(env.unwrapped.dt)))
-    return data
-
-
 def bench_task(name: str, args: Args, peaks: dict[str, float]) -> dict:
     """ms per MPC step, return and kernel rates of the default planner on task ``name``."""
     from agents.experiments import bench_suite
@@ -133,7 +110,9 @@ def bench_task(name: str, args: Args, peaks: dict[str, float]) -> dict:
     overrides = {"seed": args.seed, **(json.loads(args.overrides) if args.overrides else {})}
     agent = bench_suite.make_agent(name, overrides, smoke=args.smoke)
     env, cfg = agent.env, agent.config
-    agent.model.set_normalization(_excitation(agent, env, args.seed))
+    agent.model.set_normalization([  # the agent's own excitation: 5 episodes of 50 steps
+        agent.collector.rollout(None, episode=i, reset_seed=args.seed + i,
+                                signal_seed=args.seed + i, max_steps=50)[1] for i in range(5)])
     agent.freeze()
     frozen = agent.planning_model
     if frozen._plan is None:  # layer norm or mixed depths: no folded planning kernels

@@ -174,40 +174,21 @@ def crocoddyl_arm_reach(p: Problem):
     tl = np.array(params.torque_limit)
     dt = p.dt
 
-    def cost_model(Qw, Rw, scale):
+    def action(Qw, Rw, scale, step):
+        # ours: (x-g)^T Q (x-g) + a^T R a with torque tau = tl * a: a^T R a = tau^T (R / tl^2) tau
         costs = crocoddyl.CostModelSum(state, actuation.nu)
-        x_res = crocoddyl.ResidualModelState(state, p.x_goal, actuation.nu)
-        costs.addCost(
-            "state",
-            crocoddyl.CostModelResidual(
-                state, crocoddyl.ActivationModelWeightedQuad(2 * np.diag(Qw) / scale), x_res
-            ),
-            1.0,
-        )
-        if Rw is not None:  # torque tau = tl * a: a^T R a = tau^T (R / tl^2) tau
-            u_res = crocoddyl.ResidualModelControl(state, actuation.nu)
-            costs.addCost(
-                "control",
-                crocoddyl.CostModelResidual(
-                    state,
-                    crocoddyl.ActivationModelWeightedQuad(2 * np.diag(Rw) / tl**2 / scale),
-                    u_res,
-                ),
-                1.0,
-            )
-        return costs
+        terms = {"state": (crocoddyl.ResidualModelState(state, p.x_goal, actuation.nu), Qw, 1.0)}
+        if Rw is not None:
+            terms["control"] = (crocoddyl.ResidualModelControl(state, actuation.nu), Rw, tl**2)
+        for name, (residual, W, div) in terms.items():
+            weights = crocoddyl.ActivationModelWeightedQuad(2 * np.diag(W) / div / scale)
+            costs.addCost(name, crocoddyl.CostModelResidual(state, weights, residual), 1.0)
+        diff = crocoddyl.DifferentialActionModelFreeFwdDynamics(state, actuation, costs)
+        diff.armature = np.array(params.armature)
+        return crocoddyl.IntegratedActionModelEuler(diff, step)
 
-    running_diff = crocoddyl.DifferentialActionModelFreeFwdDynamics(
-        state, actuation, cost_model(p.Q, p.R, dt)
-    )
-    running_diff.armature = np.array(params.armature)
-    running = crocoddyl.IntegratedActionModelEuler(running_diff, dt)
+    running, terminal = action(p.Q, p.R, dt, dt), action(p.Qf, None, 1.0, 0.0)
     running.u_lb, running.u_ub = -tl, tl
-    terminal_diff = crocoddyl.DifferentialActionModelFreeFwdDynamics(
-        state, actuation, cost_model(p.Qf, None, 1.0)
-    )
-    terminal_diff.armature = np.array(params.armature)
-    terminal = crocoddyl.IntegratedActionModelEuler(terminal_diff, 0.0)
     return crocoddyl.ShootingProblem(p.x0, [running] * p.T, terminal), tl
 
 
