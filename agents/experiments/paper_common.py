@@ -480,17 +480,8 @@ def complex_to_pairs(z: np.ndarray, digits: int = 4) -> dict:
 
 @dataclass(frozen=True)
 class LinearData:
-    """Data of the random-linear-system experiments.
-
-    Follows the original code (``linear_sys.jl``): n = m = 10, dt = 0.02, trajectories of
-    T = 200 steps from ``x0 ~ N(0, I)`` driven by a causal 5-tap moving average of
-    ``10 N(0, 1)`` (steady-state std 10/sqrt(5) = 4.47), measurement noise 0.01 on the training
-    states only. Differences: the original left the last state of every trajectory at 0 (a
-    bug); here it is simulated unless ``last_state_zero`` reinstates the bug in the training
-    data (to test whether it explains the original's numbers). Validation uses ``n_val``
-    noise-free trajectories (original: 41, subsampled), Jacobians and eigenvalues are evaluated
-    at every ``eval_stride``-th validation point (original: 3).
-    """
+    """Data of the random-linear-system experiments (docs/experiments.md, "paper_common":
+    the linear data)."""
 
     n: int = 10
     m: int = 10
@@ -572,21 +563,9 @@ class ArmSampling:
 
 @dataclass(frozen=True)
 class RobotData(ArmSampling):
-    """Data of the robot experiments, on ``mbtsr/TwoLinkArm-v0`` with ``preset="paper"``.
-
-    Follows the original code at arXiv v1 (``two_link_sys.jl``@v1, the paper's "low-pass filtered
-    random input"): trajectories of 4 s at dt = 0.02 s (T = 200), inputs a causal 100-tap moving
-    average of white Gaussian noise (torque std about 1 N m), trajectories redrawn while
-    ``|q| >= 0.9 pi``, measurement noise 0.01 on the training states, 3 training trajectories.
-    Differences: the start state is the env's (at rest hanging down plus small noise; original
-    ``[-0.4, 0, 0, 0]``); the robot has no inertia typo (see ``envs/two_link_arm.py``);
-    validation uses ``n_val`` noise-free trajectories (original 41), Jacobians are evaluated at
-    every ``eval_stride``-th validation point.
-
-    ``dt`` other than 0.02 is the sample-rate deviation (paper appendix B): the SAME continuous-
-    time experiment (duration, input signal on the 0.02 s grid, held) sampled at another rate,
-    so T = duration / dt.
-    """
+    """Data of the robot experiments, on ``mbtsr/TwoLinkArm-v0`` with ``preset="paper"``
+    (docs/experiments.md, "paper_common": the robot data; another ``dt`` is the sample-rate
+    deviation)."""
 
     n_train: int = 3
 
@@ -669,13 +648,8 @@ def nominal_epochs(formulation: str, method: str, scale: float = 1.0) -> int:
 def regularization(method: str, *, sigma: float = 0.1, n_copies: int = 1,
                    exact_weight: float = 1.0, smooth_weight: float = 0.01,
                    ltv_lambda: float | str | None = None, copies_batch: str = "shared"):
-    """The :class:`mbtsr.training.RegularizationConfig` of a method name.
-
-    ``"none"``; ``"sampled"`` (the paper's sampled Jacobian propagation: one perturbed copy per
-    trajectory and epoch, sigma 0.1 of the per-dimension std); ``"exact"`` (exact matching of the
-    model Jacobian to the LTV Jacobian, ``exact_weight * sum_t ||J - J_LTV||_F^2``);
-    ``"smooth"`` (the exact penalty of paper eq. (reg), ``smooth_weight * sum_t ||J_{t+1} -
-    J_t||_F^2``, the original's later "AD jacprop").
+    """The :class:`mbtsr.training.RegularizationConfig` of a method name: ``none``, ``sampled``,
+    ``exact`` or ``smooth`` (docs/experiments.md, "paper_common": the methods).
 
     :param ltv_lambda: ``None`` keeps the library default (the original's R2/R1 = 1000, i.e.
         lambda = 31.6), ``"auto"`` picks it per trajectory by marginal likelihood.
@@ -823,14 +797,7 @@ def timed(run_fn: Callable[[dict, int], dict]) -> Callable[[dict, int], dict]:
 @timed
 def run_linear(config: dict, seed: int) -> dict:
     """One Monte-Carlo run on a random stable linear system (``exp_linear``,
-    ``exp_weight_decay``).
-
-    ``config``: ``data`` (:class:`LinearData` fields), ``formulation``, ``method``, ``reg``
-    (keyword arguments of :func:`regularization`), ``rounds``, ``epochs_per_round``, ``lr``,
-    ``weight_decay``, ``incremental`` (round r trains on trajectories 1..r, warm-started, as
-    the original README experiment; otherwise every round on all trajectories), ``n_eig_store``.
-    All configs of one seed share the system, the data and the initial weights.
-    """
+    ``exp_weight_decay``); ``config``'s keys: docs/experiments.md, "paper_common"."""
     from mbtsr.metrics import jacobian_eigenvalues, prediction_rms
 
     cfg = LinearData(**config["data"])
@@ -863,13 +830,8 @@ def run_linear(config: dict, seed: int) -> dict:
 
 @timed
 def run_robot(config: dict, seed: int) -> dict:
-    """One Monte-Carlo run on the paper's two-link robot (``exp_robot``, ``exp_deviations``).
-
-    ``config``: ``data`` (:class:`RobotData` fields), ``formulation``, ``method``, ``reg``
-    (keyword arguments of :func:`regularization`), ``epochs``, ``lr``, ``model`` (keyword
-    arguments of :func:`build_ensemble` other than dims/formulation/seed).
-    All configs of one seed share the data (for equal ``data``) and the weight-init seed.
-    """
+    """One Monte-Carlo run on the paper's two-link robot (``exp_robot``, ``exp_deviations``);
+    ``config``'s keys: docs/experiments.md, "paper_common"."""
     from mbtsr.metrics import jacobian_eigenvalues, prediction_rms
 
     cfg = RobotData(**config["data"])
@@ -896,14 +858,9 @@ def run_robot(config: dict, seed: int) -> dict:
 
 @timed
 def run_activations(config: dict, seed: int) -> dict:
-    """One Monte-Carlo run of the activation-function comparison (paper appendix A).
-
-    One network per activation, all trained in ONE batched ensemble (members share no weights
-    and Adam is per-parameter, so this equals separate training; the batch order is shared),
-    formulation ``config["formulation"]``, no regularization. Training is split at the
-    ``checkpoints`` (epochs; Adam state carried over) and each member's one-step prediction
-    RMS on the validation trajectories is recorded there.
-    """
+    """One Monte-Carlo run of the activation-function comparison (paper appendix A): one
+    member per activation in one batched ensemble, the prediction RMS of each at the
+    ``checkpoints`` (docs/experiments.md, "exp_activations")."""
     cfg = RobotData(**config["data"])
     d = robot_dataset(cfg, seed)
     acts = list(config["activations"])
@@ -1047,17 +1004,9 @@ REGIME_METHODS = ("none", "sampled", "exact", "oracle", "prior")
 
 @timed
 def run_regime(config: dict, seed: int) -> dict:
-    """One Monte-Carlo run of the regime sweep (``exp_regime``).
-
-    ``config``: ``data`` (:class:`RegimeData` fields), ``n_train``, ``epochs``, ``method``
-    (``none``, ``sampled``, ``exact``, ``oracle`` = sampled JacProp with true-Jacobian labels,
-    ``prior`` = sampled JacProp whose LTV labels are fused with the network as a prior after
-    the first half of the epochs), ``exact_weight``, ``prior_scale``, ``lr``, ``batch``
-    (``"full"``: one optimizer step per epoch on all training transitions, or
-    ``"trajectory"``), ``model`` (:func:`build_ensemble` keyword arguments), ``still_speed``,
-    ``n_log`` (checkpoints of the training-point Jacobian error during training).
-    Every method of one cell takes the same number of optimizer steps.
-    """
+    """One Monte-Carlo run of the regime sweep (``exp_regime``); ``config``'s keys and the
+    methods: docs/experiments.md, "paper_common". Every method of one cell takes the same
+    number of optimizer steps."""
     from mbtsr.metrics import prediction_rms
     from mbtsr.training import RegularizationConfig, TrainConfig, train_ensemble
 
@@ -1112,16 +1061,13 @@ def run_regime(config: dict, seed: int) -> dict:
                                        config["still_speed"]))
     result["train_pred_rms"] = finite_or_none(prediction_rms(model, trajs))
     result["net_train_jac"] = log
-    if label_models is not None:  # error of the labels' Jacobians at the training points
-        A_l = np.concatenate([np.asarray(lm.A)[:tr.T] for lm, tr in zip(label_models, trajs)])
-        B_l = np.concatenate([np.asarray(lm.B)[:tr.T] for lm, tr in zip(label_models, trajs)])
-        e = row_group_errors(A_tr, B_tr, A_l, B_l)
-        result.update({"label_jac_pos": e["pos"], "label_jac_vel": e["vel"]})
-    if method == "prior":  # the plain LTV labels of the first half, for comparison
-        A_l = np.concatenate([np.asarray(lm.A)[:tr.T] for lm, tr in zip(plain, trajs)])
-        B_l = np.concatenate([np.asarray(lm.B)[:tr.T] for lm, tr in zip(plain, trajs)])
-        e = row_group_errors(A_tr, B_tr, A_l, B_l)
-        result.update({"ltv_jac_pos": e["pos"], "ltv_jac_vel": e["vel"]})
+    # the labels' Jacobian error at the training points (ltv: prior's plain first-half labels)
+    for tag, labels in (("label", label_models), ("ltv", plain if method == "prior" else None)):
+        if labels is not None:
+            A_l = np.concatenate([np.asarray(lm.A)[:tr.T] for lm, tr in zip(labels, trajs)])
+            B_l = np.concatenate([np.asarray(lm.B)[:tr.T] for lm, tr in zip(labels, trajs)])
+            e = row_group_errors(A_tr, B_tr, A_l, B_l)
+            result.update({f"{tag}_jac_pos": e["pos"], f"{tag}_jac_vel": e["vel"]})
     result["steps"] = steps
     result["train_time"] = train_time
     return result
@@ -1129,15 +1075,8 @@ def run_regime(config: dict, seed: int) -> dict:
 
 def robot_truth_diagnostics(cfg: RobotData, seed: int, still_speed: float = 0.05) -> dict:
     """What caps the robot's Jacobian error, for MC run ``seed`` of ``exp_robot`` (no training):
-
-    - ``const_train`` / ``const_eval``: eq. (jacerr) of a constant matrix, the mean true
-      Jacobian over the training points (a constant a model could learn) / over the evaluation
-      points themselves (the best constant in that norm);
-    - ``twin``: the analytic CasADi twin (friction ``fc tanh(qd / 0.01)``) against MuJoCo's
-      Jacobian, all points and split into moving / near-zero-velocity points;
-    - ``ltv_{pos,vel}``: the LTV labels' error (lambda of the library default) at the training
-      points per row group (position rows 0-1, velocity rows 2-3), ``frac_still``.
-    """
+    ``const_train`` / ``const_eval``, ``twin`` (``_moving``, ``_still``), ``ltv_{pos,vel}``,
+    ``frac_still`` (docs/experiments.md, "exp_robot")."""
     from mbtsr.ltv import fit_ltv
     from mbtsr.training import ORIGINAL_LTV_LAMBDA
 
