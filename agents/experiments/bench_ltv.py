@@ -78,6 +78,12 @@ def simulate(A, B, T, noise, rng):
     return x, u
 
 
+def jacobian_rms(fit, A: np.ndarray, B: np.ndarray) -> float:
+    """RMS over time of the Frobenius error of a fit's ``[A_t B_t]`` against ``A, B [T, ...]``."""
+    err = np.concatenate([fit.A - A, fit.B - B], axis=2)
+    return float(np.sqrt(np.mean(np.sum(err**2, axis=(1, 2)))))
+
+
 def generic_normal_equations(x: np.ndarray, u: np.ndarray, lam: float):
     """The same problem assembled generically: the sparse normal equations ``(N, r)`` of
     ``[I kron phi_t^T ; lam D kron I] k = [x_{t+1} ; 0]`` in ``k = vec([A_t B_t]^T)``."""
@@ -206,13 +212,12 @@ def tv_fit(args: Args, rng: np.random.Generator, results: dict) -> None:
     t0 = time.perf_counter()
     tv = fit_ltv_tv((x, u), lam_tv)
     t_tv = time.perf_counter() - t0
-    err = np.concatenate([tv.A - A_tv, tv.B - B_tv], axis=2)
     results["tv"] = {
         "n": n, "m": m, "T": T, "lam": float(lam_tv), "time_s": t_tv,
         "iterations": tv.info["iterations"], "converged": tv.info["converged"],
         "polished": tv.info["polished"], "kkt_ratio": tv.info["kkt_ratio"],
         "true_change_point": t_jump, "change_points": tv.info["change_points"],
-        "jacobian_rms_error": float(np.sqrt(np.mean(np.sum(err**2, axis=(1, 2))))),
+        "jacobian_rms_error": jacobian_rms(tv, A_tv, B_tv),
     }
     t0 = time.perf_counter()
     tv_nopolish = fit_ltv_tv((x, u), lam_tv, polish=False, max_iter=20000)
@@ -239,17 +244,11 @@ def automatic_lambda(args: Args, rng: np.random.Generator, results: dict) -> Non
         t0 = time.perf_counter()
         lam_sel, curve = select_lambda((x, u), method=method)
         elapsed = time.perf_counter() - t0
-        fit = fit_ltv((x, u), lam_sel)
-        err = np.concatenate([fit.A - A_s, fit.B - B_s], axis=2)
-        grid_err = []
-        for g in curve["lambdas"]:
-            fit_g = fit_ltv((x, u), g)
-            e = np.concatenate([fit_g.A - A_s, fit_g.B - B_s], axis=2)
-            grid_err.append(float(np.sqrt(np.mean(np.sum(e**2, axis=(1, 2))))))
+        grid_err = [jacobian_rms(fit_ltv((x, u), g), A_s, B_s) for g in curve["lambdas"]]
         results[f"select_lambda_{method}"] = {
             "T": 1000, "n": 4, "m": 2, "time_s": elapsed, "lam": lam_sel,
             "grid_points": len(curve["lambdas"]), "at_boundary": curve["at_boundary"],
-            "jacobian_rms_error": float(np.sqrt(np.mean(np.sum(err**2, axis=(1, 2))))),
+            "jacobian_rms_error": jacobian_rms(fit_ltv((x, u), lam_sel), A_s, B_s),
             "error_optimal_grid_lam": float(curve["lambdas"][int(np.argmin(grid_err))]),
             "error_optimal_grid_error": float(min(grid_err)),
         }
