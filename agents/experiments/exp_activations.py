@@ -77,11 +77,9 @@ def report(records: list[dict], out, figures, args: Args) -> dict:
     best_smooth = {}
     for j, c in enumerate(checkpoints):
         for a in ("relu", "leaky_relu"):
-            if a in logs:
-                best_smooth[f"{a}_vs_tanh@{c}"] = pc.paired_comparison(logs[a][:, j],
-                                                                    logs["tanh"][:, j])
-                best_smooth[f"{a}_vs_elu@{c}"] = pc.paired_comparison(logs[a][:, j],
-                                                                   logs["elu"][:, j])
+            for smooth in ("tanh", "elu") if a in logs else ():
+                best_smooth[f"{a}_vs_{smooth}@{c}"] = pc.paired_comparison(logs[a][:, j],
+                                                                         logs[smooth][:, j])
     summary["comparisons"] = best_smooth
     summary["figures"] = ["activations.png"]
     return summary
