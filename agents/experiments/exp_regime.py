@@ -56,6 +56,7 @@ class Args(pc.TrainingArgs):
 
     def __post_init__(self) -> None:
         """The comma-list options, each named when it is wrong (before any run starts)."""
+        super().__post_init__()
         n_trains = pc.comma_list("n-trains", self.n_trains, int)
         pc.comma_list("epochs", self.epochs, int)
         pc.comma_list("windows", self.windows, allowed=list(pc.EXCITATION_WINDOWS))

@@ -43,6 +43,12 @@ class SweepArgs:
     report_only: bool = field(default=False, metadata={
         "help": "no new runs: report the finished ones from their JSON"})
 
+    def __post_init__(self) -> None:
+        """``--workers`` (and ``--mc``, where a subclass has it) at least 1."""
+        for name in ("mc", "workers"):
+            if getattr(self, name, 1) < 1:
+                raise ValueError(f"--{name} must be >= 1, got {getattr(self, name)}")
+
 
 @dataclass
 class ExperimentArgs(SweepArgs):
@@ -92,24 +98,10 @@ def parse_args(args_cls: type, argv: Sequence[str] | None = None):
     supplies the defaults, so options given explicitly win. A bad option or value prints one line
     and exits with code 2.
     """
-    from agents.cli import fail, parse
+    from agents.cli import parse
 
-    smoke = {"smoke": True, **getattr(args_cls, "SMOKE", {})}
-    args = parse(args_cls, args=argv, presets={"--smoke": smoke})
-    try:
-        _check_common(args)
-    except ValueError as err:
-        fail(str(err))
-    return args
-
-
-def _check_common(args) -> None:
-    if getattr(args, "mc", 1) < 1:
-        raise ValueError(f"--mc must be >= 1, got {args.mc}")
-    if getattr(args, "workers", 1) < 1:
-        raise ValueError(f"--workers must be >= 1, got {args.workers}")
-    if getattr(args, "backend", "process") not in ("process", "serial", "ray"):
-        raise ValueError(f"--backend must be process, serial or ray, got {args.backend!r}")
+    return parse(args_cls, args=argv, presets={"--smoke": {
+        "smoke": True, **getattr(args_cls, "SMOKE", {})}})
 
 
 def comma_list(flag: str, text: str, kind: type = str, allowed: Sequence | None = None,
