@@ -195,7 +195,6 @@ def l2_fits(args: Args, sizes: list[tuple[int, int]], horizons: list[int],
         results["exponent"][f"{n}x{m}"] = float(slope[0])
 
 
-
 def tv_fit(args: Args, rng: np.random.Generator, results: dict) -> None:
     """``results["tv"]``, ``["tv_admm_only"]``: the TV fit at T = tv_T on a system with one
     jump, with and without the polish."""
@@ -232,7 +231,6 @@ def tv_fit(args: Args, rng: np.random.Generator, results: dict) -> None:
     print(json.dumps(results["tv_admm_only"]))
 
 
-
 def automatic_lambda(args: Args, rng: np.random.Generator, results: dict) -> None:
     """``results["select_lambda_<method>"]``: the automatic lambda at T = 1000 on a smoothly
     varying system, against the best lambda of its grid."""
@@ -253,7 +251,6 @@ def automatic_lambda(args: Args, rng: np.random.Generator, results: dict) -> Non
             "error_optimal_grid_error": float(min(grid_err)),
         }
         print(json.dumps(results[f"select_lambda_{method}"]))
-
 
 
 def targets(results: dict) -> None:

@@ -204,33 +204,40 @@ def write_result(path: str | os.PathLike | None, result: dict, indent: int = 1) 
         print(f"wrote {path}")
 
 
-def sweep_started(args, out: Path) -> dict:
-    """Write ``<out>/args.json`` (the arguments and the command line) and return what
-    :func:`sweep_finished` logs: finished runs, library version and clocks at the start."""
-    from mbtsr.runner import load_results
+def _sweep(args, out: Path, experiment: str, run_fn: Callable[[dict, int], dict],
+           configs: dict[str, dict], stages: Sequence[tuple[str, dict[str, dict]]] | None) -> None:
+    """The sweep of :func:`run_experiment`, with ``<out>/args.json`` (the arguments and the
+    command line) and one more entry of ``<out>/sweeps.json``: start, wall and driver CPU time,
+    runs finished before and after, workers, load, library version at start and end."""
+    from mbtsr.runner import load_results, run_sweep
 
     write_json_atomic(out / "args.json",
                       {"args": dataclasses.asdict(args), "command": command_line()})
-    return {"n_before": len(load_results(out)), "library": library_version(),
-            "t0": time.perf_counter(), "c0": time.process_time()}
-
-
-def sweep_finished(args, out: Path, started: dict, n_after: int) -> float:
-    """Append this (possibly resumed) sweep to ``<out>/sweeps.json``: start, wall and driver CPU
-    time, runs finished before and after, workers, load, library version at start and end.
-    Returns the wall time [s]."""
-    wall = time.perf_counter() - started["t0"]
+    n_before, library = len(load_results(out)), library_version()
+    t0, c0 = time.perf_counter(), time.process_time()
+    sweep = functools.partial(run_sweep, run_fn, out_dir=out, backend=args.backend,
+                              workers=args.workers, address=args.address or None)
+    if stages is None:
+        n_after = len(sweep(configs, range(args.mc), progress=not args.smoke))
+    else:
+        for label, todo in stages:
+            for seed in range(args.mc):
+                sweep(todo, [seed], progress=False)
+                if not args.smoke:
+                    print(f"[{experiment}] {label}: seed {seed} done, "
+                          f"{time.perf_counter() - t0:.0f} s", flush=True)
+        n_after = len(load_results(out))
+    wall = time.perf_counter() - t0
     log_path = out / "sweeps.json"
     log = json.loads(log_path.read_text()) if log_path.exists() else []
     log.append({"started": time.strftime("%Y-%m-%dT%H:%M:%S", time.localtime(time.time() - wall)),
-                "wall_s": round(wall, 1),
-                "cpu_s_driver": round(time.process_time() - started["c0"], 1),
-                "runs_finished_before": started["n_before"], "runs_finished_after": n_after,
+                "wall_s": round(wall, 1), "cpu_s_driver": round(time.process_time() - c0, 1),
+                "runs_finished_before": n_before, "runs_finished_after": n_after,
                 "workers": args.workers, "backend": args.backend,
                 "load_avg_1min": round(os.getloadavg()[0], 2),
-                "library_at_start": started["library"], "library_at_end": library_version()})
+                "library_at_start": library, "library_at_end": library_version()})
     write_json_atomic(log_path, log)
-    return wall
+    print(f"[{experiment}] sweep finished in {wall:.1f} s")
 
 
 def run_experiment(
@@ -248,25 +255,11 @@ def run_experiment(
         seed (an interrupted sweep then leaves every cell of a stage with the same number of
         seeds, give or take the last seed's); ``None``: all ``configs`` in one sweep.
     """
-    from mbtsr.runner import load_results, run_sweep
+    from mbtsr.runner import load_results
 
     out, figures = output_dirs(args, experiment)
     if not args.report_only:
-        started = sweep_started(args, out)
-        sweep = functools.partial(run_sweep, run_fn, out_dir=out, backend=args.backend,
-                                  workers=args.workers, address=args.address or None)
-        if stages is None:
-            n_after = len(sweep(configs, range(args.mc), progress=not args.smoke))
-        else:
-            for label, todo in stages:
-                for seed in range(args.mc):
-                    sweep(todo, [seed], progress=False)
-                    if not args.smoke:
-                        print(f"[{experiment}] {label}: seed {seed} done, "
-                              f"{time.perf_counter() - started['t0']:.0f} s", flush=True)
-            n_after = len(load_results(out))
-        wall = sweep_finished(args, out, started, n_after)
-        print(f"[{experiment}] sweep finished in {wall:.1f} s")
+        _sweep(args, out, experiment, run_fn, configs, stages)
     records = [r for r in load_results(out) if r["name"] in configs or args.report_only]
     if not records:
         failed = [p for p in (out / "errors").glob("*.json")
