@@ -114,23 +114,15 @@ def _per_call(fn, calls: int) -> float:
     return (time.perf_counter() - t0) / calls
 
 
-def timings(fn, repeats: int, min_seconds: float = 0.05) -> np.ndarray:
-    """``[repeats]`` seconds per call of ``fn()``, each from a loop of as many calls as fill
-    ``min_seconds`` (as ``timeit``: one call of a 1 ms function is at the mercy of the clock
-    and of other processes)."""
-    calls = _calls_to_fill(fn, min_seconds)
-    return np.array([_per_call(fn, calls) for _ in range(repeats)])
-
-
-def paired_timings(fn_a, fn_b, repeats: int,
-                   min_seconds: float = 0.05) -> tuple[np.ndarray, np.ndarray]:
-    """As :func:`timings` for two functions, their loops alternating (a, b, a, b, ...), so
-    that each ratio ``b_i / a_i`` compares the two at the same machine speed (a shared
-    machine's speed drifts by tens of percent between seconds)."""
-    calls_a, calls_b = _calls_to_fill(fn_a, min_seconds), _calls_to_fill(fn_b, min_seconds)
-    a, b = np.array([(_per_call(fn_a, calls_a), _per_call(fn_b, calls_b))
+def timings(*fns, repeats: int, min_seconds: float = 0.05) -> np.ndarray:
+    """``[len(fns), repeats]`` seconds per call of each ``fn()``, each from a loop of as many
+    calls as fill ``min_seconds`` (as ``timeit``: one call of a 1 ms function is at the mercy of
+    the clock and of other processes); the functions' loops alternate (a, b, a, b, ...), so that
+    each ratio ``b_i / a_i`` compares them at the same machine speed (a shared machine's speed
+    drifts by tens of percent between seconds)."""
+    calls = [_calls_to_fill(fn, min_seconds) for fn in fns]
+    return np.array([[_per_call(fn, c) for fn, c in zip(fns, calls)]
                      for _ in range(repeats)]).T
-    return a, b
 
 
 def run(args: Args) -> dict:
@@ -165,14 +157,14 @@ def l2_fits(args: Args, sizes: list[tuple[int, int]], horizons: list[int],
             row = {"n": n, "m": m, "T": T}
             unknowns = T * n * (n + m)
             if unknowns > args.generic_max_unknowns:
-                t_fit = timings(fit, args.repeats)
+                (t_fit,) = timings(fit, repeats=args.repeats)
                 row["generic_solve_s"] = None
             else:
                 normal, rhs = generic_normal_equations(x, u, args.lam)
-                t_fit, t_solve = paired_timings(
-                    fit, lambda a=normal, b=rhs: spl.spsolve(a, b), args.repeats)
+                t_fit, t_solve = timings(
+                    fit, lambda a=normal, b=rhs: spl.spsolve(a, b), repeats=args.repeats)
                 t_asm = float(np.median(timings(
-                    lambda x=x, u=u: generic_normal_equations(x, u, args.lam), 3)))
+                    lambda x=x, u=u: generic_normal_equations(x, u, args.lam), repeats=3)))
                 k_ref = spl.spsolve(normal, rhs).reshape(T, n, n + m)
                 k_fast = fit_ltv((x, u), args.lam).params
                 row.update({
