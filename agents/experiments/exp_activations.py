@@ -44,8 +44,7 @@ def log_errors(records: list[dict]) -> tuple[list[int], dict[str, np.ndarray]]:
     acts = list(records[0]["result"]["pred_rms"])
     out = {}
     for a in acts:
-        v = np.array([[np.nan if x is None else x for x in r["result"]["pred_rms"][a]]
-                      for r in records], dtype=float)
+        v = np.array([r["result"]["pred_rms"][a] for r in records], dtype=float)  # None: nan
         with np.errstate(divide="ignore", invalid="ignore"):
             out[a] = np.log10(v)
     return checkpoints, out

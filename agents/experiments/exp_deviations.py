@@ -137,8 +137,7 @@ def report(records: list[dict], out, figures, args: Args) -> dict:
     for ax, k in zip(np.atleast_1d(axes), METRICS):
         for i, f in enumerate(forms):
             comps = [table[d].get(f"{f}_vs_nominal", {}).get(k, {}) for d in others]
-            med = np.array([np.nan if c.get("median_diff") is None else c["median_diff"]
-                            for c in comps], dtype=float)
+            med = np.array([c.get("median_diff") for c in comps], dtype=float)  # None: nan
             bars = ax.barh(ypos + (i - 0.5 * (len(forms) - 1)) * 0.38, med, height=0.36,
                            label=f, color=f"C{i}")
             for bar, c in zip(bars, comps):  # faint: not significant at alpha

@@ -297,8 +297,7 @@ def finite_or_none(v: float | None) -> float | None:
 
 def values(records: list[dict], name: str, key: str) -> np.ndarray:
     """``[runs]`` array of ``result[key]`` for the records of config ``name`` (None -> nan)."""
-    out = [r["result"].get(key) for r in records if r["name"] == name]
-    return np.array([np.nan if v is None else v for v in out], dtype=float)
+    return np.array([r["result"].get(key) for r in records if r["name"] == name], dtype=float)
 
 
 def spread(v: np.ndarray) -> dict:

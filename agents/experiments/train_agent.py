@@ -285,7 +285,7 @@ def plot_learning_curve(agent, path: Path) -> None:
     ax.semilogy(ep, [r["episode_cost"] for r in rows], "o-", label="training rollout" + (
         f" (at most {short} steps{handed_on}; evaluation {agent.spec.episode_steps})"
         if short else ""))
-    ev = np.array([np.nan if r.get("eval_cost") is None else r["eval_cost"] for r in rows])
+    ev = np.array([r.get("eval_cost") for r in rows], dtype=float)  # None: nan
     if np.any(np.isfinite(ev)):
         ax.semilogy(ep, ev, "s-", label="evaluation (mean of targets)")
     oracle = agent.oracle_mean
@@ -298,7 +298,7 @@ def plot_learning_curve(agent, path: Path) -> None:
     ax = axes[1]
     for key, label in (("one_step_rms", "one-step RMS (new data)"),
                        ("jacobian_error", "Jacobian error (new data)")):
-        v = np.array([np.nan if r.get(key) is None else r[key] for r in rows], dtype=float)
+        v = np.array([r.get(key) for r in rows], dtype=float)  # None: nan
         if np.any(np.isfinite(v)):
             ax.semilogy(ep, v, "o-", label=label)
     ax.set_xlabel("episode")
