@@ -302,8 +302,7 @@ def run(args: Args) -> dict:
                     rec = {"task": task, "episodes": k, "seed": seed, "reg": reg,
                            "transitions": N, "optimizer_steps": int(hist.steps),
                            "train_wall_s": t_train,
-                           "rel_step": err["rel_step"], "nrmse": err["nrmse"],
-                           "nrmse_median_dim": err["nrmse_median_dim"],
+                           **{k: err[k] for k in ("rel_step", "nrmse", "nrmse_median_dim")},
                            **jacobian_rel_error(A, B, P, A_hat, B_hat)}
                     records.append(rec)
                     print(f"{task} seed {seed} {k} ep ({N} tr) {reg:8s}: jac {rec['jac_rel']:.3f} "
