@@ -1065,27 +1065,22 @@ def robot_truth_diagnostics(cfg: RobotData, seed: int, still_speed: float = 0.05
     from mbtsr.training import ORIGINAL_LTV_LAMBDA
 
     d = robot_dataset(cfg, seed)
-    env = d["env"]
+    env, trajs = d["env"], d["train"]
     X, U = evaluation_points(d["val"], cfg.eval_stride)
     A, B = env.linearize_trajectory(X, U)
     J = np.concatenate([A, B], -1)
-    train_jac = [env.linearize_trajectory(tr.x[:-1], tr.u) for tr in d["train"]]
-    J_train = np.concatenate([np.concatenate([a, b], -1) for a, b in train_jac])
-    twin = env.analytic_model()
-    A_tw, B_tw = twin.jacobians(X, U)
-    still = (np.abs(X[:, 2:4]) < still_speed).any(1)
+    A_tr, B_tr = (np.concatenate(j) for j in zip(*[env.linearize_trajectory(tr.x[:-1], tr.u)
+                                                   for tr in trajs]))
 
     def err(dJ: np.ndarray) -> float:
         return float(np.sqrt((dJ ** 2).sum((-1, -2)).mean()))
 
-    dtw = np.concatenate([A_tw, B_tw], -1) - J
-    out = {"const_train": err(J - J_train.mean(0)), "const_eval": err(J - J.mean(0)),
-           "twin": err(dtw), "twin_moving": err(dtw[~still]), "twin_still": err(dtw[still]),
-           "frac_still": float(still.mean())}
-    lab = []
-    for tr, (a, b) in zip(d["train"], train_jac):
-        lm = fit_ltv(tr, ORIGINAL_LTV_LAMBDA)
-        lab.append(np.concatenate([lm.A[:tr.T], lm.B[:tr.T]], -1) - np.concatenate([a, b], -1))
-    lab = np.concatenate(lab)
-    out["ltv_pos"], out["ltv_vel"] = err(lab[:, :2]), err(lab[:, 2:])
-    return out
+    twin = jacobian_diagnostics(X, A, B, *env.analytic_model().jacobians(X, U), still_speed)
+    labels = [fit_ltv(tr, ORIGINAL_LTV_LAMBDA) for tr in trajs]
+    ltv = row_group_errors(A_tr, B_tr,
+                           np.concatenate([lm.A[:tr.T] for lm, tr in zip(labels, trajs)]),
+                           np.concatenate([lm.B[:tr.T] for lm, tr in zip(labels, trajs)]))
+    return {"const_train": err(J - np.concatenate([A_tr, B_tr], -1).mean(0)),
+            "const_eval": err(J - J.mean(0)), "twin": twin["jac_all"],
+            "twin_moving": twin["jac_moving_all"], "twin_still": twin["jac_still_all"],
+            "frac_still": twin["frac_still"], "ltv_pos": ltv["pos"], "ltv_vel": ltv["vel"]}
