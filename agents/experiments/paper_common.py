@@ -463,21 +463,29 @@ def complex_to_pairs(z: np.ndarray, digits: int = 4) -> dict:
 
 
 @dataclass(frozen=True)
-class LinearData:
+class Sampling:
+    """What the linear and the arm data sets share: step ``dt``, measurement noise
+    ``noise_std`` on the training states, ``n_val`` validation and ``n_sim`` simulation
+    trajectories, Jacobians at every ``eval_stride``-th validation point."""
+
+    dt: float = 0.02
+    noise_std: float = 0.01
+    n_val: int = 10
+    n_sim: int = 3
+    eval_stride: int = 3
+
+
+@dataclass(frozen=True)
+class LinearData(Sampling):
     """Data of the random-linear-system experiments (docs/experiments.md, "paper_common":
     the linear data)."""
 
     n: int = 10
     m: int = 10
-    dt: float = 0.02
     T: int = 200
     input_window: int = 5
     input_scale: float = 10.0
-    noise_std: float = 0.01
     n_train: int = 3
-    n_val: int = 10
-    n_sim: int = 3
-    eval_stride: int = 3
     last_state_zero: bool = False
 
 
@@ -527,18 +535,11 @@ def linear_dataset(cfg: LinearData, seed: int) -> dict:
 
 
 @dataclass(frozen=True)
-class ArmSampling:
+class ArmSampling(Sampling):
     """How the paper arm's data sets are sampled (shared by :class:`RobotData` and
-    :class:`RegimeData`): ``duration`` [s] at step ``dt`` (``T = duration / dt``), measurement
-    noise ``noise_std`` on the training states, ``n_val`` validation and ``n_sim`` simulation
-    trajectories, Jacobians at every ``eval_stride``-th validation point."""
+    :class:`RegimeData`): :class:`Sampling` over ``duration`` [s] (``T = duration / dt``)."""
 
     duration: float = 4.0
-    dt: float = 0.02
-    noise_std: float = 0.01
-    n_val: int = 10
-    n_sim: int = 3
-    eval_stride: int = 3
 
     @property
     def T(self) -> int:  # noqa: N802 - the paper's symbol
