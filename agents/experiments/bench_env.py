@@ -69,12 +69,10 @@ def run(args: Args) -> dict:
     base = env.unwrapped
     frame_skip = base.frame_skip
 
-
     def run_env() -> None:
         env.reset(seed=args.seed)
         for a in actions:
             env.step(a)
-
 
     env_steps_per_s = best_rate(run_env, args.n_steps, args.repeats)
 
@@ -83,13 +81,11 @@ def run(args: Args) -> dict:
     data = mujoco.MjData(model)
     ctrl = actions.astype(np.float64)
 
-
     def run_raw() -> None:
         mujoco.mj_resetData(model, data)
         for a in ctrl:
             data.ctrl[:] = a
             mujoco.mj_step(model, data, nstep=frame_skip)
-
 
     def run_raw_single() -> None:
         mujoco.mj_resetData(model, data)
@@ -97,7 +93,6 @@ def run(args: Args) -> dict:
             data.ctrl[:] = a
             for _ in range(frame_skip):
                 mujoco.mj_step(model, data)
-
 
     raw_control_steps_per_s = best_rate(run_raw, args.n_steps, args.repeats)
     raw_single_control_steps_per_s = best_rate(run_raw_single, args.n_steps, args.repeats)
@@ -109,11 +104,9 @@ def run(args: Args) -> dict:
     )
     us = rng.uniform(-1, 1, (args.n_linearize, 2))
 
-
     def run_linearize() -> None:
         for x, u in zip(xs, us):
             base.linearize(x, u)
-
 
     linearize_per_s = best_rate(run_linearize, args.n_linearize, args.repeats)
     traj_x, traj_u = xs[:100], us[:100]
@@ -126,11 +119,9 @@ def run(args: Args) -> dict:
     scratch = mujoco.MjData(model)
     fd_a, fd_b = np.zeros((4, 4)), np.zeros((4, 2))
 
-
     def run_fd() -> None:
         for _ in range(1000):
             mujoco.mjd_transitionFD(model, scratch, 1e-6, True, fd_a, fd_b, None, None)
-
 
     fd_calls_per_s = best_rate(run_fd, 1000, args.repeats)
 

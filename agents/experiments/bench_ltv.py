@@ -78,6 +78,12 @@ def simulate(A, B, T, noise, rng):
     return x, u
 
 
+def jacobian_rms(fit, A: np.ndarray, B: np.ndarray) -> float:
+    """RMS over time of the Frobenius error of a fit's ``[A_t B_t]`` against ``A, B [T, ...]``."""
+    err = np.concatenate([fit.A - A, fit.B - B], axis=2)
+    return float(np.sqrt(np.mean(np.sum(err**2, axis=(1, 2)))))
+
+
 def generic_normal_equations(x: np.ndarray, u: np.ndarray, lam: float):
     """The same problem assembled generically: the sparse normal equations ``(N, r)`` of
     ``[I kron phi_t^T ; lam D kron I] k = [x_{t+1} ; 0]`` in ``k = vec([A_t B_t]^T)``."""
@@ -108,23 +114,15 @@ def _per_call(fn, calls: int) -> float:
     return (time.perf_counter() - t0) / calls
 
 
-def timings(fn, repeats: int, min_seconds: float = 0.05) -> np.ndarray:
-    """``[repeats]`` seconds per call of ``fn()``, each from a loop of as many calls as fill
-    ``min_seconds`` (as ``timeit``: one call of a 1 ms function is at the mercy of the clock
-    and of other processes)."""
-    calls = _calls_to_fill(fn, min_seconds)
-    return np.array([_per_call(fn, calls) for _ in range(repeats)])
-
-
-def paired_timings(fn_a, fn_b, repeats: int,
-                   min_seconds: float = 0.05) -> tuple[np.ndarray, np.ndarray]:
-    """As :func:`timings` for two functions, their loops alternating (a, b, a, b, ...), so
-    that each ratio ``b_i / a_i`` compares the two at the same machine speed (a shared
-    machine's speed drifts by tens of percent between seconds)."""
-    calls_a, calls_b = _calls_to_fill(fn_a, min_seconds), _calls_to_fill(fn_b, min_seconds)
-    a, b = np.array([(_per_call(fn_a, calls_a), _per_call(fn_b, calls_b))
+def timings(*fns, repeats: int, min_seconds: float = 0.05) -> np.ndarray:
+    """``[len(fns), repeats]`` seconds per call of each ``fn()``, each from a loop of as many
+    calls as fill ``min_seconds`` (as ``timeit``: one call of a 1 ms function is at the mercy of
+    the clock and of other processes); the functions' loops alternate (a, b, a, b, ...), so that
+    each ratio ``b_i / a_i`` compares them at the same machine speed (a shared machine's speed
+    drifts by tens of percent between seconds)."""
+    calls = [_calls_to_fill(fn, min_seconds) for fn in fns]
+    return np.array([[_per_call(fn, c) for fn, c in zip(fns, calls)]
                      for _ in range(repeats)]).T
-    return a, b
 
 
 def run(args: Args) -> dict:
@@ -159,14 +157,14 @@ def l2_fits(args: Args, sizes: list[tuple[int, int]], horizons: list[int],
             row = {"n": n, "m": m, "T": T}
             unknowns = T * n * (n + m)
             if unknowns > args.generic_max_unknowns:
-                t_fit = timings(fit, args.repeats)
+                (t_fit,) = timings(fit, repeats=args.repeats)
                 row["generic_solve_s"] = None
             else:
                 normal, rhs = generic_normal_equations(x, u, args.lam)
-                t_fit, t_solve = paired_timings(
-                    fit, lambda a=normal, b=rhs: spl.spsolve(a, b), args.repeats)
+                t_fit, t_solve = timings(
+                    fit, lambda a=normal, b=rhs: spl.spsolve(a, b), repeats=args.repeats)
                 t_asm = float(np.median(timings(
-                    lambda x=x, u=u: generic_normal_equations(x, u, args.lam), 3)))
+                    lambda x=x, u=u: generic_normal_equations(x, u, args.lam), repeats=3)))
                 k_ref = spl.spsolve(normal, rhs).reshape(T, n, n + m)
                 k_fast = fit_ltv((x, u), args.lam).params
                 row.update({
@@ -189,7 +187,6 @@ def l2_fits(args: Args, sizes: list[tuple[int, int]], horizons: list[int],
         results["exponent"][f"{n}x{m}"] = float(slope[0])
 
 
-
 def tv_fit(args: Args, rng: np.random.Generator, results: dict) -> None:
     """``results["tv"]``, ``["tv_admm_only"]``: the TV fit at T = tv_T on a system with one
     jump, with and without the polish."""
@@ -206,13 +203,12 @@ def tv_fit(args: Args, rng: np.random.Generator, results: dict) -> None:
     t0 = time.perf_counter()
     tv = fit_ltv_tv((x, u), lam_tv)
     t_tv = time.perf_counter() - t0
-    err = np.concatenate([tv.A - A_tv, tv.B - B_tv], axis=2)
     results["tv"] = {
         "n": n, "m": m, "T": T, "lam": float(lam_tv), "time_s": t_tv,
         "iterations": tv.info["iterations"], "converged": tv.info["converged"],
         "polished": tv.info["polished"], "kkt_ratio": tv.info["kkt_ratio"],
         "true_change_point": t_jump, "change_points": tv.info["change_points"],
-        "jacobian_rms_error": float(np.sqrt(np.mean(np.sum(err**2, axis=(1, 2))))),
+        "jacobian_rms_error": jacobian_rms(tv, A_tv, B_tv),
     }
     t0 = time.perf_counter()
     tv_nopolish = fit_ltv_tv((x, u), lam_tv, polish=False, max_iter=20000)
@@ -227,7 +223,6 @@ def tv_fit(args: Args, rng: np.random.Generator, results: dict) -> None:
     print(json.dumps(results["tv_admm_only"]))
 
 
-
 def automatic_lambda(args: Args, rng: np.random.Generator, results: dict) -> None:
     """``results["select_lambda_<method>"]``: the automatic lambda at T = 1000 on a smoothly
     varying system, against the best lambda of its grid."""
@@ -239,22 +234,15 @@ def automatic_lambda(args: Args, rng: np.random.Generator, results: dict) -> Non
         t0 = time.perf_counter()
         lam_sel, curve = select_lambda((x, u), method=method)
         elapsed = time.perf_counter() - t0
-        fit = fit_ltv((x, u), lam_sel)
-        err = np.concatenate([fit.A - A_s, fit.B - B_s], axis=2)
-        grid_err = []
-        for g in curve["lambdas"]:
-            fit_g = fit_ltv((x, u), g)
-            e = np.concatenate([fit_g.A - A_s, fit_g.B - B_s], axis=2)
-            grid_err.append(float(np.sqrt(np.mean(np.sum(e**2, axis=(1, 2))))))
+        grid_err = [jacobian_rms(fit_ltv((x, u), g), A_s, B_s) for g in curve["lambdas"]]
         results[f"select_lambda_{method}"] = {
             "T": 1000, "n": 4, "m": 2, "time_s": elapsed, "lam": lam_sel,
             "grid_points": len(curve["lambdas"]), "at_boundary": curve["at_boundary"],
-            "jacobian_rms_error": float(np.sqrt(np.mean(np.sum(err**2, axis=(1, 2))))),
+            "jacobian_rms_error": jacobian_rms(fit_ltv((x, u), lam_sel), A_s, B_s),
             "error_optimal_grid_lam": float(curve["lambdas"][int(np.argmin(grid_err))]),
             "error_optimal_grid_error": float(min(grid_err)),
         }
         print(json.dumps(results[f"select_lambda_{method}"]))
-
 
 
 def targets(results: dict) -> None:

@@ -6,6 +6,7 @@ What it measures and how to run it: docs/experiments.md, section ``bench_model_s
 from __future__ import annotations
 
 import dataclasses
+import json
 import os
 import time
 from collections.abc import Callable
@@ -244,8 +245,6 @@ def scaling_study(args: Args) -> dict:
 
 def agent_study(args: Args) -> dict:
     """The agent on the task: per-episode phase times, the update-time ratio, the returns."""
-    import json
-
     from agents.config import AgentConfig
     from agents.jacprop_agent import JacPropAgent
 
@@ -286,8 +285,6 @@ def agent_study(args: Args) -> dict:
 def plot_sizes(paths: list[str], out: str) -> None:
     """Held-out error (median over dimensions, relative to the paper's 4 x 1 x 20 on the same
     task) and CPU milliseconds per gradient step against the size, one line per task."""
-    import json
-
     plt = pyplot()
 
     fig, (ax_err, ax_time) = plt.subplots(1, 2, figsize=(10, 3.8))
@@ -322,13 +319,11 @@ def run(args: Args) -> dict:
     if args.study == "plot":
         plot_sizes([p for p in args.plot_from.split(",") if p], args.plot)
         return {}
-    if args.study == "scaling":
-        result = {"args": dataclasses.asdict(args), "results": scaling_study(args)}
-        write_result(args.out, result)
-        return result
-    if args.study == "agent":
-        result = {"args": dataclasses.asdict(args), "results": agent_study(args)}
-        result["machine"] = machine_info(load_start)
+    if args.study in ("scaling", "agent"):
+        study = scaling_study if args.study == "scaling" else agent_study
+        result = {"args": dataclasses.asdict(args), "results": study(args)}
+        if args.study == "agent":
+            result["machine"] = machine_info(load_start)
         write_result(args.out, result)
         return result
     train = collect(args.task, args.n_train, args.seed)

@@ -17,7 +17,7 @@ import torch
 from torch import nn
 
 from agents.cli import main as command
-from agents.experiments.paper_common import machine_info, write_result
+from agents.experiments.paper_common import blas_threads_from_env, machine_info, write_result
 from mbtsr import Trajectory
 from mbtsr.ensemble import ACTIVATIONS, DynamicsEnsemble, EnsembleConfig, MemberSpec
 from mbtsr.ltv import fit_ltv
@@ -51,8 +51,6 @@ SMOKE = {"smoke": True, "epochs": 3, "repeats": 1, "robot_epochs": 10}
 
 def main(argv: list[str] | None = None) -> dict:
     """The command line (``--help``: the options)."""
-    from agents.experiments.paper_common import blas_threads_from_env
-
     blas_threads_from_env()  # one BLAS thread unless OMP_NUM_THREADS says otherwise
     return command(Args, run, args=argv, outputs=("out",), presets={"--smoke": SMOKE})
 

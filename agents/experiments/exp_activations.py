@@ -44,8 +44,7 @@ def log_errors(records: list[dict]) -> tuple[list[int], dict[str, np.ndarray]]:
     acts = list(records[0]["result"]["pred_rms"])
     out = {}
     for a in acts:
-        v = np.array([[np.nan if x is None else x for x in r["result"]["pred_rms"][a]]
-                      for r in records], dtype=float)
+        v = np.array([r["result"]["pred_rms"][a] for r in records], dtype=float)  # None: nan
         with np.errstate(divide="ignore", invalid="ignore"):
             out[a] = np.log10(v)
     return checkpoints, out
@@ -77,11 +76,9 @@ def report(records: list[dict], out, figures, args: Args) -> dict:
     best_smooth = {}
     for j, c in enumerate(checkpoints):
         for a in ("relu", "leaky_relu"):
-            if a in logs:
-                best_smooth[f"{a}_vs_tanh@{c}"] = pc.paired_comparison(logs[a][:, j],
-                                                                    logs["tanh"][:, j])
-                best_smooth[f"{a}_vs_elu@{c}"] = pc.paired_comparison(logs[a][:, j],
-                                                                   logs["elu"][:, j])
+            for smooth in ("tanh", "elu") if a in logs else ():
+                best_smooth[f"{a}_vs_{smooth}@{c}"] = pc.paired_comparison(logs[a][:, j],
+                                                                         logs[smooth][:, j])
     summary["comparisons"] = best_smooth
     summary["figures"] = ["activations.png"]
     return summary

@@ -6,7 +6,6 @@ What it measures and how to run it: docs/experiments.md, section ``exp_claims``.
 from __future__ import annotations
 
 import json
-from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -39,13 +38,6 @@ class Comparison:
     mode: str = "diff"
 
 
-def _log10_act(act: str, checkpoint: int) -> Callable[[dict], float]:
-    def get(res: dict) -> float:
-        i = res["checkpoints"].index(checkpoint)
-        return float(np.log10(res["pred_rms"][act][i]))
-    return get
-
-
 def metric_value(res: dict, metric: str) -> float | None:
     """``metric`` of one run's result: a key, ``rounds.<i>.<key>``, or ``act.<name>@<ckpt>``."""
     if metric.startswith("rounds."):
@@ -53,7 +45,7 @@ def metric_value(res: dict, metric: str) -> float | None:
         return res["rounds"][int(i)][key]
     if metric.startswith("act."):
         act, ckpt = metric[4:].split("@")
-        return _log10_act(act, int(ckpt))(res)
+        return float(np.log10(res["pred_rms"][act][res["checkpoints"].index(int(ckpt))]))
     return res.get(metric)
 
 

@@ -50,14 +50,10 @@ class Args(pc.TrainingArgs):
 
 
 def make_configs(args: Args) -> dict[str, dict]:
-    names = ["nominal"] + [d for d in args.deviations.split(",") if d and d != "nominal"]
-    unknown = [d for d in names if d not in DEVIATIONS]
-    if unknown:
-        raise ValueError(f"--deviations: unknown {unknown}; choose from {list(DEVIATIONS)}")
+    names = ["nominal"] + [d for d in pc.comma_list("deviations", args.deviations, empty=True,
+                                                    allowed=list(DEVIATIONS)) if d != "nominal"]
     configs = {}
-    for f in args.formulations.split(","):
-        if f not in ("f", "g"):
-            raise ValueError(f"--formulations must list f and/or g, got {f!r}")
+    for f in pc.comma_list("formulations", args.formulations, allowed=["f", "g"]):
         for name in names:
             _, data_kw, model_kw, reg_kw = DEVIATIONS[name]
             data = dataclasses.asdict(pc.RobotData(n_val=args.n_val, **data_kw))
@@ -99,9 +95,8 @@ def report(records: list[dict], out, figures, args: Args) -> dict:
                 continue
             row[f] = {k: pc.spread(metric(records, name, k)) for k in METRICS}
             row[f]["diverged"] = int(pc.values(records, name, "sim_diverged").sum())
-            for k in ("train_time", "cpu_time", "train_pred_rms", "pred_rms", "sim_rms",
-                      "jac_err"):
-                row[f][k] = pc.spread(pc.values(records, name, k))
+            row[f].update(pc.spreads(records, [name], ("train_time", "cpu_time", "train_pred_rms",
+                                                       "pred_rms", "sim_rms", "jac_err"))[name])
             if d != "nominal":
                 row[f"{f}_vs_nominal"] = {
                     k: pc.paired_comparison(metric(records, name, k),
@@ -142,8 +137,7 @@ def report(records: list[dict], out, figures, args: Args) -> dict:
     for ax, k in zip(np.atleast_1d(axes), METRICS):
         for i, f in enumerate(forms):
             comps = [table[d].get(f"{f}_vs_nominal", {}).get(k, {}) for d in others]
-            med = np.array([np.nan if c.get("median_diff") is None else c["median_diff"]
-                            for c in comps], dtype=float)
+            med = np.array([c.get("median_diff") for c in comps], dtype=float)  # None: nan
             bars = ax.barh(ypos + (i - 0.5 * (len(forms) - 1)) * 0.38, med, height=0.36,
                            label=f, color=f"C{i}")
             for bar, c in zip(bars, comps):  # faint: not significant at alpha

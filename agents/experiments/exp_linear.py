@@ -94,26 +94,24 @@ def report(records: list[dict], out, figures, args: Args) -> dict:
     fig, axes = plt.subplots(1, 4, figsize=(15, 3.8))
     groups = {LABELS[n]: n for n in names}
     div = {LABELS[n]: f"div {int(pc.values(records, n, 'sim_diverged').sum())}" for n in names}
-    pc.violins(axes[0], {k: pc.values(records, n, "log10_pred_rms") for k, n in groups.items()},
-            ylabel="log10 prediction RMS")
-    pc.violins(axes[1], {k: pc.values(records, n, "log10_sim_rms") for k, n in groups.items()},
-            ylabel="log10 simulation RMS", annotate=div)
-    pc.violins(axes[2], {k: pc.values(records, n, "jac_rms_entry") for k, n in groups.items()},
-            ylabel="Jacobian RMS per entry")
-    pc.violins(axes[3], {k: pc.values(records, n, "eig_match_err") for k, n in groups.items()},
-            ylabel="eigenvalue matching error")
+    for ax, (key, ylabel) in zip(axes, (
+            ("log10_pred_rms", "log10 prediction RMS"), ("log10_sim_rms", "log10 simulation RMS"),
+            ("jac_rms_entry", "Jacobian RMS per entry"),
+            ("eig_match_err", "eigenvalue matching error"))):
+        pc.violins(ax, {k: pc.values(records, n, key) for k, n in groups.items()}, ylabel=ylabel,
+                   annotate=div if key == "log10_sim_rms" else None)
     for ax in axes[2:]:
         ax.set_yscale("log")
     pc.save_figure(fig, figures / "linear_errors.png")
 
     # Fig. 3: Jacobian RMS per entry after each training round vs the original's numbers
     fig, ax = plt.subplots(figsize=(6, 4))
+    per_round = {n: np.array([[rd["jac_rms_entry"] for rd in r["result"]["rounds"]]
+                              for r in records if r["name"] == n], dtype=float) for n in names}
     for name in names:
-        per_round = np.array([[rd["jac_rms_entry"] for rd in r["result"]["rounds"]]
-                              for r in records if r["name"] == name], dtype=float)
-        rounds = np.arange(1, per_round.shape[1] + 1)
-        med = np.nanmedian(per_round, 0)
-        q1, q3 = np.nanpercentile(per_round, [25, 75], axis=0)
+        rounds = np.arange(1, per_round[name].shape[1] + 1)
+        med = np.nanmedian(per_round[name], 0)
+        q1, q3 = np.nanpercentile(per_round[name], [25, 75], axis=0)
         ax.errorbar(rounds, med, yerr=[med - q1, q3 - med], marker="o", capsize=3,
                     label=LABELS[name])
     for name, vals in ORIGINAL.items():
@@ -131,10 +129,8 @@ def report(records: list[dict], out, figures, args: Args) -> dict:
             "cpu_time")
     summary = {"configs": pc.spreads(records, names, keys)}
     for n in names:
-        per_round = [[rd["jac_rms_entry"] for rd in r["result"]["rounds"]]
-                     for r in records if r["name"] == n]
         summary["configs"][n]["jac_rms_entry_rounds_median"] = np.nanmedian(
-            np.array(per_round, dtype=float), 0).tolist()
+            per_round[n], 0).tolist()
     summary["vs_none"] = {
         n: pc.compare(records, n, "none", ("jac_err", "eig_match_err", "log10_pred_rms",
                                            "log10_sim_rms", "train_loss"))

@@ -56,6 +56,7 @@ class Args(pc.TrainingArgs):
 
     def __post_init__(self) -> None:
         """The comma-list options, each named when it is wrong (before any run starts)."""
+        super().__post_init__()
         n_trains = pc.comma_list("n-trains", self.n_trains, int)
         pc.comma_list("epochs", self.epochs, int)
         pc.comma_list("windows", self.windows, allowed=list(pc.EXCITATION_WINDOWS))
@@ -74,19 +75,21 @@ def cell_name(method: str, n_train: int, epochs: int, window: str, friction: boo
 
 
 def make_configs(args: Args) -> dict[str, dict[str, dict]]:
-    """``{"main": {name: config}, "labels": {name: config}}``: the none/sampled grid and the
-    label-variant cells (run after the main grid is complete for all seeds)."""
+    """``{"main": {name: config}, "labels": {...}, "paper_protocol": {...}}``: the none/sampled
+    grid, the label-variant cells and the paper cell under the paper's protocol."""
     n_trains, epochs = pc.comma_list("", args.n_trains, int), pc.comma_list("", args.epochs, int)
     frictions = [{"on": True, "off": False}[f] for f in pc.comma_list("", args.frictions)]
     label_cells = {tuple(c.split("-")) for c in pc.comma_list("", args.label_cells, empty=True)}
     label_n_trains = pc.comma_list("", args.label_n_trains, int)
-    activations = pc.comma_list("", args.activations)
+    model = {"activations": pc.comma_list("", args.activations), "width": args.width}
     out: dict[str, dict[str, dict]] = {"main": {}, "labels": {}, "paper_protocol": {}}
     for window in pc.comma_list("", args.windows):
         for friction in frictions:
-            data = dataclasses.asdict(pc.RegimeData(
+            base = {"data": dataclasses.asdict(pc.RegimeData(
                 window=window, friction=friction, duration=args.duration,
-                n_train_max=max(n_trains), n_val=args.n_val))
+                n_train_max=max(n_trains), n_val=args.n_val)),
+                "exact_weight": args.exact_weight, "prior_scale": args.prior_scale,
+                "lr": args.lr, "still_speed": args.still_speed, "n_log": args.n_log}
             label = (window, "on" if friction else "off") in label_cells
             for n in n_trains:
                 methods = {"main": ["none", "sampled"],
@@ -96,24 +99,15 @@ def make_configs(args: Args) -> dict[str, dict[str, dict]]:
                     for part, ms in methods.items():
                         for m in ms:
                             out[part][cell_name(m, n, e, window, friction)] = {
-                                "data": data, "n_train": n, "epochs": e, "method": m,
-                                "exact_weight": args.exact_weight,
-                                "prior_scale": args.prior_scale, "lr": args.lr,
-                                "batch": args.batch,
-                                "model": {"activations": activations,
-                                          "width": args.width},
-                                "still_speed": args.still_speed, "n_log": args.n_log}
+                                **base, "n_train": n, "epochs": e, "method": m,
+                                "batch": args.batch, "model": model}
             if args.paper_protocol and label:
+                n, e = label_n_trains[0], min(epochs)
                 for m in ("none", "sampled", "oracle"):
-                    n = label_n_trains[0]
-                    e = min(epochs)
-                    name = cell_name(m, n, e, window, friction)
-                    out["paper_protocol"][f"paperprotocol.{name}"] = {
-                        "data": data, "n_train": n, "epochs": e, "method": m,
-                        "exact_weight": args.exact_weight, "prior_scale": args.prior_scale,
-                        "lr": args.lr, "batch": "trajectory", "model": {},
-                        "still_speed": args.still_speed, "n_log": args.n_log,
-                        "paper_protocol": True}
+                    name = f"paperprotocol.{cell_name(m, n, e, window, friction)}"
+                    out["paper_protocol"][name] = {
+                        **base, "n_train": n, "epochs": e, "method": m, "batch": "trajectory",
+                        "model": {}, "paper_protocol": True}
     return out
 
 
@@ -127,9 +121,13 @@ def _cell_of(record: dict) -> tuple:
     return c["data"]["window"], c["data"]["friction"], c["n_train"], c["epochs"]
 
 
+def _family_order(k: tuple) -> tuple:
+    """Short window first, friction first; then trajectories and epochs (for a whole cell)."""
+    return (k[0] != "short", not k[1], *k[2:])
+
+
 def _cells(records: list[dict]) -> list[tuple]:
-    return sorted({_cell_of(r) for r in records},
-                  key=lambda k: (k[0] != "short", not k[1], k[2], k[3]))
+    return sorted({_cell_of(r) for r in records}, key=_family_order)
 
 
 def _by_seed(records: list[dict], method: str, cell: tuple, key: str) -> dict[int, float]:
@@ -168,58 +166,47 @@ DIAG_KEYS = ("jac_err", "jac_pos", "jac_vel", "jac_moving_all", "jac_still_all",
              "label_jac_pos", "label_jac_vel", "log10_pred_rms", "log10_sim_rms")
 
 
-def _cell_text(ax, j: int, i: int, s: dict) -> None:
-    ax.text(j, i, f"{s['median_pct']:+.0f}%\n{s['wins']}/{s['total']}", ha="center",
-            va="center", fontsize=7, color="white" if abs(s["median_pct"]) > 25 else "black")
+def _heat_map(ax, stats: list[list[dict | None]], xticks: list[str], yticks: list[str]):
+    """Colour = median relative change of the Jacobian error vs none (:func:`paired_relative`
+    per row and column), text = change and wins/total."""
+    grid = np.full((len(yticks), len(xticks)), np.nan)
+    for i, row in enumerate(stats):
+        for j, s in enumerate(row):
+            if s is not None:
+                grid[i, j] = s["median_pct"]
+                ax.text(j, i, f"{s['median_pct']:+.0f}%\n{s['wins']}/{s['total']}", ha="center",
+                        va="center", fontsize=7,
+                        color="white" if abs(s["median_pct"]) > 25 else "black")
+    im = ax.imshow(grid, cmap="RdBu_r", vmin=-40.0, vmax=40.0, aspect="auto")
+    ax.set_xticks(range(len(xticks)), xticks, fontsize=7)
+    ax.set_yticks(range(len(yticks)), yticks, fontsize=7)
+    return im
 
 
 def variants_map(ax, records, protocol: list[dict]) -> None:
     """Rows = methods, columns = the cells that ran the label variants (+ the paper cell under
-    the paper's protocol); colour and text as :func:`regime_map`."""
-    cells = [c for c in _cells(records)
-             if any(r["config"]["method"] == "oracle" for r in _cell_records(records, c))]
+    the paper's protocol)."""
+    cells = [c for c in _cells(records) if any(
+        r["config"]["method"] == "oracle" and _cell_of(r) == c for r in records)]
     cols = [(records, c, f"{c[2]} tr., {c[3]} ep.\n1 member, full batch") for c in cells]
     cols += [(protocol, c, f"{c[2]} tr., {c[3]} ep.\npaper protocol (4 members)")
              for c in _cells(protocol)]
     rows = ["sampled", "oracle", "exact", "prior"]
-    grid = np.full((len(rows), len(cols)), np.nan)
-    for j, (recs, c, _) in enumerate(cols):
-        for i, m in enumerate(rows):
-            s = paired_relative(recs, m, c)
-            if s is not None:
-                grid[i, j] = s["median_pct"]
-                _cell_text(ax, j, i, s)
-    ax.imshow(grid, cmap="RdBu_r", vmin=-40, vmax=40, aspect="auto")
-    ax.set_xticks(range(len(cols)), [t for _, _, t in cols], fontsize=7)
-    ax.set_yticks(range(len(rows)), [METHOD_LABELS[m] for m in rows], fontsize=7)
+    _heat_map(ax, [[paired_relative(recs, m, c) for recs, c, _ in cols] for m in rows],
+              [t for _, _, t in cols], [METHOD_LABELS[m] for m in rows])
     if cells:
         ax.set_title(f"label variants vs none, {cells[0][0]} window, "
                      f"{'friction' if cells[0][1] else 'no friction'}", fontsize=9)
 
 
-def _cell_records(records: list[dict], cell: tuple) -> list[dict]:
-    return [r for r in records if _cell_of(r) == cell]
-
-
-def regime_map(ax, records, method: str, title: str) -> None:
-    """Heat map: rows = excitation window x friction, columns = trajectories x epochs; colour =
-    median relative change of the Jacobian error vs none, text = change and wins/total."""
+def regime_map(ax, records, method: str, title: str):
+    """Heat map: rows = excitation window x friction, columns = trajectories x epochs."""
     cells = _cells(records)
-    rows = sorted({(c[0], c[1]) for c in cells}, key=lambda k: (k[0] != "short", not k[1]))
+    rows = sorted({(c[0], c[1]) for c in cells}, key=_family_order)
     cols = sorted({(c[2], c[3]) for c in cells})
-    grid = np.full((len(rows), len(cols)), np.nan)
-    for i, (w, f) in enumerate(rows):
-        for j, (n, e) in enumerate(cols):
-            s = paired_relative(records, method, (w, f, n, e))
-            if s is None:
-                continue
-            grid[i, j] = s["median_pct"]
-            _cell_text(ax, j, i, s)
-    lim = 40.0
-    im = ax.imshow(grid, cmap="RdBu_r", vmin=-lim, vmax=lim, aspect="auto")
-    ax.set_xticks(range(len(cols)), [f"{n} tr.\n{e} ep." for n, e in cols], fontsize=7)
-    ax.set_yticks(range(len(rows)), [f"{w} window\n{'friction' if f else 'no friction'}"
-                                     for w, f in rows], fontsize=7)
+    im = _heat_map(ax, [[paired_relative(records, method, (w, f, n, e)) for n, e in cols]
+                        for w, f in rows], [f"{n} tr.\n{e} ep." for n, e in cols],
+                   [f"{w} window\n{'friction' if f else 'no friction'}" for w, f in rows])
     ax.set_title(title, fontsize=9)
     return im
 
@@ -234,7 +221,7 @@ def diagnostics_figure(records: list[dict], path: Path) -> None:
         return
     n_mid = sorted({c[2] for c in cells})[len({c[2] for c in cells}) // 2]
     e_max = max(c[3] for c in cells)
-    fams = sorted({(c[0], c[1]) for c in cells}, key=lambda k: (k[0] != "short", not k[1]))
+    fams = sorted({(c[0], c[1]) for c in cells}, key=_family_order)
     fig, axes = plt.subplots(1, 2, figsize=(10, 3.8), layout="constrained")
     colors = plt.rcParams["axes.prop_cycle"].by_key()["color"]
     for i, (w, f) in enumerate(fams):
@@ -306,6 +293,12 @@ def _fmt(v, digits=2) -> str:
     return "-" if v is None else f"{v:.{digits}f}"
 
 
+def _change(s: dict | None) -> str:
+    """A :func:`paired_relative` as ``median % [q1, q3], wins/total`` ("-": none)."""
+    return "-" if not s else (f"{s['median_pct']:+.0f} % [{s['q1_pct']:+.0f}, "
+                              f"{s['q3_pct']:+.0f}], {s['wins']}/{s['total']}")
+
+
 def _final_train_err(records: list[dict], cell: tuple, rows: str,
                      method: str = "none") -> float | None:
     """Median over seeds of the network's own Jacobian error at the training points at the
@@ -332,18 +325,12 @@ def markdown_table(records: list[dict], methods: list[str]) -> str:
                f"{_fmt(md('sampled', 'label_jac_pos'))}; "
                f"{_fmt(_final_train_err(records, cell, 'vel'))} / "
                f"{_fmt(md('sampled', 'label_jac_vel'))}"]
-        for m in methods:
-            s = paired_relative(records, m, cell)
-            row.append("-" if s is None else
-                       f"{s['median_pct']:+.0f} % [{s['q1_pct']:+.0f}, {s['q3_pct']:+.0f}], "
-                       f"{s['wins']}/{s['total']}")
+        row += [_change(paired_relative(records, m, cell)) for m in methods]
         lines.append("| " + " | ".join(row) + " |")
     return "\n".join(lines) + "\n"
 
 
-PROTOCOL_KEYS = ("jac_err", "jac_pos", "jac_vel", "jac_moving_all", "jac_still_all",
-                 "frac_still", "label_jac_pos", "label_jac_vel", "log10_pred_rms",
-                 "log10_sim_rms", "steps")
+PROTOCOL_KEYS = (*DIAG_KEYS, "steps")
 
 
 def paper_protocol_summary(records: list[dict]) -> dict:
@@ -369,13 +356,11 @@ def paper_protocol_table(s: dict) -> str:
              "| method | Jacobian error (pos / vel rows) | network at train pts pos / vel | "
              "labels pos / vel | change vs none, wins |", "|---|---|---|---|---|"]
     for m, r in s["methods"].items():
-        vs = r.get("vs_none")
         lines.append(
             f"| {m} | {_fmt(r['jac_err'])} ({_fmt(r['jac_pos'])} / {_fmt(r['jac_vel'])}) | "
             f"{_fmt(r.get('net_train_pos'))} / {_fmt(r.get('net_train_vel'))} | "
             f"{_fmt(r['label_jac_pos'])} / {_fmt(r['label_jac_vel'])} | "
-            + ("-" if not vs else f"{vs['median_pct']:+.0f} % [{vs['q1_pct']:+.0f}, "
-               f"{vs['q3_pct']:+.0f}], {vs['wins']}/{vs['total']}") + " |")
+            f"{_change(r.get('vs_none'))} |")
     return "\n".join(lines) + "\n"
 
 

@@ -80,13 +80,14 @@ def report(records: list[dict], out, figures, args: Args) -> dict:
     div = {k: f"diverged {int(pc.values(records, n, 'sim_diverged').sum())}"
            for k, n in groups.items()}
     fig, axes = plt.subplots(1, 3, figsize=(3 * (1.2 + 0.9 * len(names)), 4.6))
-    pc.violins(axes[0], {k: pc.values(records, n, "log10_pred_rms") for k, n in groups.items()},
-            ylabel="log10 one-step prediction RMS", title="prediction (validation)")
-    pc.violins(axes[1], {k: pc.values(records, n, "log10_sim_rms") for k, n in groups.items()},
-            ylabel="log10 simulation RMS", title="simulation (validation)", annotate=div)
-    pc.violins(axes[2], {k: pc.values(records, n, "jac_err") for k, n in groups.items()},
-            ylabel="Jacobian error, paper eq. (jacerr)", title="Jacobian")
-    fig.suptitle(f"two-link robot, {args_formulation(records)} ensemble, "
+    for ax, (key, ylabel, title) in zip(axes, (
+            ("log10_pred_rms", "log10 one-step prediction RMS", "prediction (validation)"),
+            ("log10_sim_rms", "log10 simulation RMS", "simulation (validation)"),
+            ("jac_err", "Jacobian error, paper eq. (jacerr)", "Jacobian"))):
+        pc.violins(ax, {k: pc.values(records, n, key) for k, n in groups.items()}, ylabel=ylabel,
+                   title=title, annotate=div if key == "log10_sim_rms" else None)
+    formulations = ", ".join(sorted({r["config"]["formulation"] for r in records}))
+    fig.suptitle(f"two-link robot, {formulations} ensemble, "
                  f"{max(n_runs.values())} Monte-Carlo runs per violin", fontsize=10)
     pc.save_figure(fig, figures / "robot_errors.png")
 
@@ -95,11 +96,11 @@ def report(records: list[dict], out, figures, args: Args) -> dict:
             "cpu_time")
     summary = {"configs": pc.spreads(records, names, keys)}
     for n in names:
-        summary["configs"][n]["diverged_simulations"] = int(
-            pc.values(records, n, "sim_diverged").sum())
-        summary["configs"][n]["runs_with_divergence"] = int(
-            (pc.values(records, n, "sim_diverged") > 0).sum())
-        summary["configs"][n]["n_simulations"] = int(pc.values(records, n, "n_sim").sum())
+        diverged = pc.values(records, n, "sim_diverged")
+        summary["configs"][n].update(
+            diverged_simulations=int(diverged.sum()),
+            runs_with_divergence=int((diverged > 0).sum()),
+            n_simulations=int(pc.values(records, n, "n_sim").sum()))
     compare = ("log10_pred_rms", "log10_sim_rms", "jac_err", "train_pred_rms")
     if "sampled_own" in names:  # the original's batching: equal optimizer steps with none
         summary["sampled_own_vs_none"] = pc.compare(records, "sampled_own", "none", compare)
@@ -116,21 +117,16 @@ def report(records: list[dict], out, figures, args: Args) -> dict:
 def truth_diagnostics(args: Args) -> dict:
     """:func:`paper_common.robot_truth_diagnostics` over seeds ``0..mc-1``, with the median and
     quartiles of each quantity; written to ``<out>/truth.json``."""
-    from agents.experiments.paper_common import output_dirs, robot_truth_diagnostics
     from mbtsr.io import write_json_atomic
 
-    out, _ = output_dirs(args, EXPERIMENT)
+    out, _ = pc.output_dirs(args, EXPERIMENT)
     cfg = pc.RobotData(n_val=args.n_val)
-    per_seed = [robot_truth_diagnostics(cfg, s, args.still_speed) for s in range(args.mc)]
+    per_seed = [pc.robot_truth_diagnostics(cfg, s, args.still_speed) for s in range(args.mc)]
     keys = list(per_seed[0])
     summary = {"per_seed": per_seed, "still_speed": args.still_speed,
                "summary": {k: pc.spread(np.array([p[k] for p in per_seed])) for k in keys}}
     write_json_atomic(out / "truth.json", summary)
     return summary
-
-
-def args_formulation(records: list[dict]) -> str:
-    return ", ".join(sorted({r["config"]["formulation"] for r in records}))
 
 
 def main(argv: list[str] | None = None) -> None:

@@ -1,12 +1,8 @@
-"""The small-data regime on purpose (issue 21, item 4): a deliberately wide ensemble trained on
-the first 1, 2 and 5 episodes of each suite task, without and with tangent-space regularization
-(``none``, ``sampled``, ``exact``), at an equal number of Adam steps, one initialization per seed
-shared by the regularizations. Metrics on held-out transitions, of the ensemble mean: the
-one-step error relative to the true step (``rel_step``) and the Jacobian error against the true
-MuJoCo model on the observation manifold's tangent space (``jac_rel``). Data, model, training,
-metrics and aggregates: docs/small_data.md, "What was run".
+"""The small-data regime on purpose (issue 21, item 4): wide ensembles trained on the first few
+episodes of each suite task, without and with tangent-space regularization.
 
-What it measures and how to run it: docs/experiments.md, section ``exp_small_data``.
+What it measures and how to run it: docs/experiments.md, section ``exp_small_data``; data,
+model, training, metrics and aggregates: docs/small_data.md, "What was run".
 """
 
 from __future__ import annotations
@@ -226,6 +222,17 @@ def training_episodes(task: str, seed: int, k: int, args: Args) -> tuple[list, l
     return episodes, ltvs
 
 
+def true_at_points(task: str, seed: int, trajs: list, n_points: int) -> tuple:
+    """``(pts, u, A, B, P)``: a seeded draw of at most ``n_points`` of the trajectories'
+    transitions (sorted indices), all their actions and the true Jacobians (:func:`true_jacobians`)
+    at the drawn ones."""
+    x = np.concatenate([t.meta["state"][:-1] for t in trajs])
+    u = np.concatenate([t.u for t in trajs])
+    pts = np.sort(np.random.default_rng(seed).choice(len(u), min(n_points, len(u)),
+                                                     replace=False))
+    return pts, u, *true_jacobians(task, x[pts], u[pts])
+
+
 def label_study(args: Args) -> dict:
     """The Jacobian error of the LTV labels themselves (what sampled and exact pull the model
     towards) against the true model at the training points of the first k episodes
@@ -237,13 +244,9 @@ def label_study(args: Args) -> dict:
         for task in [t for t in args.tasks.split(",") if t]:
             episodes, ltvs = training_episodes(task, seed, ks[-1], args)
             for k in ks:
-                x = np.concatenate([t.meta["state"][:-1] for t in episodes[:k]])
-                u = np.concatenate([t.u for t in episodes[:k]])
+                pts, u, A, B, P = true_at_points(task, seed, episodes[:k], args.jac_points)
                 A_l = np.concatenate([lm.A[:t.T] for lm, t in zip(ltvs, episodes[:k])])
                 B_l = np.concatenate([lm.B[:t.T] for lm, t in zip(ltvs, episodes[:k])])
-                pts = np.sort(np.random.default_rng(seed).choice(
-                    len(u), min(args.jac_points, len(u)), replace=False))
-                A, B, P = true_jacobians(task, x[pts], u[pts])
                 rec = {"task": task, "episodes": k, "seed": seed, "transitions": len(u),
                        **jacobian_rel_error(A, B, P, A_l[pts], B_l[pts])}
                 records.append(rec)
@@ -278,12 +281,8 @@ def run(args: Args) -> dict:
             episodes, ltvs = training_episodes(task, seed, ks[-1], args)
             test = collect(task, args.n_test, seed + 10_000, episode_steps=args.episode_steps,
                            states=True)
-            x = np.concatenate([t.meta["state"][:-1] for t in test])
+            pts, u, A, B, P = true_at_points(task, seed, test, args.jac_points)
             obs = np.concatenate([t.x[:-1] for t in test])
-            u = np.concatenate([t.u for t in test])
-            pts = np.sort(np.random.default_rng(seed).choice(
-                len(u), min(args.jac_points, len(u)), replace=False))
-            A, B, P = true_jacobians(task, x[pts], u[pts])
             data_info.setdefault(task, {})[seed] = {
                 "episode_lengths": [t.T for t in episodes[:ks[-1]]],
                 "test_transitions": len(u), "test_episodes": len(test)}
@@ -303,8 +302,7 @@ def run(args: Args) -> dict:
                     rec = {"task": task, "episodes": k, "seed": seed, "reg": reg,
                            "transitions": N, "optimizer_steps": int(hist.steps),
                            "train_wall_s": t_train,
-                           "rel_step": err["rel_step"], "nrmse": err["nrmse"],
-                           "nrmse_median_dim": err["nrmse_median_dim"],
+                           **{k: err[k] for k in ("rel_step", "nrmse", "nrmse_median_dim")},
                            **jacobian_rel_error(A, B, P, A_hat, B_hat)}
                     records.append(rec)
                     print(f"{task} seed {seed} {k} ep ({N} tr) {reg:8s}: jac {rec['jac_rel']:.3f} "

@@ -175,8 +175,10 @@ def run(args: Args) -> dict:
     mpc_out = run_episode(env, mpc, seed=args.seed, options=options, observe=_state)
     compute_times = np.asarray(mpc.compute_times)
 
-    # ---- summary
-    planned = episode_cost(res.X, res.U, goal, Q, R)
+    # ---- summary: (states, actions, per-step cost) of the plan and of the three executions
+    runs = {"planned": (res.X, res.U, episode_cost(res.X, res.U, goal, Q, R)),
+            "open_loop": (X_ol, U_ol, -r_ol), "plan_with_feedback": (X_fb, U_fb, -r_fb),
+            "mpc": (mpc_out.states, mpc_out.actions, -mpc_out.rewards)}
     summary = {
         "args": dataclasses.asdict(args),
         "x0": x0.tolist(),
@@ -186,18 +188,10 @@ def run(args: Args) -> dict:
             "iterations": res.iterations,
             "wall_time_s": res.timings["total"],
         },
-        "episode_cost": {
-            "planned_under_model": float(planned.sum()),
-            "open_loop": float(-r_ol.sum()),
-            "plan_with_feedback": float(-r_fb.sum()),
-            "mpc": mpc_out.cost,
-        },
-        "final_angle_error_rad": {
-            "planned": float(np.abs(res.X[-1, :2] - target).max()),
-            "open_loop": float(np.abs(X_ol[-1, :2] - target).max()),
-            "plan_with_feedback": float(np.abs(X_fb[-1, :2] - target).max()),
-            "mpc": float(np.abs(mpc_out.states[-1, :2] - target).max()),
-        },
+        "episode_cost": {("planned_under_model" if k == "planned" else k): float(c.sum())
+                         for k, (_, _, c) in runs.items()},
+        "final_angle_error_rad": {k: float(np.abs(X[-1, :2] - target).max())
+                                  for k, (X, _, _) in runs.items()},
         "mpc_ms_per_step": float(compute_times[1:].mean() * 1e3),
         "mpc_real_time_factor": float(arm.dt / compute_times[1:].mean()),
     }
@@ -207,11 +201,9 @@ def run(args: Args) -> dict:
     print(f"MPC: {ms:.1f} ms/step, real-time factor {rtf:.2f}")
 
     png = out_dir / f"ilqr_with_model_{model_name}.png"
-    plot_runs({"planned (model)": (res.X, res.U, planned),
-               "open loop (env)": (X_ol, U_ol, -r_ol),
-               "plan + feedback (env)": (X_fb, U_fb, -r_fb),
-               "MPC (env)": (mpc_out.states, mpc_out.actions, -mpc_out.rewards)},
-              np.arange(args.T + 1) * arm.dt, target,
+    labels = {"planned": "planned (model)", "open_loop": "open loop (env)",
+              "plan_with_feedback": "plan + feedback (env)", "mpc": "MPC (env)"}
+    plot_runs({labels[k]: v for k, v in runs.items()}, np.arange(args.T + 1) * arm.dt, target,
               f"iLQR with model '{model_name}': target {np.round(target, 2).tolist()}", png)
     write_json_atomic(out_dir / f"ilqr_with_model_{model_name}.json", summary, indent=2)
     print(f"wrote {png}")

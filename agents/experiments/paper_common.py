@@ -43,6 +43,12 @@ class SweepArgs:
     report_only: bool = field(default=False, metadata={
         "help": "no new runs: report the finished ones from their JSON"})
 
+    def __post_init__(self) -> None:
+        """``--workers`` (and ``--mc``, where a subclass has it) at least 1."""
+        for name in ("mc", "workers"):
+            if getattr(self, name, 1) < 1:
+                raise ValueError(f"--{name} must be >= 1, got {getattr(self, name)}")
+
 
 @dataclass
 class ExperimentArgs(SweepArgs):
@@ -92,24 +98,10 @@ def parse_args(args_cls: type, argv: Sequence[str] | None = None):
     supplies the defaults, so options given explicitly win. A bad option or value prints one line
     and exits with code 2.
     """
-    from agents.cli import fail, parse
+    from agents.cli import parse
 
-    smoke = {"smoke": True, **getattr(args_cls, "SMOKE", {})}
-    args = parse(args_cls, args=argv, presets={"--smoke": smoke})
-    try:
-        _check_common(args)
-    except ValueError as err:
-        fail(str(err))
-    return args
-
-
-def _check_common(args) -> None:
-    if getattr(args, "mc", 1) < 1:
-        raise ValueError(f"--mc must be >= 1, got {args.mc}")
-    if getattr(args, "workers", 1) < 1:
-        raise ValueError(f"--workers must be >= 1, got {args.workers}")
-    if getattr(args, "backend", "process") not in ("process", "serial", "ray"):
-        raise ValueError(f"--backend must be process, serial or ray, got {args.backend!r}")
+    return parse(args_cls, args=argv, presets={"--smoke": {
+        "smoke": True, **getattr(args_cls, "SMOKE", {})}})
 
 
 def comma_list(flag: str, text: str, kind: type = str, allowed: Sequence | None = None,
@@ -212,33 +204,40 @@ def write_result(path: str | os.PathLike | None, result: dict, indent: int = 1) 
         print(f"wrote {path}")
 
 
-def sweep_started(args, out: Path) -> dict:
-    """Write ``<out>/args.json`` (the arguments and the command line) and return what
-    :func:`sweep_finished` logs: finished runs, library version and clocks at the start."""
-    from mbtsr.runner import load_results
+def _sweep(args, out: Path, experiment: str, run_fn: Callable[[dict, int], dict],
+           configs: dict[str, dict], stages: Sequence[tuple[str, dict[str, dict]]] | None) -> None:
+    """The sweep of :func:`run_experiment`, with ``<out>/args.json`` (the arguments and the
+    command line) and one more entry of ``<out>/sweeps.json``: start, wall and driver CPU time,
+    runs finished before and after, workers, load, library version at start and end."""
+    from mbtsr.runner import load_results, run_sweep
 
     write_json_atomic(out / "args.json",
                       {"args": dataclasses.asdict(args), "command": command_line()})
-    return {"n_before": len(load_results(out)), "library": library_version(),
-            "t0": time.perf_counter(), "c0": time.process_time()}
-
-
-def sweep_finished(args, out: Path, started: dict, n_after: int) -> float:
-    """Append this (possibly resumed) sweep to ``<out>/sweeps.json``: start, wall and driver CPU
-    time, runs finished before and after, workers, load, library version at start and end.
-    Returns the wall time [s]."""
-    wall = time.perf_counter() - started["t0"]
+    n_before, library = len(load_results(out)), library_version()
+    t0, c0 = time.perf_counter(), time.process_time()
+    sweep = functools.partial(run_sweep, run_fn, out_dir=out, backend=args.backend,
+                              workers=args.workers, address=args.address or None)
+    if stages is None:
+        n_after = len(sweep(configs, range(args.mc), progress=not args.smoke))
+    else:
+        for label, todo in stages:
+            for seed in range(args.mc):
+                sweep(todo, [seed], progress=False)
+                if not args.smoke:
+                    print(f"[{experiment}] {label}: seed {seed} done, "
+                          f"{time.perf_counter() - t0:.0f} s", flush=True)
+        n_after = len(load_results(out))
+    wall = time.perf_counter() - t0
     log_path = out / "sweeps.json"
     log = json.loads(log_path.read_text()) if log_path.exists() else []
     log.append({"started": time.strftime("%Y-%m-%dT%H:%M:%S", time.localtime(time.time() - wall)),
-                "wall_s": round(wall, 1),
-                "cpu_s_driver": round(time.process_time() - started["c0"], 1),
-                "runs_finished_before": started["n_before"], "runs_finished_after": n_after,
+                "wall_s": round(wall, 1), "cpu_s_driver": round(time.process_time() - c0, 1),
+                "runs_finished_before": n_before, "runs_finished_after": n_after,
                 "workers": args.workers, "backend": args.backend,
                 "load_avg_1min": round(os.getloadavg()[0], 2),
-                "library_at_start": started["library"], "library_at_end": library_version()})
+                "library_at_start": library, "library_at_end": library_version()})
     write_json_atomic(log_path, log)
-    return wall
+    print(f"[{experiment}] sweep finished in {wall:.1f} s")
 
 
 def run_experiment(
@@ -256,25 +255,11 @@ def run_experiment(
         seed (an interrupted sweep then leaves every cell of a stage with the same number of
         seeds, give or take the last seed's); ``None``: all ``configs`` in one sweep.
     """
-    from mbtsr.runner import load_results, run_sweep
+    from mbtsr.runner import load_results
 
     out, figures = output_dirs(args, experiment)
     if not args.report_only:
-        started = sweep_started(args, out)
-        sweep = functools.partial(run_sweep, run_fn, out_dir=out, backend=args.backend,
-                                  workers=args.workers, address=args.address or None)
-        if stages is None:
-            n_after = len(sweep(configs, range(args.mc), progress=not args.smoke))
-        else:
-            for label, todo in stages:
-                for seed in range(args.mc):
-                    sweep(todo, [seed], progress=False)
-                    if not args.smoke:
-                        print(f"[{experiment}] {label}: seed {seed} done, "
-                              f"{time.perf_counter() - started['t0']:.0f} s", flush=True)
-            n_after = len(load_results(out))
-        wall = sweep_finished(args, out, started, n_after)
-        print(f"[{experiment}] sweep finished in {wall:.1f} s")
+        _sweep(args, out, experiment, run_fn, configs, stages)
     records = [r for r in load_results(out) if r["name"] in configs or args.report_only]
     if not records:
         failed = [p for p in (out / "errors").glob("*.json")
@@ -312,8 +297,7 @@ def finite_or_none(v: float | None) -> float | None:
 
 def values(records: list[dict], name: str, key: str) -> np.ndarray:
     """``[runs]`` array of ``result[key]`` for the records of config ``name`` (None -> nan)."""
-    out = [r["result"].get(key) for r in records if r["name"] == name]
-    return np.array([np.nan if v is None else v for v in out], dtype=float)
+    return np.array([r["result"].get(key) for r in records if r["name"] == name], dtype=float)
 
 
 def spread(v: np.ndarray) -> dict:
@@ -479,30 +463,29 @@ def complex_to_pairs(z: np.ndarray, digits: int = 4) -> dict:
 
 
 @dataclass(frozen=True)
-class LinearData:
-    """Data of the random-linear-system experiments.
+class Sampling:
+    """What the linear and the arm data sets share: step ``dt``, measurement noise
+    ``noise_std`` on the training states, ``n_val`` validation and ``n_sim`` simulation
+    trajectories, Jacobians at every ``eval_stride``-th validation point."""
 
-    Follows the original code (``linear_sys.jl``): n = m = 10, dt = 0.02, trajectories of
-    T = 200 steps from ``x0 ~ N(0, I)`` driven by a causal 5-tap moving average of
-    ``10 N(0, 1)`` (steady-state std 10/sqrt(5) = 4.47), measurement noise 0.01 on the training
-    states only. Differences: the original left the last state of every trajectory at 0 (a
-    bug); here it is simulated unless ``last_state_zero`` reinstates the bug in the training
-    data (to test whether it explains the original's numbers). Validation uses ``n_val``
-    noise-free trajectories (original: 41, subsampled), Jacobians and eigenvalues are evaluated
-    at every ``eval_stride``-th validation point (original: 3).
-    """
-
-    n: int = 10
-    m: int = 10
     dt: float = 0.02
-    T: int = 200
-    input_window: int = 5
-    input_scale: float = 10.0
     noise_std: float = 0.01
-    n_train: int = 3
     n_val: int = 10
     n_sim: int = 3
     eval_stride: int = 3
+
+
+@dataclass(frozen=True)
+class LinearData(Sampling):
+    """Data of the random-linear-system experiments (docs/experiments.md, "paper_common":
+    the linear data)."""
+
+    n: int = 10
+    m: int = 10
+    T: int = 200
+    input_window: int = 5
+    input_scale: float = 10.0
+    n_train: int = 3
     last_state_zero: bool = False
 
 
@@ -552,18 +535,11 @@ def linear_dataset(cfg: LinearData, seed: int) -> dict:
 
 
 @dataclass(frozen=True)
-class ArmSampling:
+class ArmSampling(Sampling):
     """How the paper arm's data sets are sampled (shared by :class:`RobotData` and
-    :class:`RegimeData`): ``duration`` [s] at step ``dt`` (``T = duration / dt``), measurement
-    noise ``noise_std`` on the training states, ``n_val`` validation and ``n_sim`` simulation
-    trajectories, Jacobians at every ``eval_stride``-th validation point."""
+    :class:`RegimeData`): :class:`Sampling` over ``duration`` [s] (``T = duration / dt``)."""
 
     duration: float = 4.0
-    dt: float = 0.02
-    noise_std: float = 0.01
-    n_val: int = 10
-    n_sim: int = 3
-    eval_stride: int = 3
 
     @property
     def T(self) -> int:  # noqa: N802 - the paper's symbol
@@ -572,21 +548,9 @@ class ArmSampling:
 
 @dataclass(frozen=True)
 class RobotData(ArmSampling):
-    """Data of the robot experiments, on ``mbtsr/TwoLinkArm-v0`` with ``preset="paper"``.
-
-    Follows the original code at arXiv v1 (``two_link_sys.jl``@v1, the paper's "low-pass filtered
-    random input"): trajectories of 4 s at dt = 0.02 s (T = 200), inputs a causal 100-tap moving
-    average of white Gaussian noise (torque std about 1 N m), trajectories redrawn while
-    ``|q| >= 0.9 pi``, measurement noise 0.01 on the training states, 3 training trajectories.
-    Differences: the start state is the env's (at rest hanging down plus small noise; original
-    ``[-0.4, 0, 0, 0]``); the robot has no inertia typo (see ``envs/two_link_arm.py``);
-    validation uses ``n_val`` noise-free trajectories (original 41), Jacobians are evaluated at
-    every ``eval_stride``-th validation point.
-
-    ``dt`` other than 0.02 is the sample-rate deviation (paper appendix B): the SAME continuous-
-    time experiment (duration, input signal on the 0.02 s grid, held) sampled at another rate,
-    so T = duration / dt.
-    """
+    """Data of the robot experiments, on ``mbtsr/TwoLinkArm-v0`` with ``preset="paper"``
+    (docs/experiments.md, "paper_common": the robot data; another ``dt`` is the sample-rate
+    deviation)."""
 
     n_train: int = 3
 
@@ -669,13 +633,8 @@ def nominal_epochs(formulation: str, method: str, scale: float = 1.0) -> int:
 def regularization(method: str, *, sigma: float = 0.1, n_copies: int = 1,
                    exact_weight: float = 1.0, smooth_weight: float = 0.01,
                    ltv_lambda: float | str | None = None, copies_batch: str = "shared"):
-    """The :class:`mbtsr.training.RegularizationConfig` of a method name.
-
-    ``"none"``; ``"sampled"`` (the paper's sampled Jacobian propagation: one perturbed copy per
-    trajectory and epoch, sigma 0.1 of the per-dimension std); ``"exact"`` (exact matching of the
-    model Jacobian to the LTV Jacobian, ``exact_weight * sum_t ||J - J_LTV||_F^2``);
-    ``"smooth"`` (the exact penalty of paper eq. (reg), ``smooth_weight * sum_t ||J_{t+1} -
-    J_t||_F^2``, the original's later "AD jacprop").
+    """The :class:`mbtsr.training.RegularizationConfig` of a method name: ``none``, ``sampled``,
+    ``exact`` or ``smooth`` (docs/experiments.md, "paper_common": the methods).
 
     :param ltv_lambda: ``None`` keeps the library default (the original's R2/R1 = 1000, i.e.
         lambda = 31.6), ``"auto"`` picks it per trajectory by marginal likelihood.
@@ -823,14 +782,7 @@ def timed(run_fn: Callable[[dict, int], dict]) -> Callable[[dict, int], dict]:
 @timed
 def run_linear(config: dict, seed: int) -> dict:
     """One Monte-Carlo run on a random stable linear system (``exp_linear``,
-    ``exp_weight_decay``).
-
-    ``config``: ``data`` (:class:`LinearData` fields), ``formulation``, ``method``, ``reg``
-    (keyword arguments of :func:`regularization`), ``rounds``, ``epochs_per_round``, ``lr``,
-    ``weight_decay``, ``incremental`` (round r trains on trajectories 1..r, warm-started, as
-    the original README experiment; otherwise every round on all trajectories), ``n_eig_store``.
-    All configs of one seed share the system, the data and the initial weights.
-    """
+    ``exp_weight_decay``); ``config``'s keys: docs/experiments.md, "paper_common"."""
     from mbtsr.metrics import jacobian_eigenvalues, prediction_rms
 
     cfg = LinearData(**config["data"])
@@ -863,13 +815,8 @@ def run_linear(config: dict, seed: int) -> dict:
 
 @timed
 def run_robot(config: dict, seed: int) -> dict:
-    """One Monte-Carlo run on the paper's two-link robot (``exp_robot``, ``exp_deviations``).
-
-    ``config``: ``data`` (:class:`RobotData` fields), ``formulation``, ``method``, ``reg``
-    (keyword arguments of :func:`regularization`), ``epochs``, ``lr``, ``model`` (keyword
-    arguments of :func:`build_ensemble` other than dims/formulation/seed).
-    All configs of one seed share the data (for equal ``data``) and the weight-init seed.
-    """
+    """One Monte-Carlo run on the paper's two-link robot (``exp_robot``, ``exp_deviations``);
+    ``config``'s keys: docs/experiments.md, "paper_common"."""
     from mbtsr.metrics import jacobian_eigenvalues, prediction_rms
 
     cfg = RobotData(**config["data"])
@@ -896,14 +843,9 @@ def run_robot(config: dict, seed: int) -> dict:
 
 @timed
 def run_activations(config: dict, seed: int) -> dict:
-    """One Monte-Carlo run of the activation-function comparison (paper appendix A).
-
-    One network per activation, all trained in ONE batched ensemble (members share no weights
-    and Adam is per-parameter, so this equals separate training; the batch order is shared),
-    formulation ``config["formulation"]``, no regularization. Training is split at the
-    ``checkpoints`` (epochs; Adam state carried over) and each member's one-step prediction
-    RMS on the validation trajectories is recorded there.
-    """
+    """One Monte-Carlo run of the activation-function comparison (paper appendix A): one
+    member per activation in one batched ensemble, the prediction RMS of each at the
+    ``checkpoints`` (docs/experiments.md, "exp_activations")."""
     cfg = RobotData(**config["data"])
     d = robot_dataset(cfg, seed)
     acts = list(config["activations"])
@@ -1047,17 +989,9 @@ REGIME_METHODS = ("none", "sampled", "exact", "oracle", "prior")
 
 @timed
 def run_regime(config: dict, seed: int) -> dict:
-    """One Monte-Carlo run of the regime sweep (``exp_regime``).
-
-    ``config``: ``data`` (:class:`RegimeData` fields), ``n_train``, ``epochs``, ``method``
-    (``none``, ``sampled``, ``exact``, ``oracle`` = sampled JacProp with true-Jacobian labels,
-    ``prior`` = sampled JacProp whose LTV labels are fused with the network as a prior after
-    the first half of the epochs), ``exact_weight``, ``prior_scale``, ``lr``, ``batch``
-    (``"full"``: one optimizer step per epoch on all training transitions, or
-    ``"trajectory"``), ``model`` (:func:`build_ensemble` keyword arguments), ``still_speed``,
-    ``n_log`` (checkpoints of the training-point Jacobian error during training).
-    Every method of one cell takes the same number of optimizer steps.
-    """
+    """One Monte-Carlo run of the regime sweep (``exp_regime``); ``config``'s keys and the
+    methods: docs/experiments.md, "paper_common". Every method of one cell takes the same
+    number of optimizer steps."""
     from mbtsr.metrics import prediction_rms
     from mbtsr.training import RegularizationConfig, TrainConfig, train_ensemble
 
@@ -1112,16 +1046,13 @@ def run_regime(config: dict, seed: int) -> dict:
                                        config["still_speed"]))
     result["train_pred_rms"] = finite_or_none(prediction_rms(model, trajs))
     result["net_train_jac"] = log
-    if label_models is not None:  # error of the labels' Jacobians at the training points
-        A_l = np.concatenate([np.asarray(lm.A)[:tr.T] for lm, tr in zip(label_models, trajs)])
-        B_l = np.concatenate([np.asarray(lm.B)[:tr.T] for lm, tr in zip(label_models, trajs)])
-        e = row_group_errors(A_tr, B_tr, A_l, B_l)
-        result.update({"label_jac_pos": e["pos"], "label_jac_vel": e["vel"]})
-    if method == "prior":  # the plain LTV labels of the first half, for comparison
-        A_l = np.concatenate([np.asarray(lm.A)[:tr.T] for lm, tr in zip(plain, trajs)])
-        B_l = np.concatenate([np.asarray(lm.B)[:tr.T] for lm, tr in zip(plain, trajs)])
-        e = row_group_errors(A_tr, B_tr, A_l, B_l)
-        result.update({"ltv_jac_pos": e["pos"], "ltv_jac_vel": e["vel"]})
+    # the labels' Jacobian error at the training points (ltv: prior's plain first-half labels)
+    for tag, labels in (("label", label_models), ("ltv", plain if method == "prior" else None)):
+        if labels is not None:
+            A_l = np.concatenate([np.asarray(lm.A)[:tr.T] for lm, tr in zip(labels, trajs)])
+            B_l = np.concatenate([np.asarray(lm.B)[:tr.T] for lm, tr in zip(labels, trajs)])
+            e = row_group_errors(A_tr, B_tr, A_l, B_l)
+            result.update({f"{tag}_jac_pos": e["pos"], f"{tag}_jac_vel": e["vel"]})
     result["steps"] = steps
     result["train_time"] = train_time
     return result
@@ -1129,40 +1060,28 @@ def run_regime(config: dict, seed: int) -> dict:
 
 def robot_truth_diagnostics(cfg: RobotData, seed: int, still_speed: float = 0.05) -> dict:
     """What caps the robot's Jacobian error, for MC run ``seed`` of ``exp_robot`` (no training):
-
-    - ``const_train`` / ``const_eval``: eq. (jacerr) of a constant matrix, the mean true
-      Jacobian over the training points (a constant a model could learn) / over the evaluation
-      points themselves (the best constant in that norm);
-    - ``twin``: the analytic CasADi twin (friction ``fc tanh(qd / 0.01)``) against MuJoCo's
-      Jacobian, all points and split into moving / near-zero-velocity points;
-    - ``ltv_{pos,vel}``: the LTV labels' error (lambda of the library default) at the training
-      points per row group (position rows 0-1, velocity rows 2-3), ``frac_still``.
-    """
+    ``const_train`` / ``const_eval``, ``twin`` (``_moving``, ``_still``), ``ltv_{pos,vel}``,
+    ``frac_still`` (docs/experiments.md, "exp_robot")."""
     from mbtsr.ltv import fit_ltv
     from mbtsr.training import ORIGINAL_LTV_LAMBDA
 
     d = robot_dataset(cfg, seed)
-    env = d["env"]
+    env, trajs = d["env"], d["train"]
     X, U = evaluation_points(d["val"], cfg.eval_stride)
     A, B = env.linearize_trajectory(X, U)
     J = np.concatenate([A, B], -1)
-    train_jac = [env.linearize_trajectory(tr.x[:-1], tr.u) for tr in d["train"]]
-    J_train = np.concatenate([np.concatenate([a, b], -1) for a, b in train_jac])
-    twin = env.analytic_model()
-    A_tw, B_tw = twin.jacobians(X, U)
-    still = (np.abs(X[:, 2:4]) < still_speed).any(1)
+    A_tr, B_tr = (np.concatenate(j) for j in zip(*[env.linearize_trajectory(tr.x[:-1], tr.u)
+                                                   for tr in trajs]))
 
     def err(dJ: np.ndarray) -> float:
         return float(np.sqrt((dJ ** 2).sum((-1, -2)).mean()))
 
-    dtw = np.concatenate([A_tw, B_tw], -1) - J
-    out = {"const_train": err(J - J_train.mean(0)), "const_eval": err(J - J.mean(0)),
-           "twin": err(dtw), "twin_moving": err(dtw[~still]), "twin_still": err(dtw[still]),
-           "frac_still": float(still.mean())}
-    lab = []
-    for tr, (a, b) in zip(d["train"], train_jac):
-        lm = fit_ltv(tr, ORIGINAL_LTV_LAMBDA)
-        lab.append(np.concatenate([lm.A[:tr.T], lm.B[:tr.T]], -1) - np.concatenate([a, b], -1))
-    lab = np.concatenate(lab)
-    out["ltv_pos"], out["ltv_vel"] = err(lab[:, :2]), err(lab[:, 2:])
-    return out
+    twin = jacobian_diagnostics(X, A, B, *env.analytic_model().jacobians(X, U), still_speed)
+    labels = [fit_ltv(tr, ORIGINAL_LTV_LAMBDA) for tr in trajs]
+    ltv = row_group_errors(A_tr, B_tr,
+                           np.concatenate([lm.A[:tr.T] for lm, tr in zip(labels, trajs)]),
+                           np.concatenate([lm.B[:tr.T] for lm, tr in zip(labels, trajs)]))
+    return {"const_train": err(J - np.concatenate([A_tr, B_tr], -1).mean(0)),
+            "const_eval": err(J - J.mean(0)), "twin": twin["jac_all"],
+            "twin_moving": twin["jac_moving_all"], "twin_still": twin["jac_still_all"],
+            "frac_still": twin["frac_still"], "ltv_pos": ltv["pos"], "ltv_vel": ltv["vel"]}

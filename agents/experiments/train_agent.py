@@ -14,10 +14,12 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Annotated, Literal
 
+import numpy as np
 import tyro
 
 from agents import cli
 from agents.config import AgentConfig, EvaluationConfig, PlannerConfig
+from agents.experiments.paper_common import pyplot, save_figure, write_result
 from mbtsr.ensemble import ModelConfig
 from mbtsr.training import RegularizationConfig
 
@@ -215,7 +217,6 @@ def run(args: Args) -> dict:
     """Train (or resume) one run; write its folder, the JSON, the figures; return the summary."""
     from agents.checkpoint import CheckpointError, atomic_write_text
     from agents.evaluation import make_env
-    from agents.experiments.paper_common import write_result
     from agents.jacprop_agent import JacPropAgent
     from mbtsr.io import write_json_atomic
 
@@ -274,12 +275,7 @@ def run(args: Args) -> dict:
 
 def plot_learning_curve(agent, path: Path) -> None:
     """Episode cost (training rollouts) and evaluation cost vs episodes, with the oracle."""
-    import numpy as np
-
-    from agents.experiments.paper_common import pyplot, save_figure
-
     plt = pyplot()
-
     rows = agent.logger_rows
     ep = np.array([r["episode"] for r in rows]) + 1
     fig, axes = plt.subplots(1, 2, figsize=(10, 3.8))
@@ -289,7 +285,7 @@ def plot_learning_curve(agent, path: Path) -> None:
     ax.semilogy(ep, [r["episode_cost"] for r in rows], "o-", label="training rollout" + (
         f" (at most {short} steps{handed_on}; evaluation {agent.spec.episode_steps})"
         if short else ""))
-    ev = np.array([np.nan if r.get("eval_cost") is None else r["eval_cost"] for r in rows])
+    ev = np.array([r.get("eval_cost") for r in rows], dtype=float)  # None: nan
     if np.any(np.isfinite(ev)):
         ax.semilogy(ep, ev, "s-", label="evaluation (mean of targets)")
     oracle = agent.oracle_mean
@@ -302,7 +298,7 @@ def plot_learning_curve(agent, path: Path) -> None:
     ax = axes[1]
     for key, label in (("one_step_rms", "one-step RMS (new data)"),
                        ("jacobian_error", "Jacobian error (new data)")):
-        v = np.array([np.nan if r.get(key) is None else r[key] for r in rows], dtype=float)
+        v = np.array([r.get(key) for r in rows], dtype=float)  # None: nan
         if np.any(np.isfinite(v)):
             ax.semilogy(ep, v, "o-", label=label)
     ax.set_xlabel("episode")
@@ -313,13 +309,9 @@ def plot_learning_curve(agent, path: Path) -> None:
 
 def plot_final_reach(agent, env, path: Path) -> None:
     """One evaluation reach of the final agent (and of the oracle) against its target."""
-    import numpy as np
-
     from agents.evaluation import run_episode
-    from agents.experiments.paper_common import pyplot, save_figure
 
     plt = pyplot()
-
     target, seed = agent.evaluation_problem(0)
     options = None if target is None else {"target": target}
     rec = agent.rollout_policy(env, seed=seed, options=options)
@@ -344,12 +336,10 @@ def plot_final_reach(agent, env, path: Path) -> None:
     if target is not None:
         for i, v in enumerate(np.atleast_1d(target)):
             axes[0].axhline(v, color="k", lw=0.8, ls=":", label="target" if i == 0 else None)
-    axes[0].set_xlabel("time [s]" if agent.spec.dt else "step")
-    axes[0].set_title("final reach vs target")
-    axes[0].legend(fontsize=7)
-    axes[1].set_xlabel("time [s]" if agent.spec.dt else "step")
-    axes[1].set_title("actions")
-    axes[1].legend(fontsize=7)
+    for ax, title in zip(axes, ("final reach vs target", "actions")):
+        ax.set_xlabel("time [s]" if agent.spec.dt else "step")
+        ax.set_title(title)
+        ax.legend(fontsize=7)
     save_figure(fig, path, dpi=120)
 
 
