@@ -1,16 +1,6 @@
 """Callbacks of :meth:`agents.jacprop_agent.JacPropAgent.learn`: Stable-Baselines3's
-``BaseCallback`` objects (a ``CallbackList`` or a plain list of them too) next to plain functions.
-
-The agent calls an SB3 callback as an SB3 algorithm does: ``init_callback(agent)`` and
-``on_training_start(locals, globals)`` once per ``learn`` call, ``on_rollout_start()`` before and
-``on_rollout_end()`` after every episode's rollout, ``on_step()`` after every env step (``False``
-stops learning: the rollout ends after that step, the agent still labels and trains on the
-partial episode and logs it, then ``learn`` returns), ``on_training_end()`` last. ``locals`` holds
-``self`` (the agent), ``new_obs`` (the observation after the step), ``step`` (the step in the
-episode), ``episode`` (the agent's episode index) and, after an episode, ``row`` (its log row).
-
-A plain function is called after every episode with ``{"agent": agent, "row": row}``; returning
-``False`` stops learning.
+``BaseCallback`` objects, called as an SB3 algorithm does, next to plain functions called after
+every episode with ``{"agent", "row"}`` (``False`` stops learning); docs/agent.md, "Callbacks".
 """
 
 from __future__ import annotations

@@ -1,19 +1,6 @@
-"""Crash-safe, checksummed checkpoint files for the agent.
-
-A checkpoint is ONE file written atomically (:func:`mbtsr.io.atomic_write_bytes`): a
-``SIGKILL`` at any moment leaves either the previous complete checkpoint or the new complete one,
-never a torn file; the temporary file of an interrupted write is deleted at the next save or load.
-The file carries a format version and a SHA-256 of its content
-(:func:`mbtsr.fileformat.write_verified`), so a truncated or bit-flipped checkpoint, or one of
-another version, is refused with a :class:`~mbtsr.fileformat.CheckpointError` that names the file
-and says what to do, instead of loading damaged numbers.
-
-Everything is loaded without unpickling arbitrary objects: ``torch.load(weights_only=True)``
-(tensors, numbers, strings, lists, dicts), ``np.load(allow_pickle=False)`` and JSON.
-
-Resuming also checks that the run continues under the same conditions: :func:`env_fingerprint`
-is saved with the checkpoint and :func:`check_same` names the first field that differs (the
-env's ``dt``, a preset, the spaces, a config field).
+"""Crash-safe, checksummed, atomic checkpoint files for the agent, loaded without unpickling
+arbitrary objects, and the checks that a resumed run continues under the same conditions
+(docs/agent.md, "Checkpoints and exact resume").
 """
 
 from __future__ import annotations

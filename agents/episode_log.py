@@ -1,11 +1,6 @@
-"""Per-episode log of the agent: an in-memory list of rows, a CSV file and TensorBoard scalars
-(under Stable-Baselines3's tags, indexed by env steps: :func:`sb3_scalars`).
-
-The CSV is rewritten atomically after every episode from the rows in memory, so after a resume
-(rows restored from the checkpoint) it holds exactly the episodes of the checkpoint, never a
-half-written line or the rows of an episode that was lost to a crash. TensorBoard events of lost
-episodes are dropped with ``SummaryWriter(purge_step=...)``. The CSV's ``env_steps`` column is
-the TensorBoard step (SB3's ``time/total_timesteps``).
+"""Per-episode log of the agent: rows in memory, ``episodes.csv`` rewritten atomically after every
+episode, TensorBoard scalars under Stable-Baselines3's tags by env step (events of episodes lost
+to a crash purged); docs/agent.md, "What a run writes".
 """
 
 from __future__ import annotations

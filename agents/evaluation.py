@@ -1,19 +1,6 @@
-"""Evaluation protocol: fixed episodes, episode cost, the oracle, and the agent's
-:class:`Evaluator`.
-
-"Solved" (issue 6): the mean episode cost of a policy over ``n`` evaluation episodes with
-random targets is within ``ratio`` (1.2) times the mean cost of MPC with the TRUE model (the
-oracle, :func:`oracle_policy`) on the same targets and the same initial states. The episode cost
-is ``-sum(rewards)``, the env's own measure, so any policy (the JacProp agent, an SB3 baseline,
-a hand-written controller) is scored the same way::
-
-    targets = evaluation_targets(10, seed=1000)
-    env = gym.make("mbtsr/TwoLinkArm-v0")
-    oracle = evaluate_policy_cost(oracle_policy(env, PlannerConfig()), env, targets, seed=1000)
-    mine = evaluate_policy_cost(sb3_model, env, targets, seed=1000)
-    solved = mine <= solved_threshold(oracle)
-
-Episode ``i`` is reset with ``seed + i`` and ``options={"target": targets[i]}``.
+"""Evaluation protocol: fixed episodes, episode cost ``-sum(rewards)``, the true-model oracle and
+the agent's :class:`Evaluator` (docs/agent.md, "Evaluation, the oracle, "solved""). Episode ``i``
+is reset with ``seed + i`` and ``options={"target": targets[i]}``.
 """
 
 from __future__ import annotations
@@ -90,7 +77,7 @@ def evaluation_targets(
 
         env_id = ARM_ID
     check_int("n", n, 1)
-    _check_seed(seed)
+    check_int("seed", seed, 0)
     env, created = make_env(env_id)
     try:
         targets = []
@@ -124,12 +111,11 @@ def evaluate_policy_costs(
         for envs without targets (then give ``n_episodes``).
     :param seed: episode ``i`` resets with ``seed + i``.
     :param max_steps: cap on the steps per episode (default: the env's own limit).
-    :param stop_above: stop early once the summed cost exceeds this (costs are >= 0, so the
-        full sum would too): an exact early exit of a "mean <= threshold" test. The result then
-        holds fewer than ``n`` costs.
+    :param stop_above: stop early once the summed cost exceeds this (an exact early exit of a
+        "mean <= threshold" test for costs >= 0).
     :return: ``[n]`` costs (fewer with ``stop_above``).
     """
-    _check_seed(seed)
+    check_int("seed", seed, 0)
     if targets is None:
         if n_episodes is None or n_episodes < 1:
             raise ValueError("give targets or n_episodes >= 1")
@@ -186,30 +172,17 @@ def oracle_policy(
     state_fn: Callable | None = None,
     obs_fn: Callable | None = None,
 ) -> ReplanEvery:
-    """MPC on the TRUE model of ``env``, with the env's own quadratic cost unless
-    ``cost_fn``/``state_map`` are given: the agent's controller (:func:`agents.planning.make_policy`
-    with the same ``planner``: kind, horizon, iterations, terminal weight, ``replan_every``;
-    CEM's ``particles`` set to 1, since one true model would repeat the same rollout), only the
-    model differs. The true model is
-
-    * ``env.unwrapped.dynamics_model()`` (or ``analytic_model()``) when the env offers one (the
-      arm); its state must be the agent's model state (the arm: ``obs[:4]``, via ``state_map``);
-    * otherwise, for any Gymnasium ``MujocoEnv`` (Reacher-v5, InvertedPendulum-v5, ...),
-      :class:`envs.mujoco_model.MujocoDynamics` lifted to ``z = [qpos, qvel, observation]`` by
-      :class:`envs.mujoco_model.ObservedDynamics`: the task's ``cost_fn(obs, a)`` (and
-      ``terminal_cost_fn``) is evaluated on the env's own observation of the predicted state,
-      and the plan starts from the env's true ``qpos, qvel``
-      (:class:`agents.planning.TrueStatePolicy`, so the returned policy only works on this
-      ``env``). ``state_map`` is ignored there (the true state needs no map).
-
-    ``termination_fn`` (the task's, on observations) is respected as by the agent's MPC.
-    ``state_fn``/``obs_fn`` (the agent's arguments) build ``state_map`` when it is not given.
+    """The agent's controller (:func:`agents.planning.make_policy` with the same ``planner``;
+    CEM's ``particles`` set to 1) on the TRUE model of ``env``: ``env.unwrapped.<model>()`` (its
+    state the agent's model state, via ``state_map``), else, for any Gymnasium ``MujocoEnv``,
+    :class:`envs.mujoco_model.ObservedDynamics` planned from the env's true state (the policy
+    then only works on this ``env``; docs/agent.md, "The oracle of any MuJoCo env").
 
     :param planner: the planner settings (``None``: ``PlannerConfig()``).
     :param seed: seeds CEM's samples (the agent passes its ``config.seed``).
-    :raises ValueError: an env that has neither (not MuJoCo, no ``dynamics_model()``): it has
-        no true model, so no oracle (the agent then reports ``oracle_cost = None``); also when
-        no cost is given and the env has no ``cost_Q``/``cost_R``.
+    :param cost_fn: / ``state_map`` (or ``state_fn``/``obs_fn``), ``terminal_cost_fn``,
+        ``termination_fn``: the task's (default: the env's own quadratic cost).
+    :raises ValueError: an env with no true model, or no cost given and no ``cost_Q``/``cost_R``.
     """
     from agents.tasks import StateMap, default_task_for_env, env_spec
 
@@ -266,11 +239,8 @@ def _oracle_state_fn(obs: np.ndarray) -> np.ndarray:
 def cached_costs(
     cache_dir: str | os.PathLike | None, key: dict[str, Any], compute: Callable[[], np.ndarray]
 ) -> np.ndarray:
-    """``compute()`` memoised in ``<cache_dir>/oracle_<sha256(key)[:16]>.json`` (atomic write).
-
-    The oracle is deterministic, so runs that share env, targets, seeds and MPC settings (all in
-    ``key``, a JSON-serialisable dict) can share its costs. ``cache_dir=None`` disables it.
-    """
+    """``compute()`` memoised in ``<cache_dir>/oracle_<sha256(key)[:16]>.json`` (atomic write;
+    ``key``: a JSON-serialisable dict of what the costs depend on; ``cache_dir=None``: off)."""
     if cache_dir is None:
         return np.asarray(compute(), dtype=float)
     from agents.checkpoint import atomic_write_text
@@ -288,8 +258,7 @@ def cached_costs(
 
 def physics_fingerprint(env: gym.Env) -> str:
     """sha256 (16 hex digits) of the physics the env simulates: its compiled ``MjModel`` saved
-    as MJB bytes (every numeric array, option and size: masses, geometry, actuator gains,
-    time step, ...). Changes when a physical parameter does, not when source code is edited."""
+    as MJB bytes (every parameter, not the source code)."""
     import mujoco
 
     model = getattr(env.unwrapped, "model", None)
@@ -311,14 +280,10 @@ def oracle_cache_key(
     planner: dict[str, Any],
     optimizer_options: ILQROptions | None = None,
 ) -> dict[str, Any]:
-    """What the oracle's costs depend on, as data (the key of :func:`cached_costs`): the env's
-    physics (:func:`physics_fingerprint`) and :func:`agents.checkpoint.env_fingerprint` (id,
-    constructor arguments, time step, spaces), the task (``task``: the cost's and the state map's
-    ``to_dict()``), the evaluation targets,
-    seed, episode count and length, the planner settings (``planner``: horizon, iterations,
-    ...; ``optimizer_options``: iLQR's, default ``ILQROptions()`` as
-    :func:`agents.planning.solver` uses) and ``mbtsr.__version__`` (a release invalidates every
-    entry)."""
+    """What the oracle's costs depend on (the key of :func:`cached_costs`): the env's physics
+    and fingerprint, the task (``task``: the cost's and state map's ``to_dict()``), targets,
+    seed, episode count and length, ``planner`` settings, iLQR's ``optimizer_options`` (default
+    ``ILQROptions()``) and ``mbtsr.__version__`` (a release invalidates every entry)."""
     import mbtsr
     from agents.checkpoint import env_fingerprint
 
@@ -354,15 +319,9 @@ def solved_threshold(oracle: float, ratio: float = 1.2) -> float:
     return float(ratio * oracle)
 
 
-def _check_seed(seed: Any) -> None:
-    check_int("seed", seed, 0)
-
-
 class Evaluator:
-    """The agent's evaluation: its policy on fixed episodes (targets and reset seeds from
-    ``config.evaluation``) in a copy of the training env, scored against the oracle (the same
-    planner on the env's TRUE model, :func:`oracle_policy`), whose costs are computed once and
-    kept (and shared between runs through ``evaluation.oracle_cache_dir``).
+    """The agent's evaluation: its policy on fixed episodes in a copy of the training env, scored
+    against the oracle (:func:`oracle_policy`), whose costs are computed once and kept.
 
     :param env: the training env (the evaluation env is ``gym.make(env.spec)``).
     :param config: the agent's config (its ``evaluation``, ``planner``, ``seed`` and

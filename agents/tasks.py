@@ -1,66 +1,14 @@
-"""Reusable task definitions: an env id, a cost on ``(observation, action)`` written as a user
-would (the env's own reward terms, with CasADi operations), and the env's termination rule.
+"""Reusable task definitions (:class:`Task`, the registry :data:`TASKS`, the benchmark suite's
+:data:`SUITE`) and how the agent sees a task (:class:`EnvSpec`, :class:`StateMap`,
+:class:`ObservationCost`); the task's functions are documented in docs/agent.md ("The cost: a
+registry task, a learned reward, or yours").
 
-A task is data (:class:`Task`) that the agent, the true-model oracle, the benchmark suite, the
-SB3 baselines and the PETS peer all consume unchanged (a task's ``state_fn``/``obs_fn``, the
-agent's model state, concern the agent alone: SB3, PETS and the small-data study work on the
-observation)::
-
-    from agents import AgentConfig, JacPropAgent
-    from agents.tasks import pusher
-
-    task = pusher()
-    env = task.make_env()
-    agent = JacPropAgent(env, AgentConfig(), **task.agent_kwargs())
-
-Conventions shared by every task here:
-
-* ``cost_fn(obs, action)`` is the NEGATED per-step reward of the env, computed from the
-  observation the env returns after the step and the action. Where the reward uses a quantity
-  the observation does not hold exactly (a body position from before the last substep), the
-  cost uses the observation's closest equivalent and says so.
-* Envs with an alive bonus (the inverted pendulums) terminate when the pole falls and then pay
-  no more; their cost subtracts the bonus, so that staying alive is cheaper than ending (a
-  planner that drops the costs after a predicted termination would otherwise prefer to fall).
-* ``termination_fn(obs)`` is numpy, batched ``obs [..., obs_dim] -> bool [...]``, the env's own
-  rule on the observation.
-* Norms in rewards are smoothed (``sqrt(|v|^2 + 1e-4)``) so that gradients exist at 0.
-
-The functions take no arguments but the env's constructor keywords (``**make``), so a user
-starts from a task and changes what the env offers (``inverted_pendulum(max_episode_steps=200)``).
-
-The registry (:data:`TASKS`, :func:`make_task`) names every task; :data:`SUITE` holds the
-benchmark suite's tasks: registry tasks with the suite's env keywords, budget, evaluation period
-and task-specific agent settings (read by :mod:`agents.experiments.bench_suite`, the PETS peer
-and the SB3 baselines).
-
-How the agent sees a task (:class:`EnvSpec`, :class:`StateMap`, :class:`ObservationCost`): the
-user describes the control task on the env's own terms:
-
-* ``cost_fn(obs, action) -> scalar``: a CasADi-compatible stage cost on an observation
-  ``obs: [obs_dim]`` and an action ``action: [act_dim]`` (env units). It is called once with
-  CasADi ``SX`` column vectors to build the planner's cost, so write it with ``casadi``
-  operations (``obs[0]``, ``ca.sumsqr``, ``ca.cos``, ``ca.mtimes`` ...).
-* optionally ``terminal_cost_fn(obs) -> scalar`` (CasADi-compatible): the cost of the last
-  predicted observation of a plan (default: the stage cost at zero action), scaled by
-  ``AgentConfig.planner.terminal_weight``.
-* optionally ``state_fn(obs) -> state`` (numpy) and ``obs_fn(state, obs_ref) -> obs``
-  (CasADi-compatible): the model learns the dynamics of ``state``, and the cost of a predicted
-  state is ``cost_fn(obs_fn(state, obs_ref), action)``, where ``obs_ref`` is the current real
-  observation (it supplies parts of the observation the model does not predict, such as a
-  target). Without them the model state is the observation itself.
-  **Contract:** ``state_fn`` is applied to whole episodes, so it must map a batch
-  ``obs [B, obs_dim] -> state [B, n]`` row by row as well as one ``obs [obs_dim] -> [n]``
-  (write it with ``obs[..., i]``); ``obs_fn`` is called once on CasADi symbols
-  ``state [n]``, ``obs_ref [obs_dim]`` and must return ``[obs_dim]``. Both are checked at
-  construction (on one observation and on a batch of three).
-* optionally ``termination_fn(obs) -> bool`` (numpy, batched ``[..., obs_dim] -> [...]``):
-  predicted observations where the env would terminate; the planner (iLQR's line search, CEM's
-  ranking) stops accumulating cost after a predicted termination (as PETS does), see
-  :func:`mbtsr.costs.truncated_total`.
-
-Everything is checked at construction: non-Box spaces, unbounded actions, a cost that fails on
-or does not return a scalar for the given dimensions, maps that return the wrong sizes.
+Conventions of the tasks here: ``cost_fn(obs, action)`` is the env's NEGATED per-step reward on
+the observation after the step (the closest equivalent where the reward uses another quantity,
+said so); envs with an alive bonus subtract it, so that staying alive is cheaper than ending;
+``termination_fn`` is numpy, batched ``obs [..., obs_dim] -> bool [...]``, the env's own rule;
+norms are smoothed (``sqrt(|v|^2 + 1e-4)``). A task function takes the env's constructor
+keywords (``inverted_pendulum(max_episode_steps=200)``).
 """
 
 from __future__ import annotations
