@@ -55,10 +55,8 @@ class Callbacks:
 
     def step_hook(self, count: Callable[[], None]) -> Callable[[np.ndarray], bool] | None:
         """``stop(new_obs) -> bool`` for :func:`mbtsr.episode.run_episode` (``None`` without SB3
-        callbacks): called on the first observation (ignored) and after every env step, where
-        it calls ``count()`` (the agent's step counter, read by ``on_step``) and ``on_step``;
-        ``True`` (``on_step`` returned ``False``) ends the rollout and, after the episode,
-        learning (:attr:`stopped`)."""
+        callbacks): after every env step ``count()`` (the agent's step counter) and ``on_step``;
+        ``True`` (``on_step`` returned ``False``) ends the rollout and learning."""
         if self.sb3_list is None:
             return None
         calls = {"n": 0}

@@ -89,9 +89,8 @@ def load_checkpoint(path: str | os.PathLike) -> dict[str, Any]:
 
 def agent_payload(agent: Any) -> dict[str, Any]:
     """Everything a :class:`agents.jacprop_agent.JacPropAgent` needs to continue learning
-    bit-identically or to act: config, env spec and fingerprint, the serialisable task, model
-    weights, Adam state, data, JacProp labels, counters, RNG states, log and the evaluator's
-    targets and oracle costs (a dict for :func:`save_checkpoint`)."""
+    bit-identically or to act (a dict for :func:`save_checkpoint`; docs/agent.md,
+    "Checkpoints and exact resume")."""
     from agents.task_setup import LearnedTask
     from agents.tasks import QuadraticTargetCost
 
@@ -133,8 +132,7 @@ def agent_payload(agent: Any) -> dict[str, Any]:
 
 def restore_agent(agent: Any, p: dict[str, Any]) -> None:
     """Load :func:`agent_payload`'s fields (as :func:`load_checkpoint` returns them) into a
-    freshly constructed agent of the same config and task; the RNGs (numpy's and torch's global
-    one) continue where the checkpoint left them."""
+    freshly constructed agent of the same config and task, the RNGs included."""
     from mbtsr.reward import RewardModel
     from mbtsr.trajectory import Trajectory
 
@@ -182,23 +180,19 @@ def user_functions(agent: Any) -> dict[str, Any]:
 def registry_task(env_id: str | None, fns: dict[str, Any]) -> str | None:
     """The name of the :data:`agents.tasks.TASKS` task on ``env_id`` whose functions are
     exactly ``fns`` (the same objects; ``None`` where the task has none), else ``None``."""
-    from agents.tasks import TASKS
+    from agents.task_setup import registry_task as task_on
 
-    for name, make in TASKS.items():
-        task = make()
-        kwargs = task.agent_kwargs()
-        if task.env_id == env_id and all(fns[k] is kwargs[k] for k in FUNCTION_NAMES):
-            return name
-    return None
+    task = task_on(env_id)
+    same = task is not None and all(fns[k] is f for k, f in task.agent_kwargs().items())
+    return task.name if same else None
 
 
 def check_resumable(
     payload: dict[str, Any], path: str | os.PathLike, config: Any, env: Any,
     fns: dict[str, Any],
 ) -> tuple[Any, dict[str, Any], dict[str, Any]]:
-    """Check that a loaded checkpoint can be restored with the given env and task functions,
-    completing the functions of a registered task (:data:`agents.tasks.TASKS`) from the
-    registry.
+    """Check that a loaded checkpoint can be restored with ``env`` and the task functions (a
+    registry task's come from :data:`agents.tasks.TASKS`).
 
     :param config: the checkpoint's :class:`agents.config.AgentConfig` (episode length).
     :param env: the env to continue in, or ``None`` (act only).
@@ -334,9 +328,8 @@ def _to_torch(obj: Any) -> Any:
 def load_agent(cls: type, path: str | os.PathLike, env: Any, fns: dict[str, Any], *,
                run_dir: str | os.PathLike | None = None) -> Any:
     """The body of :meth:`agents.jacprop_agent.JacPropAgent.load`: read the checkpoint at
-    ``path`` (a file or a run folder holding ``checkpoint.pt``), check it against ``env`` and
-    the task functions ``fns`` (:func:`check_resumable`), build an agent of class ``cls``
-    (:func:`agents.task_setup.build_agent`) and restore its state (:func:`restore_agent`).
+    ``path`` (a file or a run folder), check it (:func:`check_resumable`), build an agent of
+    class ``cls`` and restore its state (:func:`restore_agent`).
 
     :param run_dir: overrides the saved config's ``run_dir``.
     :raises ValueError: as :func:`check_resumable`, or ``state_fn`` gives a model state of

@@ -1,9 +1,5 @@
-"""Collection (Algorithm 1, step (a)): training rollouts in the real env, either an excitation
-signal or a planner's actions plus exploration noise, run by :func:`mbtsr.episode.run_episode`.
-
-:class:`Collector` also carries a running episode over to the next rollout
-(``collection.continue_rollouts``), and writes the rollouts' videos.
-"""
+"""Collection (Algorithm 1, step (a)): training rollouts in the real env, an excitation signal or
+a planner's actions plus exploration noise (:func:`mbtsr.episode.run_episode`)."""
 
 from __future__ import annotations
 

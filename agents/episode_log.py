@@ -16,6 +16,7 @@ from typing import Any
 import numpy as np
 
 from agents.checkpoint import atomic_write_text, write_run
+from mbtsr.validation import check_int
 
 __all__ = ["EpisodeLog", "LOG_COLUMNS", "TIMING_COLUMNS", "check_budget", "end_episode",
            "make_progress_bar", "sb3_scalars", "summarize"]
@@ -115,12 +116,8 @@ _EVAL = ("eval_cost", "oracle_cost", "cost_ratio", "eval_episodes_run")
 
 def sb3_scalars(rows: Sequence[dict[str, Any]], window: int = 100) -> dict[str, Any]:
     """The scalars of the last row under Stable-Baselines3's tags, so that the agent's curves
-    and an SB3 run's overlay in TensorBoard by env step: ``rollout/ep_rew_mean`` and
-    ``rollout/ep_len_mean`` (mean return and length of the last ``window`` training episodes,
-    as SB3's ``stats_window_size``), ``rollout/episodes``, ``time/total_timesteps``,
-    ``eval/mean_reward`` (the evaluation's mean return), ``eval/<column>`` for the oracle
-    comparison, ``train/<column>`` for the model's losses and errors and ``time/<column>``
-    for the wall seconds.
+    and an SB3 run's overlay in TensorBoard by env step (``rollout/ep_rew_mean`` over the last
+    ``window`` episodes, ``eval/mean_reward``, ``train/<column>``, ``time/<column>``, ...).
 
     :param rows: the log rows so far (``[episodes]``; the last one is reported).
     """
@@ -210,9 +207,8 @@ def check_budget(total_timesteps: Any, episodes: Any, env: Any) -> None:
     :raises ValueError: a budget that is not an integer >= 0, no budget at all, or no env (an
         act-only loaded agent)."""
     for name, value in (("total_timesteps", total_timesteps), ("episodes", episodes)):
-        if value is not None and (isinstance(value, bool) or not isinstance(
-                value, int | np.integer) or value < 0):
-            raise ValueError(f"{name} must be an integer >= 0, got {value!r}")
+        if value is not None:
+            check_int(name, value, 0)
     if episodes is None and total_timesteps is None:
         raise ValueError("give total_timesteps (env steps) or episodes=")
     if env is None:
@@ -232,11 +228,9 @@ def make_progress_bar(episodes: int | None, steps: int | None, show: bool) -> An
 
 def end_episode(agent: Any, row: dict[str, Any], log: EpisodeLog | None, *, last: bool,
                 fps_since: tuple[int, float], bar: Any = None, bar_step: int = 1) -> None:
-    """The agent's bookkeeping after an episode of ``learn``: the final score (``last``: the
-    episode ends ``learn``, and evaluation is due then), the row appended to
-    ``agent.logger_rows``, the episode counted, the run folder written
-    (``config.checkpoint``), the row and the SB3 logger's records (with ``time/fps``) to
-    ``log`` and the SB3 logger dumped, the progress ``bar`` advanced by ``bar_step``.
+    """The agent's bookkeeping after an episode of ``learn``: the final score (``last``), the
+    row logged and counted, the run folder written, the SB3 logger's records (with
+    ``time/fps``) to ``log``, the progress ``bar`` advanced by ``bar_step``.
 
     :param fps_since: ``(env_steps, perf_counter time)`` at the start of ``learn``.
     """

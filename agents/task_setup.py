@@ -1,8 +1,6 @@
-"""The agent's task from its constructor arguments: the cost and the observation <-> model-state
-maps (given, saved with a checkpoint, the registry's task for the env's id, the env's own, or
-a reward learned from the env's rewards), checked on probe observations before
-any learning starts, so that a wrong function fails at construction with a clear message.
-"""
+"""The agent's task from its constructor arguments (docs/agent.md, "The cost: a registry task, a
+learned reward, or yours"), checked on probe observations at construction, and
+:func:`build_agent`, which gives the agent its parts."""
 
 from __future__ import annotations
 
@@ -61,18 +59,11 @@ def resolve_task(
     terminal_cost_fn: Callable | None = None,
     termination_fn: Callable | None = None,
 ) -> ResolvedTask:
-    """The task from the constructor's arguments, first match wins:
-
-    0. ``cost_fn="learned"`` (or a checkpoint of a learned reward): learn the reward, even for
-       an env that :data:`agents.tasks.TASKS` knows;
-    1. ``cost_fn`` given: it (with ``state_fn``/``obs_fn``);
-    2. a saved :class:`~agents.tasks.QuadraticTargetCost` (a checkpoint's task);
-    3. the task of :data:`agents.tasks.TASKS` for the env's id (or the saved task's
-       ``registry`` name): its cost, terminal cost, termination and state maps, each only where
-       the caller gave none;
-    4. the env's own quadratic cost (``env.unwrapped.cost_Q``/``cost_R``);
-    5. none: ``cost_fn=None``, the agent learns the reward from the env's rewards.
-    """
+    """The task from the constructor's arguments, first match wins: ``cost_fn="learned"`` (or
+    a checkpoint of a learned reward), a given ``cost_fn``, a saved
+    :class:`~agents.tasks.QuadraticTargetCost`, the registry's task for the env's id (each
+    function only where the caller gave none), the env's own quadratic cost, else a learned
+    reward (docs/agent.md, "The cost")."""
     own = {"terminal_cost_fn": terminal_cost_fn, "termination_fn": termination_fn}
     saved_task = saved_task or {}
     if isinstance(cost_fn, str) or saved_task.get("learned"):
@@ -109,10 +100,9 @@ def resolve_task(
 
 
 class LearnedTask:
-    """Stands where :class:`~agents.tasks.ObservationCost` does for an env without a written
-    cost: the planner's cost is ``-r_hat(s, a)`` of a :class:`~mbtsr.reward.RewardModel`
-    trained on the env's rewards (:class:`~mbtsr.reward.LearnedRewardCost`), on the model state
-    ``s = state_map.state(obs)``; before its first fit the reward is 0 everywhere.
+    """Stands where :class:`~agents.tasks.ObservationCost` does without a written cost: the
+    planner's cost is ``-r_hat(s, a)`` of a :class:`~mbtsr.reward.RewardModel` on the model
+    state (0 before its first fit).
 
     :param state_map: observation <-> model state.
     :param spec: the env's :class:`~agents.tasks.EnvSpec`.
@@ -168,8 +158,8 @@ def probe_observations(env: gym.Env | None, shape: tuple[int, ...]) -> np.ndarra
 
 
 def check_state_map(state_map: StateMap, env: gym.Env | None, spec: EnvSpec) -> np.ndarray:
-    """Call the state map on one observation and on a batch of three (it is called on whole
-    episodes ``[T+1, obs_dim]``) and check that the batch gives the rows of the single calls.
+    """Check the state map on one observation and on a batch of three (whole episodes are
+    mapped at once): the batch must give the rows of the single calls.
 
     :return: the state of the first probe ``[n]``.
     :raises ValueError: a map that fails, returns no 1-D state or maps a batch differently.

@@ -290,25 +290,14 @@ class EnvSpec:
     dt: float | None
 
     def to_dict(self) -> dict[str, Any]:
-        return {
-            "obs_dim": self.obs_dim,
-            "act_dim": self.act_dim,
-            "u_min": self.u_min.tolist(),
-            "u_max": self.u_max.tolist(),
-            "episode_steps": self.episode_steps,
-            "dt": self.dt,
-        }
+        return {f.name: getattr(self, f.name) for f in dataclasses.fields(self)} | {
+            "u_min": self.u_min.tolist(), "u_max": self.u_max.tolist()}
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> EnvSpec:
-        return cls(
-            int(d["obs_dim"]),
-            int(d["act_dim"]),
-            np.asarray(d["u_min"], dtype=float),
-            np.asarray(d["u_max"], dtype=float),
-            int(d["episode_steps"]),
-            None if d.get("dt") is None else float(d["dt"]),
-        )
+        u_min, u_max = (np.asarray(d[k], dtype=float) for k in ("u_min", "u_max"))
+        return cls(int(d["obs_dim"]), int(d["act_dim"]), u_min, u_max, int(d["episode_steps"]),
+                   None if d.get("dt") is None else float(d["dt"]))
 
 
 def env_spec(env: gym.Env, episode_steps: int | None = None) -> EnvSpec:
@@ -355,14 +344,8 @@ def env_spec(env: gym.Env, episode_steps: int | None = None) -> EnvSpec:
             or episode_steps < 1:
         raise ValueError(f"episode_steps must be an integer >= 1, got {episode_steps!r}")
     dt = getattr(env.unwrapped, "dt", None)
-    return EnvSpec(
-        obs_dim=int(obs_space.shape[0]),
-        act_dim=int(act_space.shape[0]),
-        u_min=u_min,
-        u_max=u_max,
-        episode_steps=int(episode_steps),
-        dt=None if dt is None else float(dt),
-    )
+    return EnvSpec(int(obs_space.shape[0]), int(act_space.shape[0]), u_min, u_max,
+                   int(episode_steps), None if dt is None else float(dt))
 
 
 class StateMap:
