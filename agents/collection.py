@@ -13,7 +13,7 @@ import numpy as np
 from agents.config import CollectionConfig
 from agents.tasks import EnvSpec, StateMap
 from mbtsr import excitation
-from mbtsr.episode import EpisodeRecord, run_episode
+from mbtsr.episode import EpisodeRecord, as_policy, run_episode
 from mbtsr.trajectory import Trajectory
 
 __all__ = ["Collector"]
@@ -101,12 +101,10 @@ class Collector:
             def act(obs: np.ndarray, t: int) -> np.ndarray:
                 return U[t]
         else:
-            noise = self.exploration_noise(T, signal_seed)
-            plan: dict[str, Any] = {"state": None}
+            noise, planned = self.exploration_noise(T, signal_seed), as_policy(policy)
 
             def act(obs: np.ndarray, t: int) -> np.ndarray:
-                a, plan["state"] = policy.predict(obs, plan["state"], episode_start=t == 0)
-                return a + noise[t]
+                return planned(obs, t) + noise[t]
 
         rec = run_episode(self.env, act, seed=reset_seed, max_steps=T, render=render, start=start,
                           stop=stop)

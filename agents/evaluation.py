@@ -329,9 +329,6 @@ class Evaluator:
     :param episode_steps: the episode length.
     :param task: the task's functions for the oracle: ``cost_fn``, ``state_map``,
         ``terminal_cost_fn``, ``termination_fn``.
-
-    ``eval_targets`` (``[episodes]`` targets, ``None`` for envs without targets) and
-    ``oracle_costs`` (``[episodes]``) are its state (checkpointed by the agent).
     """
 
     def __init__(self, env: gym.Env | None, config: AgentConfig, episode_steps: int,
@@ -380,14 +377,10 @@ class Evaluator:
     def setup(self) -> tuple[gym.Env, dict[str, Any]]:
         """``(env, keyword arguments)`` that :func:`evaluate_policy_costs` scores a policy with
         on these episodes (with ``self.eval_targets`` and ``evaluation.seed``)."""
-        return self.eval_env(), self.episode_kwargs()
-
-    def episode_kwargs(self) -> dict[str, Any]:
-        """The keyword arguments of :meth:`setup` (episode length, number of episodes)."""
         kwargs: dict[str, Any] = {"max_steps": self.episode_steps}
         if self.targets() is None:
             kwargs["n_episodes"] = self.config.evaluation.episodes
-        return kwargs
+        return self.eval_env(), kwargs
 
     def evaluate(self, policy: Any) -> dict[str, Any]:
         """Score ``policy`` (SB3-style ``predict``) on the evaluation episodes.
@@ -399,7 +392,7 @@ class Evaluator:
         """
         ev = self.config.evaluation
         env, kwargs = self.setup()
-        oracle = None if ev.solved_return is not None else self.oracle(env, kwargs)
+        oracle = None if ev.solved_return is not None else self.oracle()
         stop_above = None
         if oracle is not None and ev.early_exit and np.all(oracle >= 0):
             stop_above = ev.solved_ratio * float(np.sum(oracle))
@@ -440,19 +433,15 @@ class Evaluator:
         seed and task functions)."""
         return oracle_policy(env, self.config.planner, seed=self.config.seed, **self.task)
 
-    def oracle(self, env: gym.Env | None = None,
-               kwargs: dict[str, Any] | None = None) -> np.ndarray | None:
+    def oracle(self) -> np.ndarray | None:
         """Per-episode costs of the oracle (computed once, then kept; ``None``: the env has
         no true model, or the task no written cost: a learned reward has no oracle). The
         seconds spent computing it add to ``oracle_seconds``."""
-        if env is None:
-            env, kwargs = self.setup()
-        elif kwargs is None:
-            kwargs = self.episode_kwargs()
-        if (self.oracle_costs is not None or not has_true_model(env)
+        if (self.oracle_costs is not None or not has_true_model(self.eval_env())
                 or self.task["cost_fn"] is None):  # a learned reward: no written cost to plan on
             return self.oracle_costs
         cfg, task = self.config, self.task
+        env, kwargs = self.setup()
 
         def compute() -> np.ndarray:
             tic = time.perf_counter()

@@ -49,21 +49,15 @@ class JacPropAgent(SB3Predictor):
         space and a ``TimeLimit`` (or ``config.collection.episode_steps``).
     :param config: :class:`agents.config.AgentConfig`.
     :param cost_fn: stage cost ``cost_fn(obs, action) -> scalar`` written with CasADi
-        operations, the exact way to state a task. ``None``: the task of
-        :data:`agents.tasks.TASKS` for the env's id (its cost, terminal cost, termination and
-        state maps, where not given), else the env's own quadratic cost
-        (``env.unwrapped.cost_Q/cost_R``, as ``mbtsr/TwoLinkArm-v0`` provides), else a reward
-        learned from the env's rewards (``config.reward``, refit after every model update;
-        the evaluation then has no oracle). ``"learned"``: learn the reward even for an env
-        that :data:`agents.tasks.TASKS` knows.
+        operations. ``None``: the registry's task for the env's id, else the env's own cost,
+        else a learned reward; ``"learned"``: a learned reward (docs/agent.md, "The cost").
     :param state_fn: ``obs -> model state`` (numpy); with ``obs_fn``.
     :param obs_fn: ``(state, obs_ref) -> obs`` (CasADi-compatible), the inverse map used to
         evaluate ``cost_fn`` on predicted states.
     :param terminal_cost_fn: ``obs -> scalar`` (CasADi), the cost of a plan's last predicted
         observation (x ``config.planner.terminal_weight``; default: the stage cost at zero action).
     :param termination_fn: ``obs [..., obs_dim] -> bool [...]`` (numpy): where the env would
-        terminate; the planner (iLQR or CEM) adds no cost after a predicted termination.
-        Without one the planner does not know that episodes end (see docs/troubleshooting.md).
+        terminate; the planner adds no cost after a predicted termination.
     :raises ValueError: at construction for non-Box spaces, an unbounded action space, a cost
         or maps that do not fit the env's dimensions, a bad config.
     """

@@ -46,9 +46,6 @@ class JacobianLabeler:
     :param regularization: its ``ltv_lambda`` (``None``: chosen per episode by
         :func:`mbtsr.ltv.select_lambda`) and ``needs_ltv``.
     :param ltv_prior: > 0 fuses each fit with the model's Jacobians (variance floor).
-
-    ``lambdas`` (one per episode, NaN without LTV labels) and ``models`` (one
-    :class:`~mbtsr.ltv.LTVModel` per episode with LTV labels) are its state.
     """
 
     def __init__(self, state_dim: int, act_dim: int, regularization: RegularizationConfig,

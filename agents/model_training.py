@@ -24,8 +24,6 @@ class ModelTrainer:
     :param training: the training settings (its ``seed`` is replaced per update).
     :param regularization: the tangent-space regularization.
     :param renormalize: refit the input/output normalization to all data before each update.
-
-    ``optimizer_state`` (Adam's, carried from update to update) is its state.
     """
 
     def __init__(self, model: DynamicsEnsemble, training: TrainConfig,

@@ -145,9 +145,7 @@ class SB3Predictor(abc.ABC):
             for a batch, the list of the rows' states), or ``None`` (cold start).
         :param episode_start: ``True`` at the first step of an episode (for a batch ``[B]``
             flags, one per row): a cold start.
-        :param deterministic: ``False`` adds the policy's exploration noise (:meth:`_explore`:
-            none for an MPC policy; the agent's is documented at
-            :meth:`agents.jacprop_agent.JacPropAgent._explore`).
+        :param deterministic: ``False`` adds the policy's exploration noise (:meth:`_explore`).
         :return: ``(action [m], next_state)``, for a batch ``(actions [B, m], [B] states)``.
         """
         obs = np.asarray(observation)

@@ -30,9 +30,8 @@ class ResolvedTask:
         reward is learned from the env's rewards (:class:`LearnedTask`).
     :param state_map: observation <-> model state.
     :param terminal_cost_fn: / ``termination_fn``: the given ones, else the registry task's.
-    :param source: where the cost comes from: ``"given"``, ``"saved"``, ``"registry"`` (a task
-        of :data:`agents.tasks.TASKS`, see ``registry``), ``"env"`` (``cost_Q``/``cost_R``) or
-        ``"learned"``.
+    :param source: where the cost comes from: ``"given"``, ``"saved"``, ``"registry"``, ``"env"``
+        (``cost_Q``/``cost_R``) or ``"learned"``.
     :param registry: the name of the registry task (``source="registry"``), else ``None``.
     """
 
