@@ -159,9 +159,6 @@ def restore_agent(agent: Any, p: dict[str, Any]) -> None:
     ev.oracle_costs = None if p["oracle_costs"] is None else p["oracle_costs"].numpy()
 
 
-FUNCTION_NAMES = ("cost_fn", "terminal_cost_fn", "termination_fn", "state_fn", "obs_fn")
-
-
 def user_functions(agent: Any) -> dict[str, Any]:
     """The agent's task functions that a checkpoint cannot hold (``None`` for those it does
     not have or that are saved as data: the env's quadratic cost, a prefix state map)."""
@@ -196,14 +193,14 @@ def check_resumable(
 
     :param config: the checkpoint's :class:`agents.config.AgentConfig` (episode length).
     :param env: the env to continue in, or ``None`` (act only).
-    :param fns: the task functions given to ``load`` by name (:data:`FUNCTION_NAMES`).
+    :param fns: the task functions given to ``load`` by name (:data:`agents.tasks.FUNCTION_NAMES`).
     :return: ``(spec, task, fns)``: the saved :class:`agents.tasks.EnvSpec`, serialised task
         and the functions to build the agent with.
     :raises ValueError: the env's dimensions or bounds differ, or a function the agent was
         built with is neither given nor in the registry (naming it).
     :raises CheckpointError: the env's fingerprint differs (naming the field).
     """
-    from agents.tasks import EnvSpec, env_spec, make_task
+    from agents.tasks import FUNCTION_NAMES, EnvSpec, env_spec, make_task
 
     spec = EnvSpec.from_dict(json.loads(payload["env_spec"]))
     if env is not None:

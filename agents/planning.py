@@ -225,8 +225,7 @@ class MPCPolicy(SB3Predictor):
                              **self._solve_kwargs(obs))
         self.last_result = res
         U = np.asarray(res.U, dtype=float)
-        action = np.clip(U[0], self.spec.u_min, self.spec.u_max)
-        return action, np.concatenate([U[1:], U[-1:]], axis=0)
+        return np.clip(U[0], self.spec.u_min, self.spec.u_max), _shift(U)
 
     def model_state(self, obs: np.ndarray) -> np.ndarray:
         """The planner's start state for this observation (the task's state map)."""
@@ -288,11 +287,13 @@ class ReplanState:
 
     def shifted(self) -> ReplanState:
         """The state one step later: every array shifted by one row (the last repeated)."""
-        def shift(a: np.ndarray | None) -> np.ndarray | None:
-            return None if a is None else np.concatenate([a[1:], a[-1:]], axis=0)
+        return ReplanState(_shift(self.plan), self.age + 1, _shift(self.states),
+                           _shift(self.gains))
 
-        return ReplanState(shift(self.plan), self.age + 1, shift(self.states),
-                           shift(self.gains))
+
+def _shift(a: np.ndarray | None) -> np.ndarray | None:
+    """``a`` one row later: ``a[1:]`` with the last row repeated (``None`` stays ``None``)."""
+    return None if a is None else np.concatenate([a[1:], a[-1:]], axis=0)
 
 
 class ReplanEvery(SB3Predictor):
@@ -351,4 +352,4 @@ class ReplanEvery(SB3Predictor):
         K = np.asarray(K, dtype=float).reshape(H, m, n)
         if not (np.all(np.isfinite(X)) and np.all(np.isfinite(K))):
             return None, None
-        return X[1:], np.concatenate([K[1:], K[-1:]], axis=0)
+        return X[1:], _shift(K)

@@ -45,6 +45,10 @@ __all__ = [
 ]
 
 
+#: the task functions, by their argument names (:class:`agents.JacPropAgent`'s)
+FUNCTION_NAMES = ("cost_fn", "terminal_cost_fn", "termination_fn", "state_fn", "obs_fn")
+
+
 @dataclass(frozen=True)
 class Task:
     """A control task on a Gymnasium env.
@@ -52,21 +56,16 @@ class Task:
     :param name: short name (``"pusher"``).
     :param env_id: the registered Gymnasium id (``"Pusher-v5"``).
     :param make_kwargs: keyword arguments of ``gymnasium.make``.
-    :param cost_fn: ``(obs [obs_dim], action [act_dim]) -> scalar`` in CasADi operations, or
-        ``None`` for envs that define their own cost (``mbtsr/TwoLinkArm-v0``).
-    :param terminal_cost_fn: ``obs -> scalar`` (CasADi) on the last predicted observation of a
-        plan, or ``None`` (the stage cost at zero action).
+    :param cost_fn: ``(obs, action) -> scalar`` (CasADi), or ``None`` (the env's own cost).
+    :param terminal_cost_fn: ``obs -> scalar`` (CasADi), or ``None``.
     :param termination_fn: ``obs [..., obs_dim] -> bool [...]`` (numpy), or ``None``.
-    :param state_fn: ``obs [..., obs_dim] -> state [..., n]`` (numpy): the model's state, when
-        it should not be the observation itself; ``None``: the observation.
-    :param obs_fn: ``(state [n], obs_ref [obs_dim]) -> obs`` (CasADi), the inverse of
-        ``state_fn`` for the cost (``obs_ref`` supplies what the state leaves out).
-    :param budget: a task of the benchmark suite (:data:`SUITE`): the env steps a learner gets;
-        ``None``: not a suite task.
-    :param eval_every: a suite task: the env steps between evaluations (the learning curve's
-        resolution; an evaluation costs 3 episodes).
+    :param state_fn: ``obs [..., obs_dim] -> state [..., n]`` (numpy), or ``None``.
+    :param obs_fn: ``(state [n], obs_ref [obs_dim]) -> obs`` (CasADi), or ``None``; the five
+        functions are :class:`agents.JacPropAgent`'s arguments of the same names.
+    :param budget: a task of the benchmark suite (:data:`SUITE`): the env steps a learner gets.
+    :param eval_every: a suite task: the env steps between evaluations.
     :param settings: a suite task: the agent settings it runs with (dotted ``AgentConfig``
-        fields), stated before any run.
+        fields).
     """
 
     name: str
@@ -92,15 +91,11 @@ class Task:
     def agent_kwargs(self) -> dict[str, Any]:
         """The task's functions as keyword arguments of :class:`agents.JacPropAgent` (and of
         :func:`agents.evaluation.oracle_policy`)."""
-        return {"cost_fn": self.cost_fn, "terminal_cost_fn": self.terminal_cost_fn,
-                "termination_fn": self.termination_fn, "state_fn": self.state_fn,
-                "obs_fn": self.obs_fn}
+        return {k: getattr(self, k) for k in FUNCTION_NAMES}
 
     def observation_cost(self) -> Callable[[Any, Any], Any]:
-        """The cost on ``(obs, action)`` in CasADi operations: ``cost_fn``, or for an env that
-        states its own quadratic cost (``env.unwrapped.cost_Q``/``cost_R``, as
-        ``mbtsr/TwoLinkArm-v0``) that cost (:class:`QuadraticTargetCost`, the one the agent
-        builds for it): what peers outside mbtsr score plans with.
+        """The cost on ``(obs, action)`` in CasADi operations: ``cost_fn``, or the env's own
+        quadratic cost (:class:`QuadraticTargetCost`): what peers outside mbtsr score plans with.
 
         :raises ValueError: if the task has no ``cost_fn`` and its env states no cost.
         """
