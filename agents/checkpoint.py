@@ -272,26 +272,17 @@ def env_fingerprint(env: Any) -> dict[str, Any]:
 
 
 def _first_difference(saved: Any, now: Any, where: str) -> tuple[str, Any, Any] | None:
+    """``(field, saved value, value now)`` of the first difference (``None``: equal)."""
     if isinstance(saved, Mapping) and isinstance(now, Mapping):
-        for k in sorted(set(saved) | set(now), key=str):
-            if k not in saved or k not in now:
-                return (f"{where}.{k}".lstrip("."), saved.get(k, "<absent>"),
-                        now.get(k, "<absent>"))
-            d = _first_difference(saved[k], now[k], f"{where}.{k}")
-            if d is not None:
-                return d
-        return None
-    if isinstance(saved, list | tuple) and isinstance(now, list | tuple):
-        if len(saved) != len(now):
-            return where.lstrip(".") or "value", saved, now
-        for i, (a, b) in enumerate(zip(saved, now)):
-            d = _first_difference(a, b, f"{where}[{i}]")
-            if d is not None:
-                return d
-        return None
-    if isinstance(saved, float) and isinstance(now, float) and math.isnan(saved):
-        return None if math.isnan(now) else (where.lstrip("."), saved, now)
-    return None if saved == now else (where.lstrip(".") or "value", saved, now)
+        pairs = [(f"{where}.{k}", saved.get(k, "<absent>"), now.get(k, "<absent>"))
+                 for k in sorted(set(saved) | set(now), key=str)]
+    elif isinstance(saved, list | tuple) and isinstance(now, list | tuple) \
+            and len(saved) == len(now):
+        pairs = [(f"{where}[{i}]", a, b) for i, (a, b) in enumerate(zip(saved, now))]
+    else:
+        nan = all(isinstance(v, float) and math.isnan(v) for v in (saved, now))
+        return None if nan or saved == now else (where.lstrip(".") or "value", saved, now)
+    return next((d for w, a, b in pairs if (d := _first_difference(a, b, w))), None)
 
 
 def check_same(saved: Mapping, now: Mapping, *, what: str, path: str | os.PathLike) -> None:

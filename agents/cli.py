@@ -164,9 +164,6 @@ def call(run: Callable[[T], Any], config: T) -> Any:
         fail(f"{' '.join(str(e).split())} (MBTSR_TRACEBACK=1 shows where)")
 
 
-def main(config_type: type[T], run: Callable[[T], Any], *, outputs: Sequence[str] = (),
-         folders: Sequence[str] = (), presets: Mapping[str, Mapping[str, Any]] | None = None,
-         args: Sequence[str] | None = None) -> Any:
-    """A script's whole body: :func:`call` ``(run, parse(config_type, ...))``."""
-    return call(run, parse(config_type, args=args, outputs=outputs, folders=folders,
-                           presets=presets))
+def main(config_type: type[T], run: Callable[[T], Any], **options: Any) -> Any:
+    """A script's whole body: :func:`call` ``(run, parse(config_type, **options))``."""
+    return call(run, parse(config_type, **options))

@@ -20,7 +20,7 @@ import numpy as np
 
 from agents.config import AgentConfig, PlannerConfig
 from agents.planning import ReplanEvery, make_policy
-from agents.tasks import ObservationCost, QuadraticTargetCost
+from agents.tasks import ObservationCost, QuadraticTargetCost, gym_make
 from mbtsr.episode import EpisodeRecord, as_policy, run_episode
 from mbtsr.ilqr import ILQROptions
 from mbtsr.validation import check_int
@@ -50,15 +50,12 @@ NOT_EVALUATED: dict[str, Any] = {
 
 
 def make_env(env: gym.Env | str, **kwargs: Any) -> tuple[gym.Env, bool]:
-    """``(env, created)``: ``env`` itself, or ``gym.make(env, **kwargs)`` for an id (the
-    project's ``mbtsr/`` envs are registered by importing :mod:`envs`)."""
+    """``(env, created)``: ``env`` itself, or :func:`agents.tasks.gym_make` ``(env, **kwargs)``."""
     if isinstance(env, gym.Env):
         return env, False
     if not isinstance(env, str):
         raise TypeError(f"env must be a gymnasium.Env or an env id string, got {env!r}")
-    if env.startswith("mbtsr/"):
-        import envs  # noqa: F401  (registers the mbtsr/ ids)
-    return gym.make(env, **kwargs), True
+    return gym_make(env, **kwargs), True
 
 
 def evaluation_targets(

@@ -81,12 +81,8 @@ class Task:
     settings: dict[str, Any] = field(default_factory=dict)
 
     def make_env(self, **overrides: Any):
-        """``gymnasium.make(env_id, **make_kwargs, **overrides)`` (``mbtsr/`` ids registered)."""
-        import gymnasium as gym
-
-        if self.env_id.startswith("mbtsr/"):
-            import envs  # noqa: F401  (registers the mbtsr/ ids)
-        return gym.make(self.env_id, **{**self.make_kwargs, **overrides})
+        """``gymnasium.make(env_id, **make_kwargs, **overrides)`` (:func:`gym_make`)."""
+        return gym_make(self.env_id, **{**self.make_kwargs, **overrides})
 
     def agent_kwargs(self) -> dict[str, Any]:
         """The task's functions as keyword arguments of :class:`agents.JacPropAgent` (and of
@@ -110,6 +106,15 @@ class Task:
             raise ValueError(f"task {self.name!r} has no cost_fn and its env states no cost "
                              "(env.unwrapped.cost_Q/cost_R)")
         return found[0]
+
+
+def gym_make(env_id: str, **kwargs: Any) -> gym.Env:
+    """``gymnasium.make(env_id, **kwargs)``, the project's ``mbtsr/`` ids registered first."""
+    import gymnasium as gym
+
+    if env_id.startswith("mbtsr/"):
+        import envs  # noqa: F401  (registers the mbtsr/ ids)
+    return gym.make(env_id, **kwargs)
 
 
 def _smooth_norm(v: Any) -> Any:
@@ -192,10 +197,8 @@ def _double_pendulum_obs(s, obs_ref):
 
 def inverted_double_pendulum(**make: Any) -> Task:
     """InvertedDoublePendulum-v5: its reward terms minus the alive bonus, its termination, and
-    a model state of joint angles and velocities (6 numbers, not the 9 of the observation: on
-    the same 1,746 transitions the held-out one-step error fell from 0.16 to 0.13 of the step
-    and the learned-model MPC held the poles 1.3-8x longer per episode,
-    ``docs/results/idp_state_and_horizon.json``)."""
+    a model state of joint angles and velocities (6 numbers, not the observation's 9: why in
+    docs/troubleshooting.md, ``docs/results/idp_state_and_horizon.json``)."""
     return Task("inverted-double-pendulum", "InvertedDoublePendulum-v5", make,
                 _double_pendulum_cost, termination_fn=_double_pendulum_terminated,
                 state_fn=_double_pendulum_state, obs_fn=_double_pendulum_obs)
@@ -326,8 +329,7 @@ def env_spec(env: gym.Env, episode_steps: int | None = None) -> EnvSpec:
     if np.any(u_max <= u_min):
         raise ValueError(f"env.action_space needs high > low, got low={u_min}, high={u_max}")
     if episode_steps is None:
-        spec = getattr(env, "spec", None)
-        episode_steps = getattr(spec, "max_episode_steps", None) if spec is not None else None
+        episode_steps = getattr(getattr(env, "spec", None), "max_episode_steps", None)
         if episode_steps is None:  # envs that truncate themselves (mbtsr/TwoLinkArm-v0)
             episode_steps = getattr(env.unwrapped, "episode_steps", None)
         if episode_steps is None:
@@ -486,9 +488,8 @@ class ObservationCost:
                 f"got {o_of_s.shape}"
             )
         c_state = ca.substitute(c_obs, o, o_of_s)
-        # p: the reference observation, which supplies what the model does not predict
-        p = o
-        self.stage = ca.Function("cost_state", [s, a, p], [c_state])
+        # o: the reference observation, which supplies what the model does not predict
+        self.stage = ca.Function("cost_state", [s, a, o], [c_state])
         # terminal cost: the user's terminal_cost_fn(obs), else the stage cost at zero action
         self.terminal_cost_fn = terminal_cost_fn
         if terminal_cost_fn is None:
@@ -504,7 +505,7 @@ class ObservationCost:
                 raise ValueError(
                     f"terminal_cost_fn must return a scalar, got shape {c_term_obs.shape}")
             c_term = ca.substitute(c_term_obs, o, o_of_s)
-        self.terminal = ca.Function("cost_state_terminal", [s, p], [c_term])
+        self.terminal = ca.Function("cost_state_terminal", [s, o], [c_term])
 
     def on_observations(self, obs: np.ndarray, actions: np.ndarray) -> np.ndarray:
         """Per-step cost of a recorded episode: ``obs: [T, obs_dim]``, ``actions: [T, m]``
