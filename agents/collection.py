@@ -80,10 +80,8 @@ class Collector:
         :param episode: the agent's episode index (the trajectory's ``meta``).
         :param reset_seed: the env's reset seed; ``signal_seed``: the excitation's or noise's.
         :param render: keep rendered frames in the record.
-        :param stop: ``stop(obs) -> bool`` of :func:`mbtsr.episode.run_episode` (the agent's
-            per-step callbacks), or ``None``.
-        :return: ``(record, trajectory)``: the env's record and the model-state trajectory
-            (``x [T+1, n]``, ``u [T, m]``).
+        :param stop: ``stop(obs) -> bool`` of :func:`mbtsr.episode.run_episode`, or ``None``.
+        :return: ``(record, trajectory)``: the model-state trajectory ``x [T+1, n]``, ``u [T, m]``.
         """
         spec = self.spec
         start, done_steps, elapsed = self._handover or (None, 0, None)

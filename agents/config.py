@@ -309,8 +309,7 @@ class AgentConfig(_Section):
     @classmethod
     def from_dict(cls, d: Mapping[str, Any], /, base: AgentConfig | None = None) -> AgentConfig:
         """The CHANGES a partial (nested or dotted) dict gives to ``base`` (default: the
-        defaults), as :meth:`replace`, values coerced where unambiguous (:func:`_coerce`: YAML 1.1
-        reads ``1e-3`` as a string)."""
+        defaults), as :meth:`replace`, values coerced where unambiguous (:func:`_coerce`)."""
         if not isinstance(d, Mapping):
             raise ValueError(f"AgentConfig.from_dict needs a dict of AgentConfig fields, got "
                              f"{type(d).__name__} {d!r}")
@@ -356,9 +355,8 @@ def _leaves(obj: Any, prefix: str = "") -> Iterator[tuple[str, Any, Any]]:
 
 @functools.cache
 def _defaults() -> tuple[dict[str, Any], dict[str, Any], tuple[str, ...]]:
-    """``AgentConfig()``'s dotted leaves (from the field defaults: its validation uses them),
-    every section's leaves at its class's defaults (``RegularizationConfig()``'s ``ltv_lambda``
-    is 31.6, the agent's None) and every dotted path, sections included."""
+    """``AgentConfig()``'s dotted leaves (from the field defaults), every section's leaves at its
+    class's defaults and every dotted path, sections included."""
     agent: dict[str, Any] = {}
     for f in dataclasses.fields(AgentConfig):
         value = f.default if f.default_factory is dataclasses.MISSING else f.default_factory()
@@ -385,10 +383,8 @@ def _describe(hint: Any) -> str:
 
 
 def _coerce(value: Any, hint: Any, name: str, strict: bool = False) -> Any:
-    """``value`` as the type ``hint`` of field ``name``; numpy scalars and paths become Python's.
-    Unless ``strict`` (:meth:`AgentConfig.from_dict`), coerced where unambiguous: a string where
-    no string fits is read as a number, ``true``/``false`` or ``none``/``null`` (any case), a list
-    is a tuple, one name a tuple of one, an integral number an int.
+    """``value`` as the type ``hint`` of field ``name``, unless ``strict`` coerced where
+    unambiguous (docs/agent.md, "Config files": Types).
     :raises ValueError: ``"<name> must be <type>, got <value>"``."""
     union = typing.get_origin(hint) in (typing.Union, types.UnionType)
     given, options = value, typing.get_args(hint) if union else (hint,)

@@ -397,12 +397,9 @@ class Evaluator:
                                       stop_above=stop_above, **kwargs)
         complete = len(costs) == ev.episodes
         returns = [float(-c) for c in costs]
-        out: dict[str, Any] = {
-            "eval_cost": float(np.mean(costs)) if complete else None,
-            "eval_return": float(np.mean(returns)) if complete else None,
-            "eval_returns": returns, "oracle_cost": None, "cost_ratio": None,
-            "eval_episodes_run": len(costs), "solved": False,
-        }
+        out = {**NOT_EVALUATED, "eval_returns": returns, "eval_episodes_run": len(costs)}
+        if complete:
+            out.update(eval_cost=float(np.mean(costs)), eval_return=float(np.mean(returns)))
         if ev.solved_return is not None:
             out["solved"] = bool(complete and out["eval_return"] >= ev.solved_return)
             return out

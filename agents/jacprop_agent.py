@@ -131,8 +131,7 @@ class JacPropAgent(SB3Predictor):
         *,
         episodes: int | None = None,
     ) -> JacPropAgent:
-        """Run Algorithm 1 (rollout, LTV fit, perturbed data, regularised warm-started model
-        update, planning) for a budget of env steps (as SB3) or of episodes, logging and
+        """Run Algorithm 1 for a budget of env steps (as SB3) or of episodes, logging and
         checkpointing after every episode.
 
         :param total_timesteps: env steps to run now (a loaded agent continues its count); the
@@ -140,8 +139,7 @@ class JacPropAgent(SB3Predictor):
         :param callback: SB3 callbacks and/or functions of ``{"agent", "row"}`` called after
             every episode (:mod:`agents.callbacks`).
         :param progress_bar: show a tqdm progress bar (``None``: ``config.progress``).
-        :param episodes: a budget of episodes instead (with ``total_timesteps`` too, whichever
-            is reached first stops).
+        :param episodes: a budget of episodes (with ``total_timesteps``: the first reached).
         :return: ``self``.
         """
         check_budget(total_timesteps, episodes, self.env)

@@ -24,7 +24,7 @@ from mbtsr.cem_ilqr import CEMILQROptions, cem_ilqr
 from mbtsr.costs import CasadiCost
 from mbtsr.ilqr import ILQROptions, ilqr
 from mbtsr.mpc import MPC, MPCOptions
-from mbtsr.validation import as_array, check_callable
+from mbtsr.validation import as_array, check_callable, check_int
 
 __all__ = ["MPCPolicy", "ReplanEvery", "ReplanState", "SB3Predictor", "TrueStatePolicy",
            "make_policy", "planner_cost", "solver"]
@@ -337,8 +337,7 @@ class ReplanEvery(SB3Predictor):
         if np.shape(state.plan) != (H, m) or not np.all(np.isfinite(state.plan)):
             raise ValueError(f"state.plan must be a finite [H={H}, m={m}] plan, got shape "
                              f"{list(np.shape(state.plan))}")
-        if isinstance(state.age, bool) or not isinstance(state.age, int) or state.age < 1:
-            raise ValueError(f"state.age must be an integer >= 1, got {state.age!r}")
+        check_int("state.age", state.age, 1)
 
     def _reference(self) -> tuple[np.ndarray | None, np.ndarray | None]:
         """``(states [H, n], gains [H, m, n])`` of the last solve for the steps after the first

@@ -75,11 +75,10 @@ def resolve_task(
     if cost_fn is not None:
         return ResolvedTask(cost_fn, StateMap(state_fn, obs_fn), **own)
     if saved_task.get("cost") is not None:
-        cost = QuadraticTargetCost.from_dict(saved_task["cost"])
-        if state_fn is None and saved_task.get("state_map") is not None:
-            return ResolvedTask(cost, StateMap.from_dict(saved_task["state_map"]), **own,
-                                source="saved")
-        return ResolvedTask(cost, StateMap(state_fn, obs_fn), **own, source="saved")
+        saved = state_fn is None and saved_task.get("state_map") is not None
+        return ResolvedTask(QuadraticTargetCost.from_dict(saved_task["cost"]),
+                            StateMap.from_dict(saved_task["state_map"]) if saved
+                            else StateMap(state_fn, obs_fn), **own, source="saved")
     env_id = getattr(getattr(env, "spec", None), "id", None)
     task = (TASKS[saved_task["registry"]]() if saved_task.get("registry") in TASKS
             else registry_task(env_id))
@@ -219,8 +218,7 @@ def build_agent(agent: Any, env: gym.Env | None, config: Any, spec: EnvSpec,
     :param env: the env (``None``: an act-only loaded agent).
     :param config: its :class:`agents.config.AgentConfig`.
     :param spec: the env's :class:`agents.tasks.EnvSpec`.
-    :param fns: the task functions by name (``cost_fn``, ``state_fn``, ``obs_fn``,
-        ``terminal_cost_fn``, ``termination_fn``; ``None`` where not given).
+    :param fns: the task functions by name (``None`` where not given).
     :param saved_task: a checkpoint's serialised task, or ``None``.
     """
     # the parts import this module (planning: LearnedTask), so they are imported here

@@ -475,7 +475,13 @@ class ObservationCost:
         o = ca.SX.sym("obs", spec.obs_dim)
         a = ca.SX.sym("a", spec.act_dim)
         s = ca.SX.sym("s", state_dim)
-        c_obs = _call_cost(cost_fn, o, a, spec)
+        c_obs = _scalar(
+            "cost_fn", cost_fn, o, a,
+            failure=f"cost_fn(obs, action) failed on a symbolic observation of dimension "
+            f"{spec.obs_dim} and action of dimension {spec.act_dim} (does the cost match the "
+            "env's spaces? it must be written with casadi operations)")
+        if c_obs.is_constant():
+            raise ValueError("cost_fn does not depend on the observation or the action")
         self.obs_function = ca.Function("cost_obs", [o, a], [c_obs])
         o_of_s = call_user_fn(
             lambda: ca.SX(state_map.observation(s, o)),
@@ -496,14 +502,10 @@ class ObservationCost:
             c_term = ca.substitute(c_state, a, ca.DM.zeros(spec.act_dim))
         else:
             check_callable("terminal_cost_fn", terminal_cost_fn, "obs -> cost")
-            c_term_obs = call_user_fn(
-                lambda: ca.SX(terminal_cost_fn(o)),
+            c_term_obs = _scalar(
+                "terminal_cost_fn", terminal_cost_fn, o,
                 failure=f"terminal_cost_fn(obs) failed on a symbolic observation of dimension "
-                f"{spec.obs_dim} (write it with casadi operations)",
-            )
-            if c_term_obs.shape != (1, 1):
-                raise ValueError(
-                    f"terminal_cost_fn must return a scalar, got shape {c_term_obs.shape}")
+                f"{spec.obs_dim} (write it with casadi operations)")
             c_term = ca.substitute(c_term_obs, o, o_of_s)
         self.terminal = ca.Function("cost_state_terminal", [s, o], [c_term])
 
@@ -516,25 +518,19 @@ class ObservationCost:
         return np.asarray(self.obs_function.map(T)(obs.T, actions.T)).reshape(T)
 
 
-def _call_cost(cost_fn: Callable, o: ca.SX, a: ca.SX, spec: EnvSpec) -> ca.SX:
+def _scalar(name: str, fn: Callable, *symbols: ca.SX, failure: str) -> ca.SX:
+    """``fn(*symbols)``, a user's cost on CasADi symbols, as a scalar expression; an error names
+    ``name`` (``failure``: the message when ``fn`` raises)."""
     from mbtsr.validation import call_user_fn
 
-    c = call_user_fn(
-        cost_fn, o, a,
-        failure=f"cost_fn(obs, action) failed on a symbolic observation of dimension "
-        f"{spec.obs_dim} and action of dimension {spec.act_dim} (does the cost match the env's "
-        f"spaces? it must be written with casadi operations)",
-    )
+    c = call_user_fn(fn, *symbols, failure=failure)
     try:
         c = ca.SX(c)
     except Exception:
-        raise ValueError(
-            f"cost_fn must return a casadi scalar expression, got {type(c).__name__}"
-        ) from None
+        raise ValueError(f"{name} must return a casadi scalar expression, got "
+                         f"{type(c).__name__}") from None
     if c.shape != (1, 1):
-        raise ValueError(f"cost_fn must return a scalar, got shape {c.shape}")
-    if c.is_constant():
-        raise ValueError("cost_fn does not depend on the observation or the action")
+        raise ValueError(f"{name} must return a scalar, got shape {c.shape}")
     return c
 
 
