@@ -15,12 +15,19 @@ from typing import Any
 import numpy as np
 import torch
 
+from agents.config import AgentConfig
+from agents.task_setup import LearnedTask, build_agent
+from agents.task_setup import registry_task as registry_task_on
+from agents.tasks import FUNCTION_NAMES, EnvSpec, QuadraticTargetCost, env_spec, make_task
+from mbtsr.ensemble import save_model
 from mbtsr.fileformat import (
     CheckpointError,
     torch_load_verified,
     torch_save_verified,
 )
 from mbtsr.io import atomic_write_text, remove_stale_temp_files
+from mbtsr.reward import RewardModel
+from mbtsr.trajectory import Trajectory, save_trajectories
 
 __all__ = [
     "CheckpointError",
@@ -91,9 +98,6 @@ def agent_payload(agent: Any) -> dict[str, Any]:
     """Everything a :class:`agents.jacprop_agent.JacPropAgent` needs to continue learning
     bit-identically or to act (a dict for :func:`save_checkpoint`; docs/agent.md,
     "Checkpoints and exact resume")."""
-    from agents.task_setup import LearnedTask
-    from agents.tasks import QuadraticTargetCost
-
     learned = isinstance(agent.task_cost, LearnedTask)
     task: dict[str, Any] = {"cost": None, "state_map": None, "learned": learned}
     if isinstance(agent.cost_fn, QuadraticTargetCost):
@@ -133,9 +137,6 @@ def agent_payload(agent: Any) -> dict[str, Any]:
 def restore_agent(agent: Any, p: dict[str, Any]) -> None:
     """Load :func:`agent_payload`'s fields (as :func:`load_checkpoint` returns them) into a
     freshly constructed agent of the same config and task, the RNGs included."""
-    from mbtsr.reward import RewardModel
-    from mbtsr.trajectory import Trajectory
-
     agent.model.load_state_dict(p["model_state"])
     if p.get("reward_model") is not None:
         agent.task_cost.model = RewardModel.from_state_dict(p["reward_model"])
@@ -162,8 +163,6 @@ def restore_agent(agent: Any, p: dict[str, Any]) -> None:
 def user_functions(agent: Any) -> dict[str, Any]:
     """The agent's task functions that a checkpoint cannot hold (``None`` for those it does
     not have or that are saved as data: the env's quadratic cost, a prefix state map)."""
-    from agents.tasks import QuadraticTargetCost
-
     custom_map = not agent.state_map.serializable
     return {
         "cost_fn": None if isinstance(agent.cost_fn, QuadraticTargetCost) else agent.cost_fn,
@@ -177,9 +176,7 @@ def user_functions(agent: Any) -> dict[str, Any]:
 def registry_task(env_id: str | None, fns: dict[str, Any]) -> str | None:
     """The name of the :data:`agents.tasks.TASKS` task on ``env_id`` whose functions are
     exactly ``fns`` (the same objects; ``None`` where the task has none), else ``None``."""
-    from agents.task_setup import registry_task as task_on
-
-    task = task_on(env_id)
+    task = registry_task_on(env_id)
     same = task is not None and all(fns[k] is f for k, f in task.agent_kwargs().items())
     return task.name if same else None
 
@@ -194,14 +191,11 @@ def check_resumable(
     :param config: the checkpoint's :class:`agents.config.AgentConfig` (episode length).
     :param env: the env to continue in, or ``None`` (act only).
     :param fns: the task functions given to ``load`` by name (:data:`agents.tasks.FUNCTION_NAMES`).
-    :return: ``(spec, task, fns)``: the saved :class:`agents.tasks.EnvSpec`, serialised task
-        and the functions to build the agent with.
-    :raises ValueError: the env's dimensions or bounds differ, or a function the agent was
-        built with is neither given nor in the registry (naming it).
+    :return: ``(spec, task, fns)``: the saved :class:`agents.tasks.EnvSpec` and task, the
+        functions to build the agent with.
+    :raises ValueError: the env's sizes or bounds differ, or a function is missing (named).
     :raises CheckpointError: the env's fingerprint differs (naming the field).
     """
-    from agents.tasks import FUNCTION_NAMES, EnvSpec, env_spec, make_task
-
     spec = EnvSpec.from_dict(json.loads(payload["env_spec"]))
     if env is not None:
         got = env_spec(env, config.collection.episode_steps)
@@ -236,9 +230,6 @@ def check_resumable(
 def write_run(agent: Any, run_dir: str | os.PathLike) -> None:
     """The run folder after an episode: ``checkpoint.pt`` (the source of truth) and its
     conveniences ``model.pt``, ``data.npz`` and ``summary.json`` (each written atomically)."""
-    from mbtsr.ensemble import save_model
-    from mbtsr.trajectory import save_trajectories
-
     run_dir = Path(run_dir)
     run_dir.mkdir(parents=True, exist_ok=True)
     agent.save(run_dir / "checkpoint.pt")
@@ -323,9 +314,6 @@ def load_agent(cls: type, path: str | os.PathLike, env: Any, fns: dict[str, Any]
     :raises ValueError: as :func:`check_resumable`, or ``state_fn`` gives a model state of
         another dimension than the saved model's.
     """
-    from agents.config import AgentConfig
-    from agents.task_setup import build_agent
-
     path = Path(path)
     if path.is_dir():
         path = path / "checkpoint.pt"

@@ -139,9 +139,7 @@ def sb3_scalars(rows: Sequence[dict[str, Any]], window: int = 100) -> dict[str, 
 
 def summarize(rows: Sequence[dict[str, Any]], config: Any, *, env_id: str | None,
               episodes_done: int, env_steps: int, oracle_cost: float | None) -> dict[str, Any]:
-    """Benchmark numbers of a run from its rows: episodes/env steps to the first solved
-    evaluation, the last and best cost ratio to the oracle and return, the evaluation curve,
-    wall seconds per phase.
+    """Benchmark numbers of a run from its rows (docs/agent.md, the ``summary()`` row).
 
     :param config: the run's :class:`agents.config.AgentConfig` (its ``evaluation`` criteria).
     :param oracle_cost: the oracle's mean evaluation cost (``None``: no oracle).

@@ -18,9 +18,18 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 
+import mbtsr
+from agents.checkpoint import atomic_write_text, env_fingerprint
 from agents.config import AgentConfig, PlannerConfig
 from agents.planning import ReplanEvery, make_policy
-from agents.tasks import ObservationCost, QuadraticTargetCost, gym_make
+from agents.tasks import (
+    ObservationCost,
+    QuadraticTargetCost,
+    StateMap,
+    default_task_for_env,
+    env_spec,
+    gym_make,
+)
 from mbtsr.episode import EpisodeRecord, as_policy, run_episode
 from mbtsr.ilqr import ILQROptions
 from mbtsr.validation import check_int
@@ -181,8 +190,6 @@ def oracle_policy(
         ``termination_fn``: the task's (default: the env's own quadratic cost).
     :raises ValueError: an env with no true model, or no cost given and no ``cost_Q``/``cost_R``.
     """
-    from agents.tasks import StateMap, default_task_for_env, env_spec
-
     planner = PlannerConfig() if planner is None else planner
     if not isinstance(planner, PlannerConfig):
         raise TypeError(f"planner must be an agents.config.PlannerConfig, got "
@@ -240,8 +247,6 @@ def cached_costs(
     ``key``: a JSON-serialisable dict of what the costs depend on; ``cache_dir=None``: off)."""
     if cache_dir is None:
         return np.asarray(compute(), dtype=float)
-    from agents.checkpoint import atomic_write_text
-
     text = json.dumps(key, sort_keys=True, default=_json_default)
     path = Path(cache_dir) / f"oracle_{hashlib.sha256(text.encode()).hexdigest()[:16]}.json"
     if path.is_file():
@@ -281,9 +286,6 @@ def oracle_cache_key(
     and fingerprint, the task (``task``: the cost's and state map's ``to_dict()``), targets,
     seed, episode count and length, ``planner`` settings, iLQR's ``optimizer_options`` (default
     ``ILQROptions()``) and ``mbtsr.__version__`` (a release invalidates every entry)."""
-    import mbtsr
-    from agents.checkpoint import env_fingerprint
-
     options = ILQROptions() if optimizer_options is None else optimizer_options
     return {
         "mbtsr": mbtsr.__version__,
@@ -337,10 +339,8 @@ class Evaluator:
         self._env: gym.Env | None = None
 
     def due(self, episode: int, env_steps: int, *, steps: int = 0, last: bool = False) -> bool:
-        """Whether to evaluate after ``episode``: every ``evaluation.every``-th episode from the
-        last excitation episode on, every episode that crossed a multiple of
-        ``evaluation.every_steps`` env steps (its ``steps`` steps ended at ``env_steps``), and
-        with ``last`` (the final score of a ``learn`` call)."""
+        """Whether to evaluate after ``episode`` (its ``steps`` steps ended at ``env_steps``;
+        ``last``: the final score of a ``learn`` call); docs/agent.md, "Evaluation"."""
         ev, first = self.config.evaluation, self.config.collection.n_excitation_episodes - 1
         if (ev.every == 0 and ev.every_steps == 0) or episode < first:
             return False

@@ -57,14 +57,12 @@ class JacobianLabeler:
 
     def add(self, traj: Trajectory, model: Any, earlier: list[Trajectory],
             episode: int) -> tuple[float, str]:
-        """Label the new trajectory ``traj`` (when the regularization needs LTV labels) and
-        keep its fit and smoothness weight.
+        """Label the new trajectory ``traj`` (when the regularization needs LTV labels).
 
         :param model: the ensemble before its update (the prior and a fallback's Jacobians).
         :param earlier: the trajectories before ``traj`` (a fallback's pooled fit).
         :param episode: for the warning.
-        :return: ``(lam, note)``: the smoothness weight (NaN without a fit) and the fallbacks
-            taken ("" when none).
+        :return: ``(lam, note)``: the smoothness weight (NaN: no fit) and the fallbacks taken.
         """
         lam, note = math.nan, ""
         if self.regularization.needs_ltv:

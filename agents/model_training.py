@@ -11,6 +11,7 @@ import numpy as np
 
 from mbtsr.ensemble import DynamicsEnsemble
 from mbtsr.ltv import LTVModel
+from mbtsr.metrics import jacobian_error, prediction_rms
 from mbtsr.training import RegularizationConfig, TrainConfig, TrainHistory, train_ensemble
 from mbtsr.trajectory import Trajectory
 
@@ -64,8 +65,6 @@ def model_errors(model: DynamicsEnsemble, traj: Trajectory,
         ``linearize(x, u)``, or ``None``.
     :return: ``(one_step_rms, jacobian_error)``.
     """
-    from mbtsr.metrics import jacobian_error, prediction_rms
-
     if not model.is_normalized:
         return math.nan, math.nan
     one_step = float(prediction_rms(model, traj))

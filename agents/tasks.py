@@ -352,8 +352,7 @@ class StateMap:
     :param obs_fn: ``(state [n], obs_ref [obs_dim]) -> obs [obs_dim]`` (CasADi-compatible).
         ``None``: identity (requires ``state_fn is None``).
     :param prefix: serialisable shortcut: the state is ``obs[:prefix]`` and
-        ``obs_fn(s, ref) = [s; ref[prefix:]]`` (used for the two-link arm, whose observation is
-        ``[x (4), target (2)]``).
+        ``obs_fn(s, ref) = [s; ref[prefix:]]`` (the two-link arm's).
     """
 
     def __init__(
