@@ -40,8 +40,7 @@ class Collector:
         self._handover = None
 
     def excitation(self, T: int, seed: int) -> np.ndarray:
-        """``[T, m]`` excitation in env units: a unit-std signal (by its stationary std)
-        scaled to ``excitation_scale`` x the half-range around the middle of the action box."""
+        """``[T, m]`` excitation: a unit-std signal x ``excitation_scale`` x the half-range."""
         col, spec = self.config, self.spec
         if col.excitation == "filtered_gaussian":
             sig = excitation.unit_filtered_gaussian(T, spec.act_dim, window=col.excitation_window,
@@ -53,9 +52,8 @@ class Collector:
         return np.clip(mid + half * col.excitation_scale * sig, spec.u_min, spec.u_max)
 
     def exploration_noise(self, T: int, seed: int) -> np.ndarray:
-        """``[T, m]`` noise added to the planned actions of a training rollout: Gaussian with
-        std ``exploration_std`` x the half-range, white or a moving average of
-        ``exploration_window`` steps (by its stationary std)."""
+        """``[T, m]`` noise on a training rollout's planned actions: Gaussian, std
+        ``exploration_std`` x the half-range, a moving average of ``exploration_window`` steps."""
         col, spec = self.config, self.spec
         half = 0.5 * (spec.u_max - spec.u_min)
         unit = excitation.unit_filtered_gaussian(T, spec.act_dim, window=col.exploration_window,

@@ -219,9 +219,9 @@ def make_progress_bar(episodes: int | None, steps: int | None, show: bool) -> An
         return None
     from tqdm.auto import tqdm
 
-    if episodes is not None:
-        return tqdm(total=episodes, desc="JacProp agent", unit="episode")
-    return tqdm(total=steps, desc="JacProp agent", unit="step")
+    by_episode = episodes is not None
+    return tqdm(total=episodes if by_episode else steps, desc="JacProp agent",
+                unit="episode" if by_episode else "step")
 
 
 def end_episode(agent: Any, row: dict[str, Any], log: EpisodeLog | None, *, last: bool,

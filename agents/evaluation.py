@@ -75,8 +75,7 @@ def evaluation_targets(
 
     :param n: number of targets (>= 1).
     :param seed: base seed (>= 0).
-    :param env_id: a registered id (or an instance) of an env that reports ``info["target"]``
-        (``None``: the home arm, ``envs.ARM_ID``).
+    :param env_id: an env id or instance that reports ``info["target"]`` (``None``: the arm).
     """
     if env_id is None:
         from envs import ARM_ID  # here, not at import: importing envs sets MUJOCO_GL
@@ -110,11 +109,9 @@ def evaluate_policy_costs(
 ) -> np.ndarray:
     """Per-episode costs ``-sum(rewards)`` of ``policy``.
 
-    :param policy: an object with SB3's ``predict(obs, state, episode_start, deterministic)``
-        (our agent, an SB3 model, :class:`MPCPolicy`) or a callable ``obs -> action``.
+    :param policy: an object with SB3's ``predict`` or a callable ``obs -> action``.
     :param env: an env or an env id.
-    :param targets: one target per episode, passed as ``options={"target": ...}``; ``None``
-        for envs without targets (then give ``n_episodes``).
+    :param targets: one target per episode (``None``: no targets; then give ``n_episodes``).
     :param seed: episode ``i`` resets with ``seed + i``.
     :param max_steps: cap on the steps per episode (default: the env's own limit).
     :param stop_above: stop early once the summed cost exceeds this (an exact early exit of a
@@ -160,8 +157,7 @@ def _is_mujoco_env(env: gym.Env) -> bool:
 
 
 def has_true_model(env: gym.Env) -> bool:
-    """Whether :func:`oracle_policy` can build the true model of ``env``: it has
-    ``dynamics_model()`` (the project's arm) or is a Gymnasium ``MujocoEnv``."""
+    """Whether :func:`oracle_policy` can build ``env``'s true model (arm or MuJoCo)."""
     return hasattr(env.unwrapped, "dynamics_model") or _is_mujoco_env(env)
 
 
@@ -323,11 +319,9 @@ class Evaluator:
     against the oracle (:func:`oracle_policy`), whose costs are computed once and kept.
 
     :param env: the training env (the evaluation env is ``gym.make(env.spec)``).
-    :param config: the agent's config (its ``evaluation``, ``planner``, ``seed`` and
-        ``collection.n_excitation_episodes`` are used).
+    :param config: the agent's config.
     :param episode_steps: the episode length.
-    :param task: the task's functions for the oracle: ``cost_fn``, ``state_map``,
-        ``terminal_cost_fn``, ``termination_fn``.
+    :param task: the oracle's ``cost_fn``, ``state_map``, ``terminal_cost_fn``, ``termination_fn``.
     """
 
     def __init__(self, env: gym.Env | None, config: AgentConfig, episode_steps: int,

@@ -52,10 +52,8 @@ class JacPropAgent(SB3Predictor):
         operations. ``None``: the registry's task for the env's id, else the env's own cost,
         else a learned reward; ``"learned"``: a learned reward (docs/agent.md, "The cost").
     :param state_fn: ``obs -> model state`` (numpy); with ``obs_fn``.
-    :param obs_fn: ``(state, obs_ref) -> obs`` (CasADi-compatible), the inverse map used to
-        evaluate ``cost_fn`` on predicted states.
-    :param terminal_cost_fn: ``obs -> scalar`` (CasADi), the cost of a plan's last predicted
-        observation (x ``config.planner.terminal_weight``; default: the stage cost at zero action).
+    :param obs_fn: ``(state, obs_ref) -> obs`` (CasADi-compatible), the inverse map for the cost.
+    :param terminal_cost_fn: ``obs -> scalar`` (CasADi) of a plan's last predicted observation.
     :param termination_fn: ``obs [..., obs_dim] -> bool [...]`` (numpy): where the env would
         terminate; the planner adds no cost after a predicted termination.
     :raises ValueError: at construction for non-Box spaces, an unbounded action space, a cost
@@ -242,8 +240,7 @@ class JacPropAgent(SB3Predictor):
         """Restore an agent saved by :meth:`save` (or a run's ``checkpoint.pt``).
 
         :param path: the file (or a run folder holding ``checkpoint.pt``).
-        :param env: the env to continue learning in (``None``: act only, via :meth:`predict`).
-            Its spaces must match the saved ones.
+        :param env: the env to continue learning in, of the same spaces (``None``: act only).
         :param cost_fn: / ``state_fn``, ``obs_fn``, ``terminal_cost_fn``, ``termination_fn``:
             the task's functions, which a checkpoint cannot hold (not needed for a registry task
             or the env's built-in cost; a missing one is named in a ``ValueError``).

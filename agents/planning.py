@@ -51,8 +51,7 @@ def solver(
     planner: PlannerConfig, seed: int = 0, *, explore_weight: float = 0.0,
     explore_on: str = "state", particles: int | None = None,
 ) -> tuple[Callable[..., Any], Any, int]:
-    """``(optimizer, options, iterations per MPC step)`` of :class:`mbtsr.mpc.MPC` for
-    ``planner.kind``, built from the config's plain fields.
+    """``(optimizer, options, iterations per MPC step)`` of :class:`mbtsr.mpc.MPC` for ``planner``.
 
     :param seed: seeds CEM's samples (the agent's and the oracle's ``config.seed``).
     :param explore_weight: CEM's disagreement bonus (training rollouts; refused for iLQR).

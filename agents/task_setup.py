@@ -124,14 +124,13 @@ class LearnedTask:
         return self.model.freeze()
 
     def planner_cost(self, terminal_weight: float) -> LearnedRewardCost:
-        """The planner's cost (the observation is its ignored parameter, as for a written
-        cost)."""
+        """The planner's cost (the observation is its ignored parameter)."""
         return LearnedRewardCost(self.frozen(), terminal_weight=terminal_weight,
                                  param_dim=self.spec.obs_dim)
 
     def fit(self, trajectories: list[Trajectory]) -> RewardFit | None:
-        """Fit (warm start) on every transition ``(s_t, a_t) -> r_t`` of ``trajectories``
-        (rewards in ``meta["rewards"]``); ``None`` while they hold too few for the hold-out."""
+        """Fit (warm start) on every ``(s_t, a_t) -> r_t`` of ``trajectories``; ``None`` while
+        they hold too few for the hold-out."""
         S = np.concatenate([t.x[:-1] for t in trajectories])
         A = np.concatenate([t.u for t in trajectories])
         r = np.concatenate([np.asarray(t.meta["rewards"], dtype=float) for t in trajectories])
@@ -141,8 +140,7 @@ class LearnedTask:
         return self.model.fit(S, A, r)
 
     def on_observations(self, obs: np.ndarray, actions: np.ndarray) -> np.ndarray:
-        """Per-step learned cost ``-r_hat`` of a recorded episode: ``obs [T, obs_dim]``,
-        ``actions [T, m]`` -> ``[T]``."""
+        """Per-step learned cost ``-r_hat`` of an episode (``obs [T, obs_dim]``, ``actions``)."""
         return -self.frozen().predict(self.state_map.state(obs), np.asarray(actions, float))
 
 

@@ -349,8 +349,7 @@ class StateMap:
     """Observation <-> model-state maps.
 
     :param state_fn: ``obs [..., obs_dim] -> state [..., n]`` (numpy). ``None``: identity.
-    :param obs_fn: ``(state [n], obs_ref [obs_dim]) -> obs [obs_dim]`` (CasADi-compatible).
-        ``None``: identity (requires ``state_fn is None``).
+    :param obs_fn: ``(state [n], obs_ref [obs_dim]) -> obs [obs_dim]`` (CasADi); ``None``: identity.
     :param prefix: serialisable shortcut: the state is ``obs[:prefix]`` and
         ``obs_fn(s, ref) = [s; ref[prefix:]]`` (the two-link arm's).
     """
@@ -410,9 +409,8 @@ class StateMap:
 
 
 class QuadraticTargetCost:
-    """``c(obs, a) = (x - x_goal)^T Q (x - x_goal) + a^T R a`` with ``x = obs[:n]`` and
-    ``x_goal = [obs[target_index], 0, ...]`` (goal positions from the observation, zero
-    velocities) -- the two-link arm's cost (``reward = -c``). Serialisable.
+    """``c(obs, a) = (x - x_goal)^T Q (x - x_goal) + a^T R a``, ``x = obs[:n]``, ``x_goal =
+    [obs[target_index], 0, ...]``: the two-link arm's cost (``reward = -c``). Serialisable.
 
     :param Q: ``[n, n]`` state weight. :param R: ``[m, m]`` action weight.
     :param target_index: observation indices holding the goal of the first ``len`` states.
@@ -448,10 +446,8 @@ class QuadraticTargetCost:
 
 
 class ObservationCost:
-    """The stage cost ``cost_fn(obs, a)`` compiled to CasADi and composed with the state map.
-
-    Built once; ``stage`` is a ``casadi.Function`` ``(state [n], a [m], obs_ref [obs_dim]) ->
-    cost`` used by the planner, ``on_observations`` evaluates the cost of a real episode.
+    """The stage cost ``cost_fn(obs, a)`` compiled once to CasADi and composed with the state
+    map: ``stage(state [n], a [m], obs_ref [obs_dim])`` for the planner, ``terminal``.
 
     :raises ValueError: if ``cost_fn`` or the map fail for these dimensions or the cost is not
         a scalar.
@@ -509,8 +505,7 @@ class ObservationCost:
         self.terminal = ca.Function("cost_state_terminal", [s, o], [c_term])
 
     def on_observations(self, obs: np.ndarray, actions: np.ndarray) -> np.ndarray:
-        """Per-step cost of a recorded episode: ``obs: [T, obs_dim]``, ``actions: [T, m]``
-        -> ``[T]``."""
+        """Per-step cost ``[T]`` of an episode: ``obs [T, obs_dim]``, ``actions [T, m]``."""
         obs = np.asarray(obs, dtype=float)
         actions = np.asarray(actions, dtype=float)
         T = actions.shape[0]
