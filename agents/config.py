@@ -171,7 +171,8 @@ class EvaluationConfig(_Section):
         env steps (0: off; SB3's ``eval_freq``).
     :param episodes: evaluation episodes.
     :param seed: seed of the evaluation episodes' targets and resets.
-    :param early_exit: stop an evaluation once its cost exceeds ``solved_ratio`` x the oracle's.
+    :param early_exit: stop an evaluation during learning once its cost exceeds ``solved_ratio``
+        x the oracle's (the final evaluation of a ``learn`` call always runs every episode).
     :param solved_ratio: the solved threshold relative to the oracle.
     :param solved_return: the solved threshold on the mean return (``None``: the oracle's ratio).
     :param stop_when_solved: stop ``learn`` at the first solved evaluation.
@@ -209,7 +210,7 @@ class AgentConfig(_Section):
     :param model: the ensemble (``hidden_width``/``hidden_layers`` ``None``: sized by the task).
     :param training: one model update, warm-started on ALL data so far.
     :param regularization: the tangent-space regularizer, on by its weight (a name: ``sampled``,
-        ``exact``, ``smooth``, ``none``).
+        ``exact``, ``smooth``, ``none``: the plain baseline; docs/benchmark.md compares them).
     :param planner: the MPC planner on the learned model.
     :param evaluation: evaluation episodes and the "solved" criterion.
     :param reward: the reward model learned when the task has no written cost.
@@ -245,7 +246,7 @@ class AgentConfig(_Section):
         steps=4000, lr=1e-3, batch=256, holdout=0.1, eval_every=50, patience=20,
         early_stopping="member", member_data="order", progress=False))
     regularization: RegularizationConfig = field(default_factory=lambda: _NAMED[
-        "regularization"]("sampled"))
+        "regularization"]("none"))
     planner: PlannerConfig = field(default_factory=PlannerConfig)
     evaluation: EvaluationConfig = field(default_factory=EvaluationConfig)
     reward: RewardConfig = field(default_factory=RewardConfig)

@@ -232,7 +232,7 @@ def end_episode(agent: Any, row: dict[str, Any], log: EpisodeLog | None, *, last
 
     :param fps_since: ``(env_steps, perf_counter time)`` at the start of ``learn``.
     """
-    if last and row["eval_returns"] is None and agent.evaluator.due(
+    if last and row["eval_return"] is None and agent.evaluator.due(  # none, or cut short
             agent.episodes_done, agent.env_steps, last=True):
         agent.evaluator.add_final_score(row, agent)
     agent.logger_rows.append(row)

@@ -373,8 +373,10 @@ class Evaluator:
             kwargs["n_episodes"] = self.config.evaluation.episodes
         return self.eval_env(), kwargs
 
-    def evaluate(self, policy: Any) -> dict[str, Any]:
+    def evaluate(self, policy: Any, *, complete: bool = False) -> dict[str, Any]:
         """Score ``policy`` (SB3-style ``predict``) on the evaluation episodes.
+
+        :param complete: run every episode (no early exit), as the final score of ``learn``.
 
         :return: the log fields ``eval_cost`` (mean cost, ``None`` if stopped early),
             ``eval_return`` (mean return) and ``eval_returns`` (per episode), ``oracle_cost``,
@@ -385,7 +387,7 @@ class Evaluator:
         env, kwargs = self.setup()
         oracle = None if ev.solved_return is not None else self.oracle()
         stop_above = None
-        if oracle is not None and ev.early_exit and np.all(oracle >= 0):
+        if oracle is not None and ev.early_exit and not complete and np.all(oracle >= 0):
             stop_above = ev.solved_ratio * float(np.sum(oracle))
         costs = evaluate_policy_costs(policy, env, self.eval_targets, ev.seed,
                                       stop_above=stop_above, **kwargs)
@@ -409,7 +411,7 @@ class Evaluator:
         """Evaluate ``policy`` as the final score of a ``learn`` call: its fields and seconds
         (evaluation, oracle) are added to the last episode's log ``row`` (in place)."""
         tic = time.perf_counter()
-        row.update(self.evaluate(policy))
+        row.update(self.evaluate(policy, complete=True))
         dt = time.perf_counter() - tic
         oracle = self.take_oracle_seconds()
         row["time_oracle"] += oracle

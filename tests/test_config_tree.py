@@ -28,11 +28,13 @@ def test_the_sections_are_the_library_configs():
     assert type(cfg.model) is ModelConfig and type(cfg.training) is TrainConfig
     assert type(cfg.regularization) is RegularizationConfig
     assert {name: type(getattr(cfg, name)) for name in SECTIONS} == SECTIONS
-    # the paper's sampled JacProp; a step budget with early stopping; a model sized by the task
+    # the plain baseline (no regularizer); a step budget with early stopping; a model sized by
+    # the task
     assert cfg.training == TrainConfig(steps=4000, lr=1e-3, batch=256, holdout=0.1,
                                        eval_every=50, patience=20, early_stopping="member",
                                        member_data="order", progress=False)
-    assert cfg.regularization == RegularizationConfig(sampled_weight=1.0, ltv_lambda=None)
+    assert cfg.regularization == RegularizationConfig(sampled_weight=0.0, ltv_lambda=None)
+    assert cfg.regularization.kind == "none"
     layers, width = default_size(11, 2)
     assert cfg.model.ensemble_config(11, 2, seed=5) == EnsembleConfig(
         state_dim=11, action_dim=2, seed=5, formulation="g", normalize=True,
@@ -450,8 +452,9 @@ def test_an_unknown_key_names_itself_and_its_closest_valid_field(path, data):
 
 # the cases of issue 22, each with its new behaviour
 def test_a_partial_section_changes_only_what_it_names():
-    assert changed(AgentConfig.from_dict({"regularization": {"sigma": 0.2}})) == {
-        "regularization.sigma": 0.2}  # still sampled, ltv_lambda still automatic
+    assert changed(AgentConfig.from_dict({"regularization": {"sampled_weight": 1.0,
+                                                             "sigma": 0.2}})) == {
+        "regularization.sampled_weight": 1.0, "regularization.sigma": 0.2}  # ltv_lambda: auto
     assert changed(AgentConfig.from_dict({"training": {"steps": 50}})) == {
         "training.steps": 50}  # lr, batch and progress keep the agent's values
 

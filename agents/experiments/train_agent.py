@@ -55,11 +55,13 @@ class Args:
     agent: Annotated[AgentConfig, tyro.conf.arg(name="")] = field(
         default_factory=lambda: AgentConfig(
             model=ModelConfig.paper(), planner=PlannerConfig(kind="ilqr"),
+            regularization="sampled",
             evaluation=EvaluationConfig(oracle_cache_dir="runs/oracle_cache")))
     """the agent (its flags carry no agent. prefix): the paper's setup on the paper's arm, its
-    4 x 1 x 20 ensemble (ModelConfig.paper()) and iLQR on the learned Jacobians; the library's
-    defaults for other tasks (a model sized by the task, planner cem-ilqr) are --model.hidden-
-    width/--model.hidden-layers none and --planner.kind cem-ilqr. --run-dir defaults to
+    4 x 1 x 20 ensemble (ModelConfig.paper()), sampled JacProp and iLQR on the learned
+    Jacobians; the library's defaults for other tasks (a model sized by the task, planner
+    cem-ilqr, regularization none) are --model.hidden-width/--model.hidden-layers none,
+    --planner.kind cem-ilqr and --regularization none. --run-dir defaults to
     runs/train_agent/<env>_<regularization>_<formulation>_seed<seed> (a fresh run that finds a
     finished one there adds _1, _2, ...); --evaluation.oracle-cache-dir none disables the shared
     cache of the (deterministic) oracle costs"""
