@@ -1,16 +1,6 @@
-"""Things that act in an environment.
-
-- :class:`agents.jacprop_agent.JacPropAgent` with :class:`agents.config.AgentConfig`: the
-  paper's Algorithm 1 (Bagge Carlson et al., arXiv:1806.09919) as an episodic model-based agent
-  with a Stable-Baselines3-style ``learn / predict / save / load`` surface;
-- :mod:`agents.evaluation`: the "solved" protocol (fixed random targets, the true-model MPC
-  oracle) shared by the agent and the model-free baselines;
-- :mod:`agents.sb3_baselines`: Stable-Baselines3 baselines on the same task;
-- :mod:`agents.model_env`: the learned, frozen model as a Gymnasium env (MBPO-style);
-- :mod:`agents.experiments`: the benchmarks and the paper's experiments as ``Args`` dataclasses
-  with ``run(args)`` functions, the logic behind the thin ``scripts/*.py``.
-
-``from agents import JacPropAgent, AgentConfig`` works; the heavy imports happen on first use.
+"""Things that act in an environment: the Algorithm-1 agent, its evaluation protocol, the SB3
+baselines, the learned model as an env and the experiments (docs/architecture.md, "Module map").
+``from agents import JacPropAgent, AgentConfig`` imports the heavy parts on first use.
 """
 
 from __future__ import annotations

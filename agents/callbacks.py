@@ -1,16 +1,6 @@
 """Callbacks of :meth:`agents.jacprop_agent.JacPropAgent.learn`: Stable-Baselines3's
-``BaseCallback`` objects (a ``CallbackList`` or a plain list of them too) next to plain functions.
-
-The agent calls an SB3 callback as an SB3 algorithm does: ``init_callback(agent)`` and
-``on_training_start(locals, globals)`` once per ``learn`` call, ``on_rollout_start()`` before and
-``on_rollout_end()`` after every episode's rollout, ``on_step()`` after every env step (``False``
-stops learning: the rollout ends after that step, the agent still labels and trains on the
-partial episode and logs it, then ``learn`` returns), ``on_training_end()`` last. ``locals`` holds
-``self`` (the agent), ``new_obs`` (the observation after the step), ``step`` (the step in the
-episode), ``episode`` (the agent's episode index) and, after an episode, ``row`` (its log row).
-
-A plain function is called after every episode with ``{"agent": agent, "row": row}``; returning
-``False`` stops learning.
+``BaseCallback`` objects, called as an SB3 algorithm does, next to plain functions called after
+every episode with ``{"agent", "row"}`` (``False`` stops learning); docs/agent.md, "Callbacks".
 """
 
 from __future__ import annotations
@@ -35,41 +25,30 @@ class Callbacks:
     def __init__(self, callback: Any) -> None:
         items = [] if callback is None else list(callback) if isinstance(callback, list | tuple) \
             else [callback]
-        self.sb3: list[BaseCallback] = []
-        self.plain: list[Callable[[dict[str, Any]], Any]] = []
         for c in items:
-            if isinstance(c, BaseCallback):
-                self.sb3.append(c)
-            elif callable(c):
-                self.plain.append(c)
-            else:
+            if not isinstance(c, BaseCallback) and not callable(c):
                 raise TypeError("callback must be a stable_baselines3 BaseCallback, a function "
                                 f"of {{'agent', 'row'}}, or a list of them; got {c!r}")
-        self.sb3_list = CallbackList(self.sb3) if self.sb3 else None
-        self.locals: dict[str, Any] = {}
+        self.sb3_list = CallbackList([c for c in items if isinstance(c, BaseCallback)])
+        self.plain = [c for c in items if not isinstance(c, BaseCallback)]
         self.stopped = False  # an SB3 callback's on_step returned False
 
     def start(self, agent: Any, total_timesteps: int | None) -> None:
         """``init_callback`` and ``on_training_start`` of the SB3 callbacks (``locals`` with
         the agent as ``self`` and this call's ``total_timesteps``)."""
-        if self.sb3_list is not None:
-            self.locals = {"self": agent, "total_timesteps": total_timesteps}
-            self.sb3_list.init_callback(agent)
-            self.sb3_list.on_training_start(self.locals, {})
+        self.sb3_list.init_callback(agent)
+        self.sb3_list.on_training_start({"self": agent, "total_timesteps": total_timesteps}, {})
 
     def rollout_start(self, episode: int) -> None:
         """``on_rollout_start`` before episode ``episode``'s rollout."""
-        if self.sb3_list is not None:
-            self.sb3_list.update_locals({"episode": episode})
-            self.sb3_list.on_rollout_start()
+        self.sb3_list.update_locals({"episode": episode})
+        self.sb3_list.on_rollout_start()
 
     def step_hook(self, count: Callable[[], None]) -> Callable[[np.ndarray], bool] | None:
         """``stop(new_obs) -> bool`` for :func:`mbtsr.episode.run_episode` (``None`` without SB3
-        callbacks): called on the first observation (ignored) and after every env step, where
-        it calls ``count()`` (the agent's step counter, read by ``on_step``) and ``on_step``;
-        ``True`` (``on_step`` returned ``False``) ends the rollout and, after the episode,
-        learning (:attr:`stopped`)."""
-        if self.sb3_list is None:
+        callbacks): after every env step ``count()`` (the agent's step counter) and ``on_step``;
+        ``True`` (``on_step`` returned ``False``) ends the rollout and learning."""
+        if not self.sb3_list.callbacks:
             return None
         calls = {"n": 0}
 
@@ -87,9 +66,8 @@ class Callbacks:
     def episode_end(self, agent: Any, row: dict[str, Any]) -> bool:
         """``on_rollout_end`` and the plain functions after an episode; ``False``: stop."""
         go = not self.stopped
-        if self.sb3_list is not None:
-            self.sb3_list.update_locals({"row": row})
-            self.sb3_list.on_rollout_end()
+        self.sb3_list.update_locals({"row": row})
+        self.sb3_list.on_rollout_end()
         for f in self.plain:
             if f({"agent": agent, "row": row}) is False:
                 go = False
@@ -97,5 +75,4 @@ class Callbacks:
 
     def end(self) -> None:
         """``on_training_end``."""
-        if self.sb3_list is not None:
-            self.sb3_list.on_training_end()
+        self.sb3_list.on_training_end()

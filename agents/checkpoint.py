@@ -1,19 +1,6 @@
-"""Crash-safe, checksummed checkpoint files for the agent.
-
-A checkpoint is ONE file written atomically (:func:`mbtsr.io.atomic_write_bytes`): a
-``SIGKILL`` at any moment leaves either the previous complete checkpoint or the new complete one,
-never a torn file; the temporary file of an interrupted write is deleted at the next save or load.
-The file carries a format version and a SHA-256 of its content
-(:func:`mbtsr.fileformat.write_verified`), so a truncated or bit-flipped checkpoint, or one of
-another version, is refused with a :class:`~mbtsr.fileformat.CheckpointError` that names the file
-and says what to do, instead of loading damaged numbers.
-
-Everything is loaded without unpickling arbitrary objects: ``torch.load(weights_only=True)``
-(tensors, numbers, strings, lists, dicts), ``np.load(allow_pickle=False)`` and JSON.
-
-Resuming also checks that the run continues under the same conditions: :func:`env_fingerprint`
-is saved with the checkpoint and :func:`check_same` names the first field that differs (the
-env's ``dt``, a preset, the spaces, a config field).
+"""Crash-safe, checksummed, atomic checkpoint files for the agent, loaded without unpickling
+arbitrary objects, and the checks that a resumed run continues under the same conditions
+(docs/agent.md, "Checkpoints and exact resume").
 """
 
 from __future__ import annotations
@@ -28,12 +15,19 @@ from typing import Any
 import numpy as np
 import torch
 
+from agents.config import AgentConfig
+from agents.task_setup import LearnedTask, build_agent
+from agents.task_setup import registry_task as registry_task_on
+from agents.tasks import FUNCTION_NAMES, EnvSpec, QuadraticTargetCost, env_spec, make_task
+from mbtsr.ensemble import save_model
 from mbtsr.fileformat import (
     CheckpointError,
     torch_load_verified,
     torch_save_verified,
 )
 from mbtsr.io import atomic_write_text, remove_stale_temp_files
+from mbtsr.reward import RewardModel
+from mbtsr.trajectory import Trajectory, save_trajectories
 
 __all__ = [
     "CheckpointError",
@@ -102,12 +96,8 @@ def load_checkpoint(path: str | os.PathLike) -> dict[str, Any]:
 
 def agent_payload(agent: Any) -> dict[str, Any]:
     """Everything a :class:`agents.jacprop_agent.JacPropAgent` needs to continue learning
-    bit-identically or to act: config, env spec and fingerprint, the serialisable task, model
-    weights, Adam state, data, JacProp labels, counters, RNG states, log and the evaluator's
-    targets and oracle costs (a dict for :func:`save_checkpoint`)."""
-    from agents.task_setup import LearnedTask
-    from agents.tasks import QuadraticTargetCost
-
+    bit-identically or to act (a dict for :func:`save_checkpoint`; docs/agent.md,
+    "Checkpoints and exact resume")."""
     learned = isinstance(agent.task_cost, LearnedTask)
     task: dict[str, Any] = {"cost": None, "state_map": None, "learned": learned}
     if isinstance(agent.cost_fn, QuadraticTargetCost):
@@ -146,11 +136,7 @@ def agent_payload(agent: Any) -> dict[str, Any]:
 
 def restore_agent(agent: Any, p: dict[str, Any]) -> None:
     """Load :func:`agent_payload`'s fields (as :func:`load_checkpoint` returns them) into a
-    freshly constructed agent of the same config and task; the RNGs (numpy's and torch's global
-    one) continue where the checkpoint left them."""
-    from mbtsr.reward import RewardModel
-    from mbtsr.trajectory import Trajectory
-
+    freshly constructed agent of the same config and task, the RNGs included."""
     agent.model.load_state_dict(p["model_state"])
     if p.get("reward_model") is not None:
         agent.task_cost.model = RewardModel.from_state_dict(p["reward_model"])
@@ -174,14 +160,9 @@ def restore_agent(agent: Any, p: dict[str, Any]) -> None:
     ev.oracle_costs = None if p["oracle_costs"] is None else p["oracle_costs"].numpy()
 
 
-FUNCTION_NAMES = ("cost_fn", "terminal_cost_fn", "termination_fn", "state_fn", "obs_fn")
-
-
 def user_functions(agent: Any) -> dict[str, Any]:
     """The agent's task functions that a checkpoint cannot hold (``None`` for those it does
     not have or that are saved as data: the env's quadratic cost, a prefix state map)."""
-    from agents.tasks import QuadraticTargetCost
-
     custom_map = not agent.state_map.serializable
     return {
         "cost_fn": None if isinstance(agent.cost_fn, QuadraticTargetCost) else agent.cost_fn,
@@ -195,35 +176,26 @@ def user_functions(agent: Any) -> dict[str, Any]:
 def registry_task(env_id: str | None, fns: dict[str, Any]) -> str | None:
     """The name of the :data:`agents.tasks.TASKS` task on ``env_id`` whose functions are
     exactly ``fns`` (the same objects; ``None`` where the task has none), else ``None``."""
-    from agents.tasks import TASKS
-
-    for name, make in TASKS.items():
-        task = make()
-        kwargs = task.agent_kwargs()
-        if task.env_id == env_id and all(fns[k] is kwargs[k] for k in FUNCTION_NAMES):
-            return name
-    return None
+    task = registry_task_on(env_id)
+    same = task is not None and all(fns[k] is f for k, f in task.agent_kwargs().items())
+    return task.name if same else None
 
 
 def check_resumable(
     payload: dict[str, Any], path: str | os.PathLike, config: Any, env: Any,
     fns: dict[str, Any],
 ) -> tuple[Any, dict[str, Any], dict[str, Any]]:
-    """Check that a loaded checkpoint can be restored with the given env and task functions,
-    completing the functions of a registered task (:data:`agents.tasks.TASKS`) from the
-    registry.
+    """Check that a loaded checkpoint can be restored with ``env`` and the task functions (a
+    registry task's come from :data:`agents.tasks.TASKS`).
 
     :param config: the checkpoint's :class:`agents.config.AgentConfig` (episode length).
     :param env: the env to continue in, or ``None`` (act only).
-    :param fns: the task functions given to ``load`` by name (:data:`FUNCTION_NAMES`).
-    :return: ``(spec, task, fns)``: the saved :class:`agents.tasks.EnvSpec`, serialised task
-        and the functions to build the agent with.
-    :raises ValueError: the env's dimensions or bounds differ, or a function the agent was
-        built with is neither given nor in the registry (naming it).
+    :param fns: the task functions given to ``load`` by name (:data:`agents.tasks.FUNCTION_NAMES`).
+    :return: ``(spec, task, fns)``: the saved :class:`agents.tasks.EnvSpec` and task, the
+        functions to build the agent with.
+    :raises ValueError: the env's sizes or bounds differ, or a function is missing (named).
     :raises CheckpointError: the env's fingerprint differs (naming the field).
     """
-    from agents.tasks import EnvSpec, env_spec, make_task
-
     spec = EnvSpec.from_dict(json.loads(payload["env_spec"]))
     if env is not None:
         got = env_spec(env, config.collection.episode_steps)
@@ -258,9 +230,6 @@ def check_resumable(
 def write_run(agent: Any, run_dir: str | os.PathLike) -> None:
     """The run folder after an episode: ``checkpoint.pt`` (the source of truth) and its
     conveniences ``model.pt``, ``data.npz`` and ``summary.json`` (each written atomically)."""
-    from mbtsr.ensemble import save_model
-    from mbtsr.trajectory import save_trajectories
-
     run_dir = Path(run_dir)
     run_dir.mkdir(parents=True, exist_ok=True)
     agent.save(run_dir / "checkpoint.pt")
@@ -294,26 +263,17 @@ def env_fingerprint(env: Any) -> dict[str, Any]:
 
 
 def _first_difference(saved: Any, now: Any, where: str) -> tuple[str, Any, Any] | None:
+    """``(field, saved value, value now)`` of the first difference (``None``: equal)."""
     if isinstance(saved, Mapping) and isinstance(now, Mapping):
-        for k in sorted(set(saved) | set(now), key=str):
-            if k not in saved or k not in now:
-                return (f"{where}.{k}".lstrip("."), saved.get(k, "<absent>"),
-                        now.get(k, "<absent>"))
-            d = _first_difference(saved[k], now[k], f"{where}.{k}")
-            if d is not None:
-                return d
-        return None
-    if isinstance(saved, list | tuple) and isinstance(now, list | tuple):
-        if len(saved) != len(now):
-            return where.lstrip(".") or "value", saved, now
-        for i, (a, b) in enumerate(zip(saved, now)):
-            d = _first_difference(a, b, f"{where}[{i}]")
-            if d is not None:
-                return d
-        return None
-    if isinstance(saved, float) and isinstance(now, float) and math.isnan(saved):
-        return None if math.isnan(now) else (where.lstrip("."), saved, now)
-    return None if saved == now else (where.lstrip(".") or "value", saved, now)
+        pairs = [(f"{where}.{k}", saved.get(k, "<absent>"), now.get(k, "<absent>"))
+                 for k in sorted(set(saved) | set(now), key=str)]
+    elif isinstance(saved, list | tuple) and isinstance(now, list | tuple) \
+            and len(saved) == len(now):
+        pairs = [(f"{where}[{i}]", a, b) for i, (a, b) in enumerate(zip(saved, now))]
+    else:
+        nan = all(isinstance(v, float) and math.isnan(v) for v in (saved, now))
+        return None if nan or saved == now else (where.lstrip(".") or "value", saved, now)
+    return next((d for w, a, b in pairs if (d := _first_difference(a, b, w))), None)
 
 
 def check_same(saved: Mapping, now: Mapping, *, what: str, path: str | os.PathLike) -> None:
@@ -347,17 +307,13 @@ def _to_torch(obj: Any) -> Any:
 def load_agent(cls: type, path: str | os.PathLike, env: Any, fns: dict[str, Any], *,
                run_dir: str | os.PathLike | None = None) -> Any:
     """The body of :meth:`agents.jacprop_agent.JacPropAgent.load`: read the checkpoint at
-    ``path`` (a file or a run folder holding ``checkpoint.pt``), check it against ``env`` and
-    the task functions ``fns`` (:func:`check_resumable`), build an agent of class ``cls``
-    (:func:`agents.task_setup.build_agent`) and restore its state (:func:`restore_agent`).
+    ``path`` (a file or a run folder), check it (:func:`check_resumable`), build an agent of
+    class ``cls`` and restore its state (:func:`restore_agent`).
 
     :param run_dir: overrides the saved config's ``run_dir``.
     :raises ValueError: as :func:`check_resumable`, or ``state_fn`` gives a model state of
         another dimension than the saved model's.
     """
-    from agents.config import AgentConfig
-    from agents.task_setup import build_agent
-
     path = Path(path)
     if path.is_dir():
         path = path / "checkpoint.pt"

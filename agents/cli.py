@@ -1,12 +1,8 @@
-"""Command lines generated from config dataclasses (tyro).
-
-A script declares its options once, as a dataclass whose field docstrings are the ``--help`` text
-(reST markup shown as plain names), and calls :func:`main`. tyro reports a malformed command line
-itself (exit code 2). It builds the dataclasses unchecked; :func:`parse` builds them again,
-innermost first, so a bad value ends in one line ``<prog>: error: <message>`` (exit code 2) naming
-the field by its flag's dotted path. Fields a config fixes (its ``FIXED``, dotted names, as
-:attr:`agents.config.AgentConfig.FIXED`) are not offered.
-"""
+"""Command lines generated from config dataclasses (tyro): a script declares its options once, as
+a dataclass whose field docstrings are the ``--help`` text, and calls :func:`main`. A bad value
+ends in one line ``<prog>: error: <message>`` (exit code 2) naming the field by its flag's dotted
+path; fields a config fixes (its ``FIXED``, as :attr:`agents.config.AgentConfig.FIXED`) are not
+offered."""
 
 from __future__ import annotations
 
@@ -20,7 +16,7 @@ from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Annotated, Any, NoReturn, TypeVar
 
-__all__ = ["call", "check_output_path", "fail", "main", "parse"]
+__all__ = ["at_field", "call", "check_output_path", "fail", "main", "parse"]
 
 T = TypeVar("T")
 _ROLE = re.compile(r":(?:py:)?(?:func|class|meth|data|mod|attr|obj):`~?([^`]+)`|``([^`]+)``")
@@ -110,9 +106,17 @@ def _validated(obj: Any, path: str = "") -> Any:
     try:
         return type(obj)(**values)
     except (ValueError, TypeError) as err:
-        msg = " ".join(str(err).removeprefix("options.").split())  # CEMOptions' options.<field>
-        raise ValueError(msg if not path or msg.startswith((f"{path}.", f"{path} "))
-                         else f"{path}.{msg}") from None
+        raise ValueError(" ".join(str(at_field(path, err)).removeprefix("options.").split())
+                         ) from None
+
+
+def at_field(path: str, err: Exception) -> Exception:
+    """``err`` naming the dotted field ``path`` (unless it does already; CEMOptions names its
+    fields ``options.<field>``): ``ValueError("<path>.<message>")`` (a ``TypeError`` stays one)."""
+    msg = str(err).removeprefix("options.")
+    if not path or msg.startswith((f"{path}.", f"{path} ")):
+        return err
+    return (TypeError if isinstance(err, TypeError) else ValueError)(f"{path}.{msg}")
 
 
 def parse(config_type: type[T], *, args: Sequence[str] | None = None,
@@ -160,9 +164,6 @@ def call(run: Callable[[T], Any], config: T) -> Any:
         fail(f"{' '.join(str(e).split())} (MBTSR_TRACEBACK=1 shows where)")
 
 
-def main(config_type: type[T], run: Callable[[T], Any], *, outputs: Sequence[str] = (),
-         folders: Sequence[str] = (), presets: Mapping[str, Mapping[str, Any]] | None = None,
-         args: Sequence[str] | None = None) -> Any:
-    """A script's whole body: :func:`call` ``(run, parse(config_type, ...))``."""
-    return call(run, parse(config_type, args=args, outputs=outputs, folders=folders,
-                           presets=presets))
+def main(config_type: type[T], run: Callable[[T], Any], **options: Any) -> Any:
+    """A script's whole body: :func:`call` ``(run, parse(config_type, **options))``."""
+    return call(run, parse(config_type, **options))

@@ -1,9 +1,5 @@
-"""Collection (Algorithm 1, step (a)): training rollouts in the real env, either an excitation
-signal or a planner's actions plus exploration noise, run by :func:`mbtsr.episode.run_episode`.
-
-:class:`Collector` also carries a running episode over to the next rollout
-(``collection.continue_rollouts``), and writes the rollouts' videos.
-"""
+"""Collection (Algorithm 1, step (a)): training rollouts in the real env, an excitation signal or
+a planner's actions plus exploration noise (:func:`mbtsr.episode.run_episode`)."""
 
 from __future__ import annotations
 
@@ -17,7 +13,7 @@ import numpy as np
 from agents.config import CollectionConfig
 from agents.tasks import EnvSpec, StateMap
 from mbtsr import excitation
-from mbtsr.episode import EpisodeRecord, run_episode
+from mbtsr.episode import EpisodeRecord, as_policy, run_episode
 from mbtsr.trajectory import Trajectory
 
 __all__ = ["Collector"]
@@ -44,8 +40,7 @@ class Collector:
         self._handover = None
 
     def excitation(self, T: int, seed: int) -> np.ndarray:
-        """``[T, m]`` excitation in env units: a unit-std signal (by its stationary std)
-        scaled to ``excitation_scale`` x the half-range around the middle of the action box."""
+        """``[T, m]`` excitation: a unit-std signal x ``excitation_scale`` x the half-range."""
         col, spec = self.config, self.spec
         if col.excitation == "filtered_gaussian":
             sig = excitation.unit_filtered_gaussian(T, spec.act_dim, window=col.excitation_window,
@@ -57,9 +52,8 @@ class Collector:
         return np.clip(mid + half * col.excitation_scale * sig, spec.u_min, spec.u_max)
 
     def exploration_noise(self, T: int, seed: int) -> np.ndarray:
-        """``[T, m]`` noise added to the planned actions of a training rollout: Gaussian with
-        std ``exploration_std`` x the half-range, white or a moving average of
-        ``exploration_window`` steps (by its stationary std)."""
+        """``[T, m]`` noise on a training rollout's planned actions: Gaussian, std
+        ``exploration_std`` x the half-range, a moving average of ``exploration_window`` steps."""
         col, spec = self.config, self.spec
         half = 0.5 * (spec.u_max - spec.u_min)
         unit = excitation.unit_filtered_gaussian(T, spec.act_dim, window=col.exploration_window,
@@ -84,10 +78,8 @@ class Collector:
         :param episode: the agent's episode index (the trajectory's ``meta``).
         :param reset_seed: the env's reset seed; ``signal_seed``: the excitation's or noise's.
         :param render: keep rendered frames in the record.
-        :param stop: ``stop(obs) -> bool`` of :func:`mbtsr.episode.run_episode` (the agent's
-            per-step callbacks), or ``None``.
-        :return: ``(record, trajectory)``: the env's record and the model-state trajectory
-            (``x [T+1, n]``, ``u [T, m]``).
+        :param stop: ``stop(obs) -> bool`` of :func:`mbtsr.episode.run_episode`, or ``None``.
+        :return: ``(record, trajectory)``: the model-state trajectory ``x [T+1, n]``, ``u [T, m]``.
         """
         spec = self.spec
         start, done_steps, elapsed = self._handover or (None, 0, None)
@@ -105,12 +97,10 @@ class Collector:
             def act(obs: np.ndarray, t: int) -> np.ndarray:
                 return U[t]
         else:
-            noise = self.exploration_noise(T, signal_seed)
-            plan: dict[str, Any] = {"state": None}
+            noise, planned = self.exploration_noise(T, signal_seed), as_policy(policy)
 
             def act(obs: np.ndarray, t: int) -> np.ndarray:
-                a, plan["state"] = policy.predict(obs, plan["state"], episode_start=t == 0)
-                return a + noise[t]
+                return planned(obs, t) + noise[t]
 
         rec = run_episode(self.env, act, seed=reset_seed, max_steps=T, render=render, start=start,
                           stop=stop)

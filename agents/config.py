@@ -1,12 +1,6 @@
-"""Configuration of the Algorithm-1 agent: one tree of frozen dataclasses, validated when built.
-
-``AgentConfig`` holds the sections ``collection``, ``model`` (:class:`mbtsr.ensemble.ModelConfig`),
-``training``, ``regularization`` (:mod:`mbtsr.training`), ``planner``, ``evaluation`` and
-bookkeeping: ``AgentConfig(regularization="none", planner="cem")`` (a name for a section),
-``cfg.replace({"planner.horizon": 50, "model": {"hidden_width": 32}}, seed=3)``,
-``AgentConfig.load("arm.yaml")``. A generic layer checks every leaf against its type hint, the
-ranges in ``_BOUNDS``, ``AgentConfig.FIXED`` and ``_DEPENDENT``; errors name the dotted field.
-"""
+"""Configuration of the Algorithm-1 agent: one tree of frozen dataclasses, validated when built
+(docs/agent.md, "Public API" and "Config files"). A generic layer checks every leaf against its
+type hint, ``_BOUNDS``, ``AgentConfig.FIXED`` and ``_DEPENDENT``; errors name the dotted field."""
 
 from __future__ import annotations
 
@@ -31,6 +25,7 @@ from typing import Any, ClassVar, Literal
 import numpy as np
 import yaml
 
+from agents.cli import at_field
 from mbtsr.cem import CEMOptions
 from mbtsr.ensemble import ModelConfig
 from mbtsr.reward import RewardConfig
@@ -52,6 +47,9 @@ class _Section:
         at = next((f"{k}." for k, c in SECTIONS.items() if c is type(self)), "")
         for name, hint in _hints(type(self)).items():
             value = getattr(self, name)
+            if isinstance(value, str) and name in _NAMED:  # a name for a section: it, fresh
+                value = _build(name, _NAMED[name], value)
+                object.__setattr__(self, name, value)
             if not _is_section(hint):
                 object.__setattr__(self, name, _coerce(value, hint, at + name, True))
             elif not isinstance(value, hint):
@@ -83,16 +81,12 @@ class CollectionConfig(_Section):
     :param excitation: the excitation signal (filtered Gaussian noise: the paper's robot input).
     :param excitation_scale: excitation amplitude, a fraction of the action half-range.
     :param excitation_window: moving-average window (steps) of the filtered Gaussian input.
-    :param exploration_std: std of the noise on training rollouts' actions, a fraction of the
-        action half-range (0: off).
+    :param exploration_std: std of the training rollouts' action noise (of the half-range).
     :param episode_steps: steps per episode (``None``: the env's ``TimeLimit``).
-    :param rollout_steps: steps per TRAINING rollout, shorter than the episode (``None``: the
-        episode's); the model is updated after each, and what counts episodes counts these.
-    :param continue_rollouts: the next rollout continues the env's episode after the model
-        update instead of resetting it.
+    :param rollout_steps: steps per TRAINING rollout, shorter than the episode (``None``: all).
+    :param continue_rollouts: the next rollout continues the env's episode (no reset).
     :param exploration_window: moving-average window (steps) of the exploration noise (1: white).
-    :param explore_weight: directed exploration: training rollouts rank CEM's samples by cost
-        minus this weight x the members' disagreement (0: off).
+    :param explore_weight: directed exploration: CEM's cost minus this x disagreement (0: off).
     :param explore_on: what the disagreement is measured on: the next ``state`` or its ``cost``.
     """
 
@@ -124,29 +118,22 @@ class CollectionConfig(_Section):
 
 @dataclass(frozen=True)
 class PlannerConfig(_Section):
-    """Planning (Algorithm 1, "optimize controller"): MPC on the learned model, re-solved every
-    step and warm-started with the shifted previous plan.
+    """Planning (Algorithm 1, "optimize controller"): MPC on the learned model, warm-started.
 
     :param horizon: MPC horizon (steps).
-    :param replan_every: execute every plan for this many steps before re-solving (also the
-        oracle's).
+    :param replan_every: execute every plan for this many steps before re-solving.
     :param replan_feedback: between re-plans, follow iLQR's local policy ``U_t + K_t (x_t -
         X_t)`` instead of the open-loop controls.
-    :param kind: ``ilqr`` (iLQR on the model's Jacobians, the paper's controller), ``cem`` (PETS'
-        cross-entropy method: forward predictions only) or ``cem-ilqr`` (CEM proposes, iLQR
-        refines; docs/ilqr.md).
-    :param terminal_weight: weight of the task's terminal cost (without one: the stage cost at
-        zero action).
+    :param kind: ``ilqr`` (the paper's), ``cem`` (PETS' cross-entropy method) or ``cem-ilqr``
+        (CEM proposes, iLQR refines; docs/ilqr.md).
+    :param terminal_weight: weight of the task's terminal cost (none: stage cost at zero action).
     :param ilqr_iterations: iLQR iterations per MPC step.
     :param first_plan_iterations: iLQR (or CEM) iterations for the plan at an episode's start.
     :param cem: the CEM settings of ``kind=cem`` (:class:`mbtsr.cem.CEMOptions`).
     :param proposal: the CEM settings of ``kind=cem-ilqr``'s proposal.
-    :param warm_samples: the proposal's samples once warm-started (``None``: ``proposal.samples``;
-        at most that many; a cold start samples ``proposal.samples``;
-        :class:`mbtsr.cem_ilqr.CEMILQROptions`).
+    :param warm_samples: the proposal's samples once warm-started (``None``: ``proposal.samples``).
     :param propagation: CEM's rollouts on the ensemble: ``mean`` (the mean model) or ``ts`` (PETS'
-        trajectory sampling: each of the ``cem.particles`` follows one member; use a multiple of
-        ``model.ensemble_size``).
+        trajectory sampling: one member per particle).
     """
 
     _BOUNDS: ClassVar[dict[str, Any]] = dict(
@@ -176,12 +163,10 @@ class PlannerConfig(_Section):
 
 @dataclass(frozen=True)
 class EvaluationConfig(_Section):
-    """Evaluation: the deterministic MPC policy on fixed episodes, logged as returns. A run is
-    "solved" at the first evaluation whose mean return reaches ``solved_return`` when that is
-    given, else whose mean cost is within ``solved_ratio`` x that of MPC on the TRUE model.
+    """Evaluation of the MPC policy on fixed episodes and the "solved" criterion (docs/agent.md,
+    "Evaluation, the oracle, solved").
 
-    :param every: evaluate every this many episodes after the excitation and at the end of every
-        ``learn`` (0: never).
+    :param every: evaluate every this many episodes and at the end of ``learn`` (0: never).
     :param every_steps: also evaluate after every episode that crosses a multiple of this many
         env steps (0: off; SB3's ``eval_freq``).
     :param episodes: evaluation episodes.
@@ -222,23 +207,16 @@ class AgentConfig(_Section):
     """Everything that decides what :class:`agents.jacprop_agent.JacPropAgent` does.
 
     :param collection: data collection: excitation, exploration noise, episode length.
-    :param model: the ensemble, built once the env's dimensions are known (``hidden_width`` /
-        ``hidden_layers`` ``None``: sized by the task; ``ModelConfig.paper()``: the paper's).
-    :param training: one model update, warm-started on ALL data so far: ``steps`` gradient steps
-        with early stopping on a hold-out (``steps=None``: ``epochs`` passes over the data).
-    :param regularization: the tangent-space regularizer, on by its weight: ``sampled``
-        (sampled Jacobian propagation, the paper's), ``exact`` (the Jacobian penalty it
-        approximates), ``smooth`` (LTV-free); ``ltv_lambda`` ``None``: chosen per trajectory.
-        Default ``none`` (the plain baseline): on the benchmark's tasks JacProp does not beat it
-        by a margin the seeds support (docs/benchmark.md); ``"sampled"`` is the paper's.
+    :param model: the ensemble (``hidden_width``/``hidden_layers`` ``None``: sized by the task).
+    :param training: one model update, warm-started on ALL data so far.
+    :param regularization: the tangent-space regularizer, on by its weight (a name: ``sampled``,
+        ``exact``, ``smooth``, ``none``: the plain baseline; docs/benchmark.md compares them).
     :param planner: the MPC planner on the learned model.
     :param evaluation: evaluation episodes and the "solved" criterion.
-    :param reward: the reward model learned when the task has no written cost (an env that
-        :mod:`agents.tasks` does not know, without ``cost_fn``).
+    :param reward: the reward model learned when the task has no written cost.
     :param seed: master seed; every random draw of a run derives from it.
     :param renormalize: recompute the model's normalization from ALL data before every update.
-    :param ltv_prior: fuse each LTV fit with the ensemble's Jacobians as a prior of variance the
-        ensemble's + this (:func:`mbtsr.ltv.fuse_prior`; 0: off).
+    :param ltv_prior: fuse each LTV fit with the ensemble's Jacobians, variance floor (0: off).
     :param run_dir: folder of the CSV log, TensorBoard, checkpoint and exports (``None``: none).
     :param checkpoint: write a checkpoint after every episode (needs ``run_dir``).
     :param tensorboard: write TensorBoard scalars (needs ``run_dir``).
@@ -283,12 +261,6 @@ class AgentConfig(_Section):
     jacobian_error: bool = True
     progress: bool = True
     torch_threads: int = 1
-
-    def __post_init__(self) -> None:
-        for name, named in _NAMED.items():  # a name for a section: that section, fresh
-            if isinstance(getattr(self, name), str):
-                object.__setattr__(self, name, _build(name, named, getattr(self, name)))
-        super().__post_init__()
 
     def _check(self) -> None:
         values = self.dotted()
@@ -338,8 +310,7 @@ class AgentConfig(_Section):
     @classmethod
     def from_dict(cls, d: Mapping[str, Any], /, base: AgentConfig | None = None) -> AgentConfig:
         """The CHANGES a partial (nested or dotted) dict gives to ``base`` (default: the
-        defaults), as :meth:`replace`, values coerced where unambiguous (:func:`_coerce`: YAML 1.1
-        reads ``1e-3`` as a string)."""
+        defaults), as :meth:`replace`, values coerced where unambiguous (:func:`_coerce`)."""
         if not isinstance(d, Mapping):
             raise ValueError(f"AgentConfig.from_dict needs a dict of AgentConfig fields, got "
                              f"{type(d).__name__} {d!r}")
@@ -385,9 +356,8 @@ def _leaves(obj: Any, prefix: str = "") -> Iterator[tuple[str, Any, Any]]:
 
 @functools.cache
 def _defaults() -> tuple[dict[str, Any], dict[str, Any], tuple[str, ...]]:
-    """``AgentConfig()``'s dotted leaves (from the field defaults: its validation uses them),
-    every section's leaves at its class's defaults (``RegularizationConfig()``'s ``ltv_lambda``
-    is 31.6, the agent's None) and every dotted path, sections included."""
+    """``AgentConfig()``'s dotted leaves (from the field defaults), every section's leaves at its
+    class's defaults and every dotted path, sections included."""
     agent: dict[str, Any] = {}
     for f in dataclasses.fields(AgentConfig):
         value = f.default if f.default_factory is dataclasses.MISSING else f.default_factory()
@@ -414,10 +384,8 @@ def _describe(hint: Any) -> str:
 
 
 def _coerce(value: Any, hint: Any, name: str, strict: bool = False) -> Any:
-    """``value`` as the type ``hint`` of field ``name``; numpy scalars and paths become Python's.
-    Unless ``strict`` (:meth:`AgentConfig.from_dict`), coerced where unambiguous: a string where
-    no string fits is read as a number, ``true``/``false`` or ``none``/``null`` (any case), a list
-    is a tuple, one name a tuple of one, an integral number an int.
+    """``value`` as the type ``hint`` of field ``name``, unless ``strict`` coerced where
+    unambiguous (docs/agent.md, "Config files": Types).
     :raises ValueError: ``"<name> must be <type>, got <value>"``."""
     union = typing.get_origin(hint) in (typing.Union, types.UnionType)
     given, options = value, typing.get_args(hint) if union else (hint,)
@@ -500,16 +468,11 @@ def _unknown(key: str) -> ValueError:
 
 
 def _build(path: str, make: Callable[..., Any], *args: Any, **kwargs: Any) -> Any:
-    """``make(*args, **kwargs)``, an error re-raised naming ``path`` (the library's configs name
-    their own fields; :class:`mbtsr.cem.CEMOptions` names them ``options.<field>``)."""
+    """``make(*args, **kwargs)``, an error re-raised naming ``path``."""
     try:
         return make(*args, **kwargs)
     except (ValueError, TypeError) as err:
-        msg = str(err)
-        if not path or msg.startswith((f"{path}.", f"{path} ")):
-            raise
-        raise (TypeError if isinstance(err, TypeError) else ValueError)(
-            f"{path}.{msg.removeprefix('options.')}") from None
+        raise at_field(path, err) from None
 
 
 def _replaced(obj: Any, changes: Mapping[str, Any], prefix: str) -> Any:

@@ -1,11 +1,6 @@
-"""Per-episode log of the agent: an in-memory list of rows, a CSV file and TensorBoard scalars
-(under Stable-Baselines3's tags, indexed by env steps: :func:`sb3_scalars`).
-
-The CSV is rewritten atomically after every episode from the rows in memory, so after a resume
-(rows restored from the checkpoint) it holds exactly the episodes of the checkpoint, never a
-half-written line or the rows of an episode that was lost to a crash. TensorBoard events of lost
-episodes are dropped with ``SummaryWriter(purge_step=...)``. The CSV's ``env_steps`` column is
-the TensorBoard step (SB3's ``time/total_timesteps``).
+"""Per-episode log of the agent: rows in memory, ``episodes.csv`` rewritten atomically after every
+episode, TensorBoard scalars under Stable-Baselines3's tags by env step (events of episodes lost
+to a crash purged); docs/agent.md, "What a run writes".
 """
 
 from __future__ import annotations
@@ -21,6 +16,7 @@ from typing import Any
 import numpy as np
 
 from agents.checkpoint import atomic_write_text, write_run
+from mbtsr.validation import check_int
 
 __all__ = ["EpisodeLog", "LOG_COLUMNS", "TIMING_COLUMNS", "check_budget", "end_episode",
            "make_progress_bar", "sb3_scalars", "summarize"]
@@ -120,12 +116,8 @@ _EVAL = ("eval_cost", "oracle_cost", "cost_ratio", "eval_episodes_run")
 
 def sb3_scalars(rows: Sequence[dict[str, Any]], window: int = 100) -> dict[str, Any]:
     """The scalars of the last row under Stable-Baselines3's tags, so that the agent's curves
-    and an SB3 run's overlay in TensorBoard by env step: ``rollout/ep_rew_mean`` and
-    ``rollout/ep_len_mean`` (mean return and length of the last ``window`` training episodes,
-    as SB3's ``stats_window_size``), ``rollout/episodes``, ``time/total_timesteps``,
-    ``eval/mean_reward`` (the evaluation's mean return), ``eval/<column>`` for the oracle
-    comparison, ``train/<column>`` for the model's losses and errors and ``time/<column>``
-    for the wall seconds.
+    and an SB3 run's overlay in TensorBoard by env step (``rollout/ep_rew_mean`` over the last
+    ``window`` episodes, ``eval/mean_reward``, ``train/<column>``, ``time/<column>``, ...).
 
     :param rows: the log rows so far (``[episodes]``; the last one is reported).
     """
@@ -147,9 +139,7 @@ def sb3_scalars(rows: Sequence[dict[str, Any]], window: int = 100) -> dict[str, 
 
 def summarize(rows: Sequence[dict[str, Any]], config: Any, *, env_id: str | None,
               episodes_done: int, env_steps: int, oracle_cost: float | None) -> dict[str, Any]:
-    """Benchmark numbers of a run from its rows: episodes/env steps to the first solved
-    evaluation, the last and best cost ratio to the oracle and return, the evaluation curve,
-    wall seconds per phase.
+    """Benchmark numbers of a run from its rows (docs/agent.md, the ``summary()`` row).
 
     :param config: the run's :class:`agents.config.AgentConfig` (its ``evaluation`` criteria).
     :param oracle_cost: the oracle's mean evaluation cost (``None``: no oracle).
@@ -215,9 +205,8 @@ def check_budget(total_timesteps: Any, episodes: Any, env: Any) -> None:
     :raises ValueError: a budget that is not an integer >= 0, no budget at all, or no env (an
         act-only loaded agent)."""
     for name, value in (("total_timesteps", total_timesteps), ("episodes", episodes)):
-        if value is not None and (isinstance(value, bool) or not isinstance(
-                value, int | np.integer) or value < 0):
-            raise ValueError(f"{name} must be an integer >= 0, got {value!r}")
+        if value is not None:
+            check_int(name, value, 0)
     if episodes is None and total_timesteps is None:
         raise ValueError("give total_timesteps (env steps) or episodes=")
     if env is None:
@@ -230,18 +219,16 @@ def make_progress_bar(episodes: int | None, steps: int | None, show: bool) -> An
         return None
     from tqdm.auto import tqdm
 
-    if episodes is not None:
-        return tqdm(total=episodes, desc="JacProp agent", unit="episode")
-    return tqdm(total=steps, desc="JacProp agent", unit="step")
+    by_episode = episodes is not None
+    return tqdm(total=episodes if by_episode else steps, desc="JacProp agent",
+                unit="episode" if by_episode else "step")
 
 
 def end_episode(agent: Any, row: dict[str, Any], log: EpisodeLog | None, *, last: bool,
                 fps_since: tuple[int, float], bar: Any = None, bar_step: int = 1) -> None:
-    """The agent's bookkeeping after an episode of ``learn``: the final score (``last``: the
-    episode ends ``learn``, and evaluation is due then), the row appended to
-    ``agent.logger_rows``, the episode counted, the run folder written
-    (``config.checkpoint``), the row and the SB3 logger's records (with ``time/fps``) to
-    ``log`` and the SB3 logger dumped, the progress ``bar`` advanced by ``bar_step``.
+    """The agent's bookkeeping after an episode of ``learn``: the final score (``last``), the
+    row logged and counted, the run folder written, the SB3 logger's records (with
+    ``time/fps``) to ``log``, the progress ``bar`` advanced by ``bar_step``.
 
     :param fps_since: ``(env_steps, perf_counter time)`` at the start of ``learn``.
     """

@@ -1,19 +1,6 @@
-"""Evaluation protocol: fixed episodes, episode cost, the oracle, and the agent's
-:class:`Evaluator`.
-
-"Solved" (issue 6): the mean episode cost of a policy over ``n`` evaluation episodes with
-random targets is within ``ratio`` (1.2) times the mean cost of MPC with the TRUE model (the
-oracle, :func:`oracle_policy`) on the same targets and the same initial states. The episode cost
-is ``-sum(rewards)``, the env's own measure, so any policy (the JacProp agent, an SB3 baseline,
-a hand-written controller) is scored the same way::
-
-    targets = evaluation_targets(10, seed=1000)
-    env = gym.make("mbtsr/TwoLinkArm-v0")
-    oracle = evaluate_policy_cost(oracle_policy(env, PlannerConfig()), env, targets, seed=1000)
-    mine = evaluate_policy_cost(sb3_model, env, targets, seed=1000)
-    solved = mine <= solved_threshold(oracle)
-
-Episode ``i`` is reset with ``seed + i`` and ``options={"target": targets[i]}``.
+"""Evaluation protocol: fixed episodes, episode cost ``-sum(rewards)``, the true-model oracle and
+the agent's :class:`Evaluator` (docs/agent.md, "Evaluation, the oracle, "solved""). Episode ``i``
+is reset with ``seed + i`` and ``options={"target": targets[i]}``.
 """
 
 from __future__ import annotations
@@ -31,9 +18,18 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 
+import mbtsr
+from agents.checkpoint import atomic_write_text, env_fingerprint
 from agents.config import AgentConfig, PlannerConfig
 from agents.planning import ReplanEvery, make_policy
-from agents.tasks import ObservationCost, QuadraticTargetCost
+from agents.tasks import (
+    ObservationCost,
+    QuadraticTargetCost,
+    StateMap,
+    default_task_for_env,
+    env_spec,
+    gym_make,
+)
 from mbtsr.episode import EpisodeRecord, as_policy, run_episode
 from mbtsr.ilqr import ILQROptions
 from mbtsr.validation import check_int
@@ -63,15 +59,12 @@ NOT_EVALUATED: dict[str, Any] = {
 
 
 def make_env(env: gym.Env | str, **kwargs: Any) -> tuple[gym.Env, bool]:
-    """``(env, created)``: ``env`` itself, or ``gym.make(env, **kwargs)`` for an id (the
-    project's ``mbtsr/`` envs are registered by importing :mod:`envs`)."""
+    """``(env, created)``: ``env`` itself, or :func:`agents.tasks.gym_make` ``(env, **kwargs)``."""
     if isinstance(env, gym.Env):
         return env, False
     if not isinstance(env, str):
         raise TypeError(f"env must be a gymnasium.Env or an env id string, got {env!r}")
-    if env.startswith("mbtsr/"):
-        import envs  # noqa: F401  (registers the mbtsr/ ids)
-    return gym.make(env, **kwargs), True
+    return gym_make(env, **kwargs), True
 
 
 def evaluation_targets(
@@ -82,15 +75,14 @@ def evaluation_targets(
 
     :param n: number of targets (>= 1).
     :param seed: base seed (>= 0).
-    :param env_id: a registered id (or an instance) of an env that reports ``info["target"]``
-        (``None``: the home arm, ``envs.ARM_ID``).
+    :param env_id: an env id or instance that reports ``info["target"]`` (``None``: the arm).
     """
     if env_id is None:
         from envs import ARM_ID  # here, not at import: importing envs sets MUJOCO_GL
 
         env_id = ARM_ID
     check_int("n", n, 1)
-    _check_seed(seed)
+    check_int("seed", seed, 0)
     env, created = make_env(env_id)
     try:
         targets = []
@@ -117,19 +109,16 @@ def evaluate_policy_costs(
 ) -> np.ndarray:
     """Per-episode costs ``-sum(rewards)`` of ``policy``.
 
-    :param policy: an object with SB3's ``predict(obs, state, episode_start, deterministic)``
-        (our agent, an SB3 model, :class:`MPCPolicy`) or a callable ``obs -> action``.
+    :param policy: an object with SB3's ``predict`` or a callable ``obs -> action``.
     :param env: an env or an env id.
-    :param targets: one target per episode, passed as ``options={"target": ...}``; ``None``
-        for envs without targets (then give ``n_episodes``).
+    :param targets: one target per episode (``None``: no targets; then give ``n_episodes``).
     :param seed: episode ``i`` resets with ``seed + i``.
     :param max_steps: cap on the steps per episode (default: the env's own limit).
-    :param stop_above: stop early once the summed cost exceeds this (costs are >= 0, so the
-        full sum would too): an exact early exit of a "mean <= threshold" test. The result then
-        holds fewer than ``n`` costs.
+    :param stop_above: stop early once the summed cost exceeds this (an exact early exit of a
+        "mean <= threshold" test for costs >= 0).
     :return: ``[n]`` costs (fewer with ``stop_above``).
     """
-    _check_seed(seed)
+    check_int("seed", seed, 0)
     if targets is None:
         if n_episodes is None or n_episodes < 1:
             raise ValueError("give targets or n_episodes >= 1")
@@ -168,8 +157,7 @@ def _is_mujoco_env(env: gym.Env) -> bool:
 
 
 def has_true_model(env: gym.Env) -> bool:
-    """Whether :func:`oracle_policy` can build the true model of ``env``: it has
-    ``dynamics_model()`` (the project's arm) or is a Gymnasium ``MujocoEnv``."""
+    """Whether :func:`oracle_policy` can build ``env``'s true model (arm or MuJoCo)."""
     return hasattr(env.unwrapped, "dynamics_model") or _is_mujoco_env(env)
 
 
@@ -186,33 +174,18 @@ def oracle_policy(
     state_fn: Callable | None = None,
     obs_fn: Callable | None = None,
 ) -> ReplanEvery:
-    """MPC on the TRUE model of ``env``, with the env's own quadratic cost unless
-    ``cost_fn``/``state_map`` are given: the agent's controller (:func:`agents.planning.make_policy`
-    with the same ``planner``: kind, horizon, iterations, terminal weight, ``replan_every``;
-    CEM's ``particles`` set to 1, since one true model would repeat the same rollout), only the
-    model differs. The true model is
-
-    * ``env.unwrapped.dynamics_model()`` (or ``analytic_model()``) when the env offers one (the
-      arm); its state must be the agent's model state (the arm: ``obs[:4]``, via ``state_map``);
-    * otherwise, for any Gymnasium ``MujocoEnv`` (Reacher-v5, InvertedPendulum-v5, ...),
-      :class:`envs.mujoco_model.MujocoDynamics` lifted to ``z = [qpos, qvel, observation]`` by
-      :class:`envs.mujoco_model.ObservedDynamics`: the task's ``cost_fn(obs, a)`` (and
-      ``terminal_cost_fn``) is evaluated on the env's own observation of the predicted state,
-      and the plan starts from the env's true ``qpos, qvel``
-      (:class:`agents.planning.TrueStatePolicy`, so the returned policy only works on this
-      ``env``). ``state_map`` is ignored there (the true state needs no map).
-
-    ``termination_fn`` (the task's, on observations) is respected as by the agent's MPC.
-    ``state_fn``/``obs_fn`` (the agent's arguments) build ``state_map`` when it is not given.
+    """The agent's controller (:func:`agents.planning.make_policy` with the same ``planner``;
+    CEM's ``particles`` set to 1) on the TRUE model of ``env``: ``env.unwrapped.<model>()`` (its
+    state the agent's model state, via ``state_map``), else, for any Gymnasium ``MujocoEnv``,
+    :class:`envs.mujoco_model.ObservedDynamics` planned from the env's true state (the policy
+    then only works on this ``env``; docs/agent.md, "The oracle of any MuJoCo env").
 
     :param planner: the planner settings (``None``: ``PlannerConfig()``).
     :param seed: seeds CEM's samples (the agent passes its ``config.seed``).
-    :raises ValueError: an env that has neither (not MuJoCo, no ``dynamics_model()``): it has
-        no true model, so no oracle (the agent then reports ``oracle_cost = None``); also when
-        no cost is given and the env has no ``cost_Q``/``cost_R``.
+    :param cost_fn: / ``state_map`` (or ``state_fn``/``obs_fn``), ``terminal_cost_fn``,
+        ``termination_fn``: the task's (default: the env's own quadratic cost).
+    :raises ValueError: an env with no true model, or no cost given and no ``cost_Q``/``cost_R``.
     """
-    from agents.tasks import StateMap, default_task_for_env, env_spec
-
     planner = PlannerConfig() if planner is None else planner
     if not isinstance(planner, PlannerConfig):
         raise TypeError(f"planner must be an agents.config.PlannerConfig, got "
@@ -266,15 +239,10 @@ def _oracle_state_fn(obs: np.ndarray) -> np.ndarray:
 def cached_costs(
     cache_dir: str | os.PathLike | None, key: dict[str, Any], compute: Callable[[], np.ndarray]
 ) -> np.ndarray:
-    """``compute()`` memoised in ``<cache_dir>/oracle_<sha256(key)[:16]>.json`` (atomic write).
-
-    The oracle is deterministic, so runs that share env, targets, seeds and MPC settings (all in
-    ``key``, a JSON-serialisable dict) can share its costs. ``cache_dir=None`` disables it.
-    """
+    """``compute()`` memoised in ``<cache_dir>/oracle_<sha256(key)[:16]>.json`` (atomic write;
+    ``key``: a JSON-serialisable dict of what the costs depend on; ``cache_dir=None``: off)."""
     if cache_dir is None:
         return np.asarray(compute(), dtype=float)
-    from agents.checkpoint import atomic_write_text
-
     text = json.dumps(key, sort_keys=True, default=_json_default)
     path = Path(cache_dir) / f"oracle_{hashlib.sha256(text.encode()).hexdigest()[:16]}.json"
     if path.is_file():
@@ -288,8 +256,7 @@ def cached_costs(
 
 def physics_fingerprint(env: gym.Env) -> str:
     """sha256 (16 hex digits) of the physics the env simulates: its compiled ``MjModel`` saved
-    as MJB bytes (every numeric array, option and size: masses, geometry, actuator gains,
-    time step, ...). Changes when a physical parameter does, not when source code is edited."""
+    as MJB bytes (every parameter, not the source code)."""
     import mujoco
 
     model = getattr(env.unwrapped, "model", None)
@@ -311,17 +278,10 @@ def oracle_cache_key(
     planner: dict[str, Any],
     optimizer_options: ILQROptions | None = None,
 ) -> dict[str, Any]:
-    """What the oracle's costs depend on, as data (the key of :func:`cached_costs`): the env's
-    physics (:func:`physics_fingerprint`) and :func:`agents.checkpoint.env_fingerprint` (id,
-    constructor arguments, time step, spaces), the task (``task``: the cost's and the state map's
-    ``to_dict()``), the evaluation targets,
-    seed, episode count and length, the planner settings (``planner``: horizon, iterations,
-    ...; ``optimizer_options``: iLQR's, default ``ILQROptions()`` as
-    :func:`agents.planning.solver` uses) and ``mbtsr.__version__`` (a release invalidates every
-    entry)."""
-    import mbtsr
-    from agents.checkpoint import env_fingerprint
-
+    """What the oracle's costs depend on (the key of :func:`cached_costs`): the env's physics
+    and fingerprint, the task (``task``: the cost's and state map's ``to_dict()``), targets,
+    seed, episode count and length, ``planner`` settings, iLQR's ``optimizer_options`` (default
+    ``ILQROptions()``) and ``mbtsr.__version__`` (a release invalidates every entry)."""
     options = ILQROptions() if optimizer_options is None else optimizer_options
     return {
         "mbtsr": mbtsr.__version__,
@@ -354,25 +314,14 @@ def solved_threshold(oracle: float, ratio: float = 1.2) -> float:
     return float(ratio * oracle)
 
 
-def _check_seed(seed: Any) -> None:
-    check_int("seed", seed, 0)
-
-
 class Evaluator:
-    """The agent's evaluation: its policy on fixed episodes (targets and reset seeds from
-    ``config.evaluation``) in a copy of the training env, scored against the oracle (the same
-    planner on the env's TRUE model, :func:`oracle_policy`), whose costs are computed once and
-    kept (and shared between runs through ``evaluation.oracle_cache_dir``).
+    """The agent's evaluation: its policy on fixed episodes in a copy of the training env, scored
+    against the oracle (:func:`oracle_policy`), whose costs are computed once and kept.
 
     :param env: the training env (the evaluation env is ``gym.make(env.spec)``).
-    :param config: the agent's config (its ``evaluation``, ``planner``, ``seed`` and
-        ``collection.n_excitation_episodes`` are used).
+    :param config: the agent's config.
     :param episode_steps: the episode length.
-    :param task: the task's functions for the oracle: ``cost_fn``, ``state_map``,
-        ``terminal_cost_fn``, ``termination_fn``.
-
-    ``eval_targets`` (``[episodes]`` targets, ``None`` for envs without targets) and
-    ``oracle_costs`` (``[episodes]``) are its state (checkpointed by the agent).
+    :param task: the oracle's ``cost_fn``, ``state_map``, ``terminal_cost_fn``, ``termination_fn``.
     """
 
     def __init__(self, env: gym.Env | None, config: AgentConfig, episode_steps: int,
@@ -384,10 +333,8 @@ class Evaluator:
         self._env: gym.Env | None = None
 
     def due(self, episode: int, env_steps: int, *, steps: int = 0, last: bool = False) -> bool:
-        """Whether to evaluate after ``episode``: every ``evaluation.every``-th episode from the
-        last excitation episode on, every episode that crossed a multiple of
-        ``evaluation.every_steps`` env steps (its ``steps`` steps ended at ``env_steps``), and
-        with ``last`` (the final score of a ``learn`` call)."""
+        """Whether to evaluate after ``episode`` (its ``steps`` steps ended at ``env_steps``;
+        ``last``: the final score of a ``learn`` call); docs/agent.md, "Evaluation"."""
         ev, first = self.config.evaluation, self.config.collection.n_excitation_episodes - 1
         if (ev.every == 0 and ev.every_steps == 0) or episode < first:
             return False
@@ -421,14 +368,10 @@ class Evaluator:
     def setup(self) -> tuple[gym.Env, dict[str, Any]]:
         """``(env, keyword arguments)`` that :func:`evaluate_policy_costs` scores a policy with
         on these episodes (with ``self.eval_targets`` and ``evaluation.seed``)."""
-        return self.eval_env(), self.episode_kwargs()
-
-    def episode_kwargs(self) -> dict[str, Any]:
-        """The keyword arguments of :meth:`setup` (episode length, number of episodes)."""
         kwargs: dict[str, Any] = {"max_steps": self.episode_steps}
         if self.targets() is None:
             kwargs["n_episodes"] = self.config.evaluation.episodes
-        return kwargs
+        return self.eval_env(), kwargs
 
     def evaluate(self, policy: Any, *, complete: bool = False) -> dict[str, Any]:
         """Score ``policy`` (SB3-style ``predict``) on the evaluation episodes.
@@ -442,7 +385,7 @@ class Evaluator:
         """
         ev = self.config.evaluation
         env, kwargs = self.setup()
-        oracle = None if ev.solved_return is not None else self.oracle(env, kwargs)
+        oracle = None if ev.solved_return is not None else self.oracle()
         stop_above = None
         if oracle is not None and ev.early_exit and not complete and np.all(oracle >= 0):
             stop_above = ev.solved_ratio * float(np.sum(oracle))
@@ -450,12 +393,9 @@ class Evaluator:
                                       stop_above=stop_above, **kwargs)
         complete = len(costs) == ev.episodes
         returns = [float(-c) for c in costs]
-        out: dict[str, Any] = {
-            "eval_cost": float(np.mean(costs)) if complete else None,
-            "eval_return": float(np.mean(returns)) if complete else None,
-            "eval_returns": returns, "oracle_cost": None, "cost_ratio": None,
-            "eval_episodes_run": len(costs), "solved": False,
-        }
+        out = {**NOT_EVALUATED, "eval_returns": returns, "eval_episodes_run": len(costs)}
+        if complete:
+            out.update(eval_cost=float(np.mean(costs)), eval_return=float(np.mean(returns)))
         if ev.solved_return is not None:
             out["solved"] = bool(complete and out["eval_return"] >= ev.solved_return)
             return out
@@ -483,19 +423,15 @@ class Evaluator:
         seed and task functions)."""
         return oracle_policy(env, self.config.planner, seed=self.config.seed, **self.task)
 
-    def oracle(self, env: gym.Env | None = None,
-               kwargs: dict[str, Any] | None = None) -> np.ndarray | None:
+    def oracle(self) -> np.ndarray | None:
         """Per-episode costs of the oracle (computed once, then kept; ``None``: the env has
         no true model, or the task no written cost: a learned reward has no oracle). The
         seconds spent computing it add to ``oracle_seconds``."""
-        if env is None:
-            env, kwargs = self.setup()
-        elif kwargs is None:
-            kwargs = self.episode_kwargs()
-        if (self.oracle_costs is not None or not has_true_model(env)
+        if (self.oracle_costs is not None or not has_true_model(self.eval_env())
                 or self.task["cost_fn"] is None):  # a learned reward: no written cost to plan on
             return self.oracle_costs
         cfg, task = self.config, self.task
+        env, kwargs = self.setup()
 
         def compute() -> np.ndarray:
             tic = time.perf_counter()

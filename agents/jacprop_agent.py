@@ -1,39 +1,13 @@
-"""The Algorithm-1 agent: episodic model learning with tangent-space regularization and iLQR.
-
-Bagge Carlson, Johansson and Robertsson, "Tangent-Space Regularization for Neural-Network Models
-of Dynamical Systems" (arXiv:1806.09919), Algorithm 1, run in an episodic loop. Every episode:
-
-(a) **rollout** in the real env: the first ``n_excitation_episodes`` with a low-pass filtered
-    Gaussian (or multisine) excitation, then MPC (iLQR re-solved every step) on the learned
-    model plus Gaussian exploration noise;
-(b) **LTV fit** ``l_i`` to the new trajectory (:func:`mbtsr.ltv.fit_ltv`, smoothness weight
-    fixed or chosen by :func:`mbtsr.ltv.select_lambda`);
-(c) **perturbed trajectories** ``x~ = x + eps_x, u~ = u + eps_u`` labelled by ``l_i``
-    (resampled every epoch inside :func:`mbtsr.training.train_ensemble`);
-(d) **model update**: the ensemble is trained further (warm start: weights and Adam state
-    carried over) on ALL data so far, with the chosen regularization (``sampled`` Jacobian
-    propagation, the ``exact`` Jacobian-smoothness penalty, or ``none``), by default a budget
-    of gradient steps with early stopping on a hold-out (its cost does not grow with the data);
-(e) **planning**: the next rollout is optimised by iLQR on the learned model's Jacobians
-    (full-horizon plan at the first step, then receding horizon).
-
-The surface follows Stable-Baselines3: :meth:`JacPropAgent.learn`, :meth:`~JacPropAgent.predict`,
-:meth:`~JacPropAgent.save`, :meth:`JacPropAgent.load`. After every episode the agent writes an
-atomic checkpoint (data, model, Adam state, RNG states, config, log) from which
-:meth:`JacPropAgent.load` + :meth:`~JacPropAgent.learn` continue bit-identically (except with
-``collection.continue_rollouts``: the env's running episode is not saved, so it restarts).
-
-The agent only wires its parts (built by :func:`agents.task_setup.build_agent`), each an object
-it holds and calls: a :class:`~agents.collection.Collector` (rollouts, excitation, exploration
-noise), a :class:`~agents.labels.JacobianLabeler` (LTV fits and fallbacks), a
-:class:`~agents.model_training.ModelTrainer` (warm-started updates), the planner built by
-:func:`agents.planning.make_policy`, an :class:`~agents.evaluation.Evaluator` (fixed episodes,
-the oracle), :mod:`agents.checkpoint` (the payload, the run folder, loading) and
-:mod:`agents.episode_log` (the log rows and the bookkeeping after each episode).
+"""The Algorithm-1 agent (Bagge Carlson, Johansson and Robertsson, arXiv:1806.09919): episodic
+model learning with tangent-space regularization and MPC, behind Stable-Baselines3's surface
+(``learn``, ``predict``, ``save``, ``load``). It only wires its parts (built by
+:func:`agents.task_setup.build_agent`); docs/agent.md ("Public API", "The agent as parts",
+"Checkpoints and exact resume").
 """
 
 from __future__ import annotations
 
+import functools
 import json
 import time
 import warnings
@@ -54,14 +28,18 @@ from agents.config import AgentConfig
 from agents.episode_log import EpisodeLog, check_budget, end_episode, make_progress_bar, summarize
 from agents.evaluation import NOT_EVALUATED, EpisodeRecord, run_episode
 from agents.model_training import model_errors
-from agents.planning import MPCPolicy, ReplanEvery, SB3Predictor, make_policy, planner_cost
+from agents.planning import ReplanEvery, SB3Predictor, make_policy, planner_cost
 from agents.task_setup import LearnedTask, build_agent
 from agents.tasks import env_spec
-from mbtsr.ltv import LTVModel
 
 __all__ = ["JacPropAgent"]
 
 CostFn = Callable[[Any, Any], Any]
+
+
+def _part(path: str, doc: str) -> property:
+    """A read-only property forwarding to ``self.<path>`` (the state of one of the parts)."""
+    return property(lambda self: functools.reduce(getattr, path.split("."), self), doc=doc)
 
 
 class JacPropAgent(SB3Predictor):
@@ -71,21 +49,13 @@ class JacPropAgent(SB3Predictor):
         space and a ``TimeLimit`` (or ``config.collection.episode_steps``).
     :param config: :class:`agents.config.AgentConfig`.
     :param cost_fn: stage cost ``cost_fn(obs, action) -> scalar`` written with CasADi
-        operations, the exact way to state a task. ``None``: the task of
-        :data:`agents.tasks.TASKS` for the env's id (its cost, terminal cost, termination and
-        state maps, where not given), else the env's own quadratic cost
-        (``env.unwrapped.cost_Q/cost_R``, as ``mbtsr/TwoLinkArm-v0`` provides), else a reward
-        learned from the env's rewards (``config.reward``, refit after every model update;
-        the evaluation then has no oracle). ``"learned"``: learn the reward even for an env
-        that :data:`agents.tasks.TASKS` knows.
+        operations. ``None``: the registry's task for the env's id, else the env's own cost,
+        else a learned reward; ``"learned"``: a learned reward (docs/agent.md, "The cost").
     :param state_fn: ``obs -> model state`` (numpy); with ``obs_fn``.
-    :param obs_fn: ``(state, obs_ref) -> obs`` (CasADi-compatible), the inverse map used to
-        evaluate ``cost_fn`` on predicted states.
-    :param terminal_cost_fn: ``obs -> scalar`` (CasADi), the cost of a plan's last predicted
-        observation (x ``config.planner.terminal_weight``; default: the stage cost at zero action).
+    :param obs_fn: ``(state, obs_ref) -> obs`` (CasADi-compatible), the inverse map for the cost.
+    :param terminal_cost_fn: ``obs -> scalar`` (CasADi) of a plan's last predicted observation.
     :param termination_fn: ``obs [..., obs_dim] -> bool [...]`` (numpy): where the env would
-        terminate; the planner (iLQR or CEM) adds no cost after a predicted termination.
-        Without one the planner does not know that episodes end (see docs/troubleshooting.md).
+        terminate; the planner adds no cost after a predicted termination.
     :raises ValueError: at construction for non-Box spaces, an unbounded action space, a cost
         or maps that do not fit the env's dimensions, a bad config.
     """
@@ -121,12 +91,9 @@ class JacPropAgent(SB3Predictor):
             "terminal_cost_fn": terminal_cost_fn, "termination_fn": termination_fn})
 
     def freeze(self) -> None:
-        """Train -> freeze -> plan: the controller plans with an immutable numpy copy of the
-        ensemble (float32 planning kernels), taken after each training round (and at
-        construction / load): the MPC of ``config.planner`` (:func:`agents.planning.make_policy`)
-        on the ensemble mean, or CEM on its trajectory-sampling view
-        (``config.planner.propagation="ts"``). Training rollouts use
-        ``collection.explore_weight``'s directed exploration when it is > 0."""
+        """A frozen numpy copy of the ensemble (after each update, construction, load) and the
+        planners on it (:func:`agents.planning.make_policy`): ``actor`` (evaluation, ``predict``)
+        and ``explorer`` (training rollouts, with ``collection.explore_weight``)."""
         cfg = self.config
         self.planning_model = self.model.freeze()
         model = self.planning_model
@@ -142,35 +109,12 @@ class JacPropAgent(SB3Predictor):
             explore_on=cfg.collection.explore_on, **common)
 
     # ------------------------------------------------------------------ the parts' state
-    @property
-    def policy(self) -> MPCPolicy:
-        """The MPC policy that :meth:`predict` re-solves (``self.actor.policy``)."""
-        return self.actor.policy
-
-    @property
-    def ltv_lambdas(self) -> list[float]:
-        """The LTV smoothness weight of every episode (NaN without LTV labels)."""
-        return self.labeler.lambdas
-
-    @property
-    def ltv_models(self) -> list[LTVModel]:
-        """The JacProp labels: one LTV model per episode (with LTV regularization)."""
-        return self.labeler.models
-
-    @property
-    def optimizer_state(self) -> dict | None:
-        """Adam's state, carried from update to update."""
-        return self.trainer.optimizer_state
-
-    @property
-    def eval_targets(self) -> list[np.ndarray] | None:
-        """The evaluation targets (``None`` before the first evaluation or without targets)."""
-        return self.evaluator.eval_targets
-
-    @property
-    def oracle_costs(self) -> np.ndarray | None:
-        """The oracle's per-episode evaluation costs (``None`` until computed, or no oracle)."""
-        return self.evaluator.oracle_costs
+    policy = _part("actor.policy", "The MPC policy that :meth:`predict` solves.")
+    ltv_lambdas = _part("labeler.lambdas", "The LTV smoothness weight of each episode (NaN: none).")
+    ltv_models = _part("labeler.models", "The JacProp labels (LTV models), one per episode.")
+    optimizer_state = _part("trainer.optimizer_state", "Adam's state, carried between updates.")
+    eval_targets = _part("evaluator.eval_targets", "The evaluation targets (``None``: none yet).")
+    oracle_costs = _part("evaluator.oracle_costs", "The oracle's costs per episode (or None).")
 
     @property
     def oracle_mean(self) -> float | None:
@@ -185,19 +129,15 @@ class JacPropAgent(SB3Predictor):
         *,
         episodes: int | None = None,
     ) -> JacPropAgent:
-        """Run Algorithm 1 (rollout, LTV fit, perturbed data, regularised warm-started model
-        update, planning) for a budget of env steps (as SB3) or of episodes, logging and
+        """Run Algorithm 1 for a budget of env steps (as SB3) or of episodes, logging and
         checkpointing after every episode.
 
         :param total_timesteps: env steps to run now (a loaded agent continues its count); the
             last episode is cut short (truncated) so that the budget is exact.
-        :param callback: SB3 callbacks (a ``BaseCallback``, ``CallbackList`` or list; their
-            ``on_step`` runs after every env step, ``False`` ends the rollout after that step
-            and learning after its episode's update) and/or functions called after every episode
-            with ``{"agent", "row"}`` (``False`` stops learning); see :mod:`agents.callbacks`.
+        :param callback: SB3 callbacks and/or functions of ``{"agent", "row"}`` called after
+            every episode (:mod:`agents.callbacks`).
         :param progress_bar: show a tqdm progress bar (``None``: ``config.progress``).
-        :param episodes: a budget of episodes instead (with ``total_timesteps`` too, whichever
-            is reached first stops).
+        :param episodes: a budget of episodes (with ``total_timesteps``: the first reached).
         :return: ``self``.
         """
         check_budget(total_timesteps, episodes, self.env)
@@ -259,27 +199,20 @@ class JacPropAgent(SB3Predictor):
 
     @property
     def logger(self) -> Logger:
-        """An SB3 ``Logger`` for callbacks: what they ``record`` goes to TensorBoard with the
-        agent's scalars at the end of the episode, at its env step (no other output)."""
+        """An SB3 ``Logger`` for callbacks: their records go to TensorBoard at the episode's end."""
         if self._sb3_logger is None:
             self._sb3_logger = Logger(folder=None, output_formats=[])
         return self._sb3_logger
 
     def _act(self, observation: Any, state: Any) -> tuple[np.ndarray, Any]:
-        """Action of the MPC controller on the learned model (Algorithm 1, step (e)); ``state``
-        is the warm-start plan ``[H, m]`` of the previous call (with
-        ``planner.replan_every > 1`` a :class:`agents.planning.ReplanState`), ``None`` a cold
-        full-horizon plan. Exploration noise is only added in :meth:`learn`."""
+        """Action of the MPC controller on the learned model (Algorithm 1, step (e)); ``state``:
+        the previous call's plan (``None``: a cold full-horizon plan)."""
         return self.actor.predict(observation, state)
 
     def _explore(self, action: np.ndarray) -> np.ndarray:
-        """``predict(..., deterministic=False)``'s exploration noise: white Gaussian with std
-        ``collection.exploration_std`` x half the action range (the per-step spread of the
-        training rollouts' noise, without their ``exploration_window`` correlation) from
-        :attr:`predict_rng` (seeded by ``config.seed``, apart from learning's generator,
-        checkpointed), clipped to the action box. ``predict`` itself is
-        :meth:`agents.planning.SB3Predictor.predict`: one observation ``[obs_dim]`` or a batch
-        ``[B, obs_dim]`` (planned row by row, a state per row)."""
+        """``predict(..., deterministic=False)``'s noise: white Gaussian, std
+        ``collection.exploration_std`` x half the action range, from :attr:`predict_rng`
+        (checkpointed, apart from learning's generator), clipped to the action box."""
         spec = self.spec
         std = self.config.collection.exploration_std * 0.5 * (spec.u_max - spec.u_min)
         return np.clip(action + std * self.predict_rng.standard_normal(action.shape),
@@ -307,13 +240,10 @@ class JacPropAgent(SB3Predictor):
         """Restore an agent saved by :meth:`save` (or a run's ``checkpoint.pt``).
 
         :param path: the file (or a run folder holding ``checkpoint.pt``).
-        :param env: the env to continue learning in (``None``: act only, via :meth:`predict`).
-            Its spaces must match the saved ones.
+        :param env: the env to continue learning in, of the same spaces (``None``: act only).
         :param cost_fn: / ``state_fn``, ``obs_fn``, ``terminal_cost_fn``, ``termination_fn``:
-            the task's functions, which a checkpoint cannot hold. Not needed for a task of the
-            registry (:data:`agents.tasks.TASKS`, recognised at save by its env id and
-            functions: they are taken from there) nor for the env's built-in cost; otherwise
-            a missing one is named in a ``ValueError``. A given function wins.
+            the task's functions, which a checkpoint cannot hold (not needed for a registry task
+            or the env's built-in cost; a missing one is named in a ``ValueError``).
         :param run_dir: where :meth:`learn` writes from now on (default: the saved config's).
         """
         return load_agent(cls, path, env, {
@@ -400,9 +330,8 @@ class JacPropAgent(SB3Predictor):
         return self.evaluator.problem(i)
 
     def oracle_policy(self, env: gym.Env) -> ReplanEvery:
-        """The oracle's controller on ``env``: this agent's planner (kind, horizon, iterations,
-        terminal weight, ``replan_every``, seeded from ``config.seed``) and task functions on the
-        TRUE model of ``env`` (:func:`agents.evaluation.oracle_policy`). SB3-style ``predict``."""
+        """The oracle's controller on ``env``: this agent's planner and task functions on the TRUE
+        model of ``env`` (:func:`agents.evaluation.oracle_policy`)."""
         return self.evaluator.oracle_policy(env)
 
     def compute_oracle(self) -> float | None:

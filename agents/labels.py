@@ -1,10 +1,5 @@
 """JacProp labels: the LTV model ``l_i`` of each new trajectory (Algorithm 1, step (b)), with the
-documented fallbacks for data that cannot support the fit (``docs/agent.md``, "LTV fallbacks").
-
-:class:`JacobianLabeler` keeps one fit and one smoothness weight per episode (the labels that
-:func:`mbtsr.training.train_ensemble` perturbs every epoch); :meth:`JacobianLabeler.label` fits
-the next one.
-"""
+fallbacks for data that cannot support the fit (docs/agent.md, "LTV fallbacks")."""
 
 from __future__ import annotations
 
@@ -51,9 +46,6 @@ class JacobianLabeler:
     :param regularization: its ``ltv_lambda`` (``None``: chosen per episode by
         :func:`mbtsr.ltv.select_lambda`) and ``needs_ltv``.
     :param ltv_prior: > 0 fuses each fit with the model's Jacobians (variance floor).
-
-    ``lambdas`` (one per episode, NaN without LTV labels) and ``models`` (one
-    :class:`~mbtsr.ltv.LTVModel` per episode with LTV labels) are its state.
     """
 
     def __init__(self, state_dim: int, act_dim: int, regularization: RegularizationConfig,
@@ -65,14 +57,12 @@ class JacobianLabeler:
 
     def add(self, traj: Trajectory, model: Any, earlier: list[Trajectory],
             episode: int) -> tuple[float, str]:
-        """Label the new trajectory ``traj`` (when the regularization needs LTV labels) and
-        keep its fit and smoothness weight.
+        """Label the new trajectory ``traj`` (when the regularization needs LTV labels).
 
         :param model: the ensemble before its update (the prior and a fallback's Jacobians).
         :param earlier: the trajectories before ``traj`` (a fallback's pooled fit).
         :param episode: for the warning.
-        :return: ``(lam, note)``: the smoothness weight (NaN without a fit) and the fallbacks
-            taken ("" when none).
+        :return: ``(lam, note)``: the smoothness weight (NaN: no fit) and the fallbacks taken.
         """
         lam, note = math.nan, ""
         if self.regularization.needs_ltv:
@@ -83,21 +73,9 @@ class JacobianLabeler:
 
     def label(self, traj: Trajectory, model: Any, earlier: list[Trajectory],
               episode: int = 0) -> tuple[LTVModel, float, str]:
-        """The LTV model ``l_i`` of ``traj``, with documented fallbacks:
+        """The LTV model ``l_i`` of ``traj``, with the fallbacks of docs/agent.md ("LTV
+        fallbacks"), each warned (``RuntimeWarning``) and returned as ``note``.
 
-        1. ``regularization.ltv_lambda=None`` (automatic) needs more transitions than
-           regressors (``T > n + m``); a shorter episode (early termination) reuses the median
-           of the earlier selections, or the regressor scale for the very first episode.
-        2. Regressors that do not span their space (observation coordinates that are constant
-           within the episode, such as a goal position, or an unexcited input) make the
-           smooth fit singular: it is repeated with a weak Gaussian prior on the first
-           Jacobian (``fit_ltv(..., P0=...)``, 1e-6 of the data's scale), which fixes the
-           unidentified directions at zero and leaves the identified ones unchanged.
-        3. A trajectory of one transition has no smoothness to exploit: it is labelled by the
-           model's own Jacobians once the model is trained, else by one time-invariant
-           ridge least-squares fit pooled over all episodes so far.
-
-        Every fallback is logged as a ``RuntimeWarning`` and returned as ``note``.
         :return: ``(model, lam, note)`` (``A [T, n, n]``, ``B [T, n, m]``).
         """
         notes: list[str] = []
@@ -146,9 +124,8 @@ class JacobianLabeler:
     def _fit_segment(
         self, traj: Trajectory, lam: float, model: Any, notes: list[str]
     ) -> tuple[np.ndarray, np.ndarray] | None:
-        """``(A [T, n, n], B [T, n, m])`` of the smooth LTV fit of ``traj`` (weak prior on the
-        first Jacobian if the regressors are degenerate), fused with the model's Jacobians
-        (``ltv_prior``); ``None`` if even the weak prior cannot make it solvable."""
+        """``(A [T, n, n], B [T, n, m])`` of the smooth LTV fit of ``traj`` (fallback 2), fused
+        with the model's Jacobians (``ltv_prior``); ``None`` if it stays unsolvable."""
         n = self.n
         try:
             ltv = fit_ltv(traj, lam)
@@ -174,8 +151,8 @@ class JacobianLabeler:
         return np.asarray(ltv.A), np.asarray(ltv.B)
 
     def select_lambda(self, traj: Trajectory, notes: list[str] | None = None) -> float:
-        """``regularization.ltv_lambda``, or its automatic choice for ``traj`` (see
-        :meth:`label`; a fallback appends its reason to ``notes``)."""
+        """``regularization.ltv_lambda``, or its automatic choice for ``traj`` (fallback 1
+        appends its reason to ``notes``)."""
         if self.regularization.ltv_lambda is not None:
             return float(self.regularization.ltv_lambda)
         # constant state coordinates (a goal in the observation) carry no information on the
@@ -207,8 +184,7 @@ class JacobianLabeler:
 
     def state_dict(self) -> dict[str, Any]:
         """The checkpoint's fields: ``ltv_lambdas`` and ``ltv_models`` (``A``, ``B``, ``lam``;
-        stored, not refitted: a fit fused with the model prior depends on its episode's
-        model)."""
+        stored, not refitted)."""
         return {"ltv_lambdas": list(self.lambdas),
                 "ltv_models": [{"A": m.A, "B": m.B, "lam": m.lam} for m in self.models]}
 
@@ -220,9 +196,8 @@ class JacobianLabeler:
 
 
 def light_ltv(A: np.ndarray, B: np.ndarray, lam: float = math.nan) -> LTVModel:
-    """An LTV model that keeps ``A [T, n, n]``, ``B [T, n, m]`` only (what the perturbed data
-    need); its ``cov`` is a zero-memory view of zeros (the posterior covariance is used once,
-    for the prior fusion, and would cost ``T n (n+m)^2`` numbers per episode to keep)."""
+    """An LTV model that keeps ``A [T, n, n]``, ``B [T, n, m]`` only; its ``cov`` is a
+    zero-memory view of zeros."""
     T, n, m = B.shape
     cov = np.broadcast_to(np.zeros((), dtype=float), (T, n, n + m, n + m))
     return LTVModel(A, B, None, cov, lam=0.0 if not math.isfinite(lam) else lam)

@@ -1,7 +1,5 @@
-"""Model training (Algorithm 1, steps (c) + (d)): the ensemble is trained further on ALL data so
-far with the JacProp labels, warm-started (weights and Adam state carried over), through
-:func:`mbtsr.training.train_ensemble`; and the model's errors on new data before an update.
-"""
+"""Model training (Algorithm 1, steps (c) + (d)): warm-started updates on ALL data so far with the
+JacProp labels (:func:`mbtsr.training.train_ensemble`), and the model's errors on new data."""
 
 from __future__ import annotations
 
@@ -13,6 +11,7 @@ import numpy as np
 
 from mbtsr.ensemble import DynamicsEnsemble
 from mbtsr.ltv import LTVModel
+from mbtsr.metrics import jacobian_error, prediction_rms
 from mbtsr.training import RegularizationConfig, TrainConfig, TrainHistory, train_ensemble
 from mbtsr.trajectory import Trajectory
 
@@ -26,8 +25,6 @@ class ModelTrainer:
     :param training: the training settings (its ``seed`` is replaced per update).
     :param regularization: the tangent-space regularization.
     :param renormalize: refit the input/output normalization to all data before each update.
-
-    ``optimizer_state`` (Adam's, carried from update to update) is its state.
     """
 
     def __init__(self, model: DynamicsEnsemble, training: TrainConfig,
@@ -62,15 +59,12 @@ class ModelTrainer:
 def model_errors(model: DynamicsEnsemble, traj: Trajectory,
                  true_env: Any = None) -> tuple[float, float]:
     """One-step RMS of the ensemble mean on ``traj`` and the paper's Jacobian error (eq.
-    jacerr) against ``true_env.linearize_trajectory`` (or ``linearize``); NaN before the model
-    has seen data, or without ``true_env`` or its linearization.
+    jacerr); NaN before the model has seen data, or without a linearization.
 
-    :param true_env: an unwrapped env, ideally with ``linearize_trajectory(x [T, n], u [T, m])``
-        or ``linearize(x, u)``, or ``None``.
+    :param true_env: an unwrapped env with ``linearize_trajectory(x [T, n], u [T, m])`` or
+        ``linearize(x, u)``, or ``None``.
     :return: ``(one_step_rms, jacobian_error)``.
     """
-    from mbtsr.metrics import jacobian_error, prediction_rms
-
     if not model.is_normalized:
         return math.nan, math.nan
     one_step = float(prediction_rms(model, traj))

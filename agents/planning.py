@@ -1,21 +1,8 @@
-"""Planner settings become an MPC policy in ONE place: :func:`make_policy`.
-
-A :class:`~agents.config.PlannerConfig` (kind, horizon, iterations, CEM settings, ``replan_every``,
-``replan_feedback``), the task's cost and a planning model (the agent's frozen ensemble or an
-env's TRUE model, for the oracle) give a policy with Stable-Baselines3's
-``predict(obs, state, episode_start)``:
-
-* :class:`MPCPolicy`: one :class:`mbtsr.mpc.MPC` solve per call from the observation's model
-  state; its recurrent ``state`` is the rest of the plan ``[H, m]``;
-* :class:`TrueStatePolicy`: the same, planning from a live MuJoCo env's TRUE state (the oracle);
-* :class:`ReplanEvery`: executes each plan for ``replan_every`` steps; its state is a
-  :class:`ReplanState` (plan, age, and with ``replan_feedback`` the plan's states and gains).
-
-Every value flows one way, from the config into the built objects (the horizon too): nothing is
-read back from an MPC or an optimizer's options.
-
-iLQR's options are :class:`mbtsr.ilqr.ILQROptions`' own defaults (``tol_fun_rel=0``, as the
-documented agent and oracle numbers were produced), the same as :class:`mbtsr.mpc.MPC`'s.
+"""Planner settings become an MPC policy in ONE place, :func:`make_policy` (docs/agent.md, "The
+agent as parts"): :class:`MPCPolicy` (one solve per call, its state the rest of the plan),
+:class:`TrueStatePolicy` (the oracle's, from a live MuJoCo env's true state) and
+:class:`ReplanEvery` (each plan executed for ``replan_every`` steps). Values flow one way, from
+the config into the built objects.
 """
 
 from __future__ import annotations
@@ -37,7 +24,7 @@ from mbtsr.cem_ilqr import CEMILQROptions, cem_ilqr
 from mbtsr.costs import CasadiCost
 from mbtsr.ilqr import ILQROptions, ilqr
 from mbtsr.mpc import MPC, MPCOptions
-from mbtsr.validation import as_array, check_callable
+from mbtsr.validation import as_array, check_callable, check_int
 
 __all__ = ["MPCPolicy", "ReplanEvery", "ReplanState", "SB3Predictor", "TrueStatePolicy",
            "make_policy", "planner_cost", "solver"]
@@ -45,12 +32,10 @@ __all__ = ["MPCPolicy", "ReplanEvery", "ReplanState", "SB3Predictor", "TrueState
 
 def planner_cost(task_cost: ObservationCost | LearnedTask, terminal_weight: float = 1.0
                  ) -> CasadiCost:
-    """The planner's :class:`mbtsr.costs.CasadiCost` of a task (of a
-    :class:`~agents.task_setup.LearnedTask`: its current learned reward's), compiled once: stage
-    ``cost_fn(obs_fn(s, p), a)`` and terminal ``terminal_weight * cost_fn(obs_fn(s, p), 0)`` on
-    the model state ``s``, with the reference observation ``p = obs [obs_dim]`` as the cost
-    parameter (for the arm only its target entries matter). A new target is a new ``params``,
-    not a new function."""
+    """The planner's :class:`mbtsr.costs.CasadiCost` of a task (a
+    :class:`~agents.task_setup.LearnedTask`'s current reward), compiled once: stage
+    ``cost_fn(obs_fn(s, p), a)`` and ``terminal_weight`` x the terminal cost on the model state
+    ``s``, the reference observation ``p = obs [obs_dim]`` its parameter."""
     if isinstance(task_cost, LearnedTask):
         return task_cost.planner_cost(terminal_weight)
     n, m, d = task_cost.state_dim, task_cost.spec.act_dim, task_cost.spec.obs_dim
@@ -66,8 +51,7 @@ def solver(
     planner: PlannerConfig, seed: int = 0, *, explore_weight: float = 0.0,
     explore_on: str = "state", particles: int | None = None,
 ) -> tuple[Callable[..., Any], Any, int]:
-    """``(optimizer, options, iterations per MPC step)`` of :class:`mbtsr.mpc.MPC` for
-    ``planner.kind``, built from the config's plain fields.
+    """``(optimizer, options, iterations per MPC step)`` of :class:`mbtsr.mpc.MPC` for ``planner``.
 
     :param seed: seeds CEM's samples (the agent's and the oracle's ``config.seed``).
     :param explore_weight: CEM's disagreement bonus (training rollouts; refused for iLQR).
@@ -105,8 +89,7 @@ def make_policy(
     true_state_env: gym.Env | None = None,
 ) -> ReplanEvery:
     """The agent's and the oracle's controller: ``MPC(solver(planner), cost, model,
-    planner.horizon)`` in the env's action box, as an SB3-style policy that re-plans every
-    ``planner.replan_every`` steps.
+    planner.horizon)`` in the action box, re-planned every ``planner.replan_every`` steps.
 
     :param planner: the planner settings.
     :param model: a planning model (a frozen ensemble, a true model).
@@ -161,9 +144,7 @@ class SB3Predictor(abc.ABC):
             for a batch, the list of the rows' states), or ``None`` (cold start).
         :param episode_start: ``True`` at the first step of an episode (for a batch ``[B]``
             flags, one per row): a cold start.
-        :param deterministic: ``False`` adds the policy's exploration noise (:meth:`_explore`:
-            none for an MPC policy; the agent's is documented at
-            :meth:`agents.jacprop_agent.JacPropAgent._explore`).
+        :param deterministic: ``False`` adds the policy's exploration noise (:meth:`_explore`).
         :return: ``(action [m], next_state)``, for a batch ``(actions [B, m], [B] states)``.
         """
         obs = np.asarray(observation)
@@ -194,21 +175,15 @@ class SB3Predictor(abc.ABC):
 
 
 class MPCPolicy(SB3Predictor):
-    """Stable-Baselines3's ``predict`` on observations for an :class:`mbtsr.mpc.MPC`.
-
-    Maps the observation to the model state (``task_cost.state_map``) and to the cost
-    parameters (the observation itself: see :func:`planner_cost`), solves from there, and
-    returns the first action with the rest of the plan, shifted by one step, as the recurrent
-    ``state`` ``[H, m]`` (the warm start of the next call), so ``predict`` is a pure function of
-    its arguments. Built by :func:`make_policy`.
+    """Stable-Baselines3's ``predict`` for an :class:`mbtsr.mpc.MPC`: solves from the
+    observation's model state (the observation the cost's parameter) and returns the first
+    action with the rest of the plan, shifted, as the recurrent ``state`` ``[H, m]``.
 
     :param mpc: the controller (its cost from :func:`planner_cost`).
     :param task_cost: the task (observation/state maps, env spec).
     :param horizon: the plan length ``H`` (``planner.horizon``, the MPC's).
-    :param termination_fn: ``obs [..., obs_dim] -> bool [...]``, where the env would end the
-        episode, or ``None``. The optimizer (iLQR or CEM) then scores plans on the episode's
-        own cost: stage costs after a predicted termination are dropped
-        (:func:`mbtsr.costs.truncated_total`).
+    :param termination_fn: ``obs [..., obs_dim] -> bool [...]`` (or ``None``): stage costs
+        after a predicted termination are dropped (:func:`mbtsr.costs.truncated_total`).
     """
 
     def __init__(self, mpc: MPC, task_cost: ObservationCost, horizon: int,
@@ -249,8 +224,7 @@ class MPCPolicy(SB3Predictor):
                              **self._solve_kwargs(obs))
         self.last_result = res
         U = np.asarray(res.U, dtype=float)
-        action = np.clip(U[0], self.spec.u_min, self.spec.u_max)
-        return action, np.concatenate([U[1:], U[-1:]], axis=0)
+        return np.clip(U[0], self.spec.u_min, self.spec.u_max), _shift(U)
 
     def model_state(self, obs: np.ndarray) -> np.ndarray:
         """The planner's start state for this observation (the task's state map)."""
@@ -276,11 +250,9 @@ class MPCPolicy(SB3Predictor):
 
 
 class TrueStatePolicy(MPCPolicy):
-    """:class:`MPCPolicy` that plans from the env's TRUE physical state instead of the
-    observation: the oracle of a Gymnasium MuJoCo env. Each call reads ``qpos, qvel`` of the live
-    ``env`` (after ``reset`` its initial state; mocap poses too, e.g. a target marker) and
-    starts the plan at ``model.lift(x) = [x, observation(x)]`` (an
-    :class:`envs.mujoco_model.ObservedDynamics`). Only valid inside episodes of that ``env``."""
+    """:class:`MPCPolicy` that plans from the live ``env``'s TRUE state (``qpos, qvel``, mocap
+    poses), lifted by an :class:`envs.mujoco_model.ObservedDynamics`: the oracle of a MuJoCo env.
+    Only valid inside episodes of that ``env``."""
 
     def __init__(self, mpc: MPC, task_cost: ObservationCost, horizon: int, env: gym.Env,
                  termination_fn: Callable[[np.ndarray], np.ndarray] | None = None) -> None:
@@ -314,26 +286,21 @@ class ReplanState:
 
     def shifted(self) -> ReplanState:
         """The state one step later: every array shifted by one row (the last repeated)."""
-        def shift(a: np.ndarray | None) -> np.ndarray | None:
-            return None if a is None else np.concatenate([a[1:], a[-1:]], axis=0)
+        return ReplanState(_shift(self.plan), self.age + 1, _shift(self.states),
+                           _shift(self.gains))
 
-        return ReplanState(shift(self.plan), self.age + 1, shift(self.states),
-                           shift(self.gains))
+
+def _shift(a: np.ndarray | None) -> np.ndarray | None:
+    """``a`` one row later: ``a[1:]`` with the last row repeated (``None`` stays ``None``)."""
+    return None if a is None else np.concatenate([a[1:], a[-1:]], axis=0)
 
 
 class ReplanEvery(SB3Predictor):
-    """Feedback-limited MPC: each plan of ``policy`` is executed for ``k`` steps before the
-    next solve (warm-started with the rest of the plan). ``k = 1`` is ``policy`` itself (its
-    state is the plan ``[H, m]``); otherwise the state is a :class:`ReplanState`.
-
-    Between solves the plan's controls ``U_t`` are played open loop or, with ``feedback``,
-    through iLQR's local policy ``u_t = clip(U_t + K_t (x_t - X_t))``: ``x_t`` is the
-    planner's start state for the observation (``policy.model_state``: the learned model's
-    state, or the oracle's true state), ``X`` and ``K`` are the last solve's: ``K`` from its
-    last backward pass, linearized about the trajectory before its final line search, ``X``
-    the accepted trajectory. A solve without gains (CEM) or with a non-finite ``X`` or ``K``
-    (a failed solve) plays open loop, and so does a correction that comes out non-finite
-    (a model state far off the plan).
+    """Each plan of ``policy`` executed for ``k`` steps before the next solve; ``k = 1`` is
+    ``policy`` itself (its state the plan ``[H, m]``), else the state is a :class:`ReplanState`.
+    Between solves the controls ``U_t`` are played open loop or, with ``feedback``, through
+    iLQR's local policy ``clip(U_t + K_t (x_t - X_t))`` (open loop without finite gains;
+    docs/agent.md, the ``planner`` row of the defaults).
 
     :param policy: the :class:`MPCPolicy` re-solved every ``k`` steps.
     :param k: steps per plan (``planner.replan_every``).
@@ -369,14 +336,11 @@ class ReplanEvery(SB3Predictor):
         if np.shape(state.plan) != (H, m) or not np.all(np.isfinite(state.plan)):
             raise ValueError(f"state.plan must be a finite [H={H}, m={m}] plan, got shape "
                              f"{list(np.shape(state.plan))}")
-        if isinstance(state.age, bool) or not isinstance(state.age, int) or state.age < 1:
-            raise ValueError(f"state.age must be an integer >= 1, got {state.age!r}")
+        check_int("state.age", state.age, 1)
 
     def _reference(self) -> tuple[np.ndarray | None, np.ndarray | None]:
-        """``(states [H, n], gains [H, m, n])`` of the last solve for the steps after the
-        first, shifted as the plan (the last row repeated); ``(None, None)``, which plays open
-        loop, without ``feedback``, when the solve has no gains (CEM) or when its ``X`` or ``K``
-        is not finite."""
+        """``(states [H, n], gains [H, m, n])`` of the last solve for the steps after the first
+        (shifted as the plan); ``(None, None)`` (open loop) without ``feedback`` or finite gains."""
         res = self.policy.last_result
         K = getattr(res, "K", None)
         if not self.feedback or K is None:
@@ -386,4 +350,4 @@ class ReplanEvery(SB3Predictor):
         K = np.asarray(K, dtype=float).reshape(H, m, n)
         if not (np.all(np.isfinite(X)) and np.all(np.isfinite(K))):
             return None, None
-        return X[1:], np.concatenate([K[1:], K[-1:]], axis=0)
+        return X[1:], _shift(K)

@@ -1,8 +1,6 @@
-"""The agent's task from its constructor arguments: the cost and the observation <-> model-state
-maps (given, saved with a checkpoint, the registry's task for the env's id, the env's own, or
-a reward learned from the env's rewards), checked on probe observations before
-any learning starts, so that a wrong function fails at construction with a clear message.
-"""
+"""The agent's task from its constructor arguments (docs/agent.md, "The cost: a registry task, a
+learned reward, or yours"), checked on probe observations at construction, and
+:func:`build_agent`, which gives the agent its parts."""
 
 from __future__ import annotations
 
@@ -32,9 +30,8 @@ class ResolvedTask:
         reward is learned from the env's rewards (:class:`LearnedTask`).
     :param state_map: observation <-> model state.
     :param terminal_cost_fn: / ``termination_fn``: the given ones, else the registry task's.
-    :param source: where the cost comes from: ``"given"``, ``"saved"``, ``"registry"`` (a task
-        of :data:`agents.tasks.TASKS`, see ``registry``), ``"env"`` (``cost_Q``/``cost_R``) or
-        ``"learned"``.
+    :param source: where the cost comes from: ``"given"``, ``"saved"``, ``"registry"``, ``"env"``
+        (``cost_Q``/``cost_R``) or ``"learned"``.
     :param registry: the name of the registry task (``source="registry"``), else ``None``.
     """
 
@@ -61,18 +58,11 @@ def resolve_task(
     terminal_cost_fn: Callable | None = None,
     termination_fn: Callable | None = None,
 ) -> ResolvedTask:
-    """The task from the constructor's arguments, first match wins:
-
-    0. ``cost_fn="learned"`` (or a checkpoint of a learned reward): learn the reward, even for
-       an env that :data:`agents.tasks.TASKS` knows;
-    1. ``cost_fn`` given: it (with ``state_fn``/``obs_fn``);
-    2. a saved :class:`~agents.tasks.QuadraticTargetCost` (a checkpoint's task);
-    3. the task of :data:`agents.tasks.TASKS` for the env's id (or the saved task's
-       ``registry`` name): its cost, terminal cost, termination and state maps, each only where
-       the caller gave none;
-    4. the env's own quadratic cost (``env.unwrapped.cost_Q``/``cost_R``);
-    5. none: ``cost_fn=None``, the agent learns the reward from the env's rewards.
-    """
+    """The task from the constructor's arguments, first match wins: ``cost_fn="learned"`` (or
+    a checkpoint of a learned reward), a given ``cost_fn``, a saved
+    :class:`~agents.tasks.QuadraticTargetCost`, the registry's task for the env's id (each
+    function only where the caller gave none), the env's own quadratic cost, else a learned
+    reward (docs/agent.md, "The cost")."""
     own = {"terminal_cost_fn": terminal_cost_fn, "termination_fn": termination_fn}
     saved_task = saved_task or {}
     if isinstance(cost_fn, str) or saved_task.get("learned"):
@@ -85,11 +75,10 @@ def resolve_task(
     if cost_fn is not None:
         return ResolvedTask(cost_fn, StateMap(state_fn, obs_fn), **own)
     if saved_task.get("cost") is not None:
-        cost = QuadraticTargetCost.from_dict(saved_task["cost"])
-        if state_fn is None and saved_task.get("state_map") is not None:
-            return ResolvedTask(cost, StateMap.from_dict(saved_task["state_map"]), **own,
-                                source="saved")
-        return ResolvedTask(cost, StateMap(state_fn, obs_fn), **own, source="saved")
+        saved = state_fn is None and saved_task.get("state_map") is not None
+        return ResolvedTask(QuadraticTargetCost.from_dict(saved_task["cost"]),
+                            StateMap.from_dict(saved_task["state_map"]) if saved
+                            else StateMap(state_fn, obs_fn), **own, source="saved")
     env_id = getattr(getattr(env, "spec", None), "id", None)
     task = (TASKS[saved_task["registry"]]() if saved_task.get("registry") in TASKS
             else registry_task(env_id))
@@ -109,10 +98,9 @@ def resolve_task(
 
 
 class LearnedTask:
-    """Stands where :class:`~agents.tasks.ObservationCost` does for an env without a written
-    cost: the planner's cost is ``-r_hat(s, a)`` of a :class:`~mbtsr.reward.RewardModel`
-    trained on the env's rewards (:class:`~mbtsr.reward.LearnedRewardCost`), on the model state
-    ``s = state_map.state(obs)``; before its first fit the reward is 0 everywhere.
+    """Stands where :class:`~agents.tasks.ObservationCost` does without a written cost: the
+    planner's cost is ``-r_hat(s, a)`` of a :class:`~mbtsr.reward.RewardModel` on the model
+    state (0 before its first fit).
 
     :param state_map: observation <-> model state.
     :param spec: the env's :class:`~agents.tasks.EnvSpec`.
@@ -136,14 +124,13 @@ class LearnedTask:
         return self.model.freeze()
 
     def planner_cost(self, terminal_weight: float) -> LearnedRewardCost:
-        """The planner's cost (the observation is its ignored parameter, as for a written
-        cost)."""
+        """The planner's cost (the observation is its ignored parameter)."""
         return LearnedRewardCost(self.frozen(), terminal_weight=terminal_weight,
                                  param_dim=self.spec.obs_dim)
 
     def fit(self, trajectories: list[Trajectory]) -> RewardFit | None:
-        """Fit (warm start) on every transition ``(s_t, a_t) -> r_t`` of ``trajectories``
-        (rewards in ``meta["rewards"]``); ``None`` while they hold too few for the hold-out."""
+        """Fit (warm start) on every ``(s_t, a_t) -> r_t`` of ``trajectories``; ``None`` while
+        they hold too few for the hold-out."""
         S = np.concatenate([t.x[:-1] for t in trajectories])
         A = np.concatenate([t.u for t in trajectories])
         r = np.concatenate([np.asarray(t.meta["rewards"], dtype=float) for t in trajectories])
@@ -153,8 +140,7 @@ class LearnedTask:
         return self.model.fit(S, A, r)
 
     def on_observations(self, obs: np.ndarray, actions: np.ndarray) -> np.ndarray:
-        """Per-step learned cost ``-r_hat`` of a recorded episode: ``obs [T, obs_dim]``,
-        ``actions [T, m]`` -> ``[T]``."""
+        """Per-step learned cost ``-r_hat`` of an episode (``obs [T, obs_dim]``, ``actions``)."""
         return -self.frozen().predict(self.state_map.state(obs), np.asarray(actions, float))
 
 
@@ -168,8 +154,8 @@ def probe_observations(env: gym.Env | None, shape: tuple[int, ...]) -> np.ndarra
 
 
 def check_state_map(state_map: StateMap, env: gym.Env | None, spec: EnvSpec) -> np.ndarray:
-    """Call the state map on one observation and on a batch of three (it is called on whole
-    episodes ``[T+1, obs_dim]``) and check that the batch gives the rows of the single calls.
+    """Check the state map on one observation and on a batch of three (whole episodes are
+    mapped at once): the batch must give the rows of the single calls.
 
     :return: the state of the first probe ``[n]``.
     :raises ValueError: a map that fails, returns no 1-D state or maps a batch differently.
@@ -230,8 +216,7 @@ def build_agent(agent: Any, env: gym.Env | None, config: Any, spec: EnvSpec,
     :param env: the env (``None``: an act-only loaded agent).
     :param config: its :class:`agents.config.AgentConfig`.
     :param spec: the env's :class:`agents.tasks.EnvSpec`.
-    :param fns: the task functions by name (``cost_fn``, ``state_fn``, ``obs_fn``,
-        ``terminal_cost_fn``, ``termination_fn``; ``None`` where not given).
+    :param fns: the task functions by name (``None`` where not given).
     :param saved_task: a checkpoint's serialised task, or ``None``.
     """
     # the parts import this module (planning: LearnedTask), so they are imported here

@@ -1,66 +1,14 @@
-"""Reusable task definitions: an env id, a cost on ``(observation, action)`` written as a user
-would (the env's own reward terms, with CasADi operations), and the env's termination rule.
+"""Reusable task definitions (:class:`Task`, the registry :data:`TASKS`, the benchmark suite's
+:data:`SUITE`) and how the agent sees a task (:class:`EnvSpec`, :class:`StateMap`,
+:class:`ObservationCost`); the task's functions are documented in docs/agent.md ("The cost: a
+registry task, a learned reward, or yours").
 
-A task is data (:class:`Task`) that the agent, the true-model oracle, the benchmark suite, the
-SB3 baselines and the PETS peer all consume unchanged (a task's ``state_fn``/``obs_fn``, the
-agent's model state, concern the agent alone: SB3, PETS and the small-data study work on the
-observation)::
-
-    from agents import AgentConfig, JacPropAgent
-    from agents.tasks import pusher
-
-    task = pusher()
-    env = task.make_env()
-    agent = JacPropAgent(env, AgentConfig(), **task.agent_kwargs())
-
-Conventions shared by every task here:
-
-* ``cost_fn(obs, action)`` is the NEGATED per-step reward of the env, computed from the
-  observation the env returns after the step and the action. Where the reward uses a quantity
-  the observation does not hold exactly (a body position from before the last substep), the
-  cost uses the observation's closest equivalent and says so.
-* Envs with an alive bonus (the inverted pendulums) terminate when the pole falls and then pay
-  no more; their cost subtracts the bonus, so that staying alive is cheaper than ending (a
-  planner that drops the costs after a predicted termination would otherwise prefer to fall).
-* ``termination_fn(obs)`` is numpy, batched ``obs [..., obs_dim] -> bool [...]``, the env's own
-  rule on the observation.
-* Norms in rewards are smoothed (``sqrt(|v|^2 + 1e-4)``) so that gradients exist at 0.
-
-The functions take no arguments but the env's constructor keywords (``**make``), so a user
-starts from a task and changes what the env offers (``inverted_pendulum(max_episode_steps=200)``).
-
-The registry (:data:`TASKS`, :func:`make_task`) names every task; :data:`SUITE` holds the
-benchmark suite's tasks: registry tasks with the suite's env keywords, budget, evaluation period
-and task-specific agent settings (read by :mod:`agents.experiments.bench_suite`, the PETS peer
-and the SB3 baselines).
-
-How the agent sees a task (:class:`EnvSpec`, :class:`StateMap`, :class:`ObservationCost`): the
-user describes the control task on the env's own terms:
-
-* ``cost_fn(obs, action) -> scalar``: a CasADi-compatible stage cost on an observation
-  ``obs: [obs_dim]`` and an action ``action: [act_dim]`` (env units). It is called once with
-  CasADi ``SX`` column vectors to build the planner's cost, so write it with ``casadi``
-  operations (``obs[0]``, ``ca.sumsqr``, ``ca.cos``, ``ca.mtimes`` ...).
-* optionally ``terminal_cost_fn(obs) -> scalar`` (CasADi-compatible): the cost of the last
-  predicted observation of a plan (default: the stage cost at zero action), scaled by
-  ``AgentConfig.planner.terminal_weight``.
-* optionally ``state_fn(obs) -> state`` (numpy) and ``obs_fn(state, obs_ref) -> obs``
-  (CasADi-compatible): the model learns the dynamics of ``state``, and the cost of a predicted
-  state is ``cost_fn(obs_fn(state, obs_ref), action)``, where ``obs_ref`` is the current real
-  observation (it supplies parts of the observation the model does not predict, such as a
-  target). Without them the model state is the observation itself.
-  **Contract:** ``state_fn`` is applied to whole episodes, so it must map a batch
-  ``obs [B, obs_dim] -> state [B, n]`` row by row as well as one ``obs [obs_dim] -> [n]``
-  (write it with ``obs[..., i]``); ``obs_fn`` is called once on CasADi symbols
-  ``state [n]``, ``obs_ref [obs_dim]`` and must return ``[obs_dim]``. Both are checked at
-  construction (on one observation and on a batch of three).
-* optionally ``termination_fn(obs) -> bool`` (numpy, batched ``[..., obs_dim] -> [...]``):
-  predicted observations where the env would terminate; the planner (iLQR's line search, CEM's
-  ranking) stops accumulating cost after a predicted termination (as PETS does), see
-  :func:`mbtsr.costs.truncated_total`.
-
-Everything is checked at construction: non-Box spaces, unbounded actions, a cost that fails on
-or does not return a scalar for the given dimensions, maps that return the wrong sizes.
+Conventions of the tasks here: ``cost_fn(obs, action)`` is the env's NEGATED per-step reward on
+the observation after the step (the closest equivalent where the reward uses another quantity,
+said so); envs with an alive bonus subtract it, so that staying alive is cheaper than ending;
+``termination_fn`` is numpy, batched ``obs [..., obs_dim] -> bool [...]``, the env's own rule;
+norms are smoothed (``sqrt(|v|^2 + 1e-4)``). A task function takes the env's constructor
+keywords (``inverted_pendulum(max_episode_steps=200)``).
 """
 
 from __future__ import annotations
@@ -97,6 +45,10 @@ __all__ = [
 ]
 
 
+#: the task functions, by their argument names (:class:`agents.JacPropAgent`'s)
+FUNCTION_NAMES = ("cost_fn", "terminal_cost_fn", "termination_fn", "state_fn", "obs_fn")
+
+
 @dataclass(frozen=True)
 class Task:
     """A control task on a Gymnasium env.
@@ -104,21 +56,16 @@ class Task:
     :param name: short name (``"pusher"``).
     :param env_id: the registered Gymnasium id (``"Pusher-v5"``).
     :param make_kwargs: keyword arguments of ``gymnasium.make``.
-    :param cost_fn: ``(obs [obs_dim], action [act_dim]) -> scalar`` in CasADi operations, or
-        ``None`` for envs that define their own cost (``mbtsr/TwoLinkArm-v0``).
-    :param terminal_cost_fn: ``obs -> scalar`` (CasADi) on the last predicted observation of a
-        plan, or ``None`` (the stage cost at zero action).
+    :param cost_fn: ``(obs, action) -> scalar`` (CasADi), or ``None`` (the env's own cost).
+    :param terminal_cost_fn: ``obs -> scalar`` (CasADi), or ``None``.
     :param termination_fn: ``obs [..., obs_dim] -> bool [...]`` (numpy), or ``None``.
-    :param state_fn: ``obs [..., obs_dim] -> state [..., n]`` (numpy): the model's state, when
-        it should not be the observation itself; ``None``: the observation.
-    :param obs_fn: ``(state [n], obs_ref [obs_dim]) -> obs`` (CasADi), the inverse of
-        ``state_fn`` for the cost (``obs_ref`` supplies what the state leaves out).
-    :param budget: a task of the benchmark suite (:data:`SUITE`): the env steps a learner gets;
-        ``None``: not a suite task.
-    :param eval_every: a suite task: the env steps between evaluations (the learning curve's
-        resolution; an evaluation costs 3 episodes).
+    :param state_fn: ``obs [..., obs_dim] -> state [..., n]`` (numpy), or ``None``.
+    :param obs_fn: ``(state [n], obs_ref [obs_dim]) -> obs`` (CasADi), or ``None``; the five
+        functions are :class:`agents.JacPropAgent`'s arguments of the same names.
+    :param budget: a task of the benchmark suite (:data:`SUITE`): the env steps a learner gets.
+    :param eval_every: a suite task: the env steps between evaluations.
     :param settings: a suite task: the agent settings it runs with (dotted ``AgentConfig``
-        fields), stated before any run.
+        fields).
     """
 
     name: str
@@ -134,25 +81,17 @@ class Task:
     settings: dict[str, Any] = field(default_factory=dict)
 
     def make_env(self, **overrides: Any):
-        """``gymnasium.make(env_id, **make_kwargs, **overrides)`` (``mbtsr/`` ids registered)."""
-        import gymnasium as gym
-
-        if self.env_id.startswith("mbtsr/"):
-            import envs  # noqa: F401  (registers the mbtsr/ ids)
-        return gym.make(self.env_id, **{**self.make_kwargs, **overrides})
+        """``gymnasium.make(env_id, **make_kwargs, **overrides)`` (:func:`gym_make`)."""
+        return gym_make(self.env_id, **{**self.make_kwargs, **overrides})
 
     def agent_kwargs(self) -> dict[str, Any]:
         """The task's functions as keyword arguments of :class:`agents.JacPropAgent` (and of
         :func:`agents.evaluation.oracle_policy`)."""
-        return {"cost_fn": self.cost_fn, "terminal_cost_fn": self.terminal_cost_fn,
-                "termination_fn": self.termination_fn, "state_fn": self.state_fn,
-                "obs_fn": self.obs_fn}
+        return {k: getattr(self, k) for k in FUNCTION_NAMES}
 
     def observation_cost(self) -> Callable[[Any, Any], Any]:
-        """The cost on ``(obs, action)`` in CasADi operations: ``cost_fn``, or for an env that
-        states its own quadratic cost (``env.unwrapped.cost_Q``/``cost_R``, as
-        ``mbtsr/TwoLinkArm-v0``) that cost (:class:`QuadraticTargetCost`, the one the agent
-        builds for it): what peers outside mbtsr score plans with.
+        """The cost on ``(obs, action)`` in CasADi operations: ``cost_fn``, or the env's own
+        quadratic cost (:class:`QuadraticTargetCost`): what peers outside mbtsr score plans with.
 
         :raises ValueError: if the task has no ``cost_fn`` and its env states no cost.
         """
@@ -167,6 +106,15 @@ class Task:
             raise ValueError(f"task {self.name!r} has no cost_fn and its env states no cost "
                              "(env.unwrapped.cost_Q/cost_R)")
         return found[0]
+
+
+def gym_make(env_id: str, **kwargs: Any) -> gym.Env:
+    """``gymnasium.make(env_id, **kwargs)``, the project's ``mbtsr/`` ids registered first."""
+    import gymnasium as gym
+
+    if env_id.startswith("mbtsr/"):
+        import envs  # noqa: F401  (registers the mbtsr/ ids)
+    return gym.make(env_id, **kwargs)
 
 
 def _smooth_norm(v: Any) -> Any:
@@ -249,10 +197,8 @@ def _double_pendulum_obs(s, obs_ref):
 
 def inverted_double_pendulum(**make: Any) -> Task:
     """InvertedDoublePendulum-v5: its reward terms minus the alive bonus, its termination, and
-    a model state of joint angles and velocities (6 numbers, not the 9 of the observation: on
-    the same 1,746 transitions the held-out one-step error fell from 0.16 to 0.13 of the step
-    and the learned-model MPC held the poles 1.3-8x longer per episode,
-    ``docs/results/idp_state_and_horizon.json``)."""
+    a model state of joint angles and velocities (6 numbers, not the observation's 9: why in
+    docs/troubleshooting.md, ``docs/results/idp_state_and_horizon.json``)."""
     return Task("inverted-double-pendulum", "InvertedDoublePendulum-v5", make,
                 _double_pendulum_cost, termination_fn=_double_pendulum_terminated,
                 state_fn=_double_pendulum_state, obs_fn=_double_pendulum_obs)
@@ -349,25 +295,14 @@ class EnvSpec:
     dt: float | None
 
     def to_dict(self) -> dict[str, Any]:
-        return {
-            "obs_dim": self.obs_dim,
-            "act_dim": self.act_dim,
-            "u_min": self.u_min.tolist(),
-            "u_max": self.u_max.tolist(),
-            "episode_steps": self.episode_steps,
-            "dt": self.dt,
-        }
+        return {f.name: getattr(self, f.name) for f in dataclasses.fields(self)} | {
+            "u_min": self.u_min.tolist(), "u_max": self.u_max.tolist()}
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> EnvSpec:
-        return cls(
-            int(d["obs_dim"]),
-            int(d["act_dim"]),
-            np.asarray(d["u_min"], dtype=float),
-            np.asarray(d["u_max"], dtype=float),
-            int(d["episode_steps"]),
-            None if d.get("dt") is None else float(d["dt"]),
-        )
+        u_min, u_max = (np.asarray(d[k], dtype=float) for k in ("u_min", "u_max"))
+        return cls(int(d["obs_dim"]), int(d["act_dim"]), u_min, u_max, int(d["episode_steps"]),
+                   None if d.get("dt") is None else float(d["dt"]))
 
 
 def env_spec(env: gym.Env, episode_steps: int | None = None) -> EnvSpec:
@@ -401,8 +336,7 @@ def env_spec(env: gym.Env, episode_steps: int | None = None) -> EnvSpec:
     if np.any(u_max <= u_min):
         raise ValueError(f"env.action_space needs high > low, got low={u_min}, high={u_max}")
     if episode_steps is None:
-        spec = getattr(env, "spec", None)
-        episode_steps = getattr(spec, "max_episode_steps", None) if spec is not None else None
+        episode_steps = getattr(getattr(env, "spec", None), "max_episode_steps", None)
         if episode_steps is None:  # envs that truncate themselves (mbtsr/TwoLinkArm-v0)
             episode_steps = getattr(env.unwrapped, "episode_steps", None)
         if episode_steps is None:
@@ -414,25 +348,17 @@ def env_spec(env: gym.Env, episode_steps: int | None = None) -> EnvSpec:
             or episode_steps < 1:
         raise ValueError(f"episode_steps must be an integer >= 1, got {episode_steps!r}")
     dt = getattr(env.unwrapped, "dt", None)
-    return EnvSpec(
-        obs_dim=int(obs_space.shape[0]),
-        act_dim=int(act_space.shape[0]),
-        u_min=u_min,
-        u_max=u_max,
-        episode_steps=int(episode_steps),
-        dt=None if dt is None else float(dt),
-    )
+    return EnvSpec(int(obs_space.shape[0]), int(act_space.shape[0]), u_min, u_max,
+                   int(episode_steps), None if dt is None else float(dt))
 
 
 class StateMap:
     """Observation <-> model-state maps.
 
     :param state_fn: ``obs [..., obs_dim] -> state [..., n]`` (numpy). ``None``: identity.
-    :param obs_fn: ``(state [n], obs_ref [obs_dim]) -> obs [obs_dim]`` (CasADi-compatible).
-        ``None``: identity (requires ``state_fn is None``).
+    :param obs_fn: ``(state [n], obs_ref [obs_dim]) -> obs [obs_dim]`` (CasADi); ``None``: identity.
     :param prefix: serialisable shortcut: the state is ``obs[:prefix]`` and
-        ``obs_fn(s, ref) = [s; ref[prefix:]]`` (used for the two-link arm, whose observation is
-        ``[x (4), target (2)]``).
+        ``obs_fn(s, ref) = [s; ref[prefix:]]`` (the two-link arm's).
     """
 
     def __init__(
@@ -490,9 +416,8 @@ class StateMap:
 
 
 class QuadraticTargetCost:
-    """``c(obs, a) = (x - x_goal)^T Q (x - x_goal) + a^T R a`` with ``x = obs[:n]`` and
-    ``x_goal = [obs[target_index], 0, ...]`` (goal positions from the observation, zero
-    velocities) -- the two-link arm's cost (``reward = -c``). Serialisable.
+    """``c(obs, a) = (x - x_goal)^T Q (x - x_goal) + a^T R a``, ``x = obs[:n]``, ``x_goal =
+    [obs[target_index], 0, ...]``: the two-link arm's cost (``reward = -c``). Serialisable.
 
     :param Q: ``[n, n]`` state weight. :param R: ``[m, m]`` action weight.
     :param target_index: observation indices holding the goal of the first ``len`` states.
@@ -528,10 +453,8 @@ class QuadraticTargetCost:
 
 
 class ObservationCost:
-    """The stage cost ``cost_fn(obs, a)`` compiled to CasADi and composed with the state map.
-
-    Built once; ``stage`` is a ``casadi.Function`` ``(state [n], a [m], obs_ref [obs_dim]) ->
-    cost`` used by the planner, ``on_observations`` evaluates the cost of a real episode.
+    """The stage cost ``cost_fn(obs, a)`` compiled once to CasADi and composed with the state
+    map: ``stage(state [n], a [m], obs_ref [obs_dim])`` for the planner, ``terminal``.
 
     :raises ValueError: if ``cost_fn`` or the map fail for these dimensions or the cost is not
         a scalar.
@@ -554,7 +477,13 @@ class ObservationCost:
         o = ca.SX.sym("obs", spec.obs_dim)
         a = ca.SX.sym("a", spec.act_dim)
         s = ca.SX.sym("s", state_dim)
-        c_obs = _call_cost(cost_fn, o, a, spec)
+        c_obs = _scalar(
+            "cost_fn", cost_fn, o, a,
+            failure=f"cost_fn(obs, action) failed on a symbolic observation of dimension "
+            f"{spec.obs_dim} and action of dimension {spec.act_dim} (does the cost match the "
+            "env's spaces? it must be written with casadi operations)")
+        if c_obs.is_constant():
+            raise ValueError("cost_fn does not depend on the observation or the action")
         self.obs_function = ca.Function("cost_obs", [o, a], [c_obs])
         o_of_s = call_user_fn(
             lambda: ca.SX(state_map.observation(s, o)),
@@ -567,54 +496,42 @@ class ObservationCost:
                 f"got {o_of_s.shape}"
             )
         c_state = ca.substitute(c_obs, o, o_of_s)
-        # p: the reference observation, which supplies what the model does not predict
-        p = o
-        self.stage = ca.Function("cost_state", [s, a, p], [c_state])
+        # o: the reference observation, which supplies what the model does not predict
+        self.stage = ca.Function("cost_state", [s, a, o], [c_state])
         # terminal cost: the user's terminal_cost_fn(obs), else the stage cost at zero action
         self.terminal_cost_fn = terminal_cost_fn
         if terminal_cost_fn is None:
             c_term = ca.substitute(c_state, a, ca.DM.zeros(spec.act_dim))
         else:
             check_callable("terminal_cost_fn", terminal_cost_fn, "obs -> cost")
-            c_term_obs = call_user_fn(
-                lambda: ca.SX(terminal_cost_fn(o)),
+            c_term_obs = _scalar(
+                "terminal_cost_fn", terminal_cost_fn, o,
                 failure=f"terminal_cost_fn(obs) failed on a symbolic observation of dimension "
-                f"{spec.obs_dim} (write it with casadi operations)",
-            )
-            if c_term_obs.shape != (1, 1):
-                raise ValueError(
-                    f"terminal_cost_fn must return a scalar, got shape {c_term_obs.shape}")
+                f"{spec.obs_dim} (write it with casadi operations)")
             c_term = ca.substitute(c_term_obs, o, o_of_s)
-        self.terminal = ca.Function("cost_state_terminal", [s, p], [c_term])
+        self.terminal = ca.Function("cost_state_terminal", [s, o], [c_term])
 
     def on_observations(self, obs: np.ndarray, actions: np.ndarray) -> np.ndarray:
-        """Per-step cost of a recorded episode: ``obs: [T, obs_dim]``, ``actions: [T, m]``
-        -> ``[T]``."""
+        """Per-step cost ``[T]`` of an episode: ``obs [T, obs_dim]``, ``actions [T, m]``."""
         obs = np.asarray(obs, dtype=float)
         actions = np.asarray(actions, dtype=float)
         T = actions.shape[0]
         return np.asarray(self.obs_function.map(T)(obs.T, actions.T)).reshape(T)
 
 
-def _call_cost(cost_fn: Callable, o: ca.SX, a: ca.SX, spec: EnvSpec) -> ca.SX:
+def _scalar(name: str, fn: Callable, *symbols: ca.SX, failure: str) -> ca.SX:
+    """``fn(*symbols)``, a user's cost on CasADi symbols, as a scalar expression; an error names
+    ``name`` (``failure``: the message when ``fn`` raises)."""
     from mbtsr.validation import call_user_fn
 
-    c = call_user_fn(
-        cost_fn, o, a,
-        failure=f"cost_fn(obs, action) failed on a symbolic observation of dimension "
-        f"{spec.obs_dim} and action of dimension {spec.act_dim} (does the cost match the env's "
-        f"spaces? it must be written with casadi operations)",
-    )
+    c = call_user_fn(fn, *symbols, failure=failure)
     try:
         c = ca.SX(c)
     except Exception:
-        raise ValueError(
-            f"cost_fn must return a casadi scalar expression, got {type(c).__name__}"
-        ) from None
+        raise ValueError(f"{name} must return a casadi scalar expression, got "
+                         f"{type(c).__name__}") from None
     if c.shape != (1, 1):
-        raise ValueError(f"cost_fn must return a scalar, got shape {c.shape}")
-    if c.is_constant():
-        raise ValueError("cost_fn does not depend on the observation or the action")
+        raise ValueError(f"{name} must return a scalar, got shape {c.shape}")
     return c
 
 
