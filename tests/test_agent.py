@@ -65,6 +65,7 @@ def tiny_config(changes: dict | None = None, /, **top) -> AgentConfig:
         "planner.ilqr_iterations": 1,
         "planner.first_plan_iterations": 5,
         "evaluation.every": 0,
+        "regularization.sampled_weight": 1.0,  # the paper's JacProp (the default is none)
         "regularization.ltv_lambda": 2.0,
     }
     kind = (changes or {}).get("planner.kind") or top.get("planner") or "cem-ilqr"
