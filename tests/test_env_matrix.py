@@ -1,13 +1,15 @@
-"""Smoke matrix: the agent on its defaults (only budgets made tiny) runs two episodes on every
+"""Smoke matrix: the agent with the paper's sampled JacProp (the longest data path: LTV labels on
+every episode; the default regularizer is none) and otherwise its defaults, budgets made tiny,
+runs two episodes on every
 Gymnasium-shipped env with Box observation and action spaces that runs on this stack, and on
 wrapped envs that stress the data path (1-5 step episodes, asymmetric action bounds).
 
 Envs of Gymnasium 1.x with Box spaces that are NOT in the matrix, and why:
 
-* ``Humanoid-v5``, ``HumanoidStandup-v5`` (348-dim observation): the default
-  ``regularization="sampled"`` fits LTV models with ``n (n+m)^2 = 4.6e7`` covariance entries
-  per step; the agent refuses at construction with an error naming ``state_fn`` and
-  ``AgentConfig.regularization`` (tested below). With ``regularization="none"`` they run (slow).
+* ``Humanoid-v5``, ``HumanoidStandup-v5`` (348-dim observation): ``regularization="sampled"``
+  fits LTV models with ``n (n+m)^2 = 4.6e7`` covariance entries per step; the agent refuses at
+  construction with an error naming ``state_fn`` and ``AgentConfig.regularization`` (tested
+  below). On the defaults (``regularization="none"``) they run (slow; tested below).
 * ``*-v2``, ``*-v3``: moved to gymnasium-robotics (mujoco-py), not installed.
 * ``*-v4``: superseded by v5 (same models); ``Pusher-v4`` needs ``mujoco < 3``.
 * ``LunarLanderContinuous-v3``, ``BipedalWalker(Hardcore)-v3``: Box2D is not installed;
@@ -44,12 +46,14 @@ CANNOT_RUN_ON_DEFAULTS = ("Humanoid-v5", "HumanoidStandup-v5")
 
 
 def smoke_config(**top) -> AgentConfig:
-    """The defaults with tiny budgets (one excitation episode, then one MPC episode)."""
+    """The defaults with sampled JacProp and tiny budgets (one excitation episode, then one MPC
+    episode)."""
     return AgentConfig.default({
         "collection.n_excitation_episodes": 1, "model.ensemble_size": 2, "model.hidden_width": 8,
         "training.steps": 3, "planner.horizon": 4, "planner.ilqr_iterations": 1,
         "planner.first_plan_iterations": 2, "evaluation.every": 0,
-    }, **{"progress": False, "tensorboard": False, "torch_threads": 1, **top})
+    }, **{"progress": False, "tensorboard": False, "torch_threads": 1,
+          "regularization": "sampled", **top})
 
 
 def generic_cost(obs, action):
