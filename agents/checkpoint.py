@@ -215,8 +215,11 @@ def check_resumable(
     if needed is None:  # a checkpoint from before the list was saved
         needed = (["cost_fn"] if task.get("cost") is None else []) + (
             ["state_fn", "obs_fn"] if task.get("state_map") is None else [])
-    # a registry task's functions come from the registry (agents.task_setup.resolve_task)
-    saved = make_task(task["registry"]).agent_kwargs() if task.get("registry") else {}
+    # a registry task's functions come from the registry (agents.task_setup.resolve_task), as
+    # do a learned reward's termination and state maps on a known env
+    known = task.get("registry") or (task.get("learned") and getattr(
+        registry_task_on(task.get("env_id")), "name", None))
+    saved = make_task(known).agent_kwargs() if known else {}
     missing = [k for k in FUNCTION_NAMES
                if k in needed and fns[k] is None and saved.get(k) is None]
     if missing:

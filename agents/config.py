@@ -172,7 +172,7 @@ class EvaluationConfig(_Section):
     :param episodes: evaluation episodes.
     :param seed: seed of the evaluation episodes' targets and resets.
     :param early_exit: stop an evaluation during learning once its cost exceeds ``solved_ratio``
-        x the oracle's (the final evaluation of a ``learn`` call always runs every episode).
+        x the oracle's (the final evaluation of a ``learn`` call runs every episode).
     :param solved_ratio: the solved threshold relative to the oracle.
     :param solved_return: the solved threshold on the mean return (``None``: the oracle's ratio).
     :param stop_when_solved: stop ``learn`` at the first solved evaluation.

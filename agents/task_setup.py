@@ -65,12 +65,23 @@ def resolve_task(
     reward (docs/agent.md, "The cost")."""
     own = {"terminal_cost_fn": terminal_cost_fn, "termination_fn": termination_fn}
     saved_task = saved_task or {}
-    if isinstance(cost_fn, str) or saved_task.get("learned"):
-        if cost_fn not in ("learned", None):
-            raise ValueError(f"cost_fn must be a callable, None or 'learned', got {cost_fn!r}")
+    if isinstance(cost_fn, str) and cost_fn != "learned":
+        raise ValueError(f"cost_fn must be a callable, None or 'learned', got {cost_fn!r}")
+    if (saved_task.get("learned") and cost_fn not in ("learned", None)) or (
+            saved_task and not saved_task.get("learned") and cost_fn == "learned"):
+        held = "a learned reward" if saved_task.get("learned") else "a written cost"
+        how = "cost_fn='learned' or no cost_fn" if saved_task.get("learned") else "its cost_fn"
+        raise ValueError(f"the checkpoint holds {held}: load it with {how}")
+    if cost_fn == "learned" or saved_task.get("learned"):
         if terminal_cost_fn is not None:
             raise ValueError("terminal_cost_fn needs a written cost_fn: a learned reward has "
                              "no terminal cost")
+        # a known env keeps its task's termination and state maps where none are given
+        task = registry_task(getattr(getattr(env, "spec", None), "id", None))
+        if task is not None and state_fn is None:
+            state_fn, obs_fn = task.state_fn, task.obs_fn
+        if task is not None and termination_fn is None:
+            own["termination_fn"] = task.termination_fn
         return ResolvedTask(None, StateMap(state_fn, obs_fn), **own, source="learned")
     if cost_fn is not None:
         return ResolvedTask(cost_fn, StateMap(state_fn, obs_fn), **own)

@@ -272,8 +272,8 @@ SUITE: dict[str, Task] = dict([
     # near-upright steps: 0.55 rad/s at 5 steps, 2.1 at 10, 27 at 20) and at 20 or 30 steps the
     # learned-model MPC falls within 17-61 steps; the terminal weight 100 stands in for the cost
     # beyond the shortened horizon. Chosen on the true model and on fixed data, not on suite
-    # runs (docs/results/idp_state_and_horizon.json). The defaults (horizon 30, terminal weight
-    # 1) on the raw observation did not balance (docs/results/defaults/idp_raw_seed0.json).
+    # runs (docs/results/idp_state_and_horizon.json). Horizon 30 and terminal weight 1 on the
+    # raw observation did not balance (docs/results/defaults/idp_raw_seed0.json).
     _suite(inverted_double_pendulum(), 5000, 1000,
            **{"planner.horizon": 15, "planner.terminal_weight": 100.0}),
     _suite(pusher(), 3000, 300),

@@ -65,7 +65,6 @@ def tiny_config(changes: dict | None = None, /, **top) -> AgentConfig:
         "planner.ilqr_iterations": 1,
         "planner.first_plan_iterations": 5,
         "evaluation.every": 0,
-        "regularization.sampled_weight": 1.0,  # the paper's JacProp (the default is none)
         "regularization.ltv_lambda": 2.0,
     }
     kind = (changes or {}).get("planner.kind") or top.get("planner") or "cem-ilqr"
@@ -74,7 +73,9 @@ def tiny_config(changes: dict | None = None, /, **top) -> AgentConfig:
     elif kind == "cem-ilqr":
         base.update({"planner.proposal.samples": 16, "planner.proposal.elites": 4,
                      "planner.proposal.iterations": 1})
-    top = {"progress": False, "tensorboard": False, "torch_threads": 1, **top}
+    # the paper's sampled JacProp (the default is none), unless the test names a regularizer
+    top = {"progress": False, "tensorboard": False, "torch_threads": 1,
+           "regularization": "sampled", **top}
     return AgentConfig.default({**base, **(changes or {})}, **top)
 
 

@@ -255,8 +255,10 @@ def test_cost_fn_learned_learns_the_reward_of_a_known_env_and_survives_save_and_
     env = gym.make("InvertedPendulum-v5", max_episode_steps=20)
     assert resolve_task(env, None, None, None).source == "registry"
     done = inverted_pendulum().termination_fn
-    task = resolve_task(env, "learned", None, None, termination_fn=done)
+    task = resolve_task(env, "learned", None, None)  # the registry's termination, kept
     assert (task.source, task.cost_fn, task.termination_fn) == ("learned", None, done)
+    own = resolve_task(env, "learned", None, None, termination_fn=np.isnan)
+    assert own.termination_fn is np.isnan
     with pytest.raises(ValueError, match="terminal_cost_fn needs a written cost_fn"):
         resolve_task(env, "learned", None, None, terminal_cost_fn=lambda o: ca.sumsqr(o))
     with pytest.raises(ValueError, match="'learn'"):
@@ -264,12 +266,18 @@ def test_cost_fn_learned_learns_the_reward_of_a_known_env_and_survives_save_and_
     cfg = AgentConfig.default({"model.ensemble_size": 1, "model.hidden_width": 8,
                                "training.steps": 5, "planner.horizon": 3,
                                "evaluation.episodes": 1, "reward.steps": 20})
-    agent = JacPropAgent(env, cfg, cost_fn="learned", termination_fn=done)
+    agent = JacPropAgent(env, cfg, cost_fn="learned")
     agent.learn(total_timesteps=40)
     assert agent.task.source == "learned" and agent.cost_fn is None
     agent.save(tmp_path / "a.pt")
-    loaded = JacPropAgent.load(tmp_path / "a.pt", env, termination_fn=done)
+    loaded = JacPropAgent.load(tmp_path / "a.pt", env)  # no function to pass again
     assert loaded.task.source == "learned"
+    with pytest.raises(ValueError, match="holds a learned reward: load it with cost_fn='learned'"):
+        JacPropAgent.load(tmp_path / "a.pt", env, **inverted_pendulum().agent_kwargs())
+    written = JacPropAgent(env, cfg, **inverted_pendulum().agent_kwargs())
+    written.save(tmp_path / "w.pt")
+    with pytest.raises(ValueError, match="holds a written cost: load it with its cost_fn"):
+        JacPropAgent.load(tmp_path / "w.pt", env, cost_fn="learned")
     obs = env.reset(seed=3)[0]
     np.testing.assert_array_equal(loaded.predict(obs)[0], agent.predict(obs)[0])
 

@@ -42,7 +42,7 @@ MUJOCO_V5 = (
 )
 CLASSIC = ("Pendulum-v1", "MountainCarContinuous-v0")
 FAST = ("Reacher-v5", "InvertedPendulum-v5", "Pendulum-v1")
-CANNOT_RUN_ON_DEFAULTS = ("Humanoid-v5", "HumanoidStandup-v5")
+REFUSED_WITH_LTV = ("Humanoid-v5", "HumanoidStandup-v5")
 
 
 def smoke_config(**top) -> AgentConfig:
@@ -133,7 +133,7 @@ def test_asymmetric_action_bounds():
     assert u.min() >= -0.5 and u.max() <= 3.0
 
 
-@pytest.mark.parametrize("env_id", CANNOT_RUN_ON_DEFAULTS)
+@pytest.mark.parametrize("env_id", REFUSED_WITH_LTV)
 def test_high_dimensional_env_is_refused_with_a_message_naming_the_options(env_id):
     env = gym.make(env_id)
     with pytest.raises(ValueError, match="state_fn.*regularization='smooth'"):
@@ -142,7 +142,7 @@ def test_high_dimensional_env_is_refused_with_a_message_naming_the_options(env_i
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("env_id", CANNOT_RUN_ON_DEFAULTS)
+@pytest.mark.parametrize("env_id", REFUSED_WITH_LTV)
 def test_high_dimensional_env_runs_without_ltv(env_id):
     env = gym.make(env_id, max_episode_steps=10)
     agent = JacPropAgent(env, smoke_config(regularization="none"), cost_fn=generic_cost)

@@ -215,8 +215,9 @@ def ltv_fit(t: Trajectory, lam: float = 10.0):
 
 
 def scaling_study(args: Args) -> dict:
-    """Seconds of one update (the agent's training config without early stopping, sampled
-    JacProp) against the number of training transitions."""
+    """Seconds of one update (the agent's training config as recorded in scaling_reacher.json:
+    500 steps without early stopping, sampled JacProp) against the number of training
+    transitions."""
     from agents.config import AgentConfig
 
     data = collect(args.task, args.n_train, args.seed)
@@ -224,8 +225,8 @@ def scaling_study(args: Args) -> dict:
     keep = [i for i, lm in enumerate(ltvs) if lm is not None]
     data, ltvs = [data[i] for i in keep], [ltvs[i] for i in keep]
     counts = np.cumsum([t.T for t in data])
-    tcfg = dataclasses.replace(AgentConfig().training, patience=None, seed=args.seed)
-    reg = AgentConfig().regularization
+    tcfg = dataclasses.replace(AgentConfig().training, steps=500, patience=None, seed=args.seed)
+    reg = AgentConfig(regularization="sampled").regularization
     model = ModelConfig().build(data[0].n, data[0].m, seed=args.seed)
     sizes = [n for n in (250, 1000, args.n_train) if n <= counts[-1]]
     times: dict[int, list[float]] = {n: [] for n in sizes}

@@ -1228,7 +1228,8 @@ def _run_agents(a: Args, state: dict[str, Any], path: Path, bpath: Path) -> None
     for seed, name, planner, reg in product(a.seeds, a.tasks, a.planners, a.regularizations):
         if (name, planner, reg, seed) in done:
             continue
-        ckpt = (Path(a.checkpoints) / f"{name}_{planner}_{reg}_seed{seed}"
+        form = "" if a.form == "written" else f"_{a.form}"  # a run resumes in its own form
+        ckpt = (Path(a.checkpoints) / f"{name}_{planner}_{reg}{form}_seed{seed}"
                 if a.checkpoints else None)
         rec = run_one(name, planner, reg, seed, smoke=a.smoke, oracle_cache=a.oracle_cache,
                       baseline=load_baselines(bpath).get(name),  # baselines may land late

@@ -117,7 +117,8 @@ def run(args: Args) -> dict:
 
 
 def summarize(runs: list[dict[str, Any]]) -> list[dict[str, Any]]:
-    """Per block and agent (its position in the block): median and range of the final return."""
+    """Per block, env and task source (one agent of an env per block in the README): median
+    and range of the final return."""
     keys = sorted({(r["block"], r["env_id"], r["task"]) for r in runs}, key=str)
     out = []
     for block, env_id, task in keys:
