@@ -10,16 +10,15 @@ that CI runs elsewhere (the test suite, ``--smoke`` of the benchmark commands).
 
 from __future__ import annotations
 
-import re
 import warnings
 from pathlib import Path
 
 import pytest
 
 from agents import AgentConfig, JacPropAgent
+from agents.experiments.readme_examples import readme_blocks
 
-README = Path(__file__).resolve().parents[1] / "README.md"
-BLOCKS = re.findall(r"```python\n(.*?)```", README.read_text(), flags=re.S)
+BLOCKS = readme_blocks()
 
 #: tiny budgets laid over each README config (bench_suite's SMOKE_OVERRIDES' sizes)
 SMOKE = {

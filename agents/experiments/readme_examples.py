@@ -6,9 +6,9 @@ What it measures and how to run it: docs/experiments.md, section ``readme_exampl
 
 from __future__ import annotations
 
+import contextlib
 import re
 import tempfile
-import time
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
@@ -52,8 +52,6 @@ def readme_blocks(path: Path = REPO / "README.md") -> list[str]:
 def run_block(code: str, seed: int, *, smoke: bool = False) -> list[dict[str, Any]]:
     """Run one README block in a fresh temporary folder with every agent's seed set to ``seed``
     (``smoke``: at most 2 episodes of 10 steps); one record per agent it builds."""
-    import os
-
     from agents import AgentConfig, JacPropAgent
 
     agents: list[Any] = []
@@ -65,33 +63,30 @@ def run_block(code: str, seed: int, *, smoke: bool = False) -> list[dict[str, An
             config = config.replace({"collection.episode_steps": 10, "training.steps": 3,
                                      "planner.horizon": 5, "evaluation.episodes": 1})
         init(self, env, config, *args, **kwargs)
-        agents.append((self, time.perf_counter()))
+        agents.append(self)
 
     def capped_learn(self, total_timesteps=None, callback=None, progress_bar=None, *,
                      episodes=None):
         return learn(self, total_timesteps if not smoke else None, callback, progress_bar,
                      episodes=2 if smoke else episodes)
 
-    cwd = os.getcwd()
-    with tempfile.TemporaryDirectory() as tmp, warnings.catch_warnings():
+    with tempfile.TemporaryDirectory() as tmp, contextlib.chdir(tmp), \
+            warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)  # logged LTV fallbacks
-        os.chdir(tmp)
         JacPropAgent.__init__, JacPropAgent.learn = seeded_init, capped_learn
         try:
             exec(compile(code, "README.md", "exec"), {"__name__": "readme_example"})
         finally:
             JacPropAgent.__init__, JacPropAgent.learn = init, learn
-            os.chdir(cwd)
-    done = time.perf_counter()
     records = []
-    for i, (agent, started) in enumerate(agents):
+    for agent in agents:
         s = agent.summary()
-        end = agents[i + 1][1] if i + 1 < len(agents) else done
         records.append({
             "env_id": agent.env_id, "seed": seed, "task": agent.task.source,
             "env_steps": agent.env_steps, "final_eval_return": s["final_eval_return"],
             "final_eval_returns": s["final_eval_returns"],
-            "final_cost_ratio": s["final_cost_ratio"], "wall_seconds": end - started})
+            "final_cost_ratio": s["final_cost_ratio"],
+            "wall_seconds": s["wall_seconds_per_phase"]["total"]})  # the agent's learn calls
     return records
 
 
