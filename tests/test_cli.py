@@ -156,7 +156,7 @@ def test_every_script_help_lists_every_field_with_its_docstring(name, capsys):
     text = " ".join(help_text(module.Args, capsys).split())
     for flag, f in fields_of(module.Args):
         assert f"--{flag}" in text, flag
-        doc = f.metadata.get("help")  # a shared base's field (paper_common.SweepArgs)
+        doc = f.metadata.get("help")  # a shared base's field (paper_common.ExperimentArgs)
         if doc is None:  # the docstring under the field, in the class that declares it
             owner = next(c for c in module.Args.__mro__
                          if f.name in c.__dict__.get("__annotations__", {}))

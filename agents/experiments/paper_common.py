@@ -28,9 +28,10 @@ REPO = Path(__file__).resolve().parents[2]
 
 
 @dataclass
-class SweepArgs:
-    """The command-line fields of every script that runs a sweep through
-    :func:`mbtsr.runner.run_sweep` (the paper's experiments)."""
+class ExperimentArgs:
+    """The command-line fields every experiment script shares (the sweep through
+    :func:`mbtsr.runner.run_sweep`); a script's ``Args`` subclasses this, redefines ``mc`` with
+    its own default and adds its own fields."""
 
     smoke: bool = field(default=False, metadata={
         "help": "tiny smoke-test run (options not given take the script's SMOKE values)"})
@@ -42,24 +43,17 @@ class SweepArgs:
                 "local Ray instance for the sweep (docs/troubleshooting.md)"})
     report_only: bool = field(default=False, metadata={
         "help": "no new runs: report the finished ones from their JSON"})
-
-    def __post_init__(self) -> None:
-        """``--workers`` (and ``--mc``, where a subclass has it) at least 1."""
-        for name in ("mc", "workers"):
-            if getattr(self, name, 1) < 1:
-                raise ValueError(f"--{name} must be >= 1, got {getattr(self, name)}")
-
-
-@dataclass
-class ExperimentArgs(SweepArgs):
-    """The command-line fields every experiment script shares; a script's ``Args`` subclasses
-    this, redefines ``mc`` with its own default and adds its own fields."""
-
     mc: int = field(default=1, metadata={"help": "Monte-Carlo runs"})
     out: str = field(default="", metadata={
         "help": "results folder (runs, summary.json; default docs/results/<experiment>, "
                 "with --smoke runs/smoke/<experiment>)"})
     figures: str = field(default="", metadata={"help": "figure folder"})
+
+    def __post_init__(self) -> None:
+        """``--workers`` and ``--mc`` at least 1."""
+        for name in ("mc", "workers"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"--{name} must be >= 1, got {getattr(self, name)}")
 
 
 @dataclass
@@ -92,12 +86,8 @@ def print_medians(configs: dict[str, dict], columns: dict[str, str], width: int)
 
 
 def parse_args(args_cls: type, argv: Sequence[str] | None = None):
-    """The experiment's command line, generated from the dataclass ``args_cls`` by tyro
-    (:func:`agents.cli.parse`): every field is a flag documented by its ``help`` metadata, booleans
-    are ``--flag/--no-flag``; with ``--smoke`` the class attribute ``SMOKE`` (field overrides)
-    supplies the defaults, so options given explicitly win. A bad option or value prints one line
-    and exits with code 2.
-    """
+    """The experiment's command line from the dataclass ``args_cls`` (:func:`agents.cli.parse`);
+    with ``--smoke`` the class attribute ``SMOKE`` (field overrides) supplies the defaults."""
     from agents.cli import parse
 
     return parse(args_cls, args=argv, presets={"--smoke": {
@@ -125,11 +115,8 @@ def comma_list(flag: str, text: str, kind: type = str, allowed: Sequence | None 
 
 
 def output_dirs(args, experiment: str) -> tuple[Path, Path]:
-    """``(out, figures)``: results folder and figure folder of a run.
-
-    Defaults: full runs write ``docs/results/<experiment>`` and ``docs/figures``; ``--smoke``
-    runs write ``runs/smoke/<experiment>`` (git-ignored) and its ``figures`` sub-folder.
-    """
+    """``(out, figures)``: default ``docs/results/<experiment>`` and ``docs/figures``; with
+    ``--smoke`` ``runs/smoke/<experiment>`` (git-ignored) and its ``figures`` sub-folder."""
     if args.out:
         out = Path(args.out)
     elif args.smoke:
@@ -296,8 +283,13 @@ def finite_or_none(v: float | None) -> float | None:
 
 
 def values(records: list[dict], name: str, key: str) -> np.ndarray:
-    """``[runs]`` array of ``result[key]`` for the records of config ``name`` (None -> nan)."""
-    return np.array([r["result"].get(key) for r in records if r["name"] == name], dtype=float)
+    """``[runs]`` array of ``result[key]`` for the records of config ``name`` (None -> nan); a
+    ``log10_<k>`` the results do not store: log10 of ``<k>``."""
+    results = [r["result"] for r in records if r["name"] == name]
+    if key.startswith("log10_") and results and key not in results[0]:
+        with np.errstate(divide="ignore", invalid="ignore"):
+            return np.log10(values(records, name, key[6:]))
+    return np.array([res.get(key) for res in results], dtype=float)
 
 
 def spread(v: np.ndarray) -> dict:
@@ -322,12 +314,16 @@ def compare(records: list[dict], a: str, b: str, keys: Sequence[str]) -> dict:
     return {k: paired_comparison(values(records, a, k), values(records, b, k)) for k in keys}
 
 
-def paired_comparison(a: np.ndarray, b: np.ndarray) -> dict:
-    """Compare paired samples ``a`` (e.g. a variant) and ``b`` (e.g. the nominal model).
+def compare_pairs(records: list[dict], pairs: Sequence[tuple[str, str]],
+                  keys: Sequence[str]) -> dict:
+    """``{"<a>_vs_<b>": compare(records, a, b, keys)}`` for the pairs whose configs both ran."""
+    ran = {r["name"] for r in records}
+    return {f"{a}_vs_{b}": compare(records, a, b, keys) for a, b in pairs if {a, b} <= ran}
 
-    Returns the median of ``a - b``, the fraction of pairs with ``a < b`` and the two-sided
-    Wilcoxon signed-rank p-value (pairs with a non-finite member are dropped).
-    """
+
+def paired_comparison(a: np.ndarray, b: np.ndarray) -> dict:
+    """Paired samples ``a`` vs ``b``: median of ``a - b``, fraction with ``a < b``, two-sided
+    Wilcoxon signed-rank p-value (pairs with a non-finite member dropped)."""
     from scipy.stats import wilcoxon
 
     a, b = np.asarray(a, float), np.asarray(b, float)
@@ -398,55 +394,42 @@ def violins(ax, groups: dict[str, np.ndarray], *, ylabel: str, title: str = "",
                         transform=trans)
 
 
-def eigen_limits(learned: Sequence[np.ndarray], true: np.ndarray | None = None,
-                 pct: float = 99.0) -> tuple[float, float, float]:
+def eigen_limits(learned: Sequence[np.ndarray], true: np.ndarray) -> tuple[float, float, float]:
     """Square axis limits ``(re_min, re_max, im_max)`` around the bulk of the learned eigenvalues
-    (``100 - pct`` .. ``pct`` percentile), all true ones and the point 1."""
+    (1st .. 99th percentile), all true ones and the point 1."""
     pts = np.concatenate([np.asarray(z).ravel() for z in learned])
     pts = pts[np.isfinite(pts)]
     lo_re, hi_re, hi_im = 0.9, 1.05, 0.05
     if pts.size:
-        lo_re, hi_re = np.percentile(pts.real, [100 - pct, pct])
-        hi_im = np.percentile(np.abs(pts.imag), pct)
-    if true is not None:
-        true = np.asarray(true).ravel()
-        lo_re, hi_re = min(lo_re, true.real.min()), max(hi_re, true.real.max())
-        hi_im = max(hi_im, np.abs(true.imag).max())
+        lo_re, hi_re = np.percentile(pts.real, [1.0, 99.0])
+        hi_im = np.percentile(np.abs(pts.imag), 99.0)
+    true = np.asarray(true).ravel()
+    lo_re, hi_re = min(lo_re, true.real.min()), max(hi_re, true.real.max())
+    hi_im = max(hi_im, np.abs(true.imag).max())
     lo_re, hi_re = min(lo_re, 0.9), max(hi_re, 1.05)
     half = 1.1 * max((hi_re - lo_re) / 2, hi_im, 0.05)
     mid = (lo_re + hi_re) / 2
     return mid - half, mid + half, half
 
 
-def eigen_scatter(ax, learned: np.ndarray, true: np.ndarray | None, title: str,
-                  limits: tuple[float, float, float] | None = None) -> None:
+def eigen_scatter(ax, learned: np.ndarray, true: np.ndarray, title: str,
+                  limits: tuple[float, float, float]) -> None:
     """Scatter learned eigenvalues (blue) and true ones (red) in the complex plane with the unit
-    circle, like the paper's eigenvalue figures. ``limits`` as :func:`eigen_limits` (default:
-    from these eigenvalues)."""
+    circle, like the paper's eigenvalue figures, in ``limits`` (:func:`eigen_limits`)."""
     th = np.linspace(0, 2 * np.pi, 2000)
     ax.plot(np.cos(th), np.sin(th), "k-", lw=0.6)
-    learned = np.asarray(learned).ravel()
+    learned, true = np.asarray(learned).ravel(), np.asarray(true).ravel()
     ax.plot(learned.real, learned.imag, ".", ms=2, color="tab:blue", alpha=0.35,
             label="learned")
-    if true is not None:
-        true = np.asarray(true).ravel()
-        ax.plot(true.real, true.imag, "o", ms=4, mfc="none", color="tab:red", label="true")
-    lo, hi, half = limits if limits is not None else eigen_limits([learned], true)
-    ax.set_xlim(lo, hi)
-    ax.set_ylim(-half, half)
-    ax.set_aspect("equal")
-    ax.set_xlabel("Re")
-    ax.set_ylabel("Im")
+    ax.plot(true.real, true.imag, "o", ms=4, mfc="none", color="tab:red", label="true")
+    lo, hi, half = limits
+    ax.set(xlim=(lo, hi), ylim=(-half, half), aspect="equal", xlabel="Re", ylabel="Im")
     ax.set_title(title, fontsize=9)
 
 
-def complex_from_pairs(pairs) -> np.ndarray:
-    """Inverse of :func:`complex_to_pairs`: the stored form (or a nested ``[..., 2]`` list of
-    (real, imag)) -> complex array ``[...]``."""
-    if isinstance(pairs, dict):
-        a = np.array(pairs["re_im"].split(), dtype=float).reshape(*pairs["shape"], 2)
-    else:
-        a = np.asarray(pairs, dtype=float)
+def complex_from_pairs(pairs: dict) -> np.ndarray:
+    """Inverse of :func:`complex_to_pairs`: the stored form -> complex array ``[...]``."""
+    a = np.array(pairs["re_im"].split(), dtype=float).reshape(*pairs["shape"], 2)
     return a[..., 0] + 1j * a[..., 1]
 
 
@@ -464,9 +447,7 @@ def complex_to_pairs(z: np.ndarray, digits: int = 4) -> dict:
 
 @dataclass(frozen=True)
 class Sampling:
-    """What the linear and the arm data sets share: step ``dt``, measurement noise
-    ``noise_std`` on the training states, ``n_val`` validation and ``n_sim`` simulation
-    trajectories, Jacobians at every ``eval_stride``-th validation point."""
+    """What the linear and the arm data share (docs/experiments.md, "paper_common")."""
 
     dt: float = 0.02
     noise_std: float = 0.01
@@ -477,8 +458,7 @@ class Sampling:
 
 @dataclass(frozen=True)
 class LinearData(Sampling):
-    """Data of the random-linear-system experiments (docs/experiments.md, "paper_common":
-    the linear data)."""
+    """Data of the random-linear-system experiments (docs/experiments.md, "paper_common")."""
 
     n: int = 10
     m: int = 10
@@ -536,8 +516,7 @@ def linear_dataset(cfg: LinearData, seed: int) -> dict:
 
 @dataclass(frozen=True)
 class ArmSampling(Sampling):
-    """How the paper arm's data sets are sampled (shared by :class:`RobotData` and
-    :class:`RegimeData`): :class:`Sampling` over ``duration`` [s] (``T = duration / dt``)."""
+    """:class:`Sampling` of the paper arm over ``duration`` [s] (``T = duration / dt``)."""
 
     duration: float = 4.0
 
@@ -548,9 +527,7 @@ class ArmSampling(Sampling):
 
 @dataclass(frozen=True)
 class RobotData(ArmSampling):
-    """Data of the robot experiments, on ``mbtsr/TwoLinkArm-v0`` with ``preset="paper"``
-    (docs/experiments.md, "paper_common": the robot data; another ``dt`` is the sample-rate
-    deviation)."""
+    """Data of the robot experiments (docs/experiments.md, "paper_common": the robot data)."""
 
     n_train: int = 3
 
@@ -571,9 +548,8 @@ def held_filtered_gaussian(T: int, m: int, rng: np.random.Generator, *, dt: floa
 
 
 def arm_env(cfg: ArmSampling):
-    """The paper-preset arm with episodes as long as one trajectory; a config with
-    ``friction=False`` (:class:`RegimeData`) removes its Coulomb friction (``frictionloss =
-    (0, 0)``; viscous friction kept); a config without the field keeps it."""
+    """The paper-preset arm with episodes of one trajectory; Coulomb friction off
+    (``frictionloss = (0, 0)``, viscous kept) when the config says ``friction=False``."""
     import envs  # noqa: F401 - registers the envs
     from envs.two_link_arm import TwoLinkArmEnv
 
@@ -582,10 +558,8 @@ def arm_env(cfg: ArmSampling):
 
 
 def arm_dataset(cfg: ArmSampling, seed: int, n_train: int, *, window: int = 100) -> dict:
-    """Train / validation / simulation trajectories of the paper arm (:func:`arm_env`) for MC
-    run ``seed``: the filtered Gaussian input of ``window`` taps (torque std kept at the env's
-    ``excitation_std``: scale = excitation_std * sqrt(window)) held on the ``dt`` grid,
-    trajectories redrawn while ``|q| >= 0.9 pi``, noise ``cfg.noise_std`` on the training states.
+    """Train / validation / simulation trajectories of the paper arm for MC run ``seed``
+    (docs/experiments.md, "paper_common": the robot data), input window ``window`` taps.
 
     :return: ``{"env": env, "train": [...], "val": [...], "sim": [...]}``.
     """
@@ -632,31 +606,24 @@ def nominal_epochs(formulation: str, method: str, scale: float = 1.0) -> int:
 
 def regularization(method: str, *, sigma: float = 0.1, n_copies: int = 1,
                    exact_weight: float = 1.0, smooth_weight: float = 0.01,
-                   ltv_lambda: float | str | None = None, copies_batch: str = "shared"):
+                   copies_batch: str = "shared"):
     """The :class:`mbtsr.training.RegularizationConfig` of a method name: ``none``, ``sampled``,
     ``exact`` or ``smooth`` (docs/experiments.md, "paper_common": the methods).
 
-    :param ltv_lambda: ``None`` keeps the library default (the original's R2/R1 = 1000, i.e.
-        lambda = 31.6), ``"auto"`` picks it per trajectory by marginal likelihood.
     :param copies_batch: ``"shared"`` (copies in their trajectory's batch) or ``"own"`` (one
         optimizer step per copy, the original code's batching).
     """
     from mbtsr.training import RegularizationConfig
 
-    extra = {}
-    if ltv_lambda == "auto":
-        extra["ltv_lambda"] = None
-    elif ltv_lambda is not None:
-        extra["ltv_lambda"] = float(ltv_lambda)
     if method == "none":
-        return RegularizationConfig(**extra)
+        return RegularizationConfig()
     if method == "sampled":
         return RegularizationConfig.paper(sigma=sigma, n_copies=n_copies,
-                                          copies_batch=copies_batch, **extra)
+                                          copies_batch=copies_batch)
     if method == "exact":
-        return RegularizationConfig(exact_weight=exact_weight, **extra)
+        return RegularizationConfig(exact_weight=exact_weight)
     if method == "smooth":
-        return RegularizationConfig(smooth_weight=smooth_weight, **extra)
+        return RegularizationConfig(smooth_weight=smooth_weight)
     raise ValueError(f"method must be none, sampled, exact or smooth, got {method!r}")
 
 
@@ -678,8 +645,8 @@ def build_ensemble(n: int, m: int, *, formulation: str = "g",
 
 def train(model, trajs, *, epochs: int, method: str, seed: int, lr: float = 0.01,
           weight_decay: float = 0.0, optimizer_state=None, reg_kwargs: dict | None = None):
-    """One :func:`mbtsr.training.train_ensemble` call with the experiments' settings
-    (Adam, one trajectory per step as the original code, coupled L2 weight decay)."""
+    """:func:`mbtsr.training.train_ensemble` with the experiments' settings (one trajectory per
+    step as the original code, coupled L2 weight decay)."""
     from mbtsr.training import TrainConfig, train_ensemble
 
     cfg = TrainConfig(epochs=int(epochs), lr=lr, weight_decay=weight_decay, seed=int(seed),
@@ -804,13 +771,10 @@ def run_linear(config: dict, seed: int) -> dict:
         rounds.append({k: metrics[k] for k in ("jac_rms_entry", "jac_err", "pred_rms",
                                                "sim_rms")}
                       | {"train_loss": finite_or_none(hist.train_loss[-1])})
-    result = dict(metrics)
-    result["train_pred_rms"] = finite_or_none(prediction_rms(model, d["train"]))
-    ev_hat = jacobian_eigenvalues(model, X, U)
-    result.update(eigen_summary(ev_hat, np.linalg.eigvals(d["A"]), config["n_eig_store"]))
-    result["rounds"] = rounds
-    result["train_loss"] = rounds[-1]["train_loss"]
-    return result
+    return {**metrics, "train_pred_rms": finite_or_none(prediction_rms(model, d["train"])),
+            **eigen_summary(jacobian_eigenvalues(model, X, U), np.linalg.eigvals(d["A"]),
+                            config["n_eig_store"]),
+            "rounds": rounds, "train_loss": rounds[-1]["train_loss"]}
 
 
 @timed
@@ -830,15 +794,12 @@ def run_robot(config: dict, seed: int) -> dict:
     hist = train(model, d["train"], epochs=config["epochs"], method=config["method"],
                  seed=child_seed(seed, 20), lr=config["lr"], reg_kwargs=config["reg"])
     train_time = time.perf_counter() - t1
-    result = evaluate(model, d["val"], d["sim"], X, U, A_true, B_true)
-    result["train_pred_rms"] = finite_or_none(prediction_rms(model, d["train"]))
-    ev_hat = jacobian_eigenvalues(model, X, U)
-    ev_true = np.linalg.eigvals(A_true)
-    result["eig_match_err"] = eigenvalue_matching_error(ev_hat, ev_true)
-    result["train_loss"] = finite_or_none(hist.train_loss[-1])
-    result["steps"] = int(hist.steps)
-    result["train_time"] = train_time
-    return result
+    return {**evaluate(model, d["val"], d["sim"], X, U, A_true, B_true),
+            "train_pred_rms": finite_or_none(prediction_rms(model, d["train"])),
+            "eig_match_err": eigenvalue_matching_error(jacobian_eigenvalues(model, X, U),
+                                                       np.linalg.eigvals(A_true)),
+            "train_loss": finite_or_none(hist.train_loss[-1]), "steps": int(hist.steps),
+            "train_time": train_time}
 
 
 @timed
@@ -871,39 +832,28 @@ def run_activations(config: dict, seed: int) -> dict:
 # ------------------------------------------------------------------------------------------------
 # regime sweep of the robot Jacobian claim (``exp_regime``)
 
-#: moving-average lengths of the two excitation windows (samples at dt 0.02 s): the paper's
-#: 100 taps (2 s) and a short 10-tap window (0.2 s); the torque std is kept at the env's
-#: ``excitation_std`` in both (scale = excitation_std * sqrt(window))
+#: moving-average taps of the excitation windows (at dt 0.02 s; torque std kept in both)
 EXCITATION_WINDOWS = {"paper": 100, "short": 10}
 
 
 @dataclass(frozen=True)
 class RegimeData(ArmSampling):
-    """Data of one regime-sweep cell family: the paper arm (``RobotData`` protocol) with a given
-    excitation window and with or without Coulomb friction (``frictionloss = (0, 0)``: the
-    friction-free truth; viscous friction kept). ``n_train_max`` trajectories are collected and
-    a cell uses the first ``n_train`` of them, so the cells of one seed share their data."""
+    """Data of one regime-sweep cell family: the robot data with an excitation window, with or
+    without Coulomb friction; cells use the first ``n_train`` of ``n_train_max`` trajectories."""
 
     window: str = "paper"
     friction: bool = True
     n_train_max: int = 10
 
 
-_REGIME_CACHE: dict = {}
-
-
+@functools.lru_cache(maxsize=8)  # the cells of one seed share it (the sweep runs seed by seed)
 def regime_dataset(cfg: RegimeData, seed: int) -> dict:
     """Train / validation / simulation trajectories and the true Jacobians (MuJoCo finite
     differences) at the evaluation points and at every training point, for MC run ``seed``.
 
-    Cached in-process (the cells of one seed share it; the sweep runs seed by seed).
-
     :return: ``{"env", "train", "val", "sim", "X", "U", "A", "B", "A_train", "B_train"}`` with
         ``A_train: [n_train_max, T, 4, 4]`` at the measured (noisy) training states.
     """
-    key = (cfg, int(seed))
-    if key in _REGIME_CACHE:
-        return _REGIME_CACHE[key]
     d = arm_dataset(cfg, seed, cfg.n_train_max, window=EXCITATION_WINDOWS[cfg.window])
     env = d["env"]
     d["X"], d["U"] = evaluation_points(d["val"], cfg.eval_stride)
@@ -911,9 +861,6 @@ def regime_dataset(cfg: RegimeData, seed: int) -> dict:
     jac_train = [env.linearize_trajectory(tr.x[:-1], tr.u) for tr in d["train"]]
     d["A_train"] = np.stack([a for a, _ in jac_train])
     d["B_train"] = np.stack([b for _, b in jac_train])
-    if len(_REGIME_CACHE) >= 8:
-        _REGIME_CACHE.pop(next(iter(_REGIME_CACHE)))
-    _REGIME_CACHE[key] = d
     return d
 
 
@@ -935,10 +882,9 @@ def row_group_errors(A_true: np.ndarray, B_true: np.ndarray, A_hat: np.ndarray,
 
 def jacobian_diagnostics(X: np.ndarray, A_true: np.ndarray, B_true: np.ndarray,
                          A_hat: np.ndarray, B_hat: np.ndarray, still_speed: float) -> dict:
-    """The Jacobian error split by point type and row group.
+    """The Jacobian error split by row group and into "still" points (some joint speed below
+    ``still_speed``: stiction) and "moving" ones.
 
-    "still" points have a joint speed ``|qdot_i| < still_speed`` for some joint (there the
-    Coulomb friction's stiction makes the true Jacobian jump); "moving" points are the rest.
     :return: ``jac_{all,pos,vel}`` and ``jac_{moving,still}_{all,pos,vel}``, ``frac_still``.
     """
     still = (np.abs(X[:, 2:4]) < still_speed).any(1)
@@ -949,10 +895,15 @@ def jacobian_diagnostics(X: np.ndarray, A_true: np.ndarray, B_true: np.ndarray,
     return out
 
 
+def label_jacobians(labels: list, trajs: list) -> tuple[np.ndarray, np.ndarray]:
+    """The LTV models' ``(A [sum T, n, n], B [sum T, n, m])`` over their trajectories' steps."""
+    return tuple(np.concatenate([np.asarray(getattr(lm, k))[:tr.T]
+                                 for lm, tr in zip(labels, trajs)]) for k in "AB")
+
+
 def oracle_ltv_models(trajs, A_train: np.ndarray, B_train: np.ndarray) -> list:
-    """"LTV" models whose Jacobians are the TRUE ones at the training points, with the affine
-    term ``c_t = x_{t+1} - A_t x_t - B_t u_t`` (measured states), so the labels of the perturbed
-    copies are ``x_{t+1} + A_t dx + B_t du``: the oracle upper bound of sampled JacProp."""
+    """"LTV" models of the TRUE Jacobians through the measured states: perturbed copies get the
+    labels ``x_{t+1} + A_t dx + B_t du`` (the oracle upper bound of sampled JacProp)."""
     from mbtsr.ltv import LTVModel
 
     models = []
@@ -967,12 +918,9 @@ def oracle_ltv_models(trajs, A_train: np.ndarray, B_train: np.ndarray) -> list:
 
 
 def fused_ltv_models(ltv_models: list, model, trajs, prior_scale: float = 1.0) -> list:
-    """The LTV models fused with the network as a prior (the original's ``useprior``): per time
-    step a product of Gaussians (:func:`mbtsr.ltv.fuse_prior`) of the LTV posterior and a prior
-    centred on the network's ensemble-mean Jacobian at the trajectory points, with covariance
-    ``prior_scale`` x the LTV posterior covariance (1: equal confidence, i.e. the average of
-    the two Jacobians; the original's prior covariance, ensemble variance + 10 in raw units,
-    has no counterpart for a one-member ensemble)."""
+    """The LTV models fused (:func:`mbtsr.ltv.fuse_prior`) with a prior at the network's
+    ensemble-mean Jacobians, of covariance ``prior_scale`` x the LTV posterior's (1: the
+    average of the two Jacobians); the original's ``useprior``."""
     from mbtsr.ltv import fuse_prior
 
     out = []
@@ -1002,10 +950,8 @@ def run_regime(config: dict, seed: int) -> dict:
     d = regime_dataset(cfg, seed)
     n_train, E = int(config["n_train"]), int(config["epochs"])
     trajs = d["train"][:n_train]
-    A_tr = np.concatenate(list(d["A_train"][:n_train]))
-    B_tr = np.concatenate(list(d["B_train"][:n_train]))
-    X_tr = np.concatenate([tr.x[:-1] for tr in trajs])
-    U_tr = np.concatenate([tr.u for tr in trajs])
+    A_tr, B_tr = (np.concatenate(list(d[k][:n_train])) for k in ("A_train", "B_train"))
+    X_tr, U_tr = evaluation_points(trajs, 1)
     model = build_ensemble(4, 2, seed=child_seed(seed, 10), **config.get("model", {}))
     batch = sum(tr.T for tr in trajs) if config["batch"] == "full" else "trajectory"
     log_epochs = sorted({max(0, int(round(E * f)) - 1) for f in
@@ -1014,16 +960,14 @@ def run_regime(config: dict, seed: int) -> dict:
 
     def callback(epoch: int, m) -> None:
         if epoch + offset[0] in log_epochs:
-            A_h, B_h = m.jacobians(X_tr, U_tr)
-            e = row_group_errors(A_tr, B_tr, A_h, B_h)
+            e = row_group_errors(A_tr, B_tr, *m.jacobians(X_tr, U_tr))
             log["epoch"].append(epoch + offset[0] + 1)
             log["pos"].append(e["pos"])
             log["vel"].append(e["vel"])
 
     offset = [0]
-    ltv_models = None
-    if method == "oracle":
-        ltv_models = oracle_ltv_models(trajs, d["A_train"], d["B_train"])
+    oracle = method == "oracle"
+    ltv_models = oracle_ltv_models(trajs, d["A_train"], d["B_train"]) if oracle else None
     reg = {"none": RegularizationConfig(), "exact": RegularizationConfig(
         exact_weight=config["exact_weight"])}.get(method, RegularizationConfig.paper())
     t1 = time.perf_counter()
@@ -1049,9 +993,7 @@ def run_regime(config: dict, seed: int) -> dict:
     # the labels' Jacobian error at the training points (ltv: prior's plain first-half labels)
     for tag, labels in (("label", label_models), ("ltv", plain if method == "prior" else None)):
         if labels is not None:
-            A_l = np.concatenate([np.asarray(lm.A)[:tr.T] for lm, tr in zip(labels, trajs)])
-            B_l = np.concatenate([np.asarray(lm.B)[:tr.T] for lm, tr in zip(labels, trajs)])
-            e = row_group_errors(A_tr, B_tr, A_l, B_l)
+            e = row_group_errors(A_tr, B_tr, *label_jacobians(labels, trajs))
             result.update({f"{tag}_jac_pos": e["pos"], f"{tag}_jac_vel": e["vel"]})
     result["steps"] = steps
     result["train_time"] = train_time
@@ -1078,9 +1020,7 @@ def robot_truth_diagnostics(cfg: RobotData, seed: int, still_speed: float = 0.05
 
     twin = jacobian_diagnostics(X, A, B, *env.analytic_model().jacobians(X, U), still_speed)
     labels = [fit_ltv(tr, ORIGINAL_LTV_LAMBDA) for tr in trajs]
-    ltv = row_group_errors(A_tr, B_tr,
-                           np.concatenate([lm.A[:tr.T] for lm, tr in zip(labels, trajs)]),
-                           np.concatenate([lm.B[:tr.T] for lm, tr in zip(labels, trajs)]))
+    ltv = row_group_errors(A_tr, B_tr, *label_jacobians(labels, trajs))
     return {"const_train": err(J - np.concatenate([A_tr, B_tr], -1).mean(0)),
             "const_eval": err(J - J.mean(0)), "twin": twin["jac_all"],
             "twin_moving": twin["jac_moving_all"], "twin_still": twin["jac_still_all"],
