@@ -55,19 +55,25 @@ class Args(pc.TrainingArgs):
              "n_log": 2, "label_n_trains": "2"}
 
     def __post_init__(self) -> None:
-        """The comma-list options, each named when it is wrong (before any run starts)."""
-        super().__post_init__()
-        n_trains = pc.comma_list("n-trains", self.n_trains, int)
-        pc.comma_list("epochs", self.epochs, int)
-        pc.comma_list("windows", self.windows, allowed=list(pc.EXCITATION_WINDOWS))
-        pc.comma_list("frictions", self.frictions, allowed=["on", "off"])
-        cells = pc.comma_list("label-cells", self.label_cells, empty=True, allowed=[  # '': none
-            f"{w}-{f}" for w in pc.EXCITATION_WINDOWS for f in ("on", "off")])
-        pc.comma_list("label-n-trains (a subset of --n-trains)", self.label_n_trains, int,
-                      allowed=n_trains if cells else None)
+        """The comma-list options, each named when it is wrong (before any run starts), kept
+        parsed in ``self.lists``."""
         from mbtsr.ensemble import ACTIVATIONS
 
-        pc.comma_list("activations", self.activations, allowed=list(ACTIVATIONS))
+        super().__post_init__()
+        n_trains = pc.comma_list("n-trains", self.n_trains, int)
+        cells = pc.comma_list("label-cells", self.label_cells, empty=True, allowed=[  # '': none
+            f"{w}-{f}" for w in pc.EXCITATION_WINDOWS for f in ("on", "off")])
+        self.lists = {
+            "n_trains": n_trains, "epochs": pc.comma_list("epochs", self.epochs, int),
+            "windows": pc.comma_list("windows", self.windows,
+                                     allowed=list(pc.EXCITATION_WINDOWS)),
+            "frictions": pc.comma_list("frictions", self.frictions, allowed=["on", "off"]),
+            "label_cells": {tuple(c.split("-")) for c in cells},
+            "label_n_trains": pc.comma_list("label-n-trains (a subset of --n-trains)",
+                                            self.label_n_trains, int,
+                                            allowed=n_trains if cells else None),
+            "activations": pc.comma_list("activations", self.activations,
+                                         allowed=list(ACTIVATIONS))}
 
 
 def cell_name(method: str, n_train: int, epochs: int, window: str, friction: bool) -> str:
@@ -77,20 +83,18 @@ def cell_name(method: str, n_train: int, epochs: int, window: str, friction: boo
 def make_configs(args: Args) -> dict[str, dict[str, dict]]:
     """``{"main": {name: config}, "labels": {...}, "paper_protocol": {...}}``: the none/sampled
     grid, the label-variant cells and the paper cell under the paper's protocol."""
-    n_trains, epochs = pc.comma_list("", args.n_trains, int), pc.comma_list("", args.epochs, int)
-    frictions = [{"on": True, "off": False}[f] for f in pc.comma_list("", args.frictions)]
-    label_cells = {tuple(c.split("-")) for c in pc.comma_list("", args.label_cells, empty=True)}
-    label_n_trains = pc.comma_list("", args.label_n_trains, int)
-    model = {"activations": pc.comma_list("", args.activations), "width": args.width}
+    lists = args.lists
+    n_trains, epochs, label_n_trains = lists["n_trains"], lists["epochs"], lists["label_n_trains"]
+    model = {"activations": lists["activations"], "width": args.width}
     out: dict[str, dict[str, dict]] = {"main": {}, "labels": {}, "paper_protocol": {}}
-    for window in pc.comma_list("", args.windows):
-        for friction in frictions:
+    for window in lists["windows"]:
+        for friction in [{"on": True, "off": False}[f] for f in lists["frictions"]]:
             base = {"data": dataclasses.asdict(pc.RegimeData(
                 window=window, friction=friction, duration=args.duration,
                 n_train_max=max(n_trains), n_val=args.n_val)),
                 "exact_weight": args.exact_weight, "prior_scale": args.prior_scale,
                 "lr": args.lr, "still_speed": args.still_speed, "n_log": args.n_log}
-            label = (window, "on" if friction else "off") in label_cells
+            label = (window, "on" if friction else "off") in lists["label_cells"]
             for n in n_trains:
                 methods = {"main": ["none", "sampled"],
                            "labels": ["oracle", "exact", "prior"]
@@ -131,25 +135,35 @@ def _cells(records: list[dict]) -> list[tuple]:
 
 
 def _by_seed(records: list[dict], method: str, cell: tuple, key: str) -> dict[int, float]:
+    """``{seed: value}`` of ``key`` for ``method`` in ``cell``; ``net_train_{pos,vel}``: the
+    network's own Jacobian error at the training points at the end of training."""
     out = {}
     for r in records:
         if r["config"]["method"] == method and _cell_of(r) == cell:
-            v = r["result"].get(key)
+            res = r["result"]
+            v = (res["net_train_jac"][key[10:]][-1] if key.startswith("net_train_")
+                 else res.get(key))
             if v is not None:
                 out[r["seed"]] = float(v)
     return out
 
 
-def paired_relative(records, method: str, cell: tuple, key: str = "jac_err") -> dict | None:
-    """Median per-seed relative change of ``key`` (method vs none, %), q1/q3, wins/total."""
+def _paired(records, method: str, cell: tuple, key: str) -> tuple[np.ndarray, np.ndarray]:
+    """``key`` of ``method`` and of none in ``cell``, over the seeds both have."""
     a, b = _by_seed(records, method, cell, key), _by_seed(records, "none", cell, key)
     seeds = sorted(set(a) & set(b))
-    if not seeds:
+    return np.array([a[s] for s in seeds]), np.array([b[s] for s in seeds])
+
+
+def paired_relative(records, method: str, cell: tuple, key: str = "jac_err") -> dict | None:
+    """Median per-seed relative change of ``key`` (method vs none, %), q1/q3, wins/total."""
+    a, b = _paired(records, method, cell, key)
+    if not a.size:
         return None
-    rel = np.array([100.0 * (a[s] - b[s]) / b[s] for s in seeds])
+    rel = 100.0 * (a - b) / b
     return {"median_pct": float(np.median(rel)), "q1_pct": float(np.percentile(rel, 25)),
             "q3_pct": float(np.percentile(rel, 75)), "wins": int((rel < 0).sum()),
-            "total": len(seeds), "per_seed_pct": [round(float(v), 2) for v in rel]}
+            "total": len(rel), "per_seed_pct": [round(float(v), 2) for v in rel]}
 
 
 def _median(records, method, cell, key) -> float | None:
@@ -164,6 +178,7 @@ def _cell_label(cell: tuple) -> str:
 
 DIAG_KEYS = ("jac_err", "jac_pos", "jac_vel", "jac_moving_all", "jac_still_all", "frac_still",
              "label_jac_pos", "label_jac_vel", "log10_pred_rms", "log10_sim_rms")
+NET_KEYS = ("net_train_pos", "net_train_vel")
 
 
 def _heat_map(ax, stats: list[list[dict | None]], xticks: list[str], yticks: list[str]):
@@ -241,23 +256,24 @@ def diagnostics_figure(records: list[dict], path: Path) -> None:
                 axes[j].axhline(lab, ls="--", color=color, lw=1,
                                 label=f"{label}: LTV labels" if j == 0 else None)
     for j, rows in enumerate(("position rows (q)", "velocity rows (qdot)")):
-        axes[j].set_xlabel("epoch")
-        axes[j].set_ylabel("Jacobian error at the training points")
+        axes[j].set(xlabel="epoch", ylabel="Jacobian error at the training points")
         axes[j].set_title(f"{rows}, {n_mid} trajectories", fontsize=9)
     fig.legend(loc="outside right center", fontsize=6)
     pc.save_figure(fig, path)
 
 
-def report(records: list[dict], out: Path, figures: Path, args: Args,
-           protocol: list[dict] | None = None) -> dict:
+def report(records: list[dict], out: Path, figures: Path, args: Args) -> dict:
+    """The map's figures, table and summary, with the paper-protocol runs summarized apart."""
     plt = pc.pyplot()
+    protocol = [r for r in records if r["config"].get("paper_protocol")]
+    records = [r for r in records if not r["config"].get("paper_protocol")]
     methods = [m for m in ("sampled", "oracle", "exact", "prior")
                if any(r["config"]["method"] == m for r in records)]
     fig, axes = plt.subplots(2, 1, figsize=(9, 7.5), layout="constrained",
                              gridspec_kw={"height_ratios": [1.1, 1]})
     im = regime_map(axes[0], records, "sampled", "sampled JacProp vs none: median change of "
                     "the robot Jacobian error (text: change, runs better / runs)")
-    variants_map(axes[1], records, protocol or [])
+    variants_map(axes[1], records, protocol)
     fig.colorbar(im, ax=axes.tolist(), shrink=0.6, label="Jacobian error change vs none [%]")
     pc.save_figure(fig, figures / "regime_map.png")
 
@@ -266,9 +282,7 @@ def report(records: list[dict], out: Path, figures: Path, args: Args,
     cells = _cells(records)
     table = {}
     for cell in cells:
-        row = {"none_" + k: _median(records, "none", cell, k) for k in DIAG_KEYS}
-        row["none_net_train_pos"] = _final_train_err(records, cell, "pos")
-        row["none_net_train_vel"] = _final_train_err(records, cell, "vel")
+        row = {"none_" + k: _median(records, "none", cell, k) for k in DIAG_KEYS + NET_KEYS}
         for m in methods:
             s = paired_relative(records, m, cell)
             if s is not None:
@@ -276,16 +290,18 @@ def report(records: list[dict], out: Path, figures: Path, args: Args,
                 for k in DIAG_KEYS:
                     row[f"{m}_{k}"] = _median(records, m, cell, k)
                 for k in ("log10_pred_rms", "log10_sim_rms"):
-                    a, b = (_by_seed(records, m, cell, k), _by_seed(records, "none", cell, k))
-                    seeds = sorted(set(a) & set(b))
-                    d = np.array([a[s_] - b[s_] for s_ in seeds])
+                    d = np.subtract(*_paired(records, m, cell, k))
                     row[f"{m}_{k}_diff"] = {"median": float(np.median(d)),
                                             "wins": int((d < 0).sum()), "total": len(d)}
         table[_cell_label(cell)] = row
     cpu = sum(r["result"].get("cpu_time", 0.0) for r in records)
     summary = {"cells": table, "n_runs": len(records), "cpu_s_runs": cpu,
                "figures": ["regime_map.png", "regime_diagnostics.png"]}
-    (out / "table.md").write_text(markdown_table(records, methods))
+    text = markdown_table(records, methods)
+    if protocol:
+        summary["paper_protocol"] = paper_protocol_summary(protocol)
+        text += "\n" + paper_protocol_table(summary["paper_protocol"])
+    (out / "table.md").write_text(text)
     return summary
 
 
@@ -297,15 +313,6 @@ def _change(s: dict | None) -> str:
     """A :func:`paired_relative` as ``median % [q1, q3], wins/total`` ("-": none)."""
     return "-" if not s else (f"{s['median_pct']:+.0f} % [{s['q1_pct']:+.0f}, "
                               f"{s['q3_pct']:+.0f}], {s['wins']}/{s['total']}")
-
-
-def _final_train_err(records: list[dict], cell: tuple, rows: str,
-                     method: str = "none") -> float | None:
-    """Median over seeds of the network's own Jacobian error at the training points at the
-    end of training (``rows``: "pos" or "vel")."""
-    v = [r["result"]["net_train_jac"][rows][-1] for r in records
-         if r["config"]["method"] == method and _cell_of(r) == cell]
-    return float(np.median(v)) if v else None
 
 
 def markdown_table(records: list[dict], methods: list[str]) -> str:
@@ -321,29 +328,25 @@ def markdown_table(records: list[dict], methods: list[str]) -> str:
                f"{_fmt(md('none', 'jac_vel'))}; {_fmt(md('none', 'jac_moving_all'))} / "
                f"{_fmt(md('none', 'jac_still_all'))})",
                f"{100 * (md('none', 'frac_still') or 0):.0f} %",
-               f"{_fmt(_final_train_err(records, cell, 'pos'))} / "
+               f"{_fmt(md('none', 'net_train_pos'))} / "
                f"{_fmt(md('sampled', 'label_jac_pos'))}; "
-               f"{_fmt(_final_train_err(records, cell, 'vel'))} / "
+               f"{_fmt(md('none', 'net_train_vel'))} / "
                f"{_fmt(md('sampled', 'label_jac_vel'))}"]
         row += [_change(paired_relative(records, m, cell)) for m in methods]
         lines.append("| " + " | ".join(row) + " |")
     return "\n".join(lines) + "\n"
 
 
-PROTOCOL_KEYS = (*DIAG_KEYS, "steps")
+PROTOCOL_KEYS = (*DIAG_KEYS, "steps", *NET_KEYS)
 
 
 def paper_protocol_summary(records: list[dict]) -> dict:
     """The paper cell under the paper's protocol: medians per method, the network's own
     training-point error per row group at the end, and the paired change vs none."""
-    cell = next((c for c in _cells(records)), None)
+    cell = _cells(records)[0]
     out = {"cell": _cell_label(cell), "methods": {}}
     for m in ("none", "sampled", "oracle"):
         row = {k: _median(records, m, cell, k) for k in PROTOCOL_KEYS}
-        fin = [r["result"]["net_train_jac"] for r in records if r["config"]["method"] == m]
-        if fin:
-            row["net_train_pos"] = float(np.median([f["pos"][-1] for f in fin]))
-            row["net_train_vel"] = float(np.median([f["vel"][-1] for f in fin]))
         if m != "none":
             row["vs_none"] = paired_relative(records, m, cell)
         out["methods"][m] = row
@@ -364,18 +367,6 @@ def paper_protocol_table(s: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
-def report_all(records: list[dict], out: Path, figures: Path, args: Args) -> dict:
-    """:func:`report` of the map's runs, with the paper-protocol runs summarized apart."""
-    protocol = [r for r in records if r["config"].get("paper_protocol")]
-    records = [r for r in records if not r["config"].get("paper_protocol")]
-    summary = report(records, out, figures, args, protocol)
-    if protocol:
-        summary["paper_protocol"] = paper_protocol_summary(protocol)
-        with open(out / "table.md", "a") as fh:
-            fh.write("\n" + paper_protocol_table(summary["paper_protocol"]))
-    return summary
-
-
 def run(args: Args) -> dict:
     """The sweep, the shortest runs first: the cheap shortest-run cells for every seed, then
     everything seed by seed (on a busy machine an interrupted sweep still has the whole
@@ -385,7 +376,7 @@ def run(args: Args) -> dict:
     shortest = min(c["epochs"] for c in every.values())
     stages = [("short runs", {k: c for k, c in every.items() if c["epochs"] == shortest}),
               ("all", every)]
-    return pc.run_experiment(args, EXPERIMENT, pc.run_regime, every, report_all, stages=stages)
+    return pc.run_experiment(args, EXPERIMENT, pc.run_regime, every, report, stages=stages)
 
 
 def main(argv: list[str] | None = None) -> None:
