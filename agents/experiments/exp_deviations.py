@@ -65,13 +65,6 @@ def make_configs(args: Args) -> dict[str, dict]:
     return configs
 
 
-def metric(records: list[dict], name: str, key: str) -> np.ndarray:
-    if key == "log10_jac_err":
-        with np.errstate(divide="ignore", invalid="ignore"):
-            return np.log10(pc.values(records, name, "jac_err"))
-    return pc.values(records, name, key)
-
-
 def direction(comp: dict, alpha: float) -> str:
     """'+' (error up, worse), '-' (down, better) or '~' (not significant at ``alpha``)."""
     p, d = comp.get("p_value"), comp.get("median_diff")
@@ -93,19 +86,14 @@ def report(records: list[dict], out, figures, args: Args) -> dict:
             name = f"{f}_{d}"
             if name not in present:
                 continue
-            row[f] = {k: pc.spread(metric(records, name, k)) for k in METRICS}
+            row[f] = pc.spreads(records, [name], (*METRICS, "train_time", "cpu_time",
+                                                  "train_pred_rms", "pred_rms", "sim_rms",
+                                                  "jac_err"))[name]
             row[f]["diverged"] = int(pc.values(records, name, "sim_diverged").sum())
-            row[f].update(pc.spreads(records, [name], ("train_time", "cpu_time", "train_pred_rms",
-                                                       "pred_rms", "sim_rms", "jac_err"))[name])
             if d != "nominal":
-                row[f"{f}_vs_nominal"] = {
-                    k: pc.paired_comparison(metric(records, name, k),
-                                         metric(records, f"{f}_nominal", k))
-                    for k in METRICS}
+                row[f"{f}_vs_nominal"] = pc.compare(records, name, f"{f}_nominal", METRICS)
         if all(f"{f}_{d}" in present for f in ("f", "g")):
-            row["g_vs_f"] = {k: pc.paired_comparison(metric(records, f"g_{d}", k),
-                                                  metric(records, f"f_{d}", k))
-                             for k in (*METRICS, "train_pred_rms")}
+            row["g_vs_f"] = pc.compare(records, f"g_{d}", f"f_{d}", (*METRICS, "train_pred_rms"))
         table[d] = row
 
     # the table as markdown (also pasted into docs/RESULTS.md)
@@ -134,7 +122,7 @@ def report(records: list[dict], out, figures, args: Args) -> dict:
     fig, axes = plt.subplots(1, len(METRICS), figsize=(15, 0.45 * max(len(others), 2) + 1.8),
                              sharey=True)
     ypos = np.arange(len(others))
-    for ax, k in zip(np.atleast_1d(axes), METRICS):
+    for ax, k in zip(axes, METRICS):
         for i, f in enumerate(forms):
             comps = [table[d].get(f"{f}_vs_nominal", {}).get(k, {}) for d in others]
             med = np.array([c.get("median_diff") for c in comps], dtype=float)  # None: nan
@@ -147,9 +135,9 @@ def report(records: list[dict], out, figures, args: Args) -> dict:
         ax.set_title(f"{METRIC_LABELS[k]}: median paired change of log10 error\n"
                      f"(faint: not significant, Wilcoxon p >= {alpha:g})", fontsize=9)
         ax.set_xlabel("< better | worse >")
-    np.atleast_1d(axes)[0].set_yticks(ypos, [DEVIATIONS[d][0] for d in others])
-    np.atleast_1d(axes)[0].invert_yaxis()
-    np.atleast_1d(axes)[-1].legend(title="formulation", fontsize=8)
+    axes[0].set_yticks(ypos, [DEVIATIONS[d][0] for d in others])
+    axes[0].invert_yaxis()
+    axes[-1].legend(title="formulation", fontsize=8)
     pc.save_figure(fig, figures / "deviations.png")
 
     return {"alpha": alpha, "table": table, "markdown": markdown,

@@ -114,21 +114,15 @@ def report(records: list[dict], out, figures, args: Args) -> dict:
     summary = {"configs": pc.spreads(records, names, keys)}
     summary["true_eig_mean_abs"] = float(true_abs)
     summary["true_eig_mean_dist_to_1"] = float(true_d1)
+    decay_keys = ("eig_mean_abs", "eig_mean_dist_to_1", "eig_match_err", "jac_err",
+                  "log10_pred_rms", "log10_sim_rms")
     comp = {}
-    present = set(names)
     for bug in (False, True):
-        for f in ("f", "g"):
-            base = config_name(f, wd_lo, bug)
-            for wd in decays[1:]:
-                name = config_name(f, wd, bug)
-                if name in present and base in present:
-                    comp[f"{name}_vs_{base}"] = pc.compare(records, name, base, (
-                        "eig_mean_abs", "eig_mean_dist_to_1", "eig_match_err", "jac_err",
-                        "log10_pred_rms", "log10_sim_rms"))
-        g, f = config_name("g", wd_lo, bug), config_name("f", wd_lo, bug)
-        if g in present and f in present:
-            comp[f"{g}_vs_{f}"] = pc.compare(records, g, f, (
-                "eig_match_err", "jac_err", "log10_pred_rms", "log10_sim_rms", "train_pred_rms"))
+        base = {f: config_name(f, wd_lo, bug) for f in ("f", "g")}
+        comp.update(pc.compare_pairs(records, [(config_name(f, wd, bug), base[f]) for f in base
+                                               for wd in decays[1:]], decay_keys))
+        comp.update(pc.compare_pairs(records, [(base["g"], base["f"])], (
+            "eig_match_err", "jac_err", "log10_pred_rms", "log10_sim_rms", "train_pred_rms")))
     summary["comparisons"] = comp
     summary["figures"] = [*drawn, "weight_decay_errors.png"]
     return summary
