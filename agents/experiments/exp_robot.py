@@ -15,12 +15,12 @@ from agents.experiments import paper_common as pc
 
 EXPERIMENT = "robot"
 METHODS = ("none", "sampled", "exact", "smooth")
-#: epoch controls: the paper halves the epochs with sampled JacProp; these two configs separate
-#: the effect of JacProp from the effect of the epoch count
-CONTROLS = {"none_half": ("none", 0.5), "sampled_full": ("sampled", 2.0)}
+#: epoch controls, name -> (method, epoch factor, reg): the paper halves the epochs with sampled
+#: JacProp; these two configs separate the effect of JacProp from the effect of the epoch count
+CONTROLS = {"none_half": ("none", 0.5, {}), "sampled_full": ("sampled", 2.0, {})}
 #: the original code's batching: each perturbed copy its own optimizer step, so sampled JacProp
 #: at the paper's half epochs takes exactly as many optimizer steps as none at full epochs
-OWN_BATCH = {"sampled_own": ("sampled", 1.0)}
+OWN_BATCH = {"sampled_own": ("sampled", 1.0, {"copies_batch": "own"})}
 LABELS = {"none": "none", "sampled": "sampled JacProp", "exact": "exact LTV match",
           "smooth": "exact smoothness", "none_half": "none", "sampled_full": "sampled JacProp",
           "sampled_own": "sampled, own batches"}
@@ -60,14 +60,11 @@ def make_configs(args: Args) -> dict[str, dict]:
                    "epochs": pc.nominal_epochs(args.formulation, m, args.epoch_scale),
                    "lr": args.lr, "model": {}}
                for m in METHODS}
-    if args.epoch_controls:
-        for name, (m, factor) in CONTROLS.items():
-            epochs = pc.nominal_epochs(args.formulation, m, args.epoch_scale * factor)
-            configs[name] = {**configs[m], "epochs": epochs}
-    if args.own_batch_control:
-        for name, (m, factor) in OWN_BATCH.items():
-            epochs = pc.nominal_epochs(args.formulation, m, args.epoch_scale * factor)
-            configs[name] = {**configs[m], "epochs": epochs, "reg": {"copies_batch": "own"}}
+    extra = {**(CONTROLS if args.epoch_controls else {}),
+             **(OWN_BATCH if args.own_batch_control else {})}
+    for name, (m, factor, reg_kwargs) in extra.items():
+        configs[name] = {**configs[m], "reg": reg_kwargs, "epochs": pc.nominal_epochs(
+            args.formulation, m, args.epoch_scale * factor)}
     return configs
 
 
@@ -102,14 +99,13 @@ def report(records: list[dict], out, figures, args: Args) -> dict:
             runs_with_divergence=int((diverged > 0).sum()),
             n_simulations=int(pc.values(records, n, "n_sim").sum()))
     compare = ("log10_pred_rms", "log10_sim_rms", "jac_err", "train_pred_rms")
-    if "sampled_own" in names:  # the original's batching: equal optimizer steps with none
-        summary["sampled_own_vs_none"] = pc.compare(records, "sampled_own", "none", compare)
+    # the original's batching: equal optimizer steps with none
+    summary.update(pc.compare_pairs(records, [("sampled_own", "none")], compare))
     summary["vs_none"] = {n: pc.compare(records, n, "none", compare)
                           for n in names if n != "none"}
     # same epoch count: JacProp's effect without the halved-epochs confound
-    for a, b in (("sampled", "none_half"), ("sampled_full", "none")):
-        if a in names and b in names:
-            summary[f"{a}_vs_{b}"] = pc.compare(records, a, b, compare)
+    summary.update(pc.compare_pairs(records, [("sampled", "none_half"), ("sampled_full", "none")],
+                                    compare))
     summary["figures"] = ["robot_errors.png"]
     return summary
 
@@ -117,15 +113,11 @@ def report(records: list[dict], out, figures, args: Args) -> dict:
 def truth_diagnostics(args: Args) -> dict:
     """:func:`paper_common.robot_truth_diagnostics` over seeds ``0..mc-1``, with the median and
     quartiles of each quantity; written to ``<out>/truth.json``."""
-    from mbtsr.io import write_json_atomic
-
-    out, _ = pc.output_dirs(args, EXPERIMENT)
     cfg = pc.RobotData(n_val=args.n_val)
     per_seed = [pc.robot_truth_diagnostics(cfg, s, args.still_speed) for s in range(args.mc)]
-    keys = list(per_seed[0])
     summary = {"per_seed": per_seed, "still_speed": args.still_speed,
-               "summary": {k: pc.spread(np.array([p[k] for p in per_seed])) for k in keys}}
-    write_json_atomic(out / "truth.json", summary)
+               "summary": {k: pc.spread(np.array([p[k] for p in per_seed])) for k in per_seed[0]}}
+    pc.write_result(pc.output_dirs(args, EXPERIMENT)[0] / "truth.json", summary)
     return summary
 
 
