@@ -16,8 +16,8 @@ import numpy as np
 import torch
 
 from agents.cli import main as command
+from agents.experiments import paper_common as pc
 from agents.experiments.bench_model_sizes import collect, errors, ltv_fit
-from agents.experiments.paper_common import machine_info, pyplot, save_figure, write_result
 from agents.tasks import make_task
 from mbtsr.ensemble import ModelConfig
 from mbtsr.io import write_json_atomic
@@ -75,9 +75,7 @@ SMOKE = {"smoke": True, "tasks": "inverted-pendulum", "episodes": "1,2", "n_test
 
 def main(argv: list[str] | None = None) -> dict:
     """The command line (``--help``: the options)."""
-    from agents.experiments.paper_common import blas_threads_from_env
-
-    blas_threads_from_env()  # one BLAS thread unless OMP_NUM_THREADS says otherwise
+    pc.blas_threads_from_env()  # one BLAS thread unless OMP_NUM_THREADS says otherwise
     return command(Args, run, args=argv, outputs=("out", "plot"), presets={"--smoke": SMOKE})
 
 
@@ -176,7 +174,7 @@ def markdown_table(cells: list[dict], regs: list[str]) -> str:
 def plot(cells: list[dict], records: list[dict], regs: list[str], out: str) -> None:
     """Per task: Jacobian error (top) and held-out error (bottom) against the episodes, median
     line and per-seed points per regularization, log y."""
-    plt = pyplot()
+    plt = pc.pyplot()
 
     tasks = list(dict.fromkeys(c["task"] for c in cells))
     fig, axes = plt.subplots(2, len(tasks), figsize=(3.2 * len(tasks), 5.6), squeeze=False)
@@ -204,7 +202,7 @@ def plot(cells: list[dict], records: list[dict], regs: list[str], out: str) -> N
             if j == 0:
                 ax.set_ylabel(label)
     axes[0, 0].legend(fontsize=8)
-    save_figure(fig, out)
+    pc.save_figure(fig, out)
     print(f"wrote {out}")
 
 
@@ -245,8 +243,7 @@ def label_study(args: Args) -> dict:
             episodes, ltvs = training_episodes(task, seed, ks[-1], args)
             for k in ks:
                 pts, u, A, B, P = true_at_points(task, seed, episodes[:k], args.jac_points)
-                A_l = np.concatenate([lm.A[:t.T] for lm, t in zip(ltvs, episodes[:k])])
-                B_l = np.concatenate([lm.B[:t.T] for lm, t in zip(ltvs, episodes[:k])])
+                A_l, B_l = pc.label_jacobians(ltvs, episodes[:k])
                 rec = {"task": task, "episodes": k, "seed": seed, "transitions": len(u),
                        **jacobian_rel_error(A, B, P, A_l[pts], B_l[pts])}
                 records.append(rec)
@@ -258,11 +255,12 @@ def label_study(args: Args) -> dict:
     result = {"args": dataclasses.asdict(args), "records": records,
               "median_jac_rel": {c: float(np.median(v)) for c, v in cells.items()},
               "wall_s": time.perf_counter() - t0}
-    write_result(args.out, result)
+    pc.write_result(args.out, result)
     return result
 
 
 def run(args: Args) -> dict:
+    """The study (``--study labels``: :func:`label_study`); returns the JSON it writes."""
     if args.study == "labels":
         return label_study(args)
     torch.set_num_threads(args.threads)
@@ -275,6 +273,17 @@ def run(args: Args) -> dict:
                        hidden_width=args.width)
     records: list[dict] = []
     data_info: dict = {}
+
+    def summary() -> dict:
+        """The JSON: settings, every record, the aggregates and their table, wall time, machine."""
+        cells = aggregate(records, regs)
+        return {"args": dataclasses.asdict(args),
+                "model": {"members": args.members, "layers": args.layers, "width": args.width,
+                          "activation": mcfg.activations[0], "formulation": mcfg.formulation},
+                "data": data_info, "records": records, "aggregate": cells,
+                "table_markdown": markdown_table(cells, regs), "wall_s": time.perf_counter() - t0,
+                "machine": pc.machine_info(load_start)}
+
     for seed in range(args.seeds):  # seeds outermost: a run cut short keeps whole seeds
         for task in tasks:
             tic = time.perf_counter()
@@ -309,28 +318,14 @@ def run(args: Args) -> dict:
                           f"held-out {rec['rel_step']:.3f}  ({t_train:.1f} s)", flush=True)
             print(f"{task} seed {seed}: {time.perf_counter() - tic:.0f} s", flush=True)
             if args.out:  # what ran so far, in case the run is cut short
-                write_json_atomic(args.out, summarize(args, mcfg, regs, records, data_info,
-                                                       t0, load_start))
-    result = summarize(args, mcfg, regs, records, data_info, t0, load_start)
+                write_json_atomic(args.out, summary())
+    result = summary()
     print(result["table_markdown"])
     print(f"wall {result['wall_s']:.0f} s")
-    write_result(args.out, result)
+    pc.write_result(args.out, result)
     if args.plot:
         plot(result["aggregate"], records, regs, args.plot)
     return result
-
-
-def summarize(args: Args, mcfg: ModelConfig, regs: list[str], records: list[dict],
-              data_info: dict, t0: float, load_start: tuple) -> dict:
-    """The JSON: settings, every record, the aggregates and their table, wall time, machine."""
-    cells = aggregate(records, regs)
-    table = markdown_table(cells, regs)
-    return {"args": dataclasses.asdict(args),
-            "model": {"members": args.members, "layers": args.layers, "width": args.width,
-                      "activation": mcfg.activations[0], "formulation": mcfg.formulation},
-            "data": data_info, "records": records, "aggregate": cells,
-            "table_markdown": table, "wall_s": time.perf_counter() - t0,
-            "machine": machine_info(load_start)}
 
 
 if __name__ == "__main__":
