@@ -40,14 +40,10 @@ def make_configs(args: Args) -> dict[str, dict]:
 
 def log_errors(records: list[dict]) -> tuple[list[int], dict[str, np.ndarray]]:
     """``checkpoints`` and ``{activation: [runs, checkpoints]}`` log10 prediction RMS."""
-    checkpoints = records[0]["result"]["checkpoints"]
-    acts = list(records[0]["result"]["pred_rms"])
-    out = {}
-    for a in acts:
-        v = np.array([r["result"]["pred_rms"][a] for r in records], dtype=float)  # None: nan
-        with np.errstate(divide="ignore", invalid="ignore"):
-            out[a] = np.log10(v)
-    return checkpoints, out
+    first = records[0]["result"]
+    with np.errstate(divide="ignore", invalid="ignore"):  # None: nan
+        return first["checkpoints"], {a: np.log10(np.array(
+            [r["result"]["pred_rms"][a] for r in records], dtype=float)) for a in first["pred_rms"]}
 
 
 def report(records: list[dict], out, figures, args: Args) -> dict:
@@ -73,13 +69,10 @@ def report(records: list[dict], out, figures, args: Args) -> dict:
     stack = np.stack([logs[a] for a in logs])  # [A, runs, C]
     ranks = np.argsort(np.argsort(np.where(np.isfinite(stack), stack, np.inf), 0), 0) + 1
     summary["mean_rank"] = {a: ranks[i].mean(0).tolist() for i, a in enumerate(logs)}
-    best_smooth = {}
-    for j, c in enumerate(checkpoints):
-        for a in ("relu", "leaky_relu"):
-            for smooth in ("tanh", "elu") if a in logs else ():
-                best_smooth[f"{a}_vs_{smooth}@{c}"] = pc.paired_comparison(logs[a][:, j],
-                                                                         logs[smooth][:, j])
-    summary["comparisons"] = best_smooth
+    summary["comparisons"] = {
+        f"{a}_vs_{smooth}@{c}": pc.paired_comparison(logs[a][:, j], logs[smooth][:, j])
+        for j, c in enumerate(checkpoints) for a in ("relu", "leaky_relu") if a in logs
+        for smooth in ("tanh", "elu")}
     summary["figures"] = ["activations.png"]
     return summary
 

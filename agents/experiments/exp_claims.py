@@ -111,12 +111,10 @@ def evaluate(c: Comparison, runs: dict[str, dict[int, dict]]) -> dict | None:
     """Medians and the paired statistic of one comparison (None if a side has no runs)."""
     if c.a not in runs or c.b not in runs:
         return None
-    ma, mb = (c.metric.split("|") + [c.metric])[:2] if "|" in c.metric else (c.metric,) * 2
+    ma, mb = (c.metric.split("|") * 2)[:2]  # "a|b": metric a of c.a, b of c.b
     seeds = sorted(set(runs[c.a]) & set(runs[c.b]))
     pairs = [(metric_value(runs[c.a][s], ma), metric_value(runs[c.b][s], mb)) for s in seeds]
-    pairs = [(x, y) for x, y in pairs if x is not None and y is not None]
-    a = np.array([p[0] for p in pairs], dtype=float)
-    b = np.array([p[1] for p in pairs], dtype=float)
+    a, b = np.array([p for p in pairs if None not in p], dtype=float).reshape(-1, 2).T
     stat = a / b if c.mode == "ratio" else a - b
     return {"claim": c.claim, "experiment": c.experiment, "a": c.a, "b": c.b,
             "metric": c.metric, "mode": c.mode, "a_stats": _q(a), "b_stats": _q(b),
@@ -136,14 +134,8 @@ def markdown(rows: list[dict]) -> str:
 
 def run(args: Args) -> list[dict]:
     root = Path(args.results) if args.results else REPO / "docs" / "results"
-    cache: dict[str, dict] = {}
-    rows = []
-    for c in COMPARISONS:
-        if c.experiment not in cache:
-            cache[c.experiment] = _load(root, c.experiment)
-        r = evaluate(c, cache[c.experiment])
-        if r is not None:
-            rows.append(r)
+    runs = {e: _load(root, e) for e in dict.fromkeys(c.experiment for c in COMPARISONS)}
+    rows = [r for c in COMPARISONS if (r := evaluate(c, runs[c.experiment])) is not None]
     out = Path(args.out) if args.out else root
     out.mkdir(parents=True, exist_ok=True)
     write_json_atomic(out / "claims.json", rows)

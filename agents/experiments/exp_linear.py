@@ -78,15 +78,11 @@ def report(records: list[dict], out, figures, args: Args) -> dict:
         pc.eigen_scatter(axes[0, j], learned[name], true,
                       f"{LABELS[name]}\neig. error {shown[name]['eig_match_err']:.3f}",
                       limits=limits)
-        ax = axes[1, j]
+        ax, h = axes[1, j], half[name.endswith("_bug")]
         ax.plot(offsets[name].real, offsets[name].imag, ".", ms=2, alpha=0.4)
         ax.plot([0], [0], "o", ms=4, mfc="none", color="tab:red")
-        h = half[name.endswith("_bug")]
-        ax.set_xlim(-h, h)
-        ax.set_ylim(-h, h)
-        ax.set_aspect("equal")
-        ax.set_xlabel("Re (learned - nearest true)")
-        ax.set_ylabel("Im")
+        ax.set(xlim=(-h, h), ylim=(-h, h), aspect="equal", xlabel="Re (learned - nearest true)",
+               ylabel="Im")
         ax.tick_params(labelsize=7)
     pc.save_figure(fig, figures / "linear_eigenvalues.png")
 
@@ -109,18 +105,16 @@ def report(records: list[dict], out, figures, args: Args) -> dict:
     per_round = {n: np.array([[rd["jac_rms_entry"] for rd in r["result"]["rounds"]]
                               for r in records if r["name"] == n], dtype=float) for n in names}
     for name in names:
-        rounds = np.arange(1, per_round[name].shape[1] + 1)
         med = np.nanmedian(per_round[name], 0)
         q1, q3 = np.nanpercentile(per_round[name], [25, 75], axis=0)
-        ax.errorbar(rounds, med, yerr=[med - q1, q3 - med], marker="o", capsize=3,
-                    label=LABELS[name])
+        ax.errorbar(np.arange(1, len(med) + 1), med, yerr=[med - q1, q3 - med], marker="o",
+                    capsize=3, label=LABELS[name])
     for name, vals in ORIGINAL.items():
         ax.plot(np.arange(1, 4), vals, "k--" if name == "none" else "k:", marker="x",
                 label=f"original code, {LABELS[name]}")
-    ax.set_yscale("log")
-    ax.set_xticks(np.arange(1, len(records[0]["result"]["rounds"]) + 1))
-    ax.set_xlabel("training round (= number of training trajectories)")
-    ax.set_ylabel("Jacobian RMS per entry")
+    ax.set(yscale="log", xticks=np.arange(1, len(records[0]["result"]["rounds"]) + 1),
+           xlabel="training round (= number of training trajectories)",
+           ylabel="Jacobian RMS per entry")
     ax.legend(fontsize=7)
     pc.save_figure(fig, figures / "linear_rounds.png")
 
