@@ -82,8 +82,8 @@ def main(argv: list[str] | None = None) -> dict:
 def true_jacobians(task_name: str, x: np.ndarray, u: np.ndarray
                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The true ``d(next obs)/d obs`` on the tangent space and ``d(next obs)/du`` at the MuJoCo
-    states ``x [T, nq+nv]`` and actions ``u [T, m]`` (module docstring): ``(A [T, d, d],
-    B [T, d, m], P [T, d, d])`` with ``P`` the projector onto the observation's tangent space."""
+    states ``x [T, nq+nv]`` and actions ``u [T, m]`` (docs/small_data.md, "What was run"):
+    ``(A [T, d, d], B [T, d, m], P [T, d, d])``, ``P`` the projector on the tangent space."""
     from envs.mujoco_model import MujocoDynamics, ObservedDynamics
 
     env = make_task(task_name).make_env()
@@ -101,11 +101,9 @@ def true_jacobians(task_name: str, x: np.ndarray, u: np.ndarray
 def jacobian_rel_error(A: np.ndarray, B: np.ndarray, P: np.ndarray, A_hat: np.ndarray,
                        B_hat: np.ndarray) -> dict:
     """Relative Frobenius errors of model Jacobians ``A_hat, B_hat`` against the true ``A, B``
-    with tangent projector ``P`` (docs/small_data.md): ``jac_rel``, the median over the points of
-    ``||[A_hat_t P_t - A_t, B_hat_t - B_t]||_F / ||[A_t, B_t]||_F``; ``jac_rel_pooled``, the
-    sums over the points in both norms (dominated by the few points of stiff contacts, whose
-    true Jacobians are 100 to 1000 times the others); ``jac_rel_A``, ``jac_rel_B``: the pointwise
-    median of each block alone."""
+    with tangent projector ``P`` (docs/small_data.md, "What was run"): ``jac_rel`` (median over
+    the points), ``jac_rel_pooled`` (sums over the points), ``jac_rel_A``, ``jac_rel_B`` (each
+    block alone, median)."""
     D_A, D_B = A_hat @ P - A, B_hat - B
     zero_A, zero_B = np.zeros_like(A), np.zeros_like(B)
 

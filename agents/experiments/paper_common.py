@@ -119,16 +119,10 @@ def output_dirs(args, experiment: str) -> tuple[Path, Path]:
     ``--smoke`` ``runs/smoke/<experiment>`` (git-ignored) and its ``figures`` sub-folder."""
     if args.out:
         out = Path(args.out)
-    elif args.smoke:
-        out = REPO / "runs" / "smoke" / experiment
     else:
-        out = REPO / "docs" / "results" / experiment
-    if args.figures:
-        figures = Path(args.figures)
-    elif args.smoke or args.out:
-        figures = out / "figures"
-    else:
-        figures = REPO / "docs" / "figures"
+        out = REPO / ("runs/smoke" if args.smoke else "docs/results") / experiment
+    figures = (Path(args.figures) if args.figures
+               else out / "figures" if args.smoke or args.out else REPO / "docs" / "figures")
     out.mkdir(parents=True, exist_ok=True)
     figures.mkdir(parents=True, exist_ok=True)
     return out, figures
@@ -812,8 +806,7 @@ def run_activations(config: dict, seed: int) -> dict:
     acts = list(config["activations"])
     model = build_ensemble(4, 2, formulation=config["formulation"], activations=acts,
                            width=config["width"], seed=child_seed(seed, 10))
-    Xv = np.concatenate([tr.x[:-1] for tr in d["val"]])
-    Uv = np.concatenate([tr.u for tr in d["val"]])
+    Xv, Uv = evaluation_points(d["val"], 1)
     Yv = np.concatenate([tr.x[1:] for tr in d["val"]])
     pred = {a: [] for a in acts}
     done, state = 0, None
@@ -923,13 +916,9 @@ def fused_ltv_models(ltv_models: list, model, trajs, prior_scale: float = 1.0) -
     average of the two Jacobians); the original's ``useprior``."""
     from mbtsr.ltv import fuse_prior
 
-    out = []
-    for lm, tr in zip(ltv_models, trajs):
-        T = tr.T
-        A_p, B_p = model.jacobians(tr.x[:-1], tr.u)
-        cov = np.asarray(lm.cov)[:T] * prior_scale
-        out.append(fuse_prior(lm, A_p[:T], B_p[:T], cov))
-    return out
+    return [fuse_prior(lm, *model.jacobians(tr.x[:-1], tr.u),
+                       np.asarray(lm.cov)[:tr.T] * prior_scale)
+            for lm, tr in zip(ltv_models, trajs)]
 
 
 REGIME_METHODS = ("none", "sampled", "exact", "oracle", "prior")
