@@ -301,9 +301,7 @@ class TaskBridge:
 def load_results(path: str | os.PathLike) -> dict[str, Any]:
     """The results file at ``path`` (an empty one if it does not exist)."""
     path = Path(path)
-    if path.is_file():
-        return json.loads(path.read_text())
-    return {"method": "pets", "runs": []}
+    return json.loads(path.read_text()) if path.is_file() else {"method": "pets", "runs": []}
 
 
 def find_run(results: dict[str, Any], task: str, seed: int) -> dict[str, Any] | None:
@@ -327,11 +325,6 @@ def upsert_run(path: str | os.PathLike, record: dict[str, Any],
                                                   if r["task"] in TASKS else 99, r["seed"]))
     write_json_atomic(path, results)
     return results
-
-
-def is_finished(record: dict[str, Any] | None) -> bool:
-    """Whether a record holds a finished run (its last evaluation at its budget)."""
-    return bool(record and record.get("finished"))
 
 
 def new_record(task: str, seed: int, settings: dict[str, Any]) -> dict[str, Any]:
@@ -544,7 +537,7 @@ def run_task(task_name: str, seed: int, settings: dict[str, Any], json_path: Pat
         ``resume`` continues; for tests and time-boxed sessions).
     """
     done = find_run(load_results(json_path), task_name, seed)
-    if resume and done is not None and is_finished(done):
+    if resume and done is not None and done.get("finished"):
         log(f"{task_name} seed {seed}: finished, skipped")
         return done
     import mbrl
