@@ -171,7 +171,7 @@ def _resume_view(settings: dict[str, Any]) -> dict[str, Any]:
 
 def task_settings(name: str, *, cem: dict[str, Any] | None = None,
                   budget: int | None = None, eval_every: int | None = None,
-                  epochs: int | None = None) -> dict[str, Any]:
+                  epochs: int | None = None, horizon: int | None = None) -> dict[str, Any]:
     """The complete settings of one run on task ``name`` (JSON-serializable).
 
     :param name: a key of :data:`TASKS`.
@@ -180,6 +180,7 @@ def task_settings(name: str, *, cem: dict[str, Any] | None = None,
     :param budget: env-step budget (default: the suite's).
     :param eval_every: env steps between evaluation points (default: the task's).
     :param epochs: training epochs per model update (default: published; for smoke runs).
+    :param horizon: planning horizon (default: published; for smoke runs).
     """
     if name not in TASKS:
         raise ValueError(f"unknown task {name!r}; known: {sorted(TASKS)}")
@@ -233,6 +234,9 @@ def task_settings(name: str, *, cem: dict[str, Any] | None = None,
     }
     if budget is not None and budget != task.budget:
         out["shrinks"].append(f"budget {task.budget} -> {budget} env steps")
+    if horizon is not None:
+        out["shrinks"].append(f"planning_horizon {t['planning_horizon']} -> {horizon}")
+        out["planner"]["planning_horizon"] = horizon
     return out
 
 
@@ -753,13 +757,8 @@ def settings_from_args(task: str, args: argparse.Namespace) -> dict[str, Any]:
     """:func:`task_settings` with the command line's overrides (each recorded as a shrink)."""
     cem = {k: v for k, v in (("population_size", args.population),
                              ("num_iterations", args.iterations)) if v is not None}
-    s = task_settings(task, cem=cem or None, budget=args.budget, eval_every=args.eval_every,
-                      epochs=args.epochs)
-    if args.horizon is not None:
-        s["shrinks"].append(f"planning_horizon {s['planner']['planning_horizon']} -> "
-                            f"{args.horizon}")
-        s["planner"]["planning_horizon"] = args.horizon
-    return s
+    return task_settings(task, cem=cem or None, budget=args.budget, eval_every=args.eval_every,
+                         epochs=args.epochs, horizon=args.horizon)
 
 
 def _reexec_in_venv(argv: list[str]) -> None:
