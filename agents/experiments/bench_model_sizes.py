@@ -134,10 +134,8 @@ def collect(task_name: str, n: int, seed: int, *, episode_steps: int | None = No
 def errors(step: Callable[[np.ndarray, np.ndarray], np.ndarray], train: list[Trajectory],
            test: list[Trajectory]) -> dict:
     """Held-out errors on ``test`` of a model ``step(x [N, n], u [N, m]) -> [N, n]`` (e.g. the
-    frozen ensemble mean's; module docstring): ``nrmse`` (over
-    all moving dimensions), ``nrmse_median_dim`` (the median over dimensions of each one's
-    normalized RMSE: robust to a few dimensions whose motion the training data hardly show,
-    such as Pusher's object before it is pushed), ``nrmse_per_dim`` and ``rel_step``."""
+    frozen ensemble mean's): ``nrmse``, ``nrmse_median_dim``, ``nrmse_per_dim`` and
+    ``rel_step`` (docs/experiments.md, ``bench_model_sizes``, says what each measures)."""
     std, moving = _moving(train)
     x = np.concatenate([t.x[:-1] for t in test])
     u = np.concatenate([t.u for t in test])

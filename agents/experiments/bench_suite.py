@@ -676,13 +676,9 @@ def steps_to_reach(curve: list[dict[str, Any]], score: float) -> tuple[float, bo
 def reference_rows(state: dict[str, Any], baselines: dict[str, dict[str, Any]],
                    sb3_runs: list[dict[str, Any]], pets_runs: list[dict[str, Any]]
                    ) -> list[dict[str, Any]]:
-    """Per task: zero action, oracle, SAC (at 50k and 100k), PETS at the task's budget, and the
-    best agent configuration (highest median final return) with its normalized score; the env
-    steps SAC needs to reach the best configuration's final return over the agent's budget
-    (>= 10: the target; a SAC run that never reaches it is a lower bound) and over the agent's
-    own steps to that return (the lower-median seed's first evaluation at or above it: with
-    the median final as the return, at least that seed reaches it; ``None`` if it never does),
-    and the agent vs PETS at equal env steps with the wall-time ratio."""
+    """Per task, the numbers of the report's first two tables (:func:`_md_references` says what
+    each column is): zero action, oracle, SAC, PETS, the best agent configuration (highest
+    median final return), SAC's env steps to its final return, the agent vs PETS."""
     rows = []
     table = state.get("table", [])
     for name in TASKS:
