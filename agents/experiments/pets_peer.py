@@ -787,8 +787,6 @@ def main(argv: list[str] | None = None) -> int:
             print("figure:", f.relative_to(REPO) if f.is_relative_to(REPO) else f)
         return 0
     os.environ.setdefault("OMP_NUM_THREADS", "1")
-    if str(REPO) not in sys.path:
-        sys.path.insert(0, str(REPO))
     import warnings
 
     warnings.filterwarnings("ignore", category=UserWarning)
