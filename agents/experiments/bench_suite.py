@@ -414,10 +414,8 @@ def with_solved(runs: list[dict[str, Any]], baselines: dict[str, dict[str, Any]]
     for r in runs:
         b = baselines.get(r["task"])
         if b is not None:
-            thr = solved_return(b["oracle_return"])
-            hit = [c["env_steps"] for c in r["curve"] if c["score"] is not None
-                   and c["score"] >= thr]
-            r = {**r, "env_steps_to_solve": hit[0] if hit else None}
+            steps, never = steps_to_reach(r["curve"], solved_return(b["oracle_return"]))
+            r = {**r, "env_steps_to_solve": None if never else int(steps)}
         out.append(r)
     return out
 
