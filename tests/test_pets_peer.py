@@ -168,8 +168,8 @@ def test_records_are_replaced_per_task_and_seed(tmp_path):
     assert [p["env_steps"] for p in rec["curve"]] == [200, 400]
     assert set(rec) >= {"task", "method", "seed", "settings", "curve", "plan_seconds_per_step",
                         "wall_seconds", "env_steps"}
-    assert rec["method"] == "pets" and pets_peer.is_finished(rec)
-    assert not pets_peer.is_finished(pets_peer.find_run(saved, "pusher", 0))
+    assert rec["method"] == "pets" and rec["finished"]
+    assert not pets_peer.find_run(saved, "pusher", 0)["finished"]
     assert pets_peer.find_run(saved, "pusher", 3) is None
     assert not list(tmp_path.glob(".*tmp*"))  # atomic writes leave no temporary file
 

@@ -98,14 +98,6 @@ def generic_normal_equations(x: np.ndarray, u: np.ndarray, lam: float):
     return (A_ls.T @ A_ls).tocsc(), A_ls.T @ b
 
 
-def _calls_to_fill(fn, min_seconds: float) -> int:
-    """How many calls of ``fn()`` fill ``min_seconds`` (from one timed call after a warm one)."""
-    fn()
-    t0 = time.perf_counter()
-    fn()
-    return max(1, int(np.ceil(min_seconds / max(time.perf_counter() - t0, 1e-9))))
-
-
 def _per_call(fn, calls: int) -> float:
     fn()  # untimed: the first call after another function's pays for its memory and caches
     t0 = time.perf_counter()
@@ -120,7 +112,7 @@ def timings(*fns, repeats: int, min_seconds: float = 0.05) -> np.ndarray:
     the clock and of other processes); the functions' loops alternate (a, b, a, b, ...), so that
     each ratio ``b_i / a_i`` compares them at the same machine speed (a shared machine's speed
     drifts by tens of percent between seconds)."""
-    calls = [_calls_to_fill(fn, min_seconds) for fn in fns]
+    calls = [max(1, int(np.ceil(min_seconds / max(_per_call(fn, 1), 1e-9)))) for fn in fns]
     return np.array([[_per_call(fn, c) for fn, c in zip(fns, calls)]
                      for _ in range(repeats)]).T
 

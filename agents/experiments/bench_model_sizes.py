@@ -134,13 +134,9 @@ def collect(task_name: str, n: int, seed: int, *, episode_steps: int | None = No
 def errors(step: Callable[[np.ndarray, np.ndarray], np.ndarray], train: list[Trajectory],
            test: list[Trajectory]) -> dict:
     """Held-out errors on ``test`` of a model ``step(x [N, n], u [N, m]) -> [N, n]`` (e.g. the
-    frozen ensemble mean's; module docstring): ``nrmse`` (over
-    all moving dimensions), ``nrmse_median_dim`` (the median over dimensions of each one's
-    normalized RMSE: robust to a few dimensions whose motion the training data hardly show,
-    such as Pusher's object before it is pushed), ``nrmse_per_dim`` and ``rel_step``."""
-    dx_train = np.concatenate([t.x[1:] - t.x[:-1] for t in train])
-    std = dx_train.std(0)
-    moving = std > 1e-9 * (1.0 + np.abs(dx_train).max(0))
+    frozen ensemble mean's): ``nrmse``, ``nrmse_median_dim``, ``nrmse_per_dim`` and
+    ``rel_step`` (docs/experiments.md, ``bench_model_sizes``, says what each measures)."""
+    std, moving = _moving(train)
     x = np.concatenate([t.x[:-1] for t in test])
     u = np.concatenate([t.u for t in test])
     x_next = np.concatenate([t.x[1:] for t in test])
@@ -152,6 +148,12 @@ def errors(step: Callable[[np.ndarray, np.ndarray], np.ndarray], train: list[Tra
         "nrmse_per_dim": dict(zip(np.flatnonzero(moving).tolist(), per_dim.tolist())),
         "rel_step": float(np.sqrt(np.sum(err**2) / np.sum((x_next - x) ** 2))),
     }
+
+
+def _moving(train: list[Trajectory]) -> tuple[np.ndarray, np.ndarray]:
+    """``(std, moving)`` of each dimension's one-step change in ``train`` (a goal: not moving)."""
+    dx = np.concatenate([t.x[1:] - t.x[:-1] for t in train])
+    return dx.std(0), dx.std(0) > 1e-9 * (1.0 + np.abs(dx).max(0))
 
 
 def model_config(size: str, members: int, **kw) -> ModelConfig:
@@ -166,7 +168,9 @@ def model_config(size: str, members: int, **kw) -> ModelConfig:
 
 def planning_cost(model: DynamicsEnsemble, seed: int) -> dict:
     """ms of the frozen ensemble-mean step at 1 and 200 rows and of its Jacobians at 30 points
-    (best of 5)."""
+    (best of 5, :func:`~agents.experiments.bench_env.best_rate`)."""
+    from agents.experiments.bench_env import best_rate
+
     frozen = model.freeze()
     rng = np.random.default_rng(seed)
     n, m = frozen.state_dim, frozen.action_dim
@@ -178,13 +182,8 @@ def planning_cost(model: DynamicsEnsemble, seed: int) -> dict:
     ):
         x, u = rng.normal(size=(200, n)), rng.normal(size=(200, m))
         fn(x, u)
-        best = np.inf
-        for _ in range(5):
-            tic = time.perf_counter()
-            for _ in range(reps):
-                fn(x, u)
-            best = min(best, (time.perf_counter() - tic) / reps)
-        out[name] = best * 1e3
+        out[name] = 1e3 / best_rate(lambda f=fn, x=x, u=u, k=reps: [f(x, u) for _ in range(k)],
+                                    reps, 5)
     return out
 
 
@@ -335,8 +334,7 @@ def run(args: Args) -> dict:
                     "episodes_train": len(train), "episodes_test": len(test)}
     # the normalized validation loss of train_ensemble is sum_d (err_d / out_std_d)^2 with
     # out_std the residual std of the training data: nrmse^2 * n_moving for the g model
-    dx = np.concatenate([t.x[1:] - t.x[:-1] for t in train])
-    n_moving = int(np.sum(dx.std(0) > 1e-9 * (1.0 + np.abs(dx).max(0))))
+    n_moving = int(np.sum(_moving(train)[1]))
     result["n_moving"] = n_moving
     rows = {}
     if args.study == "sizes":

@@ -19,7 +19,7 @@ import envs  # noqa: F401  (registers the envs; sets MUJOCO_GL=egl before mujoco
 from agents.cli import main as command
 from agents.experiments.paper_common import pyplot, save_figure
 from envs.collect import collect_trajectories, default_input_kwargs
-from envs.rendering import save_png_strip
+from envs.rendering import render_episode, save_png_strip
 from mbtsr.io import write_json_atomic
 from mbtsr.trajectory import save_trajectories
 
@@ -124,14 +124,8 @@ def run(args: Args) -> dict:
             width=240,
             height=180,
         )
-        render_env.reset(seed=trajs[0].meta["reset_seed"])
-        show = set(np.linspace(0, args.T, 6).round().astype(int).tolist())
-        frames = [render_env.render()] if 0 in show else []
-        for t, u in enumerate(trajs[0].u, start=1):
-            render_env.step(u.astype(np.float32))
-            if t in show:
-                frames.append(render_env.render())
-        save_png_strip(frames, out / "arm.png", n=len(frames))
+        frames = render_episode(render_env, trajs[0].u, seed=trajs[0].meta["reset_seed"])
+        save_png_strip(frames, out / "arm.png")  # 6 evenly spaced frames
         render_env.close()
 
     print(

@@ -73,16 +73,6 @@ def episode_cost(X: np.ndarray, U: np.ndarray, goal, Q, R) -> np.ndarray:
     return np.einsum("ti,ij,tj->t", E, Q, E) + np.einsum("ti,ij,tj->t", U, R, U)
 
 
-def run_policy(env, policy, T, seed, options):
-    """Run ``policy(x, t) -> a`` on the env state; ``-> (X [T+1, n], U [T, m], rewards [T])``."""
-    rec = run_episode(env, policy, seed=seed, options=options, max_steps=T, observe=_state)
-    return rec.states, rec.actions, rec.rewards
-
-
-def _state(obs, info):
-    return info["state"]
-
-
 def build_model(args: Args, arm: Any, options: dict) -> tuple[Any, str]:
     """The planning model ``--model`` names, and its name: the arm's true or analytic model,
     an LTV fit on excitation rollouts of this episode, or a saved ensemble."""
@@ -162,23 +152,22 @@ def run(args: Args) -> dict:
     print(f"iLQR: {res.status} after {res.iterations} iterations ({res.message}), "
           f"{res.timings['total']:.2f} s, planned cost {res.cost:.4f}")
 
-    # ---- 2./3. execute the plan in the env: open loop, and with the plan's feedback gains
-    X_ol, U_ol, r_ol = run_policy(env, lambda x, t: res.U[t], args.T, args.seed, options)
-    X_fb, U_fb, r_fb = run_policy(env, lambda x, t: res.U[t] + res.K[t] @ (x - res.X[t]),
-                                  args.T, args.seed, options)
-
+    # ---- 2./3. execute the plan in the env: open loop, and with the plan's feedback gains;
     # ---- 4. MPC on the model in the env
     mpc = MPC(ilqr, cost, model, horizon=args.mpc_horizon, u_min=-1.0, u_max=1.0,
               options=MPCOptions(iterations_per_step=args.mpc_iterations, first_step_iterations=30,
                                  optimizer_options=ILQROptions(tol_fun_rel=1e-6)),  # as documented
               params=cost.reference(goal))
-    mpc_out = run_episode(env, mpc, seed=args.seed, options=options, observe=_state)
-    compute_times = np.asarray(mpc.compute_times)
-
+    policies = {"open_loop": lambda x, t: res.U[t],
+                "plan_with_feedback": lambda x, t: res.U[t] + res.K[t] @ (x - res.X[t]),
+                "mpc": mpc}
     # ---- summary: (states, actions, per-step cost) of the plan and of the three executions
-    runs = {"planned": (res.X, res.U, episode_cost(res.X, res.U, goal, Q, R)),
-            "open_loop": (X_ol, U_ol, -r_ol), "plan_with_feedback": (X_fb, U_fb, -r_fb),
-            "mpc": (mpc_out.states, mpc_out.actions, -mpc_out.rewards)}
+    runs = {"planned": (res.X, res.U, episode_cost(res.X, res.U, goal, Q, R))}
+    for name, policy in policies.items():
+        rec = run_episode(env, policy, seed=args.seed, options=options, max_steps=args.T,
+                          observe=lambda obs, info: info["state"])
+        runs[name] = (rec.states, rec.actions, -rec.rewards)
+    compute_times = np.asarray(mpc.compute_times)
     summary = {
         "args": dataclasses.asdict(args),
         "x0": x0.tolist(),

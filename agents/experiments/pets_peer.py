@@ -171,7 +171,7 @@ def _resume_view(settings: dict[str, Any]) -> dict[str, Any]:
 
 def task_settings(name: str, *, cem: dict[str, Any] | None = None,
                   budget: int | None = None, eval_every: int | None = None,
-                  epochs: int | None = None) -> dict[str, Any]:
+                  epochs: int | None = None, horizon: int | None = None) -> dict[str, Any]:
     """The complete settings of one run on task ``name`` (JSON-serializable).
 
     :param name: a key of :data:`TASKS`.
@@ -180,6 +180,7 @@ def task_settings(name: str, *, cem: dict[str, Any] | None = None,
     :param budget: env-step budget (default: the suite's).
     :param eval_every: env steps between evaluation points (default: the task's).
     :param epochs: training epochs per model update (default: published; for smoke runs).
+    :param horizon: planning horizon (default: published; for smoke runs).
     """
     if name not in TASKS:
         raise ValueError(f"unknown task {name!r}; known: {sorted(TASKS)}")
@@ -233,6 +234,9 @@ def task_settings(name: str, *, cem: dict[str, Any] | None = None,
     }
     if budget is not None and budget != task.budget:
         out["shrinks"].append(f"budget {task.budget} -> {budget} env steps")
+    if horizon is not None:
+        out["shrinks"].append(f"planning_horizon {t['planning_horizon']} -> {horizon}")
+        out["planner"]["planning_horizon"] = horizon
     return out
 
 
@@ -301,9 +305,7 @@ class TaskBridge:
 def load_results(path: str | os.PathLike) -> dict[str, Any]:
     """The results file at ``path`` (an empty one if it does not exist)."""
     path = Path(path)
-    if path.is_file():
-        return json.loads(path.read_text())
-    return {"method": "pets", "runs": []}
+    return json.loads(path.read_text()) if path.is_file() else {"method": "pets", "runs": []}
 
 
 def find_run(results: dict[str, Any], task: str, seed: int) -> dict[str, Any] | None:
@@ -327,11 +329,6 @@ def upsert_run(path: str | os.PathLike, record: dict[str, Any],
                                                   if r["task"] in TASKS else 99, r["seed"]))
     write_json_atomic(path, results)
     return results
-
-
-def is_finished(record: dict[str, Any] | None) -> bool:
-    """Whether a record holds a finished run (its last evaluation at its budget)."""
-    return bool(record and record.get("finished"))
 
 
 def new_record(task: str, seed: int, settings: dict[str, Any]) -> dict[str, Any]:
@@ -544,7 +541,7 @@ def run_task(task_name: str, seed: int, settings: dict[str, Any], json_path: Pat
         ``resume`` continues; for tests and time-boxed sessions).
     """
     done = find_run(load_results(json_path), task_name, seed)
-    if resume and done is not None and is_finished(done):
+    if resume and done is not None and done.get("finished"):
         log(f"{task_name} seed {seed}: finished, skipped")
         return done
     import mbrl
@@ -760,13 +757,8 @@ def settings_from_args(task: str, args: argparse.Namespace) -> dict[str, Any]:
     """:func:`task_settings` with the command line's overrides (each recorded as a shrink)."""
     cem = {k: v for k, v in (("population_size", args.population),
                              ("num_iterations", args.iterations)) if v is not None}
-    s = task_settings(task, cem=cem or None, budget=args.budget, eval_every=args.eval_every,
-                      epochs=args.epochs)
-    if args.horizon is not None:
-        s["shrinks"].append(f"planning_horizon {s['planner']['planning_horizon']} -> "
-                            f"{args.horizon}")
-        s["planner"]["planning_horizon"] = args.horizon
-    return s
+    return task_settings(task, cem=cem or None, budget=args.budget, eval_every=args.eval_every,
+                         epochs=args.epochs, horizon=args.horizon)
 
 
 def _reexec_in_venv(argv: list[str]) -> None:
@@ -795,8 +787,6 @@ def main(argv: list[str] | None = None) -> int:
             print("figure:", f.relative_to(REPO) if f.is_relative_to(REPO) else f)
         return 0
     os.environ.setdefault("OMP_NUM_THREADS", "1")
-    if str(REPO) not in sys.path:
-        sys.path.insert(0, str(REPO))
     import warnings
 
     warnings.filterwarnings("ignore", category=UserWarning)
