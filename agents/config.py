@@ -22,7 +22,7 @@ from typing import Any, ClassVar, Literal
 import numpy as np
 import yaml
 
-from agents.cli import at_field
+from agents.cli import built
 from mbtsr.cem import CEMOptions
 from mbtsr.ensemble import ModelConfig
 from mbtsr.reward import RewardConfig
@@ -45,7 +45,7 @@ class _Section:
         for name, hint in _hints(type(self)).items():
             value = getattr(self, name)
             if isinstance(value, str) and name in _NAMED:  # a name for a section: it, fresh
-                value = _build(name, _NAMED[name], value)
+                value = built(name, _NAMED[name], value)
                 object.__setattr__(self, name, value)
             if not _is_section(hint):
                 object.__setattr__(self, name, _coerce(value, hint, at + name, True))
@@ -451,14 +451,6 @@ def _unknown(key: str) -> ValueError:
                       f"{max(_defaults()[2], key=score)!r}")
 
 
-def _build(path: str, make: Callable[..., Any], *args: Any, **kwargs: Any) -> Any:
-    """``make(*args, **kwargs)``, an error re-raised naming ``path``."""
-    try:
-        return make(*args, **kwargs)
-    except (ValueError, TypeError) as err:
-        raise at_field(path, err) from None
-
-
 def _replaced(obj: Any, changes: Mapping[str, Any], prefix: str) -> Any:
     """``dataclasses.replace`` with dotted keys and section dicts at any depth, every leaf
     coerced to its type, every level validated again."""
@@ -486,12 +478,12 @@ def _replaced(obj: Any, changes: Mapping[str, Any], prefix: str) -> Any:
                              f"({prefix}{head} is a field, not a section)")
         base = direct.get(head, getattr(obj, head))
         if isinstance(base, str) and head in _NAMED:  # a name, then its fields
-            base = _build(head, _NAMED[head], base)
+            base = built(head, _NAMED[head], base)
         if not isinstance(base, hints[head]):
             raise ValueError(f"{prefix}{head} must be a {hints[head].__name__} or a name, got "
                              f"{base!r}")
         direct[head] = _replaced(base, values, f"{prefix}{head}.")
-    return _build(prefix[:-1], dataclasses.replace, obj, **direct)
+    return built(prefix[:-1], dataclasses.replace, obj, **direct)
 
 
 #: the sections of a run's ``config.json`` beside ``agent`` (written by train_agent)
