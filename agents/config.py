@@ -412,8 +412,6 @@ def _coerce(value: Any, hint: Any, name: str, strict: bool = False) -> Any:
             return int(value)
         elif option is str and isinstance(value, (str, os.PathLike)):
             return os.fspath(value)
-        elif option not in (bool, int, float, str, type(None)) and origin not in (Literal, tuple):
-            return value  # a type the tree does not use: unchecked
     raise ValueError(f"{name} must be {_describe(hint)}, got {given!r}")
 
 
