@@ -1,8 +1,6 @@
-"""Command lines generated from config dataclasses (tyro): a script declares its options once, as
-a dataclass whose field docstrings are the ``--help`` text, and calls :func:`main`. A bad value
-ends in one line ``<prog>: error: <message>`` (exit code 2) naming the field by its flag's dotted
-path; fields a config fixes (its ``FIXED``, as :attr:`agents.config.AgentConfig.FIXED`) are not
-offered."""
+"""Command lines generated from config dataclasses by tyro (docs/experiments.md): a bad value ends
+in one line ``<prog>: error: <message>`` (exit code 2) naming the dotted field; fields a config
+fixes (its ``FIXED``, as :attr:`agents.config.AgentConfig.FIXED`) are not offered."""
 
 from __future__ import annotations
 
@@ -16,7 +14,7 @@ from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Annotated, Any, NoReturn, TypeVar
 
-__all__ = ["at_field", "call", "check_output_path", "fail", "main", "parse"]
+__all__ = ["built", "call", "check_output_path", "fail", "main", "parse"]
 
 T = TypeVar("T")
 _ROLE = re.compile(r":(?:py:)?(?:func|class|meth|data|mod|attr|obj):`~?([^`]+)`|``([^`]+)``")
@@ -29,8 +27,7 @@ def fail(message: str, prog: str | None = None) -> NoReturn:
 
 
 def _plain_help(text: str | Callable[[], str | None] | None) -> str | None:
-    """``--help`` text (or tyro's lazy one) with the docstrings' reST markup (````x````,
-    :func:`x`) as plain names."""
+    """``--help`` text (or tyro's lazy one) with reST markup (````x````, :func:`x`) as plain."""
     text = text() if callable(text) else text
     return text and _ROLE.sub(lambda m: m.group(1) or m.group(2), text)
 
@@ -70,8 +67,7 @@ def _registry(fixed: set[tuple[type, str]]) -> Any:
 
     def unchecked(cls: type, **values: Any) -> Any:
         obj = object.__new__(cls)
-        for k, v in values.items():
-            object.__setattr__(obj, k, v)
+        obj.__dict__.update(values)  # frozen: its __setattr__ refuses
         return obj
 
     @registry.struct_rule
@@ -95,34 +91,30 @@ def _registry(fixed: set[tuple[type, str]]) -> Any:
 
 
 def _validated(obj: Any, path: str = "") -> Any:
-    """``obj`` built again through its constructors, innermost first; an error names the field
-    by its flag's dotted path (``model.hidden_width must ...``)."""
+    """``obj`` built again through its constructors, innermost first, by :func:`built`."""
     if not dataclasses.is_dataclass(obj):
         return obj
     hints = typing.get_type_hints(type(obj), include_extras=True)
     values = {f.name: _validated(getattr(obj, f.name), path if any(  # tyro.conf.arg(name="")
         getattr(m, "name", None) == "" for m in getattr(hints[f.name], "__metadata__", ()))
         else ".".join(p for p in (path, f.name) if p)) for f in dataclasses.fields(obj) if f.init}
+    return built(path, type(obj), **values)
+
+
+def built(path: str, make: Callable[..., T], *args: Any, **kwargs: Any) -> T:
+    """``make(*args, **kwargs)``; its error re-raised as a one-line ``ValueError`` naming the
+    dotted field ``path`` (``model.hidden_width must ...``; CEMOptions says ``options.<field>``)."""
     try:
-        return type(obj)(**values)
+        return make(*args, **kwargs)
     except (ValueError, TypeError) as err:
-        raise ValueError(" ".join(str(at_field(path, err)).removeprefix("options.").split())
-                         ) from None
+        msg = " ".join(str(err).removeprefix("options.").split())
+        named = not path or msg.startswith((f"{path}.", f"{path} "))
+        raise ValueError(msg if named else f"{path}.{msg}") from None
 
 
-def at_field(path: str, err: Exception) -> Exception:
-    """``err`` naming the dotted field ``path`` (unless it does already; CEMOptions names its
-    fields ``options.<field>``): ``ValueError("<path>.<message>")`` (a ``TypeError`` stays one)."""
-    msg = str(err).removeprefix("options.")
-    if not path or msg.startswith((f"{path}.", f"{path} ")):
-        return err
-    return (TypeError if isinstance(err, TypeError) else ValueError)(f"{path}.{msg}")
-
-
-def parse(config_type: type[T], *, args: Sequence[str] | None = None,
-          description: str | None = None, prog: str | None = None, outputs: Sequence[str] = (),
-          folders: Sequence[str] = (), presets: Mapping[str, Mapping[str, Any]] | None = None,
-          default: T | None = None) -> T:
+def parse(config_type: type[T], *, args: Sequence[str] | None = None, prog: str | None = None,
+          outputs: Sequence[str] = (), folders: Sequence[str] = (),
+          presets: Mapping[str, Mapping[str, Any]] | None = None, default: T | None = None) -> T:
     """The command line (``args``, default ``sys.argv[1:]``) as a validated ``config_type``;
     ``--help`` exits 0, an error exits 2.
 
@@ -139,8 +131,8 @@ def parse(config_type: type[T], *, args: Sequence[str] | None = None,
     for flag, values in (presets or {}).items():
         if flag in argv:
             default = dataclasses.replace(default or config_type(), **values)
-    config = tyro.cli(config_type, args=argv, description=description, prog=prog,
-                      default=default, registry=_registry(_fixed(config_type)))
+    config = tyro.cli(config_type, args=argv, prog=prog, default=default,
+                      registry=_registry(_fixed(config_type)))
     try:
         config = _validated(config)
         for names, folder in ((outputs, False), (folders, True)):

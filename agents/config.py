@@ -4,7 +4,6 @@ type hint, ``_BOUNDS``, ``AgentConfig.FIXED`` and ``_DEPENDENT``; errors name th
 
 from __future__ import annotations
 
-import ast
 import contextlib
 import dataclasses
 import difflib
@@ -12,9 +11,7 @@ import functools
 import json
 import math
 import numbers
-import operator
 import os
-import re
 import types
 import typing
 from collections.abc import Callable, Iterator, Mapping
@@ -25,7 +22,7 @@ from typing import Any, ClassVar, Literal
 import numpy as np
 import yaml
 
-from agents.cli import at_field
+from agents.cli import built
 from mbtsr.cem import CEMOptions
 from mbtsr.ensemble import ModelConfig
 from mbtsr.reward import RewardConfig
@@ -48,7 +45,7 @@ class _Section:
         for name, hint in _hints(type(self)).items():
             value = getattr(self, name)
             if isinstance(value, str) and name in _NAMED:  # a name for a section: it, fresh
-                value = _build(name, _NAMED[name], value)
+                value = built(name, _NAMED[name], value)
                 object.__setattr__(self, name, value)
             if not _is_section(hint):
                 object.__setattr__(self, name, _coerce(value, hint, at + name, True))
@@ -277,7 +274,7 @@ class AgentConfig(_Section):
         for fields, when in _DEPENDENT.items():
             chosen = [n for n, v in values.items() if v not in (agent[n], own.get(n, agent[n]))
                       and any(n == f or f[-1] == "." and n.startswith(f) for f in fields.split())]
-            if chosen and not _holds(when, values):
+            if chosen and not eval(when, {}, self.__dict__):  # noqa: S307 - the table above
                 raise ValueError(f"{chosen[0]}={values[chosen[0]]!r} has no effect: it acts only "
                                  f"when {when}: remove it, or set that")
 
@@ -415,14 +412,12 @@ def _coerce(value: Any, hint: Any, name: str, strict: bool = False) -> Any:
             return int(value)
         elif option is str and isinstance(value, (str, os.PathLike)):
             return os.fspath(value)
-        elif option not in (bool, int, float, str, type(None)) and origin not in (Literal, tuple):
-            return value  # a type the tree does not use: unchecked
     raise ValueError(f"{name} must be {_describe(hint)}, got {given!r}")
 
 
 #: settings that act only under others: ``{fields: when}`` (a field ending in "." stands for its
 #: section's fields); a chosen value there (neither the agent's default nor its section's) while
-#: the condition ``when`` (:func:`_holds`) is false is refused
+#: the Python condition ``when`` on the config's fields is false is refused
 _DEPENDENT = {
     "regularization.sigma regularization.n_copies regularization.copies_batch":
         "regularization.sampled_weight > 0",
@@ -443,19 +438,6 @@ _DEPENDENT = {
 }
 
 
-_ATOM = re.compile(r"(\S+) (==|!=|>|is not|is) (.+)")
-_OPS = {"==": operator.eq, "!=": operator.ne, ">": operator.gt, "is": operator.is_,
-        "is not": operator.is_not}
-
-
-def _holds(when: str, values: Mapping[str, Any]) -> bool:
-    """Whether the condition ``when`` holds for the dotted ``values``: comparisons of a field with
-    a Python literal, joined by ``and``, then by ``or`` (``"a > 0 and b != 'x' or c is None"``)."""
-    return any(all(_OPS[m[2]](values[m[1]], ast.literal_eval(m[3]))
-                   for m in map(_ATOM.fullmatch, part.split(" and ")))
-               for part in when.split(" or "))
-
-
 def _unknown(key: str) -> ValueError:
     """The error of an unknown field, naming the closest valid one (whole path or last part)."""
     def score(path: str) -> tuple[float, float]:  # the closer of the whole and the last part
@@ -465,14 +447,6 @@ def _unknown(key: str) -> ValueError:
 
     return ValueError(f"unknown AgentConfig field {key!r}; the closest valid field is "
                       f"{max(_defaults()[2], key=score)!r}")
-
-
-def _build(path: str, make: Callable[..., Any], *args: Any, **kwargs: Any) -> Any:
-    """``make(*args, **kwargs)``, an error re-raised naming ``path``."""
-    try:
-        return make(*args, **kwargs)
-    except (ValueError, TypeError) as err:
-        raise at_field(path, err) from None
 
 
 def _replaced(obj: Any, changes: Mapping[str, Any], prefix: str) -> Any:
@@ -502,12 +476,12 @@ def _replaced(obj: Any, changes: Mapping[str, Any], prefix: str) -> Any:
                              f"({prefix}{head} is a field, not a section)")
         base = direct.get(head, getattr(obj, head))
         if isinstance(base, str) and head in _NAMED:  # a name, then its fields
-            base = _build(head, _NAMED[head], base)
+            base = built(head, _NAMED[head], base)
         if not isinstance(base, hints[head]):
             raise ValueError(f"{prefix}{head} must be a {hints[head].__name__} or a name, got "
                              f"{base!r}")
         direct[head] = _replaced(base, values, f"{prefix}{head}.")
-    return _build(prefix[:-1], dataclasses.replace, obj, **direct)
+    return built(prefix[:-1], dataclasses.replace, obj, **direct)
 
 
 #: the sections of a run's ``config.json`` beside ``agent`` (written by train_agent)

@@ -20,11 +20,11 @@ from agents.cli import _plain_help, check_output_path, main, parse
 REPO = Path(__file__).resolve().parents[1]
 sys.path.append(str(REPO))  # agents/experiments/ (until the editable install is refreshed)
 
-#: every experiments module behind a script in scripts/
-EXPERIMENTS = ["bench_env", "bench_ilqr", "bench_ltv", "bench_model_sizes", "bench_models",
-               "bench_planning",
-               "bench_suite", "collect_excitation", "exp_small_data",
-               "ilqr_with_model", "model_env_sac"]
+#: every experiments module behind a script in scripts/ (the exp_* ones: every one there is)
+EXPERIMENTS = sorted({"bench_env", "bench_ilqr", "bench_ltv", "bench_model_sizes", "bench_models",
+                      "bench_planning", "bench_suite", "collect_excitation", "ilqr_with_model",
+                      "model_env_sac", *(p.stem for p in (REPO / "agents" / "experiments")
+                                         .glob("exp_*.py"))})
 
 
 @dataclass(frozen=True)
@@ -150,7 +150,7 @@ def test_value_errors_of_the_run_are_one_line_too(capsys):
 
 
 @pytest.mark.parametrize("name", EXPERIMENTS)
-def test_every_script_help_lists_every_field_with_its_docstring(name, capsys):
+def test_every_script_help_lists_every_field_with_its_help(name, capsys):
     module = importlib.import_module(f"agents.experiments.{name}")
     assert (REPO / "scripts" / f"{name}.py").exists()
     text = " ".join(help_text(module.Args, capsys).split())
@@ -332,21 +332,6 @@ def test_train_agent_bad_nested_value_exits_2_naming_the_field(argv, field, caps
     assert exc.value.code == 2 and "Traceback" not in err and field in err, err
     if not field.startswith("--"):
         assert err.count("\n") == 1, err
-
-
-EXPERIMENTS = REPO / "agents" / "experiments"
-
-
-@pytest.mark.parametrize("name", sorted(p.stem for p in EXPERIMENTS.glob("exp_*.py")))
-def test_every_experiment_help_lists_every_field_with_its_help(name, capsys):
-    module = importlib.import_module(f"agents.experiments.{name}")
-    assert (REPO / "scripts" / f"{name}.py").exists()
-    text = " ".join(help_text(module.Args, capsys).split())
-    for flag, f in fields_of(module.Args):
-        assert f"--{flag}" in text, flag
-        doc = f.metadata.get("help")
-        assert doc, f"{name}.{f.name} has no help"
-        assert " ".join(doc.split()[:3]) in text, f.name
 
 
 @pytest.mark.parametrize("summary, verdict", [
