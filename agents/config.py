@@ -4,6 +4,7 @@ type hint, ``_BOUNDS``, ``AgentConfig.FIXED`` and ``_DEPENDENT``; errors name th
 
 from __future__ import annotations
 
+import ast
 import contextlib
 import dataclasses
 import difflib
@@ -11,7 +12,9 @@ import functools
 import json
 import math
 import numbers
+import operator
 import os
+import re
 import types
 import typing
 from collections.abc import Callable, Iterator, Mapping
@@ -274,7 +277,7 @@ class AgentConfig(_Section):
         for fields, when in _DEPENDENT.items():
             chosen = [n for n, v in values.items() if v not in (agent[n], own.get(n, agent[n]))
                       and any(n == f or f[-1] == "." and n.startswith(f) for f in fields.split())]
-            if chosen and not eval(when, {}, self.__dict__):  # noqa: S307 - the table above
+            if chosen and not _holds(when, values):
                 raise ValueError(f"{chosen[0]}={values[chosen[0]]!r} has no effect: it acts only "
                                  f"when {when}: remove it, or set that")
 
@@ -417,7 +420,7 @@ def _coerce(value: Any, hint: Any, name: str, strict: bool = False) -> Any:
 
 #: settings that act only under others: ``{fields: when}`` (a field ending in "." stands for its
 #: section's fields); a chosen value there (neither the agent's default nor its section's) while
-#: the Python condition ``when`` on the config's fields is false is refused
+#: the condition ``when`` (:func:`_holds`) is false is refused
 _DEPENDENT = {
     "regularization.sigma regularization.n_copies regularization.copies_batch":
         "regularization.sampled_weight > 0",
@@ -436,6 +439,19 @@ _DEPENDENT = {
     "video_every": "video == True",
     "evaluation.solved_ratio evaluation.early_exit": "evaluation.solved_return is None",
 }
+
+
+_ATOM = re.compile(r"(\S+) (==|!=|>|is not|is) (.+)")
+_OPS = {"==": operator.eq, "!=": operator.ne, ">": operator.gt, "is": operator.is_,
+        "is not": operator.is_not}
+
+
+def _holds(when: str, values: Mapping[str, Any]) -> bool:
+    """Whether the condition ``when`` holds for the dotted ``values``: comparisons of a field with
+    a Python literal, joined by ``and``, then by ``or`` (``"a > 0 and b != 'x' or c is None"``)."""
+    return any(all(_OPS[m[2]](values[m[1]], ast.literal_eval(m[3]))
+                   for m in map(_ATOM.fullmatch, part.split(" and ")))
+               for part in when.split(" or "))
 
 
 def _unknown(key: str) -> ValueError:
