@@ -812,32 +812,23 @@ class DynamicsEnsemble(nn.Module):
                     raise ValueError(f"cannot freeze: {name} must be > 0")
             return FrozenEnsemble(self, precision)
 
-    # one-off numpy evaluation (metrics, tests): each call freezes a fresh float64 copy
-    def step(self, x: np.ndarray, u: np.ndarray, t: int | None = None) -> np.ndarray:
-        """``self.freeze("float64").step(x, u, t)``: ensemble-mean next state ``[..., n]``."""
-        return self.freeze("float64").step(x, u, t)
 
-    def member_predictions(self, x: np.ndarray, u: np.ndarray) -> np.ndarray:
-        """``self.freeze("float64").member_predictions(x, u)``: ``[K, ..., n]``."""
-        return self.freeze("float64").member_predictions(x, u)
+def _via_frozen(name: str) -> Callable:
+    """``DynamicsEnsemble.<name>``: ``self.freeze("float64").<name>(...)``, the one-off numpy
+    evaluation of metrics and tests (each call freezes a fresh float64 copy)."""
 
-    def predict(self, x: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """``self.freeze("float64").predict(x, u)``: ensemble ``(mean, std)`` of the next state."""
-        return self.freeze("float64").predict(x, u)
+    def method(self: DynamicsEnsemble, x: np.ndarray, u: np.ndarray, *args, **kwargs):
+        return getattr(self.freeze("float64"), name)(x, u, *args, **kwargs)
 
-    def member_std(self, x: np.ndarray, u: np.ndarray) -> np.ndarray:
-        """``self.freeze("float64").member_std(x, u)``: ``[K, ..., n]`` (probabilistic members)."""
-        return self.freeze("float64").member_std(x, u)
+    method.__name__, method.__qualname__ = name, f"DynamicsEnsemble.{name}"
+    method.__doc__ = (f'``self.freeze("float64").{name}(x, u)``: see '
+                      f":meth:`FrozenEnsemble.{name}`.")
+    return method
 
-    def member_jacobians(self, x: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """``self.freeze("float64").member_jacobians(x, u)``: ``(A [K, T, n, n],
-        B [K, T, n, m])``."""
-        return self.freeze("float64").member_jacobians(x, u)
 
-    def jacobians(self, x: np.ndarray, u: np.ndarray, t: int = 0) -> tuple[np.ndarray, np.ndarray]:
-        """``self.freeze("float64").jacobians(x, u)``: ensemble-mean ``(A [T, n, n],
-        B [T, n, m])``."""
-        return self.freeze("float64").jacobians(x, u, t)
+for _name in ("step", "member_predictions", "predict", "member_std", "member_jacobians",
+              "jacobians"):
+    setattr(DynamicsEnsemble, _name, _via_frozen(_name))
 
 
 # --------------------------------------------------------------------------------------------
@@ -1496,12 +1487,7 @@ class TrajectorySampling:
 
 def _pool_transitions(trajs, n: int, m: int) -> tuple[np.ndarray, np.ndarray]:
     """All transitions of ``trajs`` as ``xu [N, n+m]`` and ``x_next [N, n]`` (float64)."""
-    trajs = as_trajectory_list(trajs)
-    for i, tr in enumerate(trajs):
-        if tr.n != n or tr.m != m:
-            raise ValueError(f"trajs[{i}] has (n, m) = ({tr.n}, {tr.m}), the model ({n}, {m})")
-        as_array(f"trajs[{i}].x", tr.x)
-        as_array(f"trajs[{i}].u", tr.u)
+    trajs = as_trajectory_list(trajs, dims=(n, m))
     xu = np.concatenate([np.concatenate([tr.x[:-1], tr.u], 1) for tr in trajs])
     x_next = np.concatenate([tr.x[1:] for tr in trajs])
     return xu, x_next
