@@ -1,8 +1,5 @@
-"""Input checks used at the public boundary of the library.
-
-Every public function validates shapes, finiteness and ranges with these helpers so that a bad
-input fails early with a message that names the argument and the problem, instead of producing a
-silently wrong answer deep inside a solver.
+"""Input checks of the library's public boundary: a bad input fails early with a message
+naming the argument and the problem (docs/troubleshooting.md, "Bad arguments").
 """
 
 from __future__ import annotations
