@@ -1480,7 +1480,7 @@ def _pool_transitions(trajs, n: int, m: int) -> tuple[np.ndarray, np.ndarray]:
 # --------------------------------------------------------------------------------------------
 
 _FORMAT = "mbtsr.DynamicsEnsemble"
-_FORMAT_VERSION = 2  # 2: checksummed file (mbtsr.fileformat)
+_FORMAT_VERSION = 2  # 2: checksummed file (mbtsr.fileformat); the kind in its header
 
 
 def save_model(model: DynamicsEnsemble, path: str | os.PathLike) -> None:
@@ -1493,8 +1493,6 @@ def save_model(model: DynamicsEnsemble, path: str | os.PathLike) -> None:
     if not isinstance(model, DynamicsEnsemble):
         raise ValueError(f"model must be a DynamicsEnsemble, got {type(model).__name__}")
     payload = {
-        "format": _FORMAT,
-        "version": _FORMAT_VERSION,
         "config": model.config.to_json(),
         "state_dict": {k: v.detach().clone() for k, v in model.state_dict().items()},
     }
@@ -1510,9 +1508,7 @@ def load_model(path: str | os.PathLike) -> DynamicsEnsemble:
     """
     payload, _ = torch_load_verified(path, kind=_FORMAT, versions=(_FORMAT_VERSION,),
                                      what=f"a saved {_FORMAT}")
-    if not isinstance(payload, dict) or payload.get("format") != _FORMAT:
-        raise CheckpointError(f"{path} is not a saved {_FORMAT}")
-    try:
+    try:  # the header named the kind: what is left to go wrong is the content
         model = DynamicsEnsemble(EnsembleConfig.from_json(payload["config"]))
         model.load_state_dict(payload["state_dict"])
     except (KeyError, TypeError, ValueError, RuntimeError) as err:
