@@ -13,6 +13,7 @@ Example::
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import math
@@ -120,16 +121,13 @@ def _execute(fn: RunFunction, spec: RunSpec, single_thread: bool) -> dict:
     return _record(spec, status, error, result, time.perf_counter() - t0)
 
 
-def _record_path(out_dir: Path, spec: RunSpec) -> Path:
-    return out_dir / "runs" / f"{spec.run_id}.json"
-
-
-def _error_path(out_dir: Path, spec: RunSpec) -> Path:
-    return out_dir / "errors" / f"{spec.run_id}.json"
+def _path(out_dir: Path, spec: RunSpec, folder: str = "runs") -> Path:
+    """The record file of ``spec``: ``runs/`` for finished runs, ``errors/`` for failed ones."""
+    return out_dir / folder / f"{spec.run_id}.json"
 
 
 def _load_done(out_dir: Path, spec: RunSpec) -> dict | None:
-    path = _record_path(out_dir, spec)
+    path = _path(out_dir, spec)
     if not path.exists():
         return None
     try:
@@ -151,12 +149,12 @@ def _load_done(out_dir: Path, spec: RunSpec) -> dict | None:
 
 def _store(out_dir: Path, spec: RunSpec, rec: dict) -> None:
     if rec["status"] == "ok":
-        write_json_atomic(_record_path(out_dir, spec), rec)
-        err = _error_path(out_dir, spec)
+        write_json_atomic(_path(out_dir, spec), rec)
+        err = _path(out_dir, spec, "errors")
         if err.exists():
             err.unlink()
     else:
-        write_json_atomic(_error_path(out_dir, spec), rec)
+        write_json_atomic(_path(out_dir, spec, "errors"), rec)
 
 
 def run_sweep(
@@ -286,14 +284,11 @@ def _worker_main(conn: mpc.Connection, alive: mpc.Connection) -> None:
 
 
 def _death_reason(exitcode: int | None) -> str:
-    if exitcode is None:
-        return "exit status unknown"
-    if exitcode < 0:
-        try:
+    if exitcode is not None and exitcode < 0:
+        with contextlib.suppress(ValueError):  # not every number has a name
             return f"killed by signal {signal.Signals(-exitcode).name}"
-        except ValueError:
-            return f"killed by signal {-exitcode}"
-    return f"exit code {exitcode}"
+        return f"killed by signal {-exitcode}"
+    return "exit status unknown" if exitcode is None else f"exit code {exitcode}"
 
 
 class _PoolWorker:
