@@ -937,19 +937,19 @@ def fit_ltv_tv(
         s_norm = float(rho * np.linalg.norm(_diff_T(z - z_old)))
         eps_pri = eps_abs + tol * max(np.linalg.norm(Dth), np.linalg.norm(z))
         eps_dual = eps_abs * rho + tol * rho * np.linalg.norm(_diff_T(w))
-        if r_norm <= eps_pri and s_norm <= eps_dual:
-            converged = True
-            break
         new_active = np.einsum("tpi,tpi->t", z, z) > 0.0
         if not np.array_equal(new_active, active):
             active, stable_since = new_active, it
-        if polish and it - stable_since >= 50 and active.tobytes() not in tried:
+        converged = r_norm <= eps_pri and s_norm <= eps_dual
+        # polish at convergence, or once the active set has been stable for 50 iterations
+        if polish and (converged or (it - stable_since >= 50 and active.tobytes() not in tried)):
             tried.add(active.tobytes())
             res = _polish(prob, lam, theta, active)
             if res is not None:
                 theta, kkt_ratio = res
                 converged = polished = True
-                break
+        if converged:
+            break
         if it % 10 == 0:
             r_rel, s_rel = r_norm / eps_pri, s_norm / eps_dual
             if r_rel > 10.0 * s_rel or s_rel > 10.0 * r_rel:
@@ -957,13 +957,6 @@ def fit_ltv_tv(
                 rho *= change
                 w /= change
                 cb = factor(rho)
-    if converged and not polished:
-        active = np.einsum("tpi,tpi->t", z, z) > 0.0
-        if polish:
-            res = _polish(prob, lam, theta, active)
-            if res is not None:
-                theta, kkt_ratio = res
-                polished = True
     if not converged:
         warnings.warn(
             f"fit_ltv_tv did not reach tol={tol:g} in {max_iter} iterations "
