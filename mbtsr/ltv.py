@@ -146,14 +146,11 @@ class LTVModel:
                 f"got shape {list(u.shape)}"
             )
         Tp = u.shape[-2]
-        if x.ndim != u.ndim or x.shape[-1] != self.state_dim or x.shape[-2] not in (Tp, Tp + 1):
+        if (x.ndim != u.ndim or x.shape[:-2] != u.shape[:-2] or x.shape[-1] != self.state_dim
+                or x.shape[-2] not in (Tp, Tp + 1)):
             raise ValueError(
-                f"x must be [..., T' or T'+1, n] matching u {list(u.shape)} with n="
-                f"{self.state_dim}, got shape {list(x.shape)}"
-            )
-        if x.shape[:-2] != u.shape[:-2]:
-            raise ValueError(
-                f"x and u disagree on the episode dim: {list(x.shape)} vs {list(u.shape)}"
+                f"x must be [..., T' or T'+1, n] matching u {list(u.shape)} (the same episode "
+                f"dim) with n={self.state_dim}, got shape {list(x.shape)}"
             )
         self._check_window(0, Tp, "predict")
         return self._predict(x[..., :Tp, :], u)
