@@ -1,9 +1,5 @@
-"""mbtsr: model-based control with tangent-space regularized neural-network dynamics models.
-
-Implements Bagge Carlson, Johansson and Robertsson, "Tangent-Space Regularization for
-Neural-Network Models of Dynamical Systems" (arXiv:1806.09919): LTV identification, neural
-dynamics ensembles with sampled Jacobian propagation and exact Jacobian penalties, iLQR/MPC on
-any model with the :class:`mbtsr.dynamics.DynamicsModel` protocol, and the paper's metrics.
+"""mbtsr: model-based control with tangent-space regularized neural-network dynamics models
+(Bagge Carlson, Johansson and Robertsson, arXiv:1806.09919; README.md, docs/architecture.md).
 """
 
 from mbtsr.dynamics import DynamicsModel, LinearDynamics, rollout

@@ -604,11 +604,8 @@ def _member_init(spec: MemberSpec, in_dim: int, out_dim: int, gen: torch.Generat
 
 
 class DynamicsEnsemble(nn.Module):
-    """An ensemble of K neural dynamics models ``x+ = s(x, u) + NN_k(x, u)`` computed in one batch.
-
-    Torch (float32, training): :meth:`forward_torch`, :meth:`member_jacobians_torch`; planning:
-    :meth:`freeze`; the numpy methods freeze in float64 on every call. Members are reported in
-    the order of ``config.members``.
+    """An ensemble of K neural dynamics models ``x+ = s(x, u) + NN_k(x, u)`` computed in one
+    batch (docs/models.md, "The model"): torch float32 for training, :meth:`freeze` for planning.
 
     :param config: the architecture, see :class:`EnsembleConfig`.
     """
@@ -658,10 +655,6 @@ class DynamicsEnsemble(nn.Module):
     def is_normalized(self) -> bool:
         """True once :meth:`set_normalization` has been called (or loaded from a file)."""
         return bool(self.normalization_set.item())
-
-    def skip_torch(self, xu: torch.Tensor) -> torch.Tensor:
-        """``s(x, u)`` for ``xu: [..., n+m]`` -> ``[..., n]``."""
-        return xu @ self.skip_J.T
 
     # ---------------------------------------------------------------- normalization
     def set_normalization(self, trajs: Trajectory | Sequence[Trajectory]) -> None:
@@ -759,7 +752,7 @@ class DynamicsEnsemble(nn.Module):
 
     def normalized_residual(self, xu: torch.Tensor, x_next: torch.Tensor) -> torch.Tensor:
         """Training target of the network: ``(x+ - s(x, u) - out_mean) / out_std``, ``[B, n]``."""
-        return (x_next - self.skip_torch(xu) - self.out_mean) / self.out_std
+        return (x_next - xu @ self.skip_J.T - self.out_mean) / self.out_std
 
     def _config_order(self, a: torch.Tensor) -> torch.Tensor:
         return a if self._to_config_order is None else a.index_select(0, self._to_config_order)
@@ -775,7 +768,7 @@ class DynamicsEnsemble(nn.Module):
         lead = xu.shape[:-1]
         xu2 = xu.reshape(-1, xu.shape[-1])
         y, _ = self.stacked_forward(xu2)
-        nxt = self.skip_torch(xu2) + self.out_mean + self.out_std * y
+        nxt = xu2 @ self.skip_J.T + self.out_mean + self.out_std * y
         return self._config_order(nxt).reshape(self.n_members, *lead, self.state_dim)
 
     def forward(self, x: torch.Tensor, u: torch.Tensor | None = None) -> torch.Tensor:
@@ -812,32 +805,23 @@ class DynamicsEnsemble(nn.Module):
                     raise ValueError(f"cannot freeze: {name} must be > 0")
             return FrozenEnsemble(self, precision)
 
-    # one-off numpy evaluation (metrics, tests): each call freezes a fresh float64 copy
-    def step(self, x: np.ndarray, u: np.ndarray, t: int | None = None) -> np.ndarray:
-        """``self.freeze("float64").step(x, u, t)``: ensemble-mean next state ``[..., n]``."""
-        return self.freeze("float64").step(x, u, t)
 
-    def member_predictions(self, x: np.ndarray, u: np.ndarray) -> np.ndarray:
-        """``self.freeze("float64").member_predictions(x, u)``: ``[K, ..., n]``."""
-        return self.freeze("float64").member_predictions(x, u)
+def _via_frozen(name: str) -> Callable:
+    """``DynamicsEnsemble.<name>``: ``self.freeze("float64").<name>(...)``, the one-off numpy
+    evaluation of metrics and tests (each call freezes a fresh float64 copy)."""
 
-    def predict(self, x: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """``self.freeze("float64").predict(x, u)``: ensemble ``(mean, std)`` of the next state."""
-        return self.freeze("float64").predict(x, u)
+    def method(self: DynamicsEnsemble, x: np.ndarray, u: np.ndarray, *args, **kwargs):
+        return getattr(self.freeze("float64"), name)(x, u, *args, **kwargs)
 
-    def member_std(self, x: np.ndarray, u: np.ndarray) -> np.ndarray:
-        """``self.freeze("float64").member_std(x, u)``: ``[K, ..., n]`` (probabilistic members)."""
-        return self.freeze("float64").member_std(x, u)
+    method.__name__, method.__qualname__ = name, f"DynamicsEnsemble.{name}"
+    method.__doc__ = (f'``self.freeze("float64").{name}(x, u)``: see '
+                      f":meth:`FrozenEnsemble.{name}`.")
+    return method
 
-    def member_jacobians(self, x: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """``self.freeze("float64").member_jacobians(x, u)``: ``(A [K, T, n, n],
-        B [K, T, n, m])``."""
-        return self.freeze("float64").member_jacobians(x, u)
 
-    def jacobians(self, x: np.ndarray, u: np.ndarray, t: int = 0) -> tuple[np.ndarray, np.ndarray]:
-        """``self.freeze("float64").jacobians(x, u)``: ensemble-mean ``(A [T, n, n],
-        B [T, n, m])``."""
-        return self.freeze("float64").jacobians(x, u, t)
+for _name in ("step", "member_predictions", "predict", "member_std", "member_jacobians",
+              "jacobians"):
+    setattr(DynamicsEnsemble, _name, _via_frozen(_name))
 
 
 # --------------------------------------------------------------------------------------------
@@ -1002,17 +986,15 @@ def _mean_step_plan(runs, hidden: list[tuple[np.ndarray, np.ndarray]], Wo: np.nd
                     bo: np.ndarray, skip_J: np.ndarray, n_members: int,
                     head: tuple[np.ndarray, np.ndarray] | None = None,
                     dtype: type = np.float64) -> SimpleNamespace:
-    """Folded weights of the ensemble-mean step of ONE depth group without layer norm.
+    """Folded weights of the ensemble-mean step of ONE depth group without layer norm
+    (docs/models.md, "The frozen ensemble-mean step"); the unfolded ones of
+    :func:`_plan_jacobians`; per-member folded output layers (and ``head = (Wv, bv)``) for
+    trajectory sampling. Mean-step and Jacobian arrays in ``dtype``, per-member ones float64.
 
     ``hidden = [(W1 [K, n+m, W], b1 [K, W]), (W2 [K, W, W], b2 [K, W]), ...]``, ``Wo [K, W, n]``,
     ``bo [K, n]`` already hold the normalization (raw units in and out) and zero padded units;
-    ``runs`` are the members' activations ``(name, first, stop)``. With ``H = K*W``, one buffer
-    ``G = [h; 1; x^T; u^T]: [H+1+n+m, B]`` carries a step: layer 1 is ``W_in @ G[H:]``, deeper
-    layers block-diagonal batched products, the output ``G^T @ W_out``, ``W_out = [Wo / K;
-    mean bo; skip_J^T]``; sigmoid/swish rows run as ``tanh(z/2)`` (docs/models.md, "The frozen
-    ensemble-mean step"). Unfolded weights serve the Jacobians (:func:`_plan_jacobians`),
-    per-member folded output layers (and ``head = (Wv, bv)``) trajectory sampling. Mean-step
-    and Jacobian arrays are in ``dtype``, per-member ones float64.
+    ``runs`` are the members' activations ``(name, first, stop)``. With ``H = K*W`` one buffer
+    ``G = [h; 1; x^T; u^T]: [H+1+n+m, B]`` carries a step, ``W_out = [Wo / K; mean bo; skip_J^T]``.
     """
     W1, b1 = hidden[0]
     K, _, W = W1.shape
@@ -1102,12 +1084,8 @@ def _value_and_derivative(z: np.ndarray, name: str) -> tuple[np.ndarray, np.ndar
 
 
 def _plan_jacobians(plan: SimpleNamespace, xu: np.ndarray, n: int) -> np.ndarray:
-    """Ensemble-mean Jacobian ``[T, n, n+m]`` of the network part at ``xu [T, n+m]``.
-
-    Depth 1: ``act'(z)^T @ M``, one product. Deeper: reverse mode, one batched product per layer
-    for all members (``R <- (R * act'(z_l)) @ W_l^T``, ``R [K, T*n, W]``): ``n`` rows per point
-    instead of the ``n+m`` columns of forward mode.
-    """
+    """Ensemble-mean Jacobian ``[T, n, n+m]`` of the network part at ``xu [T, n+m]``: depth 1
+    ``act'(z)^T @ M``, deeper reverse mode (docs/models.md, "The frozen ensemble-mean step")."""
     T, p = xu.shape
     K, W = plan.K, plan.W
     z = plan.W1T_cat @ xu.T.astype(plan.dtype) + plan.b1  # [H, T], member k in rows k*W:(k+1)*W
@@ -1138,15 +1116,12 @@ def _readonly(a: np.ndarray, dtype: type = np.float64) -> np.ndarray:
 
 
 class FrozenEnsemble:
-    """An immutable numpy copy of a :class:`DynamicsEnsemble`: the model planning uses.
-
-    Made by :meth:`DynamicsEnsemble.freeze`: read-only arrays, normalization folded in. The
-    :class:`mbtsr.dynamics.DynamicsModel` protocol plus the member spread; members in config
-    order. One depth group without layer norm runs the folded plan (:func:`_mean_step_plan`: a
-    compiled kernel up to ``kernel_rows`` rows, numpy beyond), other architectures the generic
-    forward pass. ``precision`` is the arithmetic of the folded step, rollouts and Jacobians;
-    inputs and results stay float64 (docs/ilqr.md, "Planning at the control rate"). ``_step``
-    is the unchecked kernel solver loops call (:mod:`mbtsr.dynamics`).
+    """An immutable numpy copy of a :class:`DynamicsEnsemble` made by
+    :meth:`DynamicsEnsemble.freeze`, the model planning uses: the
+    :class:`mbtsr.dynamics.DynamicsModel` protocol plus the member spread, members in config
+    order (docs/models.md, "The model"). ``precision`` is the arithmetic of the folded step,
+    rollouts and Jacobians; inputs and results stay float64 (docs/ilqr.md, "Planning at the
+    control rate"). ``_step`` is the unchecked kernel solver loops call (:mod:`mbtsr.dynamics`).
     """
 
     def __init__(self, ensemble: DynamicsEnsemble, precision: str = "float32") -> None:
@@ -1381,12 +1356,10 @@ class FrozenEnsemble:
         return y.reshape(shape), std
 
     def disagreement(self, x: np.ndarray, u: np.ndarray) -> np.ndarray:
-        """How much the members disagree on the next state: the variance over members of
-        their predictions (the means of probabilistic members: epistemic only), per state
-        coordinate in units of the model's output scale (the std of its training targets),
-        averaged over the coordinates. ``x: [..., n]``, ``u: [..., m]`` -> ``[...]`` (0 for a
-        single member). It is the exploration bonus of :class:`mbtsr.cem.CEMOptions`
-        ``explore_weight``: large where the data has not pinned the model down."""
+        """Member disagreement, the exploration bonus of :class:`mbtsr.cem.CEMOptions`
+        ``explore_weight``: the variance over members of their predictions (means), in units
+        of the output scale, averaged over coordinates. ``x: [..., n]``, ``u: [..., m]`` ->
+        ``[...]`` (0 for a single member)."""
         return (self.member_predictions(x, u).var(0) / self._out_std**2).mean(-1)
 
     def predict(self, x: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -1496,12 +1469,7 @@ class TrajectorySampling:
 
 def _pool_transitions(trajs, n: int, m: int) -> tuple[np.ndarray, np.ndarray]:
     """All transitions of ``trajs`` as ``xu [N, n+m]`` and ``x_next [N, n]`` (float64)."""
-    trajs = as_trajectory_list(trajs)
-    for i, tr in enumerate(trajs):
-        if tr.n != n or tr.m != m:
-            raise ValueError(f"trajs[{i}] has (n, m) = ({tr.n}, {tr.m}), the model ({n}, {m})")
-        as_array(f"trajs[{i}].x", tr.x)
-        as_array(f"trajs[{i}].u", tr.u)
+    trajs = as_trajectory_list(trajs, dims=(n, m))
     xu = np.concatenate([np.concatenate([tr.x[:-1], tr.u], 1) for tr in trajs])
     x_next = np.concatenate([tr.x[1:] for tr in trajs])
     return xu, x_next
@@ -1512,7 +1480,7 @@ def _pool_transitions(trajs, n: int, m: int) -> tuple[np.ndarray, np.ndarray]:
 # --------------------------------------------------------------------------------------------
 
 _FORMAT = "mbtsr.DynamicsEnsemble"
-_FORMAT_VERSION = 2  # 2: checksummed file (mbtsr.fileformat)
+_FORMAT_VERSION = 2  # 2: checksummed file (mbtsr.fileformat); the kind in its header
 
 
 def save_model(model: DynamicsEnsemble, path: str | os.PathLike) -> None:
@@ -1525,8 +1493,6 @@ def save_model(model: DynamicsEnsemble, path: str | os.PathLike) -> None:
     if not isinstance(model, DynamicsEnsemble):
         raise ValueError(f"model must be a DynamicsEnsemble, got {type(model).__name__}")
     payload = {
-        "format": _FORMAT,
-        "version": _FORMAT_VERSION,
         "config": model.config.to_json(),
         "state_dict": {k: v.detach().clone() for k, v in model.state_dict().items()},
     }
@@ -1542,9 +1508,7 @@ def load_model(path: str | os.PathLike) -> DynamicsEnsemble:
     """
     payload, _ = torch_load_verified(path, kind=_FORMAT, versions=(_FORMAT_VERSION,),
                                      what=f"a saved {_FORMAT}")
-    if not isinstance(payload, dict) or payload.get("format") != _FORMAT:
-        raise CheckpointError(f"{path} is not a saved {_FORMAT}")
-    try:
+    try:  # the header named the kind: what is left to go wrong is the content
         model = DynamicsEnsemble(EnsembleConfig.from_json(payload["config"]))
         model.load_state_dict(payload["state_dict"])
     except (KeyError, TypeError, ValueError, RuntimeError) as err:

@@ -144,16 +144,17 @@ def run_episode(
     else:
         obs, info = start
     info0 = dict(info)
-    y = obs if observe is None else observe(obs, info)
     obs_list, act_list, rew_list, times = [np.asarray(obs, dtype=float)], [], [], []
     states = [np.array(info["state"], dtype=float)] if "state" in info else None
     frames = [np.asarray(env.render()).copy()] if render else []
     t_env = 0.0
-    terminated = truncated = stopped = False
+    terminated = truncated = False
     t = 0
-    if stop is not None and stop(y):
-        stopped = True
-    while not stopped and (max_steps is None or t < max_steps):
+    while True:
+        y = obs if observe is None else observe(obs, info)
+        stopped = stop is not None and bool(stop(y))
+        if stopped or terminated or truncated or (max_steps is not None and t >= max_steps):
+            break
         tic = time.perf_counter()
         a = np.asarray(act(y, t), dtype=float)
         times.append(time.perf_counter() - tic)
@@ -175,11 +176,6 @@ def run_episode(
         if render:
             frames.append(np.asarray(env.render()).copy())
         t += 1
-        y = obs if observe is None else observe(obs, info)
-        if stop is not None and stop(y):
-            stopped = True
-        if terminated or truncated:
-            break
     return EpisodeRecord(
         obs=np.asarray(obs_list),
         actions=np.asarray(act_list, dtype=float).reshape(-1, m),

@@ -1,15 +1,6 @@
-"""Excitation input signals for system identification (pure numpy).
-
-Two signals, as in the paper's experiments and its original code:
-
-- :func:`filtered_gaussian`: a causal moving average of white Gaussian noise (the paper's
-  "low-pass filtered random input"; the original robot data used a 100-tap average of
-  ``10 * N(0, 1)``, the linear-system data a 5-tap average).
-- :func:`multisine`: a sum of sinusoids with frequencies drawn from a log-spaced grid (the
-  original code's later robot input).
-
-Both return time-major ``[T, m]`` arrays and require a keyword ``seed`` (int, ``SeedSequence``
-or ``numpy.random.Generator``): the same seed gives the same signal, bit for bit.
+"""Excitation input signals for system identification (pure numpy): :func:`filtered_gaussian`
+and :func:`multisine`, time-major ``[T, m]``, bit for bit the same for the same keyword
+``seed`` (docs/environments.md, "Excitation signals").
 """
 
 from __future__ import annotations
@@ -39,13 +30,9 @@ def filtered_gaussian(
     scale: float = 10.0,
     seed: SeedLike,
 ) -> np.ndarray:
-    """Low-pass filtered Gaussian input: a causal moving average of ``scale * N(0, 1)``.
-
-    ``u[t] = (1 / window) * sum_{k=0}^{window-1} e[t - k]``, ``e ~ scale * N(0, I_m)``, with a
-    zero initial filter state (``e[t] = 0`` for ``t < 0``), like the original code's
-    ``filt(ones(w), [w], e)``. After the first ``window - 1`` samples (the ramp-up) each channel
-    is stationary with std ``scale / sqrt(window)`` (:func:`filtered_gaussian_std`); the paper's
-    robot input (``window=100, scale=10``) has std 1, its linear-system input (``window=5``) 4.47.
+    """Low-pass filtered Gaussian input: ``u[t] = (1 / window) sum_{k<window} e[t - k]``,
+    ``e ~ scale * N(0, I_m)``, zero initial filter state; stationary std
+    :func:`filtered_gaussian_std` after ``window - 1`` samples.
 
     :param T: number of samples (>= 1).
     :param m: number of input channels (>= 1).
@@ -92,13 +79,9 @@ def multisine(
     amplitude: float = 1.0,
     seed: SeedLike,
 ) -> np.ndarray:
-    """Sum of ``n_sines`` sinusoids per channel with random frequencies and phases.
-
-    ``u[t, j] = amplitude * sum_i sin(2 pi f_ij t + phi_ij)``: per channel the ``f_ij`` are drawn
-    without replacement from ``n_grid`` log-spaced frequencies in ``[f_min, f_max]`` (cycles per
-    sample, as in the original code: 1e-3 .. 10^-1.5) and ``phi_ij ~ U[0, 2 pi)``. Over windows
-    longer than the slowest period the std is ``amplitude * sqrt(n_sines / 2)``
-    (:func:`multisine_std`); the peak is at most ``n_sines * amplitude``.
+    """``u[t, j] = amplitude * sum_i sin(2 pi f_ij t + phi_ij)``, per channel ``n_sines``
+    frequencies drawn without replacement from a log-spaced grid and phases ``U[0, 2 pi)``;
+    std :func:`multisine_std`, peak at most ``n_sines * amplitude``.
 
     :param T: number of samples (>= 1).
     :param m: number of input channels (>= 1).

@@ -146,14 +146,11 @@ class LTVModel:
                 f"got shape {list(u.shape)}"
             )
         Tp = u.shape[-2]
-        if x.ndim != u.ndim or x.shape[-1] != self.state_dim or x.shape[-2] not in (Tp, Tp + 1):
+        if (x.ndim != u.ndim or x.shape[:-2] != u.shape[:-2] or x.shape[-1] != self.state_dim
+                or x.shape[-2] not in (Tp, Tp + 1)):
             raise ValueError(
-                f"x must be [..., T' or T'+1, n] matching u {list(u.shape)} with n="
-                f"{self.state_dim}, got shape {list(x.shape)}"
-            )
-        if x.shape[:-2] != u.shape[:-2]:
-            raise ValueError(
-                f"x and u disagree on the episode dim: {list(x.shape)} vs {list(u.shape)}"
+                f"x must be [..., T' or T'+1, n] matching u {list(u.shape)} (the same episode "
+                f"dim) with n={self.state_dim}, got shape {list(x.shape)}"
             )
         self._check_window(0, Tp, "predict")
         return self._predict(x[..., :Tp, :], u)
@@ -176,11 +173,9 @@ class LTVModel:
         std_x: np.ndarray | None = None,
         std_u: np.ndarray | None = None,
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Perturbed copies of a trajectory labelled by the LTV model (sampled Jacobian
-        propagation, paper Section 3 and Algorithm 1)::
-
-            x~_t = x_t + eps_x,  u~_t = u_t + eps_u,  eps ~ N(0, (sigma * std)^2)
-            x~+_t = A_t x~_t + B_t u~_t (+ c_t)
+        """Perturbed copies ``x~ = x + eps_x``, ``u~ = u + eps_u``, ``eps ~ N(0, (sigma std)^2)``
+        of a trajectory labelled by the model, ``x~+_t = A_t x~_t + B_t u~_t (+ c_t)`` (sampled
+        Jacobian propagation; docs/ltv.md, "Using the model").
 
         :param x: ``[T', n]`` or ``[T'+1, n]`` states (``x[T']`` unused), ``T' <= T``.
         :param u: ``[T', m]`` inputs.
@@ -604,7 +599,6 @@ def select_lambda(
     *,
     method: str = "marginal_likelihood",
     affine: bool = False,
-    refine: bool = True,
 ) -> tuple[float, dict]:
     """Choose ``lam`` for :func:`fit_ltv` from the data (docs/ltv.md, "Automatic lambda").
 
@@ -613,8 +607,6 @@ def select_lambda(
         per output row).
     :param lambdas: grid of candidates ``> 0``; default 36 log-spaced values from
         ``1e-3 s`` to ``1e4 s`` with ``s = sqrt(mean_t tr(G_t) / p)`` the regressor scale.
-    :param refine: refine the best grid point by a bounded 1-D search in ``log lam`` between its
-        grid neighbours.
     :return: ``(lam, curve)`` with ``curve = {"lambdas", "score" (lower is better; NaN where
         skipped), "method", "grid_best", "at_boundary", "skipped"}``. Grid points whose fit is
         numerically singular are skipped (listed in ``skipped``, one warning; all singular is an
@@ -664,7 +656,7 @@ def select_lambda(
             RuntimeWarning,
             stacklevel=2,
         )
-    elif refine and usable.size > 2:
+    elif usable.size > 2:  # refine: a bounded 1-D search in log lam between the neighbours
         k = int(np.searchsorted(usable, best))
         lo, hi = np.log(lambdas[usable[k - 1]]), np.log(lambdas[usable[k + 1]])
 
@@ -875,7 +867,7 @@ def fit_ltv_tv(
         minimize  sum_{t,j} ||x^j_{t+1} - k_t phi^j_t||^2 + lam sum_t ||k_{t+1} - k_t||_F
 
     by ADMM on ``z_t = k_{t+1} - k_t`` (the ``k``-update the banded solve of :func:`fit_ltv`
-    with ``lam^2 = rho / 2``) and a certified Newton polish (docs/ltv.md, "The piecewise fit").
+    with ``lam^2 = rho / 2``) and a certified Newton polish (docs/ltv.md, "The piecewise (TV) fit").
 
     :param lam: weight of the group penalty ``>= 0`` (note: ``lam``, not ``lam^2``).
     :param tol: relative tolerance on the primal ``||D k - z||`` and dual
@@ -886,14 +878,9 @@ def fit_ltv_tv(
     :param polish: try the exact active-set solve (dense, skipped when
         ``segments * p * n > 2500``).
     :return: :class:`LTVModel` with ``info`` = ``{"iterations", "converged", "polished",
-        "change_points" (times t at which a new regime starts, i.e. k_t != k_{t-1}),
-        "jump_norms" [T-1] (||k_{t+1} - k_t||), "primal_residual", "dual_residual",
-        "kkt_ratio" (max ||v_t|| / lam over inactive t; <= 1 at the optimum, polished fits
-        only), "objective", "rho", "solver", "rss", "noise_var_rows"}``. ``cov`` is the
-        covariance of a least-squares fit that is constant on each detected segment:
-        ``noise_var_rows[i] * (sum_{t in segment} G_t + eps I)^{-1}`` with
-        ``noise_var_rows = rss / (N T - p * n_segments)``; an approximation (it ignores the
-        shrinkage of the penalty).
+        "change_points", "jump_norms" [T-1], "primal_residual", "dual_residual", "kkt_ratio",
+        "objective", "rho", "solver", "rss", "noise_var_rows"}`` and ``cov`` that of a
+        least-squares fit constant on each detected segment (docs/ltv.md, "The piecewise (TV) fit").
     """
     lam = _check_lam(lam)
     tol = check_positive("tol", tol)
@@ -947,19 +934,19 @@ def fit_ltv_tv(
         s_norm = float(rho * np.linalg.norm(_diff_T(z - z_old)))
         eps_pri = eps_abs + tol * max(np.linalg.norm(Dth), np.linalg.norm(z))
         eps_dual = eps_abs * rho + tol * rho * np.linalg.norm(_diff_T(w))
-        if r_norm <= eps_pri and s_norm <= eps_dual:
-            converged = True
-            break
         new_active = np.einsum("tpi,tpi->t", z, z) > 0.0
         if not np.array_equal(new_active, active):
             active, stable_since = new_active, it
-        if polish and it - stable_since >= 50 and active.tobytes() not in tried:
+        converged = r_norm <= eps_pri and s_norm <= eps_dual
+        # polish at convergence, or once the active set has been stable for 50 iterations
+        if polish and (converged or (it - stable_since >= 50 and active.tobytes() not in tried)):
             tried.add(active.tobytes())
             res = _polish(prob, lam, theta, active)
             if res is not None:
                 theta, kkt_ratio = res
                 converged = polished = True
-                break
+        if converged:
+            break
         if it % 10 == 0:
             r_rel, s_rel = r_norm / eps_pri, s_norm / eps_dual
             if r_rel > 10.0 * s_rel or s_rel > 10.0 * r_rel:
@@ -967,13 +954,6 @@ def fit_ltv_tv(
                 rho *= change
                 w /= change
                 cb = factor(rho)
-    if converged and not polished:
-        active = np.einsum("tpi,tpi->t", z, z) > 0.0
-        if polish:
-            res = _polish(prob, lam, theta, active)
-            if res is not None:
-                theta, kkt_ratio = res
-                polished = True
     if not converged:
         warnings.warn(
             f"fit_ltv_tv did not reach tol={tol:g} in {max_iter} iterations "

@@ -24,15 +24,11 @@ __all__ = [
 
 def _checked_trajs(model: DynamicsModel, trajs: object) -> list[Trajectory]:
     """``trajs`` as a list, checked against the model's dimensions."""
-    trajs = as_trajectory_list(trajs)
     n, m = getattr(model, "state_dim", None), getattr(model, "action_dim", None)
     if n is None or m is None or not hasattr(model, "step"):
         raise ValueError("model must implement the DynamicsModel protocol (step, state_dim, "
                          "action_dim)")
-    for i, tr in enumerate(trajs):
-        if (tr.n, tr.m) != (n, m):
-            raise ValueError(f"trajs[{i}] has (n, m) = ({tr.n}, {tr.m}), the model ({n}, {m})")
-    return trajs
+    return as_trajectory_list(trajs, dims=(n, m))
 
 
 def _rms(err: np.ndarray, per_dimension: bool) -> float | np.ndarray:

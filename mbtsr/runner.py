@@ -13,6 +13,7 @@ Example::
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import math
@@ -56,18 +57,11 @@ class RunSpec:
         return f"{self.name}__seed{self.seed}"
 
 
-def _normalize_configs(configs: Mapping[str, dict] | Iterable[dict]) -> dict[str, dict]:
-    if isinstance(configs, Mapping):
-        named = dict(configs)
-    else:
-        named = {}
-        for i, c in enumerate(configs):
-            name = str(c.get("name", f"config{i}")) if isinstance(c, Mapping) else f"config{i}"
-            named[name] = c
-    if not named:
-        raise ValueError("configs must name at least one configuration")
-    for name, c in named.items():
-        if not _NAME_RE.match(name):
+def _normalize_configs(configs: Mapping[str, dict]) -> dict[str, dict]:
+    if not isinstance(configs, Mapping) or not configs:
+        raise ValueError("configs must be a non-empty dict {name: config}")
+    for name, c in configs.items():
+        if not isinstance(name, str) or not _NAME_RE.match(name):
             raise ValueError(
                 f"config name {name!r} may only contain letters, digits and _ . + - "
                 "(it becomes a file name)"
@@ -78,7 +72,7 @@ def _normalize_configs(configs: Mapping[str, dict] | Iterable[dict]) -> dict[str
             json.dumps(dict(c), default=json_default)
         except TypeError as err:
             raise ValueError(f"config {name!r} must be JSON-serializable: {err}") from None
-    return {k: dict(v) for k, v in named.items()}
+    return {k: dict(v) for k, v in configs.items()}
 
 
 def _canonical(obj: Any) -> str:
@@ -110,7 +104,8 @@ def _record(spec: RunSpec, status: str, error: str | None, result: dict | None,
 
 
 def _execute(fn: RunFunction, spec: RunSpec, single_thread: bool) -> dict:
-    """Run one spec and wrap its result in a record (never raises)."""
+    """Run one spec and wrap its result in a record (never raises); ``single_thread``: first
+    :func:`_set_single_thread` (a worker)."""
     if single_thread:
         _set_single_thread()
     t0 = time.perf_counter()
@@ -126,16 +121,13 @@ def _execute(fn: RunFunction, spec: RunSpec, single_thread: bool) -> dict:
     return _record(spec, status, error, result, time.perf_counter() - t0)
 
 
-def _record_path(out_dir: Path, spec: RunSpec) -> Path:
-    return out_dir / "runs" / f"{spec.run_id}.json"
-
-
-def _error_path(out_dir: Path, spec: RunSpec) -> Path:
-    return out_dir / "errors" / f"{spec.run_id}.json"
+def _path(out_dir: Path, spec: RunSpec, folder: str = "runs") -> Path:
+    """The record file of ``spec``: ``runs/`` for finished runs, ``errors/`` for failed ones."""
+    return out_dir / folder / f"{spec.run_id}.json"
 
 
 def _load_done(out_dir: Path, spec: RunSpec) -> dict | None:
-    path = _record_path(out_dir, spec)
+    path = _path(out_dir, spec)
     if not path.exists():
         return None
     try:
@@ -157,38 +149,36 @@ def _load_done(out_dir: Path, spec: RunSpec) -> dict | None:
 
 def _store(out_dir: Path, spec: RunSpec, rec: dict) -> None:
     if rec["status"] == "ok":
-        write_json_atomic(_record_path(out_dir, spec), rec)
-        err = _error_path(out_dir, spec)
+        write_json_atomic(_path(out_dir, spec), rec)
+        err = _path(out_dir, spec, "errors")
         if err.exists():
             err.unlink()
     else:
-        write_json_atomic(_error_path(out_dir, spec), rec)
+        write_json_atomic(_path(out_dir, spec, "errors"), rec)
 
 
 def run_sweep(
     fn: RunFunction,
-    configs: Mapping[str, dict] | Iterable[dict],
+    configs: Mapping[str, dict],
     seeds: Iterable[int],
     out_dir: str | os.PathLike,
     *,
     backend: str = "process",
     workers: int | None = None,
     progress: bool = True,
-    single_thread: bool = True,
     raise_on_error: bool = False,
     address: str | None = None,
 ) -> list[dict]:
     """Run ``fn(config, seed)`` for every configuration and seed; resume what is finished.
 
     :param fn: module-level function ``(config: dict, seed: int) -> dict`` (JSON-serializable).
-    :param configs: ``{name: config}`` or a list of configs (named by their ``"name"`` key).
+    :param configs: ``{name: config}``.
     :param seeds: the seeds, e.g. ``range(35)`` for the paper's 35 Monte-Carlo runs.
     :param out_dir: results folder; finished runs go to ``out_dir/runs/*.json``, failed ones to
         ``out_dir/errors/*.json`` (retried on the next call).
     :param backend: ``"process"`` (default), ``"serial"`` or ``"ray"``.
-    :param workers: parallel workers (default: the number of CPU cores; with ``address`` the
-        cluster's CPUs decide).
-    :param single_thread: one torch/BLAS thread per worker (recommended for small models).
+    :param workers: parallel workers, one torch/BLAS thread each (default: the number of CPU
+        cores; with ``address`` the cluster's CPUs decide).
     :param raise_on_error: raise ``RuntimeError`` after the sweep if any run failed.
     :param address: Ray only: the address of an existing Ray cluster (``"auto"`` for the one
         started on this machine with ``ray start --head``, or ``"ray://host:10001"``); ``None``
@@ -246,9 +236,9 @@ def run_sweep(
             for spec in todo:
                 finish(spec, _execute(fn, spec, False))
         elif backend == "process":
-            _run_pool(fn, todo, workers, single_thread, finish)
+            _run_pool(fn, todo, workers, finish)
         else:
-            _run_ray(fn, todo, workers, single_thread, finish, address)
+            _run_ray(fn, todo, workers, finish, address)
     finally:
         if bar is not None:
             bar.close()
@@ -270,11 +260,10 @@ def _watch_driver(alive: mpc.Connection) -> None:
     os._exit(1)  # the driver is gone: stop now, whatever the run was doing
 
 
-def _worker_main(conn: mpc.Connection, alive: mpc.Connection, single_thread: bool) -> None:
+def _worker_main(conn: mpc.Connection, alive: mpc.Connection) -> None:
     """Pool worker: receive ``(spec, pickled fn)``, send back the run record; one at a time."""
     threading.Thread(target=_watch_driver, args=(alive,), daemon=True).start()
-    if single_thread:
-        _set_single_thread()
+    _set_single_thread()
     fns: dict[bytes, RunFunction] = {}
     while True:
         try:
@@ -295,23 +284,20 @@ def _worker_main(conn: mpc.Connection, alive: mpc.Connection, single_thread: boo
 
 
 def _death_reason(exitcode: int | None) -> str:
-    if exitcode is None:
-        return "exit status unknown"
-    if exitcode < 0:
-        try:
+    if exitcode is not None and exitcode < 0:
+        with contextlib.suppress(ValueError):  # not every number has a name
             return f"killed by signal {signal.Signals(-exitcode).name}"
-        except ValueError:
-            return f"killed by signal {-exitcode}"
-    return f"exit code {exitcode}"
+        return f"killed by signal {-exitcode}"
+    return "exit status unknown" if exitcode is None else f"exit code {exitcode}"
 
 
 class _PoolWorker:
     """One worker process with a task pipe and a driver-alive pipe (see :func:`_watch_driver`)."""
 
-    def __init__(self, ctx, single_thread: bool) -> None:
+    def __init__(self, ctx) -> None:
         self.conn, child = ctx.Pipe(duplex=True)
         alive_child, self.alive = ctx.Pipe(duplex=False)
-        self.proc = ctx.Process(target=_worker_main, args=(child, alive_child, single_thread),
+        self.proc = ctx.Process(target=_worker_main, args=(child, alive_child),
                                 name="mbtsr-runner-worker")
         self.proc.start()
         child.close()
@@ -332,7 +318,7 @@ class _PoolWorker:
             self.proc.join()
 
 
-def _run_pool(fn, todo, workers, single_thread, finish) -> None:
+def _run_pool(fn, todo, workers, finish) -> None:
     try:
         fn_bytes = pickle.dumps(fn)
     except Exception as err:  # noqa: BLE001 - lambdas, closures, ...
@@ -345,7 +331,7 @@ def _run_pool(fn, todo, workers, single_thread, finish) -> None:
 
     def start_next(worker: _PoolWorker | None) -> None:
         while queue:
-            worker = worker or _PoolWorker(ctx, single_thread)
+            worker = worker or _PoolWorker(ctx)
             try:
                 worker.submit(queue[0], fn_bytes)
             except OSError:  # died before it took the run: replace it, keep the run queued
@@ -424,7 +410,7 @@ def _ray_shipping(fn) -> tuple[list, list]:
     return py_modules, by_value
 
 
-def _run_ray(fn, todo, workers, single_thread, finish, address) -> None:
+def _run_ray(fn, todo, workers, finish, address) -> None:
     try:
         import ray
         import ray.cloudpickle
@@ -450,7 +436,7 @@ def _run_ray(fn, todo, workers, single_thread, finish, address) -> None:
                 ray.init(address=address, **kw)
             started = True
         remote = ray.remote(num_cpus=1, max_retries=0)(_execute)
-        refs = {remote.remote(fn, s, single_thread): (s, time.perf_counter()) for s in todo}
+        refs = {remote.remote(fn, s, True): (s, time.perf_counter()) for s in todo}
         while refs:
             ready, _ = ray.wait(list(refs), num_returns=1)
             for ref in ready:

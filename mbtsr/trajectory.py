@@ -82,11 +82,13 @@ class Trajectory:
         return self.x[1:]
 
 
-def as_trajectory_list(trajs: object, name: str = "trajs") -> list[Trajectory]:
+def as_trajectory_list(trajs: object, name: str = "trajs",
+                       dims: tuple[int, int] | None = None) -> list[Trajectory]:
     """``trajs``, a :class:`Trajectory` or a non-empty sequence (or iterable) of them, as a list;
-    otherwise a ``ValueError`` naming ``name`` (and the first entry that is not a Trajectory)."""
+    otherwise a ``ValueError`` naming ``name`` (and the first entry that is not a Trajectory, or
+    whose ``(n, m)`` differs from ``dims``, a model's dimensions)."""
     if isinstance(trajs, Trajectory):
-        return [trajs]
+        trajs = [trajs]
     if not isinstance(trajs, Iterable) or isinstance(trajs, (str, bytes, np.ndarray)):
         raise ValueError(f"{name} must be a Trajectory or a non-empty list of Trajectory")
     trajs = list(trajs)
@@ -95,6 +97,9 @@ def as_trajectory_list(trajs: object, name: str = "trajs") -> list[Trajectory]:
     for i, tr in enumerate(trajs):
         if not isinstance(tr, Trajectory):
             raise ValueError(f"{name}[{i}] must be a Trajectory, got {type(tr).__name__}")
+        if dims is not None and (tr.n, tr.m) != tuple(dims):
+            raise ValueError(f"{name}[{i}] has (n, m) = ({tr.n}, {tr.m}), the model "
+                             f"{tuple(dims)}")
     return trajs
 
 

@@ -1,8 +1,5 @@
-"""Input checks used at the public boundary of the library.
-
-Every public function validates shapes, finiteness and ranges with these helpers so that a bad
-input fails early with a message that names the argument and the problem, instead of producing a
-silently wrong answer deep inside a solver.
+"""Input checks of the library's public boundary: a bad input fails early with a message
+naming the argument and the problem (docs/troubleshooting.md, "Bad arguments").
 """
 
 from __future__ import annotations
@@ -66,13 +63,12 @@ def as_array(
     """
     try:
         raw = np.asarray(a)
-        if raw.dtype.kind == "c" and np.dtype(dtype).kind != "c":
-            raise ValueError(f"{name} must be real, got complex values (dtype {raw.dtype})")
-        arr = np.asarray(raw, dtype=dtype)
+        complex_to_real = raw.dtype.kind == "c" and np.dtype(dtype).kind != "c"
+        arr = None if complex_to_real else np.asarray(raw, dtype=dtype)
     except (TypeError, ValueError) as err:
-        if "must be real" in str(err):
-            raise
         raise ValueError(f"{name} must be numeric array-like: {err}") from None
+    if arr is None:
+        raise ValueError(f"{name} must be real, got complex values (dtype {raw.dtype})")
     if shape is not None:
         check_shape(name, arr, shape)
     if ndim is not None and arr.ndim != ndim:
