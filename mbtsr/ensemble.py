@@ -805,23 +805,31 @@ class DynamicsEnsemble(nn.Module):
                     raise ValueError(f"cannot freeze: {name} must be > 0")
             return FrozenEnsemble(self, precision)
 
+    # one-off numpy evaluation (metrics, tests): each call freezes a fresh float64 copy
+    def step(self, x: np.ndarray, u: np.ndarray, t: int | None = None) -> np.ndarray:
+        """``self.freeze("float64").step(x, u, t)``: ensemble-mean next state ``[..., n]``."""
+        return self.freeze("float64").step(x, u, t)
 
-def _via_frozen(name: str) -> Callable:
-    """``DynamicsEnsemble.<name>``: ``self.freeze("float64").<name>(...)``, the one-off numpy
-    evaluation of metrics and tests (each call freezes a fresh float64 copy)."""
+    def member_predictions(self, x: np.ndarray, u: np.ndarray) -> np.ndarray:
+        """``self.freeze("float64").member_predictions(x, u)``: ``[K, ..., n]``."""
+        return self.freeze("float64").member_predictions(x, u)
 
-    def method(self: DynamicsEnsemble, x: np.ndarray, u: np.ndarray, *args, **kwargs):
-        return getattr(self.freeze("float64"), name)(x, u, *args, **kwargs)
+    def predict(self, x: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``self.freeze("float64").predict(x, u)``: ensemble ``(mean, std)`` of the next state."""
+        return self.freeze("float64").predict(x, u)
 
-    method.__name__, method.__qualname__ = name, f"DynamicsEnsemble.{name}"
-    method.__doc__ = (f'``self.freeze("float64").{name}(x, u)``: see '
-                      f":meth:`FrozenEnsemble.{name}`.")
-    return method
+    def member_std(self, x: np.ndarray, u: np.ndarray) -> np.ndarray:
+        """``self.freeze("float64").member_std(x, u)``: ``[K, ..., n]`` (probabilistic members)."""
+        return self.freeze("float64").member_std(x, u)
 
+    def member_jacobians(self, x: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``self.freeze("float64").member_jacobians(x, u)``: ``(A [K, T, n, n],
+        B [K, T, n, m])``."""
+        return self.freeze("float64").member_jacobians(x, u)
 
-for _name in ("step", "member_predictions", "predict", "member_std", "member_jacobians",
-              "jacobians"):
-    setattr(DynamicsEnsemble, _name, _via_frozen(_name))
+    def jacobians(self, x: np.ndarray, u: np.ndarray, t: int = 0) -> tuple[np.ndarray, np.ndarray]:
+        """``self.freeze("float64").jacobians(x, u)``: mean ``(A [T, n, n], B [T, n, m])``."""
+        return self.freeze("float64").jacobians(x, u, t)
 
 
 # --------------------------------------------------------------------------------------------
