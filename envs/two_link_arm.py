@@ -145,21 +145,8 @@ class TwoLinkArmEnv(MujocoEnv, utils.EzPickle):
         width: int = 320,
         height: int = 240,
     ) -> None:
-        utils.EzPickle.__init__(
-            self,
-            preset,
-            episode_steps,
-            render_mode,
-            dt=dt,
-            params=params,
-            target_limit=target_limit,
-            joint_limit=joint_limit,
-            init_noise=init_noise,
-            cost_Q=cost_Q,
-            cost_R=cost_R,
-            width=width,
-            height=height,
-        )
+        # pickled through the constructor arguments (first: locals() holds only them here)
+        utils.EzPickle.__init__(self, **{k: v for k, v in locals().items() if k != "self"})
         if render_mode not in (None, *self.metadata["render_modes"]):
             raise ValueError(
                 f"render_mode must be None or one of {self.metadata['render_modes']}, "
