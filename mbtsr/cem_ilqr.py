@@ -1,9 +1,7 @@
 """CEM proposes, iLQR refines: the default planner of the agent and of its true-model oracle.
 
-Each solve runs a few iterations of :func:`mbtsr.cem.cem` around ``U0`` (``warm_samples``
-samples when warm-started; a cold start runs more iterations of all ``cem.samples``), then
-:func:`mbtsr.ilqr.ilqr` from CEM's best sequence: the result is never worse than ``U0`` or the
-proposal. The CEM samples are seeded from ``cem.seed + t0``. Why both, with measurements:
+A few iterations of :func:`mbtsr.cem.cem` around ``U0`` (samples seeded from ``cem.seed + t0``),
+then :func:`mbtsr.ilqr.ilqr` from CEM's best sequence. Why both, with measurements:
 docs/ilqr.md, "The default planner: CEM proposes, iLQR refines".
 """
 
