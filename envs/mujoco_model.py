@@ -336,8 +336,7 @@ class ObservedDynamics:
 
     def step(self, z: np.ndarray, u: np.ndarray, t: int | None = None) -> np.ndarray:
         """``z: [..., n + d]``, ``u: [..., m]`` -> ``[..., n + d]``."""
-        z, u = check_step_inputs(z, u, self.state_dim, self.action_dim)
-        return self._step(z, u)
+        return self._step(*check_step_inputs(z, u, self.state_dim, self.action_dim))
 
     def _step(self, z: np.ndarray, u: np.ndarray, t: int | None = None) -> np.ndarray:
         batch = z.shape[:-1]

@@ -97,8 +97,7 @@ class LinearDynamics:
 
     def step(self, x: np.ndarray, u: np.ndarray, t: int | None = None) -> np.ndarray:
         """``A x + B u + c``: ``x: [..., n]``, ``u: [..., m]`` -> ``[..., n]`` (validated)."""
-        x, u = check_step_inputs(x, u, self.state_dim, self.action_dim)
-        return self._step(x, u, t)
+        return self._step(*check_step_inputs(x, u, self.state_dim, self.action_dim), t)
 
     def _step(self, x: np.ndarray, u: np.ndarray, t: int | None = None) -> np.ndarray:
         """:meth:`step` without input checks (solver loops)."""

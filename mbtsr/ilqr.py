@@ -230,10 +230,12 @@ def ilqr(
     alphas = np.asarray(opts.alphas, dtype=float)
     boxqp_prm = tuple(float(getattr(opts, f"boxqp_{k}")) for k in (  # as BOXQP_DEFAULTS
         "max_iter", "min_grad", "min_rel_improve", "step_dec", "min_step", "armijo"))
-    chunks = _line_search_chunks(  # affine models: the line-search costs dominate, chunk them
-        len(alphas),
-        type(dynamics) is LinearDynamics or bool(getattr(dynamics, "linear_batch_cost", False)),
-    )
+    # step-size chunks of the forward pass: all at once, or 2, 2, 3, rest where a batch costs
+    # its size (affine models, simulators: the line-search costs dominate)
+    n_a = len(alphas)
+    chunked = type(dynamics) is LinearDynamics or bool(getattr(dynamics, "linear_batch_cost", 0))
+    edges = [e for e in (0, 2, 4, 7) if e < n_a] + [n_a] if chunked else [0, n_a]
+    chunks = [slice(a, b) for a, b in zip(edges[:-1], edges[1:])]
     T = U0.shape[0]
     timings = dict.fromkeys(
         ("jacobians", "cost_derivatives", "backward", "forward", "line_search_cost"), 0.0
@@ -412,14 +414,6 @@ def ilqr(
 
 
 # ----------------------------------------------------------------------------- internals
-def _line_search_chunks(n_alpha: int, linear_batch_cost: bool) -> list[slice]:
-    """Step-size chunks of the forward pass: all at once, or 2, 2, 3, rest for simulators."""
-    if not linear_batch_cost:
-        return [slice(0, n_alpha)]
-    edges = [e for e in (0, 2, 4, 7) if e < n_alpha] + [n_alpha]
-    return [slice(a, b) for a, b in zip(edges[:-1], edges[1:])]
-
-
 def _convexified(derivs: CostDerivatives, memo: tuple | None) -> tuple[CostDerivatives, tuple]:
     """``derivs.convexified()``, reusing the last projection when the Hessians are equal to
     the last ones (a constant-Hessian cost: no eigendecompositions after the first iteration).
