@@ -20,7 +20,7 @@ from mbtsr.costs import CasadiCost, CostDerivatives, terminations, truncated_tot
 from mbtsr.dynamics import LinearDynamics, _rollout, check_planning_model, raw_step
 from mbtsr.validation import as_array, check_callable, check_int, check_nonnegative, options_from
 
-__all__ = ["ILQROptions", "ILQRResult", "ilqr", "check_control_bounds"]
+__all__ = ["ILQROptions", "ILQRResult", "ilqr", "check_control_bounds", "check_problem"]
 
 
 @dataclass(frozen=True)
