@@ -21,7 +21,10 @@ from mbtsr.validation import as_array, check_int, check_positive
 __all__ = ["collect_trajectories", "default_input_kwargs", "rollout_open_loop"]
 
 InputFn = Callable[..., np.ndarray]
-_BUILTIN: dict[str, InputFn] = {"filtered_gaussian": filtered_gaussian, "multisine": multisine}
+#: the built-in signals with the signature of an ``input`` callable, ``(T, m, rng, **kwargs)``
+_BUILTIN: dict[str, InputFn] = {
+    name: (lambda T, m, rng, _f=f, **kw: _f(T, m, seed=rng, **kw))  # noqa: N803
+    for name, f in (("filtered_gaussian", filtered_gaussian), ("multisine", multisine))}
 
 
 def default_input_kwargs(env: gym.Env, input: str) -> dict:  # noqa: A002 - the public name
@@ -42,10 +45,6 @@ def default_input_kwargs(env: gym.Env, input: str) -> dict:  # noqa: A002 - the 
     return {}
 
 
-def _state_of(obs: np.ndarray, info: Mapping) -> np.ndarray:
-    return np.array(info["state"] if "state" in info else obs, dtype=np.float64).ravel()
-
-
 def rollout_open_loop(
     env: gym.Env,
     u: np.ndarray,
@@ -64,7 +63,8 @@ def rollout_open_loop(
     u = as_array("u", u, (None, int(np.prod(env.action_space.shape))))
     T = u.shape[0]
     rec = run_episode(
-        env, lambda x, t: u[t], seed=seed, max_steps=T, observe=_state_of, stop=abort,
+        env, lambda x, t: u[t], seed=seed, max_steps=T, stop=abort,
+        observe=lambda obs, info: np.array(info.get("state", obs), dtype=np.float64).ravel(),
         options=dict(reset_options) if reset_options else None,
     )
     if rec.stopped:
@@ -127,18 +127,9 @@ def collect_trajectories(
     m = env.action_space.shape[0]
     if isinstance(input, str) and input in _BUILTIN:
         kwargs = default_input_kwargs(env, input) if input_kwargs is None else dict(input_kwargs)
-        signal = _BUILTIN[input]
-
-        def draw(rng: np.random.Generator) -> np.ndarray:
-            return signal(T, m, seed=rng, **kwargs)
-
-        input_name = input
+        signal, input_name = _BUILTIN[input], input
     elif callable(input):
-        kwargs = dict(input_kwargs or {})
-
-        def draw(rng: np.random.Generator) -> np.ndarray:
-            return input(T, m, rng, **kwargs)
-
+        kwargs, signal = dict(input_kwargs or {}), input
         input_name = getattr(input, "__name__", "callable")
     else:
         raise ValueError(f"input must be one of {sorted(_BUILTIN)} or a callable, got {input!r}")
@@ -164,7 +155,7 @@ def collect_trajectories(
     trajs: list[Trajectory] = []
     for attempt in range(max_attempts):
         reset_seed, input_seed = (int(s) for s in master.integers(0, 2**31 - 1, size=2))
-        u = np.asarray(draw(np.random.default_rng(input_seed)), dtype=np.float64)
+        u = np.asarray(signal(T, m, np.random.default_rng(input_seed), **kwargs), dtype=np.float64)
         if u.shape != (T, m):
             raise ValueError(f"input must return shape ({T}, {m}), got {u.shape}")
         if not np.all(np.isfinite(u)):

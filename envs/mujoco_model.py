@@ -9,14 +9,13 @@ env's observation carried in the state, for costs written on observations) and
 from __future__ import annotations
 
 import copy
-import math
 
 import mujoco
 import numpy as np
 from mujoco import rollout
 
 from mbtsr.dynamics import check_step_inputs
-from mbtsr.validation import as_array, check_positive
+from mbtsr.validation import as_array, check_choice, check_positive
 
 __all__ = [
     "HybridDynamics",
@@ -110,11 +109,8 @@ class MujocoDynamics:
         base = _unwrap(env)
         self.model = copy.deepcopy(base.model)
         if integrator is not None:
-            if integrator not in _INTEGRATORS:
-                raise ValueError(
-                    f"integrator must be None or one of {sorted(_INTEGRATORS)}, got {integrator!r}"
-                )
-            self.model.opt.integrator = _INTEGRATORS[integrator]
+            self.model.opt.integrator = _INTEGRATORS[check_choice("integrator", integrator,
+                                                                  _INTEGRATORS)]
         if self.model.na:
             raise ValueError(
                 f"env has {self.model.na} actuator activation state(s); MujocoDynamics supports "
@@ -128,12 +124,9 @@ class MujocoDynamics:
         self.action_dim = self.model.nu
         is_rk4 = self.model.opt.integrator == mujoco.mjtIntegrator.mjINT_RK4
         transition_ok = not is_rk4 and self.nq == self.nv
+        check_choice("jacobian_method", jacobian_method, ("auto", "transition_fd", "fd"))
         if jacobian_method == "auto":
             jacobian_method = "transition_fd" if transition_ok else "fd"
-        if jacobian_method not in ("transition_fd", "fd"):
-            raise ValueError(
-                f"jacobian_method must be 'auto', 'transition_fd' or 'fd', got {jacobian_method!r}"
-            )
         if jacobian_method == "transition_fd" and not transition_ok:
             raise ValueError(
                 "jacobian_method='transition_fd' needs a non-RK4 integrator and nq == nv "
@@ -179,15 +172,7 @@ class MujocoDynamics:
 
     def step(self, x: np.ndarray, u: np.ndarray, t: int | None = None) -> np.ndarray:
         """Next state, batched: ``x: [..., n]``, ``u: [..., m]`` -> ``[..., n]``."""
-        n, m = self.state_dim, self.action_dim
-        if not (isinstance(x, np.ndarray) and isinstance(u, np.ndarray)
-                and x.shape[-1:] == (n,) and u.shape[-1:] == (m,)
-                and x.shape[:-1] == u.shape[:-1]):
-            x, u = check_step_inputs(x, u, n, m)
-        x, u = x.astype(float, copy=False), u.astype(float, copy=False)
-        if not math.isfinite(x.sum() + u.sum()):
-            check_step_inputs(x, u, n, m)  # names x or u
-        return self._step(x, u)
+        return self._step(*check_step_inputs(x, u, self.state_dim, self.action_dim))
 
     def _step(self, x: np.ndarray, u: np.ndarray, t: int | None = None) -> np.ndarray:
         """:meth:`step` without input checks (for solvers that validated once): float64
@@ -278,12 +263,8 @@ class MujocoDynamics:
 
 
 class HybridDynamics:
-    """``step`` of one model, ``jacobians`` of another (same ``state_dim``/``action_dim``).
-
-    For MPC on the true MuJoCo arm: ``HybridDynamics(MujocoDynamics(env), arm.analytic_model())``
-    rolls out the true simulator and linearises with the analytic twin's exact Jacobians (equal
-    to MuJoCo's where both joints move, ``|qd| >= 0.2`` rad/s; they differ by the friction model
-    near zero velocity, see ``envs.two_link_arm_model``).
+    """``step`` of one model, ``jacobians`` of another (same ``state_dim``/``action_dim``): e.g.
+    MuJoCo's steps with the arm's analytic Jacobians (docs/environments.md, "dynamics_model()").
     """
 
     def __init__(self, step_model, jacobian_model) -> None:
@@ -355,8 +336,7 @@ class ObservedDynamics:
 
     def step(self, z: np.ndarray, u: np.ndarray, t: int | None = None) -> np.ndarray:
         """``z: [..., n + d]``, ``u: [..., m]`` -> ``[..., n + d]``."""
-        z, u = check_step_inputs(z, u, self.state_dim, self.action_dim)
-        return self._step(z, u)
+        return self._step(*check_step_inputs(z, u, self.state_dim, self.action_dim))
 
     def _step(self, z: np.ndarray, u: np.ndarray, t: int | None = None) -> np.ndarray:
         batch = z.shape[:-1]

@@ -23,7 +23,7 @@ from gymnasium.envs.mujoco.mujoco_env import MujocoEnv
 
 from envs.mujoco_model import MujocoDynamics
 from envs.two_link_arm_model import ArmParams, TwoLinkArmCasadi, arm_params
-from mbtsr.validation import as_array, check_nonnegative, check_positive
+from mbtsr.validation import as_array, check_choice, check_int, check_nonnegative, check_positive
 
 __all__ = [
     "ASSET_PATH",
@@ -145,31 +145,11 @@ class TwoLinkArmEnv(MujocoEnv, utils.EzPickle):
         width: int = 320,
         height: int = 240,
     ) -> None:
-        utils.EzPickle.__init__(
-            self,
-            preset,
-            episode_steps,
-            render_mode,
-            dt=dt,
-            params=params,
-            target_limit=target_limit,
-            joint_limit=joint_limit,
-            init_noise=init_noise,
-            cost_Q=cost_Q,
-            cost_R=cost_R,
-            width=width,
-            height=height,
-        )
-        if render_mode not in (None, *self.metadata["render_modes"]):
-            raise ValueError(
-                f"render_mode must be None or one of {self.metadata['render_modes']}, "
-                f"got {render_mode!r}"
-            )
-        if int(episode_steps) != episode_steps or episode_steps < 1:
-            raise ValueError(f"episode_steps must be an integer >= 1, got {episode_steps!r}")
-        for name, size in (("width", width), ("height", height)):
-            if isinstance(size, bool) or int(size) != size or size < 1:
-                raise ValueError(f"{name} must be an integer >= 1 (pixels), got {size!r}")
+        # pickled through the constructor arguments (first: locals() holds only them here)
+        utils.EzPickle.__init__(self, **{k: v for k, v in locals().items() if k != "self"})
+        check_choice("render_mode", render_mode, (None, *self.metadata["render_modes"]))
+        for name, value in (("episode_steps", episode_steps), ("width", width), ("height", height)):
+            check_int(name, value, 1)
         if dt is not None and not check_positive("dt", dt) <= MAX_DT:
             raise ValueError(
                 f"dt must be <= MAX_DT={MAX_DT} s (10 Euler substeps per step; larger periods "

@@ -7,7 +7,6 @@ substeps, the tanh Coulomb smoothing and the agreement with the MuJoCo env: docs
 
 from __future__ import annotations
 
-import math
 from dataclasses import asdict, dataclass, fields, replace
 
 import casadi as ca
@@ -15,7 +14,7 @@ import numpy as np
 
 from mbtsr.costs import casadi_jit_options
 from mbtsr.dynamics import check_step_inputs
-from mbtsr.validation import as_array, check_nonnegative, check_positive
+from mbtsr.validation import as_array, check_int, check_nonnegative, check_positive
 
 __all__ = [
     "ArmParams",
@@ -114,25 +113,15 @@ def _check_pair(name: str, value: object, *, positive: bool) -> tuple[float, flo
 
 def validate_params(p: ArmParams) -> ArmParams:
     """Return ``p`` with pairs as float tuples, or raise ``ValueError`` naming the bad field."""
-    pairs = {
-        "link_mass": True,
-        "link_length": True,
-        "com_distance": True,
-        "com_inertia": True,
-        "armature": False,
-        "damping": False,
-        "frictionloss": False,
-        "torque_limit": True,
-    }
-    clean = {k: _check_pair(k, getattr(p, k), positive=pos) for k, pos in pairs.items()}
-    if int(p.frame_skip) != p.frame_skip or p.frame_skip < 1:
-        raise ValueError(f"frame_skip must be an integer >= 1, got {p.frame_skip!r}")
+    positive = ("link_mass", "link_length", "com_distance", "com_inertia", "torque_limit")
+    clean = {k: _check_pair(k, getattr(p, k), positive=k in positive)
+             for k in (*positive, "armature", "damping", "frictionloss")}
     return replace(
         p,
         **clean,
         gravity=check_nonnegative("gravity", p.gravity),
         timestep=check_positive("timestep", p.timestep),
-        frame_skip=int(p.frame_skip),
+        frame_skip=check_int("frame_skip", p.frame_skip, 1),
         friction_velocity=check_positive("friction_velocity", p.friction_velocity),
     )
 
@@ -281,13 +270,7 @@ class TwoLinkArmCasadi:
 
     def step(self, x: np.ndarray, u: np.ndarray, t: int | None = None) -> np.ndarray:
         """Next state in one mapped call: ``x: [..., 4]``, ``u: [..., 2]`` -> ``[..., 4]``."""
-        if not (isinstance(x, np.ndarray) and isinstance(u, np.ndarray)
-                and x.dtype.kind in "fiub" and u.dtype.kind in "fiub" and x.shape[-1:] == (4,)
-                and u.shape[-1:] == (2,) and x.shape[:-1] == u.shape[:-1]):
-            x, u = check_step_inputs(x, u, 4, 2)  # converts anything else, or names the problem
-        if not math.isfinite(x.sum() + u.sum()):  # NaN/inf (or an overflowing sum)
-            check_step_inputs(x, u, 4, 2)  # names x or u and the first bad index
-        return self._step(x, u, t)
+        return self._step(*check_step_inputs(x, u, 4, 2), t)
 
     def _step(self, x: np.ndarray, u: np.ndarray, t: int | None = None) -> np.ndarray:
         """:meth:`step` without input checks: ``x: [..., 4]``, ``u: [..., 2]`` (same batch)."""

@@ -348,19 +348,9 @@ def backward_pass(A, B, lx, lu, lxx, luu, lux, lo, hi, lam, reg_type, has_limits
             for j in range(m):
                 s += Quu[i, j] * kt[j]
             dV2 += 0.5 * kt[i] * s
-    for t in range(T):
-        for i in range(m):
-            if not np.isfinite(k[t, i]):
-                return False, k, K, 0.0, 0.0
-            for j in range(n):
-                if not np.isfinite(K[t, i, j]):
-                    return False, k, K, 0.0, 0.0
-    for i in range(n):
-        if not np.isfinite(vx[i]):
-            return False, k, K, 0.0, 0.0
-        for j in range(n):
-            if not np.isfinite(Vxx[i, j]):
-                return False, k, K, 0.0, 0.0
+    if not (_finite_flat(k.ravel()) and _finite_flat(K.ravel()) and _finite_flat(vx)
+            and _finite_flat(Vxx.ravel())):
+        return False, k, K, 0.0, 0.0
     return True, k, K, dV1, dV2
 
 
@@ -445,19 +435,14 @@ def rollout_policy_affine(A, B, c, x0, X, U, k, K, alphas, lower, upper, max_nor
 
 
 @njit(cache=True)
-def policy_controls(Xn, X, ff, K, t, lower, upper, Un):
-    """``Un[:, t] = clip(ff[:, t] + K_t (Xn[:, t] - X_t), lower, upper)`` for all rows.
-
-    ``Xn: [N, T+1, n]``, ``X: [T+1, n]``, ``ff: [N, T, m]`` (``U + alpha k``), ``K: [T, m, n]``,
-    ``lower, upper: [m]``, ``Un: [N, T, m]`` (written). One call per time step of the generic
-    closed-loop rollout, instead of six numpy calls.
-    """
-    N = Xn.shape[0]
-    n = X.shape[1]
-    m = K.shape[1]
-    for a in range(N):
+def policy_controls(Xn, X, U, k, alphas, K, t, lower, upper, Un):  # pragma: no cover - compiled
+    """``Un[a, t] = clip(U_t + alphas[a] k_t + K_t (Xn[a, t] - X_t), lower, upper)`` for all
+    rows ``a`` (``Xn: [N, T+1, n]``, ``Un: [N, T, m]``, written): one call per time step of
+    the generic closed-loop rollout, instead of six numpy calls."""
+    m, n = K.shape[1], K.shape[2]
+    for a in range(Xn.shape[0]):  # policy_row's arithmetic, without its views (faster)
         for j in range(m):
-            v = ff[a, t, j]
+            v = U[t, j] + alphas[a] * k[t, j]
             for i in range(n):
                 v += K[t, j, i] * (Xn[a, t, i] - X[t, i])
             Un[a, t, j] = min(max(v, lower[j]), upper[j])

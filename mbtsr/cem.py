@@ -1,9 +1,7 @@
 """Cross-entropy method (CEM) trajectory optimisation, the sampling planner of PETS.
 
-Sample action sequences from a Gaussian, roll every sample through the model's batched forward
-predictions (never its Jacobians), refit the Gaussian to the lowest-cost ("elite") samples,
-repeat. Same signature as :func:`mbtsr.ilqr.ilqr`; same seed, same result. The algorithm step by
-step (particles, predicted termination, directed exploration): docs/ilqr.md, "CEM".
+Only the model's batched forward predictions, never its Jacobians; same signature as
+:func:`mbtsr.ilqr.ilqr`; same seed, same result. The algorithm step by step: docs/ilqr.md, "CEM".
 """
 
 from __future__ import annotations
@@ -16,10 +14,10 @@ from typing import Any
 
 import numpy as np
 
-from mbtsr.costs import after_termination, truncated_total
-from mbtsr.dynamics import _rollout as _step_rollout
-from mbtsr.ilqr import check_control_bounds
-from mbtsr.validation import as_array, check_callable, check_int, options_from
+from mbtsr.costs import after_termination, terminations, truncated_total
+from mbtsr.dynamics import _rollout
+from mbtsr.ilqr import check_problem
+from mbtsr.validation import check_choice, check_int, options_from
 
 __all__ = ["CEMOptions", "CEMResult", "cem"]
 
@@ -60,9 +58,7 @@ class CEMOptions:
     explore_on: str = "state"
 
     def __post_init__(self) -> None:
-        if self.explore_on not in ("state", "cost"):
-            raise ValueError(f"options.explore_on must be 'state' or 'cost', got "
-                             f"{self.explore_on!r}")
+        check_choice("options.explore_on", self.explore_on, ("state", "cost"))
         for name in ("samples", "elites", "iterations", "particles"):
             check_int(f"options.{name}", getattr(self, name), 1)
         if self.samples < 2:
@@ -116,37 +112,11 @@ class CEMResult:
     disagreement: float | None = None
 
 
-def _rollout(model: Any, x0: np.ndarray, U: np.ndarray, t0: int, max_state_norm: float
-             ) -> tuple[np.ndarray, np.ndarray]:
-    """Batched open-loop rollout ``U [S, T, m]`` from ``x0 [n]`` -> ``(X [S, T+1, n], alive
-    [S])`` (:func:`mbtsr.dynamics._rollout`'s semantics: dead rows are NaN from their first
-    non-finite state or one beyond ``max_state_norm``), through the model's own batched kernel
-    when it has one (:meth:`mbtsr.ensemble.FrozenEnsemble._rollout_open_loop`)."""
-    kernel = getattr(model, "_rollout_open_loop", None)
-    out = None if kernel is None else kernel(x0, U, max_state_norm)
-    return out if out is not None else _step_rollout(model, x0, U, t0, max_state_norm)
-
-
-def _terminations(
-    terminated: Callable[[np.ndarray], np.ndarray] | None, X: np.ndarray,
-) -> np.ndarray | None:
-    """``done [S, T]`` of rollouts ``X [S, T+1, n]`` (``done[:, t]``: ``x_{t+1}`` is terminal;
-    ``None`` without a termination function), checked once for the cost and the bonus."""
-    if terminated is None:
-        return None
-    done = np.asarray(terminated(X[:, 1:]))
-    if done.shape != X.shape[:1] + (X.shape[1] - 1,):
-        raise ValueError(f"terminated(X [S, T, n]) must return bool [S, T] = "
-                         f"{[X.shape[0], X.shape[1] - 1]}, got {list(done.shape)}")
-    return done
-
-
 def _costs(
     cost: Any, X: np.ndarray, U: np.ndarray, t0: int, params: Any, done: np.ndarray | None,
     termination_cost: float,
 ) -> np.ndarray:
-    """``[S]`` trajectory costs (docs/ilqr.md, "CEM", step 3; ``done`` from
-    :func:`_terminations`)."""
+    """``[S]`` trajectory costs (docs/ilqr.md, "CEM", step 3; ``done``: the terminations)."""
     args = () if params is None else (params,)  # a cost without params takes no argument
     if done is None:
         return np.asarray(cost.total(X, U, t0, *args), dtype=float).reshape(X.shape[0])
@@ -187,8 +157,8 @@ def cem(
     :return: :class:`CEMResult`.
     """
     opts = options_from(CEMOptions, options)
-    if terminated is not None:
-        check_callable("terminated", terminated, "X -> bool")
+    x0, U0, t0, lo, hi = check_problem(model, x0, U0, t0, u_min, u_max, terminated)
+    T, m = U0.shape
     explore = opts.explore_weight > 0
     need = "disagreement" if opts.explore_on == "state" else "member_predictions"
     if explore and not callable(getattr(model, need, None)):
@@ -196,18 +166,6 @@ def cem(
             f"options.explore_weight > 0 with explore_on={opts.explore_on!r} needs a model "
             f"with {need}(X, U) (an ensemble: mbtsr.ensemble.FrozenEnsemble), got "
             f"{type(model).__name__}")
-    x0 = as_array("x0", x0, ndim=1)
-    n = x0.shape[0]
-    if getattr(model, "state_dim", n) != n:
-        raise ValueError(f"model.state_dim={model.state_dim} does not match x0 of dimension {n}")
-    U0 = as_array("U0", U0, ndim=2)
-    T, m = U0.shape
-    if T < 1 or m < 1:
-        raise ValueError(f"U0 must be [T >= 1, m >= 1], got {list(U0.shape)}")
-    if getattr(model, "action_dim", m) != m:
-        raise ValueError(f"model.action_dim={model.action_dim} does not match U0's m={m}")
-    check_int("t0", t0, 0)
-    lo, hi = check_control_bounds(u_min, u_max, m)
     if not (np.all(np.isfinite(lo)) and np.all(np.isfinite(hi))):
         raise ValueError("cem needs finite u_min and u_max (it samples inside the box)")
     if np.any(hi <= lo):
@@ -233,13 +191,13 @@ def cem(
             cand[1] = best_U  # ... and the best so far are always candidates
         tr = time.perf_counter()
         rows = cand if opts.particles == 1 else np.repeat(cand, opts.particles, axis=0)
-        X, alive = _rollout(model, x0, rows, int(t0), opts.max_state_norm)
+        X, alive = _rollout(model, x0, rows, t0, opts.max_state_norm)
         tc = time.perf_counter()
         J, done = np.full(rows.shape[0], np.inf), None
         if alive.any():
             Xa = X[alive]  # one copy for the terminations and the costs
-            done = _terminations(terminated, Xa)
-            J[alive] = _costs(cost, Xa, rows[alive], int(t0), params, done,
+            done = terminations(terminated, Xa)
+            J[alive] = _costs(cost, Xa, rows[alive], t0, params, done,
                               opts.termination_cost)
         J[~np.isfinite(J)] = np.inf
         if opts.particles > 1:
@@ -249,7 +207,7 @@ def cem(
         task_J = J
         if explore:
             td = time.perf_counter()
-            D = _disagreements(model, cost, X, rows, alive, int(t0), params, opts, done)
+            D = _disagreements(model, cost, X, rows, alive, t0, params, opts, done)
             was = bonus
             J, bonus = _explore_scores(J, D, opts.explore_weight, bonus, opts.elites)
             if was is None and bonus is not None:
@@ -280,13 +238,13 @@ def cem(
     if not np.isfinite(best_J):
         status, message = "failed", "every sampled rollout diverged"
     if best_X is None:  # every rollout diverged: the plan's own (NaN from its divergence)
-        best_X = _rollout(model, x0, best_U[None], int(t0), opts.max_state_norm)[0][0]
+        best_X = _rollout(model, x0, best_U[None], t0, opts.max_state_norm)[0][0]
     X_best = best_X[None]
     D = None
     if explore:
-        D = float(_disagreements(model, cost, X_best, best_U[None], np.ones(1, bool), int(t0),
+        D = float(_disagreements(model, cost, X_best, best_U[None], np.ones(1, bool), t0,
                                  params, dataclasses.replace(opts, particles=1),
-                                 _terminations(terminated, X_best))[0])
+                                 terminations(terminated, X_best))[0])
     timings["total"] = time.perf_counter() - t_start
     X_out = X_best[0].copy()
     dead = ~np.isfinite(X_out).all(axis=-1)
@@ -306,7 +264,7 @@ def _disagreements(
     """``D [S]``: the members' disagreement summed along each sequence's rollout ``X [R, T+1,
     n]`` of ``rows [R, T, m]`` (``R = S x particles``, averaged over particles; 0 for dead
     rollouts), on the state or on the stage cost (``opts.explore_on``); with ``done`` (of the
-    alive rollouts, :func:`_terminations`) the steps after the first predicted termination do
+    alive rollouts) the steps after the first predicted termination do
     not count (as their stage costs)."""
     D = np.zeros(rows.shape[0])
     if alive.any():

@@ -1,16 +1,14 @@
 """CEM proposes, iLQR refines: the default planner of the agent and of its true-model oracle.
 
-Each solve runs a few iterations of :func:`mbtsr.cem.cem` around ``U0`` (``warm_samples``
-samples when warm-started; a cold start runs more iterations of all ``cem.samples``), then
-:func:`mbtsr.ilqr.ilqr` from CEM's best sequence: the result is never worse than ``U0`` or the
-proposal. The CEM samples are seeded from ``cem.seed + t0``. Why both, with measurements:
+A few iterations of :func:`mbtsr.cem.cem` around ``U0`` (samples seeded from ``cem.seed + t0``),
+then :func:`mbtsr.ilqr.ilqr` from CEM's best sequence. Why both, with measurements:
 docs/ilqr.md, "The default planner: CEM proposes, iLQR refines".
 """
 
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Callable, Mapping
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -68,37 +66,26 @@ class CEMILQROptions:
 
 
 def cem_ilqr(
-    cost: Any,
-    model: Any,
-    x0: np.ndarray,
-    U0: np.ndarray,
-    *,
-    u_min: np.ndarray | float,
-    u_max: np.ndarray | float,
-    params: Any = None,
-    t0: int = 0,
-    options: CEMILQROptions | Mapping | None = None,
-    terminated: Callable[[np.ndarray], np.ndarray] | None = None,
+    cost: Any, model: Any, x0: np.ndarray, U0: np.ndarray, *,
+    options: CEMILQROptions | Mapping | None = None, **problem: Any,
 ) -> ILQRResult:
     """CEM's best sequence from ``U0``, refined by ``options.max_iter`` iLQR iterations.
 
-    Arguments as :func:`mbtsr.ilqr.ilqr` (finite bounds required, as for CEM).
-
+    :param problem: ``u_min``, ``u_max`` (finite, required as for CEM), ``params``, ``t0``,
+        ``terminated``: as :func:`mbtsr.ilqr.ilqr` (the shared signature), passed to both.
     :return: iLQR's :class:`mbtsr.ilqr.ILQRResult`; its ``timings`` add ``"proposal"`` (CEM's
         seconds) to the total, and ``proposal_cost`` is the cost of CEM's sequence.
     """
     opts = options_from(CEMILQROptions, options)
-    search = dataclasses.replace(opts.cem, seed=int(opts.cem.seed) + int(t0))
+    search = dataclasses.replace(opts.cem, seed=int(opts.cem.seed) + int(problem.get("t0", 0)))
     if opts.warm_samples is not None and opts.warm_samples < search.samples:
         search = dataclasses.replace(search, samples=opts.warm_samples,
                                      elites=min(search.elites, opts.warm_samples))
-    proposal = cem(cost, model, x0, U0, u_min=u_min, u_max=u_max, params=params, t0=t0,
-                   options=search, terminated=terminated)
+    proposal = cem(cost, model, x0, U0, options=search, **problem)
     refine = dataclasses.replace(opts.ilqr, max_iter=int(opts.max_iter))
     if opts.lambda_init is not None:
         refine = dataclasses.replace(refine, lambda_init=float(opts.lambda_init))
-    res = ilqr(cost, model, x0, proposal.U, u_min=u_min, u_max=u_max, params=params, t0=t0,
-               options=refine, terminated=terminated)
+    res = ilqr(cost, model, x0, proposal.U, options=refine, **problem)
     spent = proposal.timings.get("total", 0.0)
     return dataclasses.replace(
         res, timings={**res.timings, "proposal": spent,

@@ -1,15 +1,10 @@
 """CasADi-assisted trajectory costs for iLQR, MPC and the IPOPT reference.
 
-The user writes a stage cost ``l(x, u, t[, p])`` and a terminal cost ``l_T(x[, p])`` with CasADi
-symbols; this module derives ``l_x, l_u, l_xx, l_uu, l_ux`` once and evaluates them along a
-trajectory or a batch with one mapped CasADi function (:class:`_RowMap`)::
-
-    J(X, U) = sum_{t=0}^{T-1} l(x_t, u_t, t0 + t) + l_T(x_T)        X: [T+1, n], U: [T, m]
-
-``params`` (``[p]``, or a table ``[N_ref, p]`` whose row ``min(t, N_ref - 1)`` applies at time
-``t``) are passed at call time, never compiled in. The public methods check their input; the
-solvers validate the parameters once (:meth:`CasadiCost.check_params`) and call the unchecked
-kernels ``_total`` / ``_derivatives``. The manual: docs/ilqr.md, "Costs".
+``J(X [T+1, n], U [T, m]) = sum_t l(x_t, u_t, t0 + t[, p]) + l_T(x_T[, p])`` from CasADi
+expressions, derivatives by CasADi AD, evaluated by one mapped CasADi function (:class:`_RowMap`);
+``params`` are passed at call time. The public methods check their input; the solvers validate
+the parameters once (:meth:`CasadiCost.check_params`) and call the unchecked kernels ``_total`` /
+``_derivatives``. The manual: docs/ilqr.md, "Costs".
 """
 
 from __future__ import annotations
@@ -53,11 +48,8 @@ def casadi_jit_options(opt_level: str = "-O2") -> dict:
 
 
 def smooth_norm(v, eps: float):
-    """Smooth approximation of the Euclidean norm: ``sqrt(v^T v + eps^2) - eps``.
-
-    Equal to 0 at ``v = 0``, differentiable everywhere, and ``||v|| - eps <= smooth_norm(v) <=
-    ||v||``; quadratic (``v^T v / (2 eps)``) near 0 and linear far away (the "pseudo-Huber"
-    shape used for reaching costs in Tassa, Mansard, Todorov 2014).
+    """Smooth Euclidean norm ``sqrt(v^T v + eps^2) - eps`` (pseudo-Huber: quadratic near 0,
+    linear far away; docs/ilqr.md, "Costs").
 
     :param v: a CasADi ``SX``/``MX``/``DM`` column or a numpy vector ``[k]``.
     :param eps: smoothing radius > 0.
@@ -126,11 +118,9 @@ _ROWS = 256  # rows per call of a mapped stage function (one compiled shape per 
 
 
 class _RowMap:
-    """``fn`` (one row: inputs ``[w_i]``) evaluated on ``N`` rows by one compiled
-    ``fn.map(rows)``, ``rows`` rows per call, through persistent buffers bound to CasADi once
-    with ``Function.buffer`` (numpy ``[rows, w]`` C order = CasADi ``[w, rows]``): one CasADi
-    function per cost whatever ``N``, no per-call binding, and (JIT-compiled) no per-row call
-    overhead of CasADi's virtual machine (the C loop calls the row function).
+    """``fn`` (one row: inputs ``[w_i]``) on ``N`` rows, ``rows`` per call of one compiled
+    ``fn.map(rows)``, through numpy buffers bound once with ``Function.buffer`` (numpy ``[rows,
+    w]`` C order = CasADi ``[w, rows]``; docs/ilqr.md, "Costs").
 
     :param out_shapes: numpy shape of one row of each output (e.g. ``(m, n)`` for ``lux``).
     """
@@ -155,6 +145,11 @@ class _RowMap:
     def __call__(self, N: int, *args: np.ndarray) -> list[np.ndarray]:
         """``args``: ``[N, w_i]`` or ``[1, w_i]`` (the same row for all) -> ``[N, *out_shape]``."""
         C = self.rows
+        if 0 < N <= C:  # one call (the usual case): no chunks
+            for buf, a in zip(self.ins, args):
+                buf[:N] = a
+            self.trigger()
+            return [res[:N].copy() for res in self.outs]
         outs = [np.empty((N, *s)) for s in self.out_shapes]
         for s in range(0, N, C):
             r = min(C, N - s)
@@ -219,7 +214,9 @@ class CasadiCost:
             x, u = sym.sym("x", n), sym.sym("u", m)
             t, p = sym.sym("t"), sym.sym("p", p_dim)
             try:
-                l_expr, lT_expr = _call(stage, [x, u, t, p]), _call(terminal, [x, p])
+                # (p is the optional last argument: as many as each function takes)
+                l_expr = stage(*[x, u, t, p][: stage.n_in()])
+                lT_expr = terminal(*[x, p][: terminal.n_in()])
                 break
             except RuntimeError:
                 if sym is ca.MX:
@@ -248,8 +245,7 @@ class CasadiCost:
         self._stage_value = ca.Function("stage_value", [x, u, t, p], [ca.densify(l)])
         self._terminal_value = ca.Function("terminal_value", [x, p], [ca.densify(lT)])
         # the row maps of these four functions, built (and JIT-compiled) on first use
-        self._derivs_cache: dict[str, tuple[_RowMap, _RowMap]] = {}
-        self._values_cache: dict[str, tuple[_RowMap, _RowMap]] = {}
+        self._maps: dict[str, tuple[_RowMap, _RowMap]] = {}
 
     # ------------------------------------------------------------------ construction helpers
     @classmethod
@@ -284,12 +280,9 @@ class CasadiCost:
         t = sym.sym("t") if t is None else t
         if p is None and params is not None:
             raise ValueError("params (default parameter values) need p, the parameter symbol")
-        if p is None:
-            stage = ca.Function("stage", [x, u, t], [stage_expr])
-            terminal = ca.Function("terminal", [x], [terminal_expr])
-        else:
-            stage = ca.Function("stage", [x, u, t, p], [stage_expr])
-            terminal = ca.Function("terminal", [x, p], [terminal_expr])
+        extra = [] if p is None else [p]
+        stage = ca.Function("stage", [x, u, t, *extra], [stage_expr])
+        terminal = ca.Function("terminal", [x, *extra], [terminal_expr])
         return cls(stage, terminal, x.shape[0], u.shape[0], params=params, jit=jit)
 
     # ------------------------------------------------------------------ parameters
@@ -404,8 +397,7 @@ class CasadiCost:
     def _row_maps(self, kind: str) -> tuple[_RowMap, _RowMap]:
         """The stage and terminal :class:`_RowMap` of ``kind`` ``"derivs"`` or ``"values"``
         (built, and JIT-compiled with ``jit``, on first use; parameters never rebuild them)."""
-        cache = self._derivs_cache if kind == "derivs" else self._values_cache
-        maps = cache.get(kind)
+        maps = self._maps.get(kind)
         if maps is None:
             n, m = self.n, self.m
             if kind == "derivs":
@@ -415,7 +407,7 @@ class CasadiCost:
             else:
                 maps = (_RowMap(self._stage_value, _ROWS, [()], self.jit),
                         _RowMap(self._terminal_value, 16, [()], self.jit))
-            cache[kind] = maps
+            self._maps[kind] = maps
         return maps
 
     # ------------------------------------------------------------------ internals
@@ -498,6 +490,19 @@ def after_termination(done: np.ndarray) -> np.ndarray:
     ended_before = np.zeros_like(done)
     ended_before[:, 1:] = np.cumsum(done, axis=1)[:, :-1] > 0
     return ended_before
+
+
+def terminations(terminated, X: np.ndarray) -> np.ndarray | None:
+    """``done [..., T]`` of trajectories ``X [..., T+1, n]`` (``done[..., t]``: ``x_{t+1}`` is
+    terminal) from a termination function ``X [..., n] -> bool [...]`` (``None``: ``None``)."""
+    if terminated is None:
+        return None
+    done = np.asarray(terminated(X[..., 1:, :]), dtype=bool)
+    want = X.shape[:-2] + (X.shape[-2] - 1,)
+    if done.shape != want:
+        raise ValueError(f"terminated(X [..., T, n]) must return bool [..., T] = {list(want)}, "
+                         f"got {list(done.shape)}")
+    return done
 
 
 def truncated_total(
@@ -606,8 +611,3 @@ def _rows(table: np.ndarray, t: np.ndarray) -> np.ndarray:
     if table.shape[0] == 1:
         return np.broadcast_to(table[0], (len(t), table.shape[1]))
     return table[np.minimum(t, table.shape[0] - 1)]
-
-
-def _call(fn: ca.Function, args: list) -> ca.SX:
-    """Call ``fn`` with as many of ``args`` as it takes (p is the optional last one)."""
-    return fn(*args[: fn.n_in()])

@@ -8,6 +8,7 @@ system, a learned ensemble's ``freeze()``) offers ``step(x [..., n], u [..., m],
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from typing import Protocol, runtime_checkable
 
@@ -24,6 +25,8 @@ __all__ = [
     "raw_step",
     "rollout",
 ]
+
+_F64 = np.dtype(np.float64)  # the fast path's dtype (numpy's built-in dtypes are singletons)
 
 
 @runtime_checkable
@@ -48,7 +51,12 @@ class DynamicsModel(Protocol):
 def check_step_inputs(
     x: object, u: object, n: int, m: int, *, finite: bool = True
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Validate and convert a batched ``(x[..., n], u[..., m])`` pair with matching batch dims."""
+    """Validate and convert a batched ``(x[..., n], u[..., m])`` pair with matching batch dims
+    (float64 arrays of those shapes with a finite sum pass as they are: the fast path)."""
+    if (isinstance(x, np.ndarray) and isinstance(u, np.ndarray) and x.dtype is _F64
+            and u.dtype is _F64 and x.shape[-1:] == (n,) and u.shape[-1:] == (m,)
+            and x.shape[:-1] == u.shape[:-1] and (not finite or math.isfinite(x.sum() + u.sum()))):
+        return x, u
     x = as_array("x", x, finite=finite)
     u = as_array("u", u, finite=finite)
     check_step_shapes(x.shape, u.shape, n, m)
@@ -89,8 +97,7 @@ class LinearDynamics:
 
     def step(self, x: np.ndarray, u: np.ndarray, t: int | None = None) -> np.ndarray:
         """``A x + B u + c``: ``x: [..., n]``, ``u: [..., m]`` -> ``[..., n]`` (validated)."""
-        x, u = check_step_inputs(x, u, self.state_dim, self.action_dim)
-        return self._step(x, u, t)
+        return self._step(*check_step_inputs(x, u, self.state_dim, self.action_dim), t)
 
     def _step(self, x: np.ndarray, u: np.ndarray, t: int | None = None) -> np.ndarray:
         """:meth:`step` without input checks (solver loops)."""
@@ -108,8 +115,9 @@ class LinearDynamics:
         )
 
 
-def check_planning_model(model: object, n: int, m: int) -> Callable:
-    """Check once that ``model`` can be planned through with states ``[n]`` and inputs ``[m]``.
+def check_planning_model(model: object, n: int, m: int, name: str = "model") -> Callable:
+    """Check once that ``model`` can be planned through with states ``[n]`` and inputs ``[m]``
+    (``name``: the argument's name in the messages).
 
     :return: its step kernel (:func:`raw_step`).
     :raises TypeError: for a trainable model (one with ``freeze``: plan with
@@ -123,7 +131,7 @@ def check_planning_model(model: object, n: int, m: int) -> Callable:
         )
     if not (callable(getattr(model, "step", None)) and callable(getattr(model, "jacobians", None))):
         raise TypeError(
-            f"model must have step(x, u, t) and jacobians(x, u, t), got {type(model).__name__}"
+            f"{name} must have step(x, u, t) and jacobians(x, u, t), got {type(model).__name__}"
         )
     for attr, want in (("state_dim", n), ("action_dim", m)):
         got = getattr(model, attr, want)
@@ -177,7 +185,13 @@ def _rollout(
     ``x0: [n]`` or ``[B, n]``, ``U: [B, T, m]`` -> ``(X [B, T+1, n], alive [B])``. A row whose
     state turns non-finite or exceeds ``max_norm`` in absolute value is dead: its states are NaN
     from then on, and the model is fed ``x0`` in its place (it never sees non-finite input).
+    From one ``x0 [n]``, through the model's own batched kernel when it has one and takes the
+    batch (:meth:`mbtsr.ensemble.FrozenEnsemble._rollout_open_loop`, the same semantics).
     """
+    kernel = getattr(model, "_rollout_open_loop", None) if x0.ndim == 1 else None
+    out = None if kernel is None else kernel(x0, U, max_norm)
+    if out is not None:
+        return out
     step = raw_step(model)
     Bsz, T, _ = U.shape
     n = x0.shape[-1]

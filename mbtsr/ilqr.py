@@ -16,11 +16,11 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from mbtsr import _lqr_kernels
-from mbtsr.costs import CasadiCost, CostDerivatives, truncated_total
+from mbtsr.costs import CasadiCost, CostDerivatives, terminations, truncated_total
 from mbtsr.dynamics import LinearDynamics, _rollout, check_planning_model, raw_step
 from mbtsr.validation import as_array, check_callable, check_int, check_nonnegative, options_from
 
-__all__ = ["ILQROptions", "ILQRResult", "ilqr", "check_control_bounds"]
+__all__ = ["ILQROptions", "ILQRResult", "ilqr", "check_control_bounds", "check_problem"]
 
 
 @dataclass(frozen=True)
@@ -74,8 +74,7 @@ class ILQROptions:
     boxqp_armijo: float = 0.1
 
     def __post_init__(self) -> None:
-        if int(self.max_iter) != self.max_iter or self.max_iter < 1:
-            raise ValueError(f"max_iter must be an integer >= 1, got {self.max_iter!r}")
+        check_int("max_iter", self.max_iter, 1)
         for name in ("tol_fun", "tol_fun_rel", "tol_grad", "lambda_init", "reduce_ratio_min"):
             check_nonnegative(name, getattr(self, name))
         for name in ("lambda_max", "lambda_min", "max_state_norm", "boxqp_min_step"):
@@ -158,6 +157,29 @@ def check_control_bounds(u_min: object, u_max: object, m: int) -> tuple[np.ndarr
     return lower, upper
 
 
+def check_problem(
+    model: object, x0: object, U0: object, t0: object, u_min: object, u_max: object,
+    terminated: object, n: int | None = None, m: int | None = None,
+) -> tuple[np.ndarray, np.ndarray, int, np.ndarray, np.ndarray]:
+    """Validate the arguments every optimizer shares (:func:`ilqr`'s): ``x0 [n]``, ``U0 [T >=
+    1, m]`` (``n``, ``m``: ``None`` takes them from ``x0``, ``U0`` and checks the model's
+    ``state_dim``/``action_dim``), ``t0 >= 0``, the bounds and ``terminated``.
+
+    :return: ``(x0, U0, t0, lower [m], upper [m])``.
+    """
+    x0 = as_array("x0", x0, None if n is None else (n,), ndim=1)
+    U0 = as_array("U0", U0, (None, m), ndim=2)
+    if U0.shape[0] < 1 or U0.shape[1] < 1:
+        raise ValueError(f"U0 must hold at least one time step (T >= 1) of m >= 1 inputs, got "
+                         f"{list(U0.shape)}")
+    for attr, arg, want in (("state_dim", "x0", x0.shape[0]), ("action_dim", "U0", U0.shape[1])):
+        if getattr(model, attr, want) != want:
+            raise ValueError(f"model.{attr}={getattr(model, attr)} does not match {arg}'s {want}")
+    if terminated is not None:
+        check_callable("terminated", terminated, "X -> bool")
+    return x0, U0, check_int("t0", t0, 0), *check_control_bounds(u_min, u_max, U0.shape[1])
+
+
 def ilqr(
     cost: CasadiCost,
     dynamics,
@@ -199,28 +221,21 @@ def ilqr(
     opts = options_from(ILQROptions, options)
     if not isinstance(cost, CasadiCost):
         raise TypeError(f"cost must be a mbtsr.costs.CasadiCost, got {type(cost).__name__}")
-    if not (callable(getattr(dynamics, "step", None))
-            and callable(getattr(dynamics, "jacobians", None))):
-        raise TypeError("dynamics must have step(x, u, t) and jacobians(x, u, t0) methods, got "
-                        f"{type(dynamics).__name__}")
     n, m = cost.n, cost.m
-    check_planning_model(dynamics, n, m)
+    check_planning_model(dynamics, n, m, name="dynamics")
     table = cost.check_params(params)
-    x0 = as_array("x0", x0, (n,))
-    U0 = as_array("U0", U0, (None, m))
-    if U0.shape[0] < 1:
-        raise ValueError("U0 must hold at least one time step (T >= 1)")
-    t0 = check_int("t0", t0, 0)
-    if terminated is not None:
-        check_callable("terminated", terminated, "X -> bool")
-    lower, upper = check_control_bounds(u_min, u_max, m)
+    x0, U0, t0, lower, upper = check_problem(dynamics, x0, U0, t0, u_min, u_max, terminated,
+                                             n, m)
     has_limits = bool(np.any(np.isfinite(lower)) or np.any(np.isfinite(upper)))
     alphas = np.asarray(opts.alphas, dtype=float)
-    boxqp_prm = _boxqp_params(opts)
-    chunks = _line_search_chunks(  # affine models: the line-search costs dominate, chunk them
-        len(alphas),
-        type(dynamics) is LinearDynamics or bool(getattr(dynamics, "linear_batch_cost", False)),
-    )
+    boxqp_prm = tuple(float(getattr(opts, f"boxqp_{k}")) for k in (  # as BOXQP_DEFAULTS
+        "max_iter", "min_grad", "min_rel_improve", "step_dec", "min_step", "armijo"))
+    # step-size chunks of the forward pass: all at once, or 2, 2, 3, rest where a batch costs
+    # its size (affine models, simulators: the line-search costs dominate)
+    n_a = len(alphas)
+    chunked = type(dynamics) is LinearDynamics or bool(getattr(dynamics, "linear_batch_cost", 0))
+    edges = [e for e in (0, 2, 4, 7) if e < n_a] + [n_a] if chunked else [0, n_a]
+    chunks = [slice(a, b) for a, b in zip(edges[:-1], edges[1:])]
     T = U0.shape[0]
     timings = dict.fromkeys(
         ("jacobians", "cost_derivatives", "backward", "forward", "line_search_cost"), 0.0
@@ -242,10 +257,7 @@ def ilqr(
         if terminated is None:
             return cost._total(X, U, t0, table)
         stage, final = cost._stage_and_terminal(X, U, t0, table)
-        done = np.asarray(terminated(X[..., 1:, :]), dtype=bool)
-        if done.shape != stage.shape:
-            raise ValueError(f"terminated(X [..., T, n]) must return bool [..., T] = "
-                             f"{list(stage.shape)}, got {list(done.shape)}")
+        done = terminations(terminated, X)
         S = int(np.prod(stage.shape[:-1], dtype=np.int64))
         return truncated_total(stage.reshape(S, T), final.reshape(S), done.reshape(S, T),
                                opts.termination_cost).reshape(stage.shape[:-1])
@@ -402,20 +414,6 @@ def ilqr(
 
 
 # ----------------------------------------------------------------------------- internals
-def _line_search_chunks(n_alpha: int, linear_batch_cost: bool) -> list[slice]:
-    """Step-size chunks of the forward pass: all at once, or 2, 2, 3, rest for simulators."""
-    if not linear_batch_cost:
-        return [slice(0, n_alpha)]
-    edges = [e for e in (0, 2, 4, 7) if e < n_alpha] + [n_alpha]
-    return [slice(a, b) for a, b in zip(edges[:-1], edges[1:])]
-
-
-def _boxqp_params(opts: ILQROptions) -> tuple[float, ...]:
-    """Box-QP settings as the float tuple of :data:`mbtsr._lqr_kernels.BOXQP_DEFAULTS`."""
-    names = ("max_iter", "min_grad", "min_rel_improve", "step_dec", "min_step", "armijo")
-    return tuple(float(getattr(opts, f"boxqp_{name}")) for name in names)
-
-
 def _convexified(derivs: CostDerivatives, memo: tuple | None) -> tuple[CostDerivatives, tuple]:
     """``derivs.convexified()``, reusing the last projection when the Hessians are equal to
     the last ones (a constant-Hessian cost: no eigendecompositions after the first iteration).
@@ -480,20 +478,14 @@ def _rollout_policy(dynamics, x0, X, U, k, K, alphas, lower, upper, t0, max_norm
         return _lqr_kernels.rollout_policy_affine(
             A, B, c, x0, X, U, k, K, alphas, lower, upper, float(max_norm)
         )
-    T = U.shape[0]
-    nA = alphas.shape[0]
-    Xn = np.empty((nA, T + 1, X.shape[1]))
-    Un = np.empty((nA, T, U.shape[1]))
-    Xn[:, 0] = x0
-    feedforward = U[None] + alphas[:, None, None] * k[None]  # [A, T, m]
-    alive = np.ones(nA, dtype=bool)
+    T, m = U.shape
+    Xn, Un, alive = _lqr_kernels.rollout_buffers(x0, T, m, alphas.shape[0])
     step = raw_step(dynamics)
     policy = _lqr_kernels.policy_controls
     with np.errstate(all="ignore"):
         for t in range(T):
-            policy(Xn, X, feedforward, K, t, lower, upper, Un)
-            u = Un[:, t]
-            xn = np.asarray(step(Xn[:, t], u, t0 + t), dtype=float)
+            policy(Xn, X, U, k, alphas, K, t, lower, upper, Un)
+            xn = np.asarray(step(Xn[:, t], Un[:, t], t0 + t), dtype=float)
             if not math.isfinite(xn.sum()):
                 bad = ~np.isfinite(xn).all(axis=-1)
                 alive &= ~bad

@@ -1,10 +1,8 @@
 """Receding-horizon control (MPC) with any trajectory optimizer on any planning model.
 
-At every control step ``t`` the controller solves ``min_U sum_k l(x_k, u_k, t + k, p) + l_T(x_H,
-p)`` from the current state with a few iterations of ``optimizer`` (the shared signature of
-:func:`mbtsr.ilqr.ilqr`, :func:`mbtsr.cem.cem`, :func:`mbtsr.cem_ilqr.cem_ilqr`), warm-started
-from the previous plan shifted by the elapsed steps, and applies the first control. The manual
-(warm and cold starts, ``solve`` vs ``act``): docs/ilqr.md, "MPC".
+Every control step solves from the current state with a few iterations of the optimizer (the
+shared signature of :func:`mbtsr.ilqr.ilqr`), warm-started from the previous plan shifted by the
+elapsed steps, and applies the first control. The manual: docs/ilqr.md, "MPC".
 """
 
 from __future__ import annotations
@@ -79,7 +77,7 @@ class MPC:
     :param horizon: planning horizon ``H`` in steps.
     :param u_min: ``[m]`` (or scalar) lower control bound, ``None`` = unbounded.
     :param u_max: ``[m]`` (or scalar) upper control bound, ``None`` = unbounded.
-    :param options: :class:`MPCOptions`.
+    :param options: :class:`MPCOptions` (or a dict of its fields).
     :param U_init: ``[H, m]`` cold-start plan; default: the middle of the box (0 if unbounded).
     :param params: default cost parameters (``[p]`` or ``[N_ref, p]``) when a call gives none.
 
@@ -106,9 +104,7 @@ class MPC:
         if not isinstance(cost, CasadiCost):
             raise TypeError(f"cost must be a mbtsr.costs.CasadiCost, got {type(cost).__name__}")
         check_int("horizon", horizon, 1)
-        self.options = MPCOptions() if options is None else options
-        if not isinstance(self.options, MPCOptions):
-            raise TypeError(f"options must be an MPCOptions, got {type(self.options).__name__}")
+        self.options = options_from(MPCOptions, options)
         n, m = cost.n, cost.m
         check_planning_model(model, n, m)
         self.optimizer, self.cost, self.model, self.horizon = optimizer, cost, model, int(horizon)

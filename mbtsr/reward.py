@@ -15,6 +15,7 @@ import numpy as np
 import torch
 
 from mbtsr.costs import CasadiCost, CostDerivatives
+from mbtsr.dynamics import check_step_inputs
 from mbtsr.ensemble import REL_STD_FLOOR
 from mbtsr.training import MIN_REL_IMPROVEMENT, holdout_mask
 from mbtsr.validation import as_array, check_int, check_nonnegative, check_positive
@@ -264,14 +265,7 @@ class FrozenReward:
 
     def predict(self, x: np.ndarray, u: np.ndarray) -> np.ndarray:
         """Predicted rewards: ``x [..., n]``, ``u [..., m]`` -> ``[...]``."""
-        return self._predict(*self._check(x, u))
-
-    def _check(self, x: object, u: object) -> tuple[np.ndarray, np.ndarray]:
-        x, u = as_array("x", x), as_array("u", u)
-        if x.ndim < 1 or x.shape[-1] != self.n or u.shape != x.shape[:-1] + (self.m,):
-            raise ValueError(f"x must be [..., {self.n}] and u [..., {self.m}] with the same "
-                             f"leading dims, got {list(x.shape)} and {list(u.shape)}")
-        return x, u
+        return self._predict(*check_step_inputs(x, u, self.n, self.m))
 
     def _predict(self, x: np.ndarray, u: np.ndarray) -> np.ndarray:
         """:meth:`predict` without checks."""
@@ -285,7 +279,7 @@ class FrozenReward:
         :param concave: keep only the concave parts of the Hessian (so ``-H`` is PSD; the
             cost's approximation, docs/agent.md); ``False``: the exact Hessian.
         """
-        x, u = self._check(x, u)
+        x, u = check_step_inputs(x, u, self.n, self.m)
         if x.ndim != 2:
             raise ValueError(f"x must be [N, {self.n}] (one batch dim), got {list(x.shape)}")
         r, h, _, Pe = self._terms(x, u)

@@ -315,7 +315,7 @@ def test_explore_on_cost_counts_only_the_disagreement_the_cost_sees():
                        for k in range(2)]) for t in range(T))
     assert res.disagreement == pytest.approx(want, rel=1e-12)
     assert res.cost == pytest.approx(cost.total(res.X, res.U), rel=1e-12)
-    with pytest.raises(ValueError, match="options.explore_on must be 'state' or 'cost'"):
+    with pytest.raises(ValueError, match=r"options.explore_on must be one of \('state', 'cost'\)"):
         CEMOptions(explore_on="value")
 
 

@@ -216,7 +216,7 @@ def test_mpc_with_true_mujoco_model_reaches_and_holds_random_targets(seed):
         ({"horizon": 0}, ValueError, "horizon must be"),
         ({"u_min": 1.0, "u_max": -1.0}, ValueError, "u_min must be <= u_max"),
         ({"U_init": np.zeros((4, N_U))}, ValueError, r"U_init must have shape \[5, 2\]"),
-        ({"options": ILQROptions()}, TypeError, "options must be an MPCOptions"),
+        ({"options": ILQROptions()}, TypeError, "options must be an instance of MPCOptions"),
         ({"params": np.zeros(4)}, ValueError, r"params must be \[5\] or \[N_ref, 5\]"),
         ({"params": np.full(5, np.nan)}, ValueError, "params contains 5 non-finite"),
         ({"optimizer": "ilqr"}, TypeError, "optimizer must be callable"),

@@ -16,6 +16,7 @@ Tolerances (see docs/environments.md):
 from __future__ import annotations
 
 import math
+import pickle
 
 import gymnasium as gym
 import mujoco
@@ -476,6 +477,8 @@ def test_dt_override_sets_timestep_and_render_fps():
     assert env.dt == pytest.approx(0.01)
     assert env.model.opt.timestep == pytest.approx(0.001)
     assert env.metadata["render_fps"] == 100
+    clone = pickle.loads(pickle.dumps(env))  # rebuilt from the constructor arguments
+    assert clone.dt == pytest.approx(0.01) and clone.preset == "default"
 
 
 def test_bad_reset_options_raise_value_error():

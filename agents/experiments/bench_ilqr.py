@@ -120,27 +120,22 @@ def per_iteration(res, wall: float, cpu: float) -> dict:
 def time_ilqr(cost, model, x0, T, iterations, repeats):
     """Best-of-``repeats`` ms per iteration with tolerances off (fixed iteration count)."""
     opts = ILQROptions(max_iter=iterations, tol_fun=0.0, tol_grad=0.0)
-    ilqr(cost, model, x0, np.zeros((T, 2)), u_min=-1.0, u_max=1.0, options=opts)  # warm-up
-    best = None
-    for _ in range(repeats):
-        cpu = time.process_time()
-        res = ilqr(cost, model, x0, np.zeros((T, 2)), u_min=-1.0, u_max=1.0, options=opts)
-        cpu = time.process_time() - cpu
-        if res.iterations == 0:
-            return {"error": res.message}
-        per_iter = res.timings["total"] / res.iterations * 1e3
-        if best is None or per_iter < best["ms_per_iteration"]:
-            n_jac = 1 + sum(tr["accepted"] for tr in res.trace[:-1])
-            best = {**per_iteration(res, res.timings["total"], cpu),
-                    "accepted": int(sum(tr["accepted"] for tr in res.trace)),
-                    "ms_per_jacobian_call": res.timings["jacobians"] / n_jac * 1e3}
-    return best
+    solve_ilqr_timed(cost, model, x0, T, opts)  # warm-up
+    res, _, cpu = min((solve_ilqr_timed(cost, model, x0, T, opts) for _ in range(repeats)),
+                      key=lambda r: r[0].timings["total"] / max(r[0].iterations, 1))
+    if res.iterations == 0:
+        return {"error": res.message}
+    n_jac = 1 + sum(tr["accepted"] for tr in res.trace[:-1])
+    return {**per_iteration(res, res.timings["total"], cpu),
+            "accepted": int(sum(tr["accepted"] for tr in res.trace)),
+            "ms_per_jacobian_call": res.timings["jacobians"] / n_jac * 1e3}
 
 
 def solve_ilqr_timed(cost, model, x0, T, options, u_min=-1.0, u_max=1.0):
-    tic = time.perf_counter()
+    """``(result, wall seconds, CPU seconds)`` of one iLQR solve from zero controls."""
+    tic, cpu = time.perf_counter(), time.process_time()
     res = ilqr(cost, model, x0, np.zeros((T, 2)), u_min=u_min, u_max=u_max, options=options)
-    return res, time.perf_counter() - tic
+    return res, time.perf_counter() - tic, time.process_time() - cpu
 
 
 def time_to_within(res, wall, threshold):
@@ -172,11 +167,8 @@ def peer_comparison(args, problems) -> dict:
             )
 
         def ours(prob=prob):
-            cpu = time.process_time()
-            res, wall = solve_ilqr_timed(
-                prob.cost, prob.model, prob.x0, prob.T, ILQROptions(), prob.u_min, prob.u_max
-            )
-            return res, wall, time.process_time() - cpu
+            return solve_ilqr_timed(prob.cost, prob.model, prob.x0, prob.T, ILQROptions(),
+                                    prob.u_min, prob.u_max)
 
         ours()  # warm-up: builds the cost's mapped functions, loads numba's cache
         peers_mod.solve_crocoddyl(prob)
@@ -281,12 +273,9 @@ def check_true_model_variants(args: Args) -> None:
 
 
 def true_model_planning(args: Args) -> dict:
-    """Section 6 (docs/experiments.md, ``bench_ilqr``): ms per MPC step on the TRUE model of every
-    benchmark-suite task for each planner variant (:func:`_true_model_variants`), cold and warm,
-    and the return where ``true_model_returns`` asks for it (the timed episode resets with seed
-    1000). The timed controller is the scored one (:meth:`JacPropAgent.oracle_policy`); with
-    ``replan_every > 1`` most steps only replay the plan, so ``cpu_ms_per_step_mean`` is the
-    cost per step there."""
+    """Section 6 (docs/experiments.md, ``bench_ilqr``): ms per MPC step of the scored oracle
+    (:meth:`JacPropAgent.oracle_policy`) on every suite task per planner variant, cold and warm
+    (the timed episode resets with seed 1000), and the return where asked for."""
     from agents.experiments import bench_suite
     from mbtsr.episode import as_policy
 
@@ -346,8 +335,9 @@ def vs_ipopt(args: Args, horizons: list[int], problems: list, models: dict, make
                              "build_time_s": ref.build_time, "iterations": ref.iterations,
                              "status": ref.status}}
             for label, opts in labels.items():
-                res, wall = min((solve_ilqr_timed(cost, models["analytic_casadi_jit"], x0, T, opts)
-                                 for _ in range(args.repeats)), key=lambda rw: rw[1])
+                res, wall, _ = min((solve_ilqr_timed(cost, models["analytic_casadi_jit"], x0, T,
+                                                     opts) for _ in range(args.repeats)),
+                                   key=lambda rw: rw[1])
                 t1 = time_to_within(res, wall, 1.01 * ref.cost)
                 row[label] = {
                     "cost": res.cost, "cost_over_ipopt": res.cost / ref.cost, "wall_time_s": wall,
@@ -355,8 +345,8 @@ def vs_ipopt(args: Args, horizons: list[int], problems: list, models: dict, make
                     "status": res.status, "time_to_1pct_of_ipopt_s": t1,
                     "time_to_1pct_over_ipopt": None if t1 is None else t1 / ref.wall_time,
                     "all_controls_within_limits": bool(np.all(np.abs(res.U) <= 1.0))}
-            res, wall = solve_ilqr_timed(cost, models["true_mujoco"], x0, T,
-                                         labels["ilqr_rel_1e-4"])
+            res, wall, _ = solve_ilqr_timed(cost, models["true_mujoco"], x0, T,
+                                            labels["ilqr_rel_1e-4"])
             row["ilqr_rel_1e-4_true_mujoco"] = {
                 "cost_under_mujoco": res.cost, "cost_over_ipopt_analytic": res.cost / ref.cost,
                 "wall_time_s": wall, "iterations": res.iterations, "status": res.status}
@@ -387,16 +377,15 @@ def mpc_rates(args: Args, env, mpc_models: dict, x0: np.ndarray, target: np.ndar
                       iterations_per_step=args.mpc_iterations,
                       first_step_iterations=args.mpc_first_iterations,
                       optimizer_options=ILQROptions(tol_fun_rel=1e-6)))  # the documented runs'
-        best, best_ct = None, None
-        for _ in range(args.repeats):
+
+        def episode(mpc=mpc):
             cpu = time.process_time()
             out = run_episode(env, mpc, seed=args.seed, options={"target": target, "state": x0},
                               observe=lambda obs, info: info["state"])
-            cpu_s = time.process_time() - cpu  # incl. the env's own steps
-            ct_run = np.asarray(mpc.compute_times)
-            if best is None or ct_run[1:].mean() < best_ct[1:].mean():
-                best, best_ct, best_cpu = out, ct_run, cpu_s
-        ct = best_ct
+            return out, np.asarray(mpc.compute_times), time.process_time() - cpu  # incl. env
+
+        best, ct, best_cpu = min((episode() for _ in range(args.repeats)),
+                                 key=lambda r: r[1][1:].mean())
         err = best.states[-1] - np.r_[target, 0.0, 0.0]
         results[name] = {
             "real_time_factor_mean": arm.dt / float(ct[1:].mean()),

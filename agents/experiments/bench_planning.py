@@ -12,6 +12,7 @@ import time
 from dataclasses import dataclass
 
 import numpy as np
+from threadpoolctl import threadpool_limits
 
 from agents.cli import main as command
 from agents.experiments.paper_common import machine_info, pyplot, save_figure, write_result
@@ -54,8 +55,6 @@ def main(argv: list[str] | None = None) -> dict:
 def matmul_peak(dtype: type, size: int = 1024, repeats: int = 5) -> float:
     """GFLOP/s of one ``[size, size] @ [size, size]`` product on one thread (best of
     ``repeats``)."""
-    from threadpoolctl import threadpool_limits
-
     a = np.random.default_rng(0).standard_normal((size, size)).astype(dtype)
     out = np.empty_like(a)
     with threadpool_limits(1):
@@ -77,8 +76,6 @@ def kernel_rates(frozen, samples: int, horizon: int, repeats: int) -> dict:
     FLOPs are the multiply-adds of the products (2 per multiply-add): per row and step
     ``2 K (p W + (L-1) W^2 + W n)`` for ``K`` members of ``L`` layers of ``W`` units, ``p = n+m``
     inputs; the Jacobians add ``2 K n ((L-1) W^2 + W p)`` per step (reverse mode, ``n`` rows)."""
-    from threadpoolctl import threadpool_limits
-
     plan, n, m = frozen._plan, frozen.state_dim, frozen.action_dim
     K, W, L, p = plan.K, plan.W, plan.Wh.shape[0] + 1, n + m
     step_flops = 2.0 * K * (p * W + (L - 1) * W * W + W * n)
@@ -209,8 +206,6 @@ def run(args: Args) -> dict:
     torch.set_num_threads(1)
     # one core: numpy's BLAS too (the issue's targets are per core; without this the larger
     # models' products ran on both cores, CPU time twice the wall time)
-    from threadpoolctl import threadpool_limits
-
     threadpool_limits(1, user_api="blas")
     load = os.getloadavg()
     peaks = {name: matmul_peak(dtype, repeats=args.repeats)
