@@ -407,17 +407,6 @@ class Evaluator:
                    solved=bool(complete and ratio <= ev.solved_ratio))
         return out
 
-    def add_final_score(self, row: dict[str, Any], policy: Any) -> None:
-        """Evaluate ``policy`` as the final score of a ``learn`` call: its fields and seconds
-        (evaluation, oracle) are added to the last episode's log ``row`` (in place)."""
-        tic = time.perf_counter()
-        row.update(self.evaluate(policy, complete=True))
-        dt = time.perf_counter() - tic
-        oracle = self.take_oracle_seconds()
-        row["time_oracle"] += oracle
-        row["time_eval"] += dt - oracle
-        row["time_total"] += dt
-
     def oracle_policy(self, env: gym.Env) -> ReplanEvery:
         """The oracle's controller on ``env`` (:func:`oracle_policy` with the agent's planner,
         seed and task functions)."""

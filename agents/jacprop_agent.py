@@ -159,17 +159,19 @@ class JacPropAgent(SB3Predictor):
         callbacks.start(self, total_timesteps)
         try:
             done = 0
-            while (episodes is None or done < episodes) and (
-                    step_end is None or self.env_steps < step_end):
+
+            def last() -> bool:  # the budget is spent (asked after each rollout): final score
+                return callbacks.stopped or (episodes is not None and done >= episodes) or (
+                    step_end is not None and self.env_steps >= step_end)
+
+            while not last():
                 done += 1
                 before = self.env_steps
                 callbacks.rollout_start(self.episodes_done)
                 row = self._episode(
                     max_steps=None if step_end is None else step_end - self.env_steps,
-                    stop=callbacks.step_hook(self._count_step))
-                last = callbacks.stopped or (episodes is not None and done >= episodes) or (
-                    step_end is not None and self.env_steps >= step_end)
-                end_episode(self, row, self._log, last=last, fps_since=since, bar=bar,
+                    stop=callbacks.step_hook(self._count_step), last=last)
+                end_episode(self, row, self._log, fps_since=since, bar=bar,
                             bar_step=1 if episodes is not None else self.env_steps - before)
                 if not callbacks.episode_end(self, row):
                     break
@@ -252,9 +254,10 @@ class JacPropAgent(SB3Predictor):
             run_dir=run_dir)
 
     # ------------------------------------------------------------------ one episode
-    def _episode(self, max_steps: int | None = None, stop: Callable | None = None
-                 ) -> dict[str, Any]:
-        """One episode of Algorithm 1; returns its log row."""
+    def _episode(self, max_steps: int | None = None, stop: Callable | None = None,
+                 last: Callable[[], bool] = lambda: False) -> dict[str, Any]:
+        """One episode of Algorithm 1; returns its log row. ``last()`` (asked after the rollout):
+        the last episode of ``learn``, whose evaluation is the final score (every episode)."""
         cfg, ep = self.config, self.episodes_done
         t_start = time.perf_counter()
         # every random draw of this episode derives from the agent's generator
@@ -296,9 +299,9 @@ class JacPropAgent(SB3Predictor):
 
         # evaluation: the MPC policy on the updated model vs the oracle
         tic = time.perf_counter()
-        ev = NOT_EVALUATED
-        if self.evaluator.due(ep, self.env_steps, steps=len(rec.actions)):
-            ev = self.evaluator.evaluate(self)
+        ev, final = NOT_EVALUATED, last()
+        if self.evaluator.due(ep, self.env_steps, steps=len(rec.actions), last=final):
+            ev = self.evaluator.evaluate(self, complete=final)
         time_oracle = self.evaluator.take_oracle_seconds()
         time_eval = time.perf_counter() - tic - time_oracle
         return {
