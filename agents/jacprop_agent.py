@@ -28,7 +28,7 @@ from agents.config import AgentConfig
 from agents.episode_log import EpisodeLog, check_budget, end_episode, make_progress_bar, summarize
 from agents.evaluation import NOT_EVALUATED, EpisodeRecord, run_episode
 from agents.model_training import model_errors
-from agents.planning import ReplanEvery, SB3Predictor, make_policy, planner_cost
+from agents.planning import SB3Predictor, make_policy, planner_cost
 from agents.task_setup import LearnedTask, build_agent
 from agents.tasks import env_spec
 
@@ -312,9 +312,9 @@ class JacPropAgent(SB3Predictor):
             "model_cost": float(np.sum(self.task_cost.on_observations(rec.obs[:-1], rec.actions))),
             "one_step_rms": one_step,
             "jacobian_error": jac,
-            "train_loss": _last(getattr(history, "train_loss", None)),
-            "val_loss": _last(getattr(history, "val_loss", None)),
-            "train_steps": getattr(history, "steps", None),
+            "train_loss": _last(history.train_loss),
+            "val_loss": _last(history.val_loss),
+            "train_steps": history.steps,
             "ltv_lambda": lam,
             "ltv_fallback": ltv_note,
             **ev,
@@ -328,15 +328,6 @@ class JacPropAgent(SB3Predictor):
         }
 
     # ------------------------------------------------------------------ evaluation
-    def evaluation_problem(self, i: int) -> tuple[np.ndarray | None, int]:
-        """``(target or None, reset seed)`` of evaluation episode ``i``."""
-        return self.evaluator.problem(i)
-
-    def oracle_policy(self, env: gym.Env) -> ReplanEvery:
-        """The oracle's controller on ``env``: this agent's planner and task functions on the TRUE
-        model of ``env`` (:func:`agents.evaluation.oracle_policy`)."""
-        return self.evaluator.oracle_policy(env)
-
     def compute_oracle(self) -> float | None:
         """Compute (or fetch from ``oracle_cache_dir``) the oracle's evaluation costs now;
         return their mean (``None`` if the env offers no true model)."""
@@ -369,7 +360,4 @@ class JacPropAgent(SB3Predictor):
 
 
 def _last(values: Any) -> float | None:
-    if values is None:
-        return None
-    values = list(values)
-    return float(values[-1]) if values else None
+    return float(values[-1]) if len(values) else None

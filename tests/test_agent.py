@@ -916,7 +916,7 @@ def test_oracle_replan_feedback_plans_from_the_true_state():
     agent = JacPropAgent(env, tiny_config({"planner.kind": "ilqr", "planner.replan_every": 3,
                                            "planner.replan_feedback": True}),
                          **task.agent_kwargs())
-    oracle = agent.oracle_policy(env)
+    oracle = agent.evaluator.oracle_policy(env)
     solves, original = [], oracle.policy.mpc.solve
 
     def recording_solve(*args, **kwargs):

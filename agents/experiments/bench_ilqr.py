@@ -284,7 +284,7 @@ def true_model_planning(args: Args) -> dict:
     """Section 6 (docs/experiments.md, ``bench_ilqr``): ms per MPC step on the TRUE model of every
     benchmark-suite task for each planner variant (:func:`_true_model_variants`), cold and warm,
     and the return where ``true_model_returns`` asks for it (the timed episode resets with seed
-    1000). The timed controller is the scored one (:meth:`JacPropAgent.oracle_policy`); with
+    1000). The timed controller is the scored one (``agent.evaluator.oracle_policy``); with
     ``replan_every > 1`` most steps only replay the plan, so ``cpu_ms_per_step_mean`` is the
     cost per step there."""
     from agents.experiments import bench_suite
