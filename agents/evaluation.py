@@ -32,6 +32,7 @@ from agents.tasks import (
 )
 from mbtsr.episode import EpisodeRecord, as_policy, run_episode
 from mbtsr.ilqr import ILQROptions
+from mbtsr.io import json_default
 from mbtsr.validation import check_int
 
 __all__ = [
@@ -243,7 +244,7 @@ def cached_costs(
     ``key``: a JSON-serialisable dict of what the costs depend on; ``cache_dir=None``: off)."""
     if cache_dir is None:
         return np.asarray(compute(), dtype=float)
-    text = json.dumps(key, sort_keys=True, default=_json_default)
+    text = json.dumps(key, sort_keys=True, default=json_default)
     path = Path(cache_dir) / f"oracle_{hashlib.sha256(text.encode()).hexdigest()[:16]}.json"
     if path.is_file():
         stored = json.loads(path.read_text())
@@ -295,14 +296,6 @@ def oracle_cache_key(
         "planner": dict(planner),
         "optimizer_options": dataclasses.asdict(options),
     }
-
-
-def _json_default(o: Any) -> Any:
-    if isinstance(o, np.ndarray):
-        return o.tolist()
-    if isinstance(o, np.generic):
-        return o.item()
-    return str(o)
 
 
 def solved_threshold(oracle: float, ratio: float = 1.2) -> float:
