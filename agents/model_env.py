@@ -14,6 +14,7 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 
+from agents.tasks import StateMap
 from mbtsr.validation import as_array, check_callable, check_int
 
 __all__ = ["ModelEnv"]
@@ -85,8 +86,6 @@ class ModelEnv(gym.Env):
         if cost_on not in ("next", "current"):
             raise ValueError(f"cost_on must be 'next' or 'current', got {cost_on!r}")
         check_callable("cost_fn", cost_fn, "(obs, action) -> cost")
-        if (state_fn is None) != (obs_fn is None):
-            raise ValueError("give both state_fn and obs_fn or neither")
         if (start_obs is None) == (reset_fn is None):
             raise ValueError("give exactly one of start_obs and reset_fn")
         if max_episode_steps is not None:
@@ -96,8 +95,7 @@ class ModelEnv(gym.Env):
         self.action_space = action_space
         self.cost_fn = cost_fn
         self.reset_fn = reset_fn
-        self.state_fn = state_fn
-        self.obs_fn = obs_fn
+        self.state_map = StateMap(state_fn, obs_fn)  # refuses one without the other
         self.termination_fn = termination_fn
         self.member = member
         self.cost_on = cost_on
@@ -127,12 +125,10 @@ class ModelEnv(gym.Env):
 
     # -------------------------------------------------------------- maps
     def _state(self, obs: np.ndarray) -> np.ndarray:
-        s = obs if self.state_fn is None else self.state_fn(obs)
-        return np.asarray(s, dtype=np.float64).reshape(-1)
+        return np.asarray(self.state_map.state(obs), dtype=np.float64).reshape(-1)
 
     def _observation(self, state: np.ndarray, obs_ref: np.ndarray) -> np.ndarray:
-        o = state if self.obs_fn is None else self.obs_fn(state, obs_ref)
-        o = np.asarray(o, dtype=np.float64).reshape(-1)
+        o = np.asarray(self.state_map.observation(state, obs_ref), dtype=np.float64).reshape(-1)
         if o.shape != (self.obs_dim,):
             raise ValueError(f"obs_fn returned shape {list(o.shape)}, expected [{self.obs_dim}]")
         return o
