@@ -175,11 +175,9 @@ def oracle_policy(
     state_fn: Callable | None = None,
     obs_fn: Callable | None = None,
 ) -> ReplanEvery:
-    """The agent's controller (:func:`agents.planning.make_policy` with the same ``planner``;
-    CEM's ``particles`` set to 1) on the TRUE model of ``env``: ``env.unwrapped.<model>()`` (its
-    state the agent's model state, via ``state_map``), else, for any Gymnasium ``MujocoEnv``,
-    :class:`envs.mujoco_model.ObservedDynamics` planned from the env's true state (the policy
-    then only works on this ``env``; docs/agent.md, "The oracle of any MuJoCo env").
+    """The agent's controller (:func:`agents.planning.make_policy`) on the TRUE model of ``env``:
+    ``env.unwrapped.<model>()``, else a Gymnasium ``MujocoEnv``'s own physics from its true state
+    (docs/agent.md, the ``oracle_policy`` row and "The oracle of any MuJoCo env").
 
     :param planner: the planner settings (``None``: ``PlannerConfig()``).
     :param seed: seeds CEM's samples (the agent passes its ``config.seed``).

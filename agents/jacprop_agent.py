@@ -212,9 +212,7 @@ class JacPropAgent(SB3Predictor):
         return self.actor.predict(observation, state)
 
     def _explore(self, action: np.ndarray) -> np.ndarray:
-        """``predict(..., deterministic=False)``'s noise: white Gaussian, std
-        ``collection.exploration_std`` x half the action range, from :attr:`predict_rng`
-        (checkpointed, apart from learning's generator), clipped to the action box."""
+        """``predict(..., deterministic=False)``'s noise (docs/agent.md, ``predict``)."""
         spec = self.spec
         std = self.config.collection.exploration_std * 0.5 * (spec.u_max - spec.u_min)
         return np.clip(action + std * self.predict_rng.standard_normal(action.shape),
