@@ -220,9 +220,7 @@ class JacPropAgent(SB3Predictor):
 
     def save(self, path: str | Path) -> Path:
         """Save everything needed to continue learning or to act (one atomic file)."""
-        path = Path(path)
-        save_checkpoint(path, agent_payload(self))
-        return path
+        return save_checkpoint(path, agent_payload(self))
 
     @classmethod
     def load(
