@@ -239,8 +239,7 @@ def run(args: Args) -> dict:
             f"{checkpoint} exists: pass --resume to continue it or choose another --run-dir")
 
     # 2. the env and the agent (fresh, or restored from the checkpoint) ----------------------
-    env, _ = make_env(args.env_id, render_mode="rgb_array") if cfg.video else \
-        make_env(args.env_id)
+    env, _ = make_env(args.env_id, **({"render_mode": "rgb_array"} if cfg.video else {}))
     if args.resume:
         try:  # a damaged checkpoint or another env (dt, preset, ...): one line
             agent = JacPropAgent.load(checkpoint, env=env, run_dir=str(run_dir))
