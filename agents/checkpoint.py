@@ -99,11 +99,10 @@ def agent_payload(agent: Any) -> dict[str, Any]:
     bit-identically or to act (a dict for :func:`save_checkpoint`; docs/agent.md,
     "Checkpoints and exact resume")."""
     learned = isinstance(agent.task_cost, LearnedTask)
-    task: dict[str, Any] = {"cost": None, "state_map": None, "learned": learned}
-    if isinstance(agent.cost_fn, QuadraticTargetCost):
-        task["cost"] = agent.cost_fn.to_dict()
-    if agent.state_map.serializable:
-        task["state_map"] = agent.state_map.to_dict()
+    task: dict[str, Any] = {
+        "cost": agent.cost_fn.to_dict() if isinstance(agent.cost_fn, QuadraticTargetCost) else None,
+        "state_map": agent.state_map.to_dict() if agent.state_map.serializable else None,
+        "learned": learned}
     fns = user_functions(agent)
     task["functions"] = sorted(k for k, f in fns.items() if f is not None)
     # a task of agents.tasks.TASKS on this env id with exactly these functions (the same
