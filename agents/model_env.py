@@ -15,7 +15,7 @@ import gymnasium as gym
 import numpy as np
 
 from agents.tasks import StateMap
-from mbtsr.validation import as_array, check_callable, check_int
+from mbtsr.validation import as_array, check_callable, check_choice, check_int
 
 __all__ = ["ModelEnv"]
 
@@ -76,15 +76,13 @@ class ModelEnv(gym.Env):
                 raise ValueError(f"{name} must be a 1-D gymnasium.spaces.Box, got {space!r}")
         if not (np.all(np.isfinite(action_space.low)) and np.all(np.isfinite(action_space.high))):
             raise ValueError("action_space must be bounded (finite low and high)")
-        if member not in MEMBER_MODES:
-            raise ValueError(f"member must be one of {MEMBER_MODES}, got {member!r}")
+        check_choice("member", member, MEMBER_MODES)
         if member != "mean" and not hasattr(model, "member_predictions"):
             raise ValueError(
                 f"member={member!r} samples ensemble members, but {type(model).__name__} has no "
                 "member_predictions(x, u); use member='mean'"
             )
-        if cost_on not in ("next", "current"):
-            raise ValueError(f"cost_on must be 'next' or 'current', got {cost_on!r}")
+        check_choice("cost_on", cost_on, ("next", "current"))
         check_callable("cost_fn", cost_fn, "(obs, action) -> cost")
         if (start_obs is None) == (reset_fn is None):
             raise ValueError("give exactly one of start_obs and reset_fn")
@@ -226,12 +224,11 @@ class ModelEnv(gym.Env):
             def reset_fn(rng: np.random.Generator) -> np.ndarray:
                 return env.reset(seed=int(rng.integers(2**31 - 1)))[0]
         spec = agent.spec
-        obs_space = env.observation_space if env is not None else gym.spaces.Box(
-            -np.inf, np.inf, (spec.obs_dim,), np.float64
-        )
-        act_space = gym.spaces.Box(spec.u_min.astype(np.float32), spec.u_max.astype(np.float32))
         if env is not None:
-            act_space = env.action_space
+            obs_space, act_space = env.observation_space, env.action_space
+        else:  # an act-only agent: the spaces of its saved spec
+            obs_space = gym.spaces.Box(-np.inf, np.inf, (spec.obs_dim,), np.float64)
+            act_space = gym.spaces.Box(spec.u_min.astype(np.float32), spec.u_max.astype(np.float32))
         task_done = getattr(agent, "termination_fn", None)  # obs [..., obs_dim] -> bool [...]
         if termination_fn is None and task_done is not None:
             def termination_fn(obs, action, next_obs):
