@@ -5,18 +5,15 @@ baselines, the learned model as an env and the experiments (docs/architecture.md
 
 from __future__ import annotations
 
+import importlib
 from typing import Any
 
 __all__ = ["AgentConfig", "JacPropAgent"]
 
+_HOME = {"AgentConfig": "agents.config", "JacPropAgent": "agents.jacprop_agent"}
+
 
 def __getattr__(name: str) -> Any:
-    if name == "JacPropAgent":
-        from agents.jacprop_agent import JacPropAgent
-
-        return JacPropAgent
-    if name == "AgentConfig":
-        from agents.config import AgentConfig
-
-        return AgentConfig
+    if name in _HOME:
+        return getattr(importlib.import_module(_HOME[name]), name)
     raise AttributeError(f"module 'agents' has no attribute {name!r}")

@@ -99,14 +99,17 @@ def agent_payload(agent: Any) -> dict[str, Any]:
     bit-identically or to act (a dict for :func:`save_checkpoint`; docs/agent.md,
     "Checkpoints and exact resume")."""
     learned = isinstance(agent.task_cost, LearnedTask)
-    task: dict[str, Any] = {"cost": None, "state_map": None, "learned": learned}
-    if isinstance(agent.cost_fn, QuadraticTargetCost):
-        task["cost"] = agent.cost_fn.to_dict()
-    if agent.state_map.serializable:
-        task["state_map"] = agent.state_map.to_dict()
+    task: dict[str, Any] = {
+        "cost": agent.cost_fn.to_dict() if isinstance(agent.cost_fn, QuadraticTargetCost) else None,
+        "state_map": agent.state_map.to_dict() if agent.state_map.serializable else None,
+        "learned": learned}
     fns = user_functions(agent)
     task["functions"] = sorted(k for k, f in fns.items() if f is not None)
-    task["registry"] = registry_task(agent.env_id, fns)
+    # a task of agents.tasks.TASKS on this env id with exactly these functions (the same
+    # objects) is saved by name
+    known = registry_task_on(agent.env_id)
+    same = known is not None and all(fns[k] is f for k, f in known.agent_kwargs().items())
+    task["registry"] = known.name if same else None
     task["env_id"] = agent.env_id
     ev = agent.evaluator
     return {
@@ -173,26 +176,17 @@ def user_functions(agent: Any) -> dict[str, Any]:
     }
 
 
-def registry_task(env_id: str | None, fns: dict[str, Any]) -> str | None:
-    """The name of the :data:`agents.tasks.TASKS` task on ``env_id`` whose functions are
-    exactly ``fns`` (the same objects; ``None`` where the task has none), else ``None``."""
-    task = registry_task_on(env_id)
-    same = task is not None and all(fns[k] is f for k, f in task.agent_kwargs().items())
-    return task.name if same else None
-
-
 def check_resumable(
     payload: dict[str, Any], path: str | os.PathLike, config: Any, env: Any,
     fns: dict[str, Any],
-) -> tuple[Any, dict[str, Any], dict[str, Any]]:
+) -> tuple[EnvSpec, dict[str, Any]]:
     """Check that a loaded checkpoint can be restored with ``env`` and the task functions (a
     registry task's come from :data:`agents.tasks.TASKS`).
 
     :param config: the checkpoint's :class:`agents.config.AgentConfig` (episode length).
     :param env: the env to continue in, or ``None`` (act only).
     :param fns: the task functions given to ``load`` by name (:data:`agents.tasks.FUNCTION_NAMES`).
-    :return: ``(spec, task, fns)``: the saved :class:`agents.tasks.EnvSpec` and task, the
-        functions to build the agent with.
+    :return: ``(spec, task)``: the saved :class:`agents.tasks.EnvSpec` and task.
     :raises ValueError: the env's sizes or bounds differ, or a function is missing (named).
     :raises CheckpointError: the env's fingerprint differs (naming the field).
     """
@@ -227,7 +221,7 @@ def check_resumable(
             f"the agent was built with its own {', '.join(missing)}, which a checkpoint cannot "
             f"hold: pass {', '.join(f'{k}=' for k in missing)} to load (for a task of "
             "agents.tasks: JacPropAgent.load(path, env, **task.agent_kwargs()))")
-    return spec, task, fns
+    return spec, task
 
 
 def write_run(agent: Any, run_dir: str | os.PathLike) -> None:
@@ -325,7 +319,7 @@ def load_agent(cls: type, path: str | os.PathLike, env: Any, fns: dict[str, Any]
     if run_dir is not None:
         cfg["run_dir"] = str(run_dir)
     config = AgentConfig.from_dict(cfg)
-    spec, task, fns = check_resumable(payload, path, config, env, fns)
+    spec, task = check_resumable(payload, path, config, env, fns)
     saved_n = json.loads(payload["ensemble_config"])["state_dim"]
     agent = cls.__new__(cls)
     build_agent(agent, env, config, spec, fns, saved_task=task)

@@ -224,17 +224,14 @@ def make_progress_bar(episodes: int | None, steps: int | None, show: bool) -> An
                 unit="episode" if by_episode else "step")
 
 
-def end_episode(agent: Any, row: dict[str, Any], log: EpisodeLog | None, *, last: bool,
+def end_episode(agent: Any, row: dict[str, Any], log: EpisodeLog | None, *,
                 fps_since: tuple[int, float], bar: Any = None, bar_step: int = 1) -> None:
-    """The agent's bookkeeping after an episode of ``learn``: the final score (``last``), the
-    row logged and counted, the run folder written, the SB3 logger's records (with
-    ``time/fps``) to ``log``, the progress ``bar`` advanced by ``bar_step``.
+    """The agent's bookkeeping after an episode of ``learn``: the row logged and counted, the
+    run folder written, the SB3 logger's records (with ``time/fps``) to ``log``, the progress
+    ``bar`` advanced by ``bar_step``.
 
     :param fps_since: ``(env_steps, perf_counter time)`` at the start of ``learn``.
     """
-    if last and row["eval_return"] is None and agent.evaluator.due(  # none, or cut short
-            agent.episodes_done, agent.env_steps, last=True):
-        agent.evaluator.add_final_score(row, agent)
     agent.logger_rows.append(row)
     agent.episodes_done += 1
     if agent.config.checkpoint:

@@ -32,6 +32,7 @@ from agents.tasks import (
 )
 from mbtsr.episode import EpisodeRecord, as_policy, run_episode
 from mbtsr.ilqr import ILQROptions
+from mbtsr.io import json_default
 from mbtsr.validation import check_int
 
 __all__ = [
@@ -174,11 +175,9 @@ def oracle_policy(
     state_fn: Callable | None = None,
     obs_fn: Callable | None = None,
 ) -> ReplanEvery:
-    """The agent's controller (:func:`agents.planning.make_policy` with the same ``planner``;
-    CEM's ``particles`` set to 1) on the TRUE model of ``env``: ``env.unwrapped.<model>()`` (its
-    state the agent's model state, via ``state_map``), else, for any Gymnasium ``MujocoEnv``,
-    :class:`envs.mujoco_model.ObservedDynamics` planned from the env's true state (the policy
-    then only works on this ``env``; docs/agent.md, "The oracle of any MuJoCo env").
+    """The agent's controller (:func:`agents.planning.make_policy`) on the TRUE model of ``env``:
+    ``env.unwrapped.<model>()``, else a Gymnasium ``MujocoEnv``'s own physics from its true state
+    (docs/agent.md, the ``oracle_policy`` row and "The oracle of any MuJoCo env").
 
     :param planner: the planner settings (``None``: ``PlannerConfig()``).
     :param seed: seeds CEM's samples (the agent passes its ``config.seed``).
@@ -243,7 +242,7 @@ def cached_costs(
     ``key``: a JSON-serialisable dict of what the costs depend on; ``cache_dir=None``: off)."""
     if cache_dir is None:
         return np.asarray(compute(), dtype=float)
-    text = json.dumps(key, sort_keys=True, default=_json_default)
+    text = json.dumps(key, sort_keys=True, default=json_default)
     path = Path(cache_dir) / f"oracle_{hashlib.sha256(text.encode()).hexdigest()[:16]}.json"
     if path.is_file():
         stored = json.loads(path.read_text())
@@ -295,14 +294,6 @@ def oracle_cache_key(
         "planner": dict(planner),
         "optimizer_options": dataclasses.asdict(options),
     }
-
-
-def _json_default(o: Any) -> Any:
-    if isinstance(o, np.ndarray):
-        return o.tolist()
-    if isinstance(o, np.generic):
-        return o.item()
-    return str(o)
 
 
 def solved_threshold(oracle: float, ratio: float = 1.2) -> float:
@@ -406,17 +397,6 @@ class Evaluator:
         out.update(oracle_cost=float(np.mean(oracle)), cost_ratio=ratio,
                    solved=bool(complete and ratio <= ev.solved_ratio))
         return out
-
-    def add_final_score(self, row: dict[str, Any], policy: Any) -> None:
-        """Evaluate ``policy`` as the final score of a ``learn`` call: its fields and seconds
-        (evaluation, oracle) are added to the last episode's log ``row`` (in place)."""
-        tic = time.perf_counter()
-        row.update(self.evaluate(policy, complete=True))
-        dt = time.perf_counter() - tic
-        oracle = self.take_oracle_seconds()
-        row["time_oracle"] += oracle
-        row["time_eval"] += dt - oracle
-        row["time_total"] += dt
 
     def oracle_policy(self, env: gym.Env) -> ReplanEvery:
         """The oracle's controller on ``env`` (:func:`oracle_policy` with the agent's planner,

@@ -28,7 +28,7 @@ from agents.config import AgentConfig
 from agents.episode_log import EpisodeLog, check_budget, end_episode, make_progress_bar, summarize
 from agents.evaluation import NOT_EVALUATED, EpisodeRecord, run_episode
 from agents.model_training import model_errors
-from agents.planning import ReplanEvery, SB3Predictor, make_policy, planner_cost
+from agents.planning import SB3Predictor, make_policy, planner_cost
 from agents.task_setup import LearnedTask, build_agent
 from agents.tasks import env_spec
 
@@ -159,17 +159,19 @@ class JacPropAgent(SB3Predictor):
         callbacks.start(self, total_timesteps)
         try:
             done = 0
-            while (episodes is None or done < episodes) and (
-                    step_end is None or self.env_steps < step_end):
+
+            def last() -> bool:  # the budget is spent (asked after each rollout): final score
+                return callbacks.stopped or (episodes is not None and done >= episodes) or (
+                    step_end is not None and self.env_steps >= step_end)
+
+            while not last():
                 done += 1
                 before = self.env_steps
                 callbacks.rollout_start(self.episodes_done)
                 row = self._episode(
                     max_steps=None if step_end is None else step_end - self.env_steps,
-                    stop=callbacks.step_hook(self._count_step))
-                last = callbacks.stopped or (episodes is not None and done >= episodes) or (
-                    step_end is not None and self.env_steps >= step_end)
-                end_episode(self, row, self._log, last=last, fps_since=since, bar=bar,
+                    stop=callbacks.step_hook(self._count_step), last=last)
+                end_episode(self, row, self._log, fps_since=since, bar=bar,
                             bar_step=1 if episodes is not None else self.env_steps - before)
                 if not callbacks.episode_end(self, row):
                     break
@@ -210,9 +212,7 @@ class JacPropAgent(SB3Predictor):
         return self.actor.predict(observation, state)
 
     def _explore(self, action: np.ndarray) -> np.ndarray:
-        """``predict(..., deterministic=False)``'s noise: white Gaussian, std
-        ``collection.exploration_std`` x half the action range, from :attr:`predict_rng`
-        (checkpointed, apart from learning's generator), clipped to the action box."""
+        """``predict(..., deterministic=False)``'s noise (docs/agent.md, ``predict``)."""
         spec = self.spec
         std = self.config.collection.exploration_std * 0.5 * (spec.u_max - spec.u_min)
         return np.clip(action + std * self.predict_rng.standard_normal(action.shape),
@@ -220,9 +220,7 @@ class JacPropAgent(SB3Predictor):
 
     def save(self, path: str | Path) -> Path:
         """Save everything needed to continue learning or to act (one atomic file)."""
-        path = Path(path)
-        save_checkpoint(path, agent_payload(self))
-        return path
+        return save_checkpoint(path, agent_payload(self))
 
     @classmethod
     def load(
@@ -252,9 +250,10 @@ class JacPropAgent(SB3Predictor):
             run_dir=run_dir)
 
     # ------------------------------------------------------------------ one episode
-    def _episode(self, max_steps: int | None = None, stop: Callable | None = None
-                 ) -> dict[str, Any]:
-        """One episode of Algorithm 1; returns its log row."""
+    def _episode(self, max_steps: int | None = None, stop: Callable | None = None,
+                 last: Callable[[], bool] = lambda: False) -> dict[str, Any]:
+        """One episode of Algorithm 1; returns its log row. ``last()`` (asked after the rollout):
+        the last episode of ``learn``, whose evaluation is the final score (every episode)."""
         cfg, ep = self.config, self.episodes_done
         t_start = time.perf_counter()
         # every random draw of this episode derives from the agent's generator
@@ -296,9 +295,9 @@ class JacPropAgent(SB3Predictor):
 
         # evaluation: the MPC policy on the updated model vs the oracle
         tic = time.perf_counter()
-        ev = NOT_EVALUATED
-        if self.evaluator.due(ep, self.env_steps, steps=len(rec.actions)):
-            ev = self.evaluator.evaluate(self)
+        ev, final = NOT_EVALUATED, last()
+        if self.evaluator.due(ep, self.env_steps, steps=len(rec.actions), last=final):
+            ev = self.evaluator.evaluate(self, complete=final)
         time_oracle = self.evaluator.take_oracle_seconds()
         time_eval = time.perf_counter() - tic - time_oracle
         return {
@@ -309,9 +308,9 @@ class JacPropAgent(SB3Predictor):
             "model_cost": float(np.sum(self.task_cost.on_observations(rec.obs[:-1], rec.actions))),
             "one_step_rms": one_step,
             "jacobian_error": jac,
-            "train_loss": _last(getattr(history, "train_loss", None)),
-            "val_loss": _last(getattr(history, "val_loss", None)),
-            "train_steps": getattr(history, "steps", None),
+            "train_loss": _last(history.train_loss),
+            "val_loss": _last(history.val_loss),
+            "train_steps": history.steps,
             "ltv_lambda": lam,
             "ltv_fallback": ltv_note,
             **ev,
@@ -325,15 +324,6 @@ class JacPropAgent(SB3Predictor):
         }
 
     # ------------------------------------------------------------------ evaluation
-    def evaluation_problem(self, i: int) -> tuple[np.ndarray | None, int]:
-        """``(target or None, reset seed)`` of evaluation episode ``i``."""
-        return self.evaluator.problem(i)
-
-    def oracle_policy(self, env: gym.Env) -> ReplanEvery:
-        """The oracle's controller on ``env``: this agent's planner and task functions on the TRUE
-        model of ``env`` (:func:`agents.evaluation.oracle_policy`)."""
-        return self.evaluator.oracle_policy(env)
-
     def compute_oracle(self) -> float | None:
         """Compute (or fetch from ``oracle_cache_dir``) the oracle's evaluation costs now;
         return their mean (``None`` if the env offers no true model)."""
@@ -366,7 +356,4 @@ class JacPropAgent(SB3Predictor):
 
 
 def _last(values: Any) -> float | None:
-    if values is None:
-        return None
-    values = list(values)
-    return float(values[-1]) if values else None
+    return float(values[-1]) if len(values) else None

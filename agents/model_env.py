@@ -14,7 +14,8 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 
-from mbtsr.validation import as_array, check_callable, check_int
+from agents.tasks import StateMap
+from mbtsr.validation import as_array, check_callable, check_choice, check_int
 
 __all__ = ["ModelEnv"]
 
@@ -75,18 +76,14 @@ class ModelEnv(gym.Env):
                 raise ValueError(f"{name} must be a 1-D gymnasium.spaces.Box, got {space!r}")
         if not (np.all(np.isfinite(action_space.low)) and np.all(np.isfinite(action_space.high))):
             raise ValueError("action_space must be bounded (finite low and high)")
-        if member not in MEMBER_MODES:
-            raise ValueError(f"member must be one of {MEMBER_MODES}, got {member!r}")
+        check_choice("member", member, MEMBER_MODES)
         if member != "mean" and not hasattr(model, "member_predictions"):
             raise ValueError(
                 f"member={member!r} samples ensemble members, but {type(model).__name__} has no "
                 "member_predictions(x, u); use member='mean'"
             )
-        if cost_on not in ("next", "current"):
-            raise ValueError(f"cost_on must be 'next' or 'current', got {cost_on!r}")
+        check_choice("cost_on", cost_on, ("next", "current"))
         check_callable("cost_fn", cost_fn, "(obs, action) -> cost")
-        if (state_fn is None) != (obs_fn is None):
-            raise ValueError("give both state_fn and obs_fn or neither")
         if (start_obs is None) == (reset_fn is None):
             raise ValueError("give exactly one of start_obs and reset_fn")
         if max_episode_steps is not None:
@@ -96,8 +93,7 @@ class ModelEnv(gym.Env):
         self.action_space = action_space
         self.cost_fn = cost_fn
         self.reset_fn = reset_fn
-        self.state_fn = state_fn
-        self.obs_fn = obs_fn
+        self.state_map = StateMap(state_fn, obs_fn)  # refuses one without the other
         self.termination_fn = termination_fn
         self.member = member
         self.cost_on = cost_on
@@ -127,12 +123,10 @@ class ModelEnv(gym.Env):
 
     # -------------------------------------------------------------- maps
     def _state(self, obs: np.ndarray) -> np.ndarray:
-        s = obs if self.state_fn is None else self.state_fn(obs)
-        return np.asarray(s, dtype=np.float64).reshape(-1)
+        return np.asarray(self.state_map.state(obs), dtype=np.float64).reshape(-1)
 
     def _observation(self, state: np.ndarray, obs_ref: np.ndarray) -> np.ndarray:
-        o = state if self.obs_fn is None else self.obs_fn(state, obs_ref)
-        o = np.asarray(o, dtype=np.float64).reshape(-1)
+        o = np.asarray(self.state_map.observation(state, obs_ref), dtype=np.float64).reshape(-1)
         if o.shape != (self.obs_dim,):
             raise ValueError(f"obs_fn returned shape {list(o.shape)}, expected [{self.obs_dim}]")
         return o
@@ -230,12 +224,11 @@ class ModelEnv(gym.Env):
             def reset_fn(rng: np.random.Generator) -> np.ndarray:
                 return env.reset(seed=int(rng.integers(2**31 - 1)))[0]
         spec = agent.spec
-        obs_space = env.observation_space if env is not None else gym.spaces.Box(
-            -np.inf, np.inf, (spec.obs_dim,), np.float64
-        )
-        act_space = gym.spaces.Box(spec.u_min.astype(np.float32), spec.u_max.astype(np.float32))
         if env is not None:
-            act_space = env.action_space
+            obs_space, act_space = env.observation_space, env.action_space
+        else:  # an act-only agent: the spaces of its saved spec
+            obs_space = gym.spaces.Box(-np.inf, np.inf, (spec.obs_dim,), np.float64)
+            act_space = gym.spaces.Box(spec.u_min.astype(np.float32), spec.u_max.astype(np.float32))
         task_done = getattr(agent, "termination_fn", None)  # obs [..., obs_dim] -> bool [...]
         if termination_fn is None and task_done is not None:
             def termination_fn(obs, action, next_obs):

@@ -65,9 +65,8 @@ def solver(
                              "got planner.kind='ilqr'")
         return ilqr, ILQROptions(), planner.ilqr_iterations
     if planner.kind == "cem":
-        options = dataclasses.replace(planner.cem, seed=seed, **explore)
-        if particles is not None:
-            options = dataclasses.replace(options, particles=particles)
+        options = dataclasses.replace(planner.cem, seed=seed, **explore, **(
+            {} if particles is None else {"particles": particles}))
         return cem, options, options.iterations
     proposal = dataclasses.replace(planner.proposal, seed=seed, **explore)
     return (cem_ilqr, CEMILQROptions(max_iter=planner.ilqr_iterations, cem=proposal,

@@ -8,8 +8,9 @@ counted without the evaluations (the total including them is reported beside it)
 
 from __future__ import annotations
 
+import functools
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from typing import Any
 
 import gymnasium as gym
@@ -80,39 +81,22 @@ def make_sb3_model(
 class CostEvalCallback(BaseCallback):
     """Evaluate the deterministic policy every ``eval_every`` env steps, at the start of a
     rollout (after the gradient updates on all data so far), at step 0 and at the end: the mean
-    episode cost (minus the mean return, :func:`agents.evaluation.evaluate_policy_cost`) in a
-    separate raw env (a ``VecNormalize``-d policy sees its running statistics' normalization).
+    episode cost ``score(act)`` of ``act``, the policy on a raw observation (a
+    ``VecNormalize``-d policy sees its running statistics' normalization).
 
     After training: ``curve`` ``[(env_steps, eval_cost), ...]``; ``train_wall``, wall seconds
     since ``t_start`` without the evaluations, per curve point; ``eval_seconds`` in total.
 
-    :param eval_env: a separate env instance used only for evaluation.
-    :param eval_targets: ``[k, 2]`` goal joint angles, one per evaluation episode, or ``None``
-        for an env without targets (then ``n_episodes`` episodes, cut at ``max_steps``).
+    :param score: ``score(act: obs [d] -> action) -> float``, the cost on the evaluation
+        episodes (:func:`agents.evaluation.evaluate_policy_cost`).
     :param eval_every: evaluation period in env steps.
-    :param eval_seed: evaluation episode ``i`` resets with ``eval_seed + i`` (as the agent's).
-    :param t_start: ``time.perf_counter()`` value that wall times are measured from
-        (default: the start of training).
+    :param t_start: ``time.perf_counter()`` value that wall times are measured from.
     """
 
-    def __init__(
-        self,
-        eval_env: gym.Env,
-        eval_targets: np.ndarray | None,
-        eval_every: int,
-        eval_seed: int,
-        t_start: float | None = None,
-        *,
-        n_episodes: int | None = None,
-        max_steps: int | None = None,
-    ):
+    def __init__(self, score: Callable[[Callable], float], eval_every: int,
+                 t_start: float) -> None:
         super().__init__()
-        self.eval_env = eval_env
-        self.eval_targets = eval_targets
-        self.eval_every = int(eval_every)
-        self.eval_seed = int(eval_seed)
-        self.n_episodes, self.max_steps = n_episodes, max_steps
-        self.t_start = t_start
+        self.score, self.eval_every, self.t_start = score, int(eval_every), t_start
         self.curve: list[tuple[int, float]] = []
         self.train_wall: list[float] = []
         self.eval_seconds = 0.0
@@ -129,22 +113,16 @@ class CostEvalCallback(BaseCallback):
 
     def evaluate_now(self) -> None:
         """Evaluate at the current step (once per step)."""
-        from agents.evaluation import evaluate_policy_cost
-
         if self.curve and self.curve[-1][0] == self.num_timesteps:
             return
         t0 = time.perf_counter()
         train_wall = t0 - self.t_start - self.eval_seconds
-        cost = evaluate_policy_cost(self.policy_action, self.eval_env, self.eval_targets,
-                                    self.eval_seed, n_episodes=self.n_episodes,
-                                    max_steps=self.max_steps)
+        cost = self.score(self.policy_action)
         self.eval_seconds += time.perf_counter() - t0
         self.curve.append((int(self.num_timesteps), cost))
         self.train_wall.append(train_wall)
 
     def _on_training_start(self) -> None:
-        if self.t_start is None:
-            self.t_start = time.perf_counter()
         self._maybe_evaluate()
 
     def _on_rollout_start(self) -> None:
@@ -205,6 +183,8 @@ def train_sb3(
         point), ``env_steps`` (total), ``train_wall_seconds`` / ``eval_wall_seconds`` /
         ``total_wall_seconds``, ``hyperparams`` and the arguments.
     """
+    from agents.evaluation import evaluate_policy_cost
+
     _check_algo(algo)
     budget_steps = check_int("budget_steps", budget_steps, 1)
     eval_every = check_int("eval_every", eval_every, 1)
@@ -240,8 +220,9 @@ def train_sb3(
     eval_env = gym.make(env_id, **env_kwargs)
     try:
         model = make_sb3_model(algo, train_env, seed, hp)
-        callback = CostEvalCallback(eval_env, targets, eval_every, eval_seed, t_start,
-                                    n_episodes=n_eval_episodes, max_steps=eval_max_steps)
+        callback = CostEvalCallback(functools.partial(
+            evaluate_policy_cost, env=eval_env, targets=targets, seed=eval_seed,
+            n_episodes=n_eval_episodes, max_steps=eval_max_steps), eval_every, t_start)
         model.learn(total_timesteps=budget_steps, callback=callback)
         total = time.perf_counter() - t_start
     finally:

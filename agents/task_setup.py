@@ -64,7 +64,7 @@ def resolve_task(
     function only where the caller gave none), the env's own quadratic cost, else a learned
     reward (docs/agent.md, "The cost")."""
     own = {"terminal_cost_fn": terminal_cost_fn, "termination_fn": termination_fn}
-    saved_task = saved_task or {}
+    saved_task, env_id = saved_task or {}, getattr(getattr(env, "spec", None), "id", None)
     if isinstance(cost_fn, str) and cost_fn != "learned":
         raise ValueError(f"cost_fn must be a callable, None or 'learned', got {cost_fn!r}")
     if (saved_task.get("learned") and cost_fn not in ("learned", None)) or (
@@ -77,7 +77,7 @@ def resolve_task(
             raise ValueError("terminal_cost_fn needs a written cost_fn: a learned reward has "
                              "no terminal cost")
         # a known env keeps its task's termination and state maps where none are given
-        task = registry_task(getattr(getattr(env, "spec", None), "id", None))
+        task = registry_task(env_id)
         if task is not None and state_fn is None:
             state_fn, obs_fn = task.state_fn, task.obs_fn
         if task is not None and termination_fn is None:
@@ -90,7 +90,6 @@ def resolve_task(
         return ResolvedTask(QuadraticTargetCost.from_dict(saved_task["cost"]),
                             StateMap.from_dict(saved_task["state_map"]) if saved
                             else StateMap(state_fn, obs_fn), **own, source="saved")
-    env_id = getattr(getattr(env, "spec", None), "id", None)
     task = (TASKS[saved_task["registry"]]() if saved_task.get("registry") in TASKS
             else registry_task(env_id))
     if task is not None and task.cost_fn is not None:
@@ -240,7 +239,7 @@ def build_agent(agent: Any, env: gym.Env | None, config: Any, spec: EnvSpec,
     from mbtsr.ensemble import DynamicsEnsemble
 
     agent.env, agent.config, agent.spec = env, config, spec
-    agent.env_id = getattr(getattr(env, "spec", None), "id", None) if env is not None else None
+    agent.env_id = getattr(getattr(env, "spec", None), "id", None)
     # the task: cost on (obs, action) (or a learned reward) and the obs <-> state maps
     agent.task = resolve_task(env, fns["cost_fn"], fns["state_fn"], fns["obs_fn"], saved_task,
                               terminal_cost_fn=fns["terminal_cost_fn"],

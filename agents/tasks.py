@@ -22,6 +22,8 @@ from typing import TYPE_CHECKING, Any
 import casadi as ca
 import numpy as np
 
+from mbtsr.validation import as_array, call_user_fn, check_callable, check_int
+
 if TYPE_CHECKING:
     import gymnasium as gym
 
@@ -268,12 +270,8 @@ SUITE: dict[str, Task] = dict([
     _suite(two_link_arm(), 800, 200, "arm-open-loop", **{"planner.replan_every": 10}),
     _suite(reacher(), 2000, 250),
     _suite(inverted_pendulum(max_episode_steps=200), 2000, 250),
-    # horizon 15: the learned model's k-step error explodes between 10 and 20 steps (4,746
-    # near-upright steps: 0.55 rad/s at 5 steps, 2.1 at 10, 27 at 20) and at 20 or 30 steps the
-    # learned-model MPC falls within 17-61 steps; the terminal weight 100 stands in for the cost
-    # beyond the shortened horizon. Chosen on the true model and on fixed data, not on suite
-    # runs (docs/results/idp_state_and_horizon.json). Horizon 30 and terminal weight 1 on the
-    # raw observation did not balance (docs/results/defaults/idp_raw_seed0.json).
+    # horizon 15 + terminal weight 100: the learned model's k-step error explodes between 10 and
+    # 20 steps (docs/troubleshooting.md, "The learned-model MPC falls where the true model holds")
     _suite(inverted_double_pendulum(), 5000, 1000,
            **{"planner.horizon": 15, "planner.terminal_weight": 100.0}),
     _suite(pusher(), 3000, 300),
@@ -344,9 +342,7 @@ def env_spec(env: gym.Env, episode_steps: int | None = None) -> EnvSpec:
                 "the env has no TimeLimit (env.spec.max_episode_steps is None) and no "
                 "env.unwrapped.episode_steps; set AgentConfig.collection.episode_steps"
             )
-    if isinstance(episode_steps, bool) or int(episode_steps) != episode_steps \
-            or episode_steps < 1:
-        raise ValueError(f"episode_steps must be an integer >= 1, got {episode_steps!r}")
+    check_int("episode_steps", episode_steps, 1)
     dt = getattr(env.unwrapped, "dt", None)
     return EnvSpec(int(obs_space.shape[0]), int(act_space.shape[0]), u_min, u_max,
                    int(episode_steps), None if dt is None else float(dt))
@@ -424,8 +420,6 @@ class QuadraticTargetCost:
     """
 
     def __init__(self, Q: np.ndarray, R: np.ndarray, target_index: list[int]) -> None:
-        from mbtsr.validation import as_array
-
         self.Q = as_array("Q", Q, ndim=2)
         self.R = as_array("R", R, ndim=2)
         n = self.Q.shape[0]
@@ -468,8 +462,6 @@ class ObservationCost:
         state_dim: int,
         terminal_cost_fn: Callable[[Any], Any] | None = None,
     ) -> None:
-        from mbtsr.validation import call_user_fn, check_callable
-
         self.cost_fn = check_callable("cost_fn", cost_fn, "(obs, action) -> cost")
         self.state_map = state_map
         self.spec = spec
@@ -522,8 +514,6 @@ class ObservationCost:
 def _scalar(name: str, fn: Callable, *symbols: ca.SX, failure: str) -> ca.SX:
     """``fn(*symbols)``, a user's cost on CasADi symbols, as a scalar expression; an error names
     ``name`` (``failure``: the message when ``fn`` raises)."""
-    from mbtsr.validation import call_user_fn
-
     c = call_user_fn(fn, *symbols, failure=failure)
     try:
         c = ca.SX(c)

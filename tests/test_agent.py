@@ -916,7 +916,7 @@ def test_oracle_replan_feedback_plans_from_the_true_state():
     agent = JacPropAgent(env, tiny_config({"planner.kind": "ilqr", "planner.replan_every": 3,
                                            "planner.replan_feedback": True}),
                          **task.agent_kwargs())
-    oracle = agent.oracle_policy(env)
+    oracle = agent.evaluator.oracle_policy(env)
     solves, original = [], oracle.policy.mpc.solve
 
     def recording_solve(*args, **kwargs):
@@ -1047,13 +1047,24 @@ def test_replan_every_checks_the_observation_and_state_between_solves():
 def test_the_final_evaluation_of_learn_runs_every_episode_despite_early_exit():
     """``evaluation.early_exit`` cuts the evaluations during learning short (an untrained agent
     exceeds 1.2 x the oracle's cost on its first episode), but the final score of ``learn``
-    runs every episode, so a run always ends with a return."""
+    runs every episode, so a run always ends with a return. The last episode is evaluated
+    once, completely (not cut short and then played again)."""
     agent = JacPropAgent(gym.make("mbtsr/TwoLinkArm-v0"), tiny_config(
         {"collection.episode_steps": 10, "planner.horizon": 4, "evaluation.every": 1,
          "evaluation.episodes": 3, "training.steps": 2}, seed=0))
+    agent.compute_oracle()  # its episodes in the evaluation env, before the count starts
+    played = []
+
+    class CountResets(gym.Wrapper):
+        def reset(self, **kwargs):
+            played.append(kwargs.get("seed"))
+            return super().reset(**kwargs)
+
+    agent.evaluator._env = CountResets(agent.evaluator.eval_env())
     agent.learn(episodes=2)
     first, final = agent.logger_rows
     assert first["eval_episodes_run"] < 3 and first["eval_return"] is None
     assert final["eval_episodes_run"] == 3 and len(final["eval_returns"]) == 3
+    assert len(played) == first["eval_episodes_run"] + 3
     assert final["eval_return"] == pytest.approx(np.mean(final["eval_returns"]))
     assert agent.summary()["final_eval_return"] == final["eval_return"]

@@ -274,7 +274,7 @@ def check_true_model_variants(args: Args) -> None:
 
 def true_model_planning(args: Args) -> dict:
     """Section 6 (docs/experiments.md, ``bench_ilqr``): ms per MPC step of the scored oracle
-    (:meth:`JacPropAgent.oracle_policy`) on every suite task per planner variant, cold and warm
+    (``agent.evaluator.oracle_policy``) on every suite task per planner variant, cold and warm
     (the timed episode resets with seed 1000), and the return where asked for."""
     from agents.experiments import bench_suite
     from mbtsr.episode import as_policy

@@ -239,8 +239,7 @@ def run(args: Args) -> dict:
             f"{checkpoint} exists: pass --resume to continue it or choose another --run-dir")
 
     # 2. the env and the agent (fresh, or restored from the checkpoint) ----------------------
-    env, _ = make_env(args.env_id, render_mode="rgb_array") if cfg.video else \
-        make_env(args.env_id)
+    env, _ = make_env(args.env_id, **({"render_mode": "rgb_array"} if cfg.video else {}))
     if args.resume:
         try:  # a damaged checkpoint or another env (dt, preset, ...): one line
             agent = JacPropAgent.load(checkpoint, env=env, run_dir=str(run_dir))
@@ -314,12 +313,12 @@ def plot_final_reach(agent, env, path: Path) -> None:
     from agents.evaluation import run_episode
 
     plt = pyplot()
-    target, seed = agent.evaluation_problem(0)
+    target, seed = agent.evaluator.problem(0)
     options = None if target is None else {"target": target}
     rec = agent.rollout_policy(env, seed=seed, options=options)
     curves = [("agent", rec)]
     if hasattr(env.unwrapped, "dynamics_model") and target is not None:
-        oracle = agent.oracle_policy(env)  # the agent's planner (kind too) on the true model
+        oracle = agent.evaluator.oracle_policy(env)  # the agent's planner on the true model
         curves.append(("oracle", run_episode(env, oracle, seed=seed, options=options)))
     dt = agent.spec.dt or 1.0
     fig, axes = plt.subplots(1, 2, figsize=(10, 3.8))
