@@ -286,7 +286,7 @@ def true_model_planning(args: Args) -> dict:
         for label, overrides in variants.items():
             agent = bench_suite.make_agent(name, overrides)  # the scored oracle's own planner
             planner, env = agent.config.planner, agent.env
-            policy = as_policy(agent.oracle_policy(env))
+            policy = as_policy(agent.evaluator.oracle_policy(env))
             obs, _ = env.reset(seed=1000)
             times, cpu = [], []  # wall, and this process's CPU time (load-independent work)
             for t in range(args.true_model_steps + 1):
