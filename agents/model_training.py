@@ -59,7 +59,8 @@ class ModelTrainer:
 def model_errors(model: DynamicsEnsemble, traj: Trajectory,
                  true_env: Any = None) -> tuple[float, float]:
     """One-step RMS of the ensemble mean on ``traj`` and the paper's Jacobian error (eq.
-    jacerr); NaN before the model has seen data, or without a linearization.
+    jacerr); NaN before the model has seen data, without a linearization, or when the model's
+    state is not the env's own (its ``dynamics_model().state_dim`` differs).
 
     :param true_env: an unwrapped env with ``linearize_trajectory(x [T, n], u [T, m])`` or
         ``linearize(x, u)``, or ``None``.
@@ -71,6 +72,9 @@ def model_errors(model: DynamicsEnsemble, traj: Trajectory,
     if not (hasattr(true_env, "linearize_trajectory") or hasattr(true_env, "linearize")):
         return one_step, math.nan
     x, u = traj.inputs
+    if (hasattr(true_env, "dynamics_model")
+            and true_env.dynamics_model().state_dim != x.shape[1]):
+        return one_step, math.nan  # the model's state is not the env's (e.g. the observation)
     if hasattr(true_env, "linearize_trajectory"):
         J_true = true_env.linearize_trajectory(x, u)
     else:

@@ -282,6 +282,26 @@ def test_cost_fn_learned_learns_the_reward_of_a_known_env_and_survives_save_and_
     np.testing.assert_array_equal(loaded.predict(obs)[0], agent.predict(obs)[0])
 
 
+def test_jacobian_error_only_where_the_model_state_is_the_envs_own():
+    """The arm with a learned reward learns its 6-number observation, which the env cannot
+    linearize (it crashed at the first update before): the Jacobian error is NaN there, and
+    finite for the registry task, whose model state is the arm's own [q, qd]."""
+    from agents import JacPropAgent
+
+    cfg = AgentConfig.default({"model.ensemble_size": 1, "model.hidden_width": 8,
+                               "training.steps": 5, "planner.horizon": 3,
+                               "evaluation.episodes": 1, "reward.steps": 20})
+    errors = {}
+    for cost in ("learned", None):
+        env = gym.make("mbtsr/TwoLinkArm-v0", episode_steps=15)
+        agent = JacPropAgent(env, cfg, cost_fn=cost)
+        agent.learn(total_timesteps=45)
+        errors[cost] = [r["jacobian_error"] for r in agent.logger_rows
+                        if not math.isnan(r.get("one_step_rms", math.nan))]
+    assert errors["learned"] and all(math.isnan(e) for e in errors["learned"])
+    assert errors[None] and all(math.isfinite(e) and e > 0 for e in errors[None])
+
+
 @pytest.mark.parametrize("kind", ["ilqr", "cem", "cem-ilqr"])
 def test_oracle_plans_with_the_planners_kind_and_one_particle(kind):
     """The oracle is the agent's planner on the true model: the same optimizer and iteration
