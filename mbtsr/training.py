@@ -666,34 +666,32 @@ class _StepPlan(_Plan):
 class _MemberStreams:
     """Per-member minibatch streams over training rows (stacked member order): a random
     permutation of the member's rows (all training rows, or its bootstrap resample), consumed
-    ``batch`` rows at a time and redrawn when used up; ``"shared"`` is one stream for all."""
+    ``batch`` rows at a time and redrawn when used up; ``"shared"`` is one stream for all. The
+    streams' pools are equally long, so all redraw at the same step: one ``[S, rows]`` tensor
+    of permutations, sliced per step."""
 
     def __init__(self, rows: torch.Tensor, K: int, batch: int, mode: str,
                  gen: torch.Generator) -> None:
-        self.gen, self.batch = gen, min(int(batch), rows.numel())
-        n_streams = 1 if mode == "shared" else K
+        N = rows.numel()
+        self.gen, self.batch, self.K = gen, min(int(batch), N), K
         if mode == "bootstrap":
-            self.pools = [rows[torch.randint(rows.numel(), (rows.numel(),), generator=gen)]
-                          for _ in range(K)]
+            self.pools = torch.stack([rows[torch.randint(N, (N,), generator=gen)]
+                                      for _ in range(K)])
         else:
-            self.pools = [rows] * n_streams
-        self.K = K
-        self.perm = [self._permuted(p) for p in self.pools]
-        self.pos = [0] * n_streams
+            self.pools = rows.expand(1 if mode == "shared" else K, -1)
+        self._redraw()
 
-    def _permuted(self, pool: torch.Tensor) -> torch.Tensor:
-        return pool[torch.randperm(pool.numel(), generator=self.gen)]
+    def _redraw(self) -> None:
+        self.perm = torch.stack([pool[torch.randperm(pool.numel(), generator=self.gen)]
+                                 for pool in self.pools])
+        self.pos = 0
 
     def next(self) -> torch.Tensor:
         """``[K, batch]`` row indices of the next step."""
-        out = []
-        for s in range(len(self.pools)):
-            if self.pos[s] + self.batch > self.perm[s].numel():
-                self.perm[s], self.pos[s] = self._permuted(self.pools[s]), 0
-            out.append(self.perm[s][self.pos[s]:self.pos[s] + self.batch])
-            self.pos[s] += self.batch
-        idx = torch.stack(out)
-        return idx.expand(self.K, -1) if idx.shape[0] == 1 else idx
+        if self.pos + self.batch > self.perm.shape[1]:
+            self._redraw()
+        self.pos += self.batch
+        return self.perm[:, self.pos - self.batch:self.pos].expand(self.K, -1)
 
 
 # ---------------------------------------------------------------------------------------------
