@@ -145,7 +145,8 @@ class TwoLinkArmEnv(MujocoEnv, utils.EzPickle):
         width: int = 320,
         height: int = 240,
     ) -> None:
-        # pickled through the constructor arguments (first: locals() holds only them here)
+        # pickled through the constructor arguments (first, and no super() in this method:
+        # locals() holds only them here)
         utils.EzPickle.__init__(self, **{k: v for k, v in locals().items() if k != "self"})
         check_choice("render_mode", render_mode, (None, *self.metadata["render_modes"]))
         for name, value in (("episode_steps", episode_steps), ("width", width), ("height", height)):

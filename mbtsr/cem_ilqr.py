@@ -8,7 +8,7 @@ docs/ilqr.md, "The default planner: CEM proposes, iLQR refines".
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -66,18 +66,29 @@ class CEMILQROptions:
 
 
 def cem_ilqr(
-    cost: Any, model: Any, x0: np.ndarray, U0: np.ndarray, *,
-    options: CEMILQROptions | Mapping | None = None, **problem: Any,
+    cost: Any,
+    model: Any,
+    x0: np.ndarray,
+    U0: np.ndarray,
+    *,
+    u_min: np.ndarray | float,
+    u_max: np.ndarray | float,
+    params: Any = None,
+    t0: int = 0,
+    options: CEMILQROptions | Mapping | None = None,
+    terminated: Callable[[np.ndarray], np.ndarray] | None = None,
 ) -> ILQRResult:
     """CEM's best sequence from ``U0``, refined by ``options.max_iter`` iLQR iterations.
 
-    :param problem: ``u_min``, ``u_max`` (finite, required as for CEM), ``params``, ``t0``,
-        ``terminated``: as :func:`mbtsr.ilqr.ilqr` (the shared signature), passed to both.
+    Arguments as :func:`mbtsr.ilqr.ilqr` (finite bounds required, as for CEM); all but
+    ``options`` are passed to both.
     :return: iLQR's :class:`mbtsr.ilqr.ILQRResult`; its ``timings`` add ``"proposal"`` (CEM's
         seconds) to the total, and ``proposal_cost`` is the cost of CEM's sequence.
     """
     opts = options_from(CEMILQROptions, options)
-    search = dataclasses.replace(opts.cem, seed=int(opts.cem.seed) + int(problem.get("t0", 0)))
+    problem = {"u_min": u_min, "u_max": u_max, "params": params, "t0": t0,
+               "terminated": terminated}
+    search = dataclasses.replace(opts.cem, seed=int(opts.cem.seed) + int(t0))
     if opts.warm_samples is not None and opts.warm_samples < search.samples:
         search = dataclasses.replace(search, samples=opts.warm_samples,
                                      elites=min(search.elites, opts.warm_samples))

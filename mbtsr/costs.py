@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import os
 import tempfile
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import casadi as ca
@@ -492,7 +493,8 @@ def after_termination(done: np.ndarray) -> np.ndarray:
     return ended_before
 
 
-def terminations(terminated, X: np.ndarray) -> np.ndarray | None:
+def terminations(terminated: Callable[[np.ndarray], np.ndarray] | None,
+                 X: np.ndarray) -> np.ndarray | None:
     """``done [..., T]`` of trajectories ``X [..., T+1, n]`` (``done[..., t]``: ``x_{t+1}`` is
     terminal) from a termination function ``X [..., n] -> bool [...]`` (``None``: ``None``)."""
     if terminated is None:

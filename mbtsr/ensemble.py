@@ -1500,7 +1500,9 @@ def save_model(model: DynamicsEnsemble, path: str | os.PathLike) -> None:
     """
     if not isinstance(model, DynamicsEnsemble):
         raise ValueError(f"model must be a DynamicsEnsemble, got {type(model).__name__}")
-    payload = {
+    payload = {  # format and version also in the payload: readers before the header had them
+        "format": _FORMAT,
+        "version": _FORMAT_VERSION,
         "config": model.config.to_json(),
         "state_dict": {k: v.detach().clone() for k, v in model.state_dict().items()},
     }

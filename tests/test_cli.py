@@ -163,6 +163,7 @@ def test_every_script_help_lists_every_field_with_its_help(name, capsys):
             after = inspect.getsource(owner).split(f"    {f.name}:", 1)[1].split('"""')
             assert len(after) > 2 and after[0].count("\n") == 1, f"{name}.{f.name}: no docstring"
             doc = after[1]
+        assert doc.strip(), f"{name}.{f.name} has no help"
         assert " ".join(doc.split()[:3]) in text, f.name  # its first words, as tyro wraps lines
 
 
