@@ -23,8 +23,7 @@ sys.path.append(str(REPO))  # agents/experiments/ (until the editable install is
 #: every experiments module behind a script in scripts/ (the exp_* ones: every one there is)
 EXPERIMENTS = sorted({"bench_env", "bench_ilqr", "bench_ltv", "bench_models",
                       "bench_planning", "bench_suite", "collect_excitation", "ilqr_with_model",
-                      "model_env_sac", *(p.stem for p in (REPO / "agents" / "experiments")
-                                         .glob("exp_*.py"))})
+                      *(p.stem for p in (REPO / "agents" / "experiments").glob("exp_*.py"))})
 
 
 @dataclass(frozen=True)
