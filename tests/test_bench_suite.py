@@ -19,14 +19,13 @@ from agents.experiments import bench_suite as suite
 REPO = Path(__file__).resolve().parents[1]
 
 
-def test_the_suite_and_pets_read_every_task_from_the_one_registry():
+def test_the_suite_reads_every_task_from_the_one_registry():
     """Each suite task is a registry task (same env, cost, termination, state map as
     ``make_task`` builds from its name and env keywords); the suite's budget, evaluation period
-    and settings and PETS' env, budget and re-plan period are that task's."""
-    from agents.experiments import pets_peer
+    and settings are that task's."""
     from agents.tasks import SUITE, make_task
 
-    assert list(suite.TASKS) == list(SUITE) and set(pets_peer.TASKS) == set(SUITE)
+    assert list(suite.TASKS) == list(SUITE)
     fns = ("env_id", "cost_fn", "terminal_cost_fn", "termination_fn", "state_fn", "obs_fn")
     for name, task in SUITE.items():
         fresh = make_task(task.name, **task.make_kwargs)
@@ -37,10 +36,6 @@ def test_the_suite_and_pets_read_every_task_from_the_one_registry():
             task, task.budget, task.eval_every, task.settings)
         cfg = suite.agent_config(name).dotted()
         assert all(cfg[k] == v for k, v in task.settings.items()), name
-        pets = pets_peer.task_settings(name)
-        assert (pets["agent_task"], pets["make"], pets["budget_env_steps"]) == (
-            task.name, task.make_kwargs, task.budget)
-        assert pets["planner"]["replan_freq"] == task.settings.get("planner.replan_every", 1)
     with pytest.raises(ValueError, match="unknown task 'arm-far'; known"):
         make_task("arm-far")  # a suite name, not a registry task
 
