@@ -21,7 +21,7 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.append(str(REPO))  # agents/experiments/ (until the editable install is refreshed)
 
 #: every experiments module behind a script in scripts/ (the exp_* ones: every one there is)
-EXPERIMENTS = sorted({"bench_env", "bench_ilqr", "bench_ltv", "bench_models",
+EXPERIMENTS = sorted({"bench_ilqr", "bench_ltv", "bench_models",
                       "bench_planning", "bench_suite", "collect_excitation", "ilqr_with_model",
                       *(p.stem for p in (REPO / "agents" / "experiments").glob("exp_*.py"))})
 

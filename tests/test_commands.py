@@ -49,10 +49,10 @@ def test_every_script_is_a_thin_wrapper_of_an_experiment_module():
 def test_a_script_runs_its_module_from_another_folder(tmp_path):
     """The wrapper finds this checkout's packages without an install or PYTHONPATH."""
     env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}
-    proc = subprocess.run([sys.executable, str(REPO / "scripts" / "bench_env.py"), "--help"],
+    proc = subprocess.run([sys.executable, str(REPO / "scripts" / "bench_ltv.py"), "--help"],
                           capture_output=True, text=True, timeout=300, cwd=tmp_path, env=env)
     assert proc.returncode == 0, proc.stderr[-2000:]
-    assert "--smoke" in proc.stdout and proc.stdout.startswith("usage: bench_env.py")
+    assert "--smoke" in proc.stdout and proc.stdout.startswith("usage: bench_ltv.py")
 
 
 def test_console_scripts_name_functions_that_exist():
@@ -65,8 +65,7 @@ def test_console_scripts_name_functions_that_exist():
         assert callable(getattr(importlib.import_module(module), attr))
 
 
-@pytest.mark.parametrize("name,out", [("bench_env", "r.json"), ("bench_ltv", "r.json"),
-                                      ("collect_excitation", "folder")])
+@pytest.mark.parametrize("name,out", [("bench_ltv", "r.json"), ("collect_excitation", "folder")])
 def test_smoke_runs_end_to_end_and_writes_to_out(name, out, tmp_path, capsys):
     """``--smoke`` (the module's SMOKE values) runs the command in seconds and ``--out`` is
     where its results land (a JSON file or a folder)."""
