@@ -166,14 +166,9 @@ def test_every_script_help_lists_every_field_with_its_help(name, capsys):
         assert " ".join(doc.split()[:3]) in text, f.name  # its first words, as tyro wraps lines
 
 
-#: scripts whose owners were still editing them when the CLIs were generated (converted later)
-NOT_YET: set[str] = set()
-
-
 def test_no_script_builds_an_argparse_parser():
     for path in [*(REPO / "scripts").glob("*.py"), *(REPO / "agents" / "experiments").glob("*.py")]:
-        if path.name not in NOT_YET:
-            assert "argparse" not in path.read_text(), path
+        assert "argparse" not in path.read_text(), path
 
 
 def test_file_system_errors_of_the_run_are_one_line_too(tmp_path, capsys):

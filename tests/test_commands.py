@@ -18,10 +18,8 @@ REPO = Path(__file__).resolve().parents[1]
 EXPERIMENTS = REPO / "agents" / "experiments"
 #: modules of agents/experiments that are libraries of the commands, not commands
 LIBRARIES = {"__init__", "paper_common", "peers_crocoddyl"}
-#: commands whose flags another change brings to the convention
-PENDING: set[str] = set()
 COMMANDS = sorted(p.stem for p in EXPERIMENTS.glob("*.py")
-                  if p.stem not in LIBRARIES | PENDING)
+                  if p.stem not in LIBRARIES)
 
 
 def _help(*command: str) -> subprocess.CompletedProcess:
@@ -39,9 +37,9 @@ def test_every_experiment_module_answers_help_with_the_shared_flags(name):
 
 def test_every_script_is_a_thin_wrapper_of_an_experiment_module():
     scripts = {p.stem for p in (REPO / "scripts").glob("*.py")} - {"_checkout"}
-    assert scripts == set(COMMANDS) | PENDING
+    assert scripts == set(COMMANDS)
     assert "runpy.run_module" in (REPO / "scripts" / "_checkout.py").read_text()
-    for name in scripts - PENDING:
+    for name in scripts:
         text = (REPO / "scripts" / f"{name}.py").read_text()
         assert '__import__("_checkout").run(__file__)' in text and len(text.splitlines()) <= 12
 
