@@ -243,7 +243,7 @@ class AgentConfig(_Section):
     collection: CollectionConfig = field(default_factory=CollectionConfig)
     model: ModelConfig = field(default_factory=ModelConfig)
     training: TrainConfig = field(default_factory=lambda: TrainConfig(
-        steps=4000, lr=1e-3, batch=256, holdout=0.1, eval_every=50, patience=20,
+        steps=4000, lr=1e-3, batch=256, holdout=0.1, eval_every=50, patience=10,
         early_stopping="member", member_data="order", progress=False))
     regularization: RegularizationConfig = field(default_factory=lambda: _NAMED[
         "regularization"]("none"))

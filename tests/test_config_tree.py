@@ -31,7 +31,7 @@ def test_the_sections_are_the_library_configs():
     # the plain baseline (no regularizer); a step budget with early stopping; a model sized by
     # the task
     assert cfg.training == TrainConfig(steps=4000, lr=1e-3, batch=256, holdout=0.1,
-                                       eval_every=50, patience=20, early_stopping="member",
+                                       eval_every=50, patience=10, early_stopping="member",
                                        member_data="order", progress=False)
     assert cfg.regularization == RegularizationConfig(sampled_weight=0.0, ltv_lambda=None)
     assert cfg.regularization.kind == "none"
@@ -574,7 +574,7 @@ def test_step_budget_settings_without_effect_are_refused():
         AgentConfig.default({"training.epochs": 50})
     assert AgentConfig.default({"training.epochs": 50, "training.steps": None,
                                 "training.holdout": 0.1}).training.uses_step_loop
-    with pytest.raises(ValueError, match=r"^training\.patience=20 has no effect: early stopping "
+    with pytest.raises(ValueError, match=r"^training\.patience=10 has no effect: early stopping "
                                          r"needs held-out data"):
         AgentConfig.default({"training.holdout": 0.0})
     assert AgentConfig.default({"training.holdout": 0.0, "training.patience": None})
