@@ -7,6 +7,7 @@ model learning with tangent-space regularization and MPC, behind Stable-Baseline
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import json
 import time
@@ -29,8 +30,8 @@ from agents.episode_log import EpisodeLog, check_budget, end_episode, make_progr
 from agents.evaluation import NOT_EVALUATED, EpisodeRecord, run_episode
 from agents.model_training import model_errors
 from agents.planning import SB3Predictor, make_policy, planner_cost
-from agents.task_setup import LearnedTask, build_agent
-from agents.tasks import env_spec
+from agents.task_setup import LearnedTask, build_agent, build_parts
+from agents.tasks import StateMap, angle_pairs, env_spec
 
 __all__ = ["JacPropAgent"]
 
@@ -274,6 +275,10 @@ class JacPropAgent(SB3Predictor):
         self._rollout_steps = 0
         if render:
             save_video(rec.frames, cfg.run_dir, ep, self.spec.dt)
+        if ep == 0 and rec.terminated and self.state_map.identity and (
+                pairs := angle_pairs(rec.obs)):
+            build_parts(self, StateMap(angles=pairs))  # angles in the model state (docs/agent.md)
+            traj = dataclasses.replace(traj, x=self.state_map.state(rec.obs))
         # model quality on the NEW data, before the update (generalisation)
         one_step, jac = model_errors(self.model, traj,
                                      self.env.unwrapped if cfg.jacobian_error else None)

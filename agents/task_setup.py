@@ -229,6 +229,32 @@ def build_agent(agent: Any, env: gym.Env | None, config: Any, spec: EnvSpec,
     :param fns: the task functions by name (``None`` where not given).
     :param saved_task: a checkpoint's serialised task, or ``None``.
     """
+    agent.env, agent.config, agent.spec = env, config, spec
+    agent.env_id = getattr(getattr(env, "spec", None), "id", None)
+    # the task: cost on (obs, action) (or a learned reward) and the obs <-> state maps
+    agent.task = resolve_task(env, fns["cost_fn"], fns["state_fn"], fns["obs_fn"], saved_task,
+                              terminal_cost_fn=fns["terminal_cost_fn"],
+                              termination_fn=fns["termination_fn"])
+    saved_map = StateMap.from_dict((saved_task or {}).get("state_map") or {})
+    build_parts(agent, saved_map if saved_map.angles and agent.task.state_map.identity
+                else agent.task.state_map)
+    # the learning state (all of it goes into the checkpoint)
+    agent.rng = np.random.default_rng(config.seed)
+    # predict(deterministic=False)'s noise: its own stream, so acting leaves learning as is
+    agent.predict_rng = np.random.default_rng((config.seed, 1))
+    agent.trajectories = []
+    agent.episodes_done = 0
+    agent.env_steps = 0
+    agent.logger_rows = []
+    agent._log = None
+    agent._rollout_steps = 0  # env steps of the running rollout (SB3 callbacks' count)
+    agent._sb3_logger = None
+
+
+def build_parts(agent: Any, state_map: StateMap) -> None:
+    """Give ``agent`` (with its ``env``, ``config``, ``spec`` and ``task``) the parts that
+    depend on the model state: the cost, a fresh model, the collector, labeler, trainer and
+    evaluator (construction, and after the first episode picks angles, :func:`angle_pairs`)."""
     # the parts import this module (planning: LearnedTask), so they are imported here
     from agents.collection import Collector
     from agents.evaluation import Evaluator
@@ -238,13 +264,8 @@ def build_agent(agent: Any, env: gym.Env | None, config: Any, spec: EnvSpec,
     from agents.tasks import ObservationCost
     from mbtsr.ensemble import DynamicsEnsemble
 
-    agent.env, agent.config, agent.spec = env, config, spec
-    agent.env_id = getattr(getattr(env, "spec", None), "id", None)
-    # the task: cost on (obs, action) (or a learned reward) and the obs <-> state maps
-    agent.task = resolve_task(env, fns["cost_fn"], fns["state_fn"], fns["obs_fn"], saved_task,
-                              terminal_cost_fn=fns["terminal_cost_fn"],
-                              termination_fn=fns["termination_fn"])
-    agent.cost_fn, agent.state_map = agent.task.cost_fn, agent.task.state_map
+    env, config, spec = agent.env, agent.config, agent.spec
+    agent.cost_fn, agent.state_map = agent.task.cost_fn, state_map
     agent.state_dim = state_dim = int(check_state_map(agent.state_map, env, spec).size)
     check_ltv_memory(config.regularization, state_dim, spec.act_dim)
     agent.terminal_cost_fn = agent.task.terminal_cost_fn
@@ -270,14 +291,3 @@ def build_agent(agent: Any, env: gym.Env | None, config: Any, spec: EnvSpec,
                                 terminal_cost_fn=agent.terminal_cost_fn,
                                 termination_fn=agent.termination_fn)
     agent.freeze()
-    # the learning state (all of it goes into the checkpoint)
-    agent.rng = np.random.default_rng(config.seed)
-    # predict(deterministic=False)'s noise: its own stream, so acting leaves learning as is
-    agent.predict_rng = np.random.default_rng((config.seed, 1))
-    agent.trajectories = []
-    agent.episodes_done = 0
-    agent.env_steps = 0
-    agent.logger_rows = []
-    agent._log = None
-    agent._rollout_steps = 0  # env steps of the running rollout (SB3 callbacks' count)
-    agent._sb3_logger = None

@@ -33,6 +33,7 @@ __all__ = [
     "QuadraticTargetCost",
     "StateMap",
     "SUITE",
+    "angle_pairs",
     "Task",
     "TASKS",
     "default_task_for_env",
@@ -90,24 +91,6 @@ class Task:
         """The task's functions as keyword arguments of :class:`agents.JacPropAgent` (and of
         :func:`agents.evaluation.oracle_policy`)."""
         return {k: getattr(self, k) for k in FUNCTION_NAMES}
-
-    def observation_cost(self) -> Callable[[Any, Any], Any]:
-        """The cost on ``(obs, action)`` in CasADi operations: ``cost_fn``, or the env's own
-        quadratic cost (:class:`QuadraticTargetCost`): what peers outside mbtsr score plans with.
-
-        :raises ValueError: if the task has no ``cost_fn`` and its env states no cost.
-        """
-        if self.cost_fn is not None:
-            return self.cost_fn
-        env = self.make_env()
-        try:
-            found = default_task_for_env(env)
-        finally:
-            env.close()
-        if found is None:
-            raise ValueError(f"task {self.name!r} has no cost_fn and its env states no cost "
-                             "(env.unwrapped.cost_Q/cost_R)")
-        return found[0]
 
 
 def gym_make(env_id: str, **kwargs: Any) -> gym.Env:
@@ -182,28 +165,12 @@ def _double_pendulum_terminated(obs: np.ndarray) -> np.ndarray:
     return y <= 1.0
 
 
-def _double_pendulum_state(obs: np.ndarray) -> np.ndarray:
-    """Model state ``[x, q1, q2, x', q1', q2']``: the angles from their sines and cosines
-    (``atan2``; the env terminates long before a pole wraps at +-pi), the velocities, and not
-    the observation's last entry (the slider's constraint force, which jumps at the rail's end)."""
-    o = np.asarray(obs, dtype=float)
-    return np.concatenate([o[..., :1], np.arctan2(o[..., 1:3], o[..., 3:5]), o[..., 5:8]],
-                          axis=-1)
-
-
-def _double_pendulum_obs(s, obs_ref):
-    """The observation of model state ``s`` (CasADi); the constraint force from ``obs_ref``."""
-    return ca.vertcat(s[0], ca.sin(s[1]), ca.sin(s[2]), ca.cos(s[1]), ca.cos(s[2]),
-                      s[3], s[4], s[5], obs_ref[8])
-
-
 def inverted_double_pendulum(**make: Any) -> Task:
-    """InvertedDoublePendulum-v5: its reward terms minus the alive bonus, its termination, and
-    a model state of joint angles and velocities (6 numbers, not the observation's 9: why in
-    docs/troubleshooting.md, ``docs/results/idp_state_and_horizon.json``)."""
+    """InvertedDoublePendulum-v5: its reward terms minus the alive bonus, its termination. The
+    model state holds the joint angles, not their sines and cosines (the agent's rule,
+    :func:`angle_pairs`; docs/notes/inverted_double_pendulum.md)."""
     return Task("inverted-double-pendulum", "InvertedDoublePendulum-v5", make,
-                _double_pendulum_cost, termination_fn=_double_pendulum_terminated,
-                state_fn=_double_pendulum_state, obs_fn=_double_pendulum_obs)
+                _double_pendulum_cost, termination_fn=_double_pendulum_terminated)
 
 
 # ---- Pusher-v5
@@ -355,6 +322,9 @@ class StateMap:
     :param obs_fn: ``(state [n], obs_ref [obs_dim]) -> obs [obs_dim]`` (CasADi); ``None``: identity.
     :param prefix: serialisable shortcut: the state is ``obs[:prefix]`` and
         ``obs_fn(s, ref) = [s; ref[prefix:]]`` (the two-link arm's).
+    :param angles: serialisable shortcut: ``(i, j)`` column pairs holding the sine and cosine of
+        one angle (:func:`angle_pairs`); the state is the observation with ``obs[i]`` replaced by
+        ``atan2(obs[i], obs[j])`` and ``obs[j]`` left out.
     """
 
     def __init__(
@@ -363,11 +333,12 @@ class StateMap:
         obs_fn: Callable[[Any, Any], Any] | None = None,
         *,
         prefix: int | None = None,
+        angles: tuple[tuple[int, int], ...] = (),
     ) -> None:
-        if prefix is not None:
-            if state_fn is not None or obs_fn is not None:
-                raise ValueError("give either prefix or state_fn/obs_fn, not both")
-            if int(prefix) < 1:
+        if prefix is not None or angles:
+            if state_fn is not None or obs_fn is not None or (prefix is not None and angles):
+                raise ValueError("give one of prefix, angles or state_fn/obs_fn")
+            if prefix is not None and int(prefix) < 1:
                 raise ValueError(f"prefix must be >= 1, got {prefix}")
         elif state_fn is None and obs_fn is not None:
             raise ValueError("obs_fn was given without state_fn; give both or neither")
@@ -377,6 +348,7 @@ class StateMap:
                 "planner needs obs_fn(state, obs_ref) to evaluate it on predicted states"
             )
         self.prefix = None if prefix is None else int(prefix)
+        self.angles = tuple((int(i), int(j)) for i, j in angles)
         self._state_fn = state_fn
         self._obs_fn = obs_fn
 
@@ -384,20 +356,29 @@ class StateMap:
     def serializable(self) -> bool:
         return self._state_fn is None
 
+    @property
+    def identity(self) -> bool:
+        return self.serializable and self.prefix is None and not self.angles
+
     def to_dict(self) -> dict[str, Any]:
         if not self.serializable:
             raise ValueError("a StateMap with user functions cannot be serialised")
-        return {"prefix": self.prefix}
+        return {"prefix": self.prefix, "angles": [list(p) for p in self.angles]}
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> StateMap:
-        return cls(prefix=d.get("prefix"))
+        return cls(prefix=d.get("prefix"), angles=d.get("angles", ()))
 
     def state(self, obs: np.ndarray) -> np.ndarray:
         """``obs [..., obs_dim] -> state [..., n]`` as float64."""
         obs = np.asarray(obs, dtype=float)
         if self.prefix is not None:
             return obs[..., : self.prefix].copy()
+        if self.angles:
+            sin, cos = (list(c) for c in zip(*self.angles))
+            s = obs.copy()
+            s[..., sin] = np.arctan2(obs[..., sin], obs[..., cos])
+            return np.delete(s, cos, axis=-1)
         if self._state_fn is None:
             return obs.copy()
         return np.asarray(self._state_fn(obs), dtype=float)
@@ -406,9 +387,33 @@ class StateMap:
         """``(state [n], obs_ref [obs_dim]) -> obs [obs_dim]`` (CasADi or numpy)."""
         if self.prefix is not None:
             return ca.vertcat(state, obs_ref[self.prefix :])
+        if self.angles:
+            sin_at, cos_at = dict(self.angles), {j: i for i, j in self.angles}
+            at = {i: k for k, i in enumerate(i for i in range(obs_ref.shape[0])
+                                             if i not in cos_at)}  # column -> state entry
+            return ca.vertcat(*(ca.sin(state[at[i]]) if i in sin_at else ca.cos(
+                state[at[cos_at[i]]]) if i in cos_at else state[at[i]]
+                for i in range(obs_ref.shape[0])))
         if self._obs_fn is None:
             return state
         return self._obs_fn(state, obs_ref)
+
+
+def angle_pairs(obs: np.ndarray, max_angle: float = math.pi / 2) -> tuple[tuple[int, int], ...]:
+    """The columns of observations ``obs [N, obs_dim]`` that hold the sine and cosine of one
+    angle, as ``(i, j)`` pairs for :class:`StateMap`'s ``angles``: ``obs[:, i]^2 + obs[:, j]^2
+    = 1`` (to 1e-6) on every row, both columns move, and ``atan2(obs[:, i], obs[:, j])`` stays
+    within ``+-max_angle``, away from its jump at +-pi (docs/agent.md, "The model state")."""
+    o = np.asarray(obs, dtype=float)
+    sq, moves, pairs, used = o**2, np.ptp(o, axis=0) > 1e-6, [], set()
+    for i in np.flatnonzero(moves):
+        for j in np.flatnonzero(moves & np.all(np.abs(sq[:, i:i + 1] + sq - 1) <= 1e-6, 0)):
+            for a, b in ((int(i), int(j)), (int(j), int(i))):
+                if used.isdisjoint((a, b)) and np.all(np.abs(np.arctan2(o[:, a], o[:, b]))
+                                                      <= max_angle):
+                    pairs.append((a, b))
+                    used.update((a, b))
+    return tuple(sorted(pairs))
 
 
 class QuadraticTargetCost:

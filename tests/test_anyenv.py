@@ -12,7 +12,7 @@ import torch
 
 from agents import AgentConfig, JacPropAgent
 from agents.task_setup import LearnedTask
-from agents.tasks import inverted_pendulum, reacher
+from agents.tasks import inverted_double_pendulum, inverted_pendulum, reacher
 from mbtsr.reward import LearnedRewardCost
 
 #: tiny model, planner, training and reward budgets (bench_suite's SMOKE_OVERRIDES and a reward)
@@ -188,14 +188,23 @@ def test_a_constant_input_of_the_first_fit_is_not_rescaled():
 
 
 def test_a_registry_agent_loads_without_its_functions(tmp_path):
-    """The registry task's name is saved: load needs neither the cost nor the state maps
-    (InvertedDoublePendulum's model state is 6 joint numbers, not the 9 observations)."""
-    agent = JacPropAgent(gym.make("InvertedDoublePendulum-v5"), _config()).learn(episodes=1)
-    assert agent.state_dim == 6
+    """The registry task's name is saved: load needs neither the cost nor the state maps.
+    InvertedDoublePendulum's first episode turns its two sine/cosine pairs into angles (a model
+    state of 7 numbers, not the 9 observations), which the checkpoint keeps."""
+    agent = JacPropAgent(gym.make("InvertedDoublePendulum-v5"), _config())
+    assert agent.state_dim == 9
+    agent.learn(episodes=1)
+    assert agent.state_dim == 7 and agent.state_map.angles == ((1, 3), (2, 4))
+    assert agent.trajectories[0].n == 7 and agent.model.config.state_dim == 7
     agent.save(tmp_path / "idp.pt")
     for env in (gym.make("InvertedDoublePendulum-v5"), None):
         loaded = JacPropAgent.load(tmp_path / "idp.pt", env)
-        assert loaded.task.source == "registry" and loaded.state_dim == 6
+        assert loaded.task.source == "registry" and loaded.state_dim == 7
         assert loaded.termination_fn is agent.termination_fn
         obs = agent.env.reset(seed=1)[0]
         np.testing.assert_array_equal(loaded.predict(obs)[0], agent.predict(obs)[0])
+    # a state map of the user's own is kept as it is
+    own = JacPropAgent(gym.make("InvertedDoublePendulum-v5"), _config(),
+                       cost_fn=inverted_double_pendulum().cost_fn, state_fn=lambda o: o,
+                       obs_fn=lambda s, o: s).learn(episodes=1)
+    assert own.state_dim == 9 and own.trajectories[0].n == 9

@@ -17,7 +17,7 @@ import pytest
 
 from agents.config import AgentConfig, PlannerConfig
 from agents.evaluation import evaluate_policy_costs, has_true_model, oracle_policy
-from agents.tasks import inverted_pendulum, reacher
+from agents.tasks import StateMap, angle_pairs, inverted_pendulum, reacher
 from envs.mujoco_model import MujocoDynamics, ObservedDynamics, state_of
 from mbtsr.episode import as_policy, run_episode
 
@@ -187,29 +187,43 @@ def test_true_model_mpc_keeps_the_double_pendulum_up():
     assert -rec.cost > 60 * 9.0  # alive bonus 10 minus the distance penalty (0.64 at the top)
 
 
-def test_double_pendulum_task_state_is_the_joint_state_and_maps_back_to_the_observation():
-    """The IDP task's model state is the env's own ``[qpos, qvel]`` (angles from sin/cos), and
-    ``obs_fn(state_fn(obs), obs)`` rebuilds the observation, on states the env visits."""
-    from agents.jacprop_agent import JacPropAgent
-    from agents.tasks import inverted_double_pendulum
-
-    task = inverted_double_pendulum()
-    env = task.make_env()
+def test_the_double_pendulum_angles_are_found_and_map_back_to_the_observation():
+    """On observations InvertedDoublePendulum-v5 visits, :func:`angle_pairs` finds its two
+    (sin, cos) pairs; the angle state holds the env's own ``[qpos, qvel]`` (and the constraint
+    force), and ``observation(state(obs), obs)`` rebuilds the observation."""
+    env = gym.make("InvertedDoublePendulum-v5")
     obs, _ = env.reset(seed=3)
-    rng = np.random.default_rng(0)
-    for _ in range(20):
-        data = env.unwrapped.data
-        state = task.state_fn(obs)
-        np.testing.assert_allclose(state, np.r_[data.qpos, data.qvel], rtol=0, atol=1e-12)
-        back = np.asarray(ca.DM(task.obs_fn(ca.DM(state), ca.DM(obs)))).ravel()
-        np.testing.assert_allclose(back, obs, rtol=0, atol=1e-12)
+    rng, seen, joint = np.random.default_rng(0), [], []
+    for _ in range(30):
+        seen.append(obs)
+        joint.append(np.r_[env.unwrapped.data.qpos, env.unwrapped.data.qvel])
         obs, _, terminated, _, _ = env.step(rng.uniform(-1, 1, 1))
         if terminated:
             obs, _ = env.reset(seed=4)
-    batch = np.stack([obs, obs])
-    assert task.state_fn(batch).shape == (2, 6)
-    agent = JacPropAgent(task.make_env(), AgentConfig(progress=False), **task.agent_kwargs())
-    assert agent.state_dim == 6
+    pairs = angle_pairs(np.array(seen))
+    assert pairs == ((1, 3), (2, 4))
+    state_map = StateMap(angles=pairs)
+    states = state_map.state(np.array(seen))
+    np.testing.assert_allclose(states[:, :6], np.array(joint), rtol=0, atol=1e-12)
+    for o, s in zip(seen, states):
+        back = np.asarray(ca.DM(state_map.observation(ca.DM(s), ca.DM(o)))).ravel()
+        np.testing.assert_allclose(back, o, rtol=0, atol=1e-12)
+    assert StateMap.from_dict(state_map.to_dict()).angles == pairs
+
+
+def test_angle_pairs_leaves_out_what_is_not_one_angle_away_from_its_jump():
+    """Reacher's joints turn through +-pi (their angles would jump), a pair that never moves
+    is not told apart from constants, and the sum of squares must hold on every row."""
+    rng = np.random.default_rng(0)
+    q = rng.uniform(-0.5, 0.5, 40)
+    other = rng.normal(size=40)
+    assert angle_pairs(np.column_stack([other, np.cos(q), np.sin(q)])) == ((2, 1),)
+    assert angle_pairs(np.column_stack([np.cos(6 * q), np.sin(6 * q)])) == ()
+    assert angle_pairs(np.column_stack([np.zeros(40), np.ones(40), other])) == ()
+    off = np.column_stack([np.sin(q), np.cos(q) * (1 + 1e-3 * (np.arange(40) == 7))])
+    assert angle_pairs(off) == ()
+    assert angle_pairs(np.column_stack([np.cos(q), np.sin(q), np.cos(q), np.sin(q)])) == (
+        (1, 0), (3, 2))  # each column in one pair
 
 
 def test_affine_observations_are_detected_and_give_the_same_lifted_model():
