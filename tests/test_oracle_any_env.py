@@ -106,7 +106,6 @@ def test_true_model_mpc_keeps_the_inverted_pendulum_up():
     ("InvertedPendulum-v5", pendulum_cost, None),
 ])
 def test_agent_oracle_any_mujoco_env(env_id, cost, terminal):
-    from agents.config import AgentConfig
     from agents.jacprop_agent import JacPropAgent
 
     env = gym.make(env_id, max_episode_steps=6)
@@ -133,7 +132,6 @@ def test_env_without_true_model():
     reports no oracle (``compute_oracle() is None``) and goes on."""
     import casadi as ca
 
-    from agents.config import AgentConfig
     from agents.jacprop_agent import JacPropAgent
 
     env = gym.make("Pendulum-v1")
