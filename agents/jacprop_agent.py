@@ -7,7 +7,6 @@ model learning with tangent-space regularization and MPC, behind Stable-Baseline
 
 from __future__ import annotations
 
-import dataclasses
 import functools
 import json
 import time
@@ -278,7 +277,7 @@ class JacPropAgent(SB3Predictor):
         if ep == 0 and rec.terminated and self.state_map.identity and (
                 pairs := angle_pairs(rec.obs)):
             build_parts(self, StateMap(angles=pairs))  # angles in the model state (docs/agent.md)
-            traj = dataclasses.replace(traj, x=self.state_map.state(rec.obs))
+            traj = type(traj)(self.state_map.state(rec.obs), traj.u, traj.dt, meta=traj.meta)
         # model quality on the NEW data, before the update (generalisation)
         one_step, jac = model_errors(self.model, traj,
                                      self.env.unwrapped if cfg.jacobian_error else None)

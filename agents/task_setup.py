@@ -252,9 +252,8 @@ def build_agent(agent: Any, env: gym.Env | None, config: Any, spec: EnvSpec,
 
 
 def build_parts(agent: Any, state_map: StateMap) -> None:
-    """Give ``agent`` (with its ``env``, ``config``, ``spec`` and ``task``) the parts that
-    depend on the model state: the cost, a fresh model, the collector, labeler, trainer and
-    evaluator (construction, and after the first episode picks angles, :func:`angle_pairs`)."""
+    """Give ``agent`` (with ``env``, ``config``, ``spec``, ``task``) the cost, a fresh model and
+    the parts on model state ``state_map`` (at construction and when angles are found)."""
     # the parts import this module (planning: LearnedTask), so they are imported here
     from agents.collection import Collector
     from agents.evaluation import Evaluator

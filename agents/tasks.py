@@ -348,7 +348,12 @@ class StateMap:
                 "planner needs obs_fn(state, obs_ref) to evaluate it on predicted states"
             )
         self.prefix = None if prefix is None else int(prefix)
-        self.angles = tuple((int(i), int(j)) for i, j in angles)
+        self.angles, cols = tuple(tuple(p) for p in angles), [c for p in angles for c in p]
+        if any(len(p) != 2 for p in self.angles) or len(set(cols)) < len(cols) or not all(
+                isinstance(c, (int, np.integer)) and c >= 0 for c in cols):
+            raise ValueError(f"angles must be (sine column, cosine column) pairs of distinct "
+                             f"column indices >= 0, got {angles!r}")
+        self.angles = tuple((int(i), int(j)) for i, j in self.angles)
         self._state_fn = state_fn
         self._obs_fn = obs_fn
 
@@ -405,14 +410,13 @@ def angle_pairs(obs: np.ndarray, max_angle: float = math.pi / 2) -> tuple[tuple[
     = 1`` (to 1e-6) on every row, both columns move, and ``atan2(obs[:, i], obs[:, j])`` stays
     within ``+-max_angle``, away from its jump at +-pi (docs/agent.md, "The model state")."""
     o = np.asarray(obs, dtype=float)
-    sq, moves, pairs, used = o**2, np.ptp(o, axis=0) > 1e-6, [], set()
+    sq, moves, pairs = o**2, np.ptp(o, axis=0) > 1e-6, []
     for i in np.flatnonzero(moves):
         for j in np.flatnonzero(moves & np.all(np.abs(sq[:, i:i + 1] + sq - 1) <= 1e-6, 0)):
             for a, b in ((int(i), int(j)), (int(j), int(i))):
-                if used.isdisjoint((a, b)) and np.all(np.abs(np.arctan2(o[:, a], o[:, b]))
-                                                      <= max_angle):
+                if not {a, b} & set(sum(pairs, ())) and np.all(
+                        np.abs(np.arctan2(o[:, a], o[:, b])) <= max_angle):
                     pairs.append((a, b))
-                    used.update((a, b))
     return tuple(sorted(pairs))
 
 

@@ -14,6 +14,8 @@ import casadi as ca
 import gymnasium as gym
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from agents.config import AgentConfig, PlannerConfig
 from agents.evaluation import evaluate_policy_costs, has_true_model, oracle_policy
@@ -275,3 +277,34 @@ def test_true_model_variants_parse_and_refuse():
     with pytest.raises(ValueError, match=r"variant 'h0' on task 'reacher'.*horizon"):
         check_true_model_variants(Args(true_model_tasks=("reacher",),
                                        true_model_variants='{"h0": {"planner.horizon": 0}}'))
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.integers(0, 3), st.integers(1, 3), st.integers(0, 10_000))
+def test_planted_angles_are_found_and_round_trip(n_other, n_angles, seed):
+    """Property: angles within +-1.4 rad planted as (sin, cos) columns at random places among
+    other columns are found (one orientation or the other: both stay away from +-pi) and the
+    angle map's observation of its state is the observation again."""
+    rng = np.random.default_rng(seed)
+    q = rng.uniform(-1.4, 1.4, (30, n_angles))
+    obs = np.column_stack([np.sin(q), np.cos(q), rng.normal(size=(30, n_other))])
+    order = rng.permutation(obs.shape[1])
+    obs = obs[:, order]
+    where = {int(c): k for k, c in enumerate(order)}  # planted column -> its place
+    pairs = angle_pairs(obs)
+    assert sorted(tuple(sorted(p)) for p in pairs) == sorted(
+        tuple(sorted((where[k], where[n_angles + k]))) for k in range(n_angles))
+    state_map = StateMap(angles=pairs)
+    states = state_map.state(obs)
+    assert states.shape == (30, obs.shape[1] - n_angles)
+    back = np.asarray(ca.DM(state_map.observation(ca.DM(states[5]), ca.DM(obs[5])))).ravel()
+    np.testing.assert_allclose(back, obs[5], rtol=0, atol=1e-12)
+
+
+@pytest.mark.parametrize("angles", [[(1, 1)], [(1, 2, 3)], [(-1, 2)], [(1, 2), (2, 3)],
+                                    [(1.5, 2)]])
+def test_bad_angle_pairs_are_named(angles):
+    with pytest.raises(ValueError, match="angles must be .sine column, cosine column. pairs"):
+        StateMap(angles=angles)
+    with pytest.raises(ValueError, match="give one of prefix, angles or state_fn/obs_fn"):
+        StateMap(lambda o: o, lambda s, o: s, angles=((0, 1),))

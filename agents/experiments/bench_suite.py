@@ -109,11 +109,10 @@ def agent_config(name: str, overrides: dict[str, Any] | None = None, *, smoke: b
 
 
 #: ``--form``: how the agent is given the task (its oracle plans on the written cost):
-#: ``written`` the task's functions; ``raw`` its cost on the raw observation (no state maps);
-#: ``learned`` no cost (a reward learned from the env's rewards), the rest of the task kept
+#: ``written`` the task's functions; ``learned`` no cost (a reward learned from the env's
+#: rewards), the rest of the task kept
 FORMS: dict[str, Callable[[dict[str, Any]], dict[str, Any]]] = {
     "written": lambda kw: kw,
-    "raw": lambda kw: {**kw, "state_fn": None, "obs_fn": None},
     "learned": lambda kw: {**kw, "cost_fn": "learned", "terminal_cost_fn": None},
 }
 
@@ -1062,11 +1061,10 @@ class Args:
     """a JSON object of dotted AgentConfig fields applied to every agent run on top of the
     task's (e.g. '{"planner.replan_every": 8}'); recorded in the JSON, which then holds only
     runs of these settings (use another --out)"""
-    form: Literal["written", "raw", "learned"] = "written"
+    form: Literal["written", "learned"] = "written"
     """how the agent is given the task (the oracle always plans on its written cost): the
-    task's functions; 'raw': its cost on the raw observation (no model-state maps); 'learned':
-    no cost, a reward learned from the env's rewards (termination and maps kept). A JSON holds
-    the runs of one form"""
+    task's functions; 'learned': no cost, a reward learned from the env's rewards (termination
+    and maps kept). A JSON holds the runs of one form"""
 
     def __post_init__(self) -> None:
         for name, given, known in (("tasks", self.tasks, TASKS), ("sb3", self.sb3, SB3_METHODS),
