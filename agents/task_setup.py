@@ -238,6 +238,11 @@ def build_agent(agent: Any, env: gym.Env | None, config: Any, spec: EnvSpec,
     saved_map = StateMap.from_dict((saved_task or {}).get("state_map") or {})
     build_parts(agent, saved_map if saved_map.angles and agent.task.state_map.identity
                 else agent.task.state_map)
+    from agents.evaluation import Evaluator  # the oracle's map is the task's, found angles aside
+    agent.evaluator = Evaluator(env, config, spec.episode_steps, cost_fn=agent.cost_fn,
+                                state_map=agent.task.state_map,
+                                terminal_cost_fn=agent.terminal_cost_fn,
+                                termination_fn=agent.termination_fn)
     # the learning state (all of it goes into the checkpoint)
     agent.rng = np.random.default_rng(config.seed)
     # predict(deterministic=False)'s noise: its own stream, so acting leaves learning as is
@@ -256,7 +261,6 @@ def build_parts(agent: Any, state_map: StateMap) -> None:
     the parts on model state ``state_map`` (at construction and when angles are found)."""
     # the parts import this module (planning: LearnedTask), so they are imported here
     from agents.collection import Collector
-    from agents.evaluation import Evaluator
     from agents.labels import JacobianLabeler, check_ltv_memory
     from agents.model_training import ModelTrainer
     from agents.planning import planner_cost
@@ -285,8 +289,4 @@ def build_parts(agent: Any, state_map: StateMap) -> None:
                                     config.ltv_prior)
     agent.trainer = ModelTrainer(agent.model, config.training, config.regularization,
                                  config.renormalize)
-    agent.evaluator = Evaluator(env, config, spec.episode_steps, cost_fn=agent.cost_fn,
-                                state_map=agent.state_map,
-                                terminal_cost_fn=agent.terminal_cost_fn,
-                                termination_fn=agent.termination_fn)
     agent.freeze()

@@ -368,7 +368,8 @@ class StateMap:
     def to_dict(self) -> dict[str, Any]:
         if not self.serializable:
             raise ValueError("a StateMap with user functions cannot be serialised")
-        return {"prefix": self.prefix, "angles": [list(p) for p in self.angles]}
+        return {"prefix": self.prefix, **({"angles": [list(p) for p in self.angles]}
+                                          if self.angles else {})}  # as before angles existed
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> StateMap:
@@ -405,10 +406,9 @@ class StateMap:
 
 
 def angle_pairs(obs: np.ndarray, max_angle: float = math.pi / 2) -> tuple[tuple[int, int], ...]:
-    """The columns of observations ``obs [N, obs_dim]`` that hold the sine and cosine of one
-    angle, as ``(i, j)`` pairs for :class:`StateMap`'s ``angles``: ``obs[:, i]^2 + obs[:, j]^2
-    = 1`` (to 1e-6) on every row, both columns move, and ``atan2(obs[:, i], obs[:, j])`` stays
-    within ``+-max_angle``, away from its jump at +-pi (docs/agent.md, "The model state")."""
+    """Column pairs ``(i, j)`` of observations ``obs [N, obs_dim]`` that hold one angle's sine
+    and cosine (:class:`StateMap`'s ``angles``): ``obs_i^2 + obs_j^2 = 1`` (to 1e-6) on every
+    row, both move, and ``atan2(obs_i, obs_j)`` stays within ``+-max_angle`` (away from +-pi)."""
     o = np.asarray(obs, dtype=float)
     sq, moves, pairs = o**2, np.ptp(o, axis=0) > 1e-6, []
     for i in np.flatnonzero(moves):

@@ -208,3 +208,65 @@ def test_a_registry_agent_loads_without_its_functions(tmp_path):
                        cost_fn=inverted_double_pendulum().cost_fn, state_fn=lambda o: o,
                        obs_fn=lambda s, o: s).learn(episodes=1)
     assert own.state_dim == 9 and own.trajectories[0].n == 9
+
+
+class _UprightPendulum(gym.Env):
+    """A pendulum kept near upright, observed as ``[sin th, cos th, w]``; terminates at
+    ``|th| > 0.5``; ``dynamics_model()`` is the true model on the observation."""
+
+    observation_space = gym.spaces.Box(-np.inf, np.inf, (3,), np.float64)
+    action_space = gym.spaces.Box(-1.0, 1.0, (1,), np.float64)
+
+    @staticmethod
+    def next_obs(x: np.ndarray, u: np.ndarray) -> np.ndarray:
+        th, w = np.arctan2(x[..., 0], x[..., 1]), x[..., 2] + 0.05 * (
+            9.81 * x[..., 0] + 2.0 * np.clip(u[..., 0], -1, 1))
+        return np.stack([np.sin(th + 0.05 * w), np.cos(th + 0.05 * w), w], -1)
+
+    def reset(self, *, seed=None, options=None):
+        super().reset(seed=seed)
+        th, self.w = self.np_random.uniform(-0.1, 0.1, 2)
+        self.x = np.array([np.sin(th), np.cos(th), self.w])
+        return self.x.copy(), {}
+
+    def step(self, a):
+        self.x = self.next_obs(self.x, np.asarray(a, float))
+        th = np.arctan2(self.x[0], self.x[1])
+        return self.x.copy(), -(th**2), bool(abs(th) > 0.5), False, {}
+
+    def dynamics_model(self):
+        return _ObservationModel()
+
+
+class _ObservationModel:
+    """:class:`_UprightPendulum`'s true model; Jacobians by central differences."""
+
+    state_dim, action_dim = 3, 1
+
+    def step(self, x, u, t=None):
+        return _UprightPendulum.next_obs(np.asarray(x, float), np.asarray(u, float))
+
+    def jacobians(self, x, u, t=0):
+        x, u, e = np.atleast_2d(x).astype(float), np.atleast_2d(u).astype(float), 1e-6
+        def d(z, n, f):
+            return np.stack([(f(z + e * np.eye(n)[i]) - f(z - e * np.eye(n)[i])) / (2 * e)
+                             for i in range(n)], -1)
+        return (d(x, 3, lambda z: self.step(z, u)), d(u, 1, lambda z: self.step(x, z)))
+
+
+def test_found_angles_leave_the_oracle_on_the_env_s_own_model():
+    """The oracle plans on the env's ``dynamics_model()``, whose state is the observation: the
+    angles the agent finds after its first episode change its own model only."""
+    gym.register("mbtsr-test/UprightPendulum-v0", entry_point=_UprightPendulum,
+                 max_episode_steps=40)
+    def cost(o, a):
+        return 10 * (1 - o[1]) + 0.01 * o[2] ** 2 + 0.01 * a[0] ** 2
+
+    cfg = _config(**{"evaluation.every": 1, "collection.episode_steps": 40})
+    agent = JacPropAgent(gym.make("mbtsr-test/UprightPendulum-v0"), cfg, cost_fn=cost)
+    before = agent.compute_oracle()
+    agent.learn(episodes=2)  # evaluated after each episode, oracle included
+    assert agent.state_dim == 2 and agent.state_map.angles == ((0, 1),)
+    assert agent.oracle_mean == before
+    fresh = JacPropAgent(gym.make("mbtsr-test/UprightPendulum-v0"), cfg, cost_fn=cost)
+    assert fresh.learn(episodes=1).state_dim == 2 and fresh.compute_oracle() == before
