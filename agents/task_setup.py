@@ -18,7 +18,7 @@ from mbtsr.training import holdout_mask
 from mbtsr.trajectory import Trajectory
 from mbtsr.validation import call_user_fn, check_callable
 
-__all__ = ["LearnedTask", "ResolvedTask", "build_agent", "check_state_map",
+__all__ = ["LearnedTask", "ResolvedTask", "build_agent", "build_parts", "check_state_map",
            "checked_termination_fn", "probe_observations", "registry_task", "resolve_task"]
 
 
