@@ -4,7 +4,6 @@ type hint, ``_BOUNDS``, ``AgentConfig.FIXED`` and ``_DEPENDENT``; errors name th
 
 from __future__ import annotations
 
-import ast
 import contextlib
 import dataclasses
 import difflib
@@ -12,9 +11,7 @@ import functools
 import json
 import math
 import numbers
-import operator
 import os
-import re
 import types
 import typing
 from collections.abc import Callable, Iterator, Mapping
@@ -120,13 +117,15 @@ class CollectionConfig(_Section):
 class PlannerConfig(_Section):
     """Planning (Algorithm 1, "optimize controller"): MPC on the learned model, warm-started.
 
-    :param horizon: MPC horizon (steps).
+    :param horizon: MPC horizon (steps; ``None``: 15 for a task with a termination function, else
+        30: the learned model's error grows fast on the unstable systems that terminate).
     :param replan_every: execute every plan for this many steps before re-solving.
     :param replan_feedback: between re-plans, follow iLQR's local policy ``U_t + K_t (x_t -
         X_t)`` instead of the open-loop controls.
     :param kind: ``ilqr`` (the paper's), ``cem`` (PETS' cross-entropy method) or ``cem-ilqr``
         (CEM proposes, iLQR refines; docs/ilqr.md).
-    :param terminal_weight: weight of the task's terminal cost (none: stage cost at zero action).
+    :param terminal_weight: weight of the task's terminal cost (none: stage cost at zero action;
+        ``None``: 100 for a task with a termination function, else 1).
     :param ilqr_iterations: iLQR iterations per MPC step.
     :param first_plan_iterations: iLQR (or CEM) iterations for the plan at an episode's start.
     :param cem: the CEM settings of ``kind=cem`` (:class:`mbtsr.cem.CEMOptions`).
@@ -139,11 +138,11 @@ class PlannerConfig(_Section):
     _BOUNDS: ClassVar[dict[str, Any]] = dict(
         horizon=2, replan_every=1, ilqr_iterations=1, first_plan_iterations=1,
         terminal_weight=0.0, warm_samples=2)
-    horizon: int = 30
+    horizon: int | None = None
     replan_every: int = 1
     replan_feedback: bool = False
     kind: Literal["ilqr", "cem", "cem-ilqr"] = "cem-ilqr"
-    terminal_weight: float = 1.0
+    terminal_weight: float | None = None
     ilqr_iterations: int = 2
     first_plan_iterations: int = 20
     cem: CEMOptions = field(default_factory=lambda: CEMOptions(iterations=3))
@@ -156,9 +155,18 @@ class PlannerConfig(_Section):
         if self.propagation == "ts" and self.kind != "cem":
             raise ValueError("planner.propagation='ts' (trajectory sampling) needs "
                              f"planner.kind='cem', got {self.kind!r}")
-        if self.replan_every > self.horizon:
-            raise ValueError(f"planner.replan_every must be <= planner.horizon={self.horizon}, "
-                             f"got {self.replan_every}")
+        if self.replan_every > (self.horizon or 15):
+            raise ValueError(f"planner.replan_every must be <= planner.horizon="
+                             f"{self.horizon or '15 (None: 15 or 30)'}, got {self.replan_every}")
+
+    def for_task(self, terminates: bool) -> PlannerConfig:
+        """These settings with ``horizon`` and ``terminal_weight`` that are ``None`` set by the
+        rule: 15 and 100 if the task ``terminates`` (has a termination function), else 30 and 1
+        (docs/agent.md, "The planner's horizon")."""
+        h, w = (15, 100.0) if terminates else (30, 1.0)
+        return dataclasses.replace(self, horizon=h if self.horizon is None else self.horizon,
+                                   terminal_weight=w if self.terminal_weight is None
+                                   else self.terminal_weight)
 
 
 @dataclass(frozen=True)
@@ -277,7 +285,7 @@ class AgentConfig(_Section):
         for fields, when in _DEPENDENT.items():
             chosen = [n for n, v in values.items() if v not in (agent[n], own.get(n, agent[n]))
                       and any(n == f or f[-1] == "." and n.startswith(f) for f in fields.split())]
-            if chosen and not _holds(when, values):
+            if chosen and not eval(when, {}, dict(self.__dict__)):  # noqa: S307 - _DEPENDENT's
                 raise ValueError(f"{chosen[0]}={values[chosen[0]]!r} has no effect: it acts only "
                                  f"when {when}: remove it, or set that")
 
@@ -420,7 +428,7 @@ def _coerce(value: Any, hint: Any, name: str, strict: bool = False) -> Any:
 
 #: settings that act only under others: ``{fields: when}`` (a field ending in "." stands for its
 #: section's fields); a chosen value there (neither the agent's default nor its section's) while
-#: the condition ``when`` (:func:`_holds`) is false is refused
+#: the condition ``when`` (a Python expression on the config's fields) is false is refused
 _DEPENDENT = {
     "regularization.sigma regularization.n_copies regularization.copies_batch":
         "regularization.sampled_weight > 0",
@@ -440,18 +448,6 @@ _DEPENDENT = {
     "evaluation.solved_ratio evaluation.early_exit": "evaluation.solved_return is None",
 }
 
-
-_ATOM = re.compile(r"(\S+) (==|!=|>|is not|is) (.+)")
-_OPS = {"==": operator.eq, "!=": operator.ne, ">": operator.gt, "is": operator.is_,
-        "is not": operator.is_not}
-
-
-def _holds(when: str, values: Mapping[str, Any]) -> bool:
-    """Whether the condition ``when`` holds for the dotted ``values``: comparisons of a field with
-    a Python literal, joined by ``and``, then by ``or`` (``"a > 0 and b != 'x' or c is None"``)."""
-    return any(all(_OPS[m[2]](values[m[1]], ast.literal_eval(m[3]))
-                   for m in map(_ATOM.fullmatch, part.split(" and ")))
-               for part in when.split(" or "))
 
 
 def _unknown(key: str) -> ValueError:

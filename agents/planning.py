@@ -90,7 +90,8 @@ def make_policy(
     """The agent's and the oracle's controller: ``MPC(solver(planner), cost, model,
     planner.horizon)`` in the action box, re-planned every ``planner.replan_every`` steps.
 
-    :param planner: the planner settings.
+    :param planner: the planner settings (``None`` horizon and terminal weight: their rule,
+        :meth:`agents.config.PlannerConfig.for_task`, on ``termination_fn``).
     :param model: a planning model (a frozen ensemble, a true model).
     :param task_cost: the task (cost, state maps, env spec).
     :param seed: see :func:`solver`.
@@ -99,6 +100,7 @@ def make_policy(
     :param explore_weight: / ``explore_on`` / ``particles``: see :func:`solver`.
     :param true_state_env: plan from this MuJoCo env's true state (:class:`TrueStatePolicy`).
     """
+    planner = planner.for_task(termination_fn is not None)
     optimizer, options, iterations = solver(planner, seed, explore_weight=explore_weight,
                                             explore_on=explore_on, particles=particles)
     spec = task_cost.spec

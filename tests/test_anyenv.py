@@ -93,6 +93,36 @@ def test_the_registrys_termination_and_a_users_functions():
     assert mine.termination_fn is never
 
 
+def test_the_horizon_rule_shortens_the_plan_of_a_task_that_terminates():
+    """``planner.horizon``/``terminal_weight`` ``None``: 15 and 100 with a termination function
+    (the registry's or a user's), 30 and 1 without; a value given is kept. The planner built,
+    and its terminal cost, use the resolved values."""
+    def never(obs):
+        return np.zeros(np.shape(obs)[:-1], bool)
+
+    def cost(obs, a):
+        return ca.sumsqr(obs) + ca.sumsqr(a)
+
+    cfg = AgentConfig(progress=False, tensorboard=False, checkpoint=False)
+    made = {"registry IP": JacPropAgent(gym.make("InvertedPendulum-v5"), cfg),
+            "user's termination": JacPropAgent(gym.make("Swimmer-v5"), cfg, cost_fn=cost,
+                                               termination_fn=never),
+            "Reacher": JacPropAgent(gym.make("Reacher-v5"), cfg),
+            "user's cost only": JacPropAgent(gym.make("Swimmer-v5"), cfg, cost_fn=cost)}
+    got = {k: (a.config.planner.horizon, a.config.planner.terminal_weight,
+               a.actor.policy.horizon) for k, a in made.items()}
+    assert got == {"registry IP": (15, 100.0, 15), "user's termination": (15, 100.0, 15),
+                   "Reacher": (30, 1.0, 30), "user's cost only": (30, 1.0, 30)}
+    x = np.linspace(0.1, 0.8, 8)
+    np.testing.assert_allclose(  # the terminal cost: 100 x the stage cost at zero action
+        float(made["user's termination"].planner_cost.terminal(ca.DM(x), ca.DM(x))),
+        100.0 * float(cost(ca.DM(x), ca.DM.zeros(2))), rtol=1e-12)
+    given = cfg.replace({"planner.horizon": 20, "planner.terminal_weight": 0.0})
+    agent = JacPropAgent(gym.make("InvertedPendulum-v5"), given)
+    assert (agent.config.planner.horizon, agent.config.planner.terminal_weight) == (20, 0.0)
+    assert agent.evaluator.config.planner == agent.config.planner  # the oracle plans alike
+
+
 def test_an_unknown_env_learns_its_reward_and_plans_on_it():
     """Pendulum-v1: after a few episodes the learned cost ranks held-out steps as the env's
     rewards do, and the planner's cost is that learned reward."""

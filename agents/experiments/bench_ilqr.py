@@ -48,8 +48,8 @@ class Args:
     """timing runs; the best (least disturbed by other processes) is reported"""
     n_problems: int = 3
     """start/target pairs for the IPOPT comparison"""
-    mpc_horizon: int = PlannerConfig().horizon
-    """MPC horizon (default: the agent's)"""
+    mpc_horizon: int = PlannerConfig().for_task(terminates=False).horizon
+    """MPC horizon (default: the agent's on a task without termination)"""
     mpc_steps: int = 100
     """control steps per MPC episode"""
     mpc_iterations: int = PlannerConfig().ilqr_iterations
