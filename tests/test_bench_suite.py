@@ -419,3 +419,17 @@ def test_agent_settings_reach_every_run_and_keep_their_json_apart(tmp_path, caps
         with pytest.raises(SystemExit) as e:
             suite.main(only + ["--out", str(out), "--agent-settings", json.dumps(flat)])
         assert e.value.code == 2 and "--report-only and --sb3 run none" in capsys.readouterr().err
+
+
+def test_every_suite_task_plans_with_the_settings_of_its_stored_baseline():
+    """The stored oracle of each suite task (docs/results/bench_suite_baselines.json) was
+    computed with the planner the task's agent builds now, the horizon rule resolved: a run of
+    the suite from a clean checkout is not refused."""
+    stored = suite.load_baselines()
+    for name in suite.TASKS:
+        agent = suite.make_agent(name)
+        suite._check_baseline_settings(name, stored[name], agent.config.planner)
+        terminates = agent.termination_fn is not None
+        assert (agent.config.planner.horizon, agent.config.planner.terminal_weight) == (
+            (15, 100.0) if terminates else (30, 1.0)), name
+        agent.env.close()
