@@ -117,15 +117,16 @@ class CollectionConfig(_Section):
 class PlannerConfig(_Section):
     """Planning (Algorithm 1, "optimize controller"): MPC on the learned model, warm-started.
 
-    :param horizon: MPC horizon (steps; ``None``: 15 for a task with a termination function, else
-        30: the learned model's error grows fast on the unstable systems that terminate).
+    :param horizon: MPC horizon in steps (``None``: by the rule of :meth:`for_task`, 15 with
+        a termination function, 30 without).
     :param replan_every: execute every plan for this many steps before re-solving.
     :param replan_feedback: between re-plans, follow iLQR's local policy ``U_t + K_t (x_t -
         X_t)`` instead of the open-loop controls.
     :param kind: ``ilqr`` (the paper's), ``cem`` (PETS' cross-entropy method) or ``cem-ilqr``
         (CEM proposes, iLQR refines; docs/ilqr.md).
-    :param terminal_weight: weight of the task's terminal cost (none: stage cost at zero action;
-        ``None``: 100 for a task with a termination function, else 1).
+    :param terminal_weight: weight of the task's terminal cost, which is the stage cost at zero
+        action if the task has none (``None``: by the rule, 100 with a termination function, 1
+        without).
     :param ilqr_iterations: iLQR iterations per MPC step.
     :param first_plan_iterations: iLQR (or CEM) iterations for the plan at an episode's start.
     :param cem: the CEM settings of ``kind=cem`` (:class:`mbtsr.cem.CEMOptions`).
@@ -155,15 +156,18 @@ class PlannerConfig(_Section):
         if self.propagation == "ts" and self.kind != "cem":
             raise ValueError("planner.propagation='ts' (trajectory sampling) needs "
                              f"planner.kind='cem', got {self.kind!r}")
-        if self.replan_every > (self.horizon or 15):
-            raise ValueError(f"planner.replan_every must be <= planner.horizon="
-                             f"{self.horizon or '15 (None: 15 or 30)'}, got {self.replan_every}")
+        if self.horizon is not None and self.replan_every > self.horizon:  # else at for_task
+            raise ValueError(f"planner.replan_every must be <= planner.horizon={self.horizon}, "
+                             f"got {self.replan_every}")
 
     def for_task(self, terminates: bool) -> PlannerConfig:
         """These settings with ``horizon`` and ``terminal_weight`` that are ``None`` set by the
         rule: 15 and 100 if the task ``terminates`` (has a termination function), else 30 and 1
         (docs/agent.md, "The planner's horizon")."""
         h, w = (15, 100.0) if terminates else (30, 1.0)
+        if self.horizon is None and self.replan_every > h:
+            raise ValueError(f"planner.replan_every={self.replan_every} exceeds the horizon "
+                             f"rule's {h} steps for this task: set planner.horizon")
         return dataclasses.replace(self, horizon=h if self.horizon is None else self.horizon,
                                    terminal_weight=w if self.terminal_weight is None
                                    else self.terminal_weight)
@@ -285,7 +289,7 @@ class AgentConfig(_Section):
         for fields, when in _DEPENDENT.items():
             chosen = [n for n, v in values.items() if v not in (agent[n], own.get(n, agent[n]))
                       and any(n == f or f[-1] == "." and n.startswith(f) for f in fields.split())]
-            if chosen and not eval(when, {}, dict(self.__dict__)):  # noqa: S307 - _DEPENDENT's
+            if chosen and not eval(when, {}, dict(self.__dict__)):  # noqa: S307 - our strings
                 raise ValueError(f"{chosen[0]}={values[chosen[0]]!r} has no effect: it acts only "
                                  f"when {when}: remove it, or set that")
 
@@ -447,7 +451,6 @@ _DEPENDENT = {
     "video_every": "video == True",
     "evaluation.solved_ratio evaluation.early_exit": "evaluation.solved_return is None",
 }
-
 
 
 def _unknown(key: str) -> ValueError:

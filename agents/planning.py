@@ -90,8 +90,7 @@ def make_policy(
     """The agent's and the oracle's controller: ``MPC(solver(planner), cost, model,
     planner.horizon)`` in the action box, re-planned every ``planner.replan_every`` steps.
 
-    :param planner: the planner settings (``None`` horizon and terminal weight: their rule,
-        :meth:`agents.config.PlannerConfig.for_task`, on ``termination_fn``).
+    :param planner: the planner settings (``None`` horizon, terminal weight: ``for_task``).
     :param model: a planning model (a frozen ensemble, a true model).
     :param task_cost: the task (cost, state maps, env spec).
     :param seed: see :func:`solver`.

@@ -121,6 +121,10 @@ def test_the_horizon_rule_shortens_the_plan_of_a_task_that_terminates():
     agent = JacPropAgent(gym.make("InvertedPendulum-v5"), given)
     assert (agent.config.planner.horizon, agent.config.planner.terminal_weight) == (20, 0.0)
     assert agent.evaluator.config.planner == agent.config.planner  # the oracle plans alike
+    long_replan = cfg.replace({"planner.replan_every": 20})  # fits 30, not 15
+    assert long_replan.planner.for_task(terminates=False).horizon == 30
+    with pytest.raises(ValueError, match="replan_every=20 exceeds the horizon rule's 15 steps"):
+        JacPropAgent(gym.make("InvertedPendulum-v5"), long_replan)
 
 
 def test_an_unknown_env_learns_its_reward_and_plans_on_it():

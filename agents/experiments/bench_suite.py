@@ -179,11 +179,13 @@ def _planner_settings(cfg: Any) -> dict[str, Any]:
 
 
 def _settings_sentence() -> str:
-    """The report's sentence on the task settings beyond the agent's defaults ('' if none)."""
+    """The report's sentences on the horizon rule and the task settings beyond the defaults."""
     parts = [f"{name} " + ", ".join(f"{k}={v}" for k, v in entry["overrides"].items())
              for name, entry in TASKS.items() if entry["overrides"]]
-    return (" Task settings beyond the agent's defaults (the agent and its oracle use them): "
-            + "; ".join(parts) + ".") if parts else ""
+    ends = [name for name, entry in TASKS.items() if entry["task"].termination_fn is not None]
+    return (f" {', '.join(ends)}: horizon 15, terminal weight 100 (the horizon rule of tasks "
+            "with a termination function). Task settings beyond the agent's defaults (the agent "
+            "and its oracle use them): " + "; ".join(parts) + ".")
 
 
 def _check_baseline_settings(name: str, baseline: dict[str, Any], planner_cfg: Any) -> None:
