@@ -117,16 +117,15 @@ class CollectionConfig(_Section):
 class PlannerConfig(_Section):
     """Planning (Algorithm 1, "optimize controller"): MPC on the learned model, warm-started.
 
-    :param horizon: MPC horizon in steps (``None``: by the rule of :meth:`for_task`, 15 with
-        a termination function, 30 without).
+    :param horizon: MPC horizon in steps (``None``: by the rule of :meth:`for_task`, 15 for a
+        written cost with a termination function, else 30).
     :param replan_every: execute every plan for this many steps before re-solving.
     :param replan_feedback: between re-plans, follow iLQR's local policy ``U_t + K_t (x_t -
         X_t)`` instead of the open-loop controls.
     :param kind: ``ilqr`` (the paper's), ``cem`` (PETS' cross-entropy method) or ``cem-ilqr``
         (CEM proposes, iLQR refines; docs/ilqr.md).
     :param terminal_weight: weight of the task's terminal cost, which is the stage cost at zero
-        action if the task has none (``None``: by the rule, 100 with a termination function, 1
-        without).
+        action if the task has none (``None``: by the rule, 100 or 1).
     :param ilqr_iterations: iLQR iterations per MPC step.
     :param first_plan_iterations: iLQR (or CEM) iterations for the plan at an episode's start.
     :param cem: the CEM settings of ``kind=cem`` (:class:`mbtsr.cem.CEMOptions`).
@@ -162,15 +161,14 @@ class PlannerConfig(_Section):
 
     def for_task(self, terminates: bool) -> PlannerConfig:
         """These settings with ``horizon`` and ``terminal_weight`` that are ``None`` set by the
-        rule: 15 and 100 if the task ``terminates`` (has a termination function), else 30 and 1
-        (docs/agent.md, "The planner's horizon")."""
+        rule: 15 and 100 if the task ``terminates`` (a written cost with a termination function),
+        else 30 and 1 (docs/agent.md, "The planner's horizon")."""
         h, w = (15, 100.0) if terminates else (30, 1.0)
         if self.horizon is None and self.replan_every > h:
             raise ValueError(f"planner.replan_every={self.replan_every} exceeds the horizon "
                              f"rule's {h} steps for this task: set planner.horizon")
-        return dataclasses.replace(self, horizon=h if self.horizon is None else self.horizon,
-                                   terminal_weight=w if self.terminal_weight is None
-                                   else self.terminal_weight)
+        return dataclasses.replace(self, horizon=self.horizon or h, terminal_weight=(  # >= 2
+            w if self.terminal_weight is None else self.terminal_weight))
 
 
 @dataclass(frozen=True)

@@ -235,7 +235,7 @@ def build_agent(agent: Any, env: gym.Env | None, config: Any, spec: EnvSpec,
     agent.task = resolve_task(env, fns["cost_fn"], fns["state_fn"], fns["obs_fn"], saved_task,
                               terminal_cost_fn=fns["terminal_cost_fn"],
                               termination_fn=fns["termination_fn"])
-    terminates = agent.task.termination_fn is not None  # the planner's horizon rule
+    terminates = None not in (agent.task.termination_fn, agent.task.cost_fn)  # the horizon rule
     config = agent.config = config.replace(planner=config.planner.for_task(terminates))
     saved_map = StateMap.from_dict((saved_task or {}).get("state_map") or {})
     build_parts(agent, saved_map if saved_map.angles and agent.task.state_map.identity

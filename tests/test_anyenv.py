@@ -94,9 +94,9 @@ def test_the_registrys_termination_and_a_users_functions():
 
 
 def test_the_horizon_rule_shortens_the_plan_of_a_task_that_terminates():
-    """``planner.horizon``/``terminal_weight`` ``None``: 15 and 100 with a termination function
-    (the registry's or a user's), 30 and 1 without; a value given is kept. The planner built,
-    and its terminal cost, use the resolved values."""
+    """``planner.horizon``/``terminal_weight`` ``None``: 15 and 100 for a written cost with a
+    termination function (the registry's or a user's), 30 and 1 otherwise; a value given is
+    kept. The planner built, and its terminal cost, use the resolved values."""
     def never(obs):
         return np.zeros(np.shape(obs)[:-1], bool)
 
@@ -121,6 +121,10 @@ def test_the_horizon_rule_shortens_the_plan_of_a_task_that_terminates():
     agent = JacPropAgent(gym.make("InvertedPendulum-v5"), given)
     assert (agent.config.planner.horizon, agent.config.planner.terminal_weight) == (20, 0.0)
     assert agent.evaluator.config.planner == agent.config.planner  # the oracle plans alike
+    # a learned reward keeps 30 and 1, termination or not (docs/notes/horizon_rule.md)
+    learned = JacPropAgent(gym.make("InvertedPendulum-v5"), cfg, cost_fn="learned")
+    assert learned.termination_fn is not None and learned.actor.policy.horizon == 30
+    assert (learned.config.planner.horizon, learned.config.planner.terminal_weight) == (30, 1.0)
     long_replan = cfg.replace({"planner.replan_every": 20})  # fits 30, not 15
     assert long_replan.planner.for_task(terminates=False).horizon == 30
     with pytest.raises(ValueError, match="replan_every=20 exceeds the horizon rule's 15 steps"):

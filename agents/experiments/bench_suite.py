@@ -269,8 +269,9 @@ def run_one(name: str, planner: str, reg: str, seed: int, *, smoke: bool,
     if checkpoint_dir is not None:
         overrides.update({"run_dir": str(checkpoint_dir), "checkpoint": True})
     agent = make_agent(name, overrides, smoke=smoke, form=form)
-    if baseline is not None and not smoke:
-        _check_baseline_settings(name, baseline, agent.config.planner)
+    if baseline is not None and not smoke:  # the oracle plans on the written task
+        _check_baseline_settings(name, baseline, agent_config(name, overrides).planner.for_task(
+            TASKS[name]["task"].termination_fn is not None))
     # earlier sessions of this run: their time and commits
     spent: dict[str, Any] = {"wall_seconds": 0.0, "cpu_seconds": 0.0, "git": []}
     progress = None if checkpoint_dir is None else Path(checkpoint_dir) / "suite_progress.json"
