@@ -155,9 +155,9 @@ class PlannerConfig(_Section):
         if self.propagation == "ts" and self.kind != "cem":
             raise ValueError("planner.propagation='ts' (trajectory sampling) needs "
                              f"planner.kind='cem', got {self.kind!r}")
-        if self.horizon is not None and self.replan_every > self.horizon:  # else at for_task
-            raise ValueError(f"planner.replan_every must be <= planner.horizon={self.horizon}, "
-                             f"got {self.replan_every}")
+        if self.replan_every > (self.horizon or 30):  # None: the rule's 15 or 30 (for_task)
+            raise ValueError(f"planner.replan_every must be <= planner.horizon="
+                             f"{self.horizon or '30 (the horizon rule)'}, got {self.replan_every}")
 
     def for_task(self, terminates: bool) -> PlannerConfig:
         """These settings with ``horizon`` and ``terminal_weight`` that are ``None`` set by the
