@@ -159,11 +159,11 @@ class PlannerConfig(_Section):
             raise ValueError(f"planner.replan_every must be <= planner.horizon="
                              f"{self.horizon or '30 (the horizon rule)'}, got {self.replan_every}")
 
-    def for_task(self, terminates: bool) -> PlannerConfig:
+    def for_task(self, cost_fn: Any, termination_fn: Any) -> PlannerConfig:
         """These settings with ``horizon`` and ``terminal_weight`` that are ``None`` set by the
-        rule: 15 and 100 if the task ``terminates`` (a written cost with a termination function),
+        rule: 15 and 100 for a written ``cost_fn`` with a ``termination_fn`` (neither ``None``),
         else 30 and 1 (docs/agent.md, "The planner's horizon")."""
-        h, w = (15, 100.0) if terminates else (30, 1.0)
+        h, w = (30, 1.0) if None in (cost_fn, termination_fn) else (15, 100.0)
         if self.horizon is None and self.replan_every > h:
             raise ValueError(f"planner.replan_every={self.replan_every} exceeds the horizon "
                              f"rule's {h} steps for this task: set planner.horizon")

@@ -99,7 +99,7 @@ def make_policy(
     :param explore_weight: / ``explore_on`` / ``particles``: see :func:`solver`.
     :param true_state_env: plan from this MuJoCo env's true state (:class:`TrueStatePolicy`).
     """
-    planner = planner.for_task(None not in (termination_fn, getattr(task_cost, "cost_fn", None)))
+    planner = planner.for_task(getattr(task_cost, "cost_fn", None), termination_fn)
     optimizer, options, iterations = solver(planner, seed, explore_weight=explore_weight,
                                             explore_on=explore_on, particles=particles)
     spec = task_cost.spec

@@ -235,8 +235,8 @@ def build_agent(agent: Any, env: gym.Env | None, config: Any, spec: EnvSpec,
     agent.task = resolve_task(env, fns["cost_fn"], fns["state_fn"], fns["obs_fn"], saved_task,
                               terminal_cost_fn=fns["terminal_cost_fn"],
                               termination_fn=fns["termination_fn"])
-    terminates = None not in (agent.task.termination_fn, agent.task.cost_fn)  # the horizon rule
-    config = agent.config = config.replace(planner=config.planner.for_task(terminates))
+    config = agent.config = config.replace(planner=config.planner.for_task(
+        agent.task.cost_fn, agent.task.termination_fn))
     saved_map = StateMap.from_dict((saved_task or {}).get("state_map") or {})
     build_parts(agent, saved_map if saved_map.angles and agent.task.state_map.identity
                 else agent.task.state_map)

@@ -345,12 +345,12 @@ class StateMap:
                 "planner needs obs_fn(state, obs_ref) to evaluate it on predicted states"
             )
         self.prefix = None if prefix is None else int(prefix)
-        self.angles, cols = tuple(tuple(p) for p in angles), [c for p in angles for c in p]
-        if any(len(p) != 2 for p in self.angles) or len(set(cols)) < len(cols) or not all(
+        cols = [c for p in angles for c in p]
+        if any(len(p) != 2 for p in angles) or len(set(cols)) < len(cols) or not all(
                 isinstance(c, (int, np.integer)) and c >= 0 for c in cols):
             raise ValueError(f"angles must be (sine column, cosine column) pairs of distinct "
                              f"column indices >= 0, got {angles!r}")
-        self.angles = tuple((int(i), int(j)) for i, j in self.angles)
+        self.angles = tuple((int(i), int(j)) for i, j in angles)
         self._state_fn = state_fn
         self._obs_fn = obs_fn
 

@@ -126,7 +126,7 @@ def test_the_horizon_rule_shortens_the_plan_of_a_task_that_terminates():
     assert learned.termination_fn is not None and learned.actor.policy.horizon == 30
     assert (learned.config.planner.horizon, learned.config.planner.terminal_weight) == (30, 1.0)
     long_replan = cfg.replace({"planner.replan_every": 20})  # fits 30, not 15
-    assert long_replan.planner.for_task(terminates=False).horizon == 30
+    assert long_replan.planner.for_task(None, None).horizon == 30
     with pytest.raises(ValueError, match="replan_every=20 exceeds the horizon rule's 15 steps"):
         JacPropAgent(gym.make("InvertedPendulum-v5"), long_replan)
 

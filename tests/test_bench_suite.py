@@ -325,7 +325,7 @@ def test_a_stored_baseline_of_other_planner_settings_is_refused():
         _check_baseline_settings("x", {"planner": {"kind": "cem-ilqr", "horizon": 15}}, cfg)
     with pytest.raises(ValueError, match=r"horizon.*--baselines --tasks inverted-double"):
         _check_baseline_settings("inverted-double-pendulum", stored,
-                                 PlannerConfig().for_task(terminates=False))
+                                 PlannerConfig().for_task(None, None))
     # the proposal's samples are part of the oracle too (stored since 2026-12-03)
     fewer = PlannerConfig(horizon=15, terminal_weight=100.0,
                           proposal=dataclasses.replace(cfg.proposal, samples=32))

@@ -48,7 +48,7 @@ class Args:
     """timing runs; the best (least disturbed by other processes) is reported"""
     n_problems: int = 3
     """start/target pairs for the IPOPT comparison"""
-    mpc_horizon: int = PlannerConfig().for_task(terminates=False).horizon
+    mpc_horizon: int = PlannerConfig().for_task(None, None).horizon
     """MPC horizon (default: the agent's on a task without termination)"""
     mpc_steps: int = 100
     """control steps per MPC episode"""

@@ -182,10 +182,11 @@ def _settings_sentence() -> str:
     """The report's sentences on the horizon rule and the task settings beyond the defaults."""
     parts = [f"{name} " + ", ".join(f"{k}={v}" for k, v in entry["overrides"].items())
              for name, entry in TASKS.items() if entry["overrides"]]
-    ends = [name for name, entry in TASKS.items() if entry["task"].termination_fn is not None]
-    return (f" {', '.join(ends)}: horizon 15, terminal weight 100 (the horizon rule of tasks "
-            "with a termination function). Task settings beyond the agent's defaults (the agent "
-            "and its oracle use them): " + "; ".join(parts) + ".")
+    ends = [name for name, entry in TASKS.items() if PlannerConfig().for_task(
+        entry["task"].cost_fn, entry["task"].termination_fn).horizon == 15]
+    return (f" {', '.join(ends)}: horizon 15, terminal weight 100 (the horizon rule: a written "
+            "cost with a termination function). Task settings beyond the agent's defaults (the "
+            "agent and its oracle use them): " + "; ".join(parts) + ".")
 
 
 def _check_baseline_settings(name: str, baseline: dict[str, Any], planner_cfg: Any) -> None:
@@ -271,7 +272,7 @@ def run_one(name: str, planner: str, reg: str, seed: int, *, smoke: bool,
     agent = make_agent(name, overrides, smoke=smoke, form=form)
     if baseline is not None and not smoke:  # the oracle plans on the written task
         _check_baseline_settings(name, baseline, agent_config(name, overrides).planner.for_task(
-            TASKS[name]["task"].termination_fn is not None))
+            TASKS[name]["task"].cost_fn, TASKS[name]["task"].termination_fn))
     # earlier sessions of this run: their time and commits
     spent: dict[str, Any] = {"wall_seconds": 0.0, "cpu_seconds": 0.0, "git": []}
     progress = None if checkpoint_dir is None else Path(checkpoint_dir) / "suite_progress.json"
