@@ -132,6 +132,7 @@ def parse(config_type: type[T], *, args: Sequence[str] | None = None, prog: str 
         if flag in argv:
             default = dataclasses.replace(default or config_type(), **values)
     config = tyro.cli(config_type, args=argv, prog=prog, default=default,
+                      description=_plain_help(" ".join((config_type.__doc__ or "").split())),
                       registry=_registry(_fixed(config_type)))
     try:
         config = _validated(config)

@@ -150,7 +150,7 @@ class RegularizationConfig:
         copy of each batch is its own step after the epoch's data batches (the original's).
     :param exact_weight: weight of ``sum_t ||J_model(t) - J_LTV(t)||_F^2`` (double backprop).
     :param smooth_weight: weight of ``sum_t ||J_model(t+1) - J_model(t)||_F^2`` (no LTV model).
-    :param ltv_lambda: ``lam`` of :func:`mbtsr.ltv.fit_ltv` (default the original's
+    :param ltv_lambda: ``lam`` of :func:`mbtsr.ltv.fit_ltv` (the original code's is
         ``sqrt(1000)``); ``None`` picks it per trajectory with :func:`mbtsr.ltv.select_lambda`.
     :param ltv_affine: fit LTV models with an affine term ``c_t``.
     """

@@ -65,6 +65,19 @@ def test_a_yaml_file_written_by_hand_is_changes_to_the_script_defaults(tmp_path)
         {"regularization": "none", "model.hidden_width": 32, "training.lr": 0.001}, seed=3)
 
 
+def test_the_manuals_yaml_example_is_read_as_it_says(tmp_path):
+    """docs/agent.md's arm.yaml, copied from the page, gives the changes its comments name."""
+    import re
+
+    text = (Path(__file__).parents[1] / "docs" / "agent.md").read_text()
+    block = re.search(r"```yaml\n(# arm.yaml.*?)```", text, re.S).group(1)
+    (path := tmp_path / "arm.yaml").write_text(block)
+    args = train_agent.parse(["--config", str(path), "--seed", "3"])
+    assert args.agent == train_agent.Args().agent.replace(
+        {"regularization": "exact", "planner.horizon": 40, "training.steps": 2000,
+         "training.lr": 0.001, "model.hidden_width": 32}, seed=3)
+
+
 def test_help_shows_config(capsys):
     with pytest.raises(SystemExit):
         train_agent.parse(["--help"])

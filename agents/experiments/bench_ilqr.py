@@ -32,7 +32,7 @@ from mbtsr.mpc import MPC, MPCOptions
 
 @dataclass(frozen=True)
 class Args:
-    """Benchmark of iLQR and MPC on the arm, against IPOPT and crocoddyl (issue 13)."""
+    """Benchmark of iLQR and MPC on the arm, against IPOPT and crocoddyl."""
 
     out: str | None = None
     """write the results to this JSON file"""

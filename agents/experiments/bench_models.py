@@ -27,7 +27,7 @@ from mbtsr.training import RegularizationConfig, TrainConfig, train_ensemble
 
 @dataclasses.dataclass
 class Args:
-    """Benchmark of the neural dynamics ensembles and their training (issue 4)."""
+    """Benchmark of the neural dynamics ensembles and their training."""
 
     out: str = ""
     """write the results to this JSON file"""

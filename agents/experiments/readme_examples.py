@@ -30,7 +30,7 @@ class Args:
     smoke: bool = False
     """tiny CI size: the first block, one seed, capped at 2 episodes of 10 steps"""
     blocks: tuple[int, ...] = ()
-    """the README's Python blocks to run, counted from 0 (default: every block)"""
+    """the README's Python blocks to run, counted from 0 (empty: every block)"""
     seeds: tuple[int, ...] = (0, 1, 2)
     """the seeds: every AgentConfig the blocks build gets ``seed`` replaced"""
 

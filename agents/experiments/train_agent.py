@@ -28,7 +28,10 @@ os.environ.setdefault("MUJOCO_GL", "egl")  # headless rendering, before mujoco i
 
 @dataclass(frozen=True)
 class Args:
-    """Train the Algorithm-1 agent (JacProp model learning + iLQR MPC) on a Gymnasium env."""
+    """Train the Algorithm-1 agent (JacProp model learning + MPC) on a Gymnasium env. The
+    defaults are the paper's setup on its arm (a 4 x 1 x 20 ensemble, sampled JacProp, iLQR);
+    the library's (AgentConfig()) are --model.hidden-width None --model.hidden-layers None
+    --model.activations swish --regularization none --planner.kind cem-ilqr."""
 
     config: str = ""
     """start from this file, the flags given with it on top: a run's config.json (its agent and
@@ -59,14 +62,10 @@ class Args:
             model=ModelConfig.paper(), planner=PlannerConfig(kind="ilqr"),
             regularization="sampled",
             evaluation=EvaluationConfig(oracle_cache_dir="runs/oracle_cache")))
-    """the agent (its flags carry no agent. prefix): the paper's setup on the paper's arm, its
-    4 x 1 x 20 ensemble (ModelConfig.paper()), sampled JacProp and iLQR on the learned
-    Jacobians; the library's defaults for other tasks (a model sized by the task, planner
-    cem-ilqr, regularization none) are --model.hidden-width/--model.hidden-layers none,
-    --planner.kind cem-ilqr and --regularization none. --run-dir defaults to
-    runs/train_agent/<env>_<regularization>_<formulation>_seed<seed> (a fresh run that finds a
-    finished one there adds _1, _2, ...); --evaluation.oracle-cache-dir none disables the shared
-    cache of the (deterministic) oracle costs"""
+    """the agent (its flags carry no agent. prefix; the defaults: above). --run-dir defaults
+    to runs/train_agent/<env>_<regularization>_<formulation>_seed<seed> (a fresh run that finds
+    a finished one there adds _1, _2, ...); --evaluation.oracle-cache-dir none disables the
+    shared cache of the (deterministic) oracle costs"""
 
     def __post_init__(self) -> None:
         if self.episodes < 1:
