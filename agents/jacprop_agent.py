@@ -30,7 +30,7 @@ from agents.evaluation import NOT_EVALUATED, EpisodeRecord, run_episode
 from agents.model_training import model_errors
 from agents.planning import SB3Predictor, make_policy, planner_cost
 from agents.task_setup import LearnedTask, build_agent, build_parts
-from agents.tasks import StateMap, angle_pairs, env_spec
+from agents.tasks import StateMap, angle_pairs, env_spec, gym_make
 
 __all__ = ["JacPropAgent"]
 
@@ -45,8 +45,9 @@ def _part(path: str, doc: str) -> property:
 class JacPropAgent(SB3Predictor):
     """Model-based agent of the paper's Algorithm 1 (learned NN ensemble + iLQR MPC).
 
-    :param env: a Gymnasium env with 1-D ``Box`` observation and action spaces, a bounded action
-        space and a ``TimeLimit`` (or ``config.collection.episode_steps``).
+    :param env: a Gymnasium env (or its id, for ``gym.make``) with 1-D ``Box`` observation and
+        action spaces, a bounded action space and a ``TimeLimit`` (or
+        ``config.collection.episode_steps``).
     :param config: :class:`agents.config.AgentConfig`.
     :param cost_fn: stage cost ``cost_fn(obs, action) -> scalar`` written with CasADi
         operations. ``None``: the registry's task for the env's id, else the env's own cost,
@@ -62,7 +63,7 @@ class JacPropAgent(SB3Predictor):
 
     def __init__(
         self,
-        env: gym.Env,
+        env: gym.Env | str,
         config: AgentConfig | None = None,
         cost_fn: CostFn | Literal["learned"] | None = None,
         state_fn: Callable[[np.ndarray], np.ndarray] | None = None,
@@ -74,16 +75,15 @@ class JacPropAgent(SB3Predictor):
         config = AgentConfig() if config is None else config
         if not isinstance(config, AgentConfig):
             raise TypeError(f"config must be an AgentConfig, got {type(config).__name__}")
+        env = gym_make(env) if isinstance(env, str) else env
         spec = env_spec(env, config.collection.episode_steps)
         if (config.collection.rollout_steps or 0) >= spec.episode_steps:
             warnings.warn(f"collection.rollout_steps={config.collection.rollout_steps} has no "
                           f"effect: the episode is {spec.episode_steps} steps long",
                           stacklevel=2)
         if config.video and getattr(env, "render_mode", None) != "rgb_array":
-            raise ValueError(
-                "config.video needs an env created with render_mode='rgb_array', got "
-                f"render_mode={getattr(env, 'render_mode', None)!r}"
-            )
+            raise ValueError("config.video needs an env created with render_mode='rgb_array', got "
+                             f"render_mode={getattr(env, 'render_mode', None)!r}")
         if config.checkpoint and config.run_dir is None:
             config = config.replace(checkpoint=False)
         build_agent(self, env, config, spec, {
@@ -148,6 +148,10 @@ class JacPropAgent(SB3Predictor):
             # machine were measured 10x slower than on one
             threadpoolctl.threadpool_limits(self.config.torch_threads, user_api="blas")
         if self.config.run_dir is not None and self._log is None:
+            if not self.logger_rows and (Path(self.config.run_dir) / "checkpoint.pt").exists():
+                raise ValueError(f"run_dir {self.config.run_dir} holds another run's checkpoint: "
+                                 "continue it with JacPropAgent.load(run_dir, env), or give "
+                                 "another run_dir")
             self._log = EpisodeLog(
                 self.config.run_dir, tensorboard=self.config.tensorboard, rows=self.logger_rows
             )

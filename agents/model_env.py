@@ -66,10 +66,8 @@ class ModelEnv(gym.Env):
         super().__init__()
         for name in ("step", "state_dim", "action_dim"):
             if not hasattr(model, name):
-                raise TypeError(
-                    f"model must have step(x, u), state_dim and action_dim; "
-                    f"{type(model).__name__} has no {name!r}"
-                )
+                raise TypeError(f"model must have step(x, u), state_dim and action_dim; "
+                                f"{type(model).__name__} has no {name!r}")
         for name, space in (("observation_space", observation_space),
                             ("action_space", action_space)):
             if not isinstance(space, gym.spaces.Box) or len(space.shape) != 1:
@@ -102,10 +100,8 @@ class ModelEnv(gym.Env):
         self._u_low = np.asarray(action_space.low, dtype=np.float64)
         self._u_high = np.asarray(action_space.high, dtype=np.float64)
         if int(model.action_dim) != action_space.shape[0]:
-            raise ValueError(
-                f"model.action_dim = {model.action_dim} does not match action_space "
-                f"{action_space.shape}"
-            )
+            raise ValueError(f"model.action_dim = {model.action_dim} does not match action_space "
+                             f"{action_space.shape}")
         self.start_obs = None if start_obs is None else as_array(
             "start_obs", start_obs, (None, self.obs_dim))
         if self.start_obs is not None and not len(self.start_obs):

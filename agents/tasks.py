@@ -277,7 +277,8 @@ def env_spec(env: gym.Env, episode_steps: int | None = None) -> EnvSpec:
     import gymnasium as gym
 
     if not isinstance(env, gym.Env):
-        raise TypeError(f"env must be a gymnasium.Env, got {type(env).__name__}")
+        raise TypeError(f"env must be a gymnasium.Env (one env, as gym.make returns; not a "
+                        f"VecEnv), got {type(env).__name__}")
     obs_space, act_space = env.observation_space, env.action_space
     for name, space in (("observation_space", obs_space), ("action_space", act_space)):
         if not isinstance(space, gym.spaces.Box):

@@ -73,10 +73,8 @@ def rollout_open_loop(
         raise ValueError(f"the simulation became unstable during the open-loop rollout: "
                          f"{rec.info.get('instability', '')}")
     if rec.T < T:
-        raise ValueError(
-            f"the env ended the episode after {rec.T} steps but T={T} were "
-            "requested; make the env with a longer episode (e.g. episode_steps=T)"
-        )
+        raise ValueError(f"the env ended the episode after {rec.T} steps but T={T} were "
+                         "requested; make the env with a longer episode (e.g. episode_steps=T)")
     x = rec.states if rec.states is not None else rec.obs
     return np.asarray(x, dtype=np.float64).reshape(T + 1, -1), rec.actions, rec.info0
 

@@ -294,10 +294,8 @@ class CasadiCost:
             if self.params is not None:
                 return self.params
             if self.param_dim:
-                raise ValueError(
-                    f"params is required: this cost takes a parameter vector of size "
-                    f"{self.param_dim} and has no default"
-                )
+                raise ValueError(f"params is required: this cost takes a parameter vector of size "
+                                 f"{self.param_dim} and has no default")
             return np.zeros((1, 0))
         if not self.param_dim:
             raise ValueError("params given, but this cost takes no parameters")

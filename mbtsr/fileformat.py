@@ -70,8 +70,8 @@ def read_verified(
         if data.startswith(b"PK\x03\x04"):
             raise CheckpointError(
                 f"{path} is not {what} with a checksum (a plain torch file: an old format "
-                f"or another program's file): {fix}")
-        raise CheckpointError(f"{path} is not {what} (unknown header): {fix}")
+                f"or another program's file): pass {what} written by this library")
+        raise CheckpointError(f"{path} is not {what} (unknown header): pass the right file")
     m = _HEADER_RE.match(data[:_MAX_HEADER])
     if m is None:
         raise CheckpointError(f"{path}: the header is damaged or truncated: {fix}")

@@ -100,10 +100,8 @@ class LTVModel:
         if isinstance(t0, bool) or not isinstance(t0, int | np.integer):
             raise TypeError(f"t must be an int time index, got {t0!r}")
         if t0 < 0 or t0 + length > self.T:
-            raise ValueError(
-                f"{what}: time steps [{t0}, {t0 + length}) are outside the model's "
-                f"range [0, {self.T})"
-            )
+            raise ValueError(f"{what}: time steps [{t0}, {t0 + length}) are outside the model's "
+                             f"range [0, {self.T})")
 
     # the dynamics protocol ------------------------------------------------------------------
     def step(self, x: np.ndarray, u: np.ndarray, t: int | None = None) -> np.ndarray:
@@ -141,10 +139,8 @@ class LTVModel:
         u = as_array("u", u)
         x = as_array("x", x)
         if u.ndim not in (2, 3) or u.shape[-1] != self.action_dim:
-            raise ValueError(
-                f"u must be [T', m] or [N, T', m] with m={self.action_dim}, "
-                f"got shape {list(u.shape)}"
-            )
+            raise ValueError(f"u must be [T', m] or [N, T', m] with m={self.action_dim}, "
+                             f"got shape {list(u.shape)}")
         Tp = u.shape[-2]
         if (x.ndim != u.ndim or x.shape[:-2] != u.shape[:-2] or x.shape[-1] != self.state_dim
                 or x.shape[-2] not in (Tp, Tp + 1)):
@@ -244,10 +240,8 @@ def _episodes(data: object) -> tuple[np.ndarray, np.ndarray]:
     if X.shape[0] != U.shape[0]:
         raise ValueError(f"data: x has {X.shape[0]} episodes but u has {U.shape[0]}")
     if X.shape[1] != U.shape[1] + 1:
-        raise ValueError(
-            f"data: need len(x) == len(u) + 1 per episode, got x {list(X.shape)} and "
-            f"u {list(U.shape)}"
-        )
+        raise ValueError(f"data: need len(x) == len(u) + 1 per episode, got x {list(X.shape)} and "
+                         f"u {list(U.shape)}")
     if U.shape[1] < 2:
         raise ValueError(f"data: an LTV fit needs T >= 2 transitions, got T={U.shape[1]}")
     if X.shape[0] < 1 or X.shape[2] < 1 or U.shape[2] < 1:

@@ -171,8 +171,10 @@ def test_construction_rejects_non_box_spaces_and_unbounded_actions():
     with pytest.raises(ValueError, match="bounded"):
         JacPropAgent(_UnboundedActionEnv(), tiny_config({"collection.episode_steps": 10}),
                      cost_fn=lambda o, a: ca.sumsqr(o))
-    with pytest.raises(TypeError, match="gymnasium.Env"):
-        JacPropAgent("Pendulum-v1", tiny_config(), cost_fn=pendulum_cost)
+    from stable_baselines3.common.env_util import make_vec_env
+
+    with pytest.raises(TypeError, match="not a VecEnv"):
+        JacPropAgent(make_vec_env("Pendulum-v1"), tiny_config(), cost_fn=pendulum_cost)
     with pytest.raises(TypeError, match="AgentConfig"):
         JacPropAgent(gym.make("Pendulum-v1"), {"horizon": 5}, cost_fn=pendulum_cost)
 
@@ -191,6 +193,17 @@ def test_construction_rejects_non_box_spaces_and_unbounded_actions():
 def test_construction_rejects_costs_that_do_not_fit_the_env(cost_fn, message):
     with pytest.raises((ValueError, TypeError), match=message):
         JacPropAgent(gym.make("Pendulum-v1"), tiny_config(), cost_fn=cost_fn)
+
+
+def test_an_env_id_builds_the_agent_gym_make_does():
+    """As SB3: ``JacPropAgent("Pendulum-v1")`` is ``JacPropAgent(gym.make("Pendulum-v1"))``."""
+    by_id = JacPropAgent("Pendulum-v1", tiny_config(), cost_fn=pendulum_cost)
+    made = JacPropAgent(gym.make("Pendulum-v1"), tiny_config(), cost_fn=pendulum_cost)
+    assert by_id.get_env().spec.id == "Pendulum-v1"
+    obs = np.array([0.3, -0.95, 0.4])
+    np.testing.assert_array_equal(by_id.predict(obs)[0], made.predict(obs)[0])
+    with pytest.raises(gym.error.NameNotFound):
+        JacPropAgent("Pendulm-v1", tiny_config())
 
 
 def test_construction_rejects_bad_maps_and_video_without_rgb():
@@ -436,6 +449,17 @@ def test_tiny_arm_run_writes_the_logs_and_files(arm_run):
     summary = json.loads((run_dir / "summary.json").read_text())
     assert summary["episodes_done"] == 3 and summary["oracle_cost"] > 0
     assert set(summary["wall_seconds_per_phase"]) >= {"rollout", "ltv", "training", "planning"}
+
+
+def test_a_fresh_agent_refuses_a_run_dir_that_holds_another_run(arm_run):
+    """Nothing is lost: a new agent pointed at a finished run's folder fails before writing."""
+    agent, run_dir, _, _ = arm_run
+    before = {p.name: p.read_bytes() for p in run_dir.iterdir() if p.is_file()}
+    fresh = JacPropAgent(gym.make(ARM, episode_steps=30), agent.config)
+    with pytest.raises(ValueError, match="holds another run's checkpoint.*JacPropAgent.load"):
+        fresh.learn(episodes=1, progress_bar=False)
+    assert {p.name: p.read_bytes() for p in run_dir.iterdir() if p.is_file()} == before
+    assert fresh.env_steps == 0
 
 
 def test_tiny_arm_run_improves_the_model_on_heldout_data(arm_run):

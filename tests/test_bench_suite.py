@@ -420,6 +420,9 @@ def test_agent_settings_reach_every_run_and_keep_their_json_apart(tmp_path, caps
         with pytest.raises(SystemExit) as e:
             suite.main(only + ["--out", str(out), "--agent-settings", json.dumps(flat)])
         assert e.value.code == 2 and "--report-only and --sb3 run none" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as e:  # a report of no file would be a report of nothing
+        suite.main(["--report-only", "--out", str(tmp_path / "missing.json")])
+    assert e.value.code == 2 and "missing.json is no file" in capsys.readouterr().err
 
 
 def test_every_suite_task_plans_with_the_settings_of_its_stored_baseline():

@@ -1153,6 +1153,8 @@ def run(a: Args) -> dict[str, Any]:
     if a.sb3 and not a.report_only:
         return _run_sb3(a)
     path = Path(a.out)
+    if a.report_only and not path.is_file():
+        raise ValueError(f"--report-only reports the runs in --out, and {path} is no file")
     state = _load(path) if (a.resume or a.report_only) else {"runs": []}
     if not a.report_only:
         _run_agents(a, state, path, bpath)

@@ -83,7 +83,7 @@ SMOKE = {"smoke": True, "episodes": 2, "plots": False, "summary_table": False,
          "agent": Args().agent.replace({
              "collection.episode_steps": 25, "collection.n_excitation_episodes": 1,
              "training.steps": 20, "training.batch": 32, "model.ensemble_size": 2,
-             "model.hidden_width": 12, "planner.horizon": 6, "planner.ilqr_iterations": 1,
+             "model.hidden_width": 12, "planner.horizon": 6,
              "planner.first_plan_iterations": 4, "evaluation.every": 1,
              "evaluation.episodes": 1, "evaluation.oracle_cache_dir": None, "progress": False,
              "tensorboard": False, "torch_threads": 1})}
