@@ -79,6 +79,19 @@ def test_kernel_matches_numpy_reference(reg_type, bounded, n, m):
     np.testing.assert_allclose([dV1, dV2], [dV1_ref, dV2_ref], rtol=1e-10)
 
 
+@pytest.mark.parametrize("reg_type", [1, 2])
+def test_kernel_matches_numpy_reference_with_a_large_state(reg_type):
+    """n = 70: the kernel's products go through BLAS (the loops' path below 2^18 multiply-adds)."""
+    A, B, derivs, U = random_problem(8, 70, 3, seed=7 + reg_type)
+    lower, upper = np.full(3, -1.0), np.full(3, 1.0)
+    ref, (ok, k, K, dV1, dV2) = run_both(A, B, derivs, U, lower, upper, 0.3, reg_type)
+    assert ref is not None and ok
+    scale = 1.0 + np.abs(ref[1]).max()
+    np.testing.assert_allclose(k, ref[0], rtol=0, atol=1e-9 * scale)
+    np.testing.assert_allclose(K, ref[1], rtol=0, atol=1e-9 * scale)
+    np.testing.assert_allclose([dV1, dV2], ref[2:], rtol=1e-9)
+
+
 @settings(max_examples=25, deadline=None)
 @given(
     seed=st.integers(0, 2**31 - 1),
