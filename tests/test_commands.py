@@ -8,8 +8,10 @@ import importlib
 import json
 import os
 import re
+import runpy
 import subprocess
 import sys
+import warnings
 from pathlib import Path
 
 import pytest
@@ -22,17 +24,17 @@ COMMANDS = sorted(p.stem for p in EXPERIMENTS.glob("*.py")
                   if p.stem not in LIBRARIES)
 
 
-def _help(*command: str) -> subprocess.CompletedProcess:
-    env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONPATH": str(REPO)}
-    return subprocess.run([sys.executable, *command, "--help"], capture_output=True, text=True,
-                          timeout=300, cwd=REPO, env=env)
-
-
 @pytest.mark.parametrize("name", COMMANDS)
-def test_every_experiment_module_answers_help_with_the_shared_flags(name):
-    proc = _help("-m", f"agents.experiments.{name}")
-    assert proc.returncode == 0, proc.stderr[-2000:]
-    assert "--out" in proc.stdout and "--smoke" in proc.stdout, proc.stdout[-2000:]
+def test_every_experiment_module_answers_help_with_the_shared_flags(name, monkeypatch, capsys):
+    """``python -m agents.experiments.<name> --help``, run in this process as ``-m`` runs it
+    (``runpy``, ``__main__``; one real process: :func:`test_a_script_runs_its_module_...`)."""
+    monkeypatch.setattr(sys, "argv", [f"{name}.py", "--help"])
+    with pytest.raises(SystemExit) as exit_, warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # the module was imported before
+        runpy.run_module(f"agents.experiments.{name}", run_name="__main__", alter_sys=True)
+    out = capsys.readouterr().out
+    assert exit_.value.code in (0, None) and out.startswith(f"usage: {name}.py"), out[-2000:]
+    assert "--out" in out and "--smoke" in out, out[-2000:]
 
 
 def test_every_script_is_a_thin_wrapper_of_an_experiment_module():
