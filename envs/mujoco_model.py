@@ -38,10 +38,8 @@ _LOOP_MAX = 8  # batches up to this size step in a Python loop of mj_step, large
 def _unwrap(env):
     base = getattr(env, "unwrapped", env)
     if not (hasattr(base, "model") and hasattr(base, "data") and hasattr(base, "frame_skip")):
-        raise TypeError(
-            f"env must be a Gymnasium MujocoEnv (with model, data, frame_skip), got "
-            f"{type(base).__name__}"
-        )
+        raise TypeError(f"env must be a Gymnasium MujocoEnv (with model, data, frame_skip), got "
+                        f"{type(base).__name__}")
     return base
 
 

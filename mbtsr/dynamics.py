@@ -72,10 +72,8 @@ def check_step_shapes(x_shape: tuple[int, ...], u_shape: tuple[int, ...], n: int
     if len(u_shape) < 1 or u_shape[-1] != m:
         raise ValueError(f"u must have last dimension m={m}, got shape {list(u_shape)}")
     if x_shape[:-1] != u_shape[:-1]:
-        raise ValueError(
-            f"x and u must share leading (batch) dimensions, got {list(x_shape)} and "
-            f"{list(u_shape)}"
-        )
+        raise ValueError(f"x and u must share leading (batch) dimensions, got {list(x_shape)} and "
+                         f"{list(u_shape)}")
 
 
 class LinearDynamics:
@@ -125,10 +123,8 @@ def check_planning_model(model: object, n: int, m: int, name: str = "model") -> 
     :raises ValueError: when ``state_dim``/``action_dim`` differ from ``n``/``m``.
     """
     if hasattr(model, "freeze"):
-        raise TypeError(
-            f"model is a trainable {type(model).__name__}: plan with its frozen copy, "
-            "model.freeze() (immutable, numpy, no autograd)"
-        )
+        raise TypeError(f"model is a trainable {type(model).__name__}: plan with its frozen copy, "
+                        "model.freeze() (immutable, numpy, no autograd)")
     if not (callable(getattr(model, "step", None)) and callable(getattr(model, "jacobians", None))):
         raise TypeError(
             f"{name} must have step(x, u, t) and jacobians(x, u, t), got {type(model).__name__}"

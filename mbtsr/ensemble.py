@@ -173,10 +173,8 @@ class EnsembleConfig:
             object.__setattr__(self, "A0", _as_matrix_tuple("A0", self.A0, (n, n)))
             object.__setattr__(self, "B0", _as_matrix_tuple("B0", self.B0, (n, m)))
         elif self.A0 is not None or self.B0 is not None:
-            raise ValueError(
-                f"A0/B0 are only used by formulation 'nominal', got formulation "
-                f"{self.formulation!r}"
-            )
+            raise ValueError(f"A0/B0 are only used by formulation 'nominal', got formulation "
+                             f"{self.formulation!r}")
         tau = as_array("tau", self.tau)
         if tau.ndim == 0:
             object.__setattr__(self, "tau", float(tau))

@@ -76,10 +76,8 @@ def as_policy(policy: Any) -> Policy:
         return act
     if callable(policy):
         return policy
-    raise TypeError(
-        f"policy must be a callable (obs, t) -> action or have a predict(obs, state, "
-        f"episode_start, deterministic) method, got {type(policy).__name__}"
-    )
+    raise TypeError(f"policy must be a callable (obs, t) -> action or have a predict(obs, state, "
+                    f"episode_start, deterministic) method, got {type(policy).__name__}")
 
 
 def run_episode(

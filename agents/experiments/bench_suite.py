@@ -28,6 +28,7 @@ import numpy as np  # noqa: E402
 from agents import cli  # noqa: E402
 from agents.config import PLANNERS, PlannerConfig  # noqa: E402
 from agents.experiments.paper_common import (  # noqa: E402
+    cpu_model,
     finite_or_none,
     library_version,
     pyplot,
@@ -1104,7 +1105,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
 def _header(command_state: dict[str, Any], smoke: bool) -> None:
     command_state.update({
         "command": " ".join(sys.argv), "smoke": smoke,
-        "machine": f"{os.cpu_count()} cores, {platform.platform()}",
+        "machine": f"{os.cpu_count()} cores, {cpu_model()}, {platform.platform()}",
         "git": _git(),
     })
 

@@ -10,6 +10,7 @@ import functools
 import json
 import math
 import os
+import re
 import sys
 import time
 from collections.abc import Callable, Sequence
@@ -163,6 +164,15 @@ def library_version() -> dict:
                                       "mbtsr", "envs", "agents"))}
 
 
+def cpu_model() -> str:
+    """The CPU's model name (``/proc/cpuinfo``, else ``platform.processor()``)."""
+    import platform
+
+    p = Path("/proc/cpuinfo")
+    names = re.findall(r"model name\s*:\s*(.+)", p.read_text()) if p.is_file() else []
+    return names[0].strip() if names else platform.processor()
+
+
 def machine_info(load_start: tuple[float, ...] | None = None, **extra) -> dict:
     """Where a timing was measured, for a result's ``"machine"``: platform, Python, cores, torch
     threads (when torch is loaded), the load average (at ``load_start``, from
@@ -170,7 +180,7 @@ def machine_info(load_start: tuple[float, ...] | None = None, **extra) -> dict:
     import platform
 
     info = {"platform": platform.platform(), "python": platform.python_version(),
-            "cpu_count": os.cpu_count()}
+            "cpu_count": os.cpu_count(), "cpu": cpu_model()}
     if "torch" in sys.modules:
         info["torch_threads"] = sys.modules["torch"].get_num_threads()
     if load_start is not None:
