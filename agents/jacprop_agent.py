@@ -21,7 +21,6 @@ import threadpoolctl
 import torch
 from stable_baselines3.common.logger import Logger
 
-import envs  # noqa: F401  (gym.make knows the mbtsr/ ids once the agent is imported)
 from agents.callbacks import Callbacks
 from agents.checkpoint import agent_payload, load_agent, save_checkpoint
 from agents.collection import save_video
