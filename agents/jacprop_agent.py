@@ -75,7 +75,8 @@ class JacPropAgent(SB3Predictor):
         config = AgentConfig() if config is None else config
         if not isinstance(config, AgentConfig):
             raise TypeError(f"config must be an AgentConfig, got {type(config).__name__}")
-        env = gym_make(env) if isinstance(env, str) else env
+        if isinstance(env, str):
+            env = gym_make(env, **({"render_mode": "rgb_array"} if config.video else {}))
         spec = env_spec(env, config.collection.episode_steps)
         if (config.collection.rollout_steps or 0) >= spec.episode_steps:
             warnings.warn(f"collection.rollout_steps={config.collection.rollout_steps} has no "

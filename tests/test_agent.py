@@ -195,7 +195,7 @@ def test_construction_rejects_costs_that_do_not_fit_the_env(cost_fn, message):
         JacPropAgent(gym.make("Pendulum-v1"), tiny_config(), cost_fn=cost_fn)
 
 
-def test_an_env_id_builds_the_agent_gym_make_does():
+def test_an_env_id_builds_the_agent_gym_make_does(tmp_path):
     """As SB3: ``JacPropAgent("Pendulum-v1")`` is ``JacPropAgent(gym.make("Pendulum-v1"))``."""
     by_id = JacPropAgent("Pendulum-v1", tiny_config(), cost_fn=pendulum_cost)
     made = JacPropAgent(gym.make("Pendulum-v1"), tiny_config(), cost_fn=pendulum_cost)
@@ -204,6 +204,8 @@ def test_an_env_id_builds_the_agent_gym_make_does():
     np.testing.assert_array_equal(by_id.predict(obs)[0], made.predict(obs)[0])
     with pytest.raises(gym.error.NameNotFound):
         JacPropAgent("Pendulm-v1", tiny_config())
+    video = JacPropAgent(ARM, tiny_config(video=True, run_dir=str(tmp_path)))  # renders frames
+    assert video.get_env().render_mode == "rgb_array"
 
 
 def test_construction_rejects_bad_maps_and_video_without_rgb():

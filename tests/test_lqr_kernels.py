@@ -80,10 +80,14 @@ def test_kernel_matches_numpy_reference(reg_type, bounded, n, m):
 
 
 @pytest.mark.parametrize("reg_type", [1, 2])
-def test_kernel_matches_numpy_reference_with_a_large_state(reg_type):
-    """n = 70: the kernel's products go through BLAS (the loops' path below 2^18 multiply-adds)."""
-    A, B, derivs, U = random_problem(8, 70, 3, seed=7 + reg_type)
-    lower, upper = np.full(3, -1.0), np.full(3, 1.0)
+@pytest.mark.parametrize("n,m,lux", [(70, 3, 1.0), (80, 60, 0.0)])
+def test_kernel_matches_numpy_reference_with_a_large_state(reg_type, n, m, lux):
+    """Products of 2^18 multiply-adds or more go through BLAS (n = 70: those of n x n; n = 80,
+    m = 60: every product, B^T B and K^T Quu K included), the rest through the loops (at m = 60
+    a random ``l_ux`` makes the stage Hessian indefinite: it is 0 there)."""
+    A, B, derivs, U = random_problem(8, n, m, seed=7 + reg_type)
+    derivs = (*derivs[:4], lux * derivs[4])
+    lower, upper = np.full(m, -1.0), np.full(m, 1.0)
     ref, (ok, k, K, dV1, dV2) = run_both(A, B, derivs, U, lower, upper, 0.3, reg_type)
     assert ref is not None and ok
     scale = 1.0 + np.abs(ref[1]).max()
