@@ -347,3 +347,14 @@ def test_train_agent_summary_says_whether_and_when_the_run_solved(summary, verdi
     print_summary(agent, summary)
     out = " ".join(capsys.readouterr().out.split())
     assert f"{verdict}" in out and "run folder: runs/x" in out
+
+
+@pytest.mark.parametrize("kind", ["ilqr", "cem", "cem-ilqr"])
+def test_train_agent_smoke_takes_every_planner(kind):
+    """``--smoke`` sets only fields that act under every planner: with ``--planner.kind cem``
+    it once set ``ilqr_iterations`` and was refused as a setting without effect."""
+    from agents.experiments import train_agent
+
+    args = train_agent.parse(["--smoke", "--planner.kind", kind, "--regularization", "none"])
+    assert args.smoke and args.episodes == 2 and args.agent.planner.kind == kind
+    assert args.agent.training.steps == train_agent.SMOKE["agent"].training.steps
