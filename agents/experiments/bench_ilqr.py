@@ -49,13 +49,13 @@ class Args:
     n_problems: int = 3
     """start/target pairs for the IPOPT comparison"""
     mpc_horizon: int = PlannerConfig().for_task(None, None).horizon
-    """MPC horizon (default: the agent's on a task without termination)"""
+    """MPC horizon (the agent's on a task without termination)"""
     mpc_steps: int = 100
     """control steps per MPC episode"""
     mpc_iterations: int = PlannerConfig().ilqr_iterations
-    """iLQR iterations per MPC step (warm-started; default: the agent's)"""
+    """iLQR iterations per MPC step (warm-started; the agent's)"""
     mpc_first_iterations: int = PlannerConfig().first_plan_iterations
-    """iLQR iterations of the first MPC step (default: the agent's)"""
+    """iLQR iterations of the first MPC step (the agent's)"""
     peers: bool = True
     """run crocoddyl side by side (skipped when not installed)"""
     ensemble: str = ""
@@ -69,7 +69,7 @@ class Args:
     true_model_steps: int = 20
     """warm-started MPC steps per task and planner in section 6 (after the cold start)"""
     true_model_tasks: tuple[str, ...] = ()
-    """section 6's tasks (default: every task of scripts/bench_suite.py)"""
+    """section 6's tasks (empty: every task of scripts/bench_suite.py)"""
     true_model_planners: tuple[str, ...] = ("cem-ilqr", "ilqr")
     """section 6's planners"""
     true_model_variants: str = ""

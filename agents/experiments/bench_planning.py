@@ -28,7 +28,7 @@ class Args:
     """tiny CI size: tiny model and planner (the suite's smoke settings) on Reacher, few steps;
     checks the bench runs, times nothing"""
     tasks: tuple[str, ...] = ()
-    """suite tasks (default: every task of scripts/bench_suite.py)"""
+    """suite tasks (empty: every task of scripts/bench_suite.py)"""
     steps: int = 60
     """warm MPC steps per task (an episode's first, cold step is reported apart; an episode that
     ends is followed by the next seed's)"""

@@ -19,9 +19,9 @@ from mbtsr.io import write_json_atomic
 class Args:
     """Claim evidence (median [q1, q3], paired difference, wins/total) from the stored runs."""
 
-    results: str = field(default="", metadata={"help": "results root (default docs/results)"})
+    results: str = field(default="", metadata={"help": "results root (empty: docs/results)"})
     out: str = field(default="", metadata={
-        "help": "folder of claims.json and claims.md (default: the results root)"})
+        "help": "folder of claims.json and claims.md (empty: the results root)"})
     smoke: bool = field(default=False, metadata={
         "help": "accepted for the shared convention: the command trains nothing, it only reads"})
 
