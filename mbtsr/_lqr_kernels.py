@@ -71,7 +71,7 @@ def _atb(X, Y, base, out):
     """``out = base + X^T Y``: ``X [a, p]``, ``Y [a, q]``, ``base, out [p, q]`` (``X.T`` of a
     view gives ``X Y``); BLAS from 2^18 multiply-adds (a state of about 64), loops below."""
     if X.shape[0] * X.shape[1] * Y.shape[1] >= 262144:
-        out[:] = base + np.dot(np.ascontiguousarray(X.T), np.ascontiguousarray(Y))
+        out[:] = base + np.dot(X.T, Y)
         return
     for i in range(X.shape[1]):
         for j in range(Y.shape[1]):
