@@ -224,6 +224,15 @@ def test_paired_comparison_detects_a_constant_shift(base, shift):
     assert better["p_value"] < 0.05  # >= 6 pairs, all in one direction
 
 
+def test_paired_comparison_with_ties_is_the_tie_corrected_normal_approximation():
+    """Six equal differences: signed-rank sum 21 of mean 10.5; variance 6*7*13/24 - (6^3 - 6)/48
+    = 18.375 with the tie correction (scipy's exact test would enumerate 2^n sign patterns)."""
+    from scipy.stats import norm
+
+    p = pc.paired_comparison(np.ones(6), np.zeros(6))["p_value"]
+    assert p == pytest.approx(2 * norm.sf(10.5 / np.sqrt(18.375)), rel=1e-9)
+
+
 @settings(max_examples=25, deadline=None)
 @given(st.lists(complex_lists, min_size=1, max_size=4).filter(
     lambda rows: len({len(r) for r in rows}) == 1))

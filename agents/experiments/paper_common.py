@@ -244,8 +244,7 @@ def run_experiment(
 
     :param stages: ``[(label, configs), ...]`` to run one after another instead, each seed by
         seed (an interrupted sweep then leaves every cell of a stage with the same number of
-        seeds, give or take the last seed's); ``None``: all ``configs`` in one sweep.
-    """
+        seeds, give or take the last seed's); ``None``: all ``configs`` in one sweep."""
     from mbtsr.runner import load_results
 
     out, figures = output_dirs(args, experiment)
@@ -327,7 +326,8 @@ def compare_pairs(records: list[dict], pairs: Sequence[tuple[str, str]],
 
 def paired_comparison(a: np.ndarray, b: np.ndarray) -> dict:
     """Paired samples ``a`` vs ``b``: median of ``a - b``, fraction with ``a < b``, two-sided
-    Wilcoxon signed-rank p-value (pairs with a non-finite member dropped)."""
+    Wilcoxon signed-rank p-value (pairs with a non-finite member dropped; with tied ``|a - b|``
+    the normal approximation: scipy's exact test then enumerates 2^n sign patterns)."""
     from scipy.stats import wilcoxon
 
     a, b = np.asarray(a, float), np.asarray(b, float)
@@ -336,7 +336,8 @@ def paired_comparison(a: np.ndarray, b: np.ndarray) -> dict:
     res = {"n_pairs": int(ok.sum()), "median_diff": float(np.median(d)) if d.size else None,
            "frac_lower": float(np.mean(d < 0)) if d.size else None, "p_value": None}
     if d.size >= 5 and np.any(d != 0):
-        res["p_value"] = float(wilcoxon(d).pvalue)
+        ties = np.unique(np.abs(d)).size < d.size
+        res["p_value"] = float(wilcoxon(d, method="approx" if ties else "auto").pvalue)
     return res
 
 
@@ -367,8 +368,7 @@ def violins(ax, groups: dict[str, np.ndarray], *, ylabel: str, title: str = "",
             annotate: dict[str, str] | None = None) -> None:
     """One violin per group (finite values only) with the median marked and the points jittered.
 
-    :param annotate: optional text per group placed above its violin (e.g. a diverged count).
-    """
+    :param annotate: optional text per group placed above its violin (e.g. a diverged count)."""
     names = list(groups)
     data = [np.asarray(groups[k], float) for k in names]
     finite = [d[np.isfinite(d)] for d in data]
@@ -487,8 +487,7 @@ def linear_dataset(cfg: LinearData, seed: int) -> dict:
     """A random stable system (seeded by ``seed``) and its train / validation / simulation sets.
 
     :return: ``{"A": [n, n], "B": [n, m], "train": [Trajectory], "val": [...], "sim": [...]}``;
-        only the training states carry measurement noise.
-    """
+        only the training states carry measurement noise."""
     from envs.linear_system import random_stable_system
     from mbtsr.excitation import filtered_gaussian
     from mbtsr.trajectory import Trajectory
@@ -565,8 +564,7 @@ def arm_dataset(cfg: ArmSampling, seed: int, n_train: int, *, window: int = 100)
     """Train / validation / simulation trajectories of the paper arm for MC run ``seed``
     (docs/experiments.md, "paper_common": the robot data), input window ``window`` taps.
 
-    :return: ``{"env": env, "train": [...], "val": [...], "sim": [...]}``.
-    """
+    :return: ``{"env": env, "train": [...], "val": [...], "sim": [...]}``."""
     from envs.collect import collect_trajectories
     from mbtsr.trajectory import Trajectory
 
@@ -615,8 +613,7 @@ def regularization(method: str, *, sigma: float = 0.1, n_copies: int = 1,
     ``exact`` or ``smooth`` (docs/experiments.md, "paper_common": the methods).
 
     :param copies_batch: ``"shared"`` (copies in their trajectory's batch) or ``"own"`` (one
-        optimizer step per copy, the original code's batching).
-    """
+        optimizer step per copy, the original code's batching)."""
     from mbtsr.training import RegularizationConfig
 
     if method == "none":
@@ -637,8 +634,7 @@ def build_ensemble(n: int, m: int, *, formulation: str = "g",
                    repeat: int = 1, seed: int = 0):
     """The paper's nominal ensemble (4 x 20 units, elu/sigmoid/tanh/swish) or a deviation of it.
 
-    :param repeat: every activation ``repeat`` times (ensemble size x3 deviation: 3).
-    """
+    :param repeat: every activation ``repeat`` times (ensemble size x3 deviation: 3)."""
     from mbtsr.ensemble import DynamicsEnsemble, EnsembleConfig, MemberSpec
 
     members = tuple(MemberSpec(a, width, depth, dropout, layer_norm)
@@ -691,8 +687,7 @@ def evaluate(model, val, sim, X: np.ndarray, U: np.ndarray, A_true: np.ndarray,
     :param A_true: ``[P, n, n]``, ``B_true: [P, n, m]`` true Jacobians there.
     :return: ``pred_rms, sim_rms`` (mean over ``sim``; inf if one blew up), ``sim_rms_finite``
         (mean over the non-diverged ones), ``sim_diverged`` (count), ``jac_err`` (paper eq.
-        (jacerr)), ``jac_rms_entry`` (original's per-entry RMS), ``log10`` versions.
-    """
+        (jacerr)), ``jac_rms_entry`` (original's per-entry RMS), ``log10`` versions."""
     from mbtsr.metrics import jacobian_error, jacobian_rms_per_entry, prediction_rms, simulation_rms
 
     pred = prediction_rms(model, val)
@@ -855,8 +850,7 @@ def regime_dataset(cfg: RegimeData, seed: int) -> dict:
     differences) at the evaluation points and at every training point, for MC run ``seed``.
 
     :return: ``{"env", "train", "val", "sim", "X", "U", "A", "B", "A_train", "B_train"}`` with
-        ``A_train: [n_train_max, T, 4, 4]`` at the measured (noisy) training states.
-    """
+        ``A_train: [n_train_max, T, 4, 4]`` at the measured (noisy) training states."""
     d = arm_dataset(cfg, seed, cfg.n_train_max, window=EXCITATION_WINDOWS[cfg.window])
     env = d["env"]
     d["X"], d["U"] = evaluation_points(d["val"], cfg.eval_stride)
@@ -888,8 +882,7 @@ def jacobian_diagnostics(X: np.ndarray, A_true: np.ndarray, B_true: np.ndarray,
     """The Jacobian error split by row group and into "still" points (some joint speed below
     ``still_speed``: stiction) and "moving" ones.
 
-    :return: ``jac_{all,pos,vel}`` and ``jac_{moving,still}_{all,pos,vel}``, ``frac_still``.
-    """
+    :return: ``jac_{all,pos,vel}`` and ``jac_{moving,still}_{all,pos,vel}``, ``frac_still``."""
     still = (np.abs(X[:, 2:4]) < still_speed).any(1)
     out = {"frac_still": float(still.mean())}
     for tag, mask in (("", None), ("moving_", ~still), ("still_", still)):
