@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import os
 from pathlib import Path
 
 import numpy as np
@@ -81,6 +82,7 @@ def test_bench_suite_smoke(tmp_path):
     assert (tmp_path / "bench_suite_curves.png").is_file()
     md = (tmp_path / "b.md").read_text()
     assert "bench_suite_curves.png)" in md and "| inverted-pendulum | 2000 |" in md
+    assert f"from `{os.path.relpath(out, suite.REPO)}` (agent runs)" in md  # --out, named
     again = suite.main(common + ["--resume", "--planners", "cem-ilqr", "ilqr"])
     assert len(again["runs"]) == len(runs)  # resume skips finished runs
 
@@ -102,10 +104,10 @@ def test_normalized_score_hand_computed():
 def test_regenerating_the_report_keeps_the_hand_written_notes(tmp_path):
     doc = tmp_path / "benchmark.md"
     state = {"table": [], "runs": [], "git": "abc"}
-    suite.write_markdown(state, doc, tmp_path, {}, [], [])
+    suite.write_markdown(state, doc, tmp_path, {}, [], [], ("r.json", "b.json", "s.json", "p.json"))
     doc.write_text(doc.read_text() + "\nWhat the numbers say, by hand.\n")
     state["git"] = "def"
-    suite.write_markdown(state, doc, tmp_path, {}, [], [])
+    suite.write_markdown(state, doc, tmp_path, {}, [], [], ("r.json", "b.json", "s.json", "p.json"))
     text = doc.read_text()
     assert "git def; the agent runs at -." in text and "git abc" not in text
     assert text.count(suite.NOTES_MARKER) == 1

@@ -80,8 +80,7 @@ def agent_config(name: str, overrides: dict[str, Any] | None = None, *, smoke: b
     the smoke horizon lengthens the horizon to it).
 
     :raises ValueError: a setting the config refuses, naming it; regularizer weights in
-        ``overrides`` that turn its ``regularization`` name into another regularizer.
-    """
+        ``overrides`` that turn its ``regularization`` name into another regularizer."""
     from agents.config import AgentConfig
 
     entry = TASKS[name]
@@ -92,7 +91,7 @@ def agent_config(name: str, overrides: dict[str, Any] | None = None, *, smoke: b
                 "torch_threads": 1, "jacobian_error": False,
                 **entry["overrides"], **(overrides or {})}
     if smoke:
-        kind = settings.get("planner.kind", "ilqr")
+        kind = settings.get("planner.kind", PlannerConfig().kind)
         settings.update({k: v for k, v in SMOKE_OVERRIDES.items() if _planner_applies(k, kind)})
         if "planner.replan_every" in settings:
             settings["planner.replan_every"] = 2
@@ -140,8 +139,7 @@ def task_baselines(name: str, *, smoke: bool = False,
     episodes, with the oracle's planning time per MPC step (an upper bound).
 
     :param overrides: other planner settings (dotted ``AgentConfig`` fields such as
-        ``"planner.kind"`` or ``"planner.horizon"``), on top of the task's own.
-    """
+        ``"planner.kind"`` or ``"planner.horizon"``), on top of the task's own."""
     import torch
 
     from agents.evaluation import evaluate_policy_costs
@@ -194,8 +192,7 @@ def _check_baseline_settings(name: str, baseline: dict[str, Any], planner_cfg: A
     """Refuse a stored oracle computed with other planner settings (horizon, terminal weight,
     iterations) than the task's now: its return and the solved threshold would not apply.
 
-    :raises ValueError: naming the task, both settings and the command that recomputes it.
-    """
+    :raises ValueError: naming the task, both settings and the command that recomputes it."""
     # a baseline stored before warm_samples existed sampled cem.samples when warm (None)
     stored = {"warm_samples": None,
               **{k: v for k, v in baseline.get("planner", {}).items() if k != "kind"}}
@@ -251,8 +248,7 @@ def run_one(name: str, planner: str, reg: str, seed: int, *, smoke: bool,
         (:func:`check_agent_settings`); recorded in the run.
     :param form: how the agent is given the task (:data:`FORMS`); recorded in the run.
     :raises ValueError: ``stop_after`` without ``checkpoint_dir``; a checkpoint of other
-        settings (:class:`~mbtsr.fileformat.CheckpointError`, naming the first).
-    """
+        settings (:class:`~mbtsr.fileformat.CheckpointError`, naming the first)."""
     import torch
 
     from agents.checkpoint import check_same
@@ -348,8 +344,7 @@ def _flatten(settings: dict[str, Any], prefix: str = "") -> dict[str, Any]:
     """``{"planner": {"cem": {"samples": 9}}}`` -> ``{"planner.cem.samples": 9}`` (dotted keys
     pass through), the form :meth:`AgentConfig.replace` accepts either way.
 
-    :raises ValueError: a key that is not a string, or a field given twice.
-    """
+    :raises ValueError: a key that is not a string, or a field given twice."""
     out: dict[str, Any] = {}
     for key, value in settings.items():
         if not isinstance(key, str):
@@ -375,8 +370,7 @@ def check_agent_settings(settings: Any) -> dict[str, Any]:
     (:data:`_ORACLE_OWN`: set those in the task's settings and recompute its baseline). The
     values are checked when :func:`run` builds every run's config, before the first run.
 
-    :raises ValueError: naming the refused field and why.
-    """
+    :raises ValueError: naming the refused field and why."""
     from agents.config import AgentConfig
 
     if not isinstance(settings, dict):
@@ -587,8 +581,7 @@ def settings_labels(base: dict[str, Any], variant: dict[str, Any],
     ``variant_label`` if given (a compared JSON's ``"label"``: runs that differ by code or
     task, not only by settings).
 
-    :raises ValueError: if ``variant_label`` is given and is not a non-blank string.
-    """
+    :raises ValueError: if ``variant_label`` is given and is not a non-blank string."""
     def name(d: dict[str, Any]) -> str:
         return ", ".join(f"{k}={json.dumps(v)}" for k, v in sorted(d.items()))
 
@@ -869,16 +862,17 @@ def _run_commits(runs: list[dict[str, Any]]) -> str:
     return ", ".join(f"{c} ({n} run{'s' * (n != 1)})" for c, n in counts.items()) or "-"
 
 
-def _md_references(state: dict[str, Any], refs: list[dict[str, Any]], rel: str) -> list[str]:
+def _md_references(state: dict[str, Any], refs: list[dict[str, Any]], rel: str,
+                   sources: tuple[str, ...]) -> list[str]:
     """The report's head: the protocol, the tasks, baselines and reference methods, the agent
-    vs PETS at equal env steps and the learning-curve figures."""
+    vs PETS at equal env steps and the learning-curve figures; ``sources``: the JSON files of
+    the agent runs, the baselines, SAC and PETS."""
     return [
         "# Benchmark suite",
         "",
-        "Generated by `scripts/bench_suite.py` from `docs/results/bench_suite.json` (agent "
-        "runs), `bench_suite_baselines.json` (zero action, true-model oracle), "
-        "`bench_suite_sac.json` (SB3 SAC) and `bench_suite_pets.json` (PETS, "
-        "[notes/pets_peer.md](notes/pets_peer.md)); git " + state.get("git", "?") + "; the "
+        "Generated by `scripts/bench_suite.py` from `{}` (agent runs), `{}` (zero action, "
+        "true-model oracle), `{}` (SB3 SAC) and `{}` (PETS, [notes/pets_peer.md](notes/"
+        "pets_peer.md)); git ".format(*sources) + state.get("git", "?") + "; the "
         "agent runs at " + _run_commits(state["runs"]) + "."
         + (f" Every agent run with the settings {json.dumps(state['agent_settings'])} on top "
            "of its task's; normalized scores and solved thresholds are against the stored "
@@ -977,15 +971,15 @@ def _md_regularizers(cmp: list[dict[str, Any]]) -> list[str]:
 
 def write_markdown(state: dict[str, Any], path: Path, figure_dir: Path,
                    baselines: dict[str, dict[str, Any]], sb3_runs: list[dict[str, Any]],
-                   pets_runs: list[dict[str, Any]]) -> None:
+                   pets_runs: list[dict[str, Any]], sources: tuple[str, ...]) -> None:
     """The report (``docs/benchmark.md``): tasks and baselines, the reference methods next to
     the best agent configuration, every configuration, each regularizer vs none, the figures;
-    everything below :data:`NOTES_MARKER` is kept."""
+    everything below :data:`NOTES_MARKER` is kept. ``sources``: as :func:`_md_references`."""
     rel = os.path.relpath(figure_dir, path.parent)
     refs = reference_rows(state, baselines, sb3_runs, pets_runs)
     state["references"] = refs
     state["comparisons"] = comparisons(with_solved(state["runs"], baselines))
-    lines = [*_md_references(state, refs, rel), *_md_configurations(state),
+    lines = [*_md_references(state, refs, rel, sources), *_md_configurations(state),
              *_md_regularizers(state["comparisons"])]
     lines += [
         "",
@@ -1171,7 +1165,8 @@ def run(a: Args) -> dict[str, Any]:
         figures(state["runs"], Path(a.figures), baselines, pets_runs, sb3_runs)
         if a.docs:
             write_markdown(state, Path(a.docs), Path(a.figures), baselines, sb3_runs,
-                           pets_runs)
+                           pets_runs, tuple(os.path.relpath(Path(p).resolve(), REPO) for p in (
+                               a.out, a.baselines_json, a.sb3_json, a.pets_json)))
             write_json_atomic(path, state)
     return state
 
@@ -1241,8 +1236,7 @@ def _compare(a: Args, state: dict[str, Any], baselines: dict[str, dict[str, Any]
     """``--compare``: prints the runs of its JSON paired with ``state``'s
     (:func:`settings_comparison`) and, with ``--figures``, draws them (:func:`settings_figure`).
 
-    :raises ValueError: an unreadable JSON, a bad ``"label"``, no run that pairs.
-    """
+    :raises ValueError: an unreadable JSON, a bad ``"label"``, no run that pairs."""
     try:
         other = json.loads(Path(a.compare).read_text())
     except (OSError, json.JSONDecodeError) as e:
