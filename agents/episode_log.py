@@ -8,12 +8,14 @@ from __future__ import annotations
 import csv
 import io
 import math
+import sys
 import time
 from collections.abc import Iterable, Sequence
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+from stable_baselines3.common.logger import HumanOutputFormat
 
 from agents.checkpoint import atomic_write_text, write_run
 from mbtsr.validation import check_int
@@ -199,14 +201,15 @@ def _fmt(v: Any) -> str:
 
 
 # ---------------------------------------------------------------------- JacPropAgent.learn's loop
-def check_budget(total_timesteps: Any, episodes: Any, env: Any) -> None:
-    """Check :meth:`agents.jacprop_agent.JacPropAgent.learn`'s budget and env.
+def check_budget(total_timesteps: Any, episodes: Any, env: Any, log_interval: Any) -> None:
+    """Check :meth:`agents.jacprop_agent.JacPropAgent.learn`'s budget, log interval and env.
 
-    :raises ValueError: a budget that is not an integer >= 0, no budget at all, or no env (an
-        act-only loaded agent)."""
-    for name, value in (("total_timesteps", total_timesteps), ("episodes", episodes)):
+    :raises ValueError: a budget that is not an integer >= 0, no budget at all, a log interval
+        that is not an integer >= 1, or no env (an act-only loaded agent)."""
+    for name, value, low in (("total_timesteps", total_timesteps, 0),
+                             ("episodes", episodes, 0), ("log_interval", log_interval, 1)):
         if value is not None:
-            check_int(name, value, 0)
+            check_int(name, value, low)
     if episodes is None and total_timesteps is None:
         raise ValueError("give total_timesteps (env steps) or episodes=")
     if env is None:
@@ -225,10 +228,12 @@ def make_progress_bar(episodes: int | None, steps: int | None, show: bool) -> An
 
 
 def end_episode(agent: Any, row: dict[str, Any], log: EpisodeLog | None, *,
-                fps_since: tuple[int, float], bar: Any = None, bar_step: int = 1) -> None:
+                fps_since: tuple[int, float], bar: Any = None, bar_step: int = 1,
+                log_interval: int | None = None) -> None:
     """The agent's bookkeeping after an episode of ``learn``: the row logged and counted, the
-    run folder written, the SB3 logger's records (with ``time/fps``) to ``log``, the progress
-    ``bar`` advanced by ``bar_step``.
+    run folder written, the SB3 logger's records (with ``time/fps``) to ``log`` and, every
+    ``log_interval`` episodes, to stdout as SB3's table; the progress ``bar`` advanced by
+    ``bar_step``.
 
     :param fps_since: ``(env_steps, perf_counter time)`` at the start of ``learn``.
     """
@@ -237,8 +242,12 @@ def end_episode(agent: Any, row: dict[str, Any], log: EpisodeLog | None, *,
     if agent.config.checkpoint:
         write_run(agent, agent.config.run_dir)
     fps = (agent.env_steps - fps_since[0]) / max(time.perf_counter() - fps_since[1], 1e-9)
+    extra = {**agent.logger.name_to_value, "time/fps": fps}
     if log is not None:
-        log.append(row, extra={**agent.logger.name_to_value, "time/fps": fps})
+        log.append(row, extra=extra)
+    if log_interval and agent.episodes_done % log_interval == 0:
+        values = {**sb3_scalars(agent.logger_rows), **extra}
+        HumanOutputFormat(sys.stdout).write(values, dict.fromkeys(values, ()), agent.env_steps)
     agent.logger.dump(agent.env_steps)
     if bar is not None:
         bar.update(bar_step)

@@ -126,8 +126,9 @@ class JacPropAgent(SB3Predictor):
         self,
         total_timesteps: int | None = None,
         callback: Any = None,
-        progress_bar: bool | None = None,
+        log_interval: int | None = None,
         *,
+        progress_bar: bool | None = None,
         episodes: int | None = None,
     ) -> JacPropAgent:
         """Run Algorithm 1 for a budget of env steps (as SB3) or of episodes, logging and
@@ -137,11 +138,13 @@ class JacPropAgent(SB3Predictor):
             last episode is cut short (truncated) so that the budget is exact.
         :param callback: SB3 callbacks and/or functions of ``{"agent", "row"}`` called after
             every episode (:mod:`agents.callbacks`).
+        :param log_interval: print SB3's table of the logged scalars every this many episodes
+            (``None``: never; SB3's ``verbose=1`` tables).
         :param progress_bar: show a tqdm progress bar (``None``: ``config.progress``).
         :param episodes: a budget of episodes (with ``total_timesteps``: the first reached).
         :return: ``self``.
         """
-        check_budget(total_timesteps, episodes, self.env)
+        check_budget(total_timesteps, episodes, self.env, log_interval)
         callbacks = Callbacks(callback)
         if self.config.torch_threads:
             torch.set_num_threads(self.config.torch_threads)
@@ -177,7 +180,8 @@ class JacPropAgent(SB3Predictor):
                     max_steps=None if step_end is None else step_end - self.env_steps,
                     stop=callbacks.step_hook(self._count_step), last=last)
                 end_episode(self, row, self._log, fps_since=since, bar=bar,
-                            bar_step=1 if episodes is not None else self.env_steps - before)
+                            bar_step=1 if episodes is not None else self.env_steps - before,
+                            log_interval=log_interval)
                 if not callbacks.episode_end(self, row):
                     break
                 if self.config.evaluation.stop_when_solved and row.get("solved"):

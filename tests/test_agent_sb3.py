@@ -4,6 +4,8 @@ registered task without its functions. Real MuJoCo, CasADi, torch and SB3; tiny 
 
 from __future__ import annotations
 
+import re
+
 import gymnasium as gym
 import numpy as np
 import pytest
@@ -90,12 +92,20 @@ def test_sb3_callbacks_run_in_order_per_env_step_and_stop_learning():
         agent.learn(5, callback=[3])
 
 
-def test_learn_total_timesteps_stops_at_exactly_n_env_steps():
+def test_learn_total_timesteps_stops_at_exactly_n_env_steps(capsys):
     agent = pendulum_agent()
     for n, total in ((13, 13), (25, 38), (1, 39)):
         agent.learn(n, progress_bar=False)
         assert agent.env_steps == total == sum(t.T for t in agent.trajectories)
         assert agent.logger_rows[-1]["env_steps"] == total
+    assert "total_timesteps" not in capsys.readouterr().out  # no log_interval: no tables
+    before = agent.episodes_done
+    agent.learn(60, None, 2, progress_bar=False)  # SB3's positions: log_interval third
+    printed = re.findall(r"\|\s+total_timesteps\s+\|\s+(\d+)", capsys.readouterr().out)
+    assert [int(v) for v in printed] == [r["env_steps"] for i, r in enumerate(
+        agent.logger_rows) if i >= before and i % 2 == 1]  # every second episode done
+    with pytest.raises(ValueError, match="log_interval must be an integer >= 1, got 0"):
+        agent.learn(5, log_interval=0)
 
 
 def test_batch_predict_equals_per_row_predict_with_a_state_per_row():
@@ -117,8 +127,9 @@ def test_batch_predict_equals_per_row_predict_with_a_state_per_row():
     with pytest.raises(ValueError, match="episode_start must be one flag or 3 flags, got 2"):
         agent.predict(obs, states, episode_start=[True, False])
     # deterministic=False: the planned action plus the exploration noise, within the box
-    a_det, _ = agent.predict(obs[0])
-    noisy = np.stack([agent.predict(obs[0], deterministic=False)[0] for _ in range(200)])
+    a_det, _ = agent.predict(obs[0], rows[0][1])  # warm-started: a plan a cold start repeats
+    noisy = np.stack([agent.predict(obs[0], rows[0][1], deterministic=False)[0]
+                      for _ in range(200)])
     low, high = agent.env.action_space.low, agent.env.action_space.high
     assert np.all(noisy >= low) and np.all(noisy <= high)
     std = agent.config.collection.exploration_std * 0.5 * (high - low)

@@ -51,9 +51,9 @@ def smoke_agent(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
     def small_init(self, env, config=None, *args, **kwargs):
         init(self, env, _smoke(AgentConfig() if config is None else config), *args, **kwargs)
 
-    def small_learn(self, total_timesteps=None, callback=None, progress_bar=None, *,
-                    episodes=None):
-        return learn(self, total_timesteps, callback, progress_bar,
+    def small_learn(self, total_timesteps=None, callback=None, log_interval=None, *,
+                    progress_bar=None, episodes=None):
+        return learn(self, total_timesteps, callback, log_interval, progress_bar=progress_bar,
                      episodes=MAX_EPISODES if episodes is None else min(episodes, MAX_EPISODES))
 
     monkeypatch.setattr(JacPropAgent, "__init__", small_init)

@@ -17,7 +17,7 @@ from typing import Any
 import numpy as np
 
 from agents.cli import main as command
-from agents.experiments.paper_common import REPO, machine_info, write_result
+from agents.experiments.paper_common import REPO, machine_info, write_json_atomic, write_result
 
 
 @dataclass(frozen=True)
@@ -65,10 +65,10 @@ def run_block(code: str, seed: int, *, smoke: bool = False) -> list[dict[str, An
         init(self, env, config, *args, **kwargs)
         agents.append(self)
 
-    def capped_learn(self, total_timesteps=None, callback=None, progress_bar=None, *,
-                     episodes=None):
-        return learn(self, total_timesteps if not smoke else None, callback, progress_bar,
-                     episodes=2 if smoke else episodes)
+    def capped_learn(self, total_timesteps=None, callback=None, log_interval=None, *,
+                     progress_bar=None, episodes=None):
+        return learn(self, total_timesteps if not smoke else None, callback, log_interval,
+                     progress_bar=progress_bar, episodes=2 if smoke else episodes)
 
     with tempfile.TemporaryDirectory() as tmp, contextlib.chdir(tmp), \
             warnings.catch_warnings():
@@ -105,7 +105,8 @@ def run(args: Args) -> dict:
                 result["runs"].append({"block": b, **rec})
                 print(f"block {b} {rec['env_id']} seed {seed}: final return "
                       f"{rec['final_eval_return']}, {rec['wall_seconds']:.0f} s", flush=True)
-            write_result(args.out, result)
+            if args.out:  # each block's runs kept at once; "wrote" said at the end
+                write_json_atomic(args.out, result)
     result["summary"] = summarize(result["runs"])
     write_result(args.out, result)
     return result

@@ -353,7 +353,7 @@ def print_summary(agent, summary: dict) -> None:
         table.add_column(col, justify="right")
     for r in agent.logger_rows:
         table.add_row(
-            str(r["episode"] + 1), r["phase"], str(r["env_steps"]), _num(r["episode_cost"]),
+            str(r["episode"]), r["phase"], str(r["env_steps"]), _num(r["episode_cost"]),
             _num(r.get("eval_cost")), _num(r.get("cost_ratio")), _num(r.get("one_step_rms")),
             _num(r.get("jacobian_error")), _num(r.get("time_total")),
         )
