@@ -1007,3 +1007,26 @@ def test_open_loop_rollout_kernel_equals_stepping_the_model(cut):
 def test_freeze_names_an_unknown_precision():
     with pytest.raises(ValueError, match="precision must be one of"):
         make_model(WIDE_MEMBERS, "g").freeze("float16")
+
+
+@pytest.mark.parametrize("swish", [False, True])
+def test_float32_tanh_kernel_matches_float64_tanh(swish):
+    """The frozen model's float32 tanh (a rational form, clamped beyond |z| = 9) against numpy's
+    float64 tanh: within 3e-7 of tanh (about 2 float32 ulp near 1); ``z (tanh(z) + 1)`` within
+    4e-7 (1 + |z|) (numpy's float32 path: 1.8e-7 (1 + |z|), cancellation where tanh is near -1);
+    odd, and exactly +-1 far out. Non-contiguous and float64 arrays take numpy's tanh."""
+    from mbtsr.ensemble import _fast_tanh
+
+    z = np.concatenate([np.linspace(-12, 12, 20001), [-1e30, -9.0, 0.0, 9.0, 1e30],
+                        np.random.default_rng(0).standard_normal(5000)]).astype(np.float32)
+    h = _fast_tanh(z, np.empty_like(z), swish)
+    t = np.tanh(z.astype(np.float64))
+    ref = z * (t + 1.0) if swish else t
+    assert np.all(np.abs(h - ref) <= (4e-7 * (1 + np.abs(z)) if swish else 3e-7))
+    if not swish:
+        np.testing.assert_array_equal(h, -_fast_tanh(-z, np.empty_like(z)))
+        assert h[z == 1e30][0] == 1.0 and h[z == -1e30][0] == -1.0
+    strided = z.reshape(2, -1)[:, ::2].astype(np.float64)  # numpy's path
+    np.testing.assert_allclose(_fast_tanh(strided, np.empty_like(strided), swish),
+                               strided * (np.tanh(strided) + 1) if swish else np.tanh(strided),
+                               rtol=1e-15)
