@@ -1230,9 +1230,10 @@ class FrozenEnsemble:
 
     @property
     def linear_batch_cost(self) -> bool:
-        """True with the compiled rollouts, whose cost grows with the number of step sizes
-        (iLQR then rolls them out in chunks; :mod:`mbtsr.ilqr`)."""
-        return self._plan is not None and self.kernel_rows > 1
+        """True with the folded plan: a rollout's cost grows with the number of step sizes
+        (compiled rows, or numpy's at 30+ rows of work), so iLQR rolls them out in chunks and
+        stops at the first acceptable one (:mod:`mbtsr.ilqr`)."""
+        return self._plan is not None
 
     def _rollout_policy(self, x0, X, U, k, K, alphas, lower, upper, max_norm):
         """iLQR's line-search rollouts in one compiled call (:func:`_rollout_policy_kernel`;

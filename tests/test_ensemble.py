@@ -1030,3 +1030,12 @@ def test_float32_tanh_kernel_matches_float64_tanh(swish):
     np.testing.assert_allclose(_fast_tanh(strided, np.empty_like(strided), swish),
                                strided * (np.tanh(strided) + 1) if swish else np.tanh(strided),
                                rtol=1e-15)
+
+
+def test_every_folded_frozen_model_gets_the_chunked_line_search():
+    """A rollout of the folded frozen model costs more with more step sizes, compiled rows or
+    numpy's (wide members), so iLQR rolls the step sizes out in chunks (tests/test_lqr_kernels.py:
+    the same iterates) and stops at the first acceptable one."""
+    small, wide = make_model(WIDE_MEMBERS, "g").freeze(), _default_sized(1).freeze()
+    assert small.kernel_rows > 1 and wide.kernel_rows == 1
+    assert small.linear_batch_cost and wide.linear_batch_cost
