@@ -1229,11 +1229,10 @@ class FrozenEnsemble:
         return out.reshape(*lead, n)
 
     @property
-    def linear_batch_cost(self) -> bool:
-        """True with the folded plan: a rollout's cost grows with the number of step sizes
-        (compiled rows, or numpy's at 30+ rows of work), so iLQR rolls them out in chunks and
-        stops at the first acceptable one (:mod:`mbtsr.ilqr`)."""
-        return self._plan is not None
+    def line_search_chunks(self) -> tuple[int, ...] | None:
+        """Where iLQR's chunks of step sizes start (:mod:`mbtsr.ilqr`): compiled rows 2, 2, 3,
+        rest; wide rows in numpy the 2 largest steps (Reacher's usual), then the rest."""
+        return None if self._plan is None else (0, 2, 4, 7) if self.kernel_rows > 1 else (0, 2)
 
     def _rollout_policy(self, x0, X, U, k, K, alphas, lower, upper, max_norm):
         """iLQR's line-search rollouts in one compiled call (:func:`_rollout_policy_kernel`;

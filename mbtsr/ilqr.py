@@ -230,11 +230,12 @@ def ilqr(
     alphas = np.asarray(opts.alphas, dtype=float)
     boxqp_prm = tuple(float(getattr(opts, f"boxqp_{k}")) for k in (  # as BOXQP_DEFAULTS
         "max_iter", "min_grad", "min_rel_improve", "step_dec", "min_step", "armijo"))
-    # step-size chunks of the forward pass: all at once, or 2, 2, 3, rest where a batch costs
-    # its size (affine models, simulators: the line-search costs dominate)
+    # step-size chunks of the forward pass: all at once, 2, 2, 3, rest where a batch costs its
+    # size (affine models, simulators), or the model's own chunk starts (line_search_chunks)
     n_a = len(alphas)
     chunked = type(dynamics) is LinearDynamics or bool(getattr(dynamics, "linear_batch_cost", 0))
-    edges = [e for e in (0, 2, 4, 7) if e < n_a] + [n_a] if chunked else [0, n_a]
+    starts = getattr(dynamics, "line_search_chunks", None) or ((0, 2, 4, 7) if chunked else (0,))
+    edges = [e for e in starts if e < n_a] + [n_a]
     chunks = [slice(a, b) for a, b in zip(edges[:-1], edges[1:])]
     T = U0.shape[0]
     timings = dict.fromkeys(

@@ -1035,7 +1035,7 @@ def test_float32_tanh_kernel_matches_float64_tanh(swish):
 def test_every_folded_frozen_model_gets_the_chunked_line_search():
     """A rollout of the folded frozen model costs more with more step sizes, compiled rows or
     numpy's (wide members), so iLQR rolls the step sizes out in chunks (tests/test_lqr_kernels.py:
-    the same iterates) and stops at the first acceptable one."""
+    the same iterates) and stops at the first acceptable one; wide members in two."""
     small, wide = make_model(WIDE_MEMBERS, "g").freeze(), _default_sized(1).freeze()
     assert small.kernel_rows > 1 and wide.kernel_rows == 1
-    assert small.linear_batch_cost and wide.linear_batch_cost
+    assert small.line_search_chunks == (0, 2, 4, 7) and wide.line_search_chunks == (0, 2)
