@@ -247,7 +247,8 @@ def end_episode(agent: Any, row: dict[str, Any], log: EpisodeLog | None, *,
         log.append(row, extra=extra)
     if log_interval and agent.episodes_done % log_interval == 0:
         values = {**sb3_scalars(agent.logger_rows), **extra}
-        HumanOutputFormat(sys.stdout).write(values, dict.fromkeys(values, ()), agent.env_steps)
+        HumanOutputFormat(sys.stdout).write(values, {k: agent.logger.name_to_excluded.get(
+            k, ()) for k in values}, agent.env_steps)  # a callback's exclude= kept
     agent.logger.dump(agent.env_steps)
     if bar is not None:
         bar.update(bar_step)

@@ -274,6 +274,7 @@ class HybridDynamics:
         self.state_dim, self.action_dim = step_model.state_dim, step_model.action_dim
         self.dt = getattr(step_model, "dt", None)
         self.linear_batch_cost = bool(getattr(step_model, "linear_batch_cost", False))
+        self.line_search_chunks = getattr(step_model, "line_search_chunks", None)
         self._step = getattr(step_model, "_step", step_model.step)
         self.step = step_model.step
         self.jacobians = jacobian_model.jacobians

@@ -39,7 +39,7 @@ class ILQROptions:
     :param lambda_factor: growth factor of the adaptive schedule.
     :param lambda_max: give up (status ``"failed"``) when lambda exceeds this.
     :param lambda_min: lambda never drops below this after a decrease.
-    :param alphas: line-search step sizes, largest first (all rolled out in one batch).
+    :param alphas: line-search step sizes, largest first (rolled out in one batch or chunks).
     :param reg_type: 1 adds ``lambda I`` to ``Quu``; 2 adds ``lambda I`` to ``V'xx`` (state
         regularisation, ``Quu + lambda B^T B``, ``Qux + lambda B^T A``).
     :param reduce_ratio_min: accept a step when actual / expected improvement exceeds this.
@@ -235,6 +235,8 @@ def ilqr(
     n_a = len(alphas)
     chunked = type(dynamics) is LinearDynamics or bool(getattr(dynamics, "linear_batch_cost", 0))
     starts = getattr(dynamics, "line_search_chunks", None) or ((0, 2, 4, 7) if chunked else (0,))
+    if starts[0] != 0 or any(b <= a for a, b in zip(starts, starts[1:])):
+        raise ValueError(f"line_search_chunks must start at 0 and increase, got {starts}")
     edges = [e for e in starts if e < n_a] + [n_a]
     chunks = [slice(a, b) for a, b in zip(edges[:-1], edges[1:])]
     T = U0.shape[0]

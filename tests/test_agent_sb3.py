@@ -100,8 +100,15 @@ def test_learn_total_timesteps_stops_at_exactly_n_env_steps(capsys):
         assert agent.logger_rows[-1]["env_steps"] == total
     assert "total_timesteps" not in capsys.readouterr().out  # no log_interval: no tables
     before = agent.episodes_done
-    agent.learn(60, None, 2, progress_bar=False)  # SB3's positions: log_interval third
-    printed = re.findall(r"\|\s+total_timesteps\s+\|\s+(\d+)", capsys.readouterr().out)
+
+    def record(d):  # what an SB3 callback may log; exclude= keeps a value off stdout
+        d["agent"].logger.record("custom/shown", 1.5)
+        d["agent"].logger.record("custom/hidden", 2.5, exclude=("stdout", "log"))
+
+    agent.learn(60, record, 2, progress_bar=False)  # SB3's positions: log_interval third
+    out = capsys.readouterr().out
+    assert "custom/" in out and "shown" in out and "hidden" not in out
+    printed = re.findall(r"\|\s+total_timesteps\s+\|\s+(\d+)", out)
     assert [int(v) for v in printed] == [r["env_steps"] for i, r in enumerate(
         agent.logger_rows) if i >= before and i % 2 == 1]  # every second episode done
     with pytest.raises(ValueError, match="log_interval must be an integer >= 1, got 0"):

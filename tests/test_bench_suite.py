@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import os
 from pathlib import Path
 
 import numpy as np
@@ -82,7 +81,7 @@ def test_bench_suite_smoke(tmp_path):
     assert (tmp_path / "bench_suite_curves.png").is_file()
     md = (tmp_path / "b.md").read_text()
     assert "bench_suite_curves.png)" in md and "| inverted-pendulum | 2000 |" in md
-    assert f"from `{os.path.relpath(out, suite.REPO)}` (agent runs)" in md  # --out, named
+    assert f"from `{out.resolve()}` (agent runs)" in md  # --out, named (outside the repo)
     again = suite.main(common + ["--resume", "--planners", "cem-ilqr", "ilqr"])
     assert len(again["runs"]) == len(runs)  # resume skips finished runs
 

@@ -231,6 +231,11 @@ def test_paired_comparison_with_ties_is_the_tie_corrected_normal_approximation()
 
     p = pc.paired_comparison(np.ones(6), np.zeros(6))["p_value"]
     assert p == pytest.approx(2 * norm.sf(10.5 / np.sqrt(18.375)), rel=1e-9)
+    d = np.r_[0.0, np.arange(1.0, 13.0)]  # a zero difference: scipy's exact test permutes too
+    from scipy.stats import wilcoxon
+
+    assert pc.paired_comparison(d, np.zeros(13))["p_value"] == pytest.approx(
+        wilcoxon(d, method="approx").pvalue, rel=1e-12)
 
 
 @settings(max_examples=25, deadline=None)

@@ -326,8 +326,8 @@ def compare_pairs(records: list[dict], pairs: Sequence[tuple[str, str]],
 
 def paired_comparison(a: np.ndarray, b: np.ndarray) -> dict:
     """Paired samples ``a`` vs ``b``: median of ``a - b``, fraction with ``a < b``, two-sided
-    Wilcoxon signed-rank p-value (pairs with a non-finite member dropped; with tied ``|a - b|``
-    the normal approximation: scipy's exact test then enumerates 2^n sign patterns)."""
+    Wilcoxon signed-rank p-value (pairs with a non-finite member dropped; with tied or zero
+    ``a - b`` the normal approximation: scipy's exact test then enumerates 2^n sign patterns)."""
     from scipy.stats import wilcoxon
 
     a, b = np.asarray(a, float), np.asarray(b, float)
@@ -336,7 +336,7 @@ def paired_comparison(a: np.ndarray, b: np.ndarray) -> dict:
     res = {"n_pairs": int(ok.sum()), "median_diff": float(np.median(d)) if d.size else None,
            "frac_lower": float(np.mean(d < 0)) if d.size else None, "p_value": None}
     if d.size >= 5 and np.any(d != 0):
-        ties = np.unique(np.abs(d)).size < d.size
+        ties = np.unique(np.abs(d)).size < d.size or bool(np.any(d == 0))
         res["p_value"] = float(wilcoxon(d, method="approx" if ties else "auto").pvalue)
     return res
 
