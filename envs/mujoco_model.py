@@ -14,7 +14,7 @@ import mujoco
 import numpy as np
 from mujoco import rollout
 
-from mbtsr.dynamics import check_step_inputs
+from mbtsr.dynamics import LINE_SEARCH_CHUNKS, check_step_inputs
 from mbtsr.validation import as_array, check_choice, check_positive
 
 __all__ = [
@@ -91,10 +91,10 @@ class MujocoDynamics:
     :param jacobian_method: ``"auto"``, ``"transition_fd"`` or ``"fd"``.
     :param fd_eps: finite-difference step (absolute, per coordinate).
 
-    ``linear_batch_cost``: a batch of ``N`` steps costs ``N`` simulations (docs/ilqr.md, step 4).
+    ``line_search_chunks``: ``N`` steps cost ``N`` simulations (docs/ilqr.md, step 4).
     """
 
-    linear_batch_cost = True
+    line_search_chunks = LINE_SEARCH_CHUNKS
 
     def __init__(
         self,
@@ -273,7 +273,6 @@ class HybridDynamics:
         self.step_model, self.jacobian_model = step_model, jacobian_model
         self.state_dim, self.action_dim = step_model.state_dim, step_model.action_dim
         self.dt = getattr(step_model, "dt", None)
-        self.linear_batch_cost = bool(getattr(step_model, "linear_batch_cost", False))
         self.line_search_chunks = getattr(step_model, "line_search_chunks", None)
         self._step = getattr(step_model, "_step", step_model.step)
         self.step = step_model.step
@@ -292,7 +291,7 @@ class ObservedDynamics:
         (only read: its ``data`` is swapped for a copy during each evaluation, then restored).
     """
 
-    linear_batch_cost = True
+    line_search_chunks = LINE_SEARCH_CHUNKS
 
     def __init__(self, dynamics: MujocoDynamics, env, *, fd_eps: float = 1e-6) -> None:
         if not isinstance(dynamics, MujocoDynamics):

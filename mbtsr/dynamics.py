@@ -76,13 +76,18 @@ def check_step_shapes(x_shape: tuple[int, ...], u_shape: tuple[int, ...], n: int
                          f"{list(u_shape)}")
 
 
+#: line-search chunk starts where a batch costs its size (simulators, affine models; mbtsr.ilqr)
+LINE_SEARCH_CHUNKS = (0, 2, 4, 7)
+
+
 class LinearDynamics:
     """A time-invariant linear model ``x+ = A x + B u (+ c)``.
 
     :param A: ``[n, n]`` state matrix.
     :param B: ``[n, m]`` input matrix.
-    :param c: optional ``[n]`` affine term.
-    """
+    :param c: optional ``[n]`` affine term."""
+
+    line_search_chunks = LINE_SEARCH_CHUNKS  # iLQR rolls it out in one compiled call per chunk
 
     def __init__(self, A: np.ndarray, B: np.ndarray, c: np.ndarray | None = None) -> None:
         A = as_array("A", A, ndim=2)
@@ -120,8 +125,7 @@ def check_planning_model(model: object, n: int, m: int, name: str = "model") -> 
     :return: its step kernel (:func:`raw_step`).
     :raises TypeError: for a trainable model (one with ``freeze``: plan with
         ``model.freeze()``) or an object without ``step``/``jacobians``.
-    :raises ValueError: when ``state_dim``/``action_dim`` differ from ``n``/``m``.
-    """
+    :raises ValueError: when ``state_dim``/``action_dim`` differ from ``n``/``m``."""
     if hasattr(model, "freeze"):
         raise TypeError(f"model is a trainable {type(model).__name__}: plan with its frozen copy, "
                         "model.freeze() (immutable, numpy, no autograd)")
@@ -150,8 +154,7 @@ def rollout(model: DynamicsModel, x0: np.ndarray, u: np.ndarray, t0: int = 0) ->
         (a diverged simulation is reported, not hidden).
 
     A trainable model (one with ``freeze``, e.g. a :class:`mbtsr.ensemble.DynamicsEnsemble`)
-    is frozen once, in float64 (a metric, not planning), and its frozen copy simulated.
-    """
+    is frozen once, in float64 (a metric, not planning), and its frozen copy simulated."""
     if callable(getattr(model, "freeze", None)):
         model = model.freeze("float64")
     x0 = as_array("x0", x0)
@@ -182,8 +185,7 @@ def _rollout(
     state turns non-finite or exceeds ``max_norm`` in absolute value is dead: its states are NaN
     from then on, and the model is fed ``x0`` in its place (it never sees non-finite input).
     From one ``x0 [n]``, through the model's own batched kernel when it has one and takes the
-    batch (:meth:`mbtsr.ensemble.FrozenEnsemble._rollout_open_loop`, the same semantics).
-    """
+    batch (:meth:`mbtsr.ensemble.FrozenEnsemble._rollout_open_loop`, the same semantics)."""
     kernel = getattr(model, "_rollout_open_loop", None) if x0.ndim == 1 else None
     out = None if kernel is None else kernel(x0, U, max_norm)
     if out is not None:

@@ -22,7 +22,7 @@ from torch import nn
 from torch.nn import functional as F  # noqa: N812
 
 from mbtsr._lqr_kernels import guard_row, policy_row, rollout_buffers
-from mbtsr.dynamics import check_step_inputs, check_step_shapes
+from mbtsr.dynamics import LINE_SEARCH_CHUNKS, check_step_inputs, check_step_shapes
 from mbtsr.fileformat import CheckpointError, torch_load_verified, torch_save_verified
 from mbtsr.trajectory import Trajectory, as_trajectory_list
 from mbtsr.validation import as_array, check_bool, check_choice, check_int
@@ -847,7 +847,8 @@ def _tanh32(z, h, swish):  # pragma: no cover - compiled
 def _fast_tanh(z, h, swish=False):
     """``h = tanh(z)`` (``swish``: ``z (tanh(z) + 1)``): :func:`_tanh32` on float32, else numpy."""
     if z.dtype == np.float32 and z.flags.c_contiguous and h.flags.c_contiguous:
-        return _tanh32(z.reshape(-1), h.reshape(-1), swish) or h
+        _tanh32(z.reshape(-1), h.reshape(-1), swish)
+        return h
     return np.multiply(z, np.tanh(z) + 1.0, out=h) if swish else np.tanh(z, out=h)
 
 
@@ -1227,7 +1228,8 @@ class FrozenEnsemble:
     def line_search_chunks(self) -> tuple[int, ...] | None:
         """Where iLQR's chunks of step sizes start (:mod:`mbtsr.ilqr`): compiled rows 2, 2, 3,
         rest; wide rows in numpy the 2 largest steps (Reacher's usual), then the rest."""
-        return None if self._plan is None else (0, 2, 4, 7) if self.kernel_rows > 1 else (0, 2)
+        wide = self.kernel_rows == 1
+        return None if self._plan is None else (0, 2) if wide else LINE_SEARCH_CHUNKS
 
     def _rollout_policy(self, x0, X, U, k, K, alphas, lower, upper, max_norm):
         """iLQR's line-search rollouts in one compiled call (:func:`_rollout_policy_kernel`;

@@ -49,8 +49,7 @@ class ILQROptions:
     :param convexify_cost: project each stage's cost Hessian onto the positive semidefinite
         cone before the backward pass (:meth:`mbtsr.costs.CostDerivatives.convexified`; a
         no-op for convex costs; why: docs/ilqr.md, "Costs that are not convex").
-    :param boxqp_*: projected-Newton box-QP settings (Tassa et al.'s ``boxQP`` defaults).
-    """
+    :param boxqp_*: projected-Newton box-QP settings (Tassa et al.'s ``boxQP`` defaults)."""
 
     max_iter: int = 500
     tol_fun: float = 1e-7
@@ -113,8 +112,7 @@ class ILQRResult:
     :param timings: total seconds per phase: ``jacobians, cost_derivatives, backward, forward,
         line_search_cost, total``.
     :param proposal_cost: the cost of the initial plan a proposal step handed to iLQR (set by
-        :func:`mbtsr.cem_ilqr.cem_ilqr`), else ``None``.
-    """
+        :func:`mbtsr.cem_ilqr.cem_ilqr`), else ``None``."""
 
     X: np.ndarray
     U: np.ndarray
@@ -133,8 +131,7 @@ class ILQRResult:
 def check_control_bounds(u_min: object, u_max: object, m: int) -> tuple[np.ndarray, np.ndarray]:
     """Validate box bounds: ``None`` (unbounded), a scalar or an ``[m]`` array each.
 
-    :return: ``(lower [m], upper [m])`` with ``-inf`` / ``inf`` for missing bounds.
-    """
+    :return: ``(lower [m], upper [m])`` with ``-inf`` / ``inf`` for missing bounds."""
     out = []
     for name, b, fill in (("u_min", u_min, -np.inf), ("u_max", u_max, np.inf)):
         if b is None:
@@ -165,8 +162,7 @@ def check_problem(
     1, m]`` (``n``, ``m``: ``None`` takes them from ``x0``, ``U0`` and checks the model's
     ``state_dim``/``action_dim``), ``t0 >= 0``, the bounds and ``terminated``.
 
-    :return: ``(x0, U0, t0, lower [m], upper [m])``.
-    """
+    :return: ``(x0, U0, t0, lower [m], upper [m])``."""
     x0 = as_array("x0", x0, None if n is None else (n,), ndim=1)
     U0 = as_array("U0", U0, (None, m), ndim=2)
     if U0.shape[0] < 1 or U0.shape[1] < 1:
@@ -216,8 +212,7 @@ def ilqr(
         (:func:`mbtsr.costs.truncated_total`; docs/ilqr.md, "Predicted termination").
     :return: :class:`ILQRResult`. Its ``U`` is always finite and inside the bounds: a solve that
         meets NaN/inf (model, Jacobians, cost) stops with status ``"failed"`` and the best
-        finite iterate.
-    """
+        finite iterate."""
     opts = options_from(ILQROptions, options)
     if not isinstance(cost, CasadiCost):
         raise TypeError(f"cost must be a mbtsr.costs.CasadiCost, got {type(cost).__name__}")
@@ -230,11 +225,9 @@ def ilqr(
     alphas = np.asarray(opts.alphas, dtype=float)
     boxqp_prm = tuple(float(getattr(opts, f"boxqp_{k}")) for k in (  # as BOXQP_DEFAULTS
         "max_iter", "min_grad", "min_rel_improve", "step_dec", "min_step", "armijo"))
-    # step-size chunks of the forward pass: all at once, 2, 2, 3, rest where a batch costs its
-    # size (affine models, simulators), or the model's own chunk starts (line_search_chunks)
+    # step-size chunks of the forward pass: the model's chunk starts, else all at once
     n_a = len(alphas)
-    chunked = type(dynamics) is LinearDynamics or bool(getattr(dynamics, "linear_batch_cost", 0))
-    starts = getattr(dynamics, "line_search_chunks", None) or ((0, 2, 4, 7) if chunked else (0,))
+    starts = getattr(dynamics, "line_search_chunks", None) or (0,)
     if starts[0] != 0 or any(b <= a for a, b in zip(starts, starts[1:])):
         raise ValueError(f"line_search_chunks must start at 0 and increase, got {starts}")
     edges = [e for e in starts if e < n_a] + [n_a]
@@ -466,8 +459,7 @@ def _rollout_policy(dynamics, x0, X, U, k, K, alphas, lower, upper, t0, max_norm
     A row that turns non-finite is marked dead and continues from the nominal state (so the
     model never sees NaN); rows exceeding ``max_norm`` are marked dead at the end. An affine
     model, or one with its own ``_rollout_policy`` (the frozen ensemble; ``None`` declines),
-    rolls out in one compiled call with the same semantics.
-    """
+    rolls out in one compiled call with the same semantics."""
     kernel = getattr(dynamics, "_rollout_policy", None)  # a model's compiled rollouts
     if kernel is not None:
         out = kernel(x0, X, U, k, K, alphas, lower, upper, max_norm)

@@ -5,7 +5,7 @@
 - the exact LQ solution of a dense quadratic program (first iteration, lambda = 0, no limits);
 - the box QP against scipy's bounded-variable least squares (BVLS);
 - the compiled affine closed-loop rollout against the generic (model.step) rollout;
-- the chunked line search (``linear_batch_cost`` models) against the all-at-once one;
+- the chunked line search (``line_search_chunks`` models) against the all-at-once one;
 - the compile cache: a fresh process loads the kernel without recompiling.
 """
 
@@ -23,7 +23,7 @@ from scipy.optimize import lsq_linear
 
 from mbtsr import _lqr_kernels as kernels
 from mbtsr.costs import quadratic_cost
-from mbtsr.dynamics import LinearDynamics
+from mbtsr.dynamics import LINE_SEARCH_CHUNKS, LinearDynamics
 from mbtsr.ilqr import ILQROptions, _rollout_policy, ilqr
 
 PRM = kernels.BOXQP_DEFAULTS
@@ -245,8 +245,8 @@ class _Recording:
 
     state_dim, action_dim = 2, 1
 
-    def __init__(self, linear_batch_cost: bool) -> None:
-        self.linear_batch_cost = linear_batch_cost
+    def __init__(self, chunked: bool) -> None:
+        self.line_search_chunks = LINE_SEARCH_CHUNKS if chunked else None
         self.batches: list[int] = []
 
     def step(self, x, u, t=None):
@@ -271,7 +271,7 @@ class _Recording:
 
 
 def test_chunked_line_search_accepts_the_same_steps():
-    """``linear_batch_cost`` models get the step sizes in chunks 2, 2, 3, rest; same iterates."""
+    """``line_search_chunks`` models get the step sizes in chunks 2, 2, 3, rest; same iterates."""
     cost = quadratic_cost(np.diag([10.0, 0.1]), 0.01 * np.eye(1), np.array([2.5, 0.0]))
     T = 40
     runs = {}

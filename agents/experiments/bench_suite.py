@@ -1165,9 +1165,9 @@ def run(a: Args) -> dict[str, Any]:
         figures(state["runs"], Path(a.figures), baselines, pets_runs, sb3_runs)
         if a.docs:
             write_markdown(state, Path(a.docs), Path(a.figures), baselines, sb3_runs,
-                           pets_runs, tuple(str(Path(p).resolve().relative_to(REPO)) if Path(
-                               p).resolve().is_relative_to(REPO) else str(Path(p).resolve())
-                               for p in (a.out, a.baselines_json, a.sb3_json, a.pets_json)))
+                           pets_runs, tuple(str(r.relative_to(REPO) if r.is_relative_to(REPO)
+                                                else r) for r in (Path(p).resolve() for p in (
+                               a.out, a.baselines_json, a.sb3_json, a.pets_json))))
             write_json_atomic(path, state)
     return state
 

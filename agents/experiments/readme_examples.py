@@ -17,7 +17,8 @@ from typing import Any
 import numpy as np
 
 from agents.cli import main as command
-from agents.experiments.paper_common import REPO, machine_info, write_json_atomic, write_result
+from agents.experiments.paper_common import REPO, machine_info, write_result
+from mbtsr.io import write_json_atomic
 
 
 @dataclass(frozen=True)
