@@ -6,7 +6,6 @@ uses. Formulations, members, normalization, the folded planning kernels: docs/mo
 
 from __future__ import annotations
 
-import functools
 import json
 import os
 from collections.abc import Callable, Sequence
@@ -821,139 +820,111 @@ class DynamicsEnsemble(nn.Module):
 # --------------------------------------------------------------------------------------------
 
 
-def _fast_elu(z, h):
-    np.minimum(z, 0.0, out=h)
-    np.expm1(h, out=h)
-    np.maximum(h, z, out=h)  # expm1(z) >= z for z <= 0, and 0 < z for z > 0
-
-
-@njit(cache=True, fastmath=True, error_model="numpy", boundscheck=False)
-def _tanh32(z, h, swish):  # pragma: no cover - compiled
-    """``h = tanh(z)`` (``swish``: ``z (tanh(z) + 1)``) of float32 ``z [N]`` in one vectorized
-    pass: a [7/6] rational minimax form on [-9, 9], clamped outside (error <= 3.3e-7); 0.55 ns a
-    value on an AVX2 core, where numpy's float32 tanh takes 2.9 (docs/ilqr.md)."""
+@njit(cache=True, fastmath=True, error_model="numpy", boundscheck=False, inline="always")
+def _tanh_rational(z):  # pragma: no cover - compiled
+    """``tanh(z)`` of a float32 number: a [7/6] rational minimax form on [-9, 9], clamped
+    outside (error <= 3.3e-7; docs/ilqr.md)."""
     f = np.float32
-    for i in range(z.shape[0]):
-        x = min(max(z[i], f(-9.0)), f(9.0))
-        x2 = x * x
-        p = (((((f(-2.76076847742355e-16) * x2 + f(2.00018790482477e-13)) * x2 - f(
-            8.60467152213735e-11)) * x2 + f(5.12229709037114e-08)) * x2 + f(
-            1.48572235717979e-05)) * x2 + f(6.37261928875436e-04)) * x2 + f(4.89352455891786e-03)
-        q = ((f(1.19825839466702e-06) * x2 + f(1.18534705686654e-04)) * x2 + f(
-            2.26843463243900e-03)) * x2 + f(4.89352518554385e-03)
-        h[i] = z[i] * (p * x / q + f(1.0)) if swish else p * x / q
+    x = min(max(z, f(-9.0)), f(9.0))
+    x2 = x * x
+    p = (((((f(-2.76076847742355e-16) * x2 + f(2.00018790482477e-13)) * x2 - f(
+        8.60467152213735e-11)) * x2 + f(5.12229709037114e-08)) * x2 + f(
+        1.48572235717979e-05)) * x2 + f(6.37261928875436e-04)) * x2 + f(4.89352455891786e-03)
+    q = ((f(1.19825839466702e-06) * x2 + f(1.18534705686654e-04)) * x2 + f(
+        2.26843463243900e-03)) * x2 + f(4.89352518554385e-03)
+    return p * x / q
 
 
-def _fast_tanh(z, h, swish=False):
-    """``h = tanh(z)`` (``swish``: ``z (tanh(z) + 1)``): :func:`_tanh32` on float32, else numpy."""
-    if z.dtype == np.float32 and z.flags.c_contiguous and h.flags.c_contiguous:
-        _tanh32(z.reshape(-1), h.reshape(-1), swish)
-        return h
-    return np.multiply(z, np.tanh(z) + 1.0, out=h) if swish else np.tanh(z, out=h)
-
-
-def _fast_relu(z, h):
-    np.maximum(z, 0.0, out=h)
-
-
-def _fast_leaky_relu(z, h):
-    np.multiply(z, LEAKY_RELU_SLOPE, out=h)
-    np.maximum(z, h, out=h)
-
-
-_FAST_VALUE = {
-    "elu": _fast_elu,
-    "relu": _fast_relu,
-    "leaky_relu": _fast_leaky_relu,
-    "sigmoid": _fast_tanh,
-    "swish": functools.partial(_fast_tanh, swish=True),
-    "tanh": _fast_tanh,
-}
-"""Value-only activations of the folded ensemble-mean step: ``f(z, h)`` writes into ``h``;
-sigmoid and swish run as ``tanh(z/2)`` (:func:`_mean_step_plan`)."""
-
-_KERNEL_MAX_BATCH = 4  # rows up to which the compiled kernel beats numpy for small members
+_KERNEL_MAX_BATCH = 4  # rows up to which the compiled kernel beats numpy's batched products
 _KERNEL_CODE = {"elu": 0, "tanh": 1, "sigmoid": 1, "swish": 2, "relu": 3, "leaky_relu": 4}
 """Activation codes of the compiled kernel on the folded weights (sigmoid rows run as tanh)."""
+_TANH_RUN = np.array([[0, 1, 1]])  # tanh over a whole flat array (:func:`_act_runs`, scale N)
 
 
-@njit(cache=True)
-def _act_scalar(c, z):  # pragma: no cover - compiled
-    """Activation with code ``c`` (:data:`_KERNEL_CODE`, folded weights) of one number."""
-    if c == 0:
-        return z if z > 0.0 else np.expm1(z)
-    if c == 1:
-        return np.tanh(z)
-    if c == 2:
-        return z * (np.tanh(z) + 1.0)
-    if c == 3:
-        return z if z > 0.0 else 0.0
-    return z if z > 0.0 else LEAKY_RELU_SLOPE * z
+@njit(cache=True, fastmath={"contract"}, error_model="numpy", boundscheck=False)
+def _act_runs(z, runs, fast, scale=1):  # pragma: no cover - compiled
+    """``z[a s:b s] = act_c(z[a s:b s])`` in place for every run ``(a, b, c)`` of ``runs [R, 3]``
+    (:data:`_KERNEL_CODE`), ``s = scale`` (the row length of a flattened ``[H, B]``); ``fast``:
+    tanh and swish by :func:`_tanh_rational` (float32) in one vectorized loop, NaN kept; else
+    scalar ``np.tanh``. In place: with two arrays that may alias, the loop would be scalar."""
+    for r in range(runs.shape[0]):
+        w, c = z[runs[r, 0] * scale:runs[r, 1] * scale], runs[r, 2]  # a view: vectorized loops
+        if fast and (c == 1 or c == 2):
+            swish = c == 2
+            for h in range(w.shape[0]):
+                x = w[h]
+                t = _tanh_rational(x)
+                t = t if x == x else x  # the clamp of _tanh_rational would hide a NaN
+                w[h] = x * (t + np.float32(1.0)) if swish else t
+            continue
+        for h in range(w.shape[0]):
+            x = w[h]
+            if c == 0:
+                w[h] = x if x > 0.0 else np.expm1(x)
+            elif c == 1:
+                w[h] = np.tanh(x)
+            elif c == 2:
+                w[h] = x * (np.tanh(x) + 1.0)
+            elif c == 3:
+                w[h] = x if x > 0.0 else 0.0
+            else:
+                w[h] = x if x > 0.0 else LEAKY_RELU_SLOPE * x
 
 
-@njit(cache=True)
-def _mean_step_row(x, u, W_inT, Wh, bh, W_out, code, z, z2, out):  # pragma: no cover
+@njit(cache=True, fastmath={"contract"}, boundscheck=False)
+def _mean_step_row(x, u, W_inT, Wh, bh, W_out, runs, fast, z, z2, out):  # pragma: no cover
     """One row of :func:`_mean_step_kernel`: ``x [n]``, ``u [m]`` -> ``out [n]`` (``z, z2 [H]``
-    scratch). Layer 1 of all members is one ``[1+n+m, H]`` product; deeper layers are
-    block-diagonal (one ``W x W`` block per member); the output weights hold the mean."""
+    scratch in the planning precision). Layer 1 of all members is one ``[1+n+m, H]`` product;
+    deeper layers are block-diagonal (one ``W x W`` block per member); the output weights hold
+    the mean. Every inner loop is an axpy over contiguous weights (vectorized)."""
     n, m, H = x.shape[0], u.shape[0], W_inT.shape[1]
     L, K, W = Wh.shape[0], Wh.shape[1], Wh.shape[2]
-    for h in range(H):
-        z[h] = W_inT[0, h]
-    for i in range(n):
-        xi = x[i]
+    z[:] = W_inT[0]
+    for i in range(n + m):
+        xi = z.dtype.type(x[i] if i < n else u[i - n])
+        row = W_inT[1 + i]  # views: indices known >= 0, the loops vectorize
         for h in range(H):
-            z[h] += xi * W_inT[1 + i, h]
-    for j in range(m):
-        uj = u[j]
-        for h in range(H):
-            z[h] += uj * W_inT[1 + n + j, h]
-    for h in range(H):
-        z[h] = _act_scalar(code[h], z[h])
+            z[h] += xi * row[h]
+    _act_runs(z, runs, fast)
     for layer in range(L):
         for k in range(K):
-            o = k * W
-            for j in range(W):
-                z2[o + j] = bh[layer, k, j]
+            zk, yk, Wk = z[k * W:(k + 1) * W], z2[k * W:(k + 1) * W], Wh[layer, k]
+            yk[:] = bh[layer, k]
             for i in range(W):
-                a = z[o + i]
+                a, row = zk[i], Wk[i]
                 for j in range(W):
-                    z2[o + j] += a * Wh[layer, k, i, j]
-        for h in range(H):
-            z[h] = _act_scalar(code[h], z2[h])
-    for o in range(n):
-        out[o] = W_out[H, o]
-    for i in range(n):
-        xi = x[i]
+                    yk[j] += a * row[j]
+        _act_runs(z2, runs, fast)
+        z, z2 = z2, z
+    out[:] = W_out[H]
+    for i in range(n + m):
+        xi = x[i] if i < n else u[i - n]
+        row = W_out[H + 1 + i]
         for o in range(n):
-            out[o] += xi * W_out[H + 1 + i, o]
-    for j in range(m):
-        uj = u[j]
-        for o in range(n):
-            out[o] += uj * W_out[H + 1 + n + j, o]
+            out[o] += xi * row[o]
     for h in range(H):
-        a = z[h]
+        a, row = z[h], W_out[h]
         for o in range(n):
-            out[o] += a * W_out[h, o]
+            out[o] += a * row[o]
 
 
 @njit(cache=True)
-def _mean_step_kernel(x, u, W_inT, Wh, bh, W_out, code, out):  # pragma: no cover - compiled
+def _mean_step_kernel(x, u, W_inT, Wh, bh, W_out, runs, fast, out):  # pragma: no cover
     """Compiled ensemble-mean step on the folded weights of :func:`_mean_step_plan`:
     ``x [B, n]``, ``u [B, m]``, ``W_inT [1+n+m, H]``, ``Wh [depth-1, K, W, W]``,
-    ``bh [depth-1, K, W]``, ``W_out [H+1+n+m, n]``, ``code [H]`` (:data:`_KERNEL_CODE`) ->
-    ``out [B, n]``. The arithmetic of the numpy path, one row at a time, without numpy's
-    per-call overhead."""
+    ``bh [depth-1, K, W]``, ``W_out [H+1+n+m, n]``, activation ``runs [R, 3]``
+    (:func:`_act_runs`) -> ``out [B, n]``. The arithmetic of the numpy path, one row at a time,
+    without numpy's per-call overhead."""
     z = np.empty_like(W_inT[0])
     z2 = np.empty_like(W_inT[0])
     for b in range(x.shape[0]):
-        _mean_step_row(x[b], u[b], W_inT, Wh, bh, W_out, code, z, z2, out[b])
+        _mean_step_row(x[b], u[b], W_inT, Wh, bh, W_out, runs, fast, z, z2, out[b])
     return out
 
 
 @njit(cache=True)
-def _rollout_policy_kernel(W_inT, Wh, bh, W_out, code, x0, X, U, k, K, alphas, lower, upper,
-                           max_norm):  # pragma: no cover - compiled
+def _rollout_policy_kernel(W_inT, Wh, bh, W_out, runs, fast, x0, X, U, k, K, alphas, lower,
+                           upper, max_norm):  # pragma: no cover - compiled
     """Closed-loop rollouts of the frozen ensemble-mean model for all step sizes, in one
     compiled call: ``u_t = clip(U_t + alpha k_t + K_t (x_t - X_t), lower, upper)``;
     ``X: [T+1, n]``, ``U, k: [T, m]``, ``K: [T, m, n]``, ``alphas: [N]`` ->
@@ -970,7 +941,7 @@ def _rollout_policy_kernel(W_inT, Wh, bh, W_out, code, x0, X, U, k, K, alphas, l
             biggest = max(biggest, abs(x0[i]))
         for t in range(T):
             policy_row(U, k, K, X, t, alphas[a], lower, upper, Xn[a, t], Un[a, t])
-            _mean_step_row(Xn[a, t], Un[a, t], W_inT, Wh, bh, W_out, code, z, z2,
+            _mean_step_row(Xn[a, t], Un[a, t], W_inT, Wh, bh, W_out, runs, fast, z, z2,
                            Xn[a, t + 1])
             finite, biggest = guard_row(Xn[a, t + 1], X[t + 1], biggest)
             alive[a] &= finite
@@ -981,16 +952,18 @@ def _rollout_policy_kernel(W_inT, Wh, bh, W_out, code, x0, X, U, k, K, alphas, l
 
 def _plan_hidden(plan: SimpleNamespace, z: np.ndarray, h: np.ndarray) -> np.ndarray:
     """The hidden layers of a folded plan (:func:`_mean_step_plan`) in numpy, hidden-major
-    layout: first-layer pre-activations ``z [H, B]`` -> the last layer's activations, written
-    into ``h [H, B]`` (the one buffer of every layer; returned)."""
+    layout: first-layer pre-activations ``z [H, B]`` (a fresh array: activated in place) -> the
+    last layer's activations, written into ``h [H, B]`` (C-contiguous; returned)."""
     H, B = z.shape
-    for layer in range(plan.Wh.shape[0] + 1):
+    fast, depth = z.dtype == np.float32, plan.Wh.shape[0]
+    for layer in range(depth + 1):
         if layer:
-            z = plan.WhT_f[layer - 1] @ h.reshape(plan.K, plan.W, B)
+            z = np.matmul(plan.WhT_f[layer - 1], z.reshape(plan.K, plan.W, B),
+                          out=h.reshape(plan.K, plan.W, B) if layer == depth else None)
             z += plan.bhT[layer - 1]
-            z = z.reshape(H, B)
-        for act, a, b in plan.ops:
-            act(z[a:b], h[a:b])
+        _act_runs(z.reshape(-1), plan.kernel_runs, fast, B)
+    if not depth:
+        h[...] = z
     return h
 
 
@@ -1038,16 +1011,12 @@ def _mean_step_plan(runs, hidden: list[tuple[np.ndarray, np.ndarray]], Wo: np.nd
     bh = np.stack([b for _, b in deep]) if deep else np.zeros((0, K, W))
     W_inT = np.concatenate([folded[0][1].reshape(1, H),
                             folded[0][0].transpose(1, 0, 2).reshape(-1, H)], 0)
-    ops: list[tuple[Callable, int, int]] = []
-    code = np.zeros(H, np.int64)
+    kernel_runs: list[list[int]] = []  # rows [a, b) of activation code c, consecutive ones merged
     for name, a, b in runs:
-        f, first, stop = _FAST_VALUE[name], a * W, b * W
-        if ops and ops[-1][0] is f and ops[-1][2] == first:
-            ops[-1] = (f, ops[-1][1], stop)  # one call over consecutive rows of one kind
+        if kernel_runs and kernel_runs[-1][2] == _KERNEL_CODE[name]:
+            kernel_runs[-1][1] = b * W
         else:
-            ops.append((f, first, stop))
-        code[first:stop] = _KERNEL_CODE[name]
-    code.setflags(write=False)
+            kernel_runs.append([a * W, b * W, _KERNEL_CODE[name]])
     M = None
     if len(hidden) == 1:  # mean Jacobian J[b, (o, i)] = sum_h act'(z[h, b]) M[h, (o, i)]
         M = (Wo[:, :, :, None] * W1.swapaxes(1, 2)[:, :, None, :]).reshape(H, -1) / n_members
@@ -1058,7 +1027,8 @@ def _mean_step_plan(runs, hidden: list[tuple[np.ndarray, np.ndarray]], Wo: np.nd
 
     W_out = np.concatenate([Wo_f.reshape(H, n), bo_f[None], skip_J.T], 0)
     return SimpleNamespace(
-        K=K, W=W, H=H, ops=tuple(ops), code=code, dtype=dtype,
+        K=K, W=W, H=H, dtype=dtype, fast=dtype == np.float32,
+        kernel_runs=ro(np.array(kernel_runs, np.int64)),
         # folded (the step): kernel layout and numpy layout
         W_inT=rd(W_inT), W_in=rd(W_inT.T), Wh=rd(Wh), WhT_f=rd(Wh.swapaxes(-1, -2)),
         bh=rd(bh), bhT=rd(bh[..., None]), W_out=rd(W_out), W_outT=rd(W_out.T),
@@ -1077,11 +1047,11 @@ def _mean_step_plan(runs, hidden: list[tuple[np.ndarray, np.ndarray]], Wo: np.nd
 
 
 def _value_and_derivative(z: np.ndarray, name: str) -> tuple[np.ndarray, np.ndarray]:
-    """``(act(z), act'(z))``; sigmoid and swish through :func:`_fast_tanh`
+    """``(act(z), act'(z))``; sigmoid and swish through the compiled tanh of :func:`_act_runs`
     (``sigmoid(z) = 0.5 tanh(z/2) + 0.5``): in float32 far faster than scipy's ``expit``."""
     if name in ("sigmoid", "swish"):
         s = 0.5 * z
-        _fast_tanh(s, s)
+        _act_runs(s.reshape(-1), _TANH_RUN, s.dtype == np.float32, s.size)
         s *= 0.5
         s += 0.5
         if name == "sigmoid":
@@ -1183,11 +1153,9 @@ class FrozenEnsemble:
     @property
     def kernel_rows(self) -> int:
         """Batches up to this many rows run the compiled kernel (0 without the folded plan):
-        4 for small members (``width x depth <= 64``), else 1 (measured: numpy's vectorized
-        activations win from 2 rows on for wider members)."""
-        if self._plan is None:
-            return 0
-        return _KERNEL_MAX_BATCH if self._plan.W * (self._plan.Wh.shape[0] + 1) <= 64 else 1
+        measured on Reacher- to Pusher-sized members, it beats numpy's batched products up
+        to 4 rows (docs/ilqr.md)."""
+        return 0 if self._plan is None else _KERNEL_MAX_BATCH
 
     # ---------------------------------------------------------------- kernels (no checks)
     def _members(self, xu: np.ndarray, jac_rows: int, logvar: bool = False):
@@ -1221,15 +1189,15 @@ class FrozenEnsemble:
         if B > self.kernel_rows:  # numpy's BLAS and vectorized activations win on larger work
             return self._step_numpy(x, u).reshape(*lead, n)
         out = np.empty((B, n))
-        _mean_step_kernel(x, u, plan.W_inT, plan.Wh, plan.bh, plan.W_out, plan.code, out)
+        _mean_step_kernel(x, u, plan.W_inT, plan.Wh, plan.bh, plan.W_out, plan.kernel_runs,
+                          plan.fast, out)
         return out.reshape(*lead, n)
 
     @property
     def line_search_chunks(self) -> tuple[int, ...] | None:
-        """Where iLQR's chunks of step sizes start (:mod:`mbtsr.ilqr`): compiled rows 2, 2, 3,
-        rest; wide rows in numpy the 2 largest steps (Reacher's usual), then the rest."""
-        wide = self.kernel_rows == 1
-        return None if self._plan is None else (0, 2) if wide else LINE_SEARCH_CHUNKS
+        """Where iLQR's chunks of step sizes start (:mod:`mbtsr.ilqr`): 2, 2, 3, rest, each
+        chunk one call of the compiled rollout kernel."""
+        return None if self._plan is None else LINE_SEARCH_CHUNKS
 
     def _rollout_policy(self, x0, X, U, k, K, alphas, lower, upper, max_norm):
         """iLQR's line-search rollouts in one compiled call (:func:`_rollout_policy_kernel`;
@@ -1238,8 +1206,9 @@ class FrozenEnsemble:
         plan = self._plan
         if plan is None or alphas.shape[0] > self.kernel_rows:
             return None
-        return _rollout_policy_kernel(plan.W_inT, plan.Wh, plan.bh, plan.W_out, plan.code, x0,
-                                      X, U, k, K, alphas, lower, upper, float(max_norm))
+        return _rollout_policy_kernel(plan.W_inT, plan.Wh, plan.bh, plan.W_out, plan.kernel_runs,
+                                      plan.fast, x0, X, U, k, K, alphas, lower, upper,
+                                      float(max_norm))
 
     def _rollout_open_loop(self, x0: np.ndarray, U: np.ndarray, max_norm: float
                            ) -> tuple[np.ndarray, np.ndarray] | None:

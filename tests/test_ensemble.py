@@ -628,7 +628,7 @@ def test_frozen_model_matches_the_torch_model_and_is_immutable_float64_numpy(mem
     if frozen._plan is not None:
         arrays += [v for v in vars(frozen._plan).values()
                    if isinstance(v, np.ndarray) and v.dtype.kind == "f"]
-        assert not frozen._plan.code.flags.writeable
+        assert not frozen._plan.kernel_runs.flags.writeable
     assert all(isinstance(a, np.ndarray) and a.dtype == np.float64 for a in arrays)
     with pytest.raises(ValueError, match="read-only"):
         arrays[0][...] = 0.0
@@ -932,7 +932,7 @@ def test_model_config_sizes_by_the_rule_and_keeps_the_paper_preset():
 
 
 def _default_sized(seed=0):
-    """The default-sized model (3 x 64 units here: numpy kernels from 2 rows on), normalized."""
+    """The default-sized model (3 x 64 units here), normalized."""
     model = ModelConfig().build(N_STATE, N_INPUT, seed=seed)
     model.set_normalization([random_trajectory(40, N_STATE, N_INPUT, seed)])
     return model
@@ -956,6 +956,9 @@ def test_float32_planning_kernels_match_the_float64_reference(members):
         got = f32.step(x, u)
         assert got.dtype == np.float64
         _normwise_close(got, f64.step(x, u), 1e-5)
+        x[0, 0] = np.nan  # the compiled kernel's clamped tanh keeps a NaN, as numpy's
+        np.testing.assert_array_equal(np.isnan(f32._step(x, u)), np.isnan(f64._step(x, u)))
+        assert np.isnan(f32._step(x, u)[0]).all() and not np.isnan(f32._step(x, u)[1:]).any()
     T = 12
     x, u = rng.normal(size=(T, N_STATE)), rng.normal(size=(T, N_INPUT))
     for a, b in zip(f32.jacobians(x, u), f64.jacobians(x, u)):
@@ -1014,35 +1017,39 @@ def test_float32_tanh_kernel_matches_float64_tanh(swish):
     """The frozen model's float32 tanh (a rational form, clamped beyond |z| = 9) against numpy's
     float64 tanh: within 3.5e-7 of tanh (about 3 float32 ulp near 1); ``z (tanh(z) + 1)`` within
     4e-7 (1 + |z|) (numpy's float32 path: 1.8e-7 (1 + |z|), cancellation where tanh is near -1);
-    odd, and exactly +-1 far out. Non-contiguous and float64 arrays take numpy's tanh."""
-    from mbtsr.ensemble import _fast_tanh
+    odd, and exactly +-1 far out. Without ``fast`` (float64 plans) it is numpy's tanh."""
+    from mbtsr.ensemble import _act_runs
+
+    def act(z, fast=True):
+        h = z.copy()
+        _act_runs(h, np.array([[0, 1, 2 if swish else 1]]), fast, len(h))
+        return h
 
     z = np.concatenate([np.linspace(-12, 12, 2_000_001), [-1e30, -9.0, 0.0, 9.0, 1e30],
                         np.random.default_rng(0).standard_normal(5000)]).astype(np.float32)
-    h = _fast_tanh(z, np.empty_like(z), swish)
+    h = act(z)
     t = np.tanh(z.astype(np.float64))
     ref = z * (t + 1.0) if swish else t
     assert np.all(np.abs(h - ref) <= (4e-7 * (1 + np.abs(z)) if swish else 3.5e-7))
     special = np.array([np.nan, np.inf, -np.inf], np.float32)  # as numpy: NaN stays NaN
     with np.errstate(invalid="ignore"):  # -inf (tanh + 1) = -inf * 0
         want = special * (np.tanh(special) + 1) if swish else np.tanh(special)
-    np.testing.assert_array_equal(_fast_tanh(special, np.empty(3, np.float32), swish), want)
+    np.testing.assert_array_equal(act(special), want)
     if not swish:
-        np.testing.assert_array_equal(h, -_fast_tanh(-z, np.empty_like(z)))
+        np.testing.assert_array_equal(h, -act(-z))
         assert h[z == 1e30][0] == 1.0 and h[z == -1e30][0] == -1.0
-    for strided in (z[:5000:2], z[:5000].astype(np.float64)):  # numpy's path, in place too
-        want = strided * (np.tanh(strided) + 1) if swish else np.tanh(strided)
-        np.testing.assert_array_equal(_fast_tanh(strided, np.empty_like(strided), swish), want)
-        np.testing.assert_array_equal(_fast_tanh(strided, strided, swish), want)
+    z64 = z[:5000].astype(np.float64)
+    want = z64 * (np.tanh(z64) + 1) if swish else np.tanh(z64)  # libm's tanh, not numpy's:
+    assert np.all(np.abs(act(z64, False) - want) <= 4.5e-16 * (1 + np.abs(z64)))  # 2 ulp
 
 
 def test_every_folded_frozen_model_gets_the_chunked_line_search():
-    """A rollout of the folded frozen model costs more with more step sizes, compiled rows or
-    numpy's (wide members), so iLQR rolls the step sizes out in chunks (tests/test_lqr_kernels.py:
-    the same iterates) and stops at the first acceptable one; wide members in two."""
+    """A rollout of the folded frozen model costs more with more step sizes, so iLQR rolls the
+    step sizes out in chunks of the compiled kernel's rows (tests/test_lqr_kernels.py: the same
+    iterates) and stops at the first acceptable one; small and task-sized members alike."""
     small, wide = make_model(WIDE_MEMBERS, "g").freeze(), _default_sized(1).freeze()
-    assert small.kernel_rows > 1 and wide.kernel_rows == 1
-    assert small.line_search_chunks == (0, 2, 4, 7) and wide.line_search_chunks == (0, 2)
+    assert small.kernel_rows == wide.kernel_rows == 4
+    assert small.line_search_chunks == wide.line_search_chunks == (0, 2, 4, 7)
     from mbtsr.costs import quadratic_cost
     from mbtsr.ilqr import ilqr
 
