@@ -866,7 +866,7 @@ def _act_runs(z, runs, fast, scale=1):  # pragma: no cover - compiled
             elif c == 2:
                 w[h] = x * (np.tanh(x) + 1.0)
             elif c == 3:
-                w[h] = x if x > 0.0 else 0.0
+                w[h] = 0.0 if x <= 0.0 else x  # NaN stays NaN (np.maximum's)
             else:
                 w[h] = x if x > 0.0 else LEAKY_RELU_SLOPE * x
 
@@ -955,6 +955,7 @@ def _plan_hidden(plan: SimpleNamespace, z: np.ndarray, h: np.ndarray) -> np.ndar
     layout: first-layer pre-activations ``z [H, B]`` (a fresh array: activated in place) -> the
     last layer's activations, written into ``h [H, B]`` (C-contiguous; returned)."""
     H, B = z.shape
+    assert z.flags.c_contiguous and h.flags.c_contiguous  # reshape(-1) must be a view
     fast, depth = z.dtype == np.float32, plan.Wh.shape[0]
     for layer in range(depth + 1):
         if layer:
@@ -1195,8 +1196,8 @@ class FrozenEnsemble:
 
     @property
     def line_search_chunks(self) -> tuple[int, ...] | None:
-        """Where iLQR's chunks of step sizes start (:mod:`mbtsr.ilqr`): 2, 2, 3, rest, each
-        chunk one call of the compiled rollout kernel."""
+        """Where iLQR's chunks of step sizes start (:mod:`mbtsr.ilqr`): 2, 2, 3, rest (each of
+        up to :attr:`kernel_rows` rows one call of the compiled rollout kernel)."""
         return None if self._plan is None else LINE_SEARCH_CHUNKS
 
     def _rollout_policy(self, x0, X, U, k, K, alphas, lower, upper, max_norm):

@@ -718,6 +718,19 @@ def test_compiled_step_kernel_equals_the_numpy_step(members):
     _normwise_close(frozen._step(x[:3], u[:3]), frozen._step_numpy(x[:3], u[:3]), 1e-14)
 
 
+@pytest.mark.parametrize("activation", ACTIVATIONS)
+@pytest.mark.parametrize("precision", ["float32", "float64"])
+def test_folded_steps_pass_a_nan_on_as_the_members_do(activation, precision):
+    """An infinite input makes inf - inf (NaN) inside a deeper layer: the compiled kernel and
+    the numpy path of the folded step pass it on as the unfolded members do."""
+    frozen = make_model([MemberSpec(activation, 5, 3)] * 2, perturb=0.5).freeze(precision)
+    x, u = np.array([[np.inf, 0.3, -0.2]]), np.array([[0.1, 0.4]])
+    with np.errstate(all="ignore"):
+        members = frozen._members(np.concatenate([x, u], 1), 0)[0].mean(0)
+        for step in (frozen._step, frozen._step_numpy):
+            np.testing.assert_array_equal(np.isnan(step(x, u)), np.isnan(members))
+
+
 @pytest.mark.parametrize("members", [WIDE_MEMBERS, DEEP_MEMBERS], ids=["wide", "deep"])
 @pytest.mark.parametrize("max_norm", [1e8, 6.0])
 def test_compiled_line_search_rollouts_equal_the_python_rollouts(max_norm, members):
