@@ -135,7 +135,7 @@ def test_an_unknown_env_learns_its_reward_and_plans_on_it():
     """Pendulum-v1: after a few episodes the learned cost ranks held-out steps as the env's
     rewards do, and the planner's cost is that learned reward."""
     cfg = _config(**{"collection.episode_steps": 100, "collection.n_excitation_episodes": 3,
-                     "collection.excitation_scale": 1.0, "reward.steps": 1500,
+                     "collection.excitation_scale": 1.0, "reward.steps": 500,
                      "reward.members": 3, "reward.hidden": 32})
     agent = JacPropAgent(gym.make("Pendulum-v1"), cfg)
     assert agent.task.source == "learned" and agent.cost_fn is None
