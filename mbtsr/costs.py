@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import os
 import tempfile
+import warnings
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -118,26 +119,51 @@ class CostDerivatives:
 _ROWS = 256  # rows per call of a mapped stage function (one compiled shape per cost)
 
 
+#: JIT-compiled mapped functions by their serialized interpreted form: one compile per process
+_COMPILED: dict[str, ca.Function] = {}
+
+
 class _RowMap:
     """``fn`` (one row: inputs ``[w_i]``) on ``N`` rows, ``rows`` per call of one compiled
     ``fn.map(rows)``, through numpy buffers bound once with ``Function.buffer`` (numpy ``[rows,
     w]`` C order = CasADi ``[w, rows]``; docs/ilqr.md, "Costs").
 
     :param out_shapes: numpy shape of one row of each output (e.g. ``(m, n)`` for ``lux``).
+    :param jit_after: JIT-compile at this call (1: the first; ``None``: never). The compiled
+        function gives the same bits as CasADi's interpreter; without a C compiler it stays
+        interpreted, with a warning.
     """
 
     def __init__(self, fn: ca.Function, rows: int, out_shapes: list[tuple[int, ...]],
-                 jit: bool) -> None:
-        mapped = fn.map(rows)
-        sym = mapped.mx_in()
-        opts = casadi_jit_options("-O2") if jit else {}
-        self.rows, self.out_shapes = rows, out_shapes
+                 jit_after: int | None) -> None:
+        self.mapped, self.rows, self.out_shapes = fn.map(rows), rows, out_shapes
         widths = [fn.size1_in(i) * fn.size2_in(i) for i in range(fn.n_in())]
         self.ins = [np.zeros((rows, w)) for w in widths]
         # zeros: CasADi does not write the structurally zero part of an output
         self.outs = [np.zeros((rows, *s)) for s in out_shapes]
-        self.fn = ca.Function(f"{fn.name()}_rows", sym, mapped.call(sym), opts)
-        self.buffer, self.trigger = self.fn.buffer()
+        self.calls, self.jit_after, self.compiled = 0, jit_after, False
+        self._bind(jit_after == 1)
+
+    def _bind(self, jit: bool) -> None:
+        """Build the mapped function (compiled with ``jit``: once per process and function,
+        :data:`_COMPILED`) on the buffers."""
+        sym = self.mapped.mx_in()
+        fn = ca.Function(f"{self.mapped.name()}_rows", sym, self.mapped.call(sym))
+        if jit:
+            key = fn.serialize()
+            try:
+                if key not in _COMPILED:
+                    _COMPILED[key] = ca.Function(fn.name(), sym, self.mapped.call(sym),
+                                                 casadi_jit_options("-O2"))
+                fn = _COMPILED[key]
+            except RuntimeError as err:  # no C compiler
+                warnings.warn(f"CasADi could not JIT-compile a cost; it stays interpreted: "
+                              f"{' '.join(str(err).split())[:300]}", RuntimeWarning, stacklevel=3)
+                self.jit_after, jit = None, False
+                if hasattr(self, "fn"):
+                    return
+        self.fn, self.compiled = fn, jit
+        self.buffer, self.trigger = fn.buffer()
         for i, a in enumerate(self.ins):  # the arrays live as long as self
             self.buffer.set_arg(i, memoryview(a))
         for i, o in enumerate(self.outs):
@@ -145,6 +171,9 @@ class _RowMap:
 
     def __call__(self, N: int, *args: np.ndarray) -> list[np.ndarray]:
         """``args``: ``[N, w_i]`` or ``[1, w_i]`` (the same row for all) -> ``[N, *out_shape]``."""
+        self.calls += 1
+        if self.calls == self.jit_after and not self.compiled:
+            self._bind(True)
         C = self.rows
         if 0 < N <= C:  # one call (the usual case): no chunks
             for buf, a in zip(self.ins, args):
@@ -176,8 +205,10 @@ class CasadiCost:
     :param m: input dimension.
     :param params: optional default parameters, ``[p]`` or ``[N_ref, p]`` (used when a call
         gives none). ``p`` is the size of the functions' parameter input.
-    :param jit: JIT-compile the stage/terminal derivative functions with the system C compiler
-        (CasADi ``"shell"`` compiler; a one-off compile of a fraction of a second).
+    :param jit: JIT-compile the mapped stage/terminal functions with the system C compiler
+        (CasADi ``"shell"`` compiler; a one-off compile of 0.5-1.5 s, then the same bits 2-5x
+        faster): ``True`` at their first call, an integer ``k`` at their ``k``-th (so that short
+        runs do not pay the compile), ``False`` never.
     """
 
     def __init__(
@@ -188,7 +219,7 @@ class CasadiCost:
         m: int,
         *,
         params: np.ndarray | None = None,
-        jit: bool = False,
+        jit: bool | int = False,
     ) -> None:
         if not isinstance(stage, ca.Function):
             raise TypeError(f"stage must be a casadi.Function, got {type(stage).__name__}")
@@ -208,7 +239,10 @@ class CasadiCost:
             raise ValueError("params given, but neither stage nor terminal takes a parameter input")
         self.n, self.m, self.param_dim = n, m, p_dim
         self.params = None if params is None else self._as_table(params)
-        self.jit = bool(jit)
+        if isinstance(jit, bool) or jit is None:
+            self.jit_after = 1 if jit else None
+        else:
+            self.jit_after = check_int("jit", jit, 1)
         # normalised signatures: stage(x, u, t, p), terminal(x, p); SX symbols when the user's
         # functions can be evaluated on SX (fast scalar graphs), MX otherwise
         for sym in (ca.SX, ca.MX):
@@ -260,7 +294,7 @@ class CasadiCost:
         t: ca.SX | ca.MX | None = None,
         p: ca.SX | ca.MX | None = None,
         params: np.ndarray | None = None,
-        jit: bool = False,
+        jit: bool | int = False,
     ) -> CasadiCost:
         """Build a cost from symbolic expressions.
 
@@ -401,11 +435,11 @@ class CasadiCost:
             n, m = self.n, self.m
             if kind == "derivs":
                 shapes = [(n,), (m,), (n, n), (m, m), (m, n)]
-                maps = (_RowMap(self._stage_derivs, _ROWS, shapes, self.jit),
-                        _RowMap(self._terminal_derivs, 1, [(n,), (n, n)], self.jit))
+                maps = (_RowMap(self._stage_derivs, _ROWS, shapes, self.jit_after),
+                        _RowMap(self._terminal_derivs, 1, [(n,), (n, n)], self.jit_after))
             else:
-                maps = (_RowMap(self._stage_value, _ROWS, [()], self.jit),
-                        _RowMap(self._terminal_value, 16, [()], self.jit))
+                maps = (_RowMap(self._stage_value, _ROWS, [()], self.jit_after),
+                        _RowMap(self._terminal_value, 16, [()], self.jit_after))
             self._maps[kind] = maps
         return maps
 

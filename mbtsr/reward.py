@@ -311,7 +311,7 @@ class LearnedRewardCost(CasadiCost):
         self.n, self.m = reward.n, reward.m
         self.param_dim = check_int("param_dim", param_dim, 0)
         self.terminal_weight = check_nonnegative("terminal_weight", terminal_weight)
-        self.params, self.jit = None, False
+        self.params = None
 
     def _batch_values(self, Xs, Us, XT, t0: int, table) -> tuple[np.ndarray, np.ndarray]:
         """Stage costs ``[..., T]`` of ``Xs [..., T, n], Us [..., T, m]`` and terminal costs

@@ -167,6 +167,54 @@ def test_jit_compiled_cost_gives_the_same_numbers(tmp_path, monkeypatch):
     assert list(tmp_path.iterdir()) == []  # the JIT's temporary files go to a private folder
 
 
+def _jit_pair(jit):
+    x, u = ca.SX.sym("x", N_X), ca.SX.sym("u", N_U)
+    stage = smooth_norm(x[:2], 0.05) + ca.sumsqr(u) + u[0] * ca.sin(x[3])
+    return [CasadiCost.from_expressions(x, u, stage, ca.sumsqr(x), jit=j) for j in (False, jit)]
+
+
+def test_a_deferred_jit_compiles_at_its_call_and_keeps_every_bit():
+    """``jit=3``: interpreted for two calls, compiled from the third; CasADi's C code gives the
+    interpreter's bits (so a run's numbers do not depend on when, or whether, it compiled)."""
+    rng = np.random.default_rng(7)
+    plain, later = _jit_pair(3)
+    for call in range(1, 5):
+        X, U = rng.standard_normal((11, N_X)), rng.standard_normal((10, N_U))
+        for a, b in zip(plain.derivatives(X, U), later.derivatives(X, U)):
+            np.testing.assert_array_equal(a, b)
+        Xb, Ub = rng.standard_normal((5, 11, N_X)), rng.standard_normal((5, 10, N_U))
+        np.testing.assert_array_equal(plain.total(Xb, Ub), later.total(Xb, Ub))
+        assert [m.compiled for m in later._maps["derivs"]] == [call >= 3] * 2
+    again = _jit_pair(True)[1]  # the same functions: compiled once per process, shared
+    again.derivatives(X, U)
+    assert all(a.fn is b.fn for a, b in zip(again._maps["derivs"], later._maps["derivs"]))
+    with pytest.raises(ValueError, match="jit"):
+        _jit_pair(0)
+
+
+def test_without_a_c_compiler_the_cost_stays_interpreted_with_a_warning(monkeypatch):
+    import mbtsr.costs as costs
+
+    def no_compiler(opt_level="-O2"):
+        opts = costs.casadi_jit_options.__wrapped__(opt_level)
+        opts["jit_options"]["compiler"] = "/nonexistent/cc"
+        return opts
+
+    no_compiler.__wrapped__ = costs.casadi_jit_options
+    monkeypatch.setattr(costs, "casadi_jit_options", no_compiler)
+    monkeypatch.setattr(costs, "_COMPILED", {})  # nothing compiled by the earlier tests
+    rng = np.random.default_rng(8)
+    X, U = rng.standard_normal((11, N_X)), rng.standard_normal((10, N_U))
+    for jit in (True, 2):
+        plain, jitted = _jit_pair(jit)
+        with pytest.warns(RuntimeWarning, match="stays interpreted"):
+            for _ in range(3):
+                got = jitted.derivatives(X, U)
+        for a, b in zip(plain.derivatives(X, U), got):
+            np.testing.assert_array_equal(a, b)
+        assert not any(m.compiled for m in jitted._maps["derivs"])
+
+
 def test_batched_values_equal_per_trajectory_values():
     rng = np.random.default_rng(5)
     cost = _nonlinear_cost(rng.standard_normal((3, 2)))
