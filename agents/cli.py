@@ -1,30 +1,20 @@
-"""Command lines from config dataclasses (docs/experiments.md). Flags are changes to the
-defaults, read as a config file's (:func:`agents.config.replaced`): ``--dotted.field VALUE``,
-``--field=VALUE``, a list of values for a tuple, a bool's flag alone for true and ``--no-field``
-for false. Every error is one line ``<prog>: error: <message>`` (exit code 2) naming the flag or
-field; an unknown flag is named with the closest valid one; fields a config fixes (its
-``FIXED``, as :attr:`agents.config.AgentConfig.FIXED`) are not offered."""
+"""Command lines generated from config dataclasses by tyro (docs/experiments.md): a bad value ends
+in one line ``<prog>: error: <message>`` (exit code 2) naming the dotted field; fields a config
+fixes (its ``FIXED``, as :attr:`agents.config.AgentConfig.FIXED`) are not offered."""
 
 from __future__ import annotations
 
-import ast
-import contextlib
 import dataclasses
 import functools
-import inspect
-import itertools
 import os
 import re
-import shutil
 import sys
-import textwrap
+import typing
 from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
-from typing import Any, NoReturn, TypeVar
+from typing import Annotated, Any, NoReturn, TypeVar
 
-from agents.config import closest, describe, hints, leaves, paths, replaced
-
-__all__ = ["call", "check_output_path", "fail", "main", "parse", "usage"]
+__all__ = ["built", "call", "check_output_path", "fail", "main", "parse"]
 
 T = TypeVar("T")
 _ROLE = re.compile(r":(?:py:)?(?:func|class|meth|data|mod|attr|obj):`~?([^`]+)`|``([^`]+)``")
@@ -34,6 +24,12 @@ def fail(message: str, prog: str | None = None) -> NoReturn:
     """Print ``<prog>: error: <message>`` on stderr and exit with code 2 (argparse's)."""
     print(f"{prog or Path(sys.argv[0]).name}: error: {message}", file=sys.stderr)
     raise SystemExit(2)
+
+
+def _plain_help(text: str | Callable[[], str | None] | None) -> str | None:
+    """``--help`` text (or tyro's lazy one) with reST markup (````x````, :func:`x`) as plain."""
+    text = text() if callable(text) else text
+    return text and _ROLE.sub(lambda m: m.group(1) or m.group(2), text)
 
 
 def check_output_path(path: str | os.PathLike, *, name: str, folder: bool = False) -> Path:
@@ -53,84 +49,67 @@ def check_output_path(path: str | os.PathLike, *, name: str, folder: bool = Fals
     return p
 
 
-def field_docs(cls: type) -> dict[str, str]:
-    """``{field: help}`` of a dataclass: its classes' ``:param field:`` entries, the strings
-    under the fields and ``metadata["help"]``, with reST markup as plain names."""
-    docs: dict[str, str] = {}
-    for c in reversed(cls.__mro__[:-1]):
-        text = c.__dict__.get("__doc__") or ""
-        docs.update(p.split(":", 1) for p in text.split(":param ")[1:])
-        with contextlib.suppress(OSError, TypeError, SyntaxError, IndexError):
-            body = ast.parse(textwrap.dedent(inspect.getsource(c))).body[0].body
-            docs.update((a.target.id, b.value.value) for a, b in zip(body, body[1:]) if isinstance(
-                a, ast.AnnAssign) and isinstance(b, ast.Expr) and isinstance(b.value, ast.Constant))
-    docs.update((f.name, f.metadata["help"]) for f in dataclasses.fields(cls)
-                if "help" in f.metadata)
-    return {k: " ".join(_ROLE.sub(lambda m: m.group(1) or m.group(2), v).split())
-            for k, v in docs.items()}
+def _fixed(cls: type) -> set[tuple[type, str]]:
+    """``(dataclass, field)`` of every field that a config in ``cls``'s tree fixes."""
+    hints = typing.get_type_hints(cls)
+    out = {(functools.reduce(lambda c, h: typing.get_type_hints(c)[h], heads, cls), last)
+           for *heads, last in (d.split(".") for d in getattr(cls, "FIXED", ()))}
+    return out.union(*(_fixed(h) for h in hints.values() if dataclasses.is_dataclass(h)))
 
 
-def _flat(obj: Any) -> str | None:
-    """The field whose flags carry no prefix (``field(metadata={"flat": True})``), if any."""
-    return next((f.name for f in dataclasses.fields(obj) if f.metadata.get("flat")), None)
+def _registry(fixed: set[tuple[type, str]]) -> Any:
+    """tyro's dataclass rule with the ``fixed`` fields suppressed, the help texts plain and the
+    values stored unchecked (:func:`_validated` builds them)."""
+    from tyro.conf import Suppress
+    from tyro.constructors import ConstructorRegistry, StructConstructorSpec
+
+    registry, inside = ConstructorRegistry(), []
+
+    def unchecked(cls: type, **values: Any) -> Any:
+        obj = object.__new__(cls)
+        obj.__dict__.update(values)  # frozen: its __setattr__ refuses
+        return obj
+
+    @registry.struct_rule
+    def rule(info: Any) -> Any:
+        if inside or not dataclasses.is_dataclass(info.type):
+            return None
+        inside.append(info)
+        try:  # tyro's own rule, from the registries below this one
+            spec = ConstructorRegistry.get_struct_spec(info)
+        finally:
+            inside.pop()
+        if not isinstance(spec, StructConstructorSpec):
+            return spec
+        return dataclasses.replace(spec, instantiate=functools.partial(unchecked, info.type),
+                                   fields=tuple(dataclasses.replace(
+                                       f, helptext=functools.partial(_plain_help, f.helptext),
+                                       type=Annotated[f.type, Suppress]
+                                       if (info.type, f.name) in fixed else f.type)
+                                       for f in spec.fields))
+    return registry
 
 
-def usage(config: Any, prog: str) -> str:
-    """The ``--help`` text: every field a flag with its type, help and default (``config``'s
-    value); sections head their groups; the fields a config fixes are left out."""
-    width = min(shutil.get_terminal_size().columns, 120) - 6
-    out = [f"usage: {prog} [-h] [--FIELD VALUE ...]", "",
-           *textwrap.wrap(" ".join((type(config).__doc__ or "").split()), width + 6)]
-
-    def walk(obj: Any, prefix: str, fixed: set[str]) -> None:
-        docs, flat = field_docs(type(obj)), _flat(obj)
-        fixed = fixed | {prefix + k for k in getattr(obj, "FIXED", ())}
-        items = sorted(hints(type(obj)).items(),  # the leaves first, then the sections
-                       key=lambda kv: dataclasses.is_dataclass(getattr(obj, kv[0])))
-        for name, hint in items:
-            value, dotted = getattr(obj, name), prefix + name
-            if dataclasses.is_dataclass(value):
-                if name != flat:
-                    out.extend(["", f"{dotted}: {docs.get(name, '')}"])
-                walk(value, "" if name == flat else dotted + ".", fixed)
-            elif dotted not in fixed:
-                out.append(f"  --{dotted.replace('_', '-')} ({describe(hint)})")
-                out.extend(textwrap.wrap(f"{docs.get(name, '')} (default: {value!r})", width,
-                                         initial_indent=" " * 6, subsequent_indent=" " * 6))
-
-    walk(config, "", set())
-    return "\n".join(out)
+def _validated(obj: Any, path: str = "") -> Any:
+    """``obj`` built again through its constructors, innermost first, by :func:`built`."""
+    if not dataclasses.is_dataclass(obj):
+        return obj
+    hints = typing.get_type_hints(type(obj), include_extras=True)
+    values = {f.name: _validated(getattr(obj, f.name), path if any(  # tyro.conf.arg(name="")
+        getattr(m, "name", None) == "" for m in getattr(hints[f.name], "__metadata__", ()))
+        else ".".join(p for p in (path, f.name) if p)) for f in dataclasses.fields(obj) if f.init}
+    return built(path, type(obj), **values)
 
 
-def changes(argv: Sequence[str], config: Any, switches: Sequence[str] = ()) -> dict[str, Any]:
-    """``{dotted field: value}`` of the flags ``argv`` on ``config``'s fields (``switches``:
-    flags that take no value, skipped); :raises ValueError: naming the flag."""
-    flat, types, names = _flat(config), {d: h for d, _, h in leaves(config)}, {}
-    for p in paths(config):  # flag name -> field; a top-level field wins over the flat one's
-        names.setdefault(p.removeprefix(f"{flat}."), p)
-    out: dict[str, Any] = {}
-    i = 0
-    while i < len(argv):
-        flag, eq, given = argv[i].partition("=")
-        values = [given] if eq else list(itertools.takewhile(
-            lambda a: not a.startswith("--"), argv[i + 1:]))
-        i += 1 + (0 if eq else len(values))
-        name = flag[2:].replace("-", "_")
-        head, _, last = name.rpartition(".")
-        off = f"{head}.{last[3:]}".lstrip(".")  # --no-x, --a.no-x
-        if flag in switches:
-            continue
-        if not flag.startswith("--"):
-            raise ValueError(f"unexpected argument {flag!r} (flags are --field VALUE)")
-        if name not in names and last.startswith("no_") and types.get(names.get(off)) is bool:
-            name, values = off, values or ["false"]
-        if name not in names:
-            near = closest(name, names).replace("_", "-")
-            raise ValueError(f"unknown flag {flag}; the closest is --{near}")
-        if not values and types.get(names[name]) is not bool:
-            raise ValueError(f"{flag} needs a value")
-        out[names[name]] = values[0] if len(values) == 1 else values or "true"
-    return out
+def built(path: str, make: Callable[..., T], *args: Any, **kwargs: Any) -> T:
+    """``make(*args, **kwargs)``; its error re-raised as a one-line ``ValueError`` naming the
+    dotted field ``path`` (``model.hidden_width must ...``; CEMOptions says ``options.<field>``)."""
+    try:
+        return make(*args, **kwargs)
+    except (ValueError, TypeError) as err:
+        msg = " ".join(str(err).removeprefix("options.").split())
+        named = not path or msg.startswith((f"{path}.", f"{path} "))
+        raise ValueError(msg if named else f"{path}.{msg}") from None
 
 
 def parse(config_type: type[T], *, args: Sequence[str] | None = None, prog: str | None = None,
@@ -141,36 +120,29 @@ def parse(config_type: type[T], *, args: Sequence[str] | None = None, prog: str 
 
     :param outputs: dotted fields holding output file paths, checked by :func:`check_output_path`
         (``folders``: output folders); ``None``/empty values are skipped.
-    :param presets: ``{flag: {field: value}}``: with ``flag`` (``"--smoke"``) given, these values
+    :param presets: ``{flag: {field: value}}``: with ``flag`` (``"--quick"``) given, these values
         are the defaults of the options not given.
     :param default: an instance whose values are the defaults (e.g. a saved run's config).
     """
+    import tyro
+
     prog = prog or Path(sys.argv[0]).name
     argv = list(sys.argv[1:] if args is None else args)
-    config = default or config_type()
     for flag, values in (presets or {}).items():
         if flag in argv:
-            config = dataclasses.replace(config, **values)
-    if {"-h", "--help"} & set(argv):
-        print(usage(config, prog))
-        raise SystemExit(0)
-    flat = _flat(config)
+            default = dataclasses.replace(default or config_type(), **values)
+    config = tyro.cli(config_type, args=argv, prog=prog, default=default,
+                      description=_plain_help(" ".join((config_type.__doc__ or "").split())),
+                      registry=_registry(_fixed(config_type)))
     try:
-        given = changes(argv, config, tuple(presets or ()))
-        if flat:  # the flat section's errors name its own fields
-            given[flat] = replaced(getattr(config, flat), {
-                k[len(flat) + 1:]: given.pop(k) for k in list(given) if k.startswith(f"{flat}.")})
-        config = replaced(config, given)
+        config = _validated(config)
         for names, folder in ((outputs, False), (folders, True)):
             for dotted in names:
                 value = functools.reduce(getattr, dotted.split("."), config)
                 if value not in (None, ""):
                     check_output_path(value, name="--" + dotted.replace("_", "-"), folder=folder)
-    except ValueError as err:  # a message that starts with a field names its flag
-        msg, m = str(err), re.match(r"[a-z_][\w.]*", str(err))
-        if m and m[0] in {p.removeprefix(f"{flat}.") for p in paths(config)}:
-            msg = f"--{m[0].replace('_', '-')}{msg[m.end():]}"
-        fail(msg, prog)
+    except ValueError as err:
+        fail(str(err), prog)
     return config
 
 

@@ -14,24 +14,24 @@ import numbers
 import os
 import types
 import typing
-from collections.abc import Callable, Iterable, Iterator, Mapping
+from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, ClassVar, Literal, TypeVar
+from typing import Any, ClassVar, Literal
 
 import numpy as np
 import yaml
 
+from agents.cli import built
 from mbtsr.cem import CEMOptions
 from mbtsr.ensemble import ModelConfig
 from mbtsr.reward import RewardConfig
 from mbtsr.training import RegularizationConfig, TrainConfig
 
 __all__ = ["AgentConfig", "CollectionConfig", "PlannerConfig", "EvaluationConfig",
-           "read_config_file", "split_run_config", "in_file", "PLANNERS", "replaced"]
+           "read_config_file", "split_run_config", "in_file", "PLANNERS"]
 
 PLANNERS = ("ilqr", "cem", "cem-ilqr")
-T = TypeVar("T")
 
 
 class _Section:
@@ -42,19 +42,19 @@ class _Section:
 
     def __post_init__(self) -> None:
         at = next((f"{k}." for k, c in SECTIONS.items() if c is type(self)), "")
-        for name, hint in hints(type(self)).items():
+        for name, hint in _hints(type(self)).items():
             value = getattr(self, name)
             if isinstance(value, str) and name in _NAMED:  # a name for a section: it, fresh
                 value = built(name, _NAMED[name], value)
                 object.__setattr__(self, name, value)
             if not _is_section(hint):
-                object.__setattr__(self, name, coerce(value, hint, at + name, True))
+                object.__setattr__(self, name, _coerce(value, hint, at + name, True))
             elif not isinstance(value, hint):
                 raise ValueError(f"{at}{name} must be a {hint.__module__}.{hint.__name__} (or a "
                                  f"dict of its fields), got {type(value).__name__}")
             elif not isinstance(value, _Section):  # a library config: the tree checks its leaves
-                for dotted, v, h in leaves(value, f"{at}{name}."):
-                    coerce(v, h, dotted, True)
+                for dotted, v, h in _leaves(value, f"{at}{name}."):
+                    _coerce(v, h, dotted, True)
         for dotted, bound in self._BOUNDS.items():
             low, high, low_open = bound if isinstance(bound, tuple) else (bound, math.inf, False)
             v = functools.reduce(getattr, dotted.split("."), self)
@@ -279,7 +279,7 @@ class AgentConfig(_Section):
                 f"training.patience={self.training.patience!r} has no effect: early stopping "
                 "needs held-out data (training.holdout > 0): set training.patience=None to "
                 "train the whole budget, or a hold-out")
-        agent, own = _defaults()
+        agent, own, _ = _defaults()
         for dotted, why in self.FIXED.items():
             if values[dotted] != own[dotted]:
                 raise ValueError(f"{dotted} must be {own[dotted]!r}: {why}, got "
@@ -295,7 +295,7 @@ class AgentConfig(_Section):
         """A copy with changes, validated again: ``changes`` maps dotted fields or sections
         (``{"model": {"hidden_width": 32}, "planner": "cem"}``) to values, coerced as in
         :meth:`from_dict`; keywords set top-level fields. Errors name the dotted field."""
-        return replaced(self, {**(changes or {}), **top}, "")
+        return _replaced(self, {**(changes or {}), **top}, "")
 
     @classmethod
     def default(cls, changes: Mapping[str, Any] | None = None, /, **top: Any) -> AgentConfig:
@@ -304,7 +304,7 @@ class AgentConfig(_Section):
 
     def dotted(self) -> dict[str, Any]:
         """``{dotted field: value}`` of every leaf of the tree (``"planner.cem.samples": 200``)."""
-        return {name: value for name, value, _ in leaves(self)}
+        return {name: value for name, value, _ in _leaves(self)}
 
     def changes(self) -> dict[str, Any]:
         """The leaves that differ from ``AgentConfig()``'s (``default(cfg.changes()) == cfg``)."""
@@ -343,22 +343,11 @@ class AgentConfig(_Section):
             raise in_file(path, err) from None
 
 
-def built(path: str, make: Callable[..., T], *args: Any, **kwargs: Any) -> T:
-    """``make(*args, **kwargs)``; its error re-raised as a one-line ``ValueError`` naming the
-    dotted field ``path`` (``model.hidden_width must ...``; CEMOptions says ``options.<field>``)."""
-    try:
-        return make(*args, **kwargs)
-    except (ValueError, TypeError) as err:
-        msg = " ".join(str(err).removeprefix("options.").split())
-        named = not path or msg.startswith((f"{path}.", f"{path} "))
-        raise ValueError(msg if named else f"{path}.{msg}") from None
-
-
 @functools.cache
-def hints(cls: type) -> dict[str, Any]:
+def _hints(cls: type) -> dict[str, Any]:
     """The resolved type of every field of dataclass ``cls``."""
-    types_ = typing.get_type_hints(cls)
-    return {f.name: types_[f.name] for f in dataclasses.fields(cls)}
+    hints = typing.get_type_hints(cls)
+    return {f.name: hints[f.name] for f in dataclasses.fields(cls)}
 
 
 @functools.cache
@@ -366,43 +355,45 @@ def _is_section(hint: Any) -> bool:
     return isinstance(hint, type) and dataclasses.is_dataclass(hint)
 
 
-def leaves(obj: Any, prefix: str = "") -> Iterator[tuple[str, Any, Any]]:
+def _leaves(obj: Any, prefix: str = "") -> Iterator[tuple[str, Any, Any]]:
     """``(dotted name, value, declared type)`` of every non-section field of ``obj``'s tree."""
-    for name, hint in hints(type(obj)).items():
+    for name, hint in _hints(type(obj)).items():
         if _is_section(hint):
-            yield from leaves(getattr(obj, name), f"{prefix}{name}.")
+            yield from _leaves(getattr(obj, name), f"{prefix}{name}.")
         else:
             yield prefix + name, getattr(obj, name), hint
 
 
 @functools.cache
-def _defaults() -> tuple[dict[str, Any], dict[str, Any]]:
-    """``AgentConfig()``'s dotted leaves (from the field defaults) and every section's leaves at
-    its class's defaults."""
+def _defaults() -> tuple[dict[str, Any], dict[str, Any], tuple[str, ...]]:
+    """``AgentConfig()``'s dotted leaves (from the field defaults), every section's leaves at its
+    class's defaults and every dotted path, sections included."""
     agent: dict[str, Any] = {}
     for f in dataclasses.fields(AgentConfig):
         value = f.default if f.default_factory is dataclasses.MISSING else f.default_factory()
-        agent.update({k: v for k, v, _ in leaves(value, f"{f.name}.")}
+        agent.update({k: v for k, v, _ in _leaves(value, f"{f.name}.")}
                      if _is_section(type(value)) else {f.name: value})
-    own = {k: v for name, cls in SECTIONS.items() for k, v, _ in leaves(cls(), f"{name}.")}
-    return agent, own
+    own = {k: v for name, cls in SECTIONS.items() for k, v, _ in _leaves(cls(), f"{name}.")}
+    paths = dict.fromkeys(".".join(p.split(".")[:i]) for p in agent
+                          for i in range(1, p.count(".") + 2))
+    return agent, own, tuple(paths)
 
 
-def describe(hint: Any) -> str:
+def _describe(hint: Any) -> str:
     """``float | None`` -> ``"a number or null"`` (the words of the type errors)."""
     origin, args = typing.get_origin(hint), typing.get_args(hint)
     if origin in (typing.Union, types.UnionType):
-        return " or ".join(describe(a) for a in args)
+        return " or ".join(_describe(a) for a in args)
     if origin is Literal:
         return repr(args[0]) if len(args) == 1 else f"one of {args}"
     if origin is tuple:
         count = "" if args[-1] is Ellipsis else f"{len(args)} "
-        return f"a list of {count}{describe(args[0]).split(' ', 1)[-1]}s"
+        return f"a list of {count}{_describe(args[0]).split(' ', 1)[-1]}s"
     return {bool: "true or false", int: "an integer", float: "a number", str: "a string",
             type(None): "null"}.get(hint, getattr(hint, "__name__", str(hint)))
 
 
-def coerce(value: Any, hint: Any, name: str, strict: bool = False) -> Any:
+def _coerce(value: Any, hint: Any, name: str, strict: bool = False) -> Any:
     """``value`` as the type ``hint`` of field ``name``, unless ``strict`` coerced where
     unambiguous (docs/agent.md, "Config files": Types).
     :raises ValueError: ``"<name> must be <type>, got <value>"``."""
@@ -416,12 +407,12 @@ def coerce(value: Any, hint: Any, name: str, strict: bool = False) -> Any:
     for option in options:
         origin, args = typing.get_origin(option), typing.get_args(option)
         number = isinstance(value, numbers.Real) and not isinstance(value, (bool, np.bool_))
-        if origin is tuple and (not strict or isinstance(value, tuple)):
-            value = value if isinstance(value, (tuple, list)) else (value,)
+        if origin is tuple and isinstance(value, tuple if strict else (tuple, list, str)):
+            value = (value,) if isinstance(value, str) else value
             items = (args[0],) * len(value) if args[-1] is Ellipsis else args
             with contextlib.suppress(ValueError):
                 if len(items) == len(value):
-                    return tuple(coerce(v, h, name, strict) for v, h in zip(value, items))
+                    return tuple(_coerce(v, h, name, strict) for v, h in zip(value, items))
         elif value is None and option is type(None) or origin is Literal and value in args \
                 and isinstance(value, str):
             return value
@@ -434,7 +425,7 @@ def coerce(value: Any, hint: Any, name: str, strict: bool = False) -> Any:
             return int(value)
         elif option is str and isinstance(value, (str, os.PathLike)):
             return os.fspath(value)
-    raise ValueError(f"{name} must be {describe(hint)}, got {given!r}")
+    raise ValueError(f"{name} must be {_describe(hint)}, got {given!r}")
 
 
 #: settings that act only under others: ``{fields: when}`` (a field ending in "." stands for its
@@ -460,56 +451,49 @@ _DEPENDENT = {
 }
 
 
-def closest(key: str, fields: Iterable[str]) -> str:
-    """The dotted field of ``fields`` closest to ``key``: the whole path or its last part."""
-    def score(path: str) -> tuple[float, float]:
+def _unknown(key: str) -> ValueError:
+    """The error of an unknown field, naming the closest valid one (whole path or last part)."""
+    def score(path: str) -> tuple[float, float]:  # the closer of the whole and the last part
         whole, last = (difflib.SequenceMatcher(None, a, b).ratio() for a, b in (
             (key, path), (key.rpartition(".")[2], path.rpartition(".")[2])))
         return max(whole, last), whole
 
-    return max(fields, key=score)
+    return ValueError(f"unknown AgentConfig field {key!r}; the closest valid field is "
+                      f"{max(_defaults()[2], key=score)!r}")
 
 
-def paths(obj: Any, prefix: str = "") -> list[str]:
-    """Every dotted field of ``obj``'s tree, sections included."""
-    return [p for name, hint in hints(type(obj)).items() for p in (prefix + name, *(
-        paths(getattr(obj, name), f"{prefix}{name}.") if _is_section(hint) else ()))]
-
-
-def replaced(obj: T, changes: Mapping[str, Any], prefix: str = "") -> T:
-    """``dataclasses.replace`` of any dataclass tree with ``changes``: dotted keys and section
-    dicts at any depth, every leaf coerced to its type (:func:`coerce`, values from files and
-    command lines), every level validated again; errors name the dotted field."""
-    types_, direct, nested = hints(type(obj)), {}, {}
+def _replaced(obj: Any, changes: Mapping[str, Any], prefix: str) -> Any:
+    """``dataclasses.replace`` with dotted keys and section dicts at any depth, every leaf
+    coerced to its type, every level validated again."""
+    hints, direct, nested = _hints(type(obj)), {}, {}
     for key, value in changes.items():
         if not isinstance(key, str):
             where = f" in {prefix[:-1]!r}" if prefix else ""
-            raise ValueError(f"field names are strings, got {key!r}{where}")
+            raise ValueError(f"AgentConfig field names are strings, got {key!r}{where}")
         head, _, rest = key.partition(".")
-        if head not in types_:
+        if head not in hints:
             while isinstance(value, Mapping) and value and isinstance(next(iter(value)), str):
                 key, value = f"{key}.{next(iter(value))}", next(iter(value.values()))
-            raise ValueError(f"unknown field {prefix + key!r}; the closest valid field is "
-                             f"{closest(prefix + key, paths(obj, prefix))!r}")
-        section = _is_section(types_[head])
+            raise _unknown(prefix + key)  # named down to its first leaf
+        section = _is_section(hints[head])
         if rest or (section and isinstance(value, Mapping)):
             for sub, v in ({rest: value} if rest else value).items():
                 if sub in nested.setdefault(head, {}):
                     raise ValueError(f"{prefix}{head}.{sub} is given twice")
                 nested[head][sub] = v
         else:  # a section's instance or name is checked by the constructor
-            direct[head] = value if section else coerce(value, types_[head], prefix + head)
+            direct[head] = value if section else _coerce(value, hints[head], prefix + head)
     for head, values in nested.items():
-        if not _is_section(types_[head]):
-            raise ValueError(f"unknown field '{prefix}{head}.{next(iter(values))}' "
+        if not _is_section(hints[head]):
+            raise ValueError(f"unknown AgentConfig field '{prefix}{head}.{next(iter(values))}' "
                              f"({prefix}{head} is a field, not a section)")
         base = direct.get(head, getattr(obj, head))
         if isinstance(base, str) and head in _NAMED:  # a name, then its fields
             base = built(head, _NAMED[head], base)
-        if not isinstance(base, types_[head]):
-            raise ValueError(f"{prefix}{head} must be a {types_[head].__name__} or a name, got "
+        if not isinstance(base, hints[head]):
+            raise ValueError(f"{prefix}{head} must be a {hints[head].__name__} or a name, got "
                              f"{base!r}")
-        direct[head] = replaced(base, values, f"{prefix}{head}.")
+        direct[head] = _replaced(base, values, f"{prefix}{head}.")
     return built(prefix[:-1], dataclasses.replace, obj, **direct)
 
 

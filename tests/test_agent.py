@@ -146,7 +146,7 @@ def test_config_round_trips_through_json_and_rejects_unknown_keys():
                               regularization="exact", seed=7)
     again = AgentConfig.from_dict(json.loads(cfg.to_json()))
     assert again == cfg
-    with pytest.raises(ValueError, match="unknown field"):
+    with pytest.raises(ValueError, match="unknown AgentConfig field"):
         AgentConfig.from_dict({**cfg.to_dict(), "nonsense": 1})
 
 

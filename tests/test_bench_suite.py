@@ -399,8 +399,8 @@ def test_agent_settings_reach_every_run_and_keep_their_json_apart(tmp_path, caps
                      ('{"planner": {"kind": "cem"}}', "suite's own"),
                      ('{"regularization": "exact"}', "suite's own"),
                      ('{"torch_threads": 2}', "suite's own"),
-                     ('{"planner": "cem"}', "unknown field"),
-                     ('{"planner.cem": 5}', "unknown field"),
+                     ('{"planner": "cem"}', "unknown AgentConfig field"),
+                     ('{"planner.cem": 5}', "unknown AgentConfig field"),
                      ('{"planner.replan_evry": 8}', "closest valid field is "
                                                      "'planner.replan_every'"),
                      ('{"video": true}', "suite's own"),

@@ -87,7 +87,7 @@ def test_help_shows_config(capsys):
 
 BAD_FILES = [  # (file name, content, the one line the script prints after "error: --config ")
     ("a.yaml", "training:\n  lr: fast\n", "{p}: training.lr must be a number, got 'fast'"),
-    ("a.yaml", "model:\n  hiden_width: 3\n", "{p}: unknown field "
+    ("a.yaml", "model:\n  hiden_width: 3\n", "{p}: unknown AgentConfig field "
      "'model.hiden_width'; the closest valid field is 'model.hidden_width'"),
     ("a.yaml", "planner:\n  cem: {samples: 50}\n", "{p}: planner.cem.samples=50 has no effect: "
      "it acts only when planner.kind == 'cem': remove it, or set that"),

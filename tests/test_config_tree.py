@@ -102,7 +102,7 @@ def test_unknown_fields_are_named():
         AgentConfig.from_dict({**AgentConfig().to_dict(), "nonsense": 1})
     with pytest.raises(ValueError, match=r"model\.depth"):
         AgentConfig.from_dict({**AgentConfig().to_dict(), "model": {"depth": 2}})
-    with pytest.raises(ValueError, match=r"unknown field 'planner\.depth'"):
+    with pytest.raises(ValueError, match=r"unknown AgentConfig field 'planner\.depth'"):
         AgentConfig().replace({"planner.depth": 2})
     with pytest.raises(ValueError, match=r"'horizon'; the closest valid field is "
                                          r"'planner\.horizon'"):
@@ -160,7 +160,7 @@ def test_bad_nested_cli_values_exit_2_with_one_line_naming_the_field(field, belo
         train_agent.parse([flag, str(INT_MINIMA[field] - below)])
     text = err.getvalue()
     assert exc.value.code == 2 and text.count("\n") == 1 and "Traceback" not in text
-    assert f"error: {flag} must be" in text, text
+    assert f"error: {field} must be" in text, text
 
 
 def test_sections_reject_the_wrong_type_and_training_seed():
@@ -444,7 +444,7 @@ def test_an_unknown_key_names_itself_and_its_closest_valid_field(path, data):
     with pytest.raises(ValueError) as err:
         AgentConfig.from_dict(nested({typo: 1}))
     message = str(err.value)
-    assert f"unknown field {typo!r}" in message, message
+    assert f"unknown AgentConfig field {typo!r}" in message, message
     if "not a section" not in message:
         closest = message.split("the closest valid field is ")[1].strip("'")
         assert closest in DEFAULTS or closest in {p.rpartition(".")[0] for p in DEFAULTS}

@@ -26,7 +26,7 @@ os.environ.setdefault("MUJOCO_GL", "egl")
 import numpy as np  # noqa: E402
 
 from agents import cli  # noqa: E402
-from agents.config import PLANNERS, PlannerConfig, closest  # noqa: E402
+from agents.config import PLANNERS, PlannerConfig  # noqa: E402
 from agents.experiments.paper_common import (  # noqa: E402
     cpu_model,
     finite_or_none,
@@ -392,8 +392,9 @@ def check_agent_settings(settings: Any) -> dict[str, Any]:
                 f"`python scripts/bench_suite.py --baselines --tasks <task> --seeds` (an "
                 f"empty --seeds: the baselines only)")
         if key not in leaves:
-            raise ValueError(f"unknown field {key!r}; the closest valid field is "
-                             f"{closest(key, leaves)!r}")
+            from agents.config import _unknown
+
+            raise _unknown(key)
     return flat
 
 

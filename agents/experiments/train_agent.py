@@ -12,9 +12,10 @@ import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Literal
+from typing import Annotated, Literal
 
 import numpy as np
+import tyro
 
 from agents import cli
 from agents.config import AgentConfig, EvaluationConfig, PlannerConfig
@@ -56,9 +57,11 @@ class Args:
     """the regularizer by name: only its weight stays on (the one given with its flag, e.g.
     --regularization.exact-weight, else its default: sampled 1, exact/smooth 0.01); none: all
     weights 0; weights: as the weight flags say"""
-    agent: AgentConfig = field(metadata={"flat": True}, default_factory=lambda: AgentConfig(
-        model=ModelConfig.paper(), planner=PlannerConfig(kind="ilqr"), regularization="sampled",
-        evaluation=EvaluationConfig(oracle_cache_dir="runs/oracle_cache")))
+    agent: Annotated[AgentConfig, tyro.conf.arg(name="")] = field(
+        default_factory=lambda: AgentConfig(
+            model=ModelConfig.paper(), planner=PlannerConfig(kind="ilqr"),
+            regularization="sampled",
+            evaluation=EvaluationConfig(oracle_cache_dir="runs/oracle_cache")))
     """the agent (its flags carry no agent. prefix; the defaults: above). --run-dir defaults
     to runs/train_agent/<env>_<regularization>_<formulation>_seed<seed> (a fresh run that finds
     a finished one there adds _1, _2, ...); --evaluation.oracle-cache-dir none disables the
@@ -106,6 +109,17 @@ def default_run_dir(args: Args) -> Path:
 _RERUN = ("env_id", "episodes", "plots", "summary_table")
 
 
+def _flag(argv: list[str], name: str) -> str | None:
+    """The value of the last ``name VALUE`` / ``name=VALUE`` in ``argv`` (None: not given)."""
+    value = None
+    for i, a in enumerate(argv):
+        if a == name and i + 1 < len(argv):
+            value = argv[i + 1]
+        elif a.startswith(name + "="):
+            value = a.split("=", 1)[1]
+    return value
+
+
 def from_file(path: str) -> Args:
     """The :class:`Args` defaults that ``--config PATH`` gives (see :class:`Args`.config).
 
@@ -142,13 +156,10 @@ def parse(argv: list[str] | None = None) -> Args:
     from agents.checkpoint import CheckpointError, load_checkpoint
 
     argv = list(sys.argv[1:] if argv is None else argv)
-    try:
-        given, default = cli.changes(argv, Args(), ("--smoke", "-h", "--help")), None
-    except ValueError as err:
-        cli.fail(str(err))
-    if given.get("config"):
+    path, default = _flag(argv, "--config"), None
+    if path:
         try:
-            default = from_file(given["config"])
+            default = from_file(path)
         except ValueError as err:
             cli.fail(f"--config {err}")
     args = cli.parse(Args, args=argv, outputs=("out",), default=default,
@@ -159,7 +170,8 @@ def parse(argv: list[str] | None = None) -> Args:
     if args.regularization != "weights":  # a name and a weight of another regularizer
         for kind in ("sampled", "exact", "smooth"):
             flag = f"--regularization.{kind}-weight"
-            if kind != args.regularization and f"agent.regularization.{kind}_weight" in given:
+            if kind != args.regularization and any(
+                    a.replace("_", "-").split("=")[0] == flag for a in argv):
                 cli.fail(f"--regularization {args.regularization} turns "
                          f"regularization.{kind}_weight off: give {flag} or --regularization "
                          f"{args.regularization}, not both")
