@@ -160,8 +160,6 @@ class _RowMap:
                 warnings.warn(f"CasADi could not JIT-compile a cost; it stays interpreted: "
                               f"{' '.join(str(err).split())[:300]}", RuntimeWarning, stacklevel=3)
                 self.jit_after, jit = None, False
-                if hasattr(self, "fn"):
-                    return
         self.fn, self.compiled = fn, jit
         self.buffer, self.trigger = fn.buffer()
         for i, a in enumerate(self.ins):  # the arrays live as long as self
@@ -172,7 +170,7 @@ class _RowMap:
     def __call__(self, N: int, *args: np.ndarray) -> list[np.ndarray]:
         """``args``: ``[N, w_i]`` or ``[1, w_i]`` (the same row for all) -> ``[N, *out_shape]``."""
         self.calls += 1
-        if self.calls == self.jit_after and not self.compiled:
+        if self.calls == self.jit_after:
             self._bind(True)
         C = self.rows
         if 0 < N <= C:  # one call (the usual case): no chunks
@@ -239,10 +237,7 @@ class CasadiCost:
             raise ValueError("params given, but neither stage nor terminal takes a parameter input")
         self.n, self.m, self.param_dim = n, m, p_dim
         self.params = None if params is None else self._as_table(params)
-        if isinstance(jit, bool) or jit is None:
-            self.jit_after = 1 if jit else None
-        else:
-            self.jit_after = check_int("jit", jit, 1)
+        self.jit_after = (1 if jit else None) if isinstance(jit, bool) else check_int("jit", jit, 1)
         # normalised signatures: stage(x, u, t, p), terminal(x, p); SX symbols when the user's
         # functions can be evaluated on SX (fast scalar graphs), MX otherwise
         for sym in (ca.SX, ca.MX):
