@@ -2,3 +2,16 @@ import os
 
 # Headless rendering must be chosen before mujoco is imported anywhere.
 os.environ.setdefault("MUJOCO_GL", "egl")
+
+
+import pytest  # noqa: E402
+
+
+@pytest.fixture(autouse=True)
+def _planner_costs_stay_interpreted(monkeypatch):
+    """Tests plan a few steps: the agent's planner cost is not JIT-compiled (0.1-0.3 s a
+    function, 68 compiles in the fast suite). Compiled and interpreted costs give the same bits
+    (tests/test_costs.py), so no result depends on it."""
+    import agents.planning
+
+    monkeypatch.setattr(agents.planning, "JIT_AFTER", False)
