@@ -121,7 +121,7 @@ def parse(config_type: type[T], *, args: Sequence[str] | None = None, prog: str 
     :param outputs: dotted fields holding output file paths, checked by :func:`check_output_path`
         (``folders``: output folders); ``None``/empty values are skipped.
     :param presets: ``{flag: {field: value}}``: with ``flag`` (``"--quick"``) given, these values
-        are the defaults of the options not given.
+        (a dict: changes to that section) are the defaults of the options not given.
     :param default: an instance whose values are the defaults (e.g. a saved run's config).
     """
     import tyro
@@ -129,8 +129,10 @@ def parse(config_type: type[T], *, args: Sequence[str] | None = None, prog: str 
     prog = prog or Path(sys.argv[0]).name
     argv = list(sys.argv[1:] if args is None else args)
     for flag, values in (presets or {}).items():
-        if flag in argv:
-            default = dataclasses.replace(default or config_type(), **values)
+        if flag in argv:  # a dict for a section: its changes (AgentConfig.replace), on top
+            d = default or config_type()
+            default = dataclasses.replace(d, **{k: getattr(d, k).replace(v) if isinstance(
+                v, Mapping) else v for k, v in values.items()})
     config = tyro.cli(config_type, args=argv, prog=prog, default=default,
                       description=_plain_help(" ".join((config_type.__doc__ or "").split())),
                       registry=_registry(_fixed(config_type)))

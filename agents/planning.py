@@ -30,8 +30,7 @@ __all__ = ["MPCPolicy", "ReplanEvery", "ReplanState", "SB3Predictor", "TrueState
            "make_policy", "planner_cost", "solver"]
 
 
-#: the planner cost's mapped functions are JIT-compiled at their 50th call (CasADi's C code:
-#: the same bits, 2-5x faster; a run of a few MPC steps does not pay the 0.5-1.5 s compile)
+#: planner costs compile at their 50th call (the same bits 2-5x faster; short runs skip it)
 JIT_AFTER = 50
 
 

@@ -129,9 +129,8 @@ class _RowMap:
     w]`` C order = CasADi ``[w, rows]``; docs/ilqr.md, "Costs").
 
     :param out_shapes: numpy shape of one row of each output (e.g. ``(m, n)`` for ``lux``).
-    :param jit_after: JIT-compile at this call (1: the first; ``None``: never). The compiled
-        function gives the same bits as CasADi's interpreter; without a C compiler it stays
-        interpreted, with a warning.
+    :param jit_after: JIT-compile at this call (1: the first; ``None``: never): the same bits
+        as CasADi's interpreter; without a C compiler it stays interpreted, with a warning.
     """
 
     def __init__(self, fn: ca.Function, rows: int, out_shapes: list[tuple[int, ...]],

@@ -357,4 +357,4 @@ def test_train_agent_smoke_takes_every_planner(kind):
 
     args = train_agent.parse(["--smoke", "--planner.kind", kind, "--regularization", "none"])
     assert args.smoke and args.episodes == 2 and args.agent.planner.kind == kind
-    assert args.agent.training.steps == train_agent.SMOKE["agent"].training.steps
+    assert args.agent.training.steps == train_agent.SMOKE["agent"]["training.steps"]

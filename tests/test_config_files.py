@@ -153,3 +153,12 @@ def test_config_and_resume_and_a_dropped_weight_are_refused(tmp_path, capsys):
             train_agent.parse(argv)
         err = capsys.readouterr().err
         assert exc.value.code == 2 and err.count("\n") == 1 and message in err, err
+
+
+def test_smoke_goes_on_top_of_a_config_file(tmp_path):
+    """``--config FILE --smoke``: the smoke sizes, and the file's other settings kept."""
+    path = tmp_path / "arm.yaml"
+    path.write_text("seed: 7\ntraining: {lr: 0.005}\n")
+    args = train_agent.parse(["--config", str(path), "--smoke"])
+    assert (args.agent.seed, args.agent.training.lr) == (7, 0.005)
+    assert args.smoke and args.agent.training.steps == 20 and args.episodes == 2

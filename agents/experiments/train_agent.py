@@ -78,15 +78,15 @@ class Args:
         object.__setattr__(self, "agent", agent)
 
 
-#: --smoke: the tiny CI size (options given on the command line win)
+#: --smoke: the tiny CI size (given options win; the agent's: changes on top of --config's)
 SMOKE = {"smoke": True, "episodes": 2, "plots": False, "summary_table": False,
-         "agent": Args().agent.replace({
+         "agent": {
              "collection.episode_steps": 25, "collection.n_excitation_episodes": 1,
              "training.steps": 20, "training.batch": 32, "model.ensemble_size": 2,
              "model.hidden_width": 12, "planner.horizon": 6,
              "planner.first_plan_iterations": 4, "evaluation.every": 1,
              "evaluation.episodes": 1, "evaluation.oracle_cache_dir": None, "progress": False,
-             "tensorboard": False, "torch_threads": 1})}
+             "tensorboard": False, "torch_threads": 1}}
 
 
 def _named(kind: str, reg: RegularizationConfig) -> RegularizationConfig:
