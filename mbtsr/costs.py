@@ -141,7 +141,7 @@ class _RowMap:
         # zeros: CasADi does not write the structurally zero part of an output
         self.outs = [np.zeros((rows, *s)) for s in out_shapes]
         self.calls, self.jit_after, self.compiled = 0, jit_after, False
-        self._bind(jit_after == 1)
+        self._bind(False)  # compiled at call ``jit_after`` (__call__), the first included
 
     def _bind(self, jit: bool) -> None:
         """Build the mapped function (compiled with ``jit``: once per process and function,
