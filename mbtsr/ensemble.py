@@ -1066,8 +1066,7 @@ def _value_and_derivative(z: np.ndarray, name: str) -> tuple[np.ndarray, np.ndar
 def _plan_jacobians(plan: SimpleNamespace, xu: np.ndarray, n: int) -> np.ndarray:
     """Ensemble-mean Jacobian ``[T, n, n+m]`` of the network part at ``xu [T, n+m]``: depth 1
     ``act'(z)^T @ M``, deeper reverse mode (docs/models.md, "The frozen ensemble-mean step")."""
-    T, p = xu.shape
-    K, W = plan.K, plan.W
+    (T, p), K, W = xu.shape, plan.K, plan.W
     z = plan.W1T_cat @ xu.T.astype(plan.dtype) + plan.b1  # [H, T], member k in rows k*W:(k+1)*W
     a, d = np.empty_like(z), np.empty_like(z)
     for name, r0, r1 in plan.row_runs:
@@ -1082,10 +1081,11 @@ def _plan_jacobians(plan: SimpleNamespace, xu: np.ndarray, n: int) -> np.ndarray
         for name, k0, k1 in plan.member_runs:
             h[k0:k1], d[k0:k1] = _value_and_derivative(z[k0:k1], name)
         ds.append(d)
-    R = plan.WoT_mean[:, None] * ds[-1].swapaxes(1, 2)[:, :, None, :]  # [K, T, n, W]
+    ds = [np.ascontiguousarray(d.swapaxes(1, 2)) for d in ds]  # [K, T, W]: contiguous over W
+    R = plan.WoT_mean[:, None] * ds[-1][:, :, None, :]  # [K, T, n, W] in C order: views below
     for layer in range(plan.WhT.shape[0] - 1, -1, -1):
         R = (R.reshape(K, T * n, W) @ plan.WhT[layer]).reshape(K, T, n, W)
-        R *= ds[layer].swapaxes(1, 2)[:, :, None, :]
+        R *= ds[layer][:, :, None, :]
     return (R.reshape(K, T * n, W) @ plan.W1T).sum(0, dtype=np.float64).reshape(T, n, p)
 
 
