@@ -5,6 +5,12 @@ os.environ.setdefault("MUJOCO_GL", "egl")
 
 
 import pytest  # noqa: E402
+from hypothesis import settings  # noqa: E402
+
+# The suite runs in two worker processes (README): a property's examples are not timed, so that
+# a loaded machine cannot fail a test that is correct (hypothesis' default deadline is 200 ms).
+settings.register_profile("mbtsr", deadline=None)
+settings.load_profile("mbtsr")
 
 
 @pytest.fixture(autouse=True)
