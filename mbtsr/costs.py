@@ -147,13 +147,13 @@ class _RowMap:
         """Build the mapped function (compiled with ``jit``: once per process and function,
         :data:`_COMPILED`) on the buffers."""
         sym = self.mapped.mx_in()
-        fn = ca.Function(f"{self.mapped.name()}_rows", sym, self.mapped.call(sym))
+        out = self.mapped.call(sym)
+        fn = ca.Function(f"{self.mapped.name()}_rows", sym, out)
         if jit:
             key = fn.serialize()
             try:
                 if key not in _COMPILED:
-                    _COMPILED[key] = ca.Function(fn.name(), sym, self.mapped.call(sym),
-                                                 casadi_jit_options("-O2"))
+                    _COMPILED[key] = ca.Function(fn.name(), sym, out, casadi_jit_options("-O2"))
                 fn = _COMPILED[key]
             except RuntimeError as err:  # no C compiler
                 warnings.warn(f"CasADi could not JIT-compile a cost; it stays interpreted: "
